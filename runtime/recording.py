@@ -1,0 +1,322 @@
+"""Recordings, truth and pose files in the layouts of SPEC §2.
+
+A recording is a folder::
+
+    frames/000000.png ...          # 8-bit grey or BGR, as captured
+    frames.csv                     # header `index,t_ns`, one row per frame
+    rig.yaml, site.yaml            # as used when recording
+    truth.csv                      # optional: `t_ns,x,y,yaw_deg`
+
+:class:`RecordingWriter` writes each frame's PNG (atomically, by rename) before
+its row, and flushes the row, so a run killed at any moment leaves a readable
+recording holding every frame it completed. :class:`Recording` checks the whole
+folder when it is opened.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import ConfigError
+from .estimate import Estimate, PoseEstimate
+from .rig import Rig
+from .site import Site
+from .sources import Frame, SourceBase
+
+FRAMES_HEADER = ["index", "t_ns"]
+TRUTH_HEADER = ["t_ns", "x", "y", "yaw_deg"]
+POSES_HEADER = ["t_ns", "x", "y", "yaw_deg", "lateral", "method", "quality", "latency_ms"]
+
+
+def frame_name(index: int) -> str:
+    return f"{index:06d}.png"
+
+
+# --------------------------------------------------------------------------- writing
+class RecordingWriter:
+    """Writes a SPEC recording, frame by frame.
+
+    Example::
+
+        with RecordingWriter(out_dir, rig, site) as rec:
+            rec.write(frame)                       # PNG, then its frames.csv row
+            rec.write_truth(frame.t_ns, x, y, yaw_rad)
+    """
+
+    def __init__(self, folder: str | Path, rig: Rig, site: Site, truth: bool = False,
+                 header: str = ""):
+        self.folder = Path(folder)
+        frames_dir = self.folder / "frames"
+        if (self.folder / "frames.csv").exists():
+            raise ConfigError(self.folder, None, "a recording is already there; "
+                              "choose another folder (nothing was overwritten)")
+        try:
+            frames_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(self.folder, None, f"cannot create: {exc.strerror}") from None
+        rig.save(self.folder / "rig.yaml", header)
+        site.save(self.folder / "site.yaml", header)
+        self._frames = _open_csv(self.folder / "frames.csv", FRAMES_HEADER)
+        self._truth = _open_csv(self.folder / "truth.csv", TRUTH_HEADER) if truth else None
+        self.count = 0
+
+    def write(self, frame: Frame) -> None:
+        """Store one frame: its PNG first, then its row (flushed)."""
+        name = frame_name(self.count)
+        path = self.folder / "frames" / name
+        tmp = path.with_name("." + name)
+        ok = cv2.imwrite(str(tmp), frame.image)
+        if not ok:
+            raise ConfigError(tmp, None, "cannot write the frame image")
+        os.replace(tmp, path)
+        self._frames[1].writerow([self.count, int(frame.t_ns)])
+        self._frames[0].flush()
+        self.count += 1
+
+    def write_truth(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float) -> None:
+        if self._truth is None:
+            raise ValueError("this recording was opened without truth")
+        self._truth[1].writerow([int(t_ns), f"{x_m:.6f}", f"{y_m:.6f}",
+                                 f"{math.degrees(yaw_rad):.6f}"])
+        self._truth[0].flush()
+
+    def close(self) -> None:
+        for fh in (self._frames, self._truth):
+            if fh is not None and not fh[0].closed:
+                fh[0].close()
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _open_csv(path: Path, header: list[str]):
+    try:
+        fh = open(path, "w", newline="", encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(path, None, f"cannot write: {exc.strerror}") from None
+    w = csv.writer(fh, lineterminator="\n")
+    w.writerow(header)
+    fh.flush()
+    return fh, w
+
+
+# --------------------------------------------------------------------------- reading
+@dataclass(frozen=True, eq=False)
+class Truth:
+    """Ground truth rows: ``t_ns`` (N,), ``x_m``, ``y_m``, ``yaw_rad`` (N,)."""
+
+    t_ns: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    yaw_rad: np.ndarray
+
+    def lookup(self, t_ns: int) -> tuple[float, float, float] | None:
+        """The truth row with exactly this stamp, or ``None``."""
+        i = int(np.searchsorted(self.t_ns, t_ns))
+        if i < self.t_ns.size and self.t_ns[i] == t_ns:
+            return float(self.x_m[i]), float(self.y_m[i]), float(self.yaw_rad[i])
+        return None
+
+
+def _read_csv(path: Path, header: list[str]) -> list[list[str]]:
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except FileNotFoundError:
+        raise ConfigError(path, None, "file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(path, None, f"cannot read: {exc}") from None
+    if not rows or [c.strip() for c in rows[0]] != header:
+        found = ",".join(rows[0]) if rows else "an empty file"
+        raise ConfigError(path, "header", f"expected `{','.join(header)}`, found `{found}`")
+    out = []
+    for n, row in enumerate(rows[1:], start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise ConfigError(path, f"line {n}",
+                              f"expected {len(header)} fields, found {len(row)}")
+        out.append([c.strip() for c in row])
+    return out
+
+
+def _int(path: Path, line: int, col: str, text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise ConfigError(path, f"line {line}: {col}",
+                          f"expected an integer, found {text!r}") from None
+
+
+def _float(path: Path, line: int, col: str, text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not math.isfinite(v):
+        raise ConfigError(path, f"line {line}: {col}", f"expected a number, found {text!r}")
+    return v
+
+
+def load_truth(path: str | Path) -> Truth:
+    """Read ``truth.csv`` (``t_ns,x,y,yaw_deg``), sorted by time."""
+    path = Path(path)
+    rows = _read_csv(path, TRUTH_HEADER)
+    t = np.array([_int(path, i + 2, "t_ns", r[0]) for i, r in enumerate(rows)], dtype=np.int64)
+    vals = np.array([[_float(path, i + 2, c, r[k]) for k, c in ((1, "x"), (2, "y"),
+                                                                (3, "yaw_deg"))]
+                     for i, r in enumerate(rows)], dtype=float).reshape(-1, 3)
+    order = np.argsort(t, kind="stable")
+    return Truth(t[order], vals[order, 0], vals[order, 1], np.radians(vals[order, 2]))
+
+
+class Recording(SourceBase):
+    """A SPEC recording opened for reading; also a frame source.
+
+    The whole folder is checked when opened: ``frames.csv`` header and rows, every
+    frame file present, stamps increasing, ``rig.yaml`` and ``site.yaml`` valid
+    (unless ``rig``/``site`` override them).
+    """
+
+    def __init__(self, folder: str | Path, rig: Rig | str | Path | None = None,
+                 site: Site | str | Path | None = None):
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise ConfigError(self.folder, None, "not a recording folder (not found)")
+        fpath = self.folder / "frames.csv"
+        rows = _read_csv(fpath, FRAMES_HEADER)
+        index, t_ns = [], []
+        for n, r in enumerate(rows, start=2):
+            index.append(_int(fpath, n, "index", r[0]))
+            t_ns.append(_int(fpath, n, "t_ns", r[1]))
+        self.index = np.array(index, dtype=np.int64)
+        self.t_ns = np.array(t_ns, dtype=np.int64)
+        if self.t_ns.size > 1 and np.any(np.diff(self.t_ns) <= 0):
+            bad = int(np.argmax(np.diff(self.t_ns) <= 0)) + 3
+            raise ConfigError(fpath, f"line {bad}: t_ns", "stamps must increase")
+        for n, i in enumerate(self.index, start=2):
+            if not (self.folder / "frames" / frame_name(int(i))).exists():
+                raise ConfigError(fpath, f"line {n}",
+                                  f"frame file frames/{frame_name(int(i))} is missing")
+        self.rig = rig if isinstance(rig, Rig) else Rig.load(
+            rig if rig is not None else self.folder / "rig.yaml")
+        self.site = site if isinstance(site, Site) else Site.load(
+            site if site is not None else self.folder / "site.yaml")
+        tpath = self.folder / "truth.csv"
+        self.truth = load_truth(tpath) if tpath.exists() else None
+        self._i = 0
+
+    def __len__(self) -> int:
+        return int(self.index.size)
+
+    def frame(self, k: int) -> Frame:
+        """The k-th frame listed in ``frames.csv``."""
+        i = int(self.index[k])
+        path = self.folder / "frames" / frame_name(i)
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise ConfigError(path, None, "cannot decode the image (corrupt or not a PNG)")
+        return Frame(image, int(self.t_ns[k]), i)
+
+    def read(self) -> Frame | None:
+        if self._i >= len(self):
+            return None
+        f = self.frame(self._i)
+        self._i += 1
+        return f
+
+
+# --------------------------------------------------------------------------- poses
+def _fmt(v: float | None, digits: int) -> str:
+    return "" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
+
+
+def pose_row(est: Estimate, latency_ms: float | None) -> list[str]:
+    """One ``poses.csv`` row; a failure keeps its time and method, pose fields empty."""
+    lat = _fmt(latency_ms, 3)
+    if isinstance(est, PoseEstimate):
+        return [str(int(est.t_ns)), _fmt(est.x_m, 6), _fmt(est.y_m, 6),
+                _fmt(math.degrees(est.yaw_rad), 6), _fmt(est.lateral_m, 6), est.method,
+                f"{est.quality:.3f}", lat]
+    return [str(int(est.t_ns)), "", "", "", "", est.method, "0.000", lat]
+
+
+class PoseWriter:
+    """Writes ``poses.csv`` (SPEC §2), a row per frame, flushed as it goes;
+    optionally a TUM trajectory (``t_s x y z qx qy qz qw``) beside it."""
+
+    def __init__(self, path: str | Path, tum_path: str | Path | None = None):
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(self.path.parent, None, f"cannot create: {exc.strerror}") from None
+        self._fh, self._w = _open_csv(self.path, POSES_HEADER)
+        self._tum = None
+        if tum_path is not None:
+            try:
+                self._tum = open(tum_path, "w", encoding="utf-8")
+            except OSError as exc:
+                raise ConfigError(tum_path, None, f"cannot write: {exc.strerror}") from None
+
+    def write(self, est: Estimate, latency_ms: float | None = None) -> None:
+        self._w.writerow(pose_row(est, latency_ms))
+        self._fh.flush()
+        if self._tum is not None and isinstance(est, PoseEstimate):
+            x = 0.0 if est.x_m is None else est.x_m
+            y = 0.0 if est.y_m is None else est.y_m
+            h = est.yaw_rad / 2
+            self._tum.write(f"{est.t_ns / 1e9:.9f} {x:.6f} {y:.6f} 0 0 0 "
+                            f"{math.sin(h):.9f} {math.cos(h):.9f}\n")
+            self._tum.flush()
+
+    def write_all(self, rows: Iterable[tuple[Estimate, float | None]]) -> None:
+        for est, lat in rows:
+            self.write(est, lat)
+
+    def close(self) -> None:
+        self._fh.close()
+        if self._tum is not None:
+            self._tum.close()
+
+    def __enter__(self) -> PoseWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass(frozen=True, eq=False)
+class PoseTable:
+    """``poses.csv`` read back; missing fields are NaN."""
+
+    t_ns: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    yaw_rad: np.ndarray
+    lateral_m: np.ndarray
+    method: list[str]
+    quality: np.ndarray
+    latency_ms: np.ndarray
+
+
+def load_poses(path: str | Path) -> PoseTable:
+    path = Path(path)
+    rows = _read_csv(path, POSES_HEADER)
+
+    def col(k: int) -> np.ndarray:
+        return np.array([float(r[k]) if r[k] else math.nan for r in rows], dtype=float)
+
+    return PoseTable(np.array([int(r[0]) for r in rows], dtype=np.int64), col(1), col(2),
+                     np.radians(col(3)), col(4), [r[5] for r in rows], col(6), col(7))

@@ -1,0 +1,106 @@
+"""Frames and the protocol every frame source follows.
+
+A source is opened with ``with`` and read frame by frame; ``read()`` returns
+``None`` at the end of a finite source. Frames are stamped at grab with a
+monotonic clock in integer nanoseconds (recordings keep their stored stamps).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One captured image.
+
+    Attributes:
+        image: ``(H, W)`` uint8 grey or ``(H, W, 3)`` uint8 BGR, as captured.
+        t_ns: capture time, integer nanoseconds.
+        index: the frame's number in its source (0-based).
+    """
+
+    image: np.ndarray
+    t_ns: int
+    index: int
+
+    @property
+    def grey(self) -> np.ndarray:
+        """The image as 8-bit grey."""
+        return to_grey(self.image)
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """8-bit grey of a grey, BGR or BGRA image (16-bit images are scaled down)."""
+    img = image
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    if img.ndim == 3:
+        if img.shape[2] == 1:
+            return img[:, :, 0]
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        return cv2.cvtColor(img, code)
+    return img
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """Anything that yields frames: a camera, a video, a folder, a recording, the simulator."""
+
+    def read(self) -> Frame | None:
+        """The next frame, or ``None`` at the end of a finite source."""
+        ...
+
+    def close(self) -> None:
+        ...
+
+    def __enter__(self) -> FrameSource:
+        ...
+
+    def __exit__(self, *exc: object) -> None:
+        ...
+
+
+class SourceBase:
+    """Context-manager and iteration boilerplate for sources."""
+
+    def read(self) -> Frame | None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[Frame]:
+        while True:
+            frame = self.read()
+            if frame is None:
+                return
+            yield frame
+
+
+class ListSource(SourceBase):
+    """A fake source over frames held in memory (for tests)."""
+
+    def __init__(self, frames: list[Frame]):
+        self._frames = list(frames)
+        self._i = 0
+
+    def read(self) -> Frame | None:
+        if self._i >= len(self._frames):
+            return None
+        f = self._frames[self._i]
+        self._i += 1
+        return f
