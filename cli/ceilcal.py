@@ -1,0 +1,20 @@
+"""``ceilcal``: calibrate a rig, survey a site, simulate recordings."""
+
+from __future__ import annotations
+
+from . import ceilcal_intrinsics, ceilcal_lightmap, ceilcal_mount, ceilcal_simulate
+from .common import make_app
+
+app = make_app("ceilcal", "Calibrate a ceiling-vision rig: intrinsics, mount, light map; "
+               "simulate recordings.")
+
+for _module in (ceilcal_simulate, ceilcal_intrinsics, ceilcal_mount, ceilcal_lightmap):
+    _module.register(app)
+
+
+def main() -> None:
+    app(prog_name="ceilcal")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,41 @@
+"""What every command line shares: one place that turns ceilkit errors into one line.
+
+A :class:`~ceilkit.runtime.errors.CeilkitError` is printed on stderr as
+``ceilrun: error: <file>: <key>: <what>`` with exit code 1; anything else is a bug
+and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from datetime import datetime, timezone
+
+import typer
+import typer.core
+
+from ceilkit.runtime.errors import CeilkitError
+
+
+class _Group(typer.core.TyperGroup):
+    def invoke(self, ctx):  # type: ignore[override]
+        try:
+            return super().invoke(ctx)
+        except CeilkitError as exc:
+            typer.echo(f"{ctx.find_root().info_name}: error: {exc}", err=True)
+            ctx.exit(1)
+
+
+def make_app(name: str, help: str) -> typer.Typer:
+    """A typer app whose ceilkit errors become one line on stderr and exit 1."""
+    return typer.Typer(name=name, help=help, cls=_Group, no_args_is_help=False,
+                       add_completion=False, pretty_exceptions_enable=False)
+
+
+def provenance_header(what: str, lines: list[str] | None = None) -> str:
+    """YAML comment lines naming the time, the command line and a report."""
+    out = [f"# {what}",
+           f"# written {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
+           f"# command: {shlex.join(sys.argv)}"]
+    out += [f"# {line}" for line in (lines or [])]
+    return "\n".join(out) + "\n"
