@@ -1,0 +1,447 @@
+"""Calibration boards: what they look like, how they are found, and a renderer for tests.
+
+Convention: board coordinates are metres in the board plane, ``z = 0``; x runs along
+the board's first (width) axis, y along its second, both as the printed board is read
+(x right, y down). Pixels follow SPEC §1: ``(u, v)`` with the origin at the centre of
+the top-left pixel.
+
+* :class:`ChessBoard`: ``cols`` x ``rows`` *inner* corners (the count OpenCV wants:
+  a board of 10 x 7 squares has 9 x 6 inner corners), spaced ``square_m``; corner
+  ``k`` sits at ``((k % cols) * square_m, (k // cols) * square_m, 0)``.
+* :class:`CharucoBoard`: ``squares_x`` x ``squares_y`` squares with ArUco markers in the
+  white ones; its inner corners are numbered as OpenCV's ``cv2.aruco.CharucoBoard``
+  does, with the board origin at the outer top-left corner. ``legacy`` selects the
+  layout of boards printed before OpenCV 4.6 (``setLegacyPattern``).
+
+A detection is a :class:`Detection`: the corner ids, their pixels and their board
+coordinates. :func:`render_board` draws a board seen through a known pose and a
+known :class:`~ceilkit.runtime.camera.CameraModel`, by inverse mapping (pixel ray ->
+board plane -> board texture) with supersampling, so the true corner pixels are the
+exact projections of the board corners.
+
+Example::
+
+    board = parse_board("chess:9x6", square_m=0.025)
+    det = board.detect(grey)             # Detection or None
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.sources import to_grey
+
+ARUCO_DICTIONARIES = tuple(n[5:] for n in dir(cv2.aruco) if n.startswith("DICT_"))
+MIN_CHARUCO_CORNERS = 6
+
+
+@dataclass(frozen=True, eq=False)
+class Detection:
+    """The corners of one board found in one image.
+
+    Attributes:
+        name: the image's name (file name, or ``frame000123`` for a video).
+        image_size: ``(width, height)`` in pixels.
+        ids: ``(N,)`` int corner ids (index into the board's corners).
+        points_px: ``(N, 2)`` float pixels (SPEC §1 convention).
+        points_board: ``(N, 3)`` float board coordinates in metres (z = 0).
+    """
+
+    name: str
+    image_size: tuple[int, int]
+    ids: np.ndarray
+    points_px: np.ndarray
+    points_board: np.ndarray
+
+    def __post_init__(self) -> None:
+        ids = np.asarray(self.ids, dtype=np.int32).ravel()
+        px = np.asarray(self.points_px, dtype=np.float64).reshape(-1, 2)
+        obj = np.asarray(self.points_board, dtype=np.float64).reshape(-1, 3)
+        if not (ids.size == px.shape[0] == obj.shape[0]):
+            raise ValueError("ids, points_px and points_board must have the same length")
+        for name, a in (("ids", ids), ("points_px", px), ("points_board", obj)):
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+        object.__setattr__(self, "image_size", (int(self.image_size[0]),
+                                                int(self.image_size[1])))
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    def subset(self, keep: np.ndarray) -> Detection:
+        """The same detection with only the corners where ``keep`` is true."""
+        k = np.asarray(keep, dtype=bool)
+        return Detection(self.name, self.image_size, self.ids[k], self.points_px[k],
+                         self.points_board[k])
+
+
+class Board:
+    """What every board offers (see :class:`ChessBoard`, :class:`CharucoBoard`)."""
+
+    spec: str
+
+    @property
+    def corners_board(self) -> np.ndarray:
+        """``(N, 3)`` board coordinates of every corner, in metres."""
+        raise NotImplementedError
+
+    @property
+    def extent_m(self) -> tuple[float, float, float, float]:
+        """``(x0, y0, x1, y1)``: the printed board (squares only), metres."""
+        raise NotImplementedError
+
+    def detect(self, image: np.ndarray, name: str = "") -> Detection | None:
+        """The board's corners in ``image`` (grey or BGR), or None if not found."""
+        raise NotImplementedError
+
+    def texture(self, xy_m: np.ndarray) -> np.ndarray:
+        """Reflectance in [0, 1] at board points ``(..., 2)`` (metres); the white
+        margin and the background beyond it included."""
+        raise NotImplementedError
+
+    def alternatives(self) -> list[Board]:
+        """Other plausible boards a user may have meant (for the wrong-size hint)."""
+        return []
+
+
+@dataclass(frozen=True)
+class ChessBoard(Board):
+    """A chessboard of ``cols`` x ``rows`` inner corners spaced ``square_m`` metres."""
+
+    cols: int
+    rows: int
+    square_m: float
+    margin_squares: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.cols < 2 or self.rows < 2:
+            raise ConfigError(None, "--board", f"a chessboard needs at least 2x2 inner "
+                              f"corners, found {self.cols}x{self.rows}")
+        if not self.square_m > 0:
+            raise ConfigError(None, "--square", f"expected a positive size in metres, "
+                              f"found {self.square_m:g}")
+
+    @property
+    def spec(self) -> str:  # type: ignore[override]
+        return f"chess:{self.cols}x{self.rows}"
+
+    @cached_property
+    def corners_board(self) -> np.ndarray:  # type: ignore[override]
+        k = np.arange(self.cols * self.rows)
+        pts = np.stack([(k % self.cols) * self.square_m, (k // self.cols) * self.square_m,
+                        np.zeros(k.size)], axis=1)
+        pts.setflags(write=False)
+        return pts
+
+    @property
+    def extent_m(self) -> tuple[float, float, float, float]:
+        s = self.square_m
+        return (-s, -s, self.cols * s, self.rows * s)
+
+    def detect(self, image: np.ndarray, name: str = "") -> Detection | None:
+        grey = to_grey(image)
+        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+        found, corners = cv2.findChessboardCornersSB(grey, (self.cols, self.rows), flags=flags)
+        if not found or corners is None or len(corners) != self.cols * self.rows:
+            return None
+        px = corners.reshape(-1, 2).astype(np.float64)
+        ids = np.arange(px.shape[0])
+        h, w = grey.shape[:2]
+        return Detection(name, (w, h), ids, px, self.corners_board)
+
+    def texture(self, xy_m: np.ndarray) -> np.ndarray:
+        s = self.square_m
+        x, y = xy_m[..., 0], xy_m[..., 1]
+        i, j = np.floor(x / s), np.floor(y / s)
+        x0, y0, x1, y1 = self.extent_m
+        on = (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
+        m = self.margin_squares * s
+        paper = (x >= x0 - m) & (x < x1 + m) & (y >= y0 - m) & (y < y1 + m)
+        black = on & ((i + j) % 2 == 1)
+        out = np.where(paper, 0.92, 0.35)
+        return np.where(black, 0.06, out)
+
+    def alternatives(self) -> list[Board]:
+        c, r = self.cols, self.rows
+        sizes = [(r, c), (c - 1, r), (c, r - 1), (c + 1, r), (c, r + 1), (c - 1, r - 1),
+                 (c + 1, r + 1), (r - 1, c), (r, c - 1)]
+        seen, out = {(c, r)}, []
+        for a, b in sizes:
+            if a >= 2 and b >= 2 and (a, b) not in seen:
+                seen.add((a, b))
+                out.append(ChessBoard(a, b, self.square_m))
+        return out
+
+
+@dataclass(frozen=True)
+class CharucoBoard(Board):
+    """A ChArUco board of ``squares_x`` x ``squares_y`` squares.
+
+    Attributes:
+        squares_x, squares_y: squares along x and y (inner corners: one less each).
+        square_m, marker_m: square and marker side lengths in metres.
+        dictionary: an ArUco dictionary name without ``DICT_`` (e.g. ``4X4_50``).
+        legacy: the pre-4.6 layout (``cv2.aruco.CharucoBoard.setLegacyPattern``).
+    """
+
+    squares_x: int
+    squares_y: int
+    square_m: float
+    marker_m: float
+    dictionary: str = "4X4_50"
+    legacy: bool = False
+    margin_squares: float = 0.5
+    _cv: object = field(default=None, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.squares_x < 2 or self.squares_y < 2:
+            raise ConfigError(None, "--board", f"a ChArUco board needs at least 2x2 squares, "
+                              f"found {self.squares_x}x{self.squares_y}")
+        if not self.square_m > 0:
+            raise ConfigError(None, "--square", f"expected a positive size in metres, "
+                              f"found {self.square_m:g}")
+        if not 0 < self.marker_m < self.square_m:
+            raise ConfigError(None, "--marker", f"expected a marker size in (0, "
+                              f"{self.square_m:g}) metres, found {self.marker_m:g}")
+        name = self.dictionary.upper().removeprefix("DICT_")
+        if name not in ARUCO_DICTIONARIES:
+            raise ConfigError(None, "--board", f"unknown ArUco dictionary {self.dictionary!r} "
+                              f"(e.g. 4X4_50, 5X5_100, 6X6_250, ARUCO_ORIGINAL)")
+        object.__setattr__(self, "dictionary", name)
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, "DICT_" + name))
+        n_markers = (self.squares_x * self.squares_y) // 2
+        if n_markers > d.bytesList.shape[0]:
+            raise ConfigError(None, "--board", f"{self.squares_x}x{self.squares_y} squares need "
+                              f"{n_markers} markers; DICT_{name} has {d.bytesList.shape[0]}")
+        b = cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_m,
+                                   self.marker_m, d)
+        b.setLegacyPattern(bool(self.legacy))
+        object.__setattr__(self, "_cv", b)
+
+    @property
+    def cv_board(self) -> cv2.aruco.CharucoBoard:
+        """The OpenCV board object."""
+        return self._cv  # type: ignore[return-value]
+
+    @property
+    def spec(self) -> str:  # type: ignore[override]
+        s = f"charuco:{self.squares_x}x{self.squares_y}:{self.dictionary}"
+        return s + (":legacy" if self.legacy else "")
+
+    @cached_property
+    def corners_board(self) -> np.ndarray:  # type: ignore[override]
+        pts = np.asarray(self.cv_board.getChessboardCorners(), np.float64).reshape(-1, 3)
+        pts.setflags(write=False)
+        return pts
+
+    @property
+    def extent_m(self) -> tuple[float, float, float, float]:
+        return (0.0, 0.0, self.squares_x * self.square_m, self.squares_y * self.square_m)
+
+    def detect(self, image: np.ndarray, name: str = "") -> Detection | None:
+        grey = to_grey(image)
+        h, w = grey.shape[:2]
+        detector = cv2.aruco.CharucoDetector(self.cv_board)
+        corners, ids, _, _ = detector.detectBoard(grey)
+        if ids is None or corners is None or len(ids) < MIN_CHARUCO_CORNERS:
+            return None
+        ids = ids.ravel().astype(np.int32)
+        if self.cv_board.checkCharucoCornersCollinear(ids.reshape(-1, 1)):
+            return None
+        obj, img = self.cv_board.matchImagePoints(corners, ids.reshape(-1, 1))
+        return Detection(name, (w, h), ids, np.asarray(img, np.float64).reshape(-1, 2),
+                         np.asarray(obj, np.float64).reshape(-1, 3))
+
+    def markers_found(self, image: np.ndarray) -> int:
+        """How many markers of this board's dictionary ``image`` shows."""
+        detector = cv2.aruco.CharucoDetector(self.cv_board)
+        _, _, _, marker_ids = detector.detectBoard(to_grey(image))
+        return 0 if marker_ids is None else len(marker_ids)
+
+    @cached_property
+    def _texture_image(self) -> tuple[np.ndarray, float]:
+        ppm = 40.0 / self.square_m                      # 40 texture pixels per square
+        w = int(round(self.squares_x * self.square_m * ppm))
+        h = int(round(self.squares_y * self.square_m * ppm))
+        return self.cv_board.generateImage((w, h), marginSize=0, borderBits=1), ppm
+
+    def texture(self, xy_m: np.ndarray) -> np.ndarray:
+        img, ppm = self._texture_image
+        h, w = img.shape
+        u = np.floor(xy_m[..., 0] * ppm).astype(np.int64)
+        v = np.floor(xy_m[..., 1] * ppm).astype(np.int64)
+        on = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        val = img[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)].astype(np.float64) / 255.0
+        val = 0.06 + 0.86 * val
+        m = self.margin_squares * self.square_m
+        x0, y0, x1, y1 = self.extent_m
+        x, y = xy_m[..., 0], xy_m[..., 1]
+        paper = (x >= x0 - m) & (x < x1 + m) & (y >= y0 - m) & (y < y1 + m)
+        return np.where(on, val, np.where(paper, 0.92, 0.35))
+
+    def alternatives(self) -> list[Board]:
+        sx, sy = self.squares_x, self.squares_y
+        out: list[Board] = []
+        for a, b, leg in ((sx, sy, not self.legacy), (sy, sx, self.legacy),
+                          (sy, sx, not self.legacy)):
+            try:
+                out.append(CharucoBoard(a, b, self.square_m, self.marker_m, self.dictionary,
+                                        leg))
+            except ConfigError:
+                pass
+        return out
+
+
+_CHESS = re.compile(r"^chess(?:board)?:(\d+)x(\d+)$", re.I)
+_CHARUCO = re.compile(r"^charuco:(\d+)x(\d+)(?::([A-Za-z0-9_]+))?(:legacy)?$", re.I)
+
+
+def parse_board(spec: str, square_m: float, marker_m: float | None = None,
+                legacy: bool = False) -> Board:
+    """A board from its command-line description.
+
+    ``chess:COLSxROWS`` (inner corners, e.g. ``chess:9x6``) or
+    ``charuco:SQUARES_XxSQUARES_Y[:DICT][:legacy]`` (squares, e.g.
+    ``charuco:5x7:4X4_50``); ``square_m`` and ``marker_m`` in metres (the marker
+    defaults to 0.75 of the square). Raises ConfigError naming ``--board``.
+    """
+    s = spec.strip()
+    m = _CHESS.match(s)
+    if m:
+        return ChessBoard(int(m.group(1)), int(m.group(2)), float(square_m))
+    m = _CHARUCO.match(s)
+    if m:
+        marker = 0.75 * square_m if marker_m is None else marker_m
+        return CharucoBoard(int(m.group(1)), int(m.group(2)), float(square_m), float(marker),
+                            m.group(3) or "4X4_50", legacy or bool(m.group(4)))
+    raise ConfigError(None, "--board", f"expected chess:COLSxROWS (inner corners, e.g. "
+                      f"chess:9x6) or charuco:SXxSY[:DICT][:legacy] (squares, e.g. "
+                      f"charuco:5x7:4X4_50), found {spec!r}")
+
+
+# -- rendering (tests and simulation) --------------------------------------------------------
+
+_RAY_CACHE: dict[tuple, np.ndarray] = {}
+
+
+def _camera_key(camera: CameraModel, ss: int) -> tuple:
+    return (camera.width, camera.height, camera.model, tuple(camera.K.ravel()),
+            tuple(camera.dist), ss)
+
+
+def _subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
+    """``(H*ss, W*ss, 3)`` rays (z = 1, NaN where the lens model has no inverse).
+
+    The lens is inverted exactly on a grid every 2 pixels and interpolated (bicubic)
+    between: the distortion field is smooth, so the error is far below 1e-3 px.
+    """
+    key = _camera_key(camera, ss)
+    if key not in _RAY_CACHE:
+        step, pad = 2, 3
+        gu = np.arange(-pad * step, camera.width + pad * step + 1, step, dtype=np.float64)
+        gv = np.arange(-pad * step, camera.height + pad * step + 1, step, dtype=np.float64)
+        uu, vv = np.meshgrid(gu, gv)
+        px = np.stack([uu.ravel(), vv.ravel()], axis=1)
+        xy = camera.unproject(px)
+        back = camera.distort(xy)
+        bad = ~np.all(np.abs(back - px) < 0.05, axis=1)     # no inverse there
+        grid = xy.reshape(gv.size, gu.size, 2).astype(np.float32)
+        badg = bad.reshape(gv.size, gu.size).astype(np.float32)
+        off = (np.arange(ss) + 0.5) / ss - 0.5
+        u = (np.arange(camera.width)[:, None] + off[None, :]).ravel()
+        v = (np.arange(camera.height)[:, None] + off[None, :]).ravel()
+        mu, mv = np.meshgrid((u - gu[0]) / step, (v - gv[0]) / step)
+        mu, mv = mu.astype(np.float32), mv.astype(np.float32)
+        xy_sub = cv2.remap(grid, mu, mv, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+        bad_sub = cv2.remap(badg, mu, mv, cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REPLICATE) > 0
+        xy_sub = xy_sub.astype(np.float64)
+        xy_sub[bad_sub] = np.nan
+        rays = np.concatenate([xy_sub, np.ones(xy_sub.shape[:2] + (1,))], axis=2)
+        if len(_RAY_CACHE) > 8:
+            _RAY_CACHE.clear()
+        _RAY_CACHE[key] = rays
+    return _RAY_CACHE[key]
+
+
+def render_board(board: Board, camera: CameraModel, rvec_cam_board: np.ndarray,
+                 t_cam_board_m: np.ndarray, rng: np.random.Generator | None = None,
+                 noise_sigma: float = 2.0, blur_sigma_px: float = 0.7,
+                 supersample: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Draw ``board`` seen by ``camera`` at a known pose.
+
+    Args:
+        board: the board.
+        camera: the lens (any model of :class:`CameraModel`).
+        rvec_cam_board, t_cam_board_m: Rodrigues vector (3,) and translation (3,) m
+            with ``X_cam = R(rvec) X_board + t``.
+        rng: random generator for the pixel noise (seed it).
+        noise_sigma: Gaussian pixel noise in grey levels (0..255).
+        blur_sigma_px: Gaussian blur (pixels) applied before the noise.
+        supersample: samples per pixel along each axis.
+
+    Returns:
+        ``(image, corners_px, visible)``: ``(H, W)`` uint8 grey image; ``(N, 2)`` exact
+        pixels of every board corner (``board.corners_board`` order); ``(N,)`` bool,
+        true for corners in front of the camera and inside the image.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    R, _ = cv2.Rodrigues(np.asarray(rvec_cam_board, np.float64).reshape(3))
+    t = np.asarray(t_cam_board_m, np.float64).reshape(3)
+    rays = _subpixel_rays(camera, supersample)
+    n = R[:, 2]
+    denom = rays @ n
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lam = (n @ t) / denom
+        X = rays * lam[..., None] - t
+        xy = X @ R[:, :2]                     # R^T (X - t), first two components
+    valid = np.isfinite(lam) & (lam > 0)
+    xy = np.where(valid[..., None], xy, 1e6)
+    val = board.texture(xy)
+    val = np.where(valid, val, 0.35)
+    H, W = camera.height, camera.width
+    img = val.reshape(H, supersample, W, supersample).mean(axis=(1, 3)) * 255.0
+    if blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
+    if noise_sigma > 0:
+        img = img + rng.normal(0.0, noise_sigma, img.shape)
+    image = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    Xc = board.corners_board @ R.T + t
+    corners_px = camera.project(Xc)
+    visible = np.isfinite(corners_px).all(axis=1) & camera.in_image(
+        np.nan_to_num(corners_px, nan=-1e9), margin_px=2.0)
+    if camera.model == "equidistant":
+        visible &= Xc[:, 2] > 0
+    return image, corners_px, visible
+
+
+def look_at_pose(board: Board, distance_m: float, tilt_deg: float, tilt_dir_deg: float,
+                 roll_deg: float, offset_m: tuple[float, float] = (0.0, 0.0)
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A pose ``(rvec, t)`` that shows ``board``'s centre ``offset_m`` off the optical axis.
+
+    The board is turned by ``roll_deg`` about its normal and tilted by ``tilt_deg``
+    about an in-plane axis at ``tilt_dir_deg``; its centre sits at
+    ``(offset_x, offset_y, distance_m)`` in the camera frame.
+    """
+    x0, y0, x1, y1 = board.extent_m
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    Rz, _ = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(roll_deg)]))
+    a = np.radians(tilt_dir_deg)
+    axis = np.array([np.cos(a), np.sin(a), 0.0]) * np.radians(tilt_deg)
+    Rt, _ = cv2.Rodrigues(axis)
+    R = Rt @ Rz
+    t = np.array([offset_m[0], offset_m[1], distance_m]) - R @ centre
+    rvec, _ = cv2.Rodrigues(R)
+    return rvec.ravel(), t
+
+
+__all__ = ["ARUCO_DICTIONARIES", "Board", "CharucoBoard", "ChessBoard", "Detection",
+           "look_at_pose", "parse_board", "render_board"]

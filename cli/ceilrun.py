@@ -1,0 +1,201 @@
+"""``ceilrun``: run on the vehicle (camera in, poses out over serial), or replay a recording."""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+import threading
+from enum import Enum
+from pathlib import Path
+
+import typer
+
+from ceilkit.runtime.capture import open_source, packaged_config
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.methods import METHOD_NAMES, make_estimator
+from ceilkit.runtime.pipeline import Pipeline, PoseFileSink
+from ceilkit.runtime.recording import PoseWriter, RecordingWriter
+from ceilkit.runtime.replay import replay as run_replay
+from ceilkit.runtime.rig import Rig
+from ceilkit.runtime.site import Site, check_rig_site
+from ceilkit.runtime.tracking import Tracker
+
+from .common import make_app
+
+app = make_app("ceilrun", "Run the localizer on the vehicle, or replay a recording.\n\n"
+               "Live: ceilrun --device /dev/video0 --serial /dev/ttyUSB0 --rig rig.yaml "
+               "--site site.yaml")
+
+
+class Protocol(str, Enum):
+    nmea = "nmea"
+    mavlink = "mavlink"
+
+
+def _check_method(name: str | None) -> str | None:
+    if name is not None and name not in METHOD_NAMES:
+        raise typer.BadParameter(f"unknown method {name!r} (choose from "
+                                 f"{', '.join(METHOD_NAMES)})")
+    return name
+
+
+def _err(msg: str) -> None:
+    typer.echo(msg, err=True)
+
+
+@contextlib.contextmanager
+def _stop_on_signals():
+    """An event set by SIGINT or SIGTERM: the loop finishes its frame and closes files."""
+    stop = threading.Event()
+    previous = {}
+
+    def handler(signum, _frame):
+        stop.set()
+
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+    try:
+        yield stop
+    finally:
+        for sig, h in previous.items():
+            signal.signal(sig, h)
+
+
+def _load_rig_site(device: str, rig: Path | None, site: Path | None) -> tuple[Rig, Site]:
+    if device.startswith("sim"):
+        example = packaged_config(device.partition(":")[2] or "corridor")
+        rig = rig or example / "rig.yaml"
+        site = site or example / "site.yaml"
+    if rig is None:
+        raise ConfigError(None, "--rig", "missing: give the rig file (ceilcal writes it)")
+    if site is None:
+        raise ConfigError(None, "--site", "missing: give the site file")
+    r, s = Rig.load(rig), Site.load(site)
+    check_rig_site(r, s)
+    return r, s
+
+
+def _open_link(serial: str | None, protocol: Protocol, baud: int, sysid: int, compid: int):
+    if serial is None:
+        return contextlib.nullcontext(None)
+    from ceilkit.runtime.link.transport import open_link
+
+    return open_link(serial, protocol=protocol.value, baud=baud, system_id=sysid,
+                     component_id=compid)
+
+
+@app.callback(invoke_without_command=True)
+def live(
+    ctx: typer.Context,
+    device: str = typer.Option("/dev/video0", help="Camera (/dev/videoN or index), video "
+                               "file, image folder, recording, or sim[:corridor|lights|block]."),
+    serial: str = typer.Option(None, help="Serial port for the pose stream "
+                               "(e.g. /dev/ttyUSB0), or - for stdout."),
+    baud: int = typer.Option(115200, help="Serial baud rate."),
+    protocol: Protocol = typer.Option(Protocol.nmea, help="Pose stream protocol."),
+    sysid: int = typer.Option(1, help="MAVLink system id."),
+    compid: int = typer.Option(197, help="MAVLink component id."),
+    rig: Path = typer.Option(None, help="rig.yaml (default for sim: the example's)."),
+    site: Path = typer.Option(None, help="site.yaml (default for sim: the example's)."),
+    method: str = typer.Option(None, callback=_check_method,
+                               help=f"Estimator: {', '.join(METHOD_NAMES)} "
+                                    "(default: what the site holds)."),
+    record: Path = typer.Option(None, help="Write a SPEC recording of the run here."),
+    out: Path = typer.Option(None, help="Write poses.csv into this folder."),
+    frames: int = typer.Option(0, help="Stop after this many frames (0: run until stopped; "
+                               "sim: 300)."),
+    width: int = typer.Option(0, help="Capture width (0: driver default)."),
+    height: int = typer.Option(0, help="Capture height."),
+    fps: float = typer.Option(0.0, help="Capture rate."),
+    fourcc: str = typer.Option("", help="Pixel format, e.g. MJPG or YUYV."),
+    exposure: float = typer.Option(None, help="Manual exposure (turns auto-exposure off)."),
+    gain: float = typer.Option(None, help="Manual gain."),
+    status: bool = typer.Option(False, "--status", help="Print a live status line."),
+) -> None:
+    """Run live: frames from --device, poses to --serial."""
+    if ctx.invoked_subcommand is not None:
+        return
+    r, s = _load_rig_site(device, rig, site)
+    estimator = make_estimator(method, r, s)
+    sim_frames = frames or 300
+    source = open_source(device, r, s, width, height, fps, fourcc, exposure, gain,
+                         frames=sim_frames)
+    recorder = RecordingWriter(record, r, s) if record is not None else None
+    writer = PoseWriter(out / "poses.csv") if out is not None else None
+    try:
+        with source, _open_link(serial, protocol, baud, sysid, compid) as link, \
+                _stop_on_signals() as stop:
+            sinks = [x for x in (link, PoseFileSink(writer) if writer else None) if x]
+            pipeline = Pipeline(estimator, sinks, Tracker())
+            from ceilkit.runtime.live import run_live
+
+            def show(tel):
+                if status:
+                    sys.stderr.write("\r" + tel.live_line())
+                    sys.stderr.flush()
+
+            result = run_live(source, pipeline, recorder, stop, frames, show)
+    finally:
+        if recorder is not None:
+            recorder.close()
+        if writer is not None:
+            writer.close()
+    if status:
+        _err("")
+    _err(f"ceilrun: {estimator.name} on {device}: {result.elapsed_s:.1f} s"
+         + (" (stopped)" if result.stopped else ""))
+    for line in result.telemetry.summary():
+        _err("  " + line)
+    if recorder is not None:
+        _err(f"  recorded {result.recorded} frames in {record}")
+
+
+@app.command()
+def replay(
+    recording: Path = typer.Argument(..., help="A SPEC recording folder."),
+    out: Path = typer.Option(None, help="Output folder (default RECORDING/replay)."),
+    rig: Path = typer.Option(None, help="Use this rig.yaml instead of the recording's."),
+    site: Path = typer.Option(None, help="Use this site.yaml instead of the recording's."),
+    method: str = typer.Option(None, callback=_check_method,
+                               help=f"Estimator: {', '.join(METHOD_NAMES)}."),
+    tum: bool = typer.Option(False, "--tum", help="Also write poses.tum (for evo)."),
+    realtime: bool = typer.Option(False, "--realtime", help="Replay at recorded timing."),
+    serial: str = typer.Option(None, help="Also stream the poses to this port (or -)."),
+    protocol: Protocol = typer.Option(Protocol.nmea, help="Pose stream protocol."),
+    baud: int = typer.Option(115200, help="Serial baud rate."),
+    progress: bool = typer.Option(None, "--progress/--no-progress",
+                                  help="Progress bar (default: on a terminal)."),
+) -> None:
+    """Replay a recording through the pipeline; write poses.csv; print errors vs truth.csv."""
+    show = sys.stderr.isatty() if progress is None else progress
+
+    def bar(done: int, total: int) -> None:
+        if show and (done == total or done % 10 == 0):
+            n = int(30 * done / max(total, 1))
+            sys.stderr.write(f"\r[{'#' * n}{'.' * (30 - n)}] {done}/{total}")
+            sys.stderr.flush()
+
+    with _open_link(serial, protocol, baud, 1, 197) as link:
+        res = run_replay(recording, out, rig, site, method, tum=tum, realtime=realtime,
+                         sinks=[link] if link is not None else (), progress=bar)
+    if show:
+        _err("")
+    tel = res.telemetry
+    typer.echo(f"replay {res.recording} with {res.method}: {tel.frames} frames in "
+               f"{res.elapsed_s:.2f} s -> {res.poses_path}")
+    for line in tel.summary():
+        typer.echo("  " + line)
+    if res.accuracy is not None:
+        typer.echo("  against truth.csv:")
+        for line in res.accuracy.lines():
+            typer.echo("    " + line)
+
+
+def main() -> None:
+    app(prog_name="ceilrun")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,269 @@
+"""Frame sources at the edge: cameras, video files, image folders, recordings, the simulator.
+
+``open_source(spec, ...)`` turns a ``--device`` value into a source:
+
+* ``/dev/videoN`` or a camera index (``0``): a live camera through OpenCV (V4L2),
+  with size, rate, pixel format and manual exposure/gain; frames stamped at grab
+  with ``time.monotonic_ns``; a background grabber keeps only the latest frame
+  (a slow estimator never works on stale frames; the skipped ones are counted);
+  a camera that vanishes is reopened with back-off while the run goes on.
+* a video file: read in order (nothing dropped), stamped from its frame times.
+* a folder holding ``frames.csv``: a SPEC recording; any other folder: its
+  images in name order.
+* ``sim:`` or ``sim:NAME``: the simulator driving along a corridor (NAME is a
+  packaged example: ``corridor``, ``lights``, ``block``; default ``corridor``).
+
+Each source has ``live`` (its stamps are on ``time.monotonic_ns``) and
+``dropped`` (frames skipped by the latest-frame policy).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import CaptureError
+from .sources import Frame, SourceBase
+
+log = logging.getLogger("ceilkit.capture")
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".mjpg", ".mjpeg")
+
+
+class ImageFolderSource(SourceBase):
+    """Images of a folder in name order, stamped ``index / fps`` seconds."""
+
+    live = False
+
+    def __init__(self, folder: str | Path, fps: float = 30.0):
+        self.folder = Path(folder)
+        self.files = sorted(p for p in self.folder.iterdir()
+                            if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self.files:
+            raise CaptureError(f"{self.folder}: no images found "
+                               f"({', '.join(IMAGE_SUFFIXES)})")
+        self.fps = fps
+        self.dropped = 0
+        self._i = 0
+
+    def read(self) -> Frame | None:
+        if self._i >= len(self.files):
+            return None
+        path = self.files[self._i]
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise CaptureError(f"{path}: cannot decode the image")
+        f = Frame(image, int(round(self._i * 1e9 / self.fps)), self._i)
+        self._i += 1
+        return f
+
+
+class VideoFileSource(SourceBase):
+    """A video file read frame by frame, stamped from the container's frame times."""
+
+    live = False
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.cap = cv2.VideoCapture(str(self.path))
+        if not self.cap.isOpened():
+            raise CaptureError(f"{self.path}: cannot open the video")
+        self.fps = self.cap.get(cv2.CAP_PROP_FPS) or 30.0
+        self.dropped = 0
+        self._i = 0
+
+    def read(self) -> Frame | None:
+        ok, image = self.cap.read()
+        if not ok:
+            return None
+        f = Frame(image, int(round(self._i * 1e9 / self.fps)), self._i)
+        self._i += 1
+        return f
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+class CameraSource(SourceBase):
+    """A live camera with a latest-frame grabber thread and reopen-with-back-off.
+
+    Args:
+        device: ``/dev/videoN`` or an index.
+        width, height, fps: requested capture format (0: the driver's default).
+        fourcc: pixel format such as ``MJPG`` or ``YUYV`` (empty: default).
+        exposure: manual exposure in the driver's units (auto-exposure is turned off);
+            ``None`` leaves exposure alone.
+        gain: manual gain, or ``None``.
+        open_capture: how to open the device (a fake in tests).
+    """
+
+    live = True
+
+    def __init__(self, device: str | int, width: int = 0, height: int = 0, fps: float = 0,
+                 fourcc: str = "", exposure: float | None = None, gain: float | None = None,
+                 open_capture: Callable[[str | int], object] | None = None,
+                 clock: Callable[[], int] = time.monotonic_ns,
+                 max_backoff_s: float = 2.0):
+        self.device = device
+        self.settings = (width, height, fps, fourcc, exposure, gain)
+        self._open_capture = open_capture or self._open_v4l2
+        self.clock = clock
+        self.max_backoff_s = max_backoff_s
+        self.dropped = 0
+        self.reopens = 0
+        self.status = "starting"
+        self._cond = threading.Condition()
+        self._latest: Frame | None = None
+        self._taken = -1
+        self._stop = threading.Event()
+        self._cap = self._open_or_fail()
+        self._thread = threading.Thread(target=self._grab_loop, name="ceilkit-grab",
+                                        daemon=True)
+        self._thread.start()
+
+    def _open_v4l2(self, device: str | int) -> object:
+        width, height, fps, fourcc, exposure, gain = self.settings
+        api = cv2.CAP_V4L2 if isinstance(device, str) and device.startswith("/dev/") \
+            else cv2.CAP_ANY
+        cap = cv2.VideoCapture(device, api)
+        if not cap.isOpened():
+            return cap
+        if fourcc:
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc[:4].ljust(4)))
+        if width:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        if height:
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        if fps:
+            cap.set(cv2.CAP_PROP_FPS, fps)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
+        if exposure is not None:
+            cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2: 1 = manual
+            cap.set(cv2.CAP_PROP_EXPOSURE, exposure)
+        if gain is not None:
+            cap.set(cv2.CAP_PROP_GAIN, gain)
+        return cap
+
+    def _open_or_fail(self):
+        cap = self._open_capture(self.device)
+        if not cap.isOpened():
+            raise CaptureError(f"{self.device}: cannot open the camera "
+                               "(is it plugged in, and not used by another program?)")
+        self.status = "running"
+        return cap
+
+    def _grab_loop(self) -> None:
+        index = 0
+        backoff = 0.1
+        while not self._stop.is_set():
+            ok, image = self._cap.read()
+            t_ns = self.clock()
+            if ok and image is not None:
+                backoff = 0.1
+                with self._cond:
+                    if self._latest is not None and self._latest.index != self._taken:
+                        self.dropped += 1  # never read: a newer frame replaces it
+                    self._latest = Frame(image, t_ns, index)
+                    self._cond.notify_all()
+                index += 1
+                continue
+            # the camera vanished: reopen with back-off, the run goes on
+            self.status = "lost"
+            log.warning("camera %s lost; reopening in %.1f s", self.device, backoff)
+            try:
+                self._cap.release()
+            except Exception:  # noqa: BLE001 - a driver may fail on release
+                pass
+            if self._stop.wait(backoff):
+                break
+            backoff = min(2 * backoff, self.max_backoff_s)
+            cap = self._open_capture(self.device)
+            if cap.isOpened():
+                self._cap = cap
+                self.reopens += 1
+                self.status = "running"
+                log.warning("camera %s reopened", self.device)
+            else:
+                self._cap = cap
+
+    def read(self, timeout_s: float = 5.0) -> Frame | None:
+        """The newest frame not yet returned; waits for one. ``None`` once closed."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not self._stop.is_set():
+                if self._latest is not None and self._latest.index != self._taken:
+                    self._taken = self._latest.index
+                    return self._latest
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise CaptureError(f"{self.device}: no frame for {timeout_s:g} s "
+                                       f"(camera {self.status})")
+                self._cond.wait(min(left, 0.1))
+        return None
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        self._thread.join(timeout=2.0)
+        try:
+            self._cap.release()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def packaged_config(name: str) -> Path:
+    """The folder of a packaged example (``corridor``, ``lights``, ``block``)."""
+    from importlib.resources import files
+
+    root = Path(str(files("ceilkit.configs")))
+    path = root / name
+    if not (path / "rig.yaml").exists():
+        choices = sorted(p.name for p in root.iterdir() if (p / "rig.yaml").exists())
+        raise CaptureError(f"sim:{name}: no such example (choose from {', '.join(choices)})")
+    return path
+
+
+def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
+                fps: float = 0, fourcc: str = "", exposure: float | None = None,
+                gain: float | None = None, frames: int = 300, seed: int = 0) -> SourceBase:
+    """Open a ``--device`` value (see the module docstring)."""
+    if spec.startswith("sim:") or spec == "sim":
+        from .sim import SimSource, straight_drive
+
+        if rig is None or site is None:
+            raise CaptureError("sim: needs a rig and a site")
+        traj = straight_drive(frames, fps=fps or 30.0, speed_mps=0.8, y_m=0.1,
+                              weave_m=0.15, yaw_wobble_rad=np.radians(4.0),
+                              rng=np.random.default_rng(seed))
+        src = SimSource(rig, site, traj, seed=seed)
+        src.live = False
+        src.dropped = 0
+        return src
+    if spec.isdigit():
+        return CameraSource(int(spec), width, height, fps, fourcc, exposure, gain)
+    if spec.startswith("/dev/"):
+        return CameraSource(spec, width, height, fps, fourcc, exposure, gain)
+    path = Path(spec)
+    if path.is_dir():
+        if (path / "frames.csv").exists():
+            from .recording import Recording
+
+            rec = Recording(path, rig=rig, site=site)
+            rec.live = False
+            rec.dropped = 0
+            return rec
+        return ImageFolderSource(path, fps or 30.0)
+    if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
+        return VideoFileSource(path)
+    if path.exists():
+        raise CaptureError(f"{spec}: not a camera, video ({', '.join(VIDEO_SUFFIXES)}), "
+                           "image folder or recording")
+    raise CaptureError(f"{spec}: no such device or file")

@@ -1,0 +1,340 @@
+"""MAVLink 2 framing, written by hand, for ArduPilot and PX4.
+
+Pure, byte-exact encoders (no pymavlink at runtime) for the two messages the
+link sends, and a small frame splitter to read back what the autopilot says:
+
+* ``VISION_POSITION_ESTIMATE`` (id 102, CRC_EXTRA 158): the pose, stamped with the
+  frame's capture time, in the autopilot's local NED frame.
+* ``HEARTBEAT`` (id 0, CRC_EXTRA 50): once a second, as component 197
+  (``MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY``), type 18 (``MAV_TYPE_ONBOARD_CONTROLLER``).
+
+Frame (MAVLink 2, unsigned)::
+
+    0xFD len incompat=0 compat=0 seq sysid compid msgid(3, LE) payload(len) crc(2, LE)
+
+The payload holds the base fields sorted by type size (largest first; arrays by
+their element size), then the extension fields in declaration order; trailing
+zero bytes are cut (never the first byte). The CRC is X.25 (CRC-16/MCRF4XX) over
+everything after 0xFD, then over the message's CRC_EXTRA byte.
+
+Frame mapping, W (SPEC §1: x along the site, y left, z up, yaw counter-clockwise
+from +x) to the autopilot's local NED (x north, y east, z down, yaw clockwise
+from north), with W's +x taken as "north"::
+
+    x_ned = x_W        y_ned = -y_W        z_ned = -z_W (= 0: the reference point
+    yaw_ned = -yaw_W   roll = pitch = 0     is on the floor)
+
+which is a reflection (det = -1) that turns a right-handed, z-up frame into the
+right-handed, z-down NED. The covariance follows as ``J C J^T`` with
+``J = diag(1, -1, -1)`` on ``(x, y, yaw)``.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..estimate import Estimate, PoseEstimate
+
+STX_V2 = 0xFD
+HEADER_LEN = 10  # STX .. msgid
+CRC_LEN = 2
+
+MSG_ID_HEARTBEAT = 0
+MSG_ID_VISION_POSITION_ESTIMATE = 102
+CRC_EXTRA = {0: 50, 102: 158, 111: 34, 253: 83, 30: 39, 32: 185, 242: 104}
+MSG_NAMES = {0: "HEARTBEAT", 102: "VISION_POSITION_ESTIMATE", 111: "TIMESYNC",
+             253: "STATUSTEXT", 30: "ATTITUDE", 32: "LOCAL_POSITION_NED",
+             242: "HOME_POSITION"}
+
+MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_STANDBY = 3
+MAV_STATE_ACTIVE = 4
+MAVLINK_VERSION = 3
+
+UNOBSERVED_POLICIES = ("skip", "nan")
+
+
+def crc_x25(data: bytes, crc: int = 0xFFFF) -> int:
+    """MAVLink's checksum (CRC-16/MCRF4XX: poly 0x1021 reflected, init 0xFFFF)."""
+    for b in data:
+        tmp = b ^ (crc & 0xFF)
+        tmp = (tmp ^ (tmp << 4)) & 0xFF
+        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return crc
+
+
+def frame_v2(msg_id: int, payload: bytes, seq: int, sysid: int, compid: int) -> bytes:
+    """Wrap a full-length payload in a MAVLink 2 frame (unsigned), truncating trailing zeros.
+
+    Args:
+        msg_id: message id (0..2**24-1), must have a known CRC_EXTRA.
+        payload: the payload in wire order, untruncated.
+        seq: packet sequence, taken modulo 256.
+        sysid, compid: sender's system and component ids (1..255, 0..255).
+    """
+    body = payload.rstrip(b"\x00") or payload[:1]
+    header = struct.pack("<BBBBBBB", len(body), 0, 0, seq % 256, sysid, compid,
+                         msg_id & 0xFF) + struct.pack("<H", msg_id >> 8)
+    crc = crc_x25(bytes([CRC_EXTRA[msg_id]]), crc_x25(header + body))
+    return bytes([STX_V2]) + header + body + struct.pack("<H", crc)
+
+
+def encode_heartbeat(seq: int, sysid: int = 1,
+                     compid: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+                     system_status: int = MAV_STATE_ACTIVE) -> bytes:
+    """A HEARTBEAT from an onboard vision component.
+
+    Wire order: custom_mode u32, type u8, autopilot u8, base_mode u8, system_status u8,
+    mavlink_version u8 (9 bytes before truncation).
+    """
+    payload = struct.pack("<IBBBBB", 0, MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID,
+                          0, system_status, MAVLINK_VERSION)
+    return frame_v2(MSG_ID_HEARTBEAT, payload, seq, sysid, compid)
+
+
+def encode_vision_position_estimate(usec: int, x: float, y: float, z: float, roll: float,
+                                    pitch: float, yaw: float, covariance: Sequence[float],
+                                    reset_counter: int, seq: int, sysid: int = 1,
+                                    compid: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+                                    ) -> bytes:
+    """A raw VISION_POSITION_ESTIMATE (NED, metres and radians, as given).
+
+    Wire order: usec u64, x, y, z, roll, pitch, yaw f32 (base, already sorted by
+    size), then the extensions covariance f32[21], reset_counter u8: 117 bytes
+    before truncation.
+    """
+    if len(covariance) != 21:
+        raise ValueError(f"covariance must have 21 entries, found {len(covariance)}")
+    payload = (struct.pack("<Q6f", int(usec) & 0xFFFF_FFFF_FFFF_FFFF, x, y, z, roll, pitch, yaw)
+               + struct.pack("<21f", *covariance) + struct.pack("<B", reset_counter % 256))
+    return frame_v2(MSG_ID_VISION_POSITION_ESTIMATE, payload, seq, sysid, compid)
+
+
+# ------------------------------------------------------------------- pose -> message
+
+
+def urt_index(i: int, j: int) -> int:
+    """Index in the 21-float upper-right triangle of a row-major 6x6 (x, y, z, roll, pitch, yaw).
+
+    >>> [urt_index(k, k) for k in range(6)]
+    [0, 6, 11, 15, 18, 20]
+    """
+    if i > j:
+        i, j = j, i
+    return i * 6 - i * (i - 1) // 2 + (j - i)
+
+
+def ned_from_world(x_m: float | None, y_m: float | None, yaw_rad: float
+                   ) -> tuple[float | None, float | None, float]:
+    """``(north, east, yaw_ned)`` from a pose in W: ``(x, -y, -yaw)``, yaw wrapped to [-pi, pi)."""
+    yaw = -yaw_rad
+    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
+    return x_m, (None if y_m is None else -y_m), yaw
+
+
+def covariance_ned(cov_world: np.ndarray | None, *, z_var_m2: float, roll_pitch_var_rad2: float,
+                   x_observed: bool = True, y_observed: bool = True) -> list[float]:
+    """The 21 floats of VISION_POSITION_ESTIMATE.covariance, in NED.
+
+    Args:
+        cov_world: 3x3 covariance of ``(x, y, yaw)`` in W (m², rad²), or ``None`` (unknown).
+        z_var_m2: variance given to z (the vehicle is on the floor; not measured).
+        roll_pitch_var_rad2: variance given to roll and pitch (level floor; not measured).
+        x_observed, y_observed: a coordinate the method cannot observe gets NaN in its
+            row and column (only used with the ``nan`` policy, for PX4).
+
+    Returns:
+        21 floats. An unknown (``None`` or non-finite where observed) covariance is
+        all NaN, the MAVLink convention ("NaN in the first element: unknown"); the
+        autopilots then use their own noise parameters (ArduPilot VISO_POS_M_NSE /
+        VISO_YAW_M_NSE, PX4 EKF2_EVP_NOISE / EKF2_EVA_NOISE).
+    """
+    nan = float("nan")
+    observed = [x_observed, y_observed, True]
+    if cov_world is None:
+        return [nan] * 21
+    c = np.asarray(cov_world, dtype=float).reshape(3, 3)
+    J = np.diag([1.0, -1.0, -1.0])
+    c = J @ c @ J.T
+    idx = [0, 1, 5]  # (x, y, yaw) -> rows of the 6x6
+    for a in range(3):
+        for b in range(3):
+            if observed[a] and observed[b] and not math.isfinite(c[a, b]):
+                return [nan] * 21
+    out = [0.0] * 21
+    out[urt_index(2, 2)] = float(z_var_m2)
+    out[urt_index(3, 3)] = float(roll_pitch_var_rad2)
+    out[urt_index(4, 4)] = float(roll_pitch_var_rad2)
+    for a in range(3):
+        for b in range(a, 3):
+            ok = observed[a] and observed[b]
+            out[urt_index(idx[a], idx[b])] = float(c[a, b]) if ok else nan
+    if not x_observed:  # every entry in an unobserved row/column
+        for k in range(6):
+            out[urt_index(0, k)] = nan
+    if not y_observed:
+        for k in range(6):
+            out[urt_index(1, k)] = nan
+    return out
+
+
+@dataclass(frozen=True)
+class VisionSettings:
+    """How poses are turned into VISION_POSITION_ESTIMATE.
+
+    Attributes:
+        z_var_m2: variance sent for z (m²). ArduPilot folds x, y and z variance into
+            one position error, so keep it of the order of the x/y variance.
+        roll_pitch_var_rad2: variance sent for roll and pitch (rad²); ArduPilot folds
+            them into the yaw error the same way.
+        unobserved: a pose missing x or y: ``skip`` sends nothing (safe for both
+            autopilots: ArduPilot has no per-axis check and would take a NaN
+            position into its EKF); ``nan`` sends NaN in that coordinate and its
+            covariance row (PX4 EKF2 then fuses yaw only).
+    """
+
+    z_var_m2: float = 0.01
+    roll_pitch_var_rad2: float = math.radians(2.0) ** 2
+    unobserved: str = "skip"
+
+    def __post_init__(self) -> None:
+        if self.unobserved not in UNOBSERVED_POLICIES:
+            raise ValueError(f"unobserved must be one of {UNOBSERVED_POLICIES}, "
+                             f"found {self.unobserved!r}")
+
+
+def pose_message(est: Estimate, seq: int, reset_counter: int, *, sysid: int = 1,
+                 compid: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+                 settings: VisionSettings | None = None) -> bytes | None:
+    """VISION_POSITION_ESTIMATE for one estimate, or ``None`` when nothing may be sent.
+
+    ``None`` for a :class:`Failure`, a non-finite yaw or observed coordinate, and (with
+    the default ``skip`` policy) a pose missing x or y. Never a finite position with
+    NaN angles: roll = pitch = 0 and yaw is always finite in a sent message.
+
+    ``usec`` is the frame's capture time ``t_ns // 1000`` (the vision clock; ArduPilot
+    corrects the offset by jitter estimation, PX4 needs TIMESYNC, see docs/serial.md).
+    """
+    s = settings or VisionSettings()
+    if not isinstance(est, PoseEstimate) or not math.isfinite(est.yaw_rad):
+        return None
+    if est.x_m is None and est.y_m is None:
+        return None
+    for v in (est.x_m, est.y_m):
+        if v is not None and not math.isfinite(v):
+            return None
+    if (est.x_m is None or est.y_m is None) and s.unobserved == "skip":
+        return None
+    north, east, yaw = ned_from_world(est.x_m, est.y_m, est.yaw_rad)
+    cov = covariance_ned(est.cov, z_var_m2=s.z_var_m2, roll_pitch_var_rad2=s.roll_pitch_var_rad2,
+                         x_observed=est.x_m is not None, y_observed=est.y_m is not None)
+    nan = float("nan")
+    return encode_vision_position_estimate(
+        est.t_ns // 1000, nan if north is None else north, nan if east is None else east,
+        0.0, 0.0, 0.0, yaw, cov, reset_counter, seq, sysid, compid)
+
+
+# -------------------------------------------------------------------------- decoding
+
+
+@dataclass(frozen=True)
+class MavFrame:
+    """One MAVLink frame read back. ``crc_ok`` is ``None`` when the CRC_EXTRA is unknown."""
+
+    msg_id: int
+    seq: int
+    sysid: int
+    compid: int
+    payload: bytes
+    crc_ok: bool | None
+    raw: bytes
+
+    @property
+    def name(self) -> str:
+        return MSG_NAMES.get(self.msg_id, f"MSG_{self.msg_id}")
+
+
+def _frame_at(buf: bytes, i: int) -> tuple[MavFrame | None, int]:
+    """Try a frame at ``buf[i]``: (frame, its length), (None, 0) if incomplete, (None, -1) bad."""
+    if buf[i] == STX_V2:
+        if len(buf) - i < HEADER_LEN:
+            return None, 0
+        plen, incompat = buf[i + 1], buf[i + 2]
+        total = HEADER_LEN + plen + CRC_LEN + (13 if incompat & 0x01 else 0)
+        if len(buf) - i < total:
+            return None, 0
+        seq, sysid, compid = buf[i + 4], buf[i + 5], buf[i + 6]
+        msg_id = buf[i + 7] | (buf[i + 8] << 8) | (buf[i + 9] << 16)
+        payload = bytes(buf[i + HEADER_LEN:i + HEADER_LEN + plen])
+        crc_pos = i + HEADER_LEN + plen
+    elif buf[i] == 0xFE:  # MAVLink 1
+        if len(buf) - i < 6:
+            return None, 0
+        plen = buf[i + 1]
+        total = 6 + plen + CRC_LEN
+        if len(buf) - i < total:
+            return None, 0
+        seq, sysid, compid, msg_id = buf[i + 2], buf[i + 3], buf[i + 4], buf[i + 5]
+        payload = bytes(buf[i + 6:i + 6 + plen])
+        crc_pos = i + 6 + plen
+    else:
+        return None, -1
+    raw = bytes(buf[i:i + total])
+    crc_ok = None
+    if msg_id in CRC_EXTRA:
+        crc = crc_x25(bytes([CRC_EXTRA[msg_id]]), crc_x25(bytes(buf[i + 1:crc_pos])))
+        crc_ok = crc == struct.unpack_from("<H", buf, crc_pos)[0]
+        if not crc_ok:
+            return None, -1
+    return MavFrame(msg_id, seq, sysid, compid, payload, crc_ok, raw), total
+
+
+def split_frames(buffer: bytes) -> tuple[list[MavFrame], bytes]:
+    """Frames in ``buffer`` and the incomplete rest; garbage and bad-CRC bytes are skipped.
+
+    A frame whose CRC_EXTRA is not in :data:`CRC_EXTRA` is returned with ``crc_ok=None``.
+    """
+    frames: list[MavFrame] = []
+    i = 0
+    n = len(buffer)
+    while i < n:
+        frame, length = _frame_at(buffer, i)
+        if length == 0:
+            break
+        if frame is None:
+            i += 1
+            continue
+        frames.append(frame)
+        i += length
+    return frames, bytes(buffer[i:])
+
+
+def iter_frames(data: bytes) -> Iterator[MavFrame]:
+    """Every complete frame in ``data`` (a helper for tests and logs)."""
+    yield from split_frames(data)[0]
+
+
+def unpack_vision_position_estimate(frame: MavFrame) -> dict[str, object]:
+    """The fields of a VISION_POSITION_ESTIMATE frame (payload zero-extended to 117 bytes)."""
+    p = frame.payload.ljust(117, b"\x00")
+    usec, x, y, z, roll, pitch, yaw = struct.unpack_from("<Q6f", p, 0)
+    cov = struct.unpack_from("<21f", p, 32)
+    return {"usec": usec, "x": x, "y": y, "z": z, "roll": roll, "pitch": pitch, "yaw": yaw,
+            "covariance": list(cov), "reset_counter": p[116]}
+
+
+def describe_frame(frame: MavFrame) -> str:
+    """One log line for a frame read back from the autopilot."""
+    text = f"{frame.name} sys={frame.sysid} comp={frame.compid} seq={frame.seq}"
+    if frame.msg_id == 253:  # STATUSTEXT: severity u8, text char[50]
+        p = frame.payload.ljust(51, b"\x00")
+        msg = p[1:51].split(b"\x00")[0].decode("ascii", "replace")
+        text += f" severity={p[0]} text={msg!r}"
+    return text

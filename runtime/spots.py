@@ -1,0 +1,318 @@
+"""Spot-light detection: Niblack local thresholding, identification, sub-pixel centroids.
+
+Convention: pixels ``(u, v)`` with the origin at the centre of the top-left pixel
+(SPEC §1); intensities are 8-bit grey levels. Nothing here undistorts: the
+centroids are in the distorted image, and only they are undistorted later
+(:meth:`CameraModel.unproject`), never the whole image (Roh et al. §III.1).
+
+The pipeline (after Roh et al., "Point pattern matching based visual global
+localization using ceiling lights", ASCC 2011, §II):
+
+1. **Niblack thresholding**: a pixel is a candidate when
+   ``I > mean + max(k * std, min_contrast)`` over a ``window_px`` square around it.
+   The local mean and standard deviation come from box filters (integral images)
+   computed on a 4x reduced image and interpolated back: the light-to-window
+   scale is what matters, and it costs a fifth of the full-resolution filter.
+2. **Identification** of real lights among the connected candidate regions:
+   the perception index of the paper's Eq. (6),
+   ``L = (I_o - I_b) * A**0.33 / (1.97 * I_b**0.72)`` (object mean ``I_o``,
+   object-background ring mean ``I_b``, area ``A`` in pixels), plus the checks
+   the paper leaves implicit: an area range and an elongation bound (the
+   estimator predicts both from the light size, the ceiling height and the lens
+   at each spot's place), a contrast relative to the brightest spot (rejects
+   reflections on glossy ceilings), and a second, higher threshold inside
+   regions too large to be one light (glare halos).
+3. **Sub-pixel centroids**: intensity-weighted, ``w = max(I - I_b, 0)`` over the
+   region's box grown by two pixels, other regions' pixels excluded.
+
+Example::
+
+    spots = detect_spots(grey)                 # SpotParams() defaults
+    spots.centroids_px                         # (N, 2) float64, distorted pixels
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .sources import to_grey
+
+_REDUCE = 4  # the Niblack statistics are computed on a 1/_REDUCE image
+
+
+@dataclass(frozen=True)
+class SpotParams:
+    """Knobs of :func:`detect_spots`.
+
+    Attributes:
+        window_px: Niblack window side (pixels of the full image); a few light diameters.
+        k: Niblack's weight on the local standard deviation.
+        min_contrast: a candidate pixel is at least this many grey levels above the
+            local mean (keeps flat, noisy ceiling out of the candidates).
+        min_area_px, max_area_px: absolute bounds on a region's area.
+        min_level: least perception index ``L`` (Eq. 6) of a real light.
+        min_relative_contrast: least contrast relative to the brightest accepted spot
+            (0 disables; rejects dim reflections and lit patches).
+        min_axis_ratio: least minor/major axis ratio of a region (before any
+            per-spot prediction); 0 disables.
+        max_spots: keep at most this many spots (the highest perception index).
+    """
+
+    window_px: int = 41
+    k: float = 0.8
+    min_contrast: float = 12.0
+    min_area_px: int = 4
+    max_area_px: int = 6000
+    min_level: float = 2.0
+    min_relative_contrast: float = 0.3
+    min_axis_ratio: float = 0.15
+    max_spots: int = 64
+
+
+@dataclass(frozen=True, eq=False)
+class Spots:
+    """Detected spots of one frame (all arrays have N rows).
+
+    Attributes:
+        centroids_px: ``(N, 2)`` intensity-weighted centroids ``(u, v)``, distorted pixels.
+        areas_px: ``(N,)`` region areas (pixels above the threshold).
+        contrast: ``(N,)`` ``I_o - I_b``, grey levels.
+        level: ``(N,)`` perception index ``L`` of Eq. (6).
+        cov_px: ``(N, 2, 2)`` intensity-weighted second moments of each spot, px².
+        n_candidates: connected regions before identification.
+        rejected: why candidates were dropped, ``{reason: count}``.
+    """
+
+    centroids_px: np.ndarray
+    areas_px: np.ndarray
+    contrast: np.ndarray
+    level: np.ndarray
+    cov_px: np.ndarray
+    n_candidates: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.centroids_px.shape[0])
+
+    def select(self, keep: np.ndarray) -> Spots:
+        """The spots where the boolean ``keep`` (N,) holds."""
+        keep = np.asarray(keep, dtype=bool)
+        return Spots(self.centroids_px[keep], self.areas_px[keep], self.contrast[keep],
+                     self.level[keep], self.cov_px[keep], self.n_candidates,
+                     dict(self.rejected))
+
+
+def empty_spots(n_candidates: int = 0, rejected: dict[str, int] | None = None) -> Spots:
+    return Spots(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0),
+                 np.zeros((0, 2, 2)), n_candidates, dict(rejected or {}))
+
+
+def perception_level(i_object: np.ndarray, i_background: np.ndarray,
+                     area_px: np.ndarray) -> np.ndarray:
+    """The perception index of Roh et al. Eq. (6), ``(I_o - I_b) A^0.33 / (1.97 I_b^0.72)``.
+
+    The just-noticeable contrast of an object of area ``A`` on a background of mean
+    grey ``I_b`` grows as ``1.97 I_b^0.72 / A^0.33``; the index is the object's
+    contrast in units of that threshold (> 1: visible). ``I_b`` is floored at 1.
+    """
+    ib = np.maximum(np.asarray(i_background, float), 1.0)
+    return ((np.asarray(i_object, float) - ib) * np.power(np.asarray(area_px, float), 0.33)
+            / (1.97 * np.power(ib, 0.72)))
+
+
+def niblack_mask(grey: np.ndarray, window_px: int = 41, k: float = 0.8,
+                 min_contrast: float = 12.0) -> np.ndarray:
+    """Binary ``(H, W)`` uint8 mask (0/255) of ``I > mean + max(k std, min_contrast)``.
+
+    Local statistics over a ``window_px`` square, from box filters on a 4x reduced
+    image, bilinearly interpolated back to full size.
+    """
+    h, w = grey.shape
+    sw, sh = max(1, w // _REDUCE), max(1, h // _REDUCE)
+    small = cv2.resize(grey, (sw, sh), interpolation=cv2.INTER_AREA)
+    win = max(3, int(round(window_px / _REDUCE)) | 1)
+    mean = cv2.boxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
+    sq = cv2.sqrBoxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
+    std = cv2.sqrt(cv2.max(sq - mean * mean, 0.0))
+    thr = mean + cv2.max(std * np.float32(k), float(min_contrast))
+    thr = cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.compare(grey.astype(np.float32), thr, cv2.CMP_GT)
+
+
+def tile_niblack_mask(grey: np.ndarray, tile_px: int = 64, k: float = 0.8,
+                      min_contrast: float = 0.0) -> np.ndarray:
+    """Niblack over non-overlapping ``tile_px`` sub-images (Roh et al. §IV: 64x64).
+
+    Each tile is thresholded at its own ``mean + max(k std, min_contrast)``; a 0/255 mask.
+    """
+    h, w = grey.shape
+    ny, nx = -(-h // tile_px), -(-w // tile_px)
+    pad = cv2.copyMakeBorder(grey, 0, ny * tile_px - h, 0, nx * tile_px - w,
+                             cv2.BORDER_REFLECT)
+    blocks = pad.reshape(ny, tile_px, nx, tile_px).astype(np.float32)
+    mean = blocks.mean(axis=(1, 3))
+    std = blocks.std(axis=(1, 3))
+    thr = mean + np.maximum(k * std, min_contrast)
+    full = np.repeat(np.repeat(thr, tile_px, axis=0), tile_px, axis=1)[:h, :w]
+    return np.where(grey.astype(np.float32) > full, 255, 0).astype(np.uint8)
+
+
+def _region_stats(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: int,
+                  bw: int, bh: int, weighted: bool
+                  ) -> tuple[float, float, float, float, np.ndarray, float]:
+    """``(u, v, I_o, I_b, cov(2x2), peak)`` of region ``lab`` with box ``(x0, y0, bw, bh)``.
+
+    The object-background ring is the box grown by half its size (the paper's
+    ``w/2 x h/2`` dilation), minus every candidate pixel.
+    """
+    H, W = grey.shape
+    gx, gy = max(2, bw // 2), max(2, bh // 2)
+    xa, ya = max(0, x0 - gx), max(0, y0 - gy)
+    xb, yb = min(W, x0 + bw + gx), min(H, y0 + bh + gy)
+    roi = grey[ya:yb, xa:xb].astype(np.float64)
+    lroi = labels[ya:yb, xa:xb]
+    obj = lroi == lab
+    ring = lroi == 0
+    i_o = float(roi[obj].mean())
+    i_b = float(roi[ring].mean()) if np.any(ring) else float(roi.min())
+    peak = float(roi[obj].max())
+    # centroid window: the box grown by 2 px, other regions excluded
+    cx0, cy0 = max(0, x0 - 2) - xa, max(0, y0 - 2) - ya
+    cx1, cy1 = min(W, x0 + bw + 2) - xa, min(H, y0 + bh + 2) - ya
+    sub = roi[cy0:cy1, cx0:cx1]
+    lsub = lroi[cy0:cy1, cx0:cx1]
+    if weighted:
+        wts = np.where((lsub == 0) | (lsub == lab), np.maximum(sub - i_b, 0.0), 0.0)
+    else:
+        wts = (lsub == lab).astype(np.float64)
+    s = wts.sum()
+    if s <= 0:
+        wts = (lsub == lab).astype(np.float64)
+        s = wts.sum()
+    ys, xs = np.mgrid[cy0 + ya:cy1 + ya, cx0 + xa:cx1 + xa]
+    u = float((wts * xs).sum() / s)
+    v = float((wts * ys).sum() / s)
+    du, dv = xs - u, ys - v
+    cov = np.array([[(wts * du * du).sum(), (wts * du * dv).sum()],
+                    [(wts * du * dv).sum(), (wts * dv * dv).sum()]]) / s
+    return u, v, i_o, i_b, cov, peak
+
+
+def _axis_ratio(cov: np.ndarray) -> float:
+    ev = np.linalg.eigvalsh(cov)
+    return float(np.sqrt(max(ev[0], 0.0) / ev[1])) if ev[1] > 0 else 0.0
+
+
+def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
+                     weighted: bool = True, rethreshold: bool = True,
+                     relative: bool = True) -> Spots:
+    """Identify lights among the connected regions of ``mask`` (see the module doc)."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8,
+                                                           ltype=cv2.CV_32S)
+    rejected: dict[str, int] = {}
+
+    def drop(reason: str) -> None:
+        rejected[reason] = rejected.get(reason, 0) + 1
+
+    rows = []
+    for lab in range(1, n):
+        x0, y0, bw, bh, area = (int(a) for a in stats[lab])
+        if area < params.min_area_px:
+            drop("small")
+            continue
+        if area > params.max_area_px or bw * bh > 4 * params.max_area_px:
+            if not rethreshold:
+                drop("large")
+                continue
+            sub = _split_glare(grey, labels, lab, x0, y0, bw, bh, params)
+            if sub is None:
+                drop("large")
+                continue
+            rows.append(sub)
+            continue
+        u, v, i_o, i_b, cov, _ = _region_stats(grey, labels, lab, x0, y0, bw, bh, weighted)
+        rows.append((u, v, float(area), i_o, i_b, cov))
+    if not rows:
+        return empty_spots(n - 1, rejected)
+    c = np.array([[r[0], r[1]] for r in rows])
+    area = np.array([r[2] for r in rows])
+    i_o = np.array([r[3] for r in rows])
+    i_b = np.array([r[4] for r in rows])
+    cov = np.array([r[5] for r in rows]).reshape(-1, 2, 2)
+    contrast = i_o - i_b
+    level = perception_level(i_o, i_b, area)
+    keep = level >= params.min_level
+    rejected["level"] = rejected.get("level", 0) + int(np.sum(~keep))
+    if params.min_axis_ratio > 0:
+        ratio = np.array([_axis_ratio(m) for m in cov])
+        bad = keep & (ratio < params.min_axis_ratio)
+        rejected["shape"] = int(np.sum(bad))
+        keep &= ~bad
+    if relative and params.min_relative_contrast > 0 and np.any(keep):
+        bad = keep & (contrast < params.min_relative_contrast * contrast[keep].max())
+        rejected["dim"] = int(np.sum(bad))
+        keep &= ~bad
+    spots = Spots(c, area, contrast, level, cov, n - 1, rejected).select(keep)
+    if len(spots) > params.max_spots:
+        order = np.argsort(-spots.level)[:params.max_spots]
+        m = np.zeros(len(spots), bool)
+        m[order] = True
+        spots = spots.select(m)
+    return spots
+
+
+def _split_glare(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: int,
+                 bw: int, bh: int, params: SpotParams):
+    """A region too large for one light (a glare halo): keep its core.
+
+    Re-thresholds the region at 75 % of the way from its ring mean to its peak and
+    keeps the single core region, if it is small enough; ``None`` otherwise.
+    """
+    H, W = grey.shape
+    xa, ya = max(0, x0 - 2), max(0, y0 - 2)
+    xb, yb = min(W, x0 + bw + 2), min(H, y0 + bh + 2)
+    roi = grey[ya:yb, xa:xb]
+    lroi = labels[ya:yb, xa:xb]
+    inside = lroi == lab
+    ring = lroi == 0
+    if not np.any(ring):
+        return None
+    i_b = float(roi[ring].mean())
+    peak = float(roi[inside].max())
+    level = i_b + 0.75 * (peak - i_b)
+    core = ((roi > level) & inside).astype(np.uint8)
+    m, clab, cst, _ = cv2.connectedComponentsWithStats(core, connectivity=8)
+    if m != 2 or not (params.min_area_px <= cst[1, 4] <= params.max_area_px):
+        return None
+    sub = np.where(clab == 1, 1, 0).astype(np.int32)
+    cx, cy, cw, ch, area = (int(a) for a in cst[1])
+    # stats around the core, inside the halo: I_b is the halo level around the core
+    big = np.zeros_like(labels[ya:yb, xa:xb])
+    big[sub == 1] = 1
+    u, v, i_o, i_b2, cov, _ = _region_stats(roi, big, 1, cx, cy, cw, ch, True)
+    return (u + xa, v + ya, float(area), i_o, min(i_b2, i_b + 0.5 * (peak - i_b)), cov)
+
+
+def detect_spots(image: np.ndarray, params: SpotParams | None = None) -> Spots:
+    """Bright spots of a frame: Niblack, identification, weighted centroids.
+
+    Args:
+        image: ``(H, W)`` grey or ``(H, W, 3)`` BGR frame, 8 or 16 bit.
+        params: thresholds (:class:`SpotParams` defaults if ``None``).
+
+    Returns:
+        :class:`Spots`, possibly empty (a blank frame is not an error).
+    """
+    params = params or SpotParams()
+    grey = to_grey(np.asarray(image))
+    if grey.ndim != 2 or grey.size == 0:
+        return empty_spots()
+    mask = niblack_mask(grey, params.window_px, params.k, params.min_contrast)
+    return regions_to_spots(grey, mask, params)
+
+
+__all__ = ["SpotParams", "Spots", "detect_spots", "empty_spots", "niblack_mask",
+           "perception_level", "regions_to_spots", "tile_niblack_mask"]

@@ -1,0 +1,158 @@
+"""A light constant-velocity tracker that gates outliers and never jumps silently.
+
+Per frame the tracker predicts the pose at the frame's time (the estimators'
+``prior``), then checks the estimator's measurement against the prediction:
+
+* inside the gate: accepted; the published pose is the measurement itself (the
+  estimators are more accurate than a motion model), the velocity is smoothed;
+* outside the gate: replaced by ``Failure(reason="gated")``, unless
+  ``confirm`` consecutive measurements agree with each other away from the
+  track: then the track is re-localized there and the result says so
+  (``relocalized``), so the link can bump its reset counter;
+* no accepted measurement for ``lost_after_s``: the track is dropped and the
+  next measurement starts a new one (also a re-localization).
+
+Coordinates the method does not observe (x for the corridor method) are neither
+predicted nor gated.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+from .estimate import Estimate, Failure, PoseEstimate
+from .geometry import wrap_pi
+
+
+@dataclass(frozen=True)
+class TrackerOptions:
+    gate_m: float = 0.25             # position gate at dt = 0
+    gate_rad: float = math.radians(8.0)
+    max_speed_mps: float = 2.5       # the gate grows by this times dt
+    max_turn_rps: float = math.radians(90.0)
+    velocity_smoothing: float = 0.3  # 0..1: weight of a new velocity sample
+    confirm: int = 3                 # agreeing out-of-gate frames that re-localize
+    lost_after_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    estimate: Estimate
+    relocalized: bool = False
+
+
+@dataclass
+class _State:
+    t_ns: int
+    x: float | None
+    y: float | None
+    yaw: float
+    vx: float = 0.0
+    vy: float = 0.0
+    vyaw: float = 0.0
+
+
+class Tracker:
+    """See the module docstring. ``predict`` gives the prior, ``update`` the verdict."""
+
+    def __init__(self, options: TrackerOptions | None = None):
+        self.options = options or TrackerOptions()
+        self._s: _State | None = None
+        self._candidates: list[PoseEstimate] = []
+        self.relocalizations = 0
+        self.gated = 0
+
+    @property
+    def tracking(self) -> bool:
+        return self._s is not None
+
+    def reset(self) -> None:
+        self._s = None
+        self._candidates = []
+
+    def predict(self, t_ns: int, method: str = "track") -> PoseEstimate | None:
+        """The predicted vehicle pose at ``t_ns``, or ``None`` when not tracking."""
+        s = self._s
+        if s is None:
+            return None
+        dt = (t_ns - s.t_ns) * 1e-9
+        if dt > self.options.lost_after_s:
+            return None
+        return PoseEstimate(
+            t_ns=t_ns, method=method,
+            x_m=None if s.x is None else s.x + s.vx * dt,
+            y_m=None if s.y is None else s.y + s.vy * dt,
+            yaw_rad=wrap_pi(s.yaw + s.vyaw * dt), quality=0.0)
+
+    def _inside(self, a: PoseEstimate, b: PoseEstimate, dt_s: float) -> bool:
+        o = self.options
+        gate_m = o.gate_m + o.max_speed_mps * abs(dt_s)
+        gate_r = o.gate_rad + o.max_turn_rps * abs(dt_s)
+        if abs(wrap_pi(a.yaw_rad - b.yaw_rad)) > gate_r:
+            return False
+        for p, q in ((a.x_m, b.x_m), (a.y_m, b.y_m)):
+            if p is not None and q is not None and abs(p - q) > gate_m:
+                return False
+        return True
+
+    def _start(self, est: PoseEstimate) -> TrackResult:
+        self._s = _State(est.t_ns, est.x_m, est.y_m, est.yaw_rad)
+        self._candidates = []
+        self.relocalizations += 1
+        return TrackResult(est, relocalized=True)
+
+    def update(self, est: Estimate) -> TrackResult:
+        """Gate one measurement; returns what to publish."""
+        if not isinstance(est, PoseEstimate):
+            if self._s is not None and (est.t_ns - self._s.t_ns) * 1e-9 > \
+                    self.options.lost_after_s:
+                self.reset()
+            return TrackResult(est)
+        pred = self.predict(est.t_ns)
+        if pred is None:
+            return self._start(est)
+        s = self._s
+        assert s is not None
+        dt = (est.t_ns - s.t_ns) * 1e-9
+        if self._inside(est, pred, 0.0 if dt <= 0 else dt):
+            self._candidates = []
+            a = self.options.velocity_smoothing
+            if dt > 1e-6:
+                if est.x_m is not None and s.x is not None:
+                    s.vx = (1 - a) * s.vx + a * (est.x_m - s.x) / dt
+                if est.y_m is not None and s.y is not None:
+                    s.vy = (1 - a) * s.vy + a * (est.y_m - s.y) / dt
+                s.vyaw = (1 - a) * s.vyaw + a * wrap_pi(est.yaw_rad - s.yaw) / dt
+            s.t_ns, s.yaw = est.t_ns, est.yaw_rad
+            s.x = est.x_m if est.x_m is not None else None
+            s.y = est.y_m if est.y_m is not None else None
+            return TrackResult(est)
+        # outside the gate: a glitch, or the vehicle really is elsewhere
+        if self._candidates:
+            last = self._candidates[-1]
+            dtc = (est.t_ns - last.t_ns) * 1e-9
+            if not self._inside(est, last, dtc):
+                self._candidates = []
+        self._candidates.append(est)
+        if len(self._candidates) >= self.options.confirm:
+            return self._start(est)
+        self.gated += 1
+        return TrackResult(Failure(
+            est.t_ns, est.method, "gated",
+            f"pose jumped from the track ({_describe_jump(est, pred)}); "
+            f"waiting for {self.options.confirm - len(self._candidates)} more to confirm",
+            diagnostics={"rejected": est}))
+
+
+def _describe_jump(est: PoseEstimate, pred: PoseEstimate) -> str:
+    parts = [f"yaw {math.degrees(wrap_pi(est.yaw_rad - pred.yaw_rad)):+.1f} deg"]
+    if est.y_m is not None and pred.y_m is not None:
+        parts.append(f"y {est.y_m - pred.y_m:+.2f} m")
+    if est.x_m is not None and pred.x_m is not None:
+        parts.append(f"x {est.x_m - pred.x_m:+.2f} m")
+    return ", ".join(parts)
+
+
+def with_method(est: PoseEstimate, method: str) -> PoseEstimate:
+    return replace(est, method=method)

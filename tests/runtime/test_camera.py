@@ -1,0 +1,93 @@
+import numpy as np
+import pytest
+
+from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.errors import ConfigError
+
+MODELS = [
+    ("plumb_bob", [-0.25, 0.08, 0.001, -0.0005, -0.01]),
+    ("rational_polynomial", [0.3, -0.1, 0.0005, 0.0002, 0.01, 0.6, -0.05, 0.02]),
+    ("equidistant", [0.05, -0.01, 0.002, -0.0005]),
+]
+
+
+def test_pinhole_projects_principal_point_and_known_pixel():
+    cam = CameraModel.pinhole(640, 480, fx=500.0)
+    assert np.allclose(cam.project(np.array([[0.0, 0.0, 2.0]])), [[319.5, 239.5]])
+    assert np.allclose(cam.project(np.array([[0.1, -0.2, 1.0]])), [[369.5, 139.5]])
+    assert np.isnan(cam.project(np.array([[0.0, 0.0, -1.0]]))).all()
+
+
+@pytest.mark.parametrize("model,dist", MODELS)
+def test_project_unproject_round_trip(model, dist):
+    cam = CameraModel.pinhole(640, 480, fx=300.0, dist=dist, model=model)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.8, 0.8, size=(300, 2))
+    px = cam.project(np.hstack([xy, np.ones((300, 1))]))
+    assert np.allclose(cam.unproject(px), xy, atol=1e-9)
+    rays = cam.rays(px)
+    assert np.allclose(np.linalg.norm(rays, axis=1), 1.0)
+    assert np.allclose(rays[:, :2] / rays[:, 2:], xy, atol=1e-9)
+
+
+@pytest.mark.parametrize("model,dist", MODELS)
+def test_save_load_round_trip(tmp_path, model, dist):
+    cam = CameraModel.pinhole(800, 600, fx=410.0, fy=412.0, cx=401.0, cy=297.5, dist=dist,
+                              model=model, name="cam0")
+    cam.save(tmp_path / "camera.yaml", header="# test\n")
+    back = CameraModel.load(tmp_path / "camera.yaml")
+    assert back.model == model and back.name == "cam0" and back.size == (800, 600)
+    assert np.array_equal(back.K, cam.K) and np.array_equal(back.dist, cam.dist)
+    assert np.array_equal(back.P, cam.P)
+
+
+def test_scaled_keeps_the_field_of_view():
+    cam = CameraModel.pinhole(640, 480, fx=400.0)
+    big = cam.scaled(1280, 960)
+    p = np.array([[0.3, 0.2, 1.0]])
+    assert np.allclose((big.project(p) + 0.5) / 2.0 - 0.5, cam.project(p))
+
+
+GOOD = """image_width: 640
+image_height: 480
+camera_name: c
+camera_matrix: {rows: 3, cols: 3, data: [400, 0, 319.5, 0, 400, 239.5, 0, 0, 1]}
+distortion_model: plumb_bob
+distortion_coefficients: {rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}
+"""
+
+
+@pytest.mark.parametrize("old,new,key,words", [
+    ("camera_name: c", "camera_nam: c", "camera_nam", "unknown key"),
+    ("image_width: 640", "image_width: -3", "image_width", "integer"),
+    ("image_width: 640", "image_width: wide", "image_width", "integer"),
+    ("data: [400, 0, 319.5", "data: [-400, 0, 319.5", "camera_matrix", "positive"),
+    ("319.5, 0, 400, 239.5", "919.5, 0, 400, 239.5", "camera_matrix", "outside"),
+    ("rows: 1, cols: 5, data: [0, 0, 0, 0, 0]", "rows: 1, cols: 4, data: [0, 0, 0, 0]",
+     "distortion_coefficients", "5 coefficients"),
+    ("distortion_model: plumb_bob", "distortion_model: fisheye", "distortion_model",
+     "plumb_bob"),
+    ("rows: 3, cols: 3, data: [400, 0, 319.5, 0, 400, 239.5, 0, 0, 1]",
+     "rows: 3, cols: 3, data: [400, 0, 319.5, 0, 400, 239.5, 0, 0]", "camera_matrix.data",
+     "9 numbers"),
+])
+def test_bad_camera_files_name_file_and_key(tmp_path, old, new, key, words):
+    path = tmp_path / "camera.yaml"
+    assert old in GOOD
+    path.write_text(GOOD.replace(old, new))
+    with pytest.raises(ConfigError) as err:
+        CameraModel.load(path)
+    msg = str(err.value)
+    assert str(path) in msg and key in msg and words in msg
+    assert "\n" not in msg
+
+
+def test_missing_and_invalid_yaml(tmp_path):
+    with pytest.raises(ConfigError, match="file not found"):
+        CameraModel.load(tmp_path / "nope.yaml")
+    (tmp_path / "bad.yaml").write_text("image_width: [640\n")
+    with pytest.raises(ConfigError, match="invalid YAML at line"):
+        CameraModel.load(tmp_path / "bad.yaml")
+    (tmp_path / "missing.yaml").write_text(GOOD.replace("image_height: 480\n", ""))
+    with pytest.raises(ConfigError, match="image_height: missing required key"):
+        CameraModel.load(tmp_path / "missing.yaml")
