@@ -1,0 +1,97 @@
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from ceilkit.runtime.capture import (
+    CameraSource, ImageFolderSource, VideoFileSource, open_source, packaged_config,
+)
+from ceilkit.runtime.errors import CaptureError
+
+
+class FakeCapture:
+    """A camera that delivers ``n`` frames, then fails (unplugged)."""
+
+    def __init__(self, n, opened=True, period_s=0.002):
+        self.n, self.opened, self.period_s, self.k = n, opened, period_s, 0
+
+    def isOpened(self):
+        return self.opened
+
+    def read(self):
+        if self.k >= self.n:
+            return False, None
+        time.sleep(self.period_s)
+        self.k += 1
+        return True, np.full((4, 4), self.k % 256, np.uint8)
+
+    def release(self):
+        self.opened = False
+
+
+def test_camera_reopens_after_unplug_and_keeps_going():
+    opened = []
+
+    def open_capture(dev):
+        cap = FakeCapture(5)
+        opened.append(cap)
+        return cap
+
+    with CameraSource("/dev/video9", open_capture=open_capture, max_backoff_s=0.02) as cam:
+        seen = []
+        deadline = time.monotonic() + 5
+        while len(opened) < 3 and time.monotonic() < deadline:
+            f = cam.read(timeout_s=2.0)
+            seen.append(f.index)
+        assert cam.reopens >= 2
+        assert seen == sorted(seen) and len(set(seen)) == len(seen)
+
+
+def test_latest_frame_policy_counts_drops():
+    with CameraSource(0, open_capture=lambda d: FakeCapture(10_000, period_s=0.0005)) as cam:
+        first = cam.read()
+        time.sleep(0.05)  # a slow estimator
+        second = cam.read()
+        assert second.index > first.index + 1
+        assert cam.dropped >= second.index - first.index - 1 - 1
+        assert second.t_ns > first.t_ns
+
+
+def test_camera_that_cannot_open():
+    with pytest.raises(CaptureError, match="/dev/video7: cannot open the camera"):
+        CameraSource("/dev/video7", open_capture=lambda d: FakeCapture(0, opened=False))
+
+
+def test_image_folder_and_video(tmp_path):
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"{k:03d}.png"), np.full((8, 8), 10 * k, np.uint8))
+    src = ImageFolderSource(tmp_path, fps=10)
+    frames = list(src)
+    assert [f.index for f in frames] == [0, 1, 2] and frames[2].t_ns == 200_000_000
+    video = tmp_path / "v.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 20, (32, 24))
+    for k in range(5):
+        w.write(np.full((24, 32, 3), 40 * k, np.uint8))
+    w.release()
+    with VideoFileSource(video) as v:
+        got = list(v)
+    assert len(got) == 5 and got[1].t_ns == 50_000_000
+
+
+def test_open_source_errors(tmp_path):
+    with pytest.raises(CaptureError, match="no such device or file"):
+        open_source(str(tmp_path / "nothing"))
+    (tmp_path / "x.txt").write_text("hi")
+    with pytest.raises(CaptureError, match="not a camera"):
+        open_source(str(tmp_path / "x.txt"))
+    with pytest.raises(CaptureError, match="no images"):
+        open_source(str(tmp_path))
+    with pytest.raises(CaptureError, match="choose from"):
+        packaged_config("nope")
+
+
+def test_read_after_close_returns_none():
+    cam = CameraSource(0, open_capture=lambda d: FakeCapture(10_000))
+    cam.close()
+    assert cam.read(timeout_s=0.2) is None

@@ -1,0 +1,112 @@
+import math
+
+import numpy as np
+import pytest
+
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimate import Failure, PoseEstimate
+from ceilkit.runtime.recording import (
+    POSES_HEADER, PoseWriter, Recording, RecordingWriter, load_poses, load_truth,
+)
+from ceilkit.runtime.sources import Frame
+
+
+def _frames(n, shape=(24, 32)):
+    rng = np.random.default_rng(3)
+    return [Frame(rng.integers(0, 255, shape, dtype=np.uint8), 1_000_000 * (k + 1), k)
+            for k in range(n)]
+
+
+def test_write_read_round_trip(tmp_path, corridor_rig, corridor_site):
+    frames = _frames(4)
+    with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site, truth=True) as rec:
+        for k, f in enumerate(frames):
+            rec.write(f)
+            rec.write_truth(f.t_ns, 0.1 * k, -0.2, math.radians(5 * k))
+    back = Recording(tmp_path / "rec")
+    assert len(back) == 4
+    for f, g in zip(frames, back, strict=True):
+        assert g.t_ns == f.t_ns and np.array_equal(g.image, f.image)
+    assert back.rig.mount == corridor_rig.mount
+    assert back.site.to_dict() == corridor_site.to_dict()
+    assert np.allclose(back.truth.lookup(frames[2].t_ns), (0.2, -0.2, math.radians(10)))
+    assert back.truth.lookup(5) is None
+
+
+def test_bgr_frames_are_kept_as_captured(tmp_path, corridor_rig, corridor_site):
+    img = np.zeros((8, 8, 3), np.uint8)
+    img[..., 2] = 200
+    with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site) as rec:
+        rec.write(Frame(img, 5, 0))
+    got = Recording(tmp_path / "rec").frame(0)
+    assert got.image.shape == (8, 8, 3) and np.array_equal(got.image, img)
+    assert got.grey.shape == (8, 8)
+
+
+def test_writer_never_overwrites_a_recording(tmp_path, corridor_rig, corridor_site):
+    with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site) as rec:
+        rec.write(_frames(1)[0])
+    with pytest.raises(ConfigError, match="already there"):
+        RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site)
+    assert len(Recording(tmp_path / "rec")) == 1
+
+
+def test_killed_recording_is_readable(tmp_path, corridor_rig, corridor_site):
+    rec = RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site)
+    for f in _frames(3):
+        rec.write(f)
+    # no close(): rows were flushed frame by frame
+    assert len(Recording(tmp_path / "rec")) == 3
+
+
+def _make(tmp_path, corridor_rig, corridor_site, n=2):
+    with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site) as rec:
+        for f in _frames(n):
+            rec.write(f)
+    return tmp_path / "rec"
+
+
+@pytest.mark.parametrize("text,key,words", [
+    ("idx,t_ns\n0,1\n", "header", "expected `index,t_ns`"),
+    ("index,t_ns\n0,abc\n", "line 2: t_ns", "integer"),
+    ("index,t_ns\n0,5\n1,5\n", "line 3: t_ns", "increase"),
+    ("index,t_ns\n0,5\n7,9\n", "line 3", "frames/000007.png is missing"),
+    ("index,t_ns\n0\n", "line 2", "2 fields"),
+])
+def test_broken_recordings(tmp_path, corridor_rig, corridor_site, text, key, words):
+    folder = _make(tmp_path, corridor_rig, corridor_site)
+    (folder / "frames.csv").write_text(text)
+    with pytest.raises(ConfigError) as err:
+        Recording(folder)
+    assert "frames.csv" in str(err.value) and key in str(err.value) and words in str(err.value)
+
+
+def test_corrupt_frame_and_bad_truth(tmp_path, corridor_rig, corridor_site):
+    folder = _make(tmp_path, corridor_rig, corridor_site)
+    (folder / "frames" / "000001.png").write_bytes(b"not a png")
+    rec = Recording(folder)
+    rec.frame(0)
+    with pytest.raises(ConfigError, match="000001.png: cannot decode"):
+        rec.frame(1)
+    (folder / "truth.csv").write_text("t_ns,x,y,yaw\n")
+    with pytest.raises(ConfigError, match="truth.csv: header"):
+        Recording(folder)
+    (folder / "truth.csv").write_text("t_ns,x,y,yaw_deg\n1,0,nan,0\n")
+    with pytest.raises(ConfigError, match="line 2: y"):
+        load_truth(folder / "truth.csv")
+
+
+def test_poses_file_layout_and_round_trip(tmp_path):
+    path = tmp_path / "out" / "poses.csv"
+    with PoseWriter(path, tmp_path / "out" / "poses.tum") as w:
+        w.write(PoseEstimate(10, "corridor", None, 0.25, math.radians(2.5), 0.9, 0.25), 1.5)
+        w.write(Failure(20, "corridor", "too_few_lines"), 1.0)
+        w.write(PoseEstimate(30, "lights", 1.0, 2.0, -0.1, 0.5), None)
+    lines = path.read_text().splitlines()
+    assert lines[0] == ",".join(POSES_HEADER)
+    assert lines[1] == "10,,0.250000,2.500000,0.250000,corridor,0.900,1.500"
+    assert lines[2] == "20,,,,,corridor,0.000,1.000"
+    t = load_poses(path)
+    assert np.isnan(t.x_m[0]) and t.x_m[2] == 1.0 and t.method == ["corridor"] * 2 + ["lights"]
+    tum = (tmp_path / "out" / "poses.tum").read_text().split()
+    assert len(tum) == 16 and float(tum[0]) == 1e-8

@@ -1,0 +1,52 @@
+import math
+
+from ceilkit.runtime.estimate import Failure, PoseEstimate
+from ceilkit.runtime.tracking import Tracker
+
+DT = 33_000_000
+
+
+def _pose(k, y, yaw=0.0, x=None):
+    return PoseEstimate(k * DT, "corridor", x, y, yaw, 0.9)
+
+
+def test_first_fix_is_a_relocalization_then_tracks():
+    tr = Tracker()
+    assert tr.predict(0) is None
+    assert tr.update(_pose(0, 0.0)).relocalized
+    for k in range(1, 10):
+        res = tr.update(_pose(k, 0.01 * k))
+        assert res.estimate and not res.relocalized
+    pred = tr.predict(10 * DT)
+    assert pred.x_m is None and math.isclose(pred.y_m, 0.10, abs_tol=0.01)
+
+
+def test_outlier_is_gated_as_a_failure_with_a_reason():
+    tr = Tracker()
+    for k in range(5):
+        tr.update(_pose(k, 0.0))
+    res = tr.update(_pose(5, 0.9))
+    assert isinstance(res.estimate, Failure) and res.estimate.reason == "gated"
+    assert "y +0.90 m" in res.estimate.detail
+    assert tr.update(_pose(6, 0.0)).estimate  # back on track
+
+
+def test_consistent_jump_relocalizes_loudly():
+    tr = Tracker()
+    for k in range(5):
+        tr.update(_pose(k, 0.0))
+    results = [tr.update(_pose(k, 0.9, yaw=math.radians(30))) for k in range(5, 8)]
+    assert [bool(r.estimate) for r in results] == [False, False, True]
+    assert results[-1].relocalized and tr.relocalizations == 2
+
+
+def test_lost_track_restarts():
+    tr = Tracker()
+    tr.update(_pose(0, 0.0))
+    assert tr.update(_pose(100, 1.0)).relocalized  # 3.3 s later: a new track
+
+
+def test_failures_pass_through():
+    tr = Tracker()
+    f = Failure(0, "corridor", "blank_frame")
+    assert tr.update(f).estimate is f
