@@ -113,12 +113,18 @@ class Board:
 
 @dataclass(frozen=True)
 class ChessBoard(Board):
-    """A chessboard of ``cols`` x ``rows`` inner corners spaced ``square_m`` metres."""
+    """A chessboard of ``cols`` x ``rows`` inner corners spaced ``square_m`` metres.
+
+    ``detector``: ``sb`` (``cv2.findChessboardCornersSB``, the default and the more
+    accurate) or ``classic`` (``findChessboardCorners`` + ``cornerSubPix`` with an
+    11x11 half-window, as OpenCV's calibration sample does).
+    """
 
     cols: int
     rows: int
     square_m: float
     margin_squares: float = 1.0
+    detector: str = "sb"
 
     def __post_init__(self) -> None:
         if self.cols < 2 or self.rows < 2:
@@ -127,6 +133,9 @@ class ChessBoard(Board):
         if not self.square_m > 0:
             raise ConfigError(None, "--square", f"expected a positive size in metres, "
                               f"found {self.square_m:g}")
+        if self.detector not in ("sb", "classic"):
+            raise ConfigError(None, "--detector", f"expected sb or classic, found "
+                              f"{self.detector!r}")
 
     @property
     def spec(self) -> str:  # type: ignore[override]
@@ -147,8 +156,17 @@ class ChessBoard(Board):
 
     def detect(self, image: np.ndarray, name: str = "") -> Detection | None:
         grey = to_grey(image)
-        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-        found, corners = cv2.findChessboardCornersSB(grey, (self.cols, self.rows), flags=flags)
+        if self.detector == "classic":
+            flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+            found, corners = cv2.findChessboardCorners(grey, (self.cols, self.rows), flags=flags)
+            if found and corners is not None:
+                crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.1)
+                corners = cv2.cornerSubPix(grey, corners, (11, 11), (-1, -1), crit)
+        else:
+            flags = (cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
+                     | cv2.CALIB_CB_ACCURACY)
+            found, corners = cv2.findChessboardCornersSB(grey, (self.cols, self.rows),
+                                                         flags=flags)
         if not found or corners is None or len(corners) != self.cols * self.rows:
             return None
         px = corners.reshape(-1, 2).astype(np.float64)
@@ -176,7 +194,7 @@ class ChessBoard(Board):
         for a, b in sizes:
             if a >= 2 and b >= 2 and (a, b) not in seen:
                 seen.add((a, b))
-                out.append(ChessBoard(a, b, self.square_m))
+                out.append(ChessBoard(a, b, self.square_m, detector=self.detector))
         return out
 
 
@@ -304,18 +322,20 @@ _CHARUCO = re.compile(r"^charuco:(\d+)x(\d+)(?::([A-Za-z0-9_]+))?(:legacy)?$", r
 
 
 def parse_board(spec: str, square_m: float, marker_m: float | None = None,
-                legacy: bool = False) -> Board:
+                legacy: bool = False, detector: str = "sb") -> Board:
     """A board from its command-line description.
 
     ``chess:COLSxROWS`` (inner corners, e.g. ``chess:9x6``) or
     ``charuco:SQUARES_XxSQUARES_Y[:DICT][:legacy]`` (squares, e.g.
     ``charuco:5x7:4X4_50``); ``square_m`` and ``marker_m`` in metres (the marker
-    defaults to 0.75 of the square). Raises ConfigError naming ``--board``.
+    defaults to 0.75 of the square); ``detector`` for chessboards (see
+    :class:`ChessBoard`). Raises ConfigError naming ``--board``.
     """
     s = spec.strip()
     m = _CHESS.match(s)
     if m:
-        return ChessBoard(int(m.group(1)), int(m.group(2)), float(square_m))
+        return ChessBoard(int(m.group(1)), int(m.group(2)), float(square_m),
+                          detector=detector)
     m = _CHARUCO.match(s)
     if m:
         marker = 0.75 * square_m if marker_m is None else marker_m
@@ -443,5 +463,50 @@ def look_at_pose(board: Board, distance_m: float, tilt_deg: float, tilt_dir_deg:
     return rvec.ravel(), t
 
 
+def render_views(board: Board, camera: CameraModel, n_views: int, rng: np.random.Generator,
+                 noise_sigma: float = 2.0, blur_sigma_px: float = 0.7, supersample: int = 2,
+                 distance_m: tuple[float, float] | None = None, max_tilt_deg: float = 40.0,
+                 all_visible: bool = True
+                 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``n_views`` renders of ``board`` at random, varied poses (see :func:`render_board`).
+
+    Poses spread the board over the image (centres up to 0.7 of the half-field off
+    axis), tilt it by up to ``max_tilt_deg`` in every direction and roll it freely by
+    +-30 deg. ``distance_m`` defaults to the range where the board fills 35-70 % of the
+    image width. With ``all_visible`` a pose that hides a corner is drawn again.
+
+    Returns:
+        A list of ``(image, corners_px, visible)`` as :func:`render_board` returns.
+    """
+    x0, y0, x1, y1 = board.extent_m
+    if distance_m is None:
+        hfov = 2 * np.arctan(camera.width / 2 / camera.fx)
+        span = x1 - x0
+        d_hi = span / (0.35 * 2 * np.tan(hfov / 2))
+        d_lo = span / (0.70 * 2 * np.tan(hfov / 2))
+        distance_m = (d_lo, d_hi)
+    out: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    tries = 0
+    while len(out) < n_views:
+        tries += 1
+        if tries > 200 * n_views:
+            raise RuntimeError("could not place the board in view; widen the pose ranges")
+        d = rng.uniform(*distance_m)
+        k = len(out) % 3
+        tilt = rng.uniform(max_tilt_deg * k / 3, max_tilt_deg * (k + 1) / 3)
+        off = rng.uniform(-0.7, 0.7, 2) * np.array([camera.width / 2 / camera.fx,
+                                                     camera.height / 2 / camera.fy]) * d
+        rvec, t = look_at_pose(board, d, tilt, rng.uniform(0, 360), rng.uniform(-30, 30),
+                               (off[0], off[1]))
+        Xc = board.corners_board @ cv2.Rodrigues(rvec)[0].T + t
+        px = camera.project(Xc)
+        vis = np.isfinite(px).all(axis=1) & camera.in_image(np.nan_to_num(px, nan=-1e9), 8.0)
+        if (all_visible and not vis.all()) or vis.sum() < 6:
+            continue
+        out.append(render_board(board, camera, rvec, t, rng, noise_sigma, blur_sigma_px,
+                                supersample))
+    return out
+
+
 __all__ = ["ARUCO_DICTIONARIES", "Board", "CharucoBoard", "ChessBoard", "Detection",
-           "look_at_pose", "parse_board", "render_board"]
+           "look_at_pose", "parse_board", "render_board", "render_views"]

@@ -139,63 +139,58 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
                   tol_m: float, prior_shift_m: float | None = None) -> OffsetMatch | None:
     """Find the shift ``c`` placing the observed offsets on the site's lines.
 
-    Every pairing ``c = y_j - o_i`` is a hypothesis; it scores by the number of
-    distinct site lines matched within ``tol_m``, then by the matched weight, then
-    (when given) by closeness to ``prior_shift_m``. Missing, extra and shifted
-    lines are tolerated. Returns None when nothing is matched.
+    Every pairing ``c = y_j - o_i`` is a hypothesis (refined once by a weighted
+    mean over its inliers); it scores by the number of distinct site lines matched
+    within ``tol_m``, then by the matched weight. With ``prior_shift_m`` the
+    hypothesis nearest the prior wins among those matching at least as many lines
+    as the best one less one. Missing, extra and shifted lines are tolerated.
+    Returns None when nothing is matched.
     """
-    o = np.asarray(offsets, dtype=float)
-    ok = np.isfinite(o)
+    o_all = np.asarray(offsets, dtype=float)
+    w_all = np.asarray(weights, dtype=float)
+    ok = np.isfinite(o_all)
     if not np.any(ok):
         return None
+    o, w = o_all[ok], w_all[ok]
     ys = np.asarray(site_y, dtype=float)
-    cands = (ys[None, :] - o[ok][:, None]).ravel()
-    best: list[tuple[float, float, float, np.ndarray, int, float]] = []
-    seen: list[float] = []
-    for c in cands:
-        if any(abs(c - s) < 0.5 * tol_m for s in seen):
-            continue
-        seen.append(c)
-        d = np.abs((o + c)[:, None] - ys[None, :])
-        j = np.argmin(np.where(np.isfinite(d), d, np.inf), axis=1)
-        e = d[np.arange(o.size), j]
-        inl = np.isfinite(e) & (e <= tol_m)
-        if not np.any(inl):
-            continue
-        c_ref = float(np.average(ys[j[inl]] - o[inl], weights=weights[inl]))
-        d = np.abs((o + c_ref)[:, None] - ys[None, :])
-        j = np.argmin(np.where(np.isfinite(d), d, np.inf), axis=1)
-        e = d[np.arange(o.size), j]
-        inl = np.isfinite(e) & (e <= tol_m)
-        if not np.any(inl):
-            continue
-        n_lines = len(set(j[inl].tolist()))
-        wsum = float(weights[inl].sum())
-        resid = float(np.sqrt(np.average(e[inl] ** 2, weights=weights[inl])))
-        assign = np.where(inl, j, -1)
-        best.append((n_lines, wsum, -resid, assign, n_lines, c_ref))
-    if not best:
+    cands = (ys[None, :] - o[:, None]).ravel()
+
+    def assoc(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        d = np.abs(o[None, :, None] + c[:, None, None] - ys[None, None, :])   # (K, N, J)
+        j = np.argmin(d, axis=2)
+        e = np.take_along_axis(d, j[..., None], axis=2)[..., 0]
+        return j, e, e <= tol_m
+
+    j, e, inl = assoc(cands)
+    wi = inl * w[None, :]
+    sw = wi.sum(axis=1)
+    c_ref = np.where(sw > 0, (wi * (ys[j] - o[None, :])).sum(axis=1) / np.maximum(sw, 1e-300),
+                     cands)
+    j, e, inl = assoc(c_ref)
+    wi = inl * w[None, :]
+    sw = wi.sum(axis=1)
+    matched = np.zeros((c_ref.size, ys.size), bool)
+    for jj in range(ys.size):
+        matched[:, jj] = np.any(inl & (j == jj), axis=1)
+    n_lines = matched.sum(axis=1)
+    good = n_lines > 0
+    if not np.any(good):
         return None
-
-    def key(b: tuple) -> tuple:
-        prior_term = 0.0 if prior_shift_m is None else -abs(b[5] - prior_shift_m)
-        return (b[0], round(b[1], 6) if prior_shift_m is None else prior_term, b[2])
-
+    idx = np.flatnonzero(good)
     if prior_shift_m is not None:
-        # the prior chooses among hypotheses matching nearly as many lines
-        top = max(b[0] for b in best)
-        pool = [b for b in best if b[0] >= top - 1]
-        pool.sort(key=lambda b: (abs(b[5] - prior_shift_m), -b[0]))
-        win = pool[0]
+        top = n_lines[idx].max()
+        pool = idx[n_lines[idx] >= top - 1]
+        win = int(pool[np.argmin(np.abs(c_ref[pool] - prior_shift_m))])
     else:
-        best.sort(key=key, reverse=True)
-        win = best[0]
-    others = [b for b in best if abs(b[5] - win[5]) > tol_m]
+        win = int(idx[np.lexsort((-sw[idx], -n_lines[idx]))[0]])
+    others = idx[np.abs(c_ref[idx] - c_ref[win]) > tol_m]
     runner = None
-    if others:
-        r = max(others, key=lambda b: (b[0], b[1]))
-        runner = (r[0], r[1], r[5])
-    return OffsetMatch(win[5], win[3], win[4], win[1], runner)
+    if others.size:
+        r = int(others[np.lexsort((-sw[others], -n_lines[others]))[0]])
+        runner = (int(n_lines[r]), float(sw[r]), float(c_ref[r]))
+    assign = np.full(o_all.size, -1)
+    assign[np.flatnonzero(ok)] = np.where(inl[win], j[win], -1)
+    return OffsetMatch(float(c_ref[win]), assign, int(n_lines[win]), float(sw[win]), runner)
 
 
 def periodic_spread(offsets: np.ndarray, weights: np.ndarray, spacing_m: float,
@@ -304,9 +299,7 @@ class CorridorEstimator:
         hist = np.bincount(i0, w * (1 - fr), nbins) + np.bincount((i0 + 1) % nbins, w * fr, nbins)
         k = np.arange(-16, 17)
         kern = np.exp(-0.5 * (k / 4.0) ** 2)
-        sm = np.zeros(nbins)
-        for kk, kv in zip(k, kern, strict=True):
-            sm += kv * np.roll(hist, kk)
+        sm = np.convolve(np.concatenate([hist[-16:], hist, hist[:16]]), kern, "valid")
         peaks = []
         work = sm.copy()
         for _ in range(n_peaks):

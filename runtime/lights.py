@@ -90,6 +90,19 @@ def project_lights(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray, x_m:
     return rig.camera.project((P - c_w) @ R_wc)
 
 
+def _project_poses(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
+                   poses: np.ndarray) -> np.ndarray:
+    """``(P, N, 2)`` pixels of ``N`` lights from ``P`` poses ``(x, y, yaw)``, one call."""
+    L = np.asarray(lights_w, float).reshape(-1, 2)
+    n = L.shape[0]
+    P3 = np.hstack([L, np.full((n, 1), ceiling_height_m)])
+    pts = []
+    for x, y, yaw in poses:
+        R_wc = rot_z(yaw) @ rig.mount.R_vehicle_cam
+        pts.append((P3 - rig.mount.camera_position(x, y, yaw)) @ R_wc)
+    return rig.camera.project(np.concatenate(pts)).reshape(len(poses), n, 2)
+
+
 def pixel_scale(rig: Rig, ceiling_height_m: float, q_v: np.ndarray) -> np.ndarray:
     """``(N, 2, 2)`` Jacobians d(pixel)/d(ceiling point in V, metres) at points ``q_v``."""
     q = np.asarray(q_v, float).reshape(-1, 2)
@@ -171,7 +184,7 @@ class PatternMatcher:
     """
 
     def __init__(self, lights_w: np.ndarray, gate_m: float = 0.08, max_pair_m: float = 1e9,
-                 visible: Any = None, max_observed: int = 12, top_bins: int = 8,
+                 visible: Any = None, max_observed: int = 8, top_bins: int = 8,
                  yaw_bin_rad: float = math.radians(4.0), pos_bin_m: float = 0.3):
         self.lights_w = np.asarray(lights_w, float).reshape(-1, 2)
         m = self.lights_w.shape[0]
@@ -266,16 +279,22 @@ class PatternMatcher:
         hyp = self.hypotheses(q_v[use])
         if hyp.shape[0] == 0:
             return []
-        key = np.stack([np.floor(hyp[:, 0] / self.yaw_bin), np.floor(hyp[:, 1] / self.pos_bin),
-                        np.floor(hyp[:, 2] / self.pos_bin)], axis=1).astype(np.int64)
-        _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        inv = inv.ravel()
+        ky = np.floor(hyp[:, 0] / self.yaw_bin).astype(np.int64)
+        kx = np.floor(hyp[:, 1] / self.pos_bin).astype(np.int64)
+        kz = np.floor(hyp[:, 2] / self.pos_bin).astype(np.int64)
+        key = ((ky - ky.min()) * (kx.max() - kx.min() + 1) + (kx - kx.min())) \
+            * (kz.max() - kz.min() + 1) + (kz - kz.min())
+        srt = np.argsort(key, kind="stable")
+        ks = key[srt]
+        starts = np.concatenate([[0], np.nonzero(np.diff(ks))[0] + 1])
+        counts = np.diff(np.concatenate([starts, [ks.size]]))
         top = np.argsort(-counts, kind="stable")[:self.top_bins]
         cands: list[Candidate] = []
         for k in top:
-            if counts[k] < 1:
+            # bins far below the best cannot hold a rival of similar support
+            if counts[k] < max(2, 0.15 * counts[top[0]]) and len(cands) >= 2:
                 break
-            h = hyp[inv == k]
+            h = hyp[srt[starts[k]:starts[k] + counts[k]]]
             yaw = math.atan2(np.sin(h[:, 0]).mean(), np.cos(h[:, 0]).mean())
             c = self.verify(q_v, yaw, np.array([np.median(h[:, 1]), np.median(h[:, 2])]))
             if c is None:
@@ -321,35 +340,30 @@ def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
     L = np.asarray(lights_w, float).reshape(-1, 2)
     k = obs.shape[0]
     eps = np.array([1e-5, 1e-5, 1e-6])
-    J = np.zeros((2 * k, 3))
 
-    def resid(q: np.ndarray) -> np.ndarray:
-        return (project_lights(rig, ceiling_height_m, L, q[0], q[1], q[2]) - obs).ravel()
+    def jac(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals at q and their forward-difference Jacobian, in one projection."""
+        poses = np.repeat(q[None, :], 4, axis=0)
+        poses[1:] += np.diag(eps)
+        px = _project_poses(rig, ceiling_height_m, L, poses)
+        r0 = (px[0] - obs).ravel()
+        Jq = np.stack([((px[a + 1] - obs).ravel() - r0) / eps[a] for a in range(3)], axis=1)
+        return r0, Jq
 
-    r = resid(p)
+    r, J = jac(p)
     for _ in range(iterations):
-        for a in range(3):
-            dq = p.copy()
-            dq[a] += eps[a]
-            J[:, a] = (resid(dq) - r) / eps[a]
         if not np.all(np.isfinite(J)) or not np.all(np.isfinite(r)):
             break
-        H = J.T @ J
         try:
-            step = -np.linalg.solve(H + 1e-9 * np.eye(3), J.T @ r)
+            step = -np.linalg.solve(J.T @ J + 1e-9 * np.eye(3), J.T @ r)
         except np.linalg.LinAlgError:
             break
-        p_new = p + step
-        r_new = resid(p_new)
+        r_new, J_new = jac(p + step)
         if not np.all(np.isfinite(r_new)) or r_new @ r_new > r @ r:
             break
-        p, r = p_new, r_new
+        p, r, J = p + step, r_new, J_new
         if np.abs(step[:2]).max() < 1e-6 and abs(step[2]) < 1e-7:
             break
-    for a in range(3):
-        dq = p.copy()
-        dq[a] += eps[a]
-        J[:, a] = (resid(dq) - r) / eps[a]
     dof = 2 * k - 3
     s2 = max(float(r @ r) / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
     try:
@@ -445,27 +459,32 @@ class LightsEstimator:
         return spots, q, np.argsort(rng, kind="stable")
 
     def _plausible(self, spots: Spots, q: np.ndarray, ok: np.ndarray) -> np.ndarray:
-        """Spots whose size and shape fit a light of ``light_radius_m`` at their place."""
+        """Spots whose size and shape fit a light of ``light_radius_m`` at their place.
+
+        The predicted spot is the light's disc through the local Jacobian ``J`` of the
+        ceiling-to-pixel map: area ``pi r² |det J|``, second moments
+        ``r²/4 J Jᵀ`` (+ blur). The observed moments, whitened by the predicted ones,
+        must be round (eigenvalue ratio >= 0.2) and of a plausible size.
+        """
         keep = ok.copy()
         idx = np.nonzero(ok)[0]
         J = pixel_scale(self.rig, self.height_m, q[idx])
         r2 = self.light_radius_m ** 2
-        for n, i in enumerate(idx):
-            Jn = J[n]
-            if not np.all(np.isfinite(Jn)):
-                keep[i] = False
-                continue
-            a_pred = math.pi * r2 * abs(np.linalg.det(Jn))
-            a = spots.areas_px[i]
-            if not (0.15 * a_pred - 3 <= a <= 5.0 * a_pred + 40):
-                keep[i] = False
-                continue
-            C_pred = 0.25 * r2 * (Jn @ Jn.T) + 0.8 * np.eye(2)
-            L = np.linalg.cholesky(np.linalg.inv(C_pred))
-            M = L.T @ spots.cov_px[i] @ L
-            ev = np.linalg.eigvalsh(M)
-            if ev[0] <= 0 or ev[0] / ev[1] < 0.2 or not (0.05 < math.sqrt(ev[0] * ev[1]) < 6):
-                keep[i] = False
+        fin = np.all(np.isfinite(J), axis=(1, 2))
+        J = np.where(fin[:, None, None], J, 1.0)
+        a_pred = math.pi * r2 * np.abs(np.linalg.det(J))
+        a = spots.areas_px[idx]
+        good = fin & (a >= 0.15 * a_pred - 3) & (a <= 5.0 * a_pred + 40)
+        C = 0.25 * r2 * np.einsum("nij,nkj->nik", J, J) + 0.8 * np.eye(2)
+        Ci = np.linalg.inv(C)
+        M = np.einsum("nij,njk->nik", Ci, spots.cov_px[idx])  # similar to the whitened
+        tr = M[:, 0, 0] + M[:, 1, 1]
+        det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
+        disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
+        lo, hi = tr / 2 - disc, tr / 2 + disc
+        good &= (lo > 0) & (lo >= 0.2 * hi) & (np.sqrt(np.maximum(det, 0)) > 0.05) \
+            & (np.sqrt(np.maximum(det, 0)) < 6.0)
+        keep[idx] = good
         return keep
 
     # -- main -------------------------------------------------------------------------

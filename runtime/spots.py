@@ -163,77 +163,85 @@ def tile_niblack_mask(grey: np.ndarray, tile_px: int = 64, k: float = 0.8,
 def _region_stats(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: int,
                   bw: int, bh: int, weighted: bool
                   ) -> tuple[float, float, float, float, np.ndarray, float]:
-    """``(u, v, I_o, I_b, cov(2x2), peak)`` of region ``lab`` with box ``(x0, y0, bw, bh)``.
+    """``(u, v, I_o, I_b, cov(2x2), area)`` of region ``lab`` with box ``(x0, y0, bw, bh)``.
 
     The object-background ring is the box grown by half its size (the paper's
-    ``w/2 x h/2`` dilation), minus every candidate pixel.
+    ``w/2 x h/2`` dilation), minus every candidate pixel. The centroid window is the
+    box grown by 2 px, other regions' pixels excluded.
     """
     H, W = grey.shape
     gx, gy = max(2, bw // 2), max(2, bh // 2)
     xa, ya = max(0, x0 - gx), max(0, y0 - gy)
     xb, yb = min(W, x0 + bw + gx), min(H, y0 + bh + gy)
-    roi = grey[ya:yb, xa:xb].astype(np.float64)
+    roi = grey[ya:yb, xa:xb]
     lroi = labels[ya:yb, xa:xb]
-    obj = lroi == lab
-    ring = lroi == 0
-    i_o = float(roi[obj].mean())
-    i_b = float(roi[ring].mean()) if np.any(ring) else float(roi.min())
-    peak = float(roi[obj].max())
-    # centroid window: the box grown by 2 px, other regions excluded
+    obj = (lroi == lab).view(np.uint8)
+    ring = (lroi == 0).view(np.uint8)
+    area = float(cv2.countNonZero(obj))
+    i_o = cv2.mean(roi, obj)[0]
+    i_b = cv2.mean(roi, ring)[0] if area < ring.size else float(roi.min())
     cx0, cy0 = max(0, x0 - 2) - xa, max(0, y0 - 2) - ya
     cx1, cy1 = min(W, x0 + bw + 2) - xa, min(H, y0 + bh + 2) - ya
-    sub = roi[cy0:cy1, cx0:cx1]
-    lsub = lroi[cy0:cy1, cx0:cx1]
     if weighted:
-        wts = np.where((lsub == 0) | (lsub == lab), np.maximum(sub - i_b, 0.0), 0.0)
+        wts = cv2.max(cv2.subtract(roi[cy0:cy1, cx0:cx1], i_b, dtype=cv2.CV_32F), 0.0)
+        lsub = lroi[cy0:cy1, cx0:cx1]
+        others = cv2.countNonZero(lsub) \
+            - cv2.countNonZero(obj[cy0:cy1, cx0:cx1])
+        if others:
+            wts[(lsub != 0) & (lsub != lab)] = 0.0
+        m = cv2.moments(wts)
+        if m["m00"] <= 0:
+            m = cv2.moments(obj[cy0:cy1, cx0:cx1], True)
     else:
-        wts = (lsub == lab).astype(np.float64)
-    s = wts.sum()
-    if s <= 0:
-        wts = (lsub == lab).astype(np.float64)
-        s = wts.sum()
-    ys, xs = np.mgrid[cy0 + ya:cy1 + ya, cx0 + xa:cx1 + xa]
-    u = float((wts * xs).sum() / s)
-    v = float((wts * ys).sum() / s)
-    du, dv = xs - u, ys - v
-    cov = np.array([[(wts * du * du).sum(), (wts * du * dv).sum()],
-                    [(wts * du * dv).sum(), (wts * dv * dv).sum()]]) / s
-    return u, v, i_o, i_b, cov, peak
+        m = cv2.moments(obj[cy0:cy1, cx0:cx1], True)
+    u = m["m10"] / m["m00"] + cx0 + xa
+    v = m["m01"] / m["m00"] + cy0 + ya
+    cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
+    return u, v, i_o, i_b, cov, area
 
 
-def _axis_ratio(cov: np.ndarray) -> float:
-    ev = np.linalg.eigvalsh(cov)
-    return float(np.sqrt(max(ev[0], 0.0) / ev[1])) if ev[1] > 0 else 0.0
+def axis_ratios(cov_px: np.ndarray) -> np.ndarray:
+    """Minor/major axis ratio ``(N,)`` of second-moment matrices ``(N, 2, 2)``."""
+    a, b, c = cov_px[:, 0, 0], cov_px[:, 0, 1], cov_px[:, 1, 1]
+    disc = np.sqrt(np.maximum((a - c) ** 2 / 4 + b * b, 0.0))
+    hi, lo = (a + c) / 2 + disc, (a + c) / 2 - disc
+    return np.sqrt(np.clip(lo, 0.0, None) / np.maximum(hi, 1e-12))
 
 
 def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
                      weighted: bool = True, rethreshold: bool = True,
                      relative: bool = True) -> Spots:
     """Identify lights among the connected regions of ``mask`` (see the module doc)."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8,
-                                                           ltype=cv2.CV_32S)
+    n, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     rejected: dict[str, int] = {}
 
     def drop(reason: str) -> None:
         rejected[reason] = rejected.get(reason, 0) + 1
 
     rows = []
-    for lab in range(1, n):
-        x0, y0, bw, bh, area = (int(a) for a in stats[lab])
+    for contour in contours:
+        x0, y0, bw, bh = cv2.boundingRect(contour)
+        if bw * bh < params.min_area_px:
+            drop("small")
+            continue
+        lab = int(labels[contour[0, 0, 1], contour[0, 0, 0]])
+        if bw * bh > 4 * params.max_area_px:
+            area = params.max_area_px + 1
+        else:
+            u, v, i_o, i_b, cov, area = _region_stats(grey, labels, lab, x0, y0, bw, bh,
+                                                      weighted)
         if area < params.min_area_px:
             drop("small")
             continue
-        if area > params.max_area_px or bw * bh > 4 * params.max_area_px:
-            if not rethreshold:
-                drop("large")
-                continue
-            sub = _split_glare(grey, labels, lab, x0, y0, bw, bh, params)
+        if area > params.max_area_px:
+            sub = _split_glare(grey, labels, lab, x0, y0, bw, bh, params) if rethreshold \
+                else None
             if sub is None:
                 drop("large")
-                continue
-            rows.append(sub)
+            else:
+                rows.append(sub)
             continue
-        u, v, i_o, i_b, cov, _ = _region_stats(grey, labels, lab, x0, y0, bw, bh, weighted)
         rows.append((u, v, float(area), i_o, i_b, cov))
     if not rows:
         return empty_spots(n - 1, rejected)
@@ -247,7 +255,7 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
     keep = level >= params.min_level
     rejected["level"] = rejected.get("level", 0) + int(np.sum(~keep))
     if params.min_axis_ratio > 0:
-        ratio = np.array([_axis_ratio(m) for m in cov])
+        ratio = axis_ratios(cov)
         bad = keep & (ratio < params.min_axis_ratio)
         rejected["shape"] = int(np.sum(bad))
         keep &= ~bad
@@ -290,9 +298,7 @@ def _split_glare(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: in
     sub = np.where(clab == 1, 1, 0).astype(np.int32)
     cx, cy, cw, ch, area = (int(a) for a in cst[1])
     # stats around the core, inside the halo: I_b is the halo level around the core
-    big = np.zeros_like(labels[ya:yb, xa:xb])
-    big[sub == 1] = 1
-    u, v, i_o, i_b2, cov, _ = _region_stats(roi, big, 1, cx, cy, cw, ch, True)
+    u, v, i_o, i_b2, cov, _ = _region_stats(roi, sub, 1, cx, cy, cw, ch, True)
     return (u + xa, v + ya, float(area), i_o, min(i_b2, i_b + 0.5 * (peak - i_b)), cov)
 
 

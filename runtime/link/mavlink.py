@@ -161,8 +161,8 @@ def covariance_ned(cov_world: np.ndarray | None, *, z_var_m2: float, roll_pitch_
     if cov_world is None:
         return [nan] * 21
     c = np.asarray(cov_world, dtype=float).reshape(3, 3)
-    J = np.diag([1.0, -1.0, -1.0])
-    c = J @ c @ J.T
+    sign = np.array([1.0, -1.0, -1.0])  # J = diag(sign); J C J^T elementwise (inf-safe)
+    c = c * np.outer(sign, sign)
     idx = [0, 1, 5]  # (x, y, yaw) -> rows of the 6x6
     for a in range(3):
         for b in range(3):

@@ -41,7 +41,7 @@ import re
 from dataclasses import dataclass
 
 from ..errors import LinkError
-from ..estimate import Estimate, Failure, PoseEstimate
+from ..estimate import Estimate, PoseEstimate
 
 MAX_SENTENCE_LEN = 82
 SEQ_MODULO = 65536
@@ -244,9 +244,3 @@ def split_sentences(buffer: bytes) -> tuple[list[bytes], bytes]:
     *lines, rest = buffer.split(b"\n")
     return [ln.rstrip(b"\r") for ln in lines if ln.strip()], rest
 
-
-def describe(estimate: Estimate | None) -> str:
-    """The failure reason to put in a status sentence (``none`` when nothing yet)."""
-    if isinstance(estimate, Failure):
-        return estimate.reason
-    return "no_estimate" if estimate is None else "stale"

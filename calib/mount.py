@@ -1,0 +1,583 @@
+"""Mount calibration: the camera's tilt, swing, pan and offsets on the vehicle from corridor images.
+
+This is the step Yang & Tsai take from their reference [15]: everything the
+corridor method needs to know about the rig, measured rather than typed in.
+
+Model (SPEC §1). For a vehicle at heading ``yaw`` and lateral position ``y`` in
+the corridor, the camera's rotation is ``R_world_cam = Rz(yaw + pan) M`` with
+``M = Ry(-tilt) R0 Rz(swing)``, and its centre is at lateral
+``c_y = y + sin(yaw) mx + cos(yaw) my``, a height ``h`` below the ceiling. A
+ceiling line along x at ``y_k`` is seen as the image line (normalized
+coordinates) ``l = R_world_cam^T (0, h, c_y - y_k)``; a line along y (at an
+unknown x) passes through the vanishing point ``R_world_cam^T e_y``.
+
+Two ways in:
+
+* **Measured placements** (:func:`calibrate_mount`): the vehicle stands at a few
+  measured lateral positions and headings. Segment endpoints are fitted jointly
+  by Levenberg-Marquardt over (pan, tilt, swing, my[, mx][, h]); ``mx`` is free
+  when the headings differ by more than a few degrees, ``h`` when two or more
+  lines of known spacing are seen (otherwise they come from the rig).
+* **A straight drive** (:func:`calibrate_tilt_swing`): no measuring at all. While
+  the vehicle drives on a level floor the ceiling's vanishing line does not
+  move; tilt and swing follow from the vanishing points of every frame (each
+  frame's heading a nuisance). Then one measured placement gives pan and the
+  offsets (``calibrate_mount(..., fixed={"tilt", "swing"})``).
+
+The start needs no typed value: a coarse search over (pan, tilt, swing) on
+segment directions, then a search over the lateral offset, then the joint fit
+with associations re-made at shrinking tolerances. Uncertainty: the covariance
+``s^2 (J^T J)^-1`` with ``s`` the residual RMS; placements whose residuals stand
+out are named.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.errors import CalibrationError
+from ceilkit.runtime.geometry import R_level_cam, rot_z
+from ceilkit.runtime.lines import (
+    SegmentDetector,
+    as_gray,
+    refine_segments,
+    segment_lengths,
+    undistort_segments,
+)
+from ceilkit.runtime.rig import Mount, Rig
+from ceilkit.runtime.site import Site
+
+PARAMS = ("pan", "tilt", "swing", "mx", "my", "h")
+_ANGLES = {"pan", "tilt", "swing"}
+
+
+@dataclass(frozen=True, eq=False)
+class Placement:
+    """One image's segments and where the vehicle stood.
+
+    Attributes:
+        segments_n: ``(N, 4)`` segment endpoints in undistorted normalized coordinates.
+        y_m: measured lateral position of the vehicle in W, or ``None`` (a drive frame).
+        yaw_rad: measured heading in W, or ``None``.
+        label: a name for reports (the image file).
+    """
+
+    segments_n: np.ndarray
+    y_m: float | None = None
+    yaw_rad: float | None = None
+    label: str = ""
+
+    @property
+    def measured(self) -> bool:
+        return self.y_m is not None and self.yaw_rad is not None
+
+
+def placement_from_image(camera: CameraModel, image: np.ndarray, y_m: float | None = None,
+                         yaw_rad: float | None = None, label: str = "",
+                         min_length_px: float = 25.0) -> Placement:
+    """Detect, refine and undistort the segments of one image."""
+    gray = as_gray(image)
+    segs = SegmentDetector("fld", min_length_px)(gray)
+    if segs.shape[0]:
+        segs, _ = refine_segments(gray, segs)
+    return Placement(undistort_segments(camera, segs), y_m, yaw_rad, label)
+
+
+@dataclass(frozen=True, eq=False)
+class MountResult:
+    """The fitted mount and its report.
+
+    Attributes:
+        mount: the rig's new mount (angles radians, lengths metres).
+        height_m: camera height below the ceiling used or fitted.
+        sigma: 1-sigma of each fitted parameter (radians / metres), by name.
+        fixed: parameters held at the rig's value, with the reason.
+        rms_px: residual RMS over inlier endpoints, pixels.
+        per_placement_rms_px: RMS by placement label.
+        outliers: placements that disagree (label, rms px, why).
+        inliers, segments: counts.
+    """
+
+    mount: Mount
+    height_m: float
+    sigma: dict[str, float]
+    fixed: dict[str, str]
+    rms_px: float
+    per_placement_rms_px: dict[str, float]
+    outliers: list[tuple[str, float, str]] = field(default_factory=list)
+    inliers: int = 0
+    segments: int = 0
+
+    def lines(self) -> list[str]:
+        m = self.mount
+        out = [f"tilt  {math.degrees(m.tilt_rad):9.4f} deg" + self._s("tilt", True),
+               f"swing {math.degrees(m.swing_rad):9.4f} deg" + self._s("swing", True),
+               f"pan   {math.degrees(m.pan_rad):9.4f} deg" + self._s("pan", True),
+               f"x     {m.x_m:9.4f} m  " + self._s("mx", False),
+               f"y     {m.y_m:9.4f} m  " + self._s("my", False),
+               f"h     {self.height_m:9.4f} m   (camera below ceiling)" + self._s("h", False),
+               f"residual RMS {self.rms_px:.3f} px over {self.inliers} of "
+               f"{self.segments} segments"]
+        for label, rms, why in self.outliers:
+            out.append(f"placement {label} disagrees: {why} (RMS {rms:.2f} px)")
+        return out
+
+    def _s(self, name: str, angle: bool) -> str:
+        if name in self.fixed:
+            return f"   (held: {self.fixed[name]})"
+        s = self.sigma.get(name, math.nan)
+        return f"   +- {math.degrees(s):.4f} deg (1 sigma)" if angle else \
+            f" +- {1000 * s:.2f} mm (1 sigma)"
+
+
+# ----------------------------------------------------------------------------- model
+def _endpoints_h(segs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    n = segs.shape[0]
+    p1 = np.hstack([segs[:, :2], np.ones((n, 1))])
+    p2 = np.hstack([segs[:, 2:], np.ones((n, 1))])
+    return p1, p2, 0.5 * (p1 + p2)
+
+
+def _line_dist(l: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Signed distances (normalized units) of points ``p`` (N,3) to lines ``l`` (N,3)."""
+    return np.sum(l * p, axis=1) / np.maximum(np.hypot(l[:, 0], l[:, 1]), 1e-300)
+
+
+def _rotation(pan: float, tilt: float, swing: float, yaw: float) -> np.ndarray:
+    return rot_z(yaw + pan) @ R_level_cam(tilt, swing)
+
+
+def _direction_residuals(segs: np.ndarray, R: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """Endpoint distances to the line through each midpoint and its family's vanishing
+    point (``which``: 0 along x, 1 along y). ``(N, 2)``."""
+    p1, p2, m = _endpoints_h(segs)
+    d = np.where(which[:, None] == 0, R.T[:, 0][None, :], R.T[:, 1][None, :])
+    l = np.cross(m, d)
+    return np.stack([_line_dist(l, p1), _line_dist(l, p2)], axis=1)
+
+
+def _along_residuals(segs: np.ndarray, R: np.ndarray, c_y: float, h: float,
+                     y_lines: np.ndarray) -> np.ndarray:
+    """Endpoint distances to the image of the ceiling line ``y_lines[i]`` (N, 2)."""
+    p1, p2, _ = _endpoints_h(segs)
+    nW = np.stack([np.zeros_like(y_lines), np.full_like(y_lines, h), c_y - y_lines], axis=1)
+    l = nW @ R  # rows: R^T n
+    return np.stack([_line_dist(l, p1), _line_dist(l, p2)], axis=1)
+
+
+class _Problem:
+    """Parameters, associations and residuals of one calibration."""
+
+    def __init__(self, placements: Sequence[Placement], site: Site, start: dict[str, float],
+                 free: Sequence[str], f_px: float):
+        self.pl = list(placements)
+        self.site_y = np.asarray(site.corridor.lines_along_m, dtype=float)
+        self.start = dict(start)
+        self.free = list(free)
+        self.f_px = f_px
+        self.n_drive = sum(1 for p in self.pl if not p.measured)
+        # association per placement: -1 outlier, 0 across family, 1 + k along line k
+        self.assoc = [np.full(p.segments_n.shape[0], -1) for p in self.pl]
+
+    def unpack(self, theta: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
+        vals = dict(self.start)
+        for i, name in enumerate(self.free):
+            vals[name] = float(theta[i])
+        return vals, theta[len(self.free):]
+
+    def theta0(self, psi0: Sequence[float] = ()) -> np.ndarray:
+        return np.array([self.start[n] for n in self.free] + list(psi0), dtype=float)
+
+    def residuals(self, theta: np.ndarray, per_placement: bool = False):
+        v, psis = self.unpack(theta)
+        out, k_drive = [], 0
+        for p, a in zip(self.pl, self.assoc, strict=True):
+            use = a >= 0
+            if not np.any(use):
+                out.append(np.zeros(0))
+                if not p.measured:
+                    k_drive += 1
+                continue
+            segs = p.segments_n[use]
+            aa = a[use]
+            if p.measured:
+                R = _rotation(v["pan"], v["tilt"], v["swing"], p.yaw_rad)
+                c_y = p.y_m + math.sin(p.yaw_rad) * v["mx"] + math.cos(p.yaw_rad) * v["my"]
+                r = np.zeros((segs.shape[0], 2))
+                along = aa >= 1
+                if np.any(along):
+                    r[along] = _along_residuals(segs[along], R, c_y, v["h"],
+                                                self.site_y[aa[along] - 1])
+                if np.any(~along):
+                    r[~along] = _direction_residuals(segs[~along], R,
+                                                     np.ones(int(np.sum(~along)), int))
+            else:
+                R = _rotation(0.0, v["tilt"], v["swing"], float(psis[k_drive]))
+                k_drive += 1
+                r = _direction_residuals(segs, R, (aa == 0).astype(int))
+            out.append(self.f_px * r.ravel())
+        return out if per_placement else np.concatenate(out) if out else np.zeros(0)
+
+    def associate(self, theta: np.ndarray, tol_px: float) -> int:
+        """Re-make every segment's association at the current parameters."""
+        v, psis = self.unpack(theta)
+        k_drive, total = 0, 0
+        for i, p in enumerate(self.pl):
+            segs = p.segments_n
+            n = segs.shape[0]
+            if n == 0:
+                continue
+            cand = np.full((n, 1 + self.site_y.size), np.inf)
+            if p.measured:
+                R = _rotation(v["pan"], v["tilt"], v["swing"], p.yaw_rad)
+                c_y = p.y_m + math.sin(p.yaw_rad) * v["mx"] + math.cos(p.yaw_rad) * v["my"]
+                cand[:, 0] = _rms(_direction_residuals(segs, R, np.ones(n, int)))
+                for k, yk in enumerate(self.site_y):
+                    cand[:, 1 + k] = _rms(_along_residuals(segs, R, c_y, v["h"],
+                                                           np.full(n, yk)))
+            else:
+                R = _rotation(0.0, v["tilt"], v["swing"], float(psis[k_drive]))
+                k_drive += 1
+                cand[:, 0] = _rms(_direction_residuals(segs, R, np.ones(n, int)))
+                cand[:, 1] = _rms(_direction_residuals(segs, R, np.zeros(n, int)))
+            cand *= self.f_px
+            best = np.argmin(cand, axis=1)
+            ok = cand[np.arange(n), best] < tol_px
+            # a segment equally close to two lines is ambiguous: leave it out
+            srt = np.sort(cand, axis=1)
+            ok &= (srt[:, 1] > 2.0 * srt[:, 0]) | (srt[:, 1] > tol_px)
+            self.assoc[i] = np.where(ok, best, -1)
+            total += int(np.sum(ok))
+        return total
+
+
+def _rms(r: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.mean(r * r, axis=1))
+
+
+def _levenberg_marquardt(fun, theta: np.ndarray, iters: int = 50
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Minimize ``|fun(theta)|^2``; returns theta and the Jacobian at the solution."""
+    lam = 1e-3
+    r = fun(theta)
+    cost = float(r @ r)
+    J = _jacobian(fun, theta, r)
+    for _ in range(iters):
+        A = J.T @ J
+        g = J.T @ r
+        step = np.linalg.solve(A + lam * np.diag(np.maximum(np.diag(A), 1e-12)), -g)
+        cand = theta + step
+        rc = fun(cand)
+        cc = float(rc @ rc)
+        if cc < cost:
+            theta, r = cand, rc
+            converged = cost - cc < 1e-12 * max(cost, 1e-30)
+            cost = cc
+            lam = max(lam / 5, 1e-9)
+            J = _jacobian(fun, theta, r)
+            if converged or np.max(np.abs(step)) < 1e-12:
+                break
+        else:
+            lam *= 10
+            if lam > 1e8:
+                break
+    return theta, J
+
+
+def _jacobian(fun, theta: np.ndarray, r0: np.ndarray) -> np.ndarray:
+    J = np.empty((r0.size, theta.size))
+    for i in range(theta.size):
+        h = 1e-7 * max(1.0, abs(theta[i]))
+        tp = theta.copy()
+        tm = theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        J[:, i] = (fun(tp) - fun(tm)) / (2 * h)
+    return J
+
+
+# ----------------------------------------------------------------------------- start
+def _direction_cost(placements: Sequence[Placement], pan: float, tilt: float, swing: float,
+                    tau_px: float, f_px: float) -> float:
+    cost = 0.0
+    for p in placements:
+        if p.segments_n.shape[0] == 0:
+            continue
+        w = segment_lengths(p.segments_n) * f_px
+        yaws = [p.yaw_rad] if p.measured else np.radians(np.arange(-40.0, 41.0, 4.0))
+        best = math.inf
+        for yaw in yaws:
+            R = _rotation(pan if p.measured else 0.0, tilt, swing, yaw)
+            n = p.segments_n.shape[0]
+            ra = _rms(_direction_residuals(p.segments_n, R, np.zeros(n, int))) * f_px
+            rc = _rms(_direction_residuals(p.segments_n, R, np.ones(n, int))) * f_px
+            r = np.minimum(np.minimum(ra, rc), tau_px)
+            best = min(best, float(np.sum(w * r * r)))
+        cost += best
+    return cost
+
+
+def _coarse_angles(placements: Sequence[Placement], f_px: float, fixed: dict[str, float]
+                   ) -> tuple[float, float, float]:
+    pans = [fixed["pan"]] if "pan" in fixed else np.radians(np.arange(-40.0, 41.0, 5.0))
+    tilts = [fixed["tilt"]] if "tilt" in fixed else np.radians(np.arange(10.0, 90.1, 5.0))
+    swings = [fixed["swing"]] if "swing" in fixed else np.radians(np.arange(-10.0, 10.1, 5.0))
+    best = (math.inf, 0.0, 0.0, 0.0)
+    for t in tilts:
+        for s in swings:
+            for pa in pans:
+                c = _direction_cost(placements, pa, t, s, 20.0, f_px)
+                if c < best[0]:
+                    best = (c, pa, t, s)
+    return best[1], best[2], best[3]
+
+
+# ----------------------------------------------------------------------------- API
+def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
+                    fixed: Sequence[str] = (), start: Mount | None = None,
+                    fit_height: bool | None = None) -> MountResult:
+    """Fit the mount to measured placements (and any drive frames).
+
+    Args:
+        rig: the camera (its intrinsics are used) and the mount values used for
+            held parameters (``mx`` when the headings barely differ; ``h`` from
+            ``site.ceiling_height - mount.z``).
+        site: the corridor's ``lines_along`` (required).
+        placements: at least one measured placement; drive frames (no y, yaw) add
+            to tilt and swing.
+        fixed: parameter names (``pan tilt swing mx my h``) to hold at ``start``.
+        start: the starting mount; ``None`` searches from scratch.
+        fit_height: fit ``h``; default: when some placement shows two or more lines.
+
+    Raises:
+        CalibrationError: no measured placement, or too few ceiling lines to fit.
+    """
+    if site.corridor is None:
+        raise CalibrationError("the site has no `corridor` lines to calibrate against")
+    measured = [p for p in placements if p.measured]
+    if not measured:
+        raise CalibrationError("no measured placement (each needs y and yaw)")
+    f_px = 0.5 * (rig.camera.fx + rig.camera.fy)
+    m0 = start or rig.mount
+    h0 = site.ceiling_height_m - rig.mount.z_m
+    held: dict[str, str] = {}
+    fixed_set = set(fixed)
+    for name in fixed_set:
+        held[name] = "fixed by the caller"
+    yaws = np.array([p.yaw_rad for p in measured])
+    if "mx" not in fixed_set and np.ptp(yaws) < math.radians(5.0):
+        fixed_set.add("mx")
+        held["mx"] = "not observable: placements need headings at least 5 deg apart"
+    vals = {"pan": m0.pan_rad, "tilt": m0.tilt_rad, "swing": m0.swing_rad, "mx": m0.x_m,
+            "my": m0.y_m, "h": h0}
+    if start is None:
+        pan, tilt, swing = _coarse_angles(placements, f_px,
+                                          {k: vals[k] for k in fixed_set & _ANGLES})
+        vals.update(pan=pan, tilt=tilt, swing=swing)
+    if vals["tilt"] > math.radians(88.0) and "swing" not in fixed_set:
+        fixed_set.add("swing")
+        vals["swing"] = 0.0
+        held["swing"] = "looking straight up: only pan + swing is observable (SPEC)"
+    if fit_height is None:
+        fit_height = "h" not in fixed_set
+    if not fit_height:
+        fixed_set.add("h")
+        held.setdefault("h", "from the site's ceiling height and the rig's z")
+
+    # stage 1: directions only (angles)
+    ang_free = [n for n in ("pan", "tilt", "swing") if n not in fixed_set]
+    prob = _Problem(placements, site, vals, ang_free, f_px)
+    psi0 = [0.0] * prob.n_drive
+    theta = prob.theta0(psi0)
+    for tol in (20.0, 8.0, 4.0):
+        _associate_directions(prob, theta, tol)
+        if any(np.any(a >= 0) for a in prob.assoc):
+            theta, _ = _levenberg_marquardt(prob.residuals, theta)
+    vals, psis = prob.unpack(theta)
+
+    # stage 2: the lateral offset, by a search against the site's lines
+    if "my" not in fixed_set:
+        vals["my"] = _search_lateral(placements, site, vals, f_px)
+
+    # stage 3: everything, associations re-made at shrinking tolerances
+    free = [n for n in PARAMS if n not in fixed_set]
+    prob = _Problem(placements, site, vals, free, f_px)
+    theta = prob.theta0(psis)
+    J = np.zeros((0, len(free)))
+    for tol in (12.0, 5.0, 3.0, 2.0):
+        if prob.associate(theta, tol) < len(free) + 2:
+            continue
+        theta, J = _levenberg_marquardt(prob.residuals, theta)
+    n_in = sum(int(np.sum(a >= 0)) for a in prob.assoc)
+    n_along = sum(int(np.sum(a >= 1)) for a in prob.assoc)
+    if n_in < len(free) + 2 or n_along == 0 or J.shape[0] == 0:
+        raise CalibrationError(
+            f"too few ceiling lines matched the site ({n_in} segments, {n_along} along x): "
+            "check the images show the corridor's lines and the site's lines_along")
+    vals, _ = prob.unpack(theta)
+    r = prob.residuals(theta)
+    dof = max(r.size - theta.size, 1)
+    s2 = float(r @ r) / dof
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.full((theta.size, theta.size), np.inf)
+    sigma = {name: float(math.sqrt(max(cov[i, i], 0.0))) for i, name in enumerate(free)}
+    per = prob.residuals(theta, per_placement=True)
+    per_rms = {}
+    for p, rr in zip(prob.pl, per, strict=True):
+        if p.measured:
+            per_rms[p.label or f"#{len(per_rms)}"] = \
+                float(np.sqrt(np.mean(rr * rr))) if rr.size else math.nan
+    # a placement disagrees when its own lines put the vehicle elsewhere than measured
+    # (beyond 4 sigma of the fitted offset and 1 cm), or when its residuals stand out
+    finite = [v for v in per_rms.values() if math.isfinite(v)]
+    med = float(np.median(finite)) if finite else math.nan
+    tol_m = max(0.01, 4.0 * sigma.get("my", 0.0))
+    outliers = []
+    for p, (label, rms) in zip([q for q in prob.pl if q.measured], per_rms.items(),
+                               strict=True):
+        dy = _placement_disagreement(p, site, vals, f_px)
+        if abs(dy) > tol_m:
+            outliers.append((label, rms, f"its lines put the vehicle {100 * dy:+.1f} cm "
+                             "from the measured y"))
+        elif math.isfinite(rms) and rms > max(3.0 * med, 1.0):
+            outliers.append((label, rms, "residuals stand out"))
+    z_m = site.ceiling_height_m - vals["h"]
+    mount = Mount(pan_rad=vals["pan"], tilt_rad=vals["tilt"], swing_rad=vals["swing"],
+                  x_m=vals["mx"], y_m=vals["my"], z_m=z_m)
+    total = sum(p.segments_n.shape[0] for p in placements)
+    return MountResult(mount, vals["h"], sigma, held, float(math.sqrt(s2)), per_rms, outliers,
+                       n_in, total)
+
+
+def _associate_directions(prob: _Problem, theta: np.ndarray, tol_px: float) -> None:
+    v, psis = prob.unpack(theta)
+    k_drive = 0
+    for i, p in enumerate(prob.pl):
+        segs = p.segments_n
+        n = segs.shape[0]
+        if n == 0:
+            continue
+        if p.measured:
+            R = _rotation(v["pan"], v["tilt"], v["swing"], p.yaw_rad)
+        else:
+            R = _rotation(0.0, v["tilt"], v["swing"], float(psis[k_drive]))
+            k_drive += 1
+        ra = _rms(_direction_residuals(segs, R, np.zeros(n, int))) * prob.f_px
+        rc = _rms(_direction_residuals(segs, R, np.ones(n, int))) * prob.f_px
+        # families in the direction stage: 0 across (y), 1 along (x: code >= 1)
+        prob.assoc[i] = np.where(np.minimum(ra, rc) < tol_px, np.where(ra <= rc, 1, 0), -1)
+    prob.site_y = prob.site_y  # unchanged
+    # along segments use only their direction in this stage
+    prob_residuals = prob.residuals
+
+    def direction_only(theta_: np.ndarray, per_placement: bool = False):
+        v_, ps_ = prob.unpack(theta_)
+        out, kd = [], 0
+        for p_, a_ in zip(prob.pl, prob.assoc, strict=True):
+            use = a_ >= 0
+            if p_.measured:
+                R_ = _rotation(v_["pan"], v_["tilt"], v_["swing"], p_.yaw_rad)
+            else:
+                R_ = _rotation(0.0, v_["tilt"], v_["swing"], float(ps_[kd]))
+                kd += 1
+            if not np.any(use):
+                out.append(np.zeros(0))
+                continue
+            which = (a_[use] == 0).astype(int)
+            out.append(prob.f_px * _direction_residuals(p_.segments_n[use], R_, which).ravel())
+        return out if per_placement else np.concatenate(out)
+
+    prob.residuals = direction_only  # type: ignore[method-assign]
+    del prob_residuals
+
+
+def _lateral_costs(p: Placement, R: np.ndarray, c_y: np.ndarray, h: float,
+                   site_y: np.ndarray, f_px: float, cap_px: float = 6.0) -> np.ndarray:
+    """Robust cost of laying a placement's segments on the site's along-lines, for each
+    candidate camera lateral ``c_y`` (M,). Returns (M,)."""
+    p1, p2, _ = _endpoints_h(p.segments_n)
+    a, b = R.T[:, 1], R.T[:, 2]  # l = h a + (c_y - y_k) b
+    # distances of both endpoints for each candidate (M), line (K), segment (N)
+    off = c_y[:, None] - site_y[None, :]                       # (M, K)
+    la = h * a
+    norm = np.hypot(la[0] + off * b[0], la[1] + off * b[1])[:, :, None]
+    sq = 0.0
+    for q in (p1, p2):
+        num = (q @ la)[None, None, :] + off[:, :, None] * (q @ b)[None, None, :]
+        sq = sq + (num / norm * f_px) ** 2
+    best = np.minimum(np.sqrt(0.5 * sq).min(axis=1), cap_px)  # (M, N)
+    return np.sum(best ** 2 * segment_lengths(p.segments_n)[None, :], axis=1)
+
+
+def _search_lateral(placements: Sequence[Placement], site: Site, vals: dict[str, float],
+                    f_px: float) -> float:
+    """The lateral offset ``my`` that best lays the along segments on the site's lines."""
+    site_y = np.asarray(site.corridor.lines_along_m, dtype=float)
+    grid = np.arange(-1.5, 1.5001, 0.005)
+    cost = np.zeros(grid.size)
+    for p in placements:
+        if not p.measured or p.segments_n.shape[0] == 0:
+            continue
+        R = _rotation(vals["pan"], vals["tilt"], vals["swing"], p.yaw_rad)
+        c_y = p.y_m + math.sin(p.yaw_rad) * vals["mx"] + math.cos(p.yaw_rad) * grid
+        cost += _lateral_costs(p, R, c_y, vals["h"], site_y, f_px)
+    return float(grid[int(np.argmin(cost))])
+
+
+def _placement_disagreement(p: Placement, site: Site, vals: dict[str, float],
+                            f_px: float) -> float:
+    """How far (m) this placement's own lines put the vehicle from its measured y."""
+    site_y = np.asarray(site.corridor.lines_along_m, dtype=float)
+    spacing = float(np.min(np.diff(site_y))) if site_y.size > 1 else 1.0
+    grid = np.arange(-0.45 * spacing, 0.45 * spacing + 1e-9, 0.001)
+    R = _rotation(vals["pan"], vals["tilt"], vals["swing"], p.yaw_rad)
+    c_y = p.y_m + math.sin(p.yaw_rad) * vals["mx"] + math.cos(p.yaw_rad) * vals["my"]
+    cost = _lateral_costs(p, R, c_y + grid, vals["h"], site_y, f_px, cap_px=3.0)
+    return float(grid[int(np.argmin(cost))])
+
+
+def calibrate_tilt_swing(rig: Rig, drive: Sequence[Placement]) -> tuple[float, float, dict]:
+    """Tilt and swing (radians) from frames of a straight drive, nothing measured.
+
+    Returns ``(tilt, swing, report)`` with 1-sigma values and the residual RMS.
+    """
+    frames = [Placement(p.segments_n, None, None, p.label) for p in drive]
+    if len(frames) < 2:
+        raise CalibrationError("a drive needs at least two frames")
+    f_px = 0.5 * (rig.camera.fx + rig.camera.fy)
+    _, tilt, swing = _coarse_angles(frames, f_px, {"pan": 0.0})
+    vals = {"pan": 0.0, "tilt": tilt, "swing": swing, "mx": 0.0, "my": 0.0, "h": 1.0}
+    from ceilkit.runtime.site import Corridor
+    from ceilkit.runtime.site import Site as _Site
+
+    dummy = _Site(1.0, Corridor((0.0,)))
+    prob = _Problem(frames, dummy, vals, ["tilt", "swing"], f_px)
+    # each frame's heading: start from the coarse search's best
+    psis = []
+    for p in frames:
+        best = (math.inf, 0.0)
+        for yaw in np.radians(np.arange(-40.0, 41.0, 2.0)):
+            c = _direction_cost([Placement(p.segments_n, 0.0, yaw)], 0.0, tilt, swing, 20.0,
+                                f_px)
+            if c < best[0]:
+                best = (c, float(yaw))
+        psis.append(best[1])
+    theta = prob.theta0(psis)
+    J = np.zeros((0, 2))
+    for tol in (20.0, 8.0, 4.0, 2.5):
+        _associate_directions(prob, theta, tol)
+        theta, J = _levenberg_marquardt(prob.residuals, theta)
+    r = prob.residuals(theta)
+    s2 = float(r @ r) / max(r.size - theta.size, 1)
+    cov = s2 * np.linalg.pinv(J.T @ J)
+    report = {"sigma_tilt": math.sqrt(max(cov[0, 0], 0.0)),
+              "sigma_swing": math.sqrt(max(cov[1, 1], 0.0)),
+              "rms_px": math.sqrt(s2), "frames": len(frames)}
+    return float(theta[0]), float(theta[1]), report

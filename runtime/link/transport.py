@@ -1,0 +1,720 @@
+"""Carry encoded poses to the vehicle's controller: a serial port, a file, or a fake.
+
+One transport for both protocols (``nmea`` and ``mavlink``). The pipeline calls,
+from its loop::
+
+    with SerialLink("/dev/ttyUSB0", 115200, "nmea") as link:
+        for est in estimates:
+            link.send(est)          # never blocks
+            if jumped:
+                link.relocalized()  # MAVLink reset_counter += 1
+        ...
+        link.set_fault("camera_lost")   # stops HEARTBEAT, sends PCEIS state F
+
+Guarantees:
+
+* **Never blocks.** The port is opened non-blocking (``O_NONBLOCK``, pyserial
+  ``write_timeout=0``); each call writes what the driver takes now and keeps the rest
+  in a bounded buffer (``max_buffer_bytes``).
+* **No torn frames.** A message that was partly written is completed before any other
+  byte goes out. When the peer is backed up, whole messages that have not started are
+  dropped, oldest first (stale poses), and counted. Only an unplug can cut a message.
+* **Unplug is a state, not an error.** After a successful start, a write or read
+  error closes the port, ``state`` becomes ``"disconnected"``, poses are dropped
+  (counted) and the port is reopened with exponential back-off
+  (``backoff_s = (first, max)``); ``counters.reconnects`` counts successes.
+  Opening the port the user named fails with :class:`LinkError`, one line.
+* **Periodic messages.** ``poll()`` (called by ``send()``, by the pipeline, and by an
+  optional service thread every ``service_interval_s``) sends the 1 Hz HEARTBEAT
+  (MAVLink, not while faulted) or the 1 Hz ``$PCEIS`` status (NMEA, while there has
+  been no valid pose for 1 s, or while faulted), and reads what the controller sends
+  back: each message goes to ``on_receive`` and, as a line, to ``rx_log``.
+
+Times: ``clock_ns`` (default ``time.monotonic_ns``, the clock frames are stamped
+with) drives the periodic messages and the back-off; poses carry their own
+capture time.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import logging
+import os
+import select
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import IO, Protocol
+
+from ..errors import LinkError
+from ..estimate import Estimate, Failure
+from . import mavlink, nmea
+
+log = logging.getLogger("ceilkit.link")
+
+PROTOCOLS = ("nmea", "mavlink")
+PERIOD_NS = 1_000_000_000
+MAX_RX_PENDING = 4096
+
+
+# ------------------------------------------------------------------------ protocols
+
+
+@dataclass(frozen=True)
+class Received:
+    """One message read back from the controller.
+
+    Attributes:
+        t_ns: the link's clock when it was read.
+        raw: the message's bytes (an NMEA line without ``\\r\\n``, or a whole MAVLink frame).
+        text: a one-line description for logs.
+    """
+
+    t_ns: int
+    raw: bytes
+    text: str
+
+
+@dataclass(frozen=True)
+class Health:
+    """What the link knows about the localizer when periodic messages are due."""
+
+    now_ns: int
+    faulted: bool
+    fault_reason: str
+    valid_recently: bool      # a valid pose arrived within the last second (link clock)
+    last_reason: str          # the last failure's reason, or no_estimate / stale
+    age_ms: int | None        # ms since the last valid pose arrived (link clock)
+
+
+class LinkProtocol(Protocol):
+    """Turns estimates and link health into whole messages (bytes)."""
+
+    name: str
+
+    def pose(self, est: Estimate) -> tuple[bytes | None, bool]:
+        """The message for one estimate (``None``: nothing to send) and whether it is a pose."""
+        ...
+
+    def periodic(self, health: Health) -> bytes | None: ...
+
+    def relocalized(self) -> None: ...
+
+    def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]: ...
+
+
+class NmeaProtocol:
+    """``$PCEIL`` per estimate, ``$PCEIS`` once a second while no valid pose (or faulted)."""
+
+    name = "nmea"
+
+    def __init__(self) -> None:
+        self.seq = 0
+
+    def _next_seq(self) -> int:
+        s = self.seq
+        self.seq = (self.seq + 1) % nmea.SEQ_MODULO
+        return s
+
+    def pose(self, est: Estimate) -> tuple[bytes | None, bool]:
+        return nmea.encode_pose(est, self._next_seq()), nmea.pose_is_sendable(est)
+
+    def periodic(self, health: Health) -> bytes | None:
+        if health.valid_recently and not health.faulted:
+            return None
+        reason = health.fault_reason if health.faulted else health.last_reason
+        return nmea.encode_status(self._next_seq(), health.now_ns // 1_000_000,
+                                  faulted=health.faulted, reason=reason, age_ms=health.age_ms)
+
+    def relocalized(self) -> None:
+        """NMEA carries no reset counter: the controller sees the jump in x, y."""
+
+    def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]:
+        lines, rest = nmea.split_sentences(buffer)
+        return [(ln, ln.decode("ascii", "replace")) for ln in lines], rest
+
+
+class MavlinkProtocol:
+    """VISION_POSITION_ESTIMATE per pose, HEARTBEAT once a second unless faulted.
+
+    Args:
+        sysid, compid: the sender's ids (default 1 and 197, MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
+        settings: how poses map to the message (z and roll/pitch variance, the
+            policy for a pose missing x or y).
+    """
+
+    name = "mavlink"
+
+    def __init__(self, sysid: int = 1, compid: int = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+                 settings: mavlink.VisionSettings | None = None) -> None:
+        if not 1 <= int(sysid) <= 255:
+            raise LinkError(f"MAVLink system id must be in 1..255, found {sysid}")
+        if not 0 <= int(compid) <= 255:
+            raise LinkError(f"MAVLink component id must be in 0..255, found {compid}")
+        self.sysid, self.compid = int(sysid), int(compid)
+        self.settings = settings or mavlink.VisionSettings()
+        self.seq = 0
+        self.reset_counter = 0
+
+    def _next_seq(self) -> int:
+        s = self.seq
+        self.seq = (self.seq + 1) % 256
+        return s
+
+    def pose(self, est: Estimate) -> tuple[bytes | None, bool]:
+        # the sequence number is only spent on a message that is sent
+        msg = mavlink.pose_message(est, self.seq, self.reset_counter, sysid=self.sysid,
+                                   compid=self.compid, settings=self.settings)
+        if msg is not None:
+            self._next_seq()
+        return msg, msg is not None
+
+    def periodic(self, health: Health) -> bytes | None:
+        if health.faulted:
+            return None
+        status = mavlink.MAV_STATE_ACTIVE if health.valid_recently else mavlink.MAV_STATE_STANDBY
+        return mavlink.encode_heartbeat(self._next_seq(), self.sysid, self.compid, status)
+
+    def relocalized(self) -> None:
+        self.reset_counter = (self.reset_counter + 1) % 256
+
+    def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]:
+        frames, rest = mavlink.split_frames(buffer)
+        return [(f.raw, mavlink.describe_frame(f)) for f in frames], rest
+
+
+def make_protocol(protocol: str | LinkProtocol, **options) -> LinkProtocol:
+    """A protocol object from its name (``nmea`` or ``mavlink``) or one given as is."""
+    if not isinstance(protocol, str):
+        return protocol
+    if protocol == "nmea":
+        if options:
+            raise LinkError(f"the nmea protocol takes no options, found {sorted(options)}")
+        return NmeaProtocol()
+    if protocol == "mavlink":
+        return MavlinkProtocol(**options)
+    raise LinkError(f"unknown link protocol {protocol!r} (choose from {', '.join(PROTOCOLS)})")
+
+
+# ------------------------------------------------------------------------ the link
+
+
+@dataclass(frozen=True)
+class LinkCounters:
+    """Counts since the link was opened.
+
+    Attributes:
+        sent: whole messages written (poses and periodic ones).
+        dropped: messages discarded: buffer full (peer backed up) or port unplugged.
+        skipped: estimates the protocol had nothing to send for (MAVLink: a failure,
+            a pose missing x with the ``skip`` policy).
+        reconnects: successful reopenings after an unplug.
+        bytes_sent: bytes written.
+        received: messages read back from the controller.
+    """
+
+    sent: int = 0
+    dropped: int = 0
+    skipped: int = 0
+    reconnects: int = 0
+    bytes_sent: int = 0
+    received: int = 0
+
+
+class _Disconnected(Exception):
+    """The port went away (internal)."""
+
+
+class LinkBase:
+    """The state machine shared by every link; subclasses provide the port hooks."""
+
+    def __init__(self, protocol: str | LinkProtocol = "nmea", *, max_buffer_bytes: int = 1024,
+                 on_receive: Callable[[Received], None] | None = None,
+                 rx_log: str | Path | None = None, clock_ns: Callable[[], int] = time.monotonic_ns,
+                 backoff_s: tuple[float, float] = (0.5, 8.0),
+                 service_interval_s: float | None = None, **protocol_options) -> None:
+        self.protocol = make_protocol(protocol, **protocol_options)
+        if max_buffer_bytes < 256:
+            raise LinkError(f"max_buffer_bytes must be at least 256, found {max_buffer_bytes}")
+        if not 0 < backoff_s[0] <= backoff_s[1]:
+            raise LinkError(f"backoff_s must be (first, max) with 0 < first <= max, "
+                            f"found {backoff_s}")
+        self.max_buffer_bytes = int(max_buffer_bytes)
+        self.on_receive = on_receive
+        self.rx_log_path = None if rx_log is None else Path(rx_log)
+        self._rx_log: IO[str] | None = None
+        self.clock_ns = clock_ns
+        self.backoff_s = backoff_s
+        self.service_interval_s = service_interval_s
+        self._lock = threading.RLock()
+        self._queue: deque[bytes] = deque()
+        self._queued_bytes = 0
+        self._head = b""            # the unwritten rest of a message already started
+        self._rx = b""
+        self._counters = LinkCounters()
+        self._state = "closed"
+        self._attempts = 0
+        self._next_attempt_ns = 0
+        self._faulted = False
+        self._fault_reason = ""
+        self._last_valid_ns: int | None = None      # link clock when a valid pose arrived
+        self._last_estimate: Estimate | None = None
+        self._last_was_valid = False
+        self.periodic_enabled = True
+        self._next_periodic_ns = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ---------------------------------------------------------------- port hooks
+
+    def _open_port(self) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _close_port(self) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _write_some(self, data: bytes) -> int:  # pragma: no cover - abstract
+        """Write without blocking; return the count taken (0 if none); raise _Disconnected."""
+        raise NotImplementedError
+
+    def _read_some(self) -> bytes:
+        """Read what is there without blocking; raise _Disconnected."""
+        return b""
+
+    # ---------------------------------------------------------------- lifecycle
+
+    def open(self) -> LinkBase:
+        """Open the port (``LinkError`` with one line when it cannot) and start the service."""
+        with self._lock:
+            if self._state != "closed":
+                return self
+            self._open_port()
+            if self.rx_log_path is not None:
+                try:
+                    self._rx_log = open(self.rx_log_path, "a", encoding="utf-8")  # noqa: SIM115
+                except OSError as exc:
+                    self._close_port()
+                    raise LinkError(f"cannot open receive log {self.rx_log_path}: "
+                                    f"{exc.strerror}") from None
+            self._state = "connected"
+            self._next_periodic_ns = self.clock_ns()
+        if self.service_interval_s:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._service, name="ceilkit-link",
+                                            daemon=True)
+            self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Flush what can go out without blocking, stop the service, close the port."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        with self._lock:
+            if self._state == "connected":
+                try:
+                    self._pump()
+                except _Disconnected:
+                    pass
+            if self._state != "closed":
+                self._close_port()
+            self._state = "closed"
+            if self._rx_log is not None:
+                self._rx_log.close()
+                self._rx_log = None
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _service(self) -> None:
+        while not self._stop.wait(self.service_interval_s):
+            self.poll()
+
+    # ---------------------------------------------------------------- the pipeline's API
+
+    @property
+    def state(self) -> str:
+        """``connected``, ``disconnected`` (unplugged, reopening with back-off) or ``closed``."""
+        return self._state
+
+    @property
+    def counters(self) -> LinkCounters:
+        """A snapshot of the counters."""
+        return self._counters
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes accepted by :meth:`send` and not yet written."""
+        return self._queued_bytes + len(self._head)
+
+    def send(self, est: Estimate) -> None:
+        """Encode one estimate and write it without blocking (or buffer or drop it)."""
+        with self._lock:
+            if self._state == "closed":
+                raise LinkError("send() on a closed link")
+            now = self.clock_ns()
+            msg, valid = self.protocol.pose(est)
+            self._last_estimate, self._last_was_valid = est, valid
+            if valid:
+                self._last_valid_ns = now
+            if msg is None:
+                self._count(skipped=1)
+            else:
+                self._enqueue(msg)
+            self._poll_locked(now)
+
+    def relocalized(self) -> None:
+        """The pose jumped (a relocalization): bump MAVLink's reset_counter."""
+        with self._lock:
+            self.protocol.relocalized()
+
+    def set_fault(self, reason: str | None) -> None:
+        """Mark the localizer faulted (``reason``) or healthy again (``None``).
+
+        While faulted, MAVLink stops its HEARTBEAT and NMEA sends ``$PCEIS`` with state F.
+        """
+        with self._lock:
+            self._faulted = reason is not None
+            self._fault_reason = reason or ""
+            now = self.clock_ns()
+            self._next_periodic_ns = min(self._next_periodic_ns, now)
+            if self._state != "closed":
+                self._poll_locked(now)  # the first F status goes out at once
+
+    def poll(self) -> None:
+        """Do the periodic work now: reopen, periodic messages, write, read."""
+        with self._lock:
+            if self._state != "closed":
+                self._poll_locked(self.clock_ns())
+
+    # ---------------------------------------------------------------- internals
+
+    def _count(self, **inc: int) -> None:
+        c = self._counters
+        self._counters = replace(c, **{k: getattr(c, k) + v for k, v in inc.items()})
+
+    def _health(self, now: int) -> Health:
+        valid_recently = (self._last_valid_ns is not None
+                          and now - self._last_valid_ns < PERIOD_NS)
+        age = None if self._last_valid_ns is None else (now - self._last_valid_ns) // 1_000_000
+        est = self._last_estimate
+        if est is None:
+            reason = "no_estimate"
+        elif isinstance(est, Failure):
+            reason = est.reason
+        else:
+            reason = "stale" if self._last_was_valid else "unsendable"
+        return Health(now, self._faulted, self._fault_reason, valid_recently, reason, age)
+
+    def _enqueue(self, msg: bytes) -> None:
+        if self._state != "connected":
+            self._count(dropped=1)
+            return
+        self._queue.append(msg)
+        self._queued_bytes += len(msg)
+        while self._queued_bytes + len(self._head) > self.max_buffer_bytes and self._queue:
+            old = self._queue.popleft()  # oldest not-yet-started message: stale
+            self._queued_bytes -= len(old)
+            self._count(dropped=1)
+
+    def _poll_locked(self, now: int) -> None:
+        if self._state == "disconnected" and now >= self._next_attempt_ns:
+            self._try_reopen(now)
+        if self.periodic_enabled and now >= self._next_periodic_ns:
+            self._next_periodic_ns = now + PERIOD_NS
+            msg = self.protocol.periodic(self._health(now))
+            if msg is not None:
+                self._enqueue(msg)
+        if self._state == "connected":
+            try:
+                self._pump()
+                self._read()
+            except _Disconnected as exc:
+                self._lost(now, str(exc))
+
+    def _pump(self) -> None:
+        while self._head or self._queue:
+            if not self._head:
+                self._head = self._queue.popleft()
+                self._queued_bytes -= len(self._head)
+            n = self._write_some(self._head)
+            if n:
+                self._count(bytes_sent=n)
+            if n < len(self._head):
+                self._head = self._head[n:]
+                return
+            self._head = b""
+            self._count(sent=1)
+
+    def _read(self) -> None:
+        data = self._read_some()
+        if not data:
+            return
+        self._rx += data
+        messages, self._rx = self.protocol.split_incoming(self._rx)
+        self._rx = self._rx[-MAX_RX_PENDING:]
+        now = self.clock_ns()
+        for raw, text in messages:
+            self._count(received=1)
+            if self._rx_log is not None:
+                self._rx_log.write(f"{now / 1e9:.3f} {text}\n")
+                self._rx_log.flush()
+            if self.on_receive is not None:
+                self.on_receive(Received(now, raw, text))
+
+    def _lost(self, now: int, why: str) -> None:
+        dropped = len(self._queue) + (1 if self._head else 0)
+        self._queue.clear()
+        self._queued_bytes = 0
+        self._head = b""
+        self._rx = b""
+        if dropped:
+            self._count(dropped=dropped)
+        try:
+            self._close_port()
+        except OSError:
+            pass
+        self._state = "disconnected"
+        self._attempts = 0
+        self._next_attempt_ns = now + int(self.backoff_s[0] * 1e9)
+        log.warning("link %s lost (%s); reopening with back-off", self.describe(), why)
+
+    def _try_reopen(self, now: int) -> None:
+        try:
+            self._open_port()
+        except LinkError as exc:
+            self._attempts += 1
+            delay = min(self.backoff_s[1], self.backoff_s[0] * 2 ** self._attempts)
+            self._next_attempt_ns = now + int(delay * 1e9)
+            log.debug("reopen of %s failed (%s); next in %.1f s", self.describe(), exc, delay)
+            return
+        self._state = "connected"
+        self._count(reconnects=1)
+        log.warning("link %s back after %d failed attempts", self.describe(), self._attempts)
+
+    def describe(self) -> str:
+        return f"{type(self).__name__}({self.protocol.name})"
+
+
+# ------------------------------------------------------------------------ serial
+
+
+def _open_error(port: str, exc: BaseException) -> LinkError:
+    code = getattr(exc, "errno", None)
+    if code == errno.ENOENT:
+        why = "no such device (is the adapter plugged in? see ls /dev/serial/by-id/)"
+    elif code in (errno.EACCES, errno.EPERM):
+        why = "permission denied (add the user to the dialout group)"
+    elif code in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY):
+        why = "busy: another program holds it open"
+    elif code == errno.ENOTTY:
+        why = "not a serial port"
+    else:
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return LinkError(f"cannot open serial port {port}: {why}")
+
+
+class SerialLink(LinkBase):
+    """A serial port (USB-serial adapter, UART) carrying ``nmea`` or ``mavlink``.
+
+    Args:
+        port: the device path (``/dev/ttyUSB0``, ``/dev/serial/by-id/...``).
+        baud: bits per second (8N1, no flow control).
+        protocol: ``nmea`` (default) or ``mavlink``, or a protocol object.
+        max_buffer_bytes: bound of what waits for a backed-up peer.
+        on_receive: called with each :class:`Received` message from the controller.
+        rx_log: a text file each received message is appended to, one line each.
+        clock_ns: the link's clock (integer ns).
+        backoff_s: ``(first, max)`` delays between reopen attempts after an unplug.
+        service_interval_s: period of the service thread that sends the 1 Hz messages,
+            reads and reconnects while the pipeline is busy; ``None``: the caller's
+            :meth:`poll` and :meth:`send` do it.
+        **protocol_options: ``sysid``, ``compid``, ``settings`` for ``mavlink``.
+
+    Raises:
+        LinkError: on :meth:`open` (``with``), when the port cannot be opened: one line.
+    """
+
+    def __init__(self, port: str | Path, baud: int = 115200,
+                 protocol: str | LinkProtocol = "nmea", *,
+                 service_interval_s: float | None = 0.05, **options) -> None:
+        super().__init__(protocol, service_interval_s=service_interval_s, **options)
+        if int(baud) <= 0:
+            raise LinkError(f"baud must be a positive integer, found {baud}")
+        self.port = str(port)
+        self.baud = int(baud)
+        self._serial = None
+        self._fd = -1
+
+    def describe(self) -> str:
+        return f"{self.port}@{self.baud} ({self.protocol.name})"
+
+    def _open_port(self) -> None:
+        import serial  # pyserial
+
+        try:
+            ser = serial.Serial(self.port, self.baud, timeout=0, write_timeout=0,
+                                exclusive=True)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise _open_error(self.port, exc) from None
+        fd = ser.fileno()
+        fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) | os.O_NONBLOCK)
+        self._serial, self._fd = ser, fd
+
+    def _close_port(self) -> None:
+        ser, self._serial, self._fd = self._serial, None, -1
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # noqa: BLE001 - the port may already be gone
+                pass
+
+    def _write_some(self, data: bytes) -> int:
+        # os.write on the non-blocking fd: pyserial's write() spins on EAGAIN with
+        # write_timeout=0, this returns 0 instead.
+        try:
+            return os.write(self._fd, data)
+        except BlockingIOError:
+            return 0
+        except InterruptedError:
+            return 0
+        except OSError as exc:
+            raise _Disconnected(f"write: {exc.strerror}") from None
+
+    def _read_some(self) -> bytes:
+        # pyserial sets VMIN = VTIME = 0, so an empty read is "nothing yet"; a hang-up
+        # shows as POLLHUP / POLLERR, or as readable-but-empty (as pyserial reads it)
+        poller = select.poll()
+        poller.register(self._fd, select.POLLIN)
+        events = poller.poll(0)
+        mask = events[0][1] if events else 0
+        if mask & (select.POLLHUP | select.POLLERR | select.POLLNVAL):
+            raise _Disconnected("hang-up")
+        if not mask & select.POLLIN:
+            return b""
+        try:
+            data = os.read(self._fd, 4096)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as exc:
+            raise _Disconnected(f"read: {exc.strerror}") from None
+        if not data:
+            raise _Disconnected("readable but no data (device disconnected?)")
+        return data
+
+
+# ------------------------------------------------------------------------ file, fake
+
+
+class FileLink(LinkBase):
+    """The same bytes as on the wire, to a file (``-`` for stdout). Never drops.
+
+    Periodic messages follow ``clock_ns`` as on a port; pass ``periodic=False`` to
+    write only the per-estimate messages (a replay, compared byte for byte).
+    """
+
+    def __init__(self, path: str | Path, protocol: str | LinkProtocol = "nmea", *,
+                 periodic: bool = True, **options) -> None:
+        options.setdefault("max_buffer_bytes", 1 << 20)
+        super().__init__(protocol, **options)
+        self.path = str(path)
+        self.periodic_enabled = periodic
+        self._file: IO[bytes] | None = None
+
+    def describe(self) -> str:
+        return f"{self.path} ({self.protocol.name})"
+
+    def _open_port(self) -> None:
+        if self.path == "-":
+            self._file = sys.stdout.buffer
+            return
+        try:
+            self._file = open(self.path, "ab")  # noqa: SIM115
+        except OSError as exc:
+            raise LinkError(f"cannot open link file {self.path}: {exc.strerror}") from None
+
+    def _close_port(self) -> None:
+        f, self._file = self._file, None
+        if f is None:
+            return
+        if f is sys.stdout.buffer:
+            f.flush()
+        else:
+            f.close()
+
+    def _write_some(self, data: bytes) -> int:
+        if self._file is None:
+            raise _Disconnected("file closed")
+        try:
+            n = self._file.write(data)
+            self._file.flush()
+        except OSError as exc:
+            raise _Disconnected(f"write: {exc.strerror}") from None
+        return len(data) if n is None else n
+
+
+class MemoryLink(LinkBase):
+    """An in-memory fake port for tests.
+
+    ``capacity`` bytes may sit unread at the fake peer before it is backed up (writes
+    then take only what fits, like a full driver buffer); :meth:`drain` reads them.
+    :meth:`unplug` and :meth:`replug` simulate the cable; :meth:`feed` queues bytes
+    the controller sends.
+    """
+
+    def __init__(self, protocol: str | LinkProtocol = "nmea", *, capacity: int | None = None,
+                 **options) -> None:
+        super().__init__(protocol, **options)
+        self.capacity = capacity
+        self.written = bytearray()     # everything ever written, in order
+        self._unread = bytearray()
+        self._incoming = bytearray()
+        self.plugged = True
+
+    def _open_port(self) -> None:
+        if not self.plugged:
+            raise LinkError("cannot open memory link: unplugged")
+
+    def _close_port(self) -> None:
+        self._unread.clear()
+
+    def _write_some(self, data: bytes) -> int:
+        if not self.plugged:
+            raise _Disconnected("write: unplugged")
+        room = len(data) if self.capacity is None else self.capacity - len(self._unread)
+        n = max(0, min(len(data), room))
+        self.written += data[:n]
+        self._unread += data[:n]
+        return n
+
+    def _read_some(self) -> bytes:
+        if not self.plugged:
+            raise _Disconnected("read: unplugged")
+        data = bytes(self._incoming)
+        self._incoming.clear()
+        return data
+
+    def drain(self) -> bytes:
+        """What the fake peer has not read yet; reading frees the capacity."""
+        data = bytes(self._unread)
+        self._unread.clear()
+        return data
+
+    def feed(self, data: bytes) -> None:
+        """Bytes the controller sends, read at the next poll."""
+        self._incoming += data
+
+    def unplug(self) -> None:
+        self.plugged = False
+
+    def replug(self) -> None:
+        self.plugged = True

@@ -1,0 +1,233 @@
+"""The paper's corridor procedure, as a baseline (Yang & Tsai, "Viewing corridors as
+right parallelepipeds for vision-based vehicle localization").
+
+Steps, as literally as the text allows (its equations are re-derived here in the
+conventions of SPEC §1):
+
+1. Canny edges and the (probabilistic) Hough transform give candidate lines.
+2. Candidates with similar slopes whose centres are close are merged; each merged
+   line is refitted by least squares to its edge pixels.
+3. The lines are divided into two sets by their image direction (the forward set
+   is the one closer to the forward direction expected at zero pan).
+4. Each set's vanishing point is the MEAN of the pairwise intersections of its lines.
+5. The vanishing line's direction ``D = v_along - v_across`` (normalized coordinates,
+   not normalized in length) follows ``D = N / (rho sin(2 psi + phi))`` with
+   ``N = (a b_z - b a_z)_xy``, ``a, b = M[0], M[1]``, ``rho = (a_z^2 + b_z^2) / 2``,
+   ``phi = atan2(2 a_z b_z, a_z^2 - b_z^2)`` (our eq. 8); its u-component (eq. 11)
+   gives ``sin(2 psi + phi)``, hence two complementary solutions; the one smaller
+   than 45 deg in magnitude is kept.
+6. Lateral from the slope of one forward line (eq. 24): an image line ``l`` of the
+   ceiling line ``y = y_j`` satisfies ``y_j - c_y = h (g1 l2 - g2 l1) / (k1 l2 - k2 l1)``
+   with ``g = R_cam_world e_y``, ``k = R_cam_world e_z`` and ``h`` the ceiling's
+   height above the camera (the slope ``-l1/l2`` form of the paper, written without
+   the division so near-vertical lines stay finite). The line used is the longest
+   forward line; which site line it is comes from a 1-D matching of all forward
+   lines' offsets (the paper assumes it is known).
+
+Deviations, needed to run at all: endpoints are undistorted (the paper has no lens
+model), and the frame checks and failure values are ours.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .corridor import CorridorEstimator, match_offsets
+from .errors import ConfigError
+from .estimate import Failure, PoseEstimate
+from .geometry import rot_z, wrap_pi
+from .lines import as_gray, fit_line, merge_segments, segment_lengths, undistort_segments
+from .rig import Rig
+from .site import Site, check_rig_site
+
+_OPTIONS = ("canny", "hough_threshold", "min_length_px", "merge_angle_deg", "merge_dist_px")
+
+
+def pan_from_vanishing_line(D: np.ndarray, M: np.ndarray) -> tuple[float, float]:
+    """The two complementary solutions (rad) of the paper's eq. 11 for camera pan.
+
+    Args:
+        D: ``(2,)`` ``v_along - v_across`` in normalized coordinates.
+        M: ``R_level_cam`` (tilt and swing).
+    """
+    a, b = M[0, :], M[1, :]
+    N = a[:2] * b[2] - b[:2] * a[2]
+    rho = 0.5 * (a[2] ** 2 + b[2] ** 2)
+    phi = math.atan2(2 * a[2] * b[2], a[2] ** 2 - b[2] ** 2)
+    k = 0 if abs(N[0]) >= abs(N[1]) else 1      # eq. 11 (u), or eq. 12 when u is degenerate
+    s = N[k] / (rho * D[k]) if D[k] != 0 else 0.0
+    alpha = math.asin(max(-1.0, min(1.0, s)))
+    p1 = wrap_pi(0.5 * (alpha - phi) + math.pi / 2) - math.pi / 2
+    p2 = wrap_pi(0.5 * (math.pi - alpha - phi) + math.pi / 2) - math.pi / 2
+    return p1, p2
+
+
+def lateral_from_line(line: np.ndarray, psi_rad: float, M: np.ndarray,
+                      height_m: float) -> float:
+    """The paper's eq. 24: ``y_line - c_y`` (m) from one forward image line ``(3,)``."""
+    R_cw = (rot_z(psi_rad) @ M).T
+    g, k = R_cw[:, 1], R_cw[:, 2]
+    l1, l2 = float(line[0]), float(line[1])
+    den = k[0] * l2 - k[1] * l1
+    return height_m * (g[0] * l2 - g[1] * l1) / den if abs(den) > 1e-12 else float("nan")
+
+
+def mean_intersection(lines: np.ndarray) -> np.ndarray | None:
+    """Mean ``(2,)`` of the pairwise intersections of ``lines (N, 3)``; None if all are parallel."""
+    pts = []
+    for i in range(lines.shape[0]):
+        for j in range(i + 1, lines.shape[0]):
+            p = np.cross(lines[i], lines[j])
+            if abs(p[2]) > 1e-12:
+                pts.append(p[:2] / p[2])
+    return np.mean(pts, axis=0) if pts else None
+
+
+class PaperCorridorEstimator:
+    """Yang & Tsai's procedure (see the module docstring). Same interface and output
+    types as :class:`~.corridor.CorridorEstimator`; ``name = "paper-corridor"``."""
+
+    name = "paper-corridor"
+
+    def __init__(self, rig: Rig, site: Site, **options: Any) -> None:
+        unknown = sorted(set(options) - set(_OPTIONS))
+        if unknown:
+            raise ConfigError(None, f"options.{unknown[0]}",
+                              f"unknown option for {self.name} (expected one of "
+                              f"{', '.join(_OPTIONS)})")
+        if site.corridor is None:
+            raise ConfigError(site.source, "corridor",
+                              f"method {self.name!r} needs a `corridor` section")
+        check_rig_site(rig, site)
+        self.rig, self.site = rig, site
+        self.M = rig.mount.R_level_cam
+        self.height_m = site.ceiling_height_m - rig.mount.z_m
+        self.canny = tuple(options.get("canny", (40.0, 100.0)))
+        self.hough_threshold = int(options.get("hough_threshold", 30))
+        self.min_length_px = float(options.get("min_length_px", 0.04 * rig.camera.width))
+        self.merge_angle = math.radians(float(options.get("merge_angle_deg", 2.0)))
+        self.merge_dist = float(options.get("merge_dist_px", 3.0))
+        self.site_y = np.asarray(site.corridor.lines_along_m, dtype=float)
+        gaps = np.diff(np.sort(self.site_y))
+        self.match_tol_m = min(0.08, 0.25 * float(gaps.min())) if gaps.size else 0.08
+        # the forward set's image direction at zero pan, at the image centre
+        self._check = CorridorEstimator(rig, site, refine=False)
+
+    def _fail(self, t_ns: int, reason: str, detail: str) -> Failure:
+        return Failure(int(t_ns), self.name, reason, detail)
+
+    def _lines(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Merged, least-squares refitted lines: ``(segments px (N, 4), lengths (N,))``."""
+        edges = cv2.Canny(gray, self.canny[0], self.canny[1], L2gradient=True)
+        found = cv2.HoughLinesP(edges, 1.0, np.pi / 720, self.hough_threshold,
+                                minLineLength=self.min_length_px, maxLineGap=3)
+        if found is None:
+            return np.zeros((0, 4)), np.zeros(0)
+        segs = found.reshape(-1, 4).astype(np.float64)
+        ev, eu = np.nonzero(edges)
+        epts = np.stack([eu, ev], axis=1).astype(np.float64)
+        out = []
+        for g in merge_segments(segs, self.merge_angle, self.merge_dist):
+            pts = segs[g].reshape(-1, 2)
+            line = fit_line(pts)
+            d = pts[1:] - pts[:1]
+            t_dir = np.array([-line[1], line[0]])
+            ts = pts @ t_dir
+            lo, hi = ts.min(), ts.max()
+            near = np.abs(epts @ line[:2] + line[2]) <= 1.5
+            te = epts[near] @ t_dir
+            sel = epts[near][(te >= lo) & (te <= hi)]
+            if sel.shape[0] >= 5:
+                line = fit_line(sel)                                   # least squares
+            del d
+            base = -line[2] * line[:2]
+            out.append(np.r_[base + lo * t_dir, base + hi * t_dir])
+        segs = np.array(out).reshape(-1, 4)
+        return segs, segment_lengths(segs)
+
+    def estimate(self, image: np.ndarray, t_ns: int,
+                 prior: PoseEstimate | None = None) -> PoseEstimate | Failure:
+        """The paper's estimate of ``(y, yaw)``; ``prior`` is not used (the paper has none).
+
+        Returns a :class:`PoseEstimate` (``x_m = None``) or a :class:`Failure`
+        (``bad_frame``, ``blank_frame``, ``saturated_frame``, ``too_few_lines``,
+        ``no_association``).
+        """
+        t0 = time.perf_counter()
+        gray = as_gray(image)
+        bad = self._check._check_frame(gray, t_ns)
+        if bad is not None:
+            return self._fail(t_ns, bad.reason, bad.detail)
+        segs_px, len_px = self._lines(gray)
+        if segs_px.shape[0] < 4:
+            return self._fail(t_ns, "too_few_lines", f"{segs_px.shape[0]} lines found")
+        segs = undistort_segments(self.rig.camera, segs_px)
+        p1 = np.hstack([segs[:, :2], np.ones((segs.shape[0], 1))])
+        p2 = np.hstack([segs[:, 2:], np.ones((segs.shape[0], 1))])
+        lines = np.cross(p1, p2)
+        lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
+        # two sets by image direction (doubled angles, two clusters)
+        ang = np.arctan2(segs[:, 3] - segs[:, 1], segs[:, 2] - segs[:, 0])
+        va0, vb0 = (self.M.T @ np.array([1.0, 0, 0]), self.M.T @ np.array([0, 1.0, 0]))
+        c = np.array([0.0, 0.0, 1.0])
+        ref = []
+        for v in (va0, vb0):       # direction from the image centre to each vanishing point
+            dv = v[:2] - v[2] * c[:2]
+            ref.append(math.atan2(dv[1], dv[0]))
+        da = np.abs(wrap_pi(2 * (ang - ref[0]))) / 2
+        db = np.abs(wrap_pi(2 * (ang - ref[1]))) / 2
+        # one round of 2-means on doubled angles, seeded at the zero-pan directions
+        cen = []
+        for sel in (da <= db, db < da):
+            if np.count_nonzero(sel) == 0:
+                cen.append(None)
+                continue
+            w = len_px[sel]
+            cen.append(0.5 * math.atan2(np.sum(w * np.sin(2 * ang[sel])),
+                                        np.sum(w * np.cos(2 * ang[sel]))))
+        if cen[0] is None or cen[1] is None:
+            return self._fail(t_ns, "too_few_lines", "the lines form only one set")
+        da = np.abs(wrap_pi(2 * (ang - cen[0]))) / 2
+        db = np.abs(wrap_pi(2 * (ang - cen[1]))) / 2
+        fwd, acr = da <= db, db < da
+        if np.count_nonzero(fwd) < 2 or np.count_nonzero(acr) < 2:
+            return self._fail(t_ns, "too_few_lines",
+                              "each set needs two lines "
+                              f"({np.count_nonzero(fwd)} forward, {np.count_nonzero(acr)} across)")
+        v_a = mean_intersection(lines[fwd])
+        v_b = mean_intersection(lines[acr])
+        if v_a is None or v_b is None:
+            return self._fail(t_ns, "too_few_lines", "a set's lines are parallel in the image")
+        D = v_a - v_b
+        sols = pan_from_vanishing_line(D, self.M)
+        psi = min(sols, key=abs)
+        offs = np.array([lateral_from_line(ln, psi, self.M, self.height_m) for ln in lines[fwd]])
+        m = match_offsets(offs, len_px[fwd], self.site_y, self.match_tol_m)
+        if m is None:
+            return self._fail(t_ns, "no_association",
+                              "no forward line matches the site's lines_along")
+        matched = np.flatnonzero(m.assign >= 0)
+        one = matched[np.argmax(len_px[fwd][matched])]
+        cy = float(self.site_y[m.assign[one]] - offs[one])
+        mount = self.rig.mount
+        yaw = wrap_pi(psi - mount.pan_rad)
+        y_m = cy - float((rot_z(yaw) @ mount.t_vehicle_cam)[1])
+        spread = float(np.std(self.site_y[m.assign[matched]] - offs[matched])) \
+            if matched.size > 1 else 0.05
+        cov = np.zeros((3, 3))
+        cov[0, :] = cov[:, 0] = np.inf
+        cov[1, 1] = max(spread, 0.005) ** 2
+        cov[2, 2] = math.radians(1.0) ** 2
+        quality = min(1.0, matched.size / 4.0) / (1.0 + (spread / 0.02) ** 2)
+        diag = {"n_lines": int(segs.shape[0]), "n_forward": int(np.count_nonzero(fwd)),
+                "n_across": int(np.count_nonzero(acr)), "psi_deg": math.degrees(psi),
+                "psi_alternative_deg": math.degrees(max(sols, key=abs)),
+                "vp_forward": v_a.tolist(), "vp_across": v_b.tolist(),
+                "time_ms": 1e3 * (time.perf_counter() - t0)}
+        return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(quality),
+                            y_m - self.site.corridor.axis_y_m, cov, diag)

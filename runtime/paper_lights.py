@@ -1,0 +1,187 @@
+"""The paper's ceiling-lights pipeline, as literally as its text allows (a baseline).
+
+Roh, Sung, Kang, Chung, "Point pattern matching based visual global localization
+using ceiling lights", ASCC 2011. Steps (Fig. 1 of the paper):
+
+1. **Thresholding** (§II.A): Niblack over 64 x 64 sub-images (§IV), ``T = mean + k std``.
+2. **Identification** (§II.B): each candidate's perception index
+   ``L = (I_o - I_b) A^0.33 / (1.97 I_b^0.72)`` (Eq. 6, object and dilated-ring means,
+   Eqs. 7-9); ``L >= min_level`` is a light. Its position is the region's centroid.
+3. **Undistortion of the positions only** (§III.1, Eqs. 10-12), then Eq. 14:
+   ``Q_real = K⁻¹ q Z`` with ``Z`` the camera-to-ceiling height: the camera is taken to
+   look straight up (only the mount's in-plane rotation and offset are applied).
+4. **Point pattern matching** (§III.2, after Chang et al. 1997): every model pair and
+   every observed pair vote for a scale and a rotation ``(s, θ)``; the peak's pairs
+   vote for a translation; correspondences are the nearest map lights.
+5. **Least squares** (§III.3, Eq. 15): the similarity ``(t_x, t_y, s, θ)`` from the
+   matched pairs; the vehicle pose is its rotation and translation.
+
+Where the text is silent (``k``, the index threshold, bin sizes, the scale range) the
+choices are named options. No ambiguity test, no refinement in pixels, no quality
+model beyond the share of observed lights that matched: those are what ``lights``
+adds (``docs/methods/lights.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .errors import ConfigError
+from .estimate import Estimate, Failure, PoseEstimate
+from .geometry import wrap_pi
+from .rig import Rig
+from .site import Site, check_rig_site
+from .sources import to_grey
+from .spots import SpotParams, regions_to_spots, tile_niblack_mask
+
+NAME = "paper-lights"
+
+
+def fit_similarity_2d(q: np.ndarray, p: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """Least-squares ``(s, θ, t)`` with ``p ≈ s R(θ) q + t`` (Eq. 15), pairs ``(N, 2)``."""
+    qm, pm = q.mean(0), p.mean(0)
+    a, b = q - qm, p - pm
+    sc = (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]).sum()
+    ss = (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()
+    theta = math.atan2(ss, sc)
+    s = math.hypot(sc, ss) / max((a ** 2).sum(), 1e-12)
+    c, n = math.cos(theta), math.sin(theta)
+    t = pm - s * np.array([c * qm[0] - n * qm[1], n * qm[0] + c * qm[1]])
+    return s, theta, t
+
+
+class PaperLightsEstimator:
+    """The paper's pipeline; ``estimate`` follows the common estimator interface.
+
+    Args:
+        rig, site: the site needs ``lights``.
+        k: Niblack's weight on the tile's standard deviation.
+        tile_px: Niblack sub-image size (the paper: 64).
+        min_level: least perception index of a light.
+        max_spots: the paper's "maximum 11 spot lighting target model".
+        scale_range: ``(lo, hi)`` of the similarity scale the matching accepts.
+        gate_m: correspondence distance after the transform.
+    """
+
+    name = NAME
+
+    def __init__(self, rig: Rig, site: Site, k: float = 2.5, tile_px: int = 64,
+                 min_level: float = 1.0, max_spots: int = 11,
+                 scale_range: tuple[float, float] = (0.85, 1.15), gate_m: float = 0.15,
+                 angle_bin_deg: float = 2.0, scale_bin: float = 0.02, pos_bin_m: float = 0.2):
+        if not site.has_lights:
+            raise ConfigError(site.source, "lights",
+                              "the paper-lights method needs at least one light in the map")
+        check_rig_site(rig, site)
+        self.rig, self.site = rig, site
+        self.k, self.tile_px = k, tile_px
+        self.params = SpotParams(min_area_px=1, max_area_px=100_000, min_level=min_level,
+                                 min_relative_contrast=0.0, min_axis_ratio=0.0,
+                                 max_spots=max_spots)
+        self.scale_range = scale_range
+        self.gate_m = gate_m
+        self.angle_bin = math.radians(angle_bin_deg)
+        self.scale_bin = scale_bin
+        self.pos_bin = pos_bin_m
+        self.lights_w = np.asarray(site.lights_m, float)
+        i, j = np.triu_indices(self.lights_w.shape[0], 1)
+        self.pi, self.pj = i, j
+        R = rig.mount.R_vehicle_cam
+        self.R2 = R[:2, :2]  # camera (x, y) -> vehicle (x, y) for a camera looking up
+        self.Z = site.ceiling_height_m - rig.mount.z_m
+
+    def observed_points(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(centroids_px (N, 2), Q_real in V (N, 2))`` of the identified lights."""
+        grey = to_grey(np.asarray(image))
+        mask = tile_niblack_mask(grey, self.tile_px, self.k)
+        spots = regions_to_spots(grey, mask, self.params, weighted=False,
+                                 rethreshold=False, relative=False)
+        if len(spots) == 0:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        xy = self.rig.camera.unproject(spots.centroids_px)      # Eqs. 10-12 inverted
+        q_cam = xy * self.Z                                        # Eq. 14
+        q_v = q_cam @ self.R2.T + self.rig.mount.t_vehicle_cam[None, :2]
+        return spots.centroids_px, q_v
+
+    def _match(self, q: np.ndarray) -> np.ndarray:
+        """``(K, 2)`` (observed, map) correspondences by pair voting (Chang et al.)."""
+        a, b = np.triu_indices(q.shape[0], 1)
+        vq = q[b] - q[a]
+        vp = self.lights_w[self.pj] - self.lights_w[self.pi]
+        dq = np.linalg.norm(vq, axis=1)
+        dp = np.linalg.norm(vp, axis=1)
+        aq = np.arctan2(vq[:, 1], vq[:, 0])
+        ap = np.arctan2(vp[:, 1], vp[:, 0])
+        s = dp[None, :] / np.maximum(dq[:, None], 1e-9)                 # (Pq, Pm)
+        th = wrap_pi_arr(ap[None, :] - aq[:, None])
+        # both orientations of each map pair
+        s = np.concatenate([s, s], axis=1)
+        th = np.concatenate([th, wrap_pi_arr(th + math.pi)], axis=1)
+        oq = np.repeat(np.arange(a.size)[:, None], s.shape[1], axis=1)
+        om = np.tile(np.concatenate([np.arange(vp.shape[0]), -1 - np.arange(vp.shape[0])]),
+                     (a.size, 1))
+        ok = (s >= self.scale_range[0]) & (s <= self.scale_range[1])
+        if not np.any(ok):
+            return np.zeros((0, 2), int)
+        s, th, oq, om = s[ok], th[ok], oq[ok], om[ok]
+        ks = np.floor(s / self.scale_bin).astype(np.int64)
+        kt = np.floor((th + math.pi) / self.angle_bin).astype(np.int64)
+        key = ks * 10_000 + kt
+        vals, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+        sel = inv.ravel() == int(np.argmax(cnt))
+        s0 = float(np.median(s[sel]))
+        t0 = math.atan2(np.sin(th[sel]).mean(), np.cos(th[sel]).mean())
+        # translation votes of the peak's pairs
+        c, n = math.cos(t0), math.sin(t0)
+        qa = q[a[oq[sel]]]
+        mi = om[sel]
+        pa = np.where((mi >= 0)[:, None], self.lights_w[self.pi[np.abs(mi) - (mi < 0)]],
+                      self.lights_w[self.pj[np.abs(mi) - (mi < 0)]])
+        t = pa - s0 * np.stack([c * qa[:, 0] - n * qa[:, 1], n * qa[:, 0] + c * qa[:, 1]], 1)
+        kx = np.floor(t[:, 0] / self.pos_bin).astype(np.int64)
+        ky = np.floor(t[:, 1] / self.pos_bin).astype(np.int64)
+        tk = kx * 100_000 + ky
+        tv, tinv, tcnt = np.unique(tk, return_inverse=True, return_counts=True)
+        tsel = tinv.ravel() == int(np.argmax(tcnt))
+        tt = np.median(t[tsel], axis=0)
+        pw = s0 * np.stack([c * q[:, 0] - n * q[:, 1], c * q[:, 1] + n * q[:, 0]], 1) + tt
+        d = np.linalg.norm(pw[:, None] - self.lights_w[None], axis=2)
+        j = np.argmin(d, axis=1)
+        good = d[np.arange(len(j)), j] < self.gate_m
+        return np.stack([np.nonzero(good)[0], j[good]], axis=1)
+
+    def estimate(self, image: np.ndarray, t_ns: int,
+                 prior: PoseEstimate | None = None) -> Estimate:
+        """The vehicle pose from one frame (``prior`` is ignored: the paper uses none)."""
+        img = np.asarray(image)
+        if img.ndim not in (2, 3) or img.shape[:2] != (self.rig.camera.height,
+                                                       self.rig.camera.width):
+            return Failure(t_ns, NAME, "bad_image", f"unexpected frame shape {img.shape}")
+        px, q = self.observed_points(img)
+        diag: dict[str, Any] = {"spots": int(q.shape[0])}
+        if q.shape[0] == 0:
+            return Failure(t_ns, NAME, "no_lights", "no light found in the frame", diag)
+        if q.shape[0] < 3:
+            return Failure(t_ns, NAME, "too_few_lights", f"{q.shape[0]} lights found", diag)
+        pairs = self._match(q)
+        if pairs.shape[0] < 3 or len(set(pairs[:, 1].tolist())) < 3:
+            return Failure(t_ns, NAME, "no_match", "fewer than 3 lights matched", diag)
+        s, theta, t = fit_similarity_2d(q[pairs[:, 0]], self.lights_w[pairs[:, 1]])
+        res = (s * (q[pairs[:, 0]] @ np.array([[math.cos(theta), math.sin(theta)],
+                                               [-math.sin(theta), math.cos(theta)]]))
+               + t - self.lights_w[pairs[:, 1]])
+        rms = float(np.sqrt((res ** 2).sum(1).mean()))
+        diag.update({"inliers": int(pairs.shape[0]), "scale": s, "rms_m": rms})
+        quality = float(pairs.shape[0] / q.shape[0])
+        return PoseEstimate(t_ns, NAME, float(t[0]), float(t[1]), float(wrap_pi(theta)),
+                            quality, None, None, diag)
+
+
+def wrap_pi_arr(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+__all__ = ["PaperLightsEstimator", "fit_similarity_2d"]

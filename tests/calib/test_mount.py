@@ -1,0 +1,124 @@
+"""Mount calibration on exactly projected ceiling lines with pixel noise (known truth)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from ceilkit.calib.mount import Placement, calibrate_mount, calibrate_tilt_swing
+from ceilkit.runtime.errors import CalibrationError
+from ceilkit.runtime.rig import Mount
+from ceilkit.runtime.site import Site
+
+PLACES = [(0.0, 0.0), (0.3, 0.0), (-0.3, 0.0), (0.1, 10.0), (-0.1, -12.0)]
+
+
+def synth_segments(rig, site, mount, y, yaw, rng, noise_px=0.3, x=0.0):
+    """Segments (normalized) of the site's lines seen from a pose, endpoints noisy."""
+    cam = rig.camera
+    R = mount.R_world_cam(yaw)
+    c = mount.camera_position(x, y, yaw)
+    H = site.ceiling_height_m
+    pieces = [((xx, yk, H), (1.0, 0.0, 0.0)) for yk in site.corridor.lines_along_m
+              for xx in np.arange(x - 5, x + 25, 1.2)]
+    pieces += [((xx, -0.6, H), (0.0, 1.0, 0.0)) for xx in np.arange(-0.6, 30, 1.2)]
+    segs = []
+    for p0, d in pieces:
+        P = np.array(p0)[None] + np.array([[0.0], [1.2]]) * np.array(d)[None]
+        Pc = (P - c) @ R
+        if np.any(Pc[:, 2] < 0.2):
+            continue
+        px = cam.project(Pc)
+        if not np.all(cam.in_image(px)) or np.hypot(*(px[1] - px[0])) < 25:
+            continue
+        segs.append((px + rng.normal(0, noise_px, px.shape)).ravel())
+    segs = np.array(segs).reshape(-1, 4)
+    return cam.unproject(segs.reshape(-1, 2)).reshape(-1, 4)
+
+
+def placements(rig, site, rng, noise_px=0.3, places=PLACES):
+    return [Placement(synth_segments(rig, site, rig.mount, y, math.radians(yaw), rng, noise_px),
+                      y, math.radians(yaw), f"y={y} yaw={yaw}") for y, yaw in places]
+
+
+def test_recovers_the_mount_from_scratch(corridor_rig, corridor_site):
+    rng = np.random.default_rng(0)
+    truth = corridor_rig.mount
+    blank = corridor_rig.with_mount(Mount(0.0, 1.0, 0.0, 0.0, 0.0, truth.z_m))
+    res = calibrate_mount(blank, corridor_site, placements(corridor_rig, corridor_site, rng))
+    m = res.mount
+    assert abs(math.degrees(m.tilt_rad - truth.tilt_rad)) < 0.1
+    assert abs(math.degrees(m.swing_rad - truth.swing_rad)) < 0.1
+    assert abs(math.degrees(m.pan_rad - truth.pan_rad)) < 0.1
+    assert abs(m.y_m - truth.y_m) < 0.005 and abs(m.x_m - truth.x_m) < 0.01
+    assert abs(m.z_m - truth.z_m) < 0.01
+    assert res.rms_px == pytest.approx(0.3, rel=0.3)
+    assert not res.outliers and "tilt" in res.lines()[0]
+
+
+def test_reported_sigma_is_honest(corridor_rig, corridor_site):
+    """Normalized errors over seeds have an RMS near 1 (not by luck, not inflated)."""
+    truth = corridor_rig.mount
+    z = []
+    for seed in range(6):
+        rng = np.random.default_rng(100 + seed)
+        res = calibrate_mount(corridor_rig, corridor_site,
+                              placements(corridor_rig, corridor_site, rng, noise_px=0.5),
+                              start=truth)
+        for name, t in (("tilt", truth.tilt_rad), ("pan", truth.pan_rad), ("my", truth.y_m),
+                        ("swing", truth.swing_rad)):
+            got = {"tilt": res.mount.tilt_rad, "pan": res.mount.pan_rad, "my": res.mount.y_m,
+                   "swing": res.mount.swing_rad}[name]
+            z.append((got - t) / res.sigma[name])
+    rms = float(np.sqrt(np.mean(np.square(z))))
+    assert 0.4 < rms < 2.0, rms
+
+
+def test_forward_offset_needs_turned_placements(corridor_rig, corridor_site):
+    rng = np.random.default_rng(1)
+    pls = placements(corridor_rig, corridor_site, rng, places=[(0.0, 0.0), (0.3, 0.0),
+                                                              (-0.2, 0.0)])
+    res = calibrate_mount(corridor_rig, corridor_site, pls)
+    assert "mx" in res.fixed and "headings" in res.fixed["mx"]
+    assert res.mount.x_m == corridor_rig.mount.x_m
+
+
+def test_a_wrong_placement_is_named(corridor_rig, corridor_site):
+    rng = np.random.default_rng(2)
+    pls = placements(corridor_rig, corridor_site, rng)
+    bad = pls[1]
+    pls[1] = Placement(bad.segments_n, bad.y_m + 0.12, bad.yaw_rad, "mismeasured")
+    res = calibrate_mount(corridor_rig, corridor_site, pls, start=corridor_rig.mount)
+    assert [o[0] for o in res.outliers] == ["mismeasured"]
+    assert "cm from the measured y" in res.outliers[0][2]
+
+
+def test_tilt_and_swing_from_an_unmeasured_drive(corridor_rig, corridor_site):
+    rng = np.random.default_rng(3)
+    truth = corridor_rig.mount
+    drive = [Placement(synth_segments(corridor_rig, corridor_site, truth,
+                                      rng.uniform(-0.3, 0.3), math.radians(rng.uniform(-8, 8)),
+                                      rng, x=0.4 * k))
+             for k in range(8)]
+    tilt, swing, rep = calibrate_tilt_swing(corridor_rig, drive)
+    assert abs(math.degrees(tilt - truth.tilt_rad)) < 0.1
+    assert abs(math.degrees(swing - truth.swing_rad)) < 0.1
+    assert rep["sigma_tilt"] > 0
+    # then one measured placement for pan and the offsets
+    one = placements(corridor_rig, corridor_site, rng, places=[(0.1, 0.0)])
+    start = Mount(0.0, tilt, swing, truth.x_m, 0.0, truth.z_m)
+    res = calibrate_mount(corridor_rig, corridor_site, one, fixed=("tilt", "swing"),
+                          start=start, fit_height=False)
+    assert abs(math.degrees(res.mount.pan_rad - truth.pan_rad)) < 0.1
+    assert abs(res.mount.y_m - truth.y_m) < 0.005
+
+
+def test_errors(corridor_rig, corridor_site, tmp_path):
+    with pytest.raises(CalibrationError, match="no measured placement"):
+        calibrate_mount(corridor_rig, corridor_site, [Placement(np.zeros((0, 4)))])
+    with pytest.raises(CalibrationError, match="too few ceiling lines"):
+        calibrate_mount(corridor_rig, corridor_site, [Placement(np.zeros((0, 4)), 0.0, 0.0)])
+    with pytest.raises(CalibrationError, match="corridor"):
+        calibrate_mount(corridor_rig, Site(3.0), [Placement(np.zeros((0, 4)), 0.0, 0.0)])
+    with pytest.raises(CalibrationError, match="two frames"):
+        calibrate_tilt_swing(corridor_rig, [])

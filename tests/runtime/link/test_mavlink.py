@@ -1,0 +1,188 @@
+"""MAVLink 2: byte-exact frames, pymavlink decoding, the W -> NED mapping, covariance."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+
+from ceilkit.runtime.estimate import Failure, PoseEstimate
+from ceilkit.runtime.link import mavlink
+from ceilkit.runtime.link.transport import MavlinkProtocol
+
+COV_W = np.array([[0.0004, 0.0001, 0.00002],
+                  [0.0001, 0.0009, -0.00003],
+                  [0.00002, -0.00003, 0.0003]])
+
+
+def pose(**kw) -> PoseEstimate:
+    base = dict(t_ns=1_700_000_123_456_789, method="lights", x_m=2.0, y_m=1.0,
+                yaw_rad=math.radians(30.0), quality=0.9, cov=COV_W)
+    base.update(kw)
+    return PoseEstimate(**base)
+
+
+def parse(data: bytes) -> list:
+    mav = mavlink2.MAVLink(None)
+    return mav.parse_buffer(data) or []
+
+
+def test_crc_x25_check_value():
+    # CRC-16/MCRF4XX check value of "123456789"
+    assert mavlink.crc_x25(b"123456789") == 0x6F91
+
+
+def test_heartbeat_golden():
+    # fd | len 09 | incompat 00 | compat 00 | seq 07 | sys 01 | comp c5 (197) | id 000000 |
+    # custom_mode 00000000 | type 12 (18) | autopilot 08 | base_mode 00 | status 04 |
+    # version 03 | crc 565d (LE)
+    assert mavlink.encode_heartbeat(7).hex() == "fd0900000701c50000000000000012080004035d56"
+
+
+# usec 1700000123456 = 0x18bcfe74a40; x 2.0; y -1.0 (= -W y); z, roll, pitch 0;
+# yaw -30 deg = bf060a92; cov[0] 4e-4, cov[1] -1e-4 (xy flipped), ... reset_counter 2.
+VPE_GOLDEN = (
+    "fd7500001101c5660000404ae7cf8b01000000000040000080bf000000000000000000000000920a06bf"
+    "17b7d13917b7d1b8000000000000000000000000acc5a7b7faed6b3a000000000000000000000000"
+    "82a8fbb70ad7233c0000000000000000000000000fb59f3a00000000000000000fb59f3a00000000"
+    "52499d3902a95c")
+
+
+def test_vision_position_estimate_golden():
+    out = mavlink.pose_message(pose(), seq=17, reset_counter=2)
+    assert out.hex() == VPE_GOLDEN
+    assert len(out) == 10 + 117 + 2
+
+
+def test_vision_position_estimate_matches_pymavlink_encoder():
+    cov = [0.001 * (k + 1) for k in range(21)]
+    mav = mavlink2.MAVLink(None, srcSystem=3, srcComponent=197)
+    mav.seq = 200
+    ref = mav.vision_position_estimate_encode(123, 1.0, -2.0, 0.0, 0.0, 0.0, 0.5, cov, 9)
+    ours = mavlink.encode_vision_position_estimate(123, 1.0, -2.0, 0.0, 0.0, 0.0, 0.5, cov, 9,
+                                                   seq=200, sysid=3)
+    assert ours == ref.pack(mav)
+
+
+def test_trailing_zero_truncation():
+    out = mavlink.encode_vision_position_estimate(1, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                                                  [0.0] * 21, 0, seq=0)
+    assert out[1] == 12  # usec + x; the zero tail is cut
+    (msg,) = parse(out)
+    assert msg.x == 1.0 and msg.covariance == [0.0] * 21 and msg.reset_counter == 0
+    zero = mavlink.encode_heartbeat(0, system_status=0)
+    assert zero[1] == 9  # ends in mavlink_version 3: nothing to cut
+    everything_zero = mavlink.frame_v2(0, bytes(9), 0, 1, 1)
+    assert everything_zero[1] == 1  # the first byte is never cut
+
+
+def test_pymavlink_reads_pose_in_ned():
+    est = pose()
+    (msg,) = parse(mavlink.pose_message(est, seq=17, reset_counter=2))
+    assert msg.get_type() == "VISION_POSITION_ESTIMATE"
+    assert msg.get_srcComponent() == 197 and msg.get_srcSystem() == 1
+    assert msg.usec == est.t_ns // 1000
+    assert (msg.x, msg.y, msg.z) == pytest.approx((2.0, -1.0, 0.0))
+    assert (msg.roll, msg.pitch) == (0.0, 0.0)
+    assert msg.yaw == pytest.approx(-math.radians(30.0))
+    assert msg.reset_counter == 2
+    c = np.array(msg.covariance)
+    J = np.diag([1.0, -1.0, -1.0])
+    cn = J @ COV_W @ J
+    ij = [(0, 0), (1, 1), (5, 5), (0, 1), (0, 5), (1, 5)]
+    for (i, j), (a, b) in zip(ij, [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)], strict=True):
+        assert c[mavlink.urt_index(i, j)] == pytest.approx(cn[a, b], rel=1e-6)
+    s = mavlink.VisionSettings()
+    assert c[11] == pytest.approx(s.z_var_m2) and c[15] == c[18] == pytest.approx(
+        s.roll_pitch_var_rad2)
+
+
+def test_ned_mapping_is_a_reflection_of_w():
+    # a vehicle facing W +y (yaw +90) at W (0, 1): in NED it is east of... west: y = -1,
+    # facing yaw -90 (west), i.e. heading the way it moves.
+    n, e, yaw = mavlink.ned_from_world(0.0, 1.0, math.pi / 2)
+    assert (n, e) == (0.0, -1.0) and yaw == pytest.approx(-math.pi / 2)
+    # moving one step along the heading in W lands one step along the heading in NED
+    for yaw_w in np.linspace(-3, 3, 7):
+        step_w = np.array([math.cos(yaw_w), math.sin(yaw_w)])
+        n1, e1, yaw_ned = mavlink.ned_from_world(*step_w, yaw_w)
+        assert (n1, e1) == pytest.approx((math.cos(yaw_ned), math.sin(yaw_ned)))
+
+
+def test_unknown_covariance_is_nan():
+    (msg,) = parse(mavlink.pose_message(pose(cov=None), 0, 0))
+    assert all(math.isnan(v) for v in msg.covariance)
+    inf_cov = COV_W.copy()
+    inf_cov[0, 0] = math.inf
+    (msg,) = parse(mavlink.pose_message(pose(cov=inf_cov), 0, 0))
+    assert math.isnan(msg.covariance[0])
+
+
+def test_unobserved_x_skipped_by_default_and_nan_on_request():
+    corridor = pose(x_m=None, cov=np.diag([math.inf, 0.01, 0.001]), method="corridor")
+    assert mavlink.pose_message(corridor, 0, 0) is None
+    px4 = mavlink.VisionSettings(unobserved="nan")
+    (msg,) = parse(mavlink.pose_message(corridor, 0, 0, settings=px4))
+    assert math.isnan(msg.x) and msg.y == pytest.approx(-1.0)
+    assert math.isfinite(msg.yaw) and msg.roll == 0.0 and msg.pitch == 0.0
+    c = msg.covariance
+    assert all(math.isnan(c[mavlink.urt_index(0, k)]) for k in range(6))
+    assert c[6] == pytest.approx(0.01) and c[20] == pytest.approx(0.001)
+    with pytest.raises(ValueError, match="unobserved"):
+        mavlink.VisionSettings(unobserved="zero")
+
+
+@pytest.mark.parametrize("est", [
+    Failure(t_ns=1, method="lights", reason="too_few_lights"),
+    pose(yaw_rad=float("nan")), pose(x_m=float("inf")), pose(x_m=None, y_m=None),
+])
+def test_nothing_sent_without_a_pose(est):
+    assert mavlink.pose_message(est, 0, 0) is None
+
+
+def test_protocol_sequence_wraps_and_reset_counter():
+    proto = MavlinkProtocol(sysid=7, compid=197)
+    data = b""
+    for k in range(300):
+        if k == 100:
+            proto.relocalized()
+        msg, valid = proto.pose(pose(t_ns=k * 10**7))
+        assert valid
+        data += msg
+    frames = list(mavlink.iter_frames(data))
+    assert [f.seq for f in frames] == [k % 256 for k in range(300)]
+    msgs = parse(data)
+    assert len(msgs) == 300
+    assert [m.reset_counter for m in msgs[99:101]] == [0, 1]
+    assert {m.get_srcSystem() for m in msgs} == {7}
+
+
+def test_split_frames_skips_garbage_and_keeps_partial():
+    hb = mavlink.encode_heartbeat(1)
+    vpe = mavlink.pose_message(pose(), 2, 0)
+    broken = bytearray(hb)
+    broken[-1] ^= 0xFF
+    buf = b"\x00junk" + bytes(broken) + hb + vpe + vpe[:20]
+    frames, rest = mavlink.split_frames(buf)
+    assert [f.name for f in frames] == ["HEARTBEAT", "VISION_POSITION_ESTIMATE"]
+    assert all(f.crc_ok for f in frames) and rest == vpe[:20]
+    fields = mavlink.unpack_vision_position_estimate(frames[1])
+    assert fields["x"] == 2.0 and fields["reset_counter"] == 0
+
+
+def test_describe_statustext_from_autopilot():
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    raw = mav.statustext_encode(4, b"EKF3 IMU0 is using external nav data").pack(mav)
+    (frame,) = mavlink.iter_frames(raw)
+    assert frame.crc_ok
+    assert "STATUSTEXT" in mavlink.describe_frame(frame)
+    assert "external nav" in mavlink.describe_frame(frame)
+
+
+def test_urt_index_covers_the_triangle():
+    idx = sorted(mavlink.urt_index(i, j) for i in range(6) for j in range(i, 6))
+    assert idx == list(range(21))
+    assert struct.calcsize("<Q6f21fB") == 117
