@@ -226,7 +226,7 @@ def _solve(views: Sequence[Detection], image_size: tuple[int, int], model: str,
     img = [v.points_px.astype(np.float32) for v in views]
     try:
         if model == "equidistant":
-            flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+            flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
             _, K, D, rv, tv = cv2.fisheye.calibrate(
                 [o.reshape(1, -1, 3).astype(np.float64) for o in obj],
                 [i.reshape(1, -1, 2).astype(np.float64) for i in img],

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -581,3 +582,71 @@ def calibrate_tilt_swing(rig: Rig, drive: Sequence[Placement]) -> tuple[float, f
               "sigma_swing": math.sqrt(max(cov[1, 1], 0.0)),
               "rms_px": math.sqrt(s2), "frames": len(frames)}
     return float(theta[0]), float(theta[1]), report
+
+
+# ----------------------------------------------------------------------------- files
+def load_placements(source: str | Path, camera: CameraModel, max_frames: int = 0
+                    ) -> list[Placement]:
+    """Measured placements from a placements file or a recording with ``truth.csv``.
+
+    A placements file (YAML), image paths relative to it, y in metres, yaw in degrees::
+
+        placements:
+          - {image: p1.png, y: 0.00, yaw: 0.0}
+          - {image: p2.png, y: 0.30, yaw: 0.0}
+          - {image: p3.png, y: -0.10, yaw: 12.0}
+
+    A recording folder: every frame with a truth row (at most ``max_frames``, spread
+    evenly) is a placement.
+    """
+    import cv2
+
+    from ceilkit.runtime.config import load_yaml
+    from ceilkit.runtime.errors import ConfigError
+    from ceilkit.runtime.recording import Recording
+
+    source = Path(source)
+    out: list[Placement] = []
+    if source.is_dir():
+        rec = Recording(source)
+        if rec.truth is None:
+            raise ConfigError(source / "truth.csv", None,
+                              "file not found: a recording used for placements needs it")
+        ks = [k for k in range(len(rec)) if rec.truth.lookup(int(rec.t_ns[k])) is not None]
+        if max_frames and len(ks) > max_frames:
+            ks = [ks[int(i)] for i in np.linspace(0, len(ks) - 1, max_frames).round()]
+        for k in ks:
+            f = rec.frame(k)
+            _, y, yaw = rec.truth.lookup(f.t_ns)
+            out.append(placement_from_image(camera, f.image, y, yaw, f"frame {f.index}"))
+        return out
+    node = load_yaml(source).mapping(("placements",), required=("placements",))
+    for pn in node.get("placements").items():
+        pn.mapping(("image", "y", "yaw"), required=("image", "y", "yaw"))
+        img_path = Path(pn.get("image").string())
+        if not img_path.is_absolute():
+            img_path = source.parent / img_path
+        image = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise pn.get("image").error(f"cannot read the image {img_path}")
+        out.append(placement_from_image(
+            camera, image, pn.get("y").number(-100, 100, what=" m"),
+            math.radians(pn.get("yaw").number(-180, 180, what=" degrees")), img_path.name))
+    if not out:
+        raise node.get("placements").error("expected at least one placement")
+    return out
+
+
+def load_drive(source: str | Path, camera: CameraModel, max_frames: int = 30
+               ) -> list[Placement]:
+    """Unmeasured drive frames from a recording or an image folder (truth ignored)."""
+    from ceilkit.runtime.capture import ImageFolderSource
+    from ceilkit.runtime.recording import Recording
+
+    source = Path(source)
+    src = Recording(source) if (source / "frames.csv").exists() else \
+        ImageFolderSource(source)
+    frames = list(src)
+    if max_frames and len(frames) > max_frames:
+        frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, max_frames).round()]
+    return [placement_from_image(camera, f.image, label=f"drive {f.index}") for f in frames]

@@ -32,6 +32,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from .errors import ConfigError
@@ -273,9 +274,10 @@ class CorridorEstimator:
         if gray.shape != (cam.height, cam.width):
             return self._fail(t_ns, "bad_frame", f"frame is {gray.shape[1]}x{gray.shape[0]}, "
                               f"the camera is {cam.width}x{cam.height}")
-        lo, hi = np.percentile(gray[::4, ::4], [2, 98])
-        if hi - lo < self.min_contrast:
-            if lo >= 250:
+        sub = gray[::4, ::4]
+        mean, std = (float(v) for v in cv2.meanStdDev(sub))
+        if std < 0.5 * self.min_contrast:
+            if mean >= 250:
                 return self._fail(t_ns, "saturated_frame", "the frame is saturated")
             return self._fail(t_ns, "blank_frame", "the frame has no contrast")
         return None
@@ -346,21 +348,45 @@ class CorridorEstimator:
 
     def _residuals(self, params: np.ndarray, ep_h: np.ndarray, y_ep: np.ndarray,
                    across_lines: np.ndarray, across_mids: np.ndarray, across_len: np.ndarray
-                   ) -> np.ndarray:
-        """Pixel residuals: along endpoints to their predicted ceiling line, and across
-        segments' endpoint offsets from the line to the across vanishing point."""
-        psi, cy = params
-        R_cw = (rot_z(psi) @ self.M).T
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel residuals and their Jacobian ``(K, 2)`` in ``(psi, c_y)``: along
+        endpoints to their predicted ceiling line, and across segments' endpoint
+        offsets from the line joining their midpoint to the across vanishing point."""
+        psi, cy = float(params[0]), float(params[1])
+        c, s = math.cos(psi), math.sin(psi)
+        Rz_t = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])   # Rz(-psi)
+        dRz_t = np.array([[-s, c, 0.0], [-c, -s, 0.0], [0.0, 0.0, 0.0]])
+        R_cw = self.M.T @ Rz_t
+        dR_cw = self.M.T @ dRz_t
         dy = y_ep - cy
         n_w = np.stack([np.zeros_like(dy), np.full_like(dy, self.height_m), -dy], axis=1)
         lc = n_w @ R_cw.T
-        ra = np.sum(lc * ep_h, axis=1) / np.hypot(lc[:, 0], lc[:, 1]) * self.f_px
-        if across_lines.shape[0]:
-            _, vb = vanishing_directions(psi, self.M)
-            rb = angle_residuals(across_lines, across_mids, vb) * across_len * self.f_px \
-                / math.sqrt(2.0)
-            return np.concatenate([ra, rb])
-        return ra
+        dlc_psi = n_w @ dR_cw.T
+        dlc_cy = np.broadcast_to(R_cw[:, 2], lc.shape)
+        sp = np.sum(lc * ep_h, axis=1)
+        nrm = np.hypot(lc[:, 0], lc[:, 1])
+        ra = sp / nrm * self.f_px
+        Ja = np.empty((ra.size, 2))
+        for k, dl in enumerate((dlc_psi, dlc_cy)):
+            ds = np.sum(dl * ep_h, axis=1)
+            dn = (lc[:, 0] * dl[:, 0] + lc[:, 1] * dl[:, 1]) / nrm
+            Ja[:, k] = (ds * nrm - sp * dn) / nrm ** 2 * self.f_px
+        if not across_lines.shape[0]:
+            return ra, Ja
+        va, vb = vanishing_directions(psi, self.M)
+        ex = vb[0] - vb[2] * across_mids[:, 0]
+        ey = vb[1] - vb[2] * across_mids[:, 1]
+        den = np.hypot(ex, ey)
+        dex = va[0] - va[2] * across_mids[:, 0]
+        dey = va[1] - va[2] * across_mids[:, 1]
+        num = across_lines @ vb
+        dnum = across_lines @ va
+        dden = (ex * dex + ey * dey) / den
+        scale = across_len * self.f_px / math.sqrt(2.0)
+        rb = num / den * scale
+        Jb = np.zeros((rb.size, 2))
+        Jb[:, 0] = (dnum * den - num * dden) / den ** 2 * scale
+        return np.concatenate([ra, rb]), np.vstack([Ja, Jb])
 
     # -- the estimate -----------------------------------------------------------------------
     def estimate(self, image: np.ndarray, t_ns: int,
@@ -418,6 +444,8 @@ class CorridorEstimator:
                 continue
             if best is None or cand["score"] > best["score"]:
                 best = cand
+            if "failure" not in best and best["n_lines"] >= 2:
+                break
         if best is None:
             return self._fail(t_ns, "too_few_lines",
                               "fewer than two forward ceiling lines could be associated",
@@ -435,18 +463,9 @@ class CorridorEstimator:
         y_ep = np.repeat(self.site_y[assign[use_a]], 2)
         al, am, alen = lines[across], mids[across], len_n[across]
         params = np.array([psi, cy])
-        w = np.ones(ep.shape[0] + int(np.count_nonzero(across)))
-        J = np.zeros((w.size, 2))
-        r = self._residuals(params, ep_h, y_ep, al, am, alen)
-        eps = np.array([1e-7, 1e-6])
         for _ in range(self.gn_iterations):
-            r = self._residuals(params, ep_h, y_ep, al, am, alen)
+            r, J = self._residuals(params, ep_h, y_ep, al, am, alen)
             w = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))  # Huber, k = 1 px
-            for k in range(2):
-                d = np.zeros(2)
-                d[k] = eps[k]
-                J[:, k] = (self._residuals(params + d, ep_h, y_ep, al, am, alen)
-                           - self._residuals(params - d, ep_h, y_ep, al, am, alen)) / (2 * eps[k])
             H = (J * w[:, None]).T @ J
             g = (J * w[:, None]).T @ r
             try:
@@ -454,9 +473,9 @@ class CorridorEstimator:
             except np.linalg.LinAlgError:
                 break
             params = params + step
-            if abs(step[0]) < 1e-10 and abs(step[1]) < 1e-9:
+            if abs(step[0]) < 1e-9 and abs(step[1]) < 1e-8:
                 break
-        r = self._residuals(params, ep_h, y_ep, al, am, alen)
+        r, J = self._residuals(params, ep_h, y_ep, al, am, alen)
         w = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))
         psi, cy = float(params[0]), float(params[1])
         dof = max(1, r.size - 2)

@@ -569,7 +569,8 @@ class LightsEstimator:
                            f"only {k} lights fit after refinement", diag)
         rms = float(np.sqrt(np.mean(res ** 2)))
         quality = _quality(k, rms, cand, runner, mode)
-        diag.update({"inliers": k, "rms_px": rms, "mode": mode, "score": cand.score,
+        diag.update({"inliers": k, "matched_lights": tuple(int(j) for j in pairs[:, 1]),
+                     "rms_px": rms, "mode": mode, "score": cand.score,
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": 1e3 * (time.perf_counter() - t0)})
         return PoseEstimate(t_ns, NAME, x, y, yaw, quality, None, cov, diag)

@@ -40,7 +40,7 @@ import numpy as np
 from .corridor import CorridorEstimator, match_offsets
 from .errors import ConfigError
 from .estimate import Failure, PoseEstimate
-from .geometry import rot_z, wrap_pi
+from .geometry import rot_z, wrap_half_pi, wrap_pi
 from .lines import as_gray, fit_line, merge_segments, segment_lengths, undistort_segments
 from .rig import Rig
 from .site import Site, check_rig_site
@@ -62,8 +62,8 @@ def pan_from_vanishing_line(D: np.ndarray, M: np.ndarray) -> tuple[float, float]
     k = 0 if abs(N[0]) >= abs(N[1]) else 1      # eq. 11 (u), or eq. 12 when u is degenerate
     s = N[k] / (rho * D[k]) if D[k] != 0 else 0.0
     alpha = math.asin(max(-1.0, min(1.0, s)))
-    p1 = wrap_pi(0.5 * (alpha - phi) + math.pi / 2) - math.pi / 2
-    p2 = wrap_pi(0.5 * (math.pi - alpha - phi) + math.pi / 2) - math.pi / 2
+    p1 = wrap_half_pi(0.5 * (alpha - phi))
+    p2 = wrap_half_pi(0.5 * (math.pi - alpha - phi))
     return p1, p2
 
 
@@ -135,7 +135,6 @@ class PaperCorridorEstimator:
         for g in merge_segments(segs, self.merge_angle, self.merge_dist):
             pts = segs[g].reshape(-1, 2)
             line = fit_line(pts)
-            d = pts[1:] - pts[:1]
             t_dir = np.array([-line[1], line[0]])
             ts = pts @ t_dir
             lo, hi = ts.min(), ts.max()
@@ -144,7 +143,6 @@ class PaperCorridorEstimator:
             sel = epts[near][(te >= lo) & (te <= hi)]
             if sel.shape[0] >= 5:
                 line = fit_line(sel)                                   # least squares
-            del d
             base = -line[2] * line[:2]
             out.append(np.r_[base + lo * t_dir, base + hi * t_dir])
         segs = np.array(out).reshape(-1, 4)

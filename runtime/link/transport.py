@@ -337,7 +337,10 @@ class LinkBase:
 
     def _service(self) -> None:
         while not self._stop.wait(self.service_interval_s):
-            self.poll()
+            try:
+                self.poll()
+            except Exception:  # noqa: BLE001 - e.g. a failing on_receive; keep serving
+                log.exception("link service: poll failed")
 
     # ---------------------------------------------------------------- the pipeline's API
 

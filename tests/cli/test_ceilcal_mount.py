@@ -1,0 +1,46 @@
+"""`ceilcal mount` on a simulated recording of five measured placements."""
+
+import math
+
+import numpy as np
+from typer.testing import CliRunner
+
+from ceilkit.calib.simulate import simulate_recording
+from ceilkit.cli.ceilcal import app
+from ceilkit.runtime.rig import Rig
+from ceilkit.runtime.sim import SimOptions, Trajectory
+from helpers import CONFIGS
+
+
+def test_mount_from_simulated_placements(tmp_path, corridor_rig, corridor_site):
+    ys = [0.0, 0.3, -0.3, 0.1, -0.1]
+    yaws = np.radians([0.0, 0.0, 0.0, 10.0, -12.0])
+    traj = Trajectory(np.arange(5, dtype=np.int64) * 10**8,
+                      np.array([0.5, 3.1, 5.3, 7.9, 10.2]), np.array(ys), yaws)
+    simulate_recording(corridor_rig, corridor_site, traj, tmp_path / "pl", SimOptions(), seed=3)
+    out = tmp_path / "rig.yaml"
+    res = CliRunner().invoke(app, ["mount", str(tmp_path / "pl"), "--site",
+                                   str(CONFIGS / "corridor" / "site.yaml"), "--camera",
+                                   str(CONFIGS / "corridor" / "camera.yaml"), "--out",
+                                   str(out)])
+    assert res.exit_code == 0, res.output
+    assert "residual RMS" in res.output
+    got = Rig.load(out)
+    truth = corridor_rig.mount
+    assert abs(math.degrees(got.mount.tilt_rad - truth.tilt_rad)) < 0.2
+    assert abs(math.degrees(got.mount.pan_rad - truth.pan_rad)) < 0.3
+    assert abs(got.mount.y_m - truth.y_m) < 0.01
+    assert out.read_text().startswith("# rig.yaml written by ceilcal mount")
+
+
+def test_mount_bad_inputs(tmp_path):
+    runner = CliRunner()
+    res = runner.invoke(app, ["mount", str(tmp_path / "none"), "--site",
+                              str(CONFIGS / "corridor" / "site.yaml")])
+    assert res.exit_code == 1 and "--camera" in res.output
+    (tmp_path / "pl.yaml").write_text("placements:\n  - {image: a.png, y: 0, yaw: 0, z: 1}\n")
+    res = runner.invoke(app, ["mount", str(tmp_path / "pl.yaml"), "--site",
+                              str(CONFIGS / "corridor" / "site.yaml"), "--camera",
+                              str(CONFIGS / "corridor" / "camera.yaml")])
+    assert res.exit_code == 1 and "placements[0].z: unknown key" in res.output
+    assert not (tmp_path / "rig.yaml").exists()
