@@ -275,7 +275,7 @@ class CorridorEstimator:
             return self._fail(t_ns, "bad_frame", f"frame is {gray.shape[1]}x{gray.shape[0]}, "
                               f"the camera is {cam.width}x{cam.height}")
         sub = gray[::4, ::4]
-        mean, std = (float(v) for v in cv2.meanStdDev(sub))
+        mean, std = (float(np.ravel(v)[0]) for v in cv2.meanStdDev(sub))
         if std < 0.5 * self.min_contrast:
             if mean >= 250:
                 return self._fail(t_ns, "saturated_frame", "the frame is saturated")

@@ -63,7 +63,7 @@ class SpotParams:
 
     window_px: int = 41
     k: float = 0.8
-    min_contrast: float = 12.0
+    min_contrast: float = 25.0
     min_area_px: int = 4
     max_area_px: int = 6000
     min_level: float = 2.0
@@ -124,7 +124,7 @@ def perception_level(i_object: np.ndarray, i_background: np.ndarray,
 
 
 def niblack_mask(grey: np.ndarray, window_px: int = 41, k: float = 0.8,
-                 min_contrast: float = 12.0) -> np.ndarray:
+                 min_contrast: float = 25.0) -> np.ndarray:
     """Binary ``(H, W)`` uint8 mask (0/255) of ``I > mean + max(k std, min_contrast)``.
 
     Local statistics over a ``window_px`` square, from box filters on a 4x reduced

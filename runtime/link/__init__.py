@@ -19,9 +19,11 @@ from .transport import (
     Received,
     SerialLink,
     make_protocol,
+    open_link,
 )
 
 __all__ = [
     "PROTOCOLS", "FileLink", "LinkBase", "LinkCounters", "MavlinkProtocol", "MemoryLink",
     "NmeaProtocol", "Received", "SerialLink", "make_protocol",
+    "open_link",
 ]

@@ -359,11 +359,21 @@ class LinkBase:
         """Bytes accepted by :meth:`send` and not yet written."""
         return self._queued_bytes + len(self._head)
 
-    def send(self, est: Estimate) -> None:
-        """Encode one estimate and write it without blocking (or buffer or drop it)."""
+    def send(self, est: Estimate, relocalized: bool = False,
+             capture_ns: int | None = None) -> None:
+        """Encode one estimate and write it without blocking (or buffer or drop it).
+
+        Args:
+            est: the pose or failure; its ``t_ns`` is the capture time sent.
+            relocalized: the pose jumped: bump the reset counter first (as
+                :meth:`relocalized`), so this pose carries the new value.
+            capture_ns: accepted for the pipeline's sink protocol; ``est.t_ns`` is used.
+        """
         with self._lock:
             if self._state == "closed":
                 raise LinkError("send() on a closed link")
+            if relocalized:
+                self.protocol.relocalized()
             now = self.clock_ns()
             msg, valid = self.protocol.pose(est)
             self._last_estimate, self._last_was_valid = est, valid
@@ -613,6 +623,20 @@ class SerialLink(LinkBase):
         if not data:
             raise _Disconnected("readable but no data (device disconnected?)")
         return data
+
+
+def open_link(target: str | Path, protocol: str = "nmea", baud: int = 115200, *,
+              system_id: int = 1, component_id: int = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+              **options) -> LinkBase:
+    """The link for a command line's ``--serial`` value: ``-`` is stdout, else a port.
+
+    The result is not open yet: use it with ``with``.
+    """
+    proto_opts = ({"sysid": system_id, "compid": component_id} if protocol == "mavlink"
+                  else {})
+    if str(target) == "-":
+        return FileLink("-", protocol, **proto_opts, **options)
+    return SerialLink(target, baud, protocol, **proto_opts, **options)
 
 
 # ------------------------------------------------------------------------ file, fake

@@ -13,7 +13,6 @@ from ceilkit.runtime.camera import CameraModel
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.recording import RecordingWriter
 from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.site import Block, Corridor, LampRow, Site
 from ceilkit.runtime.sim import (
     SimOptions,
     SimSource,
@@ -24,6 +23,7 @@ from ceilkit.runtime.sim import (
     render_radiance,
     straight_drive,
 )
+from ceilkit.runtime.site import Block, Corridor, LampRow, Site
 from ceilkit.runtime.sources import Frame
 
 CLEAN = SimOptions(noise_sigma=0.0, blur_px=0.0, vignetting=0.0, texture=0.0)

@@ -12,7 +12,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from ceilkit.runtime.errors import CeilkitError, LinkError
 from ceilkit.runtime.estimate import Failure, PoseEstimate
-from ceilkit.runtime.link import FileLink, MemoryLink, SerialLink, mavlink, nmea
+from ceilkit.runtime.link import FileLink, MemoryLink, SerialLink, mavlink, nmea, open_link
 
 S = 1_000_000_000
 
@@ -363,3 +363,28 @@ def test_yaw_nan_pose_never_reaches_the_wire(pty):
         link.send(pose(0, yaw_rad=math.nan))
         data = pty.read()
     assert [f.name for f in mavlink.iter_frames(data)] == ["HEARTBEAT"]
+
+
+def test_pipeline_sink_protocol_bumps_reset_counter():
+    with MemoryLink("mavlink", clock_ns=Clock()) as link:
+        link.send(pose(0), False, 0)
+        link.send(pose(1), True, 33_000_000)
+        link.send(pose(2), False, 66_000_000)
+    msgs = [m for m in mavlink2.MAVLink(None).parse_buffer(bytes(link.written))
+            if m.get_type() == "VISION_POSITION_ESTIMATE"]
+    assert [m.reset_counter for m in msgs] == [0, 1, 1]
+
+
+def test_open_link_chooses_stdout_or_port(tmp_path, pty, capfdbinary):
+    with open_link("-", "nmea", service_interval_s=None) as link:
+        assert isinstance(link, FileLink)
+        link.send(pose(0))
+    assert capfdbinary.readouterr().out.startswith(b"$PCEIL,0,0,A,")
+    with open_link(pty.path, "mavlink", 57600, system_id=9, component_id=197,
+                   service_interval_s=None, clock_ns=Clock()) as link:
+        assert isinstance(link, SerialLink) and link.baud == 57600
+        link.send(pose(0))
+        msgs = mavlink2.MAVLink(None).parse_buffer(pty.read())
+    assert {m.get_srcSystem() for m in msgs} == {9}
+    with pytest.raises(LinkError, match="cannot open serial port"):
+        open_link(tmp_path / "ttyACM9").open()

@@ -1,0 +1,67 @@
+"""`ceilcal simulate` through typer's CliRunner."""
+
+from __future__ import annotations
+
+import numpy as np
+from typer.testing import CliRunner
+
+from ceilkit.cli.ceilcal import app
+from ceilkit.runtime.recording import TRUTH_HEADER, Recording
+from ceilkit.runtime.rig import Rig
+from helpers import CONFIGS
+
+runner = CliRunner()
+
+
+def small_rig(tmp_path, name="corridor", w=96, h=72):
+    rig = Rig.load(CONFIGS / name / "rig.yaml")
+    path = tmp_path / "rig.yaml"
+    Rig(rig.camera.scaled(w, h), rig.mount).save(path)
+    return path
+
+
+def test_simulate_drive(tmp_path):
+    out = tmp_path / "rec"
+    res = runner.invoke(app, ["simulate", "--out", str(out), "--rig", str(small_rig(tmp_path)),
+                              "--frames", "4", "--fps", "10", "--lateral", "0.1",
+                              "--weave", "0.05", "--noise", "1", "--clutter", "--seed", "3"])
+    assert res.exit_code == 0, res.output
+    assert res.output.count("\n") == 1 and "wrote 4 frames" in res.output
+    rec = Recording(out)
+    assert len(rec) == 4 and rec.t_ns[1] == 100_000_000
+    assert rec.truth is not None and abs(np.mean(rec.truth.y_m) - 0.1) < 0.06
+    assert rec.frame(0).image.shape == (72, 96)
+
+
+def test_simulate_defaults_to_packaged_corridor(tmp_path):
+    out = tmp_path / "rec"
+    res = runner.invoke(app, ["simulate", "--out", str(out), "--frames", "2",
+                              "--supersample", "1", "--trajectory", "random"])
+    assert res.exit_code == 0, res.output
+    rec = Recording(out)
+    assert rec.rig.camera.size == (640, 480)
+    assert rec.site.corridor is not None and len(rec) == 2
+
+
+def test_simulate_from_trajectory_file(tmp_path):
+    traj = tmp_path / "traj.csv"
+    traj.write_text(",".join(TRUTH_HEADER) + "\n0,1.0,0.0,0.0\n50000000,1.1,0.01,2.0\n")
+    out = tmp_path / "rec"
+    res = runner.invoke(app, ["simulate", "--out", str(out), "--rig", str(small_rig(tmp_path)),
+                              "--trajectory", str(traj)])
+    assert res.exit_code == 0, res.output
+    rec = Recording(out)
+    assert list(rec.t_ns) == [0, 50_000_000]
+    assert rec.truth is not None and np.degrees(rec.truth.yaw_rad[1]) == 2.0
+
+
+def test_simulate_errors(tmp_path):
+    res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "a"),
+                              "--trajectory", str(tmp_path / "none.csv")])
+    assert res.exit_code == 1 and "none.csv" in res.output
+    res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "b"), "--rig",
+                              str(small_rig(tmp_path)), "--noise", "-1"])
+    assert res.exit_code == 1 and "noise_sigma" in res.output
+    res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "c"),
+                              "--rig", str(tmp_path / "missing.yaml")])
+    assert res.exit_code == 1 and "missing.yaml" in res.output
