@@ -326,8 +326,9 @@ def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *
         min_views: fewer kept views than this is a CalibrationError.
         corner_k: a corner whose residual exceeds ``corner_k`` robust sigmas (from the
             median residual, and at least 0.5 px) is dropped.
-        view_k: a view whose RMS exceeds ``view_k`` times the median view RMS (and
-            0.5 px, and the median plus 6 MADs) is dropped, the worst one per round.
+        view_k: a view whose median corner residual exceeds ``view_k`` times the median
+            over views (and 0.4 px, and that median plus 6 MADs) is dropped, the worst
+            one per round.
         reject_outliers: False keeps every detection.
         name: ``camera_name`` of the result.
 
@@ -366,12 +367,13 @@ def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *
     dropped_views: list[Detection] = []
     sol = _solve(kept, image_size, model, fix_aspect_ratio, name)
     for _ in range(50 if reject_outliers else 0):
-        view_rms = np.array([_rms([r]) for r in sol.residuals])
-        med = float(np.median(view_rms))
-        mad = float(np.median(np.abs(view_rms - med)))
-        worst = int(np.argmax(view_rms))
-        limit_view = max(view_k * med, med + 6 * 1.4826 * mad, 0.5)
-        if view_rms[worst] > limit_view and len(kept) > min_views:
+        # a view's score is its median corner residual: one bad corner does not sink it
+        score = np.array([float(np.median(np.linalg.norm(r, axis=1))) for r in sol.residuals])
+        med = float(np.median(score))
+        mad = float(np.median(np.abs(score - med)))
+        worst = int(np.argmax(score))
+        limit_view = max(view_k * med, med + 6 * 1.4826 * mad, 0.4)
+        if score[worst] > limit_view and len(kept) > min_views:
             dropped_views.append(original[kept.pop(worst).name])
             sol = _solve(kept, image_size, model, fix_aspect_ratio, name)
             continue

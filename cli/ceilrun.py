@@ -13,6 +13,7 @@ import typer
 
 from ceilkit.runtime.capture import open_source, packaged_config
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.metrics import AccuracyMeter, MeterSink, source_truth
 from ceilkit.runtime.methods import METHOD_NAMES, make_estimator
 from ceilkit.runtime.pipeline import Pipeline, PoseFileSink
 from ceilkit.runtime.recording import PoseWriter, RecordingWriter
@@ -128,6 +129,10 @@ def live(
         with source, _open_link(serial, protocol, baud, sysid, compid) as link, \
                 _stop_on_signals() as stop:
             sinks = [x for x in (link, PoseFileSink(writer) if writer else None) if x]
+            truth = source_truth(source)
+            meter = AccuracyMeter(truth) if truth is not None else None
+            if meter is not None:
+                sinks.append(MeterSink(meter))
             pipeline = Pipeline(estimator, sinks, Tracker())
             from ceilkit.runtime.live import run_live
 
@@ -148,6 +153,10 @@ def live(
          + (" (stopped)" if result.stopped else ""))
     for line in result.telemetry.summary():
         _err("  " + line)
+    if meter is not None:
+        _err("  against the source's ground truth:")
+        for line in meter.result().lines():
+            _err("    " + line)
     if recorder is not None:
         _err(f"  recorded {result.recorded} frames in {record}")
 
@@ -182,15 +191,17 @@ def replay(
                          sinks=[link] if link is not None else (), progress=bar)
     if show:
         _err("")
+    # the report goes to stderr when the poses themselves stream to stdout
+    echo = _err if serial == "-" else typer.echo
     tel = res.telemetry
-    typer.echo(f"replay {res.recording} with {res.method}: {tel.frames} frames in "
+    echo(f"replay {res.recording} with {res.method}: {tel.frames} frames in "
                f"{res.elapsed_s:.2f} s -> {res.poses_path}")
     for line in tel.summary():
-        typer.echo("  " + line)
+        echo("  " + line)
     if res.accuracy is not None:
-        typer.echo("  against truth.csv:")
+        echo("  against truth.csv:")
         for line in res.accuracy.lines():
-            typer.echo("    " + line)
+            echo("    " + line)
 
 
 def main() -> None:

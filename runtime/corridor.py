@@ -126,18 +126,23 @@ class OffsetMatch:
         assign: ``(N,)`` index into the site's lines, -1 for an unmatched offset.
         n_lines: how many distinct site lines are matched.
         weight: total weight of the matched offsets.
-        runner_up: ``(n_lines, weight, shift_m)`` of the best different hypothesis.
+        runner_up: ``(score, weight, shift_m)`` of the best different hypothesis.
+        score: sum over the site's lines of ``exp(-e^2 / 2 sigma^2)`` for the closest
+            offset matched to each (``sigma = tol / 3``): about the number of lines
+            matched, discounted by their misfit.
     """
 
     shift_m: float
     assign: np.ndarray
     n_lines: int
     weight: float
-    runner_up: tuple[int, float, float] | None
+    runner_up: tuple[float, float, float] | None
+    score: float = 0.0
 
 
 def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
-                  tol_m: float, prior_shift_m: float | None = None) -> OffsetMatch | None:
+                  tol_m: float, prior_shift_m: float | None = None,
+                  anchors_m: np.ndarray | None = None) -> OffsetMatch | None:
     """Find the shift ``c`` placing the observed offsets on the site's lines.
 
     Every pairing ``c = y_j - o_i`` is a hypothesis (refined once by a weighted
@@ -145,6 +150,9 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
     within ``tol_m``, then by the matched weight. With ``prior_shift_m`` the
     hypothesis nearest the prior wins among those matching at least as many lines
     as the best one less one. Missing, extra and shifted lines are tolerated.
+    ``anchors_m``, independent estimates of the shift (lamp ends: see
+    :class:`CorridorEstimator`), add up to one to the score of the hypotheses they
+    agree with: they break the tie between hypotheses shifted by a line spacing.
     Returns None when nothing is matched.
     """
     o_all = np.asarray(offsets, dtype=float)
@@ -171,27 +179,36 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
     wi = inl * w[None, :]
     sw = wi.sum(axis=1)
     matched = np.zeros((c_ref.size, ys.size), bool)
+    soft = np.zeros(c_ref.size)
+    sig = tol_m / 3.0
     for jj in range(ys.size):
-        matched[:, jj] = np.any(inl & (j == jj), axis=1)
+        hit = inl & (j == jj)
+        matched[:, jj] = np.any(hit, axis=1)
+        soft += np.max(np.where(hit, np.exp(-0.5 * (e / sig) ** 2), 0.0), axis=1)
+    if anchors_m is not None and len(anchors_m):
+        a = np.asarray(anchors_m, dtype=float)
+        soft += np.mean(np.exp(-0.5 * ((c_ref[:, None] - a[None, :]) / sig) ** 2), axis=1)
     n_lines = matched.sum(axis=1)
     good = n_lines > 0
     if not np.any(good):
         return None
     idx = np.flatnonzero(good)
     if prior_shift_m is not None:
-        top = n_lines[idx].max()
-        pool = idx[n_lines[idx] >= top - 1]
+        top = soft[idx].max()
+        pool = idx[soft[idx] >= top - 1.0]
         win = int(pool[np.argmin(np.abs(c_ref[pool] - prior_shift_m))])
     else:
-        win = int(idx[np.lexsort((-sw[idx], -n_lines[idx]))[0]])
+        win = int(idx[np.lexsort((-sw[idx], -soft[idx]))[0]])
     others = idx[np.abs(c_ref[idx] - c_ref[win]) > tol_m]
     runner = None
     if others.size:
-        r = int(others[np.lexsort((-sw[others], -n_lines[others]))[0]])
-        runner = (int(n_lines[r]), float(sw[r]), float(c_ref[r]))
+        r = int(others[np.lexsort((-sw[others], -soft[others]))[0]])
+        runner = (float(soft[r]), float(sw[r]), float(c_ref[r]))
+    score = float(soft[win])
     assign = np.full(o_all.size, -1)
     assign[np.flatnonzero(ok)] = np.where(inl[win], j[win], -1)
-    return OffsetMatch(float(c_ref[win]), assign, int(n_lines[win]), float(sw[win]), runner)
+    return OffsetMatch(float(c_ref[win]), assign, int(n_lines[win]), float(sw[win]), runner,
+                       score)
 
 
 def periodic_spread(offsets: np.ndarray, weights: np.ndarray, spacing_m: float,
@@ -493,8 +510,8 @@ class CorridorEstimator:
         y_m = cy - float(t_v[1])
         T = np.array([[1.0, 0.0], [-float(t_v[0]), 1.0]])   # d(yaw, y)/d(psi, c_y)
         cov_yy = T @ cov_pc @ T.T
-        cov = np.full((3, 3), 0.0)
-        cov[0, :] = cov[:, 0] = np.inf
+        cov = np.zeros((3, 3))
+        cov[0, 0] = np.inf
         cov[1, 1], cov[2, 2] = cov_yy[1, 1], cov_yy[0, 0]
         cov[1, 2] = cov[2, 1] = cov_yy[1, 0]
 
@@ -535,7 +552,9 @@ class CorridorEstimator:
         psi = self._refine_pan(psi, q, lines, mids, len_n, along, across)
         # the four labelings: psi + k * 90 deg; odd k swaps the families
         mount = self.rig.mount
-        seg_len_w = self._ceiling_lengths(segs)
+        ceil_pts = self._ceiling_points(segs)
+        seg_len_w = np.nan_to_num(np.minimum(np.hypot(ceil_pts[:, 2] - ceil_pts[:, 0],
+                                                      ceil_pts[:, 3] - ceil_pts[:, 1]), 10.0))
         corr = self.site.corridor
         hyps = []
         for k in range(4):
@@ -547,7 +566,8 @@ class CorridorEstimator:
                 t_v = rot_z(wrap_pi(pk - mount.pan_rad)) @ mount.t_vehicle_cam
                 prior_shift = prior.y_m + float(t_v[1])
             offs = along_offsets(q[fa], pk, self.height_m)
-            m = match_offsets(offs, wa, self.site_y, self.match_tol_m, prior_shift)
+            m = match_offsets(offs, wa, self.site_y, self.match_tol_m, prior_shift,
+                              self._lamp_anchors(ceil_pts[fb], pk))
             n_a = 0 if m is None else m.n_lines
             n_b = 0
             if corr.lines_across is not None and np.count_nonzero(fb) >= 2:
@@ -587,7 +607,7 @@ class CorridorEstimator:
             return {"score": (-1, 0.0), "failure": (
                 "no_association", "the forward lines do not match the site's lines_along")}
         ambiguous = False
-        if m.runner_up is not None and m.runner_up[0] >= m.n_lines:
+        if m.runner_up is not None and m.runner_up[0] >= 0.85 * m.score:
             ambiguous = True
             if prior is None or prior.y_m is None:
                 return {"score": (m.n_lines, m.weight), "failure": (
@@ -599,15 +619,30 @@ class CorridorEstimator:
                 "along": chosen["fa"], "across": chosen["fb"], "assign": assign,
                 "n_lines": m.n_lines, "ambiguous": ambiguous, "how": how}
 
-    def _ceiling_lengths(self, segs: np.ndarray) -> np.ndarray:
-        """Length (m) of each segment back-projected onto the ceiling (psi-free)."""
+    def _ceiling_points(self, segs: np.ndarray) -> np.ndarray:
+        """Endpoints ``(N, 4)`` back-projected onto the ceiling, in the level frame
+        relative to the camera (m; NaN above the horizon). Needs no pan."""
         n = segs.shape[0]
         p = np.hstack([segs.reshape(-1, 2), np.ones((2 * n, 1))]) @ self.M.T
         with np.errstate(divide="ignore", invalid="ignore"):
             X = p[:, :2] * (self.height_m / p[:, 2:3])
-        X = np.where(p[:, 2:3] > 1e-6, X, np.nan).reshape(n, 4)
-        L = np.hypot(X[:, 2] - X[:, 0], X[:, 3] - X[:, 1])
-        return np.nan_to_num(np.minimum(L, 10.0), nan=0.0)
+        return np.where(p[:, 2:3] > 1e-6, X, np.nan).reshape(n, 4)
+
+    def _lamp_anchors(self, pts: np.ndarray, psi: float) -> np.ndarray:
+        """Camera y estimates from across segments as long as a lamp is wide: the
+        lamp's end, whose middle lies on the lamp row's y."""
+        if not self.site.lamps or pts.shape[0] == 0:
+            return np.zeros(0)
+        R = rot_z(psi)[:2, :2]
+        a = pts[:, :2] @ R.T
+        b = pts[:, 2:] @ R.T
+        length = np.hypot(*(b - a).T)
+        mid_y = 0.5 * (a[:, 1] + b[:, 1])
+        out = []
+        for row in self.site.lamps:
+            ok = np.isfinite(length) & (np.abs(length - row.width_m) < 0.2 * row.width_m)
+            out.append(row.y_m - mid_y[ok])
+        return np.concatenate(out)
 
     def _vanishing_line_check(self, lines: np.ndarray, len_n: np.ndarray, along: np.ndarray,
                               across: np.ndarray) -> dict[str, float]:

@@ -38,6 +38,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from .errors import ConfigError
@@ -184,7 +185,7 @@ class PatternMatcher:
     """
 
     def __init__(self, lights_w: np.ndarray, gate_m: float = 0.08, max_pair_m: float = 1e9,
-                 visible: Any = None, max_observed: int = 8, top_bins: int = 8,
+                 visible: Any = None, max_observed: int = 7, top_bins: int = 8,
                  yaw_bin_rad: float = math.radians(4.0), pos_bin_m: float = 0.3):
         self.lights_w = np.asarray(lights_w, float).reshape(-1, 2)
         m = self.lights_w.shape[0]
@@ -219,11 +220,10 @@ class PatternMatcher:
         """Associate, refit, re-associate; ``None`` with fewer than two inliers."""
         gate = self.gate_m if gate_m is None else gate_m
         pairs = self.associate(q_v, yaw, t, gate)
-        for _ in range(2):
-            if pairs.shape[0] < 2:
-                return None
-            yaw, t = fit_rigid_2d(q_v[pairs[:, 0]], self.lights_w[pairs[:, 1]])
-            pairs = self.associate(q_v, yaw, t, self.gate_m)
+        if pairs.shape[0] < 2:
+            return None
+        yaw, t = fit_rigid_2d(q_v[pairs[:, 0]], self.lights_w[pairs[:, 1]])
+        pairs = self.associate(q_v, yaw, t, self.gate_m)
         if pairs.shape[0] < 2:
             return None
         res = _transform(q_v[pairs[:, 0]], yaw, t) - self.lights_w[pairs[:, 1]]
@@ -389,6 +389,11 @@ class LightsEstimator:
         min_inliers: fewest matched lights for a pose without a prior (>= 3).
         max_residual_px: a matched light with a larger reprojection residual is dropped.
         spot_params: :class:`~ceilkit.runtime.spots.SpotParams` (defaults if ``None``).
+        prior_gate_m: association gate around a prior pose (default: 0.4 x the closest
+            light spacing, at most 1 m).
+        max_view_angle_deg: spots seen further than this from the vertical are ignored
+            (tiny, poorly resolved, and the edge of a fisheye image circle).
+        max_spots: examine at most this many candidate regions, nearest the nadir first.
 
     Raises:
         ConfigError: no lights in the site, an impossible option, or a ceiling below
@@ -400,7 +405,8 @@ class LightsEstimator:
     def __init__(self, rig: Rig, site: Site, light_radius_m: float = 0.08,
                  gate_m: float = 0.1, ambiguity_margin: float = 1.0, min_inliers: int = 3,
                  max_residual_px: float = 3.0, spot_params: SpotParams | None = None,
-                 prior_gate_m: float | None = None):
+                 prior_gate_m: float | None = None, max_view_angle_deg: float = 75.0,
+                 max_spots: int = 16):
         if not site.has_lights:
             raise ConfigError(site.source, "lights",
                               "the lights method needs at least one light in the site map")
@@ -421,6 +427,13 @@ class LightsEstimator:
         spacing = _min_spacing(self.lights_w)
         self.prior_gate_m = (prior_gate_m if prior_gate_m is not None
                              else max(gate_m, min(1.0, 0.4 * spacing)))
+        self.max_spots = max_spots
+        self.valid_mask = view_mask(rig, math.radians(max_view_angle_deg))
+        R = rig.mount.R_vehicle_cam
+        up = R.T @ np.array([0.0, 0.0, 1.0])   # the vertical seen from the camera
+        nadir = rig.camera.project(up[None]) if up[2] > 1e-6 else np.full((1, 2), np.nan)
+        self.nadir_px = ((float(nadir[0, 0]), float(nadir[0, 1]))
+                         if np.all(np.isfinite(nadir)) else (rig.camera.cx, rig.camera.cy))
         self.matcher = PatternMatcher(self.lights_w, gate_m, self._max_pair_m(),
                                       visible=self._visible)
 
@@ -447,7 +460,8 @@ class LightsEstimator:
     def spots_and_points(self, image: np.ndarray) -> tuple[Spots, np.ndarray, np.ndarray]:
         """Detected spots (after the per-place size and shape checks), their ceiling
         points in V ``(N, 2)`` and a reliability order (nearest the nadir first)."""
-        spots = detect_spots(image, self.spot_params)
+        spots = detect_spots(image, self.spot_params, self.valid_mask, self.nadir_px,
+                             self.max_spots)
         if len(spots) == 0:
             return spots, np.zeros((0, 2)), np.zeros(0, int)
         q, ok = ceiling_points(self.rig, self.height_m, spots.centroids_px)
@@ -598,6 +612,23 @@ def _cand_from_prior(pose: PoseEstimate) -> Candidate:
                      np.zeros((0, 2), int), 0.0, 0.0)
 
 
+def view_mask(rig: Rig, max_angle_rad: float) -> np.ndarray:
+    """``(H, W)`` uint8: 255 where a pixel's ray rises within ``max_angle_rad`` of the
+    vertical (computed on a 4x coarser grid, then enlarged)."""
+    cam = rig.camera
+    step = 4
+    us = np.arange(0, cam.width, step) + (step - 1) / 2
+    vs = np.arange(0, cam.height, step) + (step - 1) / 2
+    uu, vv = np.meshgrid(us, vs)
+    rays = np.hstack([cam.unproject(np.stack([uu.ravel(), vv.ravel()], 1)),
+                      np.ones((uu.size, 1))]) @ rig.mount.R_vehicle_cam.T
+    cos_up = rays[:, 2] / np.linalg.norm(rays, axis=1)
+    ok = np.isfinite(cos_up) & (cos_up > math.cos(max_angle_rad))
+    small = np.where(ok, 255, 0).astype(np.uint8).reshape(uu.shape)
+    big = cv2.resize(small, (us.size * step, vs.size * step), interpolation=cv2.INTER_NEAREST)
+    return np.ascontiguousarray(big[:cam.height, :cam.width])
+
+
 def _min_spacing(lights_w: np.ndarray) -> float:
     if lights_w.shape[0] < 2:
         return math.inf
@@ -606,5 +637,5 @@ def _min_spacing(lights_w: np.ndarray) -> float:
     return float(d.min())
 
 
-__all__ = ["Candidate", "LightsEstimator", "PatternMatcher", "ceiling_points",
+__all__ = ["Candidate", "LightsEstimator", "PatternMatcher", "ceiling_points", "view_mask",
            "fit_rigid_2d", "pixel_scale", "project_lights", "refine_pose"]

@@ -109,6 +109,29 @@ class AccuracyMeter:
                         ErrorStats.of(self._dp))
 
 
+class MeterSink:
+    """A pipeline sink that feeds an :class:`AccuracyMeter` (runs with known truth)."""
+
+    def __init__(self, meter: AccuracyMeter):
+        self.meter = meter
+
+    def send(self, est: Estimate, relocalized: bool, capture_ns: int) -> None:
+        self.meter.add(est)
+
+
+def source_truth(source: object) -> Truth | None:
+    """The ground truth a source carries: a recording's ``truth.csv`` or the
+    simulator's trajectory; ``None`` for a camera."""
+    truth = getattr(source, "truth", None)
+    if isinstance(truth, Truth):
+        return truth
+    traj = getattr(source, "trajectory", None)
+    if traj is not None:
+        return Truth(np.asarray(traj.t_ns), np.asarray(traj.x_m), np.asarray(traj.y_m),
+                     np.asarray(traj.yaw_rad))
+    return None
+
+
 def accuracy(estimates: Sequence[Estimate], truth: Truth) -> Accuracy:
     """Compare estimates with the truth row of the same ``t_ns``."""
     meter = AccuracyMeter(truth)

@@ -218,7 +218,7 @@ class PaperCorridorEstimator:
         spread = float(np.std(self.site_y[m.assign[matched]] - offs[matched])) \
             if matched.size > 1 else 0.05
         cov = np.zeros((3, 3))
-        cov[0, :] = cov[:, 0] = np.inf
+        cov[0, 0] = np.inf
         cov[1, 1] = max(spread, 0.005) ** 2
         cov[2, 2] = math.radians(1.0) ** 2
         quality = min(1.0, matched.size / 4.0) / (1.0 + (spread / 0.02) ** 2)

@@ -657,7 +657,12 @@ def render_radiance(rig: Rig, site: Site, x_m: float, y_m: float, yaw_rad: float
             dy = np.abs(cyr - fr.axis_r)
             active |= (dy + reach > fr.w) & (dy - reach < fr.w)
             if options.clutter:
-                active |= g.has_other | (dy + reach > fr.w)
+                # wall cells: shade per sub-pixel only where the per-pixel image has an
+                # edge (door frames, posters) within a pixel of the cell
+                k3 = np.ones((3, 3), np.uint8)
+                edge = cv2.dilate(img, k3) - cv2.erode(img, k3) > 1.0
+                edge = edge.reshape(g.ncy, CELL_PX, g.ncx, CELL_PX).any(axis=(1, 3)).ravel()
+                active |= edge & (g.has_other | (dy + reach > fr.w))
     feats = _features(site, fr, options, cxr, cyr, reach)
     for f in feats:
         active |= f.cells

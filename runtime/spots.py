@@ -210,8 +210,14 @@ def axis_ratios(cov_px: np.ndarray) -> np.ndarray:
 
 def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
                      weighted: bool = True, rethreshold: bool = True,
-                     relative: bool = True) -> Spots:
-    """Identify lights among the connected regions of ``mask`` (see the module doc)."""
+                     relative: bool = True, centre_px: tuple[float, float] | None = None,
+                     max_regions: int | None = None) -> Spots:
+    """Identify lights among the connected regions of ``mask`` (see the module doc).
+
+    With ``centre_px``, regions are examined nearest that pixel first (the principal
+    point: the sharpest, best-resolved lights), at most ``max_regions`` of them that
+    pass the size checks.
+    """
     n, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     rejected: dict[str, int] = {}
@@ -219,9 +225,20 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
     def drop(reason: str) -> None:
         rejected[reason] = rejected.get(reason, 0) + 1
 
+    boxes = [cv2.boundingRect(c) for c in contours]
+    order = range(len(contours))
+    if centre_px is not None and boxes:
+        b = np.array(boxes, float)
+        d2 = (b[:, 0] + b[:, 2] / 2 - centre_px[0]) ** 2 + (b[:, 1] + b[:, 3] / 2
+                                                             - centre_px[1]) ** 2
+        order = np.argsort(d2, kind="stable")
     rows = []
-    for contour in contours:
-        x0, y0, bw, bh = cv2.boundingRect(contour)
+    for ci in order:
+        if max_regions is not None and len(rows) >= max_regions:
+            drop("beyond_max_regions")
+            continue
+        contour = contours[ci]
+        x0, y0, bw, bh = boxes[ci]
         if bw * bh < params.min_area_px:
             drop("small")
             continue
@@ -302,12 +319,19 @@ def _split_glare(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: in
     return (u + xa, v + ya, float(area), i_o, min(i_b2, i_b + 0.5 * (peak - i_b)), cov)
 
 
-def detect_spots(image: np.ndarray, params: SpotParams | None = None) -> Spots:
+def detect_spots(image: np.ndarray, params: SpotParams | None = None,
+                 valid: np.ndarray | None = None,
+                 centre_px: tuple[float, float] | None = None,
+                 max_regions: int | None = None) -> Spots:
     """Bright spots of a frame: Niblack, identification, weighted centroids.
 
     Args:
         image: ``(H, W)`` grey or ``(H, W, 3)`` BGR frame, 8 or 16 bit.
         params: thresholds (:class:`SpotParams` defaults if ``None``).
+        valid: optional ``(H, W)`` uint8 mask (non-zero: usable pixels, e.g. the part of a
+            wide-angle image that sees the ceiling); candidates elsewhere are ignored.
+        centre_px, max_regions: examine regions nearest ``centre_px`` first, at most
+            ``max_regions`` of them (see :func:`regions_to_spots`).
 
     Returns:
         :class:`Spots`, possibly empty (a blank frame is not an error).
@@ -317,7 +341,9 @@ def detect_spots(image: np.ndarray, params: SpotParams | None = None) -> Spots:
     if grey.ndim != 2 or grey.size == 0:
         return empty_spots()
     mask = niblack_mask(grey, params.window_px, params.k, params.min_contrast)
-    return regions_to_spots(grey, mask, params)
+    if valid is not None and valid.shape == mask.shape:
+        mask = cv2.bitwise_and(mask, valid)
+    return regions_to_spots(grey, mask, params, centre_px=centre_px, max_regions=max_regions)
 
 
 __all__ = ["SpotParams", "Spots", "detect_spots", "empty_spots", "niblack_mask",

@@ -1,0 +1,78 @@
+"""Boards: parsing, detection on rendered images against the exact corner pixels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ceilkit.calib.boards import (
+    CharucoBoard,
+    ChessBoard,
+    Detection,
+    look_at_pose,
+    parse_board,
+    render_board,
+)
+from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.errors import ConfigError
+
+CAM = CameraModel.pinhole(640, 480, fx=500.0, dist=[-0.2, 0.05, 0.001, -0.0005, 0.0])
+
+
+def test_parse_board_specs():
+    b = parse_board("chess:9x6", 0.025)
+    assert isinstance(b, ChessBoard) and (b.cols, b.rows) == (9, 6)
+    assert b.corners_board.shape == (54, 3)
+    np.testing.assert_allclose(b.corners_board[10], [0.025, 0.025, 0.0])
+    c = parse_board("charuco:5x7:5X5_100:legacy", 0.04, 0.03)
+    assert isinstance(c, CharucoBoard) and c.legacy and c.dictionary == "5X5_100"
+    assert c.corners_board.shape == (24, 3)
+    assert c.cv_board.getLegacyPattern()
+
+
+@pytest.mark.parametrize("spec,square,marker,key", [
+    ("chess:9", 0.025, None, "--board"), ("chess:1x6", 0.025, None, "--board"),
+    ("chess:9x6", -1.0, None, "--square"), ("charuco:5x7:NOPE", 0.04, 0.03, "--board"),
+    ("charuco:5x7", 0.04, 0.05, "--marker"), ("charuco:30x30:4X4_50", 0.04, 0.03, "--board"),
+])
+def test_parse_board_errors(spec, square, marker, key):
+    with pytest.raises(ConfigError) as e:
+        parse_board(spec, square, marker)
+    assert e.value.key == key
+
+
+def test_chessboard_alternatives_include_swapped_and_neighbours():
+    specs = [a.spec for a in ChessBoard(9, 6, 0.03).alternatives()]
+    assert "chess:6x9" in specs and "chess:8x6" in specs and "chess:9x7" in specs
+    assert "chess:9x6" not in specs
+
+
+@pytest.mark.parametrize("board", [ChessBoard(9, 6, 0.03),
+                                   CharucoBoard(7, 5, 0.04, 0.03, "4X4_50")])
+def test_render_then_detect_matches_exact_corners(board):
+    rvec, t = look_at_pose(board, 0.5, 25.0, 30.0, 10.0, (0.03, -0.02))
+    img, px, vis = render_board(board, CAM, rvec, t, np.random.default_rng(3))
+    assert img.shape == (480, 640) and img.dtype == np.uint8
+    assert vis.all()
+    det = board.detect(img, "a")
+    assert det is not None and len(det) >= 20
+    truth = px[det.ids]
+    err = det.points_px - truth
+    if isinstance(board, ChessBoard) and np.abs(err).max() > 5:   # 180 deg ambiguity
+        err = det.points_px - px[::-1][det.ids]
+    assert np.sqrt(np.mean(np.sum(err ** 2, axis=1))) < 0.3
+    np.testing.assert_allclose(det.points_board, board.corners_board[det.ids])
+
+
+def test_detect_returns_none_without_board():
+    blank = np.full((120, 160), 128, np.uint8)
+    assert ChessBoard(9, 6, 0.03).detect(blank) is None
+    assert CharucoBoard(5, 7, 0.04, 0.03).detect(blank) is None
+
+
+def test_detection_checks_lengths_and_subsets():
+    d = Detection("x", (640, 480), [0, 1, 2], np.zeros((3, 2)), np.zeros((3, 3)))
+    s = d.subset(np.array([True, False, True]))
+    assert len(s) == 2 and list(s.ids) == [0, 2]
+    with pytest.raises(ValueError):
+        Detection("x", (640, 480), [0, 1], np.zeros((3, 2)), np.zeros((3, 3)))

@@ -1,0 +1,59 @@
+"""`ceilcal intrinsics` through typer's CliRunner on rendered board images."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from ceilkit.calib.boards import ChessBoard, render_views
+from ceilkit.cli.ceilcal import app
+from ceilkit.runtime.camera import CameraModel
+
+CAM = CameraModel(640, 480, np.array([[500.0, 0, 322.3], [0, 502.0, 236.8], [0, 0, 1]]),
+                  [-0.25, 0.08, 0.001, -0.0008, 0.0], "plumb_bob")
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    d = tmp_path_factory.mktemp("shots")
+    for i, (img, _, _) in enumerate(render_views(ChessBoard(9, 6, 0.03), CAM, 12,
+                                                 np.random.default_rng(7), noise_sigma=1.0)):
+        cv2.imwrite(str(d / f"v{i:02d}.png"), img)
+    return d
+
+
+def test_writes_camera_with_provenance_and_plots(folder, tmp_path):
+    out = tmp_path / "camera.yaml"
+    r = CliRunner().invoke(app, ["intrinsics", str(folder), "--board", "chess:9x6",
+                                 "--square", "0.03", "--out", str(out),
+                                 "--plots", str(tmp_path / "plots")])
+    assert r.exit_code == 0, r.output
+    text = out.read_text()
+    assert "# command:" in text and "RMS" in text and "1 sigma" in text
+    cam = CameraModel.load(out)
+    assert abs(cam.fx / CAM.fx - 1) < 0.005
+    assert (tmp_path / "plots" / "distortion.png").is_file()
+    assert (tmp_path / ".camera.detections.npz").is_file()
+
+
+def test_wrong_board_size_suggests_the_right_one(folder, tmp_path):
+    r = CliRunner().invoke(app, ["intrinsics", str(folder), "--board", "chess:8x6",
+                                 "--square", "0.03", "--out", str(tmp_path / "c.yaml")])
+    assert r.exit_code == 1
+    assert "did you mean --board chess:9x6?" in r.output
+
+
+def test_unwritable_output_writes_nothing(folder, tmp_path):
+    out = tmp_path / "missing" / "camera.yaml"
+    r = CliRunner().invoke(app, ["intrinsics", str(folder), "--board", "chess:9x6",
+                                 "--square", "0.03", "--out", str(out)])
+    assert r.exit_code == 1 and "cannot write" in r.output
+    assert not out.parent.exists()
+
+
+def test_needs_exactly_one_source(tmp_path):
+    r = CliRunner().invoke(app, ["intrinsics", "--board", "chess:9x6", "--square", "0.03",
+                                 "--out", str(tmp_path / "c.yaml")])
+    assert r.exit_code == 1 and "exactly one image source" in r.output
