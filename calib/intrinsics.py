@@ -641,9 +641,20 @@ def detect_images(paths: Sequence[str | Path], board: Board,
             progress(i, len(paths), p.name, det is not None)
     if dirty:
         cache.save()
-    if not out:
-        samples = [(Path(p).name, read_grey(p)) for p in list(paths)[:3]]
-        raise _no_board_error(board, samples, len(paths))
+    if len(out) < max(1, len(paths) // 2):
+        # the board was missed in most images: a wrong size is the usual reason (a
+        # sub-board of the real one can still be found in a few images)
+        found = {d.name for d in out}
+        samples = [(Path(p).name, read_grey(p)) for p in paths
+                   if Path(p).name not in found][:3]
+        err = _no_board_error(board, samples, len(paths))
+        if not out or "did you mean" in str(err):
+            if out:
+                err = CalibrationError(str(err).replace(
+                    "found in any of", "found in most of").replace(
+                    f"any of {len(paths)} image(s)", f"{len(paths) - len(out)} of "
+                    f"{len(paths)} images"))
+            raise err
     return out
 
 

@@ -41,6 +41,7 @@ import numpy as np
 from .sources import to_grey
 
 _REDUCE = 4  # the Niblack statistics are computed on a 1/_REDUCE image
+_CORE = 0.2  # centroid weights count from I_b + _CORE (I_o - I_b)
 
 
 @dataclass(frozen=True)
@@ -183,7 +184,8 @@ def _region_stats(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: i
     cx0, cy0 = max(0, x0 - 2) - xa, max(0, y0 - 2) - ya
     cx1, cy1 = min(W, x0 + bw + 2) - xa, min(H, y0 + bh + 2) - ya
     if weighted:
-        wts = cv2.max(cv2.subtract(roi[cy0:cy1, cx0:cx1], i_b, dtype=cv2.CV_32F), 0.0)
+        base = i_b + _CORE * (i_o - i_b)
+        wts = cv2.max(cv2.subtract(roi[cy0:cy1, cx0:cx1], base, dtype=cv2.CV_32F), 0.0)
         lsub = lroi[cy0:cy1, cx0:cx1]
         others = cv2.countNonZero(lsub) \
             - cv2.countNonZero(obj[cy0:cy1, cx0:cx1])
