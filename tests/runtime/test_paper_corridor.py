@@ -1,0 +1,72 @@
+"""Tests of runtime/paper_corridor.py: the paper's closed forms on exact data, and frames."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ceilkit.runtime.corridor import vanishing_directions
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry import R_level_cam, rot_z
+from ceilkit.runtime.methods import make_estimator
+from ceilkit.runtime.paper_corridor import (
+    PaperCorridorEstimator,
+    lateral_from_line,
+    mean_intersection,
+    pan_from_vanishing_line,
+)
+from ceilkit.runtime.rig import Rig
+from ceilkit.runtime.site import Site
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "corridor"
+
+
+@pytest.mark.parametrize("swing_deg", [0.0, 1.0, -6.0])
+@pytest.mark.parametrize("psi", [-0.6, -0.1, 0.02, 0.3, 0.7])
+def test_pan_closed_form_is_exact_with_a_complementary_twin(psi, swing_deg):
+    M = R_level_cam(math.radians(45), math.radians(swing_deg))
+    va, vb = vanishing_directions(psi, M)
+    D = va[:2] / va[2] - vb[:2] / vb[2]
+    p1, p2 = pan_from_vanishing_line(D, M)
+    assert min(abs(p1 - psi), abs(p2 - psi)) < 1e-9
+    # the twin also explains D (the paper's 45 deg ambiguity)
+    other = p2 if abs(p1 - psi) < 1e-9 else p1
+    va2, vb2 = vanishing_directions(other, M)
+    assert np.allclose(va2[:2] / va2[2] - vb2[:2] / vb2[2], D, rtol=1e-9)
+
+
+def test_lateral_from_line_is_exact():
+    M = R_level_cam(math.radians(45), math.radians(1))
+    psi, h, dy = 0.25, 2.0, -0.37
+    R_cw = (rot_z(psi) @ M).T
+    n_w = np.array([0.0, h, -dy])        # plane of the line y = c_y + dy, z = h
+    line = R_cw @ n_w
+    line /= np.hypot(line[0], line[1])
+    assert lateral_from_line(line, psi, M, h) == pytest.approx(dy, abs=1e-12)
+
+
+def test_mean_intersection():
+    lines = np.array([[1.0, 0, -1], [0, 1.0, -2], [1.0, 1.0, -3]])
+    assert np.allclose(mean_intersection(lines), [1.0, 2.0])
+    assert mean_intersection(np.array([[1.0, 0, 0], [1.0, 0, -1]])) is None
+
+
+def test_paper_estimator_frames():
+    rig, site = Rig.load(CONFIGS / "rig.yaml"), Site.load(CONFIGS / "site.yaml")
+    est = make_estimator("paper-corridor", rig, site)
+    assert est.name == "paper-corridor"
+    h, w = rig.camera.height, rig.camera.width
+    assert est.estimate(np.zeros((h, w), np.uint8), 3).reason == "blank_frame"
+    assert est.estimate(np.full((h, w), 255, np.uint8), 3).reason == "saturated_frame"
+    with pytest.raises(ConfigError):
+        PaperCorridorEstimator(rig, site, nope=1)
+    sim = pytest.importorskip("ceilkit.runtime.sim")
+    yaw = math.radians(12.0)
+    img = sim.render_frame(rig, site, 0.3, 0.1, yaw, rng=np.random.default_rng(2))
+    r = est.estimate(img, 5)
+    assert r and r.x_m is None and r.t_ns == 5
+    assert abs(math.degrees(r.yaw_rad - yaw)) < 10.0       # the paper reports ~1-5 deg
+    assert np.isinf(r.cov[0, 0]) and 0.0 <= r.quality <= 1.0
