@@ -112,6 +112,7 @@ def cluster_points(points_w: np.ndarray, frame_ids: np.ndarray, cluster_m: float
             newC.append(np.median(P[m], axis=0) if np.any(m) else C[k])
         C = np.array(newC)
     out_c, out_s, out_sp, out_v = [], [], [], []
+    assigned = 0
     for k in range(C.shape[0]):
         m = lab == k
         views = len(set(frame_ids[m].tolist()))
@@ -123,6 +124,7 @@ def cluster_points(points_w: np.ndarray, frame_ids: np.ndarray, cluster_m: float
         out_sp.append(spread)
         out_s.append(spread / math.sqrt(m.sum()))
         out_v.append(views)
+        assigned += int(m.sum())
     kept = np.array(out_c).reshape(-1, 2)
     # clusters closer than the gate are one light split in two: keep the better seen
     if kept.shape[0] > 1:
@@ -134,7 +136,6 @@ def cluster_points(points_w: np.ndarray, frame_ids: np.ndarray, cluster_m: float
         keep.sort(key=lambda i: (kept[i, 0], kept[i, 1]))
     else:
         keep = list(range(kept.shape[0]))
-    assigned = sum(int(np.sum(lab == k)) for k in range(C.shape[0]))
     return (kept[keep], np.array(out_s)[keep], np.array(out_sp)[keep],
             np.array(out_v, int)[keep], int(P.shape[0] - assigned))
 

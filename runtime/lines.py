@@ -93,7 +93,7 @@ def detect_segments(gray: np.ndarray, method: str = "fld",
 
 
 def fit_line(points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Weighted total-least-squares line ``(a, b, c)``, ``hypot(a, b) = 1``, of points ``(N, 2)``."""
+    """Weighted total-least-squares line ``(a, b, c)``, ``|(a, b)| = 1``, of points ``(N, 2)``."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     w = np.ones(p.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64)
     sw = w.sum()

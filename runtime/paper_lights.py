@@ -133,20 +133,30 @@ class PaperLightsEstimator:
         vals, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
         sel = inv.ravel() == int(np.argmax(cnt))
         s0 = float(np.median(s[sel]))
-        t0 = math.atan2(np.sin(th[sel]).mean(), np.cos(th[sel]).mean())
-        # translation votes of the peak's pairs
+        t_peak = math.atan2(np.sin(th[sel]).mean(), np.cos(th[sel]).mean())
+        # pairs have no direction: the peak at θ has a twin at θ + π; the translation
+        # votes decide between them
+        best = None
+        for t0 in (t_peak, wrap_pi(t_peak + math.pi)):
+            near = np.abs(wrap_pi_arr(th - t0)) < self.angle_bin
+            near &= np.abs(s - s0) < self.scale_bin
+            c, n = math.cos(t0), math.sin(t0)
+            qa = q[a[oq[near]]]
+            mi = om[near]
+            m = np.abs(mi) - (mi < 0)
+            pa = np.where((mi >= 0)[:, None], self.lights_w[self.pi[m]],
+                          self.lights_w[self.pj[m]])
+            t = pa - s0 * np.stack([c * qa[:, 0] - n * qa[:, 1],
+                                    n * qa[:, 0] + c * qa[:, 1]], 1)
+            kx = np.floor(t[:, 0] / self.pos_bin).astype(np.int64)
+            ky = np.floor(t[:, 1] / self.pos_bin).astype(np.int64)
+            _, tinv, tcnt = np.unique(kx * 100_000 + ky, return_inverse=True,
+                                      return_counts=True)
+            k = int(np.argmax(tcnt))
+            if best is None or tcnt[k] > best[0]:
+                best = (int(tcnt[k]), t0, np.median(t[tinv.ravel() == k], axis=0))
+        _, t0, tt = best
         c, n = math.cos(t0), math.sin(t0)
-        qa = q[a[oq[sel]]]
-        mi = om[sel]
-        pa = np.where((mi >= 0)[:, None], self.lights_w[self.pi[np.abs(mi) - (mi < 0)]],
-                      self.lights_w[self.pj[np.abs(mi) - (mi < 0)]])
-        t = pa - s0 * np.stack([c * qa[:, 0] - n * qa[:, 1], n * qa[:, 0] + c * qa[:, 1]], 1)
-        kx = np.floor(t[:, 0] / self.pos_bin).astype(np.int64)
-        ky = np.floor(t[:, 1] / self.pos_bin).astype(np.int64)
-        tk = kx * 100_000 + ky
-        tv, tinv, tcnt = np.unique(tk, return_inverse=True, return_counts=True)
-        tsel = tinv.ravel() == int(np.argmax(tcnt))
-        tt = np.median(t[tsel], axis=0)
         pw = s0 * np.stack([c * q[:, 0] - n * q[:, 1], c * q[:, 1] + n * q[:, 0]], 1) + tt
         d = np.linalg.norm(pw[:, None] - self.lights_w[None], axis=2)
         j = np.argmin(d, axis=1)

@@ -1,0 +1,126 @@
+"""Tests of runtime/spots.py: Niblack thresholding, identification, sub-pixel centroids."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from ceilkit.runtime.spots import (
+    SpotParams,
+    axis_ratios,
+    detect_spots,
+    niblack_mask,
+    perception_level,
+    tile_niblack_mask,
+)
+
+
+def blobs(centres: np.ndarray, radius: float = 5.0, peak: float = 200.0, bg: float = 50.0,
+          noise: float = 2.0, seed: int = 0, size: tuple[int, int] = (160, 240),
+          axes: tuple[float, float] | None = None) -> np.ndarray:
+    """Anti-aliased discs (or ellipses) at sub-pixel ``centres`` (N, 2), blurred, noisy."""
+    ss = 8
+    h, w = size
+    acc = np.zeros((h * ss, w * ss), np.uint8)
+    ax = (radius, radius) if axes is None else axes
+    for u, v in centres:
+        c = (int(round((u + 0.5) * ss - 0.5)), int(round((v + 0.5) * ss - 0.5)))
+        cv2.ellipse(acc, c, (int(ax[0] * ss), int(ax[1] * ss)), 0, 0, 360, 255, -1)
+    img = bg + (peak - bg) * cv2.resize(acc.astype(np.float32) / 255, (w, h),
+                                        interpolation=cv2.INTER_AREA)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    img += np.random.default_rng(seed).normal(0, noise, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def nearest(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(found[:, None] - truth[None], axis=2).min(axis=1)
+
+
+CENTRES = np.array([[40.3, 30.7], [120.6, 80.2], [200.1, 130.9], [60.8, 120.4]])
+
+
+def test_subpixel_centroids():
+    spots = detect_spots(blobs(CENTRES))
+    assert len(spots) == 4
+    err = nearest(spots.centroids_px, CENTRES)
+    assert err.max() < 0.1, err
+    assert np.all(spots.contrast > 100) and np.all(spots.level > 2.0)
+    assert np.all(np.abs(spots.areas_px - np.pi * 25) < 40)
+
+
+def test_blank_and_noise_frames_give_no_spots():
+    assert len(detect_spots(np.full((120, 160), 80, np.uint8))) == 0
+    noisy = np.random.default_rng(1).normal(80, 4, (120, 160)).clip(0, 255).astype(np.uint8)
+    assert len(detect_spots(noisy)) == 0
+    assert len(detect_spots(np.zeros((0, 0), np.uint8))) == 0
+
+
+def test_exposure_changes_and_colour_input():
+    for peak, bg in ((120.0, 20.0), (255.0, 120.0), (90.0, 10.0)):
+        spots = detect_spots(blobs(CENTRES, peak=peak, bg=bg))
+        assert len(spots) == 4, (peak, bg)
+        assert nearest(spots.centroids_px, CENTRES).max() < 0.15
+    bgr = cv2.cvtColor(blobs(CENTRES), cv2.COLOR_GRAY2BGR)
+    assert len(detect_spots(bgr)) == 4
+
+
+def test_dim_reflection_and_elongated_streak_rejected():
+    img = blobs(CENTRES)
+    refl = blobs(np.array([[180.0, 40.0]]), peak=35.0, bg=0.0, noise=0.0)   # dim, +35
+    streak = blobs(np.array([[120.0, 140.0]]), axes=(30.0, 1.5), peak=150.0, bg=0.0,
+                   noise=0.0)
+    out = cv2.add(cv2.add(img, refl), streak)
+    spots = detect_spots(out)
+    assert len(spots) == 4
+    assert nearest(spots.centroids_px, CENTRES).max() < 0.15
+    assert spots.rejected.get("dim", 0) == 1 and spots.rejected.get("shape", 0) == 1
+
+
+def test_glare_halo_keeps_core():
+    img = blobs(CENTRES).astype(np.float32)
+    yy, xx = np.mgrid[0:160, 0:240]
+    u, v = CENTRES[1]
+    img += 90.0 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 30.0 ** 2))   # halo
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    spots = detect_spots(img, SpotParams(max_area_px=400))
+    err = nearest(spots.centroids_px, CENTRES)
+    assert len(spots) >= 3 and err.max() < 0.3, err
+
+
+def test_valid_mask_and_max_regions():
+    img = blobs(CENTRES)
+    valid = np.zeros_like(img)
+    valid[:, :100] = 255
+    spots = detect_spots(img, valid=valid)
+    assert len(spots) == 2 and np.all(spots.centroids_px[:, 0] < 100)
+    near = detect_spots(img, centre_px=(120.0, 80.0), max_regions=1)
+    assert len(near) == 1 and nearest(near.centroids_px, CENTRES[1:2])[0] < 0.1
+
+
+def test_perception_level_formula():
+    lv = perception_level(np.array([240.0]), np.array([40.0]), np.array([100.0]))
+    want = 200.0 * 100 ** 0.33 / (1.97 * 40 ** 0.72)
+    assert lv[0] == pytest.approx(want)
+    # a brighter background raises the visibility threshold; a larger object lowers it
+    assert perception_level([140.0], [100.0], [100.0])[0] < perception_level(
+        [80.0], [40.0], [100.0])[0]
+    assert perception_level([80.0], [40.0], [10.0])[0] < perception_level(
+        [80.0], [40.0], [100.0])[0]
+
+
+def test_niblack_masks_agree_on_spots():
+    img = blobs(CENTRES)
+    m1 = niblack_mask(img, 41, 0.8, 25.0)
+    m2 = tile_niblack_mask(img, 64, 2.5)
+    ref = cv2.ximgproc.niBlackThreshold(img, 255, cv2.THRESH_BINARY, 41, 0.8)
+    for u, v in CENTRES:
+        p = (int(round(v)), int(round(u)))
+        assert m1[p] == 255 and m2[p] == 255 and ref[p] == 255
+    assert (m1 > 0).mean() < 0.05 and (m1 > 0).sum() <= (ref > 0).sum()
+
+
+def test_axis_ratios():
+    cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[2.0, 0.0], [0.0, 2.0]]])
+    np.testing.assert_allclose(axis_ratios(cov), [0.5, 1.0])
