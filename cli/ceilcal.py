@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
-from . import ceilcal_calibrate, ceilcal_intrinsics, ceilcal_lightmap, ceilcal_mount, ceilcal_simulate
+from . import (
+    ceilcal_calibrate,
+    ceilcal_intrinsics,
+    ceilcal_lightmap,
+    ceilcal_mount,
+    ceilcal_simulate,
+)
 from .common import make_app
 
 app = make_app("ceilcal", "Calibrate a ceiling-vision rig: intrinsics, mount, light map; "

@@ -12,7 +12,10 @@ import typer
 
 from ceilkit.calib.boards import parse_board
 from ceilkit.calib.intrinsics import (
-    DetectionCache, calibrate_intrinsics, detect_images, image_files,
+    DetectionCache,
+    calibrate_intrinsics,
+    detect_images,
+    image_files,
 )
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.replay import replay

@@ -9,7 +9,11 @@ from pathlib import Path
 import typer
 
 from ceilkit.calib.mount import (
-    PARAMS, calibrate_mount, calibrate_tilt_swing, load_drive, load_placements,
+    PARAMS,
+    calibrate_mount,
+    calibrate_tilt_swing,
+    load_drive,
+    load_placements,
 )
 from ceilkit.runtime.camera import CameraModel
 from ceilkit.runtime.errors import ConfigError

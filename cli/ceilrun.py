@@ -13,8 +13,8 @@ import typer
 
 from ceilkit.runtime.capture import open_source, packaged_config
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.metrics import AccuracyMeter, MeterSink, source_truth
 from ceilkit.runtime.methods import METHOD_NAMES, make_estimator
+from ceilkit.runtime.metrics import AccuracyMeter, MeterSink, source_truth
 from ceilkit.runtime.pipeline import Pipeline, PoseFileSink
 from ceilkit.runtime.recording import PoseWriter, RecordingWriter
 from ceilkit.runtime.replay import replay as run_replay

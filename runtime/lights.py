@@ -33,6 +33,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
@@ -43,8 +44,8 @@ import numpy as np
 
 from .errors import ConfigError
 from .estimate import Estimate, Failure, PoseEstimate
-from .geometry import rot_z, wrap_pi
-from .rig import Rig
+from .geometry import wrap_pi
+from .rig import Mount, Rig
 from .site import Site, check_rig_site
 from .spots import SpotParams, Spots, detect_spots
 
@@ -52,6 +53,15 @@ NAME = "lights"
 
 
 # ------------------------------------------------------------------------ geometry
+@functools.lru_cache(maxsize=64)
+def _mount_arrays(mount: Mount) -> tuple[np.ndarray, np.ndarray]:
+    """``(R_vehicle_cam, t_vehicle_cam)`` of a mount, computed once (read-only)."""
+    R, t = mount.R_vehicle_cam, mount.t_vehicle_cam
+    R.setflags(write=False)
+    t.setflags(write=False)
+    return R, t
+
+
 def ceiling_points(rig: Rig, ceiling_height_m: float, points_px: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Ceiling points in the vehicle frame of image points.
@@ -70,11 +80,12 @@ def ceiling_points(rig: Rig, ceiling_height_m: float, points_px: np.ndarray
         return np.zeros((0, 2)), np.zeros(0, bool)
     xy = rig.camera.unproject(px)
     rays_c = np.hstack([xy, np.ones((xy.shape[0], 1))])
-    rays_v = rays_c @ rig.mount.R_vehicle_cam.T
+    R_vc, t_vc = _mount_arrays(rig.mount)
+    rays_v = rays_c @ R_vc.T
     dz = ceiling_height_m - rig.mount.z_m
     ok = rays_v[:, 2] > 1e-6 * np.linalg.norm(rays_v, axis=1)
     s = np.where(ok, dz / np.where(ok, rays_v[:, 2], 1.0), np.nan)
-    q = rig.mount.t_vehicle_cam[None, :2] + s[:, None] * rays_v[:, :2]
+    q = t_vc[None, :2] + s[:, None] * rays_v[:, :2]
     return q, ok
 
 
@@ -85,10 +96,7 @@ def project_lights(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray, x_m:
     NaN where a light is behind the camera.
     """
     L = np.asarray(lights_w, float).reshape(-1, 2)
-    P = np.hstack([L, np.full((L.shape[0], 1), ceiling_height_m)])
-    R_wc = rot_z(yaw_rad) @ rig.mount.R_vehicle_cam
-    c_w = rig.mount.camera_position(x_m, y_m, yaw_rad)
-    return rig.camera.project((P - c_w) @ R_wc)
+    return _project_poses(rig, ceiling_height_m, L, np.array([[x_m, y_m, yaw_rad]]))[0]
 
 
 def _project_poses(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
@@ -96,12 +104,17 @@ def _project_poses(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
     """``(P, N, 2)`` pixels of ``N`` lights from ``P`` poses ``(x, y, yaw)``, one call."""
     L = np.asarray(lights_w, float).reshape(-1, 2)
     n = L.shape[0]
-    P3 = np.hstack([L, np.full((n, 1), ceiling_height_m)])
-    pts = []
-    for x, y, yaw in poses:
-        R_wc = rot_z(yaw) @ rig.mount.R_vehicle_cam
-        pts.append((P3 - rig.mount.camera_position(x, y, yaw)) @ R_wc)
-    return rig.camera.project(np.concatenate(pts)).reshape(len(poses), n, 2)
+    poses = np.asarray(poses, float).reshape(-1, 3)
+    R_vc, t_vc = _mount_arrays(rig.mount)
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    # light minus camera centre, in the vehicle-level frame of each pose: Rz(-yaw) (P - c_w)
+    dx = L[None, :, 0] - poses[:, None, 0]
+    dy = L[None, :, 1] - poses[:, None, 1]
+    lx = c[:, None] * dx + s[:, None] * dy - t_vc[0]
+    ly = -s[:, None] * dx + c[:, None] * dy - t_vc[1]
+    lz = np.full_like(lx, ceiling_height_m - t_vc[2])
+    P_v = np.stack([lx, ly, lz], axis=-1).reshape(-1, 3)
+    return rig.camera.project(P_v @ R_vc).reshape(poses.shape[0], n, 2)
 
 
 def pixel_scale(rig: Rig, ceiling_height_m: float, q_v: np.ndarray) -> np.ndarray:
@@ -292,11 +305,15 @@ class PatternMatcher:
         cands: list[Candidate] = []
         for k in top:
             # bins far below the best cannot hold a rival of similar support
-            if counts[k] < max(2, 0.15 * counts[top[0]]) and len(cands) >= 2:
+            if cands and counts[k] < max(3, 0.2 * counts[top[0]]):
                 break
             h = hyp[srt[starts[k]:starts[k] + counts[k]]]
             yaw = math.atan2(np.sin(h[:, 0]).mean(), np.cos(h[:, 0]).mean())
-            c = self.verify(q_v, yaw, np.array([np.median(h[:, 1]), np.median(h[:, 2])]))
+            t = np.array([np.median(h[:, 1]), np.median(h[:, 2])])
+            seed = Candidate(float(t[0]), float(t[1]), yaw, np.zeros((0, 2), int), 0.0, 0.0)
+            if any(seed.same_pose(o, 0.5, math.radians(8.0)) for o in cands):
+                continue   # a neighbouring bin of a pose already verified
+            c = self.verify(q_v, yaw, t)
             if c is None:
                 continue
             if any(c.same_pose(o, 0.3, math.radians(5.0)) for o in cands):
@@ -321,7 +338,7 @@ class Refined:
 
 def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
                 lights_w: np.ndarray, x_m: float, y_m: float, yaw_rad: float,
-                iterations: int = 6, sigma_floor_px: float = 0.1) -> tuple[
+                iterations: int = 4, sigma_floor_px: float = 0.1) -> tuple[
                     float, float, float, np.ndarray, np.ndarray]:
     """Minimize the reprojection error of matched lights over ``(x, y, yaw)``.
 
@@ -362,7 +379,7 @@ def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
         if not np.all(np.isfinite(r_new)) or r_new @ r_new > r @ r:
             break
         p, r, J = p + step, r_new, J_new
-        if np.abs(step[:2]).max() < 1e-6 and abs(step[2]) < 1e-7:
+        if np.abs(step[:2]).max() < 1e-5 and abs(step[2]) < 1e-6:
             break
     dof = 2 * k - 3
     s2 = max(float(r @ r) / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
@@ -429,7 +446,7 @@ class LightsEstimator:
                              else max(gate_m, min(1.0, 0.4 * spacing)))
         self.max_spots = max_spots
         self.valid_mask = view_mask(rig, math.radians(max_view_angle_deg))
-        R = rig.mount.R_vehicle_cam
+        R, _ = _mount_arrays(rig.mount)
         up = R.T @ np.array([0.0, 0.0, 1.0])   # the vertical seen from the camera
         nadir = rig.camera.project(up[None]) if up[2] > 1e-6 else np.full((1, 2), np.nan)
         self.nadir_px = ((float(nadir[0, 0]), float(nadir[0, 1]))
@@ -469,7 +486,7 @@ class LightsEstimator:
             ok &= self._plausible(spots, q, ok)
         spots = spots.select(ok)
         q = q[ok]
-        rng = np.linalg.norm(q - self.rig.mount.t_vehicle_cam[None, :2], axis=1)
+        rng = np.linalg.norm(q - _mount_arrays(self.rig.mount)[1][None, :2], axis=1)
         return spots, q, np.argsort(rng, kind="stable")
 
     def _plausible(self, spots: Spots, q: np.ndarray, ok: np.ndarray) -> np.ndarray:

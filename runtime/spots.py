@@ -65,9 +65,9 @@ class SpotParams:
     window_px: int = 41
     k: float = 0.8
     min_contrast: float = 25.0
-    min_area_px: int = 4
+    min_area_px: int = 3
     max_area_px: int = 6000
-    min_level: float = 2.0
+    min_level: float = 1.0
     min_relative_contrast: float = 0.3
     min_axis_ratio: float = 0.15
     max_spots: int = 64
@@ -139,8 +139,10 @@ def niblack_mask(grey: np.ndarray, window_px: int = 41, k: float = 0.8,
     sq = cv2.sqrBoxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
     std = cv2.sqrt(cv2.max(sq - mean * mean, 0.0))
     thr = mean + cv2.max(std * np.float32(k), float(min_contrast))
-    thr = cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR)
-    return cv2.compare(grey.astype(np.float32), thr, cv2.CMP_GT)
+    # whole grey levels suffice: threshold, enlarge and compare in 8 bit
+    thr8 = np.clip(np.floor(thr), 0, 255).astype(np.uint8)
+    thr8 = cv2.resize(thr8, (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.compare(grey, thr8, cv2.CMP_GT)
 
 
 def tile_niblack_mask(grey: np.ndarray, tile_px: int = 64, k: float = 0.8,
@@ -161,41 +163,45 @@ def tile_niblack_mask(grey: np.ndarray, tile_px: int = 64, k: float = 0.8,
     return np.where(grey.astype(np.float32) > full, 255, 0).astype(np.uint8)
 
 
-def _region_stats(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: int,
-                  bw: int, bh: int, weighted: bool
+def _region_stats(grey: np.ndarray, mask: np.ndarray, contour: np.ndarray, x0: int,
+                  y0: int, bw: int, bh: int, weighted: bool
                   ) -> tuple[float, float, float, float, np.ndarray, float]:
-    """``(u, v, I_o, I_b, cov(2x2), area)`` of region ``lab`` with box ``(x0, y0, bw, bh)``.
+    """``(u, v, I_o, I_b, cov(2x2), area)`` of the region inside ``contour``.
 
-    The object-background ring is the box grown by half its size (the paper's
+    ``mask`` is the candidate mask (0/255), ``(x0, y0, bw, bh)`` the contour's box. The
+    object-background ring is the box grown by half its size (the paper's
     ``w/2 x h/2`` dilation), minus every candidate pixel. The centroid window is the
-    box grown by 2 px, other regions' pixels excluded.
+    box grown by 2 px, other candidates' pixels excluded.
     """
     H, W = grey.shape
     gx, gy = max(2, bw // 2), max(2, bh // 2)
     xa, ya = max(0, x0 - gx), max(0, y0 - gy)
     xb, yb = min(W, x0 + bw + gx), min(H, y0 + bh + gy)
     roi = grey[ya:yb, xa:xb]
-    lroi = labels[ya:yb, xa:xb]
-    obj = (lroi == lab).view(np.uint8)
-    ring = (lroi == 0).view(np.uint8)
+    cand = mask[ya:yb, xa:xb]
+    obj = np.zeros_like(cand)
+    cv2.drawContours(obj, [contour], -1, 255, -1, offset=(-xa, -ya))
+    obj = cv2.bitwise_and(obj, cand)
+    ring = cv2.bitwise_not(cand)
     area = float(cv2.countNonZero(obj))
+    if area == 0:
+        return 0.0, 0.0, 0.0, 0.0, np.zeros((2, 2)), 0.0
     i_o = cv2.mean(roi, obj)[0]
-    i_b = cv2.mean(roi, ring)[0] if area < ring.size else float(roi.min())
+    i_b = cv2.mean(roi, ring)[0] if cv2.countNonZero(ring) else float(roi.min())
     cx0, cy0 = max(0, x0 - 2) - xa, max(0, y0 - 2) - ya
     cx1, cy1 = min(W, x0 + bw + 2) - xa, min(H, y0 + bh + 2) - ya
+    osub = obj[cy0:cy1, cx0:cx1]
     if weighted:
         base = i_b + _CORE * (i_o - i_b)
         wts = cv2.max(cv2.subtract(roi[cy0:cy1, cx0:cx1], base, dtype=cv2.CV_32F), 0.0)
-        lsub = lroi[cy0:cy1, cx0:cx1]
-        others = cv2.countNonZero(lsub) \
-            - cv2.countNonZero(obj[cy0:cy1, cx0:cx1])
+        others = cv2.countNonZero(cand[cy0:cy1, cx0:cx1]) - cv2.countNonZero(osub)
         if others:
-            wts[(lsub != 0) & (lsub != lab)] = 0.0
+            wts[(cand[cy0:cy1, cx0:cx1] > 0) & (osub == 0)] = 0.0
         m = cv2.moments(wts)
         if m["m00"] <= 0:
-            m = cv2.moments(obj[cy0:cy1, cx0:cx1], True)
+            m = cv2.moments(osub, True)
     else:
-        m = cv2.moments(obj[cy0:cy1, cx0:cx1], True)
+        m = cv2.moments(osub, True)
     u = m["m10"] / m["m00"] + cx0 + xa
     v = m["m01"] / m["m00"] + cy0 + ya
     cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
@@ -220,8 +226,8 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
     point: the sharpest, best-resolved lights), at most ``max_regions`` of them that
     pass the size checks.
     """
-    n, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    n = len(contours) + 1
     rejected: dict[str, int] = {}
 
     def drop(reason: str) -> None:
@@ -244,17 +250,16 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
         if bw * bh < params.min_area_px:
             drop("small")
             continue
-        lab = int(labels[contour[0, 0, 1], contour[0, 0, 0]])
         if bw * bh > 4 * params.max_area_px:
             area = params.max_area_px + 1
         else:
-            u, v, i_o, i_b, cov, area = _region_stats(grey, labels, lab, x0, y0, bw, bh,
+            u, v, i_o, i_b, cov, area = _region_stats(grey, mask, contour, x0, y0, bw, bh,
                                                       weighted)
         if area < params.min_area_px:
             drop("small")
             continue
         if area > params.max_area_px:
-            sub = _split_glare(grey, labels, lab, x0, y0, bw, bh, params) if rethreshold \
+            sub = _split_glare(grey, mask, contour, x0, y0, bw, bh, params) if rethreshold \
                 else None
             if sub is None:
                 drop("large")
@@ -291,7 +296,7 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
     return spots
 
 
-def _split_glare(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: int,
+def _split_glare(grey: np.ndarray, mask: np.ndarray, contour: np.ndarray, x0: int, y0: int,
                  bw: int, bh: int, params: SpotParams):
     """A region too large for one light (a glare halo): keep its core.
 
@@ -302,22 +307,25 @@ def _split_glare(grey: np.ndarray, labels: np.ndarray, lab: int, x0: int, y0: in
     xa, ya = max(0, x0 - 2), max(0, y0 - 2)
     xb, yb = min(W, x0 + bw + 2), min(H, y0 + bh + 2)
     roi = grey[ya:yb, xa:xb]
-    lroi = labels[ya:yb, xa:xb]
-    inside = lroi == lab
-    ring = lroi == 0
-    if not np.any(ring):
+    cand = mask[ya:yb, xa:xb]
+    inside = np.zeros_like(cand)
+    cv2.drawContours(inside, [contour], -1, 255, -1, offset=(-xa, -ya))
+    inside = (inside > 0) & (cand > 0)
+    ring = cand == 0
+    if not np.any(ring) or not np.any(inside):
         return None
     i_b = float(roi[ring].mean())
     peak = float(roi[inside].max())
     level = i_b + 0.75 * (peak - i_b)
-    core = ((roi > level) & inside).astype(np.uint8)
-    m, clab, cst, _ = cv2.connectedComponentsWithStats(core, connectivity=8)
-    if m != 2 or not (params.min_area_px <= cst[1, 4] <= params.max_area_px):
+    core = np.where((roi > level) & inside, 255, 0).astype(np.uint8)
+    cs, _ = cv2.findContours(core, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if len(cs) != 1:
         return None
-    sub = np.where(clab == 1, 1, 0).astype(np.int32)
-    cx, cy, cw, ch, area = (int(a) for a in cst[1])
+    cx, cy, cw, ch = cv2.boundingRect(cs[0])
     # stats around the core, inside the halo: I_b is the halo level around the core
-    u, v, i_o, i_b2, cov, _ = _region_stats(roi, sub, 1, cx, cy, cw, ch, True)
+    u, v, i_o, i_b2, cov, area = _region_stats(roi, core, cs[0], cx, cy, cw, ch, True)
+    if not (params.min_area_px <= area <= params.max_area_px):
+        return None
     return (u + xa, v + ya, float(area), i_o, min(i_b2, i_b + 0.5 * (peak - i_b)), cov)
 
 

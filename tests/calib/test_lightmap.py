@@ -21,9 +21,8 @@ OPTS = SimOptions(noise_sigma=2.0, blur_px=0.8, light_radius_m=0.08, supersample
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory, request):
-    from helpers import CONFIGS
-
     from ceilkit.runtime.rig import Rig
+    from helpers import CONFIGS
 
     rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
     site = Site.load(CONFIGS / "lights" / "site.yaml")

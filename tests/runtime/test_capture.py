@@ -5,7 +5,11 @@ import numpy as np
 import pytest
 
 from ceilkit.runtime.capture import (
-    CameraSource, ImageFolderSource, VideoFileSource, open_source, packaged_config,
+    CameraSource,
+    ImageFolderSource,
+    VideoFileSource,
+    open_source,
+    packaged_config,
 )
 from ceilkit.runtime.errors import CaptureError
 

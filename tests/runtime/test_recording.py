@@ -6,7 +6,12 @@ import pytest
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimate import Failure, PoseEstimate
 from ceilkit.runtime.recording import (
-    POSES_HEADER, PoseWriter, Recording, RecordingWriter, load_poses, load_truth,
+    POSES_HEADER,
+    PoseWriter,
+    Recording,
+    RecordingWriter,
+    load_poses,
+    load_truth,
 )
 from ceilkit.runtime.sources import Frame
 
