@@ -83,7 +83,7 @@ def run(frames: int, seed: int, noise: float, blur: float, margin: float, off: f
     for est in methods:
         for img in images[:3]:
             est.estimate(img, 0)  # warm-up
-        pe, ye, ms, quality_wrong = [], [], [], []
+        pe, ye, ms, quality_wrong, quality_ok = [], [], [], [], []
         reasons: Counter[str] = Counter()
         ok4 = ok4raw = 0
         for k, (img, (x, y, yaw)) in enumerate(zip(images, poses, strict=True)):
@@ -100,6 +100,7 @@ def run(frames: int, seed: int, noise: float, blur: float, margin: float, off: f
                 continue
             pe.append(dp)
             ye.append(dy)
+            quality_ok.append(out.quality)
             ok4 += int(nvis[k] >= 4)
             ok4raw += int(nraw[k] >= 4)
         pe_a, ye_a, ms_a = np.array(pe), np.array(ye), np.array(ms)
@@ -117,6 +118,9 @@ def run(frames: int, seed: int, noise: float, blur: float, margin: float, off: f
               f"{100 * ok4raw / n4raw:.1f} %")
         print(f"  wrong fixes: {qw.size} (quality > 0.5: {int((qw > 0.5).sum())}, "
               f"max quality {qw.max() if qw.size else 0:.2f})")
+        if quality_ok:
+            print(f"  quality of correct fixes: median {np.median(quality_ok):.2f}, "
+                  f"share > 0.5: {100 * np.mean(np.array(quality_ok) > 0.5):.0f} %")
         print(f"  failures: {dict(reasons)}")
         print(f"  time per frame: median {np.median(ms_a):.2f} ms   "
               f"p95 {np.percentile(ms_a, 95):.2f} ms")

@@ -165,6 +165,7 @@ class Candidate:
         pairs: ``(K, 2)`` int: observed index, map index of each inlier.
         score: inliers minus half the map lights that should be seen but are not.
         rms_m: RMS of the inliers' ceiling distances.
+        missing: map lights that should be seen from this pose but matched nothing.
     """
 
     x_m: float
@@ -173,6 +174,7 @@ class Candidate:
     pairs: np.ndarray
     score: float
     rms_m: float
+    missing: int = 0
 
     @property
     def inliers(self) -> int:
@@ -199,6 +201,7 @@ class PatternMatcher:
 
     def __init__(self, lights_w: np.ndarray, gate_m: float = 0.08, max_pair_m: float = 1e9,
                  visible: Any = None, max_observed: int = 7, top_bins: int = 8,
+                 max_bins: int = 48,
                  yaw_bin_rad: float = math.radians(4.0), pos_bin_m: float = 0.3):
         self.lights_w = np.asarray(lights_w, float).reshape(-1, 2)
         m = self.lights_w.shape[0]
@@ -206,6 +209,7 @@ class PatternMatcher:
         self.visible = visible
         self.max_observed = max_observed
         self.top_bins = top_bins
+        self.max_bins = max(top_bins, max_bins)
         self.yaw_bin = yaw_bin_rad
         self.pos_bin = pos_bin_m
         i, j = np.triu_indices(m, 1)
@@ -242,11 +246,14 @@ class PatternMatcher:
         res = _transform(q_v[pairs[:, 0]], yaw, t) - self.lights_w[pairs[:, 1]]
         rms = float(np.sqrt((res ** 2).sum(1).mean()))
         score = float(pairs.shape[0])
+        missing = 0
         if self.visible is not None:
             vis = self.visible(float(t[0]), float(t[1]), yaw)
             vis[pairs[:, 1]] = False
-            score -= 0.5 * float(vis.sum())
-        return Candidate(float(t[0]), float(t[1]), float(wrap_pi(yaw)), pairs, score, rms)
+            missing = int(vis.sum())
+            score -= 0.5 * missing
+        return Candidate(float(t[0]), float(t[1]), float(wrap_pi(yaw)), pairs, score, rms,
+                         missing)
 
     # -- global -------------------------------------------------------------------------
     def hypotheses(self, q_v: np.ndarray) -> np.ndarray:
@@ -301,11 +308,15 @@ class PatternMatcher:
         ks = key[srt]
         starts = np.concatenate([[0], np.nonzero(np.diff(ks))[0] + 1])
         counts = np.diff(np.concatenate([starts, [ks.size]]))
-        top = np.argsort(-counts, kind="stable")[:self.top_bins]
+        top = np.argsort(-counts, kind="stable")[:self.max_bins]
         cands: list[Candidate] = []
-        for k in top:
-            # bins far below the best cannot hold a rival of similar support
+        for n_done, k in enumerate(top):
+            # bins far below the best cannot hold a rival of similar support; past
+            # `top_bins`, only bins near the best count are looked at (a regular
+            # layout spreads its votes over many equally good poses)
             if cands and counts[k] < max(3, 0.2 * counts[top[0]]):
+                break
+            if n_done >= self.top_bins and counts[k] < 0.5 * counts[top[0]]:
                 break
             h = hyp[srt[starts[k]:starts[k] + counts[k]]]
             yaw = math.atan2(np.sin(h[:, 0]).mean(), np.cos(h[:, 0]).mean())
@@ -338,7 +349,7 @@ class Refined:
 
 def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
                 lights_w: np.ndarray, x_m: float, y_m: float, yaw_rad: float,
-                iterations: int = 4, sigma_floor_px: float = 0.1) -> tuple[
+                iterations: int = 3, sigma_floor_px: float = 0.1) -> tuple[
                     float, float, float, np.ndarray, np.ndarray]:
     """Minimize the reprojection error of matched lights over ``(x, y, yaw)``.
 
@@ -423,7 +434,7 @@ class LightsEstimator:
                  gate_m: float = 0.1, ambiguity_margin: float = 1.0, min_inliers: int = 3,
                  max_residual_px: float = 3.0, spot_params: SpotParams | None = None,
                  prior_gate_m: float | None = None, max_view_angle_deg: float = 75.0,
-                 max_spots: int = 16):
+                 max_spots: int = 12):
         if not site.has_lights:
             raise ConfigError(site.source, "lights",
                               "the lights method needs at least one light in the site map")
@@ -442,6 +453,9 @@ class LightsEstimator:
         self.max_residual_px = max_residual_px
         self.spot_params = spot_params or SpotParams()
         spacing = _min_spacing(self.lights_w)
+        if spacing < 1e-3:
+            raise ConfigError(site.source, "lights",
+                              "duplicate light: two lights at the same place")
         self.prior_gate_m = (prior_gate_m if prior_gate_m is not None
                              else max(gate_m, min(1.0, 0.4 * spacing)))
         self.max_spots = max_spots
@@ -468,9 +482,20 @@ class LightsEstimator:
         return float(np.linalg.norm(q[:, None] - q[None], axis=2).max()) + 2 * self.gate_m
 
     def _visible(self, x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
+        """``(M,)`` map lights the detector should report from a pose: inside the image
+        (by 12 px) and the view mask, and among the ``max_spots`` nearest the nadir."""
         px = project_lights(self.rig, self.height_m, self.lights_w, x_m, y_m, yaw_rad)
         ok = np.isfinite(px[:, 0])
         ok[ok] = self.rig.camera.in_image(px[ok], margin_px=12.0)
+        idx = np.nonzero(ok)[0]
+        if idx.size:
+            uv = np.round(px[idx]).astype(int)
+            inside = self.valid_mask[uv[:, 1], uv[:, 0]] > 0
+            ok[idx[~inside]] = False
+            idx = idx[inside]
+        if idx.size > self.max_spots:
+            d = np.hypot(px[idx, 0] - self.nadir_px[0], px[idx, 1] - self.nadir_px[1])
+            ok[idx[np.argsort(d)[self.max_spots:]]] = False
         return ok
 
     # -- spots ------------------------------------------------------------------------
@@ -553,7 +578,10 @@ class LightsEstimator:
         mode = "global"
         if prior is not None and prior.x_m is not None and prior.y_m is not None:
             c = self.matcher.verify(q, prior.yaw_rad, _t_from_pose(prior), self.prior_gate_m)
-            if c is not None and c.inliers >= max(2, min(len(spots) - 1, 3)):
+            # the prior is trusted only when most spots, and most lights the pose
+            # should see, match: a stale prior must not pull a local false match
+            if (c is not None and c.inliers >= max(2, math.ceil(0.6 * len(spots)))
+                    and c.missing <= max(1, c.inliers // 2)):
                 cand, mode = c, "tracked"
         if cand is None:
             if len(spots) < self.min_inliers:
@@ -612,12 +640,14 @@ def _quality(k: int, rms_px: float, best: Candidate, runner: Candidate | None,
     """Confidence in [0, 1]: more lights, smaller residuals, a clear margin."""
     q_n = 1.0 - math.exp(-(k - 2) / 2.5)
     q_res = math.exp(-0.5 * (rms_px / 1.5) ** 2)
+    # lights the pose says should be seen but were not (off, occluded, or a wrong pose)
+    q_vis = (best.inliers / (best.inliers + best.missing)) ** 2
     if mode == "tracked":
         q_sep = 0.9
     else:
         rival = runner.score if runner is not None else 2.0
         q_sep = 1.0 - math.exp(-max(best.score - rival, 0.0) / 1.5)
-    return float(min(1.0, max(0.0, q_n * q_res * q_sep)))
+    return float(min(1.0, max(0.0, q_n * q_res * q_sep * q_vis)))
 
 
 def _t_from_pose(pose: PoseEstimate) -> np.ndarray:

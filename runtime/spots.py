@@ -11,7 +11,7 @@ localization using ceiling lights", ASCC 2011, §II):
 1. **Niblack thresholding**: a pixel is a candidate when
    ``I > mean + max(k * std, min_contrast)`` over a ``window_px`` square around it.
    The local mean and standard deviation come from box filters (integral images)
-   computed on a 4x reduced image and interpolated back: the light-to-window
+   computed on a 4x reduced (bilinearly sampled) image and interpolated back: the light-to-window
    scale is what matters, and it costs a fifth of the full-resolution filter.
 2. **Identification** of real lights among the connected candidate regions:
    the perception index of the paper's Eq. (6),
@@ -51,8 +51,10 @@ class SpotParams:
     Attributes:
         window_px: Niblack window side (pixels of the full image); a few light diameters.
         k: Niblack's weight on the local standard deviation.
-        min_contrast: a candidate pixel is at least this many grey levels above the
-            local mean (keeps flat, noisy ceiling out of the candidates).
+        min_contrast, min_contrast_rel: a candidate pixel is at least
+            ``max(min_contrast, min_contrast_rel * mean)`` grey levels above the local
+            mean (keeps flat, noisy or textured ceiling out of the candidates; the
+            relative part follows the exposure).
         min_area_px, max_area_px: absolute bounds on a region's area.
         min_level: least perception index ``L`` (Eq. 6) of a real light.
         min_relative_contrast: least contrast relative to the brightest accepted spot
@@ -64,7 +66,8 @@ class SpotParams:
 
     window_px: int = 41
     k: float = 0.8
-    min_contrast: float = 25.0
+    min_contrast: float = 10.0
+    min_contrast_rel: float = 0.2
     min_area_px: int = 3
     max_area_px: int = 6000
     min_level: float = 1.0
@@ -125,20 +128,22 @@ def perception_level(i_object: np.ndarray, i_background: np.ndarray,
 
 
 def niblack_mask(grey: np.ndarray, window_px: int = 41, k: float = 0.8,
-                 min_contrast: float = 25.0) -> np.ndarray:
-    """Binary ``(H, W)`` uint8 mask (0/255) of ``I > mean + max(k std, min_contrast)``.
+                 min_contrast: float = 10.0, min_contrast_rel: float = 0.0) -> np.ndarray:
+    """Binary ``(H, W)`` uint8 mask (0/255) of
+    ``I > mean + max(k std, min_contrast, min_contrast_rel mean)``.
 
     Local statistics over a ``window_px`` square, from box filters on a 4x reduced
-    image, bilinearly interpolated back to full size.
+    (bilinearly sampled) image; the threshold is bilinearly enlarged back to full size.
     """
     h, w = grey.shape
     sw, sh = max(1, w // _REDUCE), max(1, h // _REDUCE)
-    small = cv2.resize(grey, (sw, sh), interpolation=cv2.INTER_AREA)
+    small = cv2.resize(grey, (sw, sh), interpolation=cv2.INTER_LINEAR)
     win = max(3, int(round(window_px / _REDUCE)) | 1)
     mean = cv2.boxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
     sq = cv2.sqrBoxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
     std = cv2.sqrt(cv2.max(sq - mean * mean, 0.0))
-    thr = mean + cv2.max(std * np.float32(k), float(min_contrast))
+    floor = cv2.max(mean * np.float32(min_contrast_rel), float(min_contrast))
+    thr = mean + cv2.max(std * np.float32(k), floor)
     # whole grey levels suffice: threshold, enlarge and compare in 8 bit
     thr8 = np.clip(np.floor(thr), 0, 255).astype(np.uint8)
     thr8 = cv2.resize(thr8, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -350,7 +355,8 @@ def detect_spots(image: np.ndarray, params: SpotParams | None = None,
     grey = to_grey(np.asarray(image))
     if grey.ndim != 2 or grey.size == 0:
         return empty_spots()
-    mask = niblack_mask(grey, params.window_px, params.k, params.min_contrast)
+    mask = niblack_mask(grey, params.window_px, params.k, params.min_contrast,
+                        params.min_contrast_rel)
     if valid is not None and valid.shape == mask.shape:
         mask = cv2.bitwise_and(mask, valid)
     return regions_to_spots(grey, mask, params, centre_px=centre_px, max_regions=max_regions)

@@ -236,6 +236,10 @@ def test_duplicate_lights_rejected_by_site(tmp_path):
                  "  - [1.0, 2.0]\n")
     with pytest.raises(ConfigError, match=r"lights\[2\].*duplicate light"):
         Site.load(p)
+    # a site built in code is checked by the estimator too
+    dup = Site(3.0, lights_m=np.array([[1.0, 2.0], [3.0, 1.0], [1.0, 2.0]]))
+    with pytest.raises(ConfigError, match="duplicate light"):
+        LightsEstimator(Rig.load(CONFIGS / "lights" / "rig.yaml"), dup)
 
 
 def test_bad_options_and_low_ceiling(lights_rig, lights_site):
@@ -249,3 +253,14 @@ def test_make_estimator_by_name(lights_rig, lights_site):
     from ceilkit.runtime.methods import make_estimator
     assert make_estimator("lights", lights_rig, lights_site).name == "lights"
     assert (CONFIGS / "lights" / "site.yaml").exists()
+
+
+def test_stale_prior_does_not_pull_a_wrong_pose(lights_rig, lights_site):
+    est = LightsEstimator(lights_rig, lights_site)
+    x, y, yaw = 14.5, 3.5, 2.7
+    img = render(lights_rig, lights_site, x, y, yaw, 12)
+    for px, py, pyaw in ((5.0, 1.3, -1.3), (x + 0.9, y - 0.8, yaw + 0.4), (x, y, yaw + 2.0)):
+        out = est.estimate(img, 0, prior=PoseEstimate(0, "lights", px, py, pyaw, 0.9))
+        assert out, (out.reason, out.detail)
+        dp, dyaw = pose_error(out, x, y, yaw)
+        assert dp < 0.02 and dyaw < 0.3
