@@ -65,15 +65,25 @@ def make_trajectory(kind: str, site: Site, frames: int, fps: float, speed_mps: f
     return load_trajectory(path)
 
 
-def register(app: typer.Typer) -> None:
-    """Add ``simulate`` to ``app``."""
-    if app.registered_callback is None:
-        # With a single command typer would run it bare (`ceilcal --out ...`); a
-        # callback keeps `ceilcal simulate ...` a subcommand whatever else registers.
-        @app.callback()
-        def _group() -> None:
-            pass
+# internal names (SimOptions fields, trajectory arguments) -> the flag a user typed
+FLAGS = {
+    "options.noise_sigma": "--noise", "options.blur_px": "--blur",
+    "options.supersample": "--supersample", "n": "--frames", "fps": "--fps",
+    "speed_mps": "--speed", "y_m": "--lateral", "weave_m": "--weave",
+    "yaw_wobble_rad": "--wobble", "x_range": "--trajectory", "y_range": "--lateral",
+}
 
+
+def _as_flag(exc: ConfigError) -> ConfigError:
+    """``exc`` re-keyed by the command-line flag when it names an internal argument."""
+    if exc.path is None and exc.key in FLAGS:
+        return ConfigError(None, FLAGS[exc.key], exc.detail)
+    return exc
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``simulate`` to ``app`` (made by :func:`ceilkit.cli.common.make_app`, whose
+    group callback keeps it a subcommand)."""
     @app.command("simulate")
     def simulate(
         out: Path = typer.Option(..., "--out", help="Recording folder to write (new)."),
@@ -98,10 +108,13 @@ def register(app: typer.Typer) -> None:
         rig_path = rig if rig is not None else default_config("rig.yaml")
         site_path = site if site is not None else default_config("site.yaml")
         the_rig, the_site = Rig.load(rig_path), Site.load(site_path)
-        options = SimOptions(noise_sigma=noise, blur_px=blur, supersample=supersample,
-                             clutter=clutter)
-        traj = make_trajectory(trajectory, the_site, frames, fps, speed, lateral, weave,
-                               wobble, np.random.default_rng(seed))
+        try:
+            options = SimOptions(noise_sigma=noise, blur_px=blur, supersample=supersample,
+                                 clutter=clutter)
+            traj = make_trajectory(trajectory, the_site, frames, fps, speed, lateral, weave,
+                                   wobble, np.random.default_rng(seed))
+        except ConfigError as exc:
+            raise _as_flag(exc) from None
         t0 = time.perf_counter()
         folder = simulate_recording(the_rig, the_site, traj, out, options, seed)
         ms = 1e3 * (time.perf_counter() - t0) / len(traj)

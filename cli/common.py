@@ -27,9 +27,22 @@ class _Group(typer.core.TyperGroup):
 
 
 def make_app(name: str, help: str) -> typer.Typer:
-    """A typer app whose ceilkit errors become one line on stderr and exit 1."""
-    return typer.Typer(name=name, help=help, cls=_Group, no_args_is_help=False,
-                       add_completion=False, pretty_exceptions_enable=False)
+    """A typer app whose ceilkit errors become one line on stderr and exit 1.
+
+    The app has an empty group callback from the start, so that an app with a single
+    command keeps it as a subcommand (``ceilcal simulate ...``, not ``ceilcal ...``)
+    however many commands register. An app that wants to run something bare (as
+    ``ceilrun`` runs live) registers its own ``@app.callback(...)``, which replaces
+    this one.
+    """
+    app = typer.Typer(name=name, help=help, cls=_Group, no_args_is_help=False,
+                      add_completion=False, pretty_exceptions_enable=False)
+
+    @app.callback()
+    def _group() -> None:
+        pass
+
+    return app
 
 
 def provenance_header(what: str, lines: list[str] | None = None) -> str:

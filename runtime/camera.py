@@ -210,11 +210,26 @@ class CameraModel:
     @classmethod
     def from_node(cls, node: Node) -> CameraModel:
         node.mapping(CAMERA_KEYS, required=("image_width", "image_height", "camera_matrix",
-                                            "distortion_model", "distortion_coefficients"))
+                                            "distortion_coefficients"))
         width = node.get("image_width").integer(1, 100_000)
         height = node.get("image_height").integer(1, 100_000)
-        name = node.get("camera_name", "camera").string()
-        model = node.get("distortion_model").string(DISTORTION_MODELS)
+        nn = node.get("camera_name", "camera")
+        if isinstance(nn.value, (int, float)) and not isinstance(nn.value, bool):
+            name = str(nn.value)          # `camera_name: 0042` is a name, as ROS reads it
+        else:
+            name = nn.string()
+        if node.has("distortion_model"):
+            model = node.get("distortion_model").string(DISTORTION_MODELS)
+        else:
+            # files from before ROS wrote distortion_model: ROS reads 5 coefficients as
+            # plumb_bob and 8 as rational_polynomial; anything else must say
+            data = node.get("distortion_coefficients").get("data", None).value
+            n_coeffs = len(data) if isinstance(data, list) else 0
+            model = {5: "plumb_bob", 8: "rational_polynomial"}.get(n_coeffs, "")
+            if not model:
+                raise ConfigError(node.path, "distortion_model",
+                                  f"missing required key (it can be left out only with 5 "
+                                  f"or 8 distortion_coefficients, found {n_coeffs})")
         K = _read_matrix(node.get("camera_matrix"), 3, 3)
         kn = node.get("camera_matrix")
         if K[0, 0] <= 0 or K[1, 1] <= 0:

@@ -131,7 +131,8 @@ class Truth:
 
 def _read_csv(path: Path, header: list[str]) -> list[list[str]]:
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
+        # utf-8-sig: a byte-order mark (spreadsheets write one) is not part of the header
+        with open(path, newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.reader(fh))
     except FileNotFoundError:
         raise ConfigError(path, None, "file not found") from None
@@ -181,6 +182,25 @@ def load_truth(path: str | Path) -> Truth:
     return Truth(t[order], vals[order, 0], vals[order, 1], np.radians(vals[order, 2]))
 
 
+def check_frame_image(image: np.ndarray, path: str | Path, rig: Rig) -> None:
+    """Raise a ConfigError naming ``path`` unless ``image`` is what SPEC §2 allows and
+    the rig's camera expects: 8-bit grey ``(H, W)`` or BGR ``(H, W, 3)``, ``W x H`` the
+    camera's ``image_width x image_height``."""
+    if image.dtype != np.uint8:
+        raise ConfigError(path, None, f"expected an 8-bit image, found {image.dtype} "
+                          "(convert to 8-bit grey or BGR)")
+    if not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] in (1, 3))):
+        what = f"{image.shape[2]} channels" if image.ndim == 3 else f"{image.ndim} dimensions"
+        raise ConfigError(path, None, f"expected grey or BGR, found {what}")
+    h, w = image.shape[:2]
+    cam = rig.camera
+    if (w, h) != (cam.width, cam.height):
+        raise ConfigError(path, None, f"the image is {w}x{h} but the camera "
+                          f"({rig.camera_file or rig.source or 'the rig'}) is "
+                          f"{cam.width}x{cam.height}: a frame must come from the calibrated "
+                          "camera at its calibrated size")
+
+
 class Recording(SourceBase):
     """A SPEC recording opened for reading; also a frame source.
 
@@ -200,6 +220,15 @@ class Recording(SourceBase):
         for n, r in enumerate(rows, start=2):
             index.append(_int(fpath, n, "index", r[0]))
             t_ns.append(_int(fpath, n, "t_ns", r[1]))
+        seen: dict[int, int] = {}
+        for n, i in enumerate(index, start=2):
+            if i < 0:
+                raise ConfigError(fpath, f"line {n}: index", f"expected an integer >= 0, "
+                                  f"found {i}")
+            if i in seen:
+                raise ConfigError(fpath, f"line {n}: index",
+                                  f"index {i} already listed on line {seen[i]}")
+            seen[i] = n
         self.index = np.array(index, dtype=np.int64)
         self.t_ns = np.array(t_ns, dtype=np.int64)
         if self.t_ns.size > 1 and np.any(np.diff(self.t_ns) <= 0):
@@ -227,6 +256,7 @@ class Recording(SourceBase):
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise ConfigError(path, None, "cannot decode the image (corrupt or not a PNG)")
+        check_frame_image(image, path, self.rig)
         return Frame(image, int(self.t_ns[k]), i)
 
     def read(self) -> Frame | None:
@@ -252,9 +282,20 @@ def pose_row(est: Estimate, latency_ms: float | None) -> list[str]:
     return [str(int(est.t_ns)), "", "", "", "", est.method, "0.000", lat]
 
 
+def tum_seconds(t_ns: int) -> str:
+    """``t_ns`` as decimal seconds with all nine digits, exactly (no float rounding:
+    an epoch stamp in float seconds keeps only microseconds)."""
+    t = int(t_ns)
+    sign, t = ("-", -t) if t < 0 else ("", t)
+    return f"{sign}{t // 1_000_000_000}.{t % 1_000_000_000:09d}"
+
+
 class PoseWriter:
     """Writes ``poses.csv`` (SPEC §2), a row per frame, flushed as it goes;
-    optionally a TUM trajectory (``t_s x y z qx qy qz qw``) beside it."""
+    optionally a TUM trajectory (``t_s x y z qx qy qz qw``, z = 0, the yaw as a
+    quaternion about z) beside it. TUM has no empty field, so it holds only the poses
+    with both x and y: failures, and poses that leave a coordinate unobserved (the
+    corridor method's, without x), are left out of it rather than given a made-up 0."""
 
     def __init__(self, path: str | Path, tum_path: str | Path | None = None):
         self.path = Path(path)
@@ -273,11 +314,10 @@ class PoseWriter:
     def write(self, est: Estimate, latency_ms: float | None = None) -> None:
         self._w.writerow(pose_row(est, latency_ms))
         self._fh.flush()
-        if self._tum is not None and isinstance(est, PoseEstimate):
-            x = 0.0 if est.x_m is None else est.x_m
-            y = 0.0 if est.y_m is None else est.y_m
+        if self._tum is not None and isinstance(est, PoseEstimate) \
+                and est.x_m is not None and est.y_m is not None:
             h = est.yaw_rad / 2
-            self._tum.write(f"{est.t_ns / 1e9:.9f} {x:.6f} {y:.6f} 0 0 0 "
+            self._tum.write(f"{tum_seconds(est.t_ns)} {est.x_m:.6f} {est.y_m:.6f} 0 0 0 "
                             f"{math.sin(h):.9f} {math.cos(h):.9f}\n")
             self._tum.flush()
 

@@ -62,7 +62,7 @@ CEILING_GREY = 150.0
 SEAM_GREY = 95.0
 LAMP_GREY = 250.0
 LIGHT_GREY = 250.0
-HALO_GREY = 45.0          # peak halo added around a spot light
+HALO_GREY = 45.0          # default peak halo added around a spot light (SimOptions.halo)
 BLOCK_GREY = 40.0
 WALL_TOP_GREY = 105.0     # wall just under the ceiling
 WALL_BOTTOM_GREY = 65.0   # wall at the floor
@@ -99,6 +99,12 @@ class SimOptions:
         clutter: door frames, posters on the walls and pipes along the ceiling's edges
             (distractor lines).
         texture: amplitude of the ceiling texture, grey levels (standard deviation).
+        halo: peak glow added around a spot light, grey levels, >= 0 (0: a bare disc);
+            it falls off as ``(1 - (d / 3r)^2)^2`` out to three light radii.
+
+    Vignetting and the halo are what a real lens and lamp give, and both pull a spot's
+    intensity-weighted centroid towards the image centre (see docs/simulator.md for the
+    figures); set them to 0 for frames whose only centroid shift is the geometric one.
     """
 
     noise_sigma: float = 2.0
@@ -111,6 +117,7 @@ class SimOptions:
     light_radius_m: float = 0.08
     clutter: bool = False
     texture: float = 3.0
+    halo: float = HALO_GREY
 
     def __post_init__(self) -> None:
         def bad(name: str, want: str) -> ConfigError:
@@ -118,7 +125,7 @@ class SimOptions:
                                f"expected {want}, found {getattr(self, name)!r}")
 
         for name in ("noise_sigma", "blur_px", "exposure", "vignetting", "seam_width_m",
-                     "light_radius_m", "texture"):
+                     "light_radius_m", "texture", "halo"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise bad(name, "a finite number")
@@ -136,6 +143,8 @@ class SimOptions:
             raise bad("light_radius_m", "a radius > 0 m")
         if self.texture < 0:
             raise bad("texture", "a number >= 0")
+        if self.halo < 0:
+            raise bad("halo", "a number >= 0")
         s = self.supersample
         if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or not 1 <= s <= 8:
             raise bad("supersample", "an integer in 1..8")
@@ -575,7 +584,8 @@ def _features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
         # spot lights: discs with a halo
         if site.has_lights:
             rl = options.light_radius_m
-            rh = HALO_FACTOR * rl
+            halo = np.float32(options.halo)
+            rh = HALO_FACTOR * rl if options.halo > 0 else rl
             lr = site.lights_m - np.array([cx, cy])
             # coarse cull: lights within reach of any ceiling cell
             ok = np.isfinite(reach)
@@ -592,8 +602,9 @@ def _features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
 
                     def shade_light(xr, yr, inv_fp, val, lx=lx, ly=ly):
                         d = np.hypot(xr - lx, yr - ly)
-                        g = np.clip(1.0 - (d / rh) ** 2, 0.0, 1.0)
-                        val = val + HALO_GREY * g * g
+                        if halo > 0:
+                            g = np.clip(1.0 - (d / rh) ** 2, 0.0, 1.0)
+                            val = val + halo * g * g
                         return val + _ramp(rl - d, inv_fp) * (LIGHT_GREY - val)
 
                     feats.append(_Feature(cells, shade_light))

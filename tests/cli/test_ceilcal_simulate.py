@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
+from ceilkit.cli import ceilcal_simulate
 from ceilkit.cli.ceilcal import app
+from ceilkit.cli.common import make_app
 from ceilkit.runtime.recording import TRUTH_HEADER, Recording
 from ceilkit.runtime.rig import Rig
 from helpers import CONFIGS
@@ -61,7 +64,39 @@ def test_simulate_errors(tmp_path):
     assert res.exit_code == 1 and "none.csv" in res.output
     res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "b"), "--rig",
                               str(small_rig(tmp_path)), "--noise", "-1"])
-    assert res.exit_code == 1 and "noise_sigma" in res.output
+    assert res.exit_code == 1 and "--noise" in res.output
     res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "c"),
                               "--rig", str(tmp_path / "missing.yaml")])
     assert res.exit_code == 1 and "missing.yaml" in res.output
+
+
+@pytest.mark.parametrize("args,flag", [
+    (["--noise", "-1"], "--noise"), (["--blur", "nan"], "--blur"),
+    (["--supersample", "9"], "--supersample"), (["--supersample", "0"], "--supersample"),
+    (["--lateral", "nan"], "--lateral"), (["--weave", "inf"], "--weave"),
+    (["--wobble", "nan"], "--wobble"), (["--speed", "nan"], "--speed"),
+    (["--trajectory", "random", "--lateral", "inf"], "--lateral"),
+])
+def test_bad_values_name_the_flag(tmp_path, args, flag):
+    """One line on stderr naming the flag the user typed, not the library's field."""
+    res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "r"), *args])
+    assert res.exit_code == 1
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"ceilcal: error: {flag}: ")
+    for internal in ("options.", "noise_sigma", "blur_px", "y_m", "_rad", "speed_mps"):
+        assert internal not in res.output
+    assert not (tmp_path / "r").exists()
+
+
+def test_single_command_app_keeps_its_subcommand(tmp_path):
+    """make_app gives every app a group callback: with only `simulate` registered,
+    `simulate` is still a subcommand, and a bare option is not taken as the command's."""
+    one = make_app("one", "only simulate")
+    ceilcal_simulate.register(one)
+    res = runner.invoke(one, ["simulate", "--out", str(tmp_path / "r"), "--rig",
+                              str(small_rig(tmp_path)), "--frames", "1", "--supersample", "1"])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "r" / "frames.csv").exists()
+    res = runner.invoke(one, ["--out", str(tmp_path / "s")])
+    assert res.exit_code != 0 and not (tmp_path / "s").exists()
+    assert "simulate" in runner.invoke(one, ["--help"]).output

@@ -91,3 +91,80 @@ def test_missing_and_invalid_yaml(tmp_path):
     (tmp_path / "missing.yaml").write_text(GOOD.replace("image_height: 480\n", ""))
     with pytest.raises(ConfigError, match="image_height: missing required key"):
         CameraModel.load(tmp_path / "missing.yaml")
+
+
+# What ROS camera_calibration writes (its `ost.yaml`): block style, the 8 keys, numbers
+# printed with %8f, a camera_name with a slash.
+ROS_OST = """image_width: 640
+image_height: 480
+camera_name: narrow_stereo/left
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [402.130000, 0.000000, 321.250000, 0.000000, 401.870000, 238.600000, 0.000000, \
+0.000000, 1.000000]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [-0.081000, 0.019000, 0.000400, -0.000300, 0.000000]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1.000000, 0.000000, 0.000000, 0.000000, 1.000000, 0.000000, 0.000000, 0.000000, \
+1.000000]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [395.200000, 0.000000, 321.900000, 0.000000, 0.000000, 397.100000, 238.200000, \
+0.000000, 0.000000, 0.000000, 1.000000, 0.000000]
+"""
+
+
+def test_reads_ros_camera_calibration_output(tmp_path):
+    path = tmp_path / "ost.yaml"
+    path.write_text(ROS_OST.replace("\n", "\r\n"))           # a Windows copy, too
+    cam = CameraModel.load(path)
+    assert cam.size == (640, 480) and cam.name == "narrow_stereo/left"
+    assert cam.model == "plumb_bob" and cam.fx == 402.13 and cam.cy == 238.6
+    np.testing.assert_array_equal(cam.dist, [-0.081, 0.019, 0.0004, -0.0003, 0.0])
+    assert cam.P[0, 0] == 395.2                 # kept for round trips, not used
+    cam.save(tmp_path / "back.yaml")
+    back = CameraModel.load(tmp_path / "back.yaml")
+    np.testing.assert_array_equal(back.P, cam.P)
+    np.testing.assert_array_equal(back.K, cam.K)
+
+
+@pytest.mark.parametrize("coeffs,model", [
+    ("[-0.08, 0.02, 0.0, 0.0, 0.0]", "plumb_bob"),
+    ("[-0.08, 0.02, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0]", "rational_polynomial"),
+])
+def test_old_ros_files_without_distortion_model(tmp_path, coeffs, model):
+    """ROS files from before `distortion_model` existed: ROS reads 5 coefficients as
+    plumb_bob and 8 as rational_polynomial, and so do we."""
+    text = ROS_OST.replace("distortion_model: plumb_bob\n", "").replace(
+        "cols: 5\n  data: [-0.081000, 0.019000, 0.000400, -0.000300, 0.000000]",
+        f"cols: {coeffs.count(',') + 1}\n  data: {coeffs}")
+    (tmp_path / "c.yaml").write_text(text)
+    assert CameraModel.load(tmp_path / "c.yaml").model == model
+    (tmp_path / "d.yaml").write_text(text.replace(coeffs, "[0.1, 0.0, 0.0, 0.0]")
+                                     .replace(f"cols: {coeffs.count(',') + 1}", "cols: 4"))
+    with pytest.raises(ConfigError, match="distortion_model: missing required key"):
+        CameraModel.load(tmp_path / "d.yaml")
+
+
+@pytest.mark.parametrize("extra,key", [
+    ("header: {frame_id: cam}\n", "header"),               # a camera_info message dump
+    ("binning_x: 0\n", "binning_x"),
+    ("distortion_coefficents:\n  rows: 1\n  cols: 0\n  data: []\n", "distortion_coefficents"),
+])
+def test_unknown_keys_beside_the_ros_ones_are_errors(tmp_path, extra, key):
+    (tmp_path / "c.yaml").write_text(ROS_OST + extra)
+    with pytest.raises(ConfigError, match=f"{key}: unknown key") as err:
+        CameraModel.load(tmp_path / "c.yaml")
+    assert "c.yaml" in str(err.value)
+
+
+def test_numeric_camera_name_is_a_name(tmp_path):
+    (tmp_path / "c.yaml").write_text(ROS_OST.replace("narrow_stereo/left", "12345"))
+    assert CameraModel.load(tmp_path / "c.yaml").name == "12345"

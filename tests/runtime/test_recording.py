@@ -13,7 +13,13 @@ from ceilkit.runtime.recording import (
     load_poses,
     load_truth,
 )
+from ceilkit.runtime.rig import Rig
 from ceilkit.runtime.sources import Frame
+
+
+def _rig(rig, shape=(24, 32)):
+    """The rig with its camera resampled to the test frames' size."""
+    return Rig(rig.camera.scaled(shape[1], shape[0]), rig.mount)
 
 
 def _frames(n, shape=(24, 32)):
@@ -23,6 +29,7 @@ def _frames(n, shape=(24, 32)):
 
 
 def test_write_read_round_trip(tmp_path, corridor_rig, corridor_site):
+    corridor_rig = _rig(corridor_rig)
     frames = _frames(4)
     with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site, truth=True) as rec:
         for k, f in enumerate(frames):
@@ -41,7 +48,7 @@ def test_write_read_round_trip(tmp_path, corridor_rig, corridor_site):
 def test_bgr_frames_are_kept_as_captured(tmp_path, corridor_rig, corridor_site):
     img = np.zeros((8, 8, 3), np.uint8)
     img[..., 2] = 200
-    with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site) as rec:
+    with RecordingWriter(tmp_path / "rec", _rig(corridor_rig, (8, 8)), corridor_site) as rec:
         rec.write(Frame(img, 5, 0))
     got = Recording(tmp_path / "rec").frame(0)
     assert got.image.shape == (8, 8, 3) and np.array_equal(got.image, img)
@@ -65,7 +72,7 @@ def test_killed_recording_is_readable(tmp_path, corridor_rig, corridor_site):
 
 
 def _make(tmp_path, corridor_rig, corridor_site, n=2):
-    with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site) as rec:
+    with RecordingWriter(tmp_path / "rec", _rig(corridor_rig), corridor_site) as rec:
         for f in _frames(n):
             rec.write(f)
     return tmp_path / "rec"
@@ -77,6 +84,9 @@ def _make(tmp_path, corridor_rig, corridor_site, n=2):
     ("index,t_ns\n0,5\n1,5\n", "line 3: t_ns", "increase"),
     ("index,t_ns\n0,5\n7,9\n", "line 3", "frames/000007.png is missing"),
     ("index,t_ns\n0\n", "line 2", "2 fields"),
+    ("index,t_ns\n-1,5\n", "line 2: index", ">= 0"),
+    ("index,t_ns\n1,5\n1,9\n", "line 3: index", "already listed on line 2"),
+    ("index,t_ns,exposure\n0,5,1.0\n", "header", "found `index,t_ns,exposure`"),
 ])
 def test_broken_recordings(tmp_path, corridor_rig, corridor_site, text, key, words):
     folder = _make(tmp_path, corridor_rig, corridor_site)
@@ -114,4 +124,47 @@ def test_poses_file_layout_and_round_trip(tmp_path):
     t = load_poses(path)
     assert np.isnan(t.x_m[0]) and t.x_m[2] == 1.0 and t.method == ["corridor"] * 2 + ["lights"]
     tum = (tmp_path / "out" / "poses.tum").read_text().split()
-    assert len(tum) == 16 and float(tum[0]) == 1e-8
+    # TUM holds only full positions: the corridor pose (no x) and the failure are left out
+    assert len(tum) == 8 and tum[0] == "0.000000030" and tum[1:4] == ["1.000000", "2.000000", "0"]
+
+
+def test_tum_keeps_every_nanosecond_of_epoch_stamps(tmp_path):
+    t_ns = 1_718_000_000_123_456_789
+    with PoseWriter(tmp_path / "poses.csv", tmp_path / "poses.tum") as w:
+        w.write(PoseEstimate(t_ns, "lights", 1.0, 2.0, math.radians(90.0), 0.8), 2.0)
+    t_s, x, y, z, qx, qy, qz, qw = (tmp_path / "poses.tum").read_text().split()
+    assert t_s == "1718000000.123456789"
+    assert math.degrees(2 * math.atan2(float(qz), float(qw))) == pytest.approx(90.0)
+    assert (float(z), float(qx), float(qy)) == (0.0, 0.0, 0.0)
+
+
+def test_outside_tool_quirks_are_read(tmp_path, corridor_rig, corridor_site):
+    """CRLF line endings, a byte-order mark, spaces after commas, indices that start
+    late and have gaps, frame files that no row lists (ignored)."""
+    folder = _make(tmp_path, corridor_rig, corridor_site, n=3)
+    fr = folder / "frames"
+    (fr / "000001.png").rename(fr / "000007.png")
+    (fr / "000002.png").rename(fr / "000012.png")
+    (folder / "frames.csv").write_bytes(
+        b"\xef\xbb\xbfindex,t_ns\r\n0, 100\r\n7,200\r\n12,300\r\n\r\n")
+    (folder / "truth.csv").write_bytes(b"t_ns,x,y,yaw_deg\r\n300,1.5,0.25,-90\r\n")
+    rec = Recording(folder)
+    assert list(rec.index) == [0, 7, 12] and list(rec.t_ns) == [100, 200, 300]
+    assert [f.index for f in rec] == [0, 7, 12]
+    assert rec.truth.lookup(300) == pytest.approx((1.5, 0.25, -math.pi / 2))
+
+
+@pytest.mark.parametrize("image,words", [
+    (np.zeros((24, 32), np.uint16), "8-bit"),
+    (np.zeros((24, 32, 4), np.uint8), "4 channels"),
+    (np.zeros((48, 64), np.uint8), "64x48 but the camera"),
+])
+def test_frames_the_camera_cannot_have_taken(tmp_path, corridor_rig, corridor_site, image,
+                                            words):
+    import cv2
+
+    folder = _make(tmp_path, corridor_rig, corridor_site, n=1)
+    cv2.imwrite(str(folder / "frames" / "000000.png"), image)
+    with pytest.raises(ConfigError, match=words) as err:
+        Recording(folder).frame(0)
+    assert "000000.png" in str(err.value)

@@ -77,6 +77,93 @@ def test_light_disc_centroid_on_projection_fisheye(lights_rig):
         assert abs(cu - u) < 0.1 and abs(cv - v) < 0.1
 
 
+def projected_disc(rig, centre_w, radius_m, x, y, yaw, n=8000):
+    """Area centroid (2,) and area (px²) of a ceiling disc's exact image: its outline
+    projected through the lens, as a polygon."""
+    th = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    rim = np.c_[centre_w[0] + radius_m * np.cos(th), centre_w[1] + radius_m * np.sin(th),
+                np.full(n, centre_w[2])]
+    p = project_world(rig, rim, x, y, yaw)
+    x_, y_ = p[:, 0], p[:, 1]
+    x1, y1 = np.roll(x_, -1), np.roll(y_, -1)
+    cr = x_ * y1 - x1 * y_
+    area = cr.sum() / 2
+    return np.array([((x_ + x1) * cr).sum(), ((y_ + y1) * cr).sum()]) / (6 * area), area
+
+
+def weighted_centroid(img, u, v, r=12, base=sim.CEILING_GREY):
+    """Centroid and sum of ``img - base`` in a window: for a flat disc on a flat ceiling
+    these are the disc image's area centroid and area (no threshold, no pixel locking)."""
+    u0, v0 = int(round(u)), int(round(v))
+    w = img[v0 - r:v0 + r + 1, u0 - r:u0 + r + 1].astype(float) - base
+    vv, uu = np.mgrid[v0 - r:v0 + r + 1, u0 - r:u0 + r + 1]
+    return np.array([(w * uu).sum(), (w * vv).sum()]) / w.sum(), w.sum()
+
+
+def test_light_disc_is_its_exact_image_fisheye(lights_rig):
+    """The rendered disc's centroid and area are those of the disc's exact image. That
+    centroid is *not* the projection of the light's centre: through perspective and the
+    fisheye it lies 0.02-0.04 px towards the image centre (the shift the threshold
+    centroid above sees), which is geometry, not a rendering error."""
+    rig = Rig(lights_rig.camera.scaled(320, 240),
+              Mount(pan_rad=0.3, tilt_rad=math.radians(80), swing_rad=0.1, z_m=0.5))
+    lights = np.array([[1.0, 0.3], [0.5, -0.6], [2.0, 1.0]])
+    site = Site(3.0, lights_m=lights)
+    x, y, yaw = 0.2, 0.1, 0.4
+    opts = CLEAN.replace(halo=0.0)
+    img = render_radiance(rig, site, x, y, yaw, opts)
+    cam = rig.camera
+    for lx, ly in lights:
+        want, area = projected_disc(rig, (lx, ly, 3.0), opts.light_radius_m, x, y, yaw)
+        got, got_area = weighted_centroid(img, *want)
+        assert np.linalg.norm(got - want) < 0.01
+        assert got_area / (sim.LIGHT_GREY - sim.CEILING_GREY) == pytest.approx(area, rel=3e-3)
+        centre = project_world(rig, np.array([[lx, ly, 3.0]]), x, y, yaw)[0]
+        radial = (want - centre) @ (centre - [cam.cx, cam.cy]) / np.hypot(*(centre - [cam.cx,
+                                                                               cam.cy]))
+        assert -0.05 < radial < -0.015
+
+
+def test_vignetting_pulls_spots_inwards(lights_rig):
+    """Vignetting is physical and optional: the brighter inner side of a spot moves
+    its weighted centroid towards the principal point, by about a hundredth of a pixel
+    here (the halo shifts it too, by an amount that depends on the view)."""
+    rig = small(lights_rig)
+    lights = np.array([[1.2, 0.9], [-0.9, 0.6], [0.4, -1.1]])
+    site = Site(3.0, lights_m=lights)
+    bare = SimOptions(noise_sigma=0.0, blur_px=0.0, vignetting=0.0, texture=0.0, halo=0.0)
+    ref = render_frame(rig, site, 0.0, 0.0, 0.0, bare).astype(float)
+    vig = render_frame(rig, site, 0.0, 0.0, 0.0, bare.replace(vignetting=0.3)).astype(float)
+    cam = rig.camera
+    shifts = []
+    for lx, ly in lights:
+        c = project_world(rig, np.array([[lx, ly, 3.0]]), 0.0, 0.0, 0.0)[0]
+        out = (c - [cam.cx, cam.cy]) / np.hypot(*(c - [cam.cx, cam.cy]))
+        got = []
+        for img in (ref, vig):
+            u0, v0 = np.rint(c).astype(int)
+            win = img[v0 - 12:v0 + 13, u0 - 12:u0 + 13]
+            bg = np.median(win)
+            w = np.clip(win - (bg + 0.4 * (win.max() - bg)), 0.0, None)   # as spots.py
+            vv, uu = np.mgrid[v0 - 12:v0 + 13, u0 - 12:u0 + 13]
+            got.append(np.array([(w * uu).sum(), (w * vv).sum()]) / w.sum())
+        shifts.append((got[1] - got[0]) @ out)
+    shifts = np.array(shifts)                     # radial, px
+    assert np.all(shifts > -0.1) and np.all(shifts < -0.002)
+
+
+def test_halo_option(lights_rig):
+    rig = small(lights_rig, 160, 120)
+    site = Site(3.0, lights_m=np.array([[0.0, 0.0]]))
+    a = render_radiance(rig, site, 0.4, 0.0, 0.0, CLEAN.replace(halo=0.0))
+    b = render_radiance(rig, site, 0.4, 0.0, 0.0, CLEAN.replace(halo=90.0))
+    c = render_radiance(rig, site, 0.4, 0.0, 0.0, CLEAN)
+    d = b - a
+    assert d.max() > 40 and np.count_nonzero(d > 1) > 40         # a glow around the disc
+    np.testing.assert_allclose(c - a, d / 2, atol=1e-3)    # linear in `halo`
+    assert np.all(a[(a > sim.CEILING_GREY + 1e-3)] > sim.CEILING_GREY)
+
+
 def test_fisheye_black_beyond_its_range(lights_rig, lights_site):
     rig = small(lights_rig)
     img = render_radiance(rig, lights_site, 5.0, 0.0, 0.0, CLEAN)
@@ -273,6 +360,7 @@ def test_sim_source(corridor_rig, corridor_site):
     {"noise_sigma": -1.0}, {"blur_px": -0.5}, {"exposure": 0.0}, {"vignetting": 1.0},
     {"supersample": 0}, {"supersample": 2.5}, {"seam_width_m": 0.0},
     {"light_radius_m": -0.1}, {"wall_half_width_m": 0.0}, {"noise_sigma": math.nan},
+    {"halo": -1.0},
 ])
 def test_bad_options(kw):
     with pytest.raises(ConfigError, match=f"options.{next(iter(kw))}"):
@@ -306,3 +394,25 @@ def test_bad_trajectories(tmp_path):
     bad.write_text("t_ns,x,y,yaw_deg\n0,1,2,abc\n")
     with pytest.raises(ConfigError, match="yaw_deg"):
         load_trajectory(bad)
+
+
+def test_packaged_corridor_seams_as_the_site_says(corridor_site):
+    """configs/corridor: lines_across every 1.2 m from -0.6 are the lamps' short ends
+    while there are lamps (x >= -0.6), so they are drawn only as lamp ends; before the
+    first lamp (x = -1.8) an across line is a seam from wall to wall. lines_along at
+    +-0.45 are seams everywhere, at +-0.15 the lamps' long edges only."""
+    rig = Rig(CameraModel.pinhole(200, 200, fx=60.0), Mount(tilt_rad=math.pi / 2, z_m=0.8))
+    x0 = -1.2
+    img = render_radiance(rig, corridor_site, x0, 0.0, 0.0, CLEAN)
+
+    def grey(x, y):
+        u, v = np.rint(project_world(rig, np.array([[x, y, 2.8]]), x0, 0.0, 0.0)[0]).astype(int)
+        return img[v, u]
+
+    for y in (-0.3, 0.0, 0.3):
+        assert grey(-1.8, y) < sim.CEILING_GREY - 5          # a seam across, no lamp there
+        assert grey(-2.4, y) == pytest.approx(sim.CEILING_GREY, abs=1e-3)
+    assert grey(-0.6, 0.3) == pytest.approx(sim.CEILING_GREY, abs=1e-3)   # lamp end only
+    assert grey(-0.3, 0.0) == pytest.approx(sim.LAMP_GREY, abs=1e-3)
+    assert grey(-1.2, 0.45) < sim.CEILING_GREY - 5 and grey(-1.2, -0.45) < sim.CEILING_GREY - 5
+    assert grey(-1.2, 0.15) == pytest.approx(sim.CEILING_GREY, abs=1e-3)
