@@ -1,8 +1,16 @@
-"""``ceilrun``: run on the vehicle (camera in, poses out over serial), or replay a recording."""
+"""``ceilrun``: run on the vehicle (camera in, poses out over serial), or replay a recording.
+
+Exit codes: 0 when the run ended (the source ended, ``--frames`` reached, or SIGINT /
+SIGTERM asked it to stop: files are closed and complete); 1 for a ceilkit error
+(one line on stderr); 2 for bad options. A second SIGINT/SIGTERM while stopping
+kills the process at once.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import logging
+import os
 import signal
 import sys
 import threading
@@ -34,6 +42,41 @@ class Protocol(str, Enum):
     mavlink = "mavlink"
 
 
+class MissingX(str, Enum):
+    skip = "skip"
+    nan = "nan"
+
+
+def _setup_logging() -> None:
+    """Warnings of the runtime (camera lost/back, link lost/back) as lines on stderr."""
+    root = logging.getLogger("ceilkit")
+    if not any(getattr(h, "_ceilrun", False) for h in root.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("ceilrun: %(message)s"))
+        handler._ceilrun = True  # type: ignore[attr-defined]
+        root.addHandler(handler)
+        root.setLevel(logging.WARNING)
+        root.propagate = False
+
+
+def _parse_origin(text: str | None):
+    if text is None:
+        return None
+    from ceilkit.runtime.link.mavlink import GeoOrigin
+
+    try:
+        lat, lon, alt = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(None, "--ekf-origin", f"expected LAT,LON,ALT_M in degrees and "
+                          f"metres, found {text!r}") from None
+    from ceilkit.runtime.errors import LinkError
+
+    try:
+        return GeoOrigin(lat, lon, alt)
+    except LinkError as exc:
+        raise ConfigError(None, "--ekf-origin", str(exc)) from None
+
+
 def _check_method(name: str | None) -> str | None:
     if name is not None and name not in METHOD_NAMES:
         raise typer.BadParameter(f"unknown method {name!r} (choose from "
@@ -52,6 +95,9 @@ def _stop_on_signals():
     previous = {}
 
     def handler(signum, _frame):
+        if stop.is_set():  # asked twice: stop now
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
         stop.set()
 
     if threading.current_thread() is threading.main_thread():
@@ -78,13 +124,26 @@ def _load_rig_site(device: str, rig: Path | None, site: Path | None) -> tuple[Ri
     return r, s
 
 
-def _open_link(serial: str | None, protocol: Protocol, baud: int, sysid: int, compid: int):
+def _open_link(serial: str | None, protocol: Protocol, baud: int, sysid: int, compid: int,
+               missing_x: MissingX = MissingX.skip, origin=None):
     if serial is None:
         return contextlib.nullcontext(None)
     from ceilkit.runtime.link.transport import open_link
 
     return open_link(serial, protocol=protocol.value, baud=baud, system_id=sysid,
-                     component_id=compid)
+                     component_id=compid, unobserved=missing_x.value, origin=origin)
+
+
+def _link_lines(link) -> list[str]:
+    if link is None:
+        return []
+    c = link.counters
+    out = [f"link {link.describe()}: sent {c.sent}, dropped {c.dropped}, skipped "
+           f"{c.skipped}, reconnects {c.reconnects}, received {c.received}"]
+    syncs = getattr(link.protocol, "timesyncs", 0)
+    if syncs:
+        out.append(f"answered {syncs} TIMESYNC requests")
+    return out
 
 
 @app.callback(invoke_without_command=True)
@@ -93,11 +152,18 @@ def live(
     device: str = typer.Option("/dev/video0", help="Camera (/dev/videoN or index), video "
                                "file, image folder, recording, or sim[:corridor|lights|block]."),
     serial: str = typer.Option(None, help="Serial port for the pose stream "
-                               "(e.g. /dev/ttyUSB0), or - for stdout."),
+                               "(e.g. /dev/ttyUSB0), - for stdout, or a file to write the "
+                               "same bytes to."),
     baud: int = typer.Option(115200, help="Serial baud rate."),
     protocol: Protocol = typer.Option(Protocol.nmea, help="Pose stream protocol."),
     sysid: int = typer.Option(1, help="MAVLink system id."),
     compid: int = typer.Option(197, help="MAVLink component id."),
+    mavlink_missing_x: MissingX = typer.Option(
+        MissingX.skip, help="MAVLink, a pose without x (corridor method): skip sends "
+        "nothing (safe for ArduPilot); nan sends x = NaN (PX4 fuses y and yaw)."),
+    ekf_origin: str = typer.Option(None, metavar="LAT,LON,ALT", help="MAVLink: send "
+                                   "SET_GPS_GLOBAL_ORIGIN until the autopilot reports its "
+                                   "origin (ArduPilot needs one). Off by default."),
     rig: Path = typer.Option(None, help="rig.yaml (default for sim: the example's)."),
     site: Path = typer.Option(None, help="site.yaml (default for sim: the example's)."),
     method: str = typer.Option(None, callback=_check_method,
@@ -118,6 +184,8 @@ def live(
     """Run live: frames from --device, poses to --serial."""
     if ctx.invoked_subcommand is not None:
         return
+    _setup_logging()
+    origin = _parse_origin(ekf_origin)
     r, s = _load_rig_site(device, rig, site)
     estimator = make_estimator(method, r, s)
     sim_frames = frames or 300
@@ -126,8 +194,8 @@ def live(
     recorder = RecordingWriter(record, r, s) if record is not None else None
     writer = PoseWriter(out / "poses.csv") if out is not None else None
     try:
-        with source, _open_link(serial, protocol, baud, sysid, compid) as link, \
-                _stop_on_signals() as stop:
+        with source, _open_link(serial, protocol, baud, sysid, compid, mavlink_missing_x,
+                                origin) as link, _stop_on_signals() as stop:
             sinks = [x for x in (link, PoseFileSink(writer) if writer else None) if x]
             truth = source_truth(source)
             meter = AccuracyMeter(truth) if truth is not None else None
@@ -150,9 +218,11 @@ def live(
     if status:
         _err("")
     _err(f"ceilrun: {estimator.name} on {device}: {result.elapsed_s:.1f} s"
-         + (" (stopped)" if result.stopped else ""))
-    for line in result.telemetry.summary():
+         + (" (stopped by a signal)" if result.stopped else ""))
+    for line in result.telemetry.summary() + _link_lines(link):
         _err("  " + line)
+    if getattr(source, "reopens", 0):
+        _err(f"  camera reopened {source.reopens}x")
     if meter is not None:
         _err("  against the source's ground truth:")
         for line in meter.result().lines():
@@ -174,6 +244,8 @@ def replay(
     serial: str = typer.Option(None, help="Also stream the poses to this port (or -)."),
     protocol: Protocol = typer.Option(Protocol.nmea, help="Pose stream protocol."),
     baud: int = typer.Option(115200, help="Serial baud rate."),
+    mavlink_missing_x: MissingX = typer.Option(
+        MissingX.skip, help="MAVLink, a pose without x: skip (default) or nan."),
     progress: bool = typer.Option(None, "--progress/--no-progress",
                                   help="Progress bar (default: on a terminal)."),
 ) -> None:
@@ -186,7 +258,8 @@ def replay(
             sys.stderr.write(f"\r[{'#' * n}{'.' * (30 - n)}] {done}/{total}")
             sys.stderr.flush()
 
-    with _open_link(serial, protocol, baud, 1, 197) as link:
+    _setup_logging()
+    with _open_link(serial, protocol, baud, 1, 197, mavlink_missing_x) as link:
         res = run_replay(recording, out, rig, site, method, tum=tum, realtime=realtime,
                          sinks=[link] if link is not None else (), progress=bar)
     if show:
@@ -196,7 +269,7 @@ def replay(
     tel = res.telemetry
     echo(f"replay {res.recording} with {res.method}: {tel.frames} frames in "
                f"{res.elapsed_s:.2f} s -> {res.poses_path}")
-    for line in tel.summary():
+    for line in tel.summary() + _link_lines(link):
         echo("  " + line)
     if res.accuracy is not None:
         echo("  against truth.csv:")

@@ -15,6 +15,10 @@
 
 Each source has ``live`` (its stamps are on ``time.monotonic_ns``) and
 ``dropped`` (frames skipped by the latest-frame policy).
+
+:func:`open_video` opens only a camera or a video file (what a calibration tool
+needs); :class:`FakeCamera` is a ``cv2.VideoCapture``-like fake device that serves
+given images at a fixed rate and can be unplugged and re-plugged (tests, benchmarks).
 """
 
 from __future__ import annotations
@@ -118,6 +122,7 @@ class CameraSource(SourceBase):
         self.max_backoff_s = max_backoff_s
         self.dropped = 0
         self.reopens = 0
+        self.losses = 0
         self.status = "starting"
         self._cond = threading.Condition()
         self._latest: Frame | None = None
@@ -152,20 +157,34 @@ class CameraSource(SourceBase):
         return cap
 
     def _open_or_fail(self):
-        cap = self._open_capture(self.device)
-        if not cap.isOpened():
+        cap = self._try_open()
+        if cap is None or not cap.isOpened():
             raise CaptureError(f"{self.device}: cannot open the camera "
                                "(is it plugged in, and not used by another program?)")
         self.status = "running"
         return cap
 
+    def _try_open(self):
+        try:
+            return self._open_capture(self.device)
+        except Exception as exc:  # noqa: BLE001 - a driver may raise instead of failing
+            log.debug("camera %s: open failed: %s", self.device, exc)
+            return None
+
     def _grab_loop(self) -> None:
         index = 0
         backoff = 0.1
         while not self._stop.is_set():
-            ok, image = self._cap.read()
+            try:
+                ok, image = self._cap.read() if self._cap is not None else (False, None)
+            except Exception:  # noqa: BLE001 - a vanished device may raise
+                ok, image = False, None
             t_ns = self.clock()
             if ok and image is not None:
+                if self.status != "running":
+                    self.status = "running"
+                    self.reopens += 1
+                    log.warning("camera %s back (reopened)", self.device)
                 backoff = 0.1
                 with self._cond:
                     if self._latest is not None and self._latest.index != self._taken:
@@ -175,26 +194,32 @@ class CameraSource(SourceBase):
                 index += 1
                 continue
             # the camera vanished: reopen with back-off, the run goes on
-            self.status = "lost"
-            log.warning("camera %s lost; reopening in %.1f s", self.device, backoff)
-            try:
-                self._cap.release()
-            except Exception:  # noqa: BLE001 - a driver may fail on release
-                pass
+            if self.status == "running":
+                self.status = "lost"
+                self.losses += 1
+                log.warning("camera %s lost; reopening with back-off", self.device)
+            if self._cap is not None:
+                try:
+                    self._cap.release()
+                except Exception:  # noqa: BLE001 - a driver may fail on release
+                    pass
             if self._stop.wait(backoff):
                 break
             backoff = min(2 * backoff, self.max_backoff_s)
-            cap = self._open_capture(self.device)
-            if cap.isOpened():
-                self._cap = cap
-                self.reopens += 1
-                self.status = "running"
-                log.warning("camera %s reopened", self.device)
-            else:
-                self._cap = cap
+            cap = self._try_open()
+            self._cap = cap if cap is not None and cap.isOpened() else None
 
-    def read(self, timeout_s: float = 5.0) -> Frame | None:
-        """The newest frame not yet returned; waits for one. ``None`` once closed."""
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` was called (no frame will come any more)."""
+        return self._stop.is_set()
+
+    def wait_frame(self, timeout_s: float) -> Frame | None:
+        """The newest frame not yet returned, waiting at most ``timeout_s``.
+
+        Returns ``None`` when none came in time (the camera may be lost and being
+        reopened: see ``status``) or the source is closed; never raises.
+        """
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while not self._stop.is_set():
@@ -203,20 +228,33 @@ class CameraSource(SourceBase):
                     return self._latest
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    raise CaptureError(f"{self.device}: no frame for {timeout_s:g} s "
-                                       f"(camera {self.status})")
+                    return None
                 self._cond.wait(min(left, 0.1))
         return None
+
+    def read(self, timeout_s: float = 5.0) -> Frame | None:
+        """The newest frame not yet returned; waits for one. ``None`` once closed.
+
+        Raises:
+            CaptureError: no frame for ``timeout_s`` (the live loop uses
+                :meth:`wait_frame` instead and keeps running while the camera is lost).
+        """
+        frame = self.wait_frame(timeout_s)
+        if frame is None and not self.closed:
+            raise CaptureError(f"{self.device}: no frame for {timeout_s:g} s "
+                               f"(camera {self.status})")
+        return frame
 
     def close(self) -> None:
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
         self._thread.join(timeout=2.0)
-        try:
-            self._cap.release()
-        except Exception:  # noqa: BLE001
-            pass
+        if self._cap is not None:
+            try:
+                self._cap.release()
+            except Exception:  # noqa: BLE001
+                pass
 
 
 def packaged_config(name: str) -> Path:
@@ -267,3 +305,94 @@ def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
         raise CaptureError(f"{spec}: not a camera, video ({', '.join(VIDEO_SUFFIXES)}), "
                            "image folder or recording")
     raise CaptureError(f"{spec}: no such device or file")
+
+
+def open_video(device: str | int, width: int = 0, height: int = 0, fps: float = 0,
+               fourcc: str = "", exposure: float | None = None,
+               gain: float | None = None) -> SourceBase:
+    """A camera (``/dev/videoN``, an index, ``"0"``) or a video file, nothing else.
+
+    Cameras get :class:`CameraSource` (stamped at grab, latest-frame policy, reopened
+    with back-off); files get :class:`VideoFileSource` (every frame, in order).
+
+    Raises:
+        CaptureError: no such file, not a video, or a camera that cannot be opened.
+    """
+    if isinstance(device, int) or str(device).isdigit():
+        return CameraSource(int(device), width, height, fps, fourcc, exposure, gain)
+    spec = str(device)
+    if spec.startswith("/dev/"):
+        return CameraSource(spec, width, height, fps, fourcc, exposure, gain)
+    path = Path(spec)
+    if not path.is_file():
+        raise CaptureError(f"{spec}: no such video file")
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise CaptureError(f"{spec}: not a video ({', '.join(VIDEO_SUFFIXES)})")
+    return VideoFileSource(path)
+
+
+class FakeCamera:
+    """A fake camera device: ``open`` gives a ``cv2.VideoCapture``-like object.
+
+    The capture serves ``images`` in a loop at ``fps`` (``read()`` sleeps until the
+    next frame is due, as a driver blocks until the sensor delivers), so
+    ``CameraSource(dev, open_capture=cam.open)`` runs its real grabber, stamping and
+    latest-frame policy on it. :meth:`unplug` makes reads and opens fail (the USB
+    cable pulled) until :meth:`replug`.
+
+    Args:
+        images: the frames, ``(H, W)`` or ``(H, W, 3)`` uint8, served in order, looping.
+        fps: delivery rate (frames per second).
+    """
+
+    def __init__(self, images: list[np.ndarray], fps: float = 30.0):
+        if not images:
+            raise CaptureError("FakeCamera needs at least one image")
+        if fps <= 0:
+            raise CaptureError(f"FakeCamera: fps must be > 0, found {fps}")
+        self.images = list(images)
+        self.period_s = 1.0 / fps
+        self.plugged = True
+        self.opens = 0
+        self.served = 0
+
+    def open(self, device: str | int = 0) -> _FakeCapture:
+        self.opens += 1
+        return _FakeCapture(self)
+
+    def unplug(self) -> None:
+        self.plugged = False
+
+    def replug(self) -> None:
+        self.plugged = True
+
+
+class _FakeCapture:
+    def __init__(self, cam: FakeCamera):
+        self.cam = cam
+        self.opened = cam.plugged
+        self._due = time.monotonic()
+
+    def isOpened(self) -> bool:  # noqa: N802 - cv2.VideoCapture's name
+        return self.opened
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        cam = self.cam
+        if not (self.opened and cam.plugged):
+            self.opened = False
+            return False, None
+        self._due += cam.period_s
+        wait = self._due - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        else:
+            self._due = time.monotonic()  # late: do not burst to catch up
+        if not cam.plugged:
+            self.opened = False
+            return False, None
+        image = cam.images[cam.served % len(cam.images)]
+        cam.served += 1
+        return True, image
+
+    def release(self) -> None:
+        self.opened = False

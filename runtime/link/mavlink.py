@@ -7,6 +7,10 @@ link sends, and a small frame splitter to read back what the autopilot says:
   frame's capture time, in the autopilot's local NED frame.
 * ``HEARTBEAT`` (id 0, CRC_EXTRA 50): once a second, as component 197
   (``MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY``), type 18 (``MAV_TYPE_ONBOARD_CONTROLLER``).
+* ``TIMESYNC`` (id 111, CRC_EXTRA 34): the answer to the autopilot's requests (PX4
+  sends them), so it can map the poses' capture stamps onto its clock.
+* ``SET_GPS_GLOBAL_ORIGIN`` (id 48, CRC_EXTRA 41): the EKF origin, only when asked
+  (ArduPilot needs one before it uses external navigation).
 
 Frame (MAVLink 2, unsigned)::
 
@@ -38,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import LinkError
 from ..estimate import Estimate, PoseEstimate
 
 STX_V2 = 0xFD
@@ -46,10 +51,13 @@ CRC_LEN = 2
 
 MSG_ID_HEARTBEAT = 0
 MSG_ID_VISION_POSITION_ESTIMATE = 102
-CRC_EXTRA = {0: 50, 102: 158, 111: 34, 253: 83, 30: 39, 32: 185, 242: 104}
+MSG_ID_TIMESYNC = 111
+MSG_ID_SET_GPS_GLOBAL_ORIGIN = 48
+MSG_ID_GPS_GLOBAL_ORIGIN = 49
+CRC_EXTRA = {0: 50, 102: 158, 111: 34, 253: 83, 30: 39, 32: 185, 242: 104, 48: 41, 49: 39}
 MSG_NAMES = {0: "HEARTBEAT", 102: "VISION_POSITION_ESTIMATE", 111: "TIMESYNC",
              253: "STATUSTEXT", 30: "ATTITUDE", 32: "LOCAL_POSITION_NED",
-             242: "HOME_POSITION"}
+             242: "HOME_POSITION", 48: "SET_GPS_GLOBAL_ORIGIN", 49: "GPS_GLOBAL_ORIGIN"}
 
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
 MAV_TYPE_ONBOARD_CONTROLLER = 18
@@ -115,6 +123,54 @@ def encode_vision_position_estimate(usec: int, x: float, y: float, z: float, rol
     payload = (struct.pack("<Q6f", int(usec) & 0xFFFF_FFFF_FFFF_FFFF, x, y, z, roll, pitch, yaw)
                + struct.pack("<21f", *covariance) + struct.pack("<B", reset_counter % 256))
     return frame_v2(MSG_ID_VISION_POSITION_ESTIMATE, payload, seq, sysid, compid)
+
+
+def encode_timesync(tc1: int, ts1: int, seq: int, sysid: int = 1,
+                    compid: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY) -> bytes:
+    """A TIMESYNC (Time Synchronization Protocol v2, times in ns).
+
+    A request has ``tc1 = 0`` and the sender's time in ``ts1``; the answer has the
+    answerer's time in ``tc1`` and echoes ``ts1``. Wire order: tc1 i64, ts1 i64
+    (the optional target_system/target_component extensions are not sent: 0, broadcast).
+    """
+    payload = struct.pack("<qq", int(tc1), int(ts1))
+    return frame_v2(MSG_ID_TIMESYNC, payload, seq, sysid, compid)
+
+
+def unpack_timesync(frame: MavFrame) -> tuple[int, int]:
+    """``(tc1, ts1)`` of a TIMESYNC frame (payload zero-extended)."""
+    return struct.unpack_from("<qq", frame.payload.ljust(16, b"\x00"), 0)
+
+
+@dataclass(frozen=True)
+class GeoOrigin:
+    """An EKF origin: WGS84 latitude and longitude (degrees), altitude (m, AMSL)."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+
+    def __post_init__(self) -> None:
+        if not (-90.0 <= self.lat_deg <= 90.0 and -180.0 <= self.lon_deg <= 180.0
+                and math.isfinite(self.alt_m) and abs(self.alt_m) < 1e6):
+            raise LinkError(f"origin must be lat in [-90, 90], lon in [-180, 180], a "
+                             f"finite altitude in m; found {self.lat_deg}, "
+                             f"{self.lon_deg}, {self.alt_m}")
+
+
+def encode_set_gps_global_origin(origin: GeoOrigin, target_system: int, seq: int,
+                                 sysid: int = 1,
+                                 compid: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+                                 time_usec: int = 0) -> bytes:
+    """A SET_GPS_GLOBAL_ORIGIN for ``target_system`` (0: every system).
+
+    Wire order: latitude, longitude (degE7) i32, altitude (mm) i32, target_system u8,
+    then the extension time_usec u64.
+    """
+    payload = struct.pack("<iiiBQ", round(origin.lat_deg * 1e7), round(origin.lon_deg * 1e7),
+                          round(origin.alt_m * 1000), int(target_system) & 0xFF,
+                          int(time_usec) & 0xFFFF_FFFF_FFFF_FFFF)
+    return frame_v2(MSG_ID_SET_GPS_GLOBAL_ORIGIN, payload, seq, sysid, compid)
 
 
 # ------------------------------------------------------------------- pose -> message
@@ -333,6 +389,9 @@ def unpack_vision_position_estimate(frame: MavFrame) -> dict[str, object]:
 def describe_frame(frame: MavFrame) -> str:
     """One log line for a frame read back from the autopilot."""
     text = f"{frame.name} sys={frame.sysid} comp={frame.compid} seq={frame.seq}"
+    if frame.msg_id == MSG_ID_TIMESYNC:
+        tc1, ts1 = unpack_timesync(frame)
+        text += f" tc1={tc1} ts1={ts1}"
     if frame.msg_id == 253:  # STATUSTEXT: severity u8, text char[50]
         p = frame.payload.ljust(51, b"\x00")
         msg = p[1:51].split(b"\x00")[0].decode("ascii", "replace")

@@ -42,6 +42,7 @@ import fcntl
 import logging
 import os
 import select
+import stat
 import sys
 import threading
 import time
@@ -101,11 +102,17 @@ class LinkProtocol(Protocol):
         """The message for one estimate (``None``: nothing to send) and whether it is a pose."""
         ...
 
-    def periodic(self, health: Health) -> bytes | None: ...
+    def periodic(self, health: Health) -> bytes | list[bytes] | None:
+        """Whole messages due once a second (none, one, or several)."""
+        ...
 
     def relocalized(self) -> None: ...
 
     def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]: ...
+
+    def answer(self, raw: bytes, now_ns: int) -> list[bytes]:
+        """Messages to send back for one message read from the controller (may be none)."""
+        ...
 
 
 class NmeaProtocol:
@@ -138,6 +145,9 @@ class NmeaProtocol:
         lines, rest = nmea.split_sentences(buffer)
         return [(ln, ln.decode("ascii", "replace")) for ln in lines], rest
 
+    def answer(self, raw: bytes, now_ns: int) -> list[bytes]:
+        return []
+
 
 class MavlinkProtocol:
     """VISION_POSITION_ESTIMATE per pose, HEARTBEAT once a second unless faulted.
@@ -146,20 +156,36 @@ class MavlinkProtocol:
         sysid, compid: the sender's ids (default 1 and 197, MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
         settings: how poses map to the message (z and roll/pitch variance, the
             policy for a pose missing x or y).
+        origin: an EKF origin to send as SET_GPS_GLOBAL_ORIGIN once a second (with the
+            HEARTBEAT) until the autopilot reports GPS_GLOBAL_ORIGIN; ``None`` (default):
+            never sent.
+        answer_timesync: answer TIMESYNC requests (``tc1 = 0``) with the link's clock in
+            ns, the clock poses are stamped with (PX4 maps the stamps through it).
+
+    Attributes:
+        timesyncs: TIMESYNC requests answered.
+        origin_acknowledged: the autopilot reported its GPS_GLOBAL_ORIGIN.
+        autopilot_sysid: the system id of the last autopilot HEARTBEAT heard (or ``None``).
     """
 
     name = "mavlink"
 
     def __init__(self, sysid: int = 1, compid: int = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
-                 settings: mavlink.VisionSettings | None = None) -> None:
+                 settings: mavlink.VisionSettings | None = None,
+                 origin: mavlink.GeoOrigin | None = None, answer_timesync: bool = True) -> None:
         if not 1 <= int(sysid) <= 255:
             raise LinkError(f"MAVLink system id must be in 1..255, found {sysid}")
         if not 0 <= int(compid) <= 255:
             raise LinkError(f"MAVLink component id must be in 0..255, found {compid}")
         self.sysid, self.compid = int(sysid), int(compid)
         self.settings = settings or mavlink.VisionSettings()
+        self.origin = origin
+        self.answer_timesync = answer_timesync
         self.seq = 0
         self.reset_counter = 0
+        self.timesyncs = 0
+        self.origin_acknowledged = False
+        self.autopilot_sysid: int | None = None
 
     def _next_seq(self) -> int:
         s = self.seq
@@ -174,11 +200,16 @@ class MavlinkProtocol:
             self._next_seq()
         return msg, msg is not None
 
-    def periodic(self, health: Health) -> bytes | None:
+    def periodic(self, health: Health) -> bytes | list[bytes] | None:
         if health.faulted:
             return None
         status = mavlink.MAV_STATE_ACTIVE if health.valid_recently else mavlink.MAV_STATE_STANDBY
-        return mavlink.encode_heartbeat(self._next_seq(), self.sysid, self.compid, status)
+        beat = mavlink.encode_heartbeat(self._next_seq(), self.sysid, self.compid, status)
+        if self.origin is None or self.origin_acknowledged:
+            return beat
+        target = self.autopilot_sysid or 0
+        return [beat, mavlink.encode_set_gps_global_origin(
+            self.origin, target, self._next_seq(), self.sysid, self.compid)]
 
     def relocalized(self) -> None:
         self.reset_counter = (self.reset_counter + 1) % 256
@@ -186,6 +217,24 @@ class MavlinkProtocol:
     def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]:
         frames, rest = mavlink.split_frames(buffer)
         return [(f.raw, mavlink.describe_frame(f)) for f in frames], rest
+
+    def answer(self, raw: bytes, now_ns: int) -> list[bytes]:
+        frames, _ = mavlink.split_frames(raw)
+        out: list[bytes] = []
+        for f in frames:
+            if f.msg_id == mavlink.MSG_ID_HEARTBEAT:
+                p = f.payload.ljust(9, b"\x00")
+                if p[5] != mavlink.MAV_AUTOPILOT_INVALID:  # an autopilot, not a GCS/companion
+                    self.autopilot_sysid = f.sysid
+            elif f.msg_id == mavlink.MSG_ID_GPS_GLOBAL_ORIGIN:
+                self.origin_acknowledged = True
+            elif f.msg_id == mavlink.MSG_ID_TIMESYNC and self.answer_timesync:
+                tc1, ts1 = mavlink.unpack_timesync(f)
+                if tc1 == 0:  # a request; tc1 != 0 is an answer to someone else
+                    self.timesyncs += 1
+                    out.append(mavlink.encode_timesync(now_ns, ts1, self._next_seq(),
+                                                       self.sysid, self.compid))
+        return out
 
 
 def make_protocol(protocol: str | LinkProtocol, **options) -> LinkProtocol:
@@ -302,7 +351,9 @@ class LinkBase:
                     raise LinkError(f"cannot open receive log {self.rx_log_path}: "
                                     f"{exc.strerror}") from None
             self._state = "connected"
-            self._next_periodic_ns = self.clock_ns()
+            # the first periodic message is due one period after opening: startup is
+            # not "no pose", and a replay's first pose is never preceded by a status
+            self._next_periodic_ns = self.clock_ns() + PERIOD_NS
         if self.service_interval_s:
             self._stop.clear()
             self._thread = threading.Thread(target=self._service, name="ceilkit-link",
@@ -335,8 +386,16 @@ class LinkBase:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def _wait_input(self, timeout_s: float) -> None:
+        """Sleep up to ``timeout_s``, waking early when the port has input (a port hook)."""
+        self._stop.wait(timeout_s)
+
     def _service(self) -> None:
-        while not self._stop.wait(self.service_interval_s):
+        interval = float(self.service_interval_s or 0.05)
+        while not self._stop.is_set():
+            self._wait_input(interval)
+            if self._stop.is_set():
+                break
             try:
                 self.poll()
             except Exception:  # noqa: BLE001 - e.g. a failing on_receive; keep serving
@@ -444,13 +503,14 @@ class LinkBase:
             self._try_reopen(now)
         if self.periodic_enabled and now >= self._next_periodic_ns:
             self._next_periodic_ns = now + PERIOD_NS
-            msg = self.protocol.periodic(self._health(now))
-            if msg is not None:
+            msgs = self.protocol.periodic(self._health(now))
+            for msg in [msgs] if isinstance(msgs, bytes) else (msgs or ()):
                 self._enqueue(msg)
         if self._state == "connected":
             try:
                 self._pump()
-                self._read()
+                if self._read():
+                    self._pump()  # answers (TIMESYNC) go out at once: PX4 times the round trip
             except _Disconnected as exc:
                 self._lost(now, str(exc))
 
@@ -468,21 +528,29 @@ class LinkBase:
             self._head = b""
             self._count(sent=1)
 
-    def _read(self) -> None:
+    def _read(self) -> bool:
+        """Read and dispatch what the controller sent; True if answers were queued."""
         data = self._read_some()
         if not data:
-            return
+            return False
         self._rx += data
         messages, self._rx = self.protocol.split_incoming(self._rx)
         self._rx = self._rx[-MAX_RX_PENDING:]
         now = self.clock_ns()
+        answered = False
+        answer = getattr(self.protocol, "answer", None)
         for raw, text in messages:
             self._count(received=1)
+            if answer is not None:
+                for reply in answer(raw, now):
+                    self._enqueue(reply)
+                    answered = True
             if self._rx_log is not None:
                 self._rx_log.write(f"{now / 1e9:.3f} {text}\n")
                 self._rx_log.flush()
             if self.on_receive is not None:
                 self.on_receive(Received(now, raw, text))
+        return answered
 
     def _lost(self, now: int, why: str) -> None:
         dropped = len(self._queue) + (1 if self._head else 0)
@@ -603,6 +671,20 @@ class SerialLink(LinkBase):
         except OSError as exc:
             raise _Disconnected(f"write: {exc.strerror}") from None
 
+    def _wait_input(self, timeout_s: float) -> None:
+        fd = self._fd
+        if fd < 0:
+            self._stop.wait(timeout_s)
+            return
+        try:
+            poller = select.poll()
+            poller.register(fd, select.POLLIN)
+            events = poller.poll(timeout_s * 1000)
+        except (OSError, ValueError):
+            events = []
+        if events and events[0][1] & (select.POLLHUP | select.POLLERR | select.POLLNVAL):
+            self._stop.wait(0.01)  # a hang-up stays "ready": let poll() notice, no spin
+
     def _read_some(self) -> bytes:
         # pyserial sets VMIN = VTIME = 0, so an empty read is "nothing yet"; a hang-up
         # shows as POLLHUP / POLLERR, or as readable-but-empty (as pyserial reads it)
@@ -625,18 +707,52 @@ class SerialLink(LinkBase):
         return data
 
 
+def is_serial_path(target: str | Path) -> bool:
+    """Whether ``--serial`` names a serial port rather than a regular output file.
+
+    A port: a path under ``/dev/``, a character device (also through a symlink, as
+    ``/dev/serial/by-id/...`` and socat links are), or a name starting with ``tty``
+    (a port that is unplugged right now). Anything else is a file.
+    """
+    path = Path(target)
+    if str(path).startswith("/dev/") or path.name.startswith("tty"):
+        return True
+    try:
+        return stat.S_ISCHR(os.stat(path).st_mode)
+    except OSError:
+        return False
+
+
 def open_link(target: str | Path, protocol: str = "nmea", baud: int = 115200, *,
               system_id: int = 1, component_id: int = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+              unobserved: str = "skip", origin: mavlink.GeoOrigin | None = None,
               **options) -> LinkBase:
-    """The link for a command line's ``--serial`` value: ``-`` is stdout, else a port.
+    """The link for a command line's ``--serial`` value.
 
-    The result is not open yet: use it with ``with``.
+    ``-`` is stdout; a serial port (see :func:`is_serial_path`) is a :class:`SerialLink`;
+    any other path is a regular file, truncated and written with the wire's bytes
+    (:class:`FileLink`). The result is not open yet: use it with ``with``.
+
+    Args:
+        unobserved: MAVLink policy for a pose missing x or y (``skip`` or ``nan``, see
+            :class:`~ceilkit.runtime.link.mavlink.VisionSettings`).
+        origin: MAVLink: an EKF origin to send until acknowledged (ArduPilot).
     """
-    proto_opts = ({"sysid": system_id, "compid": component_id} if protocol == "mavlink"
-                  else {})
+    if protocol == "mavlink":
+        try:
+            settings = mavlink.VisionSettings(unobserved=unobserved)
+        except ValueError as exc:
+            raise LinkError(str(exc)) from None
+        proto_opts = {"sysid": system_id, "compid": component_id, "settings": settings,
+                      "origin": origin}
+    else:
+        proto_opts = {}
     if str(target) == "-":
         return FileLink("-", protocol, **proto_opts, **options)
-    return SerialLink(target, baud, protocol, **proto_opts, **options)
+    if is_serial_path(target):
+        return SerialLink(target, baud, protocol, **proto_opts, **options)
+    options.pop("service_interval_s", None)
+    return FileLink(target, protocol, append=False, **proto_opts, **options)
 
 
 # ------------------------------------------------------------------------ file, fake
@@ -647,14 +763,16 @@ class FileLink(LinkBase):
 
     Periodic messages follow ``clock_ns`` as on a port; pass ``periodic=False`` to
     write only the per-estimate messages (a replay, compared byte for byte).
+    ``append=False`` truncates the file when it is first opened.
     """
 
     def __init__(self, path: str | Path, protocol: str | LinkProtocol = "nmea", *,
-                 periodic: bool = True, **options) -> None:
+                 periodic: bool = True, append: bool = True, **options) -> None:
         options.setdefault("max_buffer_bytes", 1 << 20)
         super().__init__(protocol, **options)
         self.path = str(path)
         self.periodic_enabled = periodic
+        self.append = append
         self._file: IO[bytes] | None = None
 
     def describe(self) -> str:
@@ -665,7 +783,8 @@ class FileLink(LinkBase):
             self._file = sys.stdout.buffer
             return
         try:
-            self._file = open(self.path, "ab")  # noqa: SIM115
+            self._file = open(self.path, "ab" if self.append else "wb")  # noqa: SIM115
+            self.append = True  # a reopen after an error appends
         except OSError as exc:
             raise LinkError(f"cannot open link file {self.path}: {exc.strerror}") from None
 

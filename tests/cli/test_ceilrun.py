@@ -121,6 +121,13 @@ def test_live_on_the_simulator_records_and_streams(tmp_path):
     (["--device", "sim:corridor", "--frames", "2", "--serial", "/dev/ttyNOPE0"], 1,
      "/dev/ttyNOPE0"),
     (["replay", "/nonexistent/rec"], 1, "not a recording folder"),
+    (["--device", "sim:corridor", "--frames", "2", "--serial", "/nonexistent/dir/out.nmea"],
+     1, "cannot open link file /nonexistent/dir/out.nmea"),
+    (["--device", "sim:corridor", "--frames", "2", "--protocol", "mavlink", "--serial", "-",
+      "--ekf-origin", "48.1,11.5"], 1, "--ekf-origin"),
+    (["--device", "sim:corridor", "--frames", "2", "--protocol", "mavlink", "--serial", "-",
+      "--ekf-origin", "95,11.5,500"], 1, "lat in [-90, 90]"),
+    (["--device", "sim:corridor", "--mavlink-missing-x", "zero"], 2, "zero"),
 ])
 def test_bad_arguments_are_one_line(args, code, words):
     res = CliRunner().invoke(app, args)
@@ -128,3 +135,41 @@ def test_bad_arguments_are_one_line(args, code, words):
     assert words in res.output
     if code == 1:
         assert res.output.count("error:") == 1
+
+
+def test_serial_to_a_regular_file(tmp_path):
+    out = tmp_path / "stream.nmea"
+    res = CliRunner().invoke(app, ["--device", "sim:corridor", "--frames", "5", "--serial",
+                                   str(out)])
+    assert res.exit_code == 0, res.output
+    lines = out.read_bytes().split(b"\r\n")
+    assert lines[-1] == b""
+    import pynmea2
+
+    poses = [pynmea2.parse(ln.decode()) for ln in lines[:-1] if ln.startswith(b"$PCEIL")]
+    assert len(poses) == 5 and "link " + str(out) in res.output
+
+
+def test_mavlink_missing_x_nan_sends_corridor_poses(tmp_path):
+    """The corridor method has no x: skipped by default, x = NaN with --mavlink-missing-x nan
+    (decoded by pymavlink), with the yaw and y of the pose."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    n = len(Recording(FIXTURES / "corridor_rec"))
+    got = {}
+    for policy in ("skip", "nan"):
+        out = tmp_path / f"{policy}.bin"
+        res = CliRunner().invoke(app, ["replay", str(FIXTURES / "corridor_rec"), "--out",
+                                       str(tmp_path / policy), "--serial", str(out),
+                                       "--protocol", "mavlink", "--mavlink-missing-x", policy])
+        assert res.exit_code == 0, res.output
+        got[policy] = [m for m in mavlink2.MAVLink(None).parse_buffer(out.read_bytes()) or []
+                       if m.get_type() == "VISION_POSITION_ESTIMATE"]
+    assert got["skip"] == []
+    poses = load_poses(tmp_path / "nan" / "poses.csv")
+    assert len(got["nan"]) == n
+    import math
+
+    for m, y, yaw in zip(got["nan"], poses.y_m, poses.yaw_rad, strict=True):
+        assert math.isnan(m.x) and m.y == pytest.approx(-y, abs=1e-6)
+        assert m.yaw == pytest.approx(-yaw, abs=1e-6) and math.isnan(m.covariance[0])

@@ -6,9 +6,11 @@ import pytest
 
 from ceilkit.runtime.capture import (
     CameraSource,
+    FakeCamera,
     ImageFolderSource,
     VideoFileSource,
     open_source,
+    open_video,
     packaged_config,
 )
 from ceilkit.runtime.errors import CaptureError
@@ -99,3 +101,57 @@ def test_read_after_close_returns_none():
     cam = CameraSource(0, open_capture=lambda d: FakeCapture(10_000))
     cam.close()
     assert cam.read(timeout_s=0.2) is None
+
+
+def _images(n=3):
+    return [np.full((4, 6), 10 * k, np.uint8) for k in range(n)]
+
+
+def test_fake_camera_unplugged_is_a_state_not_an_error():
+    cam = FakeCamera(_images(), fps=200)
+    with CameraSource("/dev/video3", open_capture=cam.open, max_backoff_s=0.02) as src:
+        first = src.wait_frame(2.0)
+        assert first is not None and first.image.shape == (4, 6)
+        cam.unplug()
+        deadline = time.monotonic() + 5
+        while src.status != "lost" and time.monotonic() < deadline:
+            src.wait_frame(0.01)
+        assert src.status == "lost" and src.losses == 1
+        assert src.wait_frame(0.05) is None  # no frame, no exception
+        with pytest.raises(CaptureError, match="camera lost"):
+            src.read(timeout_s=0.05)
+        cam.replug()
+        back = None
+        while back is None and time.monotonic() < deadline:
+            back = src.wait_frame(0.05)
+        assert back is not None and back.index > first.index and back.t_ns > first.t_ns
+        assert src.reopens == 1 and src.status == "running" and cam.opens >= 2
+    assert src.closed and src.wait_frame(0.01) is None
+
+
+def test_fake_camera_serves_images_in_a_loop_at_its_rate():
+    cam = FakeCamera(_images(2), fps=500)
+    cap = cam.open()
+    got = [int(cap.read()[1][0, 0]) for _ in range(5)]
+    assert got == [0, 10, 0, 10, 0] and cam.served == 5
+    cap.release()
+    assert cap.read() == (False, None)
+    with pytest.raises(CaptureError):
+        FakeCamera([], fps=30)
+    with pytest.raises(CaptureError):
+        FakeCamera(_images(), fps=0)
+
+
+def test_open_video_takes_only_cameras_and_videos(tmp_path):
+    with pytest.raises(CaptureError, match="no such video file"):
+        open_video(str(tmp_path / "nope.mp4"))
+    (tmp_path / "a.txt").write_text("x")
+    with pytest.raises(CaptureError, match="not a video"):
+        open_video(str(tmp_path / "a.txt"))
+    video = tmp_path / "v.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (32, 24))
+    for k in range(3):
+        w.write(np.full((24, 32, 3), 40 * k, np.uint8))
+    w.release()
+    with open_video(str(video)) as v:
+        assert isinstance(v, VideoFileSource) and len(list(v)) == 3

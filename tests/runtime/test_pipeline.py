@@ -64,3 +64,77 @@ def test_run_live_stops_on_event():
 
     res = run_live(ListSource(_frames(10)), p, stop=stop, on_frame=on_frame)
     assert res.stopped and res.telemetry.frames == 2
+
+
+def test_set_fault_reaches_sinks_that_hear_it():
+    from ceilkit.runtime.link import MemoryLink, nmea
+
+    with MemoryLink("nmea") as link:
+        p = Pipeline(FakeEstimator(), [ListSink(), link])
+        p.set_fault("camera_lost")
+        p.set_fault(None)
+    first, cleared = [nmea.decode(ln + b"\r\n") for ln in bytes(link.written).split(b"\r\n")
+                      if ln]
+    assert first.faulted and first.reason == "camera_lost" and not cleared.faulted
+
+
+def test_async_recorder_keeps_every_frame_and_reports_errors(tmp_path, corridor_rig,
+                                                            corridor_site):
+    from ceilkit.runtime.live import AsyncRecorder
+    from ceilkit.runtime.recording import Recording, RecordingWriter
+
+    with AsyncRecorder(RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site),
+                       max_queue=2) as rec:
+        for f in _frames(9):
+            rec.write(f)
+    assert rec.count == 9 and len(Recording(tmp_path / "rec")) == 9
+    import shutil
+
+    import pytest
+
+    bad = AsyncRecorder(RecordingWriter(tmp_path / "bad", corridor_rig, corridor_site))
+    shutil.rmtree(tmp_path / "bad" / "frames")  # the disk went away
+    bad.write(_frames(1)[0])
+
+    from ceilkit.runtime.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="cannot write"):
+        bad.close()
+    assert bad.writer._frames[0].closed  # files closed all the same
+
+
+def test_run_live_reports_a_lost_camera_and_records_every_frame(tmp_path, corridor_rig,
+                                                                corridor_site):
+    """A camera unplugged mid-run: the link says camera_lost, the run goes on, and every
+    frame processed is in the recording."""
+    import threading
+
+    from ceilkit.runtime.capture import CameraSource, FakeCamera
+    from ceilkit.runtime.link import MemoryLink, nmea
+    from ceilkit.runtime.recording import Recording, RecordingWriter
+
+    images = [np.full((4, 4), 2 * k, np.uint8) for k in range(4)]  # even: estimated
+    cam = FakeCamera(images, fps=100)
+    events = []
+    stop = threading.Event()
+
+    def on_frame(tel):
+        if tel.frames == 10:
+            cam.unplug()
+            threading.Timer(0.8, cam.replug).start()
+        if tel.frames == 20:
+            stop.set()
+        events.append(tel.camera_losses)
+
+    with CameraSource("/dev/video5", open_capture=cam.open, max_backoff_s=0.05) as src, \
+            MemoryLink("nmea") as link:
+        p = Pipeline(FakeEstimator(), [link])
+        res = run_live(src, p, RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site),
+                       stop=stop, on_frame=on_frame, fault_after_s=0.2)
+    assert res.stopped and res.telemetry.frames == 20 and res.telemetry.camera_losses == 1
+    assert res.recorded == 20 and len(Recording(tmp_path / "rec")) == 20
+    lines = [nmea.decode(ln + b"\r\n") for ln in bytes(link.written).split(b"\r\n") if ln]
+    faults = [d for d in lines if isinstance(d, nmea.NmeaStatus)]
+    assert faults and all(d.faulted and d.reason == "camera_lost" for d in faults)
+    assert sum(isinstance(d, nmea.NmeaPose) for d in lines) == 20
+    assert src.reopens == 1

@@ -186,3 +186,60 @@ def test_urt_index_covers_the_triangle():
     idx = sorted(mavlink.urt_index(i, j) for i in range(6) for j in range(i, 6))
     assert idx == list(range(21))
     assert struct.calcsize("<Q6f21fB") == 117
+
+
+# ---------------------------------------------------------------- TIMESYNC, EKF origin
+
+
+def test_timesync_matches_pymavlink_and_round_trips():
+    ours = mavlink.encode_timesync(123_456_789_000, -5, seq=3, sysid=1, compid=197)
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    mav.seq = 3
+    ref = mav.timesync_encode(123_456_789_000, -5).pack(mav)
+    assert ours == bytes(ref)
+    (frame,) = mavlink.iter_frames(ours)
+    assert mavlink.unpack_timesync(frame) == (123_456_789_000, -5)
+    assert "tc1=123456789000" in mavlink.describe_frame(frame)
+
+
+def test_set_gps_global_origin_decodes_with_pymavlink():
+    origin = mavlink.GeoOrigin(48.1173, 11.5167, 545.4)
+    data = mavlink.encode_set_gps_global_origin(origin, target_system=1, seq=0)
+    (msg,) = parse(data)
+    assert msg.get_type() == "SET_GPS_GLOBAL_ORIGIN" and msg.target_system == 1
+    assert (msg.latitude, msg.longitude, msg.altitude) == (481173000, 115167000, 545400)
+    with pytest.raises(mavlink.LinkError, match="origin"):
+        mavlink.GeoOrigin(91.0, 0.0, 0.0)
+
+
+def _autopilot(sysid=1):
+    return mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=1)
+
+
+def test_protocol_answers_timesync_requests_only():
+    proto = MavlinkProtocol()
+    ap = _autopilot()
+    request = bytes(ap.timesync_encode(0, 777_000).pack(ap))
+    answer = bytes(ap.timesync_encode(5, 777_000).pack(ap))  # someone else's answer
+    out = proto.answer(request, now_ns=42_000_000_000)
+    assert proto.answer(answer, now_ns=1) == [] and proto.timesyncs == 1
+    (msg,) = parse(b"".join(out))
+    assert (msg.tc1, msg.ts1) == (42_000_000_000, 777_000)
+    assert MavlinkProtocol(answer_timesync=False).answer(request, 1) == []
+
+
+def test_protocol_sends_origin_until_acknowledged():
+    from ceilkit.runtime.link.transport import Health
+
+    origin = mavlink.GeoOrigin(-33.5, 151.25, 20.0)
+    proto = MavlinkProtocol(origin=origin)
+    health = Health(0, False, "", True, "stale", 0)
+    ap = _autopilot(sysid=7)
+    proto.answer(bytes(ap.heartbeat_encode(1, 3, 0, 0, 4).pack(ap)), 0)  # ArduPilot's
+    names = [m.get_type() for m in parse(b"".join(proto.periodic(health)))]
+    assert names == ["HEARTBEAT", "SET_GPS_GLOBAL_ORIGIN"]
+    assert parse(b"".join(proto.periodic(health)))[1].target_system == 7
+    proto.answer(bytes(ap.gps_global_origin_encode(-335000000, 1512500000, 20000).pack(ap)), 0)
+    assert proto.origin_acknowledged
+    assert [m.get_type() for m in parse(proto.periodic(health))] == ["HEARTBEAT"]
+    assert MavlinkProtocol().periodic(health)[:1] == b"\xfd"  # no origin by default

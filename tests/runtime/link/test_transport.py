@@ -101,12 +101,16 @@ def test_status_without_estimates_and_while_faulted():
     clock = Clock()
     with MemoryLink("nmea", clock_ns=clock) as link:
         link.poll()
+        assert bytes(link.written) == b""  # the first second after opening is start-up
+        clock.t += S
+        link.poll()
         link.set_fault("camera_lost")
         for _ in range(3):
             clock.t += S
             link.poll()
     status = sentences(bytes(link.written))
     assert status[0].reason == "no_estimate" and status[0].age_ms is None
+    assert status[0].t_ms == 1000
     assert [s.faulted for s in status] == [False, True, True, True, True]
     assert status[-1].reason == "camera_lost"
 
@@ -128,7 +132,7 @@ def test_heartbeat_1hz_stops_while_faulted():
     types = [m.get_type() for m in msgs]
     assert types.count("VISION_POSITION_ESTIMATE") == 90
     hb = [m for m in msgs if m.get_type() == "HEARTBEAT"]
-    assert len(hb) == 4  # t = 0, 1, 2 s, then after the fault clears
+    assert len(hb) == 3  # t = 1, 2 s (none in the first second), then after the fault clears
     assert types[-1] == "HEARTBEAT"
     assert hb[0].type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
     assert hb[0].get_srcComponent() == mavlink2.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
@@ -273,6 +277,7 @@ def test_serial_link_over_pty_mavlink_reads_back(pty):
         link.send(pose(1))
         ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
         os.write(pty.master, ap.heartbeat_encode(10, 3, 0, 0, 4).pack(ap))
+        link.clock_ns.t += S
         link.poll()
         data = pty.read()
     msgs = mavlink2.MAVLink(None).parse_buffer(data)
@@ -330,7 +335,9 @@ def test_serial_link_survives_unplug_and_replug(pty):
 def test_service_thread_sends_status_without_the_pipeline(pty):
     clock = Clock()
     seen = threading.Event()
+    clock.t = S  # past the start-up second
     with SerialLink(pty.path, 115200, "nmea", clock_ns=clock, service_interval_s=0.01):
+        clock.t = 2 * S
         data = b""
         for _ in range(500):  # bounded wait for the thread's first status sentence
             data += pty.read()
@@ -360,6 +367,7 @@ def test_unopenable_ports_raise_link_error(tmp_path, pty):
 def test_yaw_nan_pose_never_reaches_the_wire(pty):
     with SerialLink(pty.path, 115200, "mavlink", clock_ns=Clock(),
                     service_interval_s=None) as link:
+        link.clock_ns.t += S
         link.send(pose(0, yaw_rad=math.nan))
         data = pty.read()
     assert [f.name for f in mavlink.iter_frames(data)] == ["HEARTBEAT"]
@@ -388,3 +396,46 @@ def test_open_link_chooses_stdout_or_port(tmp_path, pty, capfdbinary):
     assert {m.get_srcSystem() for m in msgs} == {9}
     with pytest.raises(LinkError, match="cannot open serial port"):
         open_link(tmp_path / "ttyACM9").open()
+
+
+def test_service_thread_answers_timesync_over_pty(pty):
+    ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    with SerialLink(pty.path, 115200, "mavlink", service_interval_s=0.05) as link:
+        os.write(pty.master, ap.timesync_encode(0, 123_456).pack(ap))
+        data = b""
+        for _ in range(300):  # bounded wait: the thread wakes on input
+            data += pty.read()
+            if any(m.get_type() == "TIMESYNC" for m in
+                   mavlink2.MAVLink(None).parse_buffer(data) or []):
+                break
+            threading.Event().wait(0.01)
+        now = link.clock_ns()
+    (msg,) = [m for m in mavlink2.MAVLink(None).parse_buffer(data) if m.get_type() == "TIMESYNC"]
+    assert msg.ts1 == 123_456 and 0 < msg.tc1 <= now  # our monotonic clock, ns
+    assert link.protocol.timesyncs == 1 and link.counters.received == 1
+
+
+def test_open_link_writes_a_regular_file(tmp_path):
+    out = tmp_path / "poses.nmea"
+    out.write_bytes(b"old content\r\n")
+    with open_link(out, "nmea", clock_ns=Clock()) as link:
+        assert isinstance(link, FileLink)
+        link.send(pose(0))
+    assert out.read_bytes() == nmea.encode_pose(pose(0), 0)  # truncated, then the wire bytes
+    with open_link(out, "mavlink", unobserved="nan", clock_ns=Clock()) as link:
+        link.send(pose(1, x_m=None))
+    (msg,) = mavlink2.MAVLink(None).parse_buffer(out.read_bytes())
+    assert math.isnan(msg.x) and msg.y == pytest.approx(-2.0)
+    with pytest.raises(LinkError, match="unobserved"):
+        open_link(out, "mavlink", unobserved="zero")
+    with pytest.raises(LinkError, match="cannot open link file"):
+        open_link(tmp_path / "no" / "dir" / "x.nmea").open()
+
+
+def test_is_serial_path(tmp_path, pty):
+    from ceilkit.runtime.link.transport import is_serial_path
+
+    assert is_serial_path("/dev/ttyUSB0") and is_serial_path(tmp_path / "ttyV0")
+    (tmp_path / "port").symlink_to(os.ttyname(pty.slave))
+    assert is_serial_path(tmp_path / "port")  # a symlink to a character device
+    assert not is_serial_path(tmp_path / "poses.nmea")
