@@ -73,9 +73,13 @@ class RecordingWriter:
         name = frame_name(self.count)
         path = self.folder / "frames" / name
         tmp = path.with_name("." + name)
-        ok = cv2.imwrite(str(tmp), frame.image)
+        try:
+            ok = cv2.imwrite(str(tmp), frame.image)
+        except cv2.error:  # an empty or non-image array
+            ok = False
         if not ok:
-            raise ConfigError(tmp, None, "cannot write the frame image")
+            shape = getattr(frame.image, "shape", None)
+            raise ConfigError(tmp, None, f"cannot write the frame image (shape {shape})")
         os.replace(tmp, path)
         self._frames[1].writerow([self.count, int(frame.t_ns)])
         self._frames[0].flush()

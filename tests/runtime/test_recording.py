@@ -168,3 +168,14 @@ def test_frames_the_camera_cannot_have_taken(tmp_path, corridor_rig, corridor_si
     with pytest.raises(ConfigError, match=words) as err:
         Recording(folder).frame(0)
     assert "000000.png" in str(err.value)
+
+
+def test_an_empty_frame_is_a_clear_error_and_the_recording_stays_whole(
+        tmp_path, corridor_rig, corridor_site):
+    w = RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site)
+    good = np.zeros((corridor_rig.camera.height, corridor_rig.camera.width), np.uint8)
+    w.write(Frame(good, 5))
+    with pytest.raises(ConfigError, match="cannot write the frame image"):
+        w.write(Frame(np.zeros((0, 0), np.uint8), 6))
+    w.close()
+    assert len(Recording(tmp_path / "rec")) == 1
