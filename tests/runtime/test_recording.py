@@ -174,8 +174,8 @@ def test_an_empty_frame_is_a_clear_error_and_the_recording_stays_whole(
         tmp_path, corridor_rig, corridor_site):
     w = RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site)
     good = np.zeros((corridor_rig.camera.height, corridor_rig.camera.width), np.uint8)
-    w.write(Frame(good, 5))
+    w.write(Frame(good, 5, 0))
     with pytest.raises(ConfigError, match="cannot write the frame image"):
-        w.write(Frame(np.zeros((0, 0), np.uint8), 6))
+        w.write(Frame(np.zeros((0, 0), np.uint8), 6, 1))
     w.close()
     assert len(Recording(tmp_path / "rec")) == 1
