@@ -192,6 +192,39 @@ class ChessBoard(Board):
         out = np.where(paper, 0.92, 0.35)
         return np.where(black, 0.06, out)
 
+    def grid_extends(self, image: np.ndarray, det: Detection, max_steps: int = 4
+                     ) -> tuple[int, int, int, int]:
+        """How many rows or columns of further chessboard corners lie beyond a detected
+        grid: ``(left, right, top, bottom)`` in the grid's own order (0 when the grid
+        ends at the board's edge, as it should).
+
+        A wrong size that still matches part of the board (``8x5`` given for a ``9x6``
+        board) is found, but leaves corners outside it. Each step extrapolates the grid
+        by one square (from its last two rows or columns) and tests every predicted point
+        for an X-junction: the intensity on a ring about it alternates dark, light,
+        dark, light (a strong second harmonic, a weak first); the board's edge against
+        its white margin is a T-junction and fails.
+        """
+        grey = to_grey(image).astype(np.float32)
+        if len(det) != self.cols * self.rows:
+            return (0, 0, 0, 0)
+        grid = det.points_px.reshape(self.rows, self.cols, 2)
+        out = []
+        for axis, first in ((1, True), (1, False), (0, True), (0, False)):
+            g = np.moveaxis(grid, axis, 0)          # lines of corners across the axis
+            if first:
+                g = g[::-1]
+            a, b = g[-2], g[-1]
+            n = 0
+            for _ in range(max_steps):
+                nxt = 2 * b - a
+                if not _x_junctions(grey, nxt, np.linalg.norm(b - a, axis=1))[0]:
+                    break
+                a, b = b, nxt
+                n += 1
+            out.append(n)
+        return (out[0], out[1], out[2], out[3])
+
     def alternatives(self) -> list[Board]:
         c, r = self.cols, self.rows
         sizes = [(r, c), (c - 1, r), (c, r - 1), (c + 1, r), (c, r + 1), (c - 1, r - 1),
@@ -322,6 +355,30 @@ class CharucoBoard(Board):
                 pass
         return out
 
+
+
+def _x_junctions(grey: np.ndarray, pts_px: np.ndarray, spacing_px: np.ndarray,
+                 min_share: float = 0.6) -> np.ndarray:
+    """Whether most points ``(N, 2)`` are chessboard X-junctions (see
+    :meth:`ChessBoard.grid_extends`); ``spacing_px`` ``(N,)`` sets each ring's radius.
+    Returns a one-element array: the share of X-junctions is at least ``min_share``."""
+    h, w = grey.shape[:2]
+    th = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)
+    r = np.clip(0.3 * spacing_px, 2.0, 12.0)
+    inside = (pts_px[:, 0] > r + 1) & (pts_px[:, 0] < w - r - 2) & \
+        (pts_px[:, 1] > r + 1) & (pts_px[:, 1] < h - r - 2)
+    if np.count_nonzero(inside) < max(2, pts_px.shape[0] // 2):
+        return np.array([False])
+    p, rr = pts_px[inside], r[inside]
+    xs = (p[:, 0:1] + rr[:, None] * np.cos(th)[None, :]).astype(np.float32)
+    ys = (p[:, 1:2] + rr[:, None] * np.sin(th)[None, :]).astype(np.float32)
+    ring = cv2.remap(grey, xs, ys, cv2.INTER_LINEAR).astype(np.float64)
+    ring -= ring.mean(axis=1, keepdims=True)
+    spec = np.abs(np.fft.rfft(ring, axis=1))
+    contrast = ring.max(axis=1) - ring.min(axis=1)
+    x_like = (spec[:, 2] > 2.0 * spec[:, 1]) & (spec[:, 2] > spec[:, 3]) & \
+        (contrast > 30.0)
+    return np.array([np.mean(x_like) >= min_share])
 
 _CHESS = re.compile(r"^chess(?:board)?:(\d+)x(\d+)$", re.I)
 _CHARUCO = re.compile(r"^charuco:(\d+)x(\d+)(?::([A-Za-z0-9_]+))?(:legacy)?$", re.I)

@@ -42,7 +42,7 @@ import numpy as np
 
 from ceilkit.runtime.camera import DISTORTION_MODELS, CameraModel
 from ceilkit.runtime.errors import CalibrationError, CaptureError, ConfigError
-from ceilkit.runtime.sources import Frame, FrameSource, SourceBase, to_grey
+from ceilkit.runtime.sources import FrameSource, to_grey
 
 from .boards import Board, CharucoBoard, ChessBoard, Detection
 
@@ -588,6 +588,45 @@ def _no_board_error(board: Board, samples: Sequence[tuple[str, np.ndarray]], n: 
     return CalibrationError(f"no {board.spec} board found in any of {n} image(s)")
 
 
+def _check_whole_board(board: ChessBoard, found: Sequence[Detection],
+                       files: dict[str, Path], n_check: int = 3) -> None:
+    """Raise when the detected grids have further corners beyond them (a size that
+    matches part of the board): checked on up to ``n_check`` views spread over
+    ``found``; the likely size is the one most views agree on."""
+    idx = np.unique(np.linspace(0, len(found) - 1, min(n_check, len(found))).round()
+                    ).astype(int)
+    sizes = []
+    for i in idx:
+        det = found[i]
+        path = files.get(det.name)
+        if path is None or not path.exists():
+            continue
+        left, right, top, bottom = board.grid_extends(read_grey(path), det)
+        sizes.append((board.cols + left + right, board.rows + top + bottom, det.name))
+    bigger = [sz for sz in sizes if sz[:2] != (board.cols, board.rows)]
+    if not sizes or 2 * len(bigger) <= len(sizes):
+        return
+    # views may cut the board: the sizes from the largest extension seen up to two
+    # more each way are tried, largest first, on the views (the classic detector fails
+    # fast); the largest one found wins, else the largest extension seen
+    c0 = max(c for c, _, _ in bigger)
+    r0 = max(r for _, r, _ in bigger)
+    best = (c0, r0)
+    cands = sorted(((c, r) for c in range(board.cols, c0 + 3) for r in range(board.rows, r0 + 3)
+                    if (c, r) != (board.cols, board.rows)), key=lambda cr: -cr[0] * cr[1])
+    greys = [read_grey(files[d.name]) for d in found[:8] if d.name in files]
+    for c, r in cands:
+        probe = ChessBoard(c, r, board.square_m, detector="classic")
+        if any(probe.detect(g) is not None for g in greys):
+            best = (c, r)
+            break
+    names = ", ".join(n for *_, n in bigger)
+    raise ConfigError(None, "--board", f"chess:{board.cols}x{board.rows} matches only "
+                      f"part of the board: further corners lie beyond the detected grid in "
+                      f"{names}; did you mean --board chess:{best[0]}x{best[1]}? "
+                      f"(chessboards count inner corners)")
+
+
 def detect_images(paths: Sequence[str | Path], board: Board,
                   cache: DetectionCache | str | Path | None = None,
                   progress: Callable[[int, int, str, bool], None] | None = None
@@ -604,7 +643,9 @@ def detect_images(paths: Sequence[str | Path], board: Board,
         The detections, in ``paths`` order, images without a board left out.
 
     Raises:
-        ConfigError: an image that cannot be read (named), or mixed image sizes.
+        ConfigError: an image that cannot be read (named), mixed image sizes, or a
+            chessboard size that matches only part of the board (key ``--board``, with
+            the likely size).
         CalibrationError: no board in any image (with a did-you-mean for a board of
             another size found instead).
     """
@@ -641,6 +682,8 @@ def detect_images(paths: Sequence[str | Path], board: Board,
             progress(i, len(paths), p.name, det is not None)
     if dirty:
         cache.save()
+    if isinstance(board, ChessBoard) and out:
+        _check_whole_board(board, out, {Path(p).name: Path(p) for p in paths})
     if len(out) < max(1, len(paths) // 2):
         # the board was missed in most images: a wrong size is the usual reason (a
         # sub-board of the real one can still be found in a few images)
@@ -659,37 +702,6 @@ def detect_images(paths: Sequence[str | Path], board: Board,
 
 
 # -- live and recorded streams ------------------------------------------------------------
-
-class VideoSource(SourceBase):
-    """Frames from a video file or a camera device, through ``cv2.VideoCapture``.
-
-    ``device`` is a file path, or a device index (``0``) or path (``/dev/video0``).
-    """
-
-    def __init__(self, device: str | int):
-        self.name = str(device)
-        arg: str | int = int(device) if str(device).isdigit() else str(device)
-        if isinstance(arg, str) and not arg.startswith("/dev/") and not Path(arg).exists():
-            raise CaptureError(f"{arg}: no such video file")
-        self._cap = cv2.VideoCapture(arg)
-        if not self._cap.isOpened():
-            raise CaptureError(f"{self.name}: cannot open as a video or camera")
-        self._i = 0
-        self._t0 = None
-
-    def read(self) -> Frame | None:
-        ok, img = self._cap.read()
-        if not ok or img is None:
-            return None
-        ms = self._cap.get(cv2.CAP_PROP_POS_MSEC)
-        t_ns = int(ms * 1e6) if ms and ms > 0 else self._i
-        f = Frame(img, t_ns, self._i)
-        self._i += 1
-        return f
-
-    def close(self) -> None:
-        self._cap.release()
-
 
 @dataclass(frozen=True)
 class StopRule:
@@ -997,7 +1009,7 @@ def write_plots(result: IntrinsicsResult, folder: str | Path) -> list[Path]:
 
 
 __all__ = ["COVERAGE_GRID", "RMS_CONVENTION", "CoverageMeter", "DetectionCache",
-           "IntrinsicsReport", "IntrinsicsResult", "StopRule", "VideoSource", "ViewShape",
+           "IntrinsicsReport", "IntrinsicsResult", "StopRule", "ViewShape",
            "atomic_write_bytes", "calibrate_intrinsics", "capture_views", "detect_images",
            "image_files", "plot_coverage", "plot_distortion", "plot_view_errors", "read_grey",
            "view_shape", "write_plots"]

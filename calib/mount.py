@@ -38,18 +38,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ceilkit.runtime.camera import CameraModel
 from ceilkit.runtime.errors import CalibrationError
 from ceilkit.runtime.geometry import R_level_cam, rot_z
-from ceilkit.runtime.lines import (
-    SegmentDetector,
-    as_gray,
-    refine_segments,
-    segment_lengths,
-    undistort_segments,
-)
+from ceilkit.runtime.lines import SegmentDetector, as_gray, segment_lengths
 from ceilkit.runtime.rig import Mount, Rig
 from ceilkit.runtime.site import Site
 
@@ -66,12 +61,22 @@ class Placement:
         y_m: measured lateral position of the vehicle in W, or ``None`` (a drive frame).
         yaw_rad: measured heading in W, or ``None``.
         label: a name for reports (the image file).
+        weights: ``(N, 2)`` residual weights of each segment's offset and turn (see
+            :func:`lines_to_segments`), or ``None``: endpoints measured independently
+            with equal noise.
     """
 
     segments_n: np.ndarray
     y_m: float | None = None
     yaw_rad: float | None = None
     label: str = ""
+    weights: np.ndarray | None = None
+
+    def residual_weights(self) -> np.ndarray:
+        """``(N, 2)`` weights: the given ones or ``(sqrt 2, 1/sqrt 2)`` (independent ends)."""
+        if self.weights is not None:
+            return np.asarray(self.weights, dtype=float).reshape(-1, 2)
+        return np.tile([math.sqrt(2.0), math.sqrt(0.5)], (self.segments_n.shape[0], 1))
 
     @property
     def measured(self) -> bool:
@@ -81,12 +86,11 @@ class Placement:
 def placement_from_image(camera: CameraModel, image: np.ndarray, y_m: float | None = None,
                          yaw_rad: float | None = None, label: str = "",
                          min_length_px: float = 25.0) -> Placement:
-    """Detect, refine and undistort the segments of one image."""
+    """Detect the segments of one image and measure them (:func:`measure_lines`)."""
     gray = as_gray(image)
     segs = SegmentDetector("fld", min_length_px)(gray)
-    if segs.shape[0]:
-        segs, _ = refine_segments(gray, segs)
-    return Placement(undistort_segments(camera, segs), y_m, yaw_rad, label)
+    segs_n, weights = lines_to_segments(measure_lines(camera, gray, segs))
+    return Placement(segs_n, y_m, yaw_rad, label, weights)
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,6 +138,243 @@ class MountResult:
         s = self.sigma.get(name, math.nan)
         return f"   +- {math.degrees(s):.4f} deg (1 sigma)" if angle else \
             f" +- {1000 * s:.2f} mm (1 sigma)"
+
+
+# ----------------------------------------------------------------------------- edges
+# Calibration is off the hot path: every segment is re-measured from the image.
+_STEP_PX = 2.0          # spacing of edge samples along a segment (nearly independent noise)
+_PROFILE_DO = 0.25      # spacing of profile samples across it, px
+_TRIM_PX = 4.0          # left out at both ends of a segment, px
+# a line's offset is not better known than this, however long it is (pixel locking,
+# ceiling texture: errors that do not average out along a line), px
+SYSTEMATIC_PX = 0.02
+
+
+def _profiles(gray_f: np.ndarray, base_px: np.ndarray, normal_px: np.ndarray,
+              offsets: np.ndarray) -> np.ndarray:
+    """Intensity ``(K, O)`` at ``base + o * normal`` (bilinear)."""
+    pts = base_px[:, None, :] + offsets[None, :, None] * normal_px[:, None, :]
+    return cv2.remap(gray_f, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
+                     cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+
+
+def _centroid_peak(w: np.ndarray, offsets: np.ndarray, search: float, half: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel location ``(K,)`` of the peak of non-negative profiles ``w (K, O)``
+    within ``|o| <= search``: a centroid over ``|o - c| <= half``, re-centred three
+    times (a window symmetric about the peak has no pull). Returns (location, mass)."""
+    inside = np.abs(offsets) <= search
+    c = offsets[np.argmax(np.where(inside[None, :], w, -np.inf), axis=1)]
+    mass = np.zeros(w.shape[0])
+    for _ in range(3):
+        win = np.abs(offsets[None, :] - c[:, None]) <= half
+        ww = np.where(win, np.maximum(w, 0.0), 0.0)
+        mass = ww.sum(axis=1)
+        c = np.where(mass > 0, (ww * offsets[None, :]).sum(axis=1) / np.maximum(mass, 1e-12),
+                     c)
+        c = np.clip(c, -search, search)
+    return c, mass
+
+
+def _kind(prof: np.ndarray, offsets: np.ndarray) -> tuple[str, float]:
+    """``("step", polarity)``, ``("dark", 0)`` or ``("bright", 0)`` from profiles
+    ``(K, O)`` across one segment: a thin seam is a ridge, a lamp's side a step."""
+    outer = np.abs(offsets) >= 0.7 * offsets.max()
+    lo = prof[:, outer & (offsets < 0)].mean(axis=1)
+    hi = prof[:, outer & (offsets > 0)].mean(axis=1)
+    mid = prof[:, np.abs(offsets) <= 2.5]
+    base = 0.5 * (lo + hi)
+    contrast = float(np.median(hi - lo))
+    dark = float(np.median(base - mid.min(axis=1)))
+    bright = float(np.median(mid.max(axis=1) - base))
+    ridge = max(dark, bright)
+    if ridge > abs(contrast):
+        return ("dark" if dark >= bright else "bright"), 0.0
+    return "step", (1.0 if contrast >= 0 else -1.0)
+
+
+def _locate(gray_f: np.ndarray, base_px: np.ndarray, normal_px: np.ndarray, kind: str,
+            polarity: float, search: float) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets ``(K,)`` along ``normal_px`` of the edge (step) or the seam's centre
+    (ridge) near each ``base_px``, and their strength ``(K,)``."""
+    reach = search + 2.5
+    offs = np.arange(-reach, reach + 1e-9, _PROFILE_DO)
+    prof = _profiles(gray_f, base_px, normal_px, offs)
+    if kind == "step":
+        w = polarity * np.gradient(prof, _PROFILE_DO, axis=1)
+        return _centroid_peak(w, offs, search, 1.25)
+    outer = np.abs(offs) >= reach - 1.0
+    base = prof[:, outer].mean(axis=1, keepdims=True)
+    w = base - prof if kind == "dark" else prof - base
+    return _centroid_peak(w, offs, search, 2.0)
+
+
+@dataclass(frozen=True)
+class EdgeLine:
+    """A ceiling line measured in one image: a straight line in undistorted
+    normalized coordinates fitted to its edge points.
+
+    Attributes:
+        centre_n: ``(2,)`` centroid of the edge points, normalized.
+        direction_n: ``(2,)`` unit direction.
+        spread_n: standard deviation of the points along the line, normalized.
+        n: number of edge points kept.
+        rms_px: RMS of the points about the line, pixels.
+        kind: ``step``, ``dark`` or ``bright`` (a seam).
+    """
+
+    centre_n: np.ndarray
+    direction_n: np.ndarray
+    spread_n: float
+    n: int
+    rms_px: float
+    kind: str
+
+
+def _fit(points_n: np.ndarray, f_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robust TLS line through normalized points: (centre, direction, keep mask)."""
+    keep = np.ones(points_n.shape[0], bool)
+    c = d = np.zeros(2)
+    for _ in range(3):
+        p = points_n[keep]
+        c = p.mean(axis=0)
+        _, vecs = np.linalg.eigh((p - c).T @ (p - c))
+        d = vecs[:, 1]
+        res = ((points_n - c) @ np.array([-d[1], d[0]])) * f_px
+        s = float(np.sqrt(np.mean(res[keep] ** 2)))
+        new = np.abs(res) <= max(3.0 * s, 0.15)
+        if np.array_equal(new, keep) or np.count_nonzero(new) < 6:
+            break
+        keep = new
+    return c, d, keep
+
+
+def measure_lines(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
+                  min_points: int = 8) -> list[EdgeLine]:
+    """Re-measure detected segments ``(N, 4)`` (pixels) to sub-pixel, lens removed.
+
+    Each segment is classified from its profiles as a step edge (a lamp's side: the
+    centroid of the gradient peak) or a thin seam (dark or bright: the centroid of
+    its darkness, i.e. the seam's middle, not one of its two edges). Edge points
+    every 2 px are undistorted and fitted by a robust straight line in normalized
+    coordinates (so the lens' curvature is not folded into the fit), then the points
+    are re-measured along that line's image (a curve) and fitted again. Segments that
+    measure the same line (a seam's two edges) are kept once.
+    """
+    gray_f = np.asarray(gray, dtype=np.float32)
+    f_px = 0.5 * (camera.fx + camera.fy)
+    h, w = gray_f.shape[:2]
+    out: list[EdgeLine] = []
+    for s in np.asarray(segs_px, dtype=np.float64).reshape(-1, 4):
+        p1, p2 = s[:2], s[2:]
+        length = float(np.hypot(*(p2 - p1)))
+        t_hat = (p2 - p1) / max(length, 1e-9)
+        nrm = np.array([-t_hat[1], t_hat[0]])
+        k = int((length - 6.0) // _STEP_PX) + 1
+        if k < min_points:
+            continue
+        base = p1 + t_hat * (3.0 + _STEP_PX * np.arange(k))[:, None]
+        offs = np.arange(-5.0, 5.0 + 1e-9, _PROFILE_DO)
+        kind, pol = _kind(_profiles(gray_f, base, np.tile(nrm, (k, 1)), offs), offs)
+        # pass 1: along the detected chord
+        loc, mass = _locate(gray_f, base, np.tile(nrm, (k, 1)), kind, pol, 3.0)
+        good = mass > 0.25 * max(float(np.median(mass)), 1e-9)
+        if np.count_nonzero(good) < min_points:
+            continue
+        pts_n = camera.unproject(base[good] + loc[good, None] * nrm)
+        c, d, keep = _fit(pts_n, f_px)
+        if np.count_nonzero(keep) < min_points:
+            continue
+        # pass 2: along the fitted line's image, normals of the curve
+        t = (pts_n[keep] - c) @ d
+        # ends trimmed: near a lamp's corner the other side's edge enters the window
+        tt = np.arange(t.min() + _TRIM_PX / f_px, t.max() - _TRIM_PX / f_px + 1e-12,
+                       _STEP_PX / f_px)
+        if tt.size < min_points:
+            continue
+        q = c[None, :] + tt[:, None] * d[None, :]
+        dq = 0.5 / f_px * d
+        a = camera.distort(q - dq)
+        b = camera.distort(q + dq)
+        base2 = camera.distort(q)
+        tan = b - a
+        tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+        nrm2 = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+        if kind == "step":
+            # keep the polarity of pass 1 (normals may have flipped with the fit's direction)
+            pol2 = pol * float(np.sign(np.mean(nrm2 @ nrm)) or 1.0)
+        else:
+            pol2 = 0.0
+        inside = (base2[:, 0] > 3) & (base2[:, 0] < w - 4) & (base2[:, 1] > 3) & \
+            (base2[:, 1] < h - 4)
+        base2, nrm2 = base2[inside], nrm2[inside]
+        if base2.shape[0] < min_points:
+            continue
+        loc2, mass2 = _locate(gray_f, base2, nrm2, kind, pol2, 1.5)
+        good2 = mass2 > 0.25 * max(float(np.median(mass2)), 1e-9)
+        if np.count_nonzero(good2) < min_points:
+            continue
+        pts2 = camera.unproject(base2[good2] + loc2[good2, None] * nrm2[good2])
+        c2, d2, keep2 = _fit(pts2, f_px)
+        n = int(np.count_nonzero(keep2))
+        if n < min_points:
+            continue
+        p = pts2[keep2]
+        res = ((p - c2) @ np.array([-d2[1], d2[0]])) * f_px
+        out.append(EdgeLine(c2, d2, float(np.std((p - c2) @ d2)), n,
+                            float(np.sqrt(np.mean(res ** 2))), kind))
+    return _dedupe(out, f_px)
+
+
+def _dedupe(lines: list[EdgeLine], f_px: float, tol_px: float = 1.0) -> list[EdgeLine]:
+    """Keep one of the lines measuring the same image line over overlapping extents."""
+    order = sorted(range(len(lines)), key=lambda i: -lines[i].n)
+    kept: list[EdgeLine] = []
+    for i in order:
+        e = lines[i]
+        dup = False
+        for k in kept:
+            nk = np.array([-k.direction_n[1], k.direction_n[0]])
+            if abs(float(e.direction_n @ nk)) > 0.02:
+                continue
+            ends = e.centre_n[None, :] + np.array([[-1.0], [1.0]]) * math.sqrt(3.0) * \
+                e.spread_n * e.direction_n[None, :]
+            if np.max(np.abs((ends - k.centre_n) @ nk)) * f_px > tol_px:
+                continue
+            te = (ends - k.centre_n) @ k.direction_n
+            half_k = math.sqrt(3.0) * k.spread_n
+            overlap = min(te.max(), half_k) - max(te.min(), -half_k)
+            if overlap > 0.3 * (te.max() - te.min()):
+                dup = True
+                break
+        if not dup:
+            kept.append(e)
+    return kept
+
+
+def lines_to_segments(lines: Sequence[EdgeLine], floor_px: float = SYSTEMATIC_PX
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Equivalent segments ``(N, 4)`` (normalized) and residual weights ``(N, 2)``.
+
+    A line fitted to ``n`` points spread ``s`` along it is represented by the segment
+    ``centre -+ sqrt(3) s direction``: its endpoints' distances ``d1, d2`` to a model
+    line give the offset at the centre ``(d1 + d2) / 2`` (variance ``sigma^2 / n``)
+    and the turn ``d2 - d1`` (variance ``12 sigma^2 / n``), independent of each other.
+    The weights ``(sqrt(n), sqrt(n / 12))``, divided by the line's noise relative to
+    the median line's, make both residuals carry one edge point's noise.
+    """
+    if not lines:
+        return np.zeros((0, 4)), np.zeros((0, 2))
+    rms = np.array([e.rms_px for e in lines])
+    ref = float(np.median(rms))
+    segs, wts = [], []
+    for e in lines:
+        half = math.sqrt(3.0) * e.spread_n * e.direction_n
+        segs.append(np.concatenate([e.centre_n - half, e.centre_n + half]))
+        sig = max(e.rms_px, 0.5 * ref)
+        wts.append([ref / math.sqrt(sig ** 2 / e.n + floor_px ** 2),
+                    ref / math.sqrt(12.0 * sig ** 2 / e.n + (2.0 * floor_px) ** 2)])
+    return np.array(segs), np.array(wts)
 
 
 # ----------------------------------------------------------------------------- model
@@ -206,22 +447,26 @@ class _Problem:
                 continue
             segs = p.segments_n[use]
             aa = a[use]
+            wts = p.residual_weights()[use]
             if p.measured:
                 R = _rotation(v["pan"], v["tilt"], v["swing"], p.yaw_rad)
                 c_y = p.y_m + math.sin(p.yaw_rad) * v["mx"] + math.cos(p.yaw_rad) * v["my"]
-                r = np.zeros((segs.shape[0], 2))
                 along = aa >= 1
+                parts = []
                 if np.any(along):
-                    r[along] = _along_residuals(segs[along], R, c_y, v["h"],
-                                                self.site_y[aa[along] - 1])
+                    d = _along_residuals(segs[along], R, c_y, v["h"], self.site_y[aa[along] - 1])
+                    parts.append(_whiten(d, wts[along]).ravel())
                 if np.any(~along):
-                    r[~along] = _direction_residuals(segs[~along], R,
-                                                     np.ones(int(np.sum(~along)), int))
+                    # a line across: only its direction is modelled (its x is unknown)
+                    d = _direction_residuals(segs[~along], R, np.ones(int(np.sum(~along)), int))
+                    parts.append(_whiten(d, wts[~along])[:, 1])
+                r = np.concatenate(parts)
             else:
                 R = _rotation(0.0, v["tilt"], v["swing"], float(psis[k_drive]))
                 k_drive += 1
-                r = _direction_residuals(segs, R, (aa == 0).astype(int))
-            out.append(self.f_px * r.ravel())
+                d = _direction_residuals(segs, R, (aa == 0).astype(int))
+                r = _whiten(d, wts)[:, 1]
+            out.append(self.f_px * r)
         return out if per_placement else np.concatenate(out) if out else np.zeros(0)
 
     def associate(self, theta: np.ndarray, tol_px: float) -> int:
@@ -255,6 +500,12 @@ class _Problem:
             self.assoc[i] = np.where(ok, best, -1)
             total += int(np.sum(ok))
         return total
+
+
+def _whiten(d: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Endpoint distances ``(N, 2)`` to weighted (offset, turn) residuals ``(N, 2)``."""
+    return np.stack([0.5 * (d[:, 0] + d[:, 1]) * w[:, 0], (d[:, 1] - d[:, 0]) * w[:, 1]],
+                    axis=1)
 
 
 def _rms(r: np.ndarray) -> np.ndarray:
@@ -492,7 +743,8 @@ def _associate_directions(prob: _Problem, theta: np.ndarray, tol_px: float) -> N
                 out.append(np.zeros(0))
                 continue
             which = (a_[use] == 0).astype(int)
-            out.append(prob.f_px * _direction_residuals(p_.segments_n[use], R_, which).ravel())
+            d_ = _direction_residuals(p_.segments_n[use], R_, which)
+            out.append(prob.f_px * _whiten(d_, p_.residual_weights()[use])[:, 1])
         return out if per_placement else np.concatenate(out)
 
     prob.residuals = direction_only  # type: ignore[method-assign]
@@ -599,8 +851,6 @@ def load_placements(source: str | Path, camera: CameraModel, max_frames: int = 0
     A recording folder: every frame with a truth row (at most ``max_frames``, spread
     evenly) is a placement.
     """
-    import cv2
-
     from ceilkit.runtime.config import load_yaml
     from ceilkit.runtime.errors import ConfigError
     from ceilkit.runtime.recording import Recording

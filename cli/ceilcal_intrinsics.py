@@ -20,7 +20,6 @@ from ceilkit.calib.boards import parse_board
 from ceilkit.calib.intrinsics import (
     DetectionCache,
     StopRule,
-    VideoSource,
     calibrate_intrinsics,
     capture_views,
     detect_images,
@@ -28,6 +27,7 @@ from ceilkit.calib.intrinsics import (
     write_plots,
 )
 from ceilkit.runtime.camera import DISTORTION_MODELS
+from ceilkit.runtime.capture import open_video
 from ceilkit.runtime.errors import ConfigError
 
 from .common import provenance_header
@@ -98,7 +98,7 @@ def register(app: typer.Typer) -> None:
             typer.echo("", err=True)
             inputs = f"{folder} ({len(files)} images, {len(views)} with the board)"
         else:
-            src = VideoSource(str(video) if video is not None else device)
+            src = open_video(str(video) if video is not None else device)
             stop = StopRule(max_views=max_views, min_views=max(12, min_views))
             views = capture_views(src, b, model, stop, every=every, meter=sys.stderr)
             inputs = f"{video if video is not None else 'device ' + device} ({len(views)} views)"

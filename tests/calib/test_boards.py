@@ -76,3 +76,18 @@ def test_detection_checks_lengths_and_subsets():
     assert len(s) == 2 and list(s.ids) == [0, 2]
     with pytest.raises(ValueError):
         Detection("x", (640, 480), [0, 1], np.zeros((3, 2)), np.zeros((3, 3)))
+
+
+def test_grid_extends_finds_corners_beyond_a_sub_grid():
+    """A 7x4 grid found inside a 9x6 board has X-junctions beyond it; the whole board none."""
+    board = ChessBoard(9, 6, 0.03)
+    rvec, t = look_at_pose(board, 0.5, 10.0, 30.0, 5.0, (0.0, 0.0))
+    img, px, _ = render_board(board, CAM, rvec, t, np.random.default_rng(4))
+    whole = board.detect(img, "a")
+    assert whole is not None and board.grid_extends(img, whole) == (0, 0, 0, 0)
+    # the 7x4 sub-grid: inner corners 1..7 of rows 1..4 of the true grid
+    sub = ChessBoard(7, 4, 0.03)
+    grid = px.reshape(6, 9, 2)[1:5, 1:8].reshape(-1, 2)
+    det = Detection("a", (640, 480), np.arange(28), grid, sub.corners_board)
+    left, right, top, bottom = sub.grid_extends(img, det)
+    assert (left, right, top, bottom) == (1, 1, 1, 1)

@@ -2,6 +2,7 @@
 is typed in (the camera comes from rendered boards, the mount from placements)."""
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,9 +11,24 @@ from typer.testing import CliRunner
 from ceilkit.calib.boards import parse_board, render_views
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
+from ceilkit.cli.ceilrun import app as ceilrun
+from ceilkit.runtime.recording import Recording, load_poses
 from ceilkit.runtime.rig import Rig
 from ceilkit.runtime.sim import SimOptions, Trajectory, straight_drive
 from helpers import CONFIGS
+
+
+def replay_errors(rec: Path, poses: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Absolute heading (deg) and lateral (m) errors of a poses.csv against truth.csv."""
+    truth = Recording(rec).truth
+    got = load_poses(poses)
+    dh, dy = [], []
+    for t, y, yaw in zip(got.t_ns, got.y_m, got.yaw_rad, strict=True):
+        _, ty, tyaw = truth.lookup(int(t))
+        dh.append(abs(math.degrees(math.remainder(yaw - tyaw, 2 * math.pi))))
+        dy.append(abs(y - ty))
+    a, b = np.array(dh), np.array(dy)
+    return a[np.isfinite(a)], b[np.isfinite(b)]
 
 
 def test_calibrate_then_replay(tmp_path, corridor_rig, corridor_site):
@@ -26,7 +42,7 @@ def test_calibrate_then_replay(tmp_path, corridor_rig, corridor_site):
                       np.array([0.5, 3.1, 5.3, 7.9, 10.2]),
                       np.array([0.0, 0.3, -0.3, 0.1, -0.1]), np.radians([0, 0, 0, 10, -12]))
     simulate_recording(corridor_rig, corridor_site, traj, tmp_path / "pl", SimOptions(), seed=4)
-    check = straight_drive(20, fps=10, speed_mps=0.8, y_m=0.1, weave_m=0.2,
+    check = straight_drive(30, fps=10, speed_mps=0.8, y_m=0.1, weave_m=0.2,
                            yaw_wobble_rad=math.radians(5), rng=rng)
     simulate_recording(corridor_rig, corridor_site, check, tmp_path / "check", SimOptions(),
                        seed=6)
@@ -38,8 +54,17 @@ def test_calibrate_then_replay(tmp_path, corridor_rig, corridor_site):
     assert res.exit_code == 0, res.output
     assert "step 3/3" in res.output and "heading" in res.output
     rig = Rig.load(tmp_path / "cal" / "rig.yaml")
-    assert abs(rig.camera.fx - corridor_rig.camera.fx) / corridor_rig.camera.fx < 0.01
-    assert abs(math.degrees(rig.mount.tilt_rad - corridor_rig.mount.tilt_rad)) < 0.3
+    assert abs(rig.camera.fx - corridor_rig.camera.fx) / corridor_rig.camera.fx < 0.002
+    assert abs(math.degrees(rig.mount.tilt_rad - corridor_rig.mount.tilt_rad)) < 0.1
+    # then `ceilrun replay` with the calibrated rig meets the foundation's targets
+    res = CliRunner().invoke(ceilrun, ["replay", str(tmp_path / "check"), "--out",
+                                       str(tmp_path / "replay"), "--rig",
+                                       str(tmp_path / "cal" / "rig.yaml")])
+    assert res.exit_code == 0, res.output
+    dh, dy = replay_errors(tmp_path / "check", tmp_path / "replay" / "poses.csv")
+    assert dh.size == dy.size == 30
+    assert np.median(dh) <= 0.05 and np.percentile(dh, 95) <= 0.15
+    assert np.median(dy) <= 0.005 and np.percentile(dy, 95) <= 0.015
     # resumable: a second run keeps both files
     res2 = CliRunner().invoke(app, args)
     assert res2.exit_code == 0 and "kept" in res2.output

@@ -45,6 +45,18 @@ def test_wrong_board_size_suggests_the_right_one(folder, tmp_path):
     assert "did you mean --board chess:9x6?" in r.output
 
 
+def test_size_matching_part_of_the_board_is_caught(folder, tmp_path):
+    """chess:7x4 is found inside the 9x6 board (by the sb detector) in some views: the
+    corners beyond the detected grid give it away, and the neighbouring sizes are tried."""
+    r = CliRunner().invoke(app, ["intrinsics", str(folder), "--board", "chess:7x4",
+                                 "--detector", "sb", "--square", "0.03", "--out",
+                                 str(tmp_path / "c.yaml")])
+    assert r.exit_code == 1
+    assert "--board" in r.output and "matches only part of the board" in r.output
+    assert "did you mean --board chess:9x6?" in r.output
+    assert not (tmp_path / "c.yaml").exists()
+
+
 def test_unwritable_output_writes_nothing(folder, tmp_path):
     out = tmp_path / "missing" / "camera.yaml"
     r = CliRunner().invoke(app, ["intrinsics", str(folder), "--board", "chess:9x6",
