@@ -42,8 +42,8 @@ from .lines import (
     SegmentDetector,
     as_gray,
     refine_segments,
+    refine_undistorted,
     segment_lengths,
-    segment_lines,
     undistort_segments,
 )
 from .rig import Rig
@@ -78,12 +78,14 @@ def fit_pan(q_along: np.ndarray, q_across: np.ndarray, w_along: np.ndarray,
     """Closed-form ``psi`` minimising ``sum w (q_x c - q_y s)^2`` over the along family
     plus ``sum w (q_x s + q_y c)^2`` over the across family (``c, s = cos, sin psi``):
     the smallest eigenvector of a 2x2 matrix. Returns psi in [-pi, pi) (defined mod pi)."""
-    Ja = np.stack([q_along[:, 0], -q_along[:, 1]], axis=1)
-    Jb = np.stack([q_across[:, 1], q_across[:, 0]], axis=1)
-    S = (Ja * w_along[:, None]).T @ Ja + (Jb * w_across[:, None]).T @ Jb
-    _, vecs = np.linalg.eigh(S)
-    u = vecs[:, 0]
-    return math.atan2(u[1], u[0])
+    ax, ay = q_along[:, 0], -q_along[:, 1]
+    bx, by = q_across[:, 1], q_across[:, 0]
+    sxx = float(w_along @ (ax * ax) + w_across @ (bx * bx))
+    syy = float(w_along @ (ay * ay) + w_across @ (by * by))
+    sxy = float(w_along @ (ax * ay) + w_across @ (bx * by))
+    # the 2x2 matrix's major axis is at 0.5 atan2(2 sxy, sxx - syy); the minor is normal
+    th = 0.5 * math.atan2(2.0 * sxy, sxx - syy) + 0.5 * math.pi
+    return th if th < math.pi else th - 2 * math.pi
 
 
 def along_offsets(q: np.ndarray, psi_rad: float, height_m: float) -> np.ndarray:
@@ -142,7 +144,8 @@ class OffsetMatch:
 
 def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
                   tol_m: float, prior_shift_m: float | None = None,
-                  anchors_m: np.ndarray | None = None) -> OffsetMatch | None:
+                  anchors_m: np.ndarray | None = None,
+                  compat: np.ndarray | None = None) -> OffsetMatch | None:
     """Find the shift ``c`` placing the observed offsets on the site's lines.
 
     Every pairing ``c = y_j - o_i`` is a hypothesis (refined once by a weighted
@@ -153,6 +156,9 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
     ``anchors_m``, independent estimates of the shift (lamp ends: see
     :class:`CorridorEstimator`), add up to one to the score of the hypotheses they
     agree with: they break the tie between hypotheses shifted by a line spacing.
+    ``compat`` ``(N, J)`` in [0, 1] says how well offset i can be site line j (its
+    edge kind: a lamp's edge is a step with its bright side inward, a seam a thin
+    line); 0 forbids the pairing, other values scale its score. None: all 1.
     Returns None when nothing is matched.
     """
     o_all = np.asarray(offsets, dtype=float)
@@ -162,33 +168,42 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
         return None
     o, w = o_all[ok], w_all[ok]
     ys = np.asarray(site_y, dtype=float)
-    cands = (ys[None, :] - o[:, None]).ravel()
-
-    def assoc(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        d = np.abs(o[None, :, None] + c[:, None, None] - ys[None, None, :])   # (K, N, J)
-        j = np.argmin(d, axis=2)
-        e = np.take_along_axis(d, j[..., None], axis=2)[..., 0]
-        return j, e, e <= tol_m
-
-    j, e, inl = assoc(cands)
+    nj = ys.size
+    cw = None if compat is None else np.asarray(compat, dtype=float).reshape(-1, nj)[ok]
+    pairs = np.ones((o.size, nj), bool) if cw is None else cw > 0
+    ii, jj = np.nonzero(pairs)
+    if ii.size == 0:
+        return None
+    cands = ys[jj] - o[ii]
+    # pairings closer than a quarter of the gate are one hypothesis (they refine alike)
+    cands = cands[np.unique(np.round(cands * (4.0 / tol_m)), return_index=True)[1]]
+    big = 0.0 if cw is None else np.where(cw > 0, 0.0, 1e9)[None]               # (1, N, J)
+    # each hypothesis: every offset to its nearest (allowed) site line; the shift is
+    # refined once by the weighted mean over the inliers, keeping that association
+    D = o[None, :, None] + cands[:, None, None] - ys[None, None, :]              # (K, N, J)
+    j = np.argmin(np.abs(D) + big, axis=2)
+    d = np.take_along_axis(D, j[..., None], axis=2)[..., 0]                      # (K, N)
+    inl = np.abs(d) <= tol_m
+    if cw is not None:
+        inl &= cw[np.arange(o.size)[None, :], j] > 0
     wi = inl * w[None, :]
     sw = wi.sum(axis=1)
-    c_ref = np.where(sw > 0, (wi * (ys[j] - o[None, :])).sum(axis=1) / np.maximum(sw, 1e-300),
-                     cands)
-    j, e, inl = assoc(c_ref)
+    shift = (wi * d).sum(axis=1) / np.maximum(sw, 1e-300)
+    c_ref = cands - shift
+    d = d - shift[:, None]
+    inl &= np.abs(d) <= tol_m
     wi = inl * w[None, :]
     sw = wi.sum(axis=1)
-    matched = np.zeros((c_ref.size, ys.size), bool)
-    soft = np.zeros(c_ref.size)
     sig = tol_m / 3.0
-    for jj in range(ys.size):
-        hit = inl & (j == jj)
-        matched[:, jj] = np.any(hit, axis=1)
-        soft += np.max(np.where(hit, np.exp(-0.5 * (e / sig) ** 2), 0.0), axis=1)
+    g = np.exp(-0.5 * (d / sig) ** 2) * inl                                      # (K, N)
+    if cw is not None:
+        g = g * cw[np.arange(o.size)[None, :], j]
+    hit = (j[:, :, None] == np.arange(nj)[None, None, :]) & inl[:, :, None]      # (K, N, J)
+    soft = np.max(np.where(hit, g[:, :, None], 0.0), axis=1).sum(axis=1)
+    n_lines = np.count_nonzero(np.any(hit, axis=1), axis=1)
     if anchors_m is not None and len(anchors_m):
         a = np.asarray(anchors_m, dtype=float)
-        soft += np.mean(np.exp(-0.5 * ((c_ref[:, None] - a[None, :]) / sig) ** 2), axis=1)
-    n_lines = matched.sum(axis=1)
+        soft = soft + np.mean(np.exp(-0.5 * ((c_ref[:, None] - a[None, :]) / sig) ** 2), axis=1)
     good = n_lines > 0
     if not np.any(good):
         return None
@@ -227,11 +242,85 @@ def periodic_spread(offsets: np.ndarray, weights: np.ndarray, spacing_m: float,
     return int(np.count_nonzero(inl)), float(np.sum(weights[ok][inl]))
 
 
+def visible_along_lines(rig: Rig, site: Site, x_m: float, y_m: float, yaw_rad: float,
+                        min_length_px: float, step_m: float = 0.01,
+                        reach_m: float = 40.0) -> np.ndarray:
+    """Which ``lines_along`` a vehicle pose sees: ``(J,)`` bool, True where the line
+    has a visible stretch at least ``min_length_px`` long in the image.
+
+    The line ``y = y_j`` on the ceiling is sampled every ``step_m`` within ``reach_m``
+    of the camera (a lamp edge only where its lamps are: see
+    :class:`CorridorEstimator`), projected through the rig at the pose (SPEC §1), and
+    its longest run of consecutive samples inside the image (and inside the lens's
+    field, the image corners' radius) is measured in pixels. For benchmarks and tests:
+    "frames with two or more forward lines in view".
+    """
+    cam, mount = rig.camera, rig.mount
+    corners = np.array([[-0.5, -0.5], [cam.width - 0.5, -0.5], [-0.5, cam.height - 0.5],
+                        [cam.width - 0.5, cam.height - 0.5]])
+    r_max = float(np.max(np.hypot(*cam.unproject(corners).T))) * 1.02
+    R_cw = mount.R_world_cam(yaw_rad).T
+    C = mount.camera_position(x_m, y_m, yaw_rad)
+    H = site.ceiling_height_m
+    ys = np.asarray(site.corridor.lines_along_m, dtype=float)
+    out = np.zeros(ys.size, bool)
+    for j, yj in enumerate(ys):
+        pieces = []
+        for row in site.lamps:
+            if min(abs(yj - row.y_m - 0.5 * row.width_m),
+                   abs(yj - row.y_m + 0.5 * row.width_m)) < 0.01:
+                for cx in row.centres()[:, 0]:
+                    if abs(cx - C[0]) < reach_m:
+                        pieces.append((cx - 0.5 * row.length_m, cx + 0.5 * row.length_m))
+        if not pieces and not any(
+                min(abs(yj - r.y_m - 0.5 * r.width_m), abs(yj - r.y_m + 0.5 * r.width_m))
+                < 0.01 for r in site.lamps):
+            pieces = [(C[0] - reach_m, C[0] + reach_m)]
+        for x0, x1 in pieces:
+            xs = np.arange(x0, x1 + 1e-9, step_m)
+            P = np.stack([xs, np.full_like(xs, yj), np.full_like(xs, H)], axis=1)
+            Pc = (P - C) @ R_cw.T
+            z = Pc[:, 2]
+            ok = z > 1e-6
+            xy = np.where(ok[:, None], Pc[:, :2] / np.where(ok, z, 1.0)[:, None], 0.0)
+            ok &= np.hypot(xy[:, 0], xy[:, 1]) <= r_max
+            px = np.full((xs.size, 2), np.nan)
+            if np.any(ok):
+                px[ok] = cam.distort(xy[ok])
+            ok &= np.isfinite(px[:, 0]) & cam.in_image(np.nan_to_num(px, nan=-1e9))
+            if np.count_nonzero(ok) < 2:
+                continue
+            seg = np.hypot(*np.diff(px, axis=0).T)
+            both = ok[1:] & ok[:-1]
+            run = np.cumsum(~both)          # runs of consecutive visible samples
+            if np.any(both) and np.bincount(run[both], seg[both]).max() >= min_length_px:
+                out[j] = True
+                break
+    return out
+
+
 # -- the estimator ----------------------------------------------------------------------
 
 
-_OPTIONS = ("detector", "refine", "min_length_px", "max_segments", "angle_tol_deg",
-            "match_tol_m", "inlier_px", "gn_iterations", "min_contrast")
+_KERNEL = np.exp(-0.5 * (np.arange(-16, 17) / 4.0) ** 2)
+
+
+def _median_finite(a: np.ndarray) -> float:
+    """The median of the finite values of ``a`` (NaN if none)."""
+    v = a[np.isfinite(a)]
+    return float(np.median(v)) if v.size else float("nan")
+
+
+def _smooth_circular(hist: np.ndarray) -> np.ndarray:
+    """``hist (B,)`` convolved circularly with a Gaussian of 4 bins."""
+    return np.convolve(np.concatenate([hist[-16:], hist, hist[:16]]), _KERNEL, "valid")
+
+
+_OPTIONS = ("detector", "refine", "edge_fit", "min_length_px", "max_segments", "angle_tol_deg",
+            "match_tol_m", "inlier_px", "gn_iterations", "min_contrast", "min_elevation_deg")
+
+_SEAM_STEP = 0.3        # compat of a step edge with a seam (a seam is seen as a thin line)
+_DECISIVE = 2.0         # forward / across ceiling length ratio that settles the family
 
 
 class CorridorEstimator:
@@ -241,16 +330,22 @@ class CorridorEstimator:
         rig: the camera and its mount (tilt and swing are used as calibrated).
         site: needs ``corridor``; ``ceiling_height_m`` must exceed ``mount.z_m``.
         detector: ``fld`` (default), ``lsd`` or ``hough`` (see :mod:`.lines`).
-        refine: sub-pixel refinement of segments on image gradients (default False:
-            FLD alone meets the accuracy targets, see docs/methods/corridor.md).
+        refine: sub-pixel refinement of segments on image gradients in pixel space
+            (:func:`.lines.refine_segments`; default False).
+        edge_fit: locate each segment's edge on cross profiles, fit it in undistorted
+            coordinates and tell steps from thin lines (:func:`.lines.refine_undistorted`;
+            default True). Lamp edges are steps whose bright side is the lamp: this
+            settles which site line a forward line is.
         min_length_px: shortest segment used (default 4 % of the image width).
         max_segments: only the longest ones are kept (default 120).
         angle_tol_deg: family membership gate about the vanishing point (default 2).
         match_tol_m: 1-D association gate for lateral offsets (default: a quarter of
             the closest spacing of ``lines_along``, at most 0.08 m).
         inlier_px: endpoint distance (px) gate of the final fit (default 2.5).
-        gn_iterations: joint Gauss-Newton steps on ``(psi, c_y)`` (default 6).
+        gn_iterations: most joint Gauss-Newton steps on ``(psi, c_y)`` (default 6).
         min_contrast: grey-level spread below which a frame is blank (default 8).
+        min_elevation_deg: image rows whose rays all rise less than this above the
+            horizon hold no useful ceiling and are not searched (default 3).
     """
 
     name = "corridor"
@@ -275,13 +370,75 @@ class CorridorEstimator:
         default_tol = min(0.08, 0.25 * float(gaps.min())) if gaps.size else 0.08
         self.match_tol_m = float(options.get("match_tol_m", default_tol))
         self.refine = bool(options.get("refine", False))
+        self.edge_fit = bool(options.get("edge_fit", True))
         min_len = float(options.get("min_length_px", 0.04 * cam.width))
-        self.detector = SegmentDetector(str(options.get("detector", "fld")), min_len)
+        self.min_elevation = math.radians(float(options.get("min_elevation_deg", 3.0)))
+        self.rows = self._ceiling_rows()
+        self.detector = SegmentDetector(str(options.get("detector", "fld")), min_len,
+                                        rows=self.rows, merge=False)
         self.max_segments = int(options.get("max_segments", 120))
         self.angle_tol = math.radians(float(options.get("angle_tol_deg", 2.0)))
         self.inlier_px = float(options.get("inlier_px", 2.5))
         self.gn_iterations = int(options.get("gn_iterations", 6))
         self.min_contrast = float(options.get("min_contrast", 8.0))
+        self.site_pol, self.site_longest = self._site_polarity()
+        mount = rig.mount
+        self._t_vc = mount.t_vehicle_cam
+        self._pan = mount.pan_rad
+        corners = np.array([[-0.5, -0.5], [cam.width - 0.5, -0.5], [-0.5, cam.height - 0.5],
+                            [cam.width - 0.5, cam.height - 0.5]])
+        self._r_max = float(np.max(np.hypot(*cam.unproject(corners).T))) * 1.02
+        self._view_u = np.linspace(-30.0, 30.0, 601)
+        self._lamp_pitch = np.zeros(self.site_y.size)
+        for row in site.lamps:
+            hw = 0.5 * row.width_m
+            on = (np.abs(self.site_y - row.y_m - hw) < 0.01) | (
+                np.abs(self.site_y - row.y_m + hw) < 0.01)
+            self._lamp_pitch[on] = (row.pitch_m if row.count > 1 else 0.0) + row.length_m
+
+    # -- per-rig and per-site constants -------------------------------------------------
+    def _ceiling_rows(self) -> tuple[int, int]:
+        """``(v0, v1)``: the image rows where some ray rises at least
+        ``min_elevation_deg`` (where the ceiling can be)."""
+        cam = self.rig.camera
+        u = np.linspace(-0.5, cam.width - 0.5, 41)
+        v = np.arange(cam.height, dtype=float)
+        uu, vv = np.meshgrid(u, v)
+        xy = cam.unproject(np.stack([uu.ravel(), vv.ravel()], axis=1))
+        r = np.hstack([xy, np.ones((xy.shape[0], 1))]) @ self.M.T
+        with np.errstate(invalid="ignore"):
+            elev = r[:, 2] / np.linalg.norm(r, axis=1)
+        up = np.any((elev > math.sin(self.min_elevation)).reshape(v.size, u.size), axis=1)
+        if not np.any(up):
+            return 0, cam.height
+        rows = np.flatnonzero(up)
+        return max(0, int(rows[0]) - 2), min(cam.height, int(rows[-1]) + 3)
+
+    def _site_polarity(self) -> tuple[np.ndarray, np.ndarray]:
+        """Edge kind of each ``lines_along`` ``(J,)``: ``+1`` a lamp edge brighter on
+        its +y side (the lamp), ``-1`` brighter on its -y side, ``0`` a seam; and
+        the longest stretch ``(J,)`` (m) a segment on it can have on the ceiling:
+        a lamp's length (with a margin) for a lamp edge, inf for a seam."""
+        pol = np.zeros(self.site_y.size)
+        longest = np.full(self.site_y.size, np.inf)
+        for row in self.site.lamps:
+            hw = 0.5 * row.width_m
+            for sign in (1.0, -1.0):
+                on = np.abs(self.site_y - (row.y_m - sign * hw)) < 0.01
+                pol[on] = sign
+                longest[on] = 1.15 * row.length_m + 0.1
+        return pol, longest
+
+    def _compat(self, pol_w: np.ndarray, ceil_len: np.ndarray) -> np.ndarray:
+        """``(N, J)`` compatibility of observed forward segments (world polarity, NaN:
+        unknown; ceiling length, m) with the site lines' kinds (see
+        :func:`match_offsets`): a lamp edge is a step with the lamp's side bright and
+        no longer than a lamp; a seam is a thin line (a step only at ``_SEAM_STEP``)."""
+        sp = self.site_pol[None, :]
+        p = pol_w[:, None]
+        c = np.where(sp != 0, (p == sp).astype(float), np.where(p == 0, 1.0, _SEAM_STEP))
+        c = np.where(np.isnan(p), 1.0, c)
+        return c * (ceil_len[:, None] <= self.site_longest[None, :])
 
     # -- helpers -------------------------------------------------------------------------
     def _fail(self, t_ns: int, reason: str, detail: str, **diag: Any) -> Failure:
@@ -317,9 +474,7 @@ class CorridorEstimator:
         i0 = np.floor(b).astype(int) % nbins
         fr = b - np.floor(b)
         hist = np.bincount(i0, w * (1 - fr), nbins) + np.bincount((i0 + 1) % nbins, w * fr, nbins)
-        k = np.arange(-16, 17)
-        kern = np.exp(-0.5 * (k / 4.0) ** 2)
-        sm = np.convolve(np.concatenate([hist[-16:], hist, hist[:16]]), kern, "valid")
+        sm = _smooth_circular(hist)
         peaks = []
         work = sm.copy()
         for _ in range(n_peaks):
@@ -330,35 +485,42 @@ class CorridorEstimator:
             den = y0 - 2 * y1 + y2
             off = 0.5 * (y0 - y2) / den if abs(den) > 1e-12 else 0.0
             peaks.append((p, (p + 0.5 + off) / nbins * 2 * np.pi / 4))
-            for d in range(-24, 25):
-                work[(p + d) % nbins] = 0.0
+            lo = p - 24
+            idx = np.arange(lo, p + 25) % nbins
+            work[idx] = 0.0
         return [-th for _, th in peaks]
 
     def _classify(self, psi: float, lines: np.ndarray, mids: np.ndarray,
                   tol: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         va, vb = vanishing_directions(psi, self.M)
-        ra = angle_residuals(lines, mids, va)
-        rb = angle_residuals(lines, mids, vb)
-        along = (np.abs(ra) <= np.abs(rb)) & (np.abs(ra) <= tol)
-        across = (np.abs(rb) < np.abs(ra)) & (np.abs(rb) <= tol)
-        return along, across, np.where(np.abs(ra) <= np.abs(rb), ra, rb)
+        ra = np.abs(angle_residuals(lines, mids, va))
+        rb = np.abs(angle_residuals(lines, mids, vb))
+        along = (ra <= rb) & (ra <= tol)
+        across = (rb < ra) & (rb <= tol)
+        return along, across, np.minimum(ra, rb)
 
     def _refine_pan(self, psi: float, q: np.ndarray, lines: np.ndarray, mids: np.ndarray,
-                    len_n: np.ndarray, along: np.ndarray, across: np.ndarray) -> float:
-        for _ in range(4):
+                    len_n: np.ndarray, along: np.ndarray, across: np.ndarray,
+                    iterations: int = 4) -> float:
+        """IRLS on ``psi`` (weights length^2 / |v_xy - v_z m|^2, Huber at 1 px)."""
+        ia, ib = np.flatnonzero(along), np.flatnonzero(across)
+        qa, qb = q[ia], q[ib]
+        la, lb = lines[ia], lines[ib]
+        ma, mb = mids[ia], mids[ib]
+        sa, sb = len_n[ia], len_n[ib]
+        for _ in range(iterations):
             va, vb = vanishing_directions(psi, self.M)
-            da = np.hypot(va[0] - va[2] * mids[:, 0], va[1] - va[2] * mids[:, 1])
-            db = np.hypot(vb[0] - vb[2] * mids[:, 0], vb[1] - vb[2] * mids[:, 1])
-            ra = np.abs(lines @ va) / np.maximum(da, 1e-12) * len_n * self.f_px
-            rb = np.abs(lines @ vb) / np.maximum(db, 1e-12) * len_n * self.f_px
-            hub_a = np.minimum(1.0, 1.0 / np.maximum(ra, 1e-9))
-            hub_b = np.minimum(1.0, 1.0 / np.maximum(rb, 1e-9))
-            wa = (len_n ** 2 / np.maximum(da, 1e-12) ** 2 * hub_a)[along]
-            wb = (len_n ** 2 / np.maximum(db, 1e-12) ** 2 * hub_b)[across]
-            new = fit_pan(q[along], q[across], wa, wb)
+            da = np.hypot(va[0] - va[2] * ma[:, 0], va[1] - va[2] * ma[:, 1])
+            db = np.hypot(vb[0] - vb[2] * mb[:, 0], vb[1] - vb[2] * mb[:, 1])
+            da, db = np.maximum(da, 1e-12), np.maximum(db, 1e-12)
+            ra = np.abs(la @ va) / da * sa * self.f_px
+            rb = np.abs(lb @ vb) / db * sb * self.f_px
+            wa = sa ** 2 / da ** 2 * np.minimum(1.0, 1.0 / np.maximum(ra, 1e-9))
+            wb = sb ** 2 / db ** 2 * np.minimum(1.0, 1.0 / np.maximum(rb, 1e-9))
+            new = fit_pan(qa, qb, wa, wb)
             # keep the branch (mod pi) nearest the current estimate
             new += np.pi * round((psi - new) / np.pi)
-            done = abs(new - psi) < 1e-10
+            done = abs(new - psi) < 1e-8
             psi = new
             if done:
                 break
@@ -372,23 +534,24 @@ class CorridorEstimator:
         offsets from the line joining their midpoint to the across vanishing point."""
         psi, cy = float(params[0]), float(params[1])
         c, s = math.cos(psi), math.sin(psi)
-        Rz_t = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])   # Rz(-psi)
-        dRz_t = np.array([[-s, c, 0.0], [-c, -s, 0.0], [0.0, 0.0, 0.0]])
-        R_cw = self.M.T @ Rz_t
-        dR_cw = self.M.T @ dRz_t
+        R_cw = self.M.T @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz(-psi)
+        dR_cw = self.M.T @ np.array([[-s, c, 0.0], [-c, -s, 0.0], [0.0, 0.0, 0.0]])
+        # predicted line l = R_cw n_w with n_w = (0, h, -(y - c_y)): affine in y - c_y
         dy = y_ep - cy
-        n_w = np.stack([np.zeros_like(dy), np.full_like(dy, self.height_m), -dy], axis=1)
-        lc = n_w @ R_cw.T
-        dlc_psi = n_w @ dR_cw.T
-        dlc_cy = np.broadcast_to(R_cw[:, 2], lc.shape)
-        sp = np.sum(lc * ep_h, axis=1)
+        h = self.height_m
+        lc = h * R_cw[:, 1][None, :] - dy[:, None] * R_cw[:, 2][None, :]
+        dlc_psi = h * dR_cw[:, 1][None, :] - dy[:, None] * dR_cw[:, 2][None, :]
+        dlc_cy = R_cw[:, 2]
+        sp = np.einsum("ij,ij->i", lc, ep_h)
         nrm = np.hypot(lc[:, 0], lc[:, 1])
         ra = sp / nrm * self.f_px
+        ds_psi = np.einsum("ij,ij->i", dlc_psi, ep_h)
+        dn_psi = (lc[:, 0] * dlc_psi[:, 0] + lc[:, 1] * dlc_psi[:, 1]) / nrm
+        ds_cy = ep_h @ dlc_cy
+        dn_cy = (lc[:, 0] * dlc_cy[0] + lc[:, 1] * dlc_cy[1]) / nrm
         Ja = np.empty((ra.size, 2))
-        for k, dl in enumerate((dlc_psi, dlc_cy)):
-            ds = np.sum(dl * ep_h, axis=1)
-            dn = (lc[:, 0] * dl[:, 0] + lc[:, 1] * dl[:, 1]) / nrm
-            Ja[:, k] = (ds * nrm - sp * dn) / nrm ** 2 * self.f_px
+        Ja[:, 0] = (ds_psi * nrm - sp * dn_psi) / nrm ** 2 * self.f_px
+        Ja[:, 1] = (ds_cy * nrm - sp * dn_cy) / nrm ** 2 * self.f_px
         if not across_lines.shape[0]:
             return ra, Ja
         va, vb = vanishing_directions(psi, self.M)
@@ -428,36 +591,60 @@ class CorridorEstimator:
         if bad is not None:
             return bad
         segs_px, fit_rms = self._segments(gray)
-        return self.estimate_segments(segs_px, t_ns, prior, fit_rms, t0)
+        if not self.edge_fit or segs_px.shape[0] < 2:
+            return self.estimate_segments(segs_px, t_ns, prior, fit_rms, t0)
+        segs_n, pol, rms = refine_undistorted(self.rig.camera, gray, segs_px)
+        fit_rms = np.where(np.isfinite(rms), rms, fit_rms)
+        return self._estimate(segs_n, segment_lengths(segs_px), t_ns, prior, fit_rms, pol, t0)
 
     def estimate_segments(self, segs_px: np.ndarray, t_ns: int,
                           prior: PoseEstimate | None = None,
                           fit_rms: np.ndarray | None = None,
-                          t0: float | None = None) -> PoseEstimate | Failure:
-        """The estimate from segments ``(N, 4)`` in pixels (already detected)."""
+                          t0: float | None = None,
+                          polarity: np.ndarray | None = None) -> PoseEstimate | Failure:
+        """The estimate from segments ``(N, 4)`` in pixels (already detected); only
+        their endpoints are undistorted. ``polarity`` ``(N,)``: as
+        :func:`.lines.edge_polarity` (None: unknown)."""
         t0 = time.perf_counter() if t0 is None else t0
         segs_px = np.asarray(segs_px, dtype=np.float64).reshape(-1, 4)
-        fit_rms = np.zeros(segs_px.shape[0]) if fit_rms is None else fit_rms
-        n_seg = segs_px.shape[0]
+        segs = undistort_segments(self.rig.camera, segs_px)
+        pol = np.full(segs.shape[0], np.nan) if polarity is None else np.asarray(polarity, float)
+        return self._estimate(segs, segment_lengths(segs_px), t_ns, prior, fit_rms, pol, t0)
+
+    def _estimate(self, segs: np.ndarray, len_px: np.ndarray, t_ns: int,
+                  prior: PoseEstimate | None, fit_rms: np.ndarray | None,
+                  pol: np.ndarray, t0: float) -> PoseEstimate | Failure:
+        """The estimate from undistorted normalized segments ``(N, 4)``, their pixel
+        lengths ``(N,)`` and polarities ``(N,)``."""
+        n_seg = segs.shape[0]
+        fit_rms = np.zeros(n_seg) if fit_rms is None else fit_rms
         if n_seg < 2:
             return self._fail(t_ns, "too_few_lines", f"{n_seg} line segments found",
                               n_segments=n_seg)
-        segs = undistort_segments(self.rig.camera, segs_px)
-        lines = segment_lines(segs)
+        dx, dy = segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]
+        len_n = np.hypot(dx, dy)
+        lines = np.stack([-dy, dx, segs[:, 0] * segs[:, 3] - segs[:, 2] * segs[:, 1]], axis=1)
+        lines /= np.maximum(len_n, 1e-300)[:, None]                  # segment_lines
         mids = 0.5 * (segs[:, :2] + segs[:, 2:])
-        len_n = segment_lengths(segs)
-        q = level_normals(lines, self.M)
+        q = lines @ self.M.T
         qxy = np.hypot(q[:, 0], q[:, 1])
-        w_hist = segment_lengths(segs_px) * np.minimum(1.0, qxy / 0.2)
+        w_hist = len_px * np.minimum(1.0, qxy / 0.2)
         pans = self._dominant_pans(q, w_hist)
         if not pans:
             return self._fail(t_ns, "no_ceiling_lines", "no dominant ceiling direction",
                               n_segments=n_seg)
 
-        prior_psi = None if prior is None else prior.yaw_rad + self.rig.mount.pan_rad
+        prior_psi = None if prior is None else prior.yaw_rad + self._pan
+        if prior_psi is not None:   # the peak nearest the prior first (mod 90 deg)
+            pans.sort(key=lambda p: abs(math.remainder(p - prior_psi, np.pi / 2)))
+        ceil_pts = self._ceiling_points(segs)
+        ceil_len = np.minimum(np.hypot(ceil_pts[:, 2] - ceil_pts[:, 0],
+                                       ceil_pts[:, 3] - ceil_pts[:, 1]), 10.0)
+        ceil_len[~(ceil_len >= 0)] = 0.0              # above the horizon
         best = None
         for psi0 in pans:
-            cand = self._solve_from(psi0, q, lines, mids, len_n, segs, prior, prior_psi)
+            cand = self._solve_from(psi0, q, lines, mids, len_n, ceil_pts, pol, ceil_len,
+                                    prior, prior_psi)
             if cand is None:
                 continue
             if best is None or cand["score"] > best["score"]:
@@ -480,34 +667,39 @@ class CorridorEstimator:
         ep_h = np.hstack([ep, np.ones((ep.shape[0], 1))])
         y_ep = np.repeat(self.site_y[assign[use_a]], 2)
         al, am, alen = lines[across], mids[across], len_n[across]
+        # (the residuals and weights of the last step describe the solution: its step
+        # was below 1e-5 rad and 0.2 mm (the one after it far smaller), or they ran out)
         params = np.array([psi, cy])
-        for _ in range(self.gn_iterations):
+        H = np.zeros((2, 2))
+        r = np.zeros(0)
+        w = r
+        for _ in range(max(1, self.gn_iterations)):
             r, J = self._residuals(params, ep_h, y_ep, al, am, alen)
             w = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))  # Huber, k = 1 px
-            H = (J * w[:, None]).T @ J
-            g = (J * w[:, None]).T @ r
-            try:
-                step = np.linalg.solve(H + 1e-12 * np.eye(2), -g)
-            except np.linalg.LinAlgError:
+            Jw = J * w[:, None]
+            H = Jw.T @ J
+            g = Jw.T @ r
+            det = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+            if not abs(det) > 1e-300:
                 break
+            step = -np.array([H[1, 1] * g[0] - H[0, 1] * g[1],
+                              H[0, 0] * g[1] - H[1, 0] * g[0]]) / det
             params = params + step
-            if abs(step[0]) < 1e-9 and abs(step[1]) < 1e-8:
+            if abs(step[0]) < 1e-5 and abs(step[1]) < 2e-4:   # converging: the next is far smaller
                 break
-        r, J = self._residuals(params, ep_h, y_ep, al, am, alen)
-        w = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))
         psi, cy = float(params[0]), float(params[1])
         dof = max(1, r.size - 2)
         sigma2 = float(np.sum(w * r ** 2) / dof)
-        H = (J * w[:, None]).T @ J
-        try:
-            cov_pc = np.linalg.inv(H) * max(sigma2, 0.01)
-        except np.linalg.LinAlgError:
+        det = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+        if abs(det) > 1e-300:
+            cov_pc = np.array([[H[1, 1], -H[0, 1]], [-H[1, 0], H[0, 0]]]) / det * max(sigma2,
+                                                                                       0.01)
+        else:
             cov_pc = np.diag([np.inf, np.inf])
         rms_px = float(np.sqrt(np.mean(r ** 2))) if r.size else float("nan")
 
-        mount = self.rig.mount
-        yaw = wrap_pi(psi - mount.pan_rad)
-        t_v = rot_z(yaw) @ mount.t_vehicle_cam
+        yaw = wrap_pi(psi - self._pan)
+        t_v = rot_z(yaw) @ self._t_vc
         y_m = cy - float(t_v[1])
         T = np.array([[1.0, 0.0], [-float(t_v[0]), 1.0]])   # d(yaw, y)/d(psi, c_y)
         cov_yy = T @ cov_pc @ T.T
@@ -527,8 +719,10 @@ class CorridorEstimator:
             "n_along": int(np.count_nonzero(along)),
             "n_across": int(np.count_nonzero(across)),
             "n_lines_matched": n_lines,
+            "n_steps": int(np.count_nonzero(np.abs(pol[along]) == 1)),
+            "n_thin": int(np.count_nonzero(pol[along] == 0)),
             "rms_px": rms_px,
-            "segment_fit_rms_px": float(np.nanmedian(fit_rms)) if fit_rms.size else float("nan"),
+            "segment_fit_rms_px": _median_finite(fit_rms),
             "psi_deg": math.degrees(psi),
             "camera_y_m": cy,
             "ambiguous": bool(best["ambiguous"]),
@@ -539,86 +733,158 @@ class CorridorEstimator:
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(np.clip(quality, 0, 1)),
                             y_m - self.site.corridor.axis_y_m, cov, diag)
 
+    def _hypothesis(self, k: int, psi: float, along: np.ndarray, across: np.ndarray,
+                    q: np.ndarray, len_n: np.ndarray, pol: np.ndarray, ceil_pts: np.ndarray,
+                    ceil_len: np.ndarray, prior: PoseEstimate | None) -> dict[str, Any]:
+        """The labeling ``psi + k 90 deg`` (odd k: the families swap) scored on the site."""
+        pk = wrap_pi(psi + k * np.pi / 2)
+        fa, fb = (along, across) if k % 2 == 0 else (across, along)
+        wa = len_n[fa] * self.f_px
+        prior_shift = None
+        if prior is not None and prior.y_m is not None:
+            t_v = rot_z(wrap_pi(pk - self._pan)) @ self._t_vc
+            prior_shift = prior.y_m + float(t_v[1])
+        qa = q[fa]
+        c, s = math.cos(pk), math.sin(pk)
+        n_y = s * qa[:, 0] + c * qa[:, 1]                 # (Rz(pk) q)_y
+        n_z = qa[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            offs = np.where(np.abs(n_y) > 1e-12, -n_z * self.height_m / n_y, np.nan)
+        pol_w = pol[fa] * np.sign(n_y)
+        compat = self._compat(pol_w, ceil_len[fa])
+        m = match_offsets(offs, wa, self.site_y, self.match_tol_m, prior_shift,
+                          self._lamp_anchors(ceil_pts[fb], pk), compat)
+        n_a = 0 if m is None else m.n_lines
+        len_a, len_b = float(np.sum(ceil_len[fa])), float(np.sum(ceil_len[fb]))
+        return {"k": k, "psi": pk, "fa": fa, "fb": fb, "match": m, "n_a": n_a,
+                "offs": offs, "w": wa, "pol_w": pol_w, "compat": compat, "q_b": q[fb],
+                "len_nb": len_n[fb],
+                "elong": len_a - len_b, "len_a": len_a, "len_b": len_b}
+
+    def _across_on_grid(self, h: dict[str, Any]) -> int:
+        """How many across segments of hypothesis ``h`` sit on the ``lines_across``
+        grid (0 unless two or more)."""
+        corr = self.site.corridor
+        if corr.lines_across is None or h["q_b"].shape[0] < 2:
+            return 0
+        n_b, _ = periodic_spread(across_offsets(h["q_b"], h["psi"], self.height_m),
+                                 h["len_nb"], corr.lines_across.spacing_m, self.match_tol_m)
+        return n_b if n_b >= 2 else 0
+
     def _solve_from(self, psi0: float, q: np.ndarray, lines: np.ndarray, mids: np.ndarray,
-                    len_n: np.ndarray, segs: np.ndarray, prior: PoseEstimate | None,
-                    prior_psi: float | None) -> dict[str, Any] | None:
+                    len_n: np.ndarray, ceil_pts: np.ndarray, pol: np.ndarray,
+                    ceil_len: np.ndarray,
+                    prior: PoseEstimate | None, prior_psi: float | None
+                    ) -> dict[str, Any] | None:
         along, across, _ = self._classify(psi0, lines, mids, self.angle_tol)
         if np.count_nonzero(along) + np.count_nonzero(across) < 2:
             return None
-        psi = self._refine_pan(psi0, q, lines, mids, len_n, along, across)
+        psi = self._refine_pan(psi0, q, lines, mids, len_n, along, across, 1)
         tol = np.minimum(self.angle_tol, 2 * self.inlier_px / np.maximum(len_n * self.f_px, 1))
         along, across, _ = self._classify(psi, lines, mids, tol)
         if np.count_nonzero(along) + np.count_nonzero(across) < 2:
             return None
-        psi = self._refine_pan(psi, q, lines, mids, len_n, along, across)
-        # the four labelings: psi + k * 90 deg; odd k swaps the families
-        mount = self.rig.mount
-        ceil_pts = self._ceiling_points(segs)
-        seg_len_w = np.nan_to_num(np.minimum(np.hypot(ceil_pts[:, 2] - ceil_pts[:, 0],
-                                                      ceil_pts[:, 3] - ceil_pts[:, 1]), 10.0))
-        corr = self.site.corridor
-        hyps = []
-        for k in range(4):
-            pk = wrap_pi(psi + k * np.pi / 2)
-            fa, fb = (along, across) if k % 2 == 0 else (across, along)
-            wa = len_n[fa] * self.f_px
-            prior_shift = None
-            if prior is not None and prior.y_m is not None:
-                t_v = rot_z(wrap_pi(pk - mount.pan_rad)) @ mount.t_vehicle_cam
-                prior_shift = prior.y_m + float(t_v[1])
-            offs = along_offsets(q[fa], pk, self.height_m)
-            m = match_offsets(offs, wa, self.site_y, self.match_tol_m, prior_shift,
-                              self._lamp_anchors(ceil_pts[fb], pk))
-            n_a = 0 if m is None else m.n_lines
-            n_b = 0
-            if corr.lines_across is not None and np.count_nonzero(fb) >= 2:
-                n_b, _ = periodic_spread(across_offsets(q[fb], pk, self.height_m),
-                                         len_n[fb], corr.lines_across.spacing_m,
-                                         self.match_tol_m)
-                n_b = n_b if n_b >= 2 else 0
-            elong = float(np.sum(seg_len_w[fa]) - np.sum(seg_len_w[fb]))
-            hyps.append({"k": k, "psi": pk, "fa": fa, "fb": fb, "match": m, "n_a": n_a,
-                         "n_b": n_b, "elong": elong})
-
-        def frame_score(h: dict[str, Any]) -> tuple:
-            return (h["n_a"] + min(h["n_b"], 2), h["elong"])
+        def hyp(k: int) -> dict[str, Any]:
+            return self._hypothesis(k, psi, along, across, q, len_n, pol, ceil_pts, ceil_len,
+                                    prior)
 
         how = "spacing"
         if prior_psi is not None:
-            ranked = sorted(hyps, key=lambda h: abs(wrap_pi(h["psi"] - prior_psi)))
-            chosen = ranked[0]
+            k = min(range(4), key=lambda k: abs(wrap_pi(psi + k * np.pi / 2 - prior_psi)))
+            chosen = hyp(k)
             how = "prior"
         else:
-            # pair k with k+2 (a 180 deg turn): keep yaw in (-90, 90]
-            def yaw_ok(h: dict[str, Any]) -> bool:
-                y = wrap_pi(h["psi"] - mount.pan_rad)
-                return -np.pi / 2 < y <= np.pi / 2
+            # of psi + k 90 deg, two keep yaw in (-90, 90] (k and k + 2 are a half
+            # turn apart); the one whose forward family is longer on the ceiling first
+            ks = [k for k in range(4)
+                  if -np.pi / 2 < wrap_pi(psi + k * np.pi / 2 - self._pan) <= np.pi / 2]
+            la, lb = float(np.sum(ceil_len[along])), float(np.sum(ceil_len[across]))
+            ks.sort(key=lambda k: -(la if k % 2 == 0 else lb))
+            first = hyp(ks[0])
+            if len(ks) < 2 or first["len_a"] >= _DECISIVE * first["len_b"]:
+                chosen, how = first, "elongation"
+            else:
+                cands = [first, hyp(ks[1])]
 
-            cands = [h for h in hyps if yaw_ok(h)]
-            cands.sort(key=frame_score, reverse=True)
-            chosen = cands[0]
-            if len(cands) > 1 and frame_score(cands[1])[0] == frame_score(chosen)[0]:
-                how = "elongation"
-                if abs(cands[1]["elong"] - chosen["elong"]) < 1e-6:
-                    # no evidence at all: the paper's rule, |pan| <= 45 deg
-                    chosen = min(cands, key=lambda h: abs(h["psi"]))
-                    how = "paper_rule"
+                def frame_score(h: dict[str, Any]) -> tuple:
+                    return (h["n_a"] + min(self._across_on_grid(h), 2), h["elong"])
+
+                cands.sort(key=frame_score, reverse=True)
+                chosen = cands[0]
+                if frame_score(cands[1])[0] == frame_score(chosen)[0]:
+                    how = "elongation"
+                    if abs(cands[1]["elong"] - chosen["elong"]) < 1e-6:
+                        # no evidence at all: the paper's rule, |pan| <= 45 deg
+                        chosen = min(cands, key=lambda h: abs(h["psi"]))
+                        how = "paper_rule"
         m = chosen["match"]
         if m is None or m.n_lines < 1 or np.count_nonzero(m.assign >= 0) < 2:
             return {"score": (-1, 0.0), "failure": (
                 "no_association", "the forward lines do not match the site's lines_along")}
-        ambiguous = False
-        if m.runner_up is not None and m.runner_up[0] >= 0.85 * m.score:
-            ambiguous = True
-            if prior is None or prior.y_m is None:
-                return {"score": (m.n_lines, m.weight), "failure": (
-                    "ambiguous", f"{m.n_lines} forward lines fit two lateral positions "
-                    f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose")}
+        ambiguous = self._is_ambiguous(m)
+        if ambiguous:
+            m, ambiguous = self._settle_by_absence(chosen, m)
+            if not ambiguous and how != "prior":
+                how += "+absence"
+        if ambiguous and (prior is None or prior.y_m is None):
+            return {"score": (m.n_lines, m.weight), "failure": (
+                "ambiguous", f"{m.n_lines} forward lines fit two lateral positions "
+                f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose")}
         assign = np.full(q.shape[0], -1)
         assign[np.flatnonzero(chosen["fa"])] = m.assign
         return {"score": (m.n_lines, m.weight), "psi": chosen["psi"], "cy": m.shift_m,
                 "along": chosen["fa"], "across": chosen["fb"], "assign": assign,
                 "n_lines": m.n_lines, "ambiguous": ambiguous, "how": how}
+
+    @staticmethod
+    def _is_ambiguous(m: OffsetMatch) -> bool:
+        return m.runner_up is not None and m.runner_up[0] >= 0.85 * m.score
+
+    def _settle_by_absence(self, h: dict[str, Any], m: OffsetMatch
+                           ) -> tuple[OffsetMatch, bool]:
+        """Between the winning lateral shift and the runner-up, count against each the
+        site lines it puts clearly in view (:meth:`_in_view`) that no forward segment
+        of a fitting kind lies on; half a line each. Returns the match kept and whether
+        the two are still within 15 %."""
+        offs = h["offs"]
+        ok = np.isfinite(offs)
+        c_w, c_r = m.shift_m, m.runner_up[2]
+        adj = []
+        for c in (c_w, c_r):
+            seen = np.any((np.abs(offs[ok][:, None] + c - self.site_y[None, :])
+                           <= self.match_tol_m) & (h["compat"][ok] > 0), axis=0)
+            adj.append(np.count_nonzero(self._in_view(h["psi"], c) & ~seen))
+        s_w, s_r = m.score - 0.5 * adj[0], m.runner_up[0] - 0.5 * adj[1]
+        if s_r > s_w:
+            alt = match_offsets(offs, h["w"], self.site_y, self.match_tol_m, c_r, None,
+                                h["compat"])
+            if alt is None or abs(alt.shift_m - c_r) > self.match_tol_m:
+                return m, True
+            m, s_w, s_r = alt, s_r, s_w
+        return m, bool(s_r >= 0.85 * s_w)
+
+    def _in_view(self, psi: float, cy: float) -> np.ndarray:
+        """``(J,)``: the site's ``lines_along`` clearly in view for camera pan ``psi``
+        and camera y ``cy``: a visible stretch of at least 3 ``min_length_px``, and
+        for a lamp edge at least a lamp pitch of ceiling (so a lamp is in it)."""
+        cam = self.rig.camera
+        u = self._view_u                                         # (S,) m along W's x
+        R_cw = self.M.T @ rot_z(-psi)
+        J = self.site_y.size
+        X = np.stack([np.broadcast_to(u, (J, u.size)),
+                      np.broadcast_to((self.site_y - cy)[:, None], (J, u.size)),
+                      np.full((J, u.size), self.height_m)], axis=2)
+        d = X @ R_cw.T                                           # (J, S, 3)
+        front = d[..., 2] > 1e-6
+        xy = d[..., :2] / np.where(front, d[..., 2], 1.0)[..., None]
+        front &= np.hypot(xy[..., 0], xy[..., 1]) <= self._r_max
+        px = cam.distort(xy.reshape(-1, 2)).reshape(J, u.size, 2)
+        vis = front & cam.in_image(px.reshape(-1, 2), 2.0).reshape(J, u.size)
+        step = np.hypot(*np.diff(px, axis=1).transpose(2, 0, 1))
+        both = vis[:, 1:] & vis[:, :-1]
+        length_px = np.sum(np.where(both, step, 0.0), axis=1)
+        stretch_m = np.sum(both, axis=1) * (u[1] - u[0])
+        return (length_px >= 3 * self.detector.min_length_px) & (stretch_m >= self._lamp_pitch)
 
     def _ceiling_points(self, segs: np.ndarray) -> np.ndarray:
         """Endpoints ``(N, 4)`` back-projected onto the ceiling, in the level frame
@@ -650,17 +916,22 @@ class CorridorEstimator:
         """The mount check: free vanishing points of both families against the
         calibrated tilt and swing."""
         n_pred = self.M[2, :]
-        out = {"vanishing_line_residual_deg": float("nan"), "vp_along_elevation_deg":
-               float("nan"), "implied_tilt_deg": float("nan"), "implied_swing_deg": float("nan")}
-        if np.count_nonzero(along) >= 2:
-            va = free_vanishing_point(lines[along], len_n[along] ** 2)
-            out["vp_along_elevation_deg"] = math.degrees(math.asin(
-                min(1.0, abs(float(n_pred @ va)) / float(np.linalg.norm(va)))))
-            if np.count_nonzero(across) >= 2:
-                vb = free_vanishing_point(lines[across], len_n[across] ** 2)
-                n = np.cross(va, vb)
-                if np.linalg.norm(n) > 1e-12:
-                    n /= np.linalg.norm(n)
+        nan = float("nan")
+        out = {"vanishing_line_residual_deg": nan, "vp_along_elevation_deg": nan,
+               "implied_tilt_deg": nan, "implied_swing_deg": nan}
+        ia = np.flatnonzero(along)
+        if ia.size >= 2:
+            va = free_vanishing_point(lines[ia], len_n[ia] ** 2)      # unit
+            out["vp_along_elevation_deg"] = math.degrees(math.asin(min(1.0, abs(float(
+                n_pred @ va)))))
+            ib = np.flatnonzero(across)
+            if ib.size >= 2:
+                vb = free_vanishing_point(lines[ib], len_n[ib] ** 2)
+                n = np.array([va[1] * vb[2] - va[2] * vb[1], va[2] * vb[0] - va[0] * vb[2],
+                              va[0] * vb[1] - va[1] * vb[0]])
+                nn = math.sqrt(float(n @ n))
+                if nn > 1e-12:
+                    n /= nn
                     out["vanishing_line_residual_deg"] = math.degrees(
                         math.acos(min(1.0, abs(float(n @ n_pred)))))
                     tilt, swing = mount_from_vanishing_line(n)

@@ -52,19 +52,26 @@ class SegmentDetector:
             ``hough`` (Canny + probabilistic Hough).
         min_length_px: shortest segment kept, pixels.
         canny: ``(low, high)`` hysteresis thresholds for ``fld`` and ``hough``.
+        rows: ``(v0, v1)``: detect only in image rows ``v0 <= v < v1`` (a region of
+            interest, e.g. where the ceiling can be); segments keep full-image pixel
+            coordinates. None: the whole image.
+        merge: ``fld`` merges collinear pieces (OpenCV's ``do_merge``; default True).
     """
 
     def __init__(self, method: str = "fld", min_length_px: float = 20.0,
-                 canny: tuple[float, float] = (40.0, 100.0)) -> None:
+                 canny: tuple[float, float] = (40.0, 100.0),
+                 rows: tuple[int, int] | None = None, merge: bool = True) -> None:
         if method not in DETECTORS:
             raise ConfigError(None, "detector",
                               f"expected one of {', '.join(DETECTORS)}, found {method!r}")
         self.method = method
         self.min_length_px = float(min_length_px)
         self.canny = (float(canny[0]), float(canny[1]))
+        self.rows = None if rows is None else (max(0, int(rows[0])), int(rows[1]))
         if method == "fld":
             self._det = cv2.ximgproc.createFastLineDetector(
-                int(max(5, min_length_px * 0.5)), 1.414, self.canny[0], self.canny[1], 3, True)
+                int(max(5, min_length_px * 0.5)), 1.414, self.canny[0], self.canny[1], 3,
+                bool(merge))
         elif method == "lsd":
             self._det = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
         else:
@@ -72,6 +79,12 @@ class SegmentDetector:
 
     def __call__(self, gray: np.ndarray) -> np.ndarray:
         """Segments ``(N, 4)`` in pixels, at least ``min_length_px`` long."""
+        v0 = 0
+        if self.rows is not None:
+            v0 = min(self.rows[0], gray.shape[0])
+            gray = gray[v0:max(v0, self.rows[1])]
+            if gray.shape[0] < 2:
+                return np.zeros((0, 4))
         if self.method == "hough":
             edges = cv2.Canny(gray, self.canny[0], self.canny[1], L2gradient=True)
             found = cv2.HoughLinesP(edges, 1.0, np.pi / 720, 30,
@@ -83,6 +96,8 @@ class SegmentDetector:
         if found is None or len(found) == 0:
             return np.zeros((0, 4))
         segs = np.asarray(found, dtype=np.float64).reshape(-1, 4)
+        if v0:
+            segs[:, 1::2] += v0
         return segs[segment_lengths(segs) >= self.min_length_px]
 
 
@@ -179,6 +194,306 @@ def refine_segments(gray: np.ndarray, segs_px: np.ndarray, half_width_px: float 
             q = segs[i, j:j + 2]
             segs[i, j:j + 2] = q - (q @ line[:2] + line[2]) * line[:2]
     return segs, rms
+
+
+def sample_profiles(gray: np.ndarray, segs_px: np.ndarray, offsets_px: np.ndarray,
+                    n_along: int = 8, inset: float = 0.1, mean: bool = True) -> np.ndarray:
+    """Mean intensity profiles across segments.
+
+    Each segment ``(u1, v1, u2, v2)`` is sampled (bilinear by ``cv2.remap``, to 1/32
+    px; the border replicated) at ``n_along`` points evenly spread over its middle
+    (``inset`` of its length left out at each end), at signed distances ``offsets_px``
+    along its left normal
+    ``(-t_v, t_u)`` (``t`` the unit direction from ``(u1, v1)`` to ``(u2, v2)``); with
+    ``mean`` the samples are averaged along the segment.
+
+    Args:
+        gray: ``(H, W)`` uint8 (or float) image.
+        segs_px: ``(N, 4)`` segments, pixels.
+        offsets_px: ``(O,)`` distances across, pixels.
+
+    Returns:
+        ``(N, O)`` float64 mean grey levels, or ``(N, n_along, O)`` without ``mean``.
+    """
+    s = np.asarray(segs_px, dtype=np.float64).reshape(-1, 4)
+    o = np.asarray(offsets_px, dtype=np.float64).ravel()
+    if s.shape[0] == 0:
+        return np.zeros((0, o.size)) if mean else np.zeros((0, n_along, o.size))
+    d, nrm = _directions(s)
+    val = _profiles(gray, s, d, nrm, o, np.linspace(inset, 1.0 - inset, n_along))
+    return val.sum(axis=1) * (1.0 / n_along) if mean else val
+
+
+def _directions(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(d, nrm)``: ``p2 - p1`` ``(N, 2)`` and the unit left normal ``(N, 2)``."""
+    d = s[:, 2:] - s[:, :2]
+    inv = 1.0 / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+    nrm = np.empty_like(d)
+    nrm[:, 0] = -d[:, 1] * inv
+    nrm[:, 1] = d[:, 0] * inv
+    return d, nrm
+
+
+def _profiles(gray: np.ndarray, s: np.ndarray, d: np.ndarray, nrm: np.ndarray,
+              o: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Samples ``(N, A, O)`` at ``p1 + a d + o nrm`` (bilinear, ``cv2.remap``)."""
+    base = s[:, None, :2] + a[None, :, None] * d[:, None, :]                  # (N, A, 2)
+    pts = (base[:, :, None, :] + o[None, None, :, None] * nrm[:, None, None, :]
+           ).astype(np.float32)                                               # (N, A, O, 2)
+    val = cv2.remap(gray, pts.reshape(-1, o.size, 2), None, cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return val.reshape(pts.shape[:3]).astype(np.float64)
+
+
+def edge_polarity(gray: np.ndarray, segs_px: np.ndarray, min_step: float = 20.0,
+                  min_depth: float = 8.0, half_width_px: float = 4.0
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """What kind of edge each segment lies on, and where a thin line's centre is.
+
+    The mean profile across each segment (:func:`sample_profiles`, offsets up to
+    ``half_width_px`` every 0.5 px) is a **step** when its two sides (the outer 1 px
+    of either end) differ by at least ``min_step`` grey levels and by more than the
+    depth of any dip or bump between them; a **thin line** (a seam, a painted stripe)
+    when the inner part (``|offset| <= half_width_px - 1.5``) dips below (or rises
+    above) both sides by at least ``min_depth`` and more than the sides differ.
+    Line detectors put a thin line's segments on one of its two edges; the centre is
+    the sub-pixel extremum (parabola) of the profile.
+
+    Args:
+        gray: ``(H, W)`` uint8 image.
+        segs_px: ``(N, 4)`` segments in pixels.
+
+    Returns:
+        ``(polarity, shift_px)``, both ``(N,)``: polarity ``+1`` (brighter on the left
+        normal's side, see :func:`sample_profiles`), ``-1`` (brighter on the other
+        side), ``0`` (a thin line) or NaN (neither: weak or unclear); shift_px the
+        thin line's centre along the left normal, px (NaN unless a thin line).
+
+    Example::
+
+        pol, shift = edge_polarity(gray, segs_px)
+        segs_px = shift_segments(segs_px, np.nan_to_num(shift))
+    """
+    offs = np.arange(-half_width_px, half_width_px + 1e-9, 0.5)
+    prof = sample_profiles(gray, segs_px, offs)
+    return _classify_profiles(prof, offs, min_step, min_depth)
+
+
+def _classify_profiles(prof: np.ndarray, offs: np.ndarray, min_step: float,
+                       min_depth: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(polarity, shift_px)`` of mean profiles ``(N, O)`` at ``offs (O,)`` (step 0.5)."""
+    half = float(offs[-1])
+    n = prof.shape[0]
+    pol = np.full(n, np.nan)
+    shift = np.full(n, np.nan)
+    if n == 0:
+        return pol, shift
+    side = np.abs(offs) >= half - 1.0 + 1e-9
+    inner = np.flatnonzero(np.abs(offs) <= half - 1.5 + 1e-9)
+    sl, sr = side & (offs < 0), side & (offs > 0)
+    left = prof[:, sl].sum(axis=1) * (1.0 / np.count_nonzero(sl))
+    right = prof[:, sr].sum(axis=1) * (1.0 / np.count_nonzero(sr))
+    step = right - left
+    pin = prof[:, inner]
+    k_lo = np.argmin(pin, axis=1)
+    k_hi = np.argmax(pin, axis=1)
+    rows = np.arange(n)
+    dip = np.minimum(left, right) - pin[rows, k_lo]
+    bump = pin[rows, k_hi] - np.maximum(left, right)
+    valley = dip >= bump
+    depth = np.where(valley, dip, bump)
+    k = np.where(valley, k_lo, k_hi)
+    thin = (depth >= min_depth) & (depth > np.abs(step)) & (k > 0) & (k < inner.size - 1)
+    is_step = (np.abs(step) >= min_step) & (np.abs(step) > np.maximum(depth, 0.0)) & ~thin
+    pol[is_step] = np.sign(step[is_step])
+    pol[thin] = 0.0
+    if np.any(thin):
+        r = rows[thin]
+        kk = k[thin]
+        shift[thin] = offs[inner[kk]] + 0.5 * _vertex(pin[r, kk - 1], pin[r, kk], pin[r, kk + 1])
+    return pol, shift
+
+
+def _vertex(y0: np.ndarray, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
+    """Sub-sample offset in [-1, 1] of the parabola's vertex through three samples."""
+    den = y0 - 2 * y1 + y2
+    safe = np.where(np.abs(den) > 1e-9, den, 1.0)
+    return np.clip(np.where(np.abs(den) > 1e-9, 0.5 * (y0 - y2) / safe, 0.0), -1.0, 1.0)
+
+
+def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
+                       n_along: int = 8, half_width_px: float = 4.0, min_step: float = 20.0,
+                       min_depth: float = 8.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel segments fitted in undistorted coordinates, with their edge kind.
+
+    A straight ceiling line is straight only after undistortion: a detector's segment
+    is a chord of the curved image, and a thin line (a seam) is found on one of its
+    two edges. Here each segment's kind comes from its mean cross profile
+    (:func:`edge_polarity`); at ``n_along`` points along it the edge is located on
+    the profile there (a step: the sub-pixel peak of the derivative with the
+    segment's sign; a thin line: the sub-pixel extremum), within
+    ``half_width_px - 1`` px of the segment; the points are undistorted and a
+    total-least-squares line is fitted to them (one pass dropping points over
+    3 sigma, at least 0.5 px). The endpoints are the undistorted detector endpoints
+    projected onto that line. A segment of unclear kind, or with fewer than 4
+    located points, keeps its undistorted endpoints.
+
+    Args:
+        camera: the intrinsics (``camera.unproject``).
+        gray: ``(H, W)`` uint8 image.
+        segs_px: ``(N, 4)`` detector segments, pixels.
+
+    Returns:
+        ``(segs_n, polarity, rms_px)``: ``(N, 4)`` segments in undistorted normalized
+        coordinates, ``(N,)`` polarity as :func:`edge_polarity` (the left normal of the
+        pixel segment; the line through ``segs_n`` keeps that side positive), ``(N,)``
+        RMS of the located points about the line in pixels of the focal length (NaN
+        where not refitted).
+    """
+    s = np.asarray(segs_px, dtype=np.float64).reshape(-1, 4)
+    n = s.shape[0]
+    rms = np.full(n, np.nan)
+    if n == 0:
+        return np.zeros((0, 4)), np.zeros(0), rms
+    offs = np.arange(-half_width_px, half_width_px + 1e-9, 0.5)
+    t = np.linspace(0.05, 0.95, n_along)
+    d_all, nrm_all = _directions(s)
+    prof = _profiles(gray, s, d_all, nrm_all, offs, t)                         # (N, A, O)
+    pol, _ = _classify_profiles(prof.sum(axis=1) * (1.0 / n_along), offs, min_step, min_depth)
+    sel = np.flatnonzero(np.isfinite(pol))
+    inner = np.flatnonzero(np.abs(offs[1:-1]) <= half_width_px - 1.0 + 1e-9)  # in offs[1:-1]
+    p = prof[sel]
+    ps = pol[sel]
+    # a step: where the profile crosses the middle of its two sides' levels, the
+    # crossing nearest the derivative's peak; a thin line: the centroid of its part
+    # beyond half its height (both less locked to the pixel grid than a parabola)
+    inv_a = 1.0 / n_along
+    side = 0.5 * (p[:, :, 0] + p[:, :, -1]).sum(axis=1) * inv_a
+    inner_p = p[:, :, 1:-1][:, :, inner]
+    valley = (side - inner_p.min(axis=2).sum(axis=1) * inv_a
+              >= inner_p.max(axis=2).sum(axis=1) * inv_a - side)
+    sgn = np.where(ps == 0, np.where(valley, -1.0, 1.0), ps)
+    g = p * sgn[:, None, None]                    # rises across a step; peaks on a line
+    o_in = offs[1:-1][inner]
+    step = ps != 0
+    loc = np.full(g.shape[:2], np.nan)
+    if np.any(step):
+        gs = g[step]
+        mid = 0.25 * (gs[:, :, 0] + gs[:, :, 1] + gs[:, :, -2] + gs[:, :, -1])
+        k = inner[np.argmax((gs[:, :, 2:] - gs[:, :, :-2])[:, :, inner], axis=2)] + 1
+        r0 = np.arange(gs.shape[0])[:, None]
+        r1 = np.arange(gs.shape[1])[None, :]
+        hm, hk, hp = gs[r0, r1, k - 1] - mid, gs[r0, r1, k] - mid, gs[r0, r1, k + 1] - mid
+        # the crossing is in [k - 1, k] or [k, k + 1] (the derivative peaks at k)
+        lo = hk > 0
+        h0 = np.where(lo, hm, hk)
+        h1 = np.where(lo, hk, hp)
+        o = offs[k - lo] + 0.5 * (-h0) / np.where(h1 > h0, h1 - h0, 1.0)
+        ok = (h0 <= 0) & (h1 > 0) & (np.abs(o) <= o_in[-1])
+        loc[step] = np.where(ok, o, np.nan)
+    if not np.all(step):
+        gt = g[~step][:, :, 1:-1][:, :, inner]
+        base = (sgn * side)[~step][:, None, None]
+        top = gt.max(axis=2, keepdims=True)
+        w = np.maximum(gt - 0.5 * (base + top), 0.0)
+        sw = w.sum(axis=2)
+        o = (w * o_in).sum(axis=2) / np.maximum(sw, 1e-12)
+        k_pk = np.argmax(gt, axis=2)
+        ok = (sw > 0) & (k_pk > 0) & (k_pk < inner.size - 1)
+        loc[~step] = np.where(ok, o, np.nan)
+    good = np.isfinite(loc)
+    loc[~good] = 0.0
+    # the edge points in pixels; undistorted with the endpoints in one call
+    ss = s[sel]
+    d = d_all[sel]
+    nrm = nrm_all[sel]
+    pts = (ss[:, None, :2] + t[None, :, None] * d[:, None, :]
+           + loc[:, :, None] * nrm[:, None, :])
+    xy = unproject_fast(camera, np.concatenate([s.reshape(-1, 2), pts.reshape(-1, 2)]))
+    ends = xy[:2 * n].reshape(n, 4)
+    xy = xy[2 * n:].reshape(pts.shape)
+    f = 0.5 * (camera.fx + camera.fy)
+    line, res = _fit_lines(xy, good)
+    sig = np.sqrt(np.sum(np.where(good, res ** 2, 0), axis=1)
+                  / np.maximum(np.count_nonzero(good, axis=1), 1))
+    keep = good & (np.abs(res) <= np.maximum(3 * sig, 0.5 / f)[:, None])
+    if np.any(keep != good):
+        good = keep
+        line, res = _fit_lines(xy, good)
+    cnt = np.count_nonzero(good, axis=1)
+    ok = cnt >= 4
+    idx = sel[ok]
+    ln = line[ok]
+    e = ends[idx]
+    # keep the orientation of the pixel segment: its left side stays positive
+    flip = (e[:, 2] - e[:, 0]) * ln[:, 1] - (e[:, 3] - e[:, 1]) * ln[:, 0] < 0
+    ln[flip] *= -1
+    for j in (0, 2):
+        q = e[:, j:j + 2]
+        dist = q[:, 0] * ln[:, 0] + q[:, 1] * ln[:, 1] + ln[:, 2]
+        e[:, j:j + 2] = q - dist[:, None] * ln[:, :2]
+    ends[idx] = e
+    rms[idx] = f * np.sqrt(np.sum(np.where(good[ok], res[ok] ** 2, 0), axis=1) / cnt[ok])
+    return ends, pol, rms
+
+
+_FAST_OK: dict[tuple, bool] = {}
+
+
+def unproject_fast(camera: CameraModel, points_px: np.ndarray) -> np.ndarray:
+    """``camera.unproject`` ``(N, 2)`` for many points per frame: for the polynomial
+    models a fixed 10 iterations of OpenCV's undistortion (no reprojection test). Used
+    only for a camera whose image border reprojects within 1e-4 px after those 10
+    iterations (checked once per camera); other cameras go to ``camera.unproject``."""
+    px = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+    if (px.shape[0] == 0 or not camera.is_distorted
+            or camera.model not in ("plumb_bob", "rational_polynomial")):
+        return camera.unproject(px)
+    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+    ok = _FAST_OK.get(key)
+    if ok is None:
+        u = np.linspace(-0.5, camera.width - 0.5, 33)
+        v = np.linspace(-0.5, camera.height - 0.5, 25)
+        border = np.concatenate([np.stack([u, np.full_like(u, v[0])], 1),
+                                 np.stack([u, np.full_like(u, v[-1])], 1),
+                                 np.stack([np.full_like(v, u[0]), v], 1),
+                                 np.stack([np.full_like(v, u[-1]), v], 1)])
+        back = camera.distort(_undistort10(camera, border))
+        ok = bool(np.all(np.abs(back - border) <= 1e-4))
+        _FAST_OK[key] = ok
+    return _undistort10(camera, px) if ok else camera.unproject(px)
+
+
+def _undistort10(camera: CameraModel, px: np.ndarray) -> np.ndarray:
+    return cv2.undistortPoints(px.reshape(-1, 1, 2), camera.K, camera.dist,
+                               criteria=(cv2.TERM_CRITERIA_COUNT, 10, 0.0)).reshape(-1, 2)
+
+
+def _fit_lines(xy: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Total-least-squares lines ``(N, 3)`` (``|(a, b)| = 1``) through points
+    ``(N, A, 2)`` with weights ``(N, A)``; and the points' signed residuals ``(N, A)``."""
+    wf = w.astype(np.float64)
+    sw = np.maximum(wf.sum(axis=1), 1e-12)
+    c = (wf[:, :, None] * xy).sum(axis=1) / sw[:, None]
+    dd = xy - c[:, None, :]
+    sxx = (wf * dd[..., 0] ** 2).sum(axis=1)
+    syy = (wf * dd[..., 1] ** 2).sum(axis=1)
+    sxy = (wf * dd[..., 0] * dd[..., 1]).sum(axis=1)
+    th = 0.5 * np.arctan2(2 * sxy, sxx - syy)          # direction of the major axis
+    a, b = -np.sin(th), np.cos(th)
+    line = np.stack([a, b, -(a * c[:, 0] + b * c[:, 1])], axis=1)
+    res = xy[..., 0] * a[:, None] + xy[..., 1] * b[:, None] + line[:, 2:3]
+    return line, res
+
+
+def shift_segments(segs_px: np.ndarray, shift_px: np.ndarray) -> np.ndarray:
+    """Segments ``(N, 4)`` moved by ``shift_px (N,)`` along their left normal (see
+    :func:`sample_profiles`)."""
+    s = np.asarray(segs_px, dtype=np.float64).reshape(-1, 4)
+    d = s[:, 2:] - s[:, :2]
+    t_hat = d / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)[:, None]
+    nrm = np.stack([-t_hat[:, 1], t_hat[:, 0]], axis=1) * np.asarray(shift_px)[:, None]
+    return s + np.hstack([nrm, nrm])
 
 
 def undistort_segments(camera: CameraModel, segs_px: np.ndarray) -> np.ndarray:

@@ -14,12 +14,17 @@ from ceilkit.runtime.lines import (
     SegmentDetector,
     as_gray,
     detect_segments,
+    edge_polarity,
     fit_line,
     merge_segments,
     refine_segments,
+    refine_undistorted,
+    sample_profiles,
     segment_lengths,
     segment_lines,
+    shift_segments,
     undistort_segments,
+    unproject_fast,
 )
 
 
@@ -93,3 +98,94 @@ def test_bad_detector_and_colour_input():
         SegmentDetector("canny")
     bgr = np.zeros((4, 5, 3), np.uint8)
     assert as_gray(bgr).shape == (4, 5)
+
+
+def stripe_image(offset_px: float, width_px: float, seed: int) -> np.ndarray:
+    """160x120, a dark vertical stripe ``width_px`` wide centred at u = 80 + offset on
+    grey 150 (anti-aliased, blur 0.8, noise 2)."""
+    s = 8
+    u = (np.arange(160 * s) + 0.5) / s - 0.5
+    row = np.where(np.abs(u - 80 - offset_px) < width_px / 2, 95.0, 150.0)
+    row = row.reshape(160, s).mean(axis=1)
+    img = cv2.GaussianBlur(np.tile(row, (120, 1)), (0, 0), 0.8)
+    img += np.random.default_rng(seed).normal(0, 2.0, img.shape)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def test_sample_profiles_orientation():
+    img = edge_image(0.0, 0.0, 0.0, 0)          # vertical edge, bright on the right (+u)
+    down = np.array([[80.0, 20.0, 80.0, 100.0]])   # left normal (-t_v, t_u) = (-1, 0)
+    p = sample_profiles(img, down, np.array([-3.0, 0.0, 3.0]))
+    assert p.shape == (1, 3) and p[0, 0] > 180 and p[0, 2] < 80
+    assert sample_profiles(img, down[:, [2, 3, 0, 1]], np.array([-3.0, 3.0]))[0, 0] < 80
+    assert sample_profiles(img, down, np.arange(3.0), 5, mean=False).shape == (1, 5, 3)
+
+
+def test_edge_polarity_steps_and_thin_lines():
+    segs = np.array([[80.0, 10.0, 80.0, 110.0], [80.0, 110.0, 80.0, 10.0]])
+    pol, shift = edge_polarity(edge_image(0.0, 0.0, 2.0, 1), segs)
+    assert pol.tolist() == [-1.0, 1.0] and np.all(np.isnan(shift))
+    for off in (0.0, 0.3, -0.8):
+        img = stripe_image(off, 1.5, 2)
+        # a detector finds one edge of the stripe, 0.75 px off its centre
+        on_edge = segs + np.array([off + 0.75, 0, off + 0.75, 0])
+        pol, shift = edge_polarity(img, on_edge)
+        assert pol.tolist() == [0.0, 0.0]
+        centred = shift_segments(on_edge, shift)
+        assert np.allclose(centred[:, 0], 80 + off, atol=0.15), centred
+    flat = np.full((120, 160), 128, np.uint8)
+    assert np.all(np.isnan(edge_polarity(flat, segs)[0]))
+
+
+def test_refine_undistorted_straightens_a_distorted_line():
+    """A straight line in the world is a curve in a distorted image: the detector's
+    chord is off it in the middle; the refit in undistorted coordinates is not."""
+    cam = CameraModel.pinhole(320, 240, 200.0, dist=[-0.1, 0.02, 0, 0, 0])
+    x0 = 0.55                                     # the line x = x0 (normalized), near the edge
+    s = 4
+    vv, uu = np.mgrid[0:240 * s, 0:320 * s]
+    px = np.stack([(uu.ravel() + 0.5) / s - 0.5, (vv.ravel() + 0.5) / s - 0.5], axis=1)
+    xy = cam.unproject(px)
+    # anti-aliased: a ramp one sub-sample wide, centred on the line
+    img = 70.0 + 140.0 * np.clip(0.5 + (xy[:, 0] - x0) * 200.0 * s, 0, 1)
+    img = img.reshape(240 * s, 320 * s)
+    img = cv2.resize(img, (320, 240), interpolation=cv2.INTER_AREA)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8) + np.random.default_rng(3).normal(0, 2, img.shape)
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    ends = cam.distort(np.array([[x0, -0.45], [x0, 0.45]])).reshape(1, 4)
+    # a detector fits a chord to the curved edge: between the curve's ends and middle
+    sag = cam.distort(np.array([[x0, 0.0]]))[0, 0] - 0.5 * (ends[0, 0] + ends[0, 2])
+    assert abs(sag) > 1.0
+    chord = ends + np.array([[2 * sag / 3, 0.0, 2 * sag / 3, 0.0]])
+    test_pts = np.array([[x0, -0.4, 1.0], [x0, 0.0, 1.0], [x0, 0.4, 1.0]])
+    raw = segment_lines(undistort_segments(cam, chord))[0]
+    assert np.max(np.abs(test_pts @ raw)) * 200 > 0.5
+    segs_n, pol, rms = refine_undistorted(cam, img, chord)
+    assert pol[0] == -1.0                  # bright on the right of a downward segment
+    line = segment_lines(segs_n)[0]
+    assert np.max(np.abs(test_pts @ line)) * 200 < 0.1            # px at the focal length
+    assert rms[0] < 0.3
+    # empty input
+    e, p, r = refine_undistorted(cam, img, np.zeros((0, 4)))
+    assert e.shape == (0, 4) and p.shape == (0,) and r.shape == (0,)
+
+
+def test_unproject_fast_matches_unproject():
+    cam = CameraModel.pinhole(640, 480, 400.0, dist=[-0.08, 0.02, 0.001, -0.001, 0])
+    px = np.random.default_rng(0).uniform([-0.5, -0.5], [639.5, 479.5], (200, 2))
+    assert np.allclose(unproject_fast(cam, px), cam.unproject(px), atol=1e-9)
+    plain = CameraModel.pinhole(640, 480, 400.0)
+    assert np.allclose(unproject_fast(plain, px), plain.unproject(px))
+    assert unproject_fast(cam, np.zeros((0, 2))).shape == (0, 2)
+
+
+def test_detector_rows_keep_full_image_coordinates():
+    img = np.zeros((120, 160), np.uint8)
+    img[:, 80:] = 200
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    full = SegmentDetector("fld", 20)(img)
+    part = SegmentDetector("fld", 20, rows=(40, 120))(img)
+    assert part.shape[0] >= 1
+    assert np.all(part[:, [1, 3]] >= 39.5) and np.allclose(part[:, [0, 2]].mean(), 79.5, atol=1)
+    assert full[:, [1, 3]].min() < 10
+    assert SegmentDetector("fld", 20, rows=(200, 300))(img).shape == (0, 4)
