@@ -9,6 +9,13 @@ and p95 against truth (the foundation issue's targets: heading median <= 0.05 de
 p95 <= 0.15 deg; lateral median <= 5 mm, p95 <= 15 mm).
 
     .venv/bin/python benchmarks/bench_mount.py [--seeds 3] [--frames 300]
+
+With ``--sigma-seeds N`` it instead checks the mount's 1 sigma on N seeds of five
+rendered placements (as tests/calib/test_mount.py, which runs fewer): per parameter, the
+largest error and the RMS over seeds of error / sigma (about 1 when sigma is honest),
+for the default systematic shift (calib/mount.py SYSTEMATIC_SHIFT_PX) and for none.
+
+    .venv/bin/python benchmarks/bench_mount.py --sigma-seeds 12
 """
 
 from __future__ import annotations
@@ -23,12 +30,13 @@ import numpy as np
 from typer.testing import CliRunner
 
 from ceilkit.calib.boards import parse_board, render_views
+from ceilkit.calib.mount import SYSTEMATIC_SHIFT_PX, calibrate_mount, placement_from_image
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app as ceilcal
 from ceilkit.cli.ceilrun import app as ceilrun
 from ceilkit.runtime.recording import Recording, load_poses
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimOptions, Trajectory, straight_drive
+from ceilkit.runtime.rig import Mount, Rig
+from ceilkit.runtime.sim import SimOptions, Trajectory, render_frame, straight_drive
 from ceilkit.runtime.site import Site
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "corridor"
@@ -95,12 +103,59 @@ def one(seed: int, frames: int, work: Path) -> dict:
     return out
 
 
+def rendered_placements(rig: Rig, site: Site, seed: int) -> list:
+    """Five placements (PLACES) rendered with noise 2 grey levels and blur 0.8 px, each
+    at an x drawn from the seed: the set tests/calib/test_mount.py uses."""
+    rng = np.random.default_rng(1000 + seed)
+    out = []
+    for k, ((y, yaw), x) in enumerate(zip(PLACES, rng.uniform(0.0, 50.0, 5), strict=True)):
+        img = render_frame(rig, site, x, y, math.radians(yaw),
+                           SimOptions(noise_sigma=2.0, blur_px=0.8),
+                           np.random.default_rng([seed, k]))
+        out.append(placement_from_image(rig.camera, img, y, math.radians(yaw), f"p{k}"))
+    return out
+
+
+def sigma_honesty(seeds: int) -> None:
+    """Print, per mount parameter, max |error| and the RMS of error / sigma over seeds."""
+    rig, site = Rig.load(CONFIGS / "rig.yaml"), Site.load(CONFIGS / "site.yaml")
+    truth = rig.mount
+    blank = rig.with_mount(Mount(z_m=0.5))
+    names = ("tilt", "swing", "pan", "my", "mx", "h")
+    scale = {"tilt": math.degrees(1), "swing": math.degrees(1), "pan": math.degrees(1),
+             "my": 1000.0, "mx": 1000.0, "h": 1000.0}
+    sets = [rendered_placements(rig, site, seed) for seed in range(seeds)]
+    for shift in (SYSTEMATIC_SHIFT_PX, 0.0):
+        z: dict[str, list[float]] = {n: [] for n in names}
+        err: dict[str, list[float]] = {n: [] for n in names}
+        sig: dict[str, list[float]] = {n: [] for n in names}
+        for pls in sets:
+            res = calibrate_mount(blank, site, pls, shift_px=shift)
+            m = res.mount
+            e = {"tilt": m.tilt_rad - truth.tilt_rad, "swing": m.swing_rad - truth.swing_rad,
+                 "pan": m.pan_rad - truth.pan_rad, "my": m.y_m - truth.y_m,
+                 "mx": m.x_m - truth.x_m, "h": truth.z_m - m.z_m}
+            for n in names:
+                z[n].append(e[n] / res.sigma[n])
+                err[n].append(e[n] * scale[n])
+                sig[n].append(res.sigma[n] * scale[n])
+        print(f"shift {shift:.3f} px, {seeds} seeds (deg / mm):")
+        for n in names:
+            print(f"  {n:5s} mean err {np.mean(err[n]):+.4f}  max |err| "
+                  f"{np.max(np.abs(err[n])):.4f}  mean sigma {np.mean(sig[n]):.4f}  "
+                  f"RMS(err/sigma) {np.sqrt(np.mean(np.square(z[n]))):.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--sigma-seeds", type=int, default=0)
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    if args.sigma_seeds:
+        sigma_honesty(args.sigma_seeds)
+        return
     for seed in range(args.seeds):
         with tempfile.TemporaryDirectory() as tmp:
             o = one(seed, args.frames, Path(tmp))

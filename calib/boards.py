@@ -42,6 +42,50 @@ ARUCO_DICTIONARIES = tuple(n[5:] for n in dir(cv2.aruco) if n.startswith("DICT_"
 MIN_CHARUCO_CORNERS = 6
 
 
+SUBPIX_FRACTION = 0.35      # cornerSubPix half-window over the corner's shortest spacing
+
+
+def refine_corners(grey: np.ndarray, corners: np.ndarray, cols: int, rows: int,
+                   half: int | None = None) -> np.ndarray:
+    """Chessboard corners refined by ``cv2.cornerSubPix``, each with its own window.
+
+    ``cornerSubPix`` assumes that every edge inside its window passes through the
+    corner; an edge that does not (the far side of a neighbouring square, the board's
+    border) pulls the corner. A square of side ``s`` px puts such edges ``s`` away, so
+    each corner gets the half-window ``0.35 * s`` (3 to 11 px), ``s`` its shortest
+    distance to a grid neighbour: the shortest sides of a foreshortened board are where a
+    fixed window fails (OpenCV's sample ``left02.jpg``: 11 px against 22 px squares moves
+    its corners by up to 5 px). Corners that share a half-window are refined together.
+
+    Args:
+        grey: the 8-bit grey image.
+        corners: ``(rows * cols, 1, 2)`` float32 from ``findChessboardCorners``, row-major.
+        cols, rows: inner corners across and down.
+        half: one half-window for every corner (px) instead, or None.
+
+    Returns:
+        ``(rows * cols, 1, 2)`` float32 refined corners, px (SPEC §1).
+    """
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.1)
+    pts = np.asarray(corners, np.float32).reshape(-1, 1, 2).copy()
+    if half is not None:
+        return cv2.cornerSubPix(grey, pts, (half, half), (-1, -1), crit)
+    grid = pts.reshape(rows, cols, 2).astype(np.float64)
+    near = np.full((rows, cols), np.inf)
+    dx = np.linalg.norm(np.diff(grid, axis=1), axis=2)          # (rows, cols - 1)
+    dy = np.linalg.norm(np.diff(grid, axis=0), axis=2)          # (rows - 1, cols)
+    near[:, :-1] = np.minimum(near[:, :-1], dx)
+    near[:, 1:] = np.minimum(near[:, 1:], dx)
+    near[:-1, :] = np.minimum(near[:-1, :], dy)
+    near[1:, :] = np.minimum(near[1:, :], dy)
+    halves = np.clip(np.floor(SUBPIX_FRACTION * near), 3, 11).astype(int).ravel()
+    for h in np.unique(halves):
+        idx = np.flatnonzero(halves == h)
+        pts[idx] = cv2.cornerSubPix(grey, np.ascontiguousarray(pts[idx]), (int(h), int(h)),
+                                    (-1, -1), crit)
+    return pts
+
+
 @dataclass(frozen=True, eq=False)
 class Detection:
     """The corners of one board found in one image.
@@ -115,10 +159,12 @@ class Board:
 class ChessBoard(Board):
     """A chessboard of ``cols`` x ``rows`` inner corners spaced ``square_m`` metres.
 
-    ``detector``: ``classic`` (``findChessboardCorners`` + ``cornerSubPix``, with a
-    half-window of 0.4 of the corner spacing, 3 to 11 px: OpenCV's calibration sample
-    uses 11), ``sb`` (``findChessboardCornersSB``, more robust to blur but biased by
-    about 0.4% in focal length on our renders), or ``auto`` (classic, then sb).
+    ``detector``: ``classic`` (``findChessboardCorners`` + ``cornerSubPix``, each corner
+    with a half-window of 0.35 of its own shortest grid spacing, 3 to 11 px: see
+    :func:`refine_corners`; ``subpix_half`` fixes one half-window for every corner, as
+    OpenCV's calibration sample does with 11), ``sb`` (``findChessboardCornersSB``, more
+    robust to blur but biased by about 0.4% in focal length on our renders), or ``auto``
+    (classic, then sb).
     """
 
     cols: int
@@ -126,8 +172,12 @@ class ChessBoard(Board):
     square_m: float
     margin_squares: float = 1.0
     detector: str = "auto"
+    subpix_half: int | None = None
 
     def __post_init__(self) -> None:
+        if self.subpix_half is not None and self.subpix_half < 2:
+            raise ConfigError(None, "subpix_half", f"expected a half-window of at least 2 px, "
+                              f"found {self.subpix_half}")
         if self.cols < 2 or self.rows < 2:
             raise ConfigError(None, "--board", f"a chessboard needs at least 2x2 inner "
                               f"corners, found {self.cols}x{self.rows}")
@@ -162,12 +212,8 @@ class ChessBoard(Board):
             flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
             found, corners = cv2.findChessboardCorners(grey, (self.cols, self.rows), flags=flags)
             if found and corners is not None:
-                grid = corners.reshape(self.rows, self.cols, 2)
-                spacing = min(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2)),
-                              np.median(np.linalg.norm(np.diff(grid, axis=0), axis=2)))
-                half = int(np.clip(0.4 * spacing, 3, 11))
-                crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.1)
-                corners = cv2.cornerSubPix(grey, corners, (half, half), (-1, -1), crit)
+                corners = refine_corners(grey, corners, self.cols, self.rows,
+                                         self.subpix_half)
         if not found and self.detector in ("auto", "sb"):
             flags = (cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
                      | cv2.CALIB_CB_ACCURACY)
@@ -571,5 +617,6 @@ def render_views(board: Board, camera: CameraModel, n_views: int, rng: np.random
     return out
 
 
-__all__ = ["ARUCO_DICTIONARIES", "Board", "CharucoBoard", "ChessBoard", "Detection",
-           "look_at_pose", "parse_board", "render_board", "render_views"]
+__all__ = ["ARUCO_DICTIONARIES", "SUBPIX_FRACTION", "Board", "CharucoBoard", "ChessBoard",
+           "Detection", "look_at_pose", "parse_board", "refine_corners", "render_board",
+           "render_views"]

@@ -51,6 +51,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".pp
 COVERAGE_GRID = (8, 6)          # cells across, down
 MIN_CORNERS_PER_VIEW = 6
 DROP_WARN_FRACTION = 0.03
+EARLY_CHECK = 3                 # images missed in a row before a wrong board size is sought
 _COEFF_NAMES = {
     "plumb_bob": ("k1", "k2", "p1", "p2", "k3"),
     "rational_polynomial": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
@@ -462,7 +463,7 @@ def read_grey(path: str | Path) -> np.ndarray:
 
 def _board_key(board: Board) -> str:
     extra = (f":{board.marker_m:g}" if isinstance(board, CharucoBoard)
-             else f":{getattr(board, 'detector', '')}")
+             else f":{getattr(board, 'detector', '')}:w{getattr(board, 'subpix_half', None)}")
     return f"{board.spec}:{board.square_m:g}{extra}"
 
 
@@ -566,12 +567,23 @@ def _board_size_text(board: Board) -> str:
     return board.spec
 
 
+def _classic(boards: Sequence[Board]) -> list[Board]:
+    """The chessboards among ``boards`` with the classic detector (others unchanged)."""
+    return [ChessBoard(b.cols, b.rows, b.square_m, b.margin_squares, "classic",
+                       b.subpix_half) if isinstance(b, ChessBoard) else b for b in boards]
+
+
 def _no_board_error(board: Board, samples: Sequence[tuple[str, np.ndarray]], n: int
                     ) -> CalibrationError:
     """The error for 'no board in any image', with a did-you-mean when one fits."""
     for name, img in samples:
-        found = [(len(d), alt) for alt in board.alternatives()
+        # the classic detector first: it fails several times faster than the sb one
+        found = [(len(d), alt) for alt in _classic(board.alternatives())
                  if (d := alt.detect(img, name)) is not None]
+        if not found and any(isinstance(a, ChessBoard) and a.detector != "classic"
+                             for a in board.alternatives()) and name == samples[0][0]:
+            found = [(len(d), alt) for alt in board.alternatives()
+                     if (d := alt.detect(img, name)) is not None]
         if found:                      # the largest board seen: a sub-board also matches
             alt = max(found, key=lambda f: f[0])[1]
             return CalibrationError(
@@ -614,7 +626,8 @@ def _check_whole_board(board: ChessBoard, found: Sequence[Detection],
     best = (c0, r0)
     cands = sorted(((c, r) for c in range(board.cols, c0 + 3) for r in range(board.rows, r0 + 3)
                     if (c, r) != (board.cols, board.rows)), key=lambda cr: -cr[0] * cr[1])
-    greys = [read_grey(files[d.name]) for d in found[:8] if d.name in files]
+    # probed on the views that showed the extension (a failed probe costs 0.2-0.5 s)
+    greys = [read_grey(files[n]) for *_, n in bigger if n in files]
     for c, r in cands:
         probe = ChessBoard(c, r, board.square_m, detector="classic")
         if any(probe.detect(g) is not None for g in greys):
@@ -680,6 +693,16 @@ def detect_images(paths: Sequence[str | Path], board: Board,
             out.append(det)
         if progress is not None:
             progress(i, len(paths), p.name, det is not None)
+        if i + 1 == EARLY_CHECK and not out and len(paths) > EARLY_CHECK:
+            # the first images all missed: a wrong size says so now, not after all of them
+            samples = [(Path(q).name, read_grey(q)) for q in paths[:EARLY_CHECK]]
+            err = _no_board_error(board, samples, EARLY_CHECK)
+            if "did you mean" in str(err):
+                if dirty:
+                    cache.save()
+                raise CalibrationError(str(err).replace(
+                    f"any of {EARLY_CHECK} image(s)",
+                    f"the first {EARLY_CHECK} of {len(paths)} images"))
     if dirty:
         cache.save()
     if isinstance(board, ChessBoard) and out:

@@ -1,22 +1,34 @@
-"""Light-map survey: the ``lights`` section of a site from a recording with known poses.
+"""Light-map survey: the ``lights`` section of a site, with each light's uncertainty.
 
-Every frame's spots (:func:`ceilkit.runtime.spots.detect_spots`) become ceiling points
-in the vehicle frame (:func:`ceilkit.runtime.lights.ceiling_points`), then in W with the
-frame's known pose (``X_W = Rz(yaw) X_V + (x, y)``, SPEC §1). Points of all frames are
-clustered (leader clustering within ``cluster_m``, then every point re-assigned to its
-nearest centre); a cluster seen in at least ``min_views`` frames is a light, placed at
-the median of its points. Its uncertainty is reported as the scatter of the points
-(``spread_m``, RMS distance from the centre) and the standard error of the centre
-(``sigma_m = spread / sqrt(n)``).
+Two ways, both from a recording (SPEC §2):
 
-``site.yaml`` has no key for the uncertainty (unknown keys are errors): it goes into
-the file's header comments, one line per light, via :func:`lightmap_header_lines`.
+* **Known poses** (:func:`survey_lights`): every frame's spots
+  (:func:`ceilkit.runtime.spots.detect_spots`) become ceiling points in the vehicle
+  frame (:func:`ceilkit.runtime.lights.ceiling_points`), then in W with the frame's
+  known pose (``X_W = Rz(yaw) X_V + (x, y)``, SPEC §1). Points of all frames are
+  clustered (leader clustering within ``cluster_m``, then every point re-assigned to
+  its nearest centre); a cluster seen in at least ``min_views`` frames is a light,
+  placed at the median of its points. Its uncertainty is the scatter of the points
+  (``spread_m``, RMS distance from the centre) and the standard error of the centre
+  (``sigma_m = spread / sqrt(n)``).
+* **Chaining** (:func:`survey_chain`, :func:`chain_points`): no pose is known. The
+  vehicle starts under a light whose place was measured (:class:`KnownLights`); each
+  frame is placed by the lights it shares with the map built so far and adds the new
+  ones; a joint least-squares adjustment of all frame poses and light positions (in
+  pixels, the gauge held by the known lights) gives the map in W and every light's
+  covariance (``sigma_m`` = radial 1-sigma).
+
+``site.yaml`` has no key for the uncertainty (SPEC: ``lights: - [x, y]``; unknown keys
+are errors): it goes into the file's header comments, one line per light, via
+:func:`lightmap_header_lines` or :func:`chain_header_lines`.
 
 Example::
 
     rec = Recording("run1")
     lm = survey_lights(rec)                    # uses rec.truth
     write_site(lm, "site.yaml", base=rec.site, header=provenance_header(...))
+    res = survey_chain(rec, KnownLights((0.0, 0.0), second_m=(7.2, 0.0)))
+    write_site(res.lightmap, "site.yaml", rec.site, header, res.ceiling_height_m)
 """
 
 from __future__ import annotations
@@ -28,8 +40,16 @@ from pathlib import Path
 import numpy as np
 
 from ceilkit.runtime.errors import CalibrationError, ConfigError
-from ceilkit.runtime.lights import ceiling_points, view_mask
+from ceilkit.runtime.lights import (
+    PatternMatcher,
+    ceiling_points,
+    fit_rigid_2d,
+    interp_grid,
+    jacobian_grid,
+    view_mask,
+)
 from ceilkit.runtime.recording import Recording, Truth, load_poses, load_truth
+from ceilkit.runtime.rig import Rig
 from ceilkit.runtime.site import Site, check_rig_site
 from ceilkit.runtime.spots import SpotParams, detect_spots
 
@@ -201,6 +221,521 @@ def survey_lights(recording: Recording, poses: Truth | None = None, *,
     return LightMap(C, sig, spread, views, used, int(P.shape[0]), unassigned)
 
 
+# ------------------------------------------------------------------ chaining survey
+@dataclass(frozen=True)
+class KnownLights:
+    """What the integrator measures to tie a chained survey to the site frame W.
+
+    The vehicle starts parked under light A (the light nearest the image nadir in frame
+    ``anchor_frame``), whose position in W was measured (a plumb line from the light to
+    the floor, a tape to two walls or to the origin mark). The direction of W's x axis
+    comes from either
+
+    * ``second_m``: a second light B measured the same way (best: a long baseline, e.g.
+      the site frame *defined* by A at the origin and B on the +x axis at a taped
+      distance). Only B's direction from A fixes the map; its distance identifies B
+      among the surveyed lights (within ``match_m``) and is checked, or
+    * ``yaw_deg``: the vehicle's heading in the anchor frame (parked parallel to a wall
+      or a floor line that is the x axis: about +-1 deg, so worse than B far away).
+
+    With both, the heading finds B and B fixes the map.
+
+    Attributes:
+        first_m: ``(x, y)`` of light A in W, metres.
+        second_m: ``(x, y)`` of light B in W, metres, or None.
+        yaw_deg: vehicle yaw in the anchor frame, degrees (SPEC §1), or None.
+        anchor_frame: index of the frame taken under light A.
+        match_m: tolerance on the taped distance A-B when looking for B.
+        fit_height: with B, trust the taped distance A-B over the site's ceiling height:
+            B is held at ``second_m`` and the scale of the map (the camera-to-ceiling
+            height) is estimated. A tape over 5 m is good to a few mm (0.1 %); a ceiling
+            height rarely to better than 1 cm in 2.5 m (0.4 %). Without it, only B's
+            bearing is used and the height sets the scale.
+    """
+
+    first_m: tuple[float, float]
+    second_m: tuple[float, float] | None = None
+    yaw_deg: float | None = None
+    anchor_frame: int = 0
+    match_m: float = 0.15
+    fit_height: bool = True
+
+    def __post_init__(self) -> None:
+        if self.second_m is None and self.yaw_deg is None:
+            raise ConfigError(None, "second_m", "the survey needs the direction of the "
+                              "site x axis: a second known light or the first frame's yaw")
+        for key in ("first_m", "second_m"):
+            v = getattr(self, key)
+            if v is not None and (len(v) != 2 or not all(math.isfinite(float(a)) for a in v)):
+                raise ConfigError(None, key, f"expected (x, y) in metres, found {v!r}")
+        if self.second_m is not None and math.dist(self.first_m, self.second_m) < 0.3:
+            raise ConfigError(None, "second_m", "the second known light must be at least "
+                              "0.3 m from the first")
+        if self.yaw_deg is not None and not math.isfinite(self.yaw_deg):
+            raise ConfigError(None, "yaw_deg", f"expected degrees, found {self.yaw_deg!r}")
+        if self.anchor_frame < 0 or self.match_m <= 0:
+            raise ConfigError(None, "anchor_frame", "expected anchor_frame >= 0, match_m > 0")
+
+
+@dataclass(frozen=True, eq=False)
+class ChainSurvey:
+    """The result of :func:`survey_chain`.
+
+    Attributes:
+        lightmap: the lights, ``sigma_m`` the radial 1-sigma ``sqrt(trace C)`` of each
+            light's 2x2 covariance ``C`` from the adjustment (``cov_m2``), ``spread_m``
+            the RMS ceiling distance of its single-frame detections from it.
+        cov_m2: ``(N, 2, 2)`` light covariances in W, m².
+        frames: ``(F,)`` indices of the frames placed in the chain.
+        poses: ``(F, 3)`` adjusted vehicle poses ``(x, y, yaw_rad)`` of those frames in W.
+        rms_px: RMS pixel residual of the adjustment.
+        unplaced: frames that saw lights but shared fewer than two with the map.
+        anchor: index (in ``lightmap.lights_m``) of light A; ``second`` that of B or -1.
+        ceiling_height_m, height_sigma_m: the ceiling height that makes the map's scale
+            agree with the taped distance A-B, and its 1-sigma (when ``height_fitted``;
+            else the height used, sigma 0).
+        height_fitted: whether the height was estimated (B given, ``fit_height``).
+    """
+
+    lightmap: LightMap
+    cov_m2: np.ndarray
+    frames: np.ndarray
+    poses: np.ndarray
+    rms_px: float
+    unplaced: int
+    anchor: int
+    second: int
+    ceiling_height_m: float
+    height_sigma_m: float
+    height_fitted: bool
+
+
+def _rot(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s], [s, c]])
+
+
+def _place(q: np.ndarray, lights: np.ndarray, prior: np.ndarray, gate_wide: float,
+           gate: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Pose ``(x, y, yaw)`` of a frame with ceiling points ``q`` (V) against the map
+    built so far, and its ``(K, 2)`` (observation, light) pairs; None below 2 pairs.
+
+    Tried from the previous frame's pose (a wide gate, refit, the tight gate), then, if
+    that fails, by global pattern matching on the map (a jump in the recording).
+    """
+    pm = PatternMatcher(lights, gate)
+
+    def from_seed(yaw: float, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        # associate with a shrinking gate, refitting the rigid transform each time
+        for g in (gate_wide, 0.5 * (gate_wide + gate), gate):
+            pairs = pm.associate(q, yaw, t, g)
+            if pairs.shape[0] < 2:
+                return None
+            yaw, t = fit_rigid_2d(q[pairs[:, 0]], lights[pairs[:, 1]])
+        return np.array([t[0], t[1], yaw]), pairs
+
+    out = from_seed(float(prior[2]), prior[:2])
+    if out is None and q.shape[0] >= 3 and lights.shape[0] >= 3:
+        cands = [c for c in pm.match(q) if c.inliers >= 3]
+        if cands and (len(cands) == 1 or cands[0].score > cands[1].score + 1):
+            out = from_seed(cands[0].yaw_rad, np.array([cands[0].x_m, cands[0].y_m]))
+    return out
+
+
+def _adjust(obs_q: np.ndarray, obs_J: np.ndarray, obs_f: np.ndarray, obs_l: np.ndarray,
+            poses: np.ndarray, lights: np.ndarray, fixed_light: int, axis_light: int,
+            axis_dir: np.ndarray | None, fixed_yaw_frame: int,
+            centre_v: np.ndarray | None = None, scale: float = 1.0, iterations: int = 20,
+            sigma_floor_px: float = 0.05
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, float, float]:
+    """Joint least squares of frame poses and light positions (Levenberg-Marquardt).
+
+    Residual of observation k (frame f, light l): ``J_k (q̂ - q_k)`` pixels, with
+    ``q̂ = Rz(-yaw_f) (L_l - t_f)`` the light seen from the frame (as
+    :func:`ceilkit.runtime.lights.refine_pose_ceiling`). Gauge: light ``fixed_light``
+    held; then either light ``axis_light`` moves only along ``axis_dir`` (its bearing
+    from the fixed light is held) or frame ``fixed_yaw_frame``'s yaw is held. With
+    ``centre_v`` (the camera's place in V), light ``axis_light`` is held entirely and a
+    scale ``s`` of the ceiling points about ``centre_v`` is estimated instead: a wrong
+    ceiling height (or a radial centroid bias) scales them so; ``q -> c + s (q - c)``.
+
+    Returns ``(poses (F, 3), lights (N, 2), light covariances (N, 2, 2), rms_px,
+    residual norms (K,) px, scale, scale 1-sigma)``; covariances are ``s² (JᵀJ)⁻¹`` of
+    the reduced problem.
+    """
+    F, N = poses.shape[0], lights.shape[0]
+    fit_scale = centre_v is not None
+    P = 3 * F + 2 * N + 1
+    # T: full increment = T @ reduced increment (the gauge removed)
+    cols: list[np.ndarray] = []
+    for f in range(F):
+        for a in range(3):
+            if a == 2 and f == fixed_yaw_frame and axis_light < 0:
+                continue
+            e = np.zeros(P)
+            e[3 * f + a] = 1.0
+            cols.append(e)
+    for n in range(N):
+        if n == fixed_light:
+            continue
+        if n == axis_light and fit_scale:
+            continue
+        if n == axis_light and axis_dir is not None:
+            e = np.zeros(P)
+            e[3 * F + 2 * n:3 * F + 2 * n + 2] = axis_dir
+            cols.append(e)
+            continue
+        for a in range(2):
+            e = np.zeros(P)
+            e[3 * F + 2 * n + a] = 1.0
+            cols.append(e)
+    if fit_scale:
+        e = np.zeros(P)
+        e[P - 1] = 1.0
+        cols.append(e)
+    T = np.array(cols).T
+    K = obs_q.shape[0]
+    idx = np.concatenate([3 * obs_f[:, None] + np.arange(3)[None],
+                          3 * F + 2 * obs_l[:, None] + np.arange(2)[None],
+                          np.full((K, 1), P - 1)], axis=1)                 # (K, 6)
+    c_v = np.zeros(2) if centre_v is None else np.asarray(centre_v, float)[:2]
+    dq = obs_q - c_v
+
+    def residuals(po: np.ndarray, li: np.ndarray, sc: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        yaw = po[obs_f, 2]
+        c, s = np.cos(yaw), np.sin(yaw)
+        v = li[obs_l] - po[obs_f, :2]
+        qh = np.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1]], 1)
+        r = np.einsum("kij,kj->ki", obs_J, qh - (c_v + sc * dq))
+        M = np.zeros((K, 2, 6))
+        M[:, 0, 0], M[:, 0, 1], M[:, 0, 2] = -c, -s, qh[:, 1]
+        M[:, 1, 0], M[:, 1, 1], M[:, 1, 2] = s, -c, -qh[:, 0]
+        M[:, 0, 3], M[:, 0, 4] = c, s
+        M[:, 1, 3], M[:, 1, 4] = -s, c
+        M[:, :, 5] = -dq
+        return r, obs_J @ M                                   # (K, 2), (K, 2, 6)
+
+    def normal(r: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        H = np.zeros((P, P))
+        g = np.zeros(P)
+        blocks = np.einsum("kai,kaj->kij", A, A)
+        np.add.at(H, (idx[:, :, None], idx[:, None, :]), blocks)
+        np.add.at(g, idx, np.einsum("kai,ka->ki", A, r))
+        return T.T @ H @ T, T.T @ g
+
+    po, li, sc = poses.copy(), lights.copy(), float(scale)
+    r, A = residuals(po, li, sc)
+    cost = float((r * r).sum())
+    lam = 1e-6
+    for _ in range(iterations):
+        Hr, gr = normal(r, A)
+        try:
+            step = -np.linalg.solve(Hr + lam * np.diag(np.diag(Hr) + 1e-12), gr)
+        except np.linalg.LinAlgError:
+            raise CalibrationError("the light-map adjustment is singular: too little "
+                                   "overlap between frames") from None
+        full = T @ step
+        po_n = po + full[:3 * F].reshape(F, 3)
+        li_n = li + full[3 * F:P - 1].reshape(N, 2)
+        sc_n = sc + full[P - 1]
+        r_n, A_n = residuals(po_n, li_n, sc_n)
+        cost_n = float((r_n * r_n).sum())
+        if cost_n <= cost:
+            po, li, sc, r, A = po_n, li_n, sc_n, r_n, A_n
+            done = cost - cost_n < 1e-10 * max(cost, 1e-12)
+            cost = cost_n
+            lam = max(lam / 10, 1e-9)
+            if done or np.abs(full).max() < 1e-7:
+                break
+        else:
+            lam *= 10
+            if lam > 1e6:
+                break
+    Hr, _ = normal(r, A)
+    dof = 2 * K - T.shape[1]
+    s2 = max(cost / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
+    try:
+        Cr = np.linalg.inv(Hr)
+    except np.linalg.LinAlgError:
+        raise CalibrationError("the light-map adjustment is singular: too little "
+                               "overlap between frames") from None
+    TL = T[3 * F:P - 1]
+    C = s2 * (TL @ Cr @ TL.T)
+    cov = np.stack([C[2 * n:2 * n + 2, 2 * n:2 * n + 2] for n in range(N)]) if N else \
+        np.zeros((0, 2, 2))
+    sc_sigma = float(math.sqrt(s2 * (T[P - 1] @ Cr @ T[P - 1]))) if fit_scale else 0.0
+    po[:, 2] = (po[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return (po, li, cov, math.sqrt(cost / max(K, 1)), np.linalg.norm(r, axis=1), sc,
+            sc_sigma)
+
+
+def frame_points(recording: Recording, ceiling_height_m: float | None = None,
+                 spot_params: SpotParams | None = None, max_view_angle_deg: float = 60.0
+                 ) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Per frame with lights: ``(frame index, ceiling points in V (n, 2), pixel
+    Jacobians d(px)/d(q) (n, 2, 2))``; spots beyond ``max_view_angle_deg`` from the
+    vertical are left out."""
+    rig = recording.rig
+    height = recording.site.ceiling_height_m if ceiling_height_m is None else ceiling_height_m
+    check_rig_site(rig, replace(Site(height), source=recording.site.source))
+    valid = view_mask(rig, math.radians(max_view_angle_deg))
+    jgrid = jacobian_grid(rig, height, 8)
+    obs: list[tuple[int, np.ndarray, np.ndarray]] = []
+    for k in range(len(recording)):
+        spots = detect_spots(recording.frame(k).image, spot_params, valid)
+        if len(spots) == 0:
+            continue
+        q, ok = ceiling_points(rig, height, spots.centroids_px)
+        J = interp_grid(jgrid, 8, spots.centroids_px)
+        ok &= np.all(np.isfinite(J), axis=(1, 2))
+        if np.any(ok):
+            obs.append((k, q[ok], J[ok]))
+    return obs
+
+
+def survey_chain(recording: Recording, known: KnownLights, *,
+                 ceiling_height_m: float | None = None, min_views: int = 3,
+                 gate_m: float = 0.1, step_gate_m: float = 0.6,
+                 spot_params: SpotParams | None = None, max_view_angle_deg: float = 60.0,
+                 max_residual_px: float = 3.0) -> ChainSurvey:
+    """Build a light map without known poses, by chaining overlapping frames.
+
+    Every frame's spots become ceiling points in V (:func:`frame_points`, as for
+    :func:`survey_lights`); :func:`chain_points` does the rest.
+
+    Args:
+        recording: frames, rig and site (its ``ceiling_height`` unless overridden).
+        known: light A (under the vehicle in ``known.anchor_frame``) and the x axis.
+        spot_params, max_view_angle_deg: as :func:`survey_lights`.
+        min_views, gate_m, step_gate_m, max_residual_px: see :func:`chain_points`.
+
+    Raises:
+        ConfigError: bad options; the anchor frame is not in the recording.
+        CalibrationError: as :func:`chain_points`.
+    """
+    n_frames = len(recording)
+    if known.anchor_frame >= n_frames:
+        raise ConfigError(recording.folder, "anchor_frame",
+                          f"frame {known.anchor_frame} is not in the recording "
+                          f"({n_frames} frames)")
+    height = recording.site.ceiling_height_m if ceiling_height_m is None else ceiling_height_m
+    obs = frame_points(recording, height, spot_params, max_view_angle_deg)
+    return chain_points(obs, recording.rig, height, known, min_views=min_views,
+                        gate_m=gate_m, step_gate_m=step_gate_m,
+                        max_residual_px=max_residual_px, source=str(recording.folder))
+
+
+def chain_points(obs: list[tuple[int, np.ndarray, np.ndarray]], rig: Rig,
+                 ceiling_height_m: float, known: KnownLights, *, min_views: int = 3,
+                 gate_m: float = 0.1, step_gate_m: float = 0.6,
+                 max_residual_px: float = 3.0, systematic_px: float = 0.05,
+                 source: str = "survey") -> ChainSurvey:
+    """The chaining survey from per-frame ceiling points (:func:`frame_points`).
+
+    The first frame that sees lights starts the map in its own vehicle frame; each next
+    frame is placed by the lights it shares with the map so far (at least two, found
+    from the previous frame's pose within ``step_gate_m``, or else by pattern
+    matching), and adds the lights it sees first. The map is moved into W by the known
+    lights; then a joint least-squares adjustment (Levenberg-Marquardt, in pixels) of
+    all placed frames' poses and all lights seen in ``min_views`` frames or more, with
+    the gauge held by the known lights (:class:`KnownLights`), gives the map and each
+    light's covariance.
+
+    Args:
+        obs: ``(frame index, q_V (n, 2), J (n, 2, 2))`` per frame, in frame order.
+        rig, ceiling_height_m: the rig and height the points were computed with.
+        known: light A (under the vehicle in ``known.anchor_frame``) and the x axis.
+        min_views: fewest frames that must see a light for it to be kept.
+        gate_m: an observation farther than this from its light (ceiling metres) is
+            another light.
+        step_gate_m: largest move of a light between the predictions of consecutive
+            frames (vehicle motion between frames, at the light).
+        max_residual_px: observations with larger residuals after a first adjustment
+            are dropped (reflections, merged spots) and the adjustment is repeated.
+        systematic_px: centroid error that more views do not average out (the lens and
+            perspective shift a disc's centroid from its centre's image; vignetting and
+            glow pull it inwards: a few hundredths of a pixel). Each light's covariance
+            gets ``(systematic_px / g)² I`` added, ``g`` the median pixels per metre of
+            its sightings (``sqrt |det J|``); 0 reports the adjustment's alone.
+        source: names the data in error messages.
+
+    Raises:
+        ConfigError: bad options.
+        CalibrationError: the known light is never seen (no light in the anchor frame,
+            or the anchor frame cannot be placed), the second known light is not
+            found, or consecutive frames do not overlap (more than half the frames
+            share fewer than two lights with the map).
+    """
+    if min_views < 2 or gate_m <= 0 or step_gate_m < gate_m:
+        raise ConfigError(None, "min_views", "expected min_views >= 2 and "
+                          "0 < gate_m <= step_gate_m")
+    height = ceiling_height_m
+    R_vc, t_vc = rig.mount.R_vehicle_cam, rig.mount.t_vehicle_cam
+    up = R_vc.T @ np.array([0.0, 0.0, 1.0])
+    nadir = rig.camera.project(up[None])[0] if up[2] > 1e-6 else \
+        np.array([rig.camera.cx, rig.camera.cy])
+    if not any(o[0] == known.anchor_frame for o in obs):
+        raise CalibrationError(f"{source}: the known light is never seen: frame "
+                               f"{known.anchor_frame} (under the known light) shows no light")
+    # 2. chain: the map in the first placed frame's vehicle frame
+    lights: list[np.ndarray] = []
+    counts: list[int] = []
+    frames: list[int] = []
+    poses: list[np.ndarray] = []
+    o_q, o_J, o_f, o_l = [], [], [], []
+    unplaced: list[int] = []
+    for k, q, J in obs:
+        if not frames:
+            pose, pairs = np.zeros(3), np.zeros((0, 2), int)
+        else:
+            got = _place(q, np.array(lights), poses[-1], step_gate_m, gate_m)
+            if got is None:
+                unplaced.append(k)
+                continue
+            pose, pairs = got
+        f = len(frames)
+        frames.append(k)
+        poses.append(pose)
+        pw = q @ _rot(pose[2]).T + pose[:2]
+        seen = dict(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist(), strict=True))
+        for i in range(q.shape[0]):
+            li = seen.get(i)
+            if li is None:                      # a new light, unless one is near
+                if lights:
+                    d = np.linalg.norm(np.array(lights) - pw[i], axis=1)
+                    if d.min() < 2 * gate_m:
+                        continue
+                lights.append(pw[i].copy())
+                counts.append(0)
+                li = len(lights) - 1
+            else:                               # running mean of the light's place
+                lights[li] = lights[li] + (pw[i] - lights[li]) / (counts[li] + 1)
+            counts[li] += 1
+            o_q.append(q[i])
+            o_J.append(J[i])
+            o_f.append(f)
+            o_l.append(li)
+    if known.anchor_frame not in frames:
+        raise CalibrationError(f"{source}: the known light is never placed: frame "
+                               f"{known.anchor_frame} shares fewer than two lights with "
+                               f"the frames before it")
+    n_obs_frames = len(obs)
+    if len(unplaced) > 0.5 * n_obs_frames or len(frames) < 2:
+        first = unplaced[0] if unplaced else obs[0][0]
+        raise CalibrationError(
+            f"{source}: the frames do not overlap: {len(unplaced)} of "
+            f"{n_obs_frames} frames share fewer than two lights with the map (first: frame "
+            f"{first}); drive slower, or so that two lights stay in view from frame to frame")
+    L0 = np.array(lights)
+    P0 = np.array(poses)
+    obs_q, obs_J = np.array(o_q), np.array(o_J)
+    obs_f, obs_l = np.array(o_f), np.array(o_l)
+    # 3. light A: nearest the nadir in the anchor frame; the map moved into W
+    fa = frames.index(known.anchor_frame)
+    in_a = np.nonzero(obs_f == fa)[0]
+    q_nadir = ceiling_points(rig, height, nadir[None])[0][0]
+    if not np.all(np.isfinite(q_nadir)):
+        q_nadir = t_vc[:2]
+    ia = in_a[np.argmin(np.linalg.norm(obs_q[in_a] - q_nadir, axis=1))]
+    la = int(obs_l[ia])
+    yaw_a = P0[fa, 2]
+    A_w = np.asarray(known.first_m, float)
+    lb, axis_dir = -1, None
+    if known.yaw_deg is not None:
+        rot = math.radians(known.yaw_deg) - yaw_a
+    else:
+        rot = 0.0
+    if known.second_m is not None:
+        B_w = np.asarray(known.second_m, float)
+        d_ab = float(np.linalg.norm(B_w - A_w))
+        rel = L0 - L0[la]
+        dist = np.linalg.norm(rel, axis=1)
+        cand = np.nonzero((np.abs(dist - d_ab) < known.match_m)
+                          & (np.asarray(counts) >= min_views))[0]
+        if known.yaw_deg is not None and cand.size:
+            pred = (rel[cand] @ _rot(rot).T) + A_w
+            near = np.linalg.norm(pred - B_w, axis=1)
+            cand = cand[near < max(1.0, 0.1 * d_ab)]
+        if cand.size == 0:
+            raise CalibrationError(
+                f"{source}: the second known light is never seen: no surveyed "
+                f"light lies {d_ab:.2f} +- {known.match_m:.2f} m from the first")
+        if cand.size > 1:
+            raise CalibrationError(
+                f"{source}: the second known light is ambiguous: {cand.size} "
+                f"surveyed lights lie {d_ab:.2f} m from the first; give the first frame's "
+                f"yaw as well")
+        lb = int(cand[0])
+        v = rel[lb]
+        rot = math.atan2(B_w[1] - A_w[1], B_w[0] - A_w[0]) - math.atan2(v[1], v[0])
+        axis_dir = (B_w - A_w) / d_ab
+    Rw = _rot(rot)
+    L0 = (L0 - L0[la]) @ Rw.T + A_w
+    P0 = np.column_stack([(P0[:, :2] - np.array(lights)[la]) @ Rw.T + A_w, P0[:, 2] + rot])
+    fit_height = lb >= 0 and known.fit_height
+    scale = 1.0
+    if fit_height:   # B held where it was taped; the ceiling points' scale is estimated
+        L0[lb] = B_w
+    elif lb >= 0:    # B onto its bearing from A (its distance stays surveyed)
+        L0[lb] = A_w + axis_dir * float(np.dot(L0[lb] - A_w, axis_dir))
+    # 4. adjustment, over lights seen often enough; outliers dropped and again
+    keep_l = np.asarray(counts) >= min_views
+    keep_l[la] = True
+    if lb >= 0:
+        keep_l[lb] = True
+    use = keep_l[obs_l]
+    for _ in range(2):
+        Lidx = np.cumsum(keep_l) - 1
+        po, li, cov, rms, res, scale, scale_sigma = _adjust(
+            obs_q[use], obs_J[use], obs_f[use], Lidx[obs_l[use]], P0, L0[keep_l],
+            int(Lidx[la]), int(Lidx[lb]) if lb >= 0 else -1, axis_dir, fa,
+            t_vc[:2] if fit_height else None, scale)
+        bad = res > max(max_residual_px, 5.0 * float(np.median(res)))
+        if not np.any(bad):
+            break
+        u = np.nonzero(use)[0]
+        use[u[bad]] = False
+        P0, L0[keep_l] = po, li
+        # a light left without observations leaves the adjustment
+        seen_l = np.bincount(obs_l[use], minlength=keep_l.size) > 0
+        keep_l &= seen_l
+        use &= keep_l[obs_l]
+        if not (keep_l[la] and (lb < 0 or keep_l[lb])):
+            raise CalibrationError(f"{source}: every sighting of a known light "
+                                   f"was rejected as an outlier")
+    # 5. the result, lights with their views and scatter
+    lk = np.nonzero(keep_l)[0]
+    c_v = t_vc[:2] if fit_height else np.zeros(2)
+    used_l = Lidx[obs_l[use]]
+    of = obs_f[use]
+    yaw = po[of, 2]
+    pw = np.einsum("kij,kj->ki", np.stack([np.stack([np.cos(yaw), -np.sin(yaw)], 1),
+                                           np.stack([np.sin(yaw), np.cos(yaw)], 1)], 1),
+                   c_v + scale * (obs_q[use] - c_v)) + po[of, :2]
+    views = np.array([len(set(of[used_l == n].tolist())) for n in range(lk.size)])
+    spread = np.array([float(np.sqrt(np.mean(np.sum((pw[used_l == n] - li[n]) ** 2, 1))))
+                       if np.any(used_l == n) else np.nan for n in range(lk.size)])
+    ok = views >= min(min_views, 2)
+    ok[Lidx[la]] = True
+    if systematic_px > 0:
+        gain = np.sqrt(np.abs(np.linalg.det(obs_J[use])))
+        for n in range(lk.size):
+            if np.any(used_l == n) and n != Lidx[la]:
+                g = float(np.median(gain[used_l == n]))
+                cov[n] = cov[n] + (systematic_px / g) ** 2 * np.eye(2)
+    sigma = np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0))
+    order = np.nonzero(ok)[0]
+    order = order[np.lexsort((li[order, 1], li[order, 0]))]
+    lm = LightMap(li[order], sigma[order], spread[order], views[order], len(frames),
+                  int(obs_q.shape[0]), int(obs_q.shape[0] - use.sum()))
+    pos = {int(n): i for i, n in enumerate(order)}
+    dz = height - float(t_vc[2])
+    return ChainSurvey(lm, cov[order], np.array(frames), po, rms, len(unplaced),
+                       pos[int(Lidx[la])], pos.get(int(Lidx[lb]), -1) if lb >= 0 else -1,
+                       float(t_vc[2]) + scale * dz, scale_sigma * dz, fit_height)
+
+
 def lightmap_header_lines(lm: LightMap) -> list[str]:
     """Report lines for the site file's header: the survey and each light's uncertainty."""
     lines = [f"light survey: {lm.lights_m.shape[0]} lights from {lm.detections} detections "
@@ -211,6 +746,31 @@ def lightmap_header_lines(lm: LightMap) -> list[str]:
                                           strict=True)):
         lines.append(f"  lights[{i}] ({p[0]:.3f}, {p[1]:.3f}): sigma_mm {1e3 * s:.2f}  "
                      f"spread_mm {1e3 * sp:.2f}  views {int(v)}")
+    return lines
+
+
+def chain_header_lines(res: ChainSurvey) -> list[str]:
+    """Report lines for a chained survey: how it was tied to W, the adjustment, and
+    every light's uncertainty (``sigma_mm`` = radial 1-sigma, ``sx_mm``/``sy_mm`` per
+    axis, from the adjustment's covariance and the systematic floor)."""
+    lm = res.lightmap
+    tie = (f"gauge: light A = lights[{res.anchor}] held"
+           + (f", light B = lights[{res.second}]" if res.second >= 0 else "")
+           + (f"; ceiling height {res.ceiling_height_m:.4f} +- {res.height_sigma_m:.4f} m "
+              f"fitted to the taped A-B distance" if res.height_fitted else ""))
+    lines = [f"chained survey: {lm.lights_m.shape[0]} lights from {lm.detections} "
+             f"detections in {lm.frames_used} placed frames ({res.unplaced} not placed, "
+             f"{lm.unassigned} detections unused); adjustment residual "
+             f"{res.rms_px:.3f} px RMS", tie,
+             "per light (same order as `lights`): sigma_mm = radial 1-sigma "
+             "sqrt(sx^2 + sy^2), sx_mm, sy_mm, spread_mm = scatter of single-frame "
+             "detections, views"]
+    for i, (p, s, sp, v) in enumerate(zip(lm.lights_m, lm.sigma_m, lm.spread_m, lm.views,
+                                          strict=True)):
+        sx, sy = np.sqrt(np.maximum(np.diag(res.cov_m2[i]), 0.0))
+        lines.append(f"  lights[{i}] ({p[0]:.4f}, {p[1]:.4f}): sigma_mm {1e3 * s:.2f}  "
+                     f"sx_mm {1e3 * sx:.2f}  sy_mm {1e3 * sy:.2f}  spread_mm {1e3 * sp:.2f}"
+                     f"  views {int(v)}")
     return lines
 
 
@@ -229,5 +789,8 @@ def write_site(lm: LightMap, out: str | Path, base: Site | None, header: str = "
     return Site.load(out)   # read back: the file is valid by the same rules as any other
 
 
-__all__ = ["LightMap", "cluster_points", "lightmap_header_lines", "load_pose_table",
-           "survey_lights", "write_site"]
+__all__ = ["ChainSurvey", "KnownLights", "LightMap", "chain_header_lines", "chain_points",
+           "cluster_points",
+           "frame_points",
+           "lightmap_header_lines", "load_pose_table", "survey_chain", "survey_lights",
+           "write_site"]

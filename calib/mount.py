@@ -27,8 +27,9 @@ Two ways in:
 The start needs no typed value: a coarse search over (pan, tilt, swing) on
 segment directions, then a search over the lateral offset, then the joint fit
 with associations re-made at shrinking tolerances. Uncertainty: the covariance
-``s^2 (J^T J)^-1`` with ``s`` the residual RMS; placements whose residuals stand
-out are named.
+``s^2 (J^T J)^-1`` with ``s`` the residual RMS, plus that of a shift common to every
+measured line (``SYSTEMATIC_SHIFT_PX``, 1 sigma, in u and in v); placements whose
+residuals stand out are named.
 """
 
 from __future__ import annotations
@@ -148,6 +149,11 @@ _TRIM_PX = 4.0          # left out at both ends of a segment, px
 # a line's offset is not better known than this, however long it is (pixel locking,
 # ceiling texture: errors that do not average out along a line), px
 SYSTEMATIC_PX = 0.02
+# every measured line may also sit this far off together, in u and in v (1 sigma), px:
+# a shift common to all lines and images, which no number of lines averages away.
+# On rendered frames without noise or texture the lines sit 0.03-0.04 px off together
+# (tilt +0.005 deg: one v pixel is 1/f rad of tilt); the reported 1 sigma includes it.
+SYSTEMATIC_SHIFT_PX = 0.08
 
 
 def _profiles(gray_f: np.ndarray, base_px: np.ndarray, normal_px: np.ndarray,
@@ -554,45 +560,71 @@ def _jacobian(fun, theta: np.ndarray, r0: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- start
-def _direction_cost(placements: Sequence[Placement], pan: float, tilt: float, swing: float,
-                    tau_px: float, f_px: float) -> float:
-    cost = 0.0
+def _family_costs(p: Placement, Rs: np.ndarray, tau_px: float, f_px: float) -> np.ndarray:
+    """Length-weighted, capped direction cost ``(K,)`` of one image's segments under each
+    rotation ``Rs (K, 3, 3)``: every segment takes the nearer family (along x or y)."""
+    p1, p2, m = _endpoints_h(p.segments_n)
+    w = segment_lengths(p.segments_n) * f_px
+    r = np.full((Rs.shape[0], m.shape[0]), np.inf)
+    for fam in (0, 1):
+        d = Rs[:, fam, :]                                   # R^T e_fam, (K, 3)
+        l = np.cross(m[None, :, :], d[:, None, :])          # (K, N, 3)
+        nrm = np.maximum(np.hypot(l[..., 0], l[..., 1]), 1e-300)
+        d1 = np.sum(l * p1[None], axis=2) / nrm
+        d2 = np.sum(l * p2[None], axis=2) / nrm
+        r = np.minimum(r, np.sqrt(0.5 * (d1 * d1 + d2 * d2)) * f_px)
+    r = np.minimum(r, tau_px)
+    return (r * r) @ w
+
+
+def _rotations(pans: np.ndarray, tilt: float, swing: float) -> np.ndarray:
+    """``(K, 3, 3)`` rotations ``Rz(pan_k) R_level_cam(tilt, swing)``."""
+    c, s = np.cos(pans), np.sin(pans)
+    Rz = np.zeros((pans.size, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    return Rz @ R_level_cam(tilt, swing)
+
+
+_DRIVE_YAWS = np.radians(np.arange(-40.0, 41.0, 4.0))
+
+
+def _direction_costs(placements: Sequence[Placement], pans: np.ndarray, tilt: float,
+                     swing: float, tau_px: float, f_px: float) -> np.ndarray:
+    """Direction cost ``(K,)`` of the placements at each pan in ``pans`` ``(K,)``; a drive
+    frame takes its best heading (every 4 deg within 40)."""
+    cost = np.zeros(pans.size)
     for p in placements:
         if p.segments_n.shape[0] == 0:
             continue
-        w = segment_lengths(p.segments_n) * f_px
-        yaws = [p.yaw_rad] if p.measured else np.radians(np.arange(-40.0, 41.0, 4.0))
-        best = math.inf
-        for yaw in yaws:
-            R = _rotation(pan if p.measured else 0.0, tilt, swing, yaw)
-            n = p.segments_n.shape[0]
-            ra = _rms(_direction_residuals(p.segments_n, R, np.zeros(n, int))) * f_px
-            rc = _rms(_direction_residuals(p.segments_n, R, np.ones(n, int))) * f_px
-            r = np.minimum(np.minimum(ra, rc), tau_px)
-            best = min(best, float(np.sum(w * r * r)))
-        cost += best
+        if p.measured:
+            cost += _family_costs(p, _rotations(pans + p.yaw_rad, tilt, swing), tau_px, f_px)
+        else:
+            cost += float(np.min(_family_costs(p, _rotations(_DRIVE_YAWS, tilt, swing),
+                                               tau_px, f_px)))
     return cost
 
 
 def _coarse_angles(placements: Sequence[Placement], f_px: float, fixed: dict[str, float]
                    ) -> tuple[float, float, float]:
-    pans = [fixed["pan"]] if "pan" in fixed else np.radians(np.arange(-40.0, 41.0, 5.0))
+    pans = np.array([fixed["pan"]]) if "pan" in fixed else np.radians(np.arange(-40.0, 41.0,
+                                                                                5.0))
     tilts = [fixed["tilt"]] if "tilt" in fixed else np.radians(np.arange(10.0, 90.1, 5.0))
     swings = [fixed["swing"]] if "swing" in fixed else np.radians(np.arange(-10.0, 10.1, 5.0))
     best = (math.inf, 0.0, 0.0, 0.0)
     for t in tilts:
         for s in swings:
-            for pa in pans:
-                c = _direction_cost(placements, pa, t, s, 20.0, f_px)
-                if c < best[0]:
-                    best = (c, pa, t, s)
+            c = _direction_costs(placements, pans, t, s, 20.0, f_px)
+            k = int(np.argmin(c))
+            if c[k] < best[0]:
+                best = (float(c[k]), float(pans[k]), t, s)
     return best[1], best[2], best[3]
 
 
 # ----------------------------------------------------------------------------- API
 def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
                     fixed: Sequence[str] = (), start: Mount | None = None,
-                    fit_height: bool | None = None) -> MountResult:
+                    fit_height: bool | None = None,
+                    shift_px: float = SYSTEMATIC_SHIFT_PX) -> MountResult:
     """Fit the mount to measured placements (and any drive frames).
 
     Args:
@@ -605,6 +637,9 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
         fixed: parameter names (``pan tilt swing mx my h``) to hold at ``start``.
         start: the starting mount; ``None`` searches from scratch.
         fit_height: fit ``h``; default: when some placement shows two or more lines.
+        shift_px: 1 sigma (px) of a shift common to every line of an image, in u and
+            in v, added to the covariance (:func:`_shift_covariance`); 0 for the fit's
+            noise alone.
 
     Raises:
         CalibrationError: no measured placement, or too few ceiling lines to fit.
@@ -676,7 +711,10 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
     dof = max(r.size - theta.size, 1)
     s2 = float(r @ r) / dof
     try:
-        cov = s2 * np.linalg.inv(J.T @ J)
+        JtJ_inv = np.linalg.inv(J.T @ J)
+        cov = s2 * JtJ_inv
+        if shift_px > 0:
+            cov = cov + _shift_covariance(prob, theta, J, JtJ_inv, rig.camera, shift_px)
     except np.linalg.LinAlgError:
         cov = np.full((theta.size, theta.size), np.inf)
     sigma = {name: float(math.sqrt(max(cov[i, i], 0.0))) for i, name in enumerate(free)}
@@ -784,6 +822,35 @@ def _search_lateral(placements: Sequence[Placement], site: Site, vals: dict[str,
     return float(grid[int(np.argmin(cost))])
 
 
+def _shift_covariance(prob: _Problem, theta: np.ndarray, J: np.ndarray,
+                      JtJ_inv: np.ndarray, camera: CameraModel, shift_px: float
+                      ) -> np.ndarray:
+    """Covariance of the parameters ``theta`` from a shift of ``shift_px`` (1 sigma)
+    common to every line of every measured image, in u and in v.
+
+    For each axis the segments are moved by ``eps`` pixels (``eps / fx`` or ``eps / fy``
+    in normalized coordinates, associations kept) and the first-order response ``d theta
+    = -(J^T J)^-1 J^T d r`` of the fit to one pixel is accumulated as ``shift_px^2
+    d theta d theta^T``.
+    """
+    r0 = prob.residuals(theta)
+    cov = np.zeros((theta.size, theta.size))
+    eps = 0.01
+    original = list(prob.pl)
+    for axis, f in ((0, camera.fx), (1, camera.fy)):
+        d = np.zeros(4)
+        d[axis] = d[axis + 2] = eps / f
+        prob.pl = [Placement(p.segments_n + d, p.y_m, p.yaw_rad, p.label, p.weights)
+                   if p.measured else p for p in original]
+        try:
+            dr = (prob.residuals(theta) - r0) / eps
+        finally:
+            prob.pl = original
+        dtheta = -JtJ_inv @ (J.T @ dr)
+        cov += shift_px ** 2 * np.outer(dtheta, dtheta)
+    return cov
+
+
 def _placement_disagreement(p: Placement, site: Site, vals: dict[str, float],
                             f_px: float) -> float:
     """How far (m) this placement's own lines put the vehicle from its measured y."""
@@ -815,13 +882,9 @@ def calibrate_tilt_swing(rig: Rig, drive: Sequence[Placement]) -> tuple[float, f
     # each frame's heading: start from the coarse search's best
     psis = []
     for p in frames:
-        best = (math.inf, 0.0)
-        for yaw in np.radians(np.arange(-40.0, 41.0, 2.0)):
-            c = _direction_cost([Placement(p.segments_n, 0.0, yaw)], 0.0, tilt, swing, 20.0,
-                                f_px)
-            if c < best[0]:
-                best = (c, float(yaw))
-        psis.append(best[1])
+        yaws = np.radians(np.arange(-40.0, 41.0, 2.0))
+        c = _family_costs(p, _rotations(yaws, tilt, swing), 20.0, f_px)
+        psis.append(float(yaws[int(np.argmin(c))]))
     theta = prob.theta0(psis)
     J = np.zeros((0, 2))
     for tol in (20.0, 8.0, 4.0, 2.5):

@@ -1,29 +1,57 @@
 """`ceilcal lightmap RECORDING --out site.yaml`: survey the ceiling lights.
 
-Thin wiring around :func:`ceilkit.calib.lightmap.survey_lights`: the recording's
-frames with known poses (its ``truth.csv``, or ``--poses``) give each light's place;
-the result is written as the ``lights`` section of ``--out``, keeping the other
+Thin wiring around :mod:`ceilkit.calib.lightmap`, in one of two ways:
+
+* **known poses** (default): the recording's ``truth.csv``, or ``--poses``, gives each
+  frame's pose; :func:`~ceilkit.calib.lightmap.survey_lights` clusters the lights.
+* **chaining** (``--known-light X,Y``): no pose is known; the vehicle starts under a
+  light whose place was measured, and ``--second-light X,Y`` (a second measured
+  light) or ``--start-yaw DEG`` (the heading in that first frame) gives the direction
+  of the site's x axis; :func:`~ceilkit.calib.lightmap.survey_chain` chains the
+  frames and adjusts poses and lights together.
+
+The result is written as the ``lights`` section of ``--out``, keeping the other
 sections of that file when it exists (else of the recording's ``site.yaml``), with a
-provenance header that lists every light's uncertainty.
+provenance header that lists every light's uncertainty (SPEC's ``lights: - [x, y]``
+has no place for it).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import typer
 
 from ceilkit.calib.lightmap import (
+    KnownLights,
+    chain_header_lines,
     lightmap_header_lines,
     load_pose_table,
+    survey_chain,
     survey_lights,
     write_site,
 )
+from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.recording import Recording
 from ceilkit.runtime.site import Site
 
 from .common import provenance_header
+
+
+def parse_xy(text: str | None, flag: str) -> tuple[float, float] | None:
+    """``"X,Y"`` (metres) as a pair of floats; ConfigError naming ``flag`` otherwise."""
+    if text is None:
+        return None
+    parts = text.replace(" ", "").split(",")
+    try:
+        x, y = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError(None, flag, f"expected X,Y in metres, found {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ConfigError(None, flag, f"expected finite X,Y, found {text!r}")
+    return x, y
 
 
 def register(app: typer.Typer) -> None:
@@ -44,15 +72,58 @@ def register(app: typer.Typer) -> None:
                                              help="Ceiling height, m (default: the site's)."),
         cluster: float = typer.Option(0.15, "--cluster", help="Clustering radius, m."),
         min_views: int = typer.Option(3, "--min-views", help="Fewest frames per light."),
+        known_light: str = typer.Option(None, "--known-light", help="X,Y of the light "
+                                        "above the vehicle in the anchor frame: survey "
+                                        "by chaining frames, no poses needed."),
+        second_light: str = typer.Option(None, "--second-light", help="X,Y of a second "
+                                         "measured light: fixes the x axis (and, unless "
+                                         "--keep-height, the map's scale)."),
+        start_yaw: float = typer.Option(None, "--start-yaw", help="Vehicle yaw in the "
+                                        "anchor frame, degrees (fixes the x axis when "
+                                        "there is no second light)."),
+        anchor_frame: int = typer.Option(0, "--anchor-frame", help="Index of the frame "
+                                         "taken under --known-light."),
+        keep_height: bool = typer.Option(False, "--keep-height", help="With "
+                                         "--second-light: keep the ceiling height; use "
+                                         "the second light for the direction only."),
     ) -> None:
-        """Build the `lights` of a site map from a recording with known poses."""
+        """Build the `lights` of a site map: from known poses, or by chaining frames."""
         rec = Recording(recording)
-        table = load_pose_table(poses) if poses is not None else None
-        lm = survey_lights(rec, table, ceiling_height_m=ceiling_height, cluster_m=cluster,
-                           min_views=min_views)
+        first = parse_xy(known_light, "--known-light")
+        second = parse_xy(second_light, "--second-light")
         base = Site.load(out) if out.exists() else rec.site
-        header = provenance_header("ceilcal lightmap: site map with surveyed lights",
-                                   lightmap_header_lines(lm))
-        write_site(lm, out, base, header, ceiling_height)
-        typer.echo(f"{out}: {lm.lights_m.shape[0]} lights from {lm.frames_used} frames; "
-                   f"median standard error {1e3 * float(np.median(lm.sigma_m)):.1f} mm")
+        if first is None:
+            if second is not None or start_yaw is not None:
+                raise ConfigError(None, "--known-light", "--second-light and --start-yaw "
+                                  "belong to a chaining survey, which needs --known-light")
+            table = load_pose_table(poses) if poses is not None else None
+            lm = survey_lights(rec, table, ceiling_height_m=ceiling_height,
+                               cluster_m=cluster, min_views=min_views)
+            header = provenance_header("ceilcal lightmap: site map with surveyed lights",
+                                       lightmap_header_lines(lm))
+            write_site(lm, out, base, header, ceiling_height)
+            how = f"{lm.frames_used} frames"
+        else:
+            if poses is not None:
+                raise ConfigError(None, "--poses", "a chaining survey (--known-light) "
+                                  "uses no poses")
+            if second is None and start_yaw is None:
+                raise ConfigError(None, "--second-light", "a chaining survey needs the "
+                                  "site's x axis: --second-light X,Y or --start-yaw DEG")
+            known = KnownLights(first, second, start_yaw, anchor_frame,
+                                fit_height=not keep_height)
+            res = survey_chain(rec, known, ceiling_height_m=ceiling_height,
+                               min_views=min_views)
+            lm = res.lightmap
+            header = provenance_header(
+                "ceilcal lightmap: site map with lights surveyed by chaining frames",
+                chain_header_lines(res))
+            height = res.ceiling_height_m if res.height_fitted else ceiling_height
+            write_site(lm, out, base, header, height)
+            how = (f"{lm.frames_used} chained frames ({res.unplaced} not placed), "
+                   f"residual {res.rms_px:.2f} px")
+            if res.height_fitted:
+                how += (f"; ceiling height {res.ceiling_height_m:.4f} +- "
+                        f"{res.height_sigma_m:.4f} m from the two known lights")
+        typer.echo(f"{out}: {lm.lights_m.shape[0]} lights from {how}; median 1-sigma "
+                   f"{1e3 * float(np.median(lm.sigma_m)):.1f} mm")

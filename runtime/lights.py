@@ -50,6 +50,7 @@ from .site import Site, check_rig_site
 from .spots import SpotParams, Spots, detect_spots
 
 NAME = "lights"
+_JAC_STEP_PX = 8  # node spacing of the pixel-Jacobian table
 
 
 # ------------------------------------------------------------------------ geometry
@@ -130,6 +131,37 @@ def pixel_scale(rig: Rig, ceiling_height_m: float, q_v: np.ndarray) -> np.ndarra
     return J
 
 
+def jacobian_grid(rig: Rig, ceiling_height_m: float, step_px: int = 16) -> np.ndarray:
+    """``(GH, GW, 2, 2)`` d(pixel)/d(ceiling point in V) on the pixel grid
+    ``u = i step_px``, ``v = j step_px`` (the last node past the image edge); NaN where a
+    pixel's ray does not rise. Read with :func:`interp_grid`."""
+    cam = rig.camera
+    us = np.arange(0, cam.width - 1 + step_px, step_px, dtype=float)
+    vs = np.arange(0, cam.height - 1 + step_px, step_px, dtype=float)
+    uu, vv = np.meshgrid(us, vs)
+    q, ok = ceiling_points(rig, ceiling_height_m, np.stack([uu.ravel(), vv.ravel()], 1))
+    J = np.full((q.shape[0], 2, 2), np.nan)
+    if np.any(ok):
+        J[ok] = pixel_scale(rig, ceiling_height_m, q[ok])
+    return J.reshape(vs.size, us.size, 2, 2)
+
+
+def interp_grid(grid: np.ndarray, step_px: int, points_px: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of a per-node table ``(GH, GW, ...)`` (nodes every
+    ``step_px`` pixels from pixel 0) at pixels ``(N, 2)``; returns ``(N, ...)``."""
+    px = np.asarray(points_px, float).reshape(-1, 2)
+    gh, gw = grid.shape[:2]
+    fu = np.clip(px[:, 0] / step_px, 0.0, gw - 1.0)
+    fv = np.clip(px[:, 1] / step_px, 0.0, gh - 1.0)
+    i0 = np.minimum(fu.astype(np.intp), gw - 2)
+    j0 = np.minimum(fv.astype(np.intp), gh - 2)
+    a, b = fu - i0, fv - j0
+    extra = (slice(None),) + (None,) * (grid.ndim - 2)
+    a, b = a[extra], b[extra]
+    return ((1 - b) * ((1 - a) * grid[j0, i0] + a * grid[j0, i0 + 1])
+            + b * ((1 - a) * grid[j0 + 1, i0] + a * grid[j0 + 1, i0 + 1]))
+
+
 def fit_rigid_2d(q: np.ndarray, p: np.ndarray, w: np.ndarray | None = None
                  ) -> tuple[float, np.ndarray]:
     """Least-squares ``(yaw, t)`` with ``p ≈ R(yaw) q + t`` for point pairs ``(N, 2)``.
@@ -156,6 +188,15 @@ def _transform(q: np.ndarray, yaw: float, t: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ matching
+@functools.lru_cache(maxsize=32)
+def _triu(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, 1)``, computed once per ``n`` (read-only)."""
+    a, b = np.triu_indices(n, 1)
+    a.setflags(write=False)
+    b.setflags(write=False)
+    return a, b
+
+
 @dataclass(frozen=True)
 class Candidate:
     """A verified pose hypothesis: ``p_W = R(yaw) q_V + (x, y)``.
@@ -219,71 +260,99 @@ class PatternMatcher:
         self.pair_i = i[keep][order]
         self.pair_j = j[keep][order]
         self.pair_d = d[keep][order]
+        # per-map structures of the vote, in complex form (x + iy): each pair's midpoint
+        # and unit direction i -> j
+        self._lc = self.lights_w[:, 0] + 1j * self.lights_w[:, 1]
+        vp = self._lc[self.pair_j] - self._lc[self.pair_i]
+        self._pair_mid = 0.5 * (self._lc[self.pair_i] + self._lc[self.pair_j])
+        self._pair_dir = vp / np.maximum(np.abs(vp), 1e-12)
 
     # -- association ------------------------------------------------------------------
     def associate(self, q_v: np.ndarray, yaw: float, t: np.ndarray, gate_m: float
                   ) -> np.ndarray:
         """``(K, 2)`` (observed, map) pairs: mutual nearest neighbours within ``gate_m``."""
-        pw = _transform(q_v, yaw, t)
-        d2 = ((pw[:, None, :] - self.lights_w[None, :, :]) ** 2).sum(-1)
-        j = np.argmin(d2, axis=1)
-        dj = d2[np.arange(len(j)), j]
-        i_back = np.argmin(d2, axis=0)
-        ok = (dj < gate_m ** 2) & (i_back[j] == np.arange(len(j)))
-        return np.stack([np.nonzero(ok)[0], j[ok]], axis=1)
+        q = np.asarray(q_v, float).reshape(-1, 2)
+        return self._associate(q[:, 0] + 1j * q[:, 1], complex(math.cos(yaw), math.sin(yaw)),
+                               complex(t[0], t[1]), gate_m)
+
+    def _associate(self, qc: np.ndarray, rot: complex, t: complex, gate_m: float
+                   ) -> np.ndarray:
+        d = np.abs((qc * rot + t)[:, None] - self._lc[None, :])
+        j = np.argmin(d, axis=1)
+        i_back = np.argmin(d, axis=0)
+        idx = np.arange(j.size)
+        ok = (d[idx, j] < gate_m) & (i_back[j] == idx)
+        return np.stack([idx[ok], j[ok]], axis=1)
 
     def verify(self, q_v: np.ndarray, yaw: float, t: np.ndarray, gate_m: float | None = None
                ) -> Candidate | None:
         """Associate, refit, re-associate; ``None`` with fewer than two inliers."""
-        gate = self.gate_m if gate_m is None else gate_m
-        pairs = self.associate(q_v, yaw, t, gate)
+        q = np.asarray(q_v, float).reshape(-1, 2)
+        return self._verify(q[:, 0] + 1j * q[:, 1], yaw, complex(t[0], t[1]),
+                            self.gate_m if gate_m is None else gate_m)
+
+    def _verify(self, qc: np.ndarray, yaw: float, t: complex, gate: float
+                ) -> Candidate | None:
+        pairs = self._associate(qc, complex(math.cos(yaw), math.sin(yaw)), t, gate)
         if pairs.shape[0] < 2:
             return None
-        yaw, t = fit_rigid_2d(q_v[pairs[:, 0]], self.lights_w[pairs[:, 1]])
-        pairs = self.associate(q_v, yaw, t, self.gate_m)
+        # the rigid fit (fit_rigid_2d) in complex form: rot = phase of sum conj(a) b
+        qa, pb = qc[pairs[:, 0]], self._lc[pairs[:, 1]]
+        qm, pm = qa.mean(), pb.mean()
+        sc = np.sum(np.conj(qa - qm) * (pb - pm))
+        rot = sc / abs(sc) if abs(sc) > 0 else 1.0 + 0j
+        t = pm - rot * qm
+        pairs = self._associate(qc, rot, t, self.gate_m)
         if pairs.shape[0] < 2:
             return None
-        res = _transform(q_v[pairs[:, 0]], yaw, t) - self.lights_w[pairs[:, 1]]
-        rms = float(np.sqrt((res ** 2).sum(1).mean()))
+        res = np.abs(qc[pairs[:, 0]] * rot + t - self._lc[pairs[:, 1]])
+        rms = float(np.sqrt(np.mean(res * res)))
+        yaw = math.atan2(rot.imag, rot.real)
         score = float(pairs.shape[0])
         missing = 0
         if self.visible is not None:
-            vis = self.visible(float(t[0]), float(t[1]), yaw)
+            vis = self.visible(t.real, t.imag, yaw)
             vis[pairs[:, 1]] = False
             missing = int(vis.sum())
             score -= 0.5 * missing
-        return Candidate(float(t[0]), float(t[1]), float(wrap_pi(yaw)), pairs, score, rms,
-                         missing)
+        return Candidate(float(t.real), float(t.imag), float(yaw), pairs, score, rms, missing)
 
     # -- global -------------------------------------------------------------------------
     def hypotheses(self, q_v: np.ndarray) -> np.ndarray:
-        """``(K, 3)`` poses ``(yaw, x, y)`` voted by every observed pair x matching map pair."""
-        n = q_v.shape[0]
-        a, b = np.triu_indices(n, 1)
+        """``(K, 3)`` poses ``(yaw, x, y)`` voted by every observed pair x matching map pair.
+
+        Each observed pair ``(a, b)`` and map pair ``(i, j)`` of the same length (within
+        ``2 gate_m``) give two poses, one per orientation: the rotation takes ``b - a``
+        onto ``j - i`` (or ``i - j``), the translation takes the midpoints together.
+        """
+        q = np.asarray(q_v, float).reshape(-1, 2)
+        qc = q[:, 0] + 1j * q[:, 1]
+        a, b = _triu(qc.size)
         if a.size == 0 or self.pair_d.size == 0:
             return np.zeros((0, 3))
-        d_obs = np.linalg.norm(q_v[a] - q_v[b], axis=1)
+        vq = qc[b] - qc[a]
+        d_obs = np.abs(vq)
         tol = 2.0 * self.gate_m
-        lo = np.searchsorted(self.pair_d, d_obs - tol)
-        hi = np.searchsorted(self.pair_d, d_obs + tol)
+        lohi = np.searchsorted(self.pair_d, np.concatenate([d_obs - tol, d_obs + tol]))
+        lo, hi = lohi[:a.size], lohi[a.size:]
         cnt = hi - lo
-        if cnt.sum() == 0:
+        total = int(cnt.sum())
+        if total == 0:
             return np.zeros((0, 3))
         obs_k = np.repeat(np.arange(a.size), cnt)
-        offs = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        mp = np.repeat(lo, cnt) + offs
-        qa, qb = q_v[a[obs_k]], q_v[b[obs_k]]
-        pa, pb = self.lights_w[self.pair_i[mp]], self.lights_w[self.pair_j[mp]]
-        # both orientations of each map pair
-        qa2, qb2 = np.concatenate([qa, qa]), np.concatenate([qb, qb])
-        pa2, pb2 = np.concatenate([pa, pb]), np.concatenate([pb, pa])
-        vq, vp = qb2 - qa2, pb2 - pa2
-        yaw = np.arctan2(vp[:, 1], vp[:, 0]) - np.arctan2(vq[:, 1], vq[:, 0])
-        c, s = np.cos(yaw), np.sin(yaw)
-        mq, mpt = 0.5 * (qa2 + qb2), 0.5 * (pa2 + pb2)
-        tx = mpt[:, 0] - (c * mq[:, 0] - s * mq[:, 1])
-        ty = mpt[:, 1] - (s * mq[:, 0] + c * mq[:, 1])
-        return np.stack([(yaw + np.pi) % (2 * np.pi) - np.pi, tx, ty], axis=1)
+        mp = np.arange(total) + np.repeat(lo - (np.cumsum(cnt) - cnt), cnt)
+        uq = np.conj(vq / np.maximum(d_obs, 1e-12))
+        rot = self._pair_dir[mp] * uq[obs_k]
+        rmq = rot * (0.5 * (qc[a] + qc[b]))[obs_k]
+        mid = self._pair_mid[mp]
+        yaw = np.angle(rot)
+        # the reversed orientation: rot -> -rot, yaw -> yaw + pi
+        out = np.empty((2 * total, 3))
+        out[:total, 0] = yaw
+        out[total:, 0] = yaw - np.copysign(np.pi, yaw)
+        out[:total, 1], out[:total, 2] = (mid - rmq).real, (mid - rmq).imag
+        out[total:, 1], out[total:, 2] = (mid + rmq).real, (mid + rmq).imag
+        return out
 
     def match(self, q_v: np.ndarray, order: np.ndarray | None = None) -> list[Candidate]:
         """Verified, distinct candidates for observed ceiling points ``(N, 2)``, best first.
@@ -297,6 +366,7 @@ class PatternMatcher:
         use = np.arange(n) if order is None else np.asarray(order)
         use = use[:self.max_observed]
         hyp = self.hypotheses(q_v[use])
+        qc = q_v[:, 0] + 1j * q_v[:, 1]
         if hyp.shape[0] == 0:
             return []
         ky = np.floor(hyp[:, 0] / self.yaw_bin).astype(np.int64)
@@ -319,12 +389,13 @@ class PatternMatcher:
             if n_done >= self.top_bins and counts[k] < 0.5 * counts[top[0]]:
                 break
             h = hyp[srt[starts[k]:starts[k] + counts[k]]]
-            yaw = math.atan2(np.sin(h[:, 0]).mean(), np.cos(h[:, 0]).mean())
-            t = np.array([np.median(h[:, 1]), np.median(h[:, 2])])
+            yaw = math.atan2(np.sin(h[:, 0]).sum(), np.cos(h[:, 0]).sum())
+            hs = np.sort(h[:, 1:], axis=0)
+            t = 0.5 * (hs[(h.shape[0] - 1) // 2] + hs[h.shape[0] // 2])     # medians
             seed = Candidate(float(t[0]), float(t[1]), yaw, np.zeros((0, 2), int), 0.0, 0.0)
             if any(seed.same_pose(o, 0.5, math.radians(8.0)) for o in cands):
                 continue   # a neighbouring bin of a pose already verified
-            c = self.verify(q_v, yaw, t)
+            c = self._verify(qc, yaw, complex(t[0], t[1]), self.gate_m)
             if c is None:
                 continue
             if any(c.same_pose(o, 0.3, math.radians(5.0)) for o in cands):
@@ -402,6 +473,77 @@ def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
     return float(p[0]), float(p[1]), float(wrap_pi(p[2])), cov, norms
 
 
+def refine_pose_ceiling(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarray,
+                        x_m: float, y_m: float, yaw_rad: float, iterations: int = 3,
+                        sigma_floor_px: float = 0.1) -> tuple[
+                            float, float, float, np.ndarray, np.ndarray]:
+    """:func:`refine_pose` linearized at the observations: no projection per step.
+
+    The pixel residual of light ``i`` is ``J_i (q̂_i - q_i)``, with ``q_i`` the observed
+    ceiling point in V, ``q̂_i = Rz(-yaw) (L_i - t)`` the map light seen from the pose and
+    ``J_i`` d(pixel)/d(ceiling point) at the observation (:func:`pixel_scale`). It differs
+    from the reprojection error only at second order in the residual (sub-millimetre
+    here), so both give the same pose; this one costs a few 3x3 solves.
+
+    Args:
+        q_v: ``(K, 2)`` observed ceiling points in V (metres).
+        jac_px: ``(K, 2, 2)`` pixel Jacobians at those points (px per metre).
+        lights_w: ``(K, 2)`` their map lights in W.
+        x_m, y_m, yaw_rad: the starting pose.
+
+    Returns:
+        As :func:`refine_pose`: ``(x, y, yaw, cov (3, 3), residual norms (K,) px)``.
+    """
+    q = np.asarray(q_v, float).reshape(-1, 2)
+    J = np.asarray(jac_px, float).reshape(-1, 2, 2)
+    L = np.asarray(lights_w, float).reshape(-1, 2)
+    k = q.shape[0]
+
+    j00, j01, j10, j11 = J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1]
+
+    def resid(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c, s = math.cos(p[2]), math.sin(p[2])
+        vx, vy = L[:, 0] - p[0], L[:, 1] - p[1]
+        qhx, qhy = c * vx + s * vy, -s * vx + c * vy
+        dx, dy = qhx - q[:, 0], qhy - q[:, 1]
+        r = np.empty(2 * k)
+        r[0::2] = j00 * dx + j01 * dy
+        r[1::2] = j10 * dx + j11 * dy
+        # A = J @ d q̂ / d(x, y, yaw), d q̂ / d(x, y, yaw) = [[-c, -s, q̂y], [s, -c, -q̂x]]
+        A = np.empty((2 * k, 3))
+        A[0::2, 0] = s * j01 - c * j00
+        A[0::2, 1] = -s * j00 - c * j01
+        A[0::2, 2] = j00 * qhy - j01 * qhx
+        A[1::2, 0] = s * j11 - c * j10
+        A[1::2, 1] = -s * j10 - c * j11
+        A[1::2, 2] = j10 * qhy - j11 * qhx
+        return r, A
+
+    p = np.array([x_m, y_m, yaw_rad], float)
+    r, A = resid(p)
+    for _ in range(iterations):
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(r))):
+            break
+        try:
+            step = -np.linalg.solve(A.T @ A + 1e-9 * np.eye(3), A.T @ r)
+        except np.linalg.LinAlgError:
+            break
+        r_new, A_new = resid(p + step)
+        if not np.all(np.isfinite(r_new)) or r_new @ r_new > r @ r:
+            break
+        p, r, A = p + step, r_new, A_new
+        if np.abs(step[:2]).max() < 1e-5 and abs(step[2]) < 1e-6:
+            break
+    dof = 2 * k - 3
+    s2 = max(float(r @ r) / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
+    try:
+        cov = s2 * np.linalg.inv(A.T @ A)
+    except np.linalg.LinAlgError:
+        cov = np.full((3, 3), np.inf)
+    norms = np.sqrt(r[0::2] ** 2 + r[1::2] ** 2)
+    return float(p[0]), float(p[1]), float(wrap_pi(p[2])), cov, norms
+
+
 # ------------------------------------------------------------------------ estimator
 class LightsEstimator:
     """Full vehicle pose from one frame of ceiling spot lights, with no prior.
@@ -465,8 +607,40 @@ class LightsEstimator:
         nadir = rig.camera.project(up[None]) if up[2] > 1e-6 else np.full((1, 2), np.nan)
         self.nadir_px = ((float(nadir[0, 0]), float(nadir[0, 1]))
                          if np.all(np.isfinite(nadir)) else (rig.camera.cx, rig.camera.cy))
+        self._t_vc = _mount_arrays(rig.mount)[1]
+        self._table = self._spot_table()
+        self._build_visibility(math.radians(max_view_angle_deg))
         self.matcher = PatternMatcher(self.lights_w, gate_m, self._max_pair_m(),
                                       visible=self._visible)
+
+    def _build_visibility(self, max_angle_rad: float) -> None:
+        """A table over the ceiling in V: the pixel distance from the nadir of a light
+        there, ``inf`` where the detector cannot report it (outside the image by 12 px,
+        or outside the view mask). Makes :meth:`_visible` a lookup, not a projection.
+
+        The table covers the ceiling seen by the view mask (from its pixels every 8 px),
+        in at most 200 x 200 cells."""
+        cam = self.rig.camera
+        uu, vv = np.meshgrid(np.arange(0, cam.width, 8.0), np.arange(0, cam.height, 8.0))
+        grid_px = np.stack([uu.ravel(), vv.ravel()], 1)
+        inside = self.valid_mask[grid_px[:, 1].astype(int), grid_px[:, 0].astype(int)] > 0
+        q, ok = ceiling_points(self.rig, self.height_m, grid_px[inside])
+        if not np.any(ok):
+            q, ok = np.zeros((1, 2)), np.ones(1, bool)
+        lo, hi = q[ok].min(0) - 0.5, q[ok].max(0) + 0.5
+        cell = max(0.01, float((hi - lo).max()) / 200)
+        n = np.ceil((hi - lo) / cell).astype(int) + 1
+        self._vis_origin, self._vis_cell = lo, cell
+        gi, gj = np.meshgrid(np.arange(n[0]), np.arange(n[1]), indexing="ij")
+        g = lo[None, :] + cell * np.stack([gi.ravel(), gj.ravel()], 1)
+        px = project_lights(self.rig, self.height_m, g, 0.0, 0.0, 0.0)
+        ok = np.isfinite(px[:, 0])
+        ok[ok] = cam.in_image(px[ok], margin_px=12.0)
+        idx = np.nonzero(ok)[0]
+        uv = np.round(px[idx]).astype(int)
+        ok[idx[self.valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
+        d = np.hypot(px[:, 0] - self.nadir_px[0], px[:, 1] - self.nadir_px[1])
+        self._vis_table = np.where(ok, d, np.inf).astype(np.float32).reshape(n[0], n[1])
 
     def _max_pair_m(self) -> float:
         cam = self.rig.camera
@@ -483,65 +657,93 @@ class LightsEstimator:
 
     def _visible(self, x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
         """``(M,)`` map lights the detector should report from a pose: inside the image
-        (by 12 px) and the view mask, and among the ``max_spots`` nearest the nadir."""
-        px = project_lights(self.rig, self.height_m, self.lights_w, x_m, y_m, yaw_rad)
-        ok = np.isfinite(px[:, 0])
-        ok[ok] = self.rig.camera.in_image(px[ok], margin_px=12.0)
-        idx = np.nonzero(ok)[0]
-        if idx.size:
-            uv = np.round(px[idx]).astype(int)
-            inside = self.valid_mask[uv[:, 1], uv[:, 0]] > 0
-            ok[idx[~inside]] = False
-            idx = idx[inside]
-        if idx.size > self.max_spots:
-            d = np.hypot(px[idx, 0] - self.nadir_px[0], px[idx, 1] - self.nadir_px[1])
-            ok[idx[np.argsort(d)[self.max_spots:]]] = False
+        (by 12 px) and the view mask, and among the ``max_spots`` nearest the nadir
+        (a lookup in the table of :meth:`_build_visibility`)."""
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        dx, dy = self.lights_w[:, 0] - x_m, self.lights_w[:, 1] - y_m
+        ni, nj = self._vis_table.shape
+        i = np.rint((c * dx + s * dy - self._vis_origin[0]) / self._vis_cell).astype(np.intp)
+        j = np.rint((-s * dx + c * dy - self._vis_origin[1]) / self._vis_cell).astype(np.intp)
+        inside = (i >= 0) & (i < ni) & (j >= 0) & (j < nj)
+        d = np.full(i.shape, np.inf, np.float32)
+        d[inside] = self._vis_table[i[inside], j[inside]]
+        ok = np.isfinite(d)
+        if ok.sum() > self.max_spots:
+            ok[np.argsort(d, kind="stable")[self.max_spots:]] = False
         return ok
 
     # -- spots ------------------------------------------------------------------------
     def spots_and_points(self, image: np.ndarray) -> tuple[Spots, np.ndarray, np.ndarray]:
         """Detected spots (after the per-place size and shape checks), their ceiling
         points in V ``(N, 2)`` and a reliability order (nearest the nadir first)."""
+        spots, q, order, _ = self._observe(image)
+        return spots, q, order
+
+    def _observe(self, image: np.ndarray
+                 ) -> tuple[Spots, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`spots_and_points` plus each spot's pixel Jacobian ``(N, 2, 2)``."""
         spots = detect_spots(image, self.spot_params, self.valid_mask, self.nadir_px,
                              self.max_spots)
         if len(spots) == 0:
-            return spots, np.zeros((0, 2)), np.zeros(0, int)
+            return spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2))
         q, ok = ceiling_points(self.rig, self.height_m, spots.centroids_px)
+        table = interp_grid(self._table, _JAC_STEP_PX, spots.centroids_px)
+        ok &= np.isfinite(table[:, 0])
         if self.light_radius_m > 0 and np.any(ok):
-            ok &= self._plausible(spots, q, ok)
-        spots = spots.select(ok)
-        q = q[ok]
-        rng = np.linalg.norm(q - _mount_arrays(self.rig.mount)[1][None, :2], axis=1)
-        return spots, q, np.argsort(rng, kind="stable")
+            ok &= self._plausible(spots, table, ok)
+        J = table[:, :4].reshape(-1, 2, 2)
+        if not np.all(ok):
+            spots, q, J = spots.select(ok), q[ok], J[ok]
+        rng = np.hypot(q[:, 0] - self._t_vc[0], q[:, 1] - self._t_vc[1])
+        return spots, q, np.argsort(rng, kind="stable"), J
 
-    def _plausible(self, spots: Spots, q: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    def _plausible(self, spots: Spots, table: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """Spots whose size and shape fit a light of ``light_radius_m`` at their place.
 
         The predicted spot is the light's disc through the local Jacobian ``J`` of the
         ceiling-to-pixel map: area ``pi r² |det J|``, second moments
-        ``r²/4 J Jᵀ`` (+ blur). The observed moments, whitened by the predicted ones,
-        must be round (eigenvalue ratio >= 0.2) and of a plausible size.
+        ``C = r²/4 J Jᵀ + 0.8 I`` (+ blur). The observed moments ``S``, whitened by the
+        predicted ones (the eigenvalues of ``C⁻¹ S``), must be round (ratio >= 0.2) and
+        of a plausible size. ``table`` rows are the spots' :meth:`_spot_table` entries.
         """
         keep = ok.copy()
         idx = np.nonzero(ok)[0]
-        J = pixel_scale(self.rig, self.height_m, q[idx])
-        r2 = self.light_radius_m ** 2
-        fin = np.all(np.isfinite(J), axis=(1, 2))
-        J = np.where(fin[:, None, None], J, 1.0)
-        a_pred = math.pi * r2 * np.abs(np.linalg.det(J))
+        t = table[idx]
+        a_pred = t[:, 7]
         a = spots.areas_px[idx]
-        good = fin & (a >= 0.15 * a_pred - 3) & (a <= 5.0 * a_pred + 40)
-        C = 0.25 * r2 * np.einsum("nij,nkj->nik", J, J) + 0.8 * np.eye(2)
-        Ci = np.linalg.inv(C)
-        M = np.einsum("nij,njk->nik", Ci, spots.cov_px[idx])  # similar to the whitened
-        tr = M[:, 0, 0] + M[:, 1, 1]
-        det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
+        good = (a >= 0.15 * a_pred - 3) & (a <= 5.0 * a_pred + 40)
+        S = spots.cov_px[idx]
+        c00, c01, c11 = t[:, 4], t[:, 5], t[:, 6]
+        m00 = c00 * S[:, 0, 0] + c01 * S[:, 1, 0]
+        m01 = c00 * S[:, 0, 1] + c01 * S[:, 1, 1]
+        m10 = c01 * S[:, 0, 0] + c11 * S[:, 1, 0]
+        m11 = c01 * S[:, 0, 1] + c11 * S[:, 1, 1]
+        tr = m00 + m11
+        det = m00 * m11 - m01 * m10
         disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
         lo, hi = tr / 2 - disc, tr / 2 + disc
-        good &= (lo > 0) & (lo >= 0.2 * hi) & (np.sqrt(np.maximum(det, 0)) > 0.05) \
-            & (np.sqrt(np.maximum(det, 0)) < 6.0)
+        root = np.sqrt(np.maximum(det, 0.0))
+        good &= (lo > 0) & (lo >= 0.2 * hi) & (root > 0.05) & (root < 6.0)
         keep[idx] = good
         return keep
+
+    def _spot_table(self) -> np.ndarray:
+        """``(GH, GW, 8)`` per-node table (nodes every ``_JAC_STEP_PX`` px): the pixel
+        Jacobian ``J`` (4, row-major), ``C⁻¹`` of the predicted spot moments (00, 01,
+        11) and the predicted area (see :meth:`_plausible`); NaN where no ray rises."""
+        J = jacobian_grid(self.rig, self.height_m, _JAC_STEP_PX)
+        gh, gw = J.shape[:2]
+        J = J.reshape(-1, 2, 2)
+        fin = np.all(np.isfinite(J), axis=(1, 2))
+        Jf = np.where(fin[:, None, None], J, 1.0)
+        r2 = self.light_radius_m ** 2
+        C = 0.25 * r2 * np.einsum("nij,nkj->nik", Jf, Jf) + 0.8 * np.eye(2)
+        Ci = np.linalg.inv(C)
+        a_pred = math.pi * r2 * np.abs(np.linalg.det(Jf))
+        out = np.concatenate([J.reshape(-1, 4), Ci[:, 0, 0:1], Ci[:, 0, 1:2], Ci[:, 1, 1:2],
+                              a_pred[:, None]], axis=1)
+        out[~fin] = np.nan
+        return out.reshape(gh, gw, 8)
 
     # -- main -------------------------------------------------------------------------
     def estimate(self, image: np.ndarray, t_ns: int,
@@ -565,7 +767,7 @@ class LightsEstimator:
             return Failure(t_ns, NAME, "bad_image",
                            f"expected a {self.rig.camera.width}x{self.rig.camera.height} "
                            f"frame, found shape {img.shape}")
-        spots, q, order = self.spots_and_points(img)
+        spots, q, order, jac = self._observe(img)
         diag: dict[str, Any] = {"spots": len(spots), "candidates": spots.n_candidates}
         if len(spots) == 0:
             return Failure(t_ns, NAME, "no_lights", "no light found in the frame", diag)
@@ -611,16 +813,14 @@ class LightsEstimator:
                                f"({r.x_m:.2f}, {r.y_m:.2f})): a symmetric layout", diag)
             runner = cands[1] if len(cands) > 1 else None
         pairs = cand.pairs
-        x, y, yaw, cov, res = refine_pose(self.rig, self.height_m,
-                                          spots.centroids_px[pairs[:, 0]],
-                                          self.lights_w[pairs[:, 1]],
-                                          cand.x_m, cand.y_m, cand.yaw_rad)
+        x, y, yaw, cov, res = refine_pose_ceiling(q[pairs[:, 0]], jac[pairs[:, 0]],
+                                                  self.lights_w[pairs[:, 1]],
+                                                  cand.x_m, cand.y_m, cand.yaw_rad)
         bad = res > max(self.max_residual_px, 4.0 * float(np.median(res)))
         if np.any(bad) and pairs.shape[0] - int(bad.sum()) >= 2:
             pairs = pairs[~bad]
-            x, y, yaw, cov, res = refine_pose(self.rig, self.height_m,
-                                              spots.centroids_px[pairs[:, 0]],
-                                              self.lights_w[pairs[:, 1]], x, y, yaw)
+            x, y, yaw, cov, res = refine_pose_ceiling(q[pairs[:, 0]], jac[pairs[:, 0]],
+                                                      self.lights_w[pairs[:, 1]], x, y, yaw)
         k = pairs.shape[0]
         min_k = 2 if mode == "tracked" else self.min_inliers
         if k < min_k or not np.all(np.isfinite(cov)):
@@ -684,5 +884,6 @@ def _min_spacing(lights_w: np.ndarray) -> float:
     return float(d.min())
 
 
-__all__ = ["Candidate", "LightsEstimator", "PatternMatcher", "ceiling_points", "view_mask",
-           "fit_rigid_2d", "pixel_scale", "project_lights", "refine_pose"]
+__all__ = ["Candidate", "LightsEstimator", "PatternMatcher", "ceiling_points", "fit_rigid_2d",
+           "interp_grid", "jacobian_grid", "pixel_scale", "project_lights", "refine_pose",
+           "refine_pose_ceiling", "view_mask"]

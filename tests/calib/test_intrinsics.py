@@ -50,9 +50,13 @@ def views(board, camera, seed, n=15):
 
 
 def detections(board, camera, seed, n=15):
-    out = [board.detect(img, f"v{i:02d}") for i, (img, _, _) in enumerate(
-        views(board, camera, seed, n))]
-    return [d for d in out if d is not None]
+    """Detections of :func:`views`, computed once per module (a fresh list each call)."""
+    key = ("det", board.spec, camera.model, seed, n)
+    if key not in _CACHE:
+        out = [board.detect(img, f"v{i:02d}") for i, (img, _, _) in enumerate(
+            views(board, camera, seed, n))]
+        _CACHE[key] = [d for d in out if d is not None]
+    return list(_CACHE[key])
 
 
 def test_chessboard_meets_the_targets_with_honest_sigma():
@@ -240,6 +244,13 @@ def test_camera_round_trip(tmp_path):
 
 
 # -- OpenCV's sample images left01..14.jpg and their published calibration ------------------
+#
+# The published calibration (left_intrinsics.yml) is OpenCV's sample: findChessboardCorners,
+# cornerSubPix with an 11 x 11 half-window, one focal length, no rejection. In left02.jpg
+# the board is foreshortened to 22 px squares and that window moves its corners by up to
+# 6 px; the single view pulls fx up by 2.6 px and cy by 1.5 px. These tests show it and
+# check that the same procedure agrees with ours within our 1 sigma once that one view is
+# measured properly.
 
 def _published():
     text = (FIXTURES / "left_intrinsics.yml").read_text().replace("%YAML:1.0", "")
@@ -248,31 +259,93 @@ def _published():
 
 
 @pytest.fixture(scope="module")
-def left_views(tmp_path_factory):
+def left(tmp_path_factory):
+    """``(ours, sample)``: detections by our default detector and by OpenCV's sample's."""
     folder = tmp_path_factory.mktemp("left")
     for f in FIXTURES.glob("left*.jpg"):
         shutil.copy(f, folder)
-    return detect_images(image_files(folder), ChessBoard(9, 6, 0.025, detector="classic"))
+    files = image_files(folder)
+    return (detect_images(files, ChessBoard(9, 6, 0.025)),
+            detect_images(files, ChessBoard(9, 6, 0.025, detector="classic", subpix_half=11)))
 
 
-def test_reproduces_published_calibration_of_opencv_samples(left_views):
+def _pose_fit_rms(camera, det):
+    """RMS (px) of ``det`` reprojected through ``camera`` with its own best pose."""
+    _, rvec, tvec = cv2.solvePnP(det.points_board, det.points_px, camera.K, camera.dist)
+    rvec, tvec = cv2.solvePnPRefineLM(det.points_board, det.points_px, camera.K, camera.dist,
+                                      rvec, tvec)
+    px, _ = cv2.projectPoints(det.points_board, rvec, tvec, camera.K, camera.dist)
+    return float(np.sqrt(np.mean(np.sum((px.reshape(-1, 2) - det.points_px) ** 2, axis=1))))
+
+
+def test_reproduces_published_calibration_of_opencv_samples(left):
+    """OpenCV's procedure on its detections gives the published numbers within 0.1 sigma."""
     pub = _published()
     K = np.array(pub["camera_matrix"]["data"]).reshape(3, 3)
     D = np.array(pub["distortion_coefficients"]["data"])
-    res = calibrate_intrinsics(left_views, fix_aspect_ratio=True, reject_outliers=False)
+    res = calibrate_intrinsics(left[1], fix_aspect_ratio=True, reject_outliers=False)
     rep = res.report
     assert rep.n_views == pub["nframes"]
     ours = np.array(rep.params)
     theirs = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], D])
     z = (ours - theirs) / np.array(rep.sigmas)
-    assert np.all(np.abs(z) < 1.0), z
+    assert np.all(np.abs(z) < 0.1), z
     assert abs(rep.rms_px - pub["avg_reprojection_error"]) < 0.01
-
-
-def test_outlier_rejection_drops_the_misdetected_sample_view(left_views):
-    pub = _published()
+    # with rejection, the sample's worst view (left02, 1.18 px) is dropped
     per_view = np.array(pub["per_view_reprojection_errors"]["data"])
     worst = sorted(f.name for f in FIXTURES.glob("left*.jpg"))[int(np.argmax(per_view))]
-    res = calibrate_intrinsics(left_views, fix_aspect_ratio=True)
-    assert worst in res.report.dropped_views
-    assert res.report.rms_px < pub["avg_reprojection_error"]
+    assert worst == "left02.jpg"
+    rejected = calibrate_intrinsics(left[1], fix_aspect_ratio=True)
+    assert rejected.report.dropped_views == (worst,)
+
+
+def test_default_pipeline_keeps_every_sample_view(left):
+    rep = calibrate_intrinsics(left[0]).report
+    assert rep.n_views == 13 and not rep.dropped_views and rep.dropped_corners == 0
+    pub_rms = _published()["avg_reprojection_error"]
+    assert rep.rms_px < 0.5 * pub_rms
+    per_view = dict(zip(rep.view_names, rep.view_rms_px, strict=True))
+    assert per_view["left02.jpg"] < 1.5 * np.median(rep.view_rms_px)
+
+
+def test_published_calibration_is_biased_by_one_misdetected_view(left):
+    """The evidence, all on these 13 images:
+
+    1. left02's corners by the sample's 11 px window sit up to 6 px off the board that the
+       other 12 views calibrate (its best pose leaves > 1 px RMS); ours sit within 0.3 px;
+    2. the published values are over 5 of our sigmas from ours in fx (and 3 in cy);
+    3. held out one at a time, the views are predicted better by our calibrations of
+       the other twelve than by the sample procedure's (mean RMS 0.180 vs 0.192 px);
+    4. the sample procedure with only left02's corners re-detected agrees with our
+       default within 2 sigma (ours) in fx, fy, cx and cy.
+    """
+    ours_d, sample_d = left
+    pub = _published()
+    K = np.array(pub["camera_matrix"]["data"]).reshape(3, 3)
+    name = "left02.jpg"
+    others = calibrate_intrinsics([d for d in ours_d if d.name != name],
+                                  reject_outliers=False).camera
+    i02 = next(i for i, d in enumerate(ours_d) if d.name == name)
+    assert _pose_fit_rms(others, sample_d[i02]) > 1.0
+    assert _pose_fit_rms(others, ours_d[i02]) < 0.3
+
+    rep = calibrate_intrinsics(ours_d).report
+    sig = np.array(rep.sigmas[:4])
+    z_pub = (np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]) - rep.params[:4]) / sig
+    assert z_pub[0] > 5 and z_pub[1] > 5 and z_pub[3] > 3, z_pub
+
+    held_ours, held_sample = [], []
+    for i, d in enumerate(ours_d):
+        a = calibrate_intrinsics(ours_d[:i] + ours_d[i + 1:], fix_aspect_ratio=True).camera
+        b = calibrate_intrinsics(sample_d[:i] + sample_d[i + 1:], fix_aspect_ratio=True,
+                                 reject_outliers=False).camera
+        held_ours.append(_pose_fit_rms(a, d))
+        held_sample.append(_pose_fit_rms(b, d))
+    held_ours, held_sample = np.array(held_ours), np.array(held_sample)
+    assert np.mean(held_ours) < 0.95 * np.mean(held_sample)
+    assert np.sum(held_ours < held_sample) >= 10
+
+    fixed = [o if o.name == name else s for o, s in zip(ours_d, sample_d, strict=True)]
+    sample_fixed = calibrate_intrinsics(fixed, fix_aspect_ratio=True, reject_outliers=False)
+    z = (np.array(sample_fixed.report.params[:4]) - rep.params[:4]) / sig
+    assert np.all(np.abs(z) <= 2.0), z

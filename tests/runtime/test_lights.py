@@ -16,8 +16,12 @@ from ceilkit.runtime.lights import (
     PatternMatcher,
     ceiling_points,
     fit_rigid_2d,
+    interp_grid,
+    jacobian_grid,
+    pixel_scale,
     project_lights,
     refine_pose,
+    refine_pose_ceiling,
 )
 from ceilkit.runtime.rig import Mount, Rig
 from ceilkit.runtime.site import Site
@@ -264,3 +268,61 @@ def test_stale_prior_does_not_pull_a_wrong_pose(lights_rig, lights_site):
         assert out, (out.reason, out.detail)
         dp, dyaw = pose_error(out, x, y, yaw)
         assert dp < 0.02 and dyaw < 0.3
+
+
+def test_refine_pose_ceiling_agrees_with_reprojection(lights_rig, lights_site, tilted_rig):
+    """The refinement linearized at the observations gives the pose, residuals and
+    covariance of the full reprojection refinement (noisy pixels, both rigs)."""
+    rng = np.random.default_rng(5)
+    for rig, (x, y, yaw) in ((lights_rig, (6.0, 0.5, 0.7)), (tilted_rig, (4.0, 0.2, -0.4))):
+        L = lights_site.lights_m
+        px = project_lights(rig, 3.0, L, x, y, yaw)
+        ok = np.isfinite(px[:, 0])
+        ok[ok] = rig.camera.in_image(px[ok], 10.0)
+        obs = px[ok] + rng.normal(0, 0.3, (int(ok.sum()), 2))
+        q, good = ceiling_points(rig, 3.0, obs)
+        assert good.all() and ok.sum() >= 4
+        J = pixel_scale(rig, 3.0, q)
+        start = (x + 0.03, y - 0.02, yaw + 0.01)
+        a = refine_pose(rig, 3.0, obs, L[ok], *start)
+        b = refine_pose_ceiling(q, J, L[ok], *start)
+        # 0.3 px noise: the two differ at second order, tens of micrometres at most
+        assert math.hypot(a[0] - b[0], a[1] - b[1]) < 5e-5 and abs(a[2] - b[2]) < 1e-5
+        np.testing.assert_allclose(b[4], a[4], atol=0.02)
+        np.testing.assert_allclose(np.sqrt(np.diag(b[3])), np.sqrt(np.diag(a[3])), rtol=0.05)
+        assert math.hypot(b[0] - x, b[1] - y) < 0.01
+
+
+def test_interp_grid_and_jacobian_table(lights_rig):
+    grid = np.arange(24, dtype=float).reshape(4, 6)
+    out = interp_grid(grid, 10, np.array([[0.0, 0.0], [15.0, 5.0], [50.0, 30.0], [99.0, -3]]))
+    np.testing.assert_allclose(out, [0.0, 4.5, 23.0, 5.0])   # clamped at the edges
+    table = jacobian_grid(lights_rig, 3.0, 16)
+    px = np.array([[100.3, 200.7], [320.0, 240.0], [500.5, 60.2]])
+    q, _ = ceiling_points(lights_rig, 3.0, px)
+    exact = pixel_scale(lights_rig, 3.0, q)
+    np.testing.assert_allclose(interp_grid(table, 16, px), exact, rtol=0.02, atol=0.5)
+
+
+def test_visibility_table_matches_projection(lights_rig, lights_site, tilted_rig):
+    """The estimator's table lookup of the lights in view agrees with projecting them
+    (up to lights on the edge of a table cell)."""
+    for rig in (lights_rig, tilted_rig):
+        est = LightsEstimator(rig, lights_site)
+        rng = np.random.default_rng(2)
+        wrong = total = 0
+        for _ in range(40):
+            x, y, yaw = rng.uniform(0, 18), rng.uniform(-5, 5), rng.uniform(-3, 3)
+            px = project_lights(rig, 3.0, est.lights_w, x, y, yaw)
+            ok = np.isfinite(px[:, 0])
+            ok[ok] = rig.camera.in_image(px[ok], 12.0)
+            idx = np.nonzero(ok)[0]
+            uv = np.round(px[idx]).astype(int)
+            ok[idx[est.valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
+            idx = np.nonzero(ok)[0]
+            if idx.size > est.max_spots:
+                d = np.hypot(px[idx, 0] - est.nadir_px[0], px[idx, 1] - est.nadir_px[1])
+                ok[idx[np.argsort(d)[est.max_spots:]]] = False
+            wrong += int((ok != est._visible(x, y, yaw)).sum())
+            total += int(ok.sum())
+        assert total > 40 and wrong <= 0.03 * total, (wrong, total)

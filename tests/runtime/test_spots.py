@@ -124,3 +124,23 @@ def test_niblack_masks_agree_on_spots():
 def test_axis_ratios():
     cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[2.0, 0.0], [0.0, 2.0]]])
     np.testing.assert_allclose(axis_ratios(cov), [0.5, 1.0])
+
+
+def test_lone_region_shortcut_matches_contour_path():
+    """A region no other region reaches is measured without drawing its contour; the
+    numbers are those of the general path."""
+    from ceilkit.runtime.spots import _alone, _region_stats
+
+    img = blobs(np.array([[40.3, 30.7], [120.6, 80.2], [131.0, 84.0]]), radius=4.0)
+    mask = niblack_mask(img, 41, 0.8, 10.0, 0.2)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    boxes = np.array([cv2.boundingRect(c) for c in contours])
+    alone = _alone(boxes)
+    assert alone.sum() == 1 and (~alone).sum() == 2   # the two close discs reach each other
+    for c, b, lone in zip(contours, boxes, alone, strict=True):
+        full = _region_stats(img, mask, c, *b, True)
+        if lone:
+            fast = _region_stats(img, mask, None, *b, True)
+            np.testing.assert_allclose(fast[:4], full[:4], rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(fast[4], full[4], rtol=1e-9, atol=1e-12)
+            assert fast[5] == full[5]
