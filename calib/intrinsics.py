@@ -29,9 +29,7 @@ Example::
 
 from __future__ import annotations
 
-import os
 import sys
-import tempfile
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +39,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.camera import DISTORTION_MODELS, CameraModel
+from ceilkit.runtime.config import atomic_write_bytes
 from ceilkit.runtime.errors import CalibrationError, CaptureError, ConfigError
 from ceilkit.runtime.sources import FrameSource, to_grey
 
@@ -537,30 +536,6 @@ class DetectionCache:
             pass                 # a cache that cannot be written is no error
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file and a rename (never half-written)."""
-    path = Path(path)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    except OSError as exc:
-        raise ConfigError(path, None, f"cannot write: {exc.strerror or exc}") from None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)     # mkstemp makes 0600; give the usual mode
-        os.replace(tmp, path)
-    except OSError as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise ConfigError(path, None, f"cannot write: {exc.strerror or exc}") from None
-
-
 def _board_size_text(board: Board) -> str:
     if isinstance(board, ChessBoard):
         return f"{board.cols}x{board.rows}"
@@ -1033,6 +1008,6 @@ def write_plots(result: IntrinsicsResult, folder: str | Path) -> list[Path]:
 
 __all__ = ["COVERAGE_GRID", "RMS_CONVENTION", "CoverageMeter", "DetectionCache",
            "IntrinsicsReport", "IntrinsicsResult", "StopRule", "ViewShape",
-           "atomic_write_bytes", "calibrate_intrinsics", "capture_views", "detect_images",
+           "calibrate_intrinsics", "capture_views", "detect_images",
            "image_files", "plot_coverage", "plot_distortion", "plot_view_errors", "read_grey",
            "view_shape", "write_plots"]

@@ -157,11 +157,15 @@ class Node:
         return [n.number() for n in self.items()]
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` so that the file is either the old or the new one.
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that the file is either the old or the new one.
 
-    The text goes to a temporary file beside ``path``, is flushed to disk, then
-    renamed over it; an existing file is never left half-written.
+    The bytes go to a temporary file beside ``path``, are flushed to disk, then
+    renamed over it; an existing file is never left half-written. The new file gets
+    the usual mode (``0666`` less the umask), not ``mkstemp``'s ``0600``.
+
+    Raises:
+        ConfigError: naming ``path``, when it cannot be written.
     """
     path = Path(path)
     try:
@@ -169,13 +173,13 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     except OSError as exc:
         raise ConfigError(path, None, f"cannot write: {exc.strerror or exc}") from None
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         umask = os.umask(0)
         os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual mode
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except OSError as exc:
         try:
@@ -183,6 +187,11 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         except OSError:
             pass
         raise ConfigError(path, None, f"cannot write: {exc.strerror or exc}") from None
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """:func:`atomic_write_bytes` of ``text`` encoded as UTF-8."""
+    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def dump_yaml(data: Any, header: str = "") -> str:
