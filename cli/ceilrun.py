@@ -191,7 +191,8 @@ def live(
     sim_frames = frames or 300
     source = open_source(device, r, s, width, height, fps, fourcc, exposure, gain,
                          frames=sim_frames)
-    recorder = RecordingWriter(record, r, s) if record is not None else None
+    recorder = (RecordingWriter(record, r, s, truth_of=source_truth(source))
+                if record is not None else None)
     writer = PoseWriter(out / "poses.csv") if out is not None else None
     try:
         with source, _open_link(serial, protocol, baud, sysid, compid, mavlink_missing_x,

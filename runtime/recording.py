@@ -46,13 +46,18 @@ class RecordingWriter:
 
     Example::
 
-        with RecordingWriter(out_dir, rig, site) as rec:
+        with RecordingWriter(out_dir, rig, site, truth=True) as rec:
             rec.write(frame)                       # PNG, then its frames.csv row
             rec.write_truth(frame.t_ns, x, y, yaw_rad)
+
+    With ``truth_of`` (the ground truth a source carries: the simulator's trajectory,
+    a replayed recording's ``truth.csv``), :meth:`write` adds the truth row of each
+    frame it stores (by the frame's exact stamp), so the recording replays with its
+    errors against truth.
     """
 
     def __init__(self, folder: str | Path, rig: Rig, site: Site, truth: bool = False,
-                 header: str = ""):
+                 header: str = "", truth_of: Truth | None = None):
         self.folder = Path(folder)
         frames_dir = self.folder / "frames"
         if (self.folder / "frames.csv").exists():
@@ -65,7 +70,9 @@ class RecordingWriter:
         rig.save(self.folder / "rig.yaml", header)
         site.save(self.folder / "site.yaml", header)
         self._frames = _open_csv(self.folder / "frames.csv", FRAMES_HEADER)
-        self._truth = _open_csv(self.folder / "truth.csv", TRUTH_HEADER) if truth else None
+        self._truth_of = truth_of
+        self._truth = (_open_csv(self.folder / "truth.csv", TRUTH_HEADER)
+                       if truth or truth_of is not None else None)
         self.count = 0
 
     def write(self, frame: Frame) -> None:
@@ -84,6 +91,9 @@ class RecordingWriter:
         self._frames[1].writerow([self.count, int(frame.t_ns)])
         self._frames[0].flush()
         self.count += 1
+        pose = self._truth_of.lookup(frame.t_ns) if self._truth_of is not None else None
+        if pose is not None:
+            self.write_truth(frame.t_ns, *pose)
 
     def write_truth(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float) -> None:
         if self._truth is None:

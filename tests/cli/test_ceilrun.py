@@ -108,9 +108,14 @@ def test_live_on_the_simulator_records_and_streams(tmp_path):
                                    str(tmp_path / "run")])
     assert res.exit_code == 0, res.output
     assert "frames 6" in res.output and "against the source's ground truth" in res.output
-    assert len(Recording(tmp_path / "rec")) == 6
+    rec = Recording(tmp_path / "rec")
+    assert len(rec) == 6
     assert load_poses(tmp_path / "run" / "poses.csv").t_ns.size == 6
     assert res.stdout.count("$PCEIL,") == 6
+    # the simulator's truth goes with its frames: the recording replays against it
+    assert rec.truth is not None and rec.truth.t_ns.tolist() == [f.t_ns for f in rec]
+    again = CliRunner().invoke(app, ["replay", str(tmp_path / "rec")])
+    assert again.exit_code == 0 and "against truth.csv" in again.output
 
 
 @pytest.mark.parametrize("args,code,words", [

@@ -10,6 +10,7 @@ from ceilkit.runtime.recording import (
     PoseWriter,
     Recording,
     RecordingWriter,
+    Truth,
     load_poses,
     load_truth,
 )
@@ -43,6 +44,19 @@ def test_write_read_round_trip(tmp_path, corridor_rig, corridor_site):
     assert back.site.to_dict() == corridor_site.to_dict()
     assert np.allclose(back.truth.lookup(frames[2].t_ns), (0.2, -0.2, math.radians(10)))
     assert back.truth.lookup(5) is None
+
+
+def test_truth_of_a_source_is_written_with_its_frames(tmp_path, corridor_rig, corridor_site):
+    frames = _frames(3)
+    truth = Truth(np.array([frames[0].t_ns, frames[2].t_ns]), np.array([1.0, 3.0]),
+                  np.array([-0.1, -0.3]), np.array([0.0, math.radians(20)]))
+    with RecordingWriter(tmp_path / "rec", _rig(corridor_rig), corridor_site,
+                         truth_of=truth) as rec:
+        for f in frames:
+            rec.write(f)
+    back = Recording(tmp_path / "rec").truth
+    assert back.t_ns.tolist() == [frames[0].t_ns, frames[2].t_ns]   # no row for frame 1
+    assert np.allclose(back.lookup(frames[2].t_ns), (3.0, -0.3, math.radians(20)))
 
 
 def test_bgr_frames_are_kept_as_captured(tmp_path, corridor_rig, corridor_site):
