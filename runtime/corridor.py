@@ -162,52 +162,70 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
     Returns None when nothing is matched.
     """
     o_all = np.asarray(offsets, dtype=float)
-    w_all = np.asarray(weights, dtype=float)
-    ok = np.isfinite(o_all)
-    if not np.any(ok):
+    ok = np.flatnonzero(np.isfinite(o_all))
+    if ok.size == 0:
         return None
-    o, w = o_all[ok], w_all[ok]
+    o = o_all[ok]
+    w = np.asarray(weights, dtype=float)[ok]
     ys = np.asarray(site_y, dtype=float)
     nj = ys.size
-    cw = None if compat is None else np.asarray(compat, dtype=float).reshape(-1, nj)[ok]
-    pairs = np.ones((o.size, nj), bool) if cw is None else cw > 0
-    ii, jj = np.nonzero(pairs)
+    if compat is None:
+        cw = None
+        ii, jj = np.divmod(np.arange(o.size * nj), max(nj, 1))
+    else:
+        cw = np.asarray(compat, dtype=float).reshape(-1, nj)[ok]
+        ii, jj = np.nonzero(cw > 0)
     if ii.size == 0:
         return None
     cands = ys[jj] - o[ii]
-    # pairings closer than a quarter of the gate are one hypothesis (they refine alike)
-    cands = cands[np.unique(np.round(cands * (4.0 / tol_m)), return_index=True)[1]]
-    big = 0.0 if cw is None else np.where(cw > 0, 0.0, 1e9)[None]               # (1, N, J)
+    # pairings closer than a quarter of the gate are one hypothesis (they refine alike):
+    # the first of each, in the order of their keys (np.unique(..., return_index=True))
+    key = np.round(cands * (4.0 / tol_m))
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    first = np.empty(ks.size, bool)
+    first[0] = True
+    np.not_equal(ks[1:], ks[:-1], out=first[1:])
+    cands = cands[order[first]]
     # each hypothesis: every offset to its nearest (allowed) site line; the shift is
     # refined once by the weighted mean over the inliers, keeping that association
-    D = o[None, :, None] + cands[:, None, None] - ys[None, None, :]              # (K, N, J)
-    j = np.argmin(np.abs(D) + big, axis=2)
-    d = np.take_along_axis(D, j[..., None], axis=2)[..., 0]                      # (K, N)
+    x = o[None, :] + cands[:, None]                                              # (K, N)
+    D = np.abs(x[:, :, None] - ys)                                              # (K, N, J)
+    if cw is not None:
+        D += np.where(cw > 0, 0.0, 1e9)
+    j = np.argmin(D, axis=2)
+    d = x - ys[j]                                                                # (K, N)
     inl = np.abs(d) <= tol_m
     if cw is not None:
-        inl &= cw[np.arange(o.size)[None, :], j] > 0
-    wi = inl * w[None, :]
-    sw = wi.sum(axis=1)
-    shift = (wi * d).sum(axis=1) / np.maximum(sw, 1e-300)
+        cj = cw[np.arange(o.size), j]
+        inl &= cj > 0
+    wi = inl * w
+    shift = (wi * d).sum(axis=1) / np.maximum(wi.sum(axis=1), 1e-300)
     c_ref = cands - shift
-    d = d - shift[:, None]
+    d -= shift[:, None]
     inl &= np.abs(d) <= tol_m
-    wi = inl * w[None, :]
+    wi = inl * w
     sw = wi.sum(axis=1)
     sig = tol_m / 3.0
-    g = np.exp(-0.5 * (d / sig) ** 2) * inl                                      # (K, N)
+    g = _gauss(d / sig) * inl                                                    # (K, N)
     if cw is not None:
-        g = g * cw[np.arange(o.size)[None, :], j]
-    hit = (j[:, :, None] == np.arange(nj)[None, None, :]) & inl[:, :, None]      # (K, N, J)
-    soft = np.max(np.where(hit, g[:, :, None], 0.0), axis=1).sum(axis=1)
-    n_lines = np.count_nonzero(np.any(hit, axis=1), axis=1)
+        g *= cj
+    # per hypothesis and site line (bin 0: no line), the best inlier matched to it (the
+    # soft score; g >= 0) and how many are
+    jm = np.where(inl, j, -1)                                                    # (K, N)
+    nk = cands.size
+    bins = (np.arange(nk)[:, None] * (nj + 1) + (jm + 1)).ravel()
+    best = np.zeros(nk * (nj + 1))
+    np.maximum.at(best, bins, g.ravel())
+    soft = best.reshape(nk, nj + 1)[:, 1:].sum(axis=1)
+    n_hit = np.bincount(bins, minlength=nk * (nj + 1)).reshape(nk, nj + 1)[:, 1:]
+    n_lines = np.count_nonzero(n_hit, axis=1)
     if anchors_m is not None and len(anchors_m):
         a = np.asarray(anchors_m, dtype=float)
-        soft = soft + np.mean(np.exp(-0.5 * ((c_ref[:, None] - a[None, :]) / sig) ** 2), axis=1)
-    good = n_lines > 0
-    if not np.any(good):
+        soft = soft + _gauss((c_ref[:, None] - a[None, :]) / sig).sum(axis=1) / a.size
+    idx = np.flatnonzero(n_lines)
+    if idx.size == 0:
         return None
-    idx = np.flatnonzero(good)
     if prior_shift_m is not None:
         top = soft[idx].max()
         pool = idx[soft[idx] >= top - 1.0]
@@ -219,11 +237,17 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
     if others.size:
         r = int(others[np.lexsort((-sw[others], -soft[others]))[0]])
         runner = (float(soft[r]), float(sw[r]), float(c_ref[r]))
-    score = float(soft[win])
     assign = np.full(o_all.size, -1)
-    assign[np.flatnonzero(ok)] = np.where(inl[win], j[win], -1)
+    assign[ok] = jm[win]
     return OffsetMatch(float(c_ref[win]), assign, int(n_lines[win]), float(sw[win]), runner,
-                       score)
+                       float(soft[win]))
+
+
+def _gauss(z: np.ndarray) -> np.ndarray:
+    """``exp(-z^2 / 2)``, floored at ``exp(-700)`` (1e-304) instead of going subnormal or
+    to 0 (where numpy's exp is many times slower); the floor is far below anything
+    these scores can resolve (it vanishes when added to a score)."""
+    return np.exp(np.maximum(-0.5 * z ** 2, -700.0))
 
 
 def periodic_spread(offsets: np.ndarray, weights: np.ndarray, spacing_m: float,
@@ -306,14 +330,49 @@ _KERNEL = np.exp(-0.5 * (np.arange(-16, 17) / 4.0) ** 2)
 
 
 def _median_finite(a: np.ndarray) -> float:
-    """The median of the finite values of ``a`` (NaN if none)."""
-    v = a[np.isfinite(a)]
-    return float(np.median(v)) if v.size else float("nan")
+    """The median of the finite values of ``a`` (NaN if none); as ``np.median``, without
+    its overhead on a few values."""
+    v = np.sort(a[np.isfinite(a)])
+    m = v.size // 2
+    if v.size == 0:
+        return float("nan")
+    return float(v[m]) if v.size % 2 else float(0.5 * (v[m - 1] + v[m]))
 
 
 def _smooth_circular(hist: np.ndarray) -> np.ndarray:
     """``hist (B,)`` convolved circularly with a Gaussian of 4 bins."""
     return np.convolve(np.concatenate([hist[-16:], hist, hist[:16]]), _KERNEL, "valid")
+
+
+@dataclass(frozen=True, eq=False)
+class _Frame:
+    """One frame's segments (undistorted normalized coordinates), computed once and
+    shared by every pan candidate and hypothesis of :class:`CorridorEstimator`.
+
+    Attributes:
+        segs: ``(N, 4)`` endpoints. lines: ``(N, 3)`` their lines (``hypot(a, b) = 1``),
+            a view of lines_t ``(3, N)``. len_n: ``(N,)`` lengths. mx, my: ``(N,)``
+            midpoints. q: ``(N, 3)`` level normals ``M l``. pol: ``(N,)`` polarity.
+        ceil_len: ``(N,)`` length on the ceiling (m; at most 10, 0 above the horizon).
+        ceil_sx, ceil_sy: ``(N,)`` sums of the two endpoints' ceiling coordinates (m,
+            level frame relative to the camera; twice the midpoint).
+        lamp_end: ``(L, N)`` bool: as long on the ceiling as lamp row l is wide (20 %).
+        tol: ``(N,)`` the family gate after the first pan fit (rad).
+    """
+
+    segs: np.ndarray
+    lines: np.ndarray
+    lines_t: np.ndarray
+    len_n: np.ndarray
+    mx: np.ndarray
+    my: np.ndarray
+    q: np.ndarray
+    pol: np.ndarray
+    ceil_len: np.ndarray
+    ceil_sx: np.ndarray
+    ceil_sy: np.ndarray
+    lamp_end: np.ndarray
+    tol: np.ndarray
 
 
 _OPTIONS = ("detector", "refine", "edge_fit", "min_length_px", "max_segments", "angle_tol_deg",
@@ -382,6 +441,10 @@ class CorridorEstimator:
         self.gn_iterations = int(options.get("gn_iterations", 6))
         self.min_contrast = float(options.get("min_contrast", 8.0))
         self.site_pol, self.site_longest = self._site_polarity()
+        self._MT = np.ascontiguousarray(self.M.T)
+        self._M_rows = tuple(tuple(float(v) for v in row) for row in self.M)
+        self._lamp_width = np.array([row.width_m for row in site.lamps], dtype=float)
+        self._lamp_y = np.array([row.y_m for row in site.lamps], dtype=float)
         mount = rig.mount
         self._t_vc = mount.t_vehicle_cam
         self._pan = mount.pan_rad
@@ -471,53 +534,77 @@ class CorridorEstimator:
         theta = np.arctan2(-q[:, 0], q[:, 1])
         nbins = 720
         b = ((4 * theta) % (2 * np.pi)) / (2 * np.pi) * nbins
-        i0 = np.floor(b).astype(int) % nbins
-        fr = b - np.floor(b)
+        fl = np.floor(b)
+        i0 = fl.astype(int) % nbins
+        fr = b - fl
         hist = np.bincount(i0, w * (1 - fr), nbins) + np.bincount((i0 + 1) % nbins, w * fr, nbins)
         sm = _smooth_circular(hist)
         peaks = []
         work = sm.copy()
         for _ in range(n_peaks):
             p = int(np.argmax(work))
-            if work[p] <= 0 or (peaks and work[p] < 0.2 * sm[peaks[0][0]]):
+            top = float(work[p])
+            if top <= 0 or (peaks and top < 0.2 * peaks[0][1]):
                 break
-            y0, y1, y2 = sm[(p - 1) % nbins], sm[p], sm[(p + 1) % nbins]
+            y0, y1, y2 = float(sm[(p - 1) % nbins]), float(sm[p]), float(sm[(p + 1) % nbins])
             den = y0 - 2 * y1 + y2
             off = 0.5 * (y0 - y2) / den if abs(den) > 1e-12 else 0.0
-            peaks.append((p, (p + 0.5 + off) / nbins * 2 * np.pi / 4))
-            lo = p - 24
-            idx = np.arange(lo, p + 25) % nbins
-            work[idx] = 0.0
-        return [-th for _, th in peaks]
+            peaks.append((p, y1, (p + 0.5 + off) / nbins * 2 * np.pi / 4))
+            # clear +-24 bins about the peak (circularly)
+            lo, hi = p - 24, p + 25
+            work[max(lo, 0):min(hi, nbins)] = 0.0
+            if lo < 0:
+                work[lo:] = 0.0
+            if hi > nbins:
+                work[:hi - nbins] = 0.0
+        return [-th for _, _, th in peaks]
 
-    def _classify(self, psi: float, lines: np.ndarray, mids: np.ndarray,
-                  tol: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        va, vb = vanishing_directions(psi, self.M)
-        ra = np.abs(angle_residuals(lines, mids, va))
-        rb = np.abs(angle_residuals(lines, mids, vb))
-        along = (ra <= rb) & (ra <= tol)
-        across = (rb < ra) & (rb <= tol)
-        return along, across, np.minimum(ra, rb)
+    def _vp_angles(self, psi: float, fr: _Frame) -> tuple[np.ndarray, np.ndarray]:
+        """Each segment against the along (row 0) and across (row 1) vanishing points
+        for camera pan ``psi``: ``(2, N)`` absolute angles (rad, small-angle; see
+        :func:`angle_residuals`) and ``(2, N)`` ``|v_xy - v_z m|`` (at least 1e-12)."""
+        V = np.array(self._vp_dirs(psi))                           # rows: va, vb (camera)
+        vz = V[:, 2:]
+        den = np.maximum(np.hypot(V[:, :1] - vz * fr.mx, V[:, 1:2] - vz * fr.my), 1e-12)
+        return np.abs(V @ fr.lines_t) / den, den
 
-    def _refine_pan(self, psi: float, q: np.ndarray, lines: np.ndarray, mids: np.ndarray,
-                    len_n: np.ndarray, along: np.ndarray, across: np.ndarray,
-                    iterations: int = 4) -> float:
-        """IRLS on ``psi`` (weights length^2 / |v_xy - v_z m|^2, Huber at 1 px)."""
-        ia, ib = np.flatnonzero(along), np.flatnonzero(across)
-        qa, qb = q[ia], q[ib]
-        la, lb = lines[ia], lines[ib]
-        ma, mb = mids[ia], mids[ib]
-        sa, sb = len_n[ia], len_n[ib]
-        for _ in range(iterations):
-            va, vb = vanishing_directions(psi, self.M)
-            da = np.hypot(va[0] - va[2] * ma[:, 0], va[1] - va[2] * ma[:, 1])
-            db = np.hypot(vb[0] - vb[2] * mb[:, 0], vb[1] - vb[2] * mb[:, 1])
-            da, db = np.maximum(da, 1e-12), np.maximum(db, 1e-12)
-            ra = np.abs(la @ va) / da * sa * self.f_px
-            rb = np.abs(lb @ vb) / db * sb * self.f_px
-            wa = sa ** 2 / da ** 2 * np.minimum(1.0, 1.0 / np.maximum(ra, 1e-9))
-            wb = sb ** 2 / db ** 2 * np.minimum(1.0, 1.0 / np.maximum(rb, 1e-9))
-            new = fit_pan(qa, qb, wa, wb)
+    def _vp_dirs(self, psi: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """:func:`vanishing_directions` as floats: ``va = M^T (c, -s, 0)``,
+        ``vb = M^T (s, c, 0)`` (``c, s = cos, sin psi``)."""
+        c, s = math.cos(psi), math.sin(psi)
+        m0, m1 = self._M_rows[0], self._M_rows[1]
+        return (tuple(c * a - s * b for a, b in zip(m0, m1, strict=True)),
+                tuple(s * a + c * b for a, b in zip(m0, m1, strict=True)))
+
+    @staticmethod
+    def _families(ang: np.ndarray, tol: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """``(along, across)`` ``(N,)`` bool: the nearer vanishing point of ``ang``
+        ``(2, N)`` (:meth:`_vp_angles`), within ``tol`` (rad, scalar or ``(N,)``)."""
+        along = (ang[0] <= ang[1]) & (ang[0] <= tol)
+        across = (ang[1] < ang[0]) & (ang[1] <= tol)
+        return along, across
+
+    def _refine_pan(self, psi: float, fr: _Frame, along: np.ndarray, across: np.ndarray,
+                    ang: np.ndarray, den: np.ndarray, iterations: int = 1) -> float:
+        """IRLS on ``psi`` (weights length^2 / |v_xy - v_z m|^2, Huber at 1 px) from
+        ``ang, den`` (:meth:`_vp_angles` at ``psi``): :func:`fit_pan` over both
+        families, with weight 0 for the other segments."""
+        q0, q1 = fr.q[:, 0], fr.q[:, 1]
+        q00, q11, q01 = q0 * q0, q1 * q1, q0 * q1
+        for it in range(iterations):
+            if it:
+                ang, den = self._vp_angles(psi, fr)
+            r = np.where(along, ang[0], ang[1]) * fr.len_n * self.f_px        # px
+            w = (fr.len_n / np.where(along, den[0], den[1])) ** 2 * np.minimum(
+                1.0, 1.0 / np.maximum(r, 1e-9))
+            wa = np.where(along, w, 0.0)
+            wb = np.where(across, w, 0.0)
+            # fit_pan: along rows (q_x, -q_y), across rows (q_y, q_x)
+            sxx = float(wa @ q00 + wb @ q11)
+            syy = float(wa @ q11 + wb @ q00)
+            sxy = float((wb - wa) @ q01)
+            th = 0.5 * math.atan2(2.0 * sxy, sxx - syy) + 0.5 * math.pi
+            new = th if th < math.pi else th - 2 * math.pi
             # keep the branch (mod pi) nearest the current estimate
             new += np.pi * round((psi - new) / np.pi)
             done = abs(new - psi) < 1e-8
@@ -526,48 +613,69 @@ class CorridorEstimator:
                 break
         return psi
 
-    def _residuals(self, params: np.ndarray, ep_h: np.ndarray, y_ep: np.ndarray,
-                   across_lines: np.ndarray, across_mids: np.ndarray, across_len: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel residuals and their Jacobian ``(K, 2)`` in ``(psi, c_y)``: along
-        endpoints to their predicted ceiling line, and across segments' endpoint
-        offsets from the line joining their midpoint to the across vanishing point."""
-        psi, cy = float(params[0]), float(params[1])
+    def _gn_setup(self, fr: _Frame, along: np.ndarray, across: np.ndarray,
+                  assign: np.ndarray) -> dict[str, Any]:
+        """The fixed inputs of :meth:`_residuals`, for the matched along segments'
+        endpoints ``e = (ex, ey, 1)`` (K of them): ``e0, e1, ez (K,)`` = ``M[i] . e``
+        (i = 0, 1, 2; then ``vb . e = s e0 + c e1`` and ``va . e = c e0 - s e1`` for
+        ``c, s = cos, sin psi``) and their site lines' y ``(K,)``; for the across
+        segments' lines ``l`` (B of them): ``p0, p1 (B,)`` = ``M[i] . l``, their
+        midpoints ``(B,)`` and pixel scale (length f / sqrt 2)."""
+        ia = np.flatnonzero(along & (assign >= 0))
+        ep = fr.segs[ia].reshape(-1, 2)
+        ex, ey = ep[:, 0], ep[:, 1]
+        m0, m1, m2 = self._M_rows
+        ib = np.flatnonzero(across)
+        lb = fr.lines_t[:, ib]
+        return {"n_a": ia.size, "y": np.repeat(self.site_y[assign[ia]], 2),
+                "e0": m0[0] * ex + m0[1] * ey + m0[2], "e1": m1[0] * ex + m1[1] * ey + m1[2],
+                "ez": m2[0] * ex + m2[1] * ey + m2[2],
+                "p0": m0[0] * lb[0] + m0[1] * lb[1] + m0[2] * lb[2],
+                "p1": m1[0] * lb[0] + m1[1] * lb[1] + m1[2] * lb[2],
+                "mx_b": fr.mx[ib], "my_b": fr.my[ib],
+                "scale_b": fr.len_n[ib] * (self.f_px / math.sqrt(2.0))}
+
+    def _residuals(self, psi: float, cy: float, gd: dict[str, Any]) -> np.ndarray:
+        """``(K + B, 3)``: the pixel residuals (column 2) and their Jacobian in
+        ``(psi, c_y)`` (columns 0, 1): along endpoints (``gd``: :meth:`_gn_setup`) to
+        their predicted ceiling line, and across segments' endpoint offsets from the
+        line joining their midpoint to the across vanishing point.
+
+        With ``R_cw = M^T Rz(-psi)`` the ceiling line ``y = y_j`` is seen as
+        ``l = R_cw (0, h, -(y_j - c_y)) = h vb - (y_j - c_y) m2`` (``vb`` the across
+        direction, ``R_cw``'s y column; ``m2 = M[2]``, its z column), so
+        ``dl/dpsi = h va`` and ``dl/dc_y = m2``."""
         c, s = math.cos(psi), math.sin(psi)
-        R_cw = self.M.T @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz(-psi)
-        dR_cw = self.M.T @ np.array([[-s, c, 0.0], [-c, -s, 0.0], [0.0, 0.0, 0.0]])
-        # predicted line l = R_cw n_w with n_w = (0, h, -(y - c_y)): affine in y - c_y
-        dy = y_ep - cy
-        h = self.height_m
-        lc = h * R_cw[:, 1][None, :] - dy[:, None] * R_cw[:, 2][None, :]
-        dlc_psi = h * dR_cw[:, 1][None, :] - dy[:, None] * dR_cw[:, 2][None, :]
-        dlc_cy = R_cw[:, 2]
-        sp = np.einsum("ij,ij->i", lc, ep_h)
-        nrm = np.hypot(lc[:, 0], lc[:, 1])
-        ra = sp / nrm * self.f_px
-        ds_psi = np.einsum("ij,ij->i", dlc_psi, ep_h)
-        dn_psi = (lc[:, 0] * dlc_psi[:, 0] + lc[:, 1] * dlc_psi[:, 1]) / nrm
-        ds_cy = ep_h @ dlc_cy
-        dn_cy = (lc[:, 0] * dlc_cy[0] + lc[:, 1] * dlc_cy[1]) / nrm
-        Ja = np.empty((ra.size, 2))
-        Ja[:, 0] = (ds_psi * nrm - sp * dn_psi) / nrm ** 2 * self.f_px
-        Ja[:, 1] = (ds_cy * nrm - sp * dn_cy) / nrm ** 2 * self.f_px
-        if not across_lines.shape[0]:
-            return ra, Ja
-        va, vb = vanishing_directions(psi, self.M)
-        ex = vb[0] - vb[2] * across_mids[:, 0]
-        ey = vb[1] - vb[2] * across_mids[:, 1]
-        den = np.hypot(ex, ey)
-        dex = va[0] - va[2] * across_mids[:, 0]
-        dey = va[1] - va[2] * across_mids[:, 1]
-        num = across_lines @ vb
-        dnum = across_lines @ va
-        dden = (ex * dex + ey * dey) / den
-        scale = across_len * self.f_px / math.sqrt(2.0)
-        rb = num / den * scale
-        Jb = np.zeros((rb.size, 2))
-        Jb[:, 0] = (dnum * den - num * dden) / den ** 2 * scale
-        return np.concatenate([ra, rb]), np.vstack([Ja, Jb])
+        va, vb = self._vp_dirs(psi)
+        h, f = self.height_m, self.f_px
+        m2 = self._M_rows[2]
+        e0, e1, ez = gd["e0"], gd["e1"], gd["ez"]
+        na, kb = e0.size, gd["p0"].size
+        out = np.empty((na + kb, 3))
+        dy = gd["y"] - cy
+        l0 = h * vb[0] - dy * m2[0]
+        l1 = h * vb[1] - dy * m2[1]
+        q = 1.0 / np.hypot(l0, l1)
+        u = (h * (s * e0 + c * e1) - dy * ez) * q                  # signed distance
+        dn_psi = h * (l0 * va[0] + l1 * va[1]) * q                  # d|l_xy|/dpsi
+        dn_cy = (l0 * m2[0] + l1 * m2[1]) * q
+        fq = f * q
+        out[:na, 0] = (h * (c * e0 - s * e1) - u * dn_psi) * fq
+        out[:na, 1] = (ez - u * dn_cy) * fq
+        out[:na, 2] = u * f
+        if kb:
+            mx, my = gd["mx_b"], gd["my_b"]
+            p0, p1 = gd["p0"], gd["p1"]
+            bx = vb[0] - vb[2] * mx
+            by = vb[1] - vb[2] * my
+            den = np.hypot(bx, by)
+            dden = (bx * (va[0] - va[2] * mx) + by * (va[1] - va[2] * my)) / den
+            num = s * p0 + c * p1                                   # l . vb
+            scale = gd["scale_b"] / den
+            out[na:, 0] = ((c * p0 - s * p1) - num * dden / den) * scale   # l . va = dnum
+            out[na:, 1] = 0.0
+            out[na:, 2] = num * scale
+        return out
 
     # -- the estimate -----------------------------------------------------------------------
     def estimate(self, image: np.ndarray, t_ns: int,
@@ -621,15 +729,10 @@ class CorridorEstimator:
         if n_seg < 2:
             return self._fail(t_ns, "too_few_lines", f"{n_seg} line segments found",
                               n_segments=n_seg)
-        dx, dy = segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]
-        len_n = np.hypot(dx, dy)
-        lines = np.stack([-dy, dx, segs[:, 0] * segs[:, 3] - segs[:, 2] * segs[:, 1]], axis=1)
-        lines /= np.maximum(len_n, 1e-300)[:, None]                  # segment_lines
-        mids = 0.5 * (segs[:, :2] + segs[:, 2:])
-        q = lines @ self.M.T
-        qxy = np.hypot(q[:, 0], q[:, 1])
+        fr = self._frame(segs, pol)
+        qxy = np.hypot(fr.q[:, 0], fr.q[:, 1])
         w_hist = len_px * np.minimum(1.0, qxy / 0.2)
-        pans = self._dominant_pans(q, w_hist)
+        pans = self._dominant_pans(fr.q, w_hist)
         if not pans:
             return self._fail(t_ns, "no_ceiling_lines", "no dominant ceiling direction",
                               n_segments=n_seg)
@@ -637,14 +740,9 @@ class CorridorEstimator:
         prior_psi = None if prior is None else prior.yaw_rad + self._pan
         if prior_psi is not None:   # the peak nearest the prior first (mod 90 deg)
             pans.sort(key=lambda p: abs(math.remainder(p - prior_psi, np.pi / 2)))
-        ceil_pts = self._ceiling_points(segs)
-        ceil_len = np.minimum(np.hypot(ceil_pts[:, 2] - ceil_pts[:, 0],
-                                       ceil_pts[:, 3] - ceil_pts[:, 1]), 10.0)
-        ceil_len[~(ceil_len >= 0)] = 0.0              # above the horizon
         best = None
         for psi0 in pans:
-            cand = self._solve_from(psi0, q, lines, mids, len_n, ceil_pts, pol, ceil_len,
-                                    prior, prior_psi)
+            cand = self._solve_from(psi0, fr, prior, prior_psi)
             if cand is None:
                 continue
             if best is None or cand["score"] > best["score"]:
@@ -662,65 +760,62 @@ class CorridorEstimator:
         # -- joint Gauss-Newton on (psi, c_y) ------------------------------------------------
         psi, cy = best["psi"], best["cy"]
         along, across, assign = best["along"], best["across"], best["assign"]
-        use_a = along & (assign >= 0)
-        ep = segs[use_a].reshape(-1, 2)
-        ep_h = np.hstack([ep, np.ones((ep.shape[0], 1))])
-        y_ep = np.repeat(self.site_y[assign[use_a]], 2)
-        al, am, alen = lines[across], mids[across], len_n[across]
+        gd = self._gn_setup(fr, along, across, assign)
         # (the residuals and weights of the last step describe the solution: its step
         # was below 1e-5 rad and 0.2 mm (the one after it far smaller), or they ran out)
-        params = np.array([psi, cy])
-        H = np.zeros((2, 2))
+        h00 = h01 = h10 = h11 = wrr = 0.0
         r = np.zeros(0)
-        w = r
         for _ in range(max(1, self.gn_iterations)):
-            r, J = self._residuals(params, ep_h, y_ep, al, am, alen)
+            A = self._residuals(psi, cy, gd)                 # (K, 3): J_psi, J_cy, r
+            r = A[:, 2]
             w = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))  # Huber, k = 1 px
-            Jw = J * w[:, None]
-            H = Jw.T @ J
-            g = Jw.T @ r
-            det = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+            # the weighted normal equations and sum of w r^2 in one product
+            (h00, h01, g0), (h10, h11, g1), (_, _, wrr) = ((A * w[:, None]).T @ A).tolist()
+            det = h00 * h11 - h01 * h10
             if not abs(det) > 1e-300:
                 break
-            step = -np.array([H[1, 1] * g[0] - H[0, 1] * g[1],
-                              H[0, 0] * g[1] - H[1, 0] * g[0]]) / det
-            params = params + step
-            if abs(step[0]) < 1e-5 and abs(step[1]) < 2e-4:   # converging: the next is far smaller
+            d_psi = -(h11 * g0 - h01 * g1) / det
+            d_cy = -(h00 * g1 - h10 * g0) / det
+            psi, cy = psi + d_psi, cy + d_cy
+            if abs(d_psi) < 1e-5 and abs(d_cy) < 2e-4:   # converging: the next is far smaller
                 break
-        psi, cy = float(params[0]), float(params[1])
         dof = max(1, r.size - 2)
-        sigma2 = float(np.sum(w * r ** 2) / dof)
-        det = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+        sigma2 = wrr / dof
+        det = h00 * h11 - h01 * h10
         if abs(det) > 1e-300:
-            cov_pc = np.array([[H[1, 1], -H[0, 1]], [-H[1, 0], H[0, 0]]]) / det * max(sigma2,
-                                                                                       0.01)
+            k = max(sigma2, 0.01) / det
+            p00, p01, p10, p11 = h11 * k, -h01 * k, -h10 * k, h00 * k     # cov of (psi, c_y)
         else:
-            cov_pc = np.diag([np.inf, np.inf])
-        rms_px = float(np.sqrt(np.mean(r ** 2))) if r.size else float("nan")
+            p00 = p11 = np.inf
+            p01 = p10 = float("nan")        # (as T diag(inf, inf) T^T: inf * 0)
+        rms_px = math.sqrt(float(r @ r) / r.size) if r.size else float("nan")
 
         yaw = wrap_pi(psi - self._pan)
-        t_v = rot_z(yaw) @ self._t_vc
-        y_m = cy - float(t_v[1])
-        T = np.array([[1.0, 0.0], [-float(t_v[0]), 1.0]])   # d(yaw, y)/d(psi, c_y)
-        cov_yy = T @ cov_pc @ T.T
+        cyaw, syaw = math.cos(yaw), math.sin(yaw)
+        t_vx = cyaw * self._t_vc[0] - syaw * self._t_vc[1]      # (Rz(yaw) t_VC)_x, _y
+        t_vy = syaw * self._t_vc[0] + cyaw * self._t_vc[1]
+        y_m = cy - t_vy
+        # (yaw, y) = (psi - pan, c_y - t_vy(yaw)): d(yaw, y)/d(psi, c_y) = [[1, 0], [-t_vx, 1]]
         cov = np.zeros((3, 3))
         cov[0, 0] = np.inf
-        cov[1, 1], cov[2, 2] = cov_yy[1, 1], cov_yy[0, 0]
-        cov[1, 2] = cov[2, 1] = cov_yy[1, 0]
+        cov[2, 2] = p00
+        cov[1, 2] = cov[2, 1] = p10 - t_vx * p00
+        cov[1, 1] = t_vx * t_vx * p00 - t_vx * (p01 + p10) + p11
 
-        vl = self._vanishing_line_check(lines, len_n, along, across)
+        vl = self._vanishing_line_check(fr, along, across)
         n_lines = int(best["n_lines"])
-        quality = (min(1.0, n_lines / 3.0) * min(1.0, np.count_nonzero(use_a) / 4.0)
+        quality = (min(1.0, n_lines / 3.0) * min(1.0, gd["n_a"] / 4.0)
                    / (1.0 + (rms_px / 1.5) ** 2))
         if best["ambiguous"]:
             quality *= 0.5
+        pol_a = pol[along]
         diag = {
             "n_segments": n_seg,
             "n_along": int(np.count_nonzero(along)),
             "n_across": int(np.count_nonzero(across)),
             "n_lines_matched": n_lines,
-            "n_steps": int(np.count_nonzero(np.abs(pol[along]) == 1)),
-            "n_thin": int(np.count_nonzero(pol[along] == 0)),
+            "n_steps": int(np.count_nonzero(np.abs(pol_a) == 1)),
+            "n_thin": int(np.count_nonzero(pol_a == 0)),
             "rms_px": rms_px,
             "segment_fit_rms_px": _median_finite(fit_rms),
             "psi_deg": math.degrees(psi),
@@ -733,32 +828,60 @@ class CorridorEstimator:
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(np.clip(quality, 0, 1)),
                             y_m - self.site.corridor.axis_y_m, cov, diag)
 
+    def _frame(self, segs: np.ndarray, pol: np.ndarray) -> _Frame:
+        """The per-frame arrays of undistorted normalized segments ``segs (N, 4)`` with
+        polarities ``pol (N,)``, shared by every hypothesis."""
+        dx, dy = segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]
+        len_n = np.hypot(dx, dy)
+        lines_t = np.empty((3, segs.shape[0]))                      # segment_lines, (3, N)
+        inv = 1.0 / np.maximum(len_n, 1e-300)
+        np.multiply(-dy, inv, out=lines_t[0])
+        np.multiply(dx, inv, out=lines_t[1])
+        np.multiply(segs[:, 0] * segs[:, 3] - segs[:, 2] * segs[:, 1], inv, out=lines_t[2])
+        lines = lines_t.T
+        ceil_pts = self._ceiling_points(segs)
+        cdx, cdy = ceil_pts[:, 2] - ceil_pts[:, 0], ceil_pts[:, 3] - ceil_pts[:, 1]
+        ceil_full = np.hypot(cdx, cdy)                  # NaN above the horizon
+        ceil_len = np.minimum(ceil_full, 10.0)
+        ceil_len[~(ceil_len >= 0)] = 0.0
+        # across segments as long as a lamp is wide (see :meth:`_lamp_anchors`)
+        lamp_end = (np.isfinite(ceil_full)[None, :]
+                    & (np.abs(ceil_full[None, :] - self._lamp_width[:, None])
+                       < 0.2 * self._lamp_width[:, None]))
+        return _Frame(
+            segs=segs, lines=lines, lines_t=lines_t, len_n=len_n,
+            mx=0.5 * (segs[:, 0] + segs[:, 2]), my=0.5 * (segs[:, 1] + segs[:, 3]),
+            q=lines @ self._MT, pol=pol, ceil_len=ceil_len,
+            ceil_sx=ceil_pts[:, 0] + ceil_pts[:, 2], ceil_sy=ceil_pts[:, 1] + ceil_pts[:, 3],
+            lamp_end=lamp_end,
+            tol=np.minimum(self.angle_tol, 2 * self.inlier_px / np.maximum(len_n * self.f_px, 1)))
+
     def _hypothesis(self, k: int, psi: float, along: np.ndarray, across: np.ndarray,
-                    q: np.ndarray, len_n: np.ndarray, pol: np.ndarray, ceil_pts: np.ndarray,
-                    ceil_len: np.ndarray, prior: PoseEstimate | None) -> dict[str, Any]:
-        """The labeling ``psi + k 90 deg`` (odd k: the families swap) scored on the site."""
+                    fr: _Frame, lens: tuple[float, float],
+                    prior: PoseEstimate | None) -> dict[str, Any]:
+        """The labeling ``psi + k 90 deg`` (odd k: the families swap) scored on the site;
+        ``lens``: the along and across families' summed ceiling lengths (m)."""
         pk = wrap_pi(psi + k * np.pi / 2)
         fa, fb = (along, across) if k % 2 == 0 else (across, along)
-        wa = len_n[fa] * self.f_px
+        len_a, len_b = lens if k % 2 == 0 else lens[::-1]
+        wa = fr.len_n[fa] * self.f_px
         prior_shift = None
         if prior is not None and prior.y_m is not None:
             t_v = rot_z(wrap_pi(pk - self._pan)) @ self._t_vc
             prior_shift = prior.y_m + float(t_v[1])
-        qa = q[fa]
+        qa = fr.q[fa]
         c, s = math.cos(pk), math.sin(pk)
         n_y = s * qa[:, 0] + c * qa[:, 1]                 # (Rz(pk) q)_y
-        n_z = qa[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            offs = np.where(np.abs(n_y) > 1e-12, -n_z * self.height_m / n_y, np.nan)
-        pol_w = pol[fa] * np.sign(n_y)
-        compat = self._compat(pol_w, ceil_len[fa])
+        offs = np.full(n_y.size, np.nan)                  # NaN: parallel to W's y-z
+        np.divide(-qa[:, 2] * self.height_m, n_y, out=offs, where=np.abs(n_y) > 1e-12)
+        pol_w = fr.pol[fa] * np.sign(n_y)
+        compat = self._compat(pol_w, fr.ceil_len[fa])
         m = match_offsets(offs, wa, self.site_y, self.match_tol_m, prior_shift,
-                          self._lamp_anchors(ceil_pts[fb], pk), compat)
+                          self._lamp_anchors(fr, fb, pk), compat)
         n_a = 0 if m is None else m.n_lines
-        len_a, len_b = float(np.sum(ceil_len[fa])), float(np.sum(ceil_len[fb]))
         return {"k": k, "psi": pk, "fa": fa, "fb": fb, "match": m, "n_a": n_a,
-                "offs": offs, "w": wa, "pol_w": pol_w, "compat": compat, "q_b": q[fb],
-                "len_nb": len_n[fb],
+                "offs": offs, "w": wa, "pol_w": pol_w, "compat": compat, "q_b": fr.q[fb],
+                "len_nb": fr.len_n[fb],
                 "elong": len_a - len_b, "len_a": len_a, "len_b": len_b}
 
     def _across_on_grid(self, h: dict[str, Any]) -> int:
@@ -771,22 +894,23 @@ class CorridorEstimator:
                                  h["len_nb"], corr.lines_across.spacing_m, self.match_tol_m)
         return n_b if n_b >= 2 else 0
 
-    def _solve_from(self, psi0: float, q: np.ndarray, lines: np.ndarray, mids: np.ndarray,
-                    len_n: np.ndarray, ceil_pts: np.ndarray, pol: np.ndarray,
-                    ceil_len: np.ndarray,
-                    prior: PoseEstimate | None, prior_psi: float | None
-                    ) -> dict[str, Any] | None:
-        along, across, _ = self._classify(psi0, lines, mids, self.angle_tol)
+    def _solve_from(self, psi0: float, fr: _Frame, prior: PoseEstimate | None,
+                    prior_psi: float | None) -> dict[str, Any] | None:
+        """The families about pan candidate ``psi0``, the forward one and the lateral
+        shift (a dict with ``score``, and ``failure`` or the solution); None when fewer
+        than two segments belong to the families."""
+        ang, den = self._vp_angles(psi0, fr)
+        along, across = self._families(ang, self.angle_tol)
         if np.count_nonzero(along) + np.count_nonzero(across) < 2:
             return None
-        psi = self._refine_pan(psi0, q, lines, mids, len_n, along, across, 1)
-        tol = np.minimum(self.angle_tol, 2 * self.inlier_px / np.maximum(len_n * self.f_px, 1))
-        along, across, _ = self._classify(psi, lines, mids, tol)
+        psi = self._refine_pan(psi0, fr, along, across, ang, den)
+        along, across = self._families(self._vp_angles(psi, fr)[0], fr.tol)
         if np.count_nonzero(along) + np.count_nonzero(across) < 2:
             return None
+        la, lb = float(fr.ceil_len[along].sum()), float(fr.ceil_len[across].sum())
+
         def hyp(k: int) -> dict[str, Any]:
-            return self._hypothesis(k, psi, along, across, q, len_n, pol, ceil_pts, ceil_len,
-                                    prior)
+            return self._hypothesis(k, psi, along, across, fr, (la, lb), prior)
 
         how = "spacing"
         if prior_psi is not None:
@@ -798,7 +922,6 @@ class CorridorEstimator:
             # turn apart); the one whose forward family is longer on the ceiling first
             ks = [k for k in range(4)
                   if -np.pi / 2 < wrap_pi(psi + k * np.pi / 2 - self._pan) <= np.pi / 2]
-            la, lb = float(np.sum(ceil_len[along])), float(np.sum(ceil_len[across]))
             ks.sort(key=lambda k: -(la if k % 2 == 0 else lb))
             first = hyp(ks[0])
             if len(ks) < 2 or first["len_a"] >= _DECISIVE * first["len_b"]:
@@ -830,7 +953,7 @@ class CorridorEstimator:
             return {"score": (m.n_lines, m.weight), "failure": (
                 "ambiguous", f"{m.n_lines} forward lines fit two lateral positions "
                 f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose")}
-        assign = np.full(q.shape[0], -1)
+        assign = np.full(fr.q.shape[0], -1)
         assign[np.flatnonzero(chosen["fa"])] = m.assign
         return {"score": (m.n_lines, m.weight), "psi": chosen["psi"], "cy": m.shift_m,
                 "along": chosen["fa"], "across": chosen["fb"], "assign": assign,
@@ -849,11 +972,12 @@ class CorridorEstimator:
         offs = h["offs"]
         ok = np.isfinite(offs)
         c_w, c_r = m.shift_m, m.runner_up[2]
+        in_view = self._in_view(h["psi"], (c_w, c_r))
         adj = []
-        for c in (c_w, c_r):
+        for c, view in zip((c_w, c_r), in_view, strict=True):
             seen = np.any((np.abs(offs[ok][:, None] + c - self.site_y[None, :])
                            <= self.match_tol_m) & (h["compat"][ok] > 0), axis=0)
-            adj.append(np.count_nonzero(self._in_view(h["psi"], c) & ~seen))
+            adj.append(np.count_nonzero(view & ~seen))
         s_w, s_r = m.score - 0.5 * adj[0], m.runner_up[0] - 0.5 * adj[1]
         if s_r > s_w:
             alt = match_offsets(offs, h["w"], self.site_y, self.match_tol_m, c_r, None,
@@ -863,55 +987,55 @@ class CorridorEstimator:
             m, s_w, s_r = alt, s_r, s_w
         return m, bool(s_r >= 0.85 * s_w)
 
-    def _in_view(self, psi: float, cy: float) -> np.ndarray:
-        """``(J,)``: the site's ``lines_along`` clearly in view for camera pan ``psi``
-        and camera y ``cy``: a visible stretch of at least 3 ``min_length_px``, and
-        for a lamp edge at least a lamp pitch of ceiling (so a lamp is in it)."""
+    def _in_view(self, psi: float, cys: tuple[float, ...]) -> np.ndarray:
+        """``(C, J)``: the site's ``lines_along`` clearly in view for camera pan ``psi``
+        and each camera y in ``cys`` (C,): a visible stretch of at least 3
+        ``min_length_px``, and for a lamp edge at least a lamp pitch of ceiling (so a
+        lamp is in it)."""
         cam = self.rig.camera
         u = self._view_u                                         # (S,) m along W's x
         R_cw = self.M.T @ rot_z(-psi)
         J = self.site_y.size
-        X = np.stack([np.broadcast_to(u, (J, u.size)),
-                      np.broadcast_to((self.site_y - cy)[:, None], (J, u.size)),
-                      np.full((J, u.size), self.height_m)], axis=2)
-        d = X @ R_cw.T                                           # (J, S, 3)
-        front = d[..., 2] > 1e-6
-        xy = d[..., :2] / np.where(front, d[..., 2], 1.0)[..., None]
-        front &= np.hypot(xy[..., 0], xy[..., 1]) <= self._r_max
-        px = cam.distort(xy.reshape(-1, 2)).reshape(J, u.size, 2)
-        vis = front & cam.in_image(px.reshape(-1, 2), 2.0).reshape(J, u.size)
+        dy = (self.site_y[None, :] - np.asarray(cys, dtype=float)[:, None]).reshape(-1, 1)
+        # the ceiling points (u, y_j - c_y, h) in the camera frame, per coordinate (C J, S)
+        d0, d1, d2 = (u * R[0] + (dy * R[1] + self.height_m * R[2]) for R in R_cw)
+        front = d2 > 1e-6
+        z = np.where(front, d2, 1.0)
+        x, y = d0 / z, d1 / z
+        front &= np.hypot(x, y) <= self._r_max
+        px = cam.distort(np.stack([x.ravel(), y.ravel()], axis=1)).reshape(*x.shape, 2)
+        vis = front & cam.in_image(px.reshape(-1, 2), 2.0).reshape(x.shape)
         step = np.hypot(*np.diff(px, axis=1).transpose(2, 0, 1))
         both = vis[:, 1:] & vis[:, :-1]
-        length_px = np.sum(np.where(both, step, 0.0), axis=1)
-        stretch_m = np.sum(both, axis=1) * (u[1] - u[0])
+        length_px = np.sum(np.where(both, step, 0.0), axis=1).reshape(-1, J)
+        stretch_m = (np.sum(both, axis=1) * (u[1] - u[0])).reshape(-1, J)
         return (length_px >= 3 * self.detector.min_length_px) & (stretch_m >= self._lamp_pitch)
 
     def _ceiling_points(self, segs: np.ndarray) -> np.ndarray:
         """Endpoints ``(N, 4)`` back-projected onto the ceiling, in the level frame
         relative to the camera (m; NaN above the horizon). Needs no pan."""
         n = segs.shape[0]
-        p = np.hstack([segs.reshape(-1, 2), np.ones((2 * n, 1))]) @ self.M.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            X = p[:, :2] * (self.height_m / p[:, 2:3])
-        return np.where(p[:, 2:3] > 1e-6, X, np.nan).reshape(n, 4)
+        p = segs.reshape(-1, 2) @ self._MT[:2] + self._MT[2]         # M (x, y, 1), (2N, 3)
+        up = p[:, 2:3] > 1e-6
+        X = np.full((2 * n, 2), np.nan)
+        np.multiply(p[:, :2], self.height_m / np.where(up, p[:, 2:3], 1.0), out=X,
+                    where=up)
+        return X.reshape(n, 4)
 
-    def _lamp_anchors(self, pts: np.ndarray, psi: float) -> np.ndarray:
-        """Camera y estimates from across segments as long as a lamp is wide: the
-        lamp's end, whose middle lies on the lamp row's y."""
-        if not self.site.lamps or pts.shape[0] == 0:
+    def _lamp_anchors(self, fr: _Frame, sel: np.ndarray, psi: float) -> np.ndarray:
+        """Camera y estimates from the segments ``sel`` ``(N,)`` bool (the across family)
+        as long on the ceiling as a lamp is wide: the lamp's end, whose middle lies on
+        the lamp row's y (for camera pan ``psi``)."""
+        if not self.site.lamps or not sel.any():
             return np.zeros(0)
-        R = rot_z(psi)[:2, :2]
-        a = pts[:, :2] @ R.T
-        b = pts[:, 2:] @ R.T
-        length = np.hypot(*(b - a).T)
-        mid_y = 0.5 * (a[:, 1] + b[:, 1])
+        c, s = math.cos(psi), math.sin(psi)
         out = []
-        for row in self.site.lamps:
-            ok = np.isfinite(length) & (np.abs(length - row.width_m) < 0.2 * row.width_m)
-            out.append(row.y_m - mid_y[ok])
+        for row_y, ends in zip(self._lamp_y, fr.lamp_end, strict=True):
+            ok = ends & sel
+            out.append(row_y - 0.5 * (s * fr.ceil_sx[ok] + c * fr.ceil_sy[ok]))  # (Rz(psi) m)_y
         return np.concatenate(out)
 
-    def _vanishing_line_check(self, lines: np.ndarray, len_n: np.ndarray, along: np.ndarray,
+    def _vanishing_line_check(self, fr: _Frame, along: np.ndarray,
                               across: np.ndarray) -> dict[str, float]:
         """The mount check: free vanishing points of both families against the
         calibrated tilt and swing."""
@@ -920,21 +1044,31 @@ class CorridorEstimator:
         out = {"vanishing_line_residual_deg": nan, "vp_along_elevation_deg": nan,
                "implied_tilt_deg": nan, "implied_swing_deg": nan}
         ia = np.flatnonzero(along)
-        if ia.size >= 2:
-            va = free_vanishing_point(lines[ia], len_n[ia] ** 2)      # unit
-            out["vp_along_elevation_deg"] = math.degrees(math.asin(min(1.0, abs(float(
-                n_pred @ va)))))
-            ib = np.flatnonzero(across)
-            if ib.size >= 2:
-                vb = free_vanishing_point(lines[ib], len_n[ib] ** 2)
-                n = np.array([va[1] * vb[2] - va[2] * vb[1], va[2] * vb[0] - va[0] * vb[2],
-                              va[0] * vb[1] - va[1] * vb[0]])
-                nn = math.sqrt(float(n @ n))
-                if nn > 1e-12:
-                    n /= nn
-                    out["vanishing_line_residual_deg"] = math.degrees(
-                        math.acos(min(1.0, abs(float(n @ n_pred)))))
-                    tilt, swing = mount_from_vanishing_line(n)
-                    out["implied_tilt_deg"] = math.degrees(tilt)
-                    out["implied_swing_deg"] = math.degrees(swing)
+        if ia.size < 2:
+            return out
+        two = np.count_nonzero(across) >= 2
+        # free_vanishing_point of each family: its scatter sum w l l^T (w = length^2)
+        # from one product, the eigenproblems in one call
+        w = fr.len_n ** 2
+        Wl = np.empty((fr.len_n.size, 6 if two else 3))
+        np.multiply(fr.lines, np.where(along, w, 0.0)[:, None], out=Wl[:, :3])
+        if two:
+            np.multiply(fr.lines, np.where(across, w, 0.0)[:, None], out=Wl[:, 3:])
+        S = (fr.lines_t @ Wl).reshape(3, -1, 3).transpose(1, 0, 2)     # (F, 3, 3)
+        v = np.linalg.eigh(S)[1][:, :, 0]                              # (F, 3) unit
+        va = v[0]
+        out["vp_along_elevation_deg"] = math.degrees(math.asin(min(1.0, abs(float(
+            n_pred @ va)))))
+        if two:
+            vb = v[1]
+            n = np.array([va[1] * vb[2] - va[2] * vb[1], va[2] * vb[0] - va[0] * vb[2],
+                          va[0] * vb[1] - va[1] * vb[0]])
+            nn = math.sqrt(float(n @ n))
+            if nn > 1e-12:
+                n /= nn
+                out["vanishing_line_residual_deg"] = math.degrees(
+                    math.acos(min(1.0, abs(float(n @ n_pred)))))
+                tilt, swing = mount_from_vanishing_line(n)
+                out["implied_tilt_deg"] = math.degrees(tilt)
+                out["implied_swing_deg"] = math.degrees(swing)
         return out

@@ -19,6 +19,8 @@ Example::
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -237,12 +239,12 @@ def _directions(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _profiles(gray: np.ndarray, s: np.ndarray, d: np.ndarray, nrm: np.ndarray,
               o: np.ndarray, a: np.ndarray) -> np.ndarray:
     """Samples ``(N, A, O)`` at ``p1 + a d + o nrm`` (bilinear, ``cv2.remap``)."""
-    base = s[:, None, :2] + a[None, :, None] * d[:, None, :]                  # (N, A, 2)
-    pts = (base[:, :, None, :] + o[None, None, :, None] * nrm[:, None, None, :]
-           ).astype(np.float32)                                               # (N, A, O, 2)
-    val = cv2.remap(gray, pts.reshape(-1, o.size, 2), None, cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
-    return val.reshape(pts.shape[:3]).astype(np.float64)
+    # the u and v maps apart, (2, N, A, O): numpy is slow on a trailing axis of 2
+    base = s[:, :2].T[:, :, None] + a * d.T[:, :, None]                          # (2, N, A)
+    maps = (base[..., None] + o * nrm.T[:, :, None, None]).astype(np.float32)
+    maps = maps.reshape(2, -1, o.size)
+    val = cv2.remap(gray, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return val.reshape(s.shape[0], a.size, o.size).astype(np.float64)
 
 
 def edge_polarity(gray: np.ndarray, segs_px: np.ndarray, min_step: float = 20.0,
@@ -280,38 +282,66 @@ def edge_polarity(gray: np.ndarray, segs_px: np.ndarray, min_step: float = 20.0,
 
 
 def _classify_profiles(prof: np.ndarray, offs: np.ndarray, min_step: float,
-                       min_depth: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(polarity, shift_px)`` of mean profiles ``(N, O)`` at ``offs (O,)`` (step 0.5)."""
-    half = float(offs[-1])
+                       min_depth: float, shift: bool = True
+                       ) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(polarity, shift_px)`` of mean profiles ``(N, O)`` at ``offs (O,)`` (step 0.5,
+    ascending); ``shift_px`` is None unless ``shift``."""
     n = prof.shape[0]
-    pol = np.full(n, np.nan)
-    shift = np.full(n, np.nan)
     if n == 0:
-        return pol, shift
-    side = np.abs(offs) >= half - 1.0 + 1e-9
-    inner = np.flatnonzero(np.abs(offs) <= half - 1.5 + 1e-9)
-    sl, sr = side & (offs < 0), side & (offs > 0)
-    left = prof[:, sl].sum(axis=1) * (1.0 / np.count_nonzero(sl))
-    right = prof[:, sr].sum(axis=1) * (1.0 / np.count_nonzero(sr))
+        return np.full(n, np.nan), (np.full(n, np.nan) if shift else None)
+    sl, sr, inner, inv_l, inv_r = _profile_parts(offs)
+    left = prof[:, sl].sum(axis=1) * inv_l
+    right = prof[:, sr].sum(axis=1) * inv_r
     step = right - left
-    pin = prof[:, inner]
+    pin = np.ascontiguousarray(prof[:, inner])
     k_lo = np.argmin(pin, axis=1)
     k_hi = np.argmax(pin, axis=1)
-    rows = np.arange(n)
-    dip = np.minimum(left, right) - pin[rows, k_lo]
-    bump = pin[rows, k_hi] - np.maximum(left, right)
+    dip = np.minimum(left, right) - pin.min(axis=1)
+    bump = pin.max(axis=1) - np.maximum(left, right)
     valley = dip >= bump
     depth = np.where(valley, dip, bump)
     k = np.where(valley, k_lo, k_hi)
-    thin = (depth >= min_depth) & (depth > np.abs(step)) & (k > 0) & (k < inner.size - 1)
-    is_step = (np.abs(step) >= min_step) & (np.abs(step) > np.maximum(depth, 0.0)) & ~thin
-    pol[is_step] = np.sign(step[is_step])
-    pol[thin] = 0.0
-    if np.any(thin):
-        r = rows[thin]
-        kk = k[thin]
-        shift[thin] = offs[inner[kk]] + 0.5 * _vertex(pin[r, kk - 1], pin[r, kk], pin[r, kk + 1])
-    return pol, shift
+    a_step = np.abs(step)
+    thin = (depth >= min_depth) & (depth > a_step) & (k > 0) & (k < pin.shape[1] - 1)
+    is_step = (a_step >= min_step) & (a_step > np.maximum(depth, 0.0))
+    pol = np.where(thin, 0.0, np.where(is_step, np.sign(step), np.nan))
+    if not shift:
+        return pol, None
+    out = np.full(n, np.nan)
+    r = np.flatnonzero(thin)
+    if r.size:
+        kk = k[r]
+        out[r] = offs[inner][kk] + 0.5 * _vertex(pin[r, kk - 1], pin[r, kk], pin[r, kk + 1])
+    return pol, out
+
+
+_PARTS: dict[bytes, tuple] = {}
+
+
+def _profile_parts(offs: np.ndarray) -> tuple:
+    """For profile offsets ``offs (O,)`` (pixels): the indices (a slice where they are
+    consecutive) of the left side and the right side (the outer 1 px of either end)
+    and of the inner part (``|offset| <= half - 1.5``, ``half = offs[-1]``), and one
+    over the number of samples on the left and on the right. Cached per ``offs``."""
+    key = offs.tobytes()
+    parts = _PARTS.get(key)
+    if parts is None:
+        if len(_PARTS) > 64:
+            _PARTS.clear()
+        half = float(offs[-1])
+        side = np.abs(offs) >= half - 1.0 + 1e-9
+        il = np.flatnonzero(side & (offs < 0))
+        ir = np.flatnonzero(side & (offs > 0))
+        ii = np.flatnonzero(np.abs(offs) <= half - 1.5 + 1e-9)
+
+        def run(idx: np.ndarray) -> slice | np.ndarray:
+            if idx.size and np.all(np.diff(idx) == 1):
+                return slice(int(idx[0]), int(idx[-1]) + 1)
+            return idx
+
+        parts = (run(il), run(ir), run(ii), 1.0 / il.size, 1.0 / ir.size)
+        _PARTS[key] = parts
+    return parts
 
 
 def _vertex(y0: np.ndarray, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
@@ -355,86 +385,104 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     rms = np.full(n, np.nan)
     if n == 0:
         return np.zeros((0, 4)), np.zeros(0), rms
-    offs = np.arange(-half_width_px, half_width_px + 1e-9, 0.5)
-    t = np.linspace(0.05, 0.95, n_along)
+    offs, t, inner = _edge_grid(n_along, half_width_px)
+    o_in = offs[1:-1][inner]                     # where an edge may be located
     d_all, nrm_all = _directions(s)
     prof = _profiles(gray, s, d_all, nrm_all, offs, t)                         # (N, A, O)
-    pol, _ = _classify_profiles(prof.sum(axis=1) * (1.0 / n_along), offs, min_step, min_depth)
-    sel = np.flatnonzero(np.isfinite(pol))
-    inner = np.flatnonzero(np.abs(offs[1:-1]) <= half_width_px - 1.0 + 1e-9)  # in offs[1:-1]
-    p = prof[sel]
-    ps = pol[sel]
-    # a step: where the profile crosses the middle of its two sides' levels, the
-    # crossing nearest the derivative's peak; a thin line: the centroid of its part
-    # beyond half its height (both less locked to the pixel grid than a parabola)
-    inv_a = 1.0 / n_along
-    side = 0.5 * (p[:, :, 0] + p[:, :, -1]).sum(axis=1) * inv_a
-    inner_p = p[:, :, 1:-1][:, :, inner]
-    valley = (side - inner_p.min(axis=2).sum(axis=1) * inv_a
-              >= inner_p.max(axis=2).sum(axis=1) * inv_a - side)
-    sgn = np.where(ps == 0, np.where(valley, -1.0, 1.0), ps)
-    g = p * sgn[:, None, None]                    # rises across a step; peaks on a line
-    o_in = offs[1:-1][inner]
-    step = ps != 0
-    loc = np.full(g.shape[:2], np.nan)
-    if np.any(step):
-        gs = g[step]
-        mid = 0.25 * (gs[:, :, 0] + gs[:, :, 1] + gs[:, :, -2] + gs[:, :, -1])
-        k = inner[np.argmax((gs[:, :, 2:] - gs[:, :, :-2])[:, :, inner], axis=2)] + 1
-        r0 = np.arange(gs.shape[0])[:, None]
-        r1 = np.arange(gs.shape[1])[None, :]
-        hm, hk, hp = gs[r0, r1, k - 1] - mid, gs[r0, r1, k] - mid, gs[r0, r1, k + 1] - mid
+    pol, _ = _classify_profiles(prof.sum(axis=1) * (1.0 / n_along), offs, min_step, min_depth,
+                                shift=False)
+    # the steps, then the thin lines (each segment is fitted on its own: order is free)
+    i_step = np.flatnonzero(np.abs(pol) == 1.0)
+    i_thin = np.flatnonzero(pol == 0.0)
+    sel = np.concatenate([i_step, i_thin])
+    n_st = i_step.size
+    loc = np.empty((sel.size, n_along))          # edge offsets along the left normal, px
+    i0, i1 = inner.start + 1, inner.stop + 1     # the inner part, in offs
+    if n_st:
+        # a step: where the profile crosses the middle of its two sides' levels, the
+        # crossing nearest the derivative's peak (less locked to the pixel grid than
+        # a parabola)
+        gs = prof[i_step] * pol[i_step][:, None, None]          # rises across the step
+        mid = gs[:, :, [0, 1, -2, -1]].sum(axis=2) * 0.25     # the two sides' middle
+        k = np.argmax(gs[:, :, i0 + 1:i1 + 1] - gs[:, :, i0 - 1:i1 - 1], axis=2) + i0
+        near = np.take_along_axis(gs, k[:, :, None] + _NEIGHBOURS, axis=2) - mid[:, :, None]
+        hm, hk, hp = near[:, :, 0], near[:, :, 1], near[:, :, 2]    # at k - 1, k, k + 1
         # the crossing is in [k - 1, k] or [k, k + 1] (the derivative peaks at k)
         lo = hk > 0
         h0 = np.where(lo, hm, hk)
         h1 = np.where(lo, hk, hp)
         o = offs[k - lo] + 0.5 * (-h0) / np.where(h1 > h0, h1 - h0, 1.0)
         ok = (h0 <= 0) & (h1 > 0) & (np.abs(o) <= o_in[-1])
-        loc[step] = np.where(ok, o, np.nan)
-    if not np.all(step):
-        gt = g[~step][:, :, 1:-1][:, :, inner]
-        base = (sgn * side)[~step][:, None, None]
+        loc[:n_st] = np.where(ok, o, np.nan)
+    if i_thin.size:
+        # a thin line: the centroid of its part beyond half its height
+        p = prof[i_thin]
+        inv_a = 1.0 / n_along
+        side = 0.5 * (p[:, :, 0] + p[:, :, -1]).sum(axis=1) * inv_a
+        inner_p = p[:, :, i0:i1]
+        valley = (side - inner_p.min(axis=2).sum(axis=1) * inv_a
+                  >= inner_p.max(axis=2).sum(axis=1) * inv_a - side)
+        sgn = np.where(valley, -1.0, 1.0)
+        gt = inner_p * sgn[:, None, None]                        # peaks on the line
         top = gt.max(axis=2, keepdims=True)
-        w = np.maximum(gt - 0.5 * (base + top), 0.0)
+        w = np.maximum(gt - 0.5 * ((sgn * side)[:, None, None] + top), 0.0)
         sw = w.sum(axis=2)
         o = (w * o_in).sum(axis=2) / np.maximum(sw, 1e-12)
         k_pk = np.argmax(gt, axis=2)
-        ok = (sw > 0) & (k_pk > 0) & (k_pk < inner.size - 1)
-        loc[~step] = np.where(ok, o, np.nan)
+        ok = (sw > 0) & (k_pk > 0) & (k_pk < o_in.size - 1)
+        loc[n_st:] = np.where(ok, o, np.nan)
     good = np.isfinite(loc)
-    loc[~good] = 0.0
-    # the edge points in pixels; undistorted with the endpoints in one call
-    ss = s[sel]
-    d = d_all[sel]
-    nrm = nrm_all[sel]
-    pts = (ss[:, None, :2] + t[None, :, None] * d[:, None, :]
-           + loc[:, :, None] * nrm[:, None, :])
-    xy = unproject_fast(camera, np.concatenate([s.reshape(-1, 2), pts.reshape(-1, 2)]))
-    ends = xy[:2 * n].reshape(n, 4)
-    xy = xy[2 * n:].reshape(pts.shape)
+    # the located edge points in pixels, undistorted with all endpoints in one call
+    # (the others stay at 0: they have no weight in the fit)
+    n_good = int(np.count_nonzero(good))
+    px = np.empty((2 * n + n_good, 2))
+    px[:2 * n] = s.reshape(-1, 2)
+    pts = (s[sel, :2].T[:, :, None] + t * d_all[sel].T[:, :, None]
+           + loc * nrm_all[sel].T[:, :, None])                                  # (2, S, A)
+    px[2 * n:] = pts[:, good].T
+    xy_all = unproject_fast(camera, px)
+    ends = xy_all[:2 * n].reshape(n, 4)
+    x = np.zeros(good.shape)
+    y = np.zeros(good.shape)
+    x[good] = xy_all[2 * n:, 0]
+    y[good] = xy_all[2 * n:, 1]
     f = 0.5 * (camera.fx + camera.fy)
-    line, res = _fit_lines(xy, good)
-    sig = np.sqrt(np.sum(np.where(good, res ** 2, 0), axis=1)
-                  / np.maximum(np.count_nonzero(good, axis=1), 1))
+    line, res, cnt, ssr = _fit_lines(x, y, good)
+    sig = np.sqrt(ssr / np.maximum(cnt, 1))
     keep = good & (np.abs(res) <= np.maximum(3 * sig, 0.5 / f)[:, None])
-    if np.any(keep != good):
+    if (keep != good).any():
         good = keep
-        line, res = _fit_lines(xy, good)
-    cnt = np.count_nonzero(good, axis=1)
+        line, res, cnt, ssr = _fit_lines(x, y, good)
     ok = cnt >= 4
     idx = sel[ok]
     ln = line[ok]
-    e = ends[idx]
+    e = ends[idx].reshape(-1, 2, 2)                   # (M, endpoint, xy)
     # keep the orientation of the pixel segment: its left side stays positive
-    flip = (e[:, 2] - e[:, 0]) * ln[:, 1] - (e[:, 3] - e[:, 1]) * ln[:, 0] < 0
+    flip = ((e[:, 1, 0] - e[:, 0, 0]) * ln[:, 1] - (e[:, 1, 1] - e[:, 0, 1]) * ln[:, 0] < 0)
     ln[flip] *= -1
-    for j in (0, 2):
-        q = e[:, j:j + 2]
-        dist = q[:, 0] * ln[:, 0] + q[:, 1] * ln[:, 1] + ln[:, 2]
-        e[:, j:j + 2] = q - dist[:, None] * ln[:, :2]
-    ends[idx] = e
-    rms[idx] = f * np.sqrt(np.sum(np.where(good[ok], res[ok] ** 2, 0), axis=1) / cnt[ok])
+    dist = e[:, :, 0] * ln[:, 0, None] + e[:, :, 1] * ln[:, 1, None] + ln[:, 2, None]
+    ends[idx] = (e - dist[:, :, None] * ln[:, None, :2]).reshape(-1, 4)
+    rms[idx] = f * np.sqrt(ssr[ok] / cnt[ok])
     return ends, pol, rms
+
+
+_NEIGHBOURS = np.array([-1, 0, 1])
+
+
+@functools.lru_cache(maxsize=16)
+def _edge_grid(n_along: int, half_width_px: float) -> tuple[np.ndarray, np.ndarray, slice]:
+    """Constants of :func:`refine_undistorted`: the profile offsets ``(O,)`` (px, every
+    0.5 px within ``half_width_px``), the places along a segment ``(A,)`` (fractions of
+    its length, 0.05 to 0.95) and the slice of ``offs[1:-1]`` within
+    ``half_width_px - 1`` px (where an edge is located). Read-only arrays."""
+    offs = np.arange(-half_width_px, half_width_px + 1e-9, 0.5)
+    t = np.linspace(0.05, 0.95, n_along)
+    inner = np.flatnonzero(np.abs(offs[1:-1]) <= half_width_px - 1.0 + 1e-9)
+    if inner.size == 0:
+        raise ValueError(f"half_width_px {half_width_px} leaves no room to locate an edge")
+    offs.flags.writeable = False
+    t.flags.writeable = False
+    return offs, t, slice(int(inner[0]), int(inner[-1]) + 1)
 
 
 _FAST_OK: dict[tuple, bool] = {}
@@ -469,21 +517,31 @@ def _undistort10(camera: CameraModel, px: np.ndarray) -> np.ndarray:
                                criteria=(cv2.TERM_CRITERIA_COUNT, 10, 0.0)).reshape(-1, 2)
 
 
-def _fit_lines(xy: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Total-least-squares lines ``(N, 3)`` (``|(a, b)| = 1``) through points
-    ``(N, A, 2)`` with weights ``(N, A)``; and the points' signed residuals ``(N, A)``."""
+def _fit_lines(x: np.ndarray, y: np.ndarray, w: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Total-least-squares lines through points with coordinates ``x, y (N, A)``, those
+    with ``w (N, A)`` True: ``(lines, res, n, ssr)``, the lines ``(N, 3)``
+    (``|(a, b)| = 1``), the points' signed residuals ``(N, A)``, how many points
+    ``(N,)`` (float) and the sum of their squared residuals ``(N,)``."""
     wf = w.astype(np.float64)
-    sw = np.maximum(wf.sum(axis=1), 1e-12)
-    c = (wf[:, :, None] * xy).sum(axis=1) / sw[:, None]
-    dd = xy - c[:, None, :]
-    sxx = (wf * dd[..., 0] ** 2).sum(axis=1)
-    syy = (wf * dd[..., 1] ** 2).sum(axis=1)
-    sxy = (wf * dd[..., 0] * dd[..., 1]).sum(axis=1)
+    n = wf.sum(axis=1)
+    sw = np.maximum(n, 1e-12)
+    cx = (wf * x).sum(axis=1) / sw
+    cy = (wf * y).sum(axis=1) / sw
+    dx = x - cx[:, None]
+    dy = y - cy[:, None]
+    wdx = wf * dx
+    sxx = (wdx * dx).sum(axis=1)
+    syy = (wf * dy * dy).sum(axis=1)
+    sxy = (wdx * dy).sum(axis=1)
     th = 0.5 * np.arctan2(2 * sxy, sxx - syy)          # direction of the major axis
     a, b = -np.sin(th), np.cos(th)
-    line = np.stack([a, b, -(a * c[:, 0] + b * c[:, 1])], axis=1)
-    res = xy[..., 0] * a[:, None] + xy[..., 1] * b[:, None] + line[:, 2:3]
-    return line, res
+    line = np.empty((a.size, 3))
+    line[:, 0] = a
+    line[:, 1] = b
+    line[:, 2] = -(a * cx + b * cy)
+    res = x * a[:, None] + y * b[:, None] + line[:, 2:3]
+    return line, res, n, ((wf * res) * res).sum(axis=1)
 
 
 def shift_segments(segs_px: np.ndarray, shift_px: np.ndarray) -> np.ndarray:

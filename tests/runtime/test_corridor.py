@@ -11,7 +11,10 @@ import pytest
 
 from ceilkit.runtime.corridor import (
     CorridorEstimator,
+    _gauss,
+    _median_finite,
     along_offsets,
+    angle_residuals,
     fit_pan,
     level_normals,
     match_offsets,
@@ -21,7 +24,7 @@ from ceilkit.runtime.corridor import (
 )
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimate import PoseEstimate
-from ceilkit.runtime.geometry import R_level_cam, wrap_pi
+from ceilkit.runtime.geometry import R_level_cam, rot_z, wrap_pi
 from ceilkit.runtime.lines import fit_line, segment_lines
 from ceilkit.runtime.methods import make_estimator
 from ceilkit.runtime.rig import Rig
@@ -181,6 +184,61 @@ def test_match_offsets_prior_breaks_a_tie():
     for prior in (0.1, 0.4, -0.2):
         m = match_offsets(obs, np.ones(2), ys, 0.07, prior_shift_m=prior)
         assert m.shift_m == pytest.approx(prior, abs=1e-9)
+
+
+def test_median_finite_matches_numpy():
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 8, 17):
+        a = rng.normal(size=n)
+        assert _median_finite(a) == float(np.median(a))
+        b = np.concatenate([a, [np.nan, np.inf]])
+        assert _median_finite(b) == float(np.median(a))
+    assert math.isnan(_median_finite(np.array([np.nan, np.inf])))
+    assert math.isnan(_median_finite(np.zeros(0)))
+
+
+def test_gauss_is_exp_above_its_floor():
+    z = np.linspace(-37.0, 37.0, 2001)
+    assert np.array_equal(_gauss(z), np.exp(-0.5 * z ** 2))
+    far = np.array([38.0, -60.0, 1e6, np.inf])
+    g = _gauss(far)
+    assert np.all(g > 0) and np.all(g <= np.exp(-700.0)) and 1.0 + g[0] == 1.0
+
+
+def test_estimator_geometry_helpers(rig, site):
+    """The estimator's per-frame helpers agree with the public pure functions, and the
+    Gauss-Newton Jacobian with finite differences."""
+    est = CorridorEstimator(rig, site)
+    x, y, yaw = 0.7, 0.2, 0.3
+    segs_px = exact_segments(rig, site, x, y, yaw)
+    segs = est.rig.camera.unproject(segs_px.reshape(-1, 2)).reshape(-1, 4)
+    fr = est._frame(segs, np.full(segs.shape[0], np.nan))
+    assert np.allclose(fr.lines, segment_lines(segs), atol=1e-15)
+    assert np.allclose(fr.q, level_normals(fr.lines, est.M), atol=1e-15)
+    for psi in (-0.4, 0.3, 2.0):
+        va, vb = vanishing_directions(psi, est.M)
+        assert np.allclose(est._vp_dirs(psi), [va, vb], atol=1e-15)
+        ang, den = est._vp_angles(psi, fr)
+        mids = 0.5 * (segs[:, :2] + segs[:, 2:])
+        assert np.allclose(ang[0], np.abs(angle_residuals(fr.lines, mids, va)), atol=1e-15)
+        assert np.allclose(ang[1], np.abs(angle_residuals(fr.lines, mids, vb)), atol=1e-15)
+        assert np.all(den > 0)
+    psi = wrap_pi(yaw + rig.mount.pan_rad)
+    along, across = est._families(est._vp_angles(psi, fr)[0], est.angle_tol)
+    assert np.count_nonzero(along) >= 3 and np.count_nonzero(across) >= 2
+    # every along segment on its site line (the nearest to its true offset)
+    offs = along_offsets(fr.q[along], psi, est.height_m)
+    cy = y + float((rot_z(yaw) @ rig.mount.t_vehicle_cam)[1])
+    assign = np.full(segs.shape[0], -1)
+    assign[along] = np.argmin(np.abs(offs[:, None] + cy - est.site_y[None, :]), axis=1)
+    gd = est._gn_setup(fr, along, across, assign)
+    A = est._residuals(psi, cy, gd)
+    assert A.shape == (2 * np.count_nonzero(along) + np.count_nonzero(across), 3)
+    assert np.max(np.abs(A[:, 2])) < 1e-6                       # exact lines: px
+    for k, (dp, dc) in enumerate(((1e-6, 0.0), (0.0, 1e-6))):
+        num = (est._residuals(psi + dp, cy + dc, gd)[:, 2]
+               - est._residuals(psi - dp, cy - dc, gd)[:, 2]) / 2e-6
+        assert np.allclose(A[:, k], num, rtol=1e-5, atol=1e-3)
 
 
 # -- the estimator on exact and noisy lines ------------------------------------------------
