@@ -80,11 +80,12 @@ def ceiling_points(rig: Rig, ceiling_height_m: float, points_px: np.ndarray
     if px.shape[0] == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
     xy = rig.camera.unproject(px)
-    rays_c = np.hstack([xy, np.ones((xy.shape[0], 1))])
+    rays_c = np.ones((xy.shape[0], 3))
+    rays_c[:, :2] = xy
     R_vc, t_vc = _mount_arrays(rig.mount)
     rays_v = rays_c @ R_vc.T
     dz = ceiling_height_m - rig.mount.z_m
-    ok = rays_v[:, 2] > 1e-6 * np.linalg.norm(rays_v, axis=1)
+    ok = rays_v[:, 2] > 1e-6 * np.sqrt((rays_v * rays_v).sum(axis=1))       # |ray|
     s = np.where(ok, dz / np.where(ok, rays_v[:, 2], 1.0), np.nan)
     q = t_vc[None, :2] + s[:, None] * rays_v[:, :2]
     return q, ok
@@ -151,15 +152,16 @@ def interp_grid(grid: np.ndarray, step_px: int, points_px: np.ndarray) -> np.nda
     ``step_px`` pixels from pixel 0) at pixels ``(N, 2)``; returns ``(N, ...)``."""
     px = np.asarray(points_px, float).reshape(-1, 2)
     gh, gw = grid.shape[:2]
-    fu = np.clip(px[:, 0] / step_px, 0.0, gw - 1.0)
-    fv = np.clip(px[:, 1] / step_px, 0.0, gh - 1.0)
-    i0 = np.minimum(fu.astype(np.intp), gw - 2)
-    j0 = np.minimum(fv.astype(np.intp), gh - 2)
-    a, b = fu - i0, fv - j0
+    f = np.minimum(np.maximum(px / step_px, 0.0), (gw - 1.0, gh - 1.0))   # (u, v) in nodes
+    i = np.minimum(f.astype(np.intp), (gw - 2, gh - 2))
+    ab = f - i
     extra = (slice(None),) + (None,) * (grid.ndim - 2)
-    a, b = a[extra], b[extra]
-    return ((1 - b) * ((1 - a) * grid[j0, i0] + a * grid[j0, i0 + 1])
-            + b * ((1 - a) * grid[j0 + 1, i0] + a * grid[j0 + 1, i0 + 1]))
+    a, b = ab[:, 0][extra], ab[:, 1][extra]
+    # the four corners of each point's cell in one gather: (N, 4, ...)
+    node = i[:, 1] * gw + i[:, 0]
+    c = grid.reshape((gh * gw,) + grid.shape[2:])[node[:, None] + (0, 1, gw, gw + 1)]
+    ua = 1 - a
+    return (1 - b) * (ua * c[:, 0] + a * c[:, 1]) + b * (ua * c[:, 2] + a * c[:, 3])
 
 
 def fit_rigid_2d(q: np.ndarray, p: np.ndarray, w: np.ndarray | None = None
@@ -188,6 +190,14 @@ def _transform(q: np.ndarray, yaw: float, t: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ matching
+@functools.lru_cache(maxsize=32)
+def _arange(n: int) -> np.ndarray:
+    """``np.arange(n)``, computed once per ``n`` (read-only)."""
+    a = np.arange(n)
+    a.setflags(write=False)
+    return a
+
+
 @functools.lru_cache(maxsize=32)
 def _triu(n: int) -> tuple[np.ndarray, np.ndarray]:
     """``np.triu_indices(n, 1)``, computed once per ``n`` (read-only)."""
@@ -222,8 +232,15 @@ class Candidate:
         return int(self.pairs.shape[0])
 
     def same_pose(self, other: Candidate, pos_m: float, yaw_rad: float) -> bool:
-        return (math.hypot(self.x_m - other.x_m, self.y_m - other.y_m) < pos_m
-                and abs(wrap_pi(self.yaw_rad - other.yaw_rad)) < yaw_rad)
+        return _near(self.x_m, self.y_m, self.yaw_rad, other, pos_m, yaw_rad)
+
+
+def _near(x_m: float, y_m: float, yaw_rad: float, other: Candidate, pos_m: float,
+          max_yaw_rad: float) -> bool:
+    """Whether the pose ``(x_m, y_m, yaw_rad)`` is within ``pos_m`` and ``max_yaw_rad``
+    of ``other`` (:meth:`Candidate.same_pose` without building a candidate)."""
+    return (math.hypot(x_m - other.x_m, y_m - other.y_m) < pos_m
+            and abs(wrap_pi(yaw_rad - other.yaw_rad)) < max_yaw_rad)
 
 
 class PatternMatcher:
@@ -266,6 +283,7 @@ class PatternMatcher:
         vp = self._lc[self.pair_j] - self._lc[self.pair_i]
         self._pair_mid = 0.5 * (self._lc[self.pair_i] + self._lc[self.pair_j])
         self._pair_dir = vp / np.maximum(np.abs(vp), 1e-12)
+        self._lc_row = self._lc[None, :]
 
     # -- association ------------------------------------------------------------------
     def associate(self, q_v: np.ndarray, yaw: float, t: np.ndarray, gate_m: float
@@ -277,12 +295,13 @@ class PatternMatcher:
 
     def _associate(self, qc: np.ndarray, rot: complex, t: complex, gate_m: float
                    ) -> np.ndarray:
-        d = np.abs((qc * rot + t)[:, None] - self._lc[None, :])
-        j = np.argmin(d, axis=1)
-        i_back = np.argmin(d, axis=0)
-        idx = np.arange(j.size)
-        ok = (d[idx, j] < gate_m) & (i_back[j] == idx)
-        return np.stack([idx[ok], j[ok]], axis=1)
+        d = np.abs((qc * rot + t)[:, None] - self._lc_row)       # (N, M) ceiling metres
+        j = d.argmin(axis=1)
+        ok = (d.min(axis=1) < gate_m) & (d.argmin(axis=0)[j] == _arange(j.size))
+        idx = ok.nonzero()[0]
+        out = np.empty((idx.size, 2), np.intp)
+        out[:, 0], out[:, 1] = idx, j[idx]
+        return out
 
     def verify(self, q_v: np.ndarray, yaw: float, t: np.ndarray, gate_m: float | None = None
                ) -> Candidate | None:
@@ -298,15 +317,16 @@ class PatternMatcher:
             return None
         # the rigid fit (fit_rigid_2d) in complex form: rot = phase of sum conj(a) b
         qa, pb = qc[pairs[:, 0]], self._lc[pairs[:, 1]]
-        qm, pm = qa.mean(), pb.mean()
-        sc = np.sum(np.conj(qa - qm) * (pb - pm))
+        n = pairs.shape[0]
+        qm, pm = qa.sum() / n, pb.sum() / n                 # the means
+        sc = complex((np.conj(qa - qm) * (pb - pm)).sum())
         rot = sc / abs(sc) if abs(sc) > 0 else 1.0 + 0j
-        t = pm - rot * qm
+        t = complex(pm - rot * qm)
         pairs = self._associate(qc, rot, t, self.gate_m)
         if pairs.shape[0] < 2:
             return None
         res = np.abs(qc[pairs[:, 0]] * rot + t - self._lc[pairs[:, 1]])
-        rms = float(np.sqrt(np.mean(res * res)))
+        rms = math.sqrt(float((res * res).sum()) / res.size)
         yaw = math.atan2(rot.imag, rot.real)
         score = float(pairs.shape[0])
         missing = 0
@@ -330,7 +350,8 @@ class PatternMatcher:
         a, b = _triu(qc.size)
         if a.size == 0 or self.pair_d.size == 0:
             return np.zeros((0, 3))
-        vq = qc[b] - qc[a]
+        qa, qb = qc[a], qc[b]
+        vq = qb - qa
         d_obs = np.abs(vq)
         tol = 2.0 * self.gate_m
         lohi = np.searchsorted(self.pair_d, np.concatenate([d_obs - tol, d_obs + tol]))
@@ -339,19 +360,20 @@ class PatternMatcher:
         total = int(cnt.sum())
         if total == 0:
             return np.zeros((0, 3))
-        obs_k = np.repeat(np.arange(a.size), cnt)
-        mp = np.arange(total) + np.repeat(lo - (np.cumsum(cnt) - cnt), cnt)
+        obs_k = np.repeat(_arange(a.size), cnt)
+        mp = _arange(total) + np.repeat(lo - (np.cumsum(cnt) - cnt), cnt)
         uq = np.conj(vq / np.maximum(d_obs, 1e-12))
         rot = self._pair_dir[mp] * uq[obs_k]
-        rmq = rot * (0.5 * (qc[a] + qc[b]))[obs_k]
+        rmq = rot * (0.5 * (qa + qb))[obs_k]
         mid = self._pair_mid[mp]
-        yaw = np.angle(rot)
+        yaw = np.arctan2(rot.imag, rot.real)                 # np.angle(rot)
         # the reversed orientation: rot -> -rot, yaw -> yaw + pi
         out = np.empty((2 * total, 3))
         out[:total, 0] = yaw
         out[total:, 0] = yaw - np.copysign(np.pi, yaw)
-        out[:total, 1], out[:total, 2] = (mid - rmq).real, (mid - rmq).imag
-        out[total:, 1], out[total:, 2] = (mid + rmq).real, (mid + rmq).imag
+        t_fwd, t_rev = mid - rmq, mid + rmq
+        out[:total, 1], out[:total, 2] = t_fwd.real, t_fwd.imag
+        out[total:, 1], out[total:, 2] = t_rev.real, t_rev.imag
         return out
 
     def match(self, q_v: np.ndarray, order: np.ndarray | None = None) -> list[Candidate]:
@@ -369,36 +391,45 @@ class PatternMatcher:
         qc = q_v[:, 0] + 1j * q_v[:, 1]
         if hyp.shape[0] == 0:
             return []
-        ky = np.floor(hyp[:, 0] / self.yaw_bin).astype(np.int64)
-        kx = np.floor(hyp[:, 1] / self.pos_bin).astype(np.int64)
-        kz = np.floor(hyp[:, 2] / self.pos_bin).astype(np.int64)
-        key = ((ky - ky.min()) * (kx.max() - kx.min() + 1) + (kx - kx.min())) \
-            * (kz.max() - kz.min() + 1) + (kz - kz.min())
-        srt = np.argsort(key, kind="stable")
-        ks = key[srt]
-        starts = np.concatenate([[0], np.nonzero(np.diff(ks))[0] + 1])
+        # bin indices (3, K), rows contiguous (reductions along a row are fast)
+        kb = np.floor(hyp / (self.yaw_bin, self.pos_bin, self.pos_bin)).astype(np.int64).T.copy()
+        kb -= kb.min(axis=1)[:, None]
+        span = kb.max(axis=1) + 1
+        key = (kb[0] * span[1] + kb[1]) * span[2] + kb[2]
+        # the stable order of the keys from one plain sort of (key, index) packed in
+        # an int64 (a stable argsort costs several times more)
+        nk = key.size
+        if float(span[0]) * float(span[1]) * float(span[2]) * nk < 2.0 ** 62:
+            packed = np.sort(key * nk + _arange(nk))
+            srt, ks = packed % nk, packed // nk
+        else:   # a map too large to pack (kilometres of bins): the direct way
+            srt = key.argsort(kind="stable")
+            ks = key[srt]
+        starts = np.concatenate([[0], np.flatnonzero(ks[1:] != ks[:-1]) + 1])
         counts = np.diff(np.concatenate([starts, [ks.size]]))
-        top = np.argsort(-counts, kind="stable")[:self.max_bins]
+        top = (-counts).argsort(kind="stable")[:self.max_bins]
+        # the bins in the order looked at, as plain ints: (first vote in srt, votes)
+        bins = list(zip(starts[top].tolist(), counts[top].tolist(), strict=True))
+        best = bins[0][1]
         cands: list[Candidate] = []
-        for n_done, k in enumerate(top):
+        for n_done, (first, count) in enumerate(bins):
             # bins far below the best cannot hold a rival of similar support; past
             # `top_bins`, only bins near the best count are looked at (a regular
             # layout spreads its votes over many equally good poses)
-            if cands and counts[k] < max(3, 0.2 * counts[top[0]]):
+            if cands and count < max(3, 0.2 * best):
                 break
-            if n_done >= self.top_bins and counts[k] < 0.5 * counts[top[0]]:
+            if n_done >= self.top_bins and count < 0.5 * best:
                 break
-            h = hyp[srt[starts[k]:starts[k] + counts[k]]]
+            h = hyp[srt[first:first + count]]
             yaw = math.atan2(np.sin(h[:, 0]).sum(), np.cos(h[:, 0]).sum())
             hs = np.sort(h[:, 1:], axis=0)
-            t = 0.5 * (hs[(h.shape[0] - 1) // 2] + hs[h.shape[0] // 2])     # medians
-            seed = Candidate(float(t[0]), float(t[1]), yaw, np.zeros((0, 2), int), 0.0, 0.0)
-            if any(seed.same_pose(o, 0.5, math.radians(8.0)) for o in cands):
+            t = (0.5 * (hs[(count - 1) // 2] + hs[count // 2])).tolist()     # medians
+            if any(_near(t[0], t[1], yaw, o, 0.5, math.radians(8.0)) for o in cands):
                 continue   # a neighbouring bin of a pose already verified
             c = self._verify(qc, yaw, complex(t[0], t[1]), self.gate_m)
             if c is None:
                 continue
-            if any(c.same_pose(o, 0.3, math.radians(5.0)) for o in cands):
+            if any(_near(c.x_m, c.y_m, c.yaw_rad, o, 0.3, math.radians(5.0)) for o in cands):
                 continue
             cands.append(c)
         cands.sort(key=lambda c: (-c.score, -c.inliers, c.rms_m))
@@ -498,50 +529,75 @@ def refine_pose_ceiling(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarra
     J = np.asarray(jac_px, float).reshape(-1, 2, 2)
     L = np.asarray(lights_w, float).reshape(-1, 2)
     k = q.shape[0]
+    D = np.empty((k, 2, 3))          # d q̂ / d(x, y, yaw) of every light
 
-    j00, j01, j10, j11 = J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1]
-
-    def resid(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        c, s = math.cos(p[2]), math.sin(p[2])
-        vx, vy = L[:, 0] - p[0], L[:, 1] - p[1]
-        qhx, qhy = c * vx + s * vy, -s * vx + c * vy
-        dx, dy = qhx - q[:, 0], qhy - q[:, 1]
-        r = np.empty(2 * k)
-        r[0::2] = j00 * dx + j01 * dy
-        r[1::2] = j10 * dx + j11 * dy
+    def resid(x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals ``(2k,)`` px (light by light, u then v) and their Jacobian
+        ``(2k, 3)`` at a pose."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        qh = (L - (x, y)) @ np.array([[c, -s], [s, c]])      # q̂ = Rz(-yaw) (L - t)
+        r = (J @ (qh - q)[:, :, None]).reshape(-1)
         # A = J @ d q̂ / d(x, y, yaw), d q̂ / d(x, y, yaw) = [[-c, -s, q̂y], [s, -c, -q̂x]]
-        A = np.empty((2 * k, 3))
-        A[0::2, 0] = s * j01 - c * j00
-        A[0::2, 1] = -s * j00 - c * j01
-        A[0::2, 2] = j00 * qhy - j01 * qhx
-        A[1::2, 0] = s * j11 - c * j10
-        A[1::2, 1] = -s * j10 - c * j11
-        A[1::2, 2] = j10 * qhy - j11 * qhx
-        return r, A
+        D[:, :, :2] = ((-c, -s), (s, -c))
+        D[:, 0, 2] = qh[:, 1]
+        D[:, 1, 2] = -qh[:, 0]
+        return r, (J @ D).reshape(-1, 3)
 
-    p = np.array([x_m, y_m, yaw_rad], float)
-    r, A = resid(p)
+    p = (float(x_m), float(y_m), float(yaw_rad))
+    r, A = resid(*p)
+    ssr = float(r @ r)
     for _ in range(iterations):
-        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(r))):
+        if not (math.isfinite(ssr) and np.isfinite(A).all()):
             break
-        try:
-            step = -np.linalg.solve(A.T @ A + 1e-9 * np.eye(3), A.T @ r)
-        except np.linalg.LinAlgError:
+        step = _solve3(A.T @ A, A.T @ r, 1e-9)
+        if step is None:
             break
-        r_new, A_new = resid(p + step)
-        if not np.all(np.isfinite(r_new)) or r_new @ r_new > r @ r:
+        p_new = (p[0] - step[0], p[1] - step[1], p[2] - step[2])
+        r_new, A_new = resid(*p_new)
+        ssr_new = float(r_new @ r_new)
+        if not math.isfinite(ssr_new) or ssr_new > ssr:
             break
-        p, r, A = p + step, r_new, A_new
-        if np.abs(step[:2]).max() < 1e-5 and abs(step[2]) < 1e-6:
+        p, r, A, ssr = p_new, r_new, A_new, ssr_new
+        if max(abs(step[0]), abs(step[1])) < 1e-5 and abs(step[2]) < 1e-6:
             break
     dof = 2 * k - 3
-    s2 = max(float(r @ r) / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
+    s2 = max(ssr / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
     try:
         cov = s2 * np.linalg.inv(A.T @ A)
     except np.linalg.LinAlgError:
         cov = np.full((3, 3), np.inf)
-    norms = np.sqrt(r[0::2] ** 2 + r[1::2] ** 2)
-    return float(p[0]), float(p[1]), float(wrap_pi(p[2])), cov, norms
+    rr = r.reshape(-1, 2)
+    norms = np.sqrt(rr[:, 0] ** 2 + rr[:, 1] ** 2)
+    return p[0], p[1], float(wrap_pi(p[2])), cov, norms
+
+
+def _solve3(N: np.ndarray, g: np.ndarray, ridge: float) -> tuple[float, float, float] | None:
+    """``(N + ridge I)⁻¹ g`` for a symmetric ``(3, 3)`` ``N`` and ``g`` ``(3,)`` by Cholesky,
+    in plain floats (a 3x3 system costs less than the call to a general solver);
+    ``None`` if the matrix is not positive definite."""
+    (a, b, c), (_, d, e), (_, _, f) = N.tolist()
+    a, d, f = a + ridge, d + ridge, f + ridge
+    g0, g1, g2 = g.tolist()
+    if not a > 0:
+        return None
+    l00 = math.sqrt(a)
+    l10, l20 = b / l00, c / l00
+    t = d - l10 * l10
+    if not t > 0:
+        return None
+    l11 = math.sqrt(t)
+    l21 = (e - l20 * l10) / l11
+    t = f - l20 * l20 - l21 * l21
+    if not t > 0:
+        return None
+    l22 = math.sqrt(t)
+    z0 = g0 / l00
+    z1 = (g1 - l10 * z0) / l11
+    z2 = (g2 - l20 * z0 - l21 * z1) / l22
+    x2 = z2 / l22
+    x1 = (z1 - l21 * x2) / l11
+    x0 = (z0 - l10 * x1 - l20 * x2) / l00
+    return x0, x1, x2
 
 
 # ------------------------------------------------------------------------ estimator
@@ -588,6 +644,7 @@ class LightsEstimator:
         self.rig, self.site = rig, site
         self.height_m = site.ceiling_height_m
         self.lights_w = np.asarray(site.lights_m, float)
+        self._lights_c = self.lights_w[:, 0] + 1j * self.lights_w[:, 1]     # x + iy
         self.light_radius_m = light_radius_m
         self.gate_m = gate_m
         self.ambiguity_margin = ambiguity_margin
@@ -641,6 +698,8 @@ class LightsEstimator:
         ok[idx[self.valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
         d = np.hypot(px[:, 0] - self.nadir_px[0], px[:, 1] - self.nadir_px[1])
         self._vis_table = np.where(ok, d, np.inf).astype(np.float32).reshape(n[0], n[1])
+        # the same, with a border of inf cells: a clipped index off the table lands there
+        self._vis_padded = np.pad(self._vis_table, 1, constant_values=np.inf).ravel()
 
     def _max_pair_m(self) -> float:
         cam = self.rig.camera
@@ -659,14 +718,16 @@ class LightsEstimator:
         """``(M,)`` map lights the detector should report from a pose: inside the image
         (by 12 px) and the view mask, and among the ``max_spots`` nearest the nadir
         (a lookup in the table of :meth:`_build_visibility`)."""
-        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        dx, dy = self.lights_w[:, 0] - x_m, self.lights_w[:, 1] - y_m
+        # the lights in V, x + iy: Rz(-yaw) (L - t)
+        z = (self._lights_c - complex(x_m, y_m)) * complex(math.cos(yaw_rad),
+                                                           -math.sin(yaw_rad))
         ni, nj = self._vis_table.shape
-        i = np.rint((c * dx + s * dy - self._vis_origin[0]) / self._vis_cell).astype(np.intp)
-        j = np.rint((-s * dx + c * dy - self._vis_origin[1]) / self._vis_cell).astype(np.intp)
-        inside = (i >= 0) & (i < ni) & (j >= 0) & (j < nj)
-        d = np.full(i.shape, np.inf, np.float32)
-        d[inside] = self._vis_table[i[inside], j[inside]]
+        i = np.rint((z.real - self._vis_origin[0]) / self._vis_cell).astype(np.intp)
+        j = np.rint((z.imag - self._vis_origin[1]) / self._vis_cell).astype(np.intp)
+        # cells of the padded table (a border of inf): off the table is not visible
+        i = np.minimum(np.maximum(i, -1), ni) + 1
+        j = np.minimum(np.maximum(j, -1), nj) + 1
+        d = self._vis_padded[i * (nj + 2) + j]
         ok = np.isfinite(d)
         if ok.sum() > self.max_spots:
             ok[np.argsort(d, kind="stable")[self.max_spots:]] = False
@@ -692,10 +753,10 @@ class LightsEstimator:
         if self.light_radius_m > 0 and np.any(ok):
             ok &= self._plausible(spots, table, ok)
         J = table[:, :4].reshape(-1, 2, 2)
-        if not np.all(ok):
+        if not ok.all():
             spots, q, J = spots.select(ok), q[ok], J[ok]
         rng = np.hypot(q[:, 0] - self._t_vc[0], q[:, 1] - self._t_vc[1])
-        return spots, q, np.argsort(rng, kind="stable"), J
+        return spots, q, rng.argsort(kind="stable"), J
 
     def _plausible(self, spots: Spots, table: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """Spots whose size and shape fit a light of ``light_radius_m`` at their place.
@@ -707,7 +768,7 @@ class LightsEstimator:
         of a plausible size. ``table`` rows are the spots' :meth:`_spot_table` entries.
         """
         keep = ok.copy()
-        idx = np.nonzero(ok)[0]
+        idx = ok.nonzero()[0] if not ok.all() else slice(None)
         t = table[idx]
         a_pred = t[:, 7]
         a = spots.areas_px[idx]
@@ -816,8 +877,8 @@ class LightsEstimator:
         x, y, yaw, cov, res = refine_pose_ceiling(q[pairs[:, 0]], jac[pairs[:, 0]],
                                                   self.lights_w[pairs[:, 1]],
                                                   cand.x_m, cand.y_m, cand.yaw_rad)
-        bad = res > max(self.max_residual_px, 4.0 * float(np.median(res)))
-        if np.any(bad) and pairs.shape[0] - int(bad.sum()) >= 2:
+        bad = res > max(self.max_residual_px, 4.0 * _median(res))
+        if bad.any() and pairs.shape[0] - int(bad.sum()) >= 2:
             pairs = pairs[~bad]
             x, y, yaw, cov, res = refine_pose_ceiling(q[pairs[:, 0]], jac[pairs[:, 0]],
                                                       self.lights_w[pairs[:, 1]], x, y, yaw)
@@ -826,9 +887,9 @@ class LightsEstimator:
         if k < min_k or not np.all(np.isfinite(cov)):
             return Failure(t_ns, NAME, "no_match",
                            f"only {k} lights fit after refinement", diag)
-        rms = float(np.sqrt(np.mean(res ** 2)))
+        rms = math.sqrt(float((res * res).sum()) / res.size)
         quality = _quality(k, rms, cand, runner, mode)
-        diag.update({"inliers": k, "matched_lights": tuple(int(j) for j in pairs[:, 1]),
+        diag.update({"inliers": k, "matched_lights": tuple(pairs[:, 1].tolist()),
                      "rms_px": rms, "mode": mode, "score": cand.score,
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": 1e3 * (time.perf_counter() - t0)})
@@ -848,6 +909,13 @@ def _quality(k: int, rms_px: float, best: Candidate, runner: Candidate | None,
         rival = runner.score if runner is not None else 2.0
         q_sep = 1.0 - math.exp(-max(best.score - rival, 0.0) / 1.5)
     return float(min(1.0, max(0.0, q_n * q_res * q_sep * q_vis)))
+
+
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a short 1-D array, the same number for less overhead."""
+    s = np.sort(x)
+    n = s.size
+    return float(s[n // 2]) if n % 2 else float((s[n // 2 - 1] + s[n // 2]) / 2)
 
 
 def _t_from_pose(pose: PoseEstimate) -> np.ndarray:

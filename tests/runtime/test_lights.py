@@ -326,3 +326,42 @@ def test_visibility_table_matches_projection(lights_rig, lights_site, tilted_rig
             wrong += int((ok != est._visible(x, y, yaw)).sum())
             total += int(ok.sum())
         assert total > 40 and wrong <= 0.03 * total, (wrong, total)
+
+
+def test_small_helpers_match_numpy():
+    """The plain-float 3x3 solve and the short median give numpy's numbers."""
+    from ceilkit.runtime.lights import _median, _solve3
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        A = rng.normal(size=(8, 3)) * (1.0, 50.0, 400.0)
+        g = rng.normal(size=3)
+        N = A.T @ A
+        want = np.linalg.solve(N + 1e-9 * np.eye(3), g)
+        np.testing.assert_allclose(_solve3(N, g, 1e-9), want, rtol=1e-9, atol=1e-12)
+    assert _solve3(np.zeros((3, 3)), np.ones(3), 0.0) is None       # not positive definite
+    for n in (1, 2, 5, 8):
+        x = rng.normal(size=n)
+        assert _median(x) == float(np.median(x))
+
+
+def test_visibility_lookup_off_the_table(lights_rig, lights_site):
+    """Lights far outside the table (the vehicle far from the map) are not in view, and
+    the lookup equals the unpadded table where it is inside."""
+    est = LightsEstimator(lights_rig, lights_site)
+    assert not est._visible(500.0, -300.0, 0.3).any()
+    ni, nj = est._vis_table.shape
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        x, y, yaw = rng.uniform(-2, 20), rng.uniform(-6, 6), rng.uniform(-3, 3)
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = est.lights_w[:, 0] - x, est.lights_w[:, 1] - y
+        i = np.rint((c * dx + s * dy - est._vis_origin[0]) / est._vis_cell).astype(int)
+        j = np.rint((-s * dx + c * dy - est._vis_origin[1]) / est._vis_cell).astype(int)
+        inside = (i >= 0) & (i < ni) & (j >= 0) & (j < nj)
+        d = np.full(i.shape, np.inf)
+        d[inside] = est._vis_table[i[inside], j[inside]]
+        ok = np.isfinite(d)
+        if ok.sum() > est.max_spots:
+            ok[np.argsort(d, kind="stable")[est.max_spots:]] = False
+        np.testing.assert_array_equal(est._visible(x, y, yaw), ok)

@@ -144,3 +144,52 @@ def test_lone_region_shortcut_matches_contour_path():
             np.testing.assert_allclose(fast[:4], full[:4], rtol=1e-9, atol=1e-9)
             np.testing.assert_allclose(fast[4], full[4], rtol=1e-9, atol=1e-12)
             assert fast[5] == full[5]
+
+
+def test_lone_regions_measured_together_match_one_by_one():
+    """The batched statistics of lone regions (:func:`_lone_region_stats`) are those of
+    :func:`_region_stats`, weighted and binary, including windows cut by the image's
+    edges and a region with no positive weight (flagged for the caller)."""
+    from ceilkit.runtime.spots import _alone, _lone_region_stats, _region_stats
+
+    centres = np.array([[40.3, 30.7], [120.6, 80.2], [200.1, 130.9], [60.8, 120.4],
+                        [2.2, 70.5], [236.9, 5.1], [150.4, 157.6]])
+    img = blobs(centres, radius=4.0)
+    mask = niblack_mask(img, 41, 0.8, 10.0, 0.2)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    boxes = np.array([cv2.boundingRect(c) for c in contours])
+    boxes = boxes[_alone(boxes)]
+    assert boxes.shape[0] >= 6
+    for weighted in (True, False):
+        stats, ok = _lone_region_stats(img, mask, boxes, weighted)
+        assert ok.all()
+        for row, b in zip(stats, boxes, strict=True):
+            u, v, i_o, i_b, cov, area = _region_stats(img, mask, None, *b, weighted)
+            assert (row[0], row[1], row[2], row[3], row[7]) == (u, v, i_o, i_b, area)
+            np.testing.assert_allclose(row[4:7], [cov[0, 0], cov[0, 1], cov[1, 1]],
+                                       rtol=1e-9, atol=1e-12)
+    # a flat region (every weight 0 in its window) is left to the caller
+    flat = np.full((40, 40), 90, np.uint8)
+    m = np.zeros_like(flat)
+    m[18:22, 18:22] = 255
+    _, ok = _lone_region_stats(flat, m, np.array([[18, 18, 4, 4]]))
+    assert not ok[0]
+
+
+def test_detect_spots_batched_equals_one_by_one():
+    """detect_spots with the batched lone-region path gives the spots of measuring
+    every region with _region_stats (forced by a batch limit of 0)."""
+    import ceilkit.runtime.spots as S
+
+    img = blobs(CENTRES)
+    a = detect_spots(img, centre_px=(120.0, 80.0), max_regions=3)
+    old = S._BATCH_MAX_SIDE
+    try:
+        S._BATCH_MAX_SIDE = 0
+        b = detect_spots(img, centre_px=(120.0, 80.0), max_regions=3)
+    finally:
+        S._BATCH_MAX_SIDE = old
+    assert len(a) == len(b) == 3 and a.rejected == b.rejected
+    np.testing.assert_array_equal(a.centroids_px, b.centroids_px)
+    np.testing.assert_array_equal(a.areas_px, b.areas_px)
+    np.testing.assert_allclose(a.cov_px, b.cov_px, rtol=1e-9, atol=1e-12)
