@@ -375,6 +375,26 @@ class _Frame:
     tol: np.ndarray
 
 
+def check_setup(method: str, rig: Rig, site: Site, options: dict[str, Any],
+                allowed: tuple[str, ...]) -> None:
+    """The checks a corridor estimator makes when it is built: every option known, a
+    `corridor` section in the site, and a rig that fits the site
+    (:func:`~.site.check_rig_site`).
+
+    Raises:
+        ConfigError: naming the option or the site file's key.
+    """
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise ConfigError(None, f"options.{unknown[0]}",
+                          f"unknown option for {method} (expected one of "
+                          f"{', '.join(allowed)})")
+    if site.corridor is None:
+        raise ConfigError(site.source, "corridor",
+                          f"method {method!r} needs a `corridor` section")
+    check_rig_site(rig, site)
+
+
 _OPTIONS = ("detector", "refine", "edge_fit", "min_length_px", "max_segments", "angle_tol_deg",
             "match_tol_m", "inlier_px", "gn_iterations", "min_contrast", "min_elevation_deg")
 
@@ -410,15 +430,7 @@ class CorridorEstimator:
     name = "corridor"
 
     def __init__(self, rig: Rig, site: Site, **options: Any) -> None:
-        unknown = sorted(set(options) - set(_OPTIONS))
-        if unknown:
-            raise ConfigError(None, f"options.{unknown[0]}",
-                              f"unknown option for {self.name} (expected one of "
-                              f"{', '.join(_OPTIONS)})")
-        if site.corridor is None:
-            raise ConfigError(site.source, "corridor",
-                              f"method {self.name!r} needs a `corridor` section")
-        check_rig_site(rig, site)
+        check_setup(self.name, rig, site, options, _OPTIONS)
         self.rig, self.site = rig, site
         cam = rig.camera
         self.M = rig.mount.R_level_cam

@@ -37,13 +37,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .corridor import CorridorEstimator, match_offsets
-from .errors import ConfigError
+from .corridor import CorridorEstimator, check_setup, match_offsets
 from .estimate import Failure, PoseEstimate
 from .geometry import rot_z, wrap_half_pi, wrap_pi
 from .lines import as_gray, fit_line, merge_segments, segment_lengths, undistort_segments
 from .rig import Rig
-from .site import Site, check_rig_site
+from .site import Site
 
 _OPTIONS = ("canny", "hough_threshold", "min_length_px", "merge_angle_deg", "merge_dist_px")
 
@@ -95,15 +94,7 @@ class PaperCorridorEstimator:
     name = "paper-corridor"
 
     def __init__(self, rig: Rig, site: Site, **options: Any) -> None:
-        unknown = sorted(set(options) - set(_OPTIONS))
-        if unknown:
-            raise ConfigError(None, f"options.{unknown[0]}",
-                              f"unknown option for {self.name} (expected one of "
-                              f"{', '.join(_OPTIONS)})")
-        if site.corridor is None:
-            raise ConfigError(site.source, "corridor",
-                              f"method {self.name!r} needs a `corridor` section")
-        check_rig_site(rig, site)
+        check_setup(self.name, rig, site, options, _OPTIONS)
         self.rig, self.site = rig, site
         self.M = rig.mount.R_level_cam
         self.height_m = site.ceiling_height_m - rig.mount.z_m

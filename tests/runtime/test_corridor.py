@@ -326,6 +326,14 @@ def test_blank_saturated_featureless_and_bad_frames(rig, site):
     assert est.estimate(np.zeros((10, 10), np.uint8), 1).reason == "bad_frame"
 
 
+@pytest.mark.parametrize("name", ["corridor", "paper-corridor"])
+def test_both_corridor_methods_check_options_and_site(rig, site, name):
+    with pytest.raises(ConfigError, match=r"options\.bogus: unknown option for " + name):
+        make_estimator(name, rig, site, bogus=1)
+    with pytest.raises(ConfigError, match="needs a `corridor` section"):
+        make_estimator(name, rig, Site(2.8, lights_m=np.array([[0.0, 0.0], [1.0, 0.0]])))
+
+
 def test_options_and_site_are_checked(rig, site):
     with pytest.raises(ConfigError):
         CorridorEstimator(rig, site, bogus=1)
