@@ -9,7 +9,7 @@ from . import (
     ceilcal_mount,
     ceilcal_simulate,
 )
-from .common import make_app
+from .common import make_app, quiet_opencv
 
 app = make_app("ceilcal", "Calibrate a ceiling-vision rig: intrinsics, mount, light map; "
                "simulate recordings.")
@@ -20,6 +20,7 @@ for _module in (ceilcal_simulate, ceilcal_intrinsics, ceilcal_mount, ceilcal_lig
 
 
 def main() -> None:
+    quiet_opencv()
     app(prog_name="ceilcal")
 
 

@@ -30,7 +30,7 @@ from ceilkit.runtime.rig import Rig
 from ceilkit.runtime.site import Site, check_rig_site
 from ceilkit.runtime.tracking import Tracker
 
-from .common import make_app
+from .common import make_app, quiet_opencv
 
 app = make_app("ceilrun", "Run the localizer on the vehicle, or replay a recording.\n\n"
                "Live: ceilrun --device /dev/video0 --serial /dev/ttyUSB0 --rig rig.yaml "
@@ -279,6 +279,7 @@ def replay(
 
 
 def main() -> None:
+    quiet_opencv()
     app(prog_name="ceilrun")
 
 

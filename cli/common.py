@@ -45,6 +45,18 @@ def make_app(name: str, help: str) -> typer.Typer:
     return app
 
 
+def quiet_opencv() -> None:
+    """Keep OpenCV's own warnings (``[ WARN:0@0.250] global cap.cpp ...``) off the
+    console: the command says what went wrong in its own line. Called by the console
+    scripts only; a program that imports ceilkit keeps its OpenCV settings."""
+    try:
+        import cv2.utils.logging as cv_logging
+
+        cv_logging.setLogLevel(cv_logging.LOG_LEVEL_ERROR)
+    except (ImportError, AttributeError):  # an OpenCV build without the logging API
+        pass
+
+
 def provenance_header(what: str, lines: list[str] | None = None) -> str:
     """YAML comment lines naming the time, the command line and a report."""
     out = [f"# {what}",
