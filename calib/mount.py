@@ -154,6 +154,10 @@ SYSTEMATIC_PX = 0.02
 # On rendered frames without noise or texture the lines sit 0.03-0.04 px off together
 # (tilt +0.005 deg: one v pixel is 1/f rad of tilt); the reported 1 sigma includes it.
 SYSTEMATIC_SHIFT_PX = 0.08
+# a fit that leaves more than this (px, RMS over inlier endpoints) has laid the lines on
+# the wrong site lines: typically seams too blurred to see (only lamp edges and wall
+# junctions left, which fit several offsets) or lines missing from site.yaml
+MAX_RMS_PX = 1.0
 
 
 def _profiles(gray_f: np.ndarray, base_px: np.ndarray, normal_px: np.ndarray,
@@ -687,9 +691,11 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
             theta, _ = _levenberg_marquardt(prob.residuals, theta)
     vals, psis = prob.unpack(theta)
 
-    # stage 2: the lateral offset, by a search against the site's lines
+    # stage 2: the lateral offset (and the height, when it is fitted), by a search
+    # against the site's lines
     if "my" not in fixed_set:
-        vals["my"] = _search_lateral(placements, site, vals, f_px)
+        vals["my"], vals["h"] = _search_lateral(placements, site, vals, f_px,
+                                                fit_height="h" not in fixed_set)
 
     # stage 3: everything, associations re-made at shrinking tolerances
     free = [n for n in PARAMS if n not in fixed_set]
@@ -738,6 +744,12 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
                              "from the measured y"))
         elif math.isfinite(rms) and rms > max(3.0 * med, 1.0):
             outliers.append((label, rms, "residuals stand out"))
+    if math.sqrt(s2) > MAX_RMS_PX:
+        raise CalibrationError(
+            f"the fit leaves {math.sqrt(s2):.2f} px RMS (a good one < 0.5): the lines seen "
+            "do not lay on the site's lines_along at any offset; check that site.yaml lists "
+            "every ceiling line along the corridor and that the seams are sharp in the "
+            "images (focus, exposure)")
     z_m = site.ceiling_height_m - vals["h"]
     mount = Mount(pan_rad=vals["pan"], tilt_rad=vals["tilt"], swing_rad=vals["swing"],
                   x_m=vals["mx"], y_m=vals["my"], z_m=z_m)
@@ -808,18 +820,35 @@ def _lateral_costs(p: Placement, R: np.ndarray, c_y: np.ndarray, h: float,
 
 
 def _search_lateral(placements: Sequence[Placement], site: Site, vals: dict[str, float],
-                    f_px: float) -> float:
-    """The lateral offset ``my`` that best lays the along segments on the site's lines."""
+                    f_px: float, fit_height: bool = False) -> tuple[float, float]:
+    """``(my, h)``: the lateral offset that best lays the along segments on the site's
+    lines and, with ``fit_height``, the camera's height below the ceiling with it.
+
+    The offsets of the lines scale with the height, so a height that is off (a rig
+    file's guessed z) moves the far lines out of the cost's reach and can make a wrong
+    offset win (one that lays wall junctions and seams on the site's seams and lamp
+    edges). With ``fit_height`` the search is over both: a coarse grid of ``my`` (1 cm)
+    by ``h`` (0.6-1.6 times the start, 2 % steps), then a fine one around the best.
+    """
     site_y = np.asarray(site.corridor.lines_along_m, dtype=float)
-    grid = np.arange(-1.5, 1.5001, 0.005)
-    cost = np.zeros(grid.size)
-    for p in placements:
-        if not p.measured or p.segments_n.shape[0] == 0:
-            continue
-        R = _rotation(vals["pan"], vals["tilt"], vals["swing"], p.yaw_rad)
-        c_y = p.y_m + math.sin(p.yaw_rad) * vals["mx"] + math.cos(p.yaw_rad) * grid
-        cost += _lateral_costs(p, R, c_y, vals["h"], site_y, f_px)
-    return float(grid[int(np.argmin(cost))])
+    use = [p for p in placements if p.measured and p.segments_n.shape[0]]
+    rots = [_rotation(vals["pan"], vals["tilt"], vals["swing"], p.yaw_rad) for p in use]
+
+    def best(grid: np.ndarray, heights: np.ndarray) -> tuple[float, float]:
+        costs = np.zeros((heights.size, grid.size))
+        for p, R in zip(use, rots, strict=True):
+            c_y = p.y_m + math.sin(p.yaw_rad) * vals["mx"] + math.cos(p.yaw_rad) * grid
+            for i, h in enumerate(heights):
+                costs[i] += _lateral_costs(p, R, c_y, float(h), site_y, f_px)
+        i, j = np.unravel_index(int(np.argmin(costs)), costs.shape)
+        return float(grid[j]), float(heights[i])
+
+    h0 = vals["h"]
+    if not fit_height:
+        return best(np.arange(-1.5, 1.5001, 0.005), np.array([h0]))[0], h0
+    my, h = best(np.arange(-1.5, 1.5001, 0.01), h0 * 1.02 ** np.arange(-26, 24))
+    return best(my + np.arange(-0.015, 0.0151, 0.001), h * (1.0 + np.arange(-0.03, 0.0301,
+                                                                             0.003)))
 
 
 def _shift_covariance(prob: _Problem, theta: np.ndarray, J: np.ndarray,

@@ -353,7 +353,8 @@ def _vertex(y0: np.ndarray, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
 
 def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
                        n_along: int = 8, half_width_px: float = 4.0, min_step: float = 20.0,
-                       min_depth: float = 8.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       min_depth: float = 8.0, retry_half_width_px: float | None = 6.0
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel segments fitted in undistorted coordinates, with their edge kind.
 
     A straight ceiling line is straight only after undistortion: a detector's segment
@@ -365,8 +366,11 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     ``half_width_px - 1`` px of the segment; the points are undistorted and a
     total-least-squares line is fitted to them (one pass dropping points over
     3 sigma, at least 0.5 px). The endpoints are the undistorted detector endpoints
-    projected onto that line. A segment of unclear kind, or with fewer than 4
-    located points, keeps its undistorted endpoints.
+    projected onto that line. A segment of unclear kind is looked at again over
+    ``retry_half_width_px`` (None: not): a detector's segment on one edge of a blurred
+    seam sits 1-2 px off the seam's middle, and the seam then reaches past one side of
+    the narrow profile, which is neither a step nor a thin line there. A segment still
+    unclear, or with fewer than 4 located points, keeps its undistorted endpoints.
 
     Args:
         camera: the intrinsics (``camera.unproject``).
@@ -463,6 +467,13 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     dist = e[:, :, 0] * ln[:, 0, None] + e[:, :, 1] * ln[:, 1, None] + ln[:, 2, None]
     ends[idx] = (e - dist[:, :, None] * ln[:, None, :2]).reshape(-1, 4)
     rms[idx] = f * np.sqrt(ssr[ok] / cnt[ok])
+    unclear = np.flatnonzero(np.isnan(pol))
+    if unclear.size and retry_half_width_px is not None \
+            and retry_half_width_px > half_width_px:
+        e2, p2, r2 = refine_undistorted(camera, gray, s[unclear], n_along,
+                                        retry_half_width_px, min_step, min_depth, None)
+        now = np.isfinite(p2)
+        ends[unclear[now]], pol[unclear[now]], rms[unclear[now]] = e2[now], p2[now], r2[now]
     return ends, pol, rms
 
 

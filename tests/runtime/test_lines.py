@@ -174,6 +174,28 @@ def test_refine_undistorted_straightens_a_distorted_line():
     assert e.shape == (0, 4) and p.shape == (0,) and r.shape == (0,)
 
 
+def test_segment_on_one_edge_of_a_blurred_seam_is_found_a_thin_line():
+    """A 2 px seam 60 grey levels dark, blurred by 1.5 px: a detector's segment on one of
+    its edges (2 px off the middle) sees the seam reach past one side of the +-4 px
+    profile: neither a step nor a thin line there. The second look over +-6 px finds
+    the thin line and its middle."""
+    cam = CameraModel.pinhole(160, 120, 150.0)
+    s = 8
+    v, u = np.mgrid[0:120 * s, 0:160 * s]
+    u = (u + 0.5) / s - 0.5
+    img = np.where(np.abs(u - 80.0) <= 1.0, 130.0, 190.0)          # the seam: u = 80
+    img = cv2.resize(img, (160, 120), interpolation=cv2.INTER_AREA)
+    img = cv2.GaussianBlur(img, (0, 0), 1.5) + np.random.default_rng(5).normal(0, 2, img.shape)
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    seg = np.array([[82.0, 15.0, 82.0, 105.0]])                     # beside its right edge
+    _, pol_narrow, rms_narrow = refine_undistorted(cam, img, seg, retry_half_width_px=None)
+    assert np.isnan(pol_narrow[0]) and np.isnan(rms_narrow[0])
+    segs_n, pol, rms = refine_undistorted(cam, img, seg)
+    assert pol[0] == 0.0
+    u_fit = cam.fx * segs_n[0, [0, 2]] + cam.cx                      # back to pixels
+    assert np.all(np.abs(u_fit - 80.0) < 0.1) and rms[0] < 0.3
+
+
 def test_unproject_fast_matches_unproject():
     cam = CameraModel.pinhole(640, 480, 400.0, dist=[-0.08, 0.02, 0.001, -0.001, 0])
     px = np.random.default_rng(0).uniform([-0.5, -0.5], [639.5, 479.5], (200, 2))
