@@ -20,9 +20,11 @@ Pipeline per frame:
    poses are verified by counting inliers (and map lights that should be seen but are
    not), refined, and ranked. When the runner-up is a genuinely different pose with
    nearly the same support (a regular grid), the frame is ``ambiguous``.
-4. :func:`refine_pose` minimizes the reprojection error in pixels (Gauss-Newton over
-   ``x, y, yaw`` through the distorted projection); the covariance is
-   ``s² (JᵀJ)⁻¹`` with ``s`` the pixel residual.
+4. :func:`refine_pose_ceiling` minimizes the pixel residuals (Gauss-Newton over
+   ``x, y, yaw``), linearized at the observations through each spot's pixel Jacobian:
+   the same pose as :func:`refine_pose`, which reprojects through the distorted lens
+   at every step (kept as the reference); the covariance is ``s² (JᵀJ)⁻¹`` with ``s``
+   the pixel residual.
 
 Example::
 
@@ -182,11 +184,6 @@ def fit_rigid_2d(q: np.ndarray, p: np.ndarray, w: np.ndarray | None = None
     c, s = math.cos(yaw), math.sin(yaw)
     t = pm - np.array([c * qm[0] - s * qm[1], s * qm[0] + c * qm[1]])
     return yaw, t
-
-
-def _transform(q: np.ndarray, yaw: float, t: np.ndarray) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.stack([c * q[:, 0] - s * q[:, 1] + t[0], s * q[:, 0] + c * q[:, 1] + t[1]], 1)
 
 
 # ------------------------------------------------------------------------ matching
