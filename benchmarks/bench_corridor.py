@@ -17,7 +17,7 @@ same frames, measured in the same run, is printed for scale.
 
 The 640x480 frames are also written as a SPEC recording by
 ``ceilkit.calib.simulate.simulate_recording`` (PNG frames, ``truth.csv``) and read
-back with ``ceilkit.runtime.recording.Recording``, as data from outside the project
+back with ``ceilkit.runtime.io.recording.Recording``, as data from outside the project
 would be; ``--recording DIR`` runs on an existing recording (with ``truth.csv``)
 instead.
 
@@ -37,13 +37,13 @@ import cv2
 import numpy as np
 
 from ceilkit.calib.simulate import simulate_recording
-from ceilkit.runtime.corridor import CorridorEstimator, visible_along_lines
-from ceilkit.runtime.lines import as_gray
-from ceilkit.runtime.paper_corridor import PaperCorridorEstimator
-from ceilkit.runtime.recording import Recording
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimOptions, Trajectory, render_frame
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.corridor.estimator import CorridorEstimator, visible_along_lines
+from ceilkit.runtime.estimators.paper_corridor import PaperCorridorEstimator
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.io.recording import Recording
+from ceilkit.runtime.sim.render import SimOptions, Trajectory, render_frame
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "corridor"
 
@@ -91,7 +91,7 @@ def fld_ms(est: CorridorEstimator, frames, repeat: int) -> float:
     """Median ms of the line detector alone on ``frames`` (for scale)."""
     out = []
     for *_, img in frames[:3] + frames:
-        g = as_gray(img)
+        g = to_grey(img)
         out.append(timed(lambda g=g: est.detector(g), repeat)[1])
     return 1e3 * float(np.median(out[3:]))
 

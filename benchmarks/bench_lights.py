@@ -35,13 +35,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ceilkit.runtime.lights import LightsEstimator, project_lights
-from ceilkit.runtime.paper_lights import PaperLightsEstimator
-from ceilkit.runtime.recording import Recording, RecordingWriter
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimOptions, render_frame
-from ceilkit.runtime.site import Site
-from ceilkit.runtime.sources import Frame
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.lights.estimator import LightsEstimator, project_lights
+from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator
+from ceilkit.runtime.io.recording import Recording, RecordingWriter
+from ceilkit.runtime.io.sources import Frame
+from ceilkit.runtime.sim.render import SimOptions, render_frame
 
 VIEW_DEG = 75.0   # beyond this a 8 cm light is a few pixels of streak (1 px ~ 16 cm)
 CONFIG = Path(__file__).resolve().parent.parent / "configs" / "lights"

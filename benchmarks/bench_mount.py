@@ -34,10 +34,10 @@ from ceilkit.calib.mount import SYSTEMATIC_SHIFT_PX, calibrate_mount, placement_
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app as ceilcal
 from ceilkit.cli.ceilrun import app as ceilrun
-from ceilkit.runtime.recording import Recording, load_poses
-from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.sim import SimOptions, Trajectory, render_frame, straight_drive
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.io.recording import Recording, load_poses
+from ceilkit.runtime.sim.render import SimOptions, Trajectory, render_frame, straight_drive
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "corridor"
 PLACES = [(0.0, 0.0), (0.3, 0.0), (-0.3, 0.0), (0.1, 10.0), (-0.1, -12.0)]

@@ -39,16 +39,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ceilkit.runtime.capture import CameraSource, FakeCamera
-from ceilkit.runtime.link import SerialLink
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.io.capture import CameraSource, FakeCamera
+from ceilkit.runtime.io.link import SerialLink
+from ceilkit.runtime.io.recording import PoseWriter, RecordingWriter
 from ceilkit.runtime.live import run_live
-from ceilkit.runtime.methods import make_estimator
 from ceilkit.runtime.pipeline import Pipeline, PoseFileSink
-from ceilkit.runtime.recording import PoseWriter, RecordingWriter
 from ceilkit.runtime.replay import replay
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimSource, straight_drive
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.sim.render import SimSource, straight_drive
 from ceilkit.runtime.tracking import Tracker
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -175,7 +175,7 @@ def soak(frames: int, method: str | None, recording: Path) -> None:
                 sys.stdout.write(f"\r  {done}/{total} frames, RSS {rss_mb():.1f} MB")
                 sys.stdout.flush()
 
-        from ceilkit.runtime.link import FileLink
+        from ceilkit.runtime.io.link import FileLink
 
         t = time.perf_counter()
         with FileLink(tmp / "out.nmea", "nmea", append=False) as link:

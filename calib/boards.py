@@ -15,7 +15,7 @@ the top-left pixel.
 
 A detection is a :class:`Detection`: the corner ids, their pixels and their board
 coordinates. :func:`render_board` draws a board seen through a known pose and a
-known :class:`~ceilkit.runtime.camera.CameraModel`, by inverse mapping (pixel ray ->
+known :class:`~ceilkit.runtime.geometry.camera.CameraModel`, by inverse mapping (pixel ray ->
 board plane -> board texture) with supersampling, so the true corner pixels are the
 exact projections of the board corners.
 
@@ -34,9 +34,9 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from ceilkit.runtime.camera import CameraModel
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.sources import to_grey
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.geometry.camera import CameraModel
 
 ARUCO_DICTIONARIES = tuple(n[5:] for n in dir(cv2.aruco) if n.startswith("DICT_"))
 MIN_CHARUCO_CORNERS = 6

@@ -24,7 +24,7 @@ Example::
     views = detect_images(sorted(Path("shots").glob("*.png")), board)
     result = calibrate_intrinsics(views, model="plumb_bob")
     print(result.report.text())
-    result.camera.save("camera.yaml")
+    save_camera(result.camera, "camera.yaml")
 """
 
 from __future__ import annotations
@@ -38,10 +38,11 @@ from typing import TextIO
 import cv2
 import numpy as np
 
-from ceilkit.runtime.camera import DISTORTION_MODELS, CameraModel
-from ceilkit.runtime.config import atomic_write_bytes
+from ceilkit.runtime.config.yaml import atomic_write_bytes
 from ceilkit.runtime.errors import CalibrationError, CaptureError, ConfigError
-from ceilkit.runtime.sources import FrameSource, to_grey
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.geometry.camera import DISTORTION_MODELS, CameraModel
+from ceilkit.runtime.io.sources import FrameSource
 
 from .boards import Board, CharucoBoard, ChessBoard, Detection
 

@@ -42,12 +42,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import CalibrationError
-from ceilkit.runtime.geometry import R_level_cam, rot_z
-from ceilkit.runtime.lines import SegmentDetector, as_gray, segment_lengths
-from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.features.lines import SegmentDetector, segment_lengths
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z
 
 PARAMS = ("pan", "tilt", "swing", "mx", "my", "h")
 _ANGLES = {"pan", "tilt", "swing"}
@@ -88,7 +89,7 @@ def placement_from_image(camera: CameraModel, image: np.ndarray, y_m: float | No
                          yaw_rad: float | None = None, label: str = "",
                          min_length_px: float = 25.0) -> Placement:
     """Detect the segments of one image and measure them (:func:`measure_lines`)."""
-    gray = as_gray(image)
+    gray = to_grey(image)
     segs = SegmentDetector("fld", min_length_px)(gray)
     segs_n, weights = lines_to_segments(measure_lines(camera, gray, segs))
     return Placement(segs_n, y_m, yaw_rad, label, weights)
@@ -903,8 +904,8 @@ def calibrate_tilt_swing(rig: Rig, drive: Sequence[Placement]) -> tuple[float, f
     f_px = 0.5 * (rig.camera.fx + rig.camera.fy)
     _, tilt, swing = _coarse_angles(frames, f_px, {"pan": 0.0})
     vals = {"pan": 0.0, "tilt": tilt, "swing": swing, "mx": 0.0, "my": 0.0, "h": 1.0}
-    from ceilkit.runtime.site import Corridor
-    from ceilkit.runtime.site import Site as _Site
+    from ceilkit.runtime.config.site import Corridor
+    from ceilkit.runtime.config.site import Site as _Site
 
     dummy = _Site(1.0, Corridor((0.0,)))
     prob = _Problem(frames, dummy, vals, ["tilt", "swing"], f_px)
@@ -943,9 +944,9 @@ def load_placements(source: str | Path, camera: CameraModel, max_frames: int = 0
     A recording folder: every frame with a truth row (at most ``max_frames``, spread
     evenly) is a placement.
     """
-    from ceilkit.runtime.config import load_yaml
+    from ceilkit.runtime.config.yaml import load_yaml
     from ceilkit.runtime.errors import ConfigError
-    from ceilkit.runtime.recording import Recording
+    from ceilkit.runtime.io.recording import Recording
 
     source = Path(source)
     out: list[Placement] = []
@@ -982,8 +983,8 @@ def load_placements(source: str | Path, camera: CameraModel, max_frames: int = 0
 def load_drive(source: str | Path, camera: CameraModel, max_frames: int = 30
                ) -> list[Placement]:
     """Unmeasured drive frames from a recording or an image folder (truth ignored)."""
-    from ceilkit.runtime.capture import ImageFolderSource
-    from ceilkit.runtime.recording import Recording
+    from ceilkit.runtime.io.capture import ImageFolderSource
+    from ceilkit.runtime.io.recording import Recording
 
     source = Path(source)
     src = Recording(source) if (source / "frames.csv").exists() else \

@@ -2,7 +2,7 @@
 
 The library function behind ``ceilcal simulate``: a SPEC recording (``frames/``,
 ``frames.csv``, ``rig.yaml``, ``site.yaml``) plus ``truth.csv`` holding the vehicle
-pose of every frame, written with :class:`ceilkit.runtime.recording.RecordingWriter`.
+pose of every frame, written with :class:`ceilkit.runtime.io.recording.RecordingWriter`.
 
 Example::
 
@@ -15,11 +15,11 @@ from __future__ import annotations
 from dataclasses import fields
 from pathlib import Path
 
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.recording import RecordingWriter
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimOptions, SimSource, Trajectory
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.io.recording import RecordingWriter
+from ceilkit.runtime.sim.render import SimOptions, SimSource, Trajectory
 
 
 def _header(trajectory: Trajectory, options: SimOptions, seed: int) -> str:

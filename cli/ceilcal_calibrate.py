@@ -17,6 +17,7 @@ from ceilkit.calib.intrinsics import (
     detect_images,
     image_files,
 )
+from ceilkit.runtime.config.camera import save_camera
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.replay import replay
 
@@ -56,7 +57,7 @@ def register(app: typer.Typer) -> None:
             header = provenance_header("camera intrinsics by ceilcal calibrate",
                                        [f"inputs: {boards} ({len(files)} images)"]
                                        + result.report.summary_lines())
-            result.camera.save(cam_path, header)
+            save_camera(result.camera, cam_path, header)
             for line in result.report.summary_lines():
                 typer.echo("  " + line)
         else:

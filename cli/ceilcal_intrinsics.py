@@ -26,9 +26,10 @@ from ceilkit.calib.intrinsics import (
     image_files,
     write_plots,
 )
-from ceilkit.runtime.camera import DISTORTION_MODELS
-from ceilkit.runtime.capture import open_video
+from ceilkit.runtime.config.camera import save_camera
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry.camera import DISTORTION_MODELS
+from ceilkit.runtime.io.capture import open_video
 
 from .common import provenance_header
 
@@ -108,7 +109,7 @@ def register(app: typer.Typer) -> None:
         header = provenance_header(
             "camera intrinsics by ceilcal intrinsics",
             [f"inputs: {inputs}", f"board: {b.spec}, square {square:g} m"] + rep.summary_lines())
-        result.camera.save(out, header)
+        save_camera(result.camera, out, header)
         typer.echo(rep.text())
         typer.echo(f"wrote {out}")
         if plots is not None:

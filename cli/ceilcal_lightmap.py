@@ -33,9 +33,9 @@ from ceilkit.calib.lightmap import (
     survey_lights,
     write_site,
 )
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.recording import Recording
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.io.recording import Recording
 
 from .common import provenance_header
 

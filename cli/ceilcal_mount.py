@@ -15,10 +15,10 @@ from ceilkit.calib.mount import (
     load_drive,
     load_placements,
 )
-from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.config.camera import load_camera
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.site import Site
 
 from .common import provenance_header
 
@@ -33,7 +33,7 @@ def run_mount(placements: Path, site_path: Path, out: Path, rig_path: Path | Non
         rig = Rig.load(rig_path)
         camera_ref = rig.camera_file
     else:
-        rig = Rig(CameraModel.load(camera_path), Mount(z_m=0.5))
+        rig = Rig(load_camera(camera_path), Mount(z_m=0.5))
         camera_ref = str(camera_path)
     site = Site.load(site_path)
     fixed = list(fix or [])

@@ -11,16 +11,16 @@ import numpy as np
 import typer
 
 from ceilkit.calib.simulate import simulate_recording
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import (
+from ceilkit.runtime.sim.render import (
     SimOptions,
     Trajectory,
     load_trajectory,
     random_poses,
     straight_drive,
 )
-from ceilkit.runtime.site import Site
 
 
 def default_config(name: str) -> Path:

@@ -19,15 +19,15 @@ from pathlib import Path
 
 import typer
 
-from ceilkit.runtime.capture import open_source, packaged_config
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site, check_rig_site
+from ceilkit.runtime.devices import open_source, packaged_config
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.methods import METHOD_NAMES, make_estimator
+from ceilkit.runtime.estimators.registry import METHOD_NAMES, make_estimator
+from ceilkit.runtime.io.recording import PoseWriter, RecordingWriter
 from ceilkit.runtime.metrics import AccuracyMeter, MeterSink, source_truth
 from ceilkit.runtime.pipeline import Pipeline, PoseFileSink
-from ceilkit.runtime.recording import PoseWriter, RecordingWriter
 from ceilkit.runtime.replay import replay as run_replay
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.site import Site, check_rig_site
 from ceilkit.runtime.tracking import Tracker
 
 from .common import make_app, quiet_opencv
@@ -62,7 +62,7 @@ def _setup_logging() -> None:
 def _parse_origin(text: str | None):
     if text is None:
         return None
-    from ceilkit.runtime.link.mavlink import GeoOrigin
+    from ceilkit.runtime.io.link.mavlink import GeoOrigin
 
     try:
         lat, lon, alt = (float(v) for v in text.split(","))
@@ -128,7 +128,7 @@ def _open_link(serial: str | None, protocol: Protocol, baud: int, sysid: int, co
                missing_x: MissingX = MissingX.skip, origin=None):
     if serial is None:
         return contextlib.nullcontext(None)
-    from ceilkit.runtime.link.transport import open_link
+    from ceilkit.runtime.io.link.transport import open_link
 
     return open_link(serial, protocol=protocol.value, baud=baud, system_id=sysid,
                      component_id=compid, unobserved=missing_x.value, origin=origin)

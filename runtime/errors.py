@@ -5,7 +5,7 @@ open) is a :class:`CeilkitError`; the command lines catch only these, print one
 line on stderr and exit 1. Anything else is a bug and keeps its traceback.
 
 A frame on which a method cannot estimate is *not* an error: it is a
-:class:`ceilkit.runtime.estimate.Failure` value.
+:class:`ceilkit.runtime.estimators.base.Failure` value.
 """
 
 from __future__ import annotations

@@ -26,9 +26,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .pipeline import Pipeline, Telemetry
-from .recording import RecordingWriter
-from .sources import Frame, SourceBase
+from ceilkit.runtime.io.recording import RecordingWriter
+from ceilkit.runtime.io.sources import Frame, SourceBase
+from ceilkit.runtime.pipeline import Pipeline, Telemetry
 
 log = logging.getLogger("ceilkit.live")
 

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .estimate import Estimate, PoseEstimate
-from .geometry import wrap_pi
-from .recording import Truth
+from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
+from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.io.recording import Truth
 
 
 @dataclass(frozen=True)

@@ -16,11 +16,11 @@ from typing import Protocol
 
 import numpy as np
 
-from .estimate import Estimate, PoseEstimate
-from .methods import Estimator
-from .recording import PoseWriter
-from .sources import Frame
-from .tracking import Tracker
+from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
+from ceilkit.runtime.estimators.registry import Estimator
+from ceilkit.runtime.io.recording import PoseWriter
+from ceilkit.runtime.io.sources import Frame
+from ceilkit.runtime.tracking import Tracker
 
 
 class PoseSink(Protocol):

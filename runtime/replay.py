@@ -15,13 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .methods import make_estimator
-from .metrics import Accuracy, AccuracyMeter
-from .pipeline import Pipeline, PoseFileSink, PoseSink, Telemetry
-from .recording import PoseWriter, Recording
-from .rig import Rig
-from .site import Site, check_rig_site
-from .tracking import Tracker
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site, check_rig_site
+from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.io.recording import PoseWriter, Recording
+from ceilkit.runtime.metrics import Accuracy, AccuracyMeter
+from ceilkit.runtime.pipeline import Pipeline, PoseFileSink, PoseSink, Telemetry
+from ceilkit.runtime.tracking import Tracker
 
 
 @dataclass(frozen=True, eq=False)

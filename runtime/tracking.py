@@ -21,8 +21,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from .estimate import Estimate, Failure, PoseEstimate
-from .geometry import wrap_pi
+from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
+from ceilkit.runtime.geometry.rotations import wrap_pi
 
 
 @dataclass(frozen=True)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
 from helpers import CONFIGS
 
 

@@ -13,8 +13,8 @@ from ceilkit.calib.boards import (
     parse_board,
     render_board,
 )
-from ceilkit.runtime.camera import CameraModel
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry.camera import CameraModel
 
 CAM = CameraModel.pinhole(640, 480, fx=500.0, dist=[-0.2, 0.05, 0.001, -0.0005, 0.0])
 

@@ -22,10 +22,11 @@ from ceilkit.calib.intrinsics import (
     image_files,
     write_plots,
 )
-from ceilkit.runtime.camera import CameraModel
-from ceilkit.runtime.capture import open_video
+from ceilkit.runtime.config.camera import load_camera, save_camera
 from ceilkit.runtime.errors import CalibrationError, ConfigError
-from ceilkit.runtime.sources import Frame, ListSource
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.io.capture import open_video
+from ceilkit.runtime.io.sources import Frame, ListSource
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "opencv_left"
 K_TRUE = np.array([[500.0, 0.0, 322.3], [0.0, 502.0, 236.8], [0.0, 0.0, 1.0]])
@@ -237,8 +238,8 @@ def test_write_plots(tmp_path):
 
 def test_camera_round_trip(tmp_path):
     res = calibrate_intrinsics(detections(CHESS, PLUMB, 1))
-    res.camera.save(tmp_path / "camera.yaml", "# test\n")
-    back = CameraModel.load(tmp_path / "camera.yaml")
+    save_camera(res.camera, tmp_path / "camera.yaml", "# test\n")
+    back = load_camera(tmp_path / "camera.yaml")
     np.testing.assert_allclose(back.K, res.camera.K)
     np.testing.assert_allclose(back.dist, res.camera.dist)
 

@@ -19,17 +19,17 @@ from ceilkit.calib.lightmap import (
 )
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import CalibrationError, ConfigError
-from ceilkit.runtime.recording import Recording
-from ceilkit.runtime.sim import SimOptions, Trajectory, random_poses
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.io.recording import Recording
+from ceilkit.runtime.sim.render import SimOptions, Trajectory, random_poses
 
 OPTS = SimOptions(noise_sigma=2.0, blur_px=0.8, light_radius_m=0.08, supersample=2)
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory, request):
-    from ceilkit.runtime.rig import Rig
+    from ceilkit.runtime.config.rig import Rig
     from helpers import CONFIGS
 
     rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
@@ -142,7 +142,7 @@ def chain_trajectory(n: int = 28) -> Trajectory:
 
 @pytest.fixture(scope="module")
 def chain_rec(tmp_path_factory):
-    from ceilkit.runtime.rig import Rig
+    from ceilkit.runtime.config.rig import Rig
     from helpers import CONFIGS
 
     rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
@@ -221,7 +221,7 @@ def test_chain_points_errors_no_overlap_and_unseen_light():
 
 
 def _lights_rig_site():
-    from ceilkit.runtime.rig import Rig
+    from ceilkit.runtime.config.rig import Rig
     from helpers import CONFIGS
 
     return (Rig.load(CONFIGS / "lights" / "rig.yaml"),
@@ -231,7 +231,7 @@ def _lights_rig_site():
 def _synthetic_drive(rig, site, rng, sigma_px: float = 0.1):
     """Per-frame ceiling points of the true lights seen along chain_trajectory(), from
     pixels with Gaussian noise ``sigma_px`` (no images, no bias)."""
-    from ceilkit.runtime.lights import (
+    from ceilkit.runtime.estimators.lights.estimator import (
         ceiling_points,
         interp_grid,
         jacobian_grid,

@@ -13,11 +13,11 @@ from ceilkit.calib.mount import (
     measure_lines,
     placement_from_image,
 )
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import CalibrationError
-from ceilkit.runtime.lines import SegmentDetector
-from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.sim import SimOptions, render_frame
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.features.lines import SegmentDetector
+from ceilkit.runtime.sim.render import SimOptions, render_frame
 from helpers import CONFIGS
 
 PLACES = [(0.0, 0.0), (0.3, 0.0), (-0.3, 0.0), (0.1, 10.0), (-0.1, -12.0)]

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from ceilkit.calib.simulate import simulate_recording
+from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.recording import Recording
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimOptions, SimSource, straight_drive
+from ceilkit.runtime.io.recording import Recording
+from ceilkit.runtime.sim.render import SimOptions, SimSource, straight_drive
 
 
 def test_simulate_recording_round_trip(tmp_path, corridor_rig, corridor_site):

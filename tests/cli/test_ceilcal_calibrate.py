@@ -12,9 +12,9 @@ from ceilkit.calib.boards import parse_board, render_views
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
 from ceilkit.cli.ceilrun import app as ceilrun
-from ceilkit.runtime.recording import Recording, load_poses
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimOptions, Trajectory, straight_drive
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.io.recording import Recording, load_poses
+from ceilkit.runtime.sim.render import SimOptions, Trajectory, straight_drive
 from helpers import CONFIGS
 
 

@@ -9,7 +9,8 @@ from typer.testing import CliRunner
 
 from ceilkit.calib.boards import ChessBoard, render_views
 from ceilkit.cli.ceilcal import app
-from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.config.camera import load_camera
+from ceilkit.runtime.geometry.camera import CameraModel
 
 CAM = CameraModel(640, 480, np.array([[500.0, 0, 322.3], [0, 502.0, 236.8], [0, 0, 1]]),
                   [-0.25, 0.08, 0.001, -0.0008, 0.0], "plumb_bob")
@@ -32,7 +33,7 @@ def test_writes_camera_with_provenance_and_plots(folder, tmp_path):
     assert r.exit_code == 0, r.output
     text = out.read_text()
     assert "# command:" in text and "RMS" in text and "1 sigma" in text
-    cam = CameraModel.load(out)
+    cam = load_camera(out)
     assert abs(cam.fx / CAM.fx - 1) < 0.005
     assert (tmp_path / "plots" / "distortion.png").is_file()
     assert (tmp_path / ".camera.detections.npz").is_file()

@@ -9,10 +9,10 @@ from typer.testing import CliRunner
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
 from ceilkit.cli.ceilcal_lightmap import parse_xy
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimOptions, Trajectory
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.sim.render import SimOptions, Trajectory
 from helpers import CONFIGS
 
 A = (2.505, 0.064)     # configs/lights: the drive starts under this light

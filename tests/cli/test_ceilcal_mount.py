@@ -7,8 +7,8 @@ from typer.testing import CliRunner
 
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sim import SimOptions, Trajectory
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.sim.render import SimOptions, Trajectory
 from helpers import CONFIGS
 
 

@@ -9,8 +9,8 @@ from typer.testing import CliRunner
 from ceilkit.cli import ceilcal_simulate
 from ceilkit.cli.ceilcal import app
 from ceilkit.cli.common import make_app
-from ceilkit.runtime.recording import TRUTH_HEADER, Recording
-from ceilkit.runtime.rig import Rig
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.io.recording import TRUTH_HEADER, Recording
 from helpers import CONFIGS
 
 runner = CliRunner()

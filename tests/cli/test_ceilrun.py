@@ -11,8 +11,8 @@ import pytest
 from typer.testing import CliRunner
 
 from ceilkit.cli.ceilrun import app
-from ceilkit.runtime.link import mavlink
-from ceilkit.runtime.recording import Recording, load_poses
+from ceilkit.runtime.io.link import mavlink
+from ceilkit.runtime.io.recording import Recording, load_poses
 from helpers import FIXTURES
 
 GOLDEN = FIXTURES / "golden"

@@ -22,8 +22,8 @@ from pathlib import Path
 import pynmea2
 import pytest
 
-from ceilkit.runtime.link import nmea
-from ceilkit.runtime.recording import Recording, load_poses
+from ceilkit.runtime.io.link import nmea
+from ceilkit.runtime.io.recording import Recording, load_poses
 from helpers import FIXTURES, ROOT
 
 REC = FIXTURES / "corridor_rec"
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import cv2
 
-import ceilkit.runtime.capture as capture
+import ceilkit.runtime.io.capture as capture
 
 control = Path(sys.argv[1])
 frames = sorted((Path(sys.argv[2]) / "frames").glob("*.png"))

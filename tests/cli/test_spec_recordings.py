@@ -20,10 +20,10 @@ import pytest
 from typer.testing import CliRunner
 
 from ceilkit.cli.ceilrun import app
-from ceilkit.runtime.recording import load_poses
-from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.sim import SimOptions, render_frame
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.io.recording import load_poses
+from ceilkit.runtime.sim.render import SimOptions, render_frame
 from helpers import CONFIGS
 
 runner = CliRunner()

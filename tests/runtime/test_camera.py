@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.config.camera import load_camera, save_camera
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry.camera import CameraModel
 
 MODELS = [
     ("plumb_bob", [-0.25, 0.08, 0.001, -0.0005, -0.01]),
@@ -34,8 +35,8 @@ def test_project_unproject_round_trip(model, dist):
 def test_save_load_round_trip(tmp_path, model, dist):
     cam = CameraModel.pinhole(800, 600, fx=410.0, fy=412.0, cx=401.0, cy=297.5, dist=dist,
                               model=model, name="cam0")
-    cam.save(tmp_path / "camera.yaml", header="# test\n")
-    back = CameraModel.load(tmp_path / "camera.yaml")
+    save_camera(cam, tmp_path / "camera.yaml", header="# test\n")
+    back = load_camera(tmp_path / "camera.yaml")
     assert back.model == model and back.name == "cam0" and back.size == (800, 600)
     assert np.array_equal(back.K, cam.K) and np.array_equal(back.dist, cam.dist)
     assert np.array_equal(back.P, cam.P)
@@ -76,7 +77,7 @@ def test_bad_camera_files_name_file_and_key(tmp_path, old, new, key, words):
     assert old in GOOD
     path.write_text(GOOD.replace(old, new))
     with pytest.raises(ConfigError) as err:
-        CameraModel.load(path)
+        load_camera(path)
     msg = str(err.value)
     assert str(path) in msg and key in msg and words in msg
     assert "\n" not in msg
@@ -84,13 +85,13 @@ def test_bad_camera_files_name_file_and_key(tmp_path, old, new, key, words):
 
 def test_missing_and_invalid_yaml(tmp_path):
     with pytest.raises(ConfigError, match="file not found"):
-        CameraModel.load(tmp_path / "nope.yaml")
+        load_camera(tmp_path / "nope.yaml")
     (tmp_path / "bad.yaml").write_text("image_width: [640\n")
     with pytest.raises(ConfigError, match="invalid YAML at line"):
-        CameraModel.load(tmp_path / "bad.yaml")
+        load_camera(tmp_path / "bad.yaml")
     (tmp_path / "missing.yaml").write_text(GOOD.replace("image_height: 480\n", ""))
     with pytest.raises(ConfigError, match="image_height: missing required key"):
-        CameraModel.load(tmp_path / "missing.yaml")
+        load_camera(tmp_path / "missing.yaml")
 
 
 # What ROS camera_calibration writes (its `ost.yaml`): block style, the 8 keys, numbers
@@ -124,13 +125,13 @@ projection_matrix:
 def test_reads_ros_camera_calibration_output(tmp_path):
     path = tmp_path / "ost.yaml"
     path.write_text(ROS_OST.replace("\n", "\r\n"))           # a Windows copy, too
-    cam = CameraModel.load(path)
+    cam = load_camera(path)
     assert cam.size == (640, 480) and cam.name == "narrow_stereo/left"
     assert cam.model == "plumb_bob" and cam.fx == 402.13 and cam.cy == 238.6
     np.testing.assert_array_equal(cam.dist, [-0.081, 0.019, 0.0004, -0.0003, 0.0])
     assert cam.P[0, 0] == 395.2                 # kept for round trips, not used
-    cam.save(tmp_path / "back.yaml")
-    back = CameraModel.load(tmp_path / "back.yaml")
+    save_camera(cam, tmp_path / "back.yaml")
+    back = load_camera(tmp_path / "back.yaml")
     np.testing.assert_array_equal(back.P, cam.P)
     np.testing.assert_array_equal(back.K, cam.K)
 
@@ -146,11 +147,11 @@ def test_old_ros_files_without_distortion_model(tmp_path, coeffs, model):
         "cols: 5\n  data: [-0.081000, 0.019000, 0.000400, -0.000300, 0.000000]",
         f"cols: {coeffs.count(',') + 1}\n  data: {coeffs}")
     (tmp_path / "c.yaml").write_text(text)
-    assert CameraModel.load(tmp_path / "c.yaml").model == model
+    assert load_camera(tmp_path / "c.yaml").model == model
     (tmp_path / "d.yaml").write_text(text.replace(coeffs, "[0.1, 0.0, 0.0, 0.0]")
                                      .replace(f"cols: {coeffs.count(',') + 1}", "cols: 4"))
     with pytest.raises(ConfigError, match="distortion_model: missing required key"):
-        CameraModel.load(tmp_path / "d.yaml")
+        load_camera(tmp_path / "d.yaml")
 
 
 @pytest.mark.parametrize("extra,key", [
@@ -161,10 +162,10 @@ def test_old_ros_files_without_distortion_model(tmp_path, coeffs, model):
 def test_unknown_keys_beside_the_ros_ones_are_errors(tmp_path, extra, key):
     (tmp_path / "c.yaml").write_text(ROS_OST + extra)
     with pytest.raises(ConfigError, match=f"{key}: unknown key") as err:
-        CameraModel.load(tmp_path / "c.yaml")
+        load_camera(tmp_path / "c.yaml")
     assert "c.yaml" in str(err.value)
 
 
 def test_numeric_camera_name_is_a_name(tmp_path):
     (tmp_path / "c.yaml").write_text(ROS_OST.replace("narrow_stereo/left", "12345"))
-    assert CameraModel.load(tmp_path / "c.yaml").name == "12345"
+    assert load_camera(tmp_path / "c.yaml").name == "12345"

@@ -4,16 +4,15 @@ import cv2
 import numpy as np
 import pytest
 
-from ceilkit.runtime.capture import (
+from ceilkit.runtime.devices import open_source, packaged_config
+from ceilkit.runtime.errors import CaptureError
+from ceilkit.runtime.io.capture import (
     CameraSource,
     FakeCamera,
     ImageFolderSource,
     VideoFileSource,
-    open_source,
     open_video,
-    packaged_config,
 )
-from ceilkit.runtime.errors import CaptureError
 
 
 class FakeCapture:

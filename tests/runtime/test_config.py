@@ -5,7 +5,7 @@ import stat
 
 import pytest
 
-from ceilkit.runtime.config import atomic_write_bytes, atomic_write_text
+from ceilkit.runtime.config.yaml import atomic_write_bytes, atomic_write_text
 from ceilkit.runtime.errors import ConfigError
 
 

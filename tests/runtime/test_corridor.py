@@ -9,7 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ceilkit.runtime.corridor import (
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Corridor, Site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.estimators.corridor.estimator import (
     CorridorEstimator,
     _gauss,
     _median_finite,
@@ -22,13 +26,9 @@ from ceilkit.runtime.corridor import (
     vanishing_directions,
     visible_along_lines,
 )
-from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.estimate import PoseEstimate
-from ceilkit.runtime.geometry import R_level_cam, rot_z, wrap_pi
-from ceilkit.runtime.lines import fit_line, segment_lines
-from ceilkit.runtime.methods import make_estimator
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.site import Corridor, Site
+from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.features.lines import fit_line, segment_lines
+from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z, wrap_pi
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "corridor"
 
@@ -346,7 +346,7 @@ def test_options_and_site_are_checked(rig, site):
     assert make_estimator("corridor", rig, site).name == "corridor"
 
 
-sim = pytest.importorskip("ceilkit.runtime.sim")
+sim = pytest.importorskip("ceilkit.runtime.sim.render")
 
 
 def test_simulated_frames(rig, site):
@@ -441,7 +441,7 @@ def test_polarity_needs_the_right_kind(rig, site):
 def test_spec_recording_from_outside():
     """The fixture recording (SPEC layout, PNG frames, its own rig.yaml / site.yaml and
     truth.csv, written by `ceilcal simulate`): every frame estimated, within targets."""
-    from ceilkit.runtime.recording import Recording
+    from ceilkit.runtime.io.recording import Recording
     from helpers import FIXTURES
 
     rec = Recording(FIXTURES / "corridor_rec")

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from ceilkit.runtime.geometry import (
+from ceilkit.runtime.geometry.rotations import (
     R0,
     R_level_cam,
     R_vehicle_cam,

@@ -8,10 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.estimate import PoseEstimate
-from ceilkit.runtime.lights import (
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.estimators.lights.estimator import (
     LightsEstimator,
     PatternMatcher,
     ceiling_points,
@@ -23,12 +24,11 @@ from ceilkit.runtime.lights import (
     refine_pose,
     refine_pose_ceiling,
 )
-from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.geometry.camera import CameraModel
 from helpers import CONFIGS
 
 try:  # the project's simulator, when present
-    from ceilkit.runtime.sim import SimOptions, render_frame
+    from ceilkit.runtime.sim.render import SimOptions, render_frame
 except ImportError:  # pragma: no cover - until runtime/sim.py lands
     render_frame = None
 
@@ -254,7 +254,7 @@ def test_bad_options_and_low_ceiling(lights_rig, lights_site):
 
 
 def test_make_estimator_by_name(lights_rig, lights_site):
-    from ceilkit.runtime.methods import make_estimator
+    from ceilkit.runtime.estimators.registry import make_estimator
     assert make_estimator("lights", lights_rig, lights_site).name == "lights"
     assert (CONFIGS / "lights" / "site.yaml").exists()
 
@@ -330,7 +330,7 @@ def test_visibility_table_matches_projection(lights_rig, lights_site, tilted_rig
 
 def test_small_helpers_match_numpy():
     """The plain-float 3x3 solve and the short median give numpy's numbers."""
-    from ceilkit.runtime.lights import _median, _solve3
+    from ceilkit.runtime.estimators.lights.estimator import _median, _solve3
 
     rng = np.random.default_rng(3)
     for _ in range(20):

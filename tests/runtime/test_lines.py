@@ -8,15 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from ceilkit.runtime.camera import CameraModel
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.lines import (
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.features.lines import (
     SegmentDetector,
     _classify_profiles,
     _edge_grid,
     _fit_lines,
     _profile_parts,
-    as_gray,
     detect_segments,
     edge_polarity,
     fit_line,
@@ -30,6 +29,7 @@ from ceilkit.runtime.lines import (
     undistort_segments,
     unproject_fast,
 )
+from ceilkit.runtime.geometry.camera import CameraModel
 
 
 def edge_image(angle_deg: float, offset_px: float, noise: float, seed: int) -> np.ndarray:
@@ -101,7 +101,7 @@ def test_bad_detector_and_colour_input():
     with pytest.raises(ConfigError):
         SegmentDetector("canny")
     bgr = np.zeros((4, 5, 3), np.uint8)
-    assert as_gray(bgr).shape == (4, 5)
+    assert to_grey(bgr).shape == (4, 5)
 
 
 def stripe_image(offset_px: float, width_px: float, seed: int) -> np.ndarray:

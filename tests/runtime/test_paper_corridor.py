@@ -8,18 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ceilkit.runtime.corridor import vanishing_directions
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.geometry import R_level_cam, rot_z
-from ceilkit.runtime.methods import make_estimator
-from ceilkit.runtime.paper_corridor import (
+from ceilkit.runtime.estimators.corridor.estimator import vanishing_directions
+from ceilkit.runtime.estimators.paper_corridor import (
     PaperCorridorEstimator,
     lateral_from_line,
     mean_intersection,
     pan_from_vanishing_line,
 )
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "corridor"
 
@@ -63,7 +63,7 @@ def test_paper_estimator_frames():
     assert est.estimate(np.full((h, w), 255, np.uint8), 3).reason == "saturated_frame"
     with pytest.raises(ConfigError):
         PaperCorridorEstimator(rig, site, nope=1)
-    sim = pytest.importorskip("ceilkit.runtime.sim")
+    sim = pytest.importorskip("ceilkit.runtime.sim.render")
     yaw = math.radians(12.0)
     img = sim.render_frame(rig, site, 0.3, 0.1, yaw, rng=np.random.default_rng(2))
     r = est.estimate(img, 5)

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.lights import project_lights
-from ceilkit.runtime.methods import make_estimator
-from ceilkit.runtime.paper_lights import PaperLightsEstimator, fit_similarity_2d
-from ceilkit.runtime.sim import SimOptions, render_frame
-from ceilkit.runtime.site import Site
+from ceilkit.runtime.estimators.lights.estimator import project_lights
+from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator, fit_similarity_2d
+from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.sim.render import SimOptions, render_frame
 
 
 def test_fit_similarity_recovers_scale_rotation_translation():

@@ -1,9 +1,9 @@
 import numpy as np
 
-from ceilkit.runtime.estimate import Failure, PoseEstimate
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.io.sources import Frame, ListSource
 from ceilkit.runtime.live import run_live
 from ceilkit.runtime.pipeline import ListSink, Pipeline
-from ceilkit.runtime.sources import Frame, ListSource
 
 
 class FakeEstimator:
@@ -43,7 +43,7 @@ def test_pipeline_counts_and_publishes_every_frame():
 
 
 def test_run_live_stops_at_max_frames_and_records(tmp_path, corridor_rig, corridor_site):
-    from ceilkit.runtime.recording import Recording, RecordingWriter
+    from ceilkit.runtime.io.recording import Recording, RecordingWriter
 
     p = Pipeline(FakeEstimator())
     with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site) as rec:
@@ -67,7 +67,7 @@ def test_run_live_stops_on_event():
 
 
 def test_set_fault_reaches_sinks_that_hear_it():
-    from ceilkit.runtime.link import MemoryLink, nmea
+    from ceilkit.runtime.io.link import MemoryLink, nmea
 
     with MemoryLink("nmea") as link:
         p = Pipeline(FakeEstimator(), [ListSink(), link])
@@ -80,8 +80,8 @@ def test_set_fault_reaches_sinks_that_hear_it():
 
 def test_async_recorder_keeps_every_frame_and_reports_errors(tmp_path, corridor_rig,
                                                             corridor_site):
+    from ceilkit.runtime.io.recording import Recording, RecordingWriter
     from ceilkit.runtime.live import AsyncRecorder
-    from ceilkit.runtime.recording import Recording, RecordingWriter
 
     with AsyncRecorder(RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site),
                        max_queue=2) as rec:
@@ -109,9 +109,9 @@ def test_run_live_reports_a_lost_camera_and_records_every_frame(tmp_path, corrid
     frame processed is in the recording."""
     import threading
 
-    from ceilkit.runtime.capture import CameraSource, FakeCamera
-    from ceilkit.runtime.link import MemoryLink, nmea
-    from ceilkit.runtime.recording import Recording, RecordingWriter
+    from ceilkit.runtime.io.capture import CameraSource, FakeCamera
+    from ceilkit.runtime.io.link import MemoryLink, nmea
+    from ceilkit.runtime.io.recording import Recording, RecordingWriter
 
     images = [np.full((4, 4), 2 * k, np.uint8) for k in range(4)]  # even: estimated
     cam = FakeCamera(images, fps=100)

@@ -3,9 +3,10 @@ import math
 import numpy as np
 import pytest
 
+from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.estimate import Failure, PoseEstimate
-from ceilkit.runtime.recording import (
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.io.recording import (
     POSES_HEADER,
     PoseWriter,
     Recording,
@@ -14,8 +15,7 @@ from ceilkit.runtime.recording import (
     load_poses,
     load_truth,
 )
-from ceilkit.runtime.rig import Rig
-from ceilkit.runtime.sources import Frame
+from ceilkit.runtime.io.sources import Frame
 
 
 def _rig(rig, shape=(24, 32)):

@@ -3,9 +3,10 @@ import math
 import numpy as np
 import pytest
 
+from ceilkit.runtime.config.camera import save_camera
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.site import Site, check_rig_site
 from helpers import CONFIGS
 
 
@@ -31,7 +32,7 @@ def test_rig_round_trip_inline_and_by_reference(tmp_path, corridor_rig):
     back = Rig.load(tmp_path / "rig.yaml")
     assert back.mount == corridor_rig.mount
     assert np.array_equal(back.camera.K, corridor_rig.camera.K)
-    corridor_rig.camera.save(tmp_path / "cam.yaml")
+    save_camera(corridor_rig.camera, tmp_path / "cam.yaml")
     corridor_rig.save(tmp_path / "rig2.yaml", camera_ref="cam.yaml")
     assert Rig.load(tmp_path / "rig2.yaml").camera_file == str(tmp_path / "cam.yaml")
 

@@ -8,12 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from ceilkit.runtime import sim
-from ceilkit.runtime.camera import CameraModel
+from ceilkit.runtime.sim import render as sim
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Block, Corridor, LampRow, Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.recording import RecordingWriter
-from ceilkit.runtime.rig import Mount, Rig
-from ceilkit.runtime.sim import (
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.io.recording import RecordingWriter
+from ceilkit.runtime.io.sources import Frame
+from ceilkit.runtime.sim.render import (
     SimOptions,
     SimSource,
     Trajectory,
@@ -23,8 +25,6 @@ from ceilkit.runtime.sim import (
     render_radiance,
     straight_drive,
 )
-from ceilkit.runtime.site import Block, Corridor, LampRow, Site
-from ceilkit.runtime.sources import Frame
 
 CLEAN = SimOptions(noise_sigma=0.0, blur_px=0.0, vignetting=0.0, texture=0.0)
 

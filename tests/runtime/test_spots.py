@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ceilkit.runtime.spots import (
+from ceilkit.runtime.features.spots import (
     SpotParams,
     axis_ratios,
     detect_spots,
@@ -129,7 +129,7 @@ def test_axis_ratios():
 def test_lone_region_shortcut_matches_contour_path():
     """A region no other region reaches is measured without drawing its contour; the
     numbers are those of the general path."""
-    from ceilkit.runtime.spots import _alone, _region_stats
+    from ceilkit.runtime.features.spots import _alone, _region_stats
 
     img = blobs(np.array([[40.3, 30.7], [120.6, 80.2], [131.0, 84.0]]), radius=4.0)
     mask = niblack_mask(img, 41, 0.8, 10.0, 0.2)
@@ -150,7 +150,7 @@ def test_lone_regions_measured_together_match_one_by_one():
     """The batched statistics of lone regions (:func:`_lone_region_stats`) are those of
     :func:`_region_stats`, weighted and binary, including windows cut by the image's
     edges and a region with no positive weight (flagged for the caller)."""
-    from ceilkit.runtime.spots import _alone, _lone_region_stats, _region_stats
+    from ceilkit.runtime.features.spots import _alone, _lone_region_stats, _region_stats
 
     centres = np.array([[40.3, 30.7], [120.6, 80.2], [200.1, 130.9], [60.8, 120.4],
                         [2.2, 70.5], [236.9, 5.1], [150.4, 157.6]])
@@ -179,7 +179,7 @@ def test_lone_regions_measured_together_match_one_by_one():
 def test_detect_spots_batched_equals_one_by_one():
     """detect_spots with the batched lone-region path gives the spots of measuring
     every region with _region_stats (forced by a batch limit of 0)."""
-    import ceilkit.runtime.spots as S
+    import ceilkit.runtime.features.spots as S
 
     img = blobs(CENTRES)
     a = detect_spots(img, centre_px=(120.0, 80.0), max_regions=3)

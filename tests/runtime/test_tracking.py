@@ -1,6 +1,6 @@
 import math
 
-from ceilkit.runtime.estimate import Failure, PoseEstimate
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
 from ceilkit.runtime.tracking import Tracker
 
 DT = 33_000_000

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from ceilkit.runtime.estimate import Failure, PoseEstimate
-from ceilkit.runtime.link import mavlink
-from ceilkit.runtime.link.transport import MavlinkProtocol
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.io.link import mavlink
+from ceilkit.runtime.io.link.transport import MavlinkProtocol
 
 COV_W = np.array([[0.0004, 0.0001, 0.00002],
                   [0.0001, 0.0009, -0.00003],
@@ -229,7 +229,7 @@ def test_protocol_answers_timesync_requests_only():
 
 
 def test_protocol_sends_origin_until_acknowledged():
-    from ceilkit.runtime.link.transport import Health
+    from ceilkit.runtime.io.link.transport import Health
 
     origin = mavlink.GeoOrigin(-33.5, 151.25, 20.0)
     proto = MavlinkProtocol(origin=origin)

@@ -10,8 +10,8 @@ import pynmea2
 import pytest
 
 from ceilkit.runtime.errors import LinkError
-from ceilkit.runtime.estimate import Failure, PoseEstimate
-from ceilkit.runtime.link import nmea
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.io.link import nmea
 
 
 def pose(**kw) -> PoseEstimate:

@@ -11,8 +11,8 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from ceilkit.runtime.errors import CeilkitError, LinkError
-from ceilkit.runtime.estimate import Failure, PoseEstimate
-from ceilkit.runtime.link import FileLink, MemoryLink, SerialLink, mavlink, nmea, open_link
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.io.link import FileLink, MemoryLink, SerialLink, mavlink, nmea, open_link
 
 S = 1_000_000_000
 
@@ -433,7 +433,7 @@ def test_open_link_writes_a_regular_file(tmp_path):
 
 
 def test_is_serial_path(tmp_path, pty):
-    from ceilkit.runtime.link.transport import is_serial_path
+    from ceilkit.runtime.io.link.transport import is_serial_path
 
     assert is_serial_path("/dev/ttyUSB0") and is_serial_path(tmp_path / "ttyV0")
     (tmp_path / "port").symlink_to(os.ttyname(pty.slave))

@@ -35,19 +35,19 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .errors import ConfigError
-from .estimate import Failure, PoseEstimate
-from .geometry import rot_z, wrap_pi
-from .lines import (
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site, check_rig_site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.features.lines import (
     SegmentDetector,
-    as_gray,
     refine_segments,
     refine_undistorted,
     segment_lengths,
     undistort_segments,
 )
-from .rig import Rig
-from .site import Site, check_rig_site
+from ceilkit.runtime.geometry.rotations import rot_z, wrap_pi
 
 # -- pure geometry ------------------------------------------------------------------
 
@@ -706,7 +706,7 @@ class CorridorEstimator:
             ``no_ceiling_lines``, ``no_association`` or ``ambiguous``.
         """
         t0 = time.perf_counter()
-        gray = as_gray(image)
+        gray = to_grey(image)
         bad = self._check_frame(gray, t_ns)
         if bad is not None:
             return bad

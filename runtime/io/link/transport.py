@@ -52,8 +52,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO, Protocol
 
-from ..errors import LinkError
-from ..estimate import Estimate, Failure
+from ceilkit.runtime.errors import LinkError
+from ceilkit.runtime.estimators.base import Estimate, Failure
+
 from . import mavlink, nmea
 
 log = logging.getLogger("ceilkit.link")
@@ -735,7 +736,7 @@ def open_link(target: str | Path, protocol: str = "nmea", baud: int = 115200, *,
 
     Args:
         unobserved: MAVLink policy for a pose missing x or y (``skip`` or ``nan``, see
-            :class:`~ceilkit.runtime.link.mavlink.VisionSettings`).
+            :class:`~ceilkit.runtime.io.link.mavlink.VisionSettings`).
         origin: MAVLink: an EKF origin to send until acknowledged (ArduPilot).
     """
     if protocol == "mavlink":

@@ -37,12 +37,22 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .corridor import CorridorEstimator, check_setup, match_offsets
-from .estimate import Failure, PoseEstimate
-from .geometry import rot_z, wrap_half_pi, wrap_pi
-from .lines import as_gray, fit_line, merge_segments, segment_lengths, undistort_segments
-from .rig import Rig
-from .site import Site
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.estimators.corridor.estimator import (
+    CorridorEstimator,
+    check_setup,
+    match_offsets,
+)
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.features.lines import (
+    fit_line,
+    merge_segments,
+    segment_lengths,
+    undistort_segments,
+)
+from ceilkit.runtime.geometry.rotations import rot_z, wrap_half_pi, wrap_pi
 
 _OPTIONS = ("canny", "hough_threshold", "min_length_px", "merge_angle_deg", "merge_dist_px")
 
@@ -148,7 +158,7 @@ class PaperCorridorEstimator:
         ``no_association``).
         """
         t0 = time.perf_counter()
-        gray = as_gray(image)
+        gray = to_grey(image)
         bad = self._check._check_frame(gray, t_ns)
         if bad is not None:
             return self._fail(t_ns, bad.reason, bad.detail)

@@ -9,7 +9,7 @@ Every light centre lies on the ceiling plane ``z = H`` (``site.ceiling_height``)
 
 Pipeline per frame:
 
-1. :func:`~ceilkit.runtime.spots.detect_spots` finds the lights' centroids (distorted px).
+1. :func:`~ceilkit.runtime.features.spots.detect_spots` finds the lights' centroids (distorted px).
 2. :func:`ceiling_points` turns each centroid into a point on the ceiling in the
    *vehicle* frame: the ray ``R_vehicle_cam @ unproject(px)`` from the optical centre
    up to ``z = H``. The yaw only turns about the vertical, so these points are known
@@ -44,12 +44,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .errors import ConfigError
-from .estimate import Estimate, Failure, PoseEstimate
-from .geometry import wrap_pi
-from .rig import Mount, Rig
-from .site import Site, check_rig_site
-from .spots import SpotParams, Spots, detect_spots
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site, check_rig_site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
+from ceilkit.runtime.features.spots import SpotParams, Spots, detect_spots
+from ceilkit.runtime.geometry.rotations import wrap_pi
 
 NAME = "lights"
 _JAC_STEP_PX = 8  # node spacing of the pixel-Jacobian table
@@ -611,7 +611,7 @@ class LightsEstimator:
             the frame ``ambiguous`` (score: inliers - 0.5 x lights missed).
         min_inliers: fewest matched lights for a pose without a prior (>= 3).
         max_residual_px: a matched light with a larger reprojection residual is dropped.
-        spot_params: :class:`~ceilkit.runtime.spots.SpotParams` (defaults if ``None``).
+        spot_params: :class:`~ceilkit.runtime.features.spots.SpotParams` (defaults if ``None``).
         prior_gate_m: association gate around a prior pose (default: 0.4 x the closest
             light spacing, at most 1 m).
         max_view_angle_deg: spots seen further than this from the vertical are ignored

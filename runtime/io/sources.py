@@ -11,8 +11,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-import cv2
 import numpy as np
+
+from ceilkit.runtime.features.grey import to_grey
 
 
 @dataclass(frozen=True, eq=False)
@@ -33,21 +34,6 @@ class Frame:
     def grey(self) -> np.ndarray:
         """The image as 8-bit grey."""
         return to_grey(self.image)
-
-
-def to_grey(image: np.ndarray) -> np.ndarray:
-    """8-bit grey of a grey, BGR or BGRA image (16-bit images are scaled down)."""
-    img = image
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        img = np.clip(img, 0, 255).astype(np.uint8)
-    if img.ndim == 3:
-        if img.shape[2] == 1:
-            return img[:, :, 0]
-        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        return cv2.cvtColor(img, code)
-    return img
 
 
 @runtime_checkable

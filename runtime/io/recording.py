@@ -25,11 +25,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import ConfigError
-from .estimate import Estimate, PoseEstimate
-from .rig import Rig
-from .site import Site
-from .sources import Frame, SourceBase
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
+from ceilkit.runtime.io.sources import Frame, SourceBase
 
 FRAMES_HEADER = ["index", "t_ns"]
 TRUTH_HEADER = ["t_ns", "x", "y", "yaw_deg"]

@@ -16,10 +16,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .errors import ConfigError
-from .estimate import Estimate, PoseEstimate
-from .rig import Rig
-from .site import Site
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 
 
 class Estimator(Protocol):
@@ -32,9 +32,9 @@ class Estimator(Protocol):
 
 # name -> (module, class, what the site must hold)
 _METHODS: dict[str, tuple[str, str, str]] = {
-    "corridor": ("corridor", "CorridorEstimator", "corridor"),
+    "corridor": ("corridor.estimator", "CorridorEstimator", "corridor"),
     "paper-corridor": ("paper_corridor", "PaperCorridorEstimator", "corridor"),
-    "lights": ("lights", "LightsEstimator", "lights"),
+    "lights": ("lights.estimator", "LightsEstimator", "lights"),
     "paper-lights": ("paper_lights", "PaperLightsEstimator", "lights"),
 }
 

@@ -24,20 +24,11 @@ import functools
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .errors import ConfigError
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.geometry.camera import CameraModel
 
 DETECTORS = ("fld", "lsd", "hough")
-
-
-def as_gray(image: np.ndarray) -> np.ndarray:
-    """An 8-bit single-channel view of a grey ``(H, W)`` or BGR ``(H, W, 3)`` frame."""
-    img = np.asarray(image)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    if img.dtype != np.uint8:
-        img = np.clip(img, 0, 255).astype(np.uint8)
-    return np.ascontiguousarray(img)
 
 
 def segment_lengths(segs: np.ndarray) -> np.ndarray:
@@ -106,7 +97,7 @@ class SegmentDetector:
 def detect_segments(gray: np.ndarray, method: str = "fld",
                     min_length_px: float = 20.0) -> np.ndarray:
     """One-off detection: see :class:`SegmentDetector`. Returns ``(N, 4)`` pixels."""
-    return SegmentDetector(method, min_length_px)(as_gray(gray))
+    return SegmentDetector(method, min_length_px)(to_grey(gray))
 
 
 def fit_line(points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:

@@ -20,7 +20,7 @@ from typing import Any
 
 import yaml
 
-from .errors import ConfigError
+from ceilkit.runtime.errors import ConfigError
 
 _MISSING = object()
 

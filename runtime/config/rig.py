@@ -17,9 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from .camera import CameraModel
-from .config import Node, atomic_write_text, dump_yaml, load_yaml
-from .geometry import R_level_cam, R_vehicle_cam, rot_z
+from ceilkit.runtime.config.camera import camera_from_node, camera_to_dict, load_camera
+from ceilkit.runtime.config.yaml import Node, atomic_write_text, dump_yaml, load_yaml
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.rotations import R_level_cam, R_vehicle_cam, rot_z
 
 MOUNT_KEYS = ("pan", "tilt", "swing", "x", "y", "z")
 
@@ -98,7 +99,7 @@ class Rig:
         return replace(self, mount=mount)
 
     def to_dict(self, camera_ref: str | None = None) -> dict[str, Any]:
-        cam: Any = camera_ref if camera_ref is not None else self.camera.to_dict()
+        cam: Any = camera_ref if camera_ref is not None else camera_to_dict(self.camera)
         return {"camera": cam, "mount": self.mount.to_dict()}
 
     def save(self, path: str | Path, header: str = "", camera_ref: str | None = None) -> None:
@@ -119,10 +120,10 @@ class Rig:
                 cpath = path.parent / cpath
             if not cpath.exists():
                 raise cnode.error(f"camera file {cpath} not found")
-            camera = CameraModel.load(cpath)
+            camera = load_camera(cpath)
             camera_file = str(cpath)
         elif isinstance(cnode.value, dict):
-            camera = CameraModel.from_node(cnode)
+            camera = camera_from_node(cnode)
         else:
             raise cnode.expected("a camera file path or a camera_info mapping")
         mount = Mount.from_node(node.get("mount"))

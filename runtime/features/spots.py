@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .sources import to_grey
+from ceilkit.runtime.features.grey import to_grey
 
 _REDUCE = 4  # the Niblack statistics are computed on a 1/_REDUCE image
 _CORE = 0.4  # centroid weights count from I_b + _CORE (I_o - I_b)

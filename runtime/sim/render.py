@@ -51,11 +51,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .errors import ConfigError
-from .rig import Rig
-from .site import Site
-from .sources import Frame, SourceBase
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.io.sources import Frame, SourceBase
 
 # Radiance of each surface, in grey levels at exposure 1 (before vignetting).
 CEILING_GREY = 150.0
@@ -845,7 +845,7 @@ def random_poses(n: int, x_range: tuple[float, float], y_range: tuple[float, flo
 
 def load_trajectory(path: str | Path) -> Trajectory:
     """Read a trajectory in the ``truth.csv`` layout (``t_ns,x,y,yaw_deg``, SPEC §2)."""
-    from .recording import load_truth
+    from ceilkit.runtime.io.recording import load_truth
 
     tr = load_truth(path)
     if tr.t_ns.size == 0:

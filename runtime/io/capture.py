@@ -1,6 +1,7 @@
-"""Frame sources at the edge: cameras, video files, image folders, recordings, the simulator.
+"""Frame sources at the edge: cameras, video files and image folders.
 
-``open_source(spec, ...)`` turns a ``--device`` value into a source:
+:func:`ceilkit.runtime.devices.open_source` turns a ``--device`` value into one of
+these, a recording or the simulator:
 
 * ``/dev/videoN`` or a camera index (``0``): a live camera through OpenCV (V4L2),
   with size, rate, pixel format and manual exposure/gain; frames stamped at grab
@@ -32,8 +33,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import CaptureError
-from .sources import Frame, SourceBase
+from ceilkit.runtime.errors import CaptureError
+from ceilkit.runtime.io.sources import Frame, SourceBase
 
 log = logging.getLogger("ceilkit.capture")
 
@@ -255,56 +256,6 @@ class CameraSource(SourceBase):
                 self._cap.release()
             except Exception:  # noqa: BLE001
                 pass
-
-
-def packaged_config(name: str) -> Path:
-    """The folder of a packaged example (``corridor``, ``lights``, ``block``)."""
-    from importlib.resources import files
-
-    root = Path(str(files("ceilkit.configs")))
-    path = root / name
-    if not (path / "rig.yaml").exists():
-        choices = sorted(p.name for p in root.iterdir() if (p / "rig.yaml").exists())
-        raise CaptureError(f"sim:{name}: no such example (choose from {', '.join(choices)})")
-    return path
-
-
-def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
-                fps: float = 0, fourcc: str = "", exposure: float | None = None,
-                gain: float | None = None, frames: int = 300, seed: int = 0) -> SourceBase:
-    """Open a ``--device`` value (see the module docstring)."""
-    if spec.startswith("sim:") or spec == "sim":
-        from .sim import SimSource, straight_drive
-
-        if rig is None or site is None:
-            raise CaptureError("sim: needs a rig and a site")
-        traj = straight_drive(frames, fps=fps or 30.0, speed_mps=0.8, y_m=0.1,
-                              weave_m=0.15, yaw_wobble_rad=np.radians(4.0),
-                              rng=np.random.default_rng(seed))
-        src = SimSource(rig, site, traj, seed=seed)
-        src.live = False
-        src.dropped = 0
-        return src
-    if spec.isdigit():
-        return CameraSource(int(spec), width, height, fps, fourcc, exposure, gain)
-    if spec.startswith("/dev/"):
-        return CameraSource(spec, width, height, fps, fourcc, exposure, gain)
-    path = Path(spec)
-    if path.is_dir():
-        if (path / "frames.csv").exists():
-            from .recording import Recording
-
-            rec = Recording(path, rig=rig, site=site)
-            rec.live = False
-            rec.dropped = 0
-            return rec
-        return ImageFolderSource(path, fps or 30.0)
-    if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
-        return VideoFileSource(path)
-    if path.exists():
-        raise CaptureError(f"{spec}: not a camera, video ({', '.join(VIDEO_SUFFIXES)}), "
-                           "image folder or recording")
-    raise CaptureError(f"{spec}: no such device or file")
 
 
 def open_video(device: str | int, width: int = 0, height: int = 0, fps: float = 0,

@@ -42,8 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import LinkError
-from ..estimate import Estimate, PoseEstimate
+from ceilkit.runtime.errors import LinkError
+from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 
 STX_V2 = 0xFD
 HEADER_LEN = 10  # STX .. msgid

@@ -29,13 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError
-from .estimate import Estimate, Failure, PoseEstimate
-from .geometry import wrap_pi
-from .rig import Rig
-from .site import Site, check_rig_site
-from .sources import to_grey
-from .spots import SpotParams, regions_to_spots, tile_niblack_mask
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site, check_rig_site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.features.spots import SpotParams, regions_to_spots, tile_niblack_mask
+from ceilkit.runtime.geometry.rotations import wrap_pi
 
 NAME = "paper-lights"
 

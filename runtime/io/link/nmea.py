@@ -1,7 +1,7 @@
 """NMEA 0183 proprietary sentences for a pose stream to a microcontroller.
 
 Pure, byte-exact encoders and a decoder; the port handling is in
-:mod:`ceilkit.runtime.link.transport`. Two sentences (``P`` = proprietary,
+:mod:`ceilkit.runtime.io.link.transport`. Two sentences (``P`` = proprietary,
 ``CEI`` = the talker, then ``L`` pose or ``S`` status), ASCII, each at most
 :data:`MAX_SENTENCE_LEN` = 82 characters including ``\\r\\n``, as NMEA 0183 asks::
 
@@ -40,8 +40,8 @@ import math
 import re
 from dataclasses import dataclass
 
-from ..errors import LinkError
-from ..estimate import Estimate, PoseEstimate
+from ceilkit.runtime.errors import LinkError
+from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 
 MAX_SENTENCE_LEN = 82
 SEQ_MODULO = 65536

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from .config import Node, atomic_write_text, dump_yaml, load_yaml
-from .errors import ConfigError
+from ceilkit.runtime.config.yaml import Node, atomic_write_text, dump_yaml, load_yaml
+from ceilkit.runtime.errors import ConfigError
 
 SITE_KEYS = ("ceiling_height", "corridor", "lamps", "lights", "blocks")
 LAMP_KEYS = ("x", "y", "length", "width", "pitch", "count")
