@@ -44,7 +44,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
     """Run the pipeline over a recording as fast as possible (or at recorded timing)."""
     rec = Recording(recording, rig=rig, site=site)
     check_rig_site(rec.rig, rec.site)
-    estimator = make_estimator(method, rec.rig, rec.site, **(estimator_options or {}))
+    estimator = make_estimator(method, rec.rig, rec.site, estimator_options)
     out = Path(out_dir) if out_dir is not None else rec.folder / "replay"
     poses_path = out / "poses.csv"
     writer = PoseWriter(poses_path, out / "poses.tum" if tum else None)

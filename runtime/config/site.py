@@ -77,6 +77,13 @@ class Site:
     blocks: tuple[Block, ...] = ()
     source: str | None = None
 
+    def has_section(self, name: str) -> bool:
+        """Whether the site holds section ``name`` (``corridor``, ``lights``, ``blocks``),
+        non-empty: the estimators that need it can run."""
+        present = {"corridor": self.corridor is not None, "lights": self.has_lights,
+                   "blocks": bool(self.blocks)}
+        return present.get(name, False)
+
     @property
     def has_lights(self) -> bool:
         return self.lights_m.shape[0] > 0

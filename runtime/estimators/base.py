@@ -1,8 +1,20 @@
-"""What an estimator returns for one frame: a pose, or a failure with its reason.
+"""The estimator contract, and what an estimator returns for one frame.
+
+An estimator is a subclass of :class:`Estimator` with a ``name``, an ``Options``
+frozen dataclass (every field a user can set, ``--option KEY=VALUE`` on the CLI), the
+site sections it needs, and a ``_estimate(grey, t_ns, prior, t0)`` that the shared
+:meth:`Estimator.estimate` calls after the shared frame check and grey conversion.
 
 A frame on which a method cannot estimate is a value, not an exception: a
 :class:`Failure` is falsy and carries a short machine reason (counted by the
-runtime) and a human detail.
+runtime, one of :data:`FAILURE_REASONS`) and a human detail.
+
+Example::
+
+    est = CorridorEstimator(rig, site, CorridorOptions(detector="lsd"))
+    pose = est.estimate(frame.image, frame.t_ns, prior=None)   # PoseEstimate | Failure
+    if not pose:
+        print(pose.reason, pose.detail)
 
 Convention: the pose is the vehicle's in W (SPEC §1): ``x_m, y_m`` metres,
 ``yaw_rad`` counter-clockwise from +x. A coordinate the method cannot observe is
@@ -11,13 +23,22 @@ Convention: the pose is the vehicle's in W (SPEC §1): ``x_m, y_m`` metres,
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import time
+import types
+import typing
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any
+from typing import Any, ClassVar
 
+import cv2
 import numpy as np
+
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.features.grey import to_grey
 
 
 def _empty() -> Mapping[str, Any]:
@@ -60,9 +81,6 @@ class PoseEstimate:
     def yaw_deg(self) -> float:
         return math.degrees(self.yaw_rad)
 
-    def with_time(self, t_ns: int) -> PoseEstimate:
-        return replace(self, t_ns=t_ns)
-
 
 @dataclass(frozen=True)
 class Failure:
@@ -88,3 +106,173 @@ class Failure:
 
 
 Estimate = PoseEstimate | Failure
+
+
+# -- failure reasons: stable codes, counted by the runtime and sent on the link ----------
+BAD_FRAME = "bad_frame"
+BLANK_FRAME = "blank_frame"
+SATURATED_FRAME = "saturated_frame"
+AMBIGUOUS = "ambiguous"
+
+FAILURE_REASONS: Mapping[str, str] = MappingProxyType({
+    BAD_FRAME: "the frame's size or layout is not the camera's",
+    BLANK_FRAME: "the frame has no contrast (lens cap, dark room)",
+    SATURATED_FRAME: "the frame is saturated",
+    AMBIGUOUS: "several poses explain the frame equally well (a symmetric layout)",
+    "too_few_lines": "fewer ceiling line segments than a pose needs",
+    "no_ceiling_lines": "no segment belongs to the ceiling's line families",
+    "no_association": "the lines match no site line",
+    "no_lights": "no light found in the frame",
+    "too_few_lights": "fewer lights than a pose needs",
+    "no_match": "the lights match no place of the light map",
+})
+"""Every reason an estimator may give, with its meaning (docs/methods list them too)."""
+
+SATURATED_MEAN = 250.0  # grey mean above which a flat frame is saturated, not blank
+
+
+# -- options ---------------------------------------------------------------------------
+def _coerce(name: str, kind: Any, value: Any) -> Any:
+    """``value`` (a CLI string or a Python value) as the field type ``kind``."""
+    origin = typing.get_origin(kind)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        if value is None or (isinstance(value, str) and value.lower() in ("none", "")):
+            return None
+        kind = args[0]
+    if kind is bool:
+        if isinstance(value, str):
+            low = value.strip().lower()
+            if low in ("1", "true", "yes", "on"):
+                return True
+            if low in ("0", "false", "no", "off"):
+                return False
+            raise ConfigError(None, f"options.{name}", f"expected true or false, found {value!r}")
+        return bool(value)
+    try:
+        return kind(value)
+    except (TypeError, ValueError):
+        raise ConfigError(None, f"options.{name}",
+                          f"expected {getattr(kind, '__name__', kind)}, found {value!r}") from None
+
+
+@dataclass(frozen=True)
+class EstimatorOptions:
+    """Base of every estimator's options: a frozen dataclass of what a user may set.
+
+    ``min_contrast`` is the grey-level spread below which a frame is blank (0: no check).
+    """
+
+    min_contrast: float = 8.0
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any] | None = None) -> EstimatorOptions:
+        """Options from ``{name: value}`` (values may be strings, as typed on a CLI).
+
+        Raises:
+            ConfigError: ``options.NAME`` for an unknown name or a value of the wrong type.
+        """
+        values = dict(values or {})
+        hints = typing.get_type_hints(cls)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(None, f"options.{unknown[0]}",
+                              f"unknown option (expected one of {', '.join(sorted(known))})")
+        return cls(**{k: _coerce(k, hints[k], v) for k, v in values.items()})
+
+
+# -- the contract ------------------------------------------------------------------------
+def check_frame(grey: np.ndarray, width: int, height: int,
+                min_contrast: float) -> tuple[str, str] | None:
+    """The shared frame check: ``(reason, detail)`` of a frame no method can use, or None.
+
+    Args:
+        grey: ``(H, W)`` uint8 frame (:func:`~ceilkit.runtime.features.grey.to_grey`).
+        width, height: the camera's image size, px.
+        min_contrast: grey spread (std of a 1-in-16 subsample) below which the frame is
+            blank or saturated; 0 disables the check.
+    """
+    if grey.ndim != 2 or grey.shape != (height, width):
+        found = "x".join(str(n) for n in grey.shape[1::-1]) if grey.ndim >= 2 else str(grey.shape)
+        return BAD_FRAME, f"frame is {found}, the camera is {width}x{height}"
+    if min_contrast > 0:
+        mean, std = (float(np.ravel(v)[0]) for v in cv2.meanStdDev(grey[::4, ::4]))
+        if std < 0.5 * min_contrast:
+            if mean >= SATURATED_MEAN:
+                return SATURATED_FRAME, "the frame is saturated"
+            return BLANK_FRAME, "the frame has no contrast"
+    return None
+
+
+class Estimator(ABC):
+    """A pose estimator: one frame (and an optional predicted pose) in, one estimate out.
+
+    Subclasses set ``name``, ``Options`` and ``site_sections`` (the site sections it
+    needs, any one of which suffices), and implement :meth:`_estimate`. Construction
+    checks the rig against the site and raises :class:`~ceilkit.runtime.errors.ConfigError`;
+    per frame nothing raises.
+    """
+
+    name: ClassVar[str]
+    Options: ClassVar[type[EstimatorOptions]] = EstimatorOptions
+    site_sections: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, rig: Any, site: Any,
+                 options: EstimatorOptions | Mapping[str, Any] | None = None) -> None:
+        if options is None or isinstance(options, Mapping):
+            options = self.Options.from_mapping(options)
+        elif not isinstance(options, self.Options):
+            raise ConfigError(None, "options",
+                              f"{self.name} takes {self.Options.__name__}, "
+                              f"found {type(options).__name__}")
+        if not self.supports(site):
+            sections = " or ".join(f"`{s}`" for s in self.site_sections)
+            raise ConfigError(site.source, self.site_sections[0] if self.site_sections else None,
+                              f"method {self.name!r} needs a {sections} section in the site file")
+        self.rig, self.site, self.options = rig, site, options
+
+    @classmethod
+    def supports(cls, site: Any) -> bool:
+        """Whether ``site`` holds what this method needs."""
+        return any(site.has_section(s) for s in cls.site_sections)
+
+    def estimate(self, image: np.ndarray, t_ns: int,
+                 prior: PoseEstimate | None = None) -> Estimate:
+        """The vehicle pose in W from one frame.
+
+        Args:
+            image: ``(H, W)`` grey or ``(H, W, 3)`` BGR frame as captured (uint8 or uint16).
+            t_ns: capture time, integer nanoseconds.
+            prior: the tracker's predicted pose for this frame, if any: used to resolve
+                ambiguities and to speed up association, never to fabricate a pose.
+
+        Returns:
+            :class:`PoseEstimate`, or a falsy :class:`Failure` (reasons: :data:`FAILURE_REASONS`).
+        """
+        t0 = time.perf_counter()
+        img = np.asarray(image)
+        cam = self.rig.camera
+        if img.ndim not in (2, 3) or img.size == 0:
+            return self.fail(t_ns, BAD_FRAME, f"expected a {cam.width}x{cam.height} frame, "
+                             f"found shape {img.shape}")
+        grey = to_grey(img)
+        bad = check_frame(grey, cam.width, cam.height, self.options.min_contrast)
+        if bad is not None:
+            return self.fail(t_ns, *bad)
+        return self._estimate(grey, int(t_ns), prior, t0)
+
+    @abstractmethod
+    def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
+                  t0: float) -> Estimate:
+        """The estimate from a checked ``(H, W)`` uint8 frame; ``t0`` is
+        ``time.perf_counter()`` at entry (for the ``ms`` diagnostic)."""
+
+    def fail(self, t_ns: int, reason: str, detail: str, **diagnostics: Any) -> Failure:
+        """A :class:`Failure` of this method."""
+        return Failure(int(t_ns), self.name, reason, detail, MappingProxyType(diagnostics))
+
+
+def elapsed_ms(t0: float) -> float:
+    """Milliseconds since ``t0`` (a ``time.perf_counter()`` reading): the ``ms`` diagnostic."""
+    return 1e3 * (time.perf_counter() - t0)

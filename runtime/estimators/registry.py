@@ -1,73 +1,68 @@
 """The estimators by name, and which one a site calls for.
 
-Every estimator is built as ``Cls(rig, site, **options)`` and called per frame::
+A table of classes (each on :class:`~ceilkit.runtime.estimators.base.Estimator`): adding
+a method is its module or folder, one line in :data:`ESTIMATORS`, its docs and its tests.
 
-    est = estimator.estimate(image, t_ns, prior=None)   # -> PoseEstimate | Failure
+Example::
 
-``image`` is the frame as captured (grey or BGR); ``prior`` is the tracker's
-predicted pose for this frame, if any (estimators may use it to resolve
-ambiguities or to speed up association, never to fabricate a pose).
+    est = make_estimator("corridor", rig, site, {"detector": "lsd"})
+    est = make_estimator(None, rig, site)          # the site's default method
 """
 
 from __future__ import annotations
 
-import importlib
-from typing import Any, Protocol
-
-import numpy as np
+from collections.abc import Mapping
+from typing import Any
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
+from ceilkit.runtime.estimators.base import Estimator
+from ceilkit.runtime.estimators.corridor.estimator import CorridorEstimator
+from ceilkit.runtime.estimators.lights.estimator import LightsEstimator
+from ceilkit.runtime.estimators.paper_corridor import PaperCorridorEstimator
+from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator
 
-
-class Estimator(Protocol):
-    name: str
-
-    def estimate(self, image: np.ndarray, t_ns: int,
-                 prior: PoseEstimate | None = None) -> Estimate:
-        ...
-
-
-# name -> (module, class, what the site must hold)
-_METHODS: dict[str, tuple[str, str, str]] = {
-    "corridor": ("corridor.estimator", "CorridorEstimator", "corridor"),
-    "paper-corridor": ("paper_corridor", "PaperCorridorEstimator", "corridor"),
-    "lights": ("lights.estimator", "LightsEstimator", "lights"),
-    "paper-lights": ("paper_lights", "PaperLightsEstimator", "lights"),
+ESTIMATORS: Mapping[str, type[Estimator]] = {
+    cls.name: cls for cls in (CorridorEstimator, PaperCorridorEstimator,
+                              LightsEstimator, PaperLightsEstimator)
 }
+"""Every estimator by its name (the ``--method`` values)."""
 
-METHOD_NAMES = tuple(_METHODS)
+METHOD_NAMES = tuple(ESTIMATORS)
 
-
-def _site_has(site: Site, section: str) -> bool:
-    if section == "corridor":
-        return site.corridor is not None
-    if section == "lights":
-        return site.has_lights
-    return False
+DEFAULT_ORDER = ("lights", "corridor")
+"""The methods a site calls for, best first: a global fix before a partial one."""
 
 
 def default_method(site: Site) -> str:
-    """The method a site calls for: lights (global) when it has lights, else corridor."""
-    if site.has_lights:
-        return "lights"
-    if site.corridor is not None:
-        return "corridor"
+    """The method a site calls for: the first of :data:`DEFAULT_ORDER` it supports."""
+    for name in DEFAULT_ORDER:
+        if _supports(ESTIMATORS[name], site):
+            return name
     raise ConfigError(site.source, None,
                       "the site has neither `lights` nor `corridor`: no method can run")
 
 
-def make_estimator(name: str | None, rig: Rig, site: Site, **options: Any) -> Estimator:
-    """Build the estimator ``name`` (or the site's default) for a rig and a site."""
+def _supports(cls: type, site: Site) -> bool:
+    if issubclass(cls, Estimator):
+        return cls.supports(site)
+    return site.has_section(cls.name)  # not yet on the contract (transition)
+
+
+def make_estimator(name: str | None, rig: Rig, site: Site,
+                   options: Mapping[str, Any] | None = None) -> Estimator:
+    """Build the estimator ``name`` (or the site's default) for a rig and a site.
+
+    Raises:
+        ConfigError: ``method`` for an unknown name, the site's section it lacks, or
+            ``options.NAME`` for a bad option.
+    """
     name = name or default_method(site)
-    if name not in _METHODS:
-        raise ConfigError(None, "--method",
-                          f"unknown method {name!r} (choose from {', '.join(_METHODS)})")
-    module, cls, section = _METHODS[name]
-    if not _site_has(site, section):
-        raise ConfigError(site.source, section,
-                          f"method {name!r} needs a `{section}` section in the site file")
-    mod = importlib.import_module(f"{__package__}.{module}")
-    return getattr(mod, cls)(rig, site, **options)
+    if name not in ESTIMATORS:
+        raise ConfigError(None, "method",
+                          f"unknown method {name!r} (choose from {', '.join(ESTIMATORS)})")
+    cls = ESTIMATORS[name]
+    if issubclass(cls, Estimator):
+        return cls(rig, site, cls.Options.from_mapping(options))
+    return cls(rig, site, **dict(options or {}))  # not yet on the contract (transition)

@@ -21,7 +21,7 @@ from ceilkit.runtime.estimators.paper_corridor import (
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "corridor"
+CONFIGS = Path(__file__).resolve().parents[3] / "configs" / "corridor"
 
 
 @pytest.mark.parametrize("swing_deg", [0.0, 1.0, -6.0])

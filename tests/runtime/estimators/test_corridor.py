@@ -30,7 +30,7 @@ from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.features.lines import fit_line, segment_lines
 from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z, wrap_pi
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "corridor"
+CONFIGS = Path(__file__).resolve().parents[3] / "configs" / "corridor"
 
 
 @pytest.fixture(scope="module")
@@ -329,7 +329,7 @@ def test_blank_saturated_featureless_and_bad_frames(rig, site):
 @pytest.mark.parametrize("name", ["corridor", "paper-corridor"])
 def test_both_corridor_methods_check_options_and_site(rig, site, name):
     with pytest.raises(ConfigError, match=r"options\.bogus: unknown option for " + name):
-        make_estimator(name, rig, site, bogus=1)
+        make_estimator(name, rig, site, {"bogus": 1})
     with pytest.raises(ConfigError, match="needs a `corridor` section"):
         make_estimator(name, rig, Site(2.8, lights_m=np.array([[0.0, 0.0], [1.0, 0.0]])))
 

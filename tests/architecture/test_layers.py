@@ -1,0 +1,96 @@
+"""Folders are layers: a module imports only its own layer and the layers below it.
+
+The order, lowest first (docs/architecture.md): errors, geometry, config, features,
+estimators, io, sim, the orchestration modules at runtime/'s top (pipeline, tracking,
+live, replay, metrics, devices, ...), calib, cli. The test parses every source file's
+imports (lazy ones inside functions too), so a violation fails here before it ships.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PACKAGES = {"runtime": "ceilkit.runtime", "calib": "ceilkit.calib", "cli": "ceilkit.cli"}
+LAYERS = ["errors", "geometry", "config", "features", "estimators", "io", "sim",
+          "runtime", "calib", "cli"]
+"""Layer names, lowest first; ``runtime`` is the orchestration at runtime/'s top."""
+
+
+def layer_of(module: str) -> int | None:
+    """The layer index of a ``ceilkit.*`` module name, None outside ceilkit."""
+    parts = module.split(".")
+    if parts[0] != "ceilkit" or len(parts) < 2:
+        return None
+    if parts[1] in ("calib", "cli"):
+        return LAYERS.index(parts[1])
+    if parts[1] != "runtime":
+        return None
+    if len(parts) >= 3 and parts[2] in LAYERS[:7]:
+        return LAYERS.index(parts[2])
+    return LAYERS.index("runtime")
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT)
+    parts = list(rel.with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join([PACKAGES[parts[0]], *parts[1:]])
+
+
+def imports(path: Path, module: str) -> list[tuple[int, str]]:
+    """``(line, imported module)`` of every import in ``path``, relative ones resolved."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    pkg = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = pkg[:len(pkg) - node.level + 1] if node.level else []
+            name = ".".join(base + ([node.module] if node.module else []))
+            out.append((node.lineno, name))
+            if not node.module:  # `from . import x`: x is a module of that package
+                out += [(node.lineno, f"{name}.{a.name}") for a in node.names]
+    return out
+
+
+def sources() -> list[Path]:
+    return sorted(p for d in PACKAGES for p in (ROOT / d).rglob("*.py"))
+
+
+def test_layers_are_known_folders():
+    """Every runtime subfolder is a layer: a new folder must be placed in the order."""
+    folders = {p.name for p in (ROOT / "runtime").iterdir()
+               if p.is_dir() and (p / "__init__.py").exists()}
+    assert folders <= set(LAYERS[:7]), folders - set(LAYERS[:7])
+
+
+@pytest.mark.parametrize("path", sources(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_imports_point_down(path):
+    module = module_name(path)
+    own = layer_of(module)
+    bad = [f"{path.relative_to(ROOT)}:{line} imports {name} ({LAYERS[layer_of(name)]})"
+           for line, name in imports(path, module)
+           if layer_of(name) is not None and layer_of(name) > own]
+    assert not bad, f"{LAYERS[own]} may not import a higher layer: " + "; ".join(bad)
+
+
+def test_the_check_catches_an_upward_import(tmp_path):
+    """The checker itself: an upward import (features -> io) is found."""
+    f = ROOT / "runtime" / "features" / "lines.py"
+    found = [n for _, n in imports(f, module_name(f))]
+    assert all(layer_of(n) is None or layer_of(n) <= LAYERS.index("features") for n in found)
+    fake = "from ceilkit.runtime.io.sources import Frame\nfrom ..sim import render\n"
+    probe = ROOT / "runtime" / "features" / "_probe_.py"
+    tree_imports = []
+    for node in ast.walk(ast.parse(fake)):
+        if isinstance(node, ast.ImportFrom):
+            pkg = module_name(probe).split(".")[:-1]
+            base = pkg[:len(pkg) - node.level + 1] if node.level else []
+            tree_imports.append(".".join(base + [node.module]))
+    assert [LAYERS[layer_of(n)] for n in tree_imports] == ["io", "sim"]
