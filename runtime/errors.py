@@ -42,3 +42,14 @@ class CaptureError(CeilkitError):
 
 class LinkError(CeilkitError):
     """A pose link (serial port, file) could not be opened or written."""
+
+
+class OutputError(CeilkitError):
+    """An output (poses, a recording, a calibration file) could not be written: a full
+    disk, a missing folder, no permission, or a file that exists and was not to be
+    overwritten. The message names the path and the cause (``no space left``)."""
+
+    def __init__(self, path: str | Path, message: str):
+        self.path = str(path)
+        self.detail = message
+        super().__init__(f"{self.path}: {message}")
