@@ -1,12 +1,14 @@
 """Strict reading of YAML config files into plain values.
 
-Files are parsed once with ``yaml.safe_load``; every access goes through a
+Files are parsed once with a strict ``yaml.SafeLoader``; every access goes through a
 :class:`Node`, which knows the file and the dotted key it came from, so that any
 problem becomes one :class:`~ceilkit.runtime.errors.ConfigError` line such as::
 
     configs/rig.yaml: mount.tilt: expected a number in [0, 90], found 120
 
-Unknown keys are errors (SPEC §2), never ignored.
+Unknown keys are errors (SPEC §2), never ignored; so are a key given twice in one
+mapping (YAML would keep the last one silently) and a byte that is not UTF-8 (both
+named with their line).
 """
 
 from __future__ import annotations
@@ -19,31 +21,103 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from yaml.reader import ReaderError
 
 from ceilkit.runtime.errors import ConfigError
 
 _MISSING = object()
 
 
-def load_yaml(path: str | Path) -> Node:
-    """Read ``path`` with ``yaml.safe_load`` and return its root :class:`Node`."""
-    path = Path(path)
+class DuplicateKeyError(yaml.YAMLError):
+    """A mapping gives one key twice: ``key`` is the dotted key, lines are 1-based."""
+
+    def __init__(self, key: str, line: int, first_line: int):
+        super().__init__(f"{key}: given twice (line {line}, first at line {first_line})")
+        self.key, self.line, self.first_line = key, line, first_line
+
+
+class StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping.
+
+    Before a document is constructed its node tree is walked once, keeping the dotted
+    key of each mapping, so the error names where the second key is (merge keys
+    ``<<`` may still be overridden, as YAML allows).
+    """
+
+    def construct_document(self, node: yaml.Node) -> Any:
+        self._check_keys(node, "", set())
+        return super().construct_document(node)
+
+    def _check_keys(self, node: yaml.Node, key: str, seen: set[int]) -> None:
+        if id(node) in seen:                      # an alias met again (or a cycle)
+            return
+        seen.add(id(node))
+        if isinstance(node, yaml.SequenceNode):
+            for i, child in enumerate(node.value):
+                self._check_keys(child, f"{key}[{i}]", seen)
+        elif isinstance(node, yaml.MappingNode):
+            first_line: dict[Any, int] = {}
+            for key_node, value_node in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                name = self.construct_object(key_node, deep=True)
+                child = f"{key}.{name}" if key else str(name)
+                line = key_node.start_mark.line + 1
+                try:
+                    if name in first_line:
+                        raise DuplicateKeyError(child, line, first_line[name])
+                    first_line[name] = line
+                except TypeError:                 # unhashable key: the constructor says
+                    pass
+                self._check_keys(value_node, child, seen)
+
+
+def parse_yaml(data: bytes, path: str | Path | None = None) -> Any:
+    """The value of the YAML document in ``data`` (UTF-8), read strictly.
+
+    Raises:
+        ConfigError: naming ``path`` and the line, for a byte that is not UTF-8,
+            invalid YAML or a key given twice in one mapping (with its dotted key).
+    """
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(path, None, "file not found") from None
-    except OSError as exc:
-        raise ConfigError(path, None, f"cannot read: {exc.strerror or exc}") from None
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ConfigError(path, None, f"not UTF-8 text: byte 0x{data[exc.start]:02x} at "
+                                      f"line {line}, column {column} (save the file as "
+                                      f"UTF-8)") from None
+    loader = StrictLoader(text)
     try:
-        data = yaml.safe_load(text)
+        return loader.get_single_data()
+    except DuplicateKeyError as exc:
+        raise ConfigError(path, exc.key, f"duplicate key at line {exc.line} (first given "
+                                         f"at line {exc.first_line})") from None
+    except ReaderError as exc:
+        line = text.count("\n", 0, exc.position) + 1
+        column = exc.position - (text.rfind("\n", 0, exc.position) + 1) + 1
+        raise ConfigError(path, None, f"invalid YAML at line {line}, column {column}: "
+                                      f"{exc.reason}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or "invalid YAML"
         raise ConfigError(path, None, f"invalid YAML{where}: {problem}") from None
-    if data is None:
-        data = {}
-    return Node(data, path, "")
+    finally:
+        loader.dispose()
+
+
+def load_yaml(path: str | Path) -> Node:
+    """Read ``path`` strictly (:func:`parse_yaml`) and return its root :class:`Node`."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(path, None, "file not found") from None
+    except OSError as exc:
+        raise ConfigError(path, None, f"cannot read: {exc.strerror or exc}") from None
+    value = parse_yaml(data, path)
+    return Node({} if value is None else value, path, "")
 
 
 def _describe(value: Any) -> str:
@@ -121,9 +195,14 @@ class Node:
     def number(self, lo: float | None = None, hi: float | None = None,
                lo_open: bool = False, what: str = "") -> float:
         v = self.value
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self.expected(f"a finite number{what}")
-        v = float(v)
+        try:
+            v = float(v)                  # a YAML integer may be too large for a float
+        except OverflowError:
+            v = math.inf
+        if not math.isfinite(v):
+            raise self.expected(f"a finite number{what}")
         bad_lo = lo is not None and (v <= lo if lo_open else v < lo)
         bad_hi = hi is not None and v > hi
         if bad_lo or bad_hi:
@@ -133,7 +212,8 @@ class Node:
             raise self.error(f"expected a number in {bracket}{lo_s}, {hi_s}]{what}, found {v:g}")
         return v
 
-    def integer(self, lo: int | None = None, hi: int | None = None) -> int:
+    def integer(self, lo: int, hi: int) -> int:
+        """An integer in ``[lo, hi]``: every integer a file gives is range-checked."""
         v = self.value
         if isinstance(v, bool) or not isinstance(v, int):
             raise self.expected("an integer")
