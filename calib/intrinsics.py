@@ -42,12 +42,12 @@ from ceilkit.runtime.config.yaml import atomic_write_bytes
 from ceilkit.runtime.errors import CalibrationError, CaptureError, ConfigError
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.camera import DISTORTION_MODELS, CameraModel
+from ceilkit.runtime.io.capture import IMAGE_SUFFIXES, list_images
 from ceilkit.runtime.io.sources import FrameSource
 
 from .boards import Board, CharucoBoard, ChessBoard, Detection
 
 RMS_CONVENTION = "per-corner Euclidean RMS of the reprojection residuals, px"
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 COVERAGE_GRID = (8, 6)          # cells across, down
 MIN_CORNERS_PER_VIEW = 6
 DROP_WARN_FRACTION = 0.03
@@ -440,8 +440,7 @@ def image_files(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise ConfigError(folder, None, "not a folder of images")
-    files = sorted(p for p in folder.iterdir()
-                   if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    files = list_images(folder)
     if not files:
         raise ConfigError(folder, None, f"no images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
     return files

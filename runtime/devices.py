@@ -25,7 +25,7 @@ from ceilkit.runtime.io.capture import (
     ImageFolderSource,
     VideoFileSource,
 )
-from ceilkit.runtime.io.sources import SourceBase
+from ceilkit.runtime.io.sources import FrameSource
 
 
 def packaged_config(name: str) -> Path:
@@ -42,7 +42,7 @@ def packaged_config(name: str) -> Path:
 
 def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
                 fps: float = 0, fourcc: str = "", exposure: float | None = None,
-                gain: float | None = None, frames: int = 300, seed: int = 0) -> SourceBase:
+                gain: float | None = None, frames: int = 300, seed: int = 0) -> FrameSource:
     """Open a ``--device`` value (see the module docstring)."""
     if spec.startswith("sim:") or spec == "sim":
         from ceilkit.runtime.sim.render import SimSource, straight_drive
@@ -52,10 +52,7 @@ def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
         traj = straight_drive(frames, fps=fps or 30.0, speed_mps=0.8, y_m=0.1,
                               weave_m=0.15, yaw_wobble_rad=np.radians(4.0),
                               rng=np.random.default_rng(seed))
-        src = SimSource(rig, site, traj, seed=seed)
-        src.live = False
-        src.dropped = 0
-        return src
+        return SimSource(rig, site, traj, seed=seed)
     if spec.isdigit():
         return CameraSource(int(spec), width, height, fps, fourcc, exposure, gain)
     if spec.startswith("/dev/"):
@@ -65,10 +62,7 @@ def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
         if (path / "frames.csv").exists():
             from ceilkit.runtime.io.recording import Recording
 
-            rec = Recording(path, rig=rig, site=site)
-            rec.live = False
-            rec.dropped = 0
-            return rec
+            return Recording(path, rig=rig, site=site)
         return ImageFolderSource(path, fps or 30.0)
     if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
         return VideoFileSource(path)

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from ceilkit.runtime.io.recording import RecordingWriter
-from ceilkit.runtime.io.sources import Frame, SourceBase
+from ceilkit.runtime.io.sources import Frame, FrameSource, LiveSource
 from ceilkit.runtime.pipeline import Pipeline, Telemetry
 
 log = logging.getLogger("ceilkit.live")
@@ -106,7 +106,7 @@ class LiveResult:
     stopped: bool  # by a signal rather than the end of the source
 
 
-def run_live(source: SourceBase, pipeline: Pipeline,
+def run_live(source: FrameSource, pipeline: Pipeline,
              recorder: RecordingWriter | AsyncRecorder | None = None,
              stop: threading.Event | None = None, max_frames: int = 0,
              on_frame: Callable[[Telemetry], None] | None = None,
@@ -115,8 +115,10 @@ def run_live(source: SourceBase, pipeline: Pipeline,
     """Run until the source ends, ``max_frames`` frames ran, or ``stop`` is set.
 
     Args:
-        source: a frame source; a live camera (one with ``wait_frame``) is waited on in
-            short slices so ``stop`` is honoured and a lost camera is reported.
+        source: a frame source; a :class:`~ceilkit.runtime.io.sources.LiveSource` (a
+            camera) is waited on in short slices so ``stop`` is honoured and a lost
+            camera is reported. Frames of a source that is not ``live`` are stamped
+            with ``clock`` when taken.
         pipeline: estimator, tracker and sinks.
         recorder: a :class:`RecordingWriter` (wrapped in an :class:`AsyncRecorder` and
             closed here) or an :class:`AsyncRecorder` (closed here too), or ``None``.
@@ -132,8 +134,7 @@ def run_live(source: SourceBase, pipeline: Pipeline,
         ``stop`` ended the run.
     """
     stop = stop or threading.Event()
-    live = bool(getattr(source, "live", False))
-    wait_frame = getattr(source, "wait_frame", None)
+    waited = isinstance(source, LiveSource)
     rec = AsyncRecorder(recorder) if isinstance(recorder, RecordingWriter) else recorder
     tel = pipeline.telemetry
     start = clock()
@@ -143,10 +144,10 @@ def run_live(source: SourceBase, pipeline: Pipeline,
         while not stop.is_set():
             if max_frames and tel.frames >= max_frames:
                 break
-            if wait_frame is not None:
-                frame = wait_frame(0.05)
+            if waited:
+                frame = source.wait_frame(0.05)
                 if frame is None:
-                    if getattr(source, "closed", False):
+                    if source.closed:
                         break
                     now = clock()
                     if not faulted and now - last_frame_ns > fault_after_s * 1e9:
@@ -161,7 +162,7 @@ def run_live(source: SourceBase, pipeline: Pipeline,
                 frame = source.read()
                 if frame is None:
                     break
-            capture_ns = frame.t_ns if live else clock()
+            capture_ns = frame.t_ns if source.live else clock()
             if faulted:
                 faulted = False
                 log.warning("camera back after %.1f s; running again",
@@ -171,7 +172,7 @@ def run_live(source: SourceBase, pipeline: Pipeline,
             if rec is not None:
                 rec.write(frame)  # queued first: a processed frame is always recorded
             pipeline.process(frame, capture_ns)
-            tel.dropped = int(getattr(source, "dropped", 0))
+            tel.dropped = source.dropped
             if on_frame is not None:
                 on_frame(tel)
     finally:

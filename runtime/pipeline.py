@@ -12,7 +12,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -27,6 +27,14 @@ class PoseSink(Protocol):
     """Where published poses go: a serial link, a poses file, a test list."""
 
     def send(self, est: Estimate, relocalized: bool, capture_ns: int) -> None:
+        ...
+
+
+@runtime_checkable
+class FaultSink(PoseSink, Protocol):
+    """A sink that can also report the localizer's state (a link: ``$PCEIS ... F``)."""
+
+    def set_fault(self, reason: str | None) -> None:
         ...
 
 
@@ -131,9 +139,8 @@ class Pipeline:
         """Tell every sink that can hear it (a link's ``set_fault``) that the localizer is
         faulted (``reason``, e.g. ``camera_lost``) or healthy again (``None``)."""
         for sink in self.sinks:
-            fn = getattr(sink, "set_fault", None)
-            if fn is not None:
-                fn(reason)
+            if isinstance(sink, FaultSink):
+                sink.set_fault(reason)
 
     def process(self, frame: Frame, capture_ns: int | None = None) -> Estimate:
         """Run one frame. ``capture_ns`` is when it was grabbed, on ``clock``

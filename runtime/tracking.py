@@ -19,7 +19,7 @@ predicted nor gated.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
 from ceilkit.runtime.geometry.rotations import wrap_pi
@@ -152,7 +152,3 @@ def _describe_jump(est: PoseEstimate, pred: PoseEstimate) -> str:
     if est.x_m is not None and pred.x_m is not None:
         parts.append(f"x {est.x_m - pred.x_m:+.2f} m")
     return ", ".join(parts)
-
-
-def with_method(est: PoseEstimate, method: str) -> PoseEstimate:
-    return replace(est, method=method)

@@ -14,8 +14,10 @@ these, a recording or the simulator:
 * ``sim:`` or ``sim:NAME``: the simulator driving along a corridor (NAME is a
   packaged example: ``corridor``, ``lights``, ``block``; default ``corridor``).
 
-Each source has ``live`` (its stamps are on ``time.monotonic_ns``) and
-``dropped`` (frames skipped by the latest-frame policy).
+Each source declares ``live`` (its stamps are on ``time.monotonic_ns``) and
+``dropped`` (frames skipped by the latest-frame policy), as
+:class:`~ceilkit.runtime.io.sources.FrameSource` asks; :class:`CameraSource` is a
+:class:`~ceilkit.runtime.io.sources.LiveSource`.
 
 :func:`open_video` opens only a camera or a video file (what a calibration tool
 needs); :class:`FakeCamera` is a ``cv2.VideoCapture``-like fake device that serves
@@ -38,7 +40,13 @@ from ceilkit.runtime.io.sources import Frame, SourceBase
 
 log = logging.getLogger("ceilkit.capture")
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+
+
+def list_images(folder: Path) -> list[Path]:
+    """The image files of ``folder`` (by suffix, :data:`IMAGE_SUFFIXES`), in name order."""
+    return sorted(p for p in folder.iterdir()
+                  if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".mjpg", ".mjpeg")
 
 
@@ -46,16 +54,15 @@ class ImageFolderSource(SourceBase):
     """Images of a folder in name order, stamped ``index / fps`` seconds."""
 
     live = False
+    dropped = 0
 
     def __init__(self, folder: str | Path, fps: float = 30.0):
         self.folder = Path(folder)
-        self.files = sorted(p for p in self.folder.iterdir()
-                            if p.suffix.lower() in IMAGE_SUFFIXES)
+        self.files = list_images(self.folder)
         if not self.files:
             raise CaptureError(f"{self.folder}: no images found "
                                f"({', '.join(IMAGE_SUFFIXES)})")
         self.fps = fps
-        self.dropped = 0
         self._i = 0
 
     def read(self) -> Frame | None:
@@ -74,6 +81,7 @@ class VideoFileSource(SourceBase):
     """A video file read frame by frame, stamped from the container's frame times."""
 
     live = False
+    dropped = 0
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -81,7 +89,6 @@ class VideoFileSource(SourceBase):
         if not self.cap.isOpened():
             raise CaptureError(f"{self.path}: cannot open the video")
         self.fps = self.cap.get(cv2.CAP_PROP_FPS) or 30.0
-        self.dropped = 0
         self._i = 0
 
     def read(self) -> Frame | None:
@@ -110,6 +117,7 @@ class CameraSource(SourceBase):
     """
 
     live = True
+    dropped = 0  # counted per instance by the grabber
 
     def __init__(self, device: str | int, width: int = 0, height: int = 0, fps: float = 0,
                  fourcc: str = "", exposure: float | None = None, gain: float | None = None,

@@ -6,19 +6,21 @@ A recording is a folder::
     frames.csv                     # header `index,t_ns`, one row per frame
     rig.yaml, site.yaml            # as used when recording
     truth.csv                      # optional: `t_ns,x,y,yaw_deg`
+    odometry.csv                   # optional: `t_ns,dx,dy,dyaw_deg`, increments in V
 
 :class:`RecordingWriter` writes each frame's PNG (atomically, by rename) before
 its row, and flushes the row, so a run killed at any moment leaves a readable
 recording holding every frame it completed. :class:`Recording` checks the whole
-folder when it is opened.
+folder when it is opened. A file that cannot be written is an
+:class:`~ceilkit.runtime.errors.OutputError` naming it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import os
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,13 +29,17 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.errors import ConfigError, OutputError
 from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 from ceilkit.runtime.io.sources import Frame, SourceBase
 
 FRAMES_HEADER = ["index", "t_ns"]
 TRUTH_HEADER = ["t_ns", "x", "y", "yaw_deg"]
-POSES_HEADER = ["t_ns", "x", "y", "yaw_deg", "lateral", "method", "quality", "latency_ms"]
+ODOMETRY_HEADER = ["t_ns", "dx", "dy", "dyaw_deg"]
+POSES_HEADER = ["t_ns", "x", "y", "yaw_deg", "lateral", "method", "quality", "latency_ms",
+                "sigma_x", "sigma_y", "sigma_yaw_deg"]
+POSES_SIGMA_COLUMNS = POSES_HEADER[8:]
+"""The columns SPEC §2 added after the first eight; a file without them still reads."""
 
 
 def frame_name(index: int) -> str:
@@ -53,7 +59,12 @@ class RecordingWriter:
     With ``truth_of`` (the ground truth a source carries: the simulator's trajectory,
     a replayed recording's ``truth.csv``), :meth:`write` adds the truth row of each
     frame it stores (by the frame's exact stamp), so the recording replays with its
-    errors against truth.
+    errors against truth. ``truth.csv`` is created at once with ``truth`` or
+    ``truth_of``, else by the first :meth:`write_truth`.
+
+    Raises:
+        ConfigError: the folder already holds a recording (nothing is overwritten).
+        OutputError: a folder or file that cannot be written.
     """
 
     def __init__(self, folder: str | Path, rig: Rig, site: Site, truth: bool = False,
@@ -66,7 +77,7 @@ class RecordingWriter:
         try:
             frames_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise ConfigError(self.folder, None, f"cannot create: {exc.strerror}") from None
+            raise OutputError(self.folder, f"cannot create: {exc.strerror}") from None
         rig.save(self.folder / "rig.yaml", header)
         site.save(self.folder / "site.yaml", header)
         self._frames = _open_csv(self.folder / "frames.csv", FRAMES_HEADER)
@@ -86,21 +97,29 @@ class RecordingWriter:
             ok = False
         if not ok:
             shape = getattr(frame.image, "shape", None)
-            raise ConfigError(tmp, None, f"cannot write the frame image (shape {shape})")
-        os.replace(tmp, path)
-        self._frames[1].writerow([self.count, int(frame.t_ns)])
-        self._frames[0].flush()
+            raise OutputError(tmp, f"cannot write the frame image (shape {shape})")
+        try:
+            os.replace(tmp, path)
+            self._frames[1].writerow([self.count, int(frame.t_ns)])
+            self._frames[0].flush()
+        except OSError as exc:
+            raise OutputError(path, f"cannot write: {exc.strerror or exc}") from None
         self.count += 1
         pose = self._truth_of.lookup(frame.t_ns) if self._truth_of is not None else None
         if pose is not None:
             self.write_truth(frame.t_ns, *pose)
 
     def write_truth(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float) -> None:
+        """One ``truth.csv`` row (the vehicle pose in W at ``t_ns``), flushed."""
         if self._truth is None:
-            raise ValueError("this recording was opened without truth")
-        self._truth[1].writerow([int(t_ns), f"{x_m:.6f}", f"{y_m:.6f}",
-                                 f"{math.degrees(yaw_rad):.6f}"])
-        self._truth[0].flush()
+            self._truth = _open_csv(self.folder / "truth.csv", TRUTH_HEADER)
+        path = self.folder / "truth.csv"
+        try:
+            self._truth[1].writerow([int(t_ns), f"{x_m:.6f}", f"{y_m:.6f}",
+                                     f"{math.degrees(yaw_rad):.6f}"])
+            self._truth[0].flush()
+        except OSError as exc:
+            raise OutputError(path, f"cannot write: {exc.strerror or exc}") from None
 
     def close(self) -> None:
         for fh in (self._frames, self._truth):
@@ -118,10 +137,15 @@ def _open_csv(path: Path, header: list[str]):
     try:
         fh = open(path, "w", newline="", encoding="utf-8")
     except OSError as exc:
-        raise ConfigError(path, None, f"cannot write: {exc.strerror}") from None
+        raise OutputError(path, f"cannot write: {exc.strerror}") from None
     w = csv.writer(fh, lineterminator="\n")
-    w.writerow(header)
-    fh.flush()
+    try:
+        w.writerow(header)
+        fh.flush()
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            fh.close()
+        raise OutputError(path, f"cannot write: {exc.strerror or exc}") from None
     return fh, w
 
 
@@ -141,6 +165,25 @@ class Truth:
         if i < self.t_ns.size and self.t_ns[i] == t_ns:
             return float(self.x_m[i]), float(self.y_m[i]), float(self.yaw_rad[i])
         return None
+
+
+@dataclass(frozen=True, eq=False)
+class Odometry:
+    """Wheel odometry rows of ``odometry.csv`` (SPEC §2), in time order.
+
+    Attributes:
+        t_ns: ``(N,)`` int64 stamps, strictly increasing.
+        dx_m, dy_m: ``(N,)`` the vehicle's displacement in V since the previous row, m.
+        dyaw_rad: ``(N,)`` its turn since the previous row, rad (counter-clockwise).
+    """
+
+    t_ns: np.ndarray
+    dx_m: np.ndarray
+    dy_m: np.ndarray
+    dyaw_rad: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t_ns.size)
 
 
 def _read_csv(path: Path, header: list[str]) -> list[list[str]]:
@@ -184,11 +227,40 @@ def _float(path: Path, line: int, col: str, text: str) -> float:
     return v
 
 
+def _stamps(path: Path, rows: list[list[str]]) -> np.ndarray:
+    """Column 0 of ``rows`` as int64 ``t_ns`` (line numbers from 2 in errors)."""
+    t = [_int(path, i + 2, "t_ns", r[0]) for i, r in enumerate(rows)]
+    for i, v in enumerate(t):
+        if not -(2**63) <= v < 2**63:
+            raise ConfigError(path, f"line {i + 2}: t_ns", f"expected a 64-bit stamp in ns, "
+                              f"found {v}")
+    return np.array(t, dtype=np.int64)
+
+
+def load_odometry(path: str | Path) -> Odometry:
+    """Read ``odometry.csv`` (``t_ns,dx,dy,dyaw_deg``) strictly: the exact header, one
+    integer stamp and three finite numbers a row, stamps strictly increasing.
+
+    Raises:
+        ConfigError: naming the file, the line and the column.
+    """
+    path = Path(path)
+    rows = _read_csv(path, ODOMETRY_HEADER)
+    t = _stamps(path, rows)
+    vals = np.array([[_float(path, i + 2, c, r[k]) for k, c in ((1, "dx"), (2, "dy"),
+                                                                (3, "dyaw_deg"))]
+                     for i, r in enumerate(rows)], dtype=float).reshape(-1, 3)
+    if t.size > 1 and np.any(np.diff(t) <= 0):
+        bad = int(np.argmax(np.diff(t) <= 0)) + 3
+        raise ConfigError(path, f"line {bad}: t_ns", "stamps must increase")
+    return Odometry(t, vals[:, 0], vals[:, 1], np.radians(vals[:, 2]))
+
+
 def load_truth(path: str | Path) -> Truth:
     """Read ``truth.csv`` (``t_ns,x,y,yaw_deg``), sorted by time."""
     path = Path(path)
     rows = _read_csv(path, TRUTH_HEADER)
-    t = np.array([_int(path, i + 2, "t_ns", r[0]) for i, r in enumerate(rows)], dtype=np.int64)
+    t = _stamps(path, rows)
     vals = np.array([[_float(path, i + 2, c, r[k]) for k, c in ((1, "x"), (2, "y"),
                                                                 (3, "yaw_deg"))]
                      for i, r in enumerate(rows)], dtype=float).reshape(-1, 3)
@@ -220,8 +292,12 @@ class Recording(SourceBase):
 
     The whole folder is checked when opened: ``frames.csv`` header and rows, every
     frame file present, stamps increasing, ``rig.yaml`` and ``site.yaml`` valid
-    (unless ``rig``/``site`` override them).
+    (unless ``rig``/``site`` override them), ``truth.csv`` and ``odometry.csv`` when
+    present (``truth``, ``odometry``: ``None`` when absent).
     """
+
+    live = False  # stored stamps: the live loop stamps frames with its own clock
+    dropped = 0
 
     def __init__(self, folder: str | Path, rig: Rig | str | Path | None = None,
                  site: Site | str | Path | None = None):
@@ -258,6 +334,8 @@ class Recording(SourceBase):
             site if site is not None else self.folder / "site.yaml")
         tpath = self.folder / "truth.csv"
         self.truth = load_truth(tpath) if tpath.exists() else None
+        opath = self.folder / "odometry.csv"
+        self.odometry = load_odometry(opath) if opath.exists() else None
         self._i = 0
 
     def __len__(self) -> int:
@@ -286,14 +364,28 @@ def _fmt(v: float | None, digits: int) -> str:
     return "" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
 
 
+def pose_sigmas(est: PoseEstimate) -> tuple[float | None, float | None, float | None]:
+    """``(sigma_x_m, sigma_y_m, sigma_yaw_deg)``: the 1-sigma of the pose in W from the
+    diagonal of ``est.cov``; ``None`` for a term that is unobserved (infinite), not a
+    number, or without a covariance."""
+    cov = est.cov
+    if cov is None:
+        return None, None, None
+    diag = np.diagonal(np.asarray(cov, dtype=float))
+    out = [math.sqrt(v) if math.isfinite(v) and v >= 0 else None for v in diag[:3]]
+    yaw = None if out[2] is None else math.degrees(out[2])
+    return out[0], out[1], yaw
+
+
 def pose_row(est: Estimate, latency_ms: float | None) -> list[str]:
     """One ``poses.csv`` row; a failure keeps its time and method, pose fields empty."""
     lat = _fmt(latency_ms, 3)
     if isinstance(est, PoseEstimate):
+        sx, sy, syaw = pose_sigmas(est)
         return [str(int(est.t_ns)), _fmt(est.x_m, 6), _fmt(est.y_m, 6),
                 _fmt(math.degrees(est.yaw_rad), 6), _fmt(est.lateral_m, 6), est.method,
-                f"{est.quality:.3f}", lat]
-    return [str(int(est.t_ns)), "", "", "", "", est.method, "0.000", lat]
+                f"{est.quality:.3f}", lat, _fmt(sx, 6), _fmt(sy, 6), _fmt(syaw, 6)]
+    return [str(int(est.t_ns)), "", "", "", "", est.method, "0.000", lat, "", "", ""]
 
 
 def tum_seconds(t_ns: int) -> str:
@@ -316,28 +408,38 @@ class PoseWriter:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise ConfigError(self.path.parent, None, f"cannot create: {exc.strerror}") from None
+            raise OutputError(self.path.parent, f"cannot create: {exc.strerror}") from None
         self._fh, self._w = _open_csv(self.path, POSES_HEADER)
+        self.tum_path = None if tum_path is None else Path(tum_path)
         self._tum = None
-        if tum_path is not None:
+        if self.tum_path is not None:
             try:
-                self._tum = open(tum_path, "w", encoding="utf-8")
+                self._tum = open(self.tum_path, "w", encoding="utf-8")
             except OSError as exc:
-                raise ConfigError(tum_path, None, f"cannot write: {exc.strerror}") from None
+                self._fh.close()
+                raise OutputError(self.tum_path, f"cannot write: {exc.strerror}") from None
 
     def write(self, est: Estimate, latency_ms: float | None = None) -> None:
-        self._w.writerow(pose_row(est, latency_ms))
-        self._fh.flush()
+        """One row (flushed), and a TUM line for a pose with x and y.
+
+        Raises:
+            OutputError: the file cannot be written (a full disk), naming it.
+        """
+        try:
+            self._w.writerow(pose_row(est, latency_ms))
+            self._fh.flush()
+        except OSError as exc:
+            raise OutputError(self.path, f"cannot write: {exc.strerror or exc}") from None
         if self._tum is not None and isinstance(est, PoseEstimate) \
                 and est.x_m is not None and est.y_m is not None:
             h = est.yaw_rad / 2
-            self._tum.write(f"{tum_seconds(est.t_ns)} {est.x_m:.6f} {est.y_m:.6f} 0 0 0 "
-                            f"{math.sin(h):.9f} {math.cos(h):.9f}\n")
-            self._tum.flush()
-
-    def write_all(self, rows: Iterable[tuple[Estimate, float | None]]) -> None:
-        for est, lat in rows:
-            self.write(est, lat)
+            try:
+                self._tum.write(f"{tum_seconds(est.t_ns)} {est.x_m:.6f} {est.y_m:.6f} 0 0 0 "
+                                f"{math.sin(h):.9f} {math.cos(h):.9f}\n")
+                self._tum.flush()
+            except OSError as exc:
+                raise OutputError(self.tum_path, f"cannot write: {exc.strerror or exc}") \
+                    from None
 
     def close(self) -> None:
         self._fh.close()
@@ -353,7 +455,8 @@ class PoseWriter:
 
 @dataclass(frozen=True, eq=False)
 class PoseTable:
-    """``poses.csv`` read back; missing fields are NaN."""
+    """``poses.csv`` read back; missing fields are NaN (the sigmas too, in a file
+    written before SPEC added them)."""
 
     t_ns: np.ndarray
     x_m: np.ndarray
@@ -363,14 +466,38 @@ class PoseTable:
     method: list[str]
     quality: np.ndarray
     latency_ms: np.ndarray
+    sigma_x_m: np.ndarray
+    sigma_y_m: np.ndarray
+    sigma_yaw_rad: np.ndarray
 
 
 def load_poses(path: str | Path) -> PoseTable:
+    """Read ``poses.csv`` by column name (SPEC §2): the SPEC header, or its first eight
+    columns alone (a file from before the sigma columns).
+
+    Raises:
+        ConfigError: another header, a row of the wrong length, a field that is not a
+            number (naming file, line and column).
+    """
     path = Path(path)
-    rows = _read_csv(path, POSES_HEADER)
+    try:
+        rows = _read_csv(path, POSES_HEADER)
+    except ConfigError as exc:
+        if exc.key != "header":
+            raise
+        try:
+            rows = [r + [""] * len(POSES_SIGMA_COLUMNS)
+                    for r in _read_csv(path, POSES_HEADER[:8])]
+        except ConfigError as short:
+            if short.key != "header":
+                raise
+            raise exc from None
 
     def col(k: int) -> np.ndarray:
-        return np.array([float(r[k]) if r[k] else math.nan for r in rows], dtype=float)
+        name = POSES_HEADER[k]
+        return np.array([_float(path, n, name, r[k]) if r[k] else math.nan
+                         for n, r in enumerate(rows, start=2)], dtype=float)
 
-    return PoseTable(np.array([int(r[0]) for r in rows], dtype=np.int64), col(1), col(2),
-                     np.radians(col(3)), col(4), [r[5] for r in rows], col(6), col(7))
+    return PoseTable(_stamps(path, rows), col(1), col(2), np.radians(col(3)), col(4),
+                     [r[5] for r in rows], col(6), col(7), col(8), col(9),
+                     np.radians(col(10)))

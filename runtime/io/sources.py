@@ -3,6 +3,18 @@
 A source is opened with ``with`` and read frame by frame; ``read()`` returns
 ``None`` at the end of a finite source. Frames are stamped at grab with a
 monotonic clock in integer nanoseconds (recordings keep their stored stamps).
+
+Every source declares two attributes the live loop reads:
+
+* ``live``: its stamps are on ``time.monotonic_ns`` at grab (a camera), so they are
+  the capture times; ``False`` for stored or synthetic stamps (a recording, a video,
+  the simulator), which the loop replaces by its own clock;
+* ``dropped``: frames the source skipped (a camera's latest-frame policy); 0 for
+  sources that never skip.
+
+A :class:`LiveSource` (a camera) may have no frame yet: it is waited on in short
+slices (:meth:`LiveSource.wait_frame`) so that a stop request is honoured and a lost
+camera is reported while it is reopened.
 """
 
 from __future__ import annotations
@@ -40,6 +52,9 @@ class Frame:
 class FrameSource(Protocol):
     """Anything that yields frames: a camera, a video, a folder, a recording, the simulator."""
 
+    live: bool
+    dropped: int
+
     def read(self) -> Frame | None:
         """The next frame, or ``None`` at the end of a finite source."""
         ...
@@ -54,8 +69,29 @@ class FrameSource(Protocol):
         ...
 
 
+@runtime_checkable
+class LiveSource(FrameSource, Protocol):
+    """A source that may have no frame yet (a camera being reopened): waited on in slices."""
+
+    @property
+    def closed(self) -> bool:
+        """True once closed: no frame will come any more."""
+        ...
+
+    def wait_frame(self, timeout_s: float) -> Frame | None:
+        """The newest frame not yet returned, or ``None`` when none came within
+        ``timeout_s`` or the source is closed; never raises."""
+        ...
+
+
 class SourceBase:
-    """Context-manager and iteration boilerplate for sources."""
+    """Context-manager and iteration boilerplate for sources.
+
+    A subclass declares ``live`` and ``dropped`` (see the module docstring).
+    """
+
+    live: bool
+    dropped: int
 
     def read(self) -> Frame | None:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -79,6 +115,9 @@ class SourceBase:
 
 class ListSource(SourceBase):
     """A fake source over frames held in memory (for tests)."""
+
+    live = False
+    dropped = 0
 
     def __init__(self, frames: list[Frame]):
         self._frames = list(frames)

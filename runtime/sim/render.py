@@ -863,6 +863,9 @@ class SimSource(SourceBase):
     not depend on which frames were read before it.
     """
 
+    live = False  # stamped from the trajectory, not at grab
+    dropped = 0
+
     def __init__(self, rig: Rig, site: Site, trajectory: Trajectory,
                  options: SimOptions = SimOptions(), seed: int = 0):
         if not isinstance(trajectory, Trajectory):

@@ -96,9 +96,9 @@ def test_async_recorder_keeps_every_frame_and_reports_errors(tmp_path, corridor_
     shutil.rmtree(tmp_path / "bad" / "frames")  # the disk went away
     bad.write(_frames(1)[0])
 
-    from ceilkit.runtime.errors import ConfigError
+    from ceilkit.runtime.errors import OutputError
 
-    with pytest.raises(ConfigError, match="cannot write"):
+    with pytest.raises(OutputError, match="cannot write"):
         bad.close()
     assert bad.writer._frames[0].closed  # files closed all the same
 

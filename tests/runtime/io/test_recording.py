@@ -1,10 +1,12 @@
+import csv
 import math
+import os
 
 import numpy as np
 import pytest
 
 from ceilkit.runtime.config.rig import Rig
-from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.errors import ConfigError, OutputError
 from ceilkit.runtime.estimators.base import Failure, PoseEstimate
 from ceilkit.runtime.io.recording import (
     POSES_HEADER,
@@ -133,8 +135,8 @@ def test_poses_file_layout_and_round_trip(tmp_path):
         w.write(PoseEstimate(30, "lights", 1.0, 2.0, -0.1, 0.5), None)
     lines = path.read_text().splitlines()
     assert lines[0] == ",".join(POSES_HEADER)
-    assert lines[1] == "10,,0.250000,2.500000,0.250000,corridor,0.900,1.500"
-    assert lines[2] == "20,,,,,corridor,0.000,1.000"
+    assert lines[1] == "10,,0.250000,2.500000,0.250000,corridor,0.900,1.500,,,"
+    assert lines[2] == "20,,,,,corridor,0.000,1.000,,,"
     t = load_poses(path)
     assert np.isnan(t.x_m[0]) and t.x_m[2] == 1.0 and t.method == ["corridor"] * 2 + ["lights"]
     tum = (tmp_path / "out" / "poses.tum").read_text().split()
@@ -189,7 +191,92 @@ def test_an_empty_frame_is_a_clear_error_and_the_recording_stays_whole(
     w = RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site)
     good = np.zeros((corridor_rig.camera.height, corridor_rig.camera.width), np.uint8)
     w.write(Frame(good, 5, 0))
-    with pytest.raises(ConfigError, match="cannot write the frame image"):
+    with pytest.raises(OutputError, match="cannot write the frame image"):
         w.write(Frame(np.zeros((0, 0), np.uint8), 6, 1))
     w.close()
     assert len(Recording(tmp_path / "rec")) == 1
+
+
+def test_poses_header_is_the_specs_and_sigmas_come_from_the_covariance(tmp_path):
+    path = tmp_path / "poses.csv"
+    cov = np.diag([0.01 ** 2, 0.002 ** 2, math.radians(0.5) ** 2])
+    corridor_cov = np.diag([np.inf, 0.003 ** 2, math.radians(0.2) ** 2])
+    with PoseWriter(path) as w:
+        w.write(PoseEstimate(10, "lights", 1.0, 2.0, 0.0, 0.9, cov=cov), 1.0)
+        w.write(PoseEstimate(20, "corridor", None, 0.1, 0.0, 0.9, 0.1, cov=corridor_cov), 1.0)
+    lines = path.read_text().splitlines()
+    assert lines[0] == ("t_ns,x,y,yaw_deg,lateral,method,quality,latency_ms,"
+                        "sigma_x,sigma_y,sigma_yaw_deg")
+    assert lines[1].endswith(",0.010000,0.002000,0.500000")
+    assert lines[2].endswith(",,0.003000,0.200000")   # x unobserved: empty, never inf
+    t = load_poses(path)
+    assert t.sigma_x_m[0] == pytest.approx(0.01) and np.isnan(t.sigma_x_m[1])
+    assert t.sigma_yaw_rad[1] == pytest.approx(math.radians(0.2))
+
+
+def test_poses_of_the_first_eight_columns_still_read(tmp_path):
+    path = tmp_path / "poses.csv"
+    path.write_text("t_ns,x,y,yaw_deg,lateral,method,quality,latency_ms\n"
+                    "10,1.0,2.0,90.0,,lights,0.800,1.5\n")
+    t = load_poses(path)
+    assert t.x_m[0] == 1.0 and t.yaw_rad[0] == pytest.approx(math.pi / 2)
+    assert np.isnan(t.sigma_x_m[0])
+    path.write_text("t_ns,x,y,yaw\n10,1,2,3\n")
+    with pytest.raises(ConfigError, match="header.*sigma_x"):
+        load_poses(path)
+    path.write_text(",".join(POSES_HEADER) + "\n10,1.0,2.0,90.0,,lights,0.8,1.5,abc,,\n")
+    with pytest.raises(ConfigError, match="line 2: sigma_x"):
+        load_poses(path)
+
+
+def test_a_failed_poses_write_is_an_output_error(tmp_path):
+    (tmp_path / "file").write_text("x")  # a file where the folder should be
+    with pytest.raises(OutputError, match="file: cannot create"):
+        PoseWriter(tmp_path / "file" / "poses.csv")
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_a_full_disk_is_an_output_error_naming_the_file(tmp_path):
+    w = PoseWriter(tmp_path / "poses.csv")
+    w._fh.close()
+    w._fh = open("/dev/full", "w", encoding="utf-8")  # every write fails with ENOSPC
+    w._w = csv.writer(w._fh, lineterminator="\n")
+    with pytest.raises(OutputError, match="poses.csv: cannot write: No space left"):
+        w.write(Failure(1, "lights", "no_lights"))
+
+
+def test_truth_rows_without_truth_open_the_file(tmp_path, corridor_rig, corridor_site):
+    with RecordingWriter(tmp_path / "rec", _rig(corridor_rig), corridor_site) as rec:
+        assert not (tmp_path / "rec" / "truth.csv").exists()
+        f = _frames(1)[0]
+        rec.write(f)
+        rec.write_truth(f.t_ns, 1.0, 2.0, 0.5)
+    assert Recording(tmp_path / "rec").truth.lookup(f.t_ns) == pytest.approx((1.0, 2.0, 0.5))
+
+
+def test_odometry_is_read_when_present(tmp_path, corridor_rig, corridor_site):
+    folder = _make(tmp_path, corridor_rig, corridor_site)
+    assert Recording(folder).odometry is None
+    (folder / "odometry.csv").write_text("t_ns,dx,dy,dyaw_deg\n1000000,0.02,0.0,0.5\n"
+                                         "2000000,0.021,-0.001,-90\n")
+    odo = Recording(folder).odometry
+    assert len(odo) == 2 and odo.t_ns.tolist() == [1_000_000, 2_000_000]
+    assert odo.dx_m.tolist() == [0.02, 0.021] and odo.dy_m[1] == -0.001
+    assert odo.dyaw_rad == pytest.approx(np.radians([0.5, -90.0]))
+
+
+@pytest.mark.parametrize("text,key,words", [
+    ("t_ns,dx,dy,dyaw\n1,0,0,0\n", "header", "expected `t_ns,dx,dy,dyaw_deg`"),
+    ("t_ns,dx,dy,dyaw_deg\n1,0,0\n", "line 2", "4 fields"),
+    ("t_ns,dx,dy,dyaw_deg\n1.5,0,0,0\n", "line 2: t_ns", "integer"),
+    ("t_ns,dx,dy,dyaw_deg\n1,0,inf,0\n", "line 2: dy", "number"),
+    ("t_ns,dx,dy,dyaw_deg\n5,0,0,0\n5,0,0,0\n", "line 3: t_ns", "increase"),
+    ("t_ns,dx,dy,dyaw_deg\n123456789012345678901,0,0,0\n", "line 2: t_ns", "64-bit"),
+])
+def test_broken_odometry(tmp_path, corridor_rig, corridor_site, text, key, words):
+    folder = _make(tmp_path, corridor_rig, corridor_site)
+    (folder / "odometry.csv").write_text(text)
+    with pytest.raises(ConfigError) as err:
+        Recording(folder)
+    assert "odometry.csv" in str(err.value) and key in str(err.value)
+    assert words in str(err.value)
