@@ -12,7 +12,7 @@ corridor walls ``y = axis +- w``, and shaded at the hit point:
 * seams: thin dark lines for every ``corridor.lines_along`` y and ``lines_across`` x
   that is not already a lamp edge;
 * spot lights (``site.lights_m``): bright discs with a soft halo;
-* blocks: dark quads;
+* blocks (dark or bright) and printed markers: :mod:`ceilkit.runtime.sim.marks`;
 * walls: darker, with a vertical gradient; the floor darker still;
 * clutter (optional): door frames and posters on the walls, pipes along the
   ceiling's edges (distractor lines).
@@ -56,6 +56,9 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.io.sources import Frame, SourceBase
+from ceilkit.runtime.sim.marks import BLOCK_GREY as BLOCK_GREY  # re-exported
+from ceilkit.runtime.sim.marks import mark_features
+from ceilkit.runtime.sim.marks import ramp as _ramp
 
 # Radiance of each surface, in grey levels at exposure 1 (before vignetting).
 CEILING_GREY = 150.0
@@ -63,7 +66,6 @@ SEAM_GREY = 95.0
 LAMP_GREY = 250.0
 LIGHT_GREY = 250.0
 HALO_GREY = 45.0          # default peak halo added around a spot light (SimOptions.halo)
-BLOCK_GREY = 40.0
 WALL_TOP_GREY = 105.0     # wall just under the ceiling
 WALL_BOTTOM_GREY = 65.0   # wall at the floor
 FLOOR_GREY = 45.0
@@ -414,11 +416,6 @@ def _lamp_edge_across_indices(site: Site, first: float, spacing: float) -> np.nd
     return np.array(sorted(ks), dtype=np.int64)
 
 
-def _ramp(sd: np.ndarray, inv_fp: np.ndarray) -> np.ndarray:
-    """Coverage in [0, 1] of a signed distance (> 0 inside), a footprint-wide ramp."""
-    return np.clip(0.5 + sd * inv_fp, 0.0, 1.0)
-
-
 class _Frame:
     """Per-frame quantities: pose, rotation, offsets, walls."""
 
@@ -547,18 +544,8 @@ def _features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
                 return val + cov * (SEAM_GREY - val)
 
             feats.append(_Feature(near, shade_across))
-        # blocks: dark quads
-        for blk in site.blocks:
-            pts = blk.corners_m - np.array([cx, cy])
-            ctr = pts.mean(axis=0)
-            rad = float(np.max(np.linalg.norm(pts - ctr, axis=1)))
-            cells = np.hypot(cxr - ctr[0], cyr - ctr[1]) < reach + rad
-
-            def shade_block(xr, yr, inv_fp, val, pts=pts):
-                sd = _polygon_sd(xr, yr, pts)
-                return val + _ramp(sd, inv_fp) * (BLOCK_GREY - val)
-
-            feats.append(_Feature(cells, shade_block))
+        # blocks and markers
+        feats += [_Feature(c, f) for c, f in mark_features(site, cx, cy, cxr, cyr, reach)]
         # lamps: rows of bright rectangles
         for row in site.lamps:
             hl, hwl = row.length_m / 2, row.width_m / 2
@@ -609,24 +596,6 @@ def _features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
 
                     feats.append(_Feature(cells, shade_light))
     return feats
-
-
-def _polygon_sd(x: np.ndarray, y: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Signed distance to a simple polygon ``(n, 2)``: > 0 inside."""
-    inside = np.zeros(x.shape, dtype=bool)
-    dist = np.full(x.shape, np.inf, dtype=np.float64)
-    n = pts.shape[0]
-    for i in range(n):
-        (x1, y1), (x2, y2) = pts[i], pts[(i + 1) % n]
-        ex, ey = x2 - x1, y2 - y1
-        ll = ex * ex + ey * ey
-        t = np.clip(((x - x1) * ex + (y - y1) * ey) / ll, 0.0, 1.0)
-        dist = np.minimum(dist, np.hypot(x - x1 - t * ex, y - y1 - t * ey))
-        cross = (y1 > y) != (y2 > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xi = x1 + (y - y1) * ex / ey
-        inside ^= cross & (x < xi)
-    return np.where(inside, dist, -dist)
 
 
 # --------------------------------------------------------------------------- rendering

@@ -1,0 +1,217 @@
+"""Quadrilaterals on the ceiling: printed fiducial markers and plain blocks in a grey frame.
+
+* Markers (SPEC §2 ``markers``): :class:`MarkerDetector` wraps ``cv2.aruco.ArucoDetector``
+  with sub-pixel corner refinement; corners come in aruco's order (the printed image's
+  top-left, top-right, bottom-right, bottom-left as the camera sees it).
+* Plain blocks (SPEC §2 ``blocks``): :func:`detect_quads` thresholds the frame at a level
+  between the block and the ceiling around it, takes the outer contours, and keeps the
+  convex four-sided ones (``approxPolyDP``); the caller checks their size and shape on
+  the ceiling through the lens and rig.
+* :func:`edge_points` measures, along each side of a coarse quad, sub-pixel points of the
+  strongest grey step: the side's own evidence, many points instead of one corner.
+
+Pixels are in the image's convention (SPEC §1: origin at the centre of the top-left pixel);
+everything here is in distorted pixels, as captured (the lens model undistorts later).
+
+Example::
+
+    det = MarkerDetector("DICT_APRILTAG_36h11")
+    ids, corners_px = det.detect(grey)              # (N,), (N, 4, 2)
+    quads = detect_quads(grey, dark=True)           # list of (4, 2) corners, counter-clockwise
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.errors import ConfigError
+
+DICTIONARY_NAMES = tuple(sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_")))
+"""Every dictionary name ``cv2.aruco`` knows (``DICT_4X4_50`` ... ``DICT_APRILTAG_36h11``)."""
+
+QUIET_CELLS = 1            # white margin printed around a marker, in cells
+MIN_QUAD_AREA_PX = 150.0   # smaller contours are noise or texture
+POLY_EPS_RATE = 0.04       # approxPolyDP tolerance, fraction of the perimeter
+BORDER_PX = 2.0            # a quad this close to the image edge may be cut by it
+EDGE_SEARCH_PX = 3.0       # edge_points: how far across the side a step is looked for
+EDGE_STEP_PX = 0.5         # edge_points: sampling step across the side
+EDGE_END_SKIP = 0.15       # edge_points: fraction of each side left out at the corners
+
+
+@functools.lru_cache(maxsize=16)
+def marker_dictionary(name: str) -> cv2.aruco.Dictionary:
+    """The ``cv2.aruco`` dictionary called ``name`` (e.g. ``DICT_APRILTAG_36h11``).
+
+    Raises:
+        ConfigError: ``markers.dictionary`` for a name OpenCV does not know.
+    """
+    if name not in DICTIONARY_NAMES:
+        raise ConfigError(None, "markers.dictionary",
+                          f"unknown aruco dictionary {name!r} (e.g. DICT_APRILTAG_36h11, "
+                          "DICT_4X4_50)")
+    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+
+
+@functools.lru_cache(maxsize=256)
+def marker_cells(name: str, marker_id: int) -> np.ndarray:
+    """The printed marker ``(N, N)`` as 1 (white) / 0 (black) cells, its black border
+    included (N = bits + 2), row 0 the printed image's top, read-only.
+
+    Raises:
+        ConfigError: an unknown dictionary, or an id beyond the dictionary's size.
+    """
+    d = marker_dictionary(name)
+    n_ids = int(d.bytesList.shape[0])
+    if not 0 <= int(marker_id) < n_ids:
+        raise ConfigError(None, "markers.poses",
+                          f"marker id {marker_id} is not in {name} (ids 0..{n_ids - 1})")
+    n = int(d.markerSize) + 2
+    cells = (cv2.aruco.generateImageMarker(d, int(marker_id), n) // 255).astype(np.uint8)
+    cells.setflags(write=False)
+    return cells
+
+
+class MarkerDetector:
+    """``cv2.aruco.ArucoDetector`` for one dictionary, corners refined to sub-pixel.
+
+    Args:
+        dictionary: a name of :data:`DICTIONARY_NAMES`.
+        refine_win_px: half size of the sub-pixel corner search window, px.
+    """
+
+    def __init__(self, dictionary: str, refine_win_px: int = 3) -> None:
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        params.cornerRefinementWinSize = int(refine_win_px)
+        params.cornerRefinementMinAccuracy = 0.01
+        params.cornerRefinementMaxIterations = 50
+        params.adaptiveThreshWinSizeMin = 13
+        params.adaptiveThreshWinSizeMax = 23
+        params.adaptiveThreshWinSizeStep = 10
+        self.dictionary = dictionary
+        self._detector = cv2.aruco.ArucoDetector(marker_dictionary(dictionary), params)
+
+    def detect(self, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Markers in a ``(H, W)`` uint8 frame: ids ``(N,)`` int and corners ``(N, 4, 2)``
+        px in aruco's order (printed top-left, top-right, bottom-right, bottom-left)."""
+        corners, ids, _ = self._detector.detectMarkers(grey)
+        if ids is None or len(corners) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 2))
+        pts = np.array([np.asarray(c, float).reshape(4, 2) for c in corners])
+        return np.asarray(ids, dtype=np.int64).ravel(), pts
+
+
+@dataclass(frozen=True, eq=False)
+class Quad:
+    """A convex four-sided region of the frame.
+
+    Attributes:
+        corners_px: ``(4, 2)`` corners, in the image counter-clockwise as seen on screen
+            (u right, v down), starting anywhere.
+        area_px: the contour's area, px².
+        at_border: the region comes within :data:`BORDER_PX` of the image edge.
+    """
+
+    corners_px: np.ndarray
+    area_px: float
+    at_border: bool
+
+
+def _threshold(grey: np.ndarray, dark: bool) -> np.ndarray:
+    """Foreground mask: Otsu's level between the block and the ceiling around it."""
+    kind = cv2.THRESH_BINARY_INV if dark else cv2.THRESH_BINARY
+    _, mask = cv2.threshold(grey, 0, 255, kind | cv2.THRESH_OTSU)
+    return mask
+
+
+def detect_quads(grey: np.ndarray, dark: bool, min_area_px: float = MIN_QUAD_AREA_PX,
+                 regions: list[np.ndarray] | None = None) -> list[Quad]:
+    """Convex quadrilaterals darker (``dark``) or brighter than their surroundings.
+
+    The frame is thresholded (Otsu) with its polarity, outer contours are simplified
+    with ``approxPolyDP`` (tolerance :data:`POLY_EPS_RATE` of the perimeter) and the
+    convex four-vertex ones of at least ``min_area_px`` kept. Regions that are not
+    quadrilaterals (lamps of another shape, seams, clutter) drop out here; a quad's size
+    and shape are checked by the caller. ``regions`` (list of contours) receives every
+    large region that was not a convex quad, for the caller's diagnostics.
+    """
+    mask = _threshold(grey, dark)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    h, w = grey.shape
+    out: list[Quad] = []
+    for c in contours:
+        area = cv2.contourArea(c)
+        if area < min_area_px:
+            continue
+        x, y, bw, bh = cv2.boundingRect(c)
+        at_border = (x <= BORDER_PX or y <= BORDER_PX or x + bw >= w - BORDER_PX
+                     or y + bh >= h - BORDER_PX)
+        poly = cv2.approxPolyDP(c, POLY_EPS_RATE * cv2.arcLength(c, True), True)
+        if len(poly) != 4 or not cv2.isContourConvex(poly):
+            if regions is not None:
+                regions.append(c)
+            continue
+        pts = poly.reshape(4, 2).astype(float)
+        if _signed_area(pts) < 0:
+            pts = pts[::-1].copy()
+        out.append(Quad(pts, float(area), bool(at_border)))
+    return out
+
+
+def _signed_area(pts: np.ndarray) -> float:
+    """Shoelace area of a polygon ``(n, 2)`` in (u, v): > 0 counter-clockwise on screen."""
+    u, v = pts[:, 0], pts[:, 1]
+    return 0.5 * float(np.dot(u, np.roll(v, -1)) - np.dot(np.roll(u, -1), v))
+
+
+def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel points of each side of a coarse quad ``(4, 2)`` (side k: corner k to k+1).
+
+    Along each side, ``per_side`` stations (leaving :data:`EDGE_END_SKIP` of the side out
+    at each end); at each, the grey profile across the side (±:data:`EDGE_SEARCH_PX`,
+    bilinear) is differentiated and the strongest step located to sub-pixel by a parabola
+    through its three samples. Stations whose step is weak (below a quarter of the
+    side's median) or at the search window's end are dropped.
+
+    Returns:
+        points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
+    """
+    g = np.asarray(grey, np.float32)
+    h, w = g.shape
+    offs = np.arange(-EDGE_SEARCH_PX, EDGE_SEARCH_PX + 1e-9, EDGE_STEP_PX)
+    t = np.linspace(EDGE_END_SKIP, 1 - EDGE_END_SKIP, per_side)
+    p0 = corners_px
+    p1 = np.roll(corners_px, -1, axis=0)
+    d = p1 - p0
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    tang = d / np.maximum(length, 1e-9)
+    normal = np.stack([-tang[:, 1], tang[:, 0]], axis=1)
+    base = p0[:, None, :] + t[None, :, None] * d[:, None, :]               # (4, S, 2)
+    samp = base[:, :, None, :] + offs[None, None, :, None] * normal[:, None, None, :]
+    mx = samp[..., 0].astype(np.float32).reshape(-1, offs.size)
+    my = samp[..., 1].astype(np.float32).reshape(-1, offs.size)
+    prof = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    grad = np.abs(np.diff(prof, axis=1))                                    # (4S, K-1)
+    k = np.argmax(grad, axis=1)
+    rows = np.arange(grad.shape[0])
+    inner = (k > 0) & (k < grad.shape[1] - 1)
+    kc = np.clip(k, 1, grad.shape[1] - 2)
+    gm, g0, gp = grad[rows, kc - 1], grad[rows, kc], grad[rows, kc + 1]
+    den = gm - 2 * g0 + gp
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
+    frac = np.clip(frac, -0.5, 0.5)
+    off = offs[0] + (kc + 0.5 + frac) * EDGE_STEP_PX                        # across, px
+    strength = grad[rows, k].reshape(4, per_side)
+    med = np.median(strength, axis=1, keepdims=True)
+    strong = (strength > 0.25 * med).ravel()
+    side = np.repeat(np.arange(4), per_side)
+    pts = base.reshape(-1, 2) + off[:, None] * normal[side]
+    inside = ((pts[:, 0] > 0) & (pts[:, 0] < w - 1) & (pts[:, 1] > 0) & (pts[:, 1] < h - 1))
+    keep = inner & strong & inside
+    return pts[keep], side[keep]
