@@ -359,14 +359,14 @@ def quadrilateral_problem(corners_m: np.ndarray) -> str | None:
     for k in range(4):
         if lengths[k] < SAME_PLACE_M:
             return f"corners {k} and {(k + 1) % 4} are at the same place"
-    if abs(polygon_area_m2(corners_m)) < MIN_AREA_M2:
-        return "the corners enclose no area"
     nxt = np.roll(edges, -1, axis=0)
     sines = (edges[:, 0] * nxt[:, 1] - edges[:, 1] * nxt[:, 0]) / (lengths * np.roll(lengths, -1))
+    if np.min(np.abs(sines)) < math.sin(math.radians(MIN_CORNER_TURN_DEG)):
+        k = (int(np.argmin(np.abs(sines))) + 1) % 4
+        return f"corner {k} lies on a straight side or turns back (not a quadrilateral)"
     if np.all(sines > 0) or np.all(sines < 0):
-        if np.min(np.abs(sines)) < math.sin(math.radians(MIN_CORNER_TURN_DEG)):
-            k = (int(np.argmin(np.abs(sines))) + 1) % 4
-            return f"corner {k} lies on a straight side (not a quadrilateral)"
+        if abs(polygon_area_m2(corners_m)) < MIN_AREA_M2:
+            return "the corners enclose no area"
         return None
     if (_segments_cross(corners_m[0], corners_m[1], corners_m[2], corners_m[3])
             or _segments_cross(corners_m[1], corners_m[2], corners_m[3], corners_m[0])):

@@ -83,12 +83,14 @@ def parse_yaml(data: bytes, path: str | Path | None = None) -> Any:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = data.count(b"\n", 0, exc.start) + 1
-        column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        line_start = data.rfind(b"\n", 0, exc.start) + 1
+        column = len(data[line_start:exc.start].decode("utf-8", "replace")) + 1
         raise ConfigError(path, None, f"not UTF-8 text: byte 0x{data[exc.start]:02x} at "
                                       f"line {line}, column {column} (save the file as "
                                       f"UTF-8)") from None
-    loader = StrictLoader(text)
+    loader = None
     try:
+        loader = StrictLoader(text)             # checks the characters first
         return loader.get_single_data()
     except DuplicateKeyError as exc:
         raise ConfigError(path, exc.key, f"duplicate key at line {exc.line} (first given "
@@ -96,15 +98,17 @@ def parse_yaml(data: bytes, path: str | Path | None = None) -> Any:
     except ReaderError as exc:
         line = text.count("\n", 0, exc.position) + 1
         column = exc.position - (text.rfind("\n", 0, exc.position) + 1) + 1
+        char = f" (#x{exc.character:04x})" if isinstance(exc.character, int) else ""
         raise ConfigError(path, None, f"invalid YAML at line {line}, column {column}: "
-                                      f"{exc.reason}") from None
+                                      f"{exc.reason}{char}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or "invalid YAML"
         raise ConfigError(path, None, f"invalid YAML{where}: {problem}") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def load_yaml(path: str | Path) -> Node:
