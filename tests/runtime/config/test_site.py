@@ -326,3 +326,20 @@ def test_hanging_lamp_must_be_above_the_camera():
     with pytest.raises(ConfigError, match=r"site.yaml: lamps\[1\].z: the lamps' face \(2 m\) "
                                           r"must be above the camera"):
         check_rig_site(rig_at(1.96), site)
+
+
+def test_config_reference_example_loads(tmp_path):
+    """docs/config.md's complete site.yaml example is a valid site with every section."""
+    text = (CONFIGS.parent / "docs" / "config.md").read_text(encoding="utf-8")
+    section = text[text.index("## site.yaml"):]
+    lines = section.split("\n")
+    start = lines.index("    ceiling_height: 3.0")
+    example = []
+    for line in lines[start:]:
+        if not line.startswith("    "):
+            break
+        example.append(line[4:])
+    site = Site.load(write(tmp_path, "\n".join(example) + "\n"))
+    for name in ("corridor", "lamps", "lights", "ignore", "blocks", "markers", "origin"):
+        assert site.has_section(name), name
+    assert site.light_diameter_m == 0.16 and site.lamps[1].z_m == 2.6
