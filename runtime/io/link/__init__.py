@@ -1,9 +1,12 @@
 """The link that streams poses to the vehicle's controller.
 
 * :mod:`.nmea`: ``$PCEIL`` / ``$PCEIS`` proprietary sentences (default, for microcontrollers).
-* :mod:`.mavlink`: MAVLink 2 VISION_POSITION_ESTIMATE + HEARTBEAT (ArduPilot, PX4).
+* :mod:`.mavlink`: MAVLink 2 VISION_POSITION_ESTIMATE or ODOMETRY + HEARTBEAT (ArduPilot,
+  PX4).
+* :mod:`.nmea_gps`: standard GPS sentences (RMC, GGA, GST, HDT) around the site's origin,
+  for controllers that take a GPS.
 * :mod:`.transport`: :class:`SerialLink`, :class:`FileLink`, :class:`MemoryLink` (a fake),
-  one for both protocols, opened with ``with``.
+  one for every protocol, opened with ``with``.
 
 See ``docs/serial.md`` for the byte layouts, the autopilot settings and the wiring.
 """
@@ -15,6 +18,7 @@ from .transport import (
     LinkCounters,
     MavlinkProtocol,
     MemoryLink,
+    NmeaGpsProtocol,
     NmeaProtocol,
     Received,
     SerialLink,
@@ -24,6 +28,6 @@ from .transport import (
 
 __all__ = [
     "PROTOCOLS", "FileLink", "LinkBase", "LinkCounters", "MavlinkProtocol", "MemoryLink",
-    "NmeaProtocol", "Received", "SerialLink", "make_protocol",
+    "NmeaGpsProtocol", "NmeaProtocol", "Received", "SerialLink", "make_protocol",
     "open_link",
 ]

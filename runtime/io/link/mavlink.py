@@ -11,6 +11,10 @@ link sends, and a small frame splitter to read back what the autopilot says:
   sends them), so it can map the poses' capture stamps onto its clock.
 * ``SET_GPS_GLOBAL_ORIGIN`` (id 48, CRC_EXTRA 41): the EKF origin, only when asked
   (ArduPilot needs one before it uses external navigation).
+* ``ODOMETRY`` (id 331, CRC_EXTRA 91): the pose with its covariance, ``quality`` and
+  ``reset_counter``, in ``MAV_FRAME_LOCAL_FRD`` / ``MAV_FRAME_BODY_FRD`` (what ArduPilot
+  prefers for external navigation; PX4 takes it too), instead of VISION_POSITION_ESTIMATE
+  with the ``mavlink-odometry`` protocol. See :func:`odometry_message`.
 
 Frame (MAVLink 2, unsigned)::
 
@@ -54,10 +58,13 @@ MSG_ID_VISION_POSITION_ESTIMATE = 102
 MSG_ID_TIMESYNC = 111
 MSG_ID_SET_GPS_GLOBAL_ORIGIN = 48
 MSG_ID_GPS_GLOBAL_ORIGIN = 49
-CRC_EXTRA = {0: 50, 102: 158, 111: 34, 253: 83, 30: 39, 32: 185, 242: 104, 48: 41, 49: 39}
+MSG_ID_ODOMETRY = 331
+CRC_EXTRA = {0: 50, 102: 158, 111: 34, 253: 83, 30: 39, 32: 185, 242: 104, 48: 41, 49: 39,
+             331: 91}
 MSG_NAMES = {0: "HEARTBEAT", 102: "VISION_POSITION_ESTIMATE", 111: "TIMESYNC",
              253: "STATUSTEXT", 30: "ATTITUDE", 32: "LOCAL_POSITION_NED",
-             242: "HOME_POSITION", 48: "SET_GPS_GLOBAL_ORIGIN", 49: "GPS_GLOBAL_ORIGIN"}
+             242: "HOME_POSITION", 48: "SET_GPS_GLOBAL_ORIGIN", 49: "GPS_GLOBAL_ORIGIN",
+             331: "ODOMETRY"}
 
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
 MAV_TYPE_ONBOARD_CONTROLLER = 18
@@ -65,6 +72,14 @@ MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_STANDBY = 3
 MAV_STATE_ACTIVE = 4
 MAVLINK_VERSION = 3
+MAV_FRAME_BODY_FRD = 12
+MAV_FRAME_LOCAL_FRD = 20
+MAV_ESTIMATOR_TYPE_VISION = 2
+ODOMETRY_QUALITY_UNKNOWN = 0   # MAVLink: 0 unknown, 1 worst .. 100 best, -1 failed
+
+DEFAULT_Z_VAR_M2 = 0.01
+DEFAULT_ROLL_PITCH_VAR_RAD2 = math.radians(2.0) ** 2
+UNOBSERVED_VAR_M2 = 1.0e6      # (1 km)^2: what ODOMETRY says about a coordinate not measured
 
 UNOBSERVED_POLICIES = ("skip", "nan")
 
@@ -256,8 +271,8 @@ class VisionSettings:
             covariance row (PX4 EKF2 then fuses yaw only).
     """
 
-    z_var_m2: float = 0.01
-    roll_pitch_var_rad2: float = math.radians(2.0) ** 2
+    z_var_m2: float = DEFAULT_Z_VAR_M2
+    roll_pitch_var_rad2: float = DEFAULT_ROLL_PITCH_VAR_RAD2
     unobserved: str = "skip"
 
     def __post_init__(self) -> None:
@@ -295,6 +310,133 @@ def pose_message(est: Estimate, seq: int, reset_counter: int, *, sysid: int = 1,
     return encode_vision_position_estimate(
         est.t_ns // 1000, nan if north is None else north, nan if east is None else east,
         0.0, 0.0, 0.0, yaw, cov, reset_counter, seq, sysid, compid)
+
+
+# ----------------------------------------------------------------------------- odometry
+
+
+def encode_odometry(usec: int, xyz_m: Sequence[float], q_wxyz: Sequence[float],
+                    pose_covariance: Sequence[float], reset_counter: int, quality: int,
+                    seq: int, sysid: int = 1,
+                    compid: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY) -> bytes:
+    """A raw ODOMETRY (id 331) in ``MAV_FRAME_LOCAL_FRD`` with child ``MAV_FRAME_BODY_FRD``.
+
+    Velocity and angular rates are NaN with an all-NaN velocity covariance (MAVLink:
+    unknown); ``estimator_type`` is ``MAV_ESTIMATOR_TYPE_VISION``.
+
+    Wire order: time_usec u64, x, y, z f32, q f32[4], vx, vy, vz, rollspeed, pitchspeed,
+    yawspeed f32, pose_covariance f32[21], velocity_covariance f32[21], frame_id u8,
+    child_frame_id u8, then the extensions reset_counter u8, estimator_type u8,
+    quality i8: 233 bytes before truncation.
+    """
+    if len(pose_covariance) != 21:
+        raise ValueError(f"pose_covariance must have 21 entries, found {len(pose_covariance)}")
+    nan = float("nan")
+    payload = (struct.pack("<Q3f4f", int(usec) & 0xFFFF_FFFF_FFFF_FFFF, *xyz_m, *q_wxyz)
+               + struct.pack("<6f", *([nan] * 6))
+               + struct.pack("<21f", *pose_covariance) + struct.pack("<21f", *([nan] * 21))
+               + struct.pack("<BBBBb", MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD,
+                             reset_counter % 256, MAV_ESTIMATOR_TYPE_VISION,
+                             max(-1, min(100, int(quality)))))
+    return frame_v2(MSG_ID_ODOMETRY, payload, seq, sysid, compid)
+
+
+@dataclass(frozen=True)
+class OdometrySettings:
+    """How poses are turned into ODOMETRY.
+
+    Attributes:
+        z_var_m2, roll_pitch_var_rad2: as :class:`VisionSettings` (not measured: the
+            vehicle is on a level floor; ArduPilot folds them into one error each).
+        unobserved_var_m2: variance sent for a coordinate the method does not observe
+            (the corridor method's x), whose value is then sent as 0. PX4 weighs each
+            axis by its own variance (it takes y); ArduPilot folds x, y, z into one
+            error, so it must not use the position (``EK3_SRC1_POSXY`` = 0, what
+            ``ceilcal autopilot --corridor`` writes) and takes the yaw.
+        sensor_V_m: the point whose position is sent, in V (m): the camera's optical
+            centre (the rig's mount x, y, z), which is what the autopilots' ``VISO_POS_*``
+            / ``EKF2_EV_POS_*`` describe. ``(0, 0, 0)`` sends V's origin.
+    """
+
+    z_var_m2: float = DEFAULT_Z_VAR_M2
+    roll_pitch_var_rad2: float = DEFAULT_ROLL_PITCH_VAR_RAD2
+    unobserved_var_m2: float = UNOBSERVED_VAR_M2
+    sensor_V_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        values = (self.z_var_m2, self.roll_pitch_var_rad2, self.unobserved_var_m2,
+                  *self.sensor_V_m)
+        if len(self.sensor_V_m) != 3 or not all(math.isfinite(v) for v in values):
+            raise ValueError(f"odometry settings must be finite, sensor_V_m three numbers; "
+                             f"found {self}")
+
+
+def odometry_quality(quality: float) -> int:
+    """ODOMETRY's ``quality`` (1 worst .. 100 best; 0 unknown) of a quality in [0, 1].
+
+    >>> [odometry_quality(q) for q in (0.0, 0.004, 0.5, 1.0, float("nan"))]
+    [1, 1, 50, 100, 0]
+    """
+    if not math.isfinite(quality):
+        return ODOMETRY_QUALITY_UNKNOWN
+    return max(1, min(100, round(100.0 * quality)))
+
+
+def _sensor_pose_cov(cov_world: np.ndarray, yaw_rad: float, sensor_V_m: Sequence[float],
+                     observed: Sequence[bool], unobserved_var_m2: float) -> np.ndarray | None:
+    """3x3 covariance of the sensor point's (x, y) and yaw in W, or ``None`` if unknown."""
+    c = np.array(cov_world, dtype=float).reshape(3, 3)
+    for a in range(3):
+        if not observed[a]:
+            c[a, :] = 0.0
+            c[:, a] = 0.0
+            c[a, a] = unobserved_var_m2
+    if not np.all(np.isfinite(c)):
+        return None
+    s, co = math.sin(yaw_rad), math.cos(yaw_rad)
+    tx, ty = float(sensor_V_m[0]), float(sensor_V_m[1])
+    lever = np.array([[1.0, 0.0, -s * tx - co * ty], [0.0, 1.0, co * tx - s * ty],
+                      [0.0, 0.0, 1.0]])  # d(x + Rz(yaw) t) / d(x, y, yaw)
+    return lever @ c @ lever.T
+
+
+def odometry_message(est: Estimate, seq: int, reset_counter: int, *, sysid: int = 1,
+                     compid: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+                     settings: OdometrySettings | None = None) -> bytes | None:
+    """ODOMETRY for one estimate, or ``None`` when nothing may be sent.
+
+    The frame mapping is VISION_POSITION_ESTIMATE's, W -> ``MAV_FRAME_LOCAL_FRD`` with
+    W's +x as "forward": ``(x, -y, -z)``, yaw ``-yaw_W``; the body frame is FRD
+    (V's x, -y, -z), so ``q = (cos(psi/2), 0, 0, sin(psi/2))`` with ``psi = -yaw_W``.
+    The position is that of ``settings.sensor_V_m`` (the camera), ``x + Rz(yaw) t``.
+
+    ``None`` for a :class:`Failure`, a non-finite yaw or observed coordinate, a pose
+    with neither x nor y, and a pose missing x or y that has no covariance (an all-NaN
+    covariance would make ArduPilot trust the placeholder). A missing coordinate is
+    sent as 0 with variance ``unobserved_var_m2`` and no correlation.
+    """
+    s = settings or OdometrySettings()
+    if not isinstance(est, PoseEstimate) or not math.isfinite(est.yaw_rad):
+        return None
+    observed = (est.x_m is not None, est.y_m is not None, True)
+    if not (observed[0] or observed[1]):
+        return None
+    if any(v is not None and not math.isfinite(v) for v in (est.x_m, est.y_m)):
+        return None
+    cov = None if est.cov is None else _sensor_pose_cov(est.cov, est.yaw_rad, s.sensor_V_m,
+                                                        observed, s.unobserved_var_m2)
+    if cov is None and not all(observed):
+        return None
+    tx, ty, tz = s.sensor_V_m
+    c, sn = math.cos(est.yaw_rad), math.sin(est.yaw_rad)
+    x_w = (est.x_m or 0.0) + c * tx - sn * ty
+    y_w = (est.y_m or 0.0) + sn * tx + c * ty
+    north, east, yaw = ned_from_world(x_w, y_w, est.yaw_rad)
+    covariance = covariance_ned(cov, z_var_m2=s.z_var_m2,
+                                roll_pitch_var_rad2=s.roll_pitch_var_rad2)
+    q = (math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0))
+    return encode_odometry(est.t_ns // 1000, (north, east, -tz), q, covariance, reset_counter,
+                           odometry_quality(est.quality), seq, sysid, compid)
 
 
 # -------------------------------------------------------------------------- decoding

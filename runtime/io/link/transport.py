@@ -1,6 +1,7 @@
 """Carry encoded poses to the vehicle's controller: a serial port, a file, or a fake.
 
-One transport for both protocols (``nmea`` and ``mavlink``). The pipeline calls,
+One transport for every protocol (:data:`PROTOCOLS`: ``nmea``, ``mavlink``,
+``mavlink-odometry``, ``nmea-gps``). The pipeline calls,
 from its loop::
 
     with SerialLink("/dev/ttyUSB0", 115200, "nmea") as link:
@@ -54,12 +55,17 @@ from typing import IO, Protocol
 
 from ceilkit.runtime.errors import LinkError
 from ceilkit.runtime.estimators.base import Estimate, Failure
+from ceilkit.runtime.geometry.geodesy import LocalTangentPlane
 
-from . import mavlink, nmea
+from . import mavlink, nmea, nmea_gps
 
 log = logging.getLogger("ceilkit.link")
 
-PROTOCOLS = ("nmea", "mavlink")
+PROTOCOLS = ("nmea", "mavlink", "mavlink-odometry", "nmea-gps")
+"""``nmea``: $PCEIL/$PCEIS; ``mavlink``: VISION_POSITION_ESTIMATE; ``mavlink-odometry``:
+ODOMETRY instead (needs the rig: it sends the camera's position); ``nmea-gps``: GGA, RMC,
+GST and HDT (needs the site's geodetic origin)."""
+MAX_FIX_AGE_NS = 10_000_000_000  # an estimate older than this is stamped with "now" (a replay)
 PERIOD_NS = 1_000_000_000
 MAX_RX_PENDING = 4096
 
@@ -150,8 +156,65 @@ class NmeaProtocol:
         return []
 
 
+class NmeaGpsProtocol:
+    """GPS sentences (RMC, GGA, GST, HDT) per estimate, an invalid group once a second
+    while there is no valid pose (or while faulted), as a receiver without a fix does.
+
+    Args:
+        plane: where W lies on the Earth (the site's ``origin``).
+        utc_ns: the UTC clock (ns) the sentences are stamped with.
+        capture_clock_ns: the clock frames are stamped with; a fix is stamped
+            ``utc_ns() - (capture_clock_ns() - est.t_ns)`` (its capture time in UTC) when that age
+            is within 10 s, else ``utc_ns()`` (a replay's stamps are not this clock).
+        satellites, hdop: the fixed numbers written in GGA (see :mod:`.nmea_gps`).
+    """
+
+    name = "nmea-gps"
+
+    def __init__(self, plane: LocalTangentPlane, *,
+                 utc_ns: Callable[[], int] = time.time_ns,
+                 capture_clock_ns: Callable[[], int] = time.monotonic_ns,
+                 satellites: int = nmea_gps.DEFAULT_SATELLITES,
+                 hdop: float = nmea_gps.DEFAULT_HDOP) -> None:
+        if not isinstance(plane, LocalTangentPlane):
+            raise LinkError("the nmea-gps protocol needs the site's geodetic origin "
+                            "(site.yaml origin: {lat, lon, alt, heading})")
+        if not 0 <= int(satellites) <= 99 or not 0.0 <= float(hdop) <= 99.9:
+            raise LinkError(f"satellites must be in 0..99 and hdop in [0, 99.9], found "
+                            f"{satellites}, {hdop}")
+        self.plane = plane
+        self.utc_ns, self.capture_clock_ns = utc_ns, capture_clock_ns
+        self.satellites, self.hdop = int(satellites), float(hdop)
+
+    def _encode(self, fix: nmea_gps.GpsFix, utc: int) -> bytes:
+        return nmea_gps.encode_fix(fix, utc, satellites=self.satellites, hdop=self.hdop)
+
+    def pose(self, est: Estimate) -> tuple[bytes | None, bool]:
+        fix = nmea_gps.fix_of(est, self.plane)
+        age = self.capture_clock_ns() - est.t_ns
+        utc = self.utc_ns() - (age if 0 <= age <= MAX_FIX_AGE_NS else 0)
+        return self._encode(fix, utc), fix.valid
+
+    def periodic(self, health: Health) -> bytes | None:
+        if health.valid_recently and not health.faulted:
+            return None
+        return self._encode(nmea_gps.GpsFix(health.now_ns, None, None, None, None, None),
+                            self.utc_ns())
+
+    def relocalized(self) -> None:
+        """GPS sentences carry no reset counter: the controller sees the jump."""
+
+    def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]:
+        lines, rest = nmea.split_sentences(buffer)
+        return [(ln, ln.decode("ascii", "replace")) for ln in lines], rest
+
+    def answer(self, raw: bytes, now_ns: int) -> list[bytes]:
+        return []
+
+
 class MavlinkProtocol:
-    """VISION_POSITION_ESTIMATE per pose, HEARTBEAT once a second unless faulted.
+    """VISION_POSITION_ESTIMATE (or ODOMETRY) per pose, HEARTBEAT once a second unless
+    faulted.
 
     Args:
         sysid, compid: the sender's ids (default 1 and 197, MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
@@ -162,6 +225,8 @@ class MavlinkProtocol:
             never sent.
         answer_timesync: answer TIMESYNC requests (``tc1 = 0``) with the link's clock in
             ns, the clock poses are stamped with (PX4 maps the stamps through it).
+        odometry: send ODOMETRY (with these settings) instead of VISION_POSITION_ESTIMATE;
+            the protocol is then named ``mavlink-odometry``. ``None`` (default): VPE.
 
     Attributes:
         timesyncs: TIMESYNC requests answered.
@@ -173,13 +238,17 @@ class MavlinkProtocol:
 
     def __init__(self, sysid: int = 1, compid: int = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
                  settings: mavlink.VisionSettings | None = None,
-                 origin: mavlink.GeoOrigin | None = None, answer_timesync: bool = True) -> None:
+                 origin: mavlink.GeoOrigin | None = None, answer_timesync: bool = True,
+                 odometry: mavlink.OdometrySettings | None = None) -> None:
         if not 1 <= int(sysid) <= 255:
             raise LinkError(f"MAVLink system id must be in 1..255, found {sysid}")
         if not 0 <= int(compid) <= 255:
             raise LinkError(f"MAVLink component id must be in 0..255, found {compid}")
         self.sysid, self.compid = int(sysid), int(compid)
         self.settings = settings or mavlink.VisionSettings()
+        self.odometry = odometry
+        if odometry is not None:
+            self.name = "mavlink-odometry"
         self.origin = origin
         self.answer_timesync = answer_timesync
         self.seq = 0
@@ -195,8 +264,12 @@ class MavlinkProtocol:
 
     def pose(self, est: Estimate) -> tuple[bytes | None, bool]:
         # the sequence number is only spent on a message that is sent
-        msg = mavlink.pose_message(est, self.seq, self.reset_counter, sysid=self.sysid,
-                                   compid=self.compid, settings=self.settings)
+        if self.odometry is not None:
+            msg = mavlink.odometry_message(est, self.seq, self.reset_counter, sysid=self.sysid,
+                                           compid=self.compid, settings=self.odometry)
+        else:
+            msg = mavlink.pose_message(est, self.seq, self.reset_counter, sysid=self.sysid,
+                                       compid=self.compid, settings=self.settings)
         if msg is not None:
             self._next_seq()
         return msg, msg is not None
@@ -239,7 +312,12 @@ class MavlinkProtocol:
 
 
 def make_protocol(protocol: str | LinkProtocol, **options) -> LinkProtocol:
-    """A protocol object from its name (``nmea`` or ``mavlink``) or one given as is."""
+    """A protocol object from its name (one of :data:`PROTOCOLS`) or one given as is.
+
+    ``mavlink-odometry`` is ``mavlink`` with ``odometry=`` (default settings unless
+    given); ``nmea-gps`` needs ``plane=`` (a
+    :class:`~ceilkit.runtime.geometry.geodesy.LocalTangentPlane`).
+    """
     if not isinstance(protocol, str):
         return protocol
     if protocol == "nmea":
@@ -248,6 +326,12 @@ def make_protocol(protocol: str | LinkProtocol, **options) -> LinkProtocol:
         return NmeaProtocol()
     if protocol == "mavlink":
         return MavlinkProtocol(**options)
+    if protocol == "mavlink-odometry":
+        options.setdefault("odometry", mavlink.OdometrySettings())
+        return MavlinkProtocol(**options)
+    if protocol == "nmea-gps":
+        plane = options.pop("plane", None)
+        return NmeaGpsProtocol(plane, **options)
     raise LinkError(f"unknown link protocol {protocol!r} (choose from {', '.join(PROTOCOLS)})")
 
 
@@ -727,6 +811,7 @@ def is_serial_path(target: str | Path) -> bool:
 def open_link(target: str | Path, protocol: str = "nmea", baud: int = 115200, *,
               system_id: int = 1, component_id: int = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
               unobserved: str = "skip", origin: mavlink.GeoOrigin | None = None,
+              rig: object | None = None, site: object | None = None,
               **options) -> LinkBase:
     """The link for a command line's ``--serial`` value.
 
@@ -735,25 +820,58 @@ def open_link(target: str | Path, protocol: str = "nmea", baud: int = 115200, *,
     (:class:`FileLink`). The result is not open yet: use it with ``with``.
 
     Args:
-        unobserved: MAVLink policy for a pose missing x or y (``skip`` or ``nan``, see
+        protocol: one of :data:`PROTOCOLS`.
+        unobserved: ``mavlink`` policy for a pose missing x or y (``skip`` or ``nan``, see
             :class:`~ceilkit.runtime.io.link.mavlink.VisionSettings`).
-        origin: MAVLink: an EKF origin to send until acknowledged (ArduPilot).
+        origin: MAVLink: an EKF origin to send until acknowledged (ArduPilot). With
+            ``mavlink-odometry`` it defaults to the site's ``origin`` when there is one.
+        rig: the rig (its ``mount``): ``mavlink-odometry`` sends the camera's position.
+        site: the site (its ``origin``): ``nmea-gps`` places W on the Earth with it.
     """
-    if protocol == "mavlink":
-        try:
-            settings = mavlink.VisionSettings(unobserved=unobserved)
-        except ValueError as exc:
-            raise LinkError(str(exc)) from None
-        proto_opts = {"sysid": system_id, "compid": component_id, "settings": settings,
-                      "origin": origin}
-    else:
-        proto_opts = {}
+    proto_opts = _protocol_options(protocol, system_id, component_id, unobserved, origin,
+                                   rig, site, options.get("clock_ns"))
     if str(target) == "-":
         return FileLink("-", protocol, **proto_opts, **options)
     if is_serial_path(target):
         return SerialLink(target, baud, protocol, **proto_opts, **options)
     options.pop("service_interval_s", None)
     return FileLink(target, protocol, append=False, **proto_opts, **options)
+
+
+def _protocol_options(protocol: str, system_id: int, component_id: int, unobserved: str,
+                      origin: mavlink.GeoOrigin | None, rig: object | None,
+                      site: object | None, clock_ns: Callable[[], int] | None) -> dict:
+    """The protocol's constructor options for :func:`open_link` (LinkError when missing)."""
+    site_origin = getattr(site, "origin", None)
+    if protocol == "mavlink":
+        try:
+            settings = mavlink.VisionSettings(unobserved=unobserved)
+        except ValueError as exc:
+            raise LinkError(str(exc)) from None
+        return {"sysid": system_id, "compid": component_id, "settings": settings,
+                "origin": origin}
+    if protocol == "mavlink-odometry":
+        mount = getattr(rig, "mount", None)
+        if mount is None:
+            raise LinkError("the mavlink-odometry protocol sends the camera's position: "
+                            "it needs the rig (rig.yaml mount)")
+        if origin is None and site_origin is not None:
+            origin = mavlink.GeoOrigin(site_origin.lat_deg, site_origin.lon_deg,
+                                       site_origin.alt_m)
+        odometry = mavlink.OdometrySettings(sensor_V_m=(mount.x_m, mount.y_m, mount.z_m))
+        return {"sysid": system_id, "compid": component_id, "origin": origin,
+                "odometry": odometry}
+    if protocol == "nmea-gps":
+        if site_origin is None:
+            raise LinkError("the nmea-gps protocol needs the site's geodetic origin "
+                            "(site.yaml origin: {lat, lon, alt, heading})")
+        try:
+            plane = LocalTangentPlane.of(site_origin)
+        except ValueError as exc:
+            raise LinkError(str(exc)) from None
+        return {"plane": plane} if clock_ns is None else {"plane": plane,
+                                                          "capture_clock_ns": clock_ns}
+    return {}
 
 
 # ------------------------------------------------------------------------ file, fake
