@@ -8,33 +8,32 @@ kills the process at once.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import signal
 import sys
-import threading
 from enum import Enum
 from pathlib import Path
 
 import typer
 
-from ceilkit.runtime.config.rig import Rig
-from ceilkit.runtime.config.site import Site, check_rig_site
-from ceilkit.runtime.devices import open_source, packaged_config
-from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.estimators.registry import METHOD_NAMES, make_estimator
-from ceilkit.runtime.io.recording import PoseWriter, RecordingWriter
-from ceilkit.runtime.metrics import AccuracyMeter, MeterSink, source_truth
-from ceilkit.runtime.pipeline import Pipeline, PoseFileSink
+from ceilkit.runtime.errors import ConfigError, LinkError
+from ceilkit.runtime.estimators.registry import METHOD_NAMES
 from ceilkit.runtime.replay import replay as run_replay
-from ceilkit.runtime.tracking import Tracker
+from ceilkit.runtime.session import (
+    CaptureSettings,
+    LinkConfig,
+    SessionConfig,
+    run_session,
+    stop_on_signals,
+)
 
-from .common import make_app, quiet_opencv
+from .common import make_app, parse_options, quiet_opencv
 
 app = make_app("ceilrun", "Run the localizer on the vehicle, or replay a recording.\n\n"
                "Live: ceilrun --device /dev/video0 --serial /dev/ttyUSB0 --rig rig.yaml "
                "--site site.yaml")
+
+OPTION_HELP = ("An estimator option KEY=VALUE (a field of the method's options, see "
+               "docs/methods); repeatable.")
 
 
 class Protocol(str, Enum):
@@ -69,81 +68,22 @@ def _parse_origin(text: str | None):
     except ValueError:
         raise ConfigError(None, "--ekf-origin", f"expected LAT,LON,ALT_M in degrees and "
                           f"metres, found {text!r}") from None
-    from ceilkit.runtime.errors import LinkError
-
     try:
         return GeoOrigin(lat, lon, alt)
     except LinkError as exc:
         raise ConfigError(None, "--ekf-origin", str(exc)) from None
 
 
-def _check_method(name: str | None) -> str | None:
-    if name is not None and name not in METHOD_NAMES:
-        raise typer.BadParameter(f"unknown method {name!r} (choose from "
-                                 f"{', '.join(METHOD_NAMES)})")
-    return name
+def _link(serial: str | None, protocol: Protocol, baud: int, sysid: int = 1,
+          compid: int = 197, missing_x: MissingX = MissingX.skip,
+          origin=None) -> LinkConfig | None:
+    if serial is None:
+        return None
+    return LinkConfig(serial, protocol.value, baud, sysid, compid, missing_x.value, origin)
 
 
 def _err(msg: str) -> None:
     typer.echo(msg, err=True)
-
-
-@contextlib.contextmanager
-def _stop_on_signals():
-    """An event set by SIGINT or SIGTERM: the loop finishes its frame and closes files."""
-    stop = threading.Event()
-    previous = {}
-
-    def handler(signum, _frame):
-        if stop.is_set():  # asked twice: stop now
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
-        stop.set()
-
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, handler)
-    try:
-        yield stop
-    finally:
-        for sig, h in previous.items():
-            signal.signal(sig, h)
-
-
-def _load_rig_site(device: str, rig: Path | None, site: Path | None) -> tuple[Rig, Site]:
-    if device.startswith("sim"):
-        example = packaged_config(device.partition(":")[2] or "corridor")
-        rig = rig or example / "rig.yaml"
-        site = site or example / "site.yaml"
-    if rig is None:
-        raise ConfigError(None, "--rig", "missing: give the rig file (ceilcal writes it)")
-    if site is None:
-        raise ConfigError(None, "--site", "missing: give the site file")
-    r, s = Rig.load(rig), Site.load(site)
-    check_rig_site(r, s)
-    return r, s
-
-
-def _open_link(serial: str | None, protocol: Protocol, baud: int, sysid: int, compid: int,
-               missing_x: MissingX = MissingX.skip, origin=None):
-    if serial is None:
-        return contextlib.nullcontext(None)
-    from ceilkit.runtime.io.link.transport import open_link
-
-    return open_link(serial, protocol=protocol.value, baud=baud, system_id=sysid,
-                     component_id=compid, unobserved=missing_x.value, origin=origin)
-
-
-def _link_lines(link) -> list[str]:
-    if link is None:
-        return []
-    c = link.counters
-    out = [f"link {link.describe()}: sent {c.sent}, dropped {c.dropped}, skipped "
-           f"{c.skipped}, reconnects {c.reconnects}, received {c.received}"]
-    syncs = getattr(link.protocol, "timesyncs", 0)
-    if syncs:
-        out.append(f"answered {syncs} TIMESYNC requests")
-    return out
 
 
 @app.callback(invoke_without_command=True)
@@ -166,9 +106,10 @@ def live(
                                    "origin (ArduPilot needs one). Off by default."),
     rig: Path = typer.Option(None, help="rig.yaml (default for sim: the example's)."),
     site: Path = typer.Option(None, help="site.yaml (default for sim: the example's)."),
-    method: str = typer.Option(None, callback=_check_method,
-                               help=f"Estimator: {', '.join(METHOD_NAMES)} "
-                                    "(default: what the site holds)."),
+    method: str = typer.Option(None, help=f"Estimator: {', '.join(METHOD_NAMES)} "
+                                          "(default: what the site holds)."),
+    option: list[str] = typer.Option(None, "--option", metavar="KEY=VALUE",
+                                     help=OPTION_HELP),
     record: Path = typer.Option(None, help="Write a SPEC recording of the run here."),
     out: Path = typer.Option(None, help="Write poses.csv into this folder."),
     frames: int = typer.Option(0, help="Stop after this many frames (0: run until stopped; "
@@ -185,51 +126,22 @@ def live(
     if ctx.invoked_subcommand is not None:
         return
     _setup_logging()
-    origin = _parse_origin(ekf_origin)
-    r, s = _load_rig_site(device, rig, site)
-    estimator = make_estimator(method, r, s)
-    sim_frames = frames or 300
-    source = open_source(device, r, s, width, height, fps, fourcc, exposure, gain,
-                         frames=sim_frames)
-    recorder = (RecordingWriter(record, r, s, truth_of=source_truth(source))
-                if record is not None else None)
-    writer = PoseWriter(out / "poses.csv") if out is not None else None
-    try:
-        with source, _open_link(serial, protocol, baud, sysid, compid, mavlink_missing_x,
-                                origin) as link, _stop_on_signals() as stop:
-            sinks = [x for x in (link, PoseFileSink(writer) if writer else None) if x]
-            truth = source_truth(source)
-            meter = AccuracyMeter(truth) if truth is not None else None
-            if meter is not None:
-                sinks.append(MeterSink(meter))
-            pipeline = Pipeline(estimator, sinks, Tracker())
-            from ceilkit.runtime.live import run_live
+    config = SessionConfig(
+        device, rig, site, method, parse_options(option),
+        _link(serial, protocol, baud, sysid, compid, mavlink_missing_x,
+              _parse_origin(ekf_origin)),
+        record, out, frames, CaptureSettings(width, height, fps, fourcc, exposure, gain))
 
-            def show(tel):
-                if status:
-                    sys.stderr.write("\r" + tel.live_line())
-                    sys.stderr.flush()
+    def show(tel):
+        if status:
+            sys.stderr.write("\r" + tel.live_line())
+            sys.stderr.flush()
 
-            result = run_live(source, pipeline, recorder, stop, frames, show)
-    finally:
-        if recorder is not None:
-            recorder.close()
-        if writer is not None:
-            writer.close()
+    with stop_on_signals() as stop:
+        result = run_session(config, stop, show)
     if status:
         _err("")
-    _err(f"ceilrun: {estimator.name} on {device}: {result.elapsed_s:.1f} s"
-         + (" (stopped by a signal)" if result.stopped else ""))
-    for line in result.telemetry.summary() + _link_lines(link):
-        _err("  " + line)
-    if getattr(source, "reopens", 0):
-        _err(f"  camera reopened {source.reopens}x")
-    if meter is not None:
-        _err("  against the source's ground truth:")
-        for line in meter.result().lines():
-            _err("    " + line)
-    if recorder is not None:
-        _err(f"  recorded {result.recorded} frames in {record}")
+    _err("ceilrun: " + "\n".join(result.lines()))
 
 
 @app.command()
@@ -238,8 +150,12 @@ def replay(
     out: Path = typer.Option(None, help="Output folder (default RECORDING/replay)."),
     rig: Path = typer.Option(None, help="Use this rig.yaml instead of the recording's."),
     site: Path = typer.Option(None, help="Use this site.yaml instead of the recording's."),
-    method: str = typer.Option(None, callback=_check_method,
-                               help=f"Estimator: {', '.join(METHOD_NAMES)}."),
+    method: str = typer.Option(None, help=f"Estimator: {', '.join(METHOD_NAMES)}."),
+    option: list[str] = typer.Option(None, "--option", metavar="KEY=VALUE",
+                                     help=OPTION_HELP),
+    no_track: bool = typer.Option(False, "--no-track", help="Write the estimator's own "
+                                  "output for every frame: no tracking, gating or fusion, "
+                                  "no prior (SPEC §3)."),
     tum: bool = typer.Option(False, "--tum", help="Also write poses.tum (for evo)."),
     realtime: bool = typer.Option(False, "--realtime", help="Replay at recorded timing."),
     serial: str = typer.Option(None, help="Also stream the poses to this port (or -)."),
@@ -260,22 +176,14 @@ def replay(
             sys.stderr.flush()
 
     _setup_logging()
-    with _open_link(serial, protocol, baud, 1, 197, mavlink_missing_x) as link:
-        res = run_replay(recording, out, rig, site, method, tum=tum, realtime=realtime,
-                         sinks=[link] if link is not None else (), progress=bar)
+    res = run_replay(recording, out, rig, site, method, tum=tum, realtime=realtime,
+                     track=not no_track, progress=bar, options=parse_options(option),
+                     link=_link(serial, protocol, baud, missing_x=mavlink_missing_x))
     if show:
         _err("")
     # the report goes to stderr when the poses themselves stream to stdout
     echo = _err if serial == "-" else typer.echo
-    tel = res.telemetry
-    echo(f"replay {res.recording} with {res.method}: {tel.frames} frames in "
-               f"{res.elapsed_s:.2f} s -> {res.poses_path}")
-    for line in tel.summary() + _link_lines(link):
-        echo("  " + line)
-    if res.accuracy is not None:
-        echo("  against truth.csv:")
-        for line in res.accuracy.lines():
-            echo("    " + line)
+    echo("\n".join(res.lines()))
 
 
 def main() -> None:

@@ -3,18 +3,65 @@
 A :class:`~ceilkit.runtime.errors.CeilkitError` is printed on stderr as
 ``ceilrun: error: <file>: <key>: <what>`` with exit code 1; anything else is a bug
 and keeps its traceback.
+
+The library names its parameters (``ConfigError(None, "method", ...)``); this is the
+one place that maps them to the flags a user typed (:data:`FLAGS`,
+:data:`COMMAND_FLAGS`; an estimator's ``options.NAME`` is ``--option NAME``), so the
+user reads ``ceilrun: error: --method: unknown method 'magic' (...)``.
 """
 
 from __future__ import annotations
 
 import shlex
 import sys
+from collections.abc import Mapping
 from datetime import datetime, timezone
+from types import MappingProxyType
+from typing import Any
 
 import typer
 import typer.core
 
-from ceilkit.runtime.errors import CeilkitError
+from ceilkit.runtime.errors import CeilkitError, ConfigError
+
+FLAGS: Mapping[str, str] = MappingProxyType({
+    "method": "--method", "rig": "--rig", "site": "--site",
+    "board": "--board", "square": "--square", "marker": "--marker",
+    "detector": "--detector", "model": "--model", "fix_aspect_ratio": "--fix-aspect-ratio",
+    "camera": "--camera", "fix": "--fix", "placements": "--placements",
+})
+"""A library parameter name -> the flag of every command that has it."""
+
+COMMAND_FLAGS: Mapping[str, Mapping[str, str]] = MappingProxyType({
+    # ceilcal simulate: SimOptions fields and the trajectory's arguments
+    "simulate": MappingProxyType({
+        "options.noise_sigma": "--noise", "options.blur_px": "--blur",
+        "options.supersample": "--supersample", "n": "--frames", "fps": "--fps",
+        "speed_mps": "--speed", "y_m": "--lateral", "weave_m": "--weave",
+        "yaw_wobble_rad": "--wobble", "x_range": "--trajectory", "y_range": "--lateral",
+        "trajectory": "--trajectory",
+    }),
+})
+"""Names that mean another flag in one command (by the command's name)."""
+
+ESTIMATOR_OPTIONS = "options."
+"""The key prefix of an estimator option (``options.detector``): ``--option detector``
+in a command that takes ``--option``."""
+
+
+def as_flags(exc: ConfigError, command: str, takes_option: bool = False) -> ConfigError:
+    """``exc`` re-keyed by the flag of ``command`` when it names a library parameter
+    (an error about a file keeps its key: it names the file's dotted key).
+    ``takes_option``: the command has ``--option KEY=VALUE`` (estimator options)."""
+    if exc.path is not None or exc.key is None:
+        return exc
+    key = exc.key
+    flag = COMMAND_FLAGS.get(command, {}).get(key) or FLAGS.get(key)
+    if flag is None and takes_option and key.startswith(ESTIMATOR_OPTIONS):
+        flag = f"--option {key[len(ESTIMATOR_OPTIONS):]}"
+    if flag is None:
+        return exc
+    return ConfigError(None, flag, exc.detail)
 
 
 class _Group(typer.core.TyperGroup):
@@ -22,8 +69,33 @@ class _Group(typer.core.TyperGroup):
         try:
             return super().invoke(ctx)
         except CeilkitError as exc:
+            if isinstance(exc, ConfigError):
+                name = ctx.invoked_subcommand
+                cmd = self.get_command(ctx, name) if name else self
+                takes = any("--option" in p.opts for p in getattr(cmd, "params", ()))
+                exc = as_flags(exc, name or "", takes)
             typer.echo(f"{ctx.find_root().info_name}: error: {exc}", err=True)
             ctx.exit(1)
+
+
+def parse_options(items: list[str] | None) -> dict[str, Any]:
+    """``--option KEY=VALUE`` items as ``{KEY: VALUE}`` (values stay strings: the
+    estimator's options dataclass converts them and names a bad one).
+
+    Raises:
+        ConfigError: ``--option`` for an item without ``=`` or an empty key, or a key
+            given twice.
+    """
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, eq, value = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise ConfigError(None, "--option", f"expected KEY=VALUE, found {item!r}")
+        if key in out:
+            raise ConfigError(None, "--option", f"{key} given twice")
+        out[key] = value.strip()
+    return out
 
 
 def make_app(name: str, help: str) -> typer.Typer:

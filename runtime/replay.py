@@ -5,12 +5,21 @@
 ``RECORDING/replay/``), optionally a TUM trajectory beside it, and measures the
 errors against ``truth.csv`` when there is one. It completes whatever share of
 frames could be estimated; only bad input raises.
+
+With ``track=False`` (``ceilrun replay --no-track``) every frame is estimated with no
+prior and written as the estimator gave it, with no tracking, gating or fusion
+between frames: one row per frame, failures included.
+
+Example::
+
+    res = replay("rec", "out", method="lights", track=False)
+    print("\n".join(res.lines()))
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,17 +30,43 @@ from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.io.recording import PoseWriter, Recording
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter
 from ceilkit.runtime.pipeline import Pipeline, PoseFileSink, PoseSink, Telemetry
+from ceilkit.runtime.session import LinkConfig, link_lines, opened_link
 from ceilkit.runtime.tracking import Tracker
 
 
 @dataclass(frozen=True, eq=False)
 class ReplayResult:
+    """How a replay went.
+
+    Attributes:
+        recording, poses_path: the folder read and the ``poses.csv`` written.
+        method: the estimator's name.
+        telemetry: counts and timings.
+        accuracy: errors against ``truth.csv``, or ``None`` without one.
+        elapsed_s: wall time of the replay.
+        tracked: whether the tracker ran (``False``: the estimator's own output).
+        link: report lines of the link's counters (empty without a link).
+    """
+
     recording: Path
     poses_path: Path
     method: str
     telemetry: Telemetry
     accuracy: Accuracy | None
     elapsed_s: float
+    tracked: bool = True
+    link: tuple[str, ...] = ()
+
+    def lines(self) -> list[str]:
+        """The report: a heading, then indented details."""
+        how = "" if self.tracked else " (no tracking)"
+        out = [f"replay {self.recording} with {self.method}{how}: {self.telemetry.frames} "
+               f"frames in {self.elapsed_s:.2f} s -> {self.poses_path}"]
+        out += ["  " + line for line in self.telemetry.summary() + list(self.link)]
+        if self.accuracy is not None:
+            out.append("  against truth.csv:")
+            out += ["    " + line for line in self.accuracy.lines()]
+        return out
 
 
 def replay(recording: str | Path, out_dir: str | Path | None = None,
@@ -39,36 +74,61 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
            method: str | None = None, tum: bool = False, realtime: bool = False,
            track: bool = True, sinks: Sequence[PoseSink] = (),
            progress: Callable[[int, int], None] | None = None,
-           estimator_options: dict[str, Any] | None = None,
+           options: Mapping[str, Any] | None = None, link: LinkConfig | None = None,
            clock: Callable[[], int] = time.monotonic_ns) -> ReplayResult:
-    """Run the pipeline over a recording as fast as possible (or at recorded timing)."""
+    """Run the pipeline over a recording as fast as possible (or at recorded timing).
+
+    Args:
+        recording: the recording folder (SPEC §2).
+        out_dir: where ``poses.csv`` (and ``poses.tum``) go; ``RECORDING/replay/`` by default.
+        rig, site: files or objects replacing the recording's own.
+        method: an estimator name, or ``None`` for the site's default.
+        tum: also write ``poses.tum``.
+        realtime: wait between frames as recorded.
+        track: ``False``: no tracker; each frame is estimated with no prior.
+        sinks: further pose sinks (after the poses file).
+        progress: called as ``progress(done, total)`` after each frame.
+        options: the estimator's options by name (values may be strings).
+        link: also stream the poses over this link (written after the poses file).
+        clock: the clock of latencies and of ``realtime``.
+
+    Raises:
+        ConfigError: a broken recording, rig or site; a bad method or option.
+        LinkError, OutputError: a link or output that cannot be opened or written.
+    """
     rec = Recording(recording, rig=rig, site=site)
     check_rig_site(rec.rig, rec.site)
-    estimator = make_estimator(method, rec.rig, rec.site, estimator_options)
+    estimator = make_estimator(method, rec.rig, rec.site, options)
     out = Path(out_dir) if out_dir is not None else rec.folder / "replay"
     poses_path = out / "poses.csv"
-    writer = PoseWriter(poses_path, out / "poses.tum" if tum else None)
+    with PoseWriter(poses_path, out / "poses.tum" if tum else None) as writer, \
+            opened_link(link) as the_link:
+        more = [*sinks, the_link] if the_link is not None else list(sinks)
+        pipeline = Pipeline(estimator, [PoseFileSink(writer, clock), *more],
+                            Tracker() if track else None, clock)
+        res = _run(rec, pipeline, realtime, progress, clock)
+    return ReplayResult(rec.folder, poses_path, estimator.name, pipeline.telemetry,
+                        res[0], res[1], track, tuple(link_lines(the_link)))
+
+
+def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
+         progress: Callable[[int, int], None] | None,
+         clock: Callable[[], int]) -> tuple[Accuracy | None, float]:
+    """Every frame of ``rec`` through ``pipeline``: the accuracy and the elapsed time."""
     meter = AccuracyMeter(rec.truth) if rec.truth is not None else None
-    pipeline = Pipeline(estimator, [PoseFileSink(writer, clock), *sinks],
-                        Tracker() if track else None, clock)
     n = len(rec)
     start = clock()
     t_first = int(rec.t_ns[0]) if n else 0
-    try:
-        for k in range(n):
-            frame = rec.frame(k)
-            if realtime:
-                due = start + (frame.t_ns - t_first)
-                wait = due - clock()
-                if wait > 0:
-                    time.sleep(wait / 1e9)
-            est = pipeline.process(frame, capture_ns=clock())
-            if meter is not None:
-                meter.add(est)
-            if progress is not None:
-                progress(k + 1, n)
-    finally:
-        writer.close()
-    return ReplayResult(rec.folder, poses_path, estimator.name, pipeline.telemetry,
-                        meter.result() if meter is not None else None,
-                        (clock() - start) / 1e9)
+    for k in range(n):
+        frame = rec.frame(k)
+        if realtime:
+            due = start + (frame.t_ns - t_first)
+            wait = due - clock()
+            if wait > 0:
+                time.sleep(wait / 1e9)
+        est = pipeline.process(frame, capture_ns=clock())
+        if meter is not None:
+            meter.add(est)
+        if progress is not None:
+            progress(k + 1, n)
+    return meter.result() if meter is not None else None, (clock() - start) / 1e9

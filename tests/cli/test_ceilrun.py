@@ -7,6 +7,7 @@ import os
 import select
 import threading
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -121,7 +122,16 @@ def test_live_on_the_simulator_records_and_streams(tmp_path):
 @pytest.mark.parametrize("args,code,words", [
     (["--device", "/dev/video0", "--rig", "nope.yaml", "--site", "nope.yaml"], 1,
      "nope.yaml: file not found"),
-    (["--device", "sim:corridor", "--method", "magic"], 2, "unknown method"),
+    (["--device", "sim:corridor", "--method", "magic"], 1, "--method: unknown method 'magic'"),
+    (["replay", str(FIXTURES / "corridor_rec"), "--method", "magic"], 1,
+     "--method: unknown method 'magic'"),
+    (["--device", "/dev/video0"], 1, "--rig: missing"),
+    (["--device", "sim:corridor", "--frames", "1", "--option", "detectr=lsd"], 1,
+     "--option detectr: unknown option (expected one of"),
+    (["--device", "sim:corridor", "--frames", "1", "--option", "min_contrast=lots"], 1,
+     "--option min_contrast: expected float, found 'lots'"),
+    (["--device", "sim:corridor", "--option", "min_contrast"], 1,
+     "--option: expected KEY=VALUE, found 'min_contrast'"),
     (["--device", "sim:nowhere"], 1, "no such example"),
     (["--device", "sim:corridor", "--frames", "2", "--serial", "/dev/ttyNOPE0"], 1,
      "/dev/ttyNOPE0"),
@@ -178,3 +188,88 @@ def test_mavlink_missing_x_nan_sends_corridor_poses(tmp_path):
     for m, y, yaw in zip(got["nan"], poses.y_m, poses.yaw_rad, strict=True):
         assert math.isnan(m.x) and m.y == pytest.approx(-y, abs=1e-6)
         assert m.yaw == pytest.approx(-yaw, abs=1e-6) and math.isnan(m.covariance[0])
+
+
+@pytest.fixture(scope="module")
+def random_pose_recording(tmp_path_factory):
+    """The lights example at a new random pose every frame (the tracker cannot follow),
+    frame 3 blanked (a lens cap): a failure of the estimator itself."""
+    import cv2
+    import numpy as np
+
+    from ceilkit.calib.simulate import simulate_recording
+    from ceilkit.runtime.config.rig import Rig
+    from ceilkit.runtime.config.site import Site
+    from ceilkit.runtime.sim.render import SimOptions, random_poses
+    from helpers import CONFIGS
+
+    rig, site = Rig.load(CONFIGS / "lights" / "rig.yaml"), Site.load(CONFIGS / "lights" /
+                                                                      "site.yaml")
+    lights = site.lights_m
+    traj = random_poses(10, (lights[:, 0].min() + 0.5, lights[:, 0].max() - 0.5),
+                        (lights[:, 1].min() + 0.5, lights[:, 1].max() - 0.5),
+                        (-np.pi, np.pi), np.random.default_rng(11), fps=10.0)
+    folder = simulate_recording(rig, site, traj, tmp_path_factory.mktemp("r") / "rec",
+                                SimOptions(), seed=2)
+    shape = (rig.camera.height, rig.camera.width)
+    cv2.imwrite(str(folder / "frames" / "000003.png"), np.full(shape, 90, np.uint8))
+    return folder
+
+
+def test_replay_no_track_publishes_every_frame_as_estimated(tmp_path, random_pose_recording):
+    import math
+
+    rec = Recording(random_pose_recording)
+    n = len(rec)
+    tracked = CliRunner().invoke(app, ["replay", str(random_pose_recording), "--out",
+                                       str(tmp_path / "tracked")])
+    raw = CliRunner().invoke(app, ["replay", str(random_pose_recording), "--out",
+                                   str(tmp_path / "raw"), "--no-track"])
+    assert tracked.exit_code == 0 and raw.exit_code == 0, raw.output
+    assert "(no tracking)" in raw.output and "gated" in tracked.output
+    got, gated = load_poses(tmp_path / "raw" / "poses.csv"), load_poses(
+        tmp_path / "tracked" / "poses.csv")
+    # one row per frame, in order, the blank frame included as an empty row
+    assert got.t_ns.tolist() == rec.t_ns.tolist() == gated.t_ns.tolist()
+    assert math.isnan(got.x_m[3]) and got.method[3] == "lights" and "failures: " in raw.output
+    estimated = [k for k in range(n) if not math.isnan(got.x_m[k])]
+    assert len(estimated) == n - 1 > int(sum(~np.isnan(gated.x_m)))
+    for k in estimated:  # each frame's own estimate, at its own random pose
+        x, y, _ = rec.truth.lookup(int(got.t_ns[k]))
+        assert math.hypot(got.x_m[k] - x, got.y_m[k] - y) < 0.01
+
+
+def test_poses_header_is_exactly_the_specs(tmp_path):
+    res = CliRunner().invoke(app, ["replay", str(FIXTURES / "lights_rec"), "--out",
+                                   str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    header = (tmp_path / "poses.csv").read_text().splitlines()[0]
+    assert header == ("t_ns,x,y,yaw_deg,lateral,method,quality,latency_ms,"
+                      "sigma_x,sigma_y,sigma_yaw_deg")
+
+
+def test_a_recording_with_odometry_replays(tmp_path):
+    import shutil
+
+    rec = tmp_path / "rec"
+    shutil.copytree(FIXTURES / "corridor_rec", rec)
+    t_ns = Recording(rec).t_ns
+    rows = "".join(f"{t},0.08,0.000,0.1\n" for t in t_ns)
+    (rec / "odometry.csv").write_text("t_ns,dx,dy,dyaw_deg\n" + rows)
+    assert len(Recording(rec).odometry) == t_ns.size
+    res = CliRunner().invoke(app, ["replay", str(rec), "--out", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    assert load_poses(tmp_path / "out" / "poses.csv").t_ns.size == t_ns.size
+    (rec / "odometry.csv").write_text("t_ns,dx,dy\n1,0,0\n")
+    res = CliRunner().invoke(app, ["replay", str(rec)])
+    assert res.exit_code == 1 and "odometry.csv: header: expected `t_ns,dx,dy,dyaw_deg`" \
+        in res.output
+
+
+def test_an_estimator_option_reaches_the_estimator(tmp_path):
+    """--option min_contrast=255: every frame is too flat for that spread: all blank."""
+    res = CliRunner().invoke(app, ["replay", str(FIXTURES / "corridor_rec"), "--out",
+                                   str(tmp_path), "--option", "min_contrast=255"])
+    assert res.exit_code == 0, res.output
+    n = len(Recording(FIXTURES / "corridor_rec"))
+    assert f"blank_frame {n}" in res.output

@@ -27,7 +27,9 @@ from ceilkit.runtime.sim.render import SimOptions, render_frame
 from helpers import CONFIGS
 
 runner = CliRunner()
-POSES_LINE = "t_ns,x,y,yaw_deg,lateral,method,quality,latency_ms"
+POSES_LINE = ("t_ns,x,y,yaw_deg,lateral,method,quality,latency_ms,"
+              "sigma_x,sigma_y,sigma_yaw_deg")
+SIGMAS = ("sigma_x", "sigma_y", "sigma_yaw_deg")
 W, H = 320, 240
 T0_NS = 1_718_000_000_000_000_000          # an epoch stamp, as a real camera driver gives
 
@@ -125,7 +127,7 @@ def read_poses(path: Path) -> tuple[str, list[dict[str, str]]]:
     assert text.endswith("\n") and "\r" not in text
     rows = list(csv.DictReader(lines))
     for r in rows:
-        assert None not in r and len(r) == 8             # exactly eight fields
+        assert None not in r and len(r) == 11            # exactly eleven fields
     return lines[0], rows
 
 
@@ -146,10 +148,15 @@ def check_rows(rows: list[dict[str, str]], folder: Path, method: str,
         assert float(r["latency_ms"]) >= 0.0
         if r["yaw_deg"] == "":                            # a failure: no pose fields
             assert r["x"] == r["y"] == r["lateral"] == "" and q == 0.0
+            assert all(r[key] == "" for key in SIGMAS)
             continue
         poses.append(r)
         for key in unobserved:
             assert r[key] == "", (key, r)
+            if key in ("x", "y"):                         # nor its 1-sigma
+                assert r[f"sigma_{key}"] == "", (key, r)
+        for key in SIGMAS:                                # 1-sigma: empty or finite >= 0
+            assert r[key] == "" or (math.isfinite(float(r[key])) and float(r[key]) >= 0)
         for key in ("x", "y", "yaw_deg", "lateral"):
             if key not in unobserved and r[key] != "":
                 assert math.isfinite(float(r[key]))
