@@ -36,7 +36,7 @@ import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.features.grey import to_grey
-from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.camera import CameraModel, subpixel_rays
 
 ARUCO_DICTIONARIES = tuple(n[5:] for n in dir(cv2.aruco) if n.startswith("DICT_"))
 MIN_CHARUCO_CORNERS = 6
@@ -457,48 +457,6 @@ def parse_board(spec: str, square_m: float, marker_m: float | None = None,
 
 # -- rendering (tests and simulation) --------------------------------------------------------
 
-_RAY_CACHE: dict[tuple, np.ndarray] = {}
-
-
-def _camera_key(camera: CameraModel, ss: int) -> tuple:
-    return (camera.width, camera.height, camera.model, tuple(camera.K.ravel()),
-            tuple(camera.dist), ss)
-
-
-def _subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
-    """``(H*ss, W*ss, 3)`` rays (z = 1, NaN where the lens model has no inverse).
-
-    The lens is inverted exactly on a grid every 2 pixels and interpolated (bicubic)
-    between: the distortion field is smooth, so the error is far below 1e-3 px.
-    """
-    key = _camera_key(camera, ss)
-    if key not in _RAY_CACHE:
-        step, pad = 2, 3
-        gu = np.arange(-pad * step, camera.width + pad * step + 1, step, dtype=np.float64)
-        gv = np.arange(-pad * step, camera.height + pad * step + 1, step, dtype=np.float64)
-        uu, vv = np.meshgrid(gu, gv)
-        px = np.stack([uu.ravel(), vv.ravel()], axis=1)
-        xy = camera.unproject(px)
-        back = camera.distort(xy)
-        bad = ~np.all(np.abs(back - px) < 0.05, axis=1)     # no inverse there
-        grid = xy.reshape(gv.size, gu.size, 2).astype(np.float32)
-        badg = bad.reshape(gv.size, gu.size).astype(np.float32)
-        off = (np.arange(ss) + 0.5) / ss - 0.5
-        u = (np.arange(camera.width)[:, None] + off[None, :]).ravel()
-        v = (np.arange(camera.height)[:, None] + off[None, :]).ravel()
-        mu, mv = np.meshgrid((u - gu[0]) / step, (v - gv[0]) / step)
-        mu, mv = mu.astype(np.float32), mv.astype(np.float32)
-        xy_sub = cv2.remap(grid, mu, mv, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-        bad_sub = cv2.remap(badg, mu, mv, cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_REPLICATE) > 0
-        xy_sub = xy_sub.astype(np.float64)
-        xy_sub[bad_sub] = np.nan
-        rays = np.concatenate([xy_sub, np.ones(xy_sub.shape[:2] + (1,))], axis=2)
-        if len(_RAY_CACHE) > 8:
-            _RAY_CACHE.clear()
-        _RAY_CACHE[key] = rays
-    return _RAY_CACHE[key]
-
 
 def render_board(board: Board, camera: CameraModel, rvec_cam_board: np.ndarray,
                  t_cam_board_m: np.ndarray, rng: np.random.Generator | None = None,
@@ -524,7 +482,7 @@ def render_board(board: Board, camera: CameraModel, rvec_cam_board: np.ndarray,
     rng = np.random.default_rng(0) if rng is None else rng
     R, _ = cv2.Rodrigues(np.asarray(rvec_cam_board, np.float64).reshape(3))
     t = np.asarray(t_cam_board_m, np.float64).reshape(3)
-    rays = _subpixel_rays(camera, supersample)
+    rays = subpixel_rays(camera, supersample)
     n = R[:, 2]
     denom = rays @ n
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -19,16 +19,26 @@ Example::
 
 from __future__ import annotations
 
-import functools
-
 import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.features.edges import (
+    classify,
+    directions,
+    edge_grid,
+    fit_lines_robust,
+    locate,
+    profile_offsets,
+    profiles_along,
+    profiles_at,
+    sample_profiles,
+)
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.camera import CameraModel
 
 DETECTORS = ("fld", "lsd", "hough")
+MIN_FIT_POINTS = 4   # located edge points a segment needs to be refitted
 
 
 def segment_lengths(segs: np.ndarray) -> np.ndarray:
@@ -144,7 +154,7 @@ def refine_segments(gray: np.ndarray, segs_px: np.ndarray, half_width_px: float 
     nrm = np.stack([-t_hat[:, 1], t_hat[:, 0]], axis=1)
     offs = np.arange(-half_width_px - 1.0, half_width_px + 1.0 + 1e-9, 0.5)
     counts = np.maximum(((length - 2 * inset_px) / step_px).astype(int) + 1, 0)
-    ok = counts >= 4
+    ok = counts >= MIN_FIT_POINTS
     if not np.any(ok):
         return segs, rms
     idx = np.repeat(np.arange(n)[ok], counts[ok])
@@ -152,11 +162,8 @@ def refine_segments(gray: np.ndarray, segs_px: np.ndarray, half_width_px: float 
     k = np.arange(idx.size) - np.repeat(start, counts[ok])
     s_along = inset_px + k * step_px
     base = p1[idx] + t_hat[idx] * s_along[:, None]                       # (K, 2)
-    pts = base[:, None, :] + offs[None, :, None] * nrm[idx][:, None, :]  # (K, O, 2)
-    mx = pts[..., 0].astype(np.float32)
-    my = pts[..., 1].astype(np.float32)
-    prof = cv2.remap(gray.astype(np.float32), mx, my, cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    prof = profiles_at(gray.astype(np.float32), base.T[:, :, None], nrm[idx].T[:, :, None],
+                       offs)[:, 0, :]                                   # (K, O)
     der = prof[:, 2:] - prof[:, :-2]                                    # (K, O-2)
     so = offs[1:-1]
     pol = np.sign(np.bincount(idx, weights=der.sum(axis=1), minlength=n))[idx]
@@ -172,14 +179,14 @@ def refine_segments(gray: np.ndarray, segs_px: np.ndarray, half_width_px: float 
     edge = base + loc[:, None] * nrm[idx]
     for i in np.flatnonzero(ok):
         sel = (idx == i) & good
-        if np.count_nonzero(sel) < 4:
+        if np.count_nonzero(sel) < MIN_FIT_POINTS:
             continue
         w = mass[sel]
         line = fit_line(edge[sel], w)
         res = edge[sel] @ line[:2] + line[2]
         # one robust pass: drop points far from the first fit
         keep = np.abs(res) <= max(3.0 * np.sqrt(np.average(res ** 2, weights=w)), 0.3)
-        if np.count_nonzero(keep) >= 4:
+        if np.count_nonzero(keep) >= MIN_FIT_POINTS:
             line = fit_line(edge[sel][keep], w[keep])
             res = edge[sel][keep] @ line[:2] + line[2]
         rms[i] = float(np.sqrt(np.mean(res ** 2)))
@@ -187,55 +194,6 @@ def refine_segments(gray: np.ndarray, segs_px: np.ndarray, half_width_px: float 
             q = segs[i, j:j + 2]
             segs[i, j:j + 2] = q - (q @ line[:2] + line[2]) * line[:2]
     return segs, rms
-
-
-def sample_profiles(gray: np.ndarray, segs_px: np.ndarray, offsets_px: np.ndarray,
-                    n_along: int = 8, inset: float = 0.1, mean: bool = True) -> np.ndarray:
-    """Mean intensity profiles across segments.
-
-    Each segment ``(u1, v1, u2, v2)`` is sampled (bilinear by ``cv2.remap``, to 1/32
-    px; the border replicated) at ``n_along`` points evenly spread over its middle
-    (``inset`` of its length left out at each end), at signed distances ``offsets_px``
-    along its left normal
-    ``(-t_v, t_u)`` (``t`` the unit direction from ``(u1, v1)`` to ``(u2, v2)``); with
-    ``mean`` the samples are averaged along the segment.
-
-    Args:
-        gray: ``(H, W)`` uint8 (or float) image.
-        segs_px: ``(N, 4)`` segments, pixels.
-        offsets_px: ``(O,)`` distances across, pixels.
-
-    Returns:
-        ``(N, O)`` float64 mean grey levels, or ``(N, n_along, O)`` without ``mean``.
-    """
-    s = np.asarray(segs_px, dtype=np.float64).reshape(-1, 4)
-    o = np.asarray(offsets_px, dtype=np.float64).ravel()
-    if s.shape[0] == 0:
-        return np.zeros((0, o.size)) if mean else np.zeros((0, n_along, o.size))
-    d, nrm = _directions(s)
-    val = _profiles(gray, s, d, nrm, o, np.linspace(inset, 1.0 - inset, n_along))
-    return val.sum(axis=1) * (1.0 / n_along) if mean else val
-
-
-def _directions(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(d, nrm)``: ``p2 - p1`` ``(N, 2)`` and the unit left normal ``(N, 2)``."""
-    d = s[:, 2:] - s[:, :2]
-    inv = 1.0 / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-    nrm = np.empty_like(d)
-    nrm[:, 0] = -d[:, 1] * inv
-    nrm[:, 1] = d[:, 0] * inv
-    return d, nrm
-
-
-def _profiles(gray: np.ndarray, s: np.ndarray, d: np.ndarray, nrm: np.ndarray,
-              o: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """Samples ``(N, A, O)`` at ``p1 + a d + o nrm`` (bilinear, ``cv2.remap``)."""
-    # the u and v maps apart, (2, N, A, O): numpy is slow on a trailing axis of 2
-    base = s[:, :2].T[:, :, None] + a * d.T[:, :, None]                          # (2, N, A)
-    maps = (base[..., None] + o * nrm.T[:, :, None, None]).astype(np.float32)
-    maps = maps.reshape(2, -1, o.size)
-    val = cv2.remap(gray, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return val.reshape(s.shape[0], a.size, o.size).astype(np.float64)
 
 
 def edge_polarity(gray: np.ndarray, segs_px: np.ndarray, min_step: float = 20.0,
@@ -267,79 +225,8 @@ def edge_polarity(gray: np.ndarray, segs_px: np.ndarray, min_step: float = 20.0,
         pol, shift = edge_polarity(gray, segs_px)
         segs_px = shift_segments(segs_px, np.nan_to_num(shift))
     """
-    offs = np.arange(-half_width_px, half_width_px + 1e-9, 0.5)
-    prof = sample_profiles(gray, segs_px, offs)
-    return _classify_profiles(prof, offs, min_step, min_depth)
-
-
-def _classify_profiles(prof: np.ndarray, offs: np.ndarray, min_step: float,
-                       min_depth: float, shift: bool = True
-                       ) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(polarity, shift_px)`` of mean profiles ``(N, O)`` at ``offs (O,)`` (step 0.5,
-    ascending); ``shift_px`` is None unless ``shift``."""
-    n = prof.shape[0]
-    if n == 0:
-        return np.full(n, np.nan), (np.full(n, np.nan) if shift else None)
-    sl, sr, inner, inv_l, inv_r = _profile_parts(offs)
-    left = prof[:, sl].sum(axis=1) * inv_l
-    right = prof[:, sr].sum(axis=1) * inv_r
-    step = right - left
-    pin = np.ascontiguousarray(prof[:, inner])
-    k_lo = np.argmin(pin, axis=1)
-    k_hi = np.argmax(pin, axis=1)
-    dip = np.minimum(left, right) - pin.min(axis=1)
-    bump = pin.max(axis=1) - np.maximum(left, right)
-    valley = dip >= bump
-    depth = np.where(valley, dip, bump)
-    k = np.where(valley, k_lo, k_hi)
-    a_step = np.abs(step)
-    thin = (depth >= min_depth) & (depth > a_step) & (k > 0) & (k < pin.shape[1] - 1)
-    is_step = (a_step >= min_step) & (a_step > np.maximum(depth, 0.0))
-    pol = np.where(thin, 0.0, np.where(is_step, np.sign(step), np.nan))
-    if not shift:
-        return pol, None
-    out = np.full(n, np.nan)
-    r = np.flatnonzero(thin)
-    if r.size:
-        kk = k[r]
-        out[r] = offs[inner][kk] + 0.5 * _vertex(pin[r, kk - 1], pin[r, kk], pin[r, kk + 1])
-    return pol, out
-
-
-_PARTS: dict[bytes, tuple] = {}
-
-
-def _profile_parts(offs: np.ndarray) -> tuple:
-    """For profile offsets ``offs (O,)`` (pixels): the indices (a slice where they are
-    consecutive) of the left side and the right side (the outer 1 px of either end)
-    and of the inner part (``|offset| <= half - 1.5``, ``half = offs[-1]``), and one
-    over the number of samples on the left and on the right. Cached per ``offs``."""
-    key = offs.tobytes()
-    parts = _PARTS.get(key)
-    if parts is None:
-        if len(_PARTS) > 64:
-            _PARTS.clear()
-        half = float(offs[-1])
-        side = np.abs(offs) >= half - 1.0 + 1e-9
-        il = np.flatnonzero(side & (offs < 0))
-        ir = np.flatnonzero(side & (offs > 0))
-        ii = np.flatnonzero(np.abs(offs) <= half - 1.5 + 1e-9)
-
-        def run(idx: np.ndarray) -> slice | np.ndarray:
-            if idx.size and np.all(np.diff(idx) == 1):
-                return slice(int(idx[0]), int(idx[-1]) + 1)
-            return idx
-
-        parts = (run(il), run(ir), run(ii), 1.0 / il.size, 1.0 / ir.size)
-        _PARTS[key] = parts
-    return parts
-
-
-def _vertex(y0: np.ndarray, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
-    """Sub-sample offset in [-1, 1] of the parabola's vertex through three samples."""
-    den = y0 - 2 * y1 + y2
-    safe = np.where(np.abs(den) > 1e-9, den, 1.0)
-    return np.clip(np.where(np.abs(den) > 1e-9, 0.5 * (y0 - y2) / safe, 0.0), -1.0, 1.0)
+    offs = profile_offsets(half_width_px)
+    return classify(sample_profiles(gray, segs_px, offs), offs, min_step, min_depth)
 
 
 def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
@@ -380,75 +267,15 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     rms = np.full(n, np.nan)
     if n == 0:
         return np.zeros((0, 4)), np.zeros(0), rms
-    offs, t, inner = _edge_grid(n_along, half_width_px)
-    o_in = offs[1:-1][inner]                     # where an edge may be located
-    d_all, nrm_all = _directions(s)
-    prof = _profiles(gray, s, d_all, nrm_all, offs, t)                         # (N, A, O)
-    pol, _ = _classify_profiles(prof.sum(axis=1) * (1.0 / n_along), offs, min_step, min_depth,
-                                shift=False)
+    offs, t, inner = edge_grid(n_along, half_width_px)
+    d_all, nrm_all = directions(s)
+    prof = profiles_along(gray, s, d_all, nrm_all, offs, t)                    # (N, A, O)
+    pol, _ = classify(prof.sum(axis=1) * (1.0 / n_along), offs, min_step, min_depth,
+                      shift=False)
     # the steps, then the thin lines (each segment is fitted on its own: order is free)
-    i_step = np.flatnonzero(np.abs(pol) == 1.0)
-    i_thin = np.flatnonzero(pol == 0.0)
-    sel = np.concatenate([i_step, i_thin])
-    n_st = i_step.size
-    loc = np.empty((sel.size, n_along))          # edge offsets along the left normal, px
-    i0, i1 = inner.start + 1, inner.stop + 1     # the inner part, in offs
-    if n_st:
-        # a step: where the profile crosses the middle of its two sides' levels, the
-        # crossing nearest the derivative's peak (less locked to the pixel grid than
-        # a parabola)
-        gs = prof[i_step] * pol[i_step][:, None, None]          # rises across the step
-        mid = gs[:, :, [0, 1, -2, -1]].sum(axis=2) * 0.25     # the two sides' middle
-        k = np.argmax(gs[:, :, i0 + 1:i1 + 1] - gs[:, :, i0 - 1:i1 - 1], axis=2) + i0
-        near = np.take_along_axis(gs, k[:, :, None] + _NEIGHBOURS, axis=2) - mid[:, :, None]
-        hm, hk, hp = near[:, :, 0], near[:, :, 1], near[:, :, 2]    # at k - 1, k, k + 1
-        # the crossing is in [k - 1, k] or [k, k + 1] (the derivative peaks at k)
-        lo = hk > 0
-        h0 = np.where(lo, hm, hk)
-        h1 = np.where(lo, hk, hp)
-        o = offs[k - lo] + 0.5 * (-h0) / np.where(h1 > h0, h1 - h0, 1.0)
-        ok = (h0 <= 0) & (h1 > 0) & (np.abs(o) <= o_in[-1])
-        loc[:n_st] = np.where(ok, o, np.nan)
-    if i_thin.size:
-        # a thin line: the centroid of its part beyond half its height
-        p = prof[i_thin]
-        inv_a = 1.0 / n_along
-        side = 0.5 * (p[:, :, 0] + p[:, :, -1]).sum(axis=1) * inv_a
-        inner_p = p[:, :, i0:i1]
-        valley = (side - inner_p.min(axis=2).sum(axis=1) * inv_a
-                  >= inner_p.max(axis=2).sum(axis=1) * inv_a - side)
-        sgn = np.where(valley, -1.0, 1.0)
-        gt = inner_p * sgn[:, None, None]                        # peaks on the line
-        top = gt.max(axis=2, keepdims=True)
-        w = np.maximum(gt - 0.5 * ((sgn * side)[:, None, None] + top), 0.0)
-        sw = w.sum(axis=2)
-        o = (w * o_in).sum(axis=2) / np.maximum(sw, 1e-12)
-        k_pk = np.argmax(gt, axis=2)
-        ok = (sw > 0) & (k_pk > 0) & (k_pk < o_in.size - 1)
-        loc[n_st:] = np.where(ok, o, np.nan)
-    good = np.isfinite(loc)
-    # the located edge points in pixels, undistorted with all endpoints in one call
-    # (the others stay at 0: they have no weight in the fit)
-    n_good = int(np.count_nonzero(good))
-    px = np.empty((2 * n + n_good, 2))
-    px[:2 * n] = s.reshape(-1, 2)
-    pts = (s[sel, :2].T[:, :, None] + t * d_all[sel].T[:, :, None]
-           + loc * nrm_all[sel].T[:, :, None])                                  # (2, S, A)
-    px[2 * n:] = pts[:, good].T
-    xy_all = unproject_fast(camera, px)
-    ends = xy_all[:2 * n].reshape(n, 4)
-    x = np.zeros(good.shape)
-    y = np.zeros(good.shape)
-    x[good] = xy_all[2 * n:, 0]
-    y[good] = xy_all[2 * n:, 1]
-    f = 0.5 * (camera.fx + camera.fy)
-    line, res, cnt, ssr = _fit_lines(x, y, good)
-    sig = np.sqrt(ssr / np.maximum(cnt, 1))
-    keep = good & (np.abs(res) <= np.maximum(3 * sig, 0.5 / f)[:, None])
-    if (keep != good).any():
-        good = keep
-        line, res, cnt, ssr = _fit_lines(x, y, good)
-    ok = cnt >= 4
+    sel = np.concatenate([np.flatnonzero(np.abs(pol) == 1.0), np.flatnonzero(pol == 0.0)])
+    loc = locate(prof[sel], pol[sel], offs, inner)  # edge offsets along the left normal, px
+    ends, line, rms_sel, ok = _fit_located(camera, s, sel, t, loc, d_all, nrm_all)
     idx = sel[ok]
     ln = line[ok]
     e = ends[idx].reshape(-1, 2, 2)                   # (M, endpoint, xy)
@@ -457,7 +284,7 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     ln[flip] *= -1
     dist = e[:, :, 0] * ln[:, 0, None] + e[:, :, 1] * ln[:, 1, None] + ln[:, 2, None]
     ends[idx] = (e - dist[:, :, None] * ln[:, None, :2]).reshape(-1, 4)
-    rms[idx] = f * np.sqrt(ssr[ok] / cnt[ok])
+    rms[idx] = rms_sel[ok]
     unclear = np.flatnonzero(np.isnan(pol))
     if unclear.size and retry_half_width_px is not None \
             and retry_half_width_px > half_width_px:
@@ -468,82 +295,33 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     return ends, pol, rms
 
 
-_NEIGHBOURS = np.array([-1, 0, 1])
-
-
-@functools.lru_cache(maxsize=16)
-def _edge_grid(n_along: int, half_width_px: float) -> tuple[np.ndarray, np.ndarray, slice]:
-    """Constants of :func:`refine_undistorted`: the profile offsets ``(O,)`` (px, every
-    0.5 px within ``half_width_px``), the places along a segment ``(A,)`` (fractions of
-    its length, 0.05 to 0.95) and the slice of ``offs[1:-1]`` within
-    ``half_width_px - 1`` px (where an edge is located). Read-only arrays."""
-    offs = np.arange(-half_width_px, half_width_px + 1e-9, 0.5)
-    t = np.linspace(0.05, 0.95, n_along)
-    inner = np.flatnonzero(np.abs(offs[1:-1]) <= half_width_px - 1.0 + 1e-9)
-    if inner.size == 0:
-        raise ValueError(f"half_width_px {half_width_px} leaves no room to locate an edge")
-    offs.flags.writeable = False
-    t.flags.writeable = False
-    return offs, t, slice(int(inner[0]), int(inner[-1]) + 1)
-
-
-_FAST_OK: dict[tuple, bool] = {}
-
-
-def unproject_fast(camera: CameraModel, points_px: np.ndarray) -> np.ndarray:
-    """``camera.unproject`` ``(N, 2)`` for many points per frame: for the polynomial
-    models a fixed 10 iterations of OpenCV's undistortion (no reprojection test). Used
-    only for a camera whose image border reprojects within 1e-4 px after those 10
-    iterations (checked once per camera); other cameras go to ``camera.unproject``."""
-    px = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
-    if (px.shape[0] == 0 or not camera.is_distorted
-            or camera.model not in ("plumb_bob", "rational_polynomial")):
-        return camera.unproject(px)
-    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
-    ok = _FAST_OK.get(key)
-    if ok is None:
-        u = np.linspace(-0.5, camera.width - 0.5, 33)
-        v = np.linspace(-0.5, camera.height - 0.5, 25)
-        border = np.concatenate([np.stack([u, np.full_like(u, v[0])], 1),
-                                 np.stack([u, np.full_like(u, v[-1])], 1),
-                                 np.stack([np.full_like(v, u[0]), v], 1),
-                                 np.stack([np.full_like(v, u[-1]), v], 1)])
-        back = camera.distort(_undistort10(camera, border))
-        ok = bool(np.all(np.abs(back - border) <= 1e-4))
-        _FAST_OK[key] = ok
-    return _undistort10(camera, px) if ok else camera.unproject(px)
-
-
-def _undistort10(camera: CameraModel, px: np.ndarray) -> np.ndarray:
-    return cv2.undistortPoints(px.reshape(-1, 1, 2), camera.K, camera.dist,
-                               criteria=(cv2.TERM_CRITERIA_COUNT, 10, 0.0)).reshape(-1, 2)
-
-
-def _fit_lines(x: np.ndarray, y: np.ndarray, w: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Total-least-squares lines through points with coordinates ``x, y (N, A)``, those
-    with ``w (N, A)`` True: ``(lines, res, n, ssr)``, the lines ``(N, 3)``
-    (``|(a, b)| = 1``), the points' signed residuals ``(N, A)``, how many points
-    ``(N,)`` (float) and the sum of their squared residuals ``(N,)``."""
-    wf = w.astype(np.float64)
-    n = wf.sum(axis=1)
-    sw = np.maximum(n, 1e-12)
-    cx = (wf * x).sum(axis=1) / sw
-    cy = (wf * y).sum(axis=1) / sw
-    dx = x - cx[:, None]
-    dy = y - cy[:, None]
-    wdx = wf * dx
-    sxx = (wdx * dx).sum(axis=1)
-    syy = (wf * dy * dy).sum(axis=1)
-    sxy = (wdx * dy).sum(axis=1)
-    th = 0.5 * np.arctan2(2 * sxy, sxx - syy)          # direction of the major axis
-    a, b = -np.sin(th), np.cos(th)
-    line = np.empty((a.size, 3))
-    line[:, 0] = a
-    line[:, 1] = b
-    line[:, 2] = -(a * cx + b * cy)
-    res = x * a[:, None] + y * b[:, None] + line[:, 2:3]
-    return line, res, n, ((wf * res) * res).sum(axis=1)
+def _fit_located(camera: CameraModel, s: np.ndarray, sel: np.ndarray, t: np.ndarray,
+                 loc: np.ndarray, d_all: np.ndarray, nrm_all: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The lines through the located edge points of segments ``s[sel]`` (offsets ``loc
+    (S, A)`` at the fractions ``t (A,)``, NaN: not located), undistorted with all the
+    endpoints in one call (:meth:`CameraModel.unproject_fast`). Returns ``(ends (N, 4)
+    undistorted endpoints, lines (S, 3), rms_px (S,), fitted (S,) with at least
+    MIN_FIT_POINTS points)``."""
+    n = s.shape[0]
+    good = np.isfinite(loc)
+    # (points not located stay at 0: they have no weight in the fit)
+    n_good = int(np.count_nonzero(good))
+    px = np.empty((2 * n + n_good, 2))
+    px[:2 * n] = s.reshape(-1, 2)
+    pts = (s[sel, :2].T[:, :, None] + t * d_all[sel].T[:, :, None]
+           + loc * nrm_all[sel].T[:, :, None])                                  # (2, S, A)
+    px[2 * n:] = pts[:, good].T
+    xy_all = camera.unproject_fast(px)
+    ends = xy_all[:2 * n].reshape(n, 4)
+    x = np.zeros(good.shape)
+    y = np.zeros(good.shape)
+    x[good] = xy_all[2 * n:, 0]
+    y[good] = xy_all[2 * n:, 1]
+    f = 0.5 * (camera.fx + camera.fy)
+    line, _, cnt, ssr, _ = fit_lines_robust(x, y, good, f)
+    ok = cnt >= MIN_FIT_POINTS
+    return ends, line, f * np.sqrt(ssr / np.maximum(cnt, 1)), ok
 
 
 def shift_segments(segs_px: np.ndarray, shift_px: np.ndarray) -> np.ndarray:

@@ -17,15 +17,31 @@ Example::
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 
+from ceilkit.runtime.errors import ConfigError
+
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant")
 N_COEFFS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+# the fast undistortion: a fixed number of OpenCV's iterations, used for a camera whose
+# image border (a grid of _FAST_BORDER_NODES per side) reprojects within _FAST_TOL_PX
+_FAST_ITERATIONS = 10
+_FAST_CRITERIA = (cv2.TERM_CRITERIA_COUNT, _FAST_ITERATIONS, 0.0)
+_FAST_TOL_PX = 1e-4
+_FAST_BORDER_NODES = (33, 25)
+_POLYNOMIAL_MODELS = ("plumb_bob", "rational_polynomial")
+# the ray table (:func:`subpixel_rays`): the lens inverted exactly every _TABLE_STEP_PX
+# pixels (_TABLE_PAD nodes beyond the border), a node whose inverse reprojects more than
+# _TABLE_TOL_PX off has no ray
+_TABLE_STEP_PX = 2
+_TABLE_PAD = 3
+_TABLE_TOL_PX = 0.05
 
 
 def _frozen(a: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -61,16 +77,38 @@ class CameraModel:
 
     def __post_init__(self) -> None:
         if self.model not in DISTORTION_MODELS:
-            raise ValueError(f"unknown distortion model {self.model!r}")
+            raise ConfigError(None, "model", f"expected one of {', '.join(DISTORTION_MODELS)}, "
+                              f"found {self.model!r}")
         object.__setattr__(self, "K", _frozen(self.K, (3, 3)))
         dist = np.array(self.dist, dtype=np.float64).ravel()
         if dist.size != N_COEFFS[self.model]:
-            raise ValueError(f"{self.model} takes {N_COEFFS[self.model]} coefficients")
+            raise ConfigError(None, "dist", f"{self.model} takes {N_COEFFS[self.model]} "
+                              f"coefficients, found {dist.size}")
         object.__setattr__(self, "dist", _frozen(dist, (dist.size,)))
         R = np.eye(3) if self.R_rect is None else self.R_rect
         object.__setattr__(self, "R_rect", _frozen(R, (3, 3)))
         P = np.hstack([self.K, np.zeros((3, 1))]) if self.P is None else self.P
         object.__setattr__(self, "P", _frozen(P, (3, 4)))
+        object.__setattr__(self, "_key", (self.width, self.height, self.model,
+                                          (self.K + 0.0).tobytes(), (self.dist + 0.0).tobytes()))
+
+    # -- identity -------------------------------------------------------------------
+    @property
+    def key(self) -> tuple:
+        """What the lens math depends on: ``(width, height, model, K bytes, dist bytes)``
+        (``-0.0`` counted as ``0.0``). Hashing and equality use it (equality also
+        compares ``name``, ``R_rect`` and ``P``), so a camera can key a cache
+        (``functools.lru_cache``)."""
+        return self._key  # type: ignore[attr-defined]
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, CameraModel):
+            return NotImplemented
+        return (self.key == other.key and self.name == other.name
+                and np.array_equal(self.R_rect, other.R_rect) and np.array_equal(self.P, other.P))
 
     # -- construction -------------------------------------------------------------
     @classmethod
@@ -124,16 +162,31 @@ class CameraModel:
 
     # -- projection -----------------------------------------------------------------
     def distort(self, xy_norm: np.ndarray) -> np.ndarray:
-        """Pixels of normalized points ``(N, 2)`` (through the lens distortion)."""
+        """Pixels ``(N, 2)`` of normalized points ``(N, 2)`` (through the lens distortion).
+
+        OpenCV's formulas (``cv2.projectPoints``, ``cv2.fisheye.distortPoints``) in
+        numpy: fast on millions of points (the simulator's ray grids)."""
         xy = np.asarray(xy_norm, dtype=np.float64).reshape(-1, 2)
-        if xy.shape[0] == 0:
-            return np.zeros((0, 2))
+        x, y = xy[:, 0], xy[:, 1]
+        d = self.dist
         if self.model == "equidistant":
-            out = cv2.fisheye.distortPoints(xy.reshape(-1, 1, 2), self.K, self.dist)
-            return out.reshape(-1, 2)
-        pts = np.hstack([xy, np.ones((xy.shape[0], 1))])
-        out, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
-        return out.reshape(-1, 2)
+            r = np.hypot(x, y)
+            th = np.arctan(r)
+            t2 = th * th
+            thd = th * (1 + t2 * (d[0] + t2 * (d[1] + t2 * (d[2] + t2 * d[3]))))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sc = np.where(r > 1e-12, thd / r, 1.0)
+            xd, yd = x * sc, y * sc
+        else:
+            k = np.zeros(8)
+            k[:d.size] = d
+            k1, k2, p1, p2, k3, k4, k5, k6 = k
+            r2 = x * x + y * y
+            rad = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+            xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        K = self.K
+        return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Pixels ``(N, 2)`` of 3-D points ``(N, 3)`` in the camera frame.
@@ -169,6 +222,52 @@ class CameraModel:
         r = np.hstack([xy, np.ones((xy.shape[0], 1))])
         return r / np.linalg.norm(r, axis=1, keepdims=True)
 
+    def unproject_fast(self, points_px: np.ndarray) -> np.ndarray:
+        """:meth:`unproject` ``(N, 2)`` for many points per frame: for the polynomial
+        models a fixed 10 iterations of OpenCV's undistortion (no convergence test).
+        Used only for a camera whose image border reprojects within 1e-4 px after those
+        10 iterations (checked once per camera); other cameras go to :meth:`unproject`."""
+        px = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+        if px.shape[0] == 0 or not _fast_unproject_ok(self):
+            return self.unproject(px)
+        return self._undistort_fixed(px)
+
+    def _undistort_fixed(self, px: np.ndarray) -> np.ndarray:
+        return cv2.undistortPoints(px.reshape(-1, 1, 2), self.K, self.dist,
+                                   criteria=_FAST_CRITERIA).reshape(-1, 2)
+
+    def reprojects(self, points_px: np.ndarray, xy_norm: np.ndarray, tol_px: float
+                   ) -> np.ndarray:
+        """``(N,)`` bool: where the normalized points ``xy_norm (N, 2)`` (an inverse of
+        ``points_px (N, 2)``) are finite and :meth:`distort` back within ``tol_px`` of
+        the pixels (False where the lens has no inverse: a fisheye beyond its range, a
+        distortion that folds over)."""
+        px = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+        xy = np.asarray(xy_norm, dtype=np.float64).reshape(-1, 2)
+        good = np.all(np.isfinite(xy), axis=1)
+        back = np.full_like(xy, np.nan)
+        if np.any(good):
+            back[good] = self.distort(xy[good])
+        good &= np.linalg.norm(back - px, axis=1) < tol_px
+        return good
+
+    def unit_rays(self, points_px: np.ndarray, tol_px: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Unit rays ``(N, 3)`` of pixels ``(N, 2)`` and ``(N,)`` whether the lens
+        defines them: inside the image and :meth:`reprojects` within ``tol_px``. A ray
+        the lens does not define is the optical axis ``(0, 0, 1)``."""
+        px = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+        inside = self.in_image(px)
+        rays = np.zeros((px.shape[0], 3))
+        ok = inside.copy()
+        if np.any(inside):
+            xy = self.unproject(px[inside])
+            good = self.reprojects(px[inside], xy, tol_px)
+            r = np.hstack([np.where(good[:, None], xy, 0.0), np.ones((xy.shape[0], 1))])
+            rays[inside] = r / np.linalg.norm(r, axis=1, keepdims=True)
+            ok[inside] = good
+        return rays, ok
+
     def in_image(self, points_px: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """Boolean mask of pixels inside the image (by ``margin_px``)."""
         p = np.asarray(points_px).reshape(-1, 2)
@@ -176,4 +275,53 @@ class CameraModel:
                 & (p[:, 1] >= -0.5 + margin_px) & (p[:, 1] <= self.height - 0.5 - margin_px))
 
 
-__all__ = ["CameraModel", "DISTORTION_MODELS"]
+@functools.lru_cache(maxsize=16)
+def _fast_unproject_ok(camera: CameraModel) -> bool:
+    """Whether :meth:`CameraModel.unproject_fast` may use the fixed iterations: a
+    distorted polynomial lens whose image border reprojects within ``_FAST_TOL_PX``."""
+    if not camera.is_distorted or camera.model not in _POLYNOMIAL_MODELS:
+        return False
+    u = np.linspace(-0.5, camera.width - 0.5, _FAST_BORDER_NODES[0])
+    v = np.linspace(-0.5, camera.height - 0.5, _FAST_BORDER_NODES[1])
+    border = np.concatenate([np.stack([u, np.full_like(u, v[0])], 1),
+                             np.stack([u, np.full_like(u, v[-1])], 1),
+                             np.stack([np.full_like(v, u[0]), v], 1),
+                             np.stack([np.full_like(v, u[-1]), v], 1)])
+    back = camera.distort(camera._undistort_fixed(border))
+    return bool(np.all(np.abs(back - border) <= _FAST_TOL_PX))
+
+
+@functools.lru_cache(maxsize=8)
+def subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
+    """``(H*ss, W*ss, 3)`` rays (z = 1, NaN where the lens has no inverse) of the
+    ``ss x ss`` sub-pixels of every pixel (sub-pixel centres at ``(k + 0.5) / ss - 0.5``
+    px from the pixel centre), read-only.
+
+    The lens is inverted exactly on a grid every 2 pixels and interpolated (bicubic)
+    between: the distortion field is smooth, so the rays reproject within about 1e-3 px
+    (median 0.4e-3 px, largest 2e-3 to 0.01 px on 320x240 test lenses of each model).
+    """
+    step, pad = _TABLE_STEP_PX, _TABLE_PAD
+    gu = np.arange(-pad * step, camera.width + pad * step + 1, step, dtype=np.float64)
+    gv = np.arange(-pad * step, camera.height + pad * step + 1, step, dtype=np.float64)
+    uu, vv = np.meshgrid(gu, gv)
+    px = np.stack([uu.ravel(), vv.ravel()], axis=1)
+    xy = camera.unproject(px)
+    bad = ~camera.reprojects(px, xy, _TABLE_TOL_PX)                  # no inverse there
+    grid = xy.reshape(gv.size, gu.size, 2).astype(np.float32)
+    badg = bad.reshape(gv.size, gu.size).astype(np.float32)
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    u = (np.arange(camera.width)[:, None] + off[None, :]).ravel()
+    v = (np.arange(camera.height)[:, None] + off[None, :]).ravel()
+    mu, mv = np.meshgrid((u - gu[0]) / step, (v - gv[0]) / step)
+    mu, mv = mu.astype(np.float32), mv.astype(np.float32)
+    xy_sub = cv2.remap(grid, mu, mv, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    bad_sub = cv2.remap(badg, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) > 0
+    xy_sub = xy_sub.astype(np.float64)
+    xy_sub[bad_sub] = np.nan
+    rays = np.concatenate([xy_sub, np.ones(xy_sub.shape[:2] + (1,))], axis=2)
+    rays.setflags(write=False)
+    return rays
+
+
+__all__ = ["CameraModel", "DISTORTION_MODELS", "subpixel_rays"]

@@ -210,58 +210,8 @@ _GRID_CACHE: OrderedDict[tuple, _Grid] = OrderedDict()
 _GRID_CACHE_SIZE = 3
 
 
-def _camera_key(cam: CameraModel) -> tuple:
-    return (cam.width, cam.height, cam.model, cam.K.tobytes(), cam.dist.tobytes())
-
-
-def _distort(cam: CameraModel, xy: np.ndarray) -> np.ndarray:
-    """:meth:`CameraModel.distort` in numpy (OpenCV's formulas; much faster on millions
-    of points): pixels ``(N, 2)`` of normalized points ``(N, 2)``."""
-    x, y = xy[:, 0], xy[:, 1]
-    d = cam.dist
-    if cam.model == "equidistant":
-        r = np.hypot(x, y)
-        th = np.arctan(r)
-        t2 = th * th
-        thd = th * (1 + t2 * (d[0] + t2 * (d[1] + t2 * (d[2] + t2 * d[3]))))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sc = np.where(r > 1e-12, thd / r, 1.0)
-        xd, yd = x * sc, y * sc
-    else:
-        k = np.zeros(8)
-        k[:d.size] = d
-        k1, k2, p1, p2, k3, k4, k5, k6 = k
-        r2 = x * x + y * y
-        rad = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    K = cam.K
-    return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
-
-
-def _unit_rays(cam: CameraModel, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit rays ``(N, 3)`` of pixels ``(N, 2)`` and whether the lens defines them:
-    inside the image, and projecting back onto the pixel (a fisheye beyond its range,
-    or a lens whose distortion folds over, does not)."""
-    inside = cam.in_image(px)
-    rays = np.zeros((px.shape[0], 3))
-    ok = inside.copy()
-    if np.any(inside):
-        xy = cam.unproject(px[inside])
-        good = np.all(np.isfinite(xy), axis=1)
-        back = np.full_like(xy, np.nan)
-        if np.any(good):
-            back[good] = _distort(cam, xy[good])
-        err = np.linalg.norm(back - px[inside], axis=1)
-        good &= err < _REPROJ_TOL_PX
-        r = np.hstack([np.where(good[:, None], xy, 0.0), np.ones((xy.shape[0], 1))])
-        rays[inside] = r / np.linalg.norm(r, axis=1, keepdims=True)
-        ok[inside] = good
-    return rays, ok
-
-
 def _grid(cam: CameraModel, R_level_cam: np.ndarray, s: int) -> _Grid:
-    key = (_camera_key(cam), np.round(R_level_cam, 12).tobytes(), int(s))
+    key = (cam, np.round(R_level_cam, 12).tobytes(), int(s))
     g = _GRID_CACHE.get(key)
     if g is not None:
         _GRID_CACHE.move_to_end(key)
@@ -288,7 +238,7 @@ def _build_grid(cam: CameraModel, R_lc: np.ndarray, s: int) -> _Grid:
     u = (np.arange(ws) + 0.5) / s - 0.5
     uu, vv = np.meshgrid(u, v)
     px = np.stack([uu.ravel(), vv.ravel()], axis=1)
-    rays, ok = _unit_rays(cam, px)
+    rays, ok = cam.unit_rays(px, _REPROJ_TOL_PX)
     d = rays @ np.asarray(R_lc, float).T                  # level frame
     dx, dy, dz = (d[:, k].reshape(hs, ws) for k in range(3))
     ok = ok.reshape(hs, ws)
@@ -332,7 +282,7 @@ def _build_grid(cam: CameraModel, R_lc: np.ndarray, s: int) -> _Grid:
     # pixel centres
     hp, wp = ncy * CELL_PX, ncx * CELL_PX
     pu, pv = np.meshgrid(np.arange(wp, dtype=float), np.arange(hp, dtype=float))
-    prays, pok = _unit_rays(cam, np.stack([pu.ravel(), pv.ravel()], axis=1))
+    prays, pok = cam.unit_rays(np.stack([pu.ravel(), pv.ravel()], axis=1), _REPROJ_TOL_PX)
     pd = prays @ np.asarray(R_lc, float).T
     pdx, pdy, pdz = (pd[:, k].reshape(hp, wp) for k in range(3))
     pok = pok.reshape(hp, wp)

@@ -1,4 +1,4 @@
-"""Tests of runtime/lines.py."""
+"""Tests of runtime/features/lines.py."""
 
 from __future__ import annotations
 
@@ -12,22 +12,16 @@ from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.lines import (
     SegmentDetector,
-    _classify_profiles,
-    _edge_grid,
-    _fit_lines,
-    _profile_parts,
     detect_segments,
     edge_polarity,
     fit_line,
     merge_segments,
     refine_segments,
     refine_undistorted,
-    sample_profiles,
     segment_lengths,
     segment_lines,
     shift_segments,
     undistort_segments,
-    unproject_fast,
 )
 from ceilkit.runtime.geometry.camera import CameraModel
 
@@ -116,15 +110,6 @@ def stripe_image(offset_px: float, width_px: float, seed: int) -> np.ndarray:
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
-def test_sample_profiles_orientation():
-    img = edge_image(0.0, 0.0, 0.0, 0)          # vertical edge, bright on the right (+u)
-    down = np.array([[80.0, 20.0, 80.0, 100.0]])   # left normal (-t_v, t_u) = (-1, 0)
-    p = sample_profiles(img, down, np.array([-3.0, 0.0, 3.0]))
-    assert p.shape == (1, 3) and p[0, 0] > 180 and p[0, 2] < 80
-    assert sample_profiles(img, down[:, [2, 3, 0, 1]], np.array([-3.0, 3.0]))[0, 0] < 80
-    assert sample_profiles(img, down, np.arange(3.0), 5, mean=False).shape == (1, 5, 3)
-
-
 def test_edge_polarity_steps_and_thin_lines():
     segs = np.array([[80.0, 10.0, 80.0, 110.0], [80.0, 110.0, 80.0, 10.0]])
     pol, shift = edge_polarity(edge_image(0.0, 0.0, 2.0, 1), segs)
@@ -196,15 +181,6 @@ def test_segment_on_one_edge_of_a_blurred_seam_is_found_a_thin_line():
     assert np.all(np.abs(u_fit - 80.0) < 0.1) and rms[0] < 0.3
 
 
-def test_unproject_fast_matches_unproject():
-    cam = CameraModel.pinhole(640, 480, 400.0, dist=[-0.08, 0.02, 0.001, -0.001, 0])
-    px = np.random.default_rng(0).uniform([-0.5, -0.5], [639.5, 479.5], (200, 2))
-    assert np.allclose(unproject_fast(cam, px), cam.unproject(px), atol=1e-9)
-    plain = CameraModel.pinhole(640, 480, 400.0)
-    assert np.allclose(unproject_fast(plain, px), plain.unproject(px))
-    assert unproject_fast(cam, np.zeros((0, 2))).shape == (0, 2)
-
-
 def test_detector_rows_keep_full_image_coordinates():
     img = np.zeros((120, 160), np.uint8)
     img[:, 80:] = 200
@@ -215,37 +191,3 @@ def test_detector_rows_keep_full_image_coordinates():
     assert np.all(part[:, [1, 3]] >= 39.5) and np.allclose(part[:, [0, 2]].mean(), 79.5, atol=1)
     assert full[:, [1, 3]].min() < 10
     assert SegmentDetector("fld", 20, rows=(200, 300))(img).shape == (0, 4)
-
-
-def test_fit_lines_counts_and_residuals():
-    rng = np.random.default_rng(4)
-    t = np.linspace(-1, 1, 8)
-    x = np.stack([0.3 + 0.8 * t, -0.2 + 0.1 * t]) + rng.normal(0, 1e-3, (2, 8))
-    y = np.stack([0.5 * t, 0.4 + 0.9 * t]) + rng.normal(0, 1e-3, (2, 8))
-    w = np.ones((2, 8), bool)
-    w[1, 3] = False
-    x[1, 3] = y[1, 3] = 0.0                        # a point without weight: ignored
-    line, res, n, ssr = _fit_lines(x, y, w)
-    assert n.tolist() == [8.0, 7.0]
-    for i in range(2):
-        ref = fit_line(np.stack([x[i][w[i]], y[i][w[i]]], axis=1))
-        assert np.allclose(line[i], ref * np.sign(ref @ line[i]), atol=1e-12)
-        assert ssr[i] == pytest.approx(np.sum(res[i][w[i]] ** 2), rel=1e-12)
-        assert np.allclose(res[i], x[i] * line[i, 0] + y[i] * line[i, 1] + line[i, 2])
-
-
-def test_profile_constants():
-    offs, t, inner = _edge_grid(8, 4.0)
-    assert offs.tolist() == np.arange(-4.0, 4.01, 0.5).tolist() and t.size == 8
-    assert t[0] == pytest.approx(0.05) and t[-1] == pytest.approx(0.95)
-    assert offs[1:-1][inner].tolist() == np.arange(-3.0, 3.01, 0.5).tolist()
-    assert not offs.flags.writeable and _edge_grid(8, 4.0)[0] is offs
-    sl, sr, inn, inv_l, inv_r = _profile_parts(offs)
-    assert offs[sl].tolist() == [-4.0, -3.5] and offs[sr].tolist() == [3.5, 4.0]
-    assert offs[inn].tolist() == np.arange(-2.5, 2.51, 0.5).tolist()
-    assert inv_l == inv_r == 0.5
-    # shift=False gives the same polarity, and no shift
-    prof = np.random.default_rng(1).integers(0, 255, (30, offs.size)).astype(float)
-    pol, shift = _classify_profiles(prof, offs, 20.0, 8.0)
-    pol2, none = _classify_profiles(prof, offs, 20.0, 8.0, shift=False)
-    assert none is None and np.array_equal(pol, pol2, equal_nan=True)

@@ -1,9 +1,12 @@
+import functools
+
+import cv2
 import numpy as np
 import pytest
 
 from ceilkit.runtime.config.camera import load_camera, save_camera
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.camera import CameraModel, subpixel_rays
 
 MODELS = [
     ("plumb_bob", [-0.25, 0.08, 0.001, -0.0005, -0.01]),
@@ -169,3 +172,107 @@ def test_unknown_keys_beside_the_ros_ones_are_errors(tmp_path, extra, key):
 def test_numeric_camera_name_is_a_name(tmp_path):
     (tmp_path / "c.yaml").write_text(ROS_OST.replace("narrow_stereo/left", "12345"))
     assert load_camera(tmp_path / "c.yaml").name == "12345"
+
+
+# -- identity (hashable, value-based equality) ----------------------------------------------
+def test_equal_cameras_hash_alike_and_key_caches():
+    a = CameraModel.pinhole(640, 480, 400.0, dist=[-0.1, 0.02, 0.0, 0.0, 0.0])
+    b = CameraModel(640, 480, a.K.copy(), list(a.dist), "plumb_bob")
+    assert a == b and hash(a) == hash(b) and a.key == b.key
+    assert a != a.scaled(320, 240) and a != CameraModel.pinhole(640, 480, 400.0)
+    assert a != CameraModel(640, 480, a.K, a.dist, "plumb_bob", name="other")
+    negzero = CameraModel(640, 480, a.K, [-0.1, 0.02, -0.0, 0.0, 0.0])
+    assert negzero == a and hash(negzero) == hash(a)
+    calls = []
+
+    @functools.lru_cache(maxsize=4)
+    def cached(cam):
+        calls.append(cam)
+        return cam.fx
+
+    cached(a)
+    cached(b)
+    assert len(calls) == 1
+    assert len({a, b, a.scaled(320, 240)}) == 2
+
+
+def test_bad_model_and_coefficients_are_config_errors():
+    with pytest.raises(ConfigError, match="model: expected one of plumb_bob"):
+        CameraModel(640, 480, np.eye(3), np.zeros(5), "fisheye")
+    with pytest.raises(ConfigError, match="dist: plumb_bob takes 5 coefficients, found 4"):
+        CameraModel(640, 480, np.eye(3), np.zeros(4), "plumb_bob")
+
+
+# -- lens math ------------------------------------------------------------------------------
+DISTORT_CAMS = [
+    CameraModel.pinhole(100, 80, 90.0, dist=[-0.1, 0.03, 0.001, -0.002, 0.01]),
+    CameraModel.pinhole(100, 80, 90.0, dist=[0.05, -0.01, 0.002, 0.0], model="equidistant"),
+    CameraModel.pinhole(100, 80, 90.0, dist=[0.1, -0.05, 0.001, -0.002, 0.01, 0.02, -0.01,
+                                             0.003], model="rational_polynomial"),
+]
+
+
+@pytest.mark.parametrize("cam", DISTORT_CAMS, ids=lambda c: c.model)
+def test_distort_matches_opencv(cam):
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1.2, 1.2, (500, 2))
+    if cam.model == "equidistant":
+        ref = cv2.fisheye.distortPoints(xy.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+    else:
+        pts = np.hstack([xy, np.ones((xy.shape[0], 1))])
+        ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), cam.K, cam.dist)
+        ref = ref.reshape(-1, 2)
+    np.testing.assert_allclose(cam.distort(xy), ref, atol=1e-8)
+    assert cam.distort(np.zeros((0, 2))).shape == (0, 2)
+
+
+def test_unproject_fast_matches_unproject():
+    cam = CameraModel.pinhole(640, 480, 400.0, dist=[-0.08, 0.02, 0.001, -0.001, 0])
+    px = np.random.default_rng(0).uniform([-0.5, -0.5], [639.5, 479.5], (200, 2))
+    assert np.allclose(cam.unproject_fast(px), cam.unproject(px), atol=1e-9)
+    plain = CameraModel.pinhole(640, 480, 400.0)
+    assert np.allclose(plain.unproject_fast(px), plain.unproject(px))
+    assert cam.unproject_fast(np.zeros((0, 2))).shape == (0, 2)
+    fish = CameraModel.pinhole(640, 480, 300.0, dist=[0.05, -0.01, 0.002, -0.0005],
+                               model="equidistant")
+    assert np.array_equal(fish.unproject_fast(px), fish.unproject(px))
+
+
+def test_unit_rays_and_where_the_lens_defines_them():
+    cam = CameraModel.pinhole(320, 240, 150.0, dist=[0.05, -0.01, 0.002, -0.0005],
+                              model="equidistant")
+    px = np.array([[160.0, 120.0], [10.0, 5.0], [-3.0, 10.0], [319.4, 239.4]])
+    rays, ok = cam.unit_rays(px, 1e-3)
+    assert ok.tolist() == [True, True, False, True]
+    assert np.allclose(np.linalg.norm(rays[ok], axis=1), 1.0)
+    assert np.allclose(rays[ok], cam.rays(px[ok]))
+    assert rays[2].tolist() == [0.0, 0.0, 0.0]                      # outside the image
+    # a plumb_bob lens that folds over: far pixels have no inverse
+    fold = CameraModel.pinhole(320, 240, 60.0, dist=[-0.6, 0.0, 0.0, 0.0, 0.0])
+    xy = np.array([[0.0, 0.0], [2.0, 1.5]])
+    good = fold.reprojects(fold.distort(xy) * 0 + [[160.0, 120.0], [0.0, 0.0]],
+                           fold.unproject([[160.0, 120.0], [0.0, 0.0]]), 1e-3)
+    assert good[0]
+    assert not fold.reprojects([[0.0, 0.0]], [[np.nan, 0.0]], 1e-3)[0]
+
+
+@pytest.mark.parametrize("model,dist", MODELS)
+def test_subpixel_rays_match_the_exact_inverse(model, dist):
+    cam = CameraModel.pinhole(320, 240, 250.0, dist=dist, model=model)
+    rays = subpixel_rays(cam, 1)
+    assert rays.shape == (240, 320, 3) and not rays.flags.writeable
+    assert subpixel_rays(CameraModel(320, 240, cam.K.copy(), cam.dist.copy(), model), 1) \
+        is rays                                                       # cached by value
+    uu, vv = np.meshgrid(np.arange(320.0), np.arange(240.0))
+    px = np.stack([uu.ravel(), vv.ravel()], axis=1)
+    ok = np.isfinite(rays[..., 0]).ravel()
+    assert ok.all() and np.all(rays[..., 2] == 1.0)
+    err_px = np.linalg.norm(cam.distort(rays[..., :2].reshape(-1, 2)) - px, axis=1)
+    assert np.median(err_px) < 1e-3 and err_px.max() < 0.02
+    small = subpixel_rays(CameraModel.pinhole(16, 12, 20.0), 3)
+    assert small.shape == (36, 48, 3)
+    # the sub-pixel centres (k + 0.5) / 3 - 0.5 px from pixel (0, 0) of a pinhole; OpenCV's
+    # bicubic kernel (a = -0.75) does not reproduce a linear field: up to 0.1 px between
+    # the nodes (kept: the board renders stay as they were)
+    assert np.allclose(small[:3, 0, 1], ((np.arange(3) + 0.5) / 3 - 0.5 - 5.5) / 20.0,
+                       atol=0.1 / 20.0)

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from ceilkit.runtime.sim import render as sim
 from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import Block, Corridor, LampRow, Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.io.recording import RecordingWriter
 from ceilkit.runtime.io.sources import Frame
+from ceilkit.runtime.sim import render as sim
 from ceilkit.runtime.sim.render import (
     SimOptions,
     SimSource,
@@ -248,19 +248,6 @@ def test_clutter_adds_edges(corridor_rig, corridor_site):
     a = render_radiance(rig, corridor_site, 3.0, 0.0, 0.0, CLEAN)
     b = render_radiance(rig, corridor_site, 3.0, 0.0, 0.0, CLEAN.replace(clutter=True))
     assert np.mean(np.abs(a - b) > 20) > 0.02
-
-
-def test_distort_matches_camera_model():
-    rng = np.random.default_rng(3)
-    xy = rng.uniform(-1.2, 1.2, (500, 2))
-    cams = [CameraModel.pinhole(100, 80, 90.0, dist=[-0.1, 0.03, 0.001, -0.002, 0.01]),
-            CameraModel.pinhole(100, 80, 90.0, dist=[0.05, -0.01, 0.002, 0.0],
-                                model="equidistant"),
-            CameraModel.pinhole(100, 80, 90.0, dist=[0.1, -0.05, 0.001, -0.002, 0.01, 0.02,
-                                                     -0.01, 0.003],
-                                model="rational_polynomial")]
-    for cam in cams:
-        np.testing.assert_allclose(sim._distort(cam, xy), cam.distort(xy), atol=1e-8)
 
 
 # --------------------------------------------------------------------------- noise
