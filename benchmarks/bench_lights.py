@@ -37,7 +37,7 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.lights.estimator import LightsEstimator, project_lights
+from ceilkit.runtime.estimators.lights import LightsEstimator, project_lights
 from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator
 from ceilkit.runtime.io.recording import Recording, RecordingWriter
 from ceilkit.runtime.io.sources import Frame

@@ -4,7 +4,7 @@ Two ways, both from a recording (SPEC §2):
 
 * **Known poses** (:func:`survey_lights`): every frame's spots
   (:func:`ceilkit.runtime.features.spots.detect_spots`) become ceiling points in the vehicle
-  frame (:func:`ceilkit.runtime.estimators.lights.estimator.ceiling_points`), then in W with the frame's
+  frame (:func:`ceilkit.runtime.estimators.lights.ceiling_points`), then in W with the frame's
   known pose (``X_W = Rz(yaw) X_V + (x, y)``, SPEC §1). Points of all frames are
   clustered (leader clustering within ``cluster_m``, then every point re-assigned to
   its nearest centre); a cluster seen in at least ``min_views`` frames is a light,
@@ -42,15 +42,15 @@ import numpy as np
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.errors import CalibrationError, ConfigError
-from ceilkit.runtime.estimators.lights.estimator import (
+from ceilkit.runtime.estimators.lights import (
     PatternMatcher,
     ceiling_points,
-    fit_rigid_2d,
     interp_grid,
     jacobian_grid,
     view_mask,
 )
 from ceilkit.runtime.features.spots import SpotParams, detect_spots
+from ceilkit.runtime.geometry.fits import fit_rigid_2d
 from ceilkit.runtime.io.recording import Recording, Truth, load_poses, load_truth
 
 
@@ -352,7 +352,7 @@ def _adjust(obs_q: np.ndarray, obs_J: np.ndarray, obs_f: np.ndarray, obs_l: np.n
 
     Residual of observation k (frame f, light l): ``J_k (q̂ - q_k)`` pixels, with
     ``q̂ = Rz(-yaw_f) (L_l - t_f)`` the light seen from the frame (as
-    :func:`ceilkit.runtime.estimators.lights.estimator.refine_pose_ceiling`). Gauge: light ``fixed_light``
+    :func:`ceilkit.runtime.estimators.lights.refine_pose_ceiling`). Gauge: light ``fixed_light``
     held; then either light ``axis_light`` moves only along ``axis_dir`` (its bearing
     from the fixed light is held) or frame ``fixed_yaw_frame``'s yaw is held. With
     ``centre_v`` (the camera's place in V), light ``axis_light`` is held entirely and a

@@ -25,110 +25,123 @@ adds (``docs/methods/lights.md``).
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
+from ceilkit.runtime.estimators.base import (
+    Estimate,
+    Estimator,
+    EstimatorOptions,
+    PoseEstimate,
+)
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.spots import SpotParams, regions_to_spots, tile_niblack_mask
+from ceilkit.runtime.geometry.fits import fit_similarity_2d
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 NAME = "paper-lights"
 
 
-def fit_similarity_2d(q: np.ndarray, p: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """Least-squares ``(s, θ, t)`` with ``p ≈ s R(θ) q + t`` (Eq. 15), pairs ``(N, 2)``."""
-    qm, pm = q.mean(0), p.mean(0)
-    a, b = q - qm, p - pm
-    sc = (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]).sum()
-    ss = (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()
-    theta = math.atan2(ss, sc)
-    s = math.hypot(sc, ss) / max((a ** 2).sum(), 1e-12)
-    c, n = math.cos(theta), math.sin(theta)
-    t = pm - s * np.array([c * qm[0] - n * qm[1], n * qm[0] + c * qm[1]])
-    return s, theta, t
+@dataclass(frozen=True)
+class PaperLightsOptions(EstimatorOptions):
+    """What a user may set for ``paper-lights`` (the choices the paper leaves open).
 
-
-class PaperLightsEstimator:
-    """The paper's pipeline; ``estimate`` follows the common estimator interface.
-
-    Args:
-        rig, site: the site needs ``lights``.
+    Attributes:
+        min_contrast: the shared blank-frame check (0: off; a blank frame is then
+            ``no_lights``).
         k: Niblack's weight on the tile's standard deviation.
         tile_px: Niblack sub-image size (the paper: 64).
         min_level: least perception index of a light.
         max_spots: the paper's "maximum 11 spot lighting target model".
-        scale_range: ``(lo, hi)`` of the similarity scale the matching accepts.
+        scale_min, scale_max: the similarity scales the matching accepts.
         gate_m: correspondence distance after the transform.
+        angle_bin_deg, scale_bin, pos_bin_m: the vote bins of rotation, scale, translation.
+    """
+
+    min_contrast: float = 0.0
+    k: float = 2.5
+    tile_px: int = 64
+    min_level: float = 1.0
+    max_spots: int = 11
+    scale_min: float = 0.85
+    scale_max: float = 1.15
+    gate_m: float = 0.15
+    angle_bin_deg: float = 2.0
+    scale_bin: float = 0.02
+    pos_bin_m: float = 0.2
+
+
+class PaperLightsEstimator(Estimator):
+    """The paper's pipeline on the Estimator contract.
+
+    Args:
+        rig, site: the site needs ``lights``.
+        options: :class:`PaperLightsOptions`, a mapping of them, or ``None``.
     """
 
     name = NAME
+    Options: ClassVar[type[EstimatorOptions]] = PaperLightsOptions
+    site_sections = ("lights",)
 
-    def __init__(self, rig: Rig, site: Site, k: float = 2.5, tile_px: int = 64,
-                 min_level: float = 1.0, max_spots: int = 11,
-                 scale_range: tuple[float, float] = (0.85, 1.15), gate_m: float = 0.15,
-                 angle_bin_deg: float = 2.0, scale_bin: float = 0.02, pos_bin_m: float = 0.2):
+    def __init__(self, rig: Rig, site: Site,
+                 options: PaperLightsOptions | dict[str, Any] | None = None) -> None:
         if not site.has_lights:
             raise ConfigError(site.source, "lights",
                               "the paper-lights method needs at least one light in the map")
+        super().__init__(rig, site, options)
         check_rig_site(rig, site)
-        self.rig, self.site = rig, site
-        self.k, self.tile_px = k, tile_px
-        self.params = SpotParams(min_area_px=1, max_area_px=100_000, min_level=min_level,
+        o = self.options
+        self.params = SpotParams(min_area_px=1, max_area_px=100_000, min_level=o.min_level,
                                  min_relative_contrast=0.0, min_axis_ratio=0.0,
-                                 max_spots=max_spots)
-        self.scale_range = scale_range
-        self.gate_m = gate_m
-        self.angle_bin = math.radians(angle_bin_deg)
-        self.scale_bin = scale_bin
-        self.pos_bin = pos_bin_m
+                                 max_spots=o.max_spots)
+        self.angle_bin_rad = math.radians(o.angle_bin_deg)
         self.lights_w = np.asarray(site.lights_m, float)
-        i, j = np.triu_indices(self.lights_w.shape[0], 1)
-        self.pi, self.pj = i, j
-        R = rig.mount.R_vehicle_cam
-        self.R2 = R[:2, :2]  # camera (x, y) -> vehicle (x, y) for a camera looking up
-        self.Z = site.ceiling_height_m - rig.mount.z_m
+        self.pair_i, self.pair_j = np.triu_indices(self.lights_w.shape[0], 1)
+        # camera (x, y) -> vehicle (x, y) for a camera looking up
+        self.R2_vehicle_cam = rig.mount.R_vehicle_cam[:2, :2]
+        self.cam_to_ceiling_m = site.ceiling_height_m - rig.mount.z_m
 
     def observed_points(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(centroids_px (N, 2), Q_real in V (N, 2))`` of the identified lights."""
         grey = to_grey(np.asarray(image))
-        mask = tile_niblack_mask(grey, self.tile_px, self.k)
+        mask = tile_niblack_mask(grey, self.options.tile_px, self.options.k)
         spots = regions_to_spots(grey, mask, self.params, weighted=False,
                                  rethreshold=False, relative=False)
         if len(spots) == 0:
             return np.zeros((0, 2)), np.zeros((0, 2))
         xy = self.rig.camera.unproject(spots.centroids_px)      # Eqs. 10-12 inverted
-        q_cam = xy * self.Z                                        # Eq. 14
-        q_v = q_cam @ self.R2.T + self.rig.mount.t_vehicle_cam[None, :2]
+        q_cam = xy * self.cam_to_ceiling_m                         # Eq. 14
+        q_v = q_cam @ self.R2_vehicle_cam.T + self.rig.mount.t_vehicle_cam[None, :2]
         return spots.centroids_px, q_v
 
     def _match(self, q: np.ndarray) -> np.ndarray:
         """``(K, 2)`` (observed, map) correspondences by pair voting (Chang et al.)."""
         a, b = np.triu_indices(q.shape[0], 1)
         vq = q[b] - q[a]
-        vp = self.lights_w[self.pj] - self.lights_w[self.pi]
+        vp = self.lights_w[self.pair_j] - self.lights_w[self.pair_i]
         dq = np.linalg.norm(vq, axis=1)
         dp = np.linalg.norm(vp, axis=1)
         aq = np.arctan2(vq[:, 1], vq[:, 0])
         ap = np.arctan2(vp[:, 1], vp[:, 0])
         s = dp[None, :] / np.maximum(dq[:, None], 1e-9)                 # (Pq, Pm)
-        th = wrap_pi_arr(ap[None, :] - aq[:, None])
+        th = wrap_pi(ap[None, :] - aq[:, None])
         # both orientations of each map pair
         s = np.concatenate([s, s], axis=1)
-        th = np.concatenate([th, wrap_pi_arr(th + math.pi)], axis=1)
+        th = np.concatenate([th, wrap_pi(th + math.pi)], axis=1)
         oq = np.repeat(np.arange(a.size)[:, None], s.shape[1], axis=1)
         om = np.tile(np.concatenate([np.arange(vp.shape[0]), -1 - np.arange(vp.shape[0])]),
                      (a.size, 1))
-        ok = (s >= self.scale_range[0]) & (s <= self.scale_range[1])
+        ok = (s >= self.options.scale_min) & (s <= self.options.scale_max)
         if not np.any(ok):
             return np.zeros((0, 2), int)
         s, th, oq, om = s[ok], th[ok], oq[ok], om[ok]
-        ks = np.floor(s / self.scale_bin).astype(np.int64)
-        kt = np.floor((th + math.pi) / self.angle_bin).astype(np.int64)
+        ks = np.floor(s / self.options.scale_bin).astype(np.int64)
+        kt = np.floor((th + math.pi) / self.angle_bin_rad).astype(np.int64)
         key = ks * 10_000 + kt
         vals, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
         sel = inv.ravel() == int(np.argmax(cnt))
@@ -138,18 +151,18 @@ class PaperLightsEstimator:
         # votes decide between them
         best = None
         for t0 in (t_peak, wrap_pi(t_peak + math.pi)):
-            near = np.abs(wrap_pi_arr(th - t0)) < self.angle_bin
-            near &= np.abs(s - s0) < self.scale_bin
+            near = np.abs(wrap_pi(th - t0)) < self.angle_bin_rad
+            near &= np.abs(s - s0) < self.options.scale_bin
             c, n = math.cos(t0), math.sin(t0)
             qa = q[a[oq[near]]]
             mi = om[near]
             m = np.abs(mi) - (mi < 0)
-            pa = np.where((mi >= 0)[:, None], self.lights_w[self.pi[m]],
-                          self.lights_w[self.pj[m]])
+            pa = np.where((mi >= 0)[:, None], self.lights_w[self.pair_i[m]],
+                          self.lights_w[self.pair_j[m]])
             t = pa - s0 * np.stack([c * qa[:, 0] - n * qa[:, 1],
                                     n * qa[:, 0] + c * qa[:, 1]], 1)
-            kx = np.floor(t[:, 0] / self.pos_bin).astype(np.int64)
-            ky = np.floor(t[:, 1] / self.pos_bin).astype(np.int64)
+            kx = np.floor(t[:, 0] / self.options.pos_bin_m).astype(np.int64)
+            ky = np.floor(t[:, 1] / self.options.pos_bin_m).astype(np.int64)
             _, tinv, tcnt = np.unique(kx * 100_000 + ky, return_inverse=True,
                                       return_counts=True)
             k = int(np.argmax(tcnt))
@@ -160,25 +173,22 @@ class PaperLightsEstimator:
         pw = s0 * np.stack([c * q[:, 0] - n * q[:, 1], c * q[:, 1] + n * q[:, 0]], 1) + tt
         d = np.linalg.norm(pw[:, None] - self.lights_w[None], axis=2)
         j = np.argmin(d, axis=1)
-        good = d[np.arange(len(j)), j] < self.gate_m
+        good = d[np.arange(len(j)), j] < self.options.gate_m
         return np.stack([np.nonzero(good)[0], j[good]], axis=1)
 
-    def estimate(self, image: np.ndarray, t_ns: int,
-                 prior: PoseEstimate | None = None) -> Estimate:
-        """The vehicle pose from one frame (``prior`` is ignored: the paper uses none)."""
-        img = np.asarray(image)
-        if img.ndim not in (2, 3) or img.shape[:2] != (self.rig.camera.height,
-                                                       self.rig.camera.width):
-            return Failure(t_ns, NAME, "bad_image", f"unexpected frame shape {img.shape}")
-        px, q = self.observed_points(img)
+    def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
+                  t0: float) -> Estimate:
+        """The vehicle pose from a checked frame (``prior`` is ignored: the paper uses
+        none). Failures: ``no_lights``, ``too_few_lights``, ``no_match``."""
+        px, q = self.observed_points(grey)
         diag: dict[str, Any] = {"spots": int(q.shape[0])}
         if q.shape[0] == 0:
-            return Failure(t_ns, NAME, "no_lights", "no light found in the frame", diag)
+            return self.fail(t_ns, "no_lights", "no light found in the frame", **diag)
         if q.shape[0] < 3:
-            return Failure(t_ns, NAME, "too_few_lights", f"{q.shape[0]} lights found", diag)
+            return self.fail(t_ns, "too_few_lights", f"{q.shape[0]} lights found", **diag)
         pairs = self._match(q)
         if pairs.shape[0] < 3 or len(set(pairs[:, 1].tolist())) < 3:
-            return Failure(t_ns, NAME, "no_match", "fewer than 3 lights matched", diag)
+            return self.fail(t_ns, "no_match", "fewer than 3 lights matched", **diag)
         s, theta, t = fit_similarity_2d(q[pairs[:, 0]], self.lights_w[pairs[:, 1]])
         res = (s * (q[pairs[:, 0]] @ np.array([[math.cos(theta), math.sin(theta)],
                                                [-math.sin(theta), math.cos(theta)]]))
@@ -190,8 +200,4 @@ class PaperLightsEstimator:
                             quality, None, None, diag)
 
 
-def wrap_pi_arr(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-__all__ = ["PaperLightsEstimator", "fit_similarity_2d"]
+__all__ = ["PaperLightsEstimator", "PaperLightsOptions"]

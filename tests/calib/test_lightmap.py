@@ -231,7 +231,7 @@ def _lights_rig_site():
 def _synthetic_drive(rig, site, rng, sigma_px: float = 0.1):
     """Per-frame ceiling points of the true lights seen along chain_trajectory(), from
     pixels with Gaussian noise ``sigma_px`` (no images, no bias)."""
-    from ceilkit.runtime.estimators.lights.estimator import (
+    from ceilkit.runtime.estimators.lights import (
         ceiling_points,
         interp_grid,
         jacobian_grid,

@@ -1,4 +1,5 @@
-"""Tests of runtime/lights.py: rays to the ceiling, pattern matching, pose, failures."""
+"""Tests of runtime/estimators/lights/: rays to the ceiling, pattern matching, pose,
+failures, options."""
 
 from __future__ import annotations
 
@@ -12,13 +13,15 @@ from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import PoseEstimate
-from ceilkit.runtime.estimators.lights.estimator import (
+from ceilkit.runtime.estimators.lights import (
+    DEFAULT_LIGHT_DIAMETER_M,
     LightsEstimator,
+    LightsOptions,
     PatternMatcher,
     ceiling_points,
-    fit_rigid_2d,
     interp_grid,
     jacobian_grid,
+    light_diameter_m,
     pixel_scale,
     project_lights,
     refine_pose,
@@ -102,17 +105,6 @@ def test_ceiling_points_below_horizon_flagged(tilted_rig):
     assert not ok[0] and ok[1] and np.isnan(q[0]).all()
 
 
-def test_fit_rigid_2d_recovers_transform():
-    rng = np.random.default_rng(3)
-    q = rng.uniform(-3, 3, (6, 2))
-    yaw, t = 2.5, np.array([4.0, -1.0])
-    R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-    p = q @ R.T + t
-    yaw_hat, t_hat = fit_rigid_2d(q, p)
-    assert abs(math.remainder(yaw_hat - yaw, 2 * math.pi)) < 1e-12
-    np.testing.assert_allclose(t_hat, t, atol=1e-12)
-
-
 def test_refine_pose_converges_from_offset(lights_rig, lights_site):
     x, y, yaw = 6.0, 0.5, 0.7
     L = lights_site.lights_m
@@ -162,7 +154,7 @@ def test_missing_and_spurious_lights(lights_rig, lights_site):
 
 
 def test_tilted_camera_localizes(tilted_rig, lights_site):
-    est = LightsEstimator(tilted_rig, lights_site, light_radius_m=0.0)
+    est = LightsEstimator(tilted_rig, lights_site, LightsOptions(light_diameter_m=0.0))
     x, y, yaw = 7.0, -1.0, 0.9
     assert visible_count(tilted_rig, lights_site, x, y, yaw) >= 4
     out = est.estimate(render(tilted_rig, lights_site, x, y, yaw, 2,
@@ -218,8 +210,8 @@ def test_blank_frame_and_bad_shape_are_failures(lights_rig, lights_site):
     assert not out and out.reason == "no_lights" and out.t_ns == 7 and out.method == "lights"
     noisy = np.random.default_rng(0).normal(60, 3, (480, 640)).clip(0, 255).astype(np.uint8)
     assert est.estimate(noisy, 0).reason == "no_lights"
-    assert est.estimate(np.zeros((10, 10), np.uint8), 0).reason == "bad_image"
-    assert est.estimate(np.zeros(0, np.uint8), 0).reason == "bad_image"
+    assert est.estimate(np.zeros((10, 10), np.uint8), 0).reason == "bad_frame"
+    assert est.estimate(np.zeros(0, np.uint8), 0).reason == "bad_frame"
 
 
 def test_too_few_lights_is_a_failure(lights_rig, lights_site):
@@ -248,7 +240,7 @@ def test_duplicate_lights_rejected_by_site(tmp_path):
 
 def test_bad_options_and_low_ceiling(lights_rig, lights_site):
     with pytest.raises(ConfigError, match="min_inliers"):
-        LightsEstimator(lights_rig, lights_site, min_inliers=2)
+        LightsEstimator(lights_rig, lights_site, {"min_inliers": 2})
     with pytest.raises(ConfigError, match="ceiling"):
         LightsEstimator(lights_rig, Site(0.4, lights_m=lights_site.lights_m))
 
@@ -320,17 +312,17 @@ def test_visibility_table_matches_projection(lights_rig, lights_site, tilted_rig
             uv = np.round(px[idx]).astype(int)
             ok[idx[est.valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
             idx = np.nonzero(ok)[0]
-            if idx.size > est.max_spots:
+            if idx.size > est.options.max_spots:
                 d = np.hypot(px[idx, 0] - est.nadir_px[0], px[idx, 1] - est.nadir_px[1])
-                ok[idx[np.argsort(d)[est.max_spots:]]] = False
-            wrong += int((ok != est._visible(x, y, yaw)).sum())
+                ok[idx[np.argsort(d)[est.options.max_spots:]]] = False
+            wrong += int((ok != est.visibility(x, y, yaw)).sum())
             total += int(ok.sum())
         assert total > 40 and wrong <= 0.03 * total, (wrong, total)
 
 
 def test_small_helpers_match_numpy():
     """The plain-float 3x3 solve and the short median give numpy's numbers."""
-    from ceilkit.runtime.estimators.lights.estimator import _median, _solve3
+    from ceilkit.runtime.estimators.lights.refine import _median, _solve3
 
     rng = np.random.default_rng(3)
     for _ in range(20):
@@ -349,19 +341,84 @@ def test_visibility_lookup_off_the_table(lights_rig, lights_site):
     """Lights far outside the table (the vehicle far from the map) are not in view, and
     the lookup equals the unpadded table where it is inside."""
     est = LightsEstimator(lights_rig, lights_site)
-    assert not est._visible(500.0, -300.0, 0.3).any()
-    ni, nj = est._vis_table.shape
+    assert not est.visibility(500.0, -300.0, 0.3).any()
+    ni, nj = est.visibility.table.shape
     rng = np.random.default_rng(4)
     for _ in range(20):
         x, y, yaw = rng.uniform(-2, 20), rng.uniform(-6, 6), rng.uniform(-3, 3)
         c, s = math.cos(yaw), math.sin(yaw)
         dx, dy = est.lights_w[:, 0] - x, est.lights_w[:, 1] - y
-        i = np.rint((c * dx + s * dy - est._vis_origin[0]) / est._vis_cell).astype(int)
-        j = np.rint((-s * dx + c * dy - est._vis_origin[1]) / est._vis_cell).astype(int)
+        vis = est.visibility
+        i = np.rint((c * dx + s * dy - vis.origin_m[0]) / vis.cell_m).astype(int)
+        j = np.rint((-s * dx + c * dy - vis.origin_m[1]) / vis.cell_m).astype(int)
         inside = (i >= 0) & (i < ni) & (j >= 0) & (j < nj)
         d = np.full(i.shape, np.inf)
-        d[inside] = est._vis_table[i[inside], j[inside]]
+        d[inside] = est.visibility.table[i[inside], j[inside]]
         ok = np.isfinite(d)
-        if ok.sum() > est.max_spots:
-            ok[np.argsort(d, kind="stable")[est.max_spots:]] = False
-        np.testing.assert_array_equal(est._visible(x, y, yaw), ok)
+        if ok.sum() > est.options.max_spots:
+            ok[np.argsort(d, kind="stable")[est.options.max_spots:]] = False
+        np.testing.assert_array_equal(est.visibility(x, y, yaw), ok)
+
+
+# ------------------------------------------------------------------------ options
+def test_options_from_mapping_and_cli_strings(lights_rig, lights_site):
+    """Options arrive as a dataclass, a mapping or CLI strings, to the same estimator."""
+    a = LightsEstimator(lights_rig, lights_site, LightsOptions(gate_m=0.08, max_spots=9))
+    b = LightsEstimator(lights_rig, lights_site, {"gate_m": "0.08", "max_spots": "9"})
+    assert a.options == b.options and b.options.max_spots == 9
+    assert LightsEstimator.Options is LightsOptions and LightsEstimator.site_sections == ("lights",)
+    assert LightsOptions().min_contrast == 0.0     # a blank frame stays `no_lights`
+    with pytest.raises(ConfigError, match="options.gate"):
+        LightsEstimator(lights_rig, lights_site, {"gate": 0.1})
+    with pytest.raises(ConfigError, match="options.max_spots"):
+        LightsEstimator(lights_rig, lights_site, {"max_spots": "many"})
+    with pytest.raises(ConfigError, match="gate_m"):
+        LightsEstimator(lights_rig, lights_site, {"gate_m": 0.0})
+    with pytest.raises(ConfigError, match="light_diameter_m"):
+        LightsEstimator(lights_rig, lights_site, {"light_diameter_m": -0.1})
+
+
+def test_light_diameter_option_over_site_over_default(lights_site):
+    """options.light_diameter_m > site.light_diameter_m > 0.16 m (SPEC §2, issue 16)."""
+    from dataclasses import replace
+
+    with_site = replace(lights_site, light_diameter_m=0.05)
+    assert lights_site.light_diameter_m is None
+    assert light_diameter_m(LightsOptions(), lights_site) == DEFAULT_LIGHT_DIAMETER_M == 0.16
+    assert light_diameter_m(LightsOptions(), with_site) == 0.05
+    assert light_diameter_m(LightsOptions(light_diameter_m=0.3), with_site) == 0.3
+    assert light_diameter_m(LightsOptions(light_diameter_m=0.0), with_site) == 0.0
+
+
+def test_small_lights_need_their_diameter():
+    """2.6 cm LEDs under a narrow lens (issue 16): all rejected by the 16 cm default's
+    size check (``no_lights``), localized once the site or the option gives their
+    diameter."""
+    from dataclasses import replace
+
+    from ceilkit.runtime.sim.render import SimOptions, render_frame
+
+    rig = Rig(CameraModel.pinhole(640, 480, 500.0), Mount(tilt_rad=math.radians(90), z_m=0.5))
+    rng = np.random.default_rng(0)
+    site = Site(3.0, lights_m=rng.uniform(-3, 3, (40, 2)))
+    x, y, yaw = 0.3, -0.4, 1.2
+    img = render_frame(rig, site, x, y, yaw, rng=np.random.default_rng(1),
+                       options=SimOptions(noise_sigma=1.0, blur_px=0.6, light_radius_m=0.013))
+    default = LightsEstimator(rig, site).estimate(img, 0)
+    assert not default and default.reason == "no_lights"
+    for est in (LightsEstimator(rig, replace(site, light_diameter_m=0.026)),
+                LightsEstimator(rig, site, {"light_diameter_m": "0.026"})):
+        out = est.estimate(img, 0)
+        assert out, (out.reason, out.detail)
+        dp, dyaw = pose_error(out, x, y, yaw)
+        assert dp < 0.01 and dyaw < 0.3 and out.diagnostics["inliers"] >= 6
+
+
+def test_timing_diagnostic_and_bgr_frames(lights_rig, lights_site):
+    """A pose carries the base's ``ms`` diagnostic; a BGR frame gives the grey frame's pose."""
+    est = LightsEstimator(lights_rig, lights_site)
+    img = render(lights_rig, lights_site, 6.0, 1.0, 0.3, 8)
+    grey = est.estimate(img, 5)
+    bgr = est.estimate(np.repeat(img[:, :, None], 3, axis=2), 5)
+    assert grey and bgr and grey.diagnostics["ms"] > 0
+    assert (grey.x_m, grey.y_m, grey.yaw_rad) == (bgr.x_m, bgr.y_m, bgr.yaw_rad)

@@ -1,4 +1,4 @@
-"""Tests of runtime/paper_lights.py: the paper's pipeline as a baseline."""
+"""Tests of runtime/estimators/paper_lights.py: the paper's pipeline as a baseline."""
 
 from __future__ import annotations
 
@@ -9,21 +9,10 @@ import pytest
 
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.estimators.lights.estimator import project_lights
-from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator, fit_similarity_2d
+from ceilkit.runtime.estimators.lights import project_lights
+from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator, PaperLightsOptions
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.sim.render import SimOptions, render_frame
-
-
-def test_fit_similarity_recovers_scale_rotation_translation():
-    rng = np.random.default_rng(0)
-    q = rng.uniform(-2, 2, (5, 2))
-    s, th, t = 1.07, -0.8, np.array([3.0, 2.0])
-    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
-    p = s * q @ R.T + t
-    s2, th2, t2 = fit_similarity_2d(q, p)
-    assert s2 == pytest.approx(s) and th2 == pytest.approx(th)
-    np.testing.assert_allclose(t2, t, atol=1e-12)
 
 
 def test_localizes_a_small_map(lights_rig, lights_site):
@@ -61,6 +50,23 @@ def test_failures(lights_rig, lights_site):
     est = make_estimator("paper-lights", lights_rig, lights_site)
     out = est.estimate(np.full((480, 640), 50, np.uint8), 1)
     assert not out and out.reason == "no_lights"
-    assert est.estimate(np.zeros((4, 4), np.uint8), 1).reason == "bad_image"
+    assert est.estimate(np.zeros((4, 4), np.uint8), 1).reason == "bad_frame"
     with pytest.raises(ConfigError, match="at least one light"):
         PaperLightsEstimator(lights_rig, Site(3.0))
+
+
+def test_options_on_the_contract(lights_rig, lights_site):
+    est = PaperLightsEstimator(lights_rig, lights_site, {"scale_min": "0.9", "k": 2.0})
+    assert est.options == PaperLightsOptions(scale_min=0.9, k=2.0)
+    assert est.options.min_contrast == 0.0          # a blank frame stays `no_lights`
+    assert PaperLightsEstimator.site_sections == ("lights",)
+    with pytest.raises(ConfigError, match="options.scale_range"):
+        PaperLightsEstimator(lights_rig, lights_site, {"scale_range": (0.8, 1.2)})
+    # a scale window that excludes 1 matches nothing
+    x, y, yaw = 5.0, 0.3, 1.1
+    near = lights_site.lights_m[np.linalg.norm(lights_site.lights_m - [x, y], axis=1) < 4.0]
+    site = Site(3.0, lights_m=near)
+    img = render_frame(lights_rig, site, x, y, yaw, options=SimOptions(),
+                       rng=np.random.default_rng(1))
+    off = PaperLightsEstimator(lights_rig, site, {"scale_min": 1.3, "scale_max": 1.5})
+    assert off.estimate(img, 0).reason == "no_match"

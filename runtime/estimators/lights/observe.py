@@ -1,0 +1,211 @@
+"""What one frame shows of the lights: spots, their ceiling points, and which map
+lights a pose should show.
+
+:class:`SpotObserver` runs the detector, keeps the spots whose size and shape fit a
+light of the known diameter at their place in the image, and gives each its ceiling
+point in V (:func:`~ceilkit.runtime.estimators.lights.rays.ceiling_points`) and its
+pixel Jacobian (from a table). :class:`VisibilityTable` answers, for a pose, which
+map lights the detector should report (a lookup, not a projection).
+
+Convention: ceiling points ``(x, y)`` in V, metres; pixels distorted (SPEC §1).
+
+Example::
+
+    obs = SpotObserver(rig, 3.0, 0.08, SpotParams(), mask, nadir, 12).observe(grey)
+    obs.q_v, obs.jac_px, obs.order            # (N, 2), (N, 2, 2), (N,)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.estimators.lights.rays import (
+    ceiling_points,
+    interp_grid,
+    jacobian_grid,
+    mount_arrays,
+    project_lights,
+)
+from ceilkit.runtime.features.spots import SpotParams, Spots, detect_spots
+
+JAC_STEP_PX = 8  # node spacing of the per-pixel spot table
+VIEW_MARGIN_PX = 12.0  # a light's centre this far inside the image border is reported
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """The usable spots of one frame.
+
+    Attributes:
+        spots: the detected spots that passed the size and shape checks (N).
+        q_v: ``(N, 2)`` their ceiling points in V, metres.
+        order: ``(N,)`` a reliability order, nearest the camera first.
+        jac_px: ``(N, 2, 2)`` d(pixel)/d(ceiling point in V) at each spot, px per metre.
+    """
+
+    spots: Spots
+    q_v: np.ndarray
+    order: np.ndarray
+    jac_px: np.ndarray
+
+
+def spot_table(rig: Rig, ceiling_height_m: float, light_radius_m: float) -> np.ndarray:
+    """``(GH, GW, 8)`` per-node table (nodes every :data:`JAC_STEP_PX` px): the pixel
+    Jacobian ``J`` (4, row-major), ``C⁻¹`` of the predicted spot moments (00, 01, 11)
+    and the predicted area (see :meth:`SpotObserver.plausible`); NaN where no ray rises."""
+    J = jacobian_grid(rig, ceiling_height_m, JAC_STEP_PX)
+    gh, gw = J.shape[:2]
+    J = J.reshape(-1, 2, 2)
+    fin = np.all(np.isfinite(J), axis=(1, 2))
+    Jf = np.where(fin[:, None, None], J, 1.0)
+    r2 = light_radius_m ** 2
+    C = 0.25 * r2 * np.einsum("nij,nkj->nik", Jf, Jf) + 0.8 * np.eye(2)
+    Ci = np.linalg.inv(C)
+    a_pred = math.pi * r2 * np.abs(np.linalg.det(Jf))
+    out = np.concatenate([J.reshape(-1, 4), Ci[:, 0, 0:1], Ci[:, 0, 1:2], Ci[:, 1, 1:2],
+                          a_pred[:, None]], axis=1)
+    out[~fin] = np.nan
+    return out.reshape(gh, gw, 8)
+
+
+class SpotObserver:
+    """Spots of a frame as ceiling points, with the checks a known light size allows.
+
+    Args:
+        rig: camera and mount.
+        ceiling_height_m: ``H`` (W's z of the ceiling).
+        light_radius_m: radius of a light's bright disc (0: no size and shape checks).
+        spot_params: detector thresholds.
+        valid_mask: ``(H, W)`` uint8, non-zero where spots are looked for.
+        nadir_px: where regions are examined from (nearest first).
+        max_spots: examine at most this many candidate regions.
+    """
+
+    def __init__(self, rig: Rig, ceiling_height_m: float, light_radius_m: float,
+                 spot_params: SpotParams, valid_mask: np.ndarray,
+                 nadir_px: tuple[float, float], max_spots: int):
+        self.rig, self.ceiling_height_m = rig, ceiling_height_m
+        self.light_radius_m = light_radius_m
+        self.spot_params, self.valid_mask = spot_params, valid_mask
+        self.nadir_px, self.max_spots = nadir_px, max_spots
+        self.t_vehicle_cam = mount_arrays(rig.mount)[1]
+        self.table = spot_table(rig, ceiling_height_m, light_radius_m)
+
+    def observe(self, grey: np.ndarray) -> Observation:
+        """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
+        reliability order (nearest the camera first) and their pixel Jacobians."""
+        spots = detect_spots(grey, self.spot_params, self.valid_mask, self.nadir_px,
+                             self.max_spots)
+        if len(spots) == 0:
+            return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
+        q, ok = ceiling_points(self.rig, self.ceiling_height_m, spots.centroids_px)
+        table = interp_grid(self.table, JAC_STEP_PX, spots.centroids_px)
+        ok &= np.isfinite(table[:, 0])
+        if self.light_radius_m > 0 and np.any(ok):
+            ok &= self.plausible(spots, table, ok)
+        J = table[:, :4].reshape(-1, 2, 2)
+        if not ok.all():
+            spots, q, J = spots.select(ok), q[ok], J[ok]
+        t_vc = self.t_vehicle_cam
+        rng = np.hypot(q[:, 0] - t_vc[0], q[:, 1] - t_vc[1])
+        return Observation(spots, q, rng.argsort(kind="stable"), J)
+
+    @staticmethod
+    def plausible(spots: Spots, table: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Spots whose size and shape fit a light of the table's radius at their place.
+
+        The predicted spot is the light's disc through the local Jacobian ``J`` of the
+        ceiling-to-pixel map: area ``pi r² |det J|``, second moments
+        ``C = r²/4 J Jᵀ + 0.8 I`` (+ blur). The observed moments ``S``, whitened by the
+        predicted ones (the eigenvalues of ``C⁻¹ S``), must be round (ratio >= 0.2) and
+        of a plausible size. ``table`` rows are the spots' :func:`spot_table` entries.
+        """
+        keep = ok.copy()
+        idx = ok.nonzero()[0] if not ok.all() else slice(None)
+        t = table[idx]
+        a_pred = t[:, 7]
+        a = spots.areas_px[idx]
+        good = (a >= 0.15 * a_pred - 3) & (a <= 5.0 * a_pred + 40)
+        S = spots.cov_px[idx]
+        c00, c01, c11 = t[:, 4], t[:, 5], t[:, 6]
+        m00 = c00 * S[:, 0, 0] + c01 * S[:, 1, 0]
+        m01 = c00 * S[:, 0, 1] + c01 * S[:, 1, 1]
+        m10 = c01 * S[:, 0, 0] + c11 * S[:, 1, 0]
+        m11 = c01 * S[:, 0, 1] + c11 * S[:, 1, 1]
+        tr = m00 + m11
+        det = m00 * m11 - m01 * m10
+        disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
+        lo, hi = tr / 2 - disc, tr / 2 + disc
+        root = np.sqrt(np.maximum(det, 0.0))
+        good &= (lo > 0) & (lo >= 0.2 * hi) & (root > 0.05) & (root < 6.0)
+        keep[idx] = good
+        return keep
+
+
+class VisibilityTable:
+    """Which map lights the detector should report from a vehicle pose.
+
+    A table over the ceiling in V: the pixel distance from the nadir of a light there,
+    ``inf`` where the detector cannot report it (outside the image by
+    :data:`VIEW_MARGIN_PX`, or outside the view mask). It covers the ceiling seen by the
+    view mask (from its pixels every 8 px), in at most 200 x 200 cells; calling it is a
+    lookup, not a projection.
+
+    Attributes:
+        origin_m: ``(2,)`` V coordinates of cell ``(0, 0)``; ``cell_m``: cell side.
+        table: ``(NI, NJ)`` float32 distances from the nadir, px (``inf``: not seen).
+    """
+
+    def __init__(self, rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
+                 valid_mask: np.ndarray, nadir_px: tuple[float, float], max_spots: int):
+        cam = rig.camera
+        self.max_spots = max_spots
+        self._lights_c = lights_w[:, 0] + 1j * lights_w[:, 1]     # x + iy
+        uu, vv = np.meshgrid(np.arange(0, cam.width, 8.0), np.arange(0, cam.height, 8.0))
+        grid_px = np.stack([uu.ravel(), vv.ravel()], 1)
+        inside = valid_mask[grid_px[:, 1].astype(int), grid_px[:, 0].astype(int)] > 0
+        q, ok = ceiling_points(rig, ceiling_height_m, grid_px[inside])
+        if not np.any(ok):
+            q, ok = np.zeros((1, 2)), np.ones(1, bool)
+        lo, hi = q[ok].min(0) - 0.5, q[ok].max(0) + 0.5
+        cell = max(0.01, float((hi - lo).max()) / 200)
+        n = np.ceil((hi - lo) / cell).astype(int) + 1
+        self.origin_m, self.cell_m = lo, cell
+        gi, gj = np.meshgrid(np.arange(n[0]), np.arange(n[1]), indexing="ij")
+        g = lo[None, :] + cell * np.stack([gi.ravel(), gj.ravel()], 1)
+        px = project_lights(rig, ceiling_height_m, g, 0.0, 0.0, 0.0)
+        ok = np.isfinite(px[:, 0])
+        ok[ok] = cam.in_image(px[ok], margin_px=VIEW_MARGIN_PX)
+        idx = np.nonzero(ok)[0]
+        uv = np.round(px[idx]).astype(int)
+        ok[idx[valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
+        d = np.hypot(px[:, 0] - nadir_px[0], px[:, 1] - nadir_px[1])
+        self.table = np.where(ok, d, np.inf).astype(np.float32).reshape(n[0], n[1])
+        # the same, with a border of inf cells: a clipped index off the table lands there
+        self._padded = np.pad(self.table, 1, constant_values=np.inf).ravel()
+
+    def __call__(self, x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
+        """``(M,)`` map lights the detector should report from a pose: inside the image
+        and the view mask, and among the ``max_spots`` nearest the nadir."""
+        # the lights in V, x + iy: Rz(-yaw) (L - t)
+        z = (self._lights_c - complex(x_m, y_m)) * complex(math.cos(yaw_rad),
+                                                           -math.sin(yaw_rad))
+        ni, nj = self.table.shape
+        i = np.rint((z.real - self.origin_m[0]) / self.cell_m).astype(np.intp)
+        j = np.rint((z.imag - self.origin_m[1]) / self.cell_m).astype(np.intp)
+        # cells of the padded table (a border of inf): off the table is not visible
+        i = np.minimum(np.maximum(i, -1), ni) + 1
+        j = np.minimum(np.maximum(j, -1), nj) + 1
+        d = self._padded[i * (nj + 2) + j]
+        ok = np.isfinite(d)
+        if ok.sum() > self.max_spots:
+            ok[np.argsort(d, kind="stable")[self.max_spots:]] = False
+        return ok
+
+
+__all__ = ["JAC_STEP_PX", "VIEW_MARGIN_PX", "Observation", "SpotObserver", "VisibilityTable",
+           "spot_table"]

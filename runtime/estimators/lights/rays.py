@@ -1,0 +1,180 @@
+"""Rays between the image and the ceiling plane, for the lights method.
+
+Convention (SPEC §1): ``X_V = R_vehicle_cam X_C + t_vehicle_cam``; every light centre
+lies on the ceiling plane ``z = H`` (``ceiling_height_m``, W's z: the height above the
+floor). A *ceiling point in V* is the ``(x, y)`` in the vehicle frame where a pixel's
+ray from the optical centre meets that plane: known without the vehicle's pose (the
+yaw only turns about the vertical), it is the map as seen from the vehicle.
+
+Example::
+
+    q_v, ok = ceiling_points(rig, 3.0, spots.centroids_px)       # (N, 2) m in V
+    px = project_lights(rig, 3.0, site.lights_m, x_m, y_m, yaw_rad)   # (M, 2) px
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.config.rig import Mount, Rig
+
+
+@functools.lru_cache(maxsize=64)
+def mount_arrays(mount: Mount) -> tuple[np.ndarray, np.ndarray]:
+    """``(R_vehicle_cam, t_vehicle_cam)`` of a mount, computed once (read-only)."""
+    R, t = mount.R_vehicle_cam, mount.t_vehicle_cam
+    R.setflags(write=False)
+    t.setflags(write=False)
+    return R, t
+
+
+def ceiling_points(rig: Rig, ceiling_height_m: float, points_px: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Ceiling points in the vehicle frame of image points.
+
+    Args:
+        rig: camera and mount.
+        ceiling_height_m: ``H``, the ceiling's height above the floor (W's z).
+        points_px: ``(N, 2)`` distorted pixels.
+
+    Returns:
+        ``(q_V (N, 2), ok (N,))``: ``(x, y)`` in V (metres) of the ray's meeting with
+        ``z = H``; ``ok`` is False where the ray does not rise (NaN there).
+    """
+    px = np.asarray(points_px, float).reshape(-1, 2)
+    if px.shape[0] == 0:
+        return np.zeros((0, 2)), np.zeros(0, bool)
+    xy = rig.camera.unproject(px)
+    rays_c = np.ones((xy.shape[0], 3))
+    rays_c[:, :2] = xy
+    R_vc, t_vc = mount_arrays(rig.mount)
+    rays_v = rays_c @ R_vc.T
+    dz = ceiling_height_m - rig.mount.z_m
+    ok = rays_v[:, 2] > 1e-6 * np.sqrt((rays_v * rays_v).sum(axis=1))       # |ray|
+    s = np.where(ok, dz / np.where(ok, rays_v[:, 2], 1.0), np.nan)
+    q = t_vc[None, :2] + s[:, None] * rays_v[:, :2]
+    return q, ok
+
+
+def project_lights(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray, x_m: float,
+                   y_m: float, yaw_rad: float) -> np.ndarray:
+    """Pixels ``(N, 2)`` of ceiling lights ``(N, 2)`` (W) seen from a vehicle pose.
+
+    NaN where a light is behind the camera.
+    """
+    L = np.asarray(lights_w, float).reshape(-1, 2)
+    return project_poses(rig, ceiling_height_m, L, np.array([[x_m, y_m, yaw_rad]]))[0]
+
+
+def project_poses(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
+                  poses: np.ndarray) -> np.ndarray:
+    """``(P, N, 2)`` pixels of ``N`` lights from ``P`` poses ``(x, y, yaw)``, one call."""
+    L = np.asarray(lights_w, float).reshape(-1, 2)
+    n = L.shape[0]
+    poses = np.asarray(poses, float).reshape(-1, 3)
+    R_vc, t_vc = mount_arrays(rig.mount)
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    # light minus camera centre, in the vehicle-level frame of each pose: Rz(-yaw) (P - c_w)
+    dx = L[None, :, 0] - poses[:, None, 0]
+    dy = L[None, :, 1] - poses[:, None, 1]
+    lx = c[:, None] * dx + s[:, None] * dy - t_vc[0]
+    ly = -s[:, None] * dx + c[:, None] * dy - t_vc[1]
+    lz = np.full_like(lx, ceiling_height_m - t_vc[2])
+    P_v = np.stack([lx, ly, lz], axis=-1).reshape(-1, 3)
+    return rig.camera.project(P_v @ R_vc).reshape(poses.shape[0], n, 2)
+
+
+def pixel_scale(rig: Rig, ceiling_height_m: float, q_v: np.ndarray) -> np.ndarray:
+    """``(N, 2, 2)`` Jacobians d(pixel)/d(ceiling point in V, metres) at points ``q_v``."""
+    q = np.asarray(q_v, float).reshape(-1, 2)
+    n = q.shape[0]
+    if n == 0:
+        return np.zeros((0, 2, 2))
+    eps = 1e-3
+    pts = np.concatenate([q, q + [eps, 0.0], q + [0.0, eps]])
+    px = project_lights(rig, ceiling_height_m, pts, 0.0, 0.0, 0.0)
+    return np.stack([(px[n:2 * n] - px[:n]) / eps, (px[2 * n:] - px[:n]) / eps], axis=2)
+
+
+def jacobian_grid(rig: Rig, ceiling_height_m: float, step_px: int = 16) -> np.ndarray:
+    """``(GH, GW, 2, 2)`` d(pixel)/d(ceiling point in V) on the pixel grid
+    ``u = i step_px``, ``v = j step_px`` (the last node past the image edge); NaN where a
+    pixel's ray does not rise. Read with :func:`interp_grid`."""
+    cam = rig.camera
+    us = np.arange(0, cam.width - 1 + step_px, step_px, dtype=float)
+    vs = np.arange(0, cam.height - 1 + step_px, step_px, dtype=float)
+    uu, vv = np.meshgrid(us, vs)
+    q, ok = ceiling_points(rig, ceiling_height_m, np.stack([uu.ravel(), vv.ravel()], 1))
+    J = np.full((q.shape[0], 2, 2), np.nan)
+    if np.any(ok):
+        J[ok] = pixel_scale(rig, ceiling_height_m, q[ok])
+    return J.reshape(vs.size, us.size, 2, 2)
+
+
+def interp_grid(grid: np.ndarray, step_px: int, points_px: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of a per-node table ``(GH, GW, ...)`` (nodes every
+    ``step_px`` pixels from pixel 0) at pixels ``(N, 2)``; returns ``(N, ...)``."""
+    px = np.asarray(points_px, float).reshape(-1, 2)
+    gh, gw = grid.shape[:2]
+    f = np.minimum(np.maximum(px / step_px, 0.0), (gw - 1.0, gh - 1.0))   # (u, v) in nodes
+    i = np.minimum(f.astype(np.intp), (gw - 2, gh - 2))
+    ab = f - i
+    extra = (slice(None),) + (None,) * (grid.ndim - 2)
+    a, b = ab[:, 0][extra], ab[:, 1][extra]
+    # the four corners of each point's cell in one gather: (N, 4, ...)
+    node = i[:, 1] * gw + i[:, 0]
+    c = grid.reshape((gh * gw,) + grid.shape[2:])[node[:, None] + (0, 1, gw, gw + 1)]
+    ua = 1 - a
+    return (1 - b) * (ua * c[:, 0] + a * c[:, 1]) + b * (ua * c[:, 2] + a * c[:, 3])
+
+
+def view_mask(rig: Rig, max_angle_rad: float) -> np.ndarray:
+    """``(H, W)`` uint8: 255 where a pixel's ray rises within ``max_angle_rad`` of the
+    vertical (computed on a 4x coarser grid, then enlarged)."""
+    cam = rig.camera
+    step = 4
+    us = np.arange(0, cam.width, step) + (step - 1) / 2
+    vs = np.arange(0, cam.height, step) + (step - 1) / 2
+    uu, vv = np.meshgrid(us, vs)
+    rays = np.hstack([cam.unproject(np.stack([uu.ravel(), vv.ravel()], 1)),
+                      np.ones((uu.size, 1))]) @ rig.mount.R_vehicle_cam.T
+    cos_up = rays[:, 2] / np.linalg.norm(rays, axis=1)
+    ok = np.isfinite(cos_up) & (cos_up > math.cos(max_angle_rad))
+    small = np.where(ok, 255, 0).astype(np.uint8).reshape(uu.shape)
+    big = cv2.resize(small, (us.size * step, vs.size * step), interpolation=cv2.INTER_NEAREST)
+    return np.ascontiguousarray(big[:cam.height, :cam.width])
+
+
+def nadir_px(rig: Rig) -> tuple[float, float]:
+    """The pixel that sees straight up (the principal point if the vertical is not in
+    front of the camera)."""
+    R_vc, _ = mount_arrays(rig.mount)
+    up = R_vc.T @ np.array([0.0, 0.0, 1.0])   # the vertical seen from the camera
+    nadir = rig.camera.project(up[None]) if up[2] > 1e-6 else np.full((1, 2), np.nan)
+    if np.all(np.isfinite(nadir)):
+        return float(nadir[0, 0]), float(nadir[0, 1])
+    return rig.camera.cx, rig.camera.cy
+
+
+def max_pair_m(rig: Rig, ceiling_height_m: float, gate_m: float) -> float:
+    """The longest distance between two ceiling points one frame can see (from the
+    image border, plus ``2 gate_m``); unbounded (1e9) when the view reaches the horizon."""
+    cam = rig.camera
+    w, h = cam.width, cam.height
+    t = np.linspace(0, 1, 24)
+    border = np.concatenate([np.stack([t * (w - 1), np.zeros_like(t)], 1),
+                             np.stack([t * (w - 1), np.full_like(t, h - 1)], 1),
+                             np.stack([np.zeros_like(t), t * (h - 1)], 1),
+                             np.stack([np.full_like(t, w - 1), t * (h - 1)], 1)])
+    q, ok = ceiling_points(rig, ceiling_height_m, border)
+    if not np.all(ok):
+        return 1e9
+    return float(np.linalg.norm(q[:, None] - q[None], axis=2).max()) + 2 * gate_m
+
+
+__all__ = ["ceiling_points", "interp_grid", "jacobian_grid", "max_pair_m", "mount_arrays",
+           "nadir_px", "pixel_scale", "project_lights", "project_poses", "view_mask"]

@@ -1,0 +1,98 @@
+"""Closed-form 2-D point-set fits: rigid (rotation + translation) and similarity.
+
+Convention: point pairs ``q (N, 2)`` and ``p (N, 2)`` in metres; the fitted transform
+maps ``q`` onto ``p``: ``p ≈ s R(θ) q + t`` with ``R(θ) = [[cos, -sin], [sin, cos]]``
+(counter-clockwise, as a yaw about W's z, SPEC §1). Least squares over the pairs
+(Umeyama / Horn in 2-D): the means are matched, the angle is the phase of
+``Σ conj(a) b`` of the centred points, the scale ``|Σ conj(a) b| / Σ |a|²``.
+
+Example::
+
+    yaw, t = fit_rigid_2d(q_v, p_w)            # p_w ≈ R(yaw) q_v + t
+    s, theta, t = fit_similarity_2d(q, p)      # p ≈ s R(theta) q + t
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def _centred_sums(q: np.ndarray, p: np.ndarray, w: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray]:
+    """``(q mean, p mean, Σ w a·b, Σ w a×b, a)`` of the pairs, ``a, b`` centred."""
+    if w is None:
+        qm, pm = q.mean(0), p.mean(0)
+        a, b = q - qm, p - pm
+        s_cos = (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]).sum()
+        s_sin = (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()
+        return qm, pm, s_cos, s_sin, a
+    w_sum = w.sum()
+    qm = (w[:, None] * q).sum(0) / w_sum
+    pm = (w[:, None] * p).sum(0) / w_sum
+    a, b = q - qm, p - pm
+    s_cos = (w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])).sum()
+    s_sin = (w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])).sum()
+    return qm, pm, s_cos, s_sin, a
+
+
+def _rotate(angle_rad: float, xy: np.ndarray) -> np.ndarray:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([c * xy[0] - s * xy[1], s * xy[0] + c * xy[1]])
+
+
+def fit_rigid_2d(q: np.ndarray, p: np.ndarray, w: np.ndarray | None = None
+                 ) -> tuple[float, np.ndarray]:
+    """Least-squares ``(yaw, t)`` with ``p ≈ R(yaw) q + t`` for point pairs ``(N, 2)``.
+
+    The scale is known (metres on both sides): the rigid case of the similarity fit
+    (Roh et al. Eq. 15 with ``s = 1``), closed form, N >= 2.
+
+    Args:
+        q, p: ``(N, 2)`` pairs; ``w``: optional ``(N,)`` weights (all 1 if ``None``).
+
+    Returns:
+        ``(yaw_rad, t (2,))``.
+    """
+    w = np.ones(q.shape[0]) if w is None else np.asarray(w, float)
+    qm, pm, s_cos, s_sin, _ = _centred_sums(q, p, w)
+    yaw = math.atan2(s_sin, s_cos)
+    return yaw, pm - _rotate(yaw, qm)
+
+
+def fit_rigid_2d_complex(q_c: np.ndarray, p_c: np.ndarray) -> tuple[complex, complex]:
+    """:func:`fit_rigid_2d` (unweighted) on points as complex numbers ``x + iy``.
+
+    The per-frame form (a few complex sums, no 2-D arrays): ``p ≈ rot q + t`` with
+    ``rot = e^{i yaw}``; ``rot = 1`` when the centred points give no direction.
+
+    Args:
+        q_c, p_c: ``(N,)`` complex pairs, N >= 2.
+
+    Returns:
+        ``(rot, t)``, complex; ``yaw = atan2(rot.imag, rot.real)``.
+    """
+    n = q_c.shape[0]
+    qm, pm = q_c.sum() / n, p_c.sum() / n
+    sc = complex((np.conj(q_c - qm) * (p_c - pm)).sum())
+    rot = sc / abs(sc) if abs(sc) > 0 else 1.0 + 0j
+    return rot, complex(pm - rot * qm)
+
+
+def fit_similarity_2d(q: np.ndarray, p: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """Least-squares ``(s, θ, t)`` with ``p ≈ s R(θ) q + t`` (Roh et al. Eq. 15).
+
+    Args:
+        q, p: ``(N, 2)`` point pairs, N >= 2.
+
+    Returns:
+        ``(scale, theta_rad, t (2,))``.
+    """
+    qm, pm, s_cos, s_sin, a = _centred_sums(q, p, None)
+    theta = math.atan2(s_sin, s_cos)
+    s = math.hypot(s_cos, s_sin) / max((a ** 2).sum(), 1e-12)
+    return s, theta, pm - s * _rotate(theta, qm)
+
+
+__all__ = ["fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d"]
