@@ -39,7 +39,7 @@ import numpy as np
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.corridor.estimator import CorridorEstimator, visible_along_lines
+from ceilkit.runtime.estimators.corridor import CorridorEstimator, visible_along_lines
 from ceilkit.runtime.estimators.paper_corridor import PaperCorridorEstimator
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.io.recording import Recording
@@ -106,10 +106,10 @@ def report(rig: Rig, site: Site, frames, detectors: bool, title: str, repeat: in
           flush=True)
     ests = [("corridor", ours)]
     if detectors:
-        ests += [("fld+refine", CorridorEstimator(rig, site, refine=True)),
-                 ("no edge_fit", CorridorEstimator(rig, site, edge_fit=False)),
-                 ("lsd", CorridorEstimator(rig, site, detector="lsd")),
-                 ("hough", CorridorEstimator(rig, site, detector="hough"))]
+        ests += [("fld+refine", CorridorEstimator(rig, site, {"refine": True})),
+                 ("no edge_fit", CorridorEstimator(rig, site, {"edge_fit": False})),
+                 ("lsd", CorridorEstimator(rig, site, {"detector": "lsd"})),
+                 ("hough", CorridorEstimator(rig, site, {"detector": "hough"}))]
     ests.append(("paper-corridor", PaperCorridorEstimator(rig, site)))
     for name, est in ests:
         print(f"{name:15s} {run(est, frames, in_view, repeat)}", flush=True)

@@ -12,7 +12,8 @@ conventions of SPEC §1):
 4. Each set's vanishing point is the MEAN of the pairwise intersections of its lines.
 5. The vanishing line's direction ``D = v_along - v_across`` (normalized coordinates,
    not normalized in length) follows ``D = N / (rho sin(2 psi + phi))`` with
-   ``N = (a b_z - b a_z)_xy``, ``a, b = M[0], M[1]``, ``rho = (a_z^2 + b_z^2) / 2``,
+   ``N = (a b_z - b a_z)_xy``, ``a, b = R[0], R[1]`` (``R = R_level_cam``),
+   ``rho = (a_z^2 + b_z^2) / 2``,
    ``phi = atan2(2 a_z b_z, a_z^2 - b_z^2)`` (our eq. 8); its u-component (eq. 11)
    gives ``sin(2 psi + phi)``, hence two complementary solutions; the one smaller
    than 45 deg in magnitude is kept.
@@ -31,7 +32,8 @@ model), and the frame checks and failure values are ours.
 from __future__ import annotations
 
 import math
-import time
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -39,13 +41,15 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.base import Failure, PoseEstimate
-from ceilkit.runtime.estimators.corridor.estimator import (
-    CorridorEstimator,
-    check_setup,
-    match_offsets,
+from ceilkit.runtime.estimators.base import (
+    Estimate,
+    Estimator,
+    EstimatorOptions,
+    PoseEstimate,
+    elapsed_ms,
 )
-from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.estimators.corridor.association import match_offsets
+from ceilkit.runtime.estimators.corridor.setup import check_setup, default_match_tol_m
 from ceilkit.runtime.features.lines import (
     fit_line,
     merge_segments,
@@ -54,17 +58,36 @@ from ceilkit.runtime.features.lines import (
 )
 from ceilkit.runtime.geometry.rotations import rot_z, wrap_half_pi, wrap_pi
 
-_OPTIONS = ("canny", "hough_threshold", "min_length_px", "merge_angle_deg", "merge_dist_px")
+
+@dataclass(frozen=True)
+class PaperCorridorOptions(EstimatorOptions):
+    """What a user may set (``--option KEY=VALUE``).
+
+    Attributes:
+        canny_low, canny_high: Canny hysteresis thresholds.
+        hough_threshold: accumulator votes a Hough line needs.
+        min_length_px: shortest line (None: 4 % of the image width).
+        merge_angle_deg, merge_dist_px: candidates closer than this in slope and
+            centre are merged.
+        min_contrast: (inherited) grey-level spread below which a frame is blank.
+    """
+
+    canny_low: float = 40.0
+    canny_high: float = 100.0
+    hough_threshold: int = 30
+    min_length_px: float | None = None
+    merge_angle_deg: float = 2.0
+    merge_dist_px: float = 3.0
 
 
-def pan_from_vanishing_line(D: np.ndarray, M: np.ndarray) -> tuple[float, float]:
+def pan_from_vanishing_line(D: np.ndarray, R_level_cam: np.ndarray) -> tuple[float, float]:
     """The two complementary solutions (rad) of the paper's eq. 11 for camera pan.
 
     Args:
         D: ``(2,)`` ``v_along - v_across`` in normalized coordinates.
-        M: ``R_level_cam`` (tilt and swing).
+        R_level_cam: ``(3, 3)`` the mount's tilt and swing.
     """
-    a, b = M[0, :], M[1, :]
+    a, b = R_level_cam[0, :], R_level_cam[1, :]
     N = a[:2] * b[2] - b[:2] * a[2]
     rho = 0.5 * (a[2] ** 2 + b[2] ** 2)
     phi = math.atan2(2 * a[2] * b[2], a[2] ** 2 - b[2] ** 2)
@@ -76,14 +99,16 @@ def pan_from_vanishing_line(D: np.ndarray, M: np.ndarray) -> tuple[float, float]
     return p1, p2
 
 
-def lateral_from_line(line: np.ndarray, psi_rad: float, M: np.ndarray,
-                      height_m: float) -> float:
-    """The paper's eq. 24: ``y_line - c_y`` (m) from one forward image line ``(3,)``."""
-    R_cw = (rot_z(psi_rad) @ M).T
+def lateral_from_line(line: np.ndarray, psi_rad: float, R_level_cam: np.ndarray,
+                      ceiling_above_cam_m: float) -> float:
+    """The paper's eq. 24: ``y_line - c_y`` (m) from one forward image line ``(3,)``, for
+    a camera ``ceiling_above_cam_m`` below the ceiling."""
+    R_cw = (rot_z(psi_rad) @ R_level_cam).T
     g, k = R_cw[:, 1], R_cw[:, 2]
     l1, l2 = float(line[0]), float(line[1])
     den = k[0] * l2 - k[1] * l1
-    return height_m * (g[0] * l2 - g[1] * l1) / den if abs(den) > 1e-12 else float("nan")
+    return (ceiling_above_cam_m * (g[0] * l2 - g[1] * l1) / den if abs(den) > 1e-12
+            else float("nan"))
 
 
 def mean_intersection(lines: np.ndarray) -> np.ndarray | None:
@@ -97,35 +122,34 @@ def mean_intersection(lines: np.ndarray) -> np.ndarray | None:
     return np.mean(pts, axis=0) if pts else None
 
 
-class PaperCorridorEstimator:
-    """Yang & Tsai's procedure (see the module docstring). Same interface and output
-    types as :class:`~.corridor.CorridorEstimator`; ``name = "paper-corridor"``."""
+class PaperCorridorEstimator(Estimator):
+    """Yang & Tsai's procedure (see the module docstring), on the Estimator contract;
+    same output types as :class:`~.corridor.CorridorEstimator`. ``prior`` is not used
+    (the paper has none). Failure reasons besides the frame check's:
+    ``too_few_lines``, ``no_association``."""
 
     name = "paper-corridor"
+    Options = PaperCorridorOptions
+    site_sections = ("corridor",)
 
-    def __init__(self, rig: Rig, site: Site, **options: Any) -> None:
-        check_setup(self.name, rig, site, options, _OPTIONS)
-        self.rig, self.site = rig, site
-        self.M = rig.mount.R_level_cam
-        self.height_m = site.ceiling_height_m - rig.mount.z_m
-        self.canny = tuple(options.get("canny", (40.0, 100.0)))
-        self.hough_threshold = int(options.get("hough_threshold", 30))
-        self.min_length_px = float(options.get("min_length_px", 0.04 * rig.camera.width))
-        self.merge_angle = math.radians(float(options.get("merge_angle_deg", 2.0)))
-        self.merge_dist = float(options.get("merge_dist_px", 3.0))
+    def __init__(self, rig: Rig, site: Site,
+                 options: PaperCorridorOptions | Mapping[str, Any] | None = None) -> None:
+        super().__init__(rig, site, options)
+        check_setup(rig, site)
+        o: PaperCorridorOptions = self.options
+        self.R_level_cam = rig.mount.R_level_cam
+        self.ceiling_above_cam_m = site.ceiling_height_m - rig.mount.z_m
+        self.canny = (float(o.canny_low), float(o.canny_high))
+        self.min_length_px = (0.04 * rig.camera.width if o.min_length_px is None
+                              else float(o.min_length_px))
+        self.merge_angle_rad = math.radians(o.merge_angle_deg)
         self.site_y = np.asarray(site.corridor.lines_along_m, dtype=float)
-        gaps = np.diff(np.sort(self.site_y))
-        self.match_tol_m = min(0.08, 0.25 * float(gaps.min())) if gaps.size else 0.08
-        # the forward set's image direction at zero pan, at the image centre
-        self._check = CorridorEstimator(rig, site, refine=False)
+        self.match_tol_m = default_match_tol_m(self.site_y)
 
-    def _fail(self, t_ns: int, reason: str, detail: str) -> Failure:
-        return Failure(int(t_ns), self.name, reason, detail)
-
-    def _lines(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _lines(self, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Merged, least-squares refitted lines: ``(segments px (N, 4), lengths (N,))``."""
-        edges = cv2.Canny(gray, self.canny[0], self.canny[1], L2gradient=True)
-        found = cv2.HoughLinesP(edges, 1.0, np.pi / 720, self.hough_threshold,
+        edges = cv2.Canny(grey, self.canny[0], self.canny[1], L2gradient=True)
+        found = cv2.HoughLinesP(edges, 1.0, np.pi / 720, self.options.hough_threshold,
                                 minLineLength=self.min_length_px, maxLineGap=3)
         if found is None:
             return np.zeros((0, 4)), np.zeros(0)
@@ -133,7 +157,7 @@ class PaperCorridorEstimator:
         ev, eu = np.nonzero(edges)
         epts = np.stack([eu, ev], axis=1).astype(np.float64)
         out = []
-        for g in merge_segments(segs, self.merge_angle, self.merge_dist):
+        for g in merge_segments(segs, self.merge_angle_rad, self.options.merge_dist_px):
             pts = segs[g].reshape(-1, 2)
             line = fit_line(pts)
             t_dir = np.array([-line[1], line[0]])
@@ -149,30 +173,14 @@ class PaperCorridorEstimator:
         segs = np.array(out).reshape(-1, 4)
         return segs, segment_lengths(segs)
 
-    def estimate(self, image: np.ndarray, t_ns: int,
-                 prior: PoseEstimate | None = None) -> PoseEstimate | Failure:
-        """The paper's estimate of ``(y, yaw)``; ``prior`` is not used (the paper has none).
-
-        Returns a :class:`PoseEstimate` (``x_m = None``) or a :class:`Failure`
-        (``bad_frame``, ``blank_frame``, ``saturated_frame``, ``too_few_lines``,
-        ``no_association``).
-        """
-        t0 = time.perf_counter()
-        gray = to_grey(image)
-        bad = self._check._check_frame(gray, t_ns)
-        if bad is not None:
-            return self._fail(t_ns, bad.reason, bad.detail)
-        segs_px, len_px = self._lines(gray)
-        if segs_px.shape[0] < 4:
-            return self._fail(t_ns, "too_few_lines", f"{segs_px.shape[0]} lines found")
-        segs = undistort_segments(self.rig.camera, segs_px)
-        p1 = np.hstack([segs[:, :2], np.ones((segs.shape[0], 1))])
-        p2 = np.hstack([segs[:, 2:], np.ones((segs.shape[0], 1))])
-        lines = np.cross(p1, p2)
-        lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
-        # two sets by image direction (doubled angles, two clusters)
+    def _two_sets(self, segs: np.ndarray, len_px: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray] | str:
+        """The forward and across sets ``(N,)`` bool by image direction (one round of
+        2-means on doubled angles, seeded at the zero-pan directions from the image
+        centre), or why there are not two sets of two."""
         ang = np.arctan2(segs[:, 3] - segs[:, 1], segs[:, 2] - segs[:, 0])
-        va0, vb0 = (self.M.T @ np.array([1.0, 0, 0]), self.M.T @ np.array([0, 1.0, 0]))
+        R = self.R_level_cam
+        va0, vb0 = (R.T @ np.array([1.0, 0, 0]), R.T @ np.array([0, 1.0, 0]))
         c = np.array([0.0, 0.0, 1.0])
         ref = []
         for v in (va0, vb0):       # direction from the image centre to each vanishing point
@@ -180,7 +188,6 @@ class PaperCorridorEstimator:
             ref.append(math.atan2(dv[1], dv[0]))
         da = np.abs(wrap_pi(2 * (ang - ref[0]))) / 2
         db = np.abs(wrap_pi(2 * (ang - ref[1]))) / 2
-        # one round of 2-means on doubled angles, seeded at the zero-pan directions
         cen = []
         for sel in (da <= db, db < da):
             if np.count_nonzero(sel) == 0:
@@ -190,26 +197,42 @@ class PaperCorridorEstimator:
             cen.append(0.5 * math.atan2(np.sum(w * np.sin(2 * ang[sel])),
                                         np.sum(w * np.cos(2 * ang[sel]))))
         if cen[0] is None or cen[1] is None:
-            return self._fail(t_ns, "too_few_lines", "the lines form only one set")
+            return "the lines form only one set"
         da = np.abs(wrap_pi(2 * (ang - cen[0]))) / 2
         db = np.abs(wrap_pi(2 * (ang - cen[1]))) / 2
         fwd, acr = da <= db, db < da
         if np.count_nonzero(fwd) < 2 or np.count_nonzero(acr) < 2:
-            return self._fail(t_ns, "too_few_lines",
-                              "each set needs two lines "
-                              f"({np.count_nonzero(fwd)} forward, {np.count_nonzero(acr)} across)")
+            return ("each set needs two lines "
+                    f"({np.count_nonzero(fwd)} forward, {np.count_nonzero(acr)} across)")
+        return fwd, acr
+
+    def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
+                  t0: float) -> Estimate:
+        """The paper's estimate of ``(y, yaw)`` from a checked frame."""
+        segs_px, len_px = self._lines(grey)
+        if segs_px.shape[0] < 4:
+            return self.fail(t_ns, "too_few_lines", f"{segs_px.shape[0]} lines found")
+        segs = undistort_segments(self.rig.camera, segs_px)
+        p1 = np.hstack([segs[:, :2], np.ones((segs.shape[0], 1))])
+        p2 = np.hstack([segs[:, 2:], np.ones((segs.shape[0], 1))])
+        lines = np.cross(p1, p2)
+        lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
+        sets = self._two_sets(segs, len_px)
+        if isinstance(sets, str):
+            return self.fail(t_ns, "too_few_lines", sets)
+        fwd, acr = sets
         v_a = mean_intersection(lines[fwd])
         v_b = mean_intersection(lines[acr])
         if v_a is None or v_b is None:
-            return self._fail(t_ns, "too_few_lines", "a set's lines are parallel in the image")
-        D = v_a - v_b
-        sols = pan_from_vanishing_line(D, self.M)
+            return self.fail(t_ns, "too_few_lines", "a set's lines are parallel in the image")
+        sols = pan_from_vanishing_line(v_a - v_b, self.R_level_cam)
         psi = min(sols, key=abs)
-        offs = np.array([lateral_from_line(ln, psi, self.M, self.height_m) for ln in lines[fwd]])
+        offs = np.array([lateral_from_line(ln, psi, self.R_level_cam, self.ceiling_above_cam_m)
+                         for ln in lines[fwd]])
         m = match_offsets(offs, len_px[fwd], self.site_y, self.match_tol_m)
         if m is None:
-            return self._fail(t_ns, "no_association",
-                              "no forward line matches the site's lines_along")
+            return self.fail(t_ns, "no_association",
+                             "no forward line matches the site's lines_along")
         matched = np.flatnonzero(m.assign >= 0)
         one = matched[np.argmax(len_px[fwd][matched])]
         cy = float(self.site_y[m.assign[one]] - offs[one])
@@ -227,6 +250,6 @@ class PaperCorridorEstimator:
                 "n_across": int(np.count_nonzero(acr)), "psi_deg": math.degrees(psi),
                 "psi_alternative_deg": math.degrees(max(sols, key=abs)),
                 "vp_forward": v_a.tolist(), "vp_across": v_b.tolist(),
-                "time_ms": 1e3 * (time.perf_counter() - t0)}
+                "ms": elapsed_ms(t0)}
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(quality),
                             y_m - self.site.corridor.axis_y_m, cov, diag)

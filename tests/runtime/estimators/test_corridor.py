@@ -1,5 +1,6 @@
-"""Tests of runtime/corridor.py: geometry on exactly projected lines, noise sweeps,
-simulated frames, failures and the prior."""
+"""Tests of runtime/estimators/corridor/: the formulas (geometry) on exactly projected
+lines, the association, the stages against independent forms, noise sweeps, simulated
+frames, failures and the prior."""
 
 from __future__ import annotations
 
@@ -13,19 +14,25 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Corridor, Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import PoseEstimate
-from ceilkit.runtime.estimators.corridor.estimator import (
+from ceilkit.runtime.estimators.corridor import (
     CorridorEstimator,
-    _gauss,
-    _median_finite,
-    along_offsets,
-    angle_residuals,
-    fit_pan,
-    level_normals,
+    CorridorOptions,
     match_offsets,
-    mount_from_vanishing_line,
-    vanishing_directions,
     visible_along_lines,
 )
+from ceilkit.runtime.estimators.corridor.association import AMBIGUITY_RATIO, gauss
+from ceilkit.runtime.estimators.corridor.estimator import _median_finite
+from ceilkit.runtime.estimators.corridor.frame import frame_lines
+from ceilkit.runtime.estimators.corridor.geometry import (
+    along_offsets,
+    fit_pan,
+    level_normals,
+    mount_from_vanishing_line,
+    vanishing_angles,
+    vanishing_directions,
+)
+from ceilkit.runtime.estimators.corridor.hypotheses import families
+from ceilkit.runtime.estimators.corridor.refine import gn_inputs, residuals
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.features.lines import fit_line, segment_lines
 from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z, wrap_pi
@@ -97,7 +104,10 @@ def test_vanishing_directions_lie_on_the_ceiling_vanishing_line():
     for psi in (-1.0, 0.0, 0.4):
         va, vb = vanishing_directions(psi, M)
         assert abs(M[2] @ va) < 1e-12 and abs(M[2] @ vb) < 1e-12
-        assert abs(va @ vb) < 1e-12
+        assert abs(np.dot(va, vb)) < 1e-12
+        c, s = math.cos(psi), math.sin(psi)         # R^T (c, -s, 0), R^T (s, c, 0)
+        assert np.allclose(va, M.T @ [c, -s, 0.0], atol=1e-15)
+        assert np.allclose(vb, M.T @ [s, c, 0.0], atol=1e-15)
 
 
 def test_fit_pan_exact_on_lines_through_the_vanishing_points():
@@ -107,8 +117,10 @@ def test_fit_pan_exact_on_lines_through_the_vanishing_points():
     va, vb = vanishing_directions(psi, M)
     la = np.cross(rng.normal(size=(5, 3)), va)
     lb = np.cross(rng.normal(size=(4, 3)), vb)
-    got = fit_pan(level_normals(la, M), level_normals(lb, M), np.ones(5), np.ones(4))
+    q = np.vstack([level_normals(la, M), level_normals(lb, M)])
+    got = fit_pan(q, np.r_[np.ones(5), np.zeros(4)], np.r_[np.zeros(5), np.ones(4)])
     assert abs(math.remainder(got - psi, math.pi)) < 1e-12
+    assert -math.pi <= got < math.pi
 
 
 def test_mount_from_vanishing_line_round_trip():
@@ -126,8 +138,14 @@ def test_along_offsets_match_the_world(rig, site):
                                      rig.camera.unproject(segs[:, 2:])]))
     psi = yaw + rig.mount.pan_rad
     cy = rig.mount.camera_position(x, y, yaw)[1]
-    offs = along_offsets(level_normals(lines, rig.mount.R_level_cam), psi,
-                         site.ceiling_height_m - rig.mount.z_m)
+    q = level_normals(lines, rig.mount.R_level_cam)
+    assert np.allclose(q, lines @ rig.mount.R_level_cam.T, atol=1e-15)
+    h = site.ceiling_height_m - rig.mount.z_m
+    offs, n_y = along_offsets(q, psi, h)
+    n = q @ rot_z(psi).T                                       # the world normals
+    assert np.allclose(n_y, n[:, 1], atol=1e-15)
+    fin = np.abs(n[:, 1]) > 1e-12
+    assert np.allclose(offs[fin], -n[fin, 2] * h / n[fin, 1], rtol=1e-12)
     near = [min(abs(o + cy - yj) for yj in site.corridor.lines_along_m) for o in offs]
     assert sum(d < 1e-9 for d in near) >= 4
 
@@ -141,7 +159,7 @@ def test_match_offsets_tolerates_missing_extra_and_shift():
     assert m.shift_m == pytest.approx(c, abs=0.003)
     assert m.assign.tolist() == [0, 2, 3, -1]
     assert m.n_lines == 3
-    assert m.runner_up is None or m.runner_up[0] < 0.85 * m.score
+    assert m.runner_up is None or m.runner_up[0] < AMBIGUITY_RATIO * m.score
     # three lines evenly spaced like the site's fit two shifts equally: a tie, reported
     obs = np.array([-0.15, 0.15, 0.45]) - c
     m = match_offsets(obs, np.ones(3), ys, 0.07)
@@ -154,7 +172,7 @@ def test_match_offsets_edge_kinds_break_the_spacing_tie():
     site_kind = np.array([0.0, 1.0, -1.0, 0.0])     # seam, lamp edges (lamp between), seam
     obs = np.array([-0.15, 0.15]) - 0.1              # two lines 0.3 apart: three fits
     m = match_offsets(obs, np.ones(2), ys, 0.07)
-    assert m.runner_up is not None and m.runner_up[0] >= 0.85 * m.score     # a tie
+    assert m.runner_up is not None and m.runner_up[0] >= AMBIGUITY_RATIO * m.score  # a tie
     # the two lamp edges: steps, the lamp (bright) between them
     pol = np.array([1.0, -1.0])
     compat = (pol[:, None] == site_kind[None, :]).astype(float)
@@ -199,45 +217,53 @@ def test_median_finite_matches_numpy():
 
 def test_gauss_is_exp_above_its_floor():
     z = np.linspace(-37.0, 37.0, 2001)
-    assert np.array_equal(_gauss(z), np.exp(-0.5 * z ** 2))
+    assert np.array_equal(gauss(z), np.exp(-0.5 * z ** 2))
     far = np.array([38.0, -60.0, 1e6, np.inf])
-    g = _gauss(far)
+    g = gauss(far)
     assert np.all(g > 0) and np.all(g <= np.exp(-700.0)) and 1.0 + g[0] == 1.0
 
 
-def test_estimator_geometry_helpers(rig, site):
-    """The estimator's per-frame helpers agree with the public pure functions, and the
-    Gauss-Newton Jacobian with finite differences."""
+def test_estimator_stages_agree_with_independent_forms(rig, site):
+    """The frame stage's lines and normals, the vanishing angles and the family gate
+    agree with independent forms, and the Gauss-Newton Jacobian with finite
+    differences."""
     est = CorridorEstimator(rig, site)
+    setup = est.setup
+    M = setup.R_level_cam
     x, y, yaw = 0.7, 0.2, 0.3
     segs_px = exact_segments(rig, site, x, y, yaw)
     segs = est.rig.camera.unproject(segs_px.reshape(-1, 2)).reshape(-1, 4)
-    fr = est._frame(segs, np.full(segs.shape[0], np.nan))
+    fr = frame_lines(segs, np.full(segs.shape[0], np.nan), setup, est.angle_tol_rad, 2.5)
     assert np.allclose(fr.lines, segment_lines(segs), atol=1e-15)
-    assert np.allclose(fr.q, level_normals(fr.lines, est.M), atol=1e-15)
+    assert np.allclose(fr.q, fr.lines @ M.T, atol=1e-15)
+    mids = 0.5 * (segs[:, :2] + segs[:, 2:])
     for psi in (-0.4, 0.3, 2.0):
-        va, vb = vanishing_directions(psi, est.M)
-        assert np.allclose(est._vp_dirs(psi), [va, vb], atol=1e-15)
-        ang, den = est._vp_angles(psi, fr)
-        mids = 0.5 * (segs[:, :2] + segs[:, 2:])
-        assert np.allclose(ang[0], np.abs(angle_residuals(fr.lines, mids, va)), atol=1e-15)
-        assert np.allclose(ang[1], np.abs(angle_residuals(fr.lines, mids, vb)), atol=1e-15)
+        va, vb = vanishing_directions(psi, M)
+        assert vanishing_directions(psi, setup.R_rows) == (va, vb)
+        ang, den = vanishing_angles(psi, setup.R_rows, fr.lines_t, fr.mx, fr.my)
+        for row, v in enumerate((np.array(va), np.array(vb))):
+            # angle between each segment and the line from its midpoint to v
+            ref_den = np.hypot(v[0] - v[2] * mids[:, 0], v[1] - v[2] * mids[:, 1])
+            ref = np.abs(fr.lines @ v) / np.maximum(ref_den, 1e-12)
+            assert np.allclose(ang[row], ref, atol=1e-15)
         assert np.all(den > 0)
     psi = wrap_pi(yaw + rig.mount.pan_rad)
-    along, across = est._families(est._vp_angles(psi, fr)[0], est.angle_tol)
+    ang = vanishing_angles(psi, setup.R_rows, fr.lines_t, fr.mx, fr.my)[0]
+    along, across = families(ang, est.angle_tol_rad)
     assert np.count_nonzero(along) >= 3 and np.count_nonzero(across) >= 2
+    assert not np.any(along & across)
     # every along segment on its site line (the nearest to its true offset)
-    offs = along_offsets(fr.q[along], psi, est.height_m)
+    offs = along_offsets(fr.q[along], psi, setup.ceiling_above_cam_m)[0]
     cy = y + float((rot_z(yaw) @ rig.mount.t_vehicle_cam)[1])
     assign = np.full(segs.shape[0], -1)
-    assign[along] = np.argmin(np.abs(offs[:, None] + cy - est.site_y[None, :]), axis=1)
-    gd = est._gn_setup(fr, along, across, assign)
-    A = est._residuals(psi, cy, gd)
+    assign[along] = np.argmin(np.abs(offs[:, None] + cy - setup.site_y[None, :]), axis=1)
+    gd = gn_inputs(fr, along, across, assign, setup)
+    A = residuals(psi, cy, gd, setup)
     assert A.shape == (2 * np.count_nonzero(along) + np.count_nonzero(across), 3)
     assert np.max(np.abs(A[:, 2])) < 1e-6                       # exact lines: px
     for k, (dp, dc) in enumerate(((1e-6, 0.0), (0.0, 1e-6))):
-        num = (est._residuals(psi + dp, cy + dc, gd)[:, 2]
-               - est._residuals(psi - dp, cy - dc, gd)[:, 2]) / 2e-6
+        num = (residuals(psi + dp, cy + dc, gd, setup)[:, 2]
+               - residuals(psi - dp, cy - dc, gd, setup)[:, 2]) / 2e-6
         assert np.allclose(A[:, k], num, rtol=1e-5, atol=1e-3)
 
 
@@ -328,7 +354,8 @@ def test_blank_saturated_featureless_and_bad_frames(rig, site):
 
 @pytest.mark.parametrize("name", ["corridor", "paper-corridor"])
 def test_both_corridor_methods_check_options_and_site(rig, site, name):
-    with pytest.raises(ConfigError, match=r"options\.bogus: unknown option for " + name):
+    own = {"corridor": "detector", "paper-corridor": "hough_threshold"}[name]
+    with pytest.raises(ConfigError, match=r"options\.bogus: unknown option .*" + own):
         make_estimator(name, rig, site, {"bogus": 1})
     with pytest.raises(ConfigError, match="needs a `corridor` section"):
         make_estimator(name, rig, Site(2.8, lights_m=np.array([[0.0, 0.0], [1.0, 0.0]])))
@@ -336,14 +363,31 @@ def test_both_corridor_methods_check_options_and_site(rig, site, name):
 
 def test_options_and_site_are_checked(rig, site):
     with pytest.raises(ConfigError):
-        CorridorEstimator(rig, site, bogus=1)
+        CorridorEstimator(rig, site, {"bogus": 1})
     with pytest.raises(ConfigError):
         CorridorEstimator(rig, Site(2.8))
     with pytest.raises(ConfigError):
-        CorridorEstimator(rig, site, detector="nope")
+        CorridorEstimator(rig, site, {"detector": "nope"})
     with pytest.raises(ConfigError):   # ceiling below the camera
         CorridorEstimator(rig, Site(0.5, Corridor((-0.15, 0.15))))
     assert make_estimator("corridor", rig, site).name == "corridor"
+    with pytest.raises(ConfigError, match=r"options\.max_segments"):
+        CorridorEstimator(rig, site, {"max_segments": "many"})
+    with pytest.raises(ConfigError, match="takes CorridorOptions"):
+        CorridorEstimator(rig, site, object())
+
+
+def test_options_defaults_and_strings(rig, site):
+    """``None`` defaults resolve as documented; CLI strings are coerced."""
+    est = CorridorEstimator(rig, site)
+    assert est.detector.min_length_px == pytest.approx(0.04 * rig.camera.width)
+    assert est.match_tol_m == pytest.approx(0.075)      # a quarter of the 0.3 m spacing
+    est = CorridorEstimator(rig, site, {"min_length_px": "40", "match_tol_m": "0.05",
+                                        "edge_fit": "false", "detector": "lsd"})
+    assert est.options == CorridorOptions(min_length_px=40.0, match_tol_m=0.05,
+                                          edge_fit=False, detector="lsd")
+    assert est.detector.min_length_px == 40.0 and est.match_tol_m == 0.05
+    assert est.estimate(np.zeros((10, 10), np.uint8), 1).reason == "bad_frame"
 
 
 sim = pytest.importorskip("ceilkit.runtime.sim.render")

@@ -1,0 +1,190 @@
+"""The joint refinement of a labeled frame: Gauss-Newton on ``(psi, c_y)``, the camera's
+pan and y in W, over pixel residuals, and the vehicle pose it implies.
+
+Residuals (px): each matched forward segment's two endpoints to their site line's
+predicted image line, and each across segment's endpoint offset from the line
+joining its midpoint to the across vanishing point. Huber weights (k = 1 px); the
+covariance is ``max(sigma^2, 0.01) (J^T W J)^-1``.
+
+Example::
+
+    gn = gn_inputs(fr, labeling.along, labeling.across, labeling.assign, setup)
+    fit = gauss_newton(labeling.psi_rad, labeling.camera_y_m, gn, setup, iterations=6)
+    yaw_rad, y_m, cov = vehicle_pose(fit, setup)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ceilkit.runtime.estimators.corridor.frame import FrameLines
+from ceilkit.runtime.estimators.corridor.geometry import vanishing_directions
+from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
+from ceilkit.runtime.geometry.rotations import wrap_pi
+
+STEP_DONE = (1e-5, 2e-4)
+"""A step below this in ``(psi rad, c_y m)`` converges: the next is far smaller."""
+
+MIN_SIGMA2_PX2 = 0.01
+"""Floor of the residual variance (px^2) in the covariance."""
+
+
+@dataclass(frozen=True, eq=False)
+class GNInputs:
+    """The fixed inputs of :func:`residuals`.
+
+    For the matched forward segments' endpoints ``e = (ex, ey, 1)`` (K of them):
+    ``e0, e1, ez (K,)`` = ``R[i] . e`` (i = 0, 1, 2; ``R = R_level_cam``; then
+    ``vb . e = s e0 + c e1`` and ``va . e = c e0 - s e1`` for ``c, s = cos, sin psi``)
+    and their site lines' y ``(K,)``; for the across segments' lines ``l`` (B of
+    them): ``p0, p1 (B,)`` = ``R[i] . l``, their midpoints ``mx_b, my_b (B,)`` and pixel
+    scale ``scale_b (B,)`` (length f / sqrt 2).
+    """
+
+    n_a: int
+    y: np.ndarray
+    e0: np.ndarray
+    e1: np.ndarray
+    ez: np.ndarray
+    p0: np.ndarray
+    p1: np.ndarray
+    mx_b: np.ndarray
+    my_b: np.ndarray
+    scale_b: np.ndarray
+
+
+def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.ndarray,
+              setup: CorridorSetup) -> GNInputs:
+    """:class:`GNInputs` of the forward segments ``along`` matched by ``assign`` ``(N,)``
+    (site line index, -1 none) and the ``across`` segments."""
+    ia = np.flatnonzero(along & (assign >= 0))
+    ep = fr.segs[ia].reshape(-1, 2)
+    ex, ey = ep[:, 0], ep[:, 1]
+    m0, m1, m2 = setup.R_rows
+    ib = np.flatnonzero(across)
+    lb = fr.lines_t[:, ib]
+    return GNInputs(
+        n_a=ia.size, y=np.repeat(setup.site_y[assign[ia]], 2),
+        e0=m0[0] * ex + m0[1] * ey + m0[2], e1=m1[0] * ex + m1[1] * ey + m1[2],
+        ez=m2[0] * ex + m2[1] * ey + m2[2],
+        p0=m0[0] * lb[0] + m0[1] * lb[1] + m0[2] * lb[2],
+        p1=m1[0] * lb[0] + m1[1] * lb[1] + m1[2] * lb[2],
+        mx_b=fr.mx[ib], my_b=fr.my[ib], scale_b=fr.len_n[ib] * (setup.f_px / math.sqrt(2.0)))
+
+
+def residuals(psi_rad: float, camera_y_m: float, gd: GNInputs,
+              setup: CorridorSetup) -> np.ndarray:
+    """``(K + B, 3)``: the pixel residuals (column 2) and their Jacobian in
+    ``(psi, c_y)`` (columns 0, 1), along endpoints first, then across segments.
+
+    With ``R_cw = R^T Rz(-psi)`` the ceiling line ``y = y_j`` is seen as
+    ``l = R_cw (0, h, -(y_j - c_y)) = h vb - (y_j - c_y) m2`` (``vb`` the across
+    direction, ``R_cw``'s y column; ``m2 = R[2]``, its z column), so
+    ``dl/dpsi = h va`` and ``dl/dc_y = m2``."""
+    c, s = math.cos(psi_rad), math.sin(psi_rad)
+    va, vb = vanishing_directions(psi_rad, setup.R_rows)
+    h, f = setup.ceiling_above_cam_m, setup.f_px
+    m2 = setup.R_rows[2]
+    e0, e1, ez = gd.e0, gd.e1, gd.ez
+    na, kb = e0.size, gd.p0.size
+    out = np.empty((na + kb, 3))
+    dy = gd.y - camera_y_m
+    l0 = h * vb[0] - dy * m2[0]
+    l1 = h * vb[1] - dy * m2[1]
+    q = 1.0 / np.hypot(l0, l1)
+    u = (h * (s * e0 + c * e1) - dy * ez) * q                  # signed distance
+    dn_psi = h * (l0 * va[0] + l1 * va[1]) * q                  # d|l_xy|/dpsi
+    dn_cy = (l0 * m2[0] + l1 * m2[1]) * q
+    fq = f * q
+    out[:na, 0] = (h * (c * e0 - s * e1) - u * dn_psi) * fq
+    out[:na, 1] = (ez - u * dn_cy) * fq
+    out[:na, 2] = u * f
+    if kb:
+        mx, my = gd.mx_b, gd.my_b
+        p0, p1 = gd.p0, gd.p1
+        bx = vb[0] - vb[2] * mx
+        by = vb[1] - vb[2] * my
+        den = np.hypot(bx, by)
+        dden = (bx * (va[0] - va[2] * mx) + by * (va[1] - va[2] * my)) / den
+        num = s * p0 + c * p1                                   # l . vb
+        scale = gd.scale_b / den
+        out[na:, 0] = ((c * p0 - s * p1) - num * dden / den) * scale   # l . va = dnum
+        out[na:, 1] = 0.0
+        out[na:, 2] = num * scale
+    return out
+
+
+@dataclass(frozen=True)
+class PanOffsetFit:
+    """The refined camera pan and y in W and their 2x2 covariance.
+
+    Attributes:
+        psi_rad, camera_y_m: the solution. cov: ``((p00, p01), (p10, p11))`` of
+            ``(psi, c_y)`` (rad², rad m, m²; inf where the normal equations are
+            singular). rms_px: the residuals' rms (NaN without residuals).
+    """
+
+    psi_rad: float
+    camera_y_m: float
+    cov: tuple[tuple[float, float], tuple[float, float]]
+    rms_px: float
+
+
+def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: CorridorSetup,
+                 iterations: int) -> PanOffsetFit:
+    """At most ``iterations`` (at least 1) Huber-weighted Gauss-Newton steps on
+    ``(psi, c_y)`` from the given start; stops on a step below :data:`STEP_DONE` or
+    singular normal equations. The residuals and weights of the last step describe the
+    solution (its step was below the threshold, the one after it far smaller)."""
+    psi, cy = psi_rad, camera_y_m
+    h00 = h01 = h10 = h11 = wrr = 0.0
+    r = np.zeros(0)
+    for _ in range(max(1, iterations)):
+        A = residuals(psi, cy, gd, setup)                    # (K, 3): J_psi, J_cy, r
+        r = A[:, 2]
+        w = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))  # Huber, k = 1 px
+        # the weighted normal equations and sum of w r^2 in one product
+        (h00, h01, g0), (h10, h11, g1), (_, _, wrr) = ((A * w[:, None]).T @ A).tolist()
+        det = h00 * h11 - h01 * h10
+        if not abs(det) > 1e-300:
+            break
+        d_psi = -(h11 * g0 - h01 * g1) / det
+        d_cy = -(h00 * g1 - h10 * g0) / det
+        psi, cy = psi + d_psi, cy + d_cy
+        if abs(d_psi) < STEP_DONE[0] and abs(d_cy) < STEP_DONE[1]:
+            break
+    dof = max(1, r.size - 2)
+    sigma2 = wrr / dof
+    det = h00 * h11 - h01 * h10
+    if abs(det) > 1e-300:
+        k = max(sigma2, MIN_SIGMA2_PX2) / det
+        cov = ((h11 * k, -h01 * k), (-h10 * k, h00 * k))
+    else:
+        nan = float("nan")
+        cov = ((np.inf, nan), (nan, np.inf))        # (as T diag(inf, inf) T^T: inf * 0)
+    rms_px = math.sqrt(float(r @ r) / r.size) if r.size else float("nan")
+    return PanOffsetFit(psi, cy, cov, rms_px)
+
+
+def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup
+                 ) -> tuple[float, float, np.ndarray]:
+    """``(yaw_rad, y_m, cov (3, 3))`` of the vehicle in W from the camera's pan and y:
+    ``yaw = psi - pan``, ``y = c_y - (Rz(yaw) t_VC)_y``; x is unobserved (``cov[0, 0]``
+    inf)."""
+    yaw = wrap_pi(fit.psi_rad - setup.pan_rad)
+    cyaw, syaw = math.cos(yaw), math.sin(yaw)
+    t_vc = setup.t_vc
+    t_vx = cyaw * t_vc[0] - syaw * t_vc[1]      # (Rz(yaw) t_VC)_x, _y
+    t_vy = syaw * t_vc[0] + cyaw * t_vc[1]
+    y_m = fit.camera_y_m - t_vy
+    (p00, p01), (p10, p11) = fit.cov
+    # (yaw, y) = (psi - pan, c_y - t_vy(yaw)): d(yaw, y)/d(psi, c_y) = [[1, 0], [-t_vx, 1]]
+    cov = np.zeros((3, 3))
+    cov[0, 0] = np.inf
+    cov[2, 2] = p00
+    cov[1, 2] = cov[2, 1] = p10 - t_vx * p00
+    cov[1, 1] = t_vx * t_vx * p00 - t_vx * (p01 + p10) + p11
+    return yaw, y_m, cov
