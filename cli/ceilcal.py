@@ -18,6 +18,10 @@ for _module in (ceilcal_simulate, ceilcal_intrinsics, ceilcal_mount, ceilcal_lig
                 ceilcal_calibrate):
     _module.register(app)
 
+from . import ceilcal_autopilot  # noqa: E402 - registered after the calibration commands
+
+ceilcal_autopilot.register(app)
+
 
 def main() -> None:
     quiet_opencv()

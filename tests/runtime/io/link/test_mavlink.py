@@ -243,3 +243,137 @@ def test_protocol_sends_origin_until_acknowledged():
     assert proto.origin_acknowledged
     assert [m.get_type() for m in parse(proto.periodic(health))] == ["HEARTBEAT"]
     assert MavlinkProtocol().periodic(health)[:1] == b"\xfd"  # no origin by default
+
+
+# --------------------------------------------------------------------------- ODOMETRY
+
+
+def odometry(est, settings=None, seq=0, reset_counter=0):
+    out = mavlink.odometry_message(est, seq, reset_counter, settings=settings)
+    assert out is not None
+    (msg,) = parse(out)
+    assert msg.get_type() == "ODOMETRY"
+    return msg
+
+
+def test_odometry_matches_pymavlink_encoder():
+    cov = [0.001 * (k + 1) for k in range(21)]
+    nan = float("nan")
+    mav = mavlink2.MAVLink(None, srcSystem=4, srcComponent=197)
+    mav.seq = 77
+    ref = mav.odometry_encode(123, mavlink2.MAV_FRAME_LOCAL_FRD, mavlink2.MAV_FRAME_BODY_FRD,
+                              1.0, -2.0, -0.5, [0.5, 0.0, 0.0, 0.5], nan, nan, nan, nan, nan,
+                              nan, cov, [nan] * 21, 3, mavlink2.MAV_ESTIMATOR_TYPE_VISION, 42)
+    ours = mavlink.encode_odometry(123, (1.0, -2.0, -0.5), (0.5, 0.0, 0.0, 0.5), cov, 3, 42,
+                                   seq=77, sysid=4)
+    assert ours == ref.pack(mav)
+
+
+def test_odometry_fields_frames_and_mapping():
+    sensor = (0.3, 0.1, 0.8)
+    est = pose(quality=0.87)
+    msg = odometry(est, mavlink.OdometrySettings(sensor_V_m=sensor), seq=9, reset_counter=4)
+    assert msg.frame_id == mavlink2.MAV_FRAME_LOCAL_FRD == 20
+    assert msg.child_frame_id == mavlink2.MAV_FRAME_BODY_FRD == 12
+    assert msg.estimator_type == mavlink2.MAV_ESTIMATOR_TYPE_VISION
+    assert msg.quality == 87 and msg.reset_counter == 4 and msg.get_seq() == 9
+    assert msg.time_usec == est.t_ns // 1000
+    # the camera's optical centre: (x, y) + Rz(yaw) t in W, then (x, -y, -z)
+    c, s = math.cos(est.yaw_rad), math.sin(est.yaw_rad)
+    cam_w = (2.0 + c * 0.3 - s * 0.1, 1.0 + s * 0.3 + c * 0.1)
+    assert msg.x == pytest.approx(cam_w[0], abs=1e-6)
+    assert msg.y == pytest.approx(-cam_w[1], abs=1e-6)
+    assert msg.z == pytest.approx(-0.8, abs=1e-6)
+    # body FRD -> local FRD: a rotation of -yaw_W about z (down)
+    w, qx, qy, qz = msg.q
+    assert (qx, qy) == (0.0, 0.0)
+    assert 2 * math.atan2(qz, w) == pytest.approx(-est.yaw_rad, abs=1e-6)
+    assert all(math.isnan(v) for v in (msg.vx, msg.vy, msg.vz, msg.rollspeed))
+    assert math.isnan(msg.velocity_covariance[0])
+
+
+def test_odometry_covariance_is_the_sensor_points_in_frd():
+    t = (0.3, 0.1, 0.8)
+    est = pose()
+    msg = odometry(est, mavlink.OdometrySettings(sensor_V_m=t))
+    c, s = math.cos(est.yaw_rad), math.sin(est.yaw_rad)
+    lever = np.array([[1, 0, -s * t[0] - c * t[1]], [0, 1, c * t[0] - s * t[1]], [0, 0, 1]])
+    J = np.diag([1.0, -1.0, -1.0])
+    expect = J @ lever @ COV_W @ lever.T @ J
+    cov = msg.pose_covariance
+    u = mavlink.urt_index
+    for (a, ia), (b, ib) in [((0, 0), (0, 0)), ((0, 0), (1, 1)), ((1, 1), (1, 1)),
+                             ((0, 0), (2, 5)), ((1, 1), (2, 5)), ((2, 5), (2, 5))]:
+        assert cov[u(ia, ib)] == pytest.approx(expect[a, b], rel=1e-5, abs=1e-9)
+    assert cov[u(2, 2)] == pytest.approx(mavlink.DEFAULT_Z_VAR_M2)
+    assert cov[u(3, 3)] == pytest.approx(mavlink.DEFAULT_ROLL_PITCH_VAR_RAD2)
+    # with no lever arm the mapping is VISION_POSITION_ESTIMATE's
+    plain = odometry(est).pose_covariance
+    vpe = mavlink.covariance_ned(COV_W, z_var_m2=0.01, roll_pitch_var_rad2=math.radians(2) ** 2)
+    assert plain == pytest.approx([float(np.float32(v)) for v in vpe], rel=1e-6)
+
+
+def test_odometry_corridor_sends_y_and_yaw_with_a_huge_x_variance():
+    cov = np.array([[np.inf, 0.0, 0.0], [0.0, 1e-4, 2e-6], [0.0, 2e-6, 1e-5]])
+    est = pose(method="corridor", x_m=None, y_m=0.25, yaw_rad=math.radians(-10), cov=cov)
+    msg = odometry(est)
+    u = mavlink.urt_index
+    assert msg.x == 0.0 and msg.y == pytest.approx(-0.25)
+    assert msg.pose_covariance[u(0, 0)] == pytest.approx(mavlink.UNOBSERVED_VAR_M2)
+    assert msg.pose_covariance[u(0, 1)] == 0.0 and msg.pose_covariance[u(0, 5)] == 0.0
+    assert msg.pose_covariance[u(1, 1)] == pytest.approx(1e-4)
+    assert msg.pose_covariance[u(1, 5)] == pytest.approx(2e-6)  # (-1)(-1): sign kept
+    assert all(math.isfinite(v) for v in msg.pose_covariance)
+    # without a covariance the placeholder x would be trusted: nothing is sent
+    assert mavlink.odometry_message(pose(x_m=None, cov=None), 0, 0) is None
+
+
+def test_odometry_known_covariance_missing_is_nan_first():
+    msg = odometry(pose(cov=None))
+    assert all(math.isnan(v) for v in msg.pose_covariance)
+
+
+@pytest.mark.parametrize("est", [
+    Failure(t_ns=5, method="lights", reason="no_lights"),
+    pose(yaw_rad=float("nan")),
+    pose(x_m=float("inf")),
+    pose(x_m=None, y_m=None),
+])
+def test_odometry_nothing_for_what_cannot_be_sent(est):
+    assert mavlink.odometry_message(est, 0, 0) is None
+
+
+def test_odometry_quality_mapping():
+    assert mavlink.odometry_quality(0.0) == 1      # 0 would mean "unknown"
+    assert mavlink.odometry_quality(0.5) == 50
+    assert mavlink.odometry_quality(2.0) == 100
+    assert mavlink.odometry_quality(float("nan")) == 0
+
+
+def test_odometry_settings_refuse_non_finite():
+    with pytest.raises(ValueError):
+        mavlink.OdometrySettings(sensor_V_m=(0.0, float("nan"), 0.0))
+
+
+def test_pymavlink_decodes_every_odometry_of_a_random_run():
+    rng = np.random.default_rng(14)
+    settings = mavlink.OdometrySettings(sensor_V_m=(0.25, -0.05, 0.9))
+    stream = b""
+    sent = []
+    for k in range(500):
+        a = rng.normal(size=(3, 3)) * 0.01
+        cov = a @ a.T + np.diag([1e-6, 1e-6, 1e-7])
+        x = None if k % 5 == 0 else float(rng.uniform(-500, 500))
+        est = pose(t_ns=10**9 + k * 33_000_000, x_m=x, y_m=float(rng.uniform(-50, 50)),
+                   yaw_rad=float(rng.uniform(-math.pi, math.pi)), quality=float(rng.uniform()),
+                   cov=cov)
+        msg = mavlink.odometry_message(est, k, k // 7, settings=settings)
+        stream += msg
+        sent.append(est)
+    msgs = parse(stream)
+    assert len(msgs) == len(sent) == 500
+    for est, msg in zip(sent, msgs):
+        assert msg.get_type() == "ODOMETRY" and msg.time_usec == est.t_ns // 1000
+        yaw = 2 * math.atan2(msg.q[3], msg.q[0])
+        assert math.cos(yaw + est.yaw_rad) == pytest.approx(1.0, abs=1e-9)
+        assert all(math.isfinite(v) for v in msg.pose_covariance)
