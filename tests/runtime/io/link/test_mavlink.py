@@ -372,7 +372,7 @@ def test_pymavlink_decodes_every_odometry_of_a_random_run():
         sent.append(est)
     msgs = parse(stream)
     assert len(msgs) == len(sent) == 500
-    for est, msg in zip(sent, msgs):
+    for est, msg in zip(sent, msgs, strict=True):
         assert msg.get_type() == "ODOMETRY" and msg.time_usec == est.t_ns // 1000
         yaw = 2 * math.atan2(msg.q[3], msg.q[0])
         assert math.cos(yaw + est.yaw_rad) == pytest.approx(1.0, abs=1e-9)

@@ -439,3 +439,75 @@ def test_is_serial_path(tmp_path, pty):
     (tmp_path / "port").symlink_to(os.ttyname(pty.slave))
     assert is_serial_path(tmp_path / "port")  # a symlink to a character device
     assert not is_serial_path(tmp_path / "poses.nmea")
+
+
+# ------------------------------------------------------------------ new protocols
+
+
+class _Mount:
+    x_m, y_m, z_m = 0.3, 0.1, 0.8
+
+
+class _Rig:
+    mount = _Mount()
+
+
+class _Origin:
+    lat_deg, lon_deg, alt_m, heading_deg = 52.1, 4.3, 12.0, 33.3
+
+
+class _Site:
+    origin = _Origin()
+
+
+def test_every_protocol_name_opens(tmp_path):
+    from ceilkit.runtime.io.link import PROTOCOLS
+
+    assert set(PROTOCOLS) == {"nmea", "mavlink", "mavlink-odometry", "nmea-gps"}
+    for name in PROTOCOLS:
+        out = tmp_path / f"{name}.bin"
+        with open_link(out, name, rig=_Rig(), site=_Site(), periodic=False) as link:
+            assert link.protocol.name == name
+            link.send(pose(1))
+        assert out.stat().st_size > 0
+
+
+def test_mavlink_odometry_link_sends_odometry_and_the_site_origin(pty):
+    with open_link(pty.path, "mavlink-odometry", 115200, rig=_Rig(), site=_Site(),
+                   clock_ns=Clock(), service_interval_s=None) as link:
+        link.send(pose(1), relocalized=True)
+        link.send(fail(2))
+        link.clock_ns.t = 2 * S
+        link.poll()
+        msgs = mavlink2.MAVLink(None).parse_buffer(pty.read())
+    kinds = [m.get_type() for m in msgs]
+    assert kinds == ["ODOMETRY", "HEARTBEAT", "SET_GPS_GLOBAL_ORIGIN"]
+    odo, _, origin = msgs
+    assert odo.reset_counter == 1 and odo.z == pytest.approx(-0.8)
+    assert odo.x == pytest.approx(1.01 + math.cos(0.1) * 0.3 - math.sin(0.1) * 0.1, abs=1e-6)
+    assert origin.latitude == round(52.1e7) and origin.altitude == 12000
+    assert link.counters.skipped == 1  # the failure: no ODOMETRY
+
+
+def test_mavlink_odometry_needs_the_rig(tmp_path):
+    with pytest.raises(LinkError, match="rig"):
+        open_link(tmp_path / "x.bin", "mavlink-odometry")
+
+
+def test_explicit_ekf_origin_wins_over_the_sites(tmp_path):
+    link = open_link(tmp_path / "x.bin", "mavlink-odometry", rig=_Rig(), site=_Site(),
+                     origin=mavlink.GeoOrigin(1.0, 2.0, 3.0))
+    assert link.protocol.origin == mavlink.GeoOrigin(1.0, 2.0, 3.0)
+    plain = open_link(tmp_path / "y.bin", "mavlink", site=_Site())
+    assert plain.protocol.origin is None  # mavlink keeps its default: only --ekf-origin
+
+
+def test_nmea_gps_over_a_serial_pty(pty):
+    with open_link(pty.path, "nmea-gps", 115200, site=_Site(), clock_ns=Clock(),
+                   service_interval_s=None) as link:
+        link.send(pose(1))
+        link.send(fail(2))
+        data = pty.read()
+    parsed = [pynmea2.parse(ln, check=True) for ln in data.decode().split("\r\n")[:-1]]
+    assert [m.sentence_type for m in parsed] == ["RMC", "GGA", "GST", "HDT"] * 2
+    assert parsed[0].status == "A" and parsed[4].status == "V"
