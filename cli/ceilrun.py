@@ -39,6 +39,8 @@ OPTION_HELP = ("An estimator option KEY=VALUE (a field of the method's options, 
 class Protocol(str, Enum):
     nmea = "nmea"
     mavlink = "mavlink"
+    mavlink_odometry = "mavlink-odometry"
+    nmea_gps = "nmea-gps"
 
 
 class MissingX(str, Enum):

@@ -102,7 +102,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
     out = Path(out_dir) if out_dir is not None else rec.folder / "replay"
     poses_path = out / "poses.csv"
     with PoseWriter(poses_path, out / "poses.tum" if tum else None) as writer, \
-            opened_link(link) as the_link:
+            opened_link(link, rec.rig, rec.site) as the_link:
         more = [*sinks, the_link] if the_link is not None else list(sinks)
         pipeline = Pipeline(estimator, [PoseFileSink(writer, clock), *more],
                             Tracker() if track else None, clock)

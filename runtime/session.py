@@ -46,7 +46,8 @@ class LinkConfig:
 
     Attributes:
         target: a serial port (``/dev/ttyUSB0``), ``-`` for stdout, or a file.
-        protocol: a link protocol name (``nmea``, ``mavlink``).
+        protocol: a link protocol name (``nmea``, ``mavlink``, ``mavlink-odometry``,
+            ``nmea-gps``; the last two need the rig and the site: :meth:`open`).
         baud: serial baud rate.
         system_id, component_id: MAVLink ids.
         unobserved: MAVLink policy for a pose without x (``skip`` or ``nan``).
@@ -62,22 +63,23 @@ class LinkConfig:
     unobserved: str = "skip"
     origin: Any = None
 
-    def open(self):
+    def open(self, rig: Any = None, site: Any = None):
         """The link, not yet open (use it with ``with``)."""
         from ceilkit.runtime.io.link.transport import open_link
 
         return open_link(self.target, protocol=self.protocol, baud=self.baud,
                          system_id=self.system_id, component_id=self.component_id,
-                         unobserved=self.unobserved, origin=self.origin)
+                         unobserved=self.unobserved, origin=self.origin, rig=rig, site=site)
 
 
 @contextlib.contextmanager
-def opened_link(config: LinkConfig | None) -> Iterator[Any]:
+def opened_link(config: LinkConfig | None, rig: Any = None, site: Any = None
+                ) -> Iterator[Any]:
     """``with opened_link(cfg) as link``: the open link, or ``None`` without a config."""
     if config is None:
         yield None
         return
-    with config.open() as link:
+    with config.open(rig, site) as link:
         yield link
 
 
@@ -252,7 +254,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                 RecordingWriter(config.record, rig, site, truth_of=truth))
         writer = (stack.enter_context(PoseWriter(config.out / "poses.csv"))
                   if config.out is not None else None)
-        link = stack.enter_context(opened_link(config.link))
+        link = stack.enter_context(opened_link(config.link, rig, site))
         sinks: list[PoseSink] = [s for s in (link, PoseFileSink(writer) if writer else None)
                                  if s is not None]
         if meter is not None:
