@@ -125,6 +125,9 @@ FAILURE_REASONS: Mapping[str, str] = MappingProxyType({
     "no_lights": "no light found in the frame",
     "too_few_lights": "fewer lights than a pose needs",
     "no_match": "the lights match no place of the light map",
+    "no_block": "no block or marker of the site in view",
+    "partial_block": "a block is only partly in view (cut by the frame's edge or occluded)",
+    "unknown_marker": "the only markers in view are not in the site",
 })
 """Every reason an estimator may give, with its meaning (docs/methods list them too)."""
 

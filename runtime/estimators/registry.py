@@ -18,6 +18,7 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import Estimator
+from ceilkit.runtime.estimators.block.estimator import BlockEstimator
 from ceilkit.runtime.estimators.corridor.estimator import CorridorEstimator
 from ceilkit.runtime.estimators.lights.estimator import LightsEstimator
 from ceilkit.runtime.estimators.paper_corridor import PaperCorridorEstimator
@@ -25,7 +26,7 @@ from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator
 
 ESTIMATORS: Mapping[str, type[Estimator]] = {
     cls.name: cls for cls in (CorridorEstimator, PaperCorridorEstimator,
-                              LightsEstimator, PaperLightsEstimator)
+                              LightsEstimator, PaperLightsEstimator, BlockEstimator)
 }
 """Every estimator by its name (the ``--method`` values)."""
 

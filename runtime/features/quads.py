@@ -17,7 +17,7 @@ Example::
 
     det = MarkerDetector("DICT_APRILTAG_36h11")
     ids, corners_px = det.detect(grey)              # (N,), (N, 4, 2)
-    quads = detect_quads(grey, dark=True)           # list of (4, 2) corners, counter-clockwise
+    quads = detect_quads(grey, dark=True)           # list of Quad
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ MIN_QUAD_AREA_PX = 150.0   # smaller contours are noise or texture
 POLY_EPS_RATE = 0.04       # approxPolyDP tolerance, fraction of the perimeter
 BORDER_PX = 2.0            # a quad this close to the image edge may be cut by it
 EDGE_SEARCH_PX = 3.0       # edge_points: how far across the side a step is looked for
+THRESH_WIN_PX = 23        # aruco's adaptive threshold window (one scale)
 EDGE_STEP_PX = 0.5         # edge_points: sampling step across the side
 EDGE_END_SKIP = 0.15       # edge_points: fraction of each side left out at the corners
 
@@ -89,9 +90,8 @@ class MarkerDetector:
         params.cornerRefinementWinSize = int(refine_win_px)
         params.cornerRefinementMinAccuracy = 0.01
         params.cornerRefinementMaxIterations = 50
-        params.adaptiveThreshWinSizeMin = 13
-        params.adaptiveThreshWinSizeMax = 23
-        params.adaptiveThreshWinSizeStep = 10
+        params.adaptiveThreshWinSizeMin = THRESH_WIN_PX   # one scale: ~8x faster
+        params.adaptiveThreshWinSizeMax = THRESH_WIN_PX
         self.dictionary = dictionary
         self._detector = cv2.aruco.ArucoDetector(marker_dictionary(dictionary), params)
 
@@ -110,8 +110,9 @@ class Quad:
     """A convex four-sided region of the frame.
 
     Attributes:
-        corners_px: ``(4, 2)`` corners, in the image counter-clockwise as seen on screen
-            (u right, v down), starting anywhere.
+        corners_px: ``(4, 2)`` corners with a positive shoelace area in (u, v), that is
+            clockwise as displayed (v down), like a printed image's top-left, top-right,
+            bottom-right, bottom-left; starting anywhere.
         area_px: the contour's area, px².
         at_border: the region comes within :data:`BORDER_PX` of the image edge.
     """
@@ -163,7 +164,7 @@ def detect_quads(grey: np.ndarray, dark: bool, min_area_px: float = MIN_QUAD_ARE
 
 
 def _signed_area(pts: np.ndarray) -> float:
-    """Shoelace area of a polygon ``(n, 2)`` in (u, v): > 0 counter-clockwise on screen."""
+    """Shoelace area of a polygon ``(n, 2)`` in (u, v): > 0 clockwise as displayed."""
     u, v = pts[:, 0], pts[:, 1]
     return 0.5 * float(np.dot(u, np.roll(v, -1)) - np.dot(np.roll(u, -1), v))
 

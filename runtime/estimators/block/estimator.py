@@ -1,0 +1,290 @@
+"""The reference-block method (Xu et al.): the vehicle pose from a known block or marker.
+
+Per frame: markers (``cv2.aruco`` on crops around dark quads) and plain blocks (dark or
+bright convex quads) are found (:mod:`.detect`); each is measured on its edges, matched
+to the site (a marker by its id, a plain block by its size and shape on the ceiling), and
+its pose solved by planar PnP (:mod:`.pnp`: closed form, then Gauss-Newton in pixels).
+The best-determined fix (smallest position covariance) is published.
+
+* A marker is unambiguous: its id and its corner order fix the correspondence. An id the
+  site does not hold is ignored (``unknown_marker_ids`` in the diagnostics).
+* A plain square block fits its corners in 4 ways, a rectangle in 2: with a prior, the
+  fit nearest the prior is taken when it is clearly nearer than the next
+  (``resolved_by: prior``); without one the frame is ``ambiguous``. Never silently.
+* A plain block partly out of the frame or occluded is not used: its outline is then not
+  a quadrilateral of the block's shape; when nothing else is seen and such an outline
+  (a quad at the frame's edge, or a region of ``PARTIAL_AREA_PX`` or more that is not a
+  quad) is, the frame fails with ``partial_block``. (A pose from a partial outline
+  would rest on a guess of which corners are real.)
+
+Diagnostics: ``ms``, ``source`` (``marker:ID`` or ``block:ID``), ``rms_px``, ``shape_m``
+(the corners' fit on the ceiling), ``n_edge``, ``fixes`` (how many blocks and markers
+gave a pose), ``unknown_marker_ids``, and the 6-DoF check ``pnp6_tilt_deg``,
+``pnp6_swing_deg``, ``pnp6_height_m`` (:func:`~.pnp.six_dof_check`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.config.site import check_rig_site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import (
+    AMBIGUOUS,
+    Estimate,
+    Estimator,
+    EstimatorOptions,
+    PoseEstimate,
+    elapsed_ms,
+)
+from ceilkit.runtime.estimators.block.detect import (
+    Sides,
+    find_quads,
+    measure_sides,
+    read_markers,
+)
+from ceilkit.runtime.estimators.block.pnp import (
+    PlanarGeometry,
+    Refined,
+    ceiling_points_vehicle,
+    closed_form,
+    magnification,
+    refine,
+    six_dof_check,
+)
+from ceilkit.runtime.features.quads import MarkerDetector, Quad
+from ceilkit.runtime.geometry.fits import fit_rigid_2d
+from ceilkit.runtime.geometry.rotations import wrap_pi
+
+NO_BLOCK = "no_block"
+PARTIAL_BLOCK = "partial_block"
+UNKNOWN_MARKER = "unknown_marker"
+PRIOR_MARGIN = 2.0          # the prior picks a symmetric fit only this many times nearer
+PRIOR_YAW_GATE_RAD = math.radians(30.0)
+PRIOR_POS_SCALE_M = 0.5     # metres that weigh as much as PRIOR_YAW_GATE_RAD
+PARTIAL_AREA_PX = 600.0     # a non-quad region this large may be a block cut short
+RMS_BAD_PX = 1.0            # edge residual RMS at which quality reaches 0
+
+
+@dataclass(frozen=True)
+class BlockOptions(EstimatorOptions):
+    """Options of the block method.
+
+    Attributes:
+        shape_tol: how far (relative to the block's shortest side, RMS on the ceiling) a
+            quad's corners may lie from the block's shape and still be that block.
+        marker_size_tol: relative tolerance of a dark quad's side on the ceiling for it
+            to be read as a marker.
+        dark_ratio: a pixel darker than this fraction of the ceiling around it belongs
+            to a dark block or a marker's black (the ceiling's seams are lighter).
+        bright_ratio: a pixel brighter than this multiple of the ceiling belongs to a
+            bright block.
+        edge_points: edge stations per side for the refinement.
+        six_dof_check: report the unconstrained 6-DoF PnP's disagreement with the rig.
+    """
+
+    shape_tol: float = 0.08
+    marker_size_tol: float = 0.3
+    dark_ratio: float = 0.62
+    bright_ratio: float = 1.3
+    edge_points: int = 12
+    six_dof_check: bool = True
+
+
+@dataclass(frozen=True, eq=False)
+class _Fix:
+    source: str
+    refined: Refined
+    shape_m: float
+    corners_norm: np.ndarray
+    corners_w: np.ndarray
+    resolved_by: str
+
+
+class BlockEstimator(Estimator):
+    """The vehicle pose from a reference block or a marker on the ceiling (see module)."""
+
+    name = "block"
+    Options = BlockOptions
+    site_sections = ("blocks", "markers")
+
+    def __init__(self, rig: Any, site: Any,
+                 options: BlockOptions | dict[str, Any] | None = None) -> None:
+        super().__init__(rig, site, options)
+        check_rig_site(rig, site)
+        o = self.options
+        for key in ("shape_tol", "marker_size_tol", "dark_ratio", "bright_ratio"):
+            if not getattr(o, key) > 0:
+                raise ConfigError(None, f"options.{key}", f"expected > 0, found {getattr(o, key)}")
+        if o.edge_points < 4:
+            raise ConfigError(None, "options.edge_points",
+                              f"expected at least 4, found {o.edge_points}")
+        self.geo = PlanarGeometry.of(rig, site)
+        markers = site.markers if site.has_section("markers") else None
+        self._markers = markers
+        self._detector = MarkerDetector(markers.dictionary) if markers else None
+        if markers is not None:
+            for k, p in enumerate(markers.poses):
+                if not p.size_m > 0:
+                    raise ConfigError(site.source, f"markers.poses[{k}].size",
+                                      f"expected a side > 0 m, found {p.size_m}")
+        self._sizes_m = np.array([p.size_m for p in markers.poses]) if markers else np.zeros(0)
+        self._bright = any(b.appearance == "bright" for b in site.blocks)
+        self._dark = markers is not None or any(b.appearance != "bright" for b in site.blocks)
+
+    # -- per frame ---------------------------------------------------------------------
+    def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
+                  t0: float) -> Estimate:
+        o = self.options
+        others: list[np.ndarray] = []
+        dark = find_quads(grey, True, o.dark_ratio, others) if self._dark else []
+        bright = find_quads(grey, False, o.bright_ratio, others) if self._bright else []
+        fixes: list[_Fix] = []
+        unknown: list[int] = []
+        used: list[int] = []
+        if self._detector is not None and dark:
+            ids, corners, used = read_markers(grey, dark, self.geo, self._detector,
+                                              self._sizes_m, o.marker_size_tol)
+            for mid, c in zip(ids, corners, strict=True):
+                pose = self._markers.pose(int(mid))
+                if pose is None:
+                    unknown.append(int(mid))
+                    continue
+                fix = self._marker_fix(grey, int(mid), c, pose.corners_m())
+                if fix is not None:
+                    fixes.append(fix)
+        quads = [(q, True) for k, q in enumerate(dark) if k not in used]
+        quads += [(q, False) for q in bright]
+        ambiguous, partial = 0, 0
+        for q, is_dark in quads:
+            got = self._block_fix(grey, q, is_dark, prior)
+            if isinstance(got, _Fix):
+                fixes.append(got)
+            elif got == AMBIGUOUS:
+                ambiguous += 1
+            elif got == PARTIAL_BLOCK:
+                partial += 1
+        diag = {"unknown_marker_ids": tuple(unknown), "quads": len(dark) + len(bright)}
+        if not fixes:
+            ms = elapsed_ms(t0)
+            if ambiguous:
+                return self.fail(t_ns, AMBIGUOUS, "a symmetric block fits in several ways "
+                                 "and no prior tells them apart", ms=ms, **diag)
+            if partial or any(cv2.contourArea(c) >= PARTIAL_AREA_PX for c in others):
+                return self.fail(t_ns, PARTIAL_BLOCK, "a block is only partly in view",
+                                 ms=ms, **diag)
+            if unknown:
+                return self.fail(t_ns, UNKNOWN_MARKER, f"marker ids {unknown} are not in "
+                                 "the site", ms=ms, **diag)
+            return self.fail(t_ns, NO_BLOCK, "no block or marker of the site in view",
+                             ms=ms, **diag)
+        return self._publish(t_ns, fixes, diag, t0)
+
+    def _publish(self, t_ns: int, fixes: list[_Fix], diag: dict[str, Any],
+                 t0: float) -> PoseEstimate:
+        best = min(fixes, key=lambda f: f.refined.cov[0, 0] + f.refined.cov[1, 1])
+        r = best.refined
+        diag.update(source=best.source, rms_px=r.rms_px, shape_m=best.shape_m,
+                    n_edge=r.n, fixes=len(fixes), resolved_by=best.resolved_by)
+        if self.options.six_dof_check:
+            diag.update(six_dof_check(self.geo, best.corners_norm, best.corners_w,
+                                      float(r.pose[2])))
+        quality = float(np.clip(1.0 - r.rms_px / RMS_BAD_PX, 0.0, 1.0))
+        if best.resolved_by == "prior":
+            quality = min(quality, 0.7)
+        diag["ms"] = elapsed_ms(t0)
+        return PoseEstimate(t_ns, self.name, float(r.pose[0]), float(r.pose[1]),
+                            float(r.pose[2]), quality, cov=r.cov, diagnostics=diag)
+
+    def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
+               resolved_by: str) -> _Fix | None:
+        x, y, yaw, shape = closed_form(self.geo, sides.corners_norm, corners_w)
+        if not math.isfinite(x):
+            return None
+        scale = magnification(self.geo.camera, sides.edge_norm)
+        ref = refine(self.geo, (x, y, yaw), corners_w, sides.edge_norm, sides.side, scale)
+        if not np.all(np.isfinite(ref.pose)):
+            return None
+        return _Fix(source, ref, shape, sides.corners_norm, corners_w, resolved_by)
+
+    def _marker_fix(self, grey: np.ndarray, marker_id: int, corners_px: np.ndarray,
+                    corners_w: np.ndarray) -> _Fix | None:
+        sides = measure_sides(grey, corners_px, self.geo, self.options.edge_points)
+        if sides is None:
+            return None
+        return self._solve(sides, corners_w, f"marker:{marker_id}", "id")
+
+    def _block_fix(self, grey: np.ndarray, quad: Quad, dark: bool,
+                   prior: PoseEstimate | None) -> _Fix | str | None:
+        """A fix from a plain quad, or the reason it gave none (``ambiguous``,
+        ``partial_block``) or None (not a block of the site)."""
+        sides = measure_sides(grey, quad.corners_px, self.geo, self.options.edge_points)
+        if sides is None:
+            return PARTIAL_BLOCK if quad.at_border else None
+        pv = ceiling_points_vehicle(self.geo, sides.corners_norm)
+        if not np.all(np.isfinite(pv)):
+            return None
+        # the camera sees the ceiling mirrored: counter-clockwise from above is wanted
+        cn = sides.corners_norm
+        if _shoelace(pv) < 0:
+            pv, cn = pv[::-1].copy(), cn[::-1].copy()
+            sides = Sides(cn, sides.edge_norm, (2 - sides.side) % 4, sides.stations)
+        fits = self._shape_fits(pv, dark)
+        if not fits:
+            return PARTIAL_BLOCK if quad.at_border else None
+        if len(fits) > 1:
+            pick = _pick_by_prior(fits, prior)
+            if pick is None:
+                return AMBIGUOUS
+            blk, shift, _, _ = fits[pick]
+            resolved = "prior"
+        else:
+            blk, shift, _, _ = fits[0]
+            resolved = "shape"
+        corners_w = np.roll(blk.corners_m, -shift, axis=0)
+        return self._solve(sides, corners_w, f"block:{blk.id}", resolved)
+
+    def _shape_fits(self, pv: np.ndarray, dark: bool) -> list[tuple[Any, int, float, tuple]]:
+        """``(block, shift, rms_m, (x, y, yaw))`` of every block and corner shift whose
+        shape the quad ``pv`` (V, counter-clockwise) fits within ``shape_tol``."""
+        out = []
+        for blk in self.site.blocks:
+            if (blk.appearance == "bright") == dark:
+                continue
+            side = np.linalg.norm(np.roll(blk.corners_m, -1, axis=0) - blk.corners_m, axis=1)
+            tol = self.options.shape_tol * float(side.min())
+            for shift in range(4):
+                cw = np.roll(blk.corners_m, -shift, axis=0)
+                yaw, t = fit_rigid_2d(pv, cw)
+                r = pv @ np.array([[math.cos(yaw), math.sin(yaw)],
+                                   [-math.sin(yaw), math.cos(yaw)]]) + t - cw
+                rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+                if rms < tol:
+                    out.append((blk, shift, rms, (float(t[0]), float(t[1]), yaw)))
+        return out
+
+
+def _shoelace(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+def _pick_by_prior(fits: list, prior: PoseEstimate | None) -> int | None:
+    """Index of the fit clearly nearest the prior, or None (no prior, or no clear one)."""
+    if prior is None or not prior or prior.x_m is None or prior.y_m is None:
+        return None
+    score = []
+    for _, _, _, (x, y, yaw) in fits:
+        dyaw = abs(wrap_pi(yaw - prior.yaw_rad)) / PRIOR_YAW_GATE_RAD
+        dpos = math.hypot(x - prior.x_m, y - prior.y_m) / PRIOR_POS_SCALE_M
+        score.append(dyaw + dpos)
+    order = np.argsort(score)
+    best, second = score[order[0]], score[order[1]]
+    if best > 1.0 or second < PRIOR_MARGIN * best:
+        return None
+    return int(order[0])

@@ -1,0 +1,197 @@
+"""Planar PnP: the vehicle pose ``(x, y, yaw)`` from a known quadrilateral on the ceiling.
+
+With the mount's tilt, swing and height calibrated and the ceiling a plane at a known
+height, only the vehicle's planar pose is unknown (SPEC §1):
+
+1. closed form: each corner's viewing ray (lens undistorted) is turned into V by the
+   mount and met with the ceiling plane, giving the corners in V on the ceiling; a 2-D
+   rigid fit to the block's corners in W is the pose (``X_W = Rz(yaw) X_V + (x, y)``).
+   A mirrored solution cannot fit (the rays fix which side of the plane the camera
+   is on), so the planar flip of 6-DoF PnP does not arise.
+2. Gauss-Newton in pixels: the block's sides, projected for the pose, against points
+   measured on the sides' edges; each point's residual is its distance to the projected
+   side in normalized coordinates times the lens's local magnification (px). The
+   covariance is ``s² (JᵀJ)⁻¹``, s the residual RMS (floored).
+
+:func:`six_dof_check` solves the unconstrained 6-DoF PnP (OpenCV's IPPE) and reports how
+far its camera lies from what the rig says (tilt, swing, height): a live check of the
+mount.
+
+Example::
+
+    geo = PlanarGeometry.of(rig, site)
+    x, y, yaw, rms_m = closed_form(geo, corners_norm, block.corners_m)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.fits import fit_rigid_2d
+from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
+
+GN_ITERATIONS = 4
+GN_STEP_EPS = 1e-9          # stop when the step (m, rad) is below this
+JAC_EPS = 1e-6              # finite-difference step, m and rad
+SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
+VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
+MAGNIFY_EPS = 1e-4          # normalized step for the lens's local magnification
+
+
+@dataclass(frozen=True, eq=False)
+class PlanarGeometry:
+    """What the rig and the site fix: the lens, the mount, the ceiling's height.
+
+    Attributes:
+        camera: the lens model.
+        R_vehicle_cam, t_vehicle_cam: the mount (``X_V = R X_C + t``).
+        ceiling_m: the ceiling's height above the floor (W's z of the ceiling plane).
+    """
+
+    camera: CameraModel
+    R_vehicle_cam: np.ndarray
+    t_vehicle_cam: np.ndarray
+    ceiling_m: float
+
+    @classmethod
+    def of(cls, rig: Any, site: Any) -> PlanarGeometry:
+        return cls(rig.camera, rig.mount.R_vehicle_cam, rig.mount.t_vehicle_cam,
+                   float(site.ceiling_height_m))
+
+    @property
+    def rise_m(self) -> float:
+        """The ceiling's height above the camera."""
+        return self.ceiling_m - float(self.t_vehicle_cam[2])
+
+
+def ceiling_points_vehicle(geo: PlanarGeometry, points_norm: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` points of the ceiling in V (x, y) seen at normalized image points
+    ``(N, 2)``; NaN for rays that do not rise to the ceiling."""
+    xy = np.asarray(points_norm, float).reshape(-1, 2)
+    d = np.hstack([xy, np.ones((xy.shape[0], 1))]) @ geo.R_vehicle_cam.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(d[:, 2] > 1e-9, geo.rise_m / d[:, 2], np.nan)
+    return geo.t_vehicle_cam[:2] + s[:, None] * d[:, :2]
+
+
+def closed_form(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray
+                ) -> tuple[float, float, float, float]:
+    """``(x_m, y_m, yaw_rad, rms_m)``: the rigid fit of the corners seen (normalized,
+    ``(4, 2)``, in the order of ``corners_w``) to the block's corners in W ``(4, 2)``;
+    ``rms_m`` is the fit's residual on the ceiling (NaN if a ray misses the ceiling)."""
+    q = ceiling_points_vehicle(geo, corners_norm)
+    if not np.all(np.isfinite(q)):
+        return math.nan, math.nan, math.nan, math.nan
+    yaw, t = fit_rigid_2d(q, np.asarray(corners_w, float))
+    r = q @ rot_z(yaw)[:2, :2].T + t - corners_w
+    return float(t[0]), float(t[1]), float(yaw), float(np.sqrt(np.mean(np.sum(r * r, 1))))
+
+
+def project_norm(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> np.ndarray:
+    """Normalized image points ``(N, 2)`` of ceiling points ``(N, 2)`` in W for a vehicle
+    pose ``(x, y, yaw)`` (no lens distortion)."""
+    x, y, yaw = pose
+    R_wc = rot_z(yaw) @ geo.R_vehicle_cam
+    c = rot_z(yaw) @ geo.t_vehicle_cam + np.array([x, y, 0.0])
+    p = np.hstack([points_w, np.full((len(points_w), 1), geo.ceiling_m)]) - c
+    pc = p @ R_wc                                    # R_cam_world @ p, row-wise
+    return pc[:, :2] / pc[:, 2:3]
+
+
+def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> np.ndarray:
+    """Pixels ``(N, 2)`` of ceiling points ``(N, 2)`` in W for a vehicle pose."""
+    return geo.camera.distort(project_norm(geo, pose, points_w))
+
+
+def magnification(camera: CameraModel, points_norm: np.ndarray) -> np.ndarray:
+    """``(N,)`` pixels per normalized unit at each point: ``sqrt |det J|`` of the lens."""
+    p = np.asarray(points_norm, float)
+    e = MAGNIFY_EPS
+    a = camera.distort(p)
+    du = (camera.distort(p + [e, 0.0]) - a) / e
+    dv = (camera.distort(p + [0.0, e]) - a) / e
+    return np.sqrt(np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]))
+
+
+def _side_residuals(geo: PlanarGeometry, pose: np.ndarray, corners_w: np.ndarray,
+                    edge_norm: np.ndarray, side: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    c = project_norm(geo, pose, corners_w)
+    n = c[[1, 2, 3, 0]]                                          # side k: corner k -> k+1
+    a, b = c[:, 1] - n[:, 1], n[:, 0] - c[:, 0]                  # the line through both
+    norm = np.hypot(a, b)
+    a, b = a / norm, b / norm
+    off = -(a * c[:, 0] + b * c[:, 1])
+    return (a[side] * edge_norm[:, 0] + b[side] * edge_norm[:, 1] + off[side]) * scale
+
+
+@dataclass(frozen=True, eq=False)
+class Refined:
+    """A refined planar pose: ``pose`` (x, y, yaw), ``cov`` 3x3 (m², rad²), ``rms_px``
+    of the edge residuals, ``n`` points used."""
+
+    pose: np.ndarray
+    cov: np.ndarray
+    rms_px: float
+    n: int
+
+
+def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np.ndarray,
+           edge_norm: np.ndarray, side: np.ndarray, scale: np.ndarray) -> Refined:
+    """Gauss-Newton on the pose from ``pose0``: edge points ``(M, 2)`` (normalized) of
+    side ``side`` (M,) (side k runs from corner k to k+1 of ``corners_w``), residuals in
+    px by ``scale`` (M,) (:func:`magnification`). Needs M >= 3 over three sides."""
+    pose = np.array(pose0, float)
+    args = (corners_w, edge_norm, side, scale)
+    eye = np.eye(3) * JAC_EPS
+    for _ in range(GN_ITERATIONS):
+        r = _side_residuals(geo, pose, *args)
+        J = np.stack([(_side_residuals(geo, pose + eye[k], *args) - r) / JAC_EPS
+                      for k in range(3)], axis=1)
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        pose = pose + step
+        if np.max(np.abs(step)) < GN_STEP_EPS:
+            break
+    r = _side_residuals(geo, pose, *args)
+    J = np.stack([(_side_residuals(geo, pose + eye[k], *args) - r) / JAC_EPS
+                  for k in range(3)], axis=1)
+    rms = float(np.sqrt(np.mean(r * r)))
+    dof = max(r.size - 3, 1)
+    s2 = max(float(r @ r) / dof, SIGMA_FLOOR_PX ** 2)
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.full((3, 3), np.inf)
+    pose[2] = wrap_pi(pose[2])
+    return Refined(pose, cov, rms, int(r.size))
+
+
+def six_dof_check(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray,
+                  yaw_rad: float) -> dict[str, float]:
+    """The unconstrained 6-DoF PnP (IPPE, on undistorted points) against the rig.
+
+    Returns ``pnp6_tilt_deg``, ``pnp6_swing_deg`` (the 6-DoF mount minus the rig's; no
+    swing within a degree of tilt 90°, where only pan + swing is observable) and
+    ``pnp6_height_m`` (the 6-DoF camera height minus the mount's); empty if OpenCV finds
+    no solution.
+    """
+    obj = np.hstack([np.asarray(corners_w, float), np.full((4, 1), geo.ceiling_m)])
+    ok, rvec, tvec = cv2.solvePnP(obj, np.asarray(corners_norm, float).reshape(-1, 1, 2),
+                                  np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return {}
+    R_cw, _ = cv2.Rodrigues(rvec)
+    R_wc = R_cw.T
+    centre = -R_wc @ tvec.ravel()
+    _, tilt6, swing6 = mount_angles(rot_z(-yaw_rad) @ R_wc)
+    _, tilt, swing = mount_angles(geo.R_vehicle_cam)
+    out = {"pnp6_tilt_deg": math.degrees(tilt6 - tilt),
+           "pnp6_height_m": float(centre[2] - geo.t_vehicle_cam[2])}
+    if abs(tilt - math.pi / 2) > VERTICAL_RAD:        # swing is pan's twin when looking up
+        out["pnp6_swing_deg"] = math.degrees(wrap_pi(swing6 - swing))
+    return out

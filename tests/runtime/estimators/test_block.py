@@ -1,0 +1,208 @@
+"""The block method: planar PnP exactness, markers and plain blocks on rendered frames,
+symmetric blocks, unknown markers, partial blocks, bad inputs."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Block, MarkerPose, Markers, Site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.estimators.block.estimator import BlockEstimator, BlockOptions
+from ceilkit.runtime.estimators.block.pnp import (
+    PlanarGeometry,
+    closed_form,
+    magnification,
+    project_norm,
+    project_px,
+    refine,
+    six_dof_check,
+)
+from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.sim.marks import BLOCK_GREY
+from ceilkit.runtime.sim.render import SimOptions, render_frame
+from helpers import CONFIGS
+
+DICT = "DICT_APRILTAG_36h11"
+RECT = np.array([[2.0, -0.2], [2.6, -0.2], [2.6, 0.2], [2.0, 0.2]])
+SQUARE = np.array([[2.0, -0.2], [2.4, -0.2], [2.4, 0.2], [2.0, 0.2]])
+NOISY = SimOptions(noise_sigma=2.0, blur_px=1.0)
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return Rig.load(CONFIGS / "block" / "rig.yaml")
+
+
+def tilted_rig() -> Rig:
+    cam = CameraModel.pinhole(640, 480, 450.0, dist=[-0.1, 0.03, 0, 0, 0])
+    return Rig(cam, Mount(math.radians(5.0), math.radians(70.0), math.radians(2.0),
+                          0.3, 0.05, 0.8))
+
+
+def marker_site(*ids_xy_yaw: tuple[int, float, float, float], size: float = 0.25) -> Site:
+    poses = tuple(MarkerPose(i, x, y, math.radians(a), size) for i, x, y, a in ids_xy_yaw)
+    return Site(3.0, markers=Markers(DICT, size, poses))
+
+
+def prior_at(x: float, y: float, yaw: float) -> PoseEstimate:
+    return PoseEstimate(0, "prior", x, y, yaw, 1.0)
+
+
+# -- planar PnP: exact on noise-free data --------------------------------------------------
+@pytest.mark.parametrize("make_rig", [lambda: Rig.load(CONFIGS / "block" / "rig.yaml"),
+                                      tilted_rig])
+def test_planar_pnp_is_exact_without_noise(make_rig):
+    rig = make_rig()
+    geo = PlanarGeometry.of(rig, Site(3.0))
+    truth = np.array([1.7, 0.1, math.radians(23.0)])
+    corners = project_norm(geo, truth, RECT)
+    x, y, yaw, rms = closed_form(geo, corners, RECT)
+    assert np.allclose([x, y, yaw], truth, atol=1e-10) and rms < 1e-10
+    # edge points exactly on the sides, a start 2 cm and 1 degree off: back to the truth
+    t = np.linspace(0.1, 0.9, 6)
+    pts = np.concatenate([RECT[k] + t[:, None] * (RECT[(k + 1) % 4] - RECT[k])
+                          for k in range(4)])
+    side = np.repeat(np.arange(4), t.size)
+    norm = project_norm(geo, truth, pts)
+    ref = refine(geo, (x + 0.02, y - 0.01, yaw + math.radians(1.0)), RECT, norm, side,
+                 magnification(rig.camera, norm))
+    assert np.allclose(ref.pose, truth, atol=1e-9) and ref.rms_px < 1e-6
+    assert np.all(np.isfinite(ref.cov)) and np.all(np.diag(ref.cov) > 0)
+    check = six_dof_check(geo, corners, RECT, yaw)
+    assert abs(check["pnp6_tilt_deg"]) < 1e-6 and abs(check["pnp6_height_m"]) < 1e-6
+
+
+# -- markers -------------------------------------------------------------------------------
+@pytest.mark.parametrize("x, y, yaw_deg", [(0.2, 0.1, 0.0), (-0.3, 0.35, 71.0),
+                                           (0.1, -0.2, -160.0)])
+def test_marker_pose_on_noisy_frames(rig, x, y, yaw_deg):
+    site = marker_site((7, 0.4, 0.3, 30.0))
+    yaw = math.radians(yaw_deg)
+    img = render_frame(rig, site, x, y, yaw, NOISY, np.random.default_rng(3))
+    est = BlockEstimator(rig, site).estimate(img, 5)
+    assert est, est
+    assert est.diagnostics["source"] == "marker:7"
+    assert math.hypot(est.x_m - x, est.y_m - y) < 0.01
+    assert abs(math.degrees(est.yaw_rad - yaw)) < 0.5
+    assert est.cov.shape == (3, 3) and est.quality > 0.5
+
+
+def test_marker_at_the_image_edge_through_strong_distortion():
+    cam = CameraModel.pinhole(640, 480, 330.0, dist=[-0.32, 0.11, 0.0, 0.0, -0.015])
+    rig = Rig(cam, Mount(0.0, math.radians(90.0), 0.0, 0.1, 0.0, 0.6))
+    site = marker_site((3, 1.8, 2.5, 15.0), size=0.55)
+    img = render_frame(rig, site, 0.0, 0.0, 0.0, NOISY, np.random.default_rng(4))
+    px = project_px(PlanarGeometry.of(rig, site), np.zeros(3),
+                    site.markers.poses[0].corners_m())
+    assert px[:, 0].min() < 70 and px[:, 1].max() > 410        # in the image's corner
+    est = BlockEstimator(rig, site).estimate(img, 0)
+    assert est, est
+    assert math.hypot(est.x_m, est.y_m) < 0.02 and abs(math.degrees(est.yaw_rad)) < 0.5
+
+
+def test_a_marker_not_in_the_site_is_ignored(rig):
+    seen = marker_site((9, 0.4, 0.2, 0.0))
+    img = render_frame(rig, seen, 0.0, 0.0, 0.0, NOISY)
+    est = BlockEstimator(rig, marker_site((7, 3.0, 0.0, 0.0))).estimate(img, 0)
+    assert not est and est.reason == "unknown_marker"
+    assert est.diagnostics["unknown_marker_ids"] == (9,)
+
+
+# -- plain blocks --------------------------------------------------------------------------
+def test_rectangle_is_ambiguous_without_a_prior_and_resolved_with_one(rig):
+    site = Site(3.0, blocks=(Block("A", RECT, "dark"),))
+    x, y, yaw = 2.2, 0.1, math.radians(12.0)
+    img = render_frame(rig, site, x, y, yaw, NOISY)
+    est = BlockEstimator(rig, site)
+    none = est.estimate(img, 0)
+    assert not none and none.reason == "ambiguous"
+    got = est.estimate(img, 0, prior=prior_at(x + 0.1, y - 0.1, yaw + 0.2))
+    assert got and got.diagnostics["resolved_by"] == "prior"
+    assert math.hypot(got.x_m - x, got.y_m - y) < 0.005
+    assert abs(math.degrees(got.yaw_rad - yaw)) < 0.2
+    assert got.quality < 0.8
+    # a prior half way between the two fits tells nothing: still ambiguous
+    assert est.estimate(img, 0, prior=prior_at(x, y, yaw + math.pi / 2)).reason == "ambiguous"
+
+
+@pytest.mark.parametrize("appearance", ["dark", "bright"])
+def test_square_block_is_ambiguous_without_a_prior(rig, appearance):
+    site = Site(3.0, blocks=(Block("S", SQUARE, appearance),))
+    img = render_frame(rig, site, 2.1, 0.0, 0.3, NOISY)
+    got = BlockEstimator(rig, site).estimate(img, 0)
+    assert not got and got.reason == "ambiguous"
+
+
+def test_an_asymmetric_block_needs_no_prior(rig):
+    kite = np.array([[2.0, -0.2], [2.7, -0.25], [2.55, 0.2], [2.05, 0.25]])
+    site = Site(3.0, blocks=(Block("K", kite, "dark"),))
+    x, y, yaw = 2.1, 0.0, math.radians(-40.0)
+    got = BlockEstimator(rig, site).estimate(render_frame(rig, site, x, y, yaw, NOISY), 0)
+    assert got and got.diagnostics["source"] == "block:K"
+    assert math.hypot(got.x_m - x, got.y_m - y) < 0.005
+    assert abs(math.degrees(got.yaw_rad - yaw)) < 0.1
+
+
+def test_a_partly_occluded_block_is_a_partial_block(rig):
+    site = Site(3.0, blocks=(Block("A", RECT, "dark"),))
+    x, y, yaw = 2.2, 0.0, 0.0
+    img = render_frame(rig, site, x, y, yaw, NOISY)
+    dark = img < (BLOCK_GREY + 150) / 2
+    v, u = np.nonzero(dark)
+    img[v.min():(v.min() + v.max()) // 2, u.min():(u.min() + u.max()) // 2] = 150
+    got = BlockEstimator(rig, site).estimate(img, 0, prior=prior_at(x, y, yaw))
+    assert not got and got.reason == "partial_block"
+
+
+def test_nothing_in_view_is_no_block(rig):
+    site = Site(3.0, blocks=(Block("A", RECT + 20.0, "dark"),))
+    img = render_frame(rig, site, 0.0, 0.0, 0.0, NOISY)
+    got = BlockEstimator(rig, site).estimate(img, 0)
+    assert not got and got.reason == "no_block"
+
+
+def test_packaged_site_localizes_and_is_registered(rig):
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    est = make_estimator("block", rig, site)
+    assert isinstance(est, BlockEstimator)
+    p = site.markers.poses[1]
+    img = render_frame(rig, site, p.x_m - 0.1, p.y_m, 0.4, NOISY)
+    got = est.estimate(img, 0)
+    assert got and math.hypot(got.x_m - p.x_m + 0.1, got.y_m - p.y_m) < 0.01
+
+
+# -- bad inputs ----------------------------------------------------------------------------
+def test_bad_inputs_are_one_line_errors(rig):
+    bad_size = marker_site((1, 0.0, 0.0, 0.0), size=0.2)
+    zero = dataclasses.replace(bad_size.markers, poses=(MarkerPose(1, 0, 0, 0, 0.0),))
+    with pytest.raises(ConfigError, match=r"markers.poses\[0\].size.*> 0"):
+        BlockEstimator(rig, dataclasses.replace(bad_size, markers=zero))
+    unknown = dataclasses.replace(bad_size.markers, dictionary="DICT_NOPE")
+    with pytest.raises(ConfigError, match="unknown aruco dictionary"):
+        BlockEstimator(rig, dataclasses.replace(bad_size, markers=unknown))
+    with pytest.raises(ConfigError, match="blocks"):
+        BlockEstimator(rig, Site(3.0))
+    with pytest.raises(ConfigError, match="options.shape_tol"):
+        BlockEstimator(rig, bad_size, BlockOptions(shape_tol=0.0))
+    with pytest.raises(ConfigError, match="not convex|convex"):
+        Site.from_node(_node("ceiling_height: 3\nblocks: [{id: A, corners: "
+                             "[[0, 0], [1, 0], [0.2, 0.2], [0, 1]]}]\n"))
+
+
+def _node(text: str):
+    import tempfile
+    from pathlib import Path
+
+    from ceilkit.runtime.config.yaml import load_yaml
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "site.yaml"
+        p.write_text(text)
+        return load_yaml(p)
