@@ -179,13 +179,13 @@ class ChessBoard(Board):
             raise ConfigError(None, "subpix_half", f"expected a half-window of at least 2 px, "
                               f"found {self.subpix_half}")
         if self.cols < 2 or self.rows < 2:
-            raise ConfigError(None, "--board", f"a chessboard needs at least 2x2 inner "
+            raise ConfigError(None, "board", f"a chessboard needs at least 2x2 inner "
                               f"corners, found {self.cols}x{self.rows}")
         if not self.square_m > 0:
-            raise ConfigError(None, "--square", f"expected a positive size in metres, "
+            raise ConfigError(None, "square", f"expected a positive size in metres, "
                               f"found {self.square_m:g}")
         if self.detector not in ("auto", "sb", "classic"):
-            raise ConfigError(None, "--detector", f"expected auto, sb or classic, found "
+            raise ConfigError(None, "detector", f"expected auto, sb or classic, found "
                               f"{self.detector!r}")
 
     @property
@@ -305,23 +305,23 @@ class CharucoBoard(Board):
 
     def __post_init__(self) -> None:
         if self.squares_x < 2 or self.squares_y < 2:
-            raise ConfigError(None, "--board", f"a ChArUco board needs at least 2x2 squares, "
+            raise ConfigError(None, "board", f"a ChArUco board needs at least 2x2 squares, "
                               f"found {self.squares_x}x{self.squares_y}")
         if not self.square_m > 0:
-            raise ConfigError(None, "--square", f"expected a positive size in metres, "
+            raise ConfigError(None, "square", f"expected a positive size in metres, "
                               f"found {self.square_m:g}")
         if not 0 < self.marker_m < self.square_m:
-            raise ConfigError(None, "--marker", f"expected a marker size in (0, "
+            raise ConfigError(None, "marker", f"expected a marker size in (0, "
                               f"{self.square_m:g}) metres, found {self.marker_m:g}")
         name = self.dictionary.upper().removeprefix("DICT_")
         if name not in ARUCO_DICTIONARIES:
-            raise ConfigError(None, "--board", f"unknown ArUco dictionary {self.dictionary!r} "
+            raise ConfigError(None, "board", f"unknown ArUco dictionary {self.dictionary!r} "
                               f"(e.g. 4X4_50, 5X5_100, 6X6_250, ARUCO_ORIGINAL)")
         object.__setattr__(self, "dictionary", name)
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, "DICT_" + name))
         n_markers = (self.squares_x * self.squares_y) // 2
         if n_markers > d.bytesList.shape[0]:
-            raise ConfigError(None, "--board", f"{self.squares_x}x{self.squares_y} squares need "
+            raise ConfigError(None, "board", f"{self.squares_x}x{self.squares_y} squares need "
                               f"{n_markers} markers; DICT_{name} has {d.bytesList.shape[0]}")
         b = cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_m,
                                    self.marker_m, d)
@@ -438,7 +438,7 @@ def parse_board(spec: str, square_m: float, marker_m: float | None = None,
     ``charuco:SQUARES_XxSQUARES_Y[:DICT][:legacy]`` (squares, e.g.
     ``charuco:5x7:4X4_50``); ``square_m`` and ``marker_m`` in metres (the marker
     defaults to 0.75 of the square); ``detector`` for chessboards (see
-    :class:`ChessBoard`). Raises ConfigError naming ``--board``.
+    :class:`ChessBoard`). Raises ConfigError keyed ``board``.
     """
     s = spec.strip()
     m = _CHESS.match(s)
@@ -450,7 +450,7 @@ def parse_board(spec: str, square_m: float, marker_m: float | None = None,
         marker = 0.75 * square_m if marker_m is None else marker_m
         return CharucoBoard(int(m.group(1)), int(m.group(2)), float(square_m), float(marker),
                             m.group(3) or "4X4_50", legacy or bool(m.group(4)))
-    raise ConfigError(None, "--board", f"expected chess:COLSxROWS (inner corners, e.g. "
+    raise ConfigError(None, "board", f"expected chess:COLSxROWS (inner corners, e.g. "
                       f"chess:9x6) or charuco:SXxSY[:DICT][:legacy] (squares, e.g. "
                       f"charuco:5x7:4X4_50), found {spec!r}")
 

@@ -233,7 +233,7 @@ def _solve(views: Sequence[Detection], image_size: tuple[int, int], model: str,
                 [i.reshape(1, -1, 2).astype(np.float64) for i in img],
                 (w, h), None, None, flags=flags, criteria=_CRITERIA)
             if fix_aspect_ratio:
-                raise ConfigError(None, "--fix-aspect-ratio",
+                raise ConfigError(None, "fix_aspect_ratio",
                                   "not available with the equidistant model")
             std = None
         else:
@@ -312,6 +312,13 @@ def _cross_validate(views: Sequence[Detection], image_size: tuple[int, int], mod
     return float(d.max()), float(np.sqrt(np.mean(d ** 2)))
 
 
+def check_model(model: str) -> None:
+    """Raise ``ConfigError`` (key ``model``) unless ``model`` is a distortion model."""
+    if model not in DISTORTION_MODELS:
+        raise ConfigError(None, "model", f"expected one of {', '.join(DISTORTION_MODELS)}, "
+                          f"found {model!r}")
+
+
 def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *,
                          fix_aspect_ratio: bool = False, min_views: int = 5,
                          corner_k: float = 5.0, view_k: float = 3.0,
@@ -342,9 +349,7 @@ def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *
         ConfigError: unknown model, or views of different image sizes.
         CalibrationError: too few views, or a solve that fails.
     """
-    if model not in DISTORTION_MODELS:
-        raise ConfigError(None, "--model", f"expected one of {', '.join(DISTORTION_MODELS)}, "
-                          f"found {model!r}")
+    check_model(model)
     views = [v for v in views if v is not None]
     sizes = {v.image_size for v in views}
     if len(sizes) > 1:
@@ -549,8 +554,9 @@ def _classic(boards: Sequence[Board]) -> list[Board]:
 
 
 def _no_board_error(board: Board, samples: Sequence[tuple[str, np.ndarray]], n: int
-                    ) -> CalibrationError:
-    """The error for 'no board in any image', with a did-you-mean when one fits."""
+                    ) -> CalibrationError | ConfigError:
+    """The error for 'no board in any image': a ``ConfigError`` keyed ``board`` with a
+    did-you-mean when a board of another size is found, else a ``CalibrationError``."""
     for name, img in samples:
         # the classic detector first: it fails several times faster than the sb one
         found = [(len(d), alt) for alt in _classic(board.alternatives())
@@ -561,9 +567,9 @@ def _no_board_error(board: Board, samples: Sequence[tuple[str, np.ndarray]], n: 
                      if (d := alt.detect(img, name)) is not None]
         if found:                      # the largest board seen: a sub-board also matches
             alt = max(found, key=lambda f: f[0])[1]
-            return CalibrationError(
-                f"no {board.spec} board found in any of {n} image(s); found a "
-                f"{_board_size_text(alt)} board in {name}: did you mean --board "
+            return ConfigError(
+                None, "board", f"no {board.spec} board found in any of {n} image(s); "
+                f"found a {_board_size_text(alt)} board in {name}: did you mean "
                 f"{alt.spec}?" + (" (chessboards count inner corners)"
                                   if isinstance(board, ChessBoard) else ""))
     if isinstance(board, CharucoBoard) and any(board.markers_found(img) >= 2
@@ -571,8 +577,16 @@ def _no_board_error(board: Board, samples: Sequence[tuple[str, np.ndarray]], n: 
         return CalibrationError(
             f"no {board.spec} board found in any of {n} image(s), but DICT_"
             f"{board.dictionary} markers were: check the squares count, the marker size "
-            f"and --legacy")
+            f"and the legacy layout")
     return CalibrationError(f"no {board.spec} board found in any of {n} image(s)")
+
+
+def _reworded(err: CalibrationError | ConfigError, old: str, new: str
+              ) -> CalibrationError | ConfigError:
+    """``err`` of the same kind (and key) with ``old`` replaced by ``new`` in its text."""
+    if isinstance(err, ConfigError):
+        return ConfigError(err.path, err.key, err.detail.replace(old, new))
+    return CalibrationError(str(err).replace(old, new))
 
 
 def _check_whole_board(board: ChessBoard, found: Sequence[Detection],
@@ -609,9 +623,9 @@ def _check_whole_board(board: ChessBoard, found: Sequence[Detection],
             best = (c, r)
             break
     names = ", ".join(n for *_, n in bigger)
-    raise ConfigError(None, "--board", f"chess:{board.cols}x{board.rows} matches only "
+    raise ConfigError(None, "board", f"chess:{board.cols}x{board.rows} matches only "
                       f"part of the board: further corners lie beyond the detected grid in "
-                      f"{names}; did you mean --board chess:{best[0]}x{best[1]}? "
+                      f"{names}; did you mean chess:{best[0]}x{best[1]}? "
                       f"(chessboards count inner corners)")
 
 
@@ -632,10 +646,9 @@ def detect_images(paths: Sequence[str | Path], board: Board,
 
     Raises:
         ConfigError: an image that cannot be read (named), mixed image sizes, or a
-            chessboard size that matches only part of the board (key ``--board``, with
-            the likely size).
-        CalibrationError: no board in any image (with a did-you-mean for a board of
-            another size found instead).
+            chessboard size that matches only part of the board, or a board of another
+            size found instead (key ``board``, with a did-you-mean).
+        CalibrationError: no board in any image.
     """
     if not isinstance(cache, DetectionCache):
         cache = DetectionCache(cache)
@@ -672,12 +685,11 @@ def detect_images(paths: Sequence[str | Path], board: Board,
             # the first images all missed: a wrong size says so now, not after all of them
             samples = [(Path(q).name, read_grey(q)) for q in paths[:EARLY_CHECK]]
             err = _no_board_error(board, samples, EARLY_CHECK)
-            if "did you mean" in str(err):
+            if isinstance(err, ConfigError):  # a did-you-mean
                 if dirty:
                     cache.save()
-                raise CalibrationError(str(err).replace(
-                    f"any of {EARLY_CHECK} image(s)",
-                    f"the first {EARLY_CHECK} of {len(paths)} images"))
+                raise _reworded(err, f"any of {EARLY_CHECK} image(s)",
+                                f"the first {EARLY_CHECK} of {len(paths)} images")
     if dirty:
         cache.save()
     if isinstance(board, ChessBoard) and out:
@@ -689,12 +701,9 @@ def detect_images(paths: Sequence[str | Path], board: Board,
         samples = [(Path(p).name, read_grey(p)) for p in paths
                    if Path(p).name not in found][:3]
         err = _no_board_error(board, samples, len(paths))
-        if not out or "did you mean" in str(err):
+        if not out or isinstance(err, ConfigError):
             if out:
-                err = CalibrationError(str(err).replace(
-                    "found in any of", "found in most of").replace(
-                    f"any of {len(paths)} image(s)", f"{len(paths) - len(out)} of "
-                    f"{len(paths)} images"))
+                err = _reworded(err, "found in any of", "found in most of")
             raise err
     return out
 
@@ -1008,6 +1017,6 @@ def write_plots(result: IntrinsicsResult, folder: str | Path) -> list[Path]:
 
 __all__ = ["COVERAGE_GRID", "RMS_CONVENTION", "CoverageMeter", "DetectionCache",
            "IntrinsicsReport", "IntrinsicsResult", "StopRule", "ViewShape",
-           "calibrate_intrinsics", "capture_views", "detect_images",
+           "calibrate_intrinsics", "capture_views", "check_model", "detect_images",
            "image_files", "plot_coverage", "plot_distortion", "plot_view_errors", "read_grey",
            "view_shape", "write_plots"]

@@ -1,6 +1,6 @@
 """`ceilcal lightmap RECORDING --out site.yaml`: survey the ceiling lights.
 
-Thin wiring around :mod:`ceilkit.calib.lightmap`, in one of two ways:
+Parses, calls :func:`ceilkit.calib.workflow.lightmap`, prints; in one of two ways:
 
 * **known poses** (default): the recording's ``truth.csv``, or ``--poses``, gives each
   frame's pose; :func:`~ceilkit.calib.lightmap.survey_lights` clusters the lights.
@@ -21,23 +21,11 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import numpy as np
 import typer
 
-from ceilkit.calib.lightmap import (
-    KnownLights,
-    chain_header_lines,
-    lightmap_header_lines,
-    load_pose_table,
-    survey_chain,
-    survey_lights,
-    write_site,
-)
-from ceilkit.runtime.config.site import Site
+from ceilkit.calib import workflow
+from ceilkit.calib.lightmap import KnownLights
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.io.recording import Recording
-
-from .common import provenance_header
 
 
 def parse_xy(text: str | None, flag: str) -> tuple[float, float] | None:
@@ -52,6 +40,22 @@ def parse_xy(text: str | None, flag: str) -> tuple[float, float] | None:
     if not (math.isfinite(x) and math.isfinite(y)):
         raise ConfigError(None, flag, f"expected finite X,Y, found {text!r}")
     return x, y
+
+
+def _known(known_light: str | None, second_light: str | None, start_yaw: float | None,
+           anchor_frame: int, keep_height: bool) -> KnownLights | None:
+    """The measured lights of a chaining survey from the flags, or None (known poses)."""
+    first = parse_xy(known_light, "--known-light")
+    second = parse_xy(second_light, "--second-light")
+    if first is None:
+        if second is not None or start_yaw is not None:
+            raise ConfigError(None, "--known-light", "--second-light and --start-yaw "
+                              "belong to a chaining survey, which needs --known-light")
+        return None
+    if second is None and start_yaw is None:
+        raise ConfigError(None, "--second-light", "a chaining survey needs the "
+                          "site's x axis: --second-light X,Y or --start-yaw DEG")
+    return KnownLights(first, second, start_yaw, anchor_frame, fit_height=not keep_height)
 
 
 def register(app: typer.Typer) -> None:
@@ -88,42 +92,9 @@ def register(app: typer.Typer) -> None:
                                          "the second light for the direction only."),
     ) -> None:
         """Build the `lights` of a site map: from known poses, or by chaining frames."""
-        rec = Recording(recording)
-        first = parse_xy(known_light, "--known-light")
-        second = parse_xy(second_light, "--second-light")
-        base = Site.load(out) if out.exists() else rec.site
-        if first is None:
-            if second is not None or start_yaw is not None:
-                raise ConfigError(None, "--known-light", "--second-light and --start-yaw "
-                                  "belong to a chaining survey, which needs --known-light")
-            table = load_pose_table(poses) if poses is not None else None
-            lm = survey_lights(rec, table, ceiling_height_m=ceiling_height,
-                               cluster_m=cluster, min_views=min_views)
-            header = provenance_header("ceilcal lightmap: site map with surveyed lights",
-                                       lightmap_header_lines(lm))
-            write_site(lm, out, base, header, ceiling_height)
-            how = f"{lm.frames_used} frames"
-        else:
-            if poses is not None:
-                raise ConfigError(None, "--poses", "a chaining survey (--known-light) "
-                                  "uses no poses")
-            if second is None and start_yaw is None:
-                raise ConfigError(None, "--second-light", "a chaining survey needs the "
-                                  "site's x axis: --second-light X,Y or --start-yaw DEG")
-            known = KnownLights(first, second, start_yaw, anchor_frame,
-                                fit_height=not keep_height)
-            res = survey_chain(rec, known, ceiling_height_m=ceiling_height,
-                               min_views=min_views)
-            lm = res.lightmap
-            header = provenance_header(
-                "ceilcal lightmap: site map with lights surveyed by chaining frames",
-                chain_header_lines(res))
-            height = res.ceiling_height_m if res.height_fitted else ceiling_height
-            write_site(lm, out, base, header, height)
-            how = (f"{lm.frames_used} chained frames ({res.unplaced} not placed), "
-                   f"residual {res.rms_px:.2f} px")
-            if res.height_fitted:
-                how += (f"; ceiling height {res.ceiling_height_m:.4f} +- "
-                        f"{res.height_sigma_m:.4f} m from the two known lights")
-        typer.echo(f"{out}: {lm.lights_m.shape[0]} lights from {how}; median 1-sigma "
-                   f"{1e3 * float(np.median(lm.sigma_m)):.1f} mm")
+        run = workflow.lightmap(recording, out, poses=poses,
+                                known=_known(known_light, second_light, start_yaw,
+                                             anchor_frame, keep_height),
+                                ceiling_height_m=ceiling_height, cluster_m=cluster,
+                                min_views=min_views)
+        typer.echo("\n".join(run.lines()))

@@ -12,10 +12,7 @@ user reads ``ceilrun: error: --method: unknown method 'magic' (...)``.
 
 from __future__ import annotations
 
-import shlex
-import sys
 from collections.abc import Mapping
-from datetime import datetime, timezone
 from types import MappingProxyType
 from typing import Any
 
@@ -40,6 +37,14 @@ COMMAND_FLAGS: Mapping[str, Mapping[str, str]] = MappingProxyType({
         "speed_mps": "--speed", "y_m": "--lateral", "weave_m": "--weave",
         "yaw_wobble_rad": "--wobble", "x_range": "--trajectory", "y_range": "--lateral",
         "trajectory": "--trajectory",
+    }),
+    "intrinsics": MappingProxyType({"source": "FOLDER|--video|--device"}),
+    # ceilcal lightmap: KnownLights fields and the survey's arguments
+    "lightmap": MappingProxyType({
+        "first_m": "--known-light", "second_m": "--second-light", "yaw_deg": "--start-yaw",
+        "anchor_frame": "--anchor-frame", "cluster_m": "--cluster",
+        "min_views": "--min-views", "poses": "--poses",
+        "ceiling_height_m": "--ceiling-height",
     }),
 })
 """Names that mean another flag in one command (by the command's name)."""
@@ -130,9 +135,8 @@ def quiet_opencv() -> None:
 
 
 def provenance_header(what: str, lines: list[str] | None = None) -> str:
-    """YAML comment lines naming the time, the command line and a report."""
-    out = [f"# {what}",
-           f"# written {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
-           f"# command: {shlex.join(sys.argv)}"]
-    out += [f"# {line}" for line in (lines or [])]
-    return "\n".join(out) + "\n"
+    """:func:`ceilkit.calib.workflow.provenance_header` (imported when first used: a
+    ``ceilrun`` start does not load the calibration modules)."""
+    from ceilkit.calib.workflow import provenance_header as header
+
+    return header(what, lines or ())

@@ -53,7 +53,7 @@ def test_wrong_board_size_suggests_the_right_one(few, tmp_path):
     r = CliRunner().invoke(app, ["intrinsics", str(few), "--board", "chess:8x6",
                                  "--square", "0.03", "--out", str(tmp_path / "c.yaml")])
     assert r.exit_code == 1
-    assert "did you mean --board chess:9x6?" in r.output
+    assert "error: --board: " in r.output and "did you mean chess:9x6?" in r.output
 
 
 def test_size_matching_part_of_the_board_is_caught(few, tmp_path):
@@ -64,7 +64,7 @@ def test_size_matching_part_of_the_board_is_caught(few, tmp_path):
                                  str(tmp_path / "c.yaml")])
     assert r.exit_code == 1
     assert "--board" in r.output and "matches only part of the board" in r.output
-    assert "did you mean --board chess:9x6?" in r.output
+    assert "did you mean chess:9x6?" in r.output
     assert not (tmp_path / "c.yaml").exists()
 
 

@@ -1,0 +1,414 @@
+"""The calibration workflows: what each ``ceilcal`` command does, as library functions.
+
+Each function reads its inputs, runs the calibration, writes its outputs (with a
+provenance header: the time, the command line, the fit report) and returns a frozen
+result whose ``lines()`` are the report the command prints; a notebook calls the same
+functions. Errors name the function's parameters (``ConfigError(None, "board", ...)``);
+the command line maps them to its flags (``cli/common.py``).
+
+* :func:`intrinsics`: a camera from board images, a video or a live camera;
+* :func:`mount`: a rig (the camera's mount) from measured placements in a corridor;
+* :func:`lightmap`: the ``lights`` of a site map, from known poses or by chaining;
+* :func:`simulate`: a simulated recording with truth;
+* :func:`calibrate`: intrinsics, then mount, then a check replay, each step skipped
+  when its file exists (resumable).
+
+Example::
+
+    board = parse_board("chess:9x6", 0.025)
+    run = intrinsics(board, Path("camera.yaml"), folder=Path("shots"))
+    print("\\n".join(run.lines()))
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shlex
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from ceilkit.runtime.config.camera import load_camera, save_camera
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError, OutputError
+from ceilkit.runtime.io.capture import open_video
+from ceilkit.runtime.io.recording import Recording
+from ceilkit.runtime.replay import ReplayResult, replay
+from ceilkit.runtime.sim.render import SimOptions, Trajectory
+
+from .boards import Board
+from .intrinsics import (
+    DetectionCache,
+    IntrinsicsResult,
+    StopRule,
+    calibrate_intrinsics,
+    capture_views,
+    check_model,
+    detect_images,
+    image_files,
+    write_plots,
+)
+from .lightmap import (
+    KnownLights,
+    LightMap,
+    chain_header_lines,
+    lightmap_header_lines,
+    load_pose_table,
+    survey_chain,
+    survey_lights,
+    write_site,
+)
+from .mount import PARAMS, calibrate_mount, calibrate_tilt_swing, load_drive, load_placements
+from .simulate import make_trajectory, simulate_recording
+
+Progress = Callable[[int, int, str, bool], None]
+"""``progress(i, n, name, found)`` after each image of a detection."""
+
+
+def provenance_header(what: str, lines: Sequence[str] = (), command: str | None = None) -> str:
+    """YAML comment lines naming the time, the command line (``command``, default this
+    process's ``sys.argv``) and a report."""
+    command = shlex.join(sys.argv) if command is None else command
+    out = [f"# {what}",
+           f"# written {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
+           f"# command: {command}"]
+    out += [f"# {line}" for line in lines]
+    return "\n".join(out) + "\n"
+
+
+def _check_writable(out: Path) -> None:
+    parent = out.parent if str(out.parent) else Path(".")
+    if out.is_dir():
+        raise OutputError(out, "is a folder; expected a file path")
+    if not parent.is_dir():
+        raise OutputError(out, f"cannot write: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise OutputError(out, f"cannot write: folder {parent} is not writable")
+
+
+def _make_folder(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(folder, f"cannot create: {exc.strerror}") from None
+
+
+# -- intrinsics ------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class IntrinsicsRun:
+    """A written camera: the fit, where it went, what it came from, the plots."""
+
+    result: IntrinsicsResult
+    camera_path: Path
+    inputs: str
+    plots: tuple[Path, ...] = ()
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        return tuple(self.result.report.warnings)
+
+    def lines(self) -> list[str]:
+        return ([self.result.report.text(), f"wrote {self.camera_path}"]
+                + [f"wrote {p}" for p in self.plots])
+
+
+def intrinsics(board: Board, out: Path, *, folder: Path | None = None,
+               video: Path | None = None, device: str | None = None,
+               model: str = "plumb_bob", plots: Path | None = None, name: str = "camera",
+               fix_aspect_ratio: bool = False, min_views: int = 5, max_views: int = 40,
+               every: int = 1, cache: bool = True, progress: Progress | None = None,
+               meter: TextIO | None = None) -> IntrinsicsRun:
+    """Calibrate a camera from ``board`` views and write ``out`` (camera.yaml).
+
+    Exactly one source: ``folder`` (images; detections cached beside ``out`` unless
+    ``cache`` is False), ``video`` (a file) or ``device`` (a live camera); a stream keeps
+    the diverse views until coverage and accuracy suffice (``max_views`` at most,
+    ``every`` N-th frame), drawing a coverage meter on ``meter``.
+
+    Raises:
+        ConfigError: ``source`` (not exactly one), ``model``, ``board`` (wrong size).
+        OutputError: ``out`` cannot be written.
+        CalibrationError: no board found, too few views.
+    """
+    sources = [s for s in (folder, video, device) if s is not None]
+    if len(sources) != 1:
+        raise ConfigError(None, "source", f"give exactly one image source, found "
+                          f"{len(sources)}")
+    check_model(model)
+    _check_writable(out)
+    if folder is not None:
+        files = image_files(folder)
+        det_cache = DetectionCache(out.parent / f".{out.stem}.detections.npz") if cache \
+            else None
+        views = detect_images(files, board, det_cache, progress)
+        inputs = f"{folder} ({len(files)} images, {len(views)} with the board)"
+    else:
+        src = open_video(str(video) if video is not None else str(device))
+        stop = StopRule(max_views=max_views, min_views=max(12, min_views))
+        views = capture_views(src, board, model, stop, every=every, meter=meter)
+        inputs = f"{video if video is not None else f'device {device}'} ({len(views)} views)"
+    result = calibrate_intrinsics(views, model, fix_aspect_ratio=fix_aspect_ratio,
+                                  min_views=min_views, name=name)
+    square = f", square {board.square_m:g} m"
+    header = provenance_header("camera intrinsics by ceilcal intrinsics",
+                               [f"inputs: {inputs}", f"board: {board.spec}{square}"]
+                               + result.report.summary_lines())
+    save_camera(result.camera, out, header)
+    written = tuple(write_plots(result, plots)) if plots is not None else ()
+    return IntrinsicsRun(result, out, inputs, written)
+
+
+# -- mount -----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MountRun:
+    """A written rig and the report of its fit."""
+
+    rig_path: Path
+    report: tuple[str, ...]
+
+    def lines(self) -> list[str]:
+        return [*self.report, f"wrote {self.rig_path}"]
+
+
+def mount(placements: Path, site: Path, out: Path, *, rig: Path | None = None,
+          camera: Path | None = None, drive: Path | None = None,
+          fix: Sequence[str] = (), max_frames: int = 8) -> MountRun:
+    """Fit the mount (tilt, swing, pan, offsets, height below the ceiling) from measured
+    ``placements`` (a placements file or a recording with truth.csv) in ``site``, and
+    write ``out`` (rig.yaml).
+
+    Args:
+        rig: a rig whose camera (and held values) to use, or
+        camera: camera.yaml when there is no rig yet (one of the two).
+        drive: a straight drive (recording or image folder) that gives tilt and swing.
+        fix: parameters held at the rig's value (:data:`~ceilkit.calib.mount.PARAMS`).
+        max_frames: at most this many placements from a recording.
+
+    Raises:
+        ConfigError: ``camera`` (neither a rig nor a camera), ``fix`` (unknown name),
+            bad placements or site.
+        CalibrationError: a fit that fails or leaves too large a residual.
+    """
+    if rig is None and camera is None:
+        raise ConfigError(None, "camera", "give the camera (camera.yaml) or a rig")
+    if rig is not None:
+        the_rig = Rig.load(rig)
+        camera_ref = the_rig.camera_file
+    else:
+        the_rig = Rig(load_camera(camera), Mount(z_m=0.5))
+        camera_ref = str(camera)
+    the_site = Site.load(site)
+    fixed = list(fix)
+    for name in fixed:
+        if name not in PARAMS:
+            raise ConfigError(None, "fix", f"unknown parameter {name!r} "
+                              f"(choose from {', '.join(PARAMS)})")
+    pls = load_placements(placements, the_rig.camera, max_frames)
+    start = None
+    lines: list[str] = []
+    if drive is not None:
+        tilt, swing, rep = calibrate_tilt_swing(the_rig, load_drive(drive, the_rig.camera))
+        lines.append(f"drive ({rep['frames']} frames): tilt {math.degrees(tilt):.4f} "
+                     f"+- {math.degrees(rep['sigma_tilt']):.4f} deg, swing "
+                     f"{math.degrees(swing):.4f} +- {math.degrees(rep['sigma_swing']):.4f} "
+                     f"deg, RMS {rep['rms_px']:.3f} px")
+        start = Mount(0.0, tilt, swing, the_rig.mount.x_m, 0.0, the_rig.mount.z_m)
+        fixed += ["tilt", "swing"]
+    res = calibrate_mount(the_rig, the_site, pls, fixed=fixed, start=start,
+                          fit_height=None if "h" not in fixed else False)
+    lines += res.lines()
+    header = provenance_header(
+        "rig.yaml written by ceilcal mount",
+        [f"placements: {placements} ({len(pls)})", f"site: {site}"]
+        + ([f"drive: {drive}"] if drive else []) + lines)
+    ref = None
+    if camera_ref is not None:
+        ref = os.path.relpath(Path(camera_ref).resolve(), Path(out).resolve().parent)
+    the_rig.with_mount(res.mount).save(out, header, camera_ref=ref)
+    return MountRun(Path(out), tuple(lines))
+
+
+# -- light map -------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class LightmapRun:
+    """A written site map with surveyed lights; ``how``: how they were surveyed."""
+
+    lightmap: LightMap
+    site_path: Path
+    how: str
+
+    def lines(self) -> list[str]:
+        lm = self.lightmap
+        return [f"{self.site_path}: {lm.lights_m.shape[0]} lights from {self.how}; median "
+                f"1-sigma {1e3 * float(np.median(lm.sigma_m)):.1f} mm"]
+
+
+def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
+             known: KnownLights | None = None, ceiling_height_m: float | None = None,
+             cluster_m: float = 0.15, min_views: int = 3) -> LightmapRun:
+    """Survey the ceiling lights of ``recording`` and write them as the ``lights`` of
+    ``out`` (site.yaml; its other sections kept when it exists, else the recording's).
+
+    With ``known`` (lights measured in W), the frames are chained (no pose needed);
+    otherwise each frame's pose comes from ``poses`` (truth.csv or poses.csv layout) or
+    the recording's truth.csv.
+
+    Raises:
+        ConfigError: ``poses`` with ``known``; bad inputs or options.
+        CalibrationError: a survey that cannot be tied or solved.
+    """
+    rec = Recording(recording)
+    base = Site.load(out) if out.exists() else rec.site
+    if known is None:
+        table = load_pose_table(poses) if poses is not None else None
+        lm = survey_lights(rec, table, ceiling_height_m=ceiling_height_m,
+                           cluster_m=cluster_m, min_views=min_views)
+        header = provenance_header("ceilcal lightmap: site map with surveyed lights",
+                                   lightmap_header_lines(lm))
+        write_site(lm, out, base, header, ceiling_height_m)
+        return LightmapRun(lm, out, f"{lm.frames_used} frames")
+    if poses is not None:
+        raise ConfigError(None, "poses", "a chaining survey (known lights) uses no poses")
+    res = survey_chain(rec, known, ceiling_height_m=ceiling_height_m, min_views=min_views)
+    lm = res.lightmap
+    header = provenance_header(
+        "ceilcal lightmap: site map with lights surveyed by chaining frames",
+        chain_header_lines(res))
+    write_site(lm, out, base, header,
+               res.ceiling_height_m if res.height_fitted else ceiling_height_m)
+    how = (f"{lm.frames_used} chained frames ({res.unplaced} not placed), "
+           f"residual {res.rms_px:.2f} px")
+    if res.height_fitted:
+        how += (f"; ceiling height {res.ceiling_height_m:.4f} +- "
+                f"{res.height_sigma_m:.4f} m from the two known lights")
+    return LightmapRun(lm, out, how)
+
+
+# -- simulate --------------------------------------------------------------------------
+def packaged_file(name: str, example: str = "corridor") -> Path:
+    """A file of a packaged example (``configs/corridor/rig.yaml``, ...)."""
+    from importlib.resources import files
+
+    return Path(str(files("ceilkit.configs") / example / name))
+
+
+@dataclass(frozen=True, eq=False)
+class SimulateRun:
+    """A written simulated recording."""
+
+    folder: Path
+    trajectory: Trajectory
+    width: int
+    height: int
+    seed: int
+    ms_per_frame: float
+
+    def lines(self) -> list[str]:
+        t = self.trajectory
+        return [f"wrote {len(t)} frames ({self.width}x{self.height}) to {self.folder}: "
+                f"x {t.x_m.min():.2f}..{t.x_m.max():.2f} m, y {t.y_m.min():.3f}.."
+                f"{t.y_m.max():.3f} m, seed {self.seed}, {self.ms_per_frame:.0f} ms/frame"]
+
+
+def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
+             frames: int = 300, fps: float = 30.0, trajectory: str = "drive",
+             lateral_m: float = 0.0, weave_m: float = 0.0, wobble_deg: float = 0.0,
+             speed_mps: float = 0.5, noise_sigma: float = 2.0, blur_px: float = 0.8,
+             supersample: int = 3, clutter: bool = False, seed: int = 0) -> SimulateRun:
+    """Render a simulated recording (frames, rig, site, truth.csv) into ``out`` (new).
+
+    ``rig`` and ``site`` default to the packaged corridor example's; ``trajectory`` is
+    ``drive``, ``random`` or a truth.csv-layout file
+    (:func:`~ceilkit.calib.simulate.make_trajectory`). Nothing is written when an
+    argument is bad.
+
+    Raises:
+        ConfigError: a bad value, keyed by the name of the field it sets
+            (``options.noise_sigma``, ``y_m``, ...); bad rig, site or trajectory file.
+    """
+    the_rig = Rig.load(rig if rig is not None else packaged_file("rig.yaml"))
+    the_site = Site.load(site if site is not None else packaged_file("site.yaml"))
+    options = SimOptions(noise_sigma=noise_sigma, blur_px=blur_px, supersample=supersample,
+                         clutter=clutter)
+    traj = make_trajectory(trajectory, the_site, frames, fps, speed_mps, lateral_m, weave_m,
+                           wobble_deg, np.random.default_rng(seed))
+    t0 = time.perf_counter()
+    folder = simulate_recording(the_rig, the_site, traj, out, options, seed)
+    ms = 1e3 * (time.perf_counter() - t0) / len(traj)
+    return SimulateRun(folder, traj, the_rig.camera.width, the_rig.camera.height, seed, ms)
+
+
+# -- the guided whole ------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class CalibrateRun:
+    """The files of a guided calibration, the check replay (or None) and the report."""
+
+    camera_path: Path
+    rig_path: Path
+    check: ReplayResult | None
+    report: tuple[str, ...]
+
+    def lines(self) -> list[str]:
+        return list(self.report)
+
+
+def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Path, *,
+              model: str = "plumb_bob", drive: Path | None = None,
+              check: Path | None = None, redo: bool = False,
+              on_line: Callable[[str], None] | None = None) -> CalibrateRun:
+    """Intrinsics from ``boards``, then the mount from ``placements``, then a check
+    replay of ``check``; each step writes its file into ``out`` (camera.yaml, rig.yaml,
+    check/) and is skipped when that file is already there, unless ``redo``.
+
+    ``on_line`` gets each report line as the steps go (they take minutes); the result
+    holds them all.
+    """
+    lines: list[str] = []
+
+    def say(line: str) -> None:
+        lines.append(line)
+        if on_line is not None:
+            on_line(line)
+
+    _make_folder(out)
+    cam_path, rig_path = out / "camera.yaml", out / "rig.yaml"
+    if redo or not cam_path.exists():
+        say("step 1/3: intrinsics")
+        files = image_files(boards)
+        views = detect_images(files, board, DetectionCache(out / ".detections.npz"))
+        result = calibrate_intrinsics(views, model)
+        header = provenance_header("camera intrinsics by ceilcal calibrate",
+                                   [f"inputs: {boards} ({len(files)} images)"]
+                                   + result.report.summary_lines())
+        save_camera(result.camera, cam_path, header)
+        for line in result.report.summary_lines():
+            say("  " + line)
+    else:
+        say(f"step 1/3: intrinsics: kept {cam_path}")
+    if redo or not rig_path.exists():
+        say("step 2/3: mount")
+        for line in mount(placements, site, rig_path, camera=cam_path, drive=drive).report:
+            say("  " + line)
+    else:
+        say(f"step 2/3: mount: kept {rig_path}")
+    if check is None:
+        say("step 3/3: check: skipped (no check recording)")
+        return CalibrateRun(cam_path, rig_path, None, tuple(lines))
+    say("step 3/3: check replay")
+    res = replay(check, out / "check", rig=rig_path, site=site)
+    for line in res.telemetry.summary() + (res.accuracy.lines() if res.accuracy else []):
+        say("  " + line)
+    return CalibrateRun(cam_path, rig_path, res, tuple(lines))
+
+
+__all__ = ["CalibrateRun", "IntrinsicsRun", "LightmapRun", "MountRun", "SimulateRun",
+           "calibrate", "intrinsics", "lightmap", "mount", "packaged_file",
+           "provenance_header", "simulate"]
