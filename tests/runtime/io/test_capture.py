@@ -154,3 +154,21 @@ def test_open_video_takes_only_cameras_and_videos(tmp_path):
     w.release()
     with open_video(str(video)) as v:
         assert isinstance(v, VideoFileSource) and len(list(v)) == 3
+
+
+def test_every_source_declares_live_and_dropped():
+    """The live loop reads ``live`` and ``dropped`` of any source, never by getattr."""
+    from ceilkit.runtime.io.capture import CameraSource, ImageFolderSource, VideoFileSource
+    from ceilkit.runtime.io.recording import Recording
+    from ceilkit.runtime.io.sources import FrameSource, ListSource, LiveSource
+    from ceilkit.runtime.sim.render import SimSource
+
+    for cls, live in ((CameraSource, True), (VideoFileSource, False),
+                      (ImageFolderSource, False), (Recording, False), (SimSource, False),
+                      (ListSource, False)):
+        assert cls.live is live and cls.dropped == 0, cls
+    assert isinstance(ListSource([]), FrameSource)
+    assert not isinstance(ListSource([]), LiveSource)
+    cam = FakeCamera([np.zeros((4, 4), np.uint8)])
+    with CameraSource("fake", open_capture=cam.open) as src:
+        assert isinstance(src, LiveSource)
