@@ -237,6 +237,15 @@ def _stamps(path: Path, rows: list[list[str]]) -> np.ndarray:
     return np.array(t, dtype=np.int64)
 
 
+def _stamped_rows(path: Path, header: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """A ``t_ns`` + three numbers table: ``(t_ns (N,) int64, values (N, 3))``."""
+    rows = _read_csv(path, header)
+    t_ns = _stamps(path, rows)
+    vals = np.array([[_float(path, i + 2, c, r[k]) for k, c in enumerate(header[1:], 1)]
+                     for i, r in enumerate(rows)], dtype=float).reshape(-1, 3)
+    return t_ns, vals
+
+
 def load_odometry(path: str | Path) -> Odometry:
     """Read ``odometry.csv`` (``t_ns,dx,dy,dyaw_deg``) strictly: the exact header, one
     integer stamp and three finite numbers a row, stamps strictly increasing.
@@ -245,11 +254,7 @@ def load_odometry(path: str | Path) -> Odometry:
         ConfigError: naming the file, the line and the column.
     """
     path = Path(path)
-    rows = _read_csv(path, ODOMETRY_HEADER)
-    t = _stamps(path, rows)
-    vals = np.array([[_float(path, i + 2, c, r[k]) for k, c in ((1, "dx"), (2, "dy"),
-                                                                (3, "dyaw_deg"))]
-                     for i, r in enumerate(rows)], dtype=float).reshape(-1, 3)
+    t, vals = _stamped_rows(path, ODOMETRY_HEADER)
     if t.size > 1 and np.any(np.diff(t) <= 0):
         bad = int(np.argmax(np.diff(t) <= 0)) + 3
         raise ConfigError(path, f"line {bad}: t_ns", "stamps must increase")
@@ -259,11 +264,7 @@ def load_odometry(path: str | Path) -> Odometry:
 def load_truth(path: str | Path) -> Truth:
     """Read ``truth.csv`` (``t_ns,x,y,yaw_deg``), sorted by time."""
     path = Path(path)
-    rows = _read_csv(path, TRUTH_HEADER)
-    t = _stamps(path, rows)
-    vals = np.array([[_float(path, i + 2, c, r[k]) for k, c in ((1, "x"), (2, "y"),
-                                                                (3, "yaw_deg"))]
-                     for i, r in enumerate(rows)], dtype=float).reshape(-1, 3)
+    t, vals = _stamped_rows(path, TRUTH_HEADER)
     order = np.argsort(t, kind="stable")
     return Truth(t[order], vals[order, 0], vals[order, 1], np.radians(vals[order, 2]))
 
