@@ -130,11 +130,3 @@ def source_truth(source: object) -> Truth | None:
         return Truth(np.asarray(traj.t_ns), np.asarray(traj.x_m), np.asarray(traj.y_m),
                      np.asarray(traj.yaw_rad))
     return None
-
-
-def accuracy(estimates: Sequence[Estimate], truth: Truth) -> Accuracy:
-    """Compare estimates with the truth row of the same ``t_ns``."""
-    meter = AccuracyMeter(truth)
-    for est in estimates:
-        meter.add(est)
-    return meter.result()

@@ -61,7 +61,6 @@ class Tracker:
         self._s: _State | None = None
         self._candidates: list[PoseEstimate] = []
         self.relocalizations = 0
-        self.gated = 0
 
     @property
     def tracking(self) -> bool:
@@ -137,7 +136,6 @@ class Tracker:
         self._candidates.append(est)
         if len(self._candidates) >= self.options.confirm:
             return self._start(est)
-        self.gated += 1
         return TrackResult(Failure(
             est.t_ns, est.method, "gated",
             f"pose jumped from the track ({_describe_jump(est, pred)}); "
