@@ -25,6 +25,7 @@ adds (``docs/methods/lights.md``).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -89,7 +90,7 @@ class PaperLightsEstimator(Estimator):
     site_sections = ("lights",)
 
     def __init__(self, rig: Rig, site: Site,
-                 options: PaperLightsOptions | dict[str, Any] | None = None) -> None:
+                 options: PaperLightsOptions | Mapping[str, Any] | None = None) -> None:
         if not site.has_lights:
             raise ConfigError(site.source, "lights",
                               "the paper-lights method needs at least one light in the map")

@@ -30,6 +30,7 @@ Example::
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -127,7 +128,7 @@ class LightsEstimator(Estimator):
     site_sections = ("lights",)
 
     def __init__(self, rig: Rig, site: Site,
-                 options: LightsOptions | dict[str, Any] | None = None) -> None:
+                 options: LightsOptions | Mapping[str, Any] | None = None) -> None:
         if not site.has_lights:
             raise ConfigError(site.source, "lights",
                               "the lights method needs at least one light in the site map")
