@@ -122,7 +122,21 @@ class LinkProtocol(Protocol):
         ...
 
 
-class NmeaProtocol:
+class _NmeaLines:
+    """What both NMEA protocols share: lines read back, no reset counter, no answers."""
+
+    def relocalized(self) -> None:
+        """NMEA carries no reset counter: the controller sees the jump in the position."""
+
+    def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]:
+        lines, rest = nmea.split_sentences(buffer)
+        return [(ln, ln.decode("ascii", "replace")) for ln in lines], rest
+
+    def answer(self, raw: bytes, now_ns: int) -> list[bytes]:
+        return []
+
+
+class NmeaProtocol(_NmeaLines):
     """``$PCEIL`` per estimate, ``$PCEIS`` once a second while no valid pose (or faulted)."""
 
     name = "nmea"
@@ -145,18 +159,7 @@ class NmeaProtocol:
         return nmea.encode_status(self._next_seq(), health.now_ns // 1_000_000,
                                   faulted=health.faulted, reason=reason, age_ms=health.age_ms)
 
-    def relocalized(self) -> None:
-        """NMEA carries no reset counter: the controller sees the jump in x, y."""
-
-    def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]:
-        lines, rest = nmea.split_sentences(buffer)
-        return [(ln, ln.decode("ascii", "replace")) for ln in lines], rest
-
-    def answer(self, raw: bytes, now_ns: int) -> list[bytes]:
-        return []
-
-
-class NmeaGpsProtocol:
+class NmeaGpsProtocol(_NmeaLines):
     """GPS sentences (RMC, GGA, GST, HDT) per estimate, an invalid group once a second
     while there is no valid pose (or while faulted), as a receiver without a fix does.
 
@@ -200,17 +203,6 @@ class NmeaGpsProtocol:
             return None
         return self._encode(nmea_gps.GpsFix(health.now_ns, None, None, None, None, None),
                             self.utc_ns())
-
-    def relocalized(self) -> None:
-        """GPS sentences carry no reset counter: the controller sees the jump."""
-
-    def split_incoming(self, buffer: bytes) -> tuple[list[tuple[bytes, str]], bytes]:
-        lines, rest = nmea.split_sentences(buffer)
-        return [(ln, ln.decode("ascii", "replace")) for ln in lines], rest
-
-    def answer(self, raw: bytes, now_ns: int) -> list[bytes]:
-        return []
-
 
 class MavlinkProtocol:
     """VISION_POSITION_ESTIMATE (or ODOMETRY) per pose, HEARTBEAT once a second unless
