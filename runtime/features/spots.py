@@ -34,6 +34,7 @@ Example::
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -386,18 +387,36 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
     pass the size checks.
     """
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    n = len(contours) + 1
     rejected: dict[str, int] = {}
+    rows = _measure_regions(grey, mask, contours, params, weighted, rethreshold, centre_px,
+                            max_regions, rejected)
+    if not rows:
+        return empty_spots(len(contours), rejected)
+    return _select_lights(np.array(rows, float).reshape(-1, 8), len(contours), params,
+                          relative, rejected)
+
+
+def _examination_order(boxes: np.ndarray, centre_px: tuple[float, float] | None) -> np.ndarray:
+    """Indices of the regions' bounding boxes ``(N, 4)``, nearest ``centre_px`` first."""
+    if centre_px is None or not boxes.shape[0]:
+        return np.arange(boxes.shape[0])
+    du = boxes[:, 0] + boxes[:, 2] / 2 - centre_px[0]          # box centre - centre_px
+    dv = boxes[:, 1] + boxes[:, 3] / 2 - centre_px[1]
+    return (du ** 2 + dv ** 2).argsort(kind="stable")
+
+
+def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.ndarray],
+                     params: SpotParams, weighted: bool, rethreshold: bool,
+                     centre_px: tuple[float, float] | None, max_regions: int | None,
+                     rejected: dict[str, int]) -> list[list[float]]:
+    """One row ``(u, v, i_obj, i_bg, c_uu, c_uv, c_vv, area)`` per region of a plausible
+    size, in the order examined; the others are counted in ``rejected`` by reason."""
 
     def drop(reason: str) -> None:
         rejected[reason] = rejected.get(reason, 0) + 1
 
     b = np.array([cv2.boundingRect(c) for c in contours], np.int64).reshape(-1, 4)
-    order = np.arange(b.shape[0])
-    if centre_px is not None and b.shape[0]:
-        du = b[:, 0] + b[:, 2] / 2 - centre_px[0]          # box centre - centre_px
-        dv = b[:, 1] + b[:, 3] / 2 - centre_px[1]
-        order = (du ** 2 + dv ** 2).argsort(kind="stable")
+    order = _examination_order(b, centre_px)
     box_area = b[:, 2] * b[:, 3]
     alone = _alone(b)
     # lone regions of a plausible size are measured together, in the order examined
@@ -447,9 +466,14 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
                 rows.append(sub)
             continue
         rows.append(row)
-    if not rows:
-        return empty_spots(n - 1, rejected)
-    r = np.array(rows, float).reshape(-1, 8)
+    return rows
+
+
+def _select_lights(r: np.ndarray, n_candidates: int, params: SpotParams, relative: bool,
+                   rejected: dict[str, int]) -> Spots:
+    """The measured regions ``r`` ``(K, 8)`` that look like lights: bright enough
+    (perception level), round enough, not dim beside the brightest, at most
+    ``params.max_spots`` of them (the brightest)."""
     c = r[:, 0:2].copy()
     i_o, i_b, area = r[:, 2], r[:, 3], r[:, 7]
     cov = np.empty((r.shape[0], 2, 2))
@@ -466,7 +490,7 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
         bad = keep & (contrast < params.min_relative_contrast * contrast[keep].max())
         rejected["dim"] = int(np.count_nonzero(bad))
         keep &= ~bad
-    spots = Spots(c, area, contrast, level, cov, n - 1, rejected)
+    spots = Spots(c, area, contrast, level, cov, n_candidates, rejected)
     if not keep.all():
         spots = spots.select(keep)
     if len(spots) > params.max_spots:
