@@ -18,6 +18,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -27,11 +28,13 @@ from typing import Any
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.estimators.registry import make_estimator
-from ceilkit.runtime.io.recording import PoseWriter, Recording
+from ceilkit.runtime.io.recording import PoseWriter, Recording, write_truth_tum
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter
 from ceilkit.runtime.pipeline import Pipeline, PoseFileSink, PoseSink, Telemetry
 from ceilkit.runtime.session import LinkConfig, link_lines, opened_link
 from ceilkit.runtime.tracking import Tracker
+from ceilkit.runtime.viz.report import ReplayViews
+from ceilkit.runtime.viz.tap import EstimateTap
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,6 +59,8 @@ class ReplayResult:
     elapsed_s: float
     tracked: bool = True
     link: tuple[str, ...] = ()
+    report: Path | None = None
+    overlays: int = 0
 
     def lines(self) -> list[str]:
         """The report: a heading, then indented details."""
@@ -66,6 +71,10 @@ class ReplayResult:
         if self.accuracy is not None:
             out.append("  against truth.csv:")
             out += ["    " + line for line in self.accuracy.lines()]
+        if self.overlays:
+            out.append(f"  {self.overlays} overlays written")
+        if self.report is not None:
+            out.append(f"  report: {self.report}")
         return out
 
 
@@ -75,7 +84,9 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
            track: bool = True, sinks: Sequence[PoseSink] = (),
            progress: Callable[[int, int], None] | None = None,
            options: Mapping[str, Any] | None = None, link: LinkConfig | None = None,
-           clock: Callable[[], int] = time.monotonic_ns) -> ReplayResult:
+           clock: Callable[[], int] = time.monotonic_ns,
+           overlays: str | Path | None = None, overlays_only_failures: bool = False,
+           report: bool = False) -> ReplayResult:
     """Run the pipeline over a recording as fast as possible (or at recorded timing).
 
     Args:
@@ -91,6 +102,11 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
         options: the estimator's options by name (values may be strings).
         link: also stream the poses over this link (written after the poses file).
         clock: the clock of latencies and of ``realtime``.
+        overlays: write each frame's overlay (:mod:`~ceilkit.runtime.viz.overlay`) here
+            as ``NNNNNN.png``; ``overlays_only_failures``: only failures and frames of
+            quality below 0.5.
+        report: also write ``OUT/report.html`` (:mod:`~ceilkit.runtime.viz.report`);
+            with ``tum`` and a ``truth.csv``, ``truth.tum`` is written beside ``poses.tum``.
 
     Raises:
         ConfigError: a broken recording, rig or site; a bad method or option.
@@ -101,20 +117,35 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
     estimator = make_estimator(method, rec.rig, rec.site, options)
     out = Path(out_dir) if out_dir is not None else rec.folder / "replay"
     poses_path = out / "poses.csv"
+    tap = EstimateTap(estimator) if overlays is not None or report else None
+    views = None if tap is None else ReplayViews(
+        rec.rig, rec.site, Path(overlays) if overlays is not None else None,
+        overlays_only_failures, rec.truth)
+    if tum and rec.truth is not None:
+        write_truth_tum(rec.truth, out / "truth.tum")
     with PoseWriter(poses_path, out / "poses.tum" if tum else None) as writer, \
             opened_link(link, rec.rig, rec.site) as the_link:
         more = [*sinks, the_link] if the_link is not None else list(sinks)
-        pipeline = Pipeline(estimator, [PoseFileSink(writer, clock), *more],
+        pipeline = Pipeline(tap or estimator, [PoseFileSink(writer, clock), *more],
                             Tracker() if track else None, clock)
-        res = _run(rec, pipeline, realtime, progress, clock)
-    return ReplayResult(rec.folder, poses_path, estimator.name, pipeline.telemetry,
-                        res[0], res[1], track, tuple(link_lines(the_link)))
+        res = _run(rec, pipeline, realtime, progress, clock,
+                   None if tap is None else (tap, views))
+    result = ReplayResult(rec.folder, poses_path, estimator.name, pipeline.telemetry,
+                          res[0], res[1], track, tuple(link_lines(the_link)), None,
+                          0 if views is None else views.written)
+    if report:
+        path = views.write_report(out / "report.html", f"replay of {rec.folder.name}",
+                                  result.lines())
+        result = dataclasses.replace(result, report=path)
+    return result
 
 
 def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
          progress: Callable[[int, int], None] | None,
-         clock: Callable[[], int]) -> tuple[Accuracy | None, float]:
-    """Every frame of ``rec`` through ``pipeline``: the accuracy and the elapsed time."""
+         clock: Callable[[], int], viewed: tuple[EstimateTap, ReplayViews] | None = None
+         ) -> tuple[Accuracy | None, float]:
+    """Every frame of ``rec`` through ``pipeline``: the accuracy and the elapsed time;
+    ``viewed``: each frame's raw estimate (from the tap) handed to the views too."""
     meter = AccuracyMeter(rec.truth) if rec.truth is not None else None
     n = len(rec)
     start = clock()
@@ -129,6 +160,9 @@ def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
         est = pipeline.process(frame, capture_ns=clock())
         if meter is not None:
             meter.add(est)
+        if viewed is not None:
+            image, raw = viewed[0].latest
+            viewed[1].frame(k, image, raw, est, pipeline.telemetry.latency_ms[-1])
         if progress is not None:
             progress(k + 1, n)
     return meter.result() if meter is not None else None, (clock() - start) / 1e9

@@ -397,6 +397,30 @@ def tum_seconds(t_ns: int) -> str:
     return f"{sign}{t // 1_000_000_000}.{t % 1_000_000_000:09d}"
 
 
+def tum_line(t_ns: int, x_m: float, y_m: float, yaw_rad: float) -> bytes:
+    """One TUM row ``t_s x y z qx qy qz qw`` of a planar pose (z = 0, yaw about z)."""
+    h = yaw_rad / 2
+    return (f"{tum_seconds(t_ns)} {x_m:.6f} {y_m:.6f} 0 0 0 "
+            f"{math.sin(h):.9f} {math.cos(h):.9f}\n").encode()
+
+
+def write_truth_tum(truth: Truth, path: str | Path) -> Path:
+    """``truth.csv``'s rows as a TUM trajectory (beside ``poses.tum``, for ``evo_ape``).
+
+    Raises:
+        OutputError: the file cannot be written.
+    """
+    path = Path(path)
+    rows = [tum_line(int(t), float(x), float(y), float(a))
+            for t, x, y, a in zip(truth.t_ns, truth.x_m, truth.y_m, truth.yaw_rad, strict=True)]
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"".join(rows))
+    except OSError as exc:
+        raise OutputError(path, f"cannot write: {exc.strerror}") from None
+    return path
+
+
 class PoseWriter:
     """Writes ``poses.csv`` (SPEC §2), a row per frame, flushed as it goes;
     optionally a TUM trajectory (``t_s x y z qx qy qz qw``, z = 0, the yaw as a

@@ -190,7 +190,8 @@ class BlockEstimator(Estimator):
         best = min(fixes, key=lambda f: f.refined.cov[0, 0] + f.refined.cov[1, 1])
         r = best.refined
         diag.update(source=best.source, rms_px=r.rms_px, shape_m=best.shape_m,
-                    n_edge=r.n, fixes=len(fixes), resolved_by=best.resolved_by)
+                    n_edge=r.n, fixes=len(fixes), resolved_by=best.resolved_by,
+                    corners_norm=best.corners_norm, corners_w=best.corners_w)  # overlays
         if self.options.six_dof_check:
             diag.update(six_dof_check(self.geo, best.corners_norm, best.corners_w,
                                       float(r.pose[2])))

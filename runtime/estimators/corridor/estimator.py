@@ -181,14 +181,15 @@ class CorridorEstimator(Estimator):
         pans = dominant_pans(fr.q, len_px * np.minimum(1.0, qxy / HORIZONTAL_NORMAL))
         if not pans:
             return self.fail(t_ns, "no_ceiling_lines", "no dominant ceiling direction",
-                             n_segments=n_seg)
+                             n_segments=n_seg, segments_n=segs)
         best = self._best_labeling(pans, fr, prior)
         if best is None:
             return self.fail(t_ns, "too_few_lines",
                              "fewer than two forward ceiling lines could be associated",
-                             n_segments=n_seg)
+                             n_segments=n_seg, segments_n=segs)
         if isinstance(best, Unresolved):
-            return self.fail(t_ns, best.reason, best.detail, n_segments=n_seg)
+            return self.fail(t_ns, best.reason, best.detail, n_segments=n_seg,
+                             segments_n=segs)
         gd = gn_inputs(fr, best.along, best.across, best.assign, self.setup)
         fit = gauss_newton(best.psi_rad, best.camera_y_m, gd, self.setup,
                            self.options.gn_iterations)
@@ -237,6 +238,9 @@ class CorridorEstimator(Estimator):
             "ambiguous": bool(best.ambiguous),
             "hypothesis": best.how,
             **vl,
+            # for overlays (references, no copies): the undistorted normalized segments,
+            # the two families and the site line of each forward segment (-1: none)
+            "segments_n": fr.segs, "along": along, "across": across, "assign": best.assign,
             "ms": elapsed_ms(t0),
         }
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(np.clip(quality, 0, 1)),

@@ -170,7 +170,10 @@ class LightsEstimator(Estimator):
         """
         obs = self.observer.observe(grey)
         n = len(obs.spots)
-        diag: dict[str, Any] = {"spots": n, "candidates": obs.spots.n_candidates}
+        diag: dict[str, Any] = {"spots": n, "candidates": obs.spots.n_candidates,
+                                # for overlays (references): spots used, examined, kept
+                                "spots_px": obs.spots.centroids_px,
+                                "candidates_px": obs.candidates_px, "kept": obs.kept}
         if n == 0:
             return self.fail(t_ns, "no_lights", "no light found in the frame", **diag)
         if n < 2:
@@ -190,6 +193,7 @@ class LightsEstimator(Estimator):
         rms = math.sqrt(float((res * res).sum()) / res.size)
         quality = pose_quality(k, rms, cand, runner, mode)
         diag.update({"inliers": k, "matched_lights": tuple(pairs[:, 1].tolist()),
+                     "pairs": pairs,  # (spot index in spots_px, light index in the site)
                      "rms_px": rms, "mode": mode, "score": cand.score,
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": elapsed_ms(t0)})

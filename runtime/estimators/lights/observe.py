@@ -51,6 +51,8 @@ class Observation:
     q_v: np.ndarray
     order: np.ndarray
     jac_px: np.ndarray
+    candidates_px: np.ndarray | None = None  # every examined spot's centroid (overlays)
+    kept: np.ndarray | None = None  # which of them passed the checks (None: all)
 
 
 def spot_table(rig: Rig, ceiling_height_m: float, light_radius_m: float) -> np.ndarray:
@@ -108,11 +110,13 @@ class SpotObserver:
         if self.light_radius_m > 0 and np.any(ok):
             ok &= self.plausible(spots, table, ok)
         J = table[:, :4].reshape(-1, 2, 2)
+        candidates_px = spots.centroids_px
         if not ok.all():
             spots, q, J = spots.select(ok), q[ok], J[ok]
         t_vc = self.t_vehicle_cam
         rng = np.hypot(q[:, 0] - t_vc[0], q[:, 1] - t_vc[1])
-        return Observation(spots, q, rng.argsort(kind="stable"), J)
+        return Observation(spots, q, rng.argsort(kind="stable"), J,
+                           candidates_px, ok)
 
     @staticmethod
     def plausible(spots: Spots, table: np.ndarray, ok: np.ndarray) -> np.ndarray:

@@ -1,0 +1,212 @@
+"""What a replay shows: overlay PNGs per frame and one self-contained HTML report.
+
+:class:`ReplayViews` is handed each replayed frame (the frame, the estimator's own
+estimate, the published one, the latency); it writes overlays
+(``OUT/overlays/000123.png``; all frames or only failures and low-quality ones) and
+keeps what the report needs: per-frame outcomes and a few frames (by reference) for
+the worst frames' overlays. :meth:`ReplayViews.write_report` writes ``report.html``:
+plots as embedded PNG (``data:`` URIs), no script, nothing fetched: it opens offline.
+
+Example::
+
+    views = ReplayViews(rig, site, overlays_dir=Path("out/overlays"))
+    ...  views.frame(k, image, raw, published, latency_ms) per frame ...
+    views.write_report(Path("out/report.html"), truth, "replay of rec")
+"""
+
+from __future__ import annotations
+
+import base64
+import heapq
+import html
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import OutputError
+from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
+from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.io.recording import Truth
+from ceilkit.runtime.viz import plots
+from ceilkit.runtime.viz.overlay import draw_overlay, encode_png
+
+LOW_QUALITY = 0.5
+"""``--overlays-only-failures`` also writes frames whose published quality is below this."""
+WORST_FRAMES = 4
+"""The report shows this many worst frames (largest position error) ..."""
+FAILED_FRAMES = 3
+"""... and the first frame of up to this many failure reasons."""
+REPORT_MAX_WIDTH_PX = 640
+"""Overlays in the report are scaled down to this width."""
+
+
+@dataclass(frozen=True)
+class FrameOutcome:
+    """One replayed frame: stamp, published pose (NaN where none), quality, reason
+    (``ok`` for a pose), latency (ms)."""
+
+    t_ns: int
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    quality: float
+    reason: str
+    latency_ms: float
+
+
+def _outcome(est: Estimate, latency_ms: float) -> FrameOutcome:
+    if isinstance(est, PoseEstimate):
+        nan = float("nan")
+        return FrameOutcome(est.t_ns, nan if est.x_m is None else float(est.x_m),
+                            nan if est.y_m is None else float(est.y_m), float(est.yaw_rad),
+                            float(est.quality), "ok", latency_ms)
+    return FrameOutcome(est.t_ns, math.nan, math.nan, math.nan, 0.0, est.reason, latency_ms)
+
+
+class ReplayViews:
+    """Overlays and report data of a replay (see the module doc).
+
+    Args:
+        rig, site: what the replay ran with.
+        overlays_dir: write overlay PNGs here (None: none).
+        only_failures: only failures and frames of quality below :data:`LOW_QUALITY`.
+        truth: ``truth.csv`` (ranks the worst frames by position error), or None.
+    """
+
+    def __init__(self, rig: Rig, site: Site, overlays_dir: Path | None = None,
+                 only_failures: bool = False, truth: Truth | None = None) -> None:
+        self.rig, self.site, self.truth = rig, site, truth
+        self.overlays_dir = overlays_dir
+        self.only_failures = only_failures
+        self.outcomes: list[FrameOutcome] = []
+        self.written = 0
+        self._worst: list[tuple[float, int, np.ndarray, Estimate]] = []
+        self._failed: dict[str, tuple[int, np.ndarray, Estimate]] = {}
+        if overlays_dir is not None:
+            try:
+                overlays_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise OutputError(overlays_dir, f"cannot create: {exc.strerror}") from None
+
+    def frame(self, k: int, image: np.ndarray, raw: Estimate, published: Estimate,
+              latency_ms: float) -> None:
+        """Record frame ``k``: its overlay when asked, its outcome, and the frame itself
+        if it is among the worst so far."""
+        self.outcomes.append(_outcome(published, latency_ms))
+        if self.overlays_dir is not None and (
+                not self.only_failures or not published or published.quality < LOW_QUALITY):
+            path = self.overlays_dir / f"{k:06d}.png"
+            try:
+                path.write_bytes(encode_png(draw_overlay(image, raw, self.rig, self.site)))
+            except OSError as exc:
+                raise OutputError(path, f"cannot write: {exc.strerror}") from None
+            self.written += 1
+        if not published:
+            if published.reason not in self._failed and len(self._failed) < FAILED_FRAMES:
+                self._failed[published.reason] = (k, image, raw)
+            return
+        err = self._position_error(published)
+        if err is not None:
+            item = (err, k, image, raw)
+            if len(self._worst) < WORST_FRAMES:
+                heapq.heappush(self._worst, item)
+            elif err > self._worst[0][0]:
+                heapq.heapreplace(self._worst, item)
+
+    def _position_error(self, est: PoseEstimate) -> float | None:
+        row = self.truth.lookup(est.t_ns) if self.truth is not None else None
+        if row is None:
+            return None
+        dx = 0.0 if est.x_m is None else est.x_m - row[0]
+        dy = 0.0 if est.y_m is None else est.y_m - row[1]
+        return math.hypot(dx, dy)
+
+    def write_report(self, path: Path, title: str, summary: list[str]) -> Path:
+        """Write the self-contained HTML report; returns its path.
+
+        Raises:
+            OutputError: it cannot be written.
+        """
+        sections = [f"<h1>{html.escape(title)}</h1>",
+                    "<pre>" + html.escape("\n".join(summary)) + "</pre>"]
+        sections += [_img(png, alt) for alt, png in self._plots()]
+        sections.append("<h2>worst frames (largest position error)</h2>")
+        for err, k, image, raw in sorted(self._worst, reverse=True):
+            sections.append(f"<h3>frame {k}: position error {err * 100:.1f} cm</h3>")
+            sections.append(_img(self._overlay_png(image, raw), f"overlay of frame {k}"))
+        if self._failed:
+            sections.append("<h2>failed frames (first of each reason)</h2>")
+        for reason, (k, image, raw) in self._failed.items():
+            sections.append(f"<h3>frame {k}: {html.escape(reason)}</h3>")
+            sections.append(_img(self._overlay_png(image, raw), f"overlay of frame {k}"))
+        doc = ("<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
+               f"<title>{html.escape(title)}</title><style>body{{font-family:sans-serif;"
+               "max-width:900px;margin:auto}img{max-width:100%}</style></head><body>\n"
+               + "\n".join(sections) + "\n</body></html>\n")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(doc, encoding="utf-8")
+        except OSError as exc:
+            raise OutputError(path, f"cannot write: {exc.strerror}") from None
+        return path
+
+    def _overlay_png(self, image: np.ndarray, raw: Estimate) -> bytes:
+        img = draw_overlay(image, raw, self.rig, self.site)
+        if img.shape[1] > REPORT_MAX_WIDTH_PX:
+            s = REPORT_MAX_WIDTH_PX / img.shape[1]
+            img = cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+        return encode_png(img)
+
+    def _plots(self) -> list[tuple[str, bytes]]:
+        """``(alt text, PNG)`` of every plot."""
+        o = self.outcomes
+        if not o:
+            return []
+        t0 = o[0].t_ns
+        t_s = np.array([r.t_ns - t0 for r in o]) / 1e9
+        xy = np.array([[r.x_m, r.y_m] for r in o])
+        q = np.array([r.quality for r in o])
+        truth_rows = [self.truth.lookup(r.t_ns) if self.truth is not None else None for r in o]
+        truth_xy = (np.array([[self.truth.x_m[i], self.truth.y_m[i]]
+                              for i in range(self.truth.t_ns.size)])
+                    if self.truth is not None else None)
+        shown = xy.copy()
+        for i, row in enumerate(truth_rows):  # an unobserved x drawn at the truth's x
+            if row is not None and np.isnan(shown[i, 0]) and np.isfinite(shown[i, 1]):
+                shown[i, 0] = row[0]
+        ok = np.isfinite(shown).all(axis=1)
+        out = [("trajectory", plots.trajectory_png(self.site, truth_xy, shown[ok], q[ok],
+                                                   "trajectory over the site map"))]
+        if any(row is not None for row in truth_rows):
+            err = _errors(o, truth_rows)
+            out.append(("errors", plots.errors_png(t_s, err)))
+            pos = np.hypot(np.nan_to_num(err["x error [cm]"]),
+                           np.nan_to_num(err["y error [cm]"]))
+            pos[~np.isfinite(err["y error [cm]"])] = np.nan
+            out.append(("quality against error",
+                        plots.quality_error_png(q, pos, "position error [cm]")))
+        out.append(("outcomes", plots.failures_png(t_s, [r.reason for r in o])))
+        out.append(("latency", plots.histogram_png(np.array([r.latency_ms for r in o]),
+                                                   "latency, capture to pose out [ms]",
+                                                   "latency per frame")))
+        return out
+
+
+def _errors(o: list[FrameOutcome], truth_rows: list) -> dict[str, np.ndarray]:
+    """Per-frame errors (cm, cm, degrees) against the truth rows (NaN where none)."""
+    e = np.full((len(o), 3), np.nan)
+    for i, (r, row) in enumerate(zip(o, truth_rows, strict=True)):
+        if row is not None and r.reason == "ok":
+            e[i] = ((r.x_m - row[0]) * 100, (r.y_m - row[1]) * 100,
+                    math.degrees(wrap_pi(r.yaw_rad - row[2])))
+    return {"x error [cm]": e[:, 0], "y error [cm]": e[:, 1], "yaw error [deg]": e[:, 2]}
+
+
+def _img(png: bytes, alt: str) -> str:
+    data = base64.b64encode(png).decode("ascii")
+    return f"<p><img alt='{html.escape(alt)}' src='data:image/png;base64,{data}'></p>"
