@@ -35,6 +35,7 @@ from ceilkit.runtime.live import LiveResult, run_live
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter, MeterSink, source_truth
 from ceilkit.runtime.pipeline import Pipeline, PoseFileSink, PoseSink, Telemetry
 from ceilkit.runtime.tracking import Tracker
+from ceilkit.runtime.viz.web import open_view
 
 SIM_FRAMES = 300
 """Frames the simulator renders when ``frames`` is 0."""
@@ -125,6 +126,9 @@ class SessionConfig:
         frames: stop after this many frames (0: until the source ends or ``stop``; the
             simulator then renders :data:`SIM_FRAMES`).
         capture: the camera's requested format.
+        view: serve the live web view at ``[HOST:]PORT`` (host 127.0.0.1 by default;
+            :mod:`~ceilkit.runtime.viz.web`), or ``None``. view_token: required of
+            the view's every request when set.
     """
 
     device: str = "/dev/video0"
@@ -137,6 +141,8 @@ class SessionConfig:
     out: Path | None = None
     frames: int = 0
     capture: CaptureSettings = CaptureSettings()
+    view: str | None = None
+    view_token: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -259,7 +265,12 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                                  if s is not None]
         if meter is not None:
             sinks.append(MeterSink(meter))
-        pipeline = Pipeline(estimator, sinks, Tracker())
+        view = open_view(config.view, config.view_token, rig, site, stack,
+                         lambda: link_lines(link))
+        pipeline = Pipeline(view.watch(estimator, sinks) if view else estimator, sinks,
+                            Tracker())
+        if view is not None:
+            view.attach(pipeline.telemetry)
         result = run_live(source, pipeline, recorder, stop, config.frames, on_frame)
     return SessionResult(config, estimator.name, result, tuple(link_lines(link)),
                          source.reopens if isinstance(source, CameraSource) else 0,
