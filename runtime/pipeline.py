@@ -8,6 +8,9 @@ bounded memory.
 
 from __future__ import annotations
 
+import errno
+import logging
+import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
@@ -16,11 +19,17 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from ceilkit.runtime.errors import OutputError
 from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 from ceilkit.runtime.estimators.registry import Estimator
-from ceilkit.runtime.io.recording import PoseWriter
+from ceilkit.runtime.io.recording import PoseWriter, device_of
 from ceilkit.runtime.io.sources import Frame
 from ceilkit.runtime.tracking import Tracker
+
+log = logging.getLogger("ceilkit.outputs")
+
+RETRY_S = 1.0
+"""Seconds between attempts to write again to an output that failed (a full disk)."""
 
 
 class PoseSink(Protocol):
@@ -38,15 +47,112 @@ class FaultSink(PoseSink, Protocol):
         ...
 
 
-class PoseFileSink:
-    """Writes ``poses.csv`` rows; latency from capture to the row being written."""
+class OutputGuard:
+    """An output that degrades instead of stopping the run (a logger on the vehicle).
 
-    def __init__(self, writer: PoseWriter, clock: Callable[[], int] = time.monotonic_ns):
+    When a write fails, one line says so (``no space left on /dev/sda1 (/data);
+    recording stopped at frame 812, localization continues``); while paused, what is
+    not written is counted (:meth:`skip`) and a write is tried again every ``retry_s``
+    (:meth:`due`); the first that succeeds logs ``... resumed``. Several writers (the
+    loop's thread and an encoder thread) may report to one guard: it is paused while
+    any of them fails.
+
+    Args:
+        what: the output's name in messages (``recording``, ``poses.csv``).
+        path: a path on its file system (the device named in messages).
+        unit: what :meth:`skip` counts (``frame``, ``row``).
+        retry_s: seconds between attempts while paused.
+        clock: seconds (monotonic).
+    """
+
+    def __init__(self, what: str, path, unit: str = "frame", retry_s: float = RETRY_S,
+                 clock: Callable[[], float] = time.monotonic):
+        self.what = what
+        self.path = path
+        self.unit = unit
+        self.retry_s = retry_s
+        self.clock = clock
+        self.lost = 0           # units not written
+        self.pauses = 0
+        self.reason = ""        # why the last pause began
+        self._failing: dict[str, float] = {}   # writer -> when it may try again
+        self._lock = threading.Lock()
+
+    @property
+    def paused(self) -> bool:
+        return bool(self._failing)
+
+    def due(self, writer: str = "main") -> bool:
+        """Whether ``writer`` should write now (not failing, or its retry is due)."""
+        with self._lock:
+            t = self._failing.get(writer)
+            return t is None or self.clock() >= t
+
+    def failed(self, exc: OutputError, at: int, writer: str = "main") -> None:
+        """``writer`` failed at unit ``at``: pause (one line when the pause begins)."""
+        with self._lock:
+            first = not self._failing
+            self._failing[writer] = self.clock() + self.retry_s
+        if first:
+            self.pauses += 1
+            dev = device_of(self.path)
+            code = getattr(exc, "errno", None)
+            self.reason = (f"no space left on {dev}" if code == errno.ENOSPC
+                           else f"cannot write on {dev} ({exc.detail})")
+            log.warning("%s; %s stopped at %s %d, localization continues", self.reason,
+                        self.what, self.unit, at)
+
+    def ok(self, at: int, writer: str = "main") -> None:
+        """``writer`` wrote unit ``at``: resume when nothing else is failing."""
+        if writer not in self._failing:
+            return
+        with self._lock:
+            self._failing.pop(writer, None)
+            resumed = not self._failing
+        if resumed:
+            log.warning("%s resumed at %s %d (%d %ss not written since it stopped)",
+                        self.what, self.unit, at, self.lost, self.unit)
+
+    def skip(self) -> None:
+        self.lost += 1
+
+    def lines(self) -> list[str]:
+        """A report line when anything was not written."""
+        if not self.pauses:
+            return []
+        return [f"{self.what}: {self.lost} {self.unit}s not written, paused {self.pauses}x "
+                f"({self.reason})"]
+
+
+class PoseFileSink:
+    """Writes ``poses.csv`` rows; latency from capture to the row being written.
+
+    With ``guard`` a failed write (a full disk) pauses the file instead of raising:
+    the link and the other sinks go on (see :class:`OutputGuard`).
+    """
+
+    def __init__(self, writer: PoseWriter, clock: Callable[[], int] = time.monotonic_ns,
+                 guard: OutputGuard | None = None):
         self.writer = writer
         self.clock = clock
+        self.guard = guard
 
     def send(self, est: Estimate, relocalized: bool, capture_ns: int) -> None:
-        self.writer.write(est, (self.clock() - capture_ns) / 1e6)
+        guard = self.guard
+        if guard is None:
+            self.writer.write(est, (self.clock() - capture_ns) / 1e6)
+            return
+        if not guard.due():
+            guard.skip()
+            return
+        row = self.writer.rows
+        try:
+            self.writer.write(est, (self.clock() - capture_ns) / 1e6)
+        except OutputError as exc:
+            guard.skip()
+            guard.failed(exc, row)
+            return
+        guard.ok(row)
 
 
 class ListSink:
@@ -82,6 +188,7 @@ class Telemetry:
     relocalizations: int = 0
     dropped: int = 0
     camera_losses: int = 0
+    link_state: str = ""  # set by the live loop: "stalled", "disconnected", ...
     failures: Counter = field(default_factory=Counter)
     wait_ms: deque = field(default_factory=_window)
     estimate_ms: deque = field(default_factory=_window)
@@ -117,7 +224,8 @@ class Telemetry:
     def live_line(self) -> str:
         lat = self.latency_ms[-1] if self.latency_ms else float("nan")
         return (f"frame {self.frames} est {self.estimated} drop {self.dropped} "
-                f"fail {sum(self.failures.values())} latency {lat:.1f} ms")
+                f"fail {sum(self.failures.values())} latency {lat:.1f} ms"
+                + (f" link {self.link_state}" if self.link_state else ""))
 
 
 class Pipeline:

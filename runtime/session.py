@@ -1,11 +1,15 @@
 """The live session: what ``ceilrun`` runs on the vehicle, as one library call.
 
-:func:`run_session` opens, in this order, the rig and site (the packaged example's for
-``sim:NAME`` unless given), the estimator, the frame source (``--device``), the
-recording (``record``), the poses file (``out``), and the pose link; runs the live
-loop (:func:`~ceilkit.runtime.live.run_live`: pipeline, tracker, sinks, the link
-first) until the source ends, ``frames`` ran, or ``stop`` is set; then closes the
-recording, the poses file, the link and the source, whatever happened.
+:func:`run_session` loads the rig and site (the packaged example's for ``sim:NAME``
+unless given) and the estimator, checks the outputs (none may exist unless ``force``,
+none may be an input of the run), then opens the frame source (``--device``) and the
+pose link, waiting for a missing camera or serial port with back-off when ``wait``;
+only once both are open does anything appear on disk: the recording (``record``), the
+poses file (``out``). It runs the live loop (:func:`~ceilkit.runtime.live.run_live`:
+pipeline, tracker, sinks, the link first) until the source ends, ``frames`` ran, or
+``stop`` is set; then closes the recording, the poses file, the link and the source,
+whatever happened. A full disk pauses the recording and the poses file with one line
+each (:class:`~ceilkit.runtime.pipeline.OutputGuard`); the link goes on.
 
 Example (a notebook: thirty simulated frames, poses into a folder)::
 
@@ -16,10 +20,12 @@ Example (a notebook: thirty simulated frames, poses into a folder)::
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import signal
 import threading
-from collections.abc import Callable, Iterator, Mapping
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,18 +33,40 @@ from typing import Any
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.devices import open_source, packaged_config
-from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.errors import CaptureError, ConfigError, LinkError
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.io.capture import CameraSource
-from ceilkit.runtime.io.recording import PoseWriter, RecordingWriter
-from ceilkit.runtime.live import LiveResult, run_live
+from ceilkit.runtime.io.recording import (
+    LOG_DIR,
+    OS_DISK,
+    RECORDING_FILES,
+    Disk,
+    PoseWriter,
+    RecordingWriter,
+    refuse_existing,
+)
+from ceilkit.runtime.live import AsyncRecorder, LiveResult, run_live
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter, MeterSink, source_truth
-from ceilkit.runtime.pipeline import Pipeline, PoseFileSink, PoseSink, Telemetry
+from ceilkit.runtime.pipeline import (
+    OutputGuard,
+    Pipeline,
+    PoseFileSink,
+    PoseSink,
+    Telemetry,
+)
 from ceilkit.runtime.tracking import Tracker
 from ceilkit.runtime.viz.web import open_view
 
+log = logging.getLogger("ceilkit.session")
+
 SIM_FRAMES = 300
 """Frames the simulator renders when ``frames`` is 0."""
+WAIT_BACKOFF_S = (0.5, 8.0)
+"""``wait``: first and longest delay between attempts to open a camera or port."""
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""Signals that stop a session cleanly (SIGHUP: the ssh session dropped)."""
+NUMBERED = "{n}"
+"""In ``record``: replaced by the lowest number (1, 2, ...) whose folder does not exist."""
 
 
 @dataclass(frozen=True)
@@ -126,6 +154,12 @@ class SessionConfig:
         frames: stop after this many frames (0: until the source ends or ``stop``; the
             simulator then renders :data:`SIM_FRAMES`).
         capture: the camera's requested format.
+        force: replace an existing ``poses.csv`` or recording (else a ConfigError).
+        wait: wait for a camera or serial port that cannot be opened yet, with back-off
+            (:data:`WAIT_BACKOFF_S`), instead of failing (a service started before its
+            USB devices appear).
+        fsync_every_s: fsync the recording at this period, bounding what a power cut
+            loses (0: the operating system's write-back, ~30 s on Linux).
         view: serve the live web view at ``[HOST:]PORT`` (host 127.0.0.1 by default;
             :mod:`~ceilkit.runtime.viz.web`), or ``None``. view_token: required of
             the view's every request when set.
@@ -141,6 +175,9 @@ class SessionConfig:
     out: Path | None = None
     frames: int = 0
     capture: CaptureSettings = CaptureSettings()
+    force: bool = False
+    wait: bool = False
+    fsync_every_s: float = 1.0
     view: str | None = None
     view_token: str | None = None
 
@@ -164,6 +201,8 @@ class SessionResult:
     link: tuple[str, ...]
     camera_reopens: int
     accuracy: Accuracy | None
+    record: Path | None = None
+    outputs: tuple[str, ...] = ()
 
     @property
     def telemetry(self) -> Telemetry:
@@ -179,8 +218,12 @@ class SessionResult:
         if self.accuracy is not None:
             out.append("  against the source's ground truth:")
             out += ["    " + line for line in self.accuracy.lines()]
-        if self.config.record is not None:
-            out.append(f"  recorded {self.run.recorded} frames in {self.config.record}")
+        out += ["  " + line for line in self.outputs]
+        if self.record is not None:
+            out.append(f"  recorded {self.run.recorded} frames in {self.record}")
+            if self.run.left_in_log:
+                out.append(f"  {self.run.left_in_log} of them only in {LOG_DIR}/ (they "
+                           "replay; `ceilrun repair` writes them as PNGs)")
         return out
 
 
@@ -208,8 +251,9 @@ def load_rig_site(device: str, rig: Rig | Path | None,
 
 @contextlib.contextmanager
 def stop_on_signals() -> Iterator[threading.Event]:
-    """An event set by SIGINT or SIGTERM (on the main thread): the loop finishes its
-    frame and closes files. A second signal while stopping kills the process at once."""
+    """An event set by SIGINT, SIGTERM or SIGHUP (:data:`STOP_SIGNALS`, on the main
+    thread): the loop finishes its frame and closes files. A second signal while
+    stopping kills the process at once."""
     stop = threading.Event()
     previous = {}
 
@@ -220,7 +264,7 @@ def stop_on_signals() -> Iterator[threading.Event]:
         stop.set()
 
     if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             previous[sig] = signal.signal(sig, handler)
     try:
         yield stop
@@ -229,8 +273,119 @@ def stop_on_signals() -> Iterator[threading.Event]:
             signal.signal(sig, h)
 
 
+def record_folder(record: Path) -> Path:
+    """``record`` with :data:`NUMBERED` replaced by the lowest free number."""
+    text = str(record)
+    if NUMBERED not in text:
+        return Path(record)
+    n = 1
+    while Path(text.replace(NUMBERED, str(n))).exists():
+        n += 1
+    return Path(text.replace(NUMBERED, str(n)))
+
+
+def _resolved(path: Path | str) -> Path:
+    return Path(os.path.realpath(path))
+
+
+def session_inputs(config: SessionConfig, rig: Rig) -> list[Path]:
+    """The files and folders a session reads."""
+    out = [Path(p) for p in (config.rig, config.site, rig.camera_file)
+           if isinstance(p, str | Path)]
+    if not config.device.startswith("sim") and Path(config.device).exists():
+        out.append(Path(config.device))
+    return out
+
+
+def check_outputs(inputs: Sequence[Path], outputs: Mapping[str, Sequence[Path]]) -> None:
+    """Refuse outputs that are inputs of the same run.
+
+    Args:
+        inputs: the files and folders read.
+        outputs: by parameter name (``record``, ``out``, ``link``), the paths written;
+            an input inside a written folder is refused too.
+
+    Raises:
+        ConfigError: keyed by the output's parameter, naming the input.
+    """
+    read = {_resolved(p): Path(p) for p in inputs}
+    for key, paths in outputs.items():
+        for path in paths:
+            target = _resolved(path)
+            for r, shown in read.items():
+                if r == target or target in r.parents or (
+                        key == "record" and r.is_dir() and r in target.parents):
+                    raise ConfigError(None, key, f"{path} is an input of this run ({shown}): "
+                                      "choose another output")
+
+
+def _session_outputs(config: SessionConfig, record: Path | None) -> dict[str, list[Path]]:
+    out: dict[str, list[Path]] = {}
+    if record is not None:
+        out["record"] = [record / name for name in RECORDING_FILES]
+    if config.out is not None:
+        out["out"] = [config.out / "poses.csv"]
+    link = config.link
+    if link is not None and link.target != "-":
+        from ceilkit.runtime.io.link.transport import is_serial_path
+
+        if not is_serial_path(link.target):
+            out["link"] = [Path(link.target)]
+    return out
+
+
+def _check_config(config: SessionConfig) -> None:
+    if config.frames < 0:
+        raise ConfigError(None, "frames", f"expected an integer >= 0 (0: until stopped), "
+                          f"found {config.frames}")
+    if not config.fsync_every_s >= 0:
+        raise ConfigError(None, "fsync_every_s", f"expected seconds >= 0 (0: off), found "
+                          f"{config.fsync_every_s}")
+
+
+def _is_camera(device: str) -> bool:
+    return device.isdigit() or device.startswith("/dev/")
+
+
+def open_waiting(open_fn: Callable[[], Any], what: str, wait: bool,
+                 stop: threading.Event) -> Any:
+    """``open_fn()``; with ``wait``, retried with back-off (:data:`WAIT_BACKOFF_S`) while
+    it raises CaptureError or LinkError, saying so once per new reason; ``None`` when
+    ``stop`` is set meanwhile."""
+    delay, said = WAIT_BACKOFF_S[0], ""
+    while True:
+        try:
+            return open_fn()
+        except (CaptureError, LinkError) as exc:
+            if not wait:
+                raise
+            if str(exc) != said:
+                said = str(exc)
+                log.warning("waiting for %s: %s (retrying with back-off)", what, said)
+        if stop.wait(delay):
+            return None
+        delay = min(2 * delay, WAIT_BACKOFF_S[1])
+
+
+def _open_link(config: LinkConfig | None, rig: Rig, site: Site, wait: bool,
+               stop: threading.Event, stack: contextlib.ExitStack) -> tuple[Any, bool]:
+    """The open link (or ``None``) and whether ``stop`` came while waiting for it."""
+    if config is None:
+        return None, False
+    link = config.open(rig, site)
+    from ceilkit.runtime.io.link.transport import SerialLink
+
+    opened = open_waiting(link.open, f"serial port {config.target}",
+                          wait and isinstance(link, SerialLink), stop)
+    if opened is None:
+        return None, True
+    stack.callback(link.close)
+    return link, False
+
+
 def run_session(config: SessionConfig, stop: threading.Event | None = None,
-                on_frame: Callable[[Telemetry], None] | None = None) -> SessionResult:
+                on_frame: Callable[[Telemetry], None] | None = None,
+                disk: Disk = OS_DISK) -> SessionResult:
     """Run the live session ``config`` describes (see the module docstring).
 
     Args:
@@ -238,40 +393,85 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
         stop: set it (from a signal handler, another thread) to stop after the frame
             in hand; :func:`stop_on_signals` gives one.
         on_frame: called after each frame with the telemetry (a status line).
+        disk: how the recording and poses are written (a fake in tests).
 
     Raises:
-        ConfigError: bad rig, site, method or options.
+        ConfigError: bad rig, site, method, options or frames; an output that exists
+            (without ``force``) or is an input.
         CaptureError, LinkError, OutputError: a source, link or output that cannot be
-            opened or written. Frames that cannot be estimated are not errors.
+            opened (without ``wait``) or created. Nothing is on disk then. Frames that
+            cannot be estimated are not errors; a write failing mid-run pauses that
+            output (announced) and the run goes on.
     """
+    _check_config(config)
+    stop = stop or threading.Event()
     rig, site = load_rig_site(config.device, config.rig, config.site)
     estimator = make_estimator(config.method, rig, site, config.options)
+    record = record_folder(config.record) if config.record is not None else None
+    check_outputs(session_inputs(config, rig), _session_outputs(config, record))
+    if config.out is not None and (config.out / "poses.csv").exists() and not config.force:
+        raise refuse_existing(config.out / "poses.csv", "poses.csv is")
+    if record is not None and not config.force:
+        RecordingWriter.check_free(record)
     cap = config.capture
-    source = open_source(config.device, rig, site, cap.width, cap.height, cap.fps,
-                         cap.fourcc, cap.exposure, cap.gain,
-                         frames=config.frames or SIM_FRAMES)
+    start = time.monotonic()
+    source = open_waiting(
+        lambda: open_source(config.device, rig, site, cap.width, cap.height, cap.fps,
+                            cap.fourcc, cap.exposure, cap.gain,
+                            frames=config.frames or SIM_FRAMES),
+        f"camera {config.device}", config.wait and _is_camera(config.device), stop)
+    if source is None:  # stopped while waiting
+        return SessionResult(config, estimator.name,
+                             LiveResult(Telemetry(), 0, time.monotonic() - start, True),
+                             (), 0, None)
     truth = source_truth(source)
     meter = AccuracyMeter(truth) if truth is not None else None
+    guards: list[OutputGuard] = []
     with contextlib.ExitStack() as stack:
         stack.enter_context(source)
-        recorder = None
-        if config.record is not None:
-            recorder = stack.enter_context(
-                RecordingWriter(config.record, rig, site, truth_of=truth))
-        writer = (stack.enter_context(PoseWriter(config.out / "poses.csv"))
-                  if config.out is not None else None)
-        link = stack.enter_context(opened_link(config.link, rig, site))
-        sinks: list[PoseSink] = [s for s in (link, PoseFileSink(writer) if writer else None)
-                                 if s is not None]
-        if meter is not None:
-            sinks.append(MeterSink(meter))
-        view = open_view(config.view, config.view_token, rig, site, stack,
-                         lambda: link_lines(link))
-        pipeline = Pipeline(view.watch(estimator, sinks) if view else estimator, sinks,
-                            Tracker())
-        if view is not None:
-            view.attach(pipeline.telemetry)
-        result = run_live(source, pipeline, recorder, stop, config.frames, on_frame)
+        link, stopped = _open_link(config.link, rig, site, config.wait, stop, stack)
+        result = None
+        if not stopped:  # every resource is open: now the outputs appear on disk
+            sinks: list[PoseSink] = [link] if link is not None else []
+            if config.out is not None:
+                writer = stack.enter_context(PoseWriter(config.out / "poses.csv", disk=disk))
+                guards.append(OutputGuard("poses.csv", config.out, unit="row"))
+                sinks.append(PoseFileSink(writer, guard=guards[-1]))
+            recorder = None
+            if record is not None:
+                guards.append(OutputGuard("recording", record))
+                recorder = AsyncRecorder(
+                    stack.enter_context(RecordingWriter(record, rig, site, truth_of=truth,
+                                                        force=config.force, disk=disk)),
+                    fsync_every_s=config.fsync_every_s, guard=guards[-1])
+            if meter is not None:
+                sinks.append(MeterSink(meter))
+            view = open_view(config.view, config.view_token, rig, site, stack,
+                             lambda: link_lines(link))
+            pipeline = Pipeline(view.watch(estimator, sinks) if view else estimator, sinks,
+                                Tracker())
+            if view is not None:
+                view.attach(pipeline.telemetry)
+            result = run_live(source, pipeline, recorder, stop, config.frames,
+                              _status(on_frame, link),
+                              camera_size=(rig.camera.width, rig.camera.height))
+    if result is None:
+        result = LiveResult(Telemetry(), 0, time.monotonic() - start, True)
     return SessionResult(config, estimator.name, result, tuple(link_lines(link)),
                          source.reopens if isinstance(source, CameraSource) else 0,
-                         meter.result() if meter is not None else None)
+                         meter.result() if meter is not None else None, record,
+                         tuple(line for g in guards for line in g.lines()))
+
+
+def _status(on_frame: Callable[[Telemetry], None] | None,
+            link: Any) -> Callable[[Telemetry], None] | None:
+    """``on_frame`` with the link's state (stalled, disconnected) in the telemetry."""
+    if on_frame is None or link is None:
+        return on_frame
+
+    def status(tel: Telemetry) -> None:
+        tel.link_state = ("stalled" if getattr(link, "stalled", False)
+                          else "" if link.state == "connected" else link.state)
+        on_frame(tel)
+
+    return status

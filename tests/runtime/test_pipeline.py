@@ -100,7 +100,7 @@ def test_async_recorder_keeps_every_frame_and_reports_errors(tmp_path, corridor_
 
     with pytest.raises(OutputError, match="cannot write"):
         bad.close()
-    assert bad.writer._frames[0].closed  # files closed all the same
+    assert bad.writer.closed  # files closed all the same
 
 
 def test_run_live_reports_a_lost_camera_and_records_every_frame(tmp_path, corridor_rig,

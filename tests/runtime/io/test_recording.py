@@ -1,4 +1,3 @@
-import csv
 import math
 import os
 
@@ -238,11 +237,11 @@ def test_a_failed_poses_write_is_an_output_error(tmp_path):
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
 def test_a_full_disk_is_an_output_error_naming_the_file(tmp_path):
     w = PoseWriter(tmp_path / "poses.csv")
-    w._fh.close()
-    w._fh = open("/dev/full", "w", encoding="utf-8")  # every write fails with ENOSPC
-    w._w = csv.writer(w._fh, lineterminator="\n")
+    w._csv.close()
+    w._csv.fd = os.open("/dev/full", os.O_WRONLY)  # every write fails with ENOSPC
     with pytest.raises(OutputError, match="poses.csv: cannot write: No space left"):
         w.write(Failure(1, "lights", "no_lights"))
+    w.close()
 
 
 def test_truth_rows_without_truth_open_the_file(tmp_path, corridor_rig, corridor_site):
