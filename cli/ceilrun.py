@@ -123,6 +123,10 @@ def live(
     exposure: float = typer.Option(None, help="Manual exposure (turns auto-exposure off)."),
     gain: float = typer.Option(None, help="Manual gain."),
     status: bool = typer.Option(False, "--status", help="Print a live status line."),
+    view: str = typer.Option(None, "--view", metavar="[HOST:]PORT", help="Serve the live web "
+                             "view here (host 127.0.0.1 unless given), read-only."),
+    view_token: str = typer.Option(None, "--view-token", help="Require this token of "
+                                   "every view request (?token=...); 403 without."),
 ) -> None:
     """Run live: frames from --device, poses to --serial."""
     if ctx.invoked_subcommand is not None:
@@ -132,7 +136,8 @@ def live(
         device, rig, site, method, parse_options(option),
         _link(serial, protocol, baud, sysid, compid, mavlink_missing_x,
               _parse_origin(ekf_origin)),
-        record, out, frames, CaptureSettings(width, height, fps, fourcc, exposure, gain))
+        record, out, frames, CaptureSettings(width, height, fps, fourcc, exposure, gain),
+        view=view, view_token=view_token)
 
     def show(tel):
         if status:
@@ -167,6 +172,13 @@ def replay(
         MissingX.skip, help="MAVLink, a pose without x: skip (default) or nan."),
     progress: bool = typer.Option(None, "--progress/--no-progress",
                                   help="Progress bar (default: on a terminal)."),
+    overlays: Path = typer.Option(None, "--overlays", metavar="DIR", help="Write each "
+                                  "frame's overlay here as NNNNNN.png."),
+    overlays_only_failures: bool = typer.Option(
+        False, "--overlays-only-failures", help="Overlays only of failures and frames of "
+        "quality below 0.5."),
+    report: bool = typer.Option(False, "--report", help="Also write OUT/report.html: "
+                                "plots and the worst frames' overlays, self-contained."),
 ) -> None:
     """Replay a recording through the pipeline; write poses.csv; print errors vs truth.csv."""
     show = sys.stderr.isatty() if progress is None else progress
@@ -180,7 +192,9 @@ def replay(
     _setup_logging()
     res = run_replay(recording, out, rig, site, method, tum=tum, realtime=realtime,
                      track=not no_track, progress=bar, options=parse_options(option),
-                     link=_link(serial, protocol, baud, missing_x=mavlink_missing_x))
+                     link=_link(serial, protocol, baud, missing_x=mavlink_missing_x),
+                     overlays=overlays, overlays_only_failures=overlays_only_failures,
+                     report=report)
     if show:
         _err("")
     # the report goes to stderr when the poses themselves stream to stdout
