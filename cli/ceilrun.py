@@ -17,16 +17,25 @@ import typer
 
 from ceilkit.runtime.errors import ConfigError, LinkError
 from ceilkit.runtime.estimators.registry import METHOD_NAMES
+from ceilkit.runtime.io.link.transport import is_serial_path
+from ceilkit.runtime.io.recording import (
+    LOG_DIR,
+    RECORDING_FILES,
+    Recording,
+    refuse_existing,
+    repair_recording,
+)
 from ceilkit.runtime.replay import replay as run_replay
 from ceilkit.runtime.session import (
     CaptureSettings,
     LinkConfig,
     SessionConfig,
+    check_outputs,
     run_session,
     stop_on_signals,
 )
 
-from .common import make_app, parse_options, quiet_opencv
+from .common import TERM_LINE, echo_err, make_app, parse_options, quiet_opencv
 
 app = make_app("ceilrun", "Run the localizer on the vehicle, or replay a recording.\n\n"
                "Live: ceilrun --device /dev/video0 --serial /dev/ttyUSB0 --rig rig.yaml "
@@ -48,11 +57,19 @@ class MissingX(str, Enum):
     nan = "nan"
 
 
+class _LineHandler(logging.StreamHandler):
+    """Log lines start on a line of their own (after a status or progress line)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        TERM_LINE.end()
+        super().emit(record)
+
+
 def _setup_logging() -> None:
     """Warnings of the runtime (camera lost/back, link lost/back) as lines on stderr."""
     root = logging.getLogger("ceilkit")
     if not any(getattr(h, "_ceilrun", False) for h in root.handlers):
-        handler = logging.StreamHandler(sys.stderr)
+        handler = _LineHandler(sys.stderr)
         handler.setFormatter(logging.Formatter("ceilrun: %(message)s"))
         handler._ceilrun = True  # type: ignore[attr-defined]
         root.addHandler(handler)
@@ -85,7 +102,7 @@ def _link(serial: str | None, protocol: Protocol, baud: int, sysid: int = 1,
 
 
 def _err(msg: str) -> None:
-    typer.echo(msg, err=True)
+    echo_err(msg)
 
 
 @app.callback(invoke_without_command=True)
@@ -123,6 +140,13 @@ def live(
     exposure: float = typer.Option(None, help="Manual exposure (turns auto-exposure off)."),
     gain: float = typer.Option(None, help="Manual gain."),
     status: bool = typer.Option(False, "--status", help="Print a live status line."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing poses.csv or "
+                               "recording (refused otherwise)."),
+    wait: bool = typer.Option(False, "--wait", help="Wait for a camera or serial port "
+                              "that is not there yet, with back-off (for services)."),
+    fsync_every: float = typer.Option(1.0, "--fsync-every", metavar="S", help="fsync the "
+                                      "recording every S seconds: a power cut loses at "
+                                      "most that (0: off)."),
     view: str = typer.Option(None, "--view", metavar="[HOST:]PORT", help="Serve the live web "
                              "view here (host 127.0.0.1 unless given), read-only."),
     view_token: str = typer.Option(None, "--view-token", help="Require this token of "
@@ -137,17 +161,14 @@ def live(
         _link(serial, protocol, baud, sysid, compid, mavlink_missing_x,
               _parse_origin(ekf_origin)),
         record, out, frames, CaptureSettings(width, height, fps, fourcc, exposure, gain),
-        view=view, view_token=view_token)
+        view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every)
 
     def show(tel):
         if status:
-            sys.stderr.write("\r" + tel.live_line())
-            sys.stderr.flush()
+            TERM_LINE.show(tel.live_line())
 
     with stop_on_signals() as stop:
         result = run_session(config, stop, show)
-    if status:
-        _err("")
     _err("ceilrun: " + "\n".join(result.lines()))
 
 
@@ -172,6 +193,8 @@ def replay(
         MissingX.skip, help="MAVLink, a pose without x: skip (default) or nan."),
     progress: bool = typer.Option(None, "--progress/--no-progress",
                                   help="Progress bar (default: on a terminal)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing poses.csv "
+                               "(refused otherwise)."),
     overlays: Path = typer.Option(None, "--overlays", metavar="DIR", help="Write each "
                                   "frame's overlay here as NNNNNN.png."),
     overlays_only_failures: bool = typer.Option(
@@ -186,20 +209,44 @@ def replay(
     def bar(done: int, total: int) -> None:
         if show and (done == total or done % 10 == 0):
             n = int(30 * done / max(total, 1))
-            sys.stderr.write(f"\r[{'#' * n}{'.' * (30 - n)}] {done}/{total}")
-            sys.stderr.flush()
+            TERM_LINE.show(f"[{'#' * n}{'.' * (30 - n)}] {done}/{total}")
 
     _setup_logging()
+    _check_replay_outputs(recording, out, rig, site, serial, tum, force)
     res = run_replay(recording, out, rig, site, method, tum=tum, realtime=realtime,
                      track=not no_track, progress=bar, options=parse_options(option),
                      link=_link(serial, protocol, baud, missing_x=mavlink_missing_x),
                      overlays=overlays, overlays_only_failures=overlays_only_failures,
                      report=report)
-    if show:
-        _err("")
+    TERM_LINE.end()
     # the report goes to stderr when the poses themselves stream to stdout
     echo = _err if serial == "-" else typer.echo
     echo("\n".join(res.lines()))
+
+
+def _check_replay_outputs(recording: Path, out: Path | None, rig: Path | None,
+                          site: Path | None, serial: str | None, tum: bool,
+                          force: bool) -> None:
+    """Refuse a replay that would overwrite poses without ``--force``, or write over one
+    of its own inputs (``--serial REC/truth.csv``)."""
+    folder = out if out is not None else recording / "replay"
+    inputs = [recording / name for name in RECORDING_FILES] + [p for p in (rig, site) if p]
+    outputs = {"out": [folder / "poses.csv"] + ([folder / "poses.tum"] if tum else [])}
+    if serial is not None and serial != "-" and not is_serial_path(serial):
+        outputs["link"] = [Path(serial)]
+    check_outputs([p for p in inputs if p.exists()], outputs)
+    if (folder / "poses.csv").exists() and not force:
+        raise refuse_existing(folder / "poses.csv")
+
+
+@app.command()
+def repair(
+    recording: Path = typer.Argument(..., help="A recording a killed run left."),
+) -> None:
+    """Write the frames a killed run left in RECORDING/frames.wal as PNGs and rows."""
+    n = repair_recording(recording)
+    typer.echo(f"{recording}: {n} frames written from {LOG_DIR}/; "
+               f"{len(Recording(recording))} frames in all")
 
 
 def main() -> None:

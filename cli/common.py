@@ -12,6 +12,7 @@ user reads ``ceilrun: error: --method: unknown method 'magic' (...)``.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
@@ -20,12 +21,15 @@ import typer
 import typer.core
 
 from ceilkit.runtime.errors import CeilkitError, ConfigError
+from ceilkit.runtime.io.recording import FORCE_HINT
 
 FLAGS: Mapping[str, str] = MappingProxyType({
     "method": "--method", "rig": "--rig", "site": "--site",
     "board": "--board", "square": "--square", "marker": "--marker",
     "detector": "--detector", "model": "--model", "fix_aspect_ratio": "--fix-aspect-ratio",
     "camera": "--camera", "fix": "--fix", "placements": "--placements",
+    "frames": "--frames", "record": "--record", "out": "--out", "link": "--serial",
+    "fsync_every_s": "--fsync-every", "force": "--force", "wait": "--wait",
 })
 """A library parameter name -> the flag of every command that has it."""
 
@@ -69,6 +73,47 @@ def as_flags(exc: ConfigError, command: str, takes_option: bool = False) -> Conf
     return ConfigError(None, flag, exc.detail)
 
 
+FORCE_FLAG_HINT = "give --force to replace it"
+""":data:`~ceilkit.runtime.io.recording.FORCE_HINT` as a command line says it."""
+
+
+class TermLine:
+    """A line of stderr rewritten in place (``\r``: a progress bar, a status line);
+    anything else printed on stderr first ends it, so it never glues onto it."""
+
+    def __init__(self) -> None:
+        self.open = False
+
+    def show(self, text: str) -> None:
+        sys.stderr.write("\r" + text)
+        sys.stderr.flush()
+        self.open = True
+
+    def end(self) -> None:
+        """Finish the line (a newline) if one is showing."""
+        if self.open:
+            self.open = False
+            try:
+                sys.stderr.write("\n")
+                sys.stderr.flush()
+            except OSError:  # the terminal is gone (SIGHUP)
+                pass
+
+
+TERM_LINE = TermLine()
+"""The one in-place line of a command's stderr."""
+
+
+def echo_err(msg: str) -> None:
+    """``msg`` on stderr, on a line of its own; nothing when the terminal is gone (an
+    ssh session that dropped: the run's files are what matters then)."""
+    TERM_LINE.end()
+    try:
+        typer.echo(msg, err=True)
+    except OSError:
+        pass
+
+
 class _Group(typer.core.TyperGroup):
     def invoke(self, ctx):  # type: ignore[override]
         try:
@@ -79,7 +124,8 @@ class _Group(typer.core.TyperGroup):
                 cmd = self.get_command(ctx, name) if name else self
                 takes = any("--option" in p.opts for p in getattr(cmd, "params", ()))
                 exc = as_flags(exc, name or "", takes)
-            typer.echo(f"{ctx.find_root().info_name}: error: {exc}", err=True)
+            text = str(exc).replace(FORCE_HINT, FORCE_FLAG_HINT)
+            echo_err(f"{ctx.find_root().info_name}: error: {text}")
             ctx.exit(1)
 
 

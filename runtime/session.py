@@ -410,7 +410,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     record = record_folder(config.record) if config.record is not None else None
     check_outputs(session_inputs(config, rig), _session_outputs(config, record))
     if config.out is not None and (config.out / "poses.csv").exists() and not config.force:
-        raise refuse_existing(config.out / "poses.csv", "poses.csv is")
+        raise refuse_existing(config.out / "poses.csv")
     if record is not None and not config.force:
         RecordingWriter.check_free(record)
     cap = config.capture
@@ -432,6 +432,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
         link, stopped = _open_link(config.link, rig, site, config.wait, stop, stack)
         result = None
         if not stopped:  # every resource is open: now the outputs appear on disk
+            view = open_view(config.view, config.view_token, rig, site, stack,
+                             lambda: link_lines(link))
             sinks: list[PoseSink] = [link] if link is not None else []
             if config.out is not None:
                 writer = stack.enter_context(PoseWriter(config.out / "poses.csv", disk=disk))
@@ -446,8 +448,6 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                     fsync_every_s=config.fsync_every_s, guard=guards[-1])
             if meter is not None:
                 sinks.append(MeterSink(meter))
-            view = open_view(config.view, config.view_token, rig, site, stack,
-                             lambda: link_lines(link))
             pipeline = Pipeline(view.watch(estimator, sinks) if view else estimator, sinks,
                                 Tracker())
             if view is not None:

@@ -91,10 +91,11 @@ def output_error(path: str | Path, exc: OSError) -> OutputError:
     return err
 
 
-def refuse_existing(path: str | Path, what: str) -> ConfigError:
-    """The error for an output that exists and was not to be overwritten."""
-    return ConfigError(path, None, f"{what} already there; nothing was overwritten "
-                       f"({FORCE_HINT})")
+def refuse_existing(path: str | Path, what: str = "") -> ConfigError:
+    """The error for an output that exists and was not to be overwritten (``what``: the
+    subject when it is not ``path`` itself, e.g. ``a recording is``)."""
+    return ConfigError(path, None, f"{what + ' ' if what else ''}already there; nothing "
+                       f"was overwritten ({FORCE_HINT})")
 
 
 def device_of(path: str | Path) -> str:

@@ -68,6 +68,8 @@ GST and HDT (needs the site's geodetic origin)."""
 MAX_FIX_AGE_NS = 10_000_000_000  # an estimate older than this is stamped with "now" (a replay)
 PERIOD_NS = 1_000_000_000
 MAX_RX_PENDING = 4096
+STALL_REPORT_NS = 10_000_000_000
+"""While the peer stays backed up (messages dropped), one log line per this period."""
 
 
 # ------------------------------------------------------------------------ protocols
@@ -395,6 +397,9 @@ class LinkBase:
         self._next_periodic_ns = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._stall_since: int | None = None   # link clock of the first drop of a stall
+        self._stall_drops = 0
+        self._stall_reported = 0
 
     # ---------------------------------------------------------------- port hooks
 
@@ -491,6 +496,12 @@ class LinkBase:
         return self._counters
 
     @property
+    def stalled(self) -> bool:
+        """The peer is not reading: messages are being dropped (reported on the log
+        while it lasts, at most every 10 s)."""
+        return self._stall_since is not None
+
+    @property
     def pending_bytes(self) -> int:
         """Bytes accepted by :meth:`send` and not yet written."""
         return self._queued_bytes + len(self._head)
@@ -574,6 +585,28 @@ class LinkBase:
             old = self._queue.popleft()  # oldest not-yet-started message: stale
             self._queued_bytes -= len(old)
             self._count(dropped=1)
+            self._stalling()
+
+    def _stalling(self) -> None:
+        """A message was dropped because the peer is backed up: report, rate-limited."""
+        now = self.clock_ns()
+        self._stall_drops += 1
+        if self._stall_since is None:
+            self._stall_since = self._stall_reported = now
+            log.warning("link %s stalled: the peer is not reading; dropping the oldest "
+                        "messages", self.describe())
+        elif now - self._stall_reported >= STALL_REPORT_NS:
+            self._stall_reported = now
+            log.warning("link %s still stalled after %.0f s: %d messages dropped",
+                        self.describe(), (now - self._stall_since) / 1e9, self._stall_drops)
+
+    def _flowing(self) -> None:
+        """Everything queued went out: a stall, if any, is over."""
+        if self._stall_since is not None:
+            log.warning("link %s flowing again after %.1f s (%d messages dropped)",
+                        self.describe(), (self.clock_ns() - self._stall_since) / 1e9,
+                        self._stall_drops)
+            self._stall_since, self._stall_drops = None, 0
 
     def _poll_locked(self, now: int) -> None:
         if self._state == "disconnected" and now >= self._next_attempt_ns:
@@ -604,6 +637,7 @@ class LinkBase:
                 return
             self._head = b""
             self._count(sent=1)
+        self._flowing()
 
     def _read(self) -> bool:
         """Read and dispatch what the controller sent; True if answers were queued."""
@@ -635,6 +669,7 @@ class LinkBase:
         self._queued_bytes = 0
         self._head = b""
         self._rx = b""
+        self._stall_since, self._stall_drops = None, 0  # lost, not stalled
         if dropped:
             self._count(dropped=dropped)
         try:
