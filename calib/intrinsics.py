@@ -44,6 +44,7 @@ from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.camera import DISTORTION_MODELS, CameraModel
 from ceilkit.runtime.io.capture import IMAGE_SUFFIXES, list_images
 from ceilkit.runtime.io.sources import FrameSource
+from ceilkit.runtime.viz.plots import with_colour_scale
 
 from .boards import Board, CharucoBoard, ChessBoard, Detection
 
@@ -962,7 +963,9 @@ def plot_coverage(result: IntrinsicsResult) -> np.ndarray:
             cv2.circle(img, (int(round(p[0])), int(round(p[1]))), 2, colour, -1, cv2.LINE_AA)
     _text(img, f"coverage {100 * result.report.coverage:.0f}% (red: no corner); "
                f"dot colour: residual, red >= {scale:.2f} px", (6, 16))
-    return img
+    t = np.linspace(0.0, 1.0, 256)[:, None]
+    lut = np.hstack([200 * (1 - t), 160 * (1 - t), 220 * t])  # the dots' colours, BGR
+    return with_colour_scale(img, lut, 0.0, scale, "residual [px]")
 
 
 def plot_distortion(result: IntrinsicsResult, step_px: int = 40) -> np.ndarray:
@@ -994,7 +997,8 @@ def plot_distortion(result: IntrinsicsResult, step_px: int = 40) -> np.ndarray:
                             (255, 255, 255), 1, cv2.LINE_AA, tipLength=0.25)
     _text(img, f"{cam.model}: distortion 0..{dmax:.1f} px (arrows x{gain:.2g})", (6, 16), 0.45,
           (255, 255, 255))
-    return img
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_VIRIDIS)
+    return with_colour_scale(img, lut[:, 0, :], 0.0, dmax, "distortion [px]")
 
 
 def write_plots(result: IntrinsicsResult, folder: str | Path) -> list[Path]:

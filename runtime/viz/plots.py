@@ -14,6 +14,7 @@ Example::
 from __future__ import annotations
 
 import io
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -164,3 +165,81 @@ def ellipse_xy(cov_xy: np.ndarray, n_sigma: float = 1.0, n: int = 48) -> np.ndar
     a = np.linspace(0, 2 * np.pi, n)
     return (V @ (np.sqrt(np.maximum(w, 0))[:, None] * n_sigma
                  * np.stack([np.cos(a), np.sin(a)]))).T
+
+
+def lightmap_png(lights_m: np.ndarray, sigma_m: np.ndarray, views: np.ndarray,
+                 drive_xy_m: np.ndarray | None, site: Site | None = None) -> bytes:
+    """A surveyed light map: each light's 1σ circle (drawn ``gain`` times larger, the
+    gain printed), coloured by its σ in mm; the drive the survey came from."""
+    plt = pyplot()
+    from matplotlib.collections import EllipseCollection
+    fig, ax = plt.subplots(figsize=SIZE_IN)
+    if site is not None:
+        draw_site(ax, site)
+    L = np.asarray(lights_m, float).reshape(-1, 2)
+    s_mm = 1e3 * np.asarray(sigma_m, float)
+    if drive_xy_m is not None and len(drive_xy_m):
+        ax.plot(drive_xy_m[:, 0], drive_xy_m[:, 1], color="0.3", lw=1, label="drive")
+    span = float(np.ptp(L, axis=0).max()) if len(L) > 1 else 1.0
+    gain = 10 ** math.floor(math.log10(max(0.02 * span / max(float(np.max(s_mm, initial=1e-3))
+                                                              / 1e3, 1e-6), 1.0)))
+    d = 2 * gain * s_mm / 1e3
+    ec = EllipseCollection(d, d, np.zeros_like(d), units="xy", offsets=L,
+                           offset_transform=ax.transData, array=s_mm, cmap="plasma",
+                           facecolors="none", linewidths=1.2)
+    ax.add_collection(ec)
+    sc = ax.scatter(L[:, 0], L[:, 1], c=s_mm, cmap="plasma", s=8, zorder=3)
+    ec.set_clim(*sc.get_clim())
+    fig.colorbar(sc, ax=ax, label="light position 1σ [mm]")
+    for (x, y), n in zip(L, np.asarray(views, int), strict=True):
+        ax.annotate(str(n), (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
+    ax.set_xlabel("x in W [m]")
+    ax.set_ylabel("y in W [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(f"surveyed lights: 1σ circles x{gain:g}, labels = views")
+    ax.legend(loc="best", fontsize=7)
+    return figure_png(fig)
+
+
+def mount_png(per_placement_rms_px: dict[str, float], rms_px: float,
+              outliers: Sequence[str] = ()) -> bytes:
+    """The mount fit's residual RMS per placement (px); outliers in red."""
+    plt = pyplot()
+    names = list(per_placement_rms_px)
+    fig, ax = plt.subplots(figsize=(max(SIZE_IN[0], 0.35 * len(names)), SIZE_IN[1]))
+    v = [per_placement_rms_px[n] for n in names]
+    colours = ["tab:red" if n in set(outliers) else "tab:blue" for n in names]
+    ax.bar(range(len(names)), v, color=colours)
+    ax.axhline(rms_px, color="k", ls="--", lw=1, label=f"overall RMS {rms_px:.3f} px")
+    ax.set_xticks(range(len(names)), names, rotation=90, fontsize=7)
+    ax.set_ylabel("residual RMS [px]")
+    ax.set_xlabel("placement (red: outlier, not used)")
+    ax.set_title("mount fit: residual per placement")
+    ax.legend(fontsize=8)
+    return figure_png(fig)
+
+
+def with_colour_scale(img: np.ndarray, lut_bgr: np.ndarray, vmin: float, vmax: float,
+                      label: str) -> np.ndarray:
+    """``img`` (BGR) with a vertical colour bar on its right: ``lut_bgr`` ``(256, 3)``
+    from ``vmin`` (bottom) to ``vmax`` (top), five ticks and ``label`` (with its unit).
+    Pure OpenCV (for the images the calibration draws itself)."""
+    import cv2
+    h = img.shape[0]
+    bar_w, pad, width = 18, 10, 110
+    out = np.full((h, img.shape[1] + width, 3), 255, np.uint8)
+    out[:, :img.shape[1]] = img
+    top, bottom = 30, h - 20
+    idx = np.linspace(255, 0, bottom - top).astype(int)
+    x0 = img.shape[1] + pad
+    out[top:bottom, x0:x0 + bar_w] = np.asarray(lut_bgr, np.uint8)[idx][:, None, :]
+    cv2.rectangle(out, (x0, top), (x0 + bar_w, bottom - 1), (0, 0, 0), 1)
+    for k in range(5):
+        v = vmin + (vmax - vmin) * k / 4
+        y = int(bottom - 1 - (bottom - top - 1) * k / 4)
+        cv2.line(out, (x0 + bar_w, y), (x0 + bar_w + 4, y), (0, 0, 0), 1)
+        cv2.putText(out, f"{v:.3g}", (x0 + bar_w + 6, y + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+                    (30, 30, 30), 1, cv2.LINE_AA)
+    cv2.putText(out, label, (img.shape[1] + 4, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+                (30, 30, 30), 1, cv2.LINE_AA)
+    return out
