@@ -38,11 +38,13 @@ import numpy as np
 from ceilkit.runtime.config.camera import load_camera, save_camera
 from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.config.yaml import atomic_write_bytes
 from ceilkit.runtime.errors import ConfigError, OutputError
 from ceilkit.runtime.io.capture import open_video
-from ceilkit.runtime.io.recording import Recording
+from ceilkit.runtime.io.recording import Recording, Truth
 from ceilkit.runtime.replay import ReplayResult, replay
 from ceilkit.runtime.sim.render import SimOptions, Trajectory
+from ceilkit.runtime.viz import plots as viz_plots
 
 from .boards import Board
 from .intrinsics import (
@@ -99,6 +101,14 @@ def _make_folder(folder: Path) -> None:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(folder, f"cannot create: {exc.strerror}") from None
+
+
+def _write_plot(folder: Path, name: str, png: bytes) -> Path:
+    """``folder/name`` (the folder created if missing), written atomically."""
+    _make_folder(folder)
+    path = folder / name
+    atomic_write_bytes(path, png)
+    return path
 
 
 # -- intrinsics ------------------------------------------------------------------------
@@ -173,14 +183,16 @@ class MountRun:
 
     rig_path: Path
     report: tuple[str, ...]
+    plots: tuple[Path, ...] = ()
 
     def lines(self) -> list[str]:
-        return [*self.report, f"wrote {self.rig_path}"]
+        return [*self.report, f"wrote {self.rig_path}"] + [f"wrote {p}" for p in self.plots]
 
 
 def mount(placements: Path, site: Path, out: Path, *, rig: Path | None = None,
           camera: Path | None = None, drive: Path | None = None,
-          fix: Sequence[str] = (), max_frames: int = 8) -> MountRun:
+          fix: Sequence[str] = (), max_frames: int = 8,
+          plots: Path | None = None) -> MountRun:
     """Fit the mount (tilt, swing, pan, offsets, height below the ceiling) from measured
     ``placements`` (a placements file or a recording with truth.csv) in ``site``, and
     write ``out`` (rig.yaml).
@@ -191,6 +203,7 @@ def mount(placements: Path, site: Path, out: Path, *, rig: Path | None = None,
         drive: a straight drive (recording or image folder) that gives tilt and swing.
         fix: parameters held at the rig's value (:data:`~ceilkit.calib.mount.PARAMS`).
         max_frames: at most this many placements from a recording.
+        plots: write ``mount_residuals.png`` (residual RMS per placement, px) here.
 
     Raises:
         ConfigError: ``camera`` (neither a rig nor a camera), ``fix`` (unknown name),
@@ -233,7 +246,10 @@ def mount(placements: Path, site: Path, out: Path, *, rig: Path | None = None,
     if camera_ref is not None:
         ref = os.path.relpath(Path(camera_ref).resolve(), Path(out).resolve().parent)
     the_rig.with_mount(res.mount).save(out, header, camera_ref=ref)
-    return MountRun(Path(out), tuple(lines))
+    written = () if plots is None else (_write_plot(plots, "mount_residuals.png",
+        viz_plots.mount_png(res.per_placement_rms_px, res.rms_px,
+                            [o[0] for o in res.outliers])),)
+    return MountRun(Path(out), tuple(lines), written)
 
 
 # -- light map -------------------------------------------------------------------------
@@ -244,22 +260,26 @@ class LightmapRun:
     lightmap: LightMap
     site_path: Path
     how: str
+    plots: tuple[Path, ...] = ()
 
     def lines(self) -> list[str]:
         lm = self.lightmap
         return [f"{self.site_path}: {lm.lights_m.shape[0]} lights from {self.how}; median "
-                f"1-sigma {1e3 * float(np.median(lm.sigma_m)):.1f} mm"]
+                f"1-sigma {1e3 * float(np.median(lm.sigma_m)):.1f} mm"] \
+            + [f"wrote {p}" for p in self.plots]
 
 
 def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
              known: KnownLights | None = None, ceiling_height_m: float | None = None,
-             cluster_m: float = 0.15, min_views: int = 3) -> LightmapRun:
+             cluster_m: float = 0.15, min_views: int = 3,
+             plots: Path | None = None) -> LightmapRun:
     """Survey the ceiling lights of ``recording`` and write them as the ``lights`` of
     ``out`` (site.yaml; its other sections kept when it exists, else the recording's).
 
     With ``known`` (lights measured in W), the frames are chained (no pose needed);
     otherwise each frame's pose comes from ``poses`` (truth.csv or poses.csv layout) or
-    the recording's truth.csv.
+    the recording's truth.csv. ``plots``: write ``lightmap.png`` there (each light's
+    1σ, the drive: the poses used, or the recording's truth.csv).
 
     Raises:
         ConfigError: ``poses`` with ``known``; bad inputs or options.
@@ -274,7 +294,9 @@ def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
         header = provenance_header("ceilcal lightmap: site map with surveyed lights",
                                    lightmap_header_lines(lm))
         write_site(lm, out, base, header, ceiling_height_m)
-        return LightmapRun(lm, out, f"{lm.frames_used} frames")
+        drive = table if table is not None else rec.truth
+        return LightmapRun(lm, out, f"{lm.frames_used} frames",
+                           _lightmap_plot(plots, lm, drive, base))
     if poses is not None:
         raise ConfigError(None, "poses", "a chaining survey (known lights) uses no poses")
     res = survey_chain(rec, known, ceiling_height_m=ceiling_height_m, min_views=min_views)
@@ -289,7 +311,16 @@ def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
     if res.height_fitted:
         how += (f"; ceiling height {res.ceiling_height_m:.4f} +- "
                 f"{res.height_sigma_m:.4f} m from the two known lights")
-    return LightmapRun(lm, out, how)
+    return LightmapRun(lm, out, how, _lightmap_plot(plots, lm, rec.truth, base))
+
+
+def _lightmap_plot(plots: Path | None, lm: LightMap, drive: Truth | None,
+                   site: Site) -> tuple[Path, ...]:
+    if plots is None:
+        return ()
+    xy = None if drive is None else np.stack([drive.x_m, drive.y_m], axis=1)
+    return (_write_plot(plots, "lightmap.png",
+                        viz_plots.lightmap_png(lm.lights_m, lm.sigma_m, lm.views, xy, site)),)
 
 
 # -- simulate --------------------------------------------------------------------------
@@ -363,13 +394,15 @@ class CalibrateRun:
 def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Path, *,
               model: str = "plumb_bob", drive: Path | None = None,
               check: Path | None = None, redo: bool = False,
-              on_line: Callable[[str], None] | None = None) -> CalibrateRun:
+              on_line: Callable[[str], None] | None = None,
+              plots: Path | None = None) -> CalibrateRun:
     """Intrinsics from ``boards``, then the mount from ``placements``, then a check
     replay of ``check``; each step writes its file into ``out`` (camera.yaml, rig.yaml,
     check/) and is skipped when that file is already there, unless ``redo``.
 
     ``on_line`` gets each report line as the steps go (they take minutes); the result
-    holds them all.
+    holds them all. ``plots``: each step that runs writes its plots there (intrinsics'
+    views, coverage and distortion; the mount's residuals; the check's report.html).
     """
     lines: list[str] = []
 
@@ -391,21 +424,28 @@ def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Pat
         save_camera(result.camera, cam_path, header)
         for line in result.report.summary_lines():
             say("  " + line)
+        for path in write_plots(result, plots) if plots is not None else ():
+            say(f"  wrote {path}")
     else:
         say(f"step 1/3: intrinsics: kept {cam_path}")
     if redo or not rig_path.exists():
         say("step 2/3: mount")
-        for line in mount(placements, site, rig_path, camera=cam_path, drive=drive).report:
+        run = mount(placements, site, rig_path, camera=cam_path, drive=drive, plots=plots)
+        for line in run.report:
             say("  " + line)
+        for path in run.plots:
+            say(f"  wrote {path}")
     else:
         say(f"step 2/3: mount: kept {rig_path}")
     if check is None:
         say("step 3/3: check: skipped (no check recording)")
         return CalibrateRun(cam_path, rig_path, None, tuple(lines))
     say("step 3/3: check replay")
-    res = replay(check, out / "check", rig=rig_path, site=site)
+    res = replay(check, out / "check", rig=rig_path, site=site, report=plots is not None)
     for line in res.telemetry.summary() + (res.accuracy.lines() if res.accuracy else []):
         say("  " + line)
+    if res.report is not None:
+        say(f"  wrote {res.report}")
     return CalibrateRun(cam_path, rig_path, res, tuple(lines))
 
 

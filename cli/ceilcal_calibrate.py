@@ -31,8 +31,10 @@ def register(app: typer.Typer) -> None:
         check: Path = typer.Option(None, help="A recording with truth.csv held back for "
                                    "the check replay (step 3)."),
         redo: bool = typer.Option(False, "--redo", help="Redo steps whose file exists."),
+        plots: Path = typer.Option(None, "--plots",
+                                   help="Folder for every step's PNG plots (and report.html)."),
     ) -> None:
         """Intrinsics, then mount, then a check replay; each step resumable."""
         workflow.calibrate(boards, parse_board(board, square), placements, site, out,
                            model=model, drive=drive, check=check, redo=redo,
-                           on_line=typer.echo)
+                           on_line=typer.echo, plots=plots)

@@ -90,11 +90,13 @@ def register(app: typer.Typer) -> None:
         keep_height: bool = typer.Option(False, "--keep-height", help="With "
                                          "--second-light: keep the ceiling height; use "
                                          "the second light for the direction only."),
+        plots: Path = typer.Option(None, "--plots",
+                                   help="Folder for PNG plots (lights, 1-sigma, drive)."),
     ) -> None:
         """Build the `lights` of a site map: from known poses, or by chaining frames."""
         run = workflow.lightmap(recording, out, poses=poses,
                                 known=_known(known_light, second_light, start_yaw,
                                              anchor_frame, keep_height),
                                 ceiling_height_m=ceiling_height, cluster_m=cluster,
-                                min_views=min_views)
+                                min_views=min_views, plots=plots)
         typer.echo("\n".join(run.lines()))

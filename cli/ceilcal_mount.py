@@ -28,8 +28,10 @@ def register(app: typer.Typer) -> None:
                                       "(pan tilt swing mx my h); repeatable."),
         max_frames: int = typer.Option(8, help="At most this many placements from a "
                                        "recording."),
+        plots: Path = typer.Option(None, "--plots",
+                                   help="Folder for PNG plots (residual per placement)."),
     ) -> None:
         """Fit tilt, swing, pan and the offsets (and the height below the ceiling)."""
         run = workflow.mount(placements, site, out, rig=rig, camera=camera, drive=drive,
-                             fix=fix or (), max_frames=max_frames)
+                             fix=fix or (), max_frames=max_frames, plots=plots)
         typer.echo("\n".join(run.lines()))

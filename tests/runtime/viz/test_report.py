@@ -1,0 +1,90 @@
+"""Replay overlays and the HTML report; truth.tum beside poses.tum."""
+
+from __future__ import annotations
+
+import base64
+import math
+import re
+
+import numpy as np
+import pytest
+
+from ceilkit.calib.simulate import simulate_recording
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.io.recording import Recording, tum_line, write_truth_tum
+from ceilkit.runtime.replay import replay
+from ceilkit.runtime.sim.render import SimOptions, Trajectory
+from helpers import CONFIGS, FIXTURES
+
+MAX_REPORT_BYTES = 5 * 1024 * 1024
+
+
+def _images(html: str) -> list[bytes]:
+    return [base64.b64decode(m) for m in re.findall(r"data:image/png;base64,([A-Za-z0-9+/=]+)",
+                                                    html)]
+
+
+def test_report_and_overlays_of_the_lights_fixture(tmp_path):
+    res = replay(FIXTURES / "lights_rec", tmp_path / "out", overlays=tmp_path / "ov",
+                 report=True, tum=True)
+    assert res.overlays == 6 and sorted(p.name for p in (tmp_path / "ov").iterdir())[0] \
+        == "000000.png"
+    assert res.report == tmp_path / "out" / "report.html"
+    html = res.report.read_text()
+    assert "http://" not in html and "https://" not in html and "<script" not in html
+    pngs = _images(html)
+    assert len(pngs) >= 6 and all(p[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
+    for heading in ("trajectory", "errors", "quality against error", "outcomes", "latency"):
+        assert f"alt='{heading}'" in html
+    assert "worst frames" in html
+    assert any("report: " in line for line in res.lines())
+    assert (tmp_path / "out" / "truth.tum").exists()
+
+
+def test_overlays_only_failures(tmp_path):
+    res = replay(FIXTURES / "corridor_rec", tmp_path / "out", overlays=tmp_path / "ov",
+                 overlays_only_failures=True)
+    assert res.telemetry.failures == {} or sum(res.telemetry.failures.values()) == res.overlays
+    assert res.report is None
+    assert res.overlays == len(list((tmp_path / "ov").glob("*.png")))
+
+
+def test_no_views_no_change(tmp_path):
+    res = replay(FIXTURES / "corridor_rec", tmp_path / "a")
+    assert res.overlays == 0 and res.report is None
+    assert not (tmp_path / "a" / "report.html").exists()
+
+
+def test_truth_tum_round_trip(tmp_path):
+    rec = Recording(FIXTURES / "corridor_rec")
+    path = write_truth_tum(rec.truth, tmp_path / "truth.tum")
+    rows = [line.split() for line in path.read_text().splitlines()]
+    assert len(rows) == rec.truth.t_ns.size
+    for row, t, x, y, a in zip(rows, rec.truth.t_ns, rec.truth.x_m, rec.truth.y_m,
+                               rec.truth.yaw_rad, strict=True):
+        assert int(row[0].replace(".", "")) == int(t)
+        assert float(row[1]) == pytest.approx(x, abs=1e-6)
+        assert float(row[2]) == pytest.approx(y, abs=1e-6)
+        qz, qw = float(row[6]), float(row[7])
+        assert 2 * math.atan2(qz, qw) == pytest.approx(math.remainder(a, 2 * math.pi), abs=1e-8)
+    assert tum_line(1_500_000_000, 1.0, 2.0, 0.0) == b"1.500000000 1.000000 2.000000 0 0 0 " \
+        b"0.000000000 1.000000000\n"
+
+
+def test_report_of_a_300_frame_recording_is_under_5_mb(tmp_path):
+    rig = Rig.load(CONFIGS / "corridor" / "rig.yaml")
+    site = Site.load(CONFIGS / "corridor" / "site.yaml")
+    n = 300
+    t = np.arange(n, dtype=np.int64) * 33_333_333
+    x = 0.5 + 0.02 * np.arange(n)
+    y = 0.15 * np.sin(np.arange(n) / 25)
+    yaw = np.radians(4 * np.sin(np.arange(n) / 40))
+    simulate_recording(rig, site, Trajectory(t, x, y, yaw), tmp_path / "rec",
+                       SimOptions(supersample=1), seed=1)
+    res = replay(tmp_path / "rec", tmp_path / "out", report=True)
+    size = res.report.stat().st_size
+    print(f"\nreport of {n} frames: {size / 1e6:.2f} MB at {res.report}")
+    assert res.telemetry.frames == n
+    assert size < MAX_REPORT_BYTES
+    assert len(_images(res.report.read_text())) >= 6
