@@ -62,6 +62,7 @@ class _LineHandler(logging.StreamHandler):
 
     def emit(self, record: logging.LogRecord) -> None:
         TERM_LINE.end()
+        self.stream = sys.stderr  # the stderr of now (a test runner swaps it)
         super().emit(record)
 
 

@@ -644,8 +644,9 @@ def repair_recording(folder: str | Path, disk: Disk = OS_DISK) -> int:
         OutputError: a file that cannot be written (nothing is lost: the log stays).
     """
     folder = Path(folder)
-    listed = set(int(i) for i in Recording(folder).index)  # checks the folder
+    Recording(folder)  # checks the whole folder
     rows = _read_csv(folder / "frames.csv", FRAMES_HEADER)
+    listed = {int(r[0]) for r in rows}
     last = max((int(r[1]) for r in rows), default=None)
     todo = [e for e in read_frame_log(folder) if e.index not in listed]
     if last is not None and todo and todo[0].t_ns <= last:

@@ -197,7 +197,7 @@ def test_unplug_and_replug_camera_and_serial_mid_run(tmp_path):
     _check_recording(tmp_path, err)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
 def test_signal_stops_cleanly_with_complete_files(tmp_path, sig):
     proc = _start(tmp_path, str(tmp_path / "out.nmea"))  # a regular file as --serial
     try:

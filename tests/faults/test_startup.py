@@ -1,0 +1,76 @@
+"""Start-up order independence: nothing on disk until camera and port are open; a
+port that appears later is waited for with --wait; without it, one line."""
+
+from __future__ import annotations
+
+import os
+import threading
+
+from typer.testing import CliRunner
+
+from ceilkit.cli.ceilrun import app
+from ceilkit.runtime.session import LinkConfig, SessionConfig, run_session
+
+
+def test_a_missing_port_is_one_line_and_nothing_on_disk(tmp_path):
+    res = CliRunner().invoke(app, ["--device", "sim:corridor", "--frames", "5",
+                                   "--record", str(tmp_path / "rec"),
+                                   "--out", str(tmp_path / "run"),
+                                   "--serial", str(tmp_path / "ttyUSB9")])
+    assert res.exit_code == 1
+    assert res.stderr.strip().splitlines() == [
+        f"ceilrun: error: cannot open serial port {tmp_path / 'ttyUSB9'}: no such device "
+        "(is the adapter plugged in? see ls /dev/serial/by-id/)"]
+    assert sorted(os.listdir(tmp_path)) == []   # no skeleton blocks the restart
+
+
+def test_a_port_appearing_later_is_waited_for_without_debris(tmp_path, log_lines):
+    port = tmp_path / "ttyUSB0"
+    seen_before: list[list[str]] = []
+    pty: list[int] = []
+
+    def plug_in():
+        seen_before.append(sorted(os.listdir(tmp_path)))
+        master, slave = os.openpty()
+        pty.extend((master, slave))
+        os.symlink(os.ttyname(slave), port)
+
+    waiting = threading.Event()
+    timer = threading.Thread(target=lambda: waiting.wait(30) and plug_in())
+    timer.start()
+    handler_lines = log_lines
+    try:
+        cfg = SessionConfig(device="sim:corridor", frames=5, record=tmp_path / "rec",
+                            link=LinkConfig(str(port)), wait=True)
+        probe = threading.Thread(target=lambda: _signal_when_waiting(handler_lines, waiting))
+        probe.start()
+        res = run_session(cfg)
+        probe.join()
+    finally:
+        timer.join()
+        for fd in pty:
+            os.close(fd)
+    assert seen_before == [[]]   # nothing was created while waiting
+    assert res.telemetry.frames == 5 and res.run.recorded == 5
+    assert sum(ln.startswith("waiting for serial port") for ln in log_lines) == 1
+
+
+def _signal_when_waiting(lines: list[str], event: threading.Event) -> None:
+    import time
+
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not event.is_set():
+        if any(ln.startswith("waiting for serial port") for ln in lines):
+            event.set()
+        time.sleep(0.01)
+
+
+def test_a_stop_while_waiting_ends_cleanly_with_nothing_on_disk(tmp_path):
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    res = run_session(SessionConfig(device="sim:corridor", frames=5,
+                                    record=tmp_path / "rec", out=tmp_path / "run",
+                                    link=LinkConfig(str(tmp_path / "ttyUSB3")), wait=True),
+                      stop)
+    assert res.run.stopped and res.telemetry.frames == 0
+    assert os.listdir(tmp_path) == []
