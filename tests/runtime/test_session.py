@@ -82,3 +82,42 @@ def test_stop_on_signals_turns_sigint_into_a_stop_request():
         os.kill(os.getpid(), signal.SIGINT)
         assert stop.wait(2.0)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_sighup_stops_like_sigterm():
+    with stop_on_signals() as stop:
+        os.kill(os.getpid(), signal.SIGHUP)
+        assert stop.wait(2.0)
+    assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL
+
+
+def test_frames_below_zero_and_existing_outputs_are_config_errors(tmp_path):
+    with pytest.raises(ConfigError) as err:
+        run_session(SessionConfig(device="sim:corridor", frames=-5))
+    assert err.value.key == "frames"
+    (tmp_path / "poses.csv").write_text("x")
+    with pytest.raises(ConfigError, match="already there.*force=True"):
+        run_session(SessionConfig(device="sim:corridor", frames=2, out=tmp_path))
+    assert (tmp_path / "poses.csv").read_text() == "x"
+    res = run_session(SessionConfig(device="sim:corridor", frames=2, out=tmp_path,
+                                    force=True))
+    assert res.telemetry.frames == 2 and load_poses(tmp_path / "poses.csv").t_ns.size == 2
+
+
+def test_numbered_record_folders_and_outputs_that_are_inputs(tmp_path):
+    from pathlib import Path
+
+    from ceilkit.runtime.session import check_outputs, record_folder
+
+    assert record_folder(tmp_path / "r-{n}") == tmp_path / "r-1"
+    (tmp_path / "r-1").mkdir()
+    assert record_folder(tmp_path / "r-{n}") == tmp_path / "r-2"
+    assert record_folder(tmp_path / "plain") == tmp_path / "plain"
+    rig = tmp_path / "cfg" / "rig.yaml"
+    with pytest.raises(ConfigError) as err:
+        check_outputs([rig], {"record": [tmp_path / "cfg" / "rig.yaml"]})
+    assert err.value.key == "record" and "is an input of this run" in str(err.value)
+    with pytest.raises(ConfigError):  # recording into the recording being read
+        check_outputs([tmp_path], {"record": [tmp_path / "frames.csv"]})
+    check_outputs([rig], {"out": [tmp_path / "run" / "poses.csv"]})
+    check_outputs([Path(tmp_path)], {"out": [tmp_path / "poses.csv"]})  # poses beside: fine

@@ -279,3 +279,56 @@ def test_broken_odometry(tmp_path, corridor_rig, corridor_site, text, key, words
         Recording(folder)
     assert "odometry.csv" in str(err.value) and key in str(err.value)
     assert words in str(err.value)
+
+
+def test_logged_frames_replay_convert_and_repair(tmp_path, corridor_rig, corridor_site):
+    from ceilkit.runtime.io.recording import LOG_DIR, read_frame_log, repair_recording
+
+    rig = _rig(corridor_rig)
+    frames = _frames(40)
+    w = RecordingWriter(tmp_path / "rec", rig, corridor_site, keep_images=4)
+    for f in frames:
+        assert w.log(f) == f.index
+    for _ in range(10):  # ten become PNGs (the first six read back from the log)
+        assert w.convert_next()
+    w.sync(durable=True)
+    assert len(read_frame_log(tmp_path / "rec")) == 40
+    # killed here: ten PNGs, thirty only in the log
+    back = Recording(tmp_path / "rec")
+    assert len(back) == 40 and back.logged == 30
+    assert all(np.array_equal(back.frame(k).image, f.image) for k, f in enumerate(frames))
+    assert repair_recording(tmp_path / "rec") == 30
+    assert not (tmp_path / "rec" / LOG_DIR).exists()
+    again = Recording(tmp_path / "rec")
+    assert len(again) == 40 and again.logged == 0
+    assert again.t_ns.tolist() == [f.t_ns for f in frames]
+
+
+def test_a_closed_writer_leaves_no_log(tmp_path, corridor_rig, corridor_site):
+    from ceilkit.runtime.io.recording import LOG_DIR
+
+    with RecordingWriter(tmp_path / "rec", _rig(corridor_rig), corridor_site) as w:
+        for f in _frames(35):
+            w.log(f)
+        while w.convert_next():
+            pass
+    assert not (tmp_path / "rec" / LOG_DIR).exists()
+    assert len(Recording(tmp_path / "rec")) == 35
+
+
+def test_existing_rig_and_site_are_not_overwritten(tmp_path, corridor_rig, corridor_site):
+    (tmp_path / "rec").mkdir()
+    (tmp_path / "rec" / "rig.yaml").write_text("mine")
+    with pytest.raises(ConfigError, match="rig.yaml is already there"):
+        RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site)
+    assert (tmp_path / "rec" / "rig.yaml").read_text() == "mine"
+    with RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site, force=True) as w:
+        w.write(_frames(1)[0])
+    assert Recording(tmp_path / "rec", rig=_rig(corridor_rig)).rig is not None
+
+
+def test_device_of_names_the_file_system(tmp_path):
+    from ceilkit.runtime.io.recording import device_of
+
+    name = device_of(tmp_path)
+    assert name.endswith(")") and " (/" in name
