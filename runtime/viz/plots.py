@@ -26,6 +26,8 @@ from ceilkit.runtime.errors import ConfigError
 DPI = 80
 """Dots per inch of every figure (a 7.5 x 4.5 in figure is 600 x 360 px)."""
 SIZE_IN = (7.5, 4.5)
+TRAJECTORY_MARGIN_M = 1.0
+"""The trajectory plot shows the site this far around the drive."""
 
 
 def pyplot() -> Any:
@@ -91,17 +93,26 @@ def trajectory_png(site: Site, truth_xy_m: np.ndarray | None, est_xy_m: np.ndarr
         sc = ax.scatter(est_xy_m[:, 0], est_xy_m[:, 1], c=quality, cmap="viridis", vmin=0,
                         vmax=1, s=10, label="estimates", zorder=3)
         fig.colorbar(sc, ax=ax, label="quality [0, 1]")
+    pts = [a for a in (truth_xy_m, est_xy_m) if a is not None and len(a)]
+    if pts:  # the drive, not the whole site, sets the view
+        allp = np.concatenate(pts)
+        lo, hi = np.nanmin(allp, axis=0) - TRAJECTORY_MARGIN_M, \
+            np.nanmax(allp, axis=0) + TRAJECTORY_MARGIN_M
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
     ax.set_xlabel("x in W [m]")
     ax.set_ylabel("y in W [m]")
-    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_aspect("equal", adjustable="box" if pts else "datalim")
     ax.set_title(title)
     ax.legend(loc="best", fontsize=7)
     return figure_png(fig)
 
 
 def errors_png(t_s: np.ndarray, errors: Mapping[str, np.ndarray]) -> bytes:
-    """Errors against truth over time: each of ``errors`` (name with its unit -> ``(N,)``)."""
+    """Errors against truth over time: each of ``errors`` (name with its unit -> ``(N,)``);
+    one never observed (all NaN: the corridor method's x) is left out."""
     plt = pyplot()
+    errors = {k: v for k, v in errors.items() if np.isfinite(v).any()} or errors
     fig, axes = plt.subplots(len(errors), 1, figsize=SIZE_IN, sharex=True, squeeze=False)
     for ax, (name, e) in zip(axes[:, 0], errors.items(), strict=True):
         ax.plot(t_s, e, ".", ms=3)
@@ -130,11 +141,12 @@ def failures_png(t_s: np.ndarray, reasons: Sequence[str]) -> bytes:
     names = sorted(set(reasons), key=lambda r: (r != "ok", r))
     fig, ax = plt.subplots(figsize=(SIZE_IN[0], 0.6 + 0.35 * max(len(names), 1)))
     cmap = plt.get_cmap("tab10")
+    ticks = []
     for k, name in enumerate(names):
         t = np.asarray([ts for ts, r in zip(t_s, reasons, strict=True) if r == name])
-        ax.scatter(t, np.full(t.size, k), marker="|", s=120, color=cmap(k % 10),
-                   label=f"{name} ({t.size})")
-    ax.set_yticks(range(len(names)), names, fontsize=8)
+        ax.scatter(t, np.full(t.size, k), marker="|", s=120, color=cmap(k % 10))
+        ticks.append(f"{name} ({t.size})")
+    ax.set_yticks(range(len(names)), ticks, fontsize=8)
     ax.set_xlabel("time since the first frame [s]")
     ax.set_title("outcome per frame")
     ax.set_ylim(-0.7, len(names) - 0.3)
