@@ -66,7 +66,8 @@ def draw_site(ax: Any, site: Site) -> None:
         ax.plot(r[:, 0], r[:, 1], color="goldenrod", lw=0.8, label="lamps" if k == 0 else None)
     if len(site.lights_m):
         L = np.asarray(site.lights_m, float)
-        ax.scatter(L[:, 0], L[:, 1], marker="+", color="goldenrod", s=30, label="lights")
+        ax.scatter(L[:, 0], L[:, 1], marker="+", color="goldenrod", s=30,
+                   label="site map's lights")
     quads = [b.corners_m for b in site.blocks]
     if site.markers is not None:
         quads += [m.corners_m() for m in site.markers.poses]
@@ -193,7 +194,7 @@ def lightmap_png(lights_m: np.ndarray, sigma_m: np.ndarray, views: np.ndarray,
     if drive_xy_m is not None and len(drive_xy_m):
         ax.plot(drive_xy_m[:, 0], drive_xy_m[:, 1], color="0.3", lw=1, label="drive")
     span = float(np.ptp(L, axis=0).max()) if len(L) > 1 else 1.0
-    gain = 10 ** math.floor(math.log10(max(0.02 * span / max(float(np.max(s_mm, initial=1e-3))
+    gain = 10 ** math.floor(math.log10(max(0.04 * span / max(float(np.max(s_mm, initial=1e-3))
                                                               / 1e3, 1e-6), 1.0)))
     d = 2 * gain * s_mm / 1e3
     ec = EllipseCollection(d, d, np.zeros_like(d), units="xy", offsets=L,
