@@ -36,6 +36,18 @@ DEFAULT_ORDER = ("lights", "corridor")
 """The methods a site calls for, best first: a global fix before a partial one."""
 
 
+AUTO = "auto"
+"""``--method auto``: every method the site supports, fused (``runtime/multi.py``)."""
+
+FUSED_METHODS = ("lights", "block", "corridor")
+"""The methods ``auto`` runs where the site supports them (the paper baselines are not)."""
+
+
+def site_methods(site: Site) -> tuple[str, ...]:
+    """The methods of :data:`FUSED_METHODS` that ``site`` supports, best first."""
+    return tuple(n for n in FUSED_METHODS if _supports(ESTIMATORS[n], site))
+
+
 def default_method(site: Site) -> str:
     """The method a site calls for: the first of :data:`DEFAULT_ORDER` it supports."""
     for name in DEFAULT_ORDER:

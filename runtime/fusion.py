@@ -1,0 +1,377 @@
+"""One vehicle pose from every cue: an EKF over (x, y, yaw) with relocalization.
+
+:class:`Fusion` has the :class:`~ceilkit.runtime.tracking.Tracker` interface
+(``predict(t_ns)`` gives the estimators' prior, ``update(estimate)`` the published
+result), so the pipeline runs it in the tracker's place. Per frame it takes every
+method's estimate (the ``cues`` of an :class:`~ceilkit.runtime.multi.AutoEstimator`
+result, or the one estimate), and wheel odometry rows at any time
+(:meth:`Fusion.add_odometry`). See docs/fusion.md.
+
+* measurement models (rows of the state, :mod:`~ceilkit.runtime.geometry.ekf`): a
+  full-pose fix (lights, block), the corridor method (y and yaw: x is never
+  invented), a heading-only fix; each with the estimator's covariance, inflated and
+  floored (:class:`FusionOptions`);
+* motion: the odometry increments while they come, else constant velocity;
+* time: measurements are applied at their capture time; a late one (an odometry row
+  stamped before the last frame) re-filters the short buffer from its time;
+* gating: a fix whose normalized innovation is beyond the chi-square gate is not
+  applied; ``confirm`` agreeing, unambiguous (global) full fixes away from the track
+  re-localize it there (``relocalized``: the link bumps its reset counter); while such
+  fixes wait, the published quality is 0: a kidnapped track never keeps a confident
+  old pose;
+* lost: no absolute fix for ``lost_after_s`` and no odometry: the next fix starts anew;
+* ``quality`` = P(position error < ``quality_radius_m``) from the published
+  covariance (:func:`~ceilkit.runtime.geometry.ekf.prob_within_radius`).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
+from ceilkit.runtime.geometry import ekf
+from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.tracking import TrackResult
+
+NAME = "auto"
+UNKNOWN_X_VAR = 1e6      # m²: x of a track started by the corridor method alone
+UNAMBIGUOUS_MODES = ("global",)  # a lights fix found with no help from the prior
+
+
+@dataclass(frozen=True)
+class FusionOptions:
+    """What a user may tune (docs/fusion.md).
+
+    Attributes:
+        noise: process noise (constant velocity, odometry).
+        gate_p: chi-square probability of the innovation gate.
+        confirm: agreeing unambiguous out-of-gate fixes that re-localize.
+        lost_after_s: with no fix and no odometry for this long the track is dropped.
+        window_s: how far back a late measurement is applied at its time.
+        odometry_timeout_s: odometry older than this no longer carries the motion.
+        quality_radius_m: the radius of ``quality`` = P(position error < radius).
+        unobserved_sigma_m: a coordinate whose 1σ exceeds this is published empty.
+        prior_sigma_m: the estimators get the track as a prior only below this 1σ.
+        fix_inflation: factor on an estimator's covariance (their fits are optimistic).
+        fix_floor_m, fix_floor_rad: 1σ floors of a fix (unmodelled biases).
+        default_sigma_m, default_sigma_rad: 1σ of a fix that carries no covariance.
+        cell_m: spacing of a regular layout: the cell probability is reported.
+    """
+
+    noise: ekf.MotionNoise = field(default_factory=ekf.MotionNoise)
+    gate_p: float = 0.9999
+    confirm: int = 3
+    lost_after_s: float = 1.0
+    window_s: float = 0.5
+    odometry_timeout_s: float = 0.5
+    quality_radius_m: float = 0.02
+    unobserved_sigma_m: float = 1.0
+    prior_sigma_m: float = 0.25
+    fix_inflation: float = 4.0
+    fix_floor_m: float = 0.002
+    fix_floor_rad: float = math.radians(0.2)
+    default_sigma_m: float = 0.05
+    default_sigma_rad: float = math.radians(2.0)
+    cell_m: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class _Node:
+    """The filter after an event: time, state, covariance, last odometry row's time."""
+
+    t_ns: int
+    s: np.ndarray
+    P: np.ndarray
+    t_odo_ns: int | None
+
+
+@dataclass(frozen=True, eq=False)
+class _Event:
+    t_ns: int
+    kind: str                  # "odo" | "fix"
+    data: tuple
+
+    @property
+    def key(self) -> tuple[int, int]:
+        return self.t_ns, 0 if self.kind == "odo" else 1
+
+
+class FilterBuffer:
+    """The EKF with a short time-ordered buffer of the events applied to it.
+
+    ``add`` applies an event at its time: one older than the newest re-filters the
+    events after it (:attr:`refiltered` counts them).
+    """
+
+    def __init__(self, start: _Node, options: FusionOptions):
+        self.options = options
+        self.base = start
+        self.events: list[_Event] = []
+        self.after: list[_Node] = []
+        self.refiltered = 0
+
+    @property
+    def latest(self) -> _Node:
+        return self.after[-1] if self.after else self.base
+
+    def _propagate(self, n: _Node, t_ns: int) -> _Node:
+        dt = (t_ns - n.t_ns) * 1e-9
+        if dt <= 0:
+            return n
+        o = self.options
+        odo = n.t_odo_ns is not None and (t_ns - n.t_odo_ns) * 1e-9 <= o.odometry_timeout_s
+        step = ekf.predict_hold if odo else ekf.predict_cv
+        s, P = step(n.s, n.P, dt, o.noise)
+        return _Node(t_ns, s, P, n.t_odo_ns)
+
+    def _apply(self, n: _Node, ev: _Event) -> _Node:
+        n = self._propagate(n, ev.t_ns)
+        if ev.kind == "odo":
+            dt = 0.0 if n.t_odo_ns is None else (ev.t_ns - n.t_odo_ns) * 1e-9
+            s, P = ekf.predict_odometry(n.s, n.P, ev.data, dt, self.options.noise)
+            return _Node(n.t_ns, s, P, ev.t_ns)
+        z, rows, R = ev.data
+        s, P, _ = ekf.update(n.s, n.P, z, rows, R)
+        return _Node(n.t_ns, s, P, n.t_odo_ns)
+
+    def node_at(self, t_ns: int) -> _Node:
+        """The filter predicted to ``t_ns`` from the last event at or before it."""
+        i = bisect.bisect_right([e.t_ns for e in self.events], t_ns)
+        n = self.after[i - 1] if i else self.base
+        return self._propagate(n, t_ns)
+
+    def add(self, ev: _Event) -> None:
+        """Apply ``ev`` at its time (an odometry row before a fix of the same stamp)."""
+        keys = [e.key for e in self.events]
+        i = bisect.bisect_right(keys, ev.key)
+        if ev.t_ns < self.base.t_ns:
+            return  # older than the buffer: too late to matter
+        self.refiltered += len(self.events) - i
+        self.events.insert(i, ev)
+        del self.after[i:]
+        n = self.after[i - 1] if i else self.base
+        for e in self.events[i:]:
+            n = self._apply(n, e)
+            self.after.append(n)
+        horizon = self.events[-1].t_ns - int(self.options.window_s * 1e9)
+        while len(self.events) > 1 and self.events[0].t_ns < horizon:
+            self.base = self.after.pop(0)
+            self.events.pop(0)
+
+
+@dataclass(frozen=True, eq=False)
+class _Fix:
+    """One cue as a measurement: which rows, their values and covariance."""
+
+    cue: PoseEstimate
+    z: np.ndarray
+    rows: tuple[int, ...]
+    R: np.ndarray
+
+    @property
+    def full(self) -> bool:
+        return self.rows == ekf.FULL_POSE
+
+    @property
+    def unambiguous(self) -> bool:
+        return self.full and self.cue.diagnostics.get("mode", "global") in UNAMBIGUOUS_MODES
+
+
+def measurement(cue: PoseEstimate, options: FusionOptions) -> _Fix | None:
+    """The measurement a cue makes: every coordinate it gives (x only with y)."""
+    rows, z = [], []
+    if cue.x_m is not None and cue.y_m is not None:
+        rows.append(0)
+        z.append(float(cue.x_m))
+    if cue.y_m is not None:
+        rows.append(1)
+        z.append(float(cue.y_m))
+    rows.append(ekf.YAW)
+    z.append(float(cue.yaw_rad))
+    floor = np.array([options.fix_floor_m, options.fix_floor_m, options.fix_floor_rad])[rows]
+    default = np.array([options.default_sigma_m, options.default_sigma_m,
+                        options.default_sigma_rad])[rows]
+    cov = None if cue.cov is None else np.asarray(cue.cov, float)[np.ix_(rows, rows)]
+    if cov is None or not np.all(np.isfinite(cov)):
+        R = np.diag(default ** 2)
+    else:
+        R = options.fix_inflation * cov
+    R = 0.5 * (R + R.T) + np.diag(floor ** 2)
+    return _Fix(cue, np.array(z), tuple(rows), R)
+
+
+class Fusion:
+    """See the module docstring. Counts: ``relocalizations``, ``contributions`` (fixes
+    applied per method), ``gated`` (per method), ``odometry_rows``."""
+
+    def __init__(self, options: FusionOptions | None = None,
+                 start_pose: tuple[float, float, float] | None = None,
+                 start_sigma: tuple[float, float] = (0.05, math.radians(2.0))):
+        self.options = options or FusionOptions()
+        self.gates = {k: ekf.chi2_quantile(self.options.gate_p, k) for k in (1, 2, 3)}
+        self._f: FilterBuffer | None = None
+        self._t_fix_ns = 0
+        self._candidates: list[_Fix] = []
+        self.relocalizations = 0
+        self.contributions: Counter = Counter()
+        self.gated: Counter = Counter()
+        self.odometry_rows = 0
+        self._start_pose = start_pose
+        self._start_sigma = start_sigma
+
+    @property
+    def tracking(self) -> bool:
+        return self._f is not None
+
+    @property
+    def refiltered(self) -> int:
+        return 0 if self._f is None else self._f.refiltered
+
+    def reset(self) -> None:
+        self._f = None
+        self._candidates = []
+
+    # -- inputs ----------------------------------------------------------------------
+    def start(self, t_ns: int, pose: tuple[float, float, float], cov: np.ndarray) -> None:
+        """Start the track at ``pose`` (x, y, yaw) with covariance ``cov`` (3, 3)."""
+        s, P = ekf.initial_state(pose, cov)
+        t_odo = None if self._f is None else self._f.latest.t_odo_ns
+        self._f = FilterBuffer(_Node(int(t_ns), s, P, t_odo), self.options)
+        self._t_fix_ns = int(t_ns)
+        self._candidates = []
+
+    def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float) -> None:
+        """One wheel odometry row: the increment in V since the previous row."""
+        self.odometry_rows += 1
+        if self._f is not None:
+            self._f.add(_Event(int(t_ns), "odo", (dx_m, dy_m, dyaw_rad)))
+
+    # -- the per-frame interface of Tracker -------------------------------------------
+    def _lost(self, t_ns: int) -> bool:
+        f = self._f
+        if f is None:
+            return True
+        n = f.latest
+        odo = n.t_odo_ns is not None and \
+            (t_ns - n.t_odo_ns) * 1e-9 <= self.options.odometry_timeout_s
+        return not odo and (t_ns - self._t_fix_ns) * 1e-9 > self.options.lost_after_s
+
+    def predict(self, t_ns: int, method: str = NAME) -> PoseEstimate | None:
+        """The prior for the estimators at ``t_ns``: ``None`` when not tracking or
+        when the track is too uncertain to guide a local search."""
+        if self._start_pose is not None and self._f is None:
+            sp, sr = self._start_sigma
+            self.start(t_ns, self._start_pose, np.diag([sp * sp, sp * sp, sr * sr]))
+            self._start_pose = None
+        if self._lost(t_ns):
+            return None
+        pose = self._publish(self._f.node_at(t_ns), method, {})
+        sig = max(np.sqrt(np.diag(np.asarray(pose.cov)[:2, :2])))
+        return pose if sig <= self.options.prior_sigma_m else None
+
+    def update(self, est: Estimate) -> TrackResult:
+        """Fuse one frame's estimate(s); returns what to publish."""
+        t = int(est.t_ns)
+        cues = est.diagnostics.get("cues", (est,))
+        fixes = [m for c in cues if isinstance(c, PoseEstimate)
+                 if (m := measurement(c, self.options)) is not None]
+        relocalized = False
+        if self._lost(t):
+            start = next((f for f in fixes if f.full), None) or \
+                next((f for f in fixes if 1 in f.rows), None)
+            if start is None:
+                self.reset()
+                return TrackResult(_failure(est, cues))
+            self._restart(t, start)
+            relocalized = True
+            fixes = [f for f in fixes if f is not start]
+        used = self._apply(t, fixes)
+        if self._candidates and len(self._candidates) >= self.options.confirm:
+            fix = self._candidates[-1]
+            self._restart(t, fix)
+            relocalized, used = True, [fix.cue.method]
+        diag: dict[str, Any] = {"cues": tuple(used), "pending": len(self._candidates)}
+        pose = self._publish(self._f.node_at(t), NAME, diag)
+        return TrackResult(pose, relocalized)
+
+    # -- internals -------------------------------------------------------------------
+    def _restart(self, t_ns: int, fix: _Fix) -> None:
+        cov = np.diag([UNKNOWN_X_VAR, UNKNOWN_X_VAR, 1.0])
+        z = np.zeros(3)
+        cov[np.ix_(fix.rows, fix.rows)] = fix.R
+        z[list(fix.rows)] = fix.z
+        self.start(t_ns, (float(z[0]), float(z[1]), float(z[2])), cov)
+        self.relocalizations += 1
+        self.contributions[fix.cue.method] += 1
+
+    def _apply(self, t_ns: int, fixes: list[_Fix]) -> list[str]:
+        """Gate and apply each fix at ``t_ns``; keep disagreeing unambiguous ones as
+        relocalization candidates. Returns the methods applied."""
+        f = self._f
+        used: list[str] = []
+        for fix in sorted(fixes, key=lambda m: -len(m.rows)):
+            n = f.node_at(t_ns)
+            y, S = ekf.innovation(n.s, n.P, fix.z, fix.rows, fix.R)
+            if ekf.nis(y, S) <= self.gates[len(fix.rows)]:
+                f.add(_Event(t_ns, "fix", (fix.z, fix.rows, fix.R)))
+                used.append(fix.cue.method)
+                self.contributions[fix.cue.method] += 1
+                if fix.full or 1 in fix.rows:
+                    self._t_fix_ns = t_ns
+                if fix.full:
+                    self._candidates = []
+                continue
+            self.gated[fix.cue.method] += 1
+            if fix.unambiguous:
+                self._candidate(fix)
+        return used
+
+    def _candidate(self, fix: _Fix) -> None:
+        if self._candidates:
+            last = self._candidates[-1]
+            dt = (fix.cue.t_ns - last.cue.t_ns) * 1e-9
+            d = float(np.hypot(*(fix.z[:2] - last.z[:2])))
+            dyaw = abs(wrap_pi(float(fix.z[2] - last.z[2])))
+            if d > 0.25 + 2.5 * dt or dyaw > math.radians(10.0) + math.radians(90.0) * dt:
+                self._candidates = []
+        self._candidates.append(fix)
+
+    def _publish(self, n: _Node, method: str, diag: dict[str, Any]) -> PoseEstimate:
+        o = self.options
+        cov = np.array(n.P[:3, :3])
+        sd = np.sqrt(np.diag(cov))
+        observed = [bool(sd[0] <= o.unobserved_sigma_m), bool(sd[1] <= o.unobserved_sigma_m)]
+        for i in (0, 1):
+            if not observed[i]:
+                cov[i, :] = cov[:, i] = np.inf
+        keep = [i for i in (0, 1) if observed[i]]
+        quality = 0.0 if not keep or self._candidates else \
+            ekf.prob_within_radius(cov[np.ix_(keep, keep)], o.quality_radius_m)
+        if o.cell_m is not None and all(observed):
+            half = 0.5 * o.cell_m
+            diag["cell_p"] = math.erf(half / (sd[0] * math.sqrt(2))) * \
+                math.erf(half / (sd[1] * math.sqrt(2)))
+        return PoseEstimate(int(n.t_ns), method,
+                            float(n.s[0]) if observed[0] else None,
+                            float(n.s[1]) if observed[1] else None,
+                            float(n.s[2]), float(quality), None, cov,
+                            MappingProxyType(diag))
+
+
+def _failure(est: Estimate, cues: tuple) -> Failure:
+    """What to publish with no track and no fix: the first cue's failure."""
+    first = next((c for c in cues if isinstance(c, Failure)), None)
+    if first is None:
+        return Failure(int(est.t_ns), NAME, "no_match", "no cue gives a position")
+    return Failure(first.t_ns, NAME, first.reason, f"{first.method}: {first.detail}",
+                   first.diagnostics)
+
+
+__all__ = ["Fusion", "FusionOptions", "FilterBuffer", "measurement", "NAME"]

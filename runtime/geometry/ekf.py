@@ -1,0 +1,222 @@
+"""Extended Kalman filter math over the vehicle's planar pose (pure functions).
+
+The state (:data:`STATE`, shape ``(7,)``) is the vehicle pose in W, its velocity in W
+and the wheel odometry's scale factor::
+
+    s = (x_m, y_m, yaw_rad, vx_mps, vy_mps, vyaw_rps, odo_scale)
+
+with its ``(7, 7)`` covariance ``P``. Every function takes arrays and returns new
+arrays; nothing is kept between calls (the orchestration in ``runtime/fusion.py``
+keeps the state, the time and the measurement buffer).
+
+Convention: SPEC §1. Odometry increments are in V (the vehicle frame at the previous
+row): ``(dx_m, dy_m)`` forward/left, ``dyaw_rad`` counter-clockwise.
+
+Example::
+
+    s, P = initial_state((1.0, 2.0, 0.1), np.diag([1e-4, 1e-4, 1e-4]))
+    s, P = predict_cv(s, P, 0.033, MotionNoise())
+    s, P, nis = update(s, P, np.array([1.01, 2.0, 0.1]), FULL_POSE, np.eye(3) * 1e-4)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ceilkit.runtime.geometry.rotations import wrap_pi
+
+STATE = ("x_m", "y_m", "yaw_rad", "vx_mps", "vy_mps", "vyaw_rps", "odo_scale")
+N_STATE = len(STATE)
+YAW = 2
+SCALE = 6
+FULL_POSE = (0, 1, 2)
+"""Rows of a full-pose fix (lights, block)."""
+Y_YAW = (1, 2)
+"""Rows of a corridor fix (x unobserved)."""
+YAW_ONLY = (2,)
+"""Rows of a heading-only fix."""
+
+
+@dataclass(frozen=True)
+class MotionNoise:
+    """Process noise.
+
+    Attributes:
+        accel_mps2: white-acceleration density of the constant-velocity model, m/s² /√Hz.
+        turn_rps2: white angular acceleration density, rad/s² /√Hz.
+        odo_rel: 1σ of an odometry increment's length, as a share of the length.
+        odo_lateral_rel: 1σ sideways slip, as a share of the length.
+        odo_yaw_rel: 1σ of an odometry turn, as a share of the turn.
+        odo_yaw_per_m_rad: 1σ heading drift per metre driven, rad/√m.
+        scale_walk: random walk of the odometry scale, 1/√s.
+        hold_mps: pose random walk while the odometry holds the pose between rows, m/√s.
+    """
+
+    accel_mps2: float = 0.8
+    turn_rps2: float = math.radians(60.0)
+    odo_rel: float = 0.01
+    odo_lateral_rel: float = 0.01
+    odo_yaw_rel: float = 0.02
+    odo_yaw_per_m_rad: float = math.radians(0.5)
+    scale_walk: float = 1e-4
+    hold_mps: float = 0.002
+
+
+def initial_state(pose: tuple[float, float, float], pose_cov: np.ndarray,
+                  speed_sigma_mps: float = 1.0, turn_sigma_rps: float = 1.0,
+                  scale_sigma: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """A state at ``pose`` (x, y, yaw) with ``pose_cov`` (3, 3), at rest, scale 1."""
+    s = np.zeros(N_STATE)
+    s[:3] = pose
+    s[SCALE] = 1.0
+    P = np.zeros((N_STATE, N_STATE))
+    P[:3, :3] = pose_cov
+    P[3, 3] = P[4, 4] = speed_sigma_mps ** 2
+    P[5, 5] = turn_sigma_rps ** 2
+    P[SCALE, SCALE] = scale_sigma ** 2
+    return s, P
+
+
+def predict_cv(s: np.ndarray, P: np.ndarray, dt_s: float,
+               noise: MotionNoise) -> tuple[np.ndarray, np.ndarray]:
+    """Constant velocity over ``dt_s`` (>= 0) with white-acceleration process noise."""
+    if dt_s <= 0:
+        return s, P
+    F = np.eye(N_STATE)
+    F[0, 3] = F[1, 4] = F[2, 5] = dt_s
+    s2 = F @ s
+    s2[YAW] = wrap_pi(s2[YAW])
+    Q = np.zeros((N_STATE, N_STATE))
+    for pos, vel, q in ((0, 3, noise.accel_mps2), (1, 4, noise.accel_mps2),
+                        (2, 5, noise.turn_rps2)):
+        q2 = q * q
+        Q[pos, pos] = q2 * dt_s ** 3 / 3
+        Q[pos, vel] = Q[vel, pos] = q2 * dt_s ** 2 / 2
+        Q[vel, vel] = q2 * dt_s
+    Q[SCALE, SCALE] = noise.scale_walk ** 2 * dt_s
+    return s2, F @ P @ F.T + Q
+
+
+def predict_hold(s: np.ndarray, P: np.ndarray, dt_s: float,
+                 noise: MotionNoise) -> tuple[np.ndarray, np.ndarray]:
+    """The pose held between odometry rows (the rows carry the motion)."""
+    if dt_s <= 0:
+        return s, P
+    P2 = P.copy()
+    h = noise.hold_mps ** 2 * dt_s
+    P2[0, 0] += h
+    P2[1, 1] += h
+    P2[YAW, YAW] += h
+    P2[SCALE, SCALE] += noise.scale_walk ** 2 * dt_s
+    return s, P2
+
+
+def predict_odometry(s: np.ndarray, P: np.ndarray, d_v: tuple[float, float, float],
+                     dt_s: float, noise: MotionNoise) -> tuple[np.ndarray, np.ndarray]:
+    """Apply one odometry increment ``(dx_m, dy_m, dyaw_rad)`` in V, scaled by the
+    state's odometry scale; the velocity becomes the increment over ``dt_s``."""
+    dx, dy, dyaw = d_v
+    yaw, k = s[YAW], s[SCALE]
+    c, sn = math.cos(yaw), math.sin(yaw)
+    step = np.array([c * dx - sn * dy, sn * dx + c * dy])
+    s2 = s.copy()
+    s2[0:2] = s[0:2] + k * step
+    s2[YAW] = wrap_pi(yaw + dyaw)
+    if dt_s > 0:
+        s2[3:5] = k * step / dt_s
+        s2[5] = dyaw / dt_s
+    F = np.eye(N_STATE)
+    F[0, YAW] = k * (-sn * dx - c * dy)
+    F[1, YAW] = k * (c * dx - sn * dy)
+    F[0:2, SCALE] = step
+    length = math.hypot(dx, dy)
+    R_wv = np.array([[c, -sn], [sn, c]])
+    Q_v = np.diag([(noise.odo_rel * length) ** 2, (noise.odo_lateral_rel * length) ** 2])
+    Q = np.zeros((N_STATE, N_STATE))
+    Q[0:2, 0:2] = R_wv @ Q_v @ R_wv.T
+    Q[YAW, YAW] = (noise.odo_yaw_rel * dyaw) ** 2 + noise.odo_yaw_per_m_rad ** 2 * length
+    Q[SCALE, SCALE] = noise.scale_walk ** 2 * max(dt_s, 0.0)
+    return s2, F @ P @ F.T + Q
+
+
+def innovation(s: np.ndarray, P: np.ndarray, z: np.ndarray, rows: tuple[int, ...],
+               R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(y, S)``: the residual of measurement ``z`` of state ``rows`` (yaw wrapped),
+    and its covariance ``H P H^T + R``."""
+    idx = list(rows)
+    y = np.asarray(z, float) - s[idx]
+    for i, r in enumerate(rows):
+        if r == YAW:
+            y[i] = wrap_pi(y[i])
+    S = P[np.ix_(idx, idx)] + R
+    return y, S
+
+
+def nis(y: np.ndarray, S: np.ndarray) -> float:
+    """The normalized innovation squared ``y^T S^-1 y`` (chi-square, ``len(y)`` dof)."""
+    return float(y @ np.linalg.solve(S, y))
+
+
+def update(s: np.ndarray, P: np.ndarray, z: np.ndarray, rows: tuple[int, ...],
+           R: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The Kalman update with a direct measurement of state ``rows`` (Joseph form):
+    ``(s, P, nis)``."""
+    y, S = innovation(s, P, z, rows, R)
+    idx = list(rows)
+    PHt = P[:, idx]
+    K = np.linalg.solve(S, PHt.T).T
+    s2 = s + K @ y
+    s2[YAW] = wrap_pi(s2[YAW])
+    H = np.zeros((len(idx), N_STATE))
+    H[np.arange(len(idx)), idx] = 1.0
+    A = np.eye(N_STATE) - K @ H
+    P2 = A @ P @ A.T + K @ R @ K.T
+    return s2, 0.5 * (P2 + P2.T), nis(y, S)
+
+
+def chi2_cdf(x: float, dof: int) -> float:
+    """The chi-square CDF for 1, 2 or 3 degrees of freedom (closed forms)."""
+    if x <= 0:
+        return 0.0
+    h = x / 2.0
+    if dof == 1:
+        return math.erf(math.sqrt(h))
+    if dof == 2:
+        return 1.0 - math.exp(-h)
+    if dof == 3:
+        return math.erf(math.sqrt(h)) - math.sqrt(2.0 * x / math.pi) * math.exp(-h)
+    raise ValueError(f"dof must be 1, 2 or 3, found {dof}")
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """The ``p`` quantile (0 < p < 1) of the chi-square law, 1-3 dof (bisection)."""
+    lo, hi = 0.0, 200.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if chi2_cdf(mid, dof) < p:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def prob_within_radius(cov_xy: np.ndarray, radius_m: float) -> float:
+    """A lower bound of P(‖e‖ < radius) for a zero-mean Gaussian error of covariance
+    ``cov_xy`` (1x1 or 2x2): ``1 - exp(-r² / (2 λ_max))`` in 2-D, ``erf(r / (σ √2))``
+    in 1-D; 0 when a variance is not finite."""
+    C = np.atleast_2d(np.asarray(cov_xy, float))
+    if not np.all(np.isfinite(C)):
+        return 0.0
+    if C.shape == (1, 1):
+        sd = math.sqrt(max(float(C[0, 0]), 1e-30))
+        return math.erf(radius_m / (sd * math.sqrt(2.0)))
+    lam = max(float(np.linalg.eigvalsh(C)[-1]), 1e-30)
+    return 1.0 - math.exp(-radius_m ** 2 / (2.0 * lam))
+
+
+__all__ = ["STATE", "N_STATE", "FULL_POSE", "Y_YAW", "YAW_ONLY", "MotionNoise",
+           "initial_state", "predict_cv", "predict_hold", "predict_odometry", "innovation",
+           "nis", "update", "chi2_cdf", "chi2_quantile", "prob_within_radius"]

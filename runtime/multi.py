@@ -1,0 +1,137 @@
+"""``--method auto``: every method the site supports, on each frame, for the fusion.
+
+:class:`AutoEstimator` runs each method of
+:func:`~ceilkit.runtime.estimators.registry.site_methods` with the same prior (the
+fusion's track when it is confident: the cheap tracked path; none when it is not: the
+lights/block global search) and returns the best-determined estimate with every
+method's result in ``diagnostics["cues"]``, which :class:`~ceilkit.runtime.fusion.Fusion`
+fuses.
+
+:func:`make_localizer` builds the estimator and its tracker for a ``--method``:
+an explicit name is today's single method behind the constant-velocity
+:class:`~ceilkit.runtime.tracking.Tracker`; ``auto`` is the fusion, except on a site
+with one method, no odometry and no start pose, where it is that method as before
+(the same poses, bytes and quality as ``--method NAME``).
+
+Example::
+
+    estimator, tracker = make_localizer("auto", rig, site, start_pose=(0.0, 0.0, 0.0))
+    pipeline = Pipeline(estimator, sinks, tracker)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import Estimate, Estimator, PoseEstimate
+from ceilkit.runtime.estimators.registry import AUTO, make_estimator, site_methods
+from ceilkit.runtime.fusion import Fusion, FusionOptions
+from ceilkit.runtime.tracking import Tracker
+
+
+class AutoEstimator:
+    """Every method the site supports, on one frame (see the module docstring)."""
+
+    name = AUTO
+
+    def __init__(self, rig: Rig, site: Site, options: Mapping[str, Any] | None = None):
+        names = site_methods(site)
+        if not names:
+            raise ConfigError(site.source, None, "the site has no section any method uses")
+        opts = dict(options or {})
+        self.estimators: list[Estimator] = []
+        for n in names:
+            est = make_estimator(n, rig, site)
+            fields = {f.name for f in dataclasses.fields(est.Options)}
+            mine = {k: v for k, v in opts.items() if k in fields}
+            self.estimators.append(make_estimator(n, rig, site, mine) if mine else est)
+        unknown = sorted(set(opts) - {f.name for e in self.estimators
+                                      for f in dataclasses.fields(e.Options)})
+        if unknown:
+            raise ConfigError(None, f"options.{unknown[0]}",
+                              f"no method of the site ({', '.join(names)}) has this option")
+        self.rig, self.site = rig, site
+
+    @property
+    def methods(self) -> tuple[str, ...]:
+        return tuple(e.name for e in self.estimators)
+
+    def estimate(self, image: np.ndarray, t_ns: int,
+                 prior: PoseEstimate | None = None) -> Estimate:
+        """Each method's estimate; the one that observes most is returned, with all of
+        them as ``diagnostics["cues"]``."""
+        cues = tuple(e.estimate(image, t_ns, prior) for e in self.estimators)
+        best = max(cues, key=_observes)
+        return dataclasses.replace(best, diagnostics=MappingProxyType(
+            {**best.diagnostics, "cues": cues}))
+
+
+def _observes(est: Estimate) -> int:
+    if not isinstance(est, PoseEstimate):
+        return 0
+    return 1 + (est.y_m is not None) + (est.x_m is not None)
+
+
+def regular_spacing_m(site: Site) -> float | None:
+    """The smallest distance between two lights of the site (its cell on a grid)."""
+    pts = np.asarray(site.lights_m, float) if site.has_section("lights") else np.zeros((0, 2))
+    if len(pts) < 2:
+        return None
+    return float(min(np.hypot(*(a - b)) for a, b in itertools.combinations(pts, 2)))
+
+
+def make_localizer(method: str | None, rig: Rig, site: Site,
+                   options: Mapping[str, Any] | None = None,
+                   start_pose: tuple[float, float, float] | None = None,
+                   odometry: bool = False,
+                   fusion: FusionOptions | None = None
+                   ) -> tuple[Estimator | AutoEstimator, Tracker | Fusion]:
+    """The estimator and its tracker for ``--method`` (see the module docstring).
+
+    Args:
+        method: an estimator name, ``auto``, or ``None`` (the site's default method).
+        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (auto only).
+        odometry: wheel odometry will be fed to the tracker (auto only).
+        fusion: the fusion's options (default: :class:`FusionOptions` with the site's
+            light spacing as ``cell_m``).
+
+    Raises:
+        ConfigError: a bad method, option, or a start pose with an explicit method.
+    """
+    if method != AUTO:
+        if start_pose is not None:
+            raise ConfigError(None, "start_pose", "a start pose needs --method auto")
+        return make_estimator(method, rig, site, options), Tracker()
+    auto = AutoEstimator(rig, site, options)
+    if len(auto.estimators) == 1 and start_pose is None and not odometry:
+        return auto.estimators[0], Tracker()
+    fusion = fusion or FusionOptions(cell_m=regular_spacing_m(site))
+    return auto, Fusion(fusion, start_pose=start_pose)
+
+
+def parse_start_pose(text: str) -> tuple[float, float, float]:
+    """``X,Y,YAW`` (m, m, degrees) as ``(x_m, y_m, yaw_rad)``.
+
+    Raises:
+        ConfigError: ``start_pose`` unless three finite numbers.
+    """
+    try:
+        x, y, yaw = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(None, "start_pose",
+                          f"expected X,Y,YAW (m, m, degrees), found {text!r}") from None
+    if not all(np.isfinite((x, y, yaw))):
+        raise ConfigError(None, "start_pose", f"expected finite numbers, found {text!r}")
+    return x, y, float(np.radians(yaw))
+
+
+__all__ = ["AutoEstimator", "make_localizer", "parse_start_pose", "regular_spacing_m"]

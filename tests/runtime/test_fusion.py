@@ -1,0 +1,154 @@
+import math
+from types import MappingProxyType
+
+import numpy as np
+import pytest
+
+from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.fusion import Fusion, FusionOptions, measurement
+from ceilkit.runtime.geometry.ekf import chi2_quantile
+
+DT = 33_000_000
+COV = np.diag([1e-6, 1e-6, 1e-6])
+
+
+def _lights(k, x, y, yaw=0.0, mode="tracked", cov=COV):
+    return PoseEstimate(k * DT, "lights", x, y, yaw, 0.8, None, cov,
+                        MappingProxyType({"mode": mode}))
+
+
+def _corridor(k, y, yaw=0.0):
+    cov = np.diag([np.inf, 1e-6, 1e-6])
+    return PoseEstimate(k * DT, "corridor", None, y, yaw, 1.0, None, cov)
+
+
+def _frame(*cues):
+    first = cues[0]
+    return PoseEstimate(first.t_ns, first.method, first.x_m, first.y_m, first.yaw_rad, 0.5,
+                        None, first.cov, MappingProxyType({"cues": cues}))
+
+
+def test_measurement_rows_follow_what_the_cue_observes():
+    opt = FusionOptions()
+    assert measurement(_lights(0, 1.0, 2.0), opt).rows == (0, 1, 2)
+    m = measurement(_corridor(0, 0.1), opt)
+    assert m.rows == (1, 2) and m.R.shape == (2, 2)
+    bare = PoseEstimate(0, "x", None, None, 0.3, 1.0)
+    assert measurement(bare, opt).rows == (2,)
+    assert measurement(bare, opt).R[0, 0] == pytest.approx(
+        opt.default_sigma_rad ** 2 + opt.fix_floor_rad ** 2)
+
+
+def test_first_full_fix_starts_then_tracks_with_quality_from_the_covariance():
+    fu = Fusion()
+    assert fu.predict(0) is None
+    res = fu.update(_lights(0, 1.0, 2.0))
+    assert res.relocalized and fu.relocalizations == 1
+    for k in range(1, 20):
+        res = fu.update(_lights(k, 1.0 + 0.01 * k, 2.0))
+        assert not res.relocalized
+    pose = res.estimate
+    assert pose.method == "auto" and pose.x_m == pytest.approx(1.19, abs=2e-3)
+    assert pose.quality > 0.99 and pose.cov.shape == (3, 3)
+    prior = fu.predict(20 * DT)
+    assert prior.x_m == pytest.approx(1.20, abs=3e-3)
+
+
+def test_corridor_alone_never_invents_x():
+    fu = Fusion()
+    for k in range(10):
+        res = fu.update(_corridor(k, 0.1))
+    assert res.estimate.x_m is None and res.estimate.y_m == pytest.approx(0.1, abs=1e-3)
+    assert math.isinf(res.estimate.cov[0, 0])
+    assert res.estimate.quality > 0.9  # of the observed coordinate
+
+
+def test_corridor_and_lights_are_both_applied():
+    fu = Fusion()
+    for k in range(5):
+        res = fu.update(_frame(_lights(k, 1.0, 0.1), _corridor(k, 0.1)))
+    assert res.estimate.diagnostics["cues"] == ("lights", "corridor")
+    assert fu.contributions == {"lights": 5, "corridor": 5}
+
+
+def test_outlier_is_gated_and_does_not_move_the_pose():
+    fu = Fusion()
+    for k in range(10):
+        fu.update(_lights(k, 1.0, 2.0))
+    res = fu.update(_lights(10, 1.5, 2.0, mode="tracked"))
+    assert res.estimate.x_m == pytest.approx(1.0, abs=1e-3) and fu.gated["lights"] == 1
+
+
+def test_kidnapping_relocalizes_after_confirmation_with_quality_zero_between():
+    fu = Fusion()
+    for k in range(10):
+        fu.update(_lights(k, 1.0, 2.0))
+    out = [fu.update(_lights(k, 4.0, 2.0, math.pi / 2, mode="global")) for k in range(10, 13)]
+    assert [r.relocalized for r in out] == [False, False, True]
+    assert out[0].estimate.quality == 0.0 and out[1].estimate.quality == 0.0
+    assert out[2].estimate.x_m == pytest.approx(4.0, abs=1e-3)
+    assert fu.relocalizations == 2
+
+
+def test_lost_without_fixes_restarts_and_fails_with_the_cue_reason():
+    fu = Fusion()
+    fu.update(_lights(0, 1.0, 2.0))
+    blank = Failure(40 * DT, "lights", "blank_frame", "dark")
+    res = fu.update(blank)
+    assert isinstance(res.estimate, Failure) and res.estimate.reason == "blank_frame"
+    assert fu.update(_lights(41, 5.0, 2.0, mode="global")).relocalized
+
+
+def test_coasting_publishes_a_growing_covariance():
+    fu = Fusion()
+    for k in range(10):
+        fu.update(_lights(k, 0.01 * k, 0.0))
+    blank = [fu.update(Failure(k * DT, "lights", "blank_frame")) for k in range(10, 25)]
+    q = [r.estimate.quality for r in blank]
+    assert all(isinstance(r.estimate, PoseEstimate) for r in blank)
+    assert q == sorted(q, reverse=True) and q[-1] < q[0]
+
+
+def test_start_pose_gives_a_prior_before_any_fix():
+    fu = Fusion(start_pose=(1.0, 2.0, 0.5), start_sigma=(0.05, 0.03))
+    prior = fu.predict(0)
+    assert prior.x_m == pytest.approx(1.0) and prior.yaw_rad == pytest.approx(0.5)
+
+
+def test_late_odometry_is_applied_at_its_time():
+    def run(order):
+        fu = Fusion()
+        fu.update(_lights(0, 0.0, 0.0))
+        rows = [(k * DT, 0.01, 0.0, 0.0) for k in range(1, 6)]
+        fixes = {k: _lights(k, 0.01 * k, 0.0) for k in range(1, 6)}
+        for step in order:
+            if step[0] == "odo":
+                fu.add_odometry(*rows[step[1]])
+            else:
+                fu.update(fixes[step[1]])
+        return fu, fu.predict(6 * DT)
+
+    in_order = [x for k in range(5) for x in (("odo", k), ("fix", k + 1))]
+    late = [("fix", 1), ("odo", 0)] + in_order[2:]
+    a, pa = run(in_order)
+    b, pb = run(late)
+    assert b.refiltered >= 1
+    assert pa.x_m == pytest.approx(pb.x_m, abs=1e-9)
+    assert pa.cov == pytest.approx(pb.cov)
+
+
+def test_nees_of_noisy_fixes_is_consistent():
+    rng = np.random.default_rng(4)
+    sigma = 0.003
+    cov = np.diag([sigma ** 2, sigma ** 2, 1e-6])
+    fu = Fusion(FusionOptions(fix_inflation=1.0, fix_floor_m=1e-4))
+    nees = []
+    for k in range(300):
+        x = 0.5 * k * DT * 1e-9
+        z = _lights(k, x + rng.normal(0, sigma), rng.normal(0, sigma), 0.0, cov=cov)
+        est = fu.update(z).estimate
+        if k > 30:
+            e = np.array([est.x_m - x, est.y_m])
+            nees.append(e @ np.linalg.solve(est.cov[:2, :2], e))
+    share = np.mean(np.array(nees) <= chi2_quantile(0.95, 2))
+    assert share > 0.9
