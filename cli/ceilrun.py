@@ -16,7 +16,7 @@ from pathlib import Path
 import typer
 
 from ceilkit.runtime.errors import ConfigError, LinkError
-from ceilkit.runtime.estimators.registry import METHOD_NAMES
+from ceilkit.runtime.estimators.registry import AUTO, METHOD_NAMES
 from ceilkit.runtime.io.link.transport import is_serial_path
 from ceilkit.runtime.io.recording import (
     LOG_DIR,
@@ -25,6 +25,7 @@ from ceilkit.runtime.io.recording import (
     refuse_existing,
     repair_recording,
 )
+from ceilkit.runtime.multi import parse_start_pose
 from ceilkit.runtime.replay import replay as run_replay
 from ceilkit.runtime.session import (
     CaptureSettings,
@@ -36,6 +37,16 @@ from ceilkit.runtime.session import (
 )
 
 from .common import TERM_LINE, echo_err, make_app, parse_options, quiet_opencv
+
+METHOD_HELP = (f"Estimator: auto (every method the site supports, fused; on a site with one "
+               f"method and no odometry or start pose, that method), or one of "
+               f"{', '.join(METHOD_NAMES)}.")
+START_HELP = ("Where the vehicle starts: x, y in m, yaw in degrees (--method auto): a "
+              "regular light grid is then tracked from there.")
+
+
+def _start_pose(text: str | None) -> tuple[float, float, float] | None:
+    return None if text is None else parse_start_pose(text)
 
 app = make_app("ceilrun", "Run the localizer on the vehicle, or replay a recording.\n\n"
                "Live: ceilrun --device /dev/video0 --serial /dev/ttyUSB0 --rig rig.yaml "
@@ -126,8 +137,8 @@ def live(
                                    "origin (ArduPilot needs one). Off by default."),
     rig: Path = typer.Option(None, help="rig.yaml (default for sim: the example's)."),
     site: Path = typer.Option(None, help="site.yaml (default for sim: the example's)."),
-    method: str = typer.Option(None, help=f"Estimator: {', '.join(METHOD_NAMES)} "
-                                          "(default: what the site holds)."),
+    method: str = typer.Option(AUTO, help=METHOD_HELP),
+    start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW", help=START_HELP),
     option: list[str] = typer.Option(None, "--option", metavar="KEY=VALUE",
                                      help=OPTION_HELP),
     record: Path = typer.Option(None, help="Write a SPEC recording of the run here."),
@@ -162,7 +173,8 @@ def live(
         _link(serial, protocol, baud, sysid, compid, mavlink_missing_x,
               _parse_origin(ekf_origin)),
         record, out, frames, CaptureSettings(width, height, fps, fourcc, exposure, gain),
-        view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every)
+        view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every,
+        start_pose=_start_pose(start_pose))
 
     def show(tel):
         if status:
@@ -179,7 +191,11 @@ def replay(
     out: Path = typer.Option(None, help="Output folder (default RECORDING/replay)."),
     rig: Path = typer.Option(None, help="Use this rig.yaml instead of the recording's."),
     site: Path = typer.Option(None, help="Use this site.yaml instead of the recording's."),
-    method: str = typer.Option(None, help=f"Estimator: {', '.join(METHOD_NAMES)}."),
+    method: str = typer.Option(AUTO, help=METHOD_HELP),
+    start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW", help=START_HELP),
+    odometry: Path = typer.Option(None, "--odometry", metavar="FILE", help="Wheel odometry "
+                                  "(odometry.csv layout) instead of the recording's own; "
+                                  "fed to the fusion (--method auto)."),
     option: list[str] = typer.Option(None, "--option", metavar="KEY=VALUE",
                                      help=OPTION_HELP),
     no_track: bool = typer.Option(False, "--no-track", help="Write the estimator's own "
@@ -218,7 +234,7 @@ def replay(
                      track=not no_track, progress=bar, options=parse_options(option),
                      link=_link(serial, protocol, baud, missing_x=mavlink_missing_x),
                      overlays=overlays, overlays_only_failures=overlays_only_failures,
-                     report=report)
+                     report=report, start_pose=_start_pose(start_pose), odometry=odometry)
     TERM_LINE.end()
     # the report goes to stderr when the poses themselves stream to stdout
     echo = _err if serial == "-" else typer.echo

@@ -17,11 +17,14 @@ result, or the one estimate), and wheel odometry rows at any time
 * gating: a fix whose normalized innovation is beyond the chi-square gate is not
   applied; ``confirm`` agreeing, unambiguous (global) full fixes away from the track
   re-localize it there (``relocalized``: the link bumps its reset counter); while such
-  fixes wait, the published quality is 0: a kidnapped track never keeps a confident
-  old pose;
+  fixes wait, a frame no other cue confirms is a ``gated`` Failure, and a confirmed
+  one is published with quality 0: a kidnapped track never keeps a confident old pose;
 * lost: no absolute fix for ``lost_after_s`` and no odometry: the next fix starts anew;
 * ``quality`` = P(position error < ``quality_radius_m``) from the published
-  covariance (:func:`~ceilkit.runtime.geometry.ekf.prob_within_radius`).
+  covariance (:func:`~ceilkit.runtime.geometry.ekf.prob_within_radius`);
+* ``method`` of a published pose: the method whose fix observed most in that frame
+  (while coasting on the motion model, ``diagnostics["coasting"]``, the last such
+  method: ``auto`` before any), ``diagnostics["cues"]`` every method applied.
 """
 
 from __future__ import annotations
@@ -63,6 +66,7 @@ class FusionOptions:
         fix_floor_m, fix_floor_rad: 1σ floors of a fix (unmodelled biases).
         default_sigma_m, default_sigma_rad: 1σ of a fix that carries no covariance.
         cell_m: spacing of a regular layout: the cell probability is reported.
+        start_speed_mps, start_turn_rps: 1σ of the velocity when a track starts.
     """
 
     noise: ekf.MotionNoise = field(default_factory=ekf.MotionNoise)
@@ -80,6 +84,8 @@ class FusionOptions:
     default_sigma_m: float = 0.05
     default_sigma_rad: float = math.radians(2.0)
     cell_m: float | None = None
+    start_speed_mps: float = 2.5
+    start_turn_rps: float = math.radians(90.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -224,6 +230,7 @@ class Fusion:
         self.gated: Counter = Counter()
         self.odometry_rows = 0
         self._start_pose = start_pose
+        self._method = NAME
         self._start_sigma = start_sigma
 
     @property
@@ -241,7 +248,8 @@ class Fusion:
     # -- inputs ----------------------------------------------------------------------
     def start(self, t_ns: int, pose: tuple[float, float, float], cov: np.ndarray) -> None:
         """Start the track at ``pose`` (x, y, yaw) with covariance ``cov`` (3, 3)."""
-        s, P = ekf.initial_state(pose, cov)
+        s, P = ekf.initial_state(pose, cov, self.options.start_speed_mps,
+                                 self.options.start_turn_rps)
         t_odo = None if self._f is None else self._f.latest.t_odo_ns
         self._f = FilterBuffer(_Node(int(t_ns), s, P, t_odo), self.options)
         self._t_fix_ns = int(t_ns)
@@ -252,6 +260,16 @@ class Fusion:
         self.odometry_rows += 1
         if self._f is not None:
             self._f.add(_Event(int(t_ns), "odo", (dx_m, dy_m, dyaw_rad)))
+
+    def feed(self, odometry: Any, first: int, t_ns: int) -> int:
+        """Feed rows ``first..`` of an :class:`~ceilkit.runtime.io.recording.Odometry`
+        stamped at or before ``t_ns``; returns the index of the next row."""
+        k = first
+        while k < len(odometry) and int(odometry.t_ns[k]) <= t_ns:
+            self.add_odometry(int(odometry.t_ns[k]), float(odometry.dx_m[k]),
+                              float(odometry.dy_m[k]), float(odometry.dyaw_rad[k]))
+            k += 1
+        return k
 
     # -- the per-frame interface of Tracker -------------------------------------------
     def _lost(self, t_ns: int) -> bool:
@@ -282,7 +300,7 @@ class Fusion:
         cues = est.diagnostics.get("cues", (est,))
         fixes = [m for c in cues if isinstance(c, PoseEstimate)
                  if (m := measurement(c, self.options)) is not None]
-        relocalized = False
+        relocalized, started = False, []
         if self._lost(t):
             start = next((f for f in fixes if f.full), None) or \
                 next((f for f in fixes if 1 in f.rows), None)
@@ -290,15 +308,24 @@ class Fusion:
                 self.reset()
                 return TrackResult(_failure(est, cues))
             self._restart(t, start)
-            relocalized = True
+            relocalized, started = True, [start.cue.method]
             fixes = [f for f in fixes if f is not start]
-        used = self._apply(t, fixes)
+        used = started + self._apply(t, fixes)
         if self._candidates and len(self._candidates) >= self.options.confirm:
             fix = self._candidates[-1]
             self._restart(t, fix)
             relocalized, used = True, [fix.cue.method]
         diag: dict[str, Any] = {"cues": tuple(used), "pending": len(self._candidates)}
-        pose = self._publish(self._f.node_at(t), NAME, diag)
+        if used:
+            self._method = used[0]
+        diag["coasting"] = not used
+        if self._candidates and not used:
+            pend = self._candidates[-1].cue
+            return TrackResult(Failure(
+                t, pend.method, "gated", f"{pend.method} puts the vehicle away from the "
+                f"track; {self.options.confirm - len(self._candidates)} more to confirm",
+                diagnostics={"rejected": pend}))
+        pose = self._publish(self._f.node_at(t), self._method, diag)
         return TrackResult(pose, relocalized)
 
     # -- internals -------------------------------------------------------------------
@@ -365,13 +392,69 @@ class Fusion:
                             MappingProxyType(diag))
 
 
+def nees(est: PoseEstimate, truth: tuple[float, float, float]) -> tuple[float, int] | None:
+    """The normalized estimation error squared of a published pose against the truth
+    ``(x, y, yaw)`` over the coordinates it gives: ``(nees, dof)``, or None."""
+    rows = [i for i, v in ((0, est.x_m), (1, est.y_m)) if v is not None] + [ekf.YAW]
+    if est.cov is None:
+        return None
+    C = np.asarray(est.cov, float)[np.ix_(rows, rows)]
+    if not np.all(np.isfinite(C)):
+        return None
+    got = np.array([est.x_m if est.x_m is not None else 0.0,
+                    est.y_m if est.y_m is not None else 0.0, est.yaw_rad])[rows]
+    e = got - np.asarray(truth, float)[rows]
+    e[-1] = wrap_pi(float(e[-1]))
+    return ekf.nis(e, C), len(rows)
+
+
+class FusionReport:
+    """The summary of a fused run: per-cue contributions and, against a truth, the
+    consistency of the published covariance (NEES)."""
+
+    def __init__(self, fusion: Fusion, truth: Any = None):
+        self.fusion, self.truth = fusion, truth
+        self.values: list[tuple[float, int]] = []
+        self.confident_wrong = 0   # quality >= 0.8 and more than 5 cm off
+
+    def add(self, est: Estimate) -> None:
+        if self.truth is None or not isinstance(est, PoseEstimate):
+            return
+        t = self.truth.lookup(est.t_ns)
+        if t is None:
+            return
+        v = nees(est, t)
+        if v is not None:
+            self.values.append(v)
+        err = [abs(a - b) for a, b in ((est.x_m, t[0]), (est.y_m, t[1])) if a is not None]
+        if est.quality >= 0.8 and err and math.hypot(*err) > 0.05:
+            self.confident_wrong += 1
+
+    def lines(self) -> list[str]:
+        fu = self.fusion
+        cues = ", ".join(f"{m} {n}" for m, n in fu.contributions.most_common()) or "none"
+        gated = ", ".join(f"{m} {n}" for m, n in fu.gated.most_common()) or "none"
+        out = [f"fusion: fixes applied {cues}; gated {gated}; odometry rows "
+               f"{fu.odometry_rows}; late rows re-filtered {fu.refiltered}"]
+        if self.values:
+            inside = [v <= ekf.chi2_quantile(0.95, d) for v, d in self.values]
+            dof = round(float(np.mean([d for _, d in self.values])))
+            lo, hi = ekf.mean_nees_band(len(self.values), dof)
+            mean = float(np.mean([v for v, _ in self.values]))
+            out.append(f"consistency: mean NEES {mean:.2f} ({dof} dof, 95% band "
+                       f"{lo:.2f}-{hi:.2f}), {100 * np.mean(inside):.1f}% of poses inside "
+                       f"their 95% ellipsoid; quality >= 0.8 but > 5 cm off: "
+                       f"{self.confident_wrong}")
+        return out
+
+
 def _failure(est: Estimate, cues: tuple) -> Failure:
     """What to publish with no track and no fix: the first cue's failure."""
     first = next((c for c in cues if isinstance(c, Failure)), None)
     if first is None:
         return Failure(int(est.t_ns), NAME, "no_match", "no cue gives a position")
-    return Failure(first.t_ns, NAME, first.reason, f"{first.method}: {first.detail}",
-                   first.diagnostics)
+    return first
 
 
-__all__ = ["Fusion", "FusionOptions", "FilterBuffer", "measurement", "NAME"]
+__all__ = ["Fusion", "FusionOptions", "FusionReport", "FilterBuffer", "measurement",
+           "nees", "NAME"]

@@ -54,11 +54,11 @@ class AutoEstimator:
             fields = {f.name for f in dataclasses.fields(est.Options)}
             mine = {k: v for k, v in opts.items() if k in fields}
             self.estimators.append(make_estimator(n, rig, site, mine) if mine else est)
-        unknown = sorted(set(opts) - {f.name for e in self.estimators
-                                      for f in dataclasses.fields(e.Options)})
+        known = {f.name for e in self.estimators for f in dataclasses.fields(e.Options)}
+        unknown = sorted(set(opts) - known)
         if unknown:
             raise ConfigError(None, f"options.{unknown[0]}",
-                              f"no method of the site ({', '.join(names)}) has this option")
+                              f"unknown option (expected one of {', '.join(sorted(known))})")
         self.rig, self.site = rig, site
 
     @property

@@ -27,12 +27,18 @@ from typing import Any
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
-from ceilkit.runtime.estimators.registry import make_estimator
-from ceilkit.runtime.io.recording import PoseWriter, Recording, write_truth_tum
+from ceilkit.runtime.fusion import Fusion, FusionReport
+from ceilkit.runtime.io.recording import (
+    Odometry,
+    PoseWriter,
+    Recording,
+    load_odometry,
+    write_truth_tum,
+)
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter
+from ceilkit.runtime.multi import make_localizer
 from ceilkit.runtime.pipeline import Pipeline, PoseFileSink, PoseSink, Telemetry
 from ceilkit.runtime.session import LinkConfig, link_lines, opened_link
-from ceilkit.runtime.tracking import Tracker
 from ceilkit.runtime.viz.report import ReplayViews
 from ceilkit.runtime.viz.tap import EstimateTap
 
@@ -61,13 +67,15 @@ class ReplayResult:
     link: tuple[str, ...] = ()
     report: Path | None = None
     overlays: int = 0
+    fusion: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
         """The report: a heading, then indented details."""
         how = "" if self.tracked else " (no tracking)"
         out = [f"replay {self.recording} with {self.method}{how}: {self.telemetry.frames} "
                f"frames in {self.elapsed_s:.2f} s -> {self.poses_path}"]
-        out += ["  " + line for line in self.telemetry.summary() + list(self.link)]
+        out += ["  " + line for line in self.telemetry.summary() + list(self.link)
+                + list(self.fusion)]
         if self.accuracy is not None:
             out.append("  against truth.csv:")
             out += ["    " + line for line in self.accuracy.lines()]
@@ -86,14 +94,16 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
            options: Mapping[str, Any] | None = None, link: LinkConfig | None = None,
            clock: Callable[[], int] = time.monotonic_ns,
            overlays: str | Path | None = None, overlays_only_failures: bool = False,
-           report: bool = False) -> ReplayResult:
+           report: bool = False, start_pose: tuple[float, float, float] | None = None,
+           odometry: str | Path | None = None) -> ReplayResult:
     """Run the pipeline over a recording as fast as possible (or at recorded timing).
 
     Args:
         recording: the recording folder (SPEC §2).
         out_dir: where ``poses.csv`` (and ``poses.tum``) go; ``RECORDING/replay/`` by default.
         rig, site: files or objects replacing the recording's own.
-        method: an estimator name, or ``None`` for the site's default.
+        method: an estimator name, ``auto`` (every method of the site, fused:
+            :mod:`~ceilkit.runtime.multi`), or ``None`` for the site's default.
         tum: also write ``poses.tum``.
         realtime: wait between frames as recorded.
         track: ``False``: no tracker; each frame is estimated with no prior.
@@ -107,6 +117,9 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
             quality below 0.5.
         report: also write ``OUT/report.html`` (:mod:`~ceilkit.runtime.viz.report`);
             with ``tum`` and a ``truth.csv``, ``truth.tum`` is written beside ``poses.tum``.
+        start_pose: ``(x_m, y_m, yaw_rad)`` where the drive starts (``auto`` only).
+        odometry: an ``odometry.csv`` replacing the recording's own; the rows are fed
+            to the fusion (``auto``) at their stamps.
 
     Raises:
         ConfigError: a broken recording, rig or site; a bad method or option.
@@ -114,7 +127,9 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
     """
     rec = Recording(recording, rig=rig, site=site)
     check_rig_site(rec.rig, rec.site)
-    estimator = make_estimator(method, rec.rig, rec.site, options)
+    odo = load_odometry(odometry) if odometry is not None else rec.odometry
+    estimator, tracker = make_localizer(method, rec.rig, rec.site, options, start_pose,
+                                        odo is not None and track)
     out = Path(out_dir) if out_dir is not None else rec.folder / "replay"
     poses_path = out / "poses.csv"
     tap = EstimateTap(estimator) if overlays is not None or report else None
@@ -127,12 +142,13 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
             opened_link(link, rec.rig, rec.site) as the_link:
         more = [*sinks, the_link] if the_link is not None else list(sinks)
         pipeline = Pipeline(tap or estimator, [PoseFileSink(writer, clock), *more],
-                            Tracker() if track else None, clock)
+                            tracker if track else None, clock)
         res = _run(rec, pipeline, realtime, progress, clock,
-                   None if tap is None else (tap, views))
+                   None if tap is None else (tap, views), odo)
     result = ReplayResult(rec.folder, poses_path, estimator.name, pipeline.telemetry,
                           res[0], res[1], track, tuple(link_lines(the_link)), None,
-                          0 if views is None else views.written)
+                          0 if views is None else views.written,
+                          tuple(res[2].lines()) if res[2] is not None else ())
     if report:
         path = views.write_report(out / "report.html", f"replay of {rec.folder.name}",
                                   result.lines())
@@ -142,16 +158,23 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
 
 def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
          progress: Callable[[int, int], None] | None,
-         clock: Callable[[], int], viewed: tuple[EstimateTap, ReplayViews] | None = None
-         ) -> tuple[Accuracy | None, float]:
-    """Every frame of ``rec`` through ``pipeline``: the accuracy and the elapsed time;
-    ``viewed``: each frame's raw estimate (from the tap) handed to the views too."""
+         clock: Callable[[], int], viewed: tuple[EstimateTap, ReplayViews] | None = None,
+         odometry: Odometry | None = None
+         ) -> tuple[Accuracy | None, float, FusionReport | None]:
+    """Every frame of ``rec`` through ``pipeline``: the accuracy, the elapsed time and
+    the fusion's report (a fusion run); ``viewed``: each frame's raw estimate (from the
+    tap) handed to the views too; ``odometry``: rows fed to the fusion up to each frame."""
     meter = AccuracyMeter(rec.truth) if rec.truth is not None else None
+    fusion = pipeline.tracker if isinstance(pipeline.tracker, Fusion) else None
+    fused = FusionReport(fusion, rec.truth) if fusion is not None else None
+    fed = 0
     n = len(rec)
     start = clock()
     t_first = int(rec.t_ns[0]) if n else 0
     for k in range(n):
         frame = rec.frame(k)
+        if fusion is not None and odometry is not None:
+            fed = fusion.feed(odometry, fed, frame.t_ns)
         if realtime:
             due = start + (frame.t_ns - t_first)
             wait = due - clock()
@@ -160,9 +183,11 @@ def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
         est = pipeline.process(frame, capture_ns=clock())
         if meter is not None:
             meter.add(est)
+        if fused is not None:
+            fused.add(est)
         if viewed is not None:
             image, raw = viewed[0].latest
             viewed[1].frame(k, image, raw, est, pipeline.telemetry.latency_ms[-1])
         if progress is not None:
             progress(k + 1, n)
-    return meter.result() if meter is not None else None, (clock() - start) / 1e9
+    return meter.result() if meter is not None else None, (clock() - start) / 1e9, fused

@@ -34,7 +34,6 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.devices import open_source, packaged_config
 from ceilkit.runtime.errors import CaptureError, ConfigError, LinkError
-from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.io.capture import CameraSource
 from ceilkit.runtime.io.recording import (
     LOG_DIR,
@@ -47,6 +46,7 @@ from ceilkit.runtime.io.recording import (
 )
 from ceilkit.runtime.live import AsyncRecorder, LiveResult, run_live
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter, MeterSink, source_truth
+from ceilkit.runtime.multi import make_localizer
 from ceilkit.runtime.pipeline import (
     OutputGuard,
     Pipeline,
@@ -54,7 +54,6 @@ from ceilkit.runtime.pipeline import (
     PoseSink,
     Telemetry,
 )
-from ceilkit.runtime.tracking import Tracker
 from ceilkit.runtime.viz.web import open_view
 
 log = logging.getLogger("ceilkit.session")
@@ -146,7 +145,9 @@ class SessionConfig:
             (:func:`~ceilkit.runtime.devices.open_source`).
         rig, site: the files (or loaded objects); for ``sim:NAME`` the example's by
             default, else required.
-        method: an estimator name, or ``None`` for the site's default.
+        method: an estimator name, ``auto`` (fused, :mod:`~ceilkit.runtime.multi`), or
+            ``None`` for the site's default.
+        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (``auto``).
         options: the estimator's options by name (values may be strings).
         link: where poses are streamed, or ``None``.
         record: a folder for a SPEC recording of the run, or ``None``.
@@ -180,6 +181,7 @@ class SessionConfig:
     fsync_every_s: float = 1.0
     view: str | None = None
     view_token: str | None = None
+    start_pose: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -406,7 +408,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     _check_config(config)
     stop = stop or threading.Event()
     rig, site = load_rig_site(config.device, config.rig, config.site)
-    estimator = make_estimator(config.method, rig, site, config.options)
+    estimator, tracker = make_localizer(config.method, rig, site, config.options,
+                                        config.start_pose)
     record = record_folder(config.record) if config.record is not None else None
     check_outputs(session_inputs(config, rig), _session_outputs(config, record))
     if config.out is not None and (config.out / "poses.csv").exists() and not config.force:
@@ -449,7 +452,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
             if meter is not None:
                 sinks.append(MeterSink(meter))
             pipeline = Pipeline(view.watch(estimator, sinks) if view else estimator, sinks,
-                                Tracker())
+                                tracker)
             if view is not None:
                 view.attach(pipeline.telemetry)
             result = run_live(source, pipeline, recorder, stop, config.frames,

@@ -203,6 +203,23 @@ def chi2_quantile(p: float, dof: int) -> float:
     return 0.5 * (lo + hi)
 
 
+def mean_nees_band(n: int, dof: int, p: float = 0.95) -> tuple[float, float]:
+    """The two-sided ``p`` band of the mean of ``n`` independent chi-square(``dof``)
+    values (Wilson-Hilferty for chi-square(n dof), divided by n)."""
+    k = n * dof
+    z = math.sqrt(2.0) * _erfinv(p)
+    c = 2.0 / (9.0 * k)
+    return (k * (1 - c - z * math.sqrt(c)) ** 3 / n, k * (1 - c + z * math.sqrt(c)) ** 3 / n)
+
+
+def _erfinv(p: float) -> float:
+    lo, hi = 0.0, 6.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if math.erf(mid) < p else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
 def prob_within_radius(cov_xy: np.ndarray, radius_m: float) -> float:
     """A lower bound of P(‖e‖ < radius) for a zero-mean Gaussian error of covariance
     ``cov_xy`` (1x1 or 2x2): ``1 - exp(-r² / (2 λ_max))`` in 2-D, ``erf(r / (σ √2))``
@@ -219,4 +236,5 @@ def prob_within_radius(cov_xy: np.ndarray, radius_m: float) -> float:
 
 __all__ = ["STATE", "N_STATE", "FULL_POSE", "Y_YAW", "YAW_ONLY", "MotionNoise",
            "initial_state", "predict_cv", "predict_hold", "predict_odometry", "innovation",
-           "nis", "update", "chi2_cdf", "chi2_quantile", "prob_within_radius"]
+           "nis", "update", "chi2_cdf", "chi2_quantile", "mean_nees_band",
+           "prob_within_radius"]
