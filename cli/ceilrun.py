@@ -139,6 +139,11 @@ def live(
     site: Path = typer.Option(None, help="site.yaml (default for sim: the example's)."),
     method: str = typer.Option(AUTO, help=METHOD_HELP),
     start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW", help=START_HELP),
+    link_odometry: bool = typer.Option(False, "--link-odometry", help="Read wheel odometry "
+                                       "back from --serial ($PCEIO, MAVLink ODOMETRY or "
+                                       "WHEEL_DISTANCE) into the fusion (--method auto)."),
+    wheel_track: float = typer.Option(None, "--wheel-track", metavar="M", help="Wheel "
+                                      "track of a differential drive, m (WHEEL_DISTANCE)."),
     option: list[str] = typer.Option(None, "--option", metavar="KEY=VALUE",
                                      help=OPTION_HELP),
     record: Path = typer.Option(None, help="Write a SPEC recording of the run here."),
@@ -174,7 +179,8 @@ def live(
               _parse_origin(ekf_origin)),
         record, out, frames, CaptureSettings(width, height, fps, fourcc, exposure, gain),
         view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every,
-        start_pose=_start_pose(start_pose))
+        start_pose=_start_pose(start_pose), link_odometry=link_odometry,
+        wheel_track_m=wheel_track)
 
     def show(tel):
         if status:

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -231,6 +231,7 @@ class Fusion:
         self.odometry_rows = 0
         self._start_pose = start_pose
         self._method = NAME
+        self._inbox: deque = deque()   # odometry rows from any thread (the link's)
         self._start_sigma = start_sigma
 
     @property
@@ -256,10 +257,17 @@ class Fusion:
         self._candidates = []
 
     def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float) -> None:
-        """One wheel odometry row: the increment in V since the previous row."""
-        self.odometry_rows += 1
-        if self._f is not None:
-            self._f.add(_Event(int(t_ns), "odo", (dx_m, dy_m, dyaw_rad)))
+        """One wheel odometry row: the increment in V since the previous row. Safe from
+        any thread (the link's receive hook): rows are applied at the next frame, each
+        at its stamp."""
+        self._inbox.append((int(t_ns), float(dx_m), float(dy_m), float(dyaw_rad)))
+
+    def _drain(self) -> None:
+        while self._inbox:
+            t_ns, dx, dy, dyaw = self._inbox.popleft()
+            self.odometry_rows += 1
+            if self._f is not None:
+                self._f.add(_Event(t_ns, "odo", (dx, dy, dyaw)))
 
     def feed(self, odometry: Any, first: int, t_ns: int) -> int:
         """Feed rows ``first..`` of an :class:`~ceilkit.runtime.io.recording.Odometry`
@@ -284,6 +292,7 @@ class Fusion:
     def predict(self, t_ns: int, method: str = NAME) -> PoseEstimate | None:
         """The prior for the estimators at ``t_ns``: ``None`` when not tracking or
         when the track is too uncertain to guide a local search."""
+        self._drain()
         if self._start_pose is not None and self._f is None:
             sp, sr = self._start_sigma
             self.start(t_ns, self._start_pose, np.diag([sp * sp, sp * sp, sr * sr]))
@@ -296,6 +305,7 @@ class Fusion:
 
     def update(self, est: Estimate) -> TrackResult:
         """Fuse one frame's estimate(s); returns what to publish."""
+        self._drain()
         t = int(est.t_ns)
         cues = est.diagnostics.get("cues", (est,))
         fixes = [m for c in cues if isinstance(c, PoseEstimate)

@@ -34,7 +34,9 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.devices import open_source, packaged_config
 from ceilkit.runtime.errors import CaptureError, ConfigError, LinkError
+from ceilkit.runtime.fusion import Fusion
 from ceilkit.runtime.io.capture import CameraSource
+from ceilkit.runtime.io.odometry_in import OdometryReceiver
 from ceilkit.runtime.io.recording import (
     LOG_DIR,
     OS_DISK,
@@ -148,6 +150,8 @@ class SessionConfig:
         method: an estimator name, ``auto`` (fused, :mod:`~ceilkit.runtime.multi`), or
             ``None`` for the site's default.
         start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (``auto``).
+        link_odometry: read wheel odometry back from the link (``$PCEIO``, MAVLink
+            ODOMETRY, WHEEL_DISTANCE with ``wheel_track_m``) into the fusion (``auto``).
         options: the estimator's options by name (values may be strings).
         link: where poses are streamed, or ``None``.
         record: a folder for a SPEC recording of the run, or ``None``.
@@ -182,6 +186,8 @@ class SessionConfig:
     view: str | None = None
     view_token: str | None = None
     start_pose: tuple[float, float, float] | None = None
+    link_odometry: bool = False
+    wheel_track_m: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -409,7 +415,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     stop = stop or threading.Event()
     rig, site = load_rig_site(config.device, config.rig, config.site)
     estimator, tracker = make_localizer(config.method, rig, site, config.options,
-                                        config.start_pose)
+                                        config.start_pose, config.link_odometry)
     record = record_folder(config.record) if config.record is not None else None
     check_outputs(session_inputs(config, rig), _session_outputs(config, record))
     if config.out is not None and (config.out / "poses.csv").exists() and not config.force:
@@ -433,6 +439,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     with contextlib.ExitStack() as stack:
         stack.enter_context(source)
         link, stopped = _open_link(config.link, rig, site, config.wait, stop, stack)
+        if link is not None and isinstance(tracker, Fusion) and config.link_odometry:
+            link.on_receive = OdometryReceiver(tracker.add_odometry, config.wheel_track_m)
         result = None
         if not stopped:  # every resource is open: now the outputs appear on disk
             view = open_view(config.view, config.view_token, rig, site, stack,
