@@ -238,9 +238,10 @@ def locate_steps(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner
     return np.where(ok, o, np.nan)
 
 
-def thin_sign(prof: np.ndarray, inner: slice) -> np.ndarray:
-    """``(S,)``: ``-1`` where the thin lines of profiles ``prof (S, A, O)`` are darker than
-    their sides (a valley, a dark seam), ``+1`` where brighter (a bump)."""
+def thin_sign(prof: np.ndarray, inner: slice) -> tuple[np.ndarray, np.ndarray]:
+    """``(sign, side)`` ``(S,)``: ``-1`` where the thin lines of profiles ``prof (S, A, O)``
+    are darker than their sides (a valley, a dark seam), ``+1`` where brighter (a bump);
+    the sides' mean level (the two outermost samples)."""
     i0, i1 = inner.start + 1, inner.stop + 1
     inv_a = 1.0 / prof.shape[1]
     side = 0.5 * (prof[:, :, 0] + prof[:, :, -1]).sum(axis=1) * inv_a
