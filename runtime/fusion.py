@@ -77,10 +77,10 @@ class FusionOptions:
     odometry_timeout_s: float = 0.5
     quality_radius_m: float = 0.02
     unobserved_sigma_m: float = 1.0
-    prior_sigma_m: float = 0.25
-    fix_inflation: float = 4.0
-    fix_floor_m: float = 0.002
-    fix_floor_rad: float = math.radians(0.2)
+    prior_sigma_m: float = 0.5
+    fix_inflation: float = 2.0
+    fix_floor_m: float = 0.0002
+    fix_floor_rad: float = math.radians(0.01)
     default_sigma_m: float = 0.05
     default_sigma_rad: float = math.radians(2.0)
     cell_m: float | None = None
@@ -312,8 +312,7 @@ class Fusion:
                  if (m := measurement(c, self.options)) is not None]
         relocalized, started = False, []
         if self._lost(t):
-            start = next((f for f in fixes if f.full), None) or \
-                next((f for f in fixes if 1 in f.rows), None)
+            start = self._starting_fix(fixes)
             if start is None:
                 self.reset()
                 return TrackResult(_failure(est, cues))
@@ -339,6 +338,24 @@ class Fusion:
         return TrackResult(pose, relocalized)
 
     # -- internals -------------------------------------------------------------------
+    def _starting_fix(self, fixes: list[_Fix]) -> _Fix | None:
+        """The fix a track starts from: a full fix that every other cue of the frame
+        agrees with, else a fix with y (the corridor's: x stays unknown)."""
+        for f in fixes:
+            if f.full and all(self._agree(f, g) for g in fixes if g is not f):
+                return f
+        return next((f for f in fixes if 1 in f.rows and not f.full), None)
+
+    def _agree(self, a: _Fix, b: _Fix) -> bool:
+        """Whether two fixes of one frame agree on the coordinates they share."""
+        shared = [r for r in b.rows if r in a.rows]
+        ia, ib = [a.rows.index(r) for r in shared], [b.rows.index(r) for r in shared]
+        y = a.z[ia] - b.z[ib]
+        if shared[-1] == ekf.YAW:
+            y[-1] = wrap_pi(float(y[-1]))
+        S = a.R[np.ix_(ia, ia)] + b.R[np.ix_(ib, ib)]
+        return ekf.nis(y, S) <= self.gates[len(shared)]
+
     def _restart(self, t_ns: int, fix: _Fix) -> None:
         cov = np.diag([UNKNOWN_X_VAR, UNKNOWN_X_VAR, 1.0])
         z = np.zeros(3)
