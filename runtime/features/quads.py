@@ -175,9 +175,9 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12
 
     Along each side, ``per_side`` stations (leaving :data:`EDGE_END_SKIP` of the side out
     at each end); at each, the grey profile across the side (±:data:`EDGE_SEARCH_PX`,
-    bilinear) is differentiated and the strongest step located to sub-pixel by a parabola
-    through its three samples. Stations whose step is weak (below a quarter of the
-    side's median) or at the search window's end are dropped.
+    bilinear) is searched for its steepest interval and the step located where the
+    profile crosses half way between its two ends. Stations whose step is weak (below a
+    quarter of the side's median) or at the search window's end are dropped.
 
     Returns:
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
@@ -201,13 +201,15 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12
     k = np.argmax(grad, axis=1)
     rows = np.arange(grad.shape[0])
     inner = (k > 0) & (k < grad.shape[1] - 1)
-    kc = np.clip(k, 1, grad.shape[1] - 2)
-    gm, g0, gp = grad[rows, kc - 1], grad[rows, kc], grad[rows, kc + 1]
-    den = gm - 2 * g0 + gp
+    # the step's middle: where the profile crosses half way between its two ends,
+    # interpolated in the steepest interval (unbiased for a symmetric blur, unlike the
+    # peak of a sampled gradient)
+    mid = 0.25 * (prof[:, 0] + prof[:, 1] + prof[:, -1] + prof[:, -2])
+    d0, d1 = prof[rows, k] - mid, prof[rows, k + 1] - mid
     with np.errstate(divide="ignore", invalid="ignore"):
-        frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
-    frac = np.clip(frac, -0.5, 0.5)
-    off = offs[0] + (kc + 0.5 + frac) * EDGE_STEP_PX                        # across, px
+        frac = np.where(np.abs(d0 - d1) > 1e-6, d0 / (d0 - d1), 0.5)
+    inner &= (frac > -1.0) & (frac < 2.0)
+    off = offs[0] + (k + np.clip(frac, -1.0, 2.0)) * EDGE_STEP_PX           # across, px
     strength = grad[rows, k].reshape(4, per_side)
     med = np.median(strength, axis=1, keepdims=True)
     strong = (strength > 0.25 * med).ravel()

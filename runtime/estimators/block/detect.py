@@ -109,10 +109,8 @@ class Sides:
     stations: int
 
 
-def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
-                  per_side: int) -> Sides | None:
-    """The quad's sides measured on the frame (see the module docstring), or None when a
-    side has fewer than :data:`MIN_SIDE_POINTS` edge points."""
+def _sides_once(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
+                per_side: int) -> Sides | None:
     pts, side = edge_points(grey, corners_px, per_side)
     counts = np.bincount(side, minlength=4)
     if np.any(counts < MIN_SIDE_POINTS):
@@ -123,3 +121,17 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
     if np.any(np.abs(corners[:, 2]) < 1e-12):
         return None
     return Sides(corners[:, :2] / corners[:, 2:3], norm, side, 4 * per_side)
+
+
+def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
+                  per_side: int) -> Sides | None:
+    """The quad's sides measured on the frame (see the module docstring), twice: the
+    second time about the corners the first found (a coarse contour's corners may be a
+    few pixels off); None when a side has fewer than :data:`MIN_SIDE_POINTS` points."""
+    first = _sides_once(grey, corners_px, geo, per_side)
+    if first is None:
+        return None
+    again = geo.camera.distort(first.corners_norm)
+    if not np.all(np.isfinite(again)):
+        return first
+    return _sides_once(grey, again, geo, per_side) or first

@@ -1,0 +1,47 @@
+"""Quadrilateral detection and edge points on synthetic images."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.features.quads import detect_quads, edge_points, marker_dictionary
+
+
+def square_image(corners: np.ndarray, inside: int = 40, outside: int = 150) -> np.ndarray:
+    img = np.full((240, 320), outside, np.uint8)
+    big = np.full((240 * 8, 320 * 8), outside, np.uint8)
+    cv2.fillPoly(big, [np.rint((corners + 0.5) * 8 - 0.5).astype(np.int32)], inside)
+    img[:] = cv2.GaussianBlur(cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA),
+                              (0, 0), 1.0)
+    return img
+
+
+CORNERS = np.array([[100.0, 60.0], [210.0, 75.0], [200.0, 170.0], [95.0, 160.0]])
+
+
+def test_detect_quads_finds_a_dark_quad_and_not_a_line():
+    img = square_image(CORNERS)
+    img[20:23, :] = 40                                   # a seam-like line
+    quads = detect_quads(img, dark=True)
+    assert len(quads) == 1 and not quads[0].at_border
+    d = np.linalg.norm(quads[0].corners_px[:, None] - CORNERS[None], axis=2).min(axis=1)
+    assert d.max() < 2.0
+
+
+@pytest.mark.parametrize("x0", [100.0, 100.25, 100.5, 100.75])
+def test_edge_points_find_a_blurred_step_to_a_tenth_of_a_pixel(x0):
+    row = np.clip(np.arange(320) - x0 + 0.5, 0, 1) * 110 + 40      # exact pixel coverage
+    img = cv2.GaussianBlur(np.tile(row, (240, 1)).astype(np.float32), (0, 0), 1.0)
+    img = np.rint(img).astype(np.uint8)
+    coarse = np.array([[50.0, 50.0], [x0 + 0.7, 50.0], [x0 + 0.7, 150.0], [50.0, 150.0]])
+    pts, side = edge_points(img, coarse, per_side=6)
+    assert np.sum(side == 1) == 6
+    assert np.max(np.abs(pts[side == 1, 0] - x0)) < 0.1
+
+
+def test_unknown_dictionary_is_a_one_line_error():
+    with pytest.raises(ConfigError, match="markers.dictionary"):
+        marker_dictionary("DICT_9X9_1")
