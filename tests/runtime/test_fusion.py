@@ -152,3 +152,23 @@ def test_nees_of_noisy_fixes_is_consistent():
             nees.append(e @ np.linalg.solve(est.cov[:2, :2], e))
     share = np.mean(np.array(nees) <= chi2_quantile(0.95, 2))
     assert share > 0.9
+
+
+def test_a_full_fix_that_the_corridor_contradicts_does_not_start_the_track():
+    fu = Fusion()
+    res = fu.update(_frame(_lights(0, 40.0, 0.6, 0.3, mode="global"), _corridor(0, 0.0)))
+    assert res.relocalized and res.estimate.x_m is None      # started from the corridor
+    assert res.estimate.y_m == pytest.approx(0.0, abs=1e-3)
+    res = fu.update(_frame(_lights(1, 2.0, 0.0, 0.0, mode="global"), _corridor(1, 0.0)))
+    assert res.estimate.x_m == pytest.approx(2.0, abs=1e-3)  # x from the first agreeing fix
+
+
+def test_odometry_carries_the_pose_and_its_scale_uncertainty_grows_it():
+    fu = Fusion()
+    fu.update(_lights(0, 0.0, 0.0))
+    for k in range(1, 31):
+        fu.add_odometry(k * DT, 0.02, 0.0, 0.0)
+        res = fu.update(Failure(k * DT, "lights", "blank_frame"))
+    pose = res.estimate
+    assert pose.x_m == pytest.approx(0.6, abs=0.01) and fu.odometry_rows == 30
+    assert math.sqrt(pose.cov[0, 0]) > 0.02       # 5% scale prior over 0.6 m
