@@ -10,10 +10,13 @@ of the frames with two or more forward lines in view at the true pose (the site'
 estimator's ``min_length_px``; a lamp edge only where its lamps are), and the
 median / p95 milliseconds per frame.
 
-OpenCV runs on one thread (``cv2.setNumThreads(1)``): the times are one core's. The
-machine may be shared: each frame is timed ``--repeat`` times and the fastest kept,
-and the time of the line detector alone (FLD, as the estimator configures it) on the
-same frames, measured in the same run, is printed for scale.
+OpenCV runs on one thread (``cv2.setNumThreads(1)``): the times are one core's. Every
+call is timed and the median and p95 are of all calls (``--repeat`` calls per frame,
+default 1; never the fastest of them: a shared machine slows calls down and the ratios
+measured in one run are what to read). The line detector alone (FLD, as the estimator
+configures it) is timed on the same frame right after each estimator call, interleaved
+in the same loop, and its median is printed beside each estimator's
+(``benchmarks/bench_all.py`` times every method, baseline and kernel that way).
 
 The 640x480 frames are also written as a SPEC recording by
 ``ceilkit.calib.simulate.simulate_recording`` (PNG frames, ``truth.csv``) and read
@@ -49,25 +52,28 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "corridor"
 
 
 def timed(fn, repeat: int):
-    """``(result, seconds)``: the fastest of ``repeat`` calls (a shared machine only
-    ever slows a call down)."""
-    best = math.inf
+    """``(result, [seconds of every call])``: ``repeat`` calls, all of them timed."""
+    out = []
     for _ in range(repeat):
         t = time.perf_counter()
         r = fn()
-        best = min(best, time.perf_counter() - t)
-    return r, best
+        out.append(time.perf_counter() - t)
+    return r, out
 
 
-def run(est, frames, in_view: np.ndarray, repeat: int) -> str:
+def run(est, frames, in_view: np.ndarray, repeat: int, detector=None) -> str:
     """One estimator over ``frames`` ``[(x, y, yaw, image)]``; ``in_view`` (N,) bool:
-    two or more forward lines in view."""
-    errs, times, fails, ok = [], [], {}, []
+    two or more forward lines in view; ``detector``: a line detector timed on each
+    frame right after the estimator (interleaved)."""
+    errs, times, det_times, fails, ok = [], [], [], {}, []
     for *_, img in frames[:3]:          # warm-up (first calls allocate)
         est.estimate(img, 0)
     for _x, y, yaw, img in frames:
         r, dt = timed(lambda img=img: est.estimate(img, 0), repeat)
-        times.append(dt)
+        times += dt
+        if detector is not None:
+            g = to_grey(img)
+            det_times += timed(lambda g=g: detector(g), repeat)[1]
         ok.append(bool(r))
         if r:
             errs.append((abs(math.degrees(math.remainder(r.yaw_rad - yaw, 2 * math.pi))),
@@ -84,16 +90,8 @@ def run(est, frames, in_view: np.ndarray, repeat: int) -> str:
             f"{np.median(e[:, 0]):7.4f} p95 {np.percentile(e[:, 0], 95):7.4f}  lateral mm med "
             f"{np.median(e[:, 1]):7.2f} p95 {np.percentile(e[:, 1], 95):7.2f}  ms med "
             f"{1e3 * np.median(times):6.2f} p95 {1e3 * np.percentile(times, 95):6.2f}  "
+            f"(detector alone, interleaved: {1e3 * np.median(det_times):5.2f})  "
             f"fails {fails}")
-
-
-def fld_ms(est: CorridorEstimator, frames, repeat: int) -> float:
-    """Median ms of the line detector alone on ``frames`` (for scale)."""
-    out = []
-    for *_, img in frames[:3] + frames:
-        g = to_grey(img)
-        out.append(timed(lambda g=g: est.detector(g), repeat)[1])
-    return 1e3 * float(np.median(out[3:]))
 
 
 def report(rig: Rig, site: Site, frames, detectors: bool, title: str, repeat: int) -> None:
@@ -102,8 +100,7 @@ def report(rig: Rig, site: Site, frames, detectors: bool, title: str, repeat: in
     in_view = np.array([np.count_nonzero(visible_along_lines(rig, site, x, y, yaw, min_len))
                         >= 2 for x, y, yaw, _ in frames])
     print(f"== {title}: {len(frames)} frames, {np.count_nonzero(in_view)} with >= 2 forward "
-          f"lines in view; line detector alone {fld_ms(ours, frames, repeat):.2f} ms",
-          flush=True)
+          "lines in view", flush=True)
     ests = [("corridor", ours)]
     if detectors:
         ests += [("fld+refine", CorridorEstimator(rig, site, {"refine": True})),
@@ -112,7 +109,7 @@ def report(rig: Rig, site: Site, frames, detectors: bool, title: str, repeat: in
                  ("hough", CorridorEstimator(rig, site, {"detector": "hough"}))]
     ests.append(("paper-corridor", PaperCorridorEstimator(rig, site)))
     for name, est in ests:
-        print(f"{name:15s} {run(est, frames, in_view, repeat)}", flush=True)
+        print(f"{name:15s} {run(est, frames, in_view, repeat, ours.detector)}", flush=True)
 
 
 def recording_frames(folder: Path, rig: Rig | None = None, site: Site | None = None):
@@ -138,12 +135,12 @@ def main() -> None:
     ap.add_argument("--detectors", action="store_true",
                     help="also fld+refine, no edge_fit, lsd, hough")
     ap.add_argument("--recording", type=Path, help="run on this SPEC recording instead")
-    ap.add_argument("--repeat", type=int, default=3,
-                    help="time each frame this many times, keep the fastest")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="call each frame this many times (every call is timed)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    print("OpenCV threads: 1 (cv2.setNumThreads(1)); times are one core's, each frame's "
-          f"the fastest of {args.repeat} runs")
+    print("OpenCV threads: 1 (cv2.setNumThreads(1)); times are one core's, median and p95 "
+          f"of every call ({args.repeat} per frame)")
     if args.recording is not None:
         rig, site, frames = recording_frames(args.recording)
         report(rig, site, frames, args.detectors, f"recording {args.recording}", args.repeat)
