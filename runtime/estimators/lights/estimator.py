@@ -55,6 +55,7 @@ from ceilkit.runtime.estimators.lights.observe import (
 )
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
 from ceilkit.runtime.estimators.lights.refine import _median, refine_pose_ceiling
+from ceilkit.runtime.estimators.lights.track import WindowTracker
 from ceilkit.runtime.features.spots import SpotParams
 
 NAME = "lights"
@@ -86,6 +87,12 @@ class LightsOptions(EstimatorOptions):
         max_view_angle_deg: spots seen further than this from the vertical are ignored
             (tiny, poorly resolved, and the edge of a fisheye image circle).
         max_spots: examine at most this many candidate regions, nearest the nadir first.
+        track: with a prior, look for the lights only in windows around their predicted
+            pixels (:mod:`~.track`); the global path runs when the window check fails
+            and every ``track_full_every``-th tracked frame. Off by default.
+        track_window_px: how far (px) a light may lie from its predicted pixel.
+        track_full_every: a global search after this many window fixes (0: only when
+            the window check fails).
     """
 
     min_contrast: float = 0.0
@@ -98,6 +105,9 @@ class LightsOptions(EstimatorOptions):
     prior_gate_m: float | None = None
     max_view_angle_deg: float = 75.0
     max_spots: int = 12
+    track: bool = False
+    track_window_px: float = 10.0
+    track_full_every: int = 30
 
 
 def light_diameter_m(options: LightsOptions, site: Site) -> float:
@@ -159,6 +169,12 @@ class LightsEstimator(Estimator):
         self.matcher = PatternMatcher(self.lights_w, o.gate_m,
                                       max_pair_m(rig, self.ceiling_height_m, o.gate_m),
                                       visible=self.visibility)
+        self.windows = None if not o.track else WindowTracker(
+            rig, self.ceiling_height_m, self.lights_w, self.observer, self.visibility,
+            o.track_window_px, (o.spot_params or SpotParams()).min_contrast,
+            TRACK_MIN_SHARE, o.max_residual_px, OUTLIER_MEDIANS, self.prior_gate_m,
+            PRIOR_RESOLVE[1])
+        self._window_fixes = 0  # window fixes since the last global search
 
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
@@ -168,6 +184,11 @@ class LightsEstimator(Estimator):
             :class:`PoseEstimate` (``lateral_m`` None) or a Failure with reason
             ``no_lights``, ``too_few_lights``, ``no_match`` or ``ambiguous``.
         """
+        if self.windows is not None and prior is not None and prior.x_m is not None \
+                and prior.y_m is not None:
+            fast = self._tracked(grey, t_ns, prior, t0)
+            if fast is not None:
+                return fast
         obs = self.observer.observe(grey)
         n = len(obs.spots)
         diag: dict[str, Any] = {"spots": n, "candidates": obs.spots.n_candidates,
@@ -198,6 +219,32 @@ class LightsEstimator(Estimator):
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": elapsed_ms(t0)})
         return PoseEstimate(t_ns, NAME, x, y, yaw, quality, None, cov, diag)
+
+    def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
+                 t0: float) -> PoseEstimate | None:
+        """The window fix around ``prior`` (:mod:`~.track`), or ``None``: the window
+        check failed, or a global search is due (``track_full_every``)."""
+        every = self.options.track_full_every
+        if every > 0 and self._window_fixes >= every:
+            self._window_fixes = 0
+            return None
+        fix = self.windows.observe(grey, float(prior.x_m), float(prior.y_m), prior.yaw_rad)
+        if fix is None:
+            self._window_fixes = 0
+            return None
+        self._window_fixes += 1
+        k = fix.pairs.shape[0]
+        rms = math.sqrt(float((fix.res_px * fix.res_px).sum()) / k)
+        cand = Candidate(fix.x_m, fix.y_m, fix.yaw_rad, fix.pairs, float(k), 0.0,
+                         fix.predicted - fix.found)
+        quality = pose_quality(k, rms, cand, None, "tracked")
+        diag = {"spots": len(fix.spots), "candidates": fix.predicted,
+                "spots_px": fix.spots.centroids_px, "candidates_px": fix.predicted_px,
+                "kept": None, "inliers": k, "matched_lights": tuple(fix.pairs[:, 1].tolist()),
+                "pairs": fix.pairs, "rms_px": rms, "mode": "window", "score": float(k),
+                "runner_up_score": None, "ms": elapsed_ms(t0)}
+        return PoseEstimate(t_ns, NAME, fix.x_m, fix.y_m, fix.yaw_rad, quality, None,
+                            fix.cov, diag)
 
     def _candidate(self, obs: Observation, prior: PoseEstimate | None, t_ns: int,
                    diag: dict[str, Any]

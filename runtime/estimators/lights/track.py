@@ -1,0 +1,225 @@
+"""The tracked fast path of ``lights``: look for each light only where the prior says.
+
+With a prior pose (the tracker's or the fusion's prediction), the map lights the
+detector should report from it (:class:`~.observe.VisibilityTable`) are projected
+into the image, and each is looked for in a small square window around its predicted
+pixel (a few hundred pixels, all windows in one stack): the window's border gives the
+background ``I_b``, the pixels above half way from it to the window's peak are the
+light, ``I_o`` their mean, and the centroid is weighted by ``max(I - I_b - 0.4 (I_o -
+I_b), 0)``, the same reading as the global detector's
+(:func:`~ceilkit.runtime.features.spots.detect_spots`). The association is known (a
+window is its light's), so the pose is :func:`~.refine.refine_pose_ceiling` from the
+prior, with the same outlier pass as the global path.
+
+The window check: a light counts when its window has contrast, its bright part does
+not touch the window's border (not cut off, not a neighbour's), and its area and
+shape fit the light at that place (:meth:`~.observe.SpotObserver.plausible`); the
+frame is accepted when most predicted lights were found (the same share the global
+path asks of a trusted prior), at least three fit after refinement, their residual is
+small and the pose stayed within the prior gate. Anything else returns ``None`` and
+the estimator runs its global path (the fallback and the check); so does every
+``full_every``-th tracked frame (a schedule).
+
+Convention (SPEC §1): pixels distorted; ceiling points in V, metres.
+
+Example::
+
+    fast = WindowTracker(rig, H, lights_w, observer, visibility, window_px=10)
+    found = fast.observe(grey, prior_x, prior_y, prior_yaw)   # WindowFix | None
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.estimators.lights.observe import JAC_STEP_PX, SpotObserver, VisibilityTable
+from ceilkit.runtime.estimators.lights.rays import ceiling_points, interp_grid, project_lights
+from ceilkit.runtime.estimators.lights.refine import _median, refine_pose_ceiling
+from ceilkit.runtime.features.spots import Spots, perception_level
+
+CORE = 0.4
+"""Centroid weights count from ``I_b + CORE (I_o - I_b)`` (as the global detector)."""
+
+MAX_HALF_PX = 40
+"""A window is at most ``2 MAX_HALF_PX + 1`` pixels wide (large spots near the nadir)."""
+
+
+@functools.lru_cache(maxsize=16)
+def _monomials(side: int) -> np.ndarray:
+    """``(side², 6)`` float32 ``(1, x, x², y, y², x y)`` of a ``side x side`` block,
+    row-major, ``x, y`` from the block's centre (small numbers: float32 keeps the
+    moments to ~1e-6 px)."""
+    y, x = np.divmod(np.arange(side * side, dtype=float), side)
+    x -= side // 2
+    y -= side // 2
+    out = np.stack([np.ones_like(x), x, x * x, y, y * y, x * y], axis=1).astype(np.float32)
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _offsets(side: int, stride: int) -> np.ndarray:
+    """Flat offsets ``(side²,)`` of a block in an image ``stride`` wide."""
+    r = np.arange(side)
+    off = (r[:, None] * stride + r[None, :]).ravel()
+    off.setflags(write=False)
+    return off
+
+
+def _border(b: np.ndarray, fn) -> np.ndarray:
+    """``fn`` (``np.add`` or ``np.logical_or``) reduced over the border of every block
+    of ``b`` ``(M, side, side)``: ``(M,)``."""
+    out = fn.reduce(b[:, 0, :], axis=1)
+    fn(out, fn.reduce(b[:, -1, :], axis=1), out=out)
+    fn(out, fn.reduce(b[:, 1:-1, 0], axis=1), out=out)
+    fn(out, fn.reduce(b[:, 1:-1, -1], axis=1), out=out)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class WindowFix:
+    """What the windows found and the pose they give.
+
+    Attributes:
+        x_m, y_m, yaw_rad, cov, res_px: the refined pose, its covariance and the kept
+            lights' residuals (px), as :func:`~.refine.refine_pose_ceiling`.
+        spots: the found lights (the kept ones), as the global detector's :class:`Spots`.
+        pairs: ``(K, 2)`` (index in ``spots``, map light index).
+        predicted: how many lights the prior says the detector should report.
+        found: how many windows held a plausible light.
+        predicted_px: ``(M, 2)`` the predicted pixels (for overlays).
+    """
+
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov: np.ndarray
+    res_px: np.ndarray
+    spots: Spots
+    pairs: np.ndarray
+    predicted: int
+    found: int
+    predicted_px: np.ndarray
+
+
+class WindowTracker:
+    """Spots looked for in windows around the lights a prior predicts (module doc).
+
+    Args:
+        rig, ceiling_height_m, lights_w: as the estimator's.
+        observer: the estimator's :class:`SpotObserver` (its spot table and checks).
+        visibility: the estimator's :class:`VisibilityTable`.
+        window_px: how far (px) a light may be from its predicted place (the prior's
+            error in pixels), beyond the light's own predicted radius.
+        min_contrast: least ``peak - I_b`` of a window with a light (grey levels).
+        min_share: found / predicted share the frame needs.
+        max_residual_px, outlier_medians: the outlier pass (as the global path's).
+        gate_m, gate_rad: the refined pose must stay this near the prior.
+    """
+
+    def __init__(self, rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
+                 observer: SpotObserver, visibility: VisibilityTable, window_px: float,
+                 min_contrast: float, min_share: float, max_residual_px: float,
+                 outlier_medians: float, gate_m: float, gate_rad: float) -> None:
+        self.rig, self.ceiling_height_m = rig, ceiling_height_m
+        self.lights_w = np.asarray(lights_w, float)
+        self.observer, self.visibility = observer, visibility
+        self.window_px = float(window_px)
+        self.min_contrast = float(min_contrast)
+        self.min_share = float(min_share)
+        self.max_residual_px, self.outlier_medians = max_residual_px, outlier_medians
+        self.gate_m, self.gate_rad = gate_m, gate_rad
+        cam = rig.camera
+        self.width, self.height = cam.width, cam.height
+
+    def observe(self, grey: np.ndarray, x_m: float, y_m: float, yaw_rad: float
+                ) -> WindowFix | None:
+        """The pose from the windows around the lights predicted from ``(x, y, yaw)``
+        on a ``(H, W)`` uint8 frame, or ``None`` when the window check fails."""
+        idx = np.flatnonzero(self.visibility(x_m, y_m, yaw_rad))
+        m = idx.size
+        if m < 3:
+            return None
+        px = project_lights(self.rig, self.ceiling_height_m, self.lights_w[idx], x_m, y_m,
+                            yaw_rad)
+        table = interp_grid(self.observer.table, JAC_STEP_PX, px)          # (M, 8)
+        fin = np.isfinite(px[:, 0]) & np.isfinite(table[:, 7])
+        if np.count_nonzero(fin) < 3:
+            return None
+        r_spot = np.sqrt(np.maximum(table[fin, 7], 1.0) / math.pi)
+        half = int(min(MAX_HALF_PX, math.ceil(float(r_spot.max()) * 1.6 + self.window_px)))
+        side = 2 * half + 1
+        w, h = self.width, self.height
+        if side >= min(w, h):
+            return None
+        idx, px, table = idx[fin], px[fin], table[fin]
+        # window corners, kept inside the image (a window at the border is shifted in)
+        corner = np.rint(px).astype(np.int64) - half
+        corner[:, 0] = np.clip(corner[:, 0], 0, w - side)
+        corner[:, 1] = np.clip(corner[:, 1], 0, h - side)
+        g = np.ascontiguousarray(grey).ravel().take(
+            (corner[:, 1] * w + corner[:, 0])[:, None] + _offsets(side, w)
+        ).astype(np.float32)                                                   # (M, side²)
+        g3 = g.reshape(-1, side, side)
+        i_b = _border(g3, np.add) * np.float32(1.0 / (4 * side - 4))
+        peak = g.max(axis=1)
+        obj = g > (0.5 * (i_b + peak))[:, None]
+        area = np.count_nonzero(obj, axis=1)
+        touches = _border(obj.reshape(-1, side, side), np.logical_or)
+        i_o = np.einsum("ij,ij->i", g, obj, dtype=np.float32) / np.maximum(area, 1)
+        wts = g - (i_b + CORE * (i_o - i_b))[:, None]
+        np.maximum(wts, 0.0, out=wts)
+        mom = (wts @ _monomials(side)).astype(np.float64)                     # (M, 6)
+        m00 = mom[:, 0]
+        good = (peak - i_b >= self.min_contrast) & ~touches & (area > 0) & (m00 > 0)
+        m00 = np.where(good, m00, 1.0)
+        cx, cy = mom[:, 1] / m00, mom[:, 3] / m00
+        cov = np.empty((idx.size, 2, 2))
+        cov[:, 0, 0] = mom[:, 2] / m00 - cx * cx
+        cov[:, 0, 1] = cov[:, 1, 0] = mom[:, 5] / m00 - cx * cy
+        cov[:, 1, 1] = mom[:, 4] / m00 - cy * cy
+        cent = np.stack([cx + (corner[:, 0] + half), cy + (corner[:, 1] + half)], axis=1)
+        i_b, i_o = i_b.astype(np.float64), i_o.astype(np.float64)
+        contrast = i_o - i_b
+        spots = Spots(cent, area.astype(float), contrast,
+                      perception_level(i_o, i_b, np.maximum(area, 1)), cov, m)
+        tab = interp_grid(self.observer.table, JAC_STEP_PX, cent)
+        good &= np.isfinite(tab[:, 0])
+        if self.observer.light_radius_m > 0 and good.any():
+            good &= self.observer.plausible(spots, tab, good)
+        n_found = int(np.count_nonzero(good))
+        if n_found < max(3, math.ceil(self.min_share * m)):
+            return None
+        spots = spots.select(good)
+        idx, tab = idx[good], tab[good]
+        q, ok = ceiling_points(self.rig, self.ceiling_height_m, spots.centroids_px)
+        if not ok.all():
+            return None
+        J = tab[:, :4].reshape(-1, 2, 2)
+        pairs = np.stack([np.arange(idx.size), idx], axis=1)
+        L = self.lights_w[idx]
+        fit = refine_pose_ceiling(q, J, L, x_m, y_m, yaw_rad)
+        res = fit[4]
+        bad = res > max(self.max_residual_px, self.outlier_medians * _median(res))
+        if bad.any():
+            if idx.size - int(bad.sum()) < 3:
+                return None
+            keep = ~bad
+            pairs = pairs[keep]
+            fit = refine_pose_ceiling(q[keep], J[keep], L[keep], *fit[:3])
+            res = fit[4]
+        x, y, yaw, cov_p, res = fit
+        rms = math.sqrt(float((res * res).sum()) / res.size)
+        if (rms > self.max_residual_px or not np.all(np.isfinite(cov_p))
+                or math.hypot(x - x_m, y - y_m) > self.gate_m
+                or abs(math.remainder(yaw - yaw_rad, 2 * math.pi)) > self.gate_rad):
+            return None
+        return WindowFix(x, y, yaw, cov_p, res, spots, pairs, m, n_found, px)
+
+
+__all__ = ["CORE", "MAX_HALF_PX", "WindowFix", "WindowTracker"]

@@ -1,0 +1,104 @@
+"""Tests of runtime/estimators/lights/track.py: the windowed fast path with a prior, its
+check and fallback to the global path, and its schedule."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.estimators.lights import LightsEstimator
+from ceilkit.runtime.estimators.lights.track import WindowTracker
+from ceilkit.runtime.sim.render import SimOptions, render_frame
+
+POSES = [(6.0, 0.5, 0.5), (12.0, 2.0, 2.8), (3.5, -2.0, -1.2), (9.0, -3.5, 1.9)]
+
+
+def frame(rig, site, x, y, yaw, seed):
+    return render_frame(rig, site, x, y, yaw, rng=np.random.default_rng(seed),
+                        options=SimOptions(noise_sigma=2.0, blur_px=0.8))
+
+
+def prior(x, y, yaw):
+    return PoseEstimate(0, "track", x, y, yaw, 0.0)
+
+
+def errors(est, x, y, yaw):
+    return (math.hypot(est.x_m - x, est.y_m - y),
+            abs(math.degrees(math.remainder(est.yaw_rad - yaw, 2 * math.pi))))
+
+
+@pytest.fixture
+def tracked(lights_rig, lights_site):
+    return LightsEstimator(lights_rig, lights_site, {"track": True, "track_full_every": 0})
+
+
+def test_window_fix_agrees_with_global_path(lights_rig, lights_site, tracked):
+    glob = LightsEstimator(lights_rig, lights_site)
+    for k, (x, y, yaw) in enumerate(POSES):
+        img = frame(lights_rig, lights_site, x, y, yaw, k)
+        g = glob.estimate(img, 0)
+        t = tracked.estimate(img, 0, prior(x + 0.03, y - 0.02, yaw + 0.01))
+        assert g and t
+        assert t.diagnostics["mode"] == "window"
+        # the same frame: the two readings of the same lights agree to a few tenths of a mm
+        assert math.hypot(t.x_m - g.x_m, t.y_m - g.y_m) < 1e-3
+        assert abs(math.degrees(t.yaw_rad - g.yaw_rad)) < 0.02
+        dp, dyaw = errors(t, x, y, yaw)
+        assert dp < 0.005 and dyaw < 0.05
+        assert t.diagnostics["inliers"] >= 3 and np.all(np.isfinite(t.cov))
+        # the covariance is the refinement's: positive definite, sub-millimetre here
+        assert np.all(np.linalg.eigvalsh(t.cov) > 0) and t.cov[0, 0] < 1e-5
+        assert 0 < t.quality <= 1
+
+
+def test_far_prior_falls_back_to_the_global_path(lights_rig, lights_site, tracked):
+    x, y, yaw = POSES[1]
+    img = frame(lights_rig, lights_site, x, y, yaw, 3)
+    for p in (prior(x + 0.9, y - 0.8, yaw + 0.4), prior(5.0, 1.3, -1.3)):
+        out = tracked.estimate(img, 0, p)
+        assert out and out.diagnostics["mode"] != "window"
+        dp, dyaw = errors(out, x, y, yaw)
+        assert dp < 0.02 and dyaw < 0.3
+
+
+def test_missing_lights_fail_the_window_check(lights_rig, lights_site):
+    x, y, yaw = POSES[0]
+    img = frame(lights_rig, lights_site, x, y, yaw, 4)
+    est = LightsEstimator(lights_rig, lights_site, {"track": True})
+    w: WindowTracker = est.windows
+    assert w.observe(img, x, y, yaw) is not None
+    # the lights switched off (the image flattened): the windows find nothing
+    flat = np.full_like(img, int(np.median(img)))
+    assert w.observe(flat, x, y, yaw) is None
+    out = est.estimate(flat, 0, prior(x, y, yaw))
+    assert not out
+
+
+def test_schedule_runs_a_global_search(lights_rig, lights_site):
+    est = LightsEstimator(lights_rig, lights_site, {"track": True, "track_full_every": 2})
+    x, y, yaw = POSES[2]
+    img = frame(lights_rig, lights_site, x, y, yaw, 5)
+    modes = [est.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] for _ in range(6)]
+    assert modes == ["window", "window", "tracked", "window", "window", "tracked"]
+
+
+def test_off_by_default_and_without_prior(lights_rig, lights_site, tracked):
+    x, y, yaw = POSES[3]
+    img = frame(lights_rig, lights_site, x, y, yaw, 6)
+    plain = LightsEstimator(lights_rig, lights_site)
+    assert plain.windows is None
+    assert plain.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == "tracked"
+    assert tracked.estimate(img, 0).diagnostics["mode"] == "global"
+    # a prior without x (a corridor's) is not a full prior: the global path runs
+    out = tracked.estimate(img, 0, PoseEstimate(0, "track", None, y, yaw, 0.0))
+    assert out.diagnostics["mode"] != "window"
+
+
+def test_track_options_from_cli_strings(lights_rig, lights_site):
+    est = LightsEstimator(lights_rig, lights_site,
+                          {"track": "true", "track_window_px": "6", "track_full_every": "10"})
+    assert est.options.track and est.options.track_window_px == 6.0
+    assert est.windows is not None and est.windows.window_px == 6.0
