@@ -35,7 +35,7 @@ residuals stand out are named.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +45,15 @@ import numpy as np
 from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import CalibrationError
+from ceilkit.runtime.features.edges import (
+    classify,
+    directions,
+    edge_grid,
+    fit_lines_robust,
+    locate,
+    profiles_at,
+    thin_sign,
+)
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.lines import SegmentDetector, segment_lengths
 from ceilkit.runtime.geometry.camera import CameraModel
@@ -66,6 +75,9 @@ class Placement:
         weights: ``(N, 2)`` residual weights of each segment's offset and turn (see
             :func:`lines_to_segments`), or ``None``: endpoints measured independently
             with equal noise.
+        noise_px: the noise the weighted residuals should have (px): the median scatter
+            of the edge points about their own lines, measured apart from any model, or
+            ``None`` (unknown: the fit's chi-square test is skipped).
     """
 
     segments_n: np.ndarray
@@ -73,6 +85,7 @@ class Placement:
     yaw_rad: float | None = None
     label: str = ""
     weights: np.ndarray | None = None
+    noise_px: float | None = None
 
     def residual_weights(self) -> np.ndarray:
         """``(N, 2)`` weights: the given ones or ``(sqrt 2, 1/sqrt 2)`` (independent ends)."""
@@ -91,8 +104,10 @@ def placement_from_image(camera: CameraModel, image: np.ndarray, y_m: float | No
     """Detect the segments of one image and measure them (:func:`measure_lines`)."""
     gray = to_grey(image)
     segs = SegmentDetector("fld", min_length_px)(gray)
-    segs_n, weights = lines_to_segments(measure_lines(camera, gray, segs))
-    return Placement(segs_n, y_m, yaw_rad, label, weights)
+    lines = measure_lines(camera, gray, segs)
+    segs_n, weights = lines_to_segments(lines)
+    noise = float(np.median([e.rms_px for e in lines])) if lines else None
+    return Placement(segs_n, y_m, yaw_rad, label, weights, noise)
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +134,7 @@ class MountResult:
     outliers: list[tuple[str, float, str]] = field(default_factory=list)
     inliers: int = 0
     segments: int = 0
+    chi2_per_dof: float = math.nan
 
     def lines(self) -> list[str]:
         m = self.mount
@@ -129,7 +145,10 @@ class MountResult:
                f"y     {m.y_m:9.4f} m  " + self._s("my", False),
                f"h     {self.height_m:9.4f} m   (camera below ceiling)" + self._s("h", False),
                f"residual RMS {self.rms_px:.3f} px over {self.inliers} of "
-               f"{self.segments} segments"]
+               f"{self.segments} segments"
+               + ("" if not math.isfinite(self.chi2_per_dof) else
+                  f", chi-square {self.chi2_per_dof:.2f} per degree of freedom against the "
+                  f"edge points' own scatter (refused above {MAX_CHI2_PER_DOF:g})")]
         for label, rms, why in self.outliers:
             out.append(f"placement {label} disagrees: {why} (RMS {rms:.2f} px)")
         return out
@@ -143,81 +162,41 @@ class MountResult:
 
 
 # ----------------------------------------------------------------------------- edges
-# Calibration is off the hot path: every segment is re-measured from the image.
-_STEP_PX = 2.0          # spacing of edge samples along a segment (nearly independent noise)
-_PROFILE_DO = 0.25      # spacing of profile samples across it, px
+# Calibration is off the hot path: every segment is re-measured from the image, with the
+# one edge measurement (runtime/features/edges.py) on float samples.
+_STEP_PX = 2.0          # spacing of edge points along a segment (nearly independent noise)
 _TRIM_PX = 4.0          # left out at both ends of a segment, px
+_KIND_HALF_PX = 5.0     # profiles that give a segment's kind and its first edge points
+_SECOND_HALF_PX = 3.5   # profiles across the first fit's curve (it is within 1-2 px)
+_MIN_STEP = 20.0        # grey levels: a step edge (edges.classify) ...
+_MIN_DEPTH = 8.0        # ... and a thin line
 # a line's offset is not better known than this, however long it is (pixel locking,
-# ceiling texture: errors that do not average out along a line), px
-SYSTEMATIC_PX = 0.02
+# ceiling texture: errors that do not average out along a line), px. Measured with
+# this edge measurement on rendered placements (blur 0.8 px, with and without noise):
+# the lines' offsets from the true image lines scatter by 0.007 px beyond what their
+# points' residuals (rms / sqrt(n)) explain
+SYSTEMATIC_PX = 0.007
 # every measured line may also sit this far off together, in u and in v (1 sigma), px:
 # a shift common to all lines and images, which no number of lines averages away.
-# On rendered frames without noise or texture the lines sit 0.03-0.04 px off together
-# (tilt +0.005 deg: one v pixel is 1/f rad of tilt); the reported 1 sigma includes it.
-SYSTEMATIC_SHIFT_PX = 0.08
+# On rendered placements (benchmarks/bench_mount.py --sigma-seeds 12) tilt comes out
+# +0.0025 deg on average and +0.0057 deg at most (one pixel is 1/f rad of tilt, f = 400
+# px: 0.017 and 0.040 px); the reported 1 sigma covers the largest
+SYSTEMATIC_SHIFT_PX = 0.04
 # a fit that leaves more than this (px, RMS over inlier endpoints) has laid the lines on
 # the wrong site lines: typically seams too blurred to see (only lamp edges and wall
 # junctions left, which fit several offsets) or lines missing from site.yaml
 MAX_RMS_PX = 1.0
-
-
-def _profiles(gray_f: np.ndarray, base_px: np.ndarray, normal_px: np.ndarray,
-              offsets: np.ndarray) -> np.ndarray:
-    """Intensity ``(K, O)`` at ``base + o * normal`` (bilinear)."""
-    pts = base_px[:, None, :] + offsets[None, :, None] * normal_px[:, None, :]
-    return cv2.remap(gray_f, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
-                     cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-
-
-def _centroid_peak(w: np.ndarray, offsets: np.ndarray, search: float, half: float
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel location ``(K,)`` of the peak of non-negative profiles ``w (K, O)``
-    within ``|o| <= search``: a centroid over ``|o - c| <= half``, re-centred three
-    times (a window symmetric about the peak has no pull). Returns (location, mass)."""
-    inside = np.abs(offsets) <= search
-    c = offsets[np.argmax(np.where(inside[None, :], w, -np.inf), axis=1)]
-    mass = np.zeros(w.shape[0])
-    for _ in range(3):
-        win = np.abs(offsets[None, :] - c[:, None]) <= half
-        ww = np.where(win, np.maximum(w, 0.0), 0.0)
-        mass = ww.sum(axis=1)
-        c = np.where(mass > 0, (ww * offsets[None, :]).sum(axis=1) / np.maximum(mass, 1e-12),
-                     c)
-        c = np.clip(c, -search, search)
-    return c, mass
-
-
-def _kind(prof: np.ndarray, offsets: np.ndarray) -> tuple[str, float]:
-    """``("step", polarity)``, ``("dark", 0)`` or ``("bright", 0)`` from profiles
-    ``(K, O)`` across one segment: a thin seam is a ridge, a lamp's side a step."""
-    outer = np.abs(offsets) >= 0.7 * offsets.max()
-    lo = prof[:, outer & (offsets < 0)].mean(axis=1)
-    hi = prof[:, outer & (offsets > 0)].mean(axis=1)
-    mid = prof[:, np.abs(offsets) <= 2.5]
-    base = 0.5 * (lo + hi)
-    contrast = float(np.median(hi - lo))
-    dark = float(np.median(base - mid.min(axis=1)))
-    bright = float(np.median(mid.max(axis=1) - base))
-    ridge = max(dark, bright)
-    if ridge > abs(contrast):
-        return ("dark" if dark >= bright else "bright"), 0.0
-    return "step", (1.0 if contrast >= 0 else -1.0)
-
-
-def _locate(gray_f: np.ndarray, base_px: np.ndarray, normal_px: np.ndarray, kind: str,
-            polarity: float, search: float) -> tuple[np.ndarray, np.ndarray]:
-    """Offsets ``(K,)`` along ``normal_px`` of the edge (step) or the seam's centre
-    (ridge) near each ``base_px``, and their strength ``(K,)``."""
-    reach = search + 2.5
-    offs = np.arange(-reach, reach + 1e-9, _PROFILE_DO)
-    prof = _profiles(gray_f, base_px, normal_px, offs)
-    if kind == "step":
-        w = polarity * np.gradient(prof, _PROFILE_DO, axis=1)
-        return _centroid_peak(w, offs, search, 1.25)
-    outer = np.abs(offs) >= reach - 1.0
-    base = prof[:, outer].mean(axis=1, keepdims=True)
-    w = base - prof if kind == "dark" else prof - base
-    return _centroid_peak(w, offs, search, 2.0)
+# the weighted residuals should scatter like the edge points about their own lines
+# (Placement.noise_px, measured apart from the model): on rendered placements the ratio
+# RMS / noise is 0.64-1.17 (blur 0.8-1.5 px); placements whose measured y are all 5 cm
+# off give 2.1, 10 cm 4.0. A fit whose chi-square per degree of freedom exceeds this
+# has data that disagree with the model (wrong measurements or site), whatever its RMS.
+MAX_CHI2_PER_DOF = 2.5
+# a fitted parameter whose 1 sigma exceeds this is not determined by the data (too few
+# lines, placements too alike): refused rather than written (radians, metres)
+MAX_SIGMA = {"pan": math.radians(0.25), "tilt": math.radians(0.25),
+             "swing": math.radians(0.25), "mx": 0.01, "my": 0.01, "h": 0.01}
+_KINDS = {1.0: "step", -1.0: "step", 0.0: "thin"}
 
 
 @dataclass(frozen=True)
@@ -242,98 +221,106 @@ class EdgeLine:
     kind: str
 
 
-def _fit(points_n: np.ndarray, f_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robust TLS line through normalized points: (centre, direction, keep mask)."""
-    keep = np.ones(points_n.shape[0], bool)
-    c = d = np.zeros(2)
-    for _ in range(3):
-        p = points_n[keep]
-        c = p.mean(axis=0)
-        _, vecs = np.linalg.eigh((p - c).T @ (p - c))
-        d = vecs[:, 1]
-        res = ((points_n - c) @ np.array([-d[1], d[0]])) * f_px
-        s = float(np.sqrt(np.mean(res[keep] ** 2)))
-        new = np.abs(res) <= max(3.0 * s, 0.15)
-        if np.array_equal(new, keep) or np.count_nonzero(new) < 6:
-            break
-        keep = new
-    return c, d, keep
+def _located_fit(camera: CameraModel, base_px: np.ndarray, nrm_px: np.ndarray,
+                 loc: np.ndarray, f_px: float, min_points: int):
+    """The robust line (:func:`edges.fit_lines_robust`) through the located edge points
+    ``base + loc nrm`` (``(K, 2)``, ``(K, 2)``, ``(K,)`` NaN: not located), undistorted.
+    Returns ``(centre_n, direction_n, points_n (M, 2) kept, rms_px)`` or None when fewer
+    than ``min_points`` are kept."""
+    good = np.isfinite(loc)
+    if np.count_nonzero(good) < min_points:
+        return None
+    pts = camera.unproject(base_px[good] + loc[good, None] * nrm_px[good])
+    line, _, cnt, ssr, kept = fit_lines_robust(pts[None, :, 0], pts[None, :, 1],
+                                               np.ones((1, pts.shape[0]), bool), f_px)
+    if cnt[0] < min_points:
+        return None
+    p = pts[kept[0]]
+    a, b = line[0, 0], line[0, 1]
+    direction = np.array([b, -a])
+    return p.mean(axis=0), direction, p, f_px * math.sqrt(ssr[0] / cnt[0])
+
+
+def _curve_normals(camera: CameraModel, c: np.ndarray, d: np.ndarray, tt: np.ndarray,
+                   f_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``(K, 2)`` and unit normals ``(K, 2)`` of the image (a curve) of the
+    normalized line ``c + t d`` at ``tt (K,)``."""
+    q = c[None, :] + tt[:, None] * d[None, :]
+    dq = 0.5 / f_px * d
+    tan = camera.distort(q + dq) - camera.distort(q - dq)
+    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+    return camera.distort(q), np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+
+
+def _measure_one(camera: CameraModel, gray_f: np.ndarray, s: np.ndarray, f_px: float,
+                 min_points: int) -> EdgeLine | None:
+    """One detector segment ``(4,)`` (pixels) measured as an :class:`EdgeLine`, or None."""
+    p1, p2 = s[:2], s[2:]
+    length = float(np.hypot(*(p2 - p1)))
+    k = int((length - 6.0) // _STEP_PX) + 1
+    if k < min_points:
+        return None
+    _, nrm = directions(s[None])
+    base = p1 + (p2 - p1) / length * (3.0 + _STEP_PX * np.arange(k))[:, None]
+    nrm_k = np.tile(nrm, (k, 1))
+    # kind from the mean profile, then pass 1: edge points across the detected chord
+    offs, _, inner = edge_grid(1, _KIND_HALF_PX)
+    prof = profiles_at(gray_f, base.T[:, None, :], nrm_k.T[:, None, :], offs)   # (1, K, O)
+    pol, _ = classify(prof.mean(axis=1), offs, _MIN_STEP, _MIN_DEPTH, shift=False)
+    if not np.isfinite(pol[0]):
+        return None
+    kind = _KINDS[float(pol[0])]
+    if kind == "thin":
+        kind = "dark" if thin_sign(prof, inner)[0][0] < 0 else "bright"
+    fit = _located_fit(camera, base, nrm_k, locate(prof, pol, offs, inner)[0], f_px,
+                       min_points)
+    if fit is None:
+        return None
+    c, d, pts_n, _ = fit
+    # pass 2: across the fitted line's image (a curve), ends trimmed: near a lamp's
+    # corner the other side's edge enters the profiles
+    t = (pts_n - c) @ d
+    tt = np.arange(t.min() + _TRIM_PX / f_px, t.max() - _TRIM_PX / f_px + 1e-12,
+                   _STEP_PX / f_px)
+    if tt.size < min_points:
+        return None
+    base2, nrm2 = _curve_normals(camera, c, d, tt, f_px)
+    # keep the polarity of pass 1 (the normals may have flipped with the fit's direction)
+    pol2 = pol * (float(np.sign(np.mean(nrm2 @ nrm[0]))) or 1.0)
+    h, w = gray_f.shape[:2]
+    inside = (base2[:, 0] > 3) & (base2[:, 0] < w - 4) & (base2[:, 1] > 3) & \
+        (base2[:, 1] < h - 4)
+    base2, nrm2 = base2[inside], nrm2[inside]
+    if base2.shape[0] < min_points:
+        return None
+    offs2, _, inner2 = edge_grid(1, _SECOND_HALF_PX)
+    prof2 = profiles_at(gray_f, base2.T[:, None, :], nrm2.T[:, None, :], offs2)
+    fit = _located_fit(camera, base2, nrm2, locate(prof2, pol2, offs2, inner2)[0], f_px,
+                       min_points)
+    if fit is None:
+        return None
+    c2, d2, p, rms_px = fit
+    return EdgeLine(c2, d2, float(np.std((p - c2) @ d2)), p.shape[0], rms_px, kind)
 
 
 def measure_lines(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
                   min_points: int = 8) -> list[EdgeLine]:
     """Re-measure detected segments ``(N, 4)`` (pixels) to sub-pixel, lens removed.
 
-    Each segment is classified from its profiles as a step edge (a lamp's side: the
-    centroid of the gradient peak) or a thin seam (dark or bright: the centroid of
-    its darkness, i.e. the seam's middle, not one of its two edges). Edge points
-    every 2 px are undistorted and fitted by a robust straight line in normalized
-    coordinates (so the lens' curvature is not folded into the fit), then the points
-    are re-measured along that line's image (a curve) and fitted again. Segments that
-    measure the same line (a seam's two edges) are kept once.
+    The one edge measurement (``runtime/features/edges.py``) on float samples: each
+    segment's kind comes from its mean profile (:func:`edges.classify`: a step edge, a
+    lamp's side, or a thin seam, dark or bright; unclear segments are left out); edge
+    points every 2 px are located on the profiles across it (:func:`edges.locate`: a
+    step's crossing of the middle of its two sides, a seam's middle, not one of its two
+    edges), undistorted and fitted by a robust straight line in normalized coordinates
+    (:func:`edges.fit_lines_robust`, so the lens' curvature is not folded into the fit);
+    then the points are re-measured across that line's image (a curve) and fitted
+    again. Segments that measure the same line (a seam's two edges) are kept once.
     """
     gray_f = np.asarray(gray, dtype=np.float32)
     f_px = 0.5 * (camera.fx + camera.fy)
-    h, w = gray_f.shape[:2]
-    out: list[EdgeLine] = []
-    for s in np.asarray(segs_px, dtype=np.float64).reshape(-1, 4):
-        p1, p2 = s[:2], s[2:]
-        length = float(np.hypot(*(p2 - p1)))
-        t_hat = (p2 - p1) / max(length, 1e-9)
-        nrm = np.array([-t_hat[1], t_hat[0]])
-        k = int((length - 6.0) // _STEP_PX) + 1
-        if k < min_points:
-            continue
-        base = p1 + t_hat * (3.0 + _STEP_PX * np.arange(k))[:, None]
-        offs = np.arange(-5.0, 5.0 + 1e-9, _PROFILE_DO)
-        kind, pol = _kind(_profiles(gray_f, base, np.tile(nrm, (k, 1)), offs), offs)
-        # pass 1: along the detected chord
-        loc, mass = _locate(gray_f, base, np.tile(nrm, (k, 1)), kind, pol, 3.0)
-        good = mass > 0.25 * max(float(np.median(mass)), 1e-9)
-        if np.count_nonzero(good) < min_points:
-            continue
-        pts_n = camera.unproject(base[good] + loc[good, None] * nrm)
-        c, d, keep = _fit(pts_n, f_px)
-        if np.count_nonzero(keep) < min_points:
-            continue
-        # pass 2: along the fitted line's image, normals of the curve
-        t = (pts_n[keep] - c) @ d
-        # ends trimmed: near a lamp's corner the other side's edge enters the window
-        tt = np.arange(t.min() + _TRIM_PX / f_px, t.max() - _TRIM_PX / f_px + 1e-12,
-                       _STEP_PX / f_px)
-        if tt.size < min_points:
-            continue
-        q = c[None, :] + tt[:, None] * d[None, :]
-        dq = 0.5 / f_px * d
-        a = camera.distort(q - dq)
-        b = camera.distort(q + dq)
-        base2 = camera.distort(q)
-        tan = b - a
-        tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
-        nrm2 = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
-        if kind == "step":
-            # keep the polarity of pass 1 (normals may have flipped with the fit's direction)
-            pol2 = pol * float(np.sign(np.mean(nrm2 @ nrm)) or 1.0)
-        else:
-            pol2 = 0.0
-        inside = (base2[:, 0] > 3) & (base2[:, 0] < w - 4) & (base2[:, 1] > 3) & \
-            (base2[:, 1] < h - 4)
-        base2, nrm2 = base2[inside], nrm2[inside]
-        if base2.shape[0] < min_points:
-            continue
-        loc2, mass2 = _locate(gray_f, base2, nrm2, kind, pol2, 1.5)
-        good2 = mass2 > 0.25 * max(float(np.median(mass2)), 1e-9)
-        if np.count_nonzero(good2) < min_points:
-            continue
-        pts2 = camera.unproject(base2[good2] + loc2[good2, None] * nrm2[good2])
-        c2, d2, keep2 = _fit(pts2, f_px)
-        n = int(np.count_nonzero(keep2))
-        if n < min_points:
-            continue
-        p = pts2[keep2]
-        res = ((p - c2) @ np.array([-d2[1], d2[0]])) * f_px
-        out.append(EdgeLine(c2, d2, float(np.std((p - c2) @ d2)), n,
-                            float(np.sqrt(np.mean(res ** 2))), kind))
+    out = [e for s in np.asarray(segs_px, dtype=np.float64).reshape(-1, 4)
+           if (e := _measure_one(camera, gray_f, s, f_px, min_points)) is not None]
     return _dedupe(out, f_px)
 
 
@@ -626,6 +613,21 @@ def _coarse_angles(placements: Sequence[Placement], f_px: float, fixed: dict[str
 
 
 # ----------------------------------------------------------------------------- API
+def unobservable(placements: Sequence[Placement], fixed: Sequence[str] = ()
+                 ) -> dict[str, str]:
+    """The parameters these placements cannot determine (not in ``fixed``), each with
+    what to add: ``mx`` (the forward offset) needs measured headings 5 deg or more apart
+    (with one heading it only moves the camera along the corridor, which the lines
+    along x do not see)."""
+    measured = [p for p in placements if p.measured]
+    out: dict[str, str] = {}
+    yaws = np.array([p.yaw_rad for p in measured]) if measured else np.zeros(1)
+    if "mx" not in fixed and np.ptp(yaws) < math.radians(5.0):
+        out["mx"] = ("placements need headings at least 5 deg apart (add a placement "
+                     "turned 10 deg or more)")
+    return out
+
+
 def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
                     fixed: Sequence[str] = (), start: Mount | None = None,
                     fit_height: bool | None = None,
@@ -639,7 +641,8 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
         site: the corridor's ``lines_along`` (required).
         placements: at least one measured placement; drive frames (no y, yaw) add
             to tilt and swing.
-        fixed: parameter names (``pan tilt swing mx my h``) to hold at ``start``.
+        fixed: parameter names (``pan tilt swing mx my h``) to hold at ``start``, or
+            a mapping of them to the reason reported (``{"mx": "--fix mx=0.3"}``).
         start: the starting mount; ``None`` searches from scratch.
         fit_height: fit ``h``; default: when some placement shows two or more lines.
         shift_px: 1 sigma (px) of a shift common to every line of an image, in u and
@@ -658,13 +661,13 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
     m0 = start or rig.mount
     h0 = site.ceiling_height_m - rig.mount.z_m
     held: dict[str, str] = {}
+    reasons = dict(fixed) if isinstance(fixed, Mapping) else {}
     fixed_set = set(fixed)
     for name in fixed_set:
-        held[name] = "fixed by the caller"
-    yaws = np.array([p.yaw_rad for p in measured])
-    if "mx" not in fixed_set and np.ptp(yaws) < math.radians(5.0):
-        fixed_set.add("mx")
-        held["mx"] = "not observable: placements need headings at least 5 deg apart"
+        held[name] = reasons.get(name, "fixed by the caller")
+    for name, why in unobservable(placements, fixed_set).items():
+        fixed_set.add(name)
+        held[name] = f"not observable: {why}"
     vals = {"pan": m0.pan_rad, "tilt": m0.tilt_rad, "swing": m0.swing_rad, "mx": m0.x_m,
             "my": m0.y_m, "h": h0}
     if start is None:
@@ -745,6 +748,24 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
                              "from the measured y"))
         elif math.isfinite(rms) and rms > max(3.0 * med, 1.0):
             outliers.append((label, rms, "residuals stand out"))
+    noises = [p.noise_px for p in prob.pl if p.measured and p.noise_px]
+    chi2 = s2 / float(np.median(noises)) ** 2 if noises else math.nan
+    if math.sqrt(s2) <= MAX_RMS_PX and chi2 > MAX_CHI2_PER_DOF:
+        raise CalibrationError(
+            f"the fit's residuals ({math.sqrt(s2):.3f} px RMS) are "
+            f"{math.sqrt(chi2):.1f} times the edge points' own scatter "
+            f"({float(np.median(noises)):.3f} px; chi-square {chi2:.1f} per degree of "
+            f"freedom, refused above {MAX_CHI2_PER_DOF:g}): the measured placements (y, "
+            "yaw) and the site's lines_along disagree; re-measure the placements (a tape "
+            "from the same wall for every y) and check site.yaml")
+    weak = [f"{n} (1 sigma {math.degrees(sigma[n]):.2f} deg)" if n in _ANGLES else
+            f"{n} (1 sigma {1e3 * sigma[n]:.1f} mm)"
+            for n in free if not sigma[n] <= MAX_SIGMA[n]]
+    if weak and math.sqrt(s2) <= MAX_RMS_PX:
+        raise CalibrationError(
+            f"these data do not determine {', '.join(weak)}: add placements (different "
+            "lateral positions, headings 10 deg or more apart, images showing two or more "
+            "lines along the corridor) or hold the parameter with --fix NAME=VALUE")
     if math.sqrt(s2) > MAX_RMS_PX:
         raise CalibrationError(
             f"the fit leaves {math.sqrt(s2):.2f} px RMS (a good one < 0.5): the lines seen "
@@ -756,7 +777,7 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
                   x_m=vals["mx"], y_m=vals["my"], z_m=z_m)
     total = sum(p.segments_n.shape[0] for p in placements)
     return MountResult(mount, vals["h"], sigma, held, float(math.sqrt(s2)), per_rms, outliers,
-                       n_in, total)
+                       n_in, total, chi2)
 
 
 def _associate_directions(prob: _Problem, theta: np.ndarray, tol_px: float) -> None:
