@@ -437,114 +437,189 @@ def _wall_shade(fr: _Frame, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray,
 
 @dataclass
 class _Feature:
-    """A ceiling feature: the cells it may touch and how to shade its samples."""
+    """A ceiling feature: the cells it may touch and how to shade its samples.
+
+    ``emitter``: it is a lamp or a light (what flickers); :func:`render_radiance` can
+    give the emitters' share of the radiance apart (``split=True``).
+    """
 
     cells: np.ndarray            # (n_cells,) bool
     shade: Any                   # (xr, yr, inv_fp, value) -> value
+    emitter: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class Emitters:
+    """Per-lamp and per-light brightness (the simulator's realism layer sets it).
+
+    A gain g gives radiance ``OFF_GREY + g * (full - OFF_GREY)``: 1 is the nominal lamp
+    or light (``LAMP_GREY``, ``LIGHT_GREY`` and the halo), 0 a failed one (a dull
+    diffuser, no halo).
+
+    Attributes:
+        lamp_gain: one ``(count,)`` array per ``site.lamps`` row.
+        light_gain: ``(n_lights,)`` for ``site.lights_m``.
+    """
+
+    lamp_gain: tuple[np.ndarray, ...] = ()
+    light_gain: np.ndarray | None = None
+
+
+OFF_GREY = 172.0          # a lamp or light that is off: its diffuser, lit by the others
 
 
 def _features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
-              cyr: np.ndarray, reach: np.ndarray) -> list[_Feature]:
-    """Every ceiling feature with the cells it can touch.
+              cyr: np.ndarray, reach: np.ndarray,
+              emitters: Emitters | None = None) -> list[_Feature]:
+    """Every ceiling feature with the cells it can touch, in drawing order (seams
+    along, seams across, blocks and markers, lamps, lights).
 
     ``cxr, cyr``: cell centres relative to the camera; ``reach``: cell radius plus a
-    footprint (nan for cells without ceiling samples, which never match).
+    footprint (nan for cells without ceiling samples, which never match). Lamp rows
+    with a ``z`` below the ceiling are left to the realism layer (drawn at their
+    height).
     """
-    feats: list[_Feature] = []
-    hw_seam = options.seam_width_m / 2
-    cx, cy = fr.cx, fr.cy
     with np.errstate(invalid="ignore"):
-        # seams along x (y = const), then clutter pipes
-        along: list[tuple[float, float, float]] = []
-        if site.corridor is not None:
-            along += [(y, hw_seam, SEAM_GREY) for y in site.corridor.lines_along_m
-                      if not _is_lamp_long_edge(site, y)]
-        if options.clutter and fr.walls:
-            axis = fr.axis_r + cy
-            for sgn in (-1.0, 1.0):
-                along.append((axis + sgn * (fr.w - 0.12), 0.03, PIPE_GREY))
-                along.append((axis + sgn * (fr.w - 0.30), 0.05, PIPE_GREY + 60.0))
-        for y, hw, grey in along:
-            yr0 = y - cy
+        feats = _along_features(site, fr, options, cyr, reach)
+        feats += _across_features(site, fr, options, cxr, reach)
+        feats += [_Feature(c, f) for c, f in mark_features(site, fr.cx, fr.cy, cxr, cyr,
+                                                           reach)]
+        feats += _lamp_features(site, fr, cxr, cyr, reach, emitters)
+        feats += _light_features(site, fr, options, cxr, cyr, reach, emitters)
+    return feats
 
-            def shade_along(xr, yr, inv_fp, val, yr0=yr0, hw=hw, grey=grey):
-                cov = _ramp(hw - np.abs(yr - yr0), inv_fp)
-                return val + cov * (grey - val)
 
-            feats.append(_Feature(np.abs(cyr - yr0) < reach + hw, shade_along))
-        # seams across (x = first + k * spacing), lamp edges left out
-        if site.corridor is not None and site.corridor.lines_across is not None:
-            first = site.corridor.lines_across.first_m
-            sp = site.corridor.lines_across.spacing_m
-            skip = _lamp_edge_across_indices(site, first, sp)
-            x0r = first - cx
-            kc = np.rint((cxr - x0r) / sp)
-            dn = np.abs(cxr - x0r - kc * sp)
-            near = (dn < reach + hw_seam) | (reach + hw_seam > sp / 2)
-            if skip.size and np.any(near):
-                # a cell whose only nearby line is a lamp edge needs nothing
-                wide = reach + hw_seam > sp / 2
-                near &= wide | ~np.isin(np.nan_to_num(kc).astype(np.int64), skip)
+def _along_features(site: Site, fr: _Frame, options: SimOptions, cyr: np.ndarray,
+                    reach: np.ndarray) -> list[_Feature]:
+    """Seams along x (``lines_along`` that are not lamp edges), then clutter pipes."""
+    hw_seam = options.seam_width_m / 2
+    along: list[tuple[float, float, float]] = []
+    if site.corridor is not None:
+        along += [(y, hw_seam, SEAM_GREY) for y in site.corridor.lines_along_m
+                  if not _is_lamp_long_edge(site, y)]
+    if options.clutter and fr.walls:
+        axis = fr.axis_r + fr.cy
+        for sgn in (-1.0, 1.0):
+            along.append((axis + sgn * (fr.w - 0.12), 0.03, PIPE_GREY))
+            along.append((axis + sgn * (fr.w - 0.30), 0.05, PIPE_GREY + 60.0))
+    feats = []
+    for y, hw, grey in along:
+        yr0 = y - fr.cy
 
-            def shade_across(xr, yr, inv_fp, val, x0r=x0r, sp=sp, skip=skip):
-                k = np.rint((xr - x0r) / sp)
-                cov = _ramp(hw_seam - np.abs(xr - x0r - k * sp), inv_fp)
-                if skip.size:
-                    cov = np.where(np.isin(k.astype(np.int64), skip), 0.0, cov)
-                return val + cov * (SEAM_GREY - val)
+        def shade_along(xr, yr, inv_fp, val, yr0=yr0, hw=hw, grey=grey):
+            cov = _ramp(hw - np.abs(yr - yr0), inv_fp)
+            return val + cov * (grey - val)
 
-            feats.append(_Feature(near, shade_across))
-        # blocks and markers
-        feats += [_Feature(c, f) for c, f in mark_features(site, cx, cy, cxr, cyr, reach)]
-        # lamps: rows of bright rectangles
-        for row in site.lamps:
-            hl, hwl = row.length_m / 2, row.width_m / 2
-            x0r, y0r = row.x_m - cx, row.y_m - cy
-            pitch = row.pitch_m if row.count > 1 else 0.0
-            cells = np.abs(cyr - y0r) < reach + hwl
-            if pitch > 0:
-                kl = np.ceil((cxr - reach - hl - x0r) / pitch)
-                ku = np.floor((cxr + reach + hl - x0r) / pitch)
-                cells &= (np.maximum(kl, 0) <= np.minimum(ku, row.count - 1))
-            else:
-                cells &= np.abs(cxr - x0r) < reach + hl
+        feats.append(_Feature(np.abs(cyr - yr0) < reach + hw, shade_along))
+    return feats
 
-            def shade_lamp(xr, yr, inv_fp, val, x0r=x0r, y0r=y0r, hl=hl, hwl=hwl,
-                           pitch=pitch, count=row.count):
-                dx = xr - x0r
-                if pitch > 0:
-                    dx = dx - np.clip(np.rint(dx / pitch), 0, count - 1) * pitch
-                sd = np.minimum(hl - np.abs(dx), hwl - np.abs(yr - y0r))
+
+def _across_features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
+                     reach: np.ndarray) -> list[_Feature]:
+    """Seams across (``x = first + k * spacing``), lamp edges left out."""
+    if site.corridor is None or site.corridor.lines_across is None:
+        return []
+    hw_seam = options.seam_width_m / 2
+    first = site.corridor.lines_across.first_m
+    sp = site.corridor.lines_across.spacing_m
+    skip = _lamp_edge_across_indices(site, first, sp)
+    x0r = first - fr.cx
+    kc = np.rint((cxr - x0r) / sp)
+    dn = np.abs(cxr - x0r - kc * sp)
+    near = (dn < reach + hw_seam) | (reach + hw_seam > sp / 2)
+    if skip.size and np.any(near):
+        # a cell whose only nearby line is a lamp edge needs nothing
+        wide = reach + hw_seam > sp / 2
+        near &= wide | ~np.isin(np.nan_to_num(kc).astype(np.int64), skip)
+
+    def shade_across(xr, yr, inv_fp, val, x0r=x0r, sp=sp, skip=skip):
+        k = np.rint((xr - x0r) / sp)
+        cov = _ramp(hw_seam - np.abs(xr - x0r - k * sp), inv_fp)
+        if skip.size:
+            cov = np.where(np.isin(k.astype(np.int64), skip), 0.0, cov)
+        return val + cov * (SEAM_GREY - val)
+
+    return [_Feature(near, shade_across)]
+
+
+def _lamp_features(site: Site, fr: _Frame, cxr: np.ndarray, cyr: np.ndarray,
+                   reach: np.ndarray, emitters: Emitters | None) -> list[_Feature]:
+    """Lamps on the ceiling: rows of bright rectangles (per-lamp gains if given)."""
+    feats = []
+    for i, row in enumerate(site.lamps):
+        if row.z_m is not None and row.z_m < site.ceiling_height_m - 1e-9:
+            continue                              # hangs below: drawn at its height
+        hl, hwl = row.length_m / 2, row.width_m / 2
+        x0r, y0r = row.x_m - fr.cx, row.y_m - fr.cy
+        pitch = row.pitch_m if row.count > 1 else 0.0
+        cells = np.abs(cyr - y0r) < reach + hwl
+        if pitch > 0:
+            kl = np.ceil((cxr - reach - hl - x0r) / pitch)
+            ku = np.floor((cxr + reach + hl - x0r) / pitch)
+            cells &= (np.maximum(kl, 0) <= np.minimum(ku, row.count - 1))
+        else:
+            cells &= np.abs(cxr - x0r) < reach + hl
+        gain = None
+        if emitters is not None and i < len(emitters.lamp_gain):
+            gain = np.asarray(emitters.lamp_gain[i], np.float32)
+
+        def shade_lamp(xr, yr, inv_fp, val, x0r=x0r, y0r=y0r, hl=hl, hwl=hwl,
+                       pitch=pitch, count=row.count, gain=gain):
+            dx = xr - x0r
+            k = np.clip(np.rint(dx / pitch), 0, count - 1) if pitch > 0 else None
+            if k is not None:
+                dx = dx - k * pitch
+            sd = np.minimum(hl - np.abs(dx), hwl - np.abs(yr - y0r))
+            if gain is None:
                 return val + _ramp(sd, inv_fp) * (LAMP_GREY - val)
+            g = gain[k.astype(np.int64)] if k is not None else gain[0]
+            grey = np.float32(OFF_GREY) + g * np.float32(LAMP_GREY - OFF_GREY)
+            return val + _ramp(sd, inv_fp) * (grey - val)
 
-            feats.append(_Feature(cells, shade_lamp))
-        # spot lights: discs with a halo
-        if site.has_lights:
-            rl = options.light_radius_m
-            halo = np.float32(options.halo)
-            rh = HALO_FACTOR * rl if options.halo > 0 else rl
-            lr = site.lights_m - np.array([cx, cy])
-            # coarse cull: lights within reach of any ceiling cell
-            ok = np.isfinite(reach)
-            if np.any(ok):
-                ex, ey, er = cxr[ok], cyr[ok], reach[ok]
-                lo_x, hi_x = np.min(ex - er), np.max(ex + er)
-                lo_y, hi_y = np.min(ey - er), np.max(ey + er)
-                keep = ((lr[:, 0] > lo_x - rh) & (lr[:, 0] < hi_x + rh)
-                        & (lr[:, 1] > lo_y - rh) & (lr[:, 1] < hi_y + rh))
-                for lx, ly in lr[keep]:
-                    cells = np.hypot(cxr - lx, cyr - ly) < reach + rh
-                    if not np.any(cells):
-                        continue
+        feats.append(_Feature(cells, shade_lamp, emitter=True))
+    return feats
 
-                    def shade_light(xr, yr, inv_fp, val, lx=lx, ly=ly):
-                        d = np.hypot(xr - lx, yr - ly)
-                        if halo > 0:
-                            g = np.clip(1.0 - (d / rh) ** 2, 0.0, 1.0)
-                            val = val + halo * g * g
-                        return val + _ramp(rl - d, inv_fp) * (LIGHT_GREY - val)
 
-                    feats.append(_Feature(cells, shade_light))
+def _light_features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
+                    cyr: np.ndarray, reach: np.ndarray,
+                    emitters: Emitters | None) -> list[_Feature]:
+    """Spot lights: discs with a halo (per-light gains if given)."""
+    if not site.has_lights:
+        return []
+    rl = options.light_radius_m
+    halo = np.float32(options.halo)
+    rh = HALO_FACTOR * rl if options.halo > 0 else rl
+    lr = site.lights_m - np.array([fr.cx, fr.cy])
+    gains = None if emitters is None else emitters.light_gain
+    # coarse cull: lights within reach of any ceiling cell
+    ok = np.isfinite(reach)
+    if not np.any(ok):
+        return []
+    ex, ey, er = cxr[ok], cyr[ok], reach[ok]
+    lo_x, hi_x = np.min(ex - er), np.max(ex + er)
+    lo_y, hi_y = np.min(ey - er), np.max(ey + er)
+    keep = ((lr[:, 0] > lo_x - rh) & (lr[:, 0] < hi_x + rh)
+            & (lr[:, 1] > lo_y - rh) & (lr[:, 1] < hi_y + rh))
+    feats = []
+    for i in np.flatnonzero(keep):
+        lx, ly = lr[i]
+        cells = np.hypot(cxr - lx, cyr - ly) < reach + rh
+        if not np.any(cells):
+            continue
+        if gains is None:
+            grey, hl = LIGHT_GREY, halo
+        else:
+            g = float(gains[i])
+            grey, hl = OFF_GREY + g * (LIGHT_GREY - OFF_GREY), np.float32(g * halo)
+
+        def shade_light(xr, yr, inv_fp, val, lx=lx, ly=ly, grey=grey, hl=hl):
+            d = np.hypot(xr - lx, yr - ly)
+            if hl > 0:
+                g = np.clip(1.0 - (d / rh) ** 2, 0.0, 1.0)
+                val = val + hl * g * g
+            return val + _ramp(rl - d, inv_fp) * (grey - val)
+
+        feats.append(_Feature(cells, shade_light, emitter=True))
     return feats
 
 
@@ -557,9 +632,15 @@ def _check_pose(x_m: float, y_m: float, yaw_rad: float) -> None:
 
 
 def render_radiance(rig: Rig, site: Site, x_m: float, y_m: float, yaw_rad: float,
-                    options: SimOptions = SimOptions()) -> np.ndarray:
+                    options: SimOptions = SimOptions(), *, emitters: Emitters | None = None,
+                    split: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """The noise-free radiance ``(H, W)`` float32 (grey levels), before blur,
-    vignetting, exposure and noise: the supersampled average of every pixel."""
+    vignetting, exposure and noise: the supersampled average of every pixel.
+
+    ``emitters``: per-lamp and per-light gains (None: all nominal). ``split``: return
+    ``(radiance, emitted)`` where ``emitted`` is the lamps' and lights' share of it
+    (what a flickering supply modulates).
+    """
     _check_pose(x_m, y_m, yaw_rad)
     g = _grid(rig.camera, rig.mount.R_level_cam, options.supersample)
     fr = _Frame(rig, site, float(x_m), float(y_m), float(yaw_rad), options)
@@ -593,34 +674,55 @@ def render_radiance(rig: Rig, site: Site, x_m: float, y_m: float, yaw_rad: float
                 edge = cv2.dilate(img, k3) - cv2.erode(img, k3) > 1.0
                 edge = edge.reshape(g.ncy, CELL_PX, g.ncx, CELL_PX).any(axis=(1, 3)).ravel()
                 active |= edge & (g.has_other | (dy + reach > fr.w))
-    feats = _features(site, fr, options, cxr, cyr, reach)
+    feats = _features(site, fr, options, cxr, cyr, reach, emitters)
     for f in feats:
         active |= f.cells
+    emitted = np.zeros((hp, wp), np.float32) if split else None
+    _shade_active(g, fr, options, feats, active, tex, img, emitted)
+    img = np.ascontiguousarray(img[:g.height, :g.width])
+    if split:
+        return img, np.ascontiguousarray(emitted[:g.height, :g.width])
+    return img
+
+
+def _shade_active(g: _Grid, fr: _Frame, options: SimOptions, feats: list[_Feature],
+                  active: np.ndarray, tex: np.ndarray, img: np.ndarray,
+                  emitted: np.ndarray | None) -> None:
+    """Shade the active cells per sub-pixel and write their pixel means into ``img``
+    (and the emitters' share into ``emitted`` when given), in place."""
     idx = np.flatnonzero(active)
-    if idx.size:
-        amap = np.full(active.size, -1, dtype=np.int64)
-        amap[idx] = np.arange(idx.size)
-        xr, yr = fr.xy(g.qx[idx], g.qy[idx])
-        ceil = g.ceil[idx]
-        val = _base(fr, options, g.valid[idx], ceil, xr, yr, g.dx[idx], g.dy[idx],
-                    g.dz[idx], tex.ravel()[g.pix[idx]])
-        inside = ceil
-        if fr.walls:
-            inside = ceil & (np.abs(yr - fr.axis_r) < fr.w)
-        inv_fp = np.where(inside, g.inv_fq[idx] * np.float32(1.0 / fr.h), 0.0
-                          ).astype(np.float32)
-        for f in feats:
-            pos = amap[np.flatnonzero(f.cells)]
-            m = inside[pos]
-            if not np.any(m):
-                continue
-            new = f.shade(xr[pos], yr[pos], inv_fp[pos], val[pos])
-            val[pos] = np.where(m, new, val[pos])
-        s = g.s
-        pix = val.reshape(idx.size, CELL_PX, s, CELL_PX, s).mean(axis=(2, 4))
-        img4 = img.reshape(g.ncy, CELL_PX, g.ncx, CELL_PX)
-        img4[idx // g.ncx, :, idx % g.ncx, :] = pix
-    return np.ascontiguousarray(img[:g.height, :g.width])
+    if not idx.size:
+        return
+    amap = np.full(active.size, -1, dtype=np.int64)
+    amap[idx] = np.arange(idx.size)
+    xr, yr = fr.xy(g.qx[idx], g.qy[idx])
+    ceil = g.ceil[idx]
+    val = _base(fr, options, g.valid[idx], ceil, xr, yr, g.dx[idx], g.dy[idx],
+                g.dz[idx], tex.ravel()[g.pix[idx]])
+    em = np.zeros_like(val) if emitted is not None else None
+    inside = ceil
+    if fr.walls:
+        inside = ceil & (np.abs(yr - fr.axis_r) < fr.w)
+    inv_fp = np.where(inside, g.inv_fq[idx] * np.float32(1.0 / fr.h), 0.0
+                      ).astype(np.float32)
+    for f in feats:
+        pos = amap[np.flatnonzero(f.cells)]
+        m = inside[pos]
+        if not np.any(m):
+            continue
+        old = val[pos]
+        new = f.shade(xr[pos], yr[pos], inv_fp[pos], old)
+        val[pos] = np.where(m, new, old)
+        if em is not None and f.emitter:   # emitters are drawn last (_features)
+            em[pos] += np.where(m, new - old, 0.0)
+    s = g.s
+    img4 = img.reshape(g.ncy, CELL_PX, g.ncx, CELL_PX)
+    img4[idx // g.ncx, :, idx % g.ncx, :] = val.reshape(idx.size, CELL_PX, s, CELL_PX,
+                                                        s).mean(axis=(2, 4))
+    if em is not None:
+        e4 = emitted.reshape(g.ncy, CELL_PX, g.ncx, CELL_PX)
+        e4[idx // g.ncx, :, idx % g.ncx, :] = em.reshape(idx.size, CELL_PX, s, CELL_PX,
+                                                         s).mean(axis=(2, 4))
 
 
 def _base(fr: _Frame, options: SimOptions, valid: np.ndarray, ceil: np.ndarray,
@@ -653,10 +755,21 @@ def render_frame(rig: Rig, site: Site, x_m: float, y_m: float, yaw_rad: float,
     if rng is not None and not isinstance(rng, np.random.Generator):
         raise ConfigError(None, "rng", f"expected a numpy Generator, found {type(rng).__name__}")
     img = render_radiance(rig, site, x_m, y_m, yaw_rad, options)
+    return finish_frame(rig, img, options, rng)
+
+
+def finish_frame(rig: Rig, radiance: np.ndarray, options: SimOptions = SimOptions(),
+                 rng: np.random.Generator | None = None,
+                 gain_rows: np.ndarray | None = None) -> np.ndarray:
+    """Radiance ``(H, W)`` float32 to the uint8 frame: blur, vignetting, exposure
+    (times ``gain_rows`` ``(H,)``, a per-row gain, if given), noise, rounding."""
+    img = radiance
     if options.blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), options.blur_px, borderType=cv2.BORDER_REPLICATE)
     g = _grid(rig.camera, rig.mount.R_level_cam, options.supersample)
     gain = np.float32(options.exposure) * (1.0 - np.float32(options.vignetting) * g.vig_r2)
+    if gain_rows is not None:
+        gain = gain * np.asarray(gain_rows, np.float32)[:, None]
     img = img * gain
     if options.noise_sigma > 0:
         rng = np.random.default_rng(0) if rng is None else rng
@@ -700,6 +813,17 @@ class Trajectory:
     def pose(self, k: int) -> tuple[float, float, float]:
         """``(x_m, y_m, yaw_rad)`` of pose k."""
         return float(self.x_m[k]), float(self.y_m[k]), float(self.yaw_rad[k])
+
+    def pose_at(self, t_ns: float) -> tuple[float, float, float]:
+        """``(x_m, y_m, yaw_rad)`` at any time: linear between poses, extended past the
+        ends along the first or last step (a single pose: that pose)."""
+        t = self.t_ns
+        if t.size == 1:
+            return self.pose(0)
+        k = int(np.clip(np.searchsorted(t, t_ns, side="right") - 1, 0, t.size - 2))
+        a = (float(t_ns) - float(t[k])) / float(t[k + 1] - t[k])
+        return tuple(float(v[k] + a * (v[k + 1] - v[k]))
+                     for v in (self.x_m, self.y_m, self.yaw_rad))
 
 
 def _stamps(n: int, fps: float) -> np.ndarray:
@@ -786,7 +910,12 @@ class SimSource(SourceBase):
     dropped = 0
 
     def __init__(self, rig: Rig, site: Site, trajectory: Trajectory,
-                 options: SimOptions = SimOptions(), seed: int = 0):
+                 options: SimOptions = SimOptions(), seed: int = 0, realism: Any = None):
+        from ceilkit.runtime.sim.realism import Realism
+
+        if realism is not None and not isinstance(realism, Realism):
+            raise ConfigError(None, "realism", "expected a Realism (or None)")
+        self.realism = None if realism is None or not realism.active else realism
         if not isinstance(trajectory, Trajectory):
             raise ConfigError(None, "trajectory", "expected a Trajectory")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -804,9 +933,15 @@ class SimSource(SourceBase):
 
     def render(self, k: int) -> Frame:
         """Frame k (any order)."""
+        rng = np.random.default_rng([self.seed, k])
+        if self.realism is not None:
+            from ceilkit.runtime.sim.realism import render_real
+
+            img = render_real(self.rig, self.site, self.trajectory.pose_at,
+                              int(self.trajectory.t_ns[k]), self.options, self.realism, rng)
+            return Frame(img, int(self.trajectory.t_ns[k]), k)
         x, y, yaw = self.pose(k)
-        img = render_frame(self.rig, self.site, x, y, yaw, self.options,
-                           np.random.default_rng([self.seed, k]))
+        img = render_frame(self.rig, self.site, x, y, yaw, self.options, rng)
         return Frame(img, int(self.trajectory.t_ns[k]), k)
 
     def read(self) -> Frame | None:
@@ -817,5 +952,6 @@ class SimSource(SourceBase):
         return f
 
 
-__all__ = ["SimOptions", "render_frame", "render_radiance", "Trajectory", "straight_drive",
-           "random_poses", "load_trajectory", "SimSource", "wall_half_width"]
+__all__ = ["SimOptions", "Emitters", "finish_frame", "render_frame", "render_radiance",
+           "Trajectory", "straight_drive", "random_poses", "load_trajectory", "SimSource",
+           "wall_half_width"]
