@@ -7,6 +7,8 @@
   between the block and the ceiling around it, takes the outer contours, and keeps the
   convex four-sided ones (``approxPolyDP``); the caller checks their size and shape on
   the ceiling through the lens and rig.
+* :class:`MarkerCodes` reads a marker from its sampled cells once its outline is known
+  (the same dictionary as ``cv2.aruco``, without its search over the frame).
 * :func:`edge_points` measures, along each side of a coarse quad, sub-pixel points of the
   strongest grey step: the side's own evidence, many points instead of one corner.
 
@@ -36,6 +38,7 @@ DICTIONARY_NAMES = tuple(sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_
 QUIET_CELLS = 1            # white margin printed around a marker, in cells
 MIN_QUAD_AREA_PX = 150.0   # smaller contours are noise or texture
 POLY_EPS_RATE = 0.04       # approxPolyDP tolerance, fraction of the perimeter
+SIDE_FIT_KEEP = 0.7        # detect_quads: the middle share of each side fitted to its line
 BORDER_PX = 2.0            # a quad this close to the image edge may be cut by it
 EDGE_SEARCH_PX = 3.0       # edge_points: how far across the side a step is looked for
 THRESH_WIN_PX = 23        # aruco's adaptive threshold window (one scale)
@@ -105,6 +108,47 @@ class MarkerDetector:
         return np.asarray(ids, dtype=np.int64).ravel(), pts
 
 
+class MarkerCodes:
+    """Every code of one ``cv2.aruco`` dictionary, for reading a marker's bits directly.
+
+    Where a marker's outline is already known (a dark quad measured on its edges), its
+    cells can be sampled and matched here instead of running ``cv2.aruco``'s candidate
+    search over the frame: the same dictionary, a fraction of the time.
+
+    Args:
+        dictionary: a name of :data:`DICTIONARY_NAMES`.
+
+    Attributes:
+        bits: cells per side of the code (the black border excluded), e.g. 6 for 36h11.
+        max_errors: bits that may be wrong in a read (the dictionary's correction bits).
+    """
+
+    def __init__(self, dictionary: str) -> None:
+        d = marker_dictionary(dictionary)
+        self.dictionary = dictionary
+        self.bits = int(d.markerSize)
+        self.max_errors = int(d.maxCorrectionBits)
+        n_ids = int(d.bytesList.shape[0])
+        printed = np.array([marker_cells(dictionary, i)[1:-1, 1:-1] for i in range(n_ids)])
+        # table[id, s]: the code as read from an outline whose corner s is the printed
+        # top-left (rolling the outline's corners by s turns the read by 90° s times)
+        self._table = np.stack([np.rot90(printed, -s, axes=(1, 2)) for s in range(4)],
+                               axis=1).reshape(n_ids, 4, -1).astype(bool)
+
+    def identify(self, cells: np.ndarray) -> tuple[int, int, int] | None:
+        """``(id, s, errors)`` of the code nearest ``cells`` ``(bits, bits)`` bool (True:
+        white; row 0 along the outline's corner 0 -> 1), ``s`` the outline corner that is
+        the printed top-left; None when more than :attr:`max_errors` bits differ."""
+        c = np.asarray(cells, bool).reshape(1, 1, -1)
+        dist = np.count_nonzero(self._table != c, axis=2)
+        k = int(np.argmin(dist))
+        i, s = divmod(k, 4)
+        errors = int(dist[i, s])
+        if errors > self.max_errors:
+            return None
+        return i, s, errors
+
+
 @dataclass(frozen=True, eq=False)
 class Quad:
     """A convex four-sided region of the frame.
@@ -115,11 +159,27 @@ class Quad:
             bottom-right, bottom-left; starting anywhere.
         area_px: the contour's area, px².
         at_border: the region comes within :data:`BORDER_PX` of the image edge.
+        contour_px: ``(M, 2)`` the region's boundary pixels (for :func:`sharpen_quad`),
+            in the same pixels as the corners; ``pixel_px`` their pixel's size there
+            (2 when found on a frame decimated by 2).
     """
 
     corners_px: np.ndarray
     area_px: float
     at_border: bool
+    contour_px: np.ndarray | None = None
+    pixel_px: float = 1.0
+
+
+def sharpen_quad(quad: Quad) -> Quad:
+    """The quad with its corners where its sides' lines meet (fitted to the contour,
+    :func:`_side_fit_corners`), instead of ``approxPolyDP``'s vertices."""
+    if quad.contour_px is None:
+        return quad
+    pts = _side_fit_corners(quad.contour_px, quad.corners_px, 0.5 * quad.pixel_px)
+    if _signed_area(pts) < 0:
+        pts = pts[::-1].copy()
+    return Quad(pts, quad.area_px, quad.at_border, None, quad.pixel_px)
 
 
 def _threshold(grey: np.ndarray, dark: bool) -> np.ndarray:
@@ -130,7 +190,8 @@ def _threshold(grey: np.ndarray, dark: bool) -> np.ndarray:
 
 
 def detect_quads(grey: np.ndarray, dark: bool, min_area_px: float = MIN_QUAD_AREA_PX,
-                 regions: list[np.ndarray] | None = None) -> list[Quad]:
+                 regions: list[np.ndarray] | None = None, sharpen: bool = True
+                 ) -> list[Quad]:
     """Convex quadrilaterals darker (``dark``) or brighter than their surroundings.
 
     The frame is thresholded (Otsu) with its polarity, outer contours are simplified
@@ -141,7 +202,7 @@ def detect_quads(grey: np.ndarray, dark: bool, min_area_px: float = MIN_QUAD_ARE
     large region that was not a convex quad, for the caller's diagnostics.
     """
     mask = _threshold(grey, dark)
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     h, w = grey.shape
     out: list[Quad] = []
     for c in contours:
@@ -156,10 +217,61 @@ def detect_quads(grey: np.ndarray, dark: bool, min_area_px: float = MIN_QUAD_ARE
             if regions is not None:
                 regions.append(c)
             continue
-        pts = poly.reshape(4, 2).astype(float)
-        if _signed_area(pts) < 0:
-            pts = pts[::-1].copy()
-        out.append(Quad(pts, float(area), bool(at_border)))
+        q = Quad(poly.reshape(4, 2).astype(float), float(area), bool(at_border),
+                 c.reshape(-1, 2).astype(float))
+        out.append(sharpen_quad(q) if sharpen else q)
+    return out
+
+
+def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float = 0.5
+                      ) -> np.ndarray:
+    """Corners ``(4, 2)`` of a four-sided contour ``(M, 2)`` (every boundary pixel) as
+    its sides' lines meet.
+
+    ``approxPolyDP``'s vertices ``poly`` ``(4, 2)`` are contour points within its
+    tolerance of the outline, often pixels off the true corners; here each side's line
+    is fitted to the contour points along its middle (:data:`SIDE_FIT_KEEP` of the run
+    between two vertices), moved half a pixel outwards (the contour runs through the
+    region's boundary pixels, the edge lies between them and the background:
+    ``outwards_px``) and met with its neighbours'. Falls back to ``poly`` when a side
+    has too few points."""
+    poly = poly.astype(float)
+    m = contour.shape[0]
+    idx = []
+    for v in poly:
+        hit = np.flatnonzero((contour[:, 0] == v[0]) & (contour[:, 1] == v[1]))
+        if hit.size == 0:
+            return poly
+        idx.append(int(hit[0]))
+    i0 = np.array(idx)
+    run = (np.roll(i0, -1) - i0) % m
+    lo = i0 + np.rint(run * (0.5 - SIDE_FIT_KEEP / 2)).astype(int)
+    hi = i0 + np.rint(run * (0.5 + SIDE_FIT_KEEP / 2)).astype(int)
+    count = hi - lo
+    if np.any(count < 3):
+        return poly
+    side = np.repeat(np.arange(4), count)
+    at = (np.arange(side.size) - np.repeat(np.cumsum(count) - count, count)
+          + np.repeat(lo, count)) % m
+    q = contour[at]
+    n = count.astype(float)
+    mx = np.bincount(side, q[:, 0], 4) / n
+    my = np.bincount(side, q[:, 1], 4) / n
+    dx, dy = q[:, 0] - mx[side], q[:, 1] - my[side]
+    theta = 0.5 * np.arctan2(2 * np.bincount(side, dx * dy, 4),
+                             np.bincount(side, dx * dx, 4) - np.bincount(side, dy * dy, 4))
+    a, b = -np.sin(theta), np.cos(theta)                     # normal to each side's run
+    c = poly.mean(axis=0)
+    flip = np.where(a * (mx - c[0]) + b * (my - c[1]) < 0, -1.0, 1.0)   # outwards
+    a, b = a * flip, b * flip
+    lines = np.stack([a, b, -(a * mx + b * my) - outwards_px], axis=1)
+    corners = np.cross(np.roll(lines, 1, axis=0), lines)
+    if np.any(np.abs(corners[:, 2]) < 1e-12):
+        return poly
+    out = corners[:, :2] / corners[:, 2:3]
+    side = np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1)
+    if np.max(np.linalg.norm(out - poly, axis=1)) > 0.25 * float(side.min()):
+        return poly
     return out
 
 

@@ -4,8 +4,10 @@
   a pixel belongs to a block when it is darker (brighter) than a fixed ratio of the
   ceiling's grey around it (:func:`background`), so vignetting does not matter; a 3x3
   opening removes seams before the contours are taken.
-* :func:`read_markers`: each dark quad of about a marker's size on the ceiling is read by
-  ``cv2.aruco`` on a crop around it (a small image: fast), corners sub-pixel.
+* :func:`read_marker`: a dark quad of about a marker's size on the ceiling, once measured
+  on its edges, is read from its cells (:class:`~ceilkit.runtime.features.quads.MarkerCodes`,
+  the ``cv2.aruco`` dictionary's codes): no search of the frame, a fraction of
+  ``cv2.aruco``'s time; corners sub-pixel from the sides' edges.
 * :func:`measure_sides`: points on the four sides' edges, undistorted, a line fitted to
   each side and the corners as the lines' intersections (normalized coordinates).
 
@@ -19,41 +21,117 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
-from ceilkit.runtime.features.lines import fit_line
-from ceilkit.runtime.features.quads import MarkerDetector, Quad, detect_quads, edge_points
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.features.quads import (
+    MIN_QUAD_AREA_PX,
+    QUIET_CELLS,
+    MarkerCodes,
+    Quad,
+    detect_quads,
+    edge_points,
+)
 
 BG_SHRINK = 16             # background(): the frame shrunk by this factor
 BG_WINDOW = 9              # background(): local max/min over this many shrunk cells
-CROP_MARGIN = 0.6          # a marker's crop: its bounding box grown by this fraction
+MIN_MARKER_CONTRAST = 25.0  # read_marker: grey levels between the quiet ring and the border
+BORDER_ERRORS = 3          # read_marker: white cells the black border may show (noise, blur)
+_CELL_SUB = np.array([-0.22, 0.22])   # read_marker: samples per cell, in cells from its centre
 MIN_SIDE_POINTS = 4        # measure_sides: edge points each side needs
+DECIMATE = 2               # find_quads: the search runs on the frame shrunk this much
 _OPEN = np.ones((3, 3), np.uint8)
+_OPEN_SMALL = np.ones((2, 2), np.uint8)
 
 
-def background(grey: np.ndarray, dark: bool) -> np.ndarray:
+def background(grey: np.ndarray, dark: bool, shrink: int = BG_SHRINK) -> np.ndarray:
     """The ceiling's grey around each pixel ``(H, W)`` float32: the frame shrunk by
-    :data:`BG_SHRINK`, its local maximum (``dark``: blocks darker than the ceiling drop
+    ``shrink``, its local maximum (``dark``: blocks darker than the ceiling drop
     out) or minimum taken over :data:`BG_WINDOW` cells, and grown back. Vignetting and
     exposure scale it as they scale the block, so a ratio to it is a fixed threshold."""
     h, w = grey.shape
-    small = cv2.resize(grey, (max(1, w // BG_SHRINK), max(1, h // BG_SHRINK)),
+    small = cv2.resize(grey, (max(1, w // shrink), max(1, h // shrink)),
                        interpolation=cv2.INTER_AREA)
     k = np.ones((BG_WINDOW, BG_WINDOW), np.uint8)
     small = cv2.dilate(small, k) if dark else cv2.erode(small, k)
     return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
 
 
+def decimate(grey: np.ndarray) -> np.ndarray:
+    """The frame at ``1/DECIMATE`` of its size (area average): where quads are searched."""
+    h, w = grey.shape
+    return cv2.resize(grey, (max(1, w // DECIMATE), max(1, h // DECIMATE)),
+                      interpolation=cv2.INTER_AREA)
+
+
 def find_quads(grey: np.ndarray, dark: bool, ratio: float,
-               others: list[np.ndarray] | None = None) -> list[Quad]:
+               others: list[np.ndarray] | None = None,
+               small: np.ndarray | None = None) -> list[Quad]:
     """Convex quads darker than ``ratio`` times the ceiling around them (``dark``) or
     brighter than ``ratio`` times it; ``others`` receives the large regions of that
     polarity that are not convex quads (a block partly occluded, a lamp of another shape).
-    A 3x3 opening removes thin seams before the contours are taken."""
-    bg = background(grey, dark)
-    g = grey.astype(np.float32)
+
+    The search runs on the frame decimated by :data:`DECIMATE` (``small``, from
+    :func:`decimate`, may be passed to share it between polarities); the corners come
+    back in full-resolution pixels, coarse (``approxPolyDP``'s vertices: pixels off;
+    :func:`~ceilkit.runtime.features.quads.sharpen_quad` puts them within a pixel,
+    :func:`measure_sides` refines them on the full frame). A 3x3 opening (full
+    resolution; a 2x2 one when decimated) removes thin seams before the contours are taken."""
+    if small is None:
+        small = decimate(grey) if DECIMATE > 1 else grey
+    f = grey.shape[1] / small.shape[1]
+    bg = background(small, dark, max(1, int(round(BG_SHRINK / f))))
+    g = small.astype(np.float32)
     mask = ((g < ratio * bg) if dark else (g > ratio * bg)).astype(np.uint8) * 255
-    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, _OPEN)
-    return detect_quads(mask, dark=False, regions=others)
+    if f < 1.5:
+        mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, _OPEN)
+    else:      # an even kernel: erode and dilate about opposite anchors (no shift)
+        mask = cv2.dilate(cv2.erode(mask, _OPEN_SMALL, anchor=(0, 0)), _OPEN_SMALL,
+                          anchor=(1, 1))
+    found: list[np.ndarray] = []
+    quads = detect_quads(mask, dark=False, min_area_px=MIN_QUAD_AREA_PX / (f * f),
+                         regions=found, sharpen=False)
+    if others is not None:
+        others.extend((c * f).astype(np.float32) for c in found)
+    if f == 1:
+        return quads
+    # pixel centres: full-resolution u = f * u_small + (f - 1) / 2
+    o = 0.5 * (f - 1)
+    return [Quad(q.corners_px * f + o, q.area_px * f * f, q.at_border,
+                 q.contour_px * f + o, f) for q in quads]
+
+
+def fit_side_lines(points: np.ndarray, side: np.ndarray) -> np.ndarray:
+    """``(4, 3)`` total-least-squares lines ``(a, b, c)``, ``|(a, b)| = 1``, of the points
+    ``(M, 2)`` of each side ``side`` ``(M,)`` (0..3) at once (every side needs two)."""
+    n = np.bincount(side, minlength=4).astype(float)
+    mx = np.bincount(side, points[:, 0], 4) / n
+    my = np.bincount(side, points[:, 1], 4) / n
+    dx, dy = points[:, 0] - mx[side], points[:, 1] - my[side]
+    sxx = np.bincount(side, dx * dx, 4)
+    syy = np.bincount(side, dy * dy, 4)
+    sxy = np.bincount(side, dx * dy, 4)
+    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)        # the major axis: the side's run
+    a, b = -np.sin(theta), np.cos(theta)
+    return np.stack([a, b, -(a * mx + b * my)], axis=1)
+
+
+def corners_of(lines: np.ndarray) -> np.ndarray | None:
+    """``(4, 2)`` corners of four side lines ``(4, 3)`` (corner k: side k-1 meets side k),
+    None when two neighbouring sides are parallel."""
+    corners = np.cross(np.roll(lines, 1, axis=0), lines)
+    if np.any(np.abs(corners[:, 2]) < 1e-12):
+        return None
+    return corners[:, :2] / corners[:, 2:3]
+
+
+def sharpen_corners(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 8
+                    ) -> np.ndarray | None:
+    """A quad's corners ``(4, 2)`` px as its sides' edge lines meet, on ``grey`` itself
+    (no lens model: straight sides over a short run); None if a side shows fewer than
+    three edge points."""
+    pts, side = edge_points(grey, corners_px, per_side)
+    if np.any(np.bincount(side, minlength=4) < 3):
+        return None
+    return corners_of(fit_side_lines(pts, side))
 
 
 def side_lengths_m(points_v: np.ndarray) -> np.ndarray:
@@ -61,35 +139,49 @@ def side_lengths_m(points_v: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.roll(points_v, -1, axis=0) - points_v, axis=1)
 
 
-def read_markers(grey: np.ndarray, quads: list[Quad], geo: PlanarGeometry,
-                 detector: MarkerDetector, sizes_m: np.ndarray, tol: float
-                 ) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """Markers in the crops around the dark quads whose sides on the ceiling are within
-    ``tol`` (relative) of one of ``sizes_m``.
+def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
+                codes: MarkerCodes) -> tuple[int, int, int] | None:
+    """The marker whose black square has the corners ``corners_norm`` ``(4, 2)``
+    (normalized, a quad's order), read from its cells.
 
-    Returns ids ``(N,)``, corners ``(N, 4, 2)`` px (aruco's order) and the indices of
-    the quads read as markers."""
-    h, w = grey.shape
-    ids, corners, used = [], [], []
-    for k, q in enumerate(quads):
-        pv = ceiling_points_vehicle(geo, geo.camera.unproject(q.corners_px))
-        if not np.all(np.isfinite(pv)):
-            continue
-        side = float(np.mean(side_lengths_m(pv)))
-        if not np.any(np.abs(side / sizes_m - 1.0) < tol):
-            continue
-        lo, hi = q.corners_px.min(axis=0), q.corners_px.max(axis=0)
-        grow = CROP_MARGIN * (hi - lo) + 4
-        u0, v0 = (int(max(0, np.floor(v))) for v in lo - grow)
-        u1, v1 = int(min(w, np.ceil(hi[0] + grow[0]))), int(min(h, np.ceil(hi[1] + grow[1])))
-        found_ids, found = detector.detect(np.ascontiguousarray(grey[v0:v1, u0:u1]))
-        for mid, c in zip(found_ids, found, strict=True):
-            ids.append(int(mid))
-            corners.append(c + [u0, v0])
-            used.append(k)
-    if not ids:
-        return np.zeros(0, np.int64), np.zeros((0, 4, 2)), []
-    return np.array(ids, np.int64), np.array(corners), used
+    A homography from the printed grid (black border included, with the white quiet
+    ring around it) to the corners gives each cell's centre on the undistorted image;
+    the lens puts them on the frame, where 2x2 samples per cell are averaged
+    (bilinear). The threshold is half way between the border's grey and the quiet
+    ring's; a border with more than :data:`BORDER_ERRORS` white cells is not a marker.
+
+    Returns:
+        ``(id, s, errors)`` (:meth:`MarkerCodes.identify`: corner ``s`` of the quad is
+        the printed top-left, aruco's corner 0), or None.
+    """
+    n = codes.bits + 2                                   # cells across the black square
+    g = n + 2 * QUIET_CELLS
+    t = (np.arange(g) - QUIET_CELLS + 0.5)[:, None] + _CELL_SUB[None, :]
+    t = t.ravel()
+    cols, rows = np.meshgrid(t, t)                       # (2g, 2g): column, row in cells
+    square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
+    H = cv2.getPerspectiveTransform(square, np.asarray(corners_norm, np.float32))
+    grid = np.stack([cols.ravel(), rows.ravel()], axis=1).reshape(-1, 1, 2)
+    norm = cv2.perspectiveTransform(grid.astype(np.float32), H).reshape(-1, 2)
+    px = geo.camera.distort(norm).astype(np.float32)
+    if not np.all(np.isfinite(px)):
+        return None
+    k = t.size
+    vals = cv2.remap(grey, px[:, 0].reshape(k, k), px[:, 1].reshape(k, k),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    cells = vals.astype(np.float32).reshape(g, 2, g, 2).mean(axis=(1, 3))
+    ring = np.ones((g, g), bool)
+    ring[1:-1, 1:-1] = False
+    border = np.zeros((g, g), bool)
+    border[1:-1, 1:-1] = True
+    border[2:-2, 2:-2] = False
+    white, black = float(np.median(cells[ring])), float(np.median(cells[border]))
+    if white - black < MIN_MARKER_CONTRAST:
+        return None
+    thr = 0.5 * (white + black)
+    if int(np.count_nonzero(cells[border] > thr)) > BORDER_ERRORS:
+        return None
+    return codes.identify(cells[2:-2, 2:-2] > thr)
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,23 +207,25 @@ def _sides_once(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
     counts = np.bincount(side, minlength=4)
     if np.any(counts < MIN_SIDE_POINTS):
         return None
-    norm = geo.camera.unproject(pts)
-    lines = np.array([fit_line(norm[side == k]) for k in range(4)])
-    corners = np.cross(np.roll(lines, 1, axis=0), lines)       # side k-1 meets side k
-    if np.any(np.abs(corners[:, 2]) < 1e-12):
+    norm = geo.camera.unproject_fast(pts)
+    corners = corners_of(fit_side_lines(norm, side))
+    if corners is None:
         return None
-    return Sides(corners[:, :2] / corners[:, 2:3], norm, side, 4 * per_side)
+    return Sides(corners, norm, side, 4 * per_side)
 
 
 def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
-                  per_side: int) -> Sides | None:
-    """The quad's sides measured on the frame (see the module docstring), twice: the
-    second time about the corners the first found (a coarse contour's corners may be a
-    few pixels off); None when a side has fewer than :data:`MIN_SIDE_POINTS` points."""
-    first = _sides_once(grey, corners_px, geo, per_side)
-    if first is None:
-        return None
-    again = geo.camera.distort(first.corners_norm)
-    if not np.all(np.isfinite(again)):
-        return first
-    return _sides_once(grey, again, geo, per_side) or first
+                  per_side: int, passes: int = 2) -> Sides | None:
+    """The quad's sides measured on the frame (see the module docstring), ``passes``
+    times: each pass about the corners the previous one found (a coarse contour's
+    corners may be a few pixels off); None when a side has fewer than
+    :data:`MIN_SIDE_POINTS` points."""
+    got = _sides_once(grey, corners_px, geo, per_side)
+    for _ in range(passes - 1):
+        if got is None:
+            return None
+        again = geo.camera.distort(got.corners_norm)
+        if not np.all(np.isfinite(again)):
+            return got
+        got = _sides_once(grey, again, geo, per_side) or got
+    return got

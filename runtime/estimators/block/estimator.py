@@ -44,9 +44,11 @@ from ceilkit.runtime.estimators.base import (
 )
 from ceilkit.runtime.estimators.block.detect import (
     Sides,
+    decimate,
     find_quads,
     measure_sides,
-    read_markers,
+    read_marker,
+    side_lengths_m,
 )
 from ceilkit.runtime.estimators.block.pnp import (
     PlanarGeometry,
@@ -57,7 +59,7 @@ from ceilkit.runtime.estimators.block.pnp import (
     refine,
     six_dof_check,
 )
-from ceilkit.runtime.features.quads import MarkerDetector, Quad
+from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
@@ -68,6 +70,7 @@ PRIOR_MARGIN = 2.0          # the prior picks a symmetric fit only this many tim
 PRIOR_YAW_GATE_RAD = math.radians(30.0)
 PRIOR_POS_SCALE_M = 0.5     # metres that weigh as much as PRIOR_YAW_GATE_RAD
 PARTIAL_AREA_PX = 600.0     # a non-quad region this large may be a block cut short
+COARSE_TOL = 0.25          # a coarse quad's perimeter may differ this much from a block's
 RMS_BAD_PX = 1.0            # edge residual RMS at which quality reaches 0
 
 
@@ -127,13 +130,15 @@ class BlockEstimator(Estimator):
         self.geo = PlanarGeometry.of(rig, site)
         markers = site.markers if site.has_section("markers") else None
         self._markers = markers
-        self._detector = MarkerDetector(markers.dictionary) if markers else None
+        self._codes = MarkerCodes(markers.dictionary) if markers else None
         if markers is not None:
             for k, p in enumerate(markers.poses):
                 if not p.size_m > 0:
                     raise ConfigError(site.source, f"markers.poses[{k}].size",
                                       f"expected a side > 0 m, found {p.size_m}")
         self._sizes_m = np.array([p.size_m for p in markers.poses]) if markers else np.zeros(0)
+        self._perimeters = [(float(np.sum(side_lengths_m(b.corners_m))), b.appearance != "bright")
+                            for b in site.blocks]
         self._bright = any(b.appearance == "bright" for b in site.blocks)
         self._dark = markers is not None or any(b.appearance != "bright" for b in site.blocks)
 
@@ -142,34 +147,39 @@ class BlockEstimator(Estimator):
                   t0: float) -> Estimate:
         o = self.options
         others: list[np.ndarray] = []
-        dark = find_quads(grey, True, o.dark_ratio, others) if self._dark else []
-        bright = find_quads(grey, False, o.bright_ratio, others) if self._bright else []
+        small = decimate(grey)
+        dark = find_quads(grey, True, o.dark_ratio, others, small) if self._dark else []
+        bright = find_quads(grey, False, o.bright_ratio, others, small) if self._bright else []
         fixes: list[_Fix] = []
         unknown: list[int] = []
-        used: list[int] = []
-        if self._detector is not None and dark:
-            ids, corners, used = read_markers(grey, dark, self.geo, self._detector,
-                                              self._sizes_m, o.marker_size_tol)
-            for mid, c in zip(ids, corners, strict=True):
-                pose = self._markers.pose(int(mid))
-                if pose is None:
-                    unknown.append(int(mid))
+        ambiguous, partial, skipped = 0, 0, 0
+        for q, is_dark in [(q, True) for q in dark] + [(q, False) for q in bright]:
+            pv = ceiling_points_vehicle(self.geo, self.geo.camera.unproject_fast(q.corners_px))
+            if not np.all(np.isfinite(pv)):
+                continue
+            if is_dark and self._is_marker_size(pv):
+                q = sharpen_quad(q)
+                got = self._marker_fix(grey, q)
+                if isinstance(got, _Fix):
+                    fixes.append(got)
                     continue
-                fix = self._marker_fix(grey, int(mid), c, pose.corners_m())
-                if fix is not None:
-                    fixes.append(fix)
-        quads = [(q, True) for k, q in enumerate(dark) if k not in used]
-        quads += [(q, False) for q in bright]
-        ambiguous, partial = 0, 0
-        for q, is_dark in quads:
-            got = self._block_fix(grey, q, is_dark, prior)
+                if isinstance(got, int):
+                    unknown.append(got)
+                    continue
+            if not self._may_be_block(pv, is_dark):
+                skipped += 1
+                if q.at_border:
+                    partial += 1 if self._may_be_cut_block(q, is_dark) else 0
+                continue
+            got = self._block_fix(grey, sharpen_quad(q), is_dark, prior)
             if isinstance(got, _Fix):
                 fixes.append(got)
             elif got == AMBIGUOUS:
                 ambiguous += 1
             elif got == PARTIAL_BLOCK:
                 partial += 1
-        diag = {"unknown_marker_ids": tuple(unknown), "quads": len(dark) + len(bright)}
+        diag = {"unknown_marker_ids": tuple(unknown), "quads": len(dark) + len(bright),
+                "quads_skipped": skipped}
         if not fixes:
             ms = elapsed_ms(t0)
             if ambiguous:
@@ -184,6 +194,24 @@ class BlockEstimator(Estimator):
             return self.fail(t_ns, NO_BLOCK, "no block or marker of the site in view",
                              ms=ms, **diag)
         return self._publish(t_ns, fixes, diag, t0)
+
+    def _is_marker_size(self, pv: np.ndarray) -> bool:
+        """A quad (coarse corners on the ceiling, V) of about a marker's side."""
+        if self._codes is None:
+            return False
+        side = float(np.mean(side_lengths_m(pv)))
+        return bool(np.any(np.abs(side / self._sizes_m - 1.0) < self.options.marker_size_tol))
+
+    def _may_be_block(self, pv: np.ndarray, dark: bool) -> bool:
+        """The coarse quad is about the size of a block of its polarity: its perimeter on
+        the ceiling within :data:`COARSE_TOL` (relative) of one block's (a cheap gate
+        before the quad is measured on its edges)."""
+        per = float(np.sum(side_lengths_m(pv)))
+        return any(abs(per / p - 1.0) < COARSE_TOL
+                   for p, d in self._perimeters if d == dark)
+
+    def _may_be_cut_block(self, q: Quad, dark: bool) -> bool:
+        return any(d == dark for _, d in self._perimeters)
 
     def _publish(self, t_ns: int, fixes: list[_Fix], diag: dict[str, Any],
                  t0: float) -> PoseEstimate:
@@ -213,18 +241,31 @@ class BlockEstimator(Estimator):
             return None
         return _Fix(source, ref, shape, sides.corners_norm, corners_w, resolved_by)
 
-    def _marker_fix(self, grey: np.ndarray, marker_id: int, corners_px: np.ndarray,
-                    corners_w: np.ndarray) -> _Fix | None:
-        sides = measure_sides(grey, corners_px, self.geo, self.options.edge_points)
+    def _marker_fix(self, grey: np.ndarray, quad: Quad) -> _Fix | int | None:
+        """A fix from a marker-sized dark quad, the id read when the site does not hold
+        it, or None (not a marker, or not measured)."""
+        sides = measure_sides(grey, quad.corners_px, self.geo, self.options.edge_points,
+                              passes=1)
         if sides is None:
             return None
-        return self._solve(sides, corners_w, f"marker:{marker_id}", "id")
+        read = read_marker(grey, sides.corners_norm, self.geo, self._codes)
+        if read is None:
+            return None
+        marker_id, s, _ = read
+        pose = self._markers.pose(marker_id)
+        if pose is None:
+            return marker_id
+        # corner s of the quad is the printed top-left: aruco's corner 0 (SPEC §2)
+        sides = Sides(np.roll(sides.corners_norm, -s, axis=0), sides.edge_norm,
+                      (sides.side - s) % 4, sides.stations)
+        return self._solve(sides, pose.corners_m(), f"marker:{marker_id}", "id")
 
     def _block_fix(self, grey: np.ndarray, quad: Quad, dark: bool,
                    prior: PoseEstimate | None) -> _Fix | str | None:
         """A fix from a plain quad, or the reason it gave none (``ambiguous``,
         ``partial_block``) or None (not a block of the site)."""
-        sides = measure_sides(grey, quad.corners_px, self.geo, self.options.edge_points)
+        sides = measure_sides(grey, quad.corners_px, self.geo, self.options.edge_points,
+                              passes=1)
         if sides is None:
             return PARTIAL_BLOCK if quad.at_border else None
         pv = ceiling_points_vehicle(self.geo, sides.corners_norm)
