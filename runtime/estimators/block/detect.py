@@ -16,6 +16,7 @@ Everything returns arrays or frozen dataclasses; nothing raises per frame.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -139,6 +140,16 @@ def side_lengths_m(points_v: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.roll(points_v, -1, axis=0) - points_v, axis=1)
 
 
+@functools.lru_cache(maxsize=8)
+def _cell_grid(n: int) -> tuple[np.ndarray, int]:
+    """read_marker's samples ``(k*k, 1, 2)`` float32 (column, row in cells of an n-cell
+    black square, its quiet ring included) and k, the samples per side."""
+    t = (np.arange(n + 2 * QUIET_CELLS) - QUIET_CELLS + 0.5)[:, None] + _CELL_SUB[None, :]
+    cols, rows = np.meshgrid(t.ravel(), t.ravel())
+    grid = np.stack([cols.ravel(), rows.ravel()], axis=1).reshape(-1, 1, 2)
+    return grid.astype(np.float32), t.size
+
+
 def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
                 codes: MarkerCodes) -> tuple[int, int, int] | None:
     """The marker whose black square has the corners ``corners_norm`` ``(4, 2)``
@@ -156,17 +167,13 @@ def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
     """
     n = codes.bits + 2                                   # cells across the black square
     g = n + 2 * QUIET_CELLS
-    t = (np.arange(g) - QUIET_CELLS + 0.5)[:, None] + _CELL_SUB[None, :]
-    t = t.ravel()
-    cols, rows = np.meshgrid(t, t)                       # (2g, 2g): column, row in cells
+    grid, k = _cell_grid(n)
     square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
     H = cv2.getPerspectiveTransform(square, np.asarray(corners_norm, np.float32))
-    grid = np.stack([cols.ravel(), rows.ravel()], axis=1).reshape(-1, 1, 2)
-    norm = cv2.perspectiveTransform(grid.astype(np.float32), H).reshape(-1, 2)
+    norm = cv2.perspectiveTransform(grid, H).reshape(-1, 2)
     px = geo.camera.distort(norm).astype(np.float32)
     if not np.all(np.isfinite(px)):
         return None
-    k = t.size
     vals = cv2.remap(grey, px[:, 0].reshape(k, k), px[:, 1].reshape(k, k),
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     cells = vals.astype(np.float32).reshape(g, 2, g, 2).mean(axis=(1, 3))

@@ -89,6 +89,8 @@ class BlockOptions(EstimatorOptions):
             bright block.
         edge_points: edge stations per side for the refinement.
         six_dof_check: report the unconstrained 6-DoF PnP's disagreement with the rig.
+        max_fixes: blocks and markers solved per frame, the largest in the image first
+            (the best-determined of them is published); more cost time, not accuracy.
     """
 
     shape_tol: float = 0.08
@@ -97,6 +99,7 @@ class BlockOptions(EstimatorOptions):
     bright_ratio: float = 1.3
     edge_points: int = 12
     six_dof_check: bool = True
+    max_fixes: int = 1
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,6 +127,9 @@ class BlockEstimator(Estimator):
         for key in ("shape_tol", "marker_size_tol", "dark_ratio", "bright_ratio"):
             if not getattr(o, key) > 0:
                 raise ConfigError(None, f"options.{key}", f"expected > 0, found {getattr(o, key)}")
+        if o.max_fixes < 1:
+            raise ConfigError(None, "options.max_fixes",
+                              f"expected at least 1, found {o.max_fixes}")
         if o.edge_points < 4:
             raise ConfigError(None, "options.edge_points",
                               f"expected at least 4, found {o.edge_points}")
@@ -153,7 +159,11 @@ class BlockEstimator(Estimator):
         fixes: list[_Fix] = []
         unknown: list[int] = []
         ambiguous, partial, skipped = 0, 0, 0
-        for q, is_dark in [(q, True) for q in dark] + [(q, False) for q in bright]:
+        cands = sorted([(q, True) for q in dark] + [(q, False) for q in bright],
+                       key=lambda c: -c[0].area_px)              # the largest first
+        for q, is_dark in cands:
+            if len(fixes) >= o.max_fixes:
+                break
             pv = ceiling_points_vehicle(self.geo, self.geo.camera.unproject_fast(q.corners_px))
             if not np.all(np.isfinite(pv)):
                 continue

@@ -37,7 +37,7 @@ from ceilkit.runtime.geometry.fits import fit_rigid_2d
 from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
 
 GN_ITERATIONS = 4
-GN_STEP_EPS = 1e-9          # stop when the step (m, rad) is below this
+GN_STEP_EPS = 1e-6          # converged when the next step (m, rad) is below this
 JAC_EPS = 1e-6              # finite-difference step, m and rad
 SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
@@ -149,17 +149,16 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
     pose = np.array(pose0, float)
     args = (corners_w, edge_norm, side, scale)
     eye = np.eye(3) * JAC_EPS
-    for _ in range(GN_ITERATIONS):
+    for it in range(GN_ITERATIONS + 1):
         r = _side_residuals(geo, pose, *args)
         J = np.stack([(_side_residuals(geo, pose + eye[k], *args) - r) / JAC_EPS
                       for k in range(3)], axis=1)
-        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
-        pose = pose + step
-        if np.max(np.abs(step)) < GN_STEP_EPS:
+        if it == GN_ITERATIONS:
             break
-    r = _side_residuals(geo, pose, *args)
-    J = np.stack([(_side_residuals(geo, pose + eye[k], *args) - r) / JAC_EPS
-                  for k in range(3)], axis=1)
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        if np.max(np.abs(step)) < GN_STEP_EPS:
+            break                   # r, J at the converged pose serve the covariance
+        pose = pose + step
     rms = float(np.sqrt(np.mean(r * r)))
     dof = max(r.size - 3, 1)
     s2 = max(float(r @ r) / dof, SIGMA_FLOOR_PX ** 2)
