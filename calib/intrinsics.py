@@ -29,6 +29,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -320,6 +321,63 @@ def check_model(model: str) -> None:
                           f"found {model!r}")
 
 
+NEAR_SAME_PX = 2.0
+"""Two views whose common corners lie within this RMS (px) of each other are one view."""
+MIN_TILT_DEG = 10.0
+"""A view is tilted when its board normal is this far (deg) off the optical axis."""
+MIN_TILT_AXES_DEG = 30.0
+"""The tilted views' tilt axes must span at least this (deg, modulo 180): tilts about
+one axis alone leave the focal length across that axis to the distortion."""
+
+
+def check_view_variety(views: Sequence[Detection], min_views: int) -> None:
+    """Refuse a view set the solve cannot separate: copies of one view (corners within
+    :data:`NEAR_SAME_PX`), fewer than ``min_views`` distinct views, or too little tilt
+    variety (fewer than two views tilted :data:`MIN_TILT_DEG` or more, or all tilted
+    about one axis). The message says what views to add.
+
+    Raises:
+        CalibrationError: the view set is degenerate.
+    """
+    distinct: list[Detection] = []
+    copies: list[tuple[str, str]] = []
+    for v in views:
+        for d in distinct:
+            common, iv, idd = np.intersect1d(v.ids, d.ids, return_indices=True)
+            if common.size < 0.5 * min(len(v), len(d)):
+                continue
+            diff = v.points_px[iv] - d.points_px[idd]
+            if float(np.sqrt(np.mean(np.sum(diff * diff, axis=1)))) < NEAR_SAME_PX:
+                copies.append((v.name, d.name))
+                break
+        else:
+            distinct.append(v)
+    add = ("add views with the board moved across the whole image, nearer and farther, "
+           "and tilted 20-45 deg towards the left, right, top and bottom")
+    if len(distinct) < min_views:
+        eg = ", ".join(f"{a} = {b}" for a, b in copies[:3])
+        raise CalibrationError(
+            f"only {len(distinct)} distinct views among {len(views)} (need {min_views}): "
+            f"{len(copies)} are copies of another view, their corners within "
+            f"{NEAR_SAME_PX:g} px ({eg}); {add}")
+    shapes = [view_shape(d) for d in distinct]
+    tilted = [s for s in shapes if s.tilt_deg >= MIN_TILT_DEG]
+    if len(tilted) < 2:
+        raise CalibrationError(
+            f"too little tilt variety: {len(tilted)} of {len(distinct)} distinct views "
+            f"have the board tilted {MIN_TILT_DEG:g} deg or more (need 2, about different "
+            f"axes); the focal length cannot be told from the distance; {add}")
+    dirs = np.radians([s.tilt_dir_deg for s in tilted]) * 2.0   # axes: modulo 180 deg
+    spread = max(float(np.degrees(abs(math.remainder(a - b, 2 * math.pi)))) / 2.0
+                 for a in dirs for b in dirs)
+    if spread < MIN_TILT_AXES_DEG:
+        raise CalibrationError(
+            f"too little tilt variety: every tilted view turns the board about one axis "
+            f"(within {spread:.0f} deg; need {MIN_TILT_AXES_DEG:g}); the focal length across "
+            f"it is not determined; add views tilted towards the top and bottom as well as "
+            f"left and right")
+
+
 def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *,
                          fix_aspect_ratio: bool = False, min_views: int = 5,
                          corner_k: float = 5.0, view_k: float = 3.0,
@@ -348,7 +406,8 @@ def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *
 
     Raises:
         ConfigError: unknown model, or views of different image sizes.
-        CalibrationError: too few views, or a solve that fails.
+        CalibrationError: too few views, a degenerate view set
+            (:func:`check_view_variety`), or a solve that fails.
     """
     check_model(model)
     views = [v for v in views if v is not None]
@@ -365,6 +424,7 @@ def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *
         raise CalibrationError(f"too few views: the board was found in {len(usable)} "
                                f"image(s) with at least {MIN_CORNERS_PER_VIEW} corners, need "
                                f"at least {min_views}")
+    check_view_variety(usable, min_views)
     image_size = usable[0].image_size
     total = sum(len(v) for v in usable)
     kept = list(usable)

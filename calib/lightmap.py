@@ -160,6 +160,69 @@ def cluster_points(points_w: np.ndarray, frame_ids: np.ndarray, cluster_m: float
             np.array(out_v, int)[keep], int(P.shape[0] - assigned))
 
 
+MIN_SPOT_ROUNDNESS = 0.6
+"""A spot light is round on the ceiling: its detections' minor / major axis (median)
+at least this. Rendered spot lights measure 0.95-1.0 (tests/fixtures/lights_rec); the
+corridor's 1.2 x 0.3 m lamps 0.35 (their visible parts 0.8 x 0.33 m)."""
+MAX_SPOT_M = 0.6
+"""...and smaller than this across (m): a lamp larger than this is a luminaire whose
+centre is not a point the lights method can match."""
+
+
+def spot_extents_m(rig: Rig, ceiling_height_m: float, spots) -> np.ndarray:
+    """``(N, 2)`` (major, minor) extent of each spot on the ceiling, metres: the ends of
+    each principal axis of its second moments (``centroid +- 2 sqrt(eigenvalue)``, a
+    uniform disc's diameter) meeting the ceiling. NaN where a ray does not rise."""
+    out = np.full((len(spots), 2), np.nan)
+    for i, (c, cov) in enumerate(zip(spots.centroids_px, spots.cov_px, strict=True)):
+        w, v = np.linalg.eigh(np.asarray(cov, float))
+        ext = []
+        for k in (1, 0):
+            d = 2.0 * math.sqrt(max(float(w[k]), 0.0)) * v[:, k]
+            q, ok = ceiling_points(rig, ceiling_height_m, np.array([c - d, c + d]))
+            ext.append(float(np.hypot(*(q[1] - q[0]))) if ok.all() else math.nan)
+        out[i] = (max(ext), min(ext))
+    return out
+
+
+def check_spot_lights(recording: Recording, ceiling_height_m: float,
+                      spot_params: SpotParams | None = None,
+                      max_view_angle_deg: float = 60.0, samples: int = 20) -> None:
+    """Refuse a recording whose lamps are not spot lights (rectangular luminaires, light
+    strips): up to ``samples`` frames spread over it, every detection's extent on the
+    ceiling (:func:`spot_extents_m`); the median must be round
+    (:data:`MIN_SPOT_ROUNDNESS`) and small (:data:`MAX_SPOT_M`).
+
+    Raises:
+        CalibrationError: the lamps are not spot lights (the message says what they
+            measure and what to use instead).
+    """
+    rig = recording.rig
+    valid = view_mask(rig, math.radians(max_view_angle_deg))
+    n = len(recording)
+    ext = []
+    for k in sorted({int(i) for i in np.linspace(0, n - 1, min(samples, n)).round()}):
+        spots = detect_spots(recording.frame(k).image, spot_params, valid)
+        if len(spots):
+            ext.append(spot_extents_m(rig, ceiling_height_m, spots))
+    if not ext:
+        return
+    e = np.concatenate(ext)
+    e = e[np.isfinite(e).all(axis=1) & (e[:, 0] > 0)]
+    if e.shape[0] == 0:
+        return
+    major, minor = float(np.median(e[:, 0])), float(np.median(e[:, 1]))
+    roundness = float(np.median(e[:, 1] / e[:, 0]))
+    if roundness < MIN_SPOT_ROUNDNESS or major > MAX_SPOT_M:
+        raise CalibrationError(
+            f"{recording.folder}: the lamps are not spot lights: their {e.shape[0]} "
+            f"detections measure a median {major:.2f} x {minor:.2f} m on the ceiling "
+            f"(minor/major {roundness:.2f}; a spot light is round, >= "
+            f"{MIN_SPOT_ROUNDNESS:g}, and under {MAX_SPOT_M:g} m); the lights method "
+            "cannot use their centres. For rectangular lamps give site.yaml `lamps` and "
+            "`corridor` lines and use the corridor method. Nothing written")
+
+
 def survey_lights(recording: Recording, poses: Truth | None = None, *,
                   ceiling_height_m: float | None = None, cluster_m: float = 0.15,
                   min_views: int = 3, spot_params: SpotParams | None = None,
@@ -178,7 +241,8 @@ def survey_lights(recording: Recording, poses: Truth | None = None, *,
 
     Raises:
         ConfigError: no poses, or none matching a frame; a ceiling below the camera.
-        CalibrationError: no light was seen often enough.
+        CalibrationError: no light was seen often enough; lamps that are not spot
+            lights (:func:`check_spot_lights`).
     """
     truth = poses if poses is not None else recording.truth
     if truth is None:
@@ -190,6 +254,7 @@ def survey_lights(recording: Recording, poses: Truth | None = None, *,
     height = recording.site.ceiling_height_m if ceiling_height_m is None else ceiling_height_m
     site = Site(height)
     check_rig_site(rig, replace(site, source=recording.site.source))
+    check_spot_lights(recording, height, spot_params, max_view_angle_deg)
     valid = view_mask(rig, math.radians(max_view_angle_deg))
     pts, ids = [], []
     used = 0
@@ -520,6 +585,7 @@ def survey_chain(recording: Recording, known: KnownLights, *,
                           f"frame {known.anchor_frame} is not in the recording "
                           f"({n_frames} frames)")
     height = recording.site.ceiling_height_m if ceiling_height_m is None else ceiling_height_m
+    check_spot_lights(recording, height, spot_params, max_view_angle_deg)
     obs = frame_points(recording, height, spot_params, max_view_angle_deg)
     return chain_points(obs, recording.rig, height, known, min_views=min_views,
                         gate_m=gate_m, step_gate_m=step_gate_m,

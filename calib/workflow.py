@@ -28,7 +28,7 @@ import shlex
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TextIO
@@ -39,7 +39,7 @@ from ceilkit.runtime.config.camera import load_camera, save_camera
 from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.config.yaml import atomic_write_bytes
-from ceilkit.runtime.errors import ConfigError, OutputError
+from ceilkit.runtime.errors import CalibrationError, ConfigError, OutputError
 from ceilkit.runtime.io.capture import open_video
 from ceilkit.runtime.io.recording import Recording, Truth
 from ceilkit.runtime.replay import ReplayResult, replay
@@ -68,7 +68,14 @@ from .lightmap import (
     survey_lights,
     write_site,
 )
-from .mount import PARAMS, calibrate_mount, calibrate_tilt_swing, load_drive, load_placements
+from .mount import (
+    PARAMS,
+    calibrate_mount,
+    calibrate_tilt_swing,
+    load_drive,
+    load_placements,
+    unobservable,
+)
 from .simulate import make_trajectory, simulate_recording
 
 Progress = Callable[[int, int, str, bool], None]
@@ -189,42 +196,125 @@ class MountRun:
         return [*self.report, f"wrote {self.rig_path}"] + [f"wrote {p}" for p in self.plots]
 
 
-def mount(placements: Path, site: Path, out: Path, *, rig: Path | None = None,
+def parse_fix(fix: Sequence[str]) -> dict[str, float | None]:
+    """``--fix`` values: ``NAME=VALUE`` (degrees for ``pan tilt swing``, metres for
+    ``mx my h``; ``h`` is the camera's distance below the ceiling) or ``NAME`` (the
+    rig's value). Returns name -> value in radians / metres, or None.
+
+    Raises:
+        ConfigError: ``fix``: an unknown name or a value that is not a number.
+    """
+    out: dict[str, float | None] = {}
+    for item in fix:
+        name, sep, text = str(item).partition("=")
+        name = name.strip()
+        if name not in PARAMS:
+            raise ConfigError(None, "fix", f"unknown parameter {name!r} "
+                              f"(choose from {', '.join(PARAMS)}; NAME or NAME=VALUE)")
+        if not sep:
+            out[name] = None
+            continue
+        try:
+            value = float(text)
+        except ValueError:
+            raise ConfigError(None, "fix", f"{name}={text!r}: expected a number "
+                              "(degrees for pan, tilt, swing; metres for mx, my, h)") from None
+        if not math.isfinite(value):
+            raise ConfigError(None, "fix", f"{name}={text!r}: expected a finite number")
+        out[name] = math.radians(value) if name in ("pan", "tilt", "swing") else value
+    return out
+
+
+def _fixed_mount(base: Mount, fixes: dict[str, float | None], ceiling_m: float) -> Mount:
+    """``base`` with the typed ``--fix`` values put in (``h`` as a height below the
+    ceiling)."""
+    names = {"pan": "pan_rad", "tilt": "tilt_rad", "swing": "swing_rad", "mx": "x_m",
+             "my": "y_m"}
+    kw = {names[n]: v for n, v in fixes.items() if v is not None and n in names}
+    if fixes.get("h") is not None:
+        kw["z_m"] = ceiling_m - float(fixes["h"])
+    return replace(base, **kw)
+
+
+def _fix_lines(fixes: dict[str, float | None], rig: Path | None) -> list[str]:
+    out = []
+    for name, value in fixes.items():
+        if value is None:
+            out.append(f"held by --fix: {name} at the value of {rig} (not measured here)")
+        elif name in ("pan", "tilt", "swing"):
+            out.append(f"held by --fix: {name} = {math.degrees(value):.4f} deg (typed, "
+                       "not measured)")
+        else:
+            out.append(f"held by --fix: {name} = {value:.4f} m (typed, not measured)")
+    return out
+
+
+def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = None,
           camera: Path | None = None, drive: Path | None = None,
           fix: Sequence[str] = (), max_frames: int = 8,
-          plots: Path | None = None) -> MountRun:
-    """Fit the mount (tilt, swing, pan, offsets, height below the ceiling) from measured
-    ``placements`` (a placements file or a recording with truth.csv) in ``site``, and
-    write ``out`` (rig.yaml).
+          plots: Path | None = None, **upward) -> MountRun:
+    """Fit the mount and write ``out`` (rig.yaml), by the procedure the site calls for:
+    a site with ``corridor`` lines, the corridor fit below; a site with ``lights`` only
+    (an upward camera), :func:`mount_upward` (``upward`` holds its own arguments).
+
+    The corridor fit: tilt, swing, pan, offsets and the height below the ceiling from
+    measured ``placements`` (a placements file or a recording with truth.csv).
+
+    Observability first: before anything is fitted, the parameters the data cannot
+    determine (:func:`~ceilkit.calib.mount.unobservable`) are refused unless held by
+    ``fix``; a fit whose residuals disagree with the edge points' own noise, whose
+    parameters stay undetermined, or in which a placement disagrees with the others is
+    refused. Nothing is written when a fit is refused.
 
     Args:
         rig: a rig whose camera (and held values) to use, or
         camera: camera.yaml when there is no rig yet (one of the two).
         drive: a straight drive (recording or image folder) that gives tilt and swing.
-        fix: parameters held at the rig's value (:data:`~ceilkit.calib.mount.PARAMS`).
+        fix: parameters to hold: ``NAME=VALUE`` or ``NAME`` (the rig's value; needs
+            ``rig``), see :func:`parse_fix`; written in the provenance header.
         max_frames: at most this many placements from a recording.
         plots: write ``mount_residuals.png`` (residual RMS per placement, px) here.
 
     Raises:
-        ConfigError: ``camera`` (neither a rig nor a camera), ``fix`` (unknown name),
-            bad placements or site.
-        CalibrationError: a fit that fails or leaves too large a residual.
+        ConfigError: ``camera`` (neither a rig nor a camera), ``fix`` (unknown name, or
+            no value without a rig), bad placements or site.
+        CalibrationError: a parameter that is not observable and not held; a fit that
+            fails, leaves too large a residual, or whose data disagree.
     """
     if rig is None and camera is None:
         raise ConfigError(None, "camera", "give the camera (camera.yaml) or a rig")
+    fixes = parse_fix(fix)
+    for name, value in fixes.items():
+        if value is None and rig is None:
+            raise ConfigError(None, "fix", f"--fix {name} holds the rig's value, but there "
+                              f"is no --rig: give the measured value, {name}=VALUE")
+    the_site = Site.load(site)
+    if upward:
+        raise ConfigError(None, next(iter(upward)), "applies to an upward (lights) rig; "
+                          "this site has corridor lines")
+    if placements is None:
+        raise ConfigError(None, "placements", "the corridor fit needs measured placements "
+                          "(a placements file or a recording with truth.csv)")
     if rig is not None:
         the_rig = Rig.load(rig)
         camera_ref = the_rig.camera_file
     else:
         the_rig = Rig(load_camera(camera), Mount(z_m=0.5))
         camera_ref = str(camera)
-    the_site = Site.load(site)
-    fixed = list(fix)
-    for name in fixed:
-        if name not in PARAMS:
-            raise ConfigError(None, "fix", f"unknown parameter {name!r} "
-                              f"(choose from {', '.join(PARAMS)})")
+    the_rig = the_rig.with_mount(_fixed_mount(the_rig.mount, fixes,
+                                              the_site.ceiling_height_m))
+    reasons = {n: (f"--fix {n} (the rig's value)" if v is None else f"--fix {n} (typed)")
+               for n, v in fixes.items()}
     pls = load_placements(placements, the_rig.camera, max_frames)
+    missing = {n: why for n, why in unobservable(pls, set(fixes)).items()}
+    if drive is not None:
+        missing.pop("tilt", None)
+        missing.pop("swing", None)
+    if missing:
+        name, why = next(iter(missing.items()))
+        raise CalibrationError(
+            f"{name} is not observable from these placements: {why}; or measure it and "
+            f"give --fix {name}=VALUE. Nothing written")
     start = None
     lines: list[str] = []
     if drive is not None:
@@ -233,11 +323,18 @@ def mount(placements: Path, site: Path, out: Path, *, rig: Path | None = None,
                      f"+- {math.degrees(rep['sigma_tilt']):.4f} deg, swing "
                      f"{math.degrees(swing):.4f} +- {math.degrees(rep['sigma_swing']):.4f} "
                      f"deg, RMS {rep['rms_px']:.3f} px")
-        start = Mount(0.0, tilt, swing, the_rig.mount.x_m, 0.0, the_rig.mount.z_m)
-        fixed += ["tilt", "swing"]
-    res = calibrate_mount(the_rig, the_site, pls, fixed=fixed, start=start,
-                          fit_height=None if "h" not in fixed else False)
-    lines += res.lines()
+        m = the_rig.mount
+        start = Mount(m.pan_rad if "pan" in fixes else 0.0, tilt, swing, m.x_m,
+                      m.y_m if "my" in fixes else 0.0, m.z_m)
+        reasons.update(tilt="from the drive", swing="from the drive")
+    res = calibrate_mount(the_rig, the_site, pls, fixed=reasons, start=start,
+                          fit_height=None if "h" not in reasons else False)
+    if res.outliers:
+        label, rms, why = res.outliers[0]
+        raise CalibrationError(
+            f"placement {label} disagrees with the others: {why} (RMS {rms:.2f} px); "
+            "re-measure it or leave it out. Nothing written")
+    lines += res.lines() + _fix_lines(fixes, rig)
     header = provenance_header(
         "rig.yaml written by ceilcal mount",
         [f"placements: {placements} ({len(pls)})", f"site: {site}"]

@@ -24,8 +24,10 @@ def register(app: typer.Typer) -> None:
         camera: Path = typer.Option(None, help="camera.yaml, when there is no rig yet."),
         drive: Path = typer.Option(None, help="A straight drive (recording or image "
                                    "folder) for tilt and swing, nothing measured."),
-        fix: list[str] = typer.Option(None, help="Hold a parameter at the rig's value "
-                                      "(pan tilt swing mx my h); repeatable."),
+        fix: list[str] = typer.Option(None, help="Hold a parameter the data cannot "
+                                      "determine: NAME=VALUE (pan tilt swing in deg, mx my "
+                                      "h in m; h below the ceiling) or NAME (the --rig's "
+                                      "value); recorded in the header; repeatable."),
         max_frames: int = typer.Option(8, help="At most this many placements from a "
                                        "recording."),
         plots: Path = typer.Option(None, "--plots",
