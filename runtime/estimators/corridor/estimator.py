@@ -66,6 +66,7 @@ from ceilkit.runtime.estimators.corridor.setup import (
     check_setup,
     default_match_tol_m,
 )
+from ceilkit.runtime.estimators.corridor.track import LineTracker
 from ceilkit.runtime.features.lines import SegmentDetector
 
 MIN_LENGTH_SHARE = 0.04
@@ -97,6 +98,14 @@ class CorridorOptions(EstimatorOptions):
         gn_iterations: most joint Gauss-Newton steps on ``(psi, c_y)``.
         min_elevation_deg: image rows whose rays all rise less than this above the
             horizon hold no useful ceiling and are not searched.
+        track: with a prior, search for the site lines only across their predicted
+            image lines (:mod:`~.track`: 1-D edge searches, no line detector); the
+            global path runs when that check fails and every ``track_full_every``-th
+            tracked frame. Off by default.
+        track_search_px: half-width of the searches (px): how far a line may lie from
+            its prediction.
+        track_full_every: a global search after this many tracked fixes (0: only when
+            the check fails).
         min_contrast: (inherited) grey-level spread below which a frame is blank.
     """
 
@@ -110,6 +119,9 @@ class CorridorOptions(EstimatorOptions):
     inlier_px: float = 2.5
     gn_iterations: int = 6
     min_elevation_deg: float = 3.0
+    track: bool = False
+    track_search_px: float = 5.0
+    track_full_every: int = 30
 
 
 class CorridorEstimator(Estimator):
@@ -141,6 +153,9 @@ class CorridorEstimator(Estimator):
         self.angle_tol_rad = math.radians(o.angle_tol_deg)
         self._ctx = LabelContext(self.setup, cam, self.angle_tol_rad, self.match_tol_m,
                                  self.detector.min_length_px)
+        self.lines_track = (LineTracker(self.setup, cam, o.track_search_px) if o.track
+                            else None)
+        self._tracked_fixes = 0  # tracked fixes since the last global search
 
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
@@ -150,9 +165,46 @@ class CorridorEstimator(Estimator):
         frame check's: ``too_few_lines``, ``no_ceiling_lines``, ``no_association``,
         ``ambiguous``."""
         o = self.options
+        if self.lines_track is not None and prior is not None and prior.y_m is not None:
+            fast = self._tracked(grey, t_ns, prior, t0)
+            if fast is not None:
+                return fast
         segs, len_px, pol, fit_rms = frame_segments(grey, self.rig.camera, self.detector,
                                                     o.max_segments, o.refine, o.edge_fit)
         return self._from_segments(segs, len_px, t_ns, prior, fit_rms, pol, t0)
+
+    def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
+                 t0: float) -> Estimate | None:
+        """The fix from edge searches across the lines predicted by ``prior``
+        (:mod:`~.track`), refined and checked as the global path's (:meth:`_pose`), or
+        ``None``: the searches or the check failed, or a global search is due."""
+        o, st = self.options, self.setup
+        if o.track_full_every > 0 and self._tracked_fixes >= o.track_full_every:
+            self._tracked_fixes = 0
+            return None
+        yaw = prior.yaw_rad
+        psi = yaw + st.pan_rad
+        cy = float(prior.y_m) + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
+        m = self.lines_track.measure(grey, psi, cy)
+        out = None
+        if m is not None:
+            n = m.segs_n.shape[0]
+            fr = frame_lines(m.segs_n, m.polarity, st, self.angle_tol_rad, o.inlier_px)
+            along, across = np.ones(n, bool), np.zeros(n, bool)
+            lab = Labeling((m.n_lines, float(n)), psi, cy, along, across, m.line,
+                           m.n_lines, False, "window")
+            gd = gn_inputs(fr, along, across, m.line, st)
+            fit = gauss_newton(psi, cy, gd, st, o.gn_iterations)
+            reach_psi, reach_cy = self.lines_track.reach()
+            if (fit.rms_px <= o.inlier_px
+                    and abs(math.remainder(fit.psi_rad - psi, 2 * math.pi)) <= reach_psi
+                    and abs(fit.camera_y_m - cy) <= reach_cy):
+                out = self._pose(t_ns, fr, lab, gd, fit, m.rms_px, t0)
+        if not out:                 # not found, or the model check failed: go global
+            self._tracked_fixes = 0
+            return None
+        self._tracked_fixes += 1
+        return out
 
     def estimate_segments(self, segs_px: np.ndarray, t_ns: int,
                           prior: PoseEstimate | None = None,

@@ -1,0 +1,168 @@
+"""The tracked fast path of ``corridor``: 1-D edge searches across the predicted lines.
+
+With a prior (the tracker's or the fusion's predicted yaw and y), every site line
+``y = y_j`` of ``lines_along`` is projected through the rig (camera pan
+``psi = yaw + pan``, camera y ``c_y``; SPEC §1) and its visible stretch (in the image,
+in the lens's field, within :data:`REACH_M` of the camera on the ceiling) is cut into
+short pixel chords. On each chord the edge is located on cross profiles by the one
+edge-profile measurement (:func:`~ceilkit.runtime.features.lines.refine_undistorted`:
+kind, sub-pixel location, a line fitted in undistorted coordinates), within
+``search_px`` of the prediction. No full-frame line detector runs.
+
+A chord counts when its edge is of the kind the site says (a lamp's long edge is a
+step, a seam a thin line) and fits well; the association is known (a chord is its
+line's), so the located chords go straight to the joint Gauss-Newton on ``(psi,
+c_y)`` (:func:`~.refine.gauss_newton`, started at the prior) as forward segments.
+The window check: at least two site lines found, the fit's rms within ``inlier_px``,
+the refined pose within the search's reach of the prior. Anything else returns
+``None`` and the estimator runs its global path (the fallback and the check).
+
+Example::
+
+    lt = LineTracker(setup, camera, search_px=5.0, inlier_px=2.5)
+    m = lt.measure(grey, psi_rad, camera_y_m)     # LineMeasurement | None
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
+from ceilkit.runtime.features.lines import refine_undistorted
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.rotations import rot_z
+
+REACH_M = 8.0
+"""Ceiling points further than this from the camera are not searched (tiny, blurred)."""
+
+CHORD_PX = 48.0
+"""Pixel length of a chord of a predicted line (short: a curved image line is straight
+on it to a fraction of a pixel)."""
+
+MIN_CHORD_PX = 20.0
+"""A visible stretch shorter than this is not searched."""
+
+SAMPLES = 121
+"""Samples along each site line (W's x, over ``±REACH_M`` of the camera)."""
+
+MAX_CHORD_RMS_PX = 1.0
+"""A chord whose located points scatter more than this about their line is dropped."""
+
+
+@dataclass(frozen=True, eq=False)
+class LineMeasurement:
+    """The located chords of one frame.
+
+    Attributes:
+        segs_n: ``(K, 4)`` undistorted normalized chords (the fitted edge).
+        segs_px: ``(K, 4)`` the predicted pixel chords searched.
+        line: ``(K,)`` the site line (index into ``setup.site_y``) of each chord.
+        polarity: ``(K,)`` the located kind (``+-1`` step, ``0`` thin line).
+        rms_px: ``(K,)`` the located points' scatter about each chord's fit (px).
+        searched: chords searched (before the checks).
+    """
+
+    segs_n: np.ndarray
+    segs_px: np.ndarray
+    line: np.ndarray
+    polarity: np.ndarray
+    rms_px: np.ndarray
+    searched: int
+
+    @property
+    def n_lines(self) -> int:
+        return int(np.unique(self.line).size)
+
+
+class LineTracker:
+    """Edge searches across the site lines predicted from a prior (module doc).
+
+    Args:
+        setup: the estimator's :class:`~.setup.CorridorSetup`.
+        camera: the intrinsics.
+        search_px: half-width of the cross profiles (px): how far an edge may be from
+            its prediction (the prior's error in pixels, plus a pixel).
+    """
+
+    def __init__(self, setup: CorridorSetup, camera: CameraModel, search_px: float) -> None:
+        self.setup, self.camera = setup, camera
+        self.search_px = float(search_px)
+        self._u = np.linspace(-REACH_M, REACH_M, SAMPLES)
+        self._margin = self.search_px + 2.0
+
+    def predicted_chords(self, psi_rad: float, camera_y_m: float
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """``(chords (K, 4) px, line (K,))``: the visible stretches of every site line
+        for camera pan ``psi_rad`` and camera y ``camera_y_m``, cut into chords of about
+        :data:`CHORD_PX`."""
+        st, cam = self.setup, self.camera
+        R_cw = st.R_level_cam.T @ rot_z(-psi_rad)
+        h = st.ceiling_above_cam_m
+        u = self._u[None, :]
+        dy = (st.site_y - camera_y_m)[:, None]
+        d0, d1, d2 = (u * R[0] + (dy * R[1] + h * R[2]) for R in R_cw)      # (J, S)
+        front = (d2 > 1e-6) & (u * u + dy * dy <= REACH_M * REACH_M)
+        z = np.where(front, d2, 1.0)
+        x, y = d0 / z, d1 / z
+        front &= x * x + y * y <= st.field_radius ** 2
+        px = cam.distort(np.stack([x.ravel(), y.ravel()], axis=1)).reshape(*x.shape, 2)
+        m = self._margin
+        vis = front & (px[..., 0] >= m) & (px[..., 0] <= cam.width - 1 - m) \
+            & (px[..., 1] >= max(m, st.rows[0])) & (px[..., 1] <= min(cam.height - 1 - m,
+                                                                      st.rows[1]))
+        chords, lines = [], []
+        for j in range(st.site_y.size):
+            idx = np.flatnonzero(vis[j])
+            if idx.size < 2:
+                continue
+            # the longest run of consecutive visible samples
+            breaks = np.flatnonzero(np.diff(idx) > 1)
+            runs = np.split(idx, breaks + 1)
+            run = max(runs, key=len)
+            p = px[j, run]
+            step = np.hypot(*np.diff(p, axis=0).T)
+            arc = np.concatenate([[0.0], np.cumsum(step)])
+            total = float(arc[-1])
+            if total < MIN_CHORD_PX:
+                continue
+            n = max(1, int(round(total / CHORD_PX)))
+            cuts = np.interp(np.linspace(0.0, total, n + 1), arc, np.arange(arc.size))
+            ends = np.stack([np.interp(cuts, np.arange(arc.size), p[:, 0]),
+                             np.interp(cuts, np.arange(arc.size), p[:, 1])], axis=1)
+            chords.append(np.concatenate([ends[:-1], ends[1:]], axis=1))
+            lines.append(np.full(n, j))
+        if not chords:
+            return np.zeros((0, 4)), np.zeros(0, int)
+        return np.concatenate(chords), np.concatenate(lines)
+
+    def measure(self, grey: np.ndarray, psi_rad: float, camera_y_m: float
+                ) -> LineMeasurement | None:
+        """The chords located on a ``(H, W)`` uint8 frame around the site lines
+        predicted for ``(psi_rad, camera_y_m)``; ``None`` when fewer than two site lines
+        hold a located chord of the right kind."""
+        chords, line = self.predicted_chords(psi_rad, camera_y_m)
+        if np.unique(line).size < 2:
+            return None
+        segs_n, pol, rms = refine_undistorted(self.camera, grey, chords,
+                                              half_width_px=self.search_px,
+                                              retry_half_width_px=None)
+        want_step = self.setup.edge_kind[line] != 0
+        ok = (np.isfinite(rms) & (rms <= MAX_CHORD_RMS_PX)
+              & np.where(want_step, np.abs(pol) == 1.0, pol == 0.0))
+        if np.unique(line[ok]).size < 2:
+            return None
+        return LineMeasurement(segs_n[ok], chords[ok], line[ok], pol[ok], rms[ok],
+                               int(chords.shape[0]))
+
+    def reach(self) -> tuple[float, float]:
+        """``(psi_rad, c_y m)``: how far from the prior a refined fit may move and still
+        be what the searches saw (about ``search_px`` at the image's scale)."""
+        f = self.setup.f_px
+        return (math.atan2(self.search_px, f) * 2.0,
+                self.search_px / f * self.setup.ceiling_above_cam_m * 2.0)
+
+
+__all__ = ["CHORD_PX", "LineMeasurement", "LineTracker", "REACH_M"]

@@ -1,0 +1,71 @@
+"""Tests of runtime/estimators/corridor/track.py: edge searches across the predicted
+lines with a prior, the fallback to the global path, and the schedule."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.estimators.corridor import CorridorEstimator
+from ceilkit.runtime.sim.render import SimOptions, render_frame
+
+POSES = [(0.5, 0.1, 0.05), (1.7, -0.25, -0.12), (3.1, 0.3, 0.2)]
+
+
+def frame(rig, site, x, y, yaw, seed):
+    return render_frame(rig, site, x, y, yaw, rng=np.random.default_rng(seed),
+                        options=SimOptions(noise_sigma=2.0, blur_px=0.8))
+
+
+def prior(y, yaw):
+    return PoseEstimate(0, "track", None, y, yaw, 0.0)
+
+
+@pytest.fixture
+def tracked(corridor_rig, corridor_site):
+    return CorridorEstimator(corridor_rig, corridor_site,
+                             {"track": True, "track_full_every": 0})
+
+
+def test_edge_searches_agree_with_the_global_path(corridor_rig, corridor_site, tracked):
+    glob = CorridorEstimator(corridor_rig, corridor_site)
+    for k, (x, y, yaw) in enumerate(POSES):
+        img = frame(corridor_rig, corridor_site, x, y, yaw, k)
+        g = glob.estimate(img, 0)
+        t = tracked.estimate(img, 0, prior(y + 0.01, yaw + 0.005))
+        assert g and t
+        assert t.diagnostics["hypothesis"] == "window"
+        assert abs(t.y_m - y) < 0.003 and abs(math.degrees(t.yaw_rad - yaw)) < 0.05
+        assert abs(t.y_m - g.y_m) < 0.003
+        assert t.x_m is None and np.isfinite(t.cov[1, 1]) and t.cov[1, 1] > 0
+
+
+def test_far_prior_falls_back_to_the_global_path(corridor_rig, corridor_site, tracked):
+    x, y, yaw = POSES[1]
+    img = frame(corridor_rig, corridor_site, x, y, yaw, 7)
+    out = tracked.estimate(img, 0, prior(y + 0.3, yaw + 0.2))
+    assert out and out.diagnostics["hypothesis"] != "window"
+    assert abs(out.y_m - y) < 0.01
+
+
+def test_blank_ceiling_finds_no_line(corridor_rig, corridor_site, tracked):
+    x, y, yaw = POSES[0]
+    img = frame(corridor_rig, corridor_site, x, y, yaw, 8)
+    flat = np.full_like(img, 120)
+    flat[::2, ::3] = 140               # contrast for the frame check, no lines
+    assert tracked.lines_track.measure(flat, yaw, y) is None
+    assert not tracked.estimate(flat, 0, prior(y, yaw))
+
+
+def test_schedule_and_default_off(corridor_rig, corridor_site):
+    x, y, yaw = POSES[2]
+    img = frame(corridor_rig, corridor_site, x, y, yaw, 9)
+    est = CorridorEstimator(corridor_rig, corridor_site, {"track": True, "track_full_every": 2})
+    how = [est.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] for _ in range(6)]
+    assert [h == "window" for h in how] == [True, True, False, True, True, False]
+    plain = CorridorEstimator(corridor_rig, corridor_site)
+    assert plain.lines_track is None
+    assert plain.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] != "window"
