@@ -32,6 +32,7 @@ from __future__ import annotations
 import bisect
 import math
 from collections import Counter, deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -46,6 +47,30 @@ from ceilkit.runtime.tracking import TrackResult
 NAME = "auto"
 UNKNOWN_X_VAR = 1e6      # m²: x of a track started by the corridor method alone
 UNAMBIGUOUS_MODES = ("global",)  # a lights fix found with no help from the prior
+INCREMENT = "increment"
+"""``diagnostics`` key of a cue carrying a ceiling-plane odometry increment: a
+:class:`PlaneIncrement`."""
+YAW_PERIOD = "yaw_period_rad"
+"""``diagnostics`` key of a heading-only cue whose heading is known modulo this period
+(heading from parallels: pi, or pi/2 on a square grid)."""
+
+
+@dataclass(frozen=True)
+class PlaneIncrement:
+    """The vehicle's motion measured by the camera between two frames (ceiling-plane
+    odometry), carried by a cue as ``diagnostics["increment"]``.
+
+    Attributes:
+        t0_ns: the earlier frame's capture time (the cue's ``t_ns`` is the later's).
+        dx_m, dy_m, dyaw_rad: the motion in V at ``t0_ns`` (forward, left, CCW).
+        cov: its ``(3, 3)`` covariance (dx, dy, dyaw).
+    """
+
+    t0_ns: int
+    dx_m: float
+    dy_m: float
+    dyaw_rad: float
+    cov: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -62,8 +87,16 @@ class FusionOptions:
         quality_radius_m: the radius of ``quality`` = P(position error < radius).
         unobserved_sigma_m: a coordinate whose 1σ exceeds this is published empty.
         prior_sigma_m: the estimators get the track as a prior only below this 1σ.
-        fix_inflation: factor on an estimator's covariance (their fits are optimistic).
+        fix_inflation: factor on an estimator's covariance (their fits are optimistic),
+            for a method not in ``inflation``.
+        inflation: the factor per method, measured (docs/fusion.md): the corridor's
+            covariance already covers its error; the lights' errors come in streaks of
+            frames sharing one bias, which a per-frame filter would count again and again.
         fix_floor_m, fix_floor_rad: 1σ floors of a fix (unmodelled biases).
+        coast_hazard_per_s: the rate at which something no model of the filter holds
+            (the vehicle carried while the camera is covered, wheels slipping) happens
+            while no absolute cue confirms the track; ``quality`` is multiplied by
+            ``exp(-rate * seconds since the last absolute fix)``.
         default_sigma_m, default_sigma_rad: 1σ of a fix that carries no covariance.
         cell_m: spacing of a regular layout: the cell probability is reported.
         start_speed_mps, start_turn_rps: 1σ of the velocity when a track starts.
@@ -79,8 +112,11 @@ class FusionOptions:
     unobserved_sigma_m: float = 1.0
     prior_sigma_m: float = 0.5
     fix_inflation: float = 2.0
-    fix_floor_m: float = 0.0002
-    fix_floor_rad: float = math.radians(0.01)
+    inflation: Mapping[str, float] = field(
+        default_factory=lambda: MappingProxyType({"corridor": 1.0, "lights": 8.0}))
+    fix_floor_m: float = 0.00005
+    fix_floor_rad: float = math.radians(0.003)
+    coast_hazard_per_s: float = 0.5
     default_sigma_m: float = 0.05
     default_sigma_rad: float = math.radians(2.0)
     cell_m: float | None = None
@@ -141,7 +177,8 @@ class FilterBuffer:
         n = self._propagate(n, ev.t_ns)
         if ev.kind == "odo":
             dt = 0.0 if n.t_odo_ns is None else (ev.t_ns - n.t_odo_ns) * 1e-9
-            s, P = ekf.predict_odometry(n.s, n.P, ev.data, dt, self.options.noise)
+            d, cov, scaled = ev.data
+            s, P = ekf.predict_odometry(n.s, n.P, d, dt, self.options.noise, cov, scaled)
             return _Node(n.t_ns, s, P, ev.t_ns)
         z, rows, R = ev.data
         s, P, _ = ekf.update(n.s, n.P, z, rows, R)
@@ -180,6 +217,7 @@ class _Fix:
     z: np.ndarray
     rows: tuple[int, ...]
     R: np.ndarray
+    yaw_period: float | None = None
 
     @property
     def full(self) -> bool:
@@ -208,9 +246,10 @@ def measurement(cue: PoseEstimate, options: FusionOptions) -> _Fix | None:
     if cov is None or not np.all(np.isfinite(cov)):
         R = np.diag(default ** 2)
     else:
-        R = options.fix_inflation * cov
+        R = options.inflation.get(cue.method, options.fix_inflation) * cov
     R = 0.5 * (R + R.T) + np.diag(floor ** 2)
-    return _Fix(cue, np.array(z), tuple(rows), R)
+    period = cue.diagnostics.get(YAW_PERIOD) if rows == [ekf.YAW] else None
+    return _Fix(cue, np.array(z), tuple(rows), R, None if period is None else float(period))
 
 
 class Fusion:
@@ -231,8 +270,12 @@ class Fusion:
         self.odometry_rows = 0
         self._start_pose = start_pose
         self._method = NAME
-        self._inbox: deque = deque()   # odometry rows from any thread (the link's)
+        self._inbox: deque = deque()   # odometry rows, start poses: from any thread
         self._start_sigma = start_sigma
+        self._t_wheel_ns: int | None = None   # the last wheel odometry row
+        self._jumped = False         # a start pose was set: the next pose is a reset
+        self.plane_increments = 0
+        self.start_poses = 0
 
     @property
     def tracking(self) -> bool:
@@ -256,18 +299,64 @@ class Fusion:
         self._t_fix_ns = int(t_ns)
         self._candidates = []
 
-    def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float) -> None:
-        """One wheel odometry row: the increment in V since the previous row. Safe from
-        any thread (the link's receive hook): rows are applied at the next frame, each
-        at its stamp."""
-        self._inbox.append((int(t_ns), float(dx_m), float(dy_m), float(dyaw_rad)))
+    def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float,
+                     cov: np.ndarray | None = None) -> None:
+        """One wheel odometry row: the increment in V since the previous row, scaled by
+        the filter's odometry scale; ``cov`` its ``(3, 3)`` covariance (dx, dy, dyaw),
+        ``None`` for the wheel model of ``FusionOptions.noise``. Safe from any thread
+        (the link's receive hook): rows are applied at the next frame, each at its
+        stamp."""
+        c = None if cov is None else np.array(cov, float).reshape(3, 3)
+        self._inbox.append(("odo", int(t_ns), (float(dx_m), float(dy_m), float(dyaw_rad)), c))
 
-    def _drain(self) -> None:
+    def set_start_pose(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float,
+                       cov: np.ndarray | None = None) -> None:
+        """(Re)start the track at ``(x_m, y_m, yaw_rad)`` in W as of capture time
+        ``t_ns``, with ``cov`` its ``(3, 3)`` covariance (default: the constructor's
+        ``start_sigma``): what a ``--start-pose`` or ROS ``/initialpose`` gives. Safe
+        from any thread while the run goes on: it takes effect at the next frame (at
+        ``t_ns``, or at that frame's time if later), that frame's pose is published as a
+        reset (``relocalized``: the link bumps its reset counter), and pending
+        relocalization candidates are dropped."""
+        if cov is None:
+            sp, sr = self._start_sigma
+            cov = np.diag([sp * sp, sp * sp, sr * sr])
+        c = np.array(cov, float).reshape(3, 3)
+        if not (np.all(np.isfinite(c)) and np.all(np.isfinite((x_m, y_m, yaw_rad)))):
+            raise ValueError("set_start_pose: pose and covariance must be finite")
+        self._inbox.append(("start", int(t_ns), (float(x_m), float(y_m), float(yaw_rad)), c))
+
+    def _drain(self, t_now: int) -> None:
         while self._inbox:
-            t_ns, dx, dy, dyaw = self._inbox.popleft()
+            kind, t_ns, d, c = self._inbox.popleft()
+            if kind == "start":
+                self.start(max(t_ns, self._f.latest.t_ns if self._f else t_ns), d, c)
+                self._jumped = True
+                self.start_poses += 1
+                continue
             self.odometry_rows += 1
+            self._t_wheel_ns = t_ns if self._t_wheel_ns is None else max(t_ns, self._t_wheel_ns)
             if self._f is not None:
-                self._f.add(_Event(t_ns, "odo", (dx, dy, dyaw)))
+                self._f.add(_Event(t_ns, "odo", (d, c, True)))
+
+    def _wheels(self, t_ns: int) -> bool:
+        """Wheel odometry rows are coming (the last within ``odometry_timeout_s``)."""
+        return self._t_wheel_ns is not None and \
+            (t_ns - self._t_wheel_ns) * 1e-9 <= self.options.odometry_timeout_s
+
+    def _plane_increments(self, t_ns: int, cues: tuple) -> None:
+        """Ceiling-plane odometry carried by the cues (:class:`PlaneIncrement`): the
+        motion while no wheel odometry comes (with wheels, the camera's increment would
+        count the same motion twice)."""
+        if self._f is None or self._wheels(t_ns):
+            return
+        for c in cues:
+            inc = c.diagnostics.get(INCREMENT) if c.diagnostics else None
+            if isinstance(inc, PlaneIncrement):
+                self._f.add(_Event(t_ns, "odo", ((inc.dx_m, inc.dy_m, inc.dyaw_rad),
+                                                 np.asarray(inc.cov, float), False)))
+                self.plane_increments += 1
+                return
 
     def feed(self, odometry: Any, first: int, t_ns: int) -> int:
         """Feed rows ``first..`` of an :class:`~ceilkit.runtime.io.recording.Odometry`
@@ -292,11 +381,11 @@ class Fusion:
     def predict(self, t_ns: int, method: str = NAME) -> PoseEstimate | None:
         """The prior for the estimators at ``t_ns``: ``None`` when not tracking or
         when the track is too uncertain to guide a local search."""
-        self._drain()
         if self._start_pose is not None and self._f is None:
             sp, sr = self._start_sigma
             self.start(t_ns, self._start_pose, np.diag([sp * sp, sp * sp, sr * sr]))
             self._start_pose = None
+        self._drain(t_ns)
         if self._lost(t_ns):
             return None
         pose = self._publish(self._f.node_at(t_ns), method, {})
@@ -305,12 +394,14 @@ class Fusion:
 
     def update(self, est: Estimate) -> TrackResult:
         """Fuse one frame's estimate(s); returns what to publish."""
-        self._drain()
         t = int(est.t_ns)
+        self._drain(t)
         cues = est.diagnostics.get("cues", (est,))
+        self._plane_increments(t, cues)
         fixes = [m for c in cues if isinstance(c, PoseEstimate)
                  if (m := measurement(c, self.options)) is not None]
-        relocalized, started = False, []
+        relocalized, started = self._jumped, []
+        self._jumped = False
         if self._lost(t):
             start = self._starting_fix(fixes)
             if start is None:
@@ -372,6 +463,10 @@ class Fusion:
         used: list[str] = []
         for fix in sorted(fixes, key=lambda m: -len(m.rows)):
             n = f.node_at(t_ns)
+            if fix.yaw_period:   # the branch of an ambiguous heading nearest the track
+                p = fix.yaw_period
+                z = float(n.s[ekf.YAW]) + math.remainder(float(fix.z[0]) - n.s[ekf.YAW], p)
+                fix = _Fix(fix.cue, np.array([wrap_pi(z)]), fix.rows, fix.R, p)
             y, S = ekf.innovation(n.s, n.P, fix.z, fix.rows, fix.R)
             if ekf.nis(y, S) <= self.gates[len(fix.rows)]:
                 f.add(_Event(t_ns, "fix", (fix.z, fix.rows, fix.R)))
@@ -407,7 +502,8 @@ class Fusion:
                 cov[i, :] = cov[:, i] = np.inf
         keep = [i for i in (0, 1) if observed[i]]
         quality = 0.0 if not keep or self._candidates else \
-            ekf.prob_within_radius(cov[np.ix_(keep, keep)], o.quality_radius_m)
+            ekf.prob_within_radius(cov[np.ix_(keep, keep)], o.quality_radius_m) * \
+            math.exp(-o.coast_hazard_per_s * max(0.0, (n.t_ns - self._t_fix_ns) * 1e-9))
         if o.cell_m is not None and all(observed):
             half = 0.5 * o.cell_m
             diag["cell_p"] = math.erf(half / (sd[0] * math.sqrt(2))) * \
@@ -483,5 +579,5 @@ def _failure(est: Estimate, cues: tuple) -> Failure:
     return first
 
 
-__all__ = ["Fusion", "FusionOptions", "FusionReport", "FilterBuffer", "measurement",
-           "nees", "NAME"]
+__all__ = ["Fusion", "FusionOptions", "FusionReport", "FilterBuffer", "PlaneIncrement",
+           "measurement", "nees", "NAME", "INCREMENT", "YAW_PERIOD"]

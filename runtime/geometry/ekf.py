@@ -52,7 +52,9 @@ class MotionNoise:
         odo_yaw_rel: 1σ of an odometry turn, as a share of the turn.
         odo_yaw_per_m_rad: 1σ heading drift per metre driven, rad/√m.
         scale_walk: random walk of the odometry scale, 1/√s.
-        hold_mps: pose random walk while the odometry holds the pose between rows, m/√s.
+        hold_mps: position random walk while the odometry holds the pose between rows,
+            m/√s.
+        hold_rps: heading random walk while the odometry holds the pose, rad/√s.
     """
 
     accel_mps2: float = 0.8
@@ -63,6 +65,7 @@ class MotionNoise:
     odo_yaw_per_m_rad: float = math.radians(0.5)
     scale_walk: float = 1e-4
     hold_mps: float = 0.002
+    hold_rps: float = math.radians(0.01)
 
 
 def initial_state(pose: tuple[float, float, float], pose_cov: np.ndarray,
@@ -109,17 +112,24 @@ def predict_hold(s: np.ndarray, P: np.ndarray, dt_s: float,
     h = noise.hold_mps ** 2 * dt_s
     P2[0, 0] += h
     P2[1, 1] += h
-    P2[YAW, YAW] += h
+    P2[YAW, YAW] += noise.hold_rps ** 2 * dt_s
     P2[SCALE, SCALE] += noise.scale_walk ** 2 * dt_s
     return s, P2
 
 
 def predict_odometry(s: np.ndarray, P: np.ndarray, d_v: tuple[float, float, float],
-                     dt_s: float, noise: MotionNoise) -> tuple[np.ndarray, np.ndarray]:
-    """Apply one odometry increment ``(dx_m, dy_m, dyaw_rad)`` in V, scaled by the
-    state's odometry scale; the velocity becomes the increment over ``dt_s``."""
+                     dt_s: float, noise: MotionNoise, cov_v: np.ndarray | None = None,
+                     scaled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Apply one odometry increment ``(dx_m, dy_m, dyaw_rad)`` in V; the velocity
+    becomes the increment over ``dt_s``.
+
+    ``scaled``: the increment is multiplied by the state's odometry scale (wheel
+    odometry); ``False`` for an increment whose scale is its own (the ceiling-plane
+    odometry of a camera). ``cov_v``: the increment's ``(3, 3)`` covariance in V
+    (dx, dy, dyaw); ``None``: the wheel model of ``noise`` (a share of the length and
+    of the turn, a heading drift per metre)."""
     dx, dy, dyaw = d_v
-    yaw, k = s[YAW], s[SCALE]
+    yaw, k = s[YAW], (s[SCALE] if scaled else 1.0)
     c, sn = math.cos(yaw), math.sin(yaw)
     step = np.array([c * dx - sn * dy, sn * dx + c * dy])
     s2 = s.copy()
@@ -131,13 +141,21 @@ def predict_odometry(s: np.ndarray, P: np.ndarray, d_v: tuple[float, float, floa
     F = np.eye(N_STATE)
     F[0, YAW] = k * (-sn * dx - c * dy)
     F[1, YAW] = k * (c * dx - sn * dy)
-    F[0:2, SCALE] = step
+    if scaled:
+        F[0:2, SCALE] = step
     length = math.hypot(dx, dy)
     R_wv = np.array([[c, -sn], [sn, c]])
-    Q_v = np.diag([(noise.odo_rel * length) ** 2, (noise.odo_lateral_rel * length) ** 2])
     Q = np.zeros((N_STATE, N_STATE))
-    Q[0:2, 0:2] = R_wv @ Q_v @ R_wv.T
-    Q[YAW, YAW] = (noise.odo_yaw_rel * dyaw) ** 2 + noise.odo_yaw_per_m_rad ** 2 * length
+    if cov_v is None:
+        Q_v = np.diag([(noise.odo_rel * length) ** 2, (noise.odo_lateral_rel * length) ** 2])
+        Q[0:2, 0:2] = R_wv @ Q_v @ R_wv.T
+        Q[YAW, YAW] = (noise.odo_yaw_rel * dyaw) ** 2 + noise.odo_yaw_per_m_rad ** 2 * length
+    else:
+        C = np.asarray(cov_v, float)
+        G = np.zeros((3, 3))
+        G[0:2, 0:2] = k * R_wv
+        G[2, 2] = 1.0
+        Q[np.ix_(FULL_POSE, FULL_POSE)] = G @ (0.5 * (C + C.T)) @ G.T
     Q[SCALE, SCALE] = noise.scale_walk ** 2 * max(dt_s, 0.0)
     return s2, F @ P @ F.T + Q
 

@@ -172,3 +172,57 @@ def test_odometry_carries_the_pose_and_its_scale_uncertainty_grows_it():
     pose = res.estimate
     assert pose.x_m == pytest.approx(0.6, abs=0.01) and fu.odometry_rows == 30
     assert math.sqrt(pose.cov[0, 0]) > 0.02       # 5% scale prior over 0.6 m
+
+
+def test_set_start_pose_from_another_thread_resets_the_track_at_the_next_frame():
+    import threading
+
+    fu = Fusion()
+    for k in range(5):
+        fu.update(_lights(k, 1.0, 2.0))
+    th = threading.Thread(target=fu.set_start_pose,
+                          args=(5 * DT, 4.0, 1.0, 0.5, np.diag([1e-4, 1e-4, 1e-4])))
+    th.start()
+    th.join()
+    res = fu.update(Failure(5 * DT, "lights", "no_lights"))
+    assert res.relocalized and fu.start_poses == 1
+    assert res.estimate.x_m == pytest.approx(4.0, abs=1e-3)
+    assert res.estimate.yaw_rad == pytest.approx(0.5, abs=1e-3)
+    with pytest.raises(ValueError):
+        fu.set_start_pose(0, float("nan"), 0.0, 0.0)
+
+
+def test_plane_increment_carries_the_pose_without_wheels():
+    from ceilkit.runtime.fusion import INCREMENT, PlaneIncrement
+
+    fu = Fusion()
+    fu.update(_lights(0, 0.0, 0.0))
+    cov = np.diag([1e-6, 1e-6, 1e-6])
+    for k in range(1, 11):
+        inc = PlaneIncrement((k - 1) * DT, 0.01, 0.0, 0.0, cov)
+        res = fu.update(Failure(k * DT, "lights", "no_lights",
+                                diagnostics=MappingProxyType({INCREMENT: inc})))
+    assert fu.plane_increments == 10
+    assert res.estimate.x_m == pytest.approx(0.10, abs=2e-3)
+
+
+def test_heading_known_modulo_a_period_takes_the_branch_nearest_the_track():
+    from ceilkit.runtime.fusion import YAW_PERIOD
+
+    fu = Fusion()
+    fu.update(_lights(0, 0.0, 0.0, 0.30))
+    cue = PoseEstimate(DT, "parallels", None, None, 0.31 - math.pi, 1.0, None,
+                       np.diag([np.inf, np.inf, 1e-6]),
+                       MappingProxyType({YAW_PERIOD: math.pi}))
+    res = fu.update(cue)
+    assert res.estimate.yaw_rad == pytest.approx(0.31, abs=5e-3)
+    assert fu.contributions["parallels"] == 1
+
+
+def test_quality_falls_while_no_absolute_cue_confirms_the_track():
+    fu = Fusion()
+    fu.update(_lights(0, 0.0, 0.0))
+    for k in range(1, 31):     # one second of odometry, no fix
+        fu.add_odometry(k * DT, 0.0, 0.0, 0.0)
+        res = fu.update(Failure(k * DT, "lights", "no_lights"))
+    assert res.estimate.quality < 0.8
