@@ -25,6 +25,7 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.io.recording import RecordingWriter
+from ceilkit.runtime.sim.realism import Realism
 from ceilkit.runtime.sim.render import (
     SimOptions,
     SimSource,
@@ -79,15 +80,20 @@ def make_trajectory(kind: str, site: Site, frames: int, fps: float, speed_mps: f
     return load_trajectory(path)
 
 
-def _header(trajectory: Trajectory, options: SimOptions, seed: int) -> str:
+def _header(trajectory: Trajectory, options: SimOptions, seed: int,
+            realism: Realism | None = None) -> str:
     opts = ", ".join(f"{f.name}={getattr(options, f.name)!r}" for f in fields(options))
+    real = f"# realism: {realism.describe()}\n" if realism is not None else ""
     return (f"# simulated by ceilkit.calib.simulate: {len(trajectory)} frames, seed {seed}\n"
-            f"# options: {opts}\n")
+            f"# options: {opts}\n{real}")
 
 
 def simulate_recording(rig: Rig, site: Site, trajectory: Trajectory, out_dir: str | Path,
-                       options: SimOptions = SimOptions(), seed: int = 0) -> Path:
+                       options: SimOptions = SimOptions(), seed: int = 0,
+                       realism: Realism | None = None) -> Path:
     """Render every pose of ``trajectory`` and write a recording with ``truth.csv``.
+
+    ``realism``: the realism knobs (:mod:`ceilkit.runtime.sim.realism`), None: off.
 
     Frame k is stamped ``trajectory.t_ns[k]`` and its noise is drawn from
     ``np.random.default_rng([seed, k])`` (as :class:`SimSource`), so the same
@@ -98,9 +104,9 @@ def simulate_recording(rig: Rig, site: Site, trajectory: Trajectory, out_dir: st
     out = Path(out_dir)
     if not isinstance(options, SimOptions):
         raise ConfigError(None, "options", "expected SimOptions")
-    src = SimSource(rig, site, trajectory, options, seed)
+    src = SimSource(rig, site, trajectory, options, seed, realism=realism)
     with src, RecordingWriter(out, rig, site, truth=True,
-                              header=_header(trajectory, options, seed)) as rec:
+                              header=_header(trajectory, options, seed, realism)) as rec:
         for frame in src:
             x, y, yaw = src.pose(frame.index)
             rec.write(frame)

@@ -43,6 +43,7 @@ from ceilkit.runtime.errors import CalibrationError, ConfigError, OutputError
 from ceilkit.runtime.io.capture import open_video
 from ceilkit.runtime.io.recording import Recording, Truth
 from ceilkit.runtime.replay import ReplayResult, replay
+from ceilkit.runtime.sim.realism import resolve as resolve_realism
 from ceilkit.runtime.sim.render import SimOptions, Trajectory
 from ceilkit.runtime.viz import plots as viz_plots
 
@@ -450,26 +451,31 @@ def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
              frames: int = 300, fps: float = 30.0, trajectory: str = "drive",
              lateral_m: float = 0.0, weave_m: float = 0.0, wobble_deg: float = 0.0,
              speed_mps: float = 0.5, noise_sigma: float = 2.0, blur_px: float = 0.8,
-             supersample: int = 3, clutter: bool = False, seed: int = 0) -> SimulateRun:
+             supersample: int = 3, clutter: bool = False, seed: int = 0,
+             sim_preset: str | None = None, sim_faults: tuple[str, ...] = ()) -> SimulateRun:
     """Render a simulated recording (frames, rig, site, truth.csv) into ``out`` (new).
 
     ``rig`` and ``site`` default to the packaged corridor example's; ``trajectory`` is
     ``drive``, ``random`` or a truth.csv-layout file
-    (:func:`~ceilkit.calib.simulate.make_trajectory`). Nothing is written when an
-    argument is bad.
+    (:func:`~ceilkit.calib.simulate.make_trajectory`). ``sim_preset`` names a preset
+    of the ``presets.yaml`` beside the site, ``sim_faults`` are ``KNOB=VALUE`` realism
+    knobs on top (:func:`ceilkit.runtime.sim.realism.resolve`). Nothing is written when
+    an argument is bad.
 
     Raises:
         ConfigError: a bad value, keyed by the name of the field it sets
             (``options.noise_sigma``, ``y_m``, ...); bad rig, site or trajectory file.
     """
     the_rig = Rig.load(rig if rig is not None else packaged_file("rig.yaml"))
-    the_site = Site.load(site if site is not None else packaged_file("site.yaml"))
+    site_file = site if site is not None else packaged_file("site.yaml")
+    the_site = Site.load(site_file)
+    realism = resolve_realism(site_file, sim_preset, tuple(sim_faults))
     options = SimOptions(noise_sigma=noise_sigma, blur_px=blur_px, supersample=supersample,
                          clutter=clutter)
     traj = make_trajectory(trajectory, the_site, frames, fps, speed_mps, lateral_m, weave_m,
                            wobble_deg, np.random.default_rng(seed))
     t0 = time.perf_counter()
-    folder = simulate_recording(the_rig, the_site, traj, out, options, seed)
+    folder = simulate_recording(the_rig, the_site, traj, out, options, seed, realism)
     ms = 1e3 * (time.perf_counter() - t0) / len(traj)
     return SimulateRun(folder, traj, the_rig.camera.width, the_rig.camera.height, seed, ms)
 

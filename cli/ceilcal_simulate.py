@@ -35,11 +35,17 @@ def register(app: typer.Typer) -> None:
         supersample: int = typer.Option(3, "--supersample", help="Anti-aliasing factor."),
         clutter: bool = typer.Option(False, "--clutter", help="Add distractor lines."),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed for noise and trajectory."),
+        sim_preset: str = typer.Option(None, "--sim-preset", help="Realism preset from the "
+                                       "presets.yaml beside the site (e.g. realistic)."),
+        sim_fault: list[str] = typer.Option(None, "--sim-fault", metavar="KNOB=VALUE",
+                                            help="A realism knob (repeatable), on top of "
+                                            "--sim-preset; see docs/simulator.md."),
     ) -> None:
         """Render a simulated recording (frames, rig, site and truth.csv)."""
         run = workflow.simulate(out, rig=rig, site=site, frames=frames, fps=fps,
                                 trajectory=trajectory, lateral_m=lateral, weave_m=weave,
                                 wobble_deg=wobble, speed_mps=speed, noise_sigma=noise,
                                 blur_px=blur, supersample=supersample, clutter=clutter,
-                                seed=seed)
+                                seed=seed, sim_preset=sim_preset,
+                                sim_faults=tuple(sim_fault or ()))
         typer.echo("\n".join(run.lines()))

@@ -40,7 +40,8 @@ COMMAND_FLAGS: Mapping[str, Mapping[str, str]] = MappingProxyType({
         "options.supersample": "--supersample", "n": "--frames", "fps": "--fps",
         "speed_mps": "--speed", "y_m": "--lateral", "weave_m": "--weave",
         "yaw_wobble_rad": "--wobble", "x_range": "--trajectory", "y_range": "--lateral",
-        "trajectory": "--trajectory",
+        "trajectory": "--trajectory", "sim-preset": "--sim-preset",
+        "sim-fault": "--sim-fault",
     }),
     "intrinsics": MappingProxyType({"source": "FOLDER|--video|--device"}),
     # ceilcal lightmap: KnownLights fields and the survey's arguments

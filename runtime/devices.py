@@ -7,7 +7,12 @@
   (:class:`~ceilkit.runtime.io.recording.Recording`); any other folder: its images in
   name order (:class:`~ceilkit.runtime.io.capture.ImageFolderSource`);
 * ``sim:`` or ``sim:NAME``: the simulator driving along a corridor (NAME is a packaged
-  example: ``corridor``, ``lights``, ``block``; default ``corridor``).
+  example: ``corridor``, ``lights``, ``block``; default ``corridor``), with realism
+  knobs after a ``?``: ``sim:corridor?preset=realistic&motion_blur_ms=8`` (``preset``
+  names a preset of the ``presets.yaml`` beside the site, then each ``KNOB=VALUE``
+  sets one :class:`~ceilkit.runtime.sim.realism.Realism` field; ``&`` or ``,``
+  between them). ``exposure`` and ``gain`` act as on a camera (see
+  :func:`sim_camera_options`).
 
 This sits above ``io`` and ``sim`` so that neither needs the other.
 """
@@ -33,7 +38,7 @@ def packaged_config(name: str) -> Path:
     from importlib.resources import files
 
     root = Path(str(files("ceilkit.configs")))
-    path = root / name
+    path = root / name.partition("?")[0]
     if not (path / "rig.yaml").exists():
         choices = sorted(p.name for p in root.iterdir() if (p / "rig.yaml").exists())
         raise CaptureError(f"sim:{name}: no such example (choose from {', '.join(choices)})")
@@ -44,15 +49,19 @@ def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
                 fps: float = 0, fourcc: str = "", exposure: float | None = None,
                 gain: float | None = None, frames: int = 300, seed: int = 0) -> FrameSource:
     """Open a ``--device`` value (see the module docstring)."""
-    if spec.startswith("sim:") or spec == "sim":
-        from ceilkit.runtime.sim.render import SimSource, straight_drive
+    if spec.startswith("sim:") or spec == "sim" or spec.startswith("sim?"):
+        from ceilkit.runtime.sim.render import SimOptions, SimSource, straight_drive
 
         if rig is None or site is None:
             raise CaptureError("sim: needs a rig and a site")
+        realism = sim_realism(spec, site)
+        options = SimOptions()
+        if exposure is not None or gain is not None:
+            options, realism = sim_camera_options(exposure, gain, realism)
         traj = straight_drive(frames, fps=fps or 30.0, speed_mps=0.8, y_m=0.1,
                               weave_m=0.15, yaw_wobble_rad=np.radians(4.0),
                               rng=np.random.default_rng(seed))
-        return SimSource(rig, site, traj, seed=seed)
+        return SimSource(rig, site, traj, options, seed=seed, realism=realism)
     if spec.isdigit():
         return CameraSource(int(spec), width, height, fps, fourcc, exposure, gain)
     if spec.startswith("/dev/"):
@@ -70,3 +79,64 @@ def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
         raise CaptureError(f"{spec}: not a camera, video ({', '.join(VIDEO_SUFFIXES)}), "
                            "image folder or recording")
     raise CaptureError(f"{spec}: no such device or file")
+
+
+SIM_EXPOSURE_REF = 100.0
+"""The simulated camera's exposure (driver units of 100 µs, as V4L2's
+``exposure_absolute``) at which it renders the nominal radiance: 10 ms."""
+
+
+def sim_realism(spec: str, site=None):
+    """The :class:`~ceilkit.runtime.sim.realism.Realism` a ``sim:NAME?...`` value asks
+    for (None: no query). ``preset=NAME`` is looked up beside the site's file (or the
+    packaged example's). Raises ConfigError keyed ``device`` on a bad query."""
+    from ceilkit.runtime.errors import ConfigError
+    from ceilkit.runtime.sim.realism import Realism, load_preset, parse_knobs
+
+    head, q, query = spec.partition("?")
+    if not q:
+        return None
+    pairs = [p for p in query.replace("&", ",").split(",") if p.strip()]
+    base = Realism()
+    knobs = []
+    for pair in pairs:
+        name, eq, value = (p.strip() for p in pair.partition("="))
+        if name == "preset" and eq:
+            site_file = getattr(site, "source", None)
+            if site_file is None or not Path(site_file).exists():
+                site_file = packaged_config(head.partition(":")[2] or "corridor") / "site.yaml"
+            base = load_preset(site_file, value)
+        else:
+            knobs.append(pair)
+    try:
+        return parse_knobs(knobs, base, key="device")
+    except ConfigError as exc:
+        raise ConfigError(None, "device", f"{spec}: {exc.detail}") from None
+
+
+def sim_camera_options(exposure: float | None, gain: float | None, realism=None):
+    """What a camera's manual ``exposure`` (driver units of 100 µs) and ``gain`` (dB)
+    do to the simulated one: radiance times ``exposure / SIM_EXPOSURE_REF`` and
+    ``10^(gain/20)``; sensor noise ``2 * sqrt((g^2 + scale) / 2)`` grey levels (read
+    noise amplified by the gain g, photon noise growing with the signal; 2 at the
+    nominal setting); motion blur over the exposure time.
+
+    Returns ``(SimOptions, Realism)``.
+    """
+    import math
+
+    from ceilkit.runtime.errors import ConfigError
+    from ceilkit.runtime.sim.realism import Realism
+    from ceilkit.runtime.sim.render import SimOptions
+
+    e = SIM_EXPOSURE_REF if exposure is None else float(exposure)
+    g_db = 0.0 if gain is None else float(gain)
+    if not (math.isfinite(e) and e > 0):
+        raise ConfigError(None, "exposure", f"expected a positive exposure, found {exposure!r}")
+    if not (math.isfinite(g_db) and -20.0 <= g_db <= 48.0):
+        raise ConfigError(None, "gain", f"expected a gain in -20..48 dB, found {gain!r}")
+    g = 10.0 ** (g_db / 20.0)
+    scale = e / SIM_EXPOSURE_REF * g
+    noise = 2.0 * math.sqrt(0.5 * (g * g + scale))     # read noise, photon noise
+    real = (realism or Realism()).replace(motion_blur_ms=e / 10.0)
+    return SimOptions(exposure=scale, noise_sigma=noise), real

@@ -192,7 +192,22 @@ def parse_knobs(pairs: list[str] | tuple[str, ...], base: Realism = Realism(),
     try:
         return base.replace(**changes)
     except ConfigError as exc:
-        raise ConfigError(None, key, exc.message) from None
+        knob = (exc.key or "").partition(".")[2]
+        raise ConfigError(None, key, f"{knob}: {exc.detail}" if knob else exc.detail) from None
+
+
+def resolve(site_file: str | Path | None, preset: str | None = None,
+            faults: list[str] | tuple[str, ...] = ()) -> Realism | None:
+    """A preset (from the ``presets.yaml`` beside ``site_file``) with ``KNOB=VALUE``
+    faults on top; None when neither is given."""
+    if not preset and not faults:
+        return None
+    base = Realism()
+    if preset:
+        if site_file is None:
+            raise ConfigError(None, "sim-preset", "a preset needs a site file beside it")
+        base = load_preset(site_file, preset)
+    return parse_knobs(list(faults), base)
 
 
 def presets_path(site_file: str | Path) -> Path:
@@ -224,8 +239,8 @@ def _from_node(node: Node) -> Realism:
         return Realism(**changes)
     except ConfigError as exc:
         key = exc.key.partition(".")[2] if exc.key else None
-        raise (node.get(key).error(exc.message) if key and key in node.value
-               else node.error(exc.message)) from None
+        raise (node.get(key).error(exc.detail) if key and key in node.value
+               else node.error(exc.detail)) from None
 
 
 def load_preset(site_file: str | Path, name: str) -> Realism:
@@ -561,5 +576,5 @@ def render_real(rig: Rig, site: Site, pose_at: Callable[[float], tuple[float, fl
     return frame
 
 
-__all__ = ["Realism", "Layout", "layout", "parse_knobs", "load_preset", "load_presets",
+__all__ = ["Realism", "Layout", "layout", "parse_knobs", "resolve", "load_preset", "load_presets",
            "presets_path", "render_real", "PRESETS_FILE"]

@@ -445,7 +445,7 @@ class _Feature:
 
     cells: np.ndarray            # (n_cells,) bool
     shade: Any                   # (xr, yr, inv_fp, value) -> value
-    emitter: bool = False
+    emitter: bool = False        # shade(..., em=share) -> (value, emitted share) too
 
 
 @dataclass(frozen=True, eq=False)
@@ -563,18 +563,21 @@ def _lamp_features(site: Site, fr: _Frame, cxr: np.ndarray, cyr: np.ndarray,
         if emitters is not None and i < len(emitters.lamp_gain):
             gain = np.asarray(emitters.lamp_gain[i], np.float32)
 
-        def shade_lamp(xr, yr, inv_fp, val, x0r=x0r, y0r=y0r, hl=hl, hwl=hwl,
+        def shade_lamp(xr, yr, inv_fp, val, em=None, x0r=x0r, y0r=y0r, hl=hl, hwl=hwl,
                        pitch=pitch, count=row.count, gain=gain):
             dx = xr - x0r
             k = np.clip(np.rint(dx / pitch), 0, count - 1) if pitch > 0 else None
             if k is not None:
                 dx = dx - k * pitch
             sd = np.minimum(hl - np.abs(dx), hwl - np.abs(yr - y0r))
-            if gain is None:
-                return val + _ramp(sd, inv_fp) * (LAMP_GREY - val)
-            g = gain[k.astype(np.int64)] if k is not None else gain[0]
-            grey = np.float32(OFF_GREY) + g * np.float32(LAMP_GREY - OFF_GREY)
-            return val + _ramp(sd, inv_fp) * (grey - val)
+            grey = LAMP_GREY
+            if gain is not None:
+                g = gain[k.astype(np.int64)] if k is not None else gain[0]
+                grey = np.float32(OFF_GREY) + g * np.float32(LAMP_GREY - OFF_GREY)
+            cov = _ramp(sd, inv_fp)
+            if em is None:
+                return val + cov * (grey - val)
+            return val + cov * (grey - val), em + cov * (grey - em)
 
         feats.append(_Feature(cells, shade_lamp, emitter=True))
     return feats
@@ -612,12 +615,17 @@ def _light_features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray
             g = float(gains[i])
             grey, hl = OFF_GREY + g * (LIGHT_GREY - OFF_GREY), np.float32(g * halo)
 
-        def shade_light(xr, yr, inv_fp, val, lx=lx, ly=ly, grey=grey, hl=hl):
+        def shade_light(xr, yr, inv_fp, val, em=None, lx=lx, ly=ly, grey=grey, hl=hl):
             d = np.hypot(xr - lx, yr - ly)
             if hl > 0:
                 g = np.clip(1.0 - (d / rh) ** 2, 0.0, 1.0)
                 val = val + hl * g * g
-            return val + _ramp(rl - d, inv_fp) * (grey - val)
+                if em is not None:
+                    em = em + hl * g * g
+            cov = _ramp(rl - d, inv_fp)
+            if em is None:
+                return val + cov * (grey - val)
+            return val + cov * (grey - val), em + cov * (grey - em)
 
         feats.append(_Feature(cells, shade_light, emitter=True))
     return feats
@@ -711,10 +719,18 @@ def _shade_active(g: _Grid, fr: _Frame, options: SimOptions, feats: list[_Featur
         if not np.any(m):
             continue
         old = val[pos]
-        new = f.shade(xr[pos], yr[pos], inv_fp[pos], old)
+        if em is not None:
+            # the emitters' share: replaced where a feature covers it (emitters are
+            # drawn last, so other features only ever cover the ceiling's texture)
+            e_old = em[pos]
+            if f.emitter:
+                new, e_new = f.shade(xr[pos], yr[pos], inv_fp[pos], old, em=e_old)
+                em[pos] = np.where(m, e_new, e_old)
+            else:
+                new = f.shade(xr[pos], yr[pos], inv_fp[pos], old)
+        else:
+            new = f.shade(xr[pos], yr[pos], inv_fp[pos], old)
         val[pos] = np.where(m, new, old)
-        if em is not None and f.emitter:   # emitters are drawn last (_features)
-            em[pos] += np.where(m, new - old, 0.0)
     s = g.s
     img4 = img.reshape(g.ncy, CELL_PX, g.ncx, CELL_PX)
     img4[idx // g.ncx, :, idx % g.ncx, :] = val.reshape(idx.size, CELL_PX, s, CELL_PX,
@@ -750,12 +766,25 @@ def render_frame(rig: Rig, site: Site, x_m: float, y_m: float, yaw_rad: float,
     ``options.exposure``, Gaussian noise ``options.noise_sigma`` drawn from ``rng``
     (None: ``np.random.default_rng(0)``), rounded and clipped to 0..255.
 
+    A site lamp row with ``z`` below the ceiling is drawn at that height (by
+    :func:`ceilkit.runtime.sim.realism.render_real`, all knobs off).
+
     Raises ConfigError for a bad pose (not finite) or a ceiling not above the camera.
     """
     if rng is not None and not isinstance(rng, np.random.Generator):
         raise ConfigError(None, "rng", f"expected a numpy Generator, found {type(rng).__name__}")
+    if _hanging_rows(site):       # lamps below the ceiling: drawn at their height
+        from ceilkit.runtime.sim.realism import Realism, render_real
+
+        _check_pose(x_m, y_m, yaw_rad)
+        pose = (float(x_m), float(y_m), float(yaw_rad))
+        return render_real(rig, site, lambda t: pose, 0, options, Realism(), rng)
     img = render_radiance(rig, site, x_m, y_m, yaw_rad, options)
     return finish_frame(rig, img, options, rng)
+
+
+def _hanging_rows(site: Site) -> bool:
+    return any(r.z_m is not None and r.z_m < site.ceiling_height_m - 1e-9 for r in site.lamps)
 
 
 def finish_frame(rig: Rig, radiance: np.ndarray, options: SimOptions = SimOptions(),
