@@ -18,6 +18,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -28,6 +29,7 @@ from typing import Any
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.fusion import Fusion, FusionReport
+from ceilkit.runtime.io.mcap_rec import open_recording, replay_folder
 from ceilkit.runtime.io.recording import (
     Odometry,
     PoseWriter,
@@ -95,7 +97,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
            clock: Callable[[], int] = time.monotonic_ns,
            overlays: str | Path | None = None, overlays_only_failures: bool = False,
            report: bool = False, start_pose: tuple[float, float, float] | None = None,
-           odometry: str | Path | None = None) -> ReplayResult:
+           odometry: str | Path | None = None, ros2: Any = None) -> ReplayResult:
     """Run the pipeline over a recording as fast as possible (or at recorded timing).
 
     Args:
@@ -120,17 +122,22 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
         start_pose: ``(x_m, y_m, yaw_rad)`` where the drive starts (``auto`` only).
         odometry: an ``odometry.csv`` replacing the recording's own; the rows are fed
             to the fusion (``auto``) at their stamps.
+        ros2: a :class:`~ceilkit.runtime.io.ros2.Ros2Config`: also publish on ROS 2
+            (stamps are the recording's) and take ``/initialpose`` and odometry in.
+
+    ``recording`` may be an ``.mcap`` file (:mod:`~ceilkit.runtime.io.mcap_rec`); its
+    default output folder is then ``NAME.replay/`` beside it.
 
     Raises:
         ConfigError: a broken recording, rig or site; a bad method or option.
         LinkError, OutputError: a link or output that cannot be opened or written.
     """
-    rec = Recording(recording, rig=rig, site=site)
+    rec = open_recording(recording, rig=rig, site=site)
     check_rig_site(rec.rig, rec.site)
     odo = load_odometry(odometry) if odometry is not None else rec.odometry
     estimator, tracker = make_localizer(method, rec.rig, rec.site, options, start_pose,
-                                        odo is not None and track)
-    out = Path(out_dir) if out_dir is not None else rec.folder / "replay"
+                                        (odo is not None or ros2 is not None) and track)
+    out = Path(out_dir) if out_dir is not None else replay_folder(recording)
     poses_path = out / "poses.csv"
     tap = EstimateTap(estimator) if overlays is not None or report else None
     views = None if tap is None else ReplayViews(
@@ -139,8 +146,16 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
     if tum and rec.truth is not None:
         write_truth_tum(rec.truth, out / "truth.tum")
     with PoseWriter(poses_path, out / "poses.tum" if tum else None) as writer, \
-            opened_link(link, rec.rig, rec.site) as the_link:
+            opened_link(link, rec.rig, rec.site) as the_link, \
+            contextlib.ExitStack() as stack:
         more = [*sinks, the_link] if the_link is not None else list(sinks)
+        if ros2 is not None:
+            from ceilkit.runtime.io.ros2 import Ros2Node
+
+            node = Ros2Node(ros2)
+            if track:
+                node.attach(tracker)
+            more.append(stack.enter_context(node))
         pipeline = Pipeline(tap or estimator, [PoseFileSink(writer, clock), *more],
                             tracker if track else None, clock)
         res = _run(rec, pipeline, realtime, progress, clock,

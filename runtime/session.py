@@ -36,6 +36,7 @@ from ceilkit.runtime.devices import open_source, packaged_config
 from ceilkit.runtime.errors import CaptureError, ConfigError, LinkError
 from ceilkit.runtime.fusion import Fusion
 from ceilkit.runtime.io.capture import CameraSource
+from ceilkit.runtime.io.mcap_rec import McapRecorder, McapSink, McapWriter, is_mcap
 from ceilkit.runtime.io.odometry_in import OdometryReceiver
 from ceilkit.runtime.io.recording import (
     LOG_DIR,
@@ -168,6 +169,10 @@ class SessionConfig:
         view: serve the live web view at ``[HOST:]PORT`` (host 127.0.0.1 by default;
             :mod:`~ceilkit.runtime.viz.web`), or ``None``. view_token: required of
             the view's every request when set.
+        ros2: a :class:`~ceilkit.runtime.io.ros2.Ros2Config`: also run the ROS 2 node
+            (poses, odometry, diagnostics out; ``/initialpose`` and odometry in), or
+            ``None``. ``record`` ending in ``.mcap``: an MCAP recording
+            (:mod:`~ceilkit.runtime.io.mcap_rec`) instead of a SPEC folder.
     """
 
     device: str = "/dev/video0"
@@ -188,6 +193,7 @@ class SessionConfig:
     start_pose: tuple[float, float, float] | None = None
     link_odometry: bool = False
     wheel_track_m: float | None = None
+    ros2: Any = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -330,7 +336,8 @@ def check_outputs(inputs: Sequence[Path], outputs: Mapping[str, Sequence[Path]])
 def _session_outputs(config: SessionConfig, record: Path | None) -> dict[str, list[Path]]:
     out: dict[str, list[Path]] = {}
     if record is not None:
-        out["record"] = [record / name for name in RECORDING_FILES]
+        out["record"] = [record] if is_mcap(record) else [record / name
+                                                          for name in RECORDING_FILES]
     if config.out is not None:
         out["out"] = [config.out / "poses.csv"]
     link = config.link
@@ -415,13 +422,17 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     stop = stop or threading.Event()
     rig, site = load_rig_site(config.device, config.rig, config.site)
     estimator, tracker = make_localizer(config.method, rig, site, config.options,
-                                        config.start_pose, config.link_odometry)
+                                        config.start_pose,
+                                        config.link_odometry or config.ros2 is not None)
     record = record_folder(config.record) if config.record is not None else None
     check_outputs(session_inputs(config, rig), _session_outputs(config, record))
     if config.out is not None and (config.out / "poses.csv").exists() and not config.force:
         raise refuse_existing(config.out / "poses.csv")
     if record is not None and not config.force:
-        RecordingWriter.check_free(record)
+        if is_mcap(record) and record.exists():
+            raise refuse_existing(record, "a recording is")
+        if not is_mcap(record):
+            RecordingWriter.check_free(record)
     cap = config.capture
     start = time.monotonic()
     source = open_waiting(
@@ -446,12 +457,20 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
             view = open_view(config.view, config.view_token, rig, site, stack,
                              lambda: link_lines(link))
             sinks: list[PoseSink] = [link] if link is not None else []
+            if config.ros2 is not None:
+                sinks.append(_open_ros2(config.ros2, tracker, source, stack))
             if config.out is not None:
                 writer = stack.enter_context(PoseWriter(config.out / "poses.csv", disk=disk))
                 guards.append(OutputGuard("poses.csv", config.out, unit="row"))
                 sinks.append(PoseFileSink(writer, guard=guards[-1]))
             recorder = None
-            if record is not None:
+            if record is not None and is_mcap(record):
+                guards.append(OutputGuard("recording", record))
+                mcap = stack.enter_context(McapWriter(record, rig, site, config.force,
+                                                      truth_of=truth))
+                recorder = McapRecorder(mcap, guards[-1])
+                sinks.append(McapSink(mcap, guards[-1]))
+            elif record is not None:
                 guards.append(OutputGuard("recording", record))
                 recorder = AsyncRecorder(
                     stack.enter_context(RecordingWriter(record, rig, site, truth_of=truth,
@@ -472,6 +491,17 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                          source.reopens if isinstance(source, CameraSource) else 0,
                          meter.result() if meter is not None else None, record,
                          tuple(line for g in guards for line in g.lines()))
+
+
+def _open_ros2(config: Any, tracker: Any, source: Any, stack: contextlib.ExitStack) -> Any:
+    """The ROS 2 node (opened, closed by ``stack``) fed by and feeding ``tracker``; a
+    camera's monotonic stamps are published as wall-clock time."""
+    from ceilkit.runtime.io.ros2 import Ros2Node
+
+    offset = time.time_ns() - time.monotonic_ns() if getattr(source, "live", False) else 0
+    node = Ros2Node(config, clock_offset_ns=offset)
+    node.attach(tracker)
+    return stack.enter_context(node)
 
 
 def _status(on_frame: Callable[[Telemetry], None] | None,
