@@ -141,27 +141,51 @@ class WindowTracker:
                 ) -> WindowFix | None:
         """The pose from the windows around the lights predicted from ``(x, y, yaw)``
         on a ``(H, W)`` uint8 frame, or ``None`` when the window check fails."""
+        pred = self._predict(x_m, y_m, yaw_rad)
+        if pred is None:
+            return None
+        idx, px, m, corner, half = pred
+        spots, good, tab = self._measure(grey, corner, half, m)
+        n_found = int(np.count_nonzero(good))
+        if n_found < max(3, math.ceil(self.min_share * m)):
+            return None
+        fit = self._fit(spots.select(good), idx[good], tab[good], x_m, y_m, yaw_rad)
+        if fit is None:
+            return None
+        x, y, yaw, cov_p, res, spots, pairs = fit
+        return WindowFix(x, y, yaw, cov_p, res, spots, pairs, m, n_found, px)
+
+    def _predict(self, x_m: float, y_m: float, yaw_rad: float):
+        """``(map indices, predicted px, predicted count, window corners, half side)``
+        of the finite predictions, or ``None`` (fewer than 3, or windows too big)."""
         idx = np.flatnonzero(self.visibility(x_m, y_m, yaw_rad))
         m = idx.size
         if m < 3:
             return None
         px = project_lights(self.rig, self.ceiling_height_m, self.lights_w[idx], x_m, y_m,
                             yaw_rad)
-        table = interp_grid(self.observer.table, JAC_STEP_PX, px)          # (M, 8)
-        fin = np.isfinite(px[:, 0]) & np.isfinite(table[:, 7])
+        area = interp_grid(self.observer.table, JAC_STEP_PX, px)[:, 7]   # predicted area
+        fin = np.isfinite(px[:, 0]) & np.isfinite(area)
         if np.count_nonzero(fin) < 3:
             return None
-        r_spot = np.sqrt(np.maximum(table[fin, 7], 1.0) / math.pi)
-        half = int(min(MAX_HALF_PX, math.ceil(float(r_spot.max()) * 1.6 + self.window_px)))
+        r_spot = math.sqrt(max(float(area[fin].max()), 1.0) / math.pi)
+        half = int(min(MAX_HALF_PX, math.ceil(r_spot * 1.6 + self.window_px)))
         side = 2 * half + 1
         w, h = self.width, self.height
         if side >= min(w, h):
             return None
-        idx, px, table = idx[fin], px[fin], table[fin]
+        idx, px = idx[fin], px[fin]
         # window corners, kept inside the image (a window at the border is shifted in)
         corner = np.rint(px).astype(np.int64) - half
-        corner[:, 0] = np.clip(corner[:, 0], 0, w - side)
-        corner[:, 1] = np.clip(corner[:, 1], 0, h - side)
+        np.clip(corner[:, 0], 0, w - side, out=corner[:, 0])
+        np.clip(corner[:, 1], 0, h - side, out=corner[:, 1])
+        return idx, px, m, corner, half
+
+    def _measure(self, grey: np.ndarray, corner: np.ndarray, half: int, m: int
+                 ) -> tuple[Spots, np.ndarray, np.ndarray]:
+        """The windows' spots (centroids in the frame), which pass the window check and
+        the spot table at their centroids."""
+        side, w = 2 * half + 1, self.width
         g = np.ascontiguousarray(grey).ravel().take(
             (corner[:, 1] * w + corner[:, 0])[:, None] + _offsets(side, w)
         ).astype(np.float32)                                                   # (M, side²)
@@ -170,7 +194,9 @@ class WindowTracker:
         peak = g.max(axis=1)
         obj = g > (0.5 * (i_b + peak))[:, None]
         area = np.count_nonzero(obj, axis=1)
-        touches = _border(obj.reshape(-1, side, side), np.logical_or)
+        # the bright part touches the border when not all of it is inside
+        touches = np.count_nonzero(obj.reshape(-1, side, side)[:, 1:-1, 1:-1],
+                                   axis=(1, 2)) < area
         i_o = np.einsum("ij,ij->i", g, obj, dtype=np.float32) / np.maximum(area, 1)
         wts = g - (i_b + CORE * (i_o - i_b))[:, None]
         np.maximum(wts, 0.0, out=wts)
@@ -178,25 +204,26 @@ class WindowTracker:
         m00 = mom[:, 0]
         good = (peak - i_b >= self.min_contrast) & ~touches & (area > 0) & (m00 > 0)
         m00 = np.where(good, m00, 1.0)
-        cx, cy = mom[:, 1] / m00, mom[:, 3] / m00
-        cov = np.empty((idx.size, 2, 2))
-        cov[:, 0, 0] = mom[:, 2] / m00 - cx * cx
-        cov[:, 0, 1] = cov[:, 1, 0] = mom[:, 5] / m00 - cx * cy
-        cov[:, 1, 1] = mom[:, 4] / m00 - cy * cy
-        cent = np.stack([cx + (corner[:, 0] + half), cy + (corner[:, 1] + half)], axis=1)
+        mom /= m00[:, None]
+        cx, cy = mom[:, 1], mom[:, 3]
+        cov = np.empty((m00.size, 2, 2))
+        cov[:, 0, 0] = mom[:, 2] - cx * cx
+        cov[:, 0, 1] = cov[:, 1, 0] = mom[:, 5] - cx * cy
+        cov[:, 1, 1] = mom[:, 4] - cy * cy
+        cent = corner + (half + np.stack([cx, cy], axis=1))
         i_b, i_o = i_b.astype(np.float64), i_o.astype(np.float64)
-        contrast = i_o - i_b
-        spots = Spots(cent, area.astype(float), contrast,
+        spots = Spots(cent, area.astype(float), i_o - i_b,
                       perception_level(i_o, i_b, np.maximum(area, 1)), cov, m)
         tab = interp_grid(self.observer.table, JAC_STEP_PX, cent)
         good &= np.isfinite(tab[:, 0])
         if self.observer.light_radius_m > 0 and good.any():
             good &= self.observer.plausible(spots, tab, good)
-        n_found = int(np.count_nonzero(good))
-        if n_found < max(3, math.ceil(self.min_share * m)):
-            return None
-        spots = spots.select(good)
-        idx, tab = idx[good], tab[good]
+        return spots, good, tab
+
+    def _fit(self, spots: Spots, idx: np.ndarray, tab: np.ndarray, x_m: float, y_m: float,
+             yaw_rad: float):
+        """The refined pose from the found lights (known association) with the outlier
+        pass and the frame's checks: ``(x, y, yaw, cov, res, spots, pairs)`` or ``None``."""
         q, ok = ceiling_points(self.rig, self.ceiling_height_m, spots.centroids_px)
         if not ok.all():
             return None
@@ -219,7 +246,7 @@ class WindowTracker:
                 or math.hypot(x - x_m, y - y_m) > self.gate_m
                 or abs(math.remainder(yaw - yaw_rad, 2 * math.pi)) > self.gate_rad):
             return None
-        return WindowFix(x, y, yaw, cov_p, res, spots, pairs, m, n_found, px)
+        return x, y, yaw, cov_p, res, spots, pairs
 
 
 __all__ = ["CORE", "MAX_HALF_PX", "WindowFix", "WindowTracker"]
