@@ -18,6 +18,7 @@ import typer
 from ceilkit.runtime.errors import ConfigError, LinkError
 from ceilkit.runtime.estimators.registry import AUTO, METHOD_NAMES
 from ceilkit.runtime.io.link.transport import is_serial_path
+from ceilkit.runtime.io.mcap_rec import convert_recording, is_mcap, replay_folder
 from ceilkit.runtime.io.recording import (
     LOG_DIR,
     RECORDING_FILES,
@@ -117,6 +118,20 @@ def _err(msg: str) -> None:
     echo_err(msg)
 
 
+ROS2_HELP = ("Also run as a ROS 2 node: PoseWithCovarianceStamped on /ceilkit/pose (frame "
+             "map), Odometry on /ceilkit/odom, /diagnostics; /initialpose and --ros2-odometry "
+             "in (needs the ros2 extra).")
+
+
+def _ros2(enabled: bool, namespace: str, odometry: str):
+    if not enabled:
+        return None
+    from ceilkit.runtime.io.ros2 import Ros2Config
+
+    return Ros2Config(namespace=namespace or "",
+                      odometry_topic=None if odometry in ("", "none") else odometry)
+
+
 @app.callback(invoke_without_command=True)
 def live(
     ctx: typer.Context,
@@ -146,7 +161,8 @@ def live(
                                       "track of a differential drive, m (WHEEL_DISTANCE)."),
     option: list[str] = typer.Option(None, "--option", metavar="KEY=VALUE",
                                      help=OPTION_HELP),
-    record: Path = typer.Option(None, help="Write a SPEC recording of the run here."),
+    record: Path = typer.Option(None, help="Write a SPEC recording of the run here (a "
+                                "folder), or an MCAP recording (a name ending in .mcap)."),
     out: Path = typer.Option(None, help="Write poses.csv into this folder."),
     frames: int = typer.Option(0, help="Stop after this many frames (0: run until stopped; "
                                "sim: 300)."),
@@ -168,6 +184,12 @@ def live(
                              "view here (host 127.0.0.1 unless given), read-only."),
     view_token: str = typer.Option(None, "--view-token", help="Require this token of "
                                    "every view request (?token=...); 403 without."),
+    ros2: bool = typer.Option(False, "--ros2", help=ROS2_HELP),
+    ros2_namespace: str = typer.Option("", "--ros2-namespace", metavar="NS",
+                                       help="ROS 2 namespace of the node."),
+    ros2_odometry: str = typer.Option("/odom", "--ros2-odometry", metavar="TOPIC",
+                                      help="ROS 2 wheel odometry in (nav_msgs/Odometry) "
+                                      "for the fusion; none: off."),
 ) -> None:
     """Run live: frames from --device, poses to --serial."""
     if ctx.invoked_subcommand is not None:
@@ -180,7 +202,7 @@ def live(
         record, out, frames, CaptureSettings(width, height, fps, fourcc, exposure, gain),
         view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every,
         start_pose=_start_pose(start_pose), link_odometry=link_odometry,
-        wheel_track_m=wheel_track)
+        wheel_track_m=wheel_track, ros2=_ros2(ros2, ros2_namespace, ros2_odometry))
 
     def show(tel):
         if status:
@@ -193,7 +215,8 @@ def live(
 
 @app.command()
 def replay(
-    recording: Path = typer.Argument(..., help="A SPEC recording folder."),
+    recording: Path = typer.Argument(..., help="A SPEC recording folder, or an MCAP "
+                                     "recording (.mcap)."),
     out: Path = typer.Option(None, help="Output folder (default RECORDING/replay)."),
     rig: Path = typer.Option(None, help="Use this rig.yaml instead of the recording's."),
     site: Path = typer.Option(None, help="Use this site.yaml instead of the recording's."),
@@ -225,6 +248,12 @@ def replay(
         "quality below 0.5."),
     report: bool = typer.Option(False, "--report", help="Also write OUT/report.html: "
                                 "plots and the worst frames' overlays, self-contained."),
+    ros2: bool = typer.Option(False, "--ros2", help=ROS2_HELP + " Stamps are the "
+                              "recording's."),
+    ros2_namespace: str = typer.Option("", "--ros2-namespace", metavar="NS",
+                                       help="ROS 2 namespace of the node."),
+    ros2_odometry: str = typer.Option("/odom", "--ros2-odometry", metavar="TOPIC",
+                                      help="ROS 2 wheel odometry in; none: off."),
 ) -> None:
     """Replay a recording through the pipeline; write poses.csv; print errors vs truth.csv."""
     show = sys.stderr.isatty() if progress is None else progress
@@ -240,7 +269,8 @@ def replay(
                      track=not no_track, progress=bar, options=parse_options(option),
                      link=_link(serial, protocol, baud, missing_x=mavlink_missing_x),
                      overlays=overlays, overlays_only_failures=overlays_only_failures,
-                     report=report, start_pose=_start_pose(start_pose), odometry=odometry)
+                     report=report, start_pose=_start_pose(start_pose), odometry=odometry,
+                     ros2=_ros2(ros2, ros2_namespace, ros2_odometry))
     TERM_LINE.end()
     # the report goes to stderr when the poses themselves stream to stdout
     echo = _err if serial == "-" else typer.echo
@@ -252,8 +282,9 @@ def _check_replay_outputs(recording: Path, out: Path | None, rig: Path | None,
                           force: bool) -> None:
     """Refuse a replay that would overwrite poses without ``--force``, or write over one
     of its own inputs (``--serial REC/truth.csv``)."""
-    folder = out if out is not None else recording / "replay"
-    inputs = [recording / name for name in RECORDING_FILES] + [p for p in (rig, site) if p]
+    folder = out if out is not None else replay_folder(recording)
+    inputs = ([recording] if is_mcap(recording) else
+              [recording / name for name in RECORDING_FILES]) + [p for p in (rig, site) if p]
     outputs = {"out": [folder / "poses.csv"] + ([folder / "poses.tum"] if tum else [])}
     if serial is not None and serial != "-" and not is_serial_path(serial):
         outputs["link"] = [Path(serial)]
@@ -272,9 +303,30 @@ def repair(
                f"{len(Recording(recording))} frames in all")
 
 
+@app.command()
+def convert(
+    src: Path = typer.Argument(..., help="A SPEC recording folder, or an .mcap recording."),
+    dst: Path = typer.Argument(..., help="The .mcap to write (from a folder), or the "
+                               "folder (from an .mcap)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing DST."),
+) -> None:
+    """Convert a SPEC recording folder to MCAP (ROS 2 messages) or an MCAP back."""
+    n = convert_recording(src, dst, force=force)
+    typer.echo(f"{src} -> {dst}: {n} frames")
+
+
 def main() -> None:
     quiet_opencv()
     app(prog_name="ceilrun")
+
+
+def ros2_main() -> None:
+    """``ceilkit-ros2``: ``ceilrun --ros2`` (``ceilkit-ros2 replay REC``: ``ceilrun replay
+    REC --ros2``), every other option as ceilrun's."""
+    args = sys.argv[1:]
+    args = ["replay", "--ros2", *args[1:]] if args[:1] == ["replay"] else ["--ros2", *args]
+    quiet_opencv()
+    app(args=args, prog_name="ceilkit-ros2")
 
 
 if __name__ == "__main__":
