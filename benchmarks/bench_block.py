@@ -63,6 +63,15 @@ def errors(got, x: float, y: float, yaw: float) -> tuple[float, float]:
             abs(math.degrees(math.remainder(got.yaw_rad - yaw, 2 * math.pi))))
 
 
+def parallels_error_deg(got, yaw: float) -> float | None:
+    """|error| of the heading from parallels (modulo its period) of an estimate, or None."""
+    if not got or "parallels_sigma_rad" not in got.diagnostics:
+        return None
+    d = got.diagnostics
+    h = d.get("parallels_yaw_rad", got.yaw_rad)
+    return abs(math.degrees(math.remainder(h - yaw, d.get("yaw_period_rad", math.pi / 2))))
+
+
 def summary(name: str, rows: list[dict], key: str) -> list[str]:
     ok = [r for r in rows if r[f"{key}_ok"]]
     pos = np.array([r[f"{key}_pos_mm"] for r in ok]) if ok else np.array([np.nan])
@@ -76,6 +85,12 @@ def summary(name: str, rows: list[dict], key: str) -> list[str]:
         return 100 * sum(r[f"{key}_ok"] for r in rs) / max(len(rs), 1)
 
     reasons = sorted({r[f"{key}_reason"] for r in rows if not r[f"{key}_ok"]})
+    par = np.array([r[f"{key}_par_deg"] for r in rows if f"{key}_par_deg" in r])
+    blk = np.array([r[f"{key}_blockyaw_deg"] for r in ok if f"{key}_blockyaw_deg" in r])
+    par_line = (f"  heading from parallels (>= 2 parallels): {len(par)} frames, median "
+                f"{np.median(par):.4f} deg, p95 {np.percentile(par, 95):.4f} deg"
+                + (f"; block yaw alone median {np.median(blk):.4f} deg" if len(blk) else "")
+                if len(par) else "  heading from parallels: no frames")
     return [f"{name}: {len(rows)} frames, localized {share(rows):.1f}% "
             f"(failures: {', '.join(reasons) or 'none'})",
             f"  with an asymmetric cue in view (marker/asymmetric block): {len(cue)} frames, "
@@ -84,7 +99,7 @@ def summary(name: str, rows: list[dict], key: str) -> list[str]:
             f"{share(sym):.1f}% (the rest ambiguous by design)",
             f"  position median {np.median(pos):.2f} mm, p95 {np.percentile(pos, 95):.2f} mm",
             f"  yaw median {np.median(yaw):.4f} deg, p95 {np.percentile(yaw, 95):.4f} deg",
-            f"  wrong with quality >= 0.8: {bad}"]
+            f"  wrong with quality >= 0.8: {bad}", par_line]
 
 
 def main() -> None:
@@ -126,9 +141,17 @@ def main() -> None:
                 if rep:
                     continue
                 k = key.replace("-", "_")
-                row[f"{k}_ok"] = int(bool(got))
-                row[f"{k}_reason"] = "" if got else got.reason
-                if got:
+                fix = bool(got) and got.x_m is not None
+                row[f"{k}_ok"] = int(fix)
+                row[f"{k}_reason"] = "" if fix else got.diagnostics.get("no_fix", "") \
+                    if got else got.reason
+                par = parallels_error_deg(got, yaw)
+                if par is not None:
+                    row[f"{k}_par_deg"] = par
+                if fix and "block_yaw_rad" in got.diagnostics:
+                    row[f"{k}_blockyaw_deg"] = abs(math.degrees(math.remainder(
+                        got.diagnostics["block_yaw_rad"] - yaw, 2 * math.pi)))
+                if fix:
                     row[f"{k}_pos_mm"], row[f"{k}_yaw_deg"] = errors(got, x, y, yaw)
                     row[f"{k}_quality"] = got.quality
                     row[f"{k}_source"] = got.diagnostics.get("source", "")
@@ -169,9 +192,11 @@ def drive(rig, site, geo, tg, est, step_m: float, rng, out: Path) -> list[str]:
         seen = in_view(rig, geo, tg, pose)
         img = render_frame(rig, site, x, y, yaw, OPTIONS, rng)
         got = est.estimate(img, i, prior)
+        fix = bool(got) and got.x_m is not None
         row = {"x": x, "y": y, "yaw_deg": math.degrees(yaw), "in_view": " ".join(
-            s for s, _ in seen), "ok": int(bool(got)), "reason": "" if got else got.reason}
-        if got:
+            s for s, _ in seen), "ok": int(fix),
+            "reason": "" if fix else got.diagnostics.get("no_fix", "") if got else got.reason}
+        if fix:
             row["pos_mm"], row["yaw_err_deg"] = errors(got, x, y, yaw)
             row["resolved_by"] = got.diagnostics.get("resolved_by", "")
             prior = got

@@ -50,6 +50,11 @@ from ceilkit.runtime.estimators.block.detect import (
     read_marker,
     side_lengths_m,
 )
+from ceilkit.runtime.estimators.block.parallels import (
+    PERIOD_RAD,
+    ParallelsHeading,
+    robust_heading,
+)
 from ceilkit.runtime.estimators.block.pnp import (
     PlanarGeometry,
     Refined,
@@ -59,6 +64,8 @@ from ceilkit.runtime.estimators.block.pnp import (
     refine,
     six_dof_check,
 )
+from ceilkit.runtime.estimators.block.seams import predicted_chords
+from ceilkit.runtime.features.lines import SegmentDetector, refine_undistorted
 from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 from ceilkit.runtime.geometry.rotations import wrap_pi
@@ -72,6 +79,9 @@ PRIOR_POS_SCALE_M = 0.5     # metres that weigh as much as PRIOR_YAW_GATE_RAD
 PARTIAL_AREA_PX = 600.0     # a non-quad region this large may be a block cut short
 COARSE_TOL = 0.25          # a coarse quad's perimeter may differ this much from a block's
 RMS_BAD_PX = 1.0            # edge residual RMS at which quality reaches 0
+PARALLELS_AGREE_SIGMA = 4.0  # a parallels heading farther than this many sigma from the
+                             # block's is reported, not fused
+HEADING_ONLY_QUALITY = 0.5  # quality of a heading-only cue (no position)
 
 
 @dataclass(frozen=True)
@@ -91,6 +101,14 @@ class BlockOptions(EstimatorOptions):
         six_dof_check: report the unconstrained 6-DoF PnP's disagreement with the rig.
         max_fixes: blocks and markers solved per frame, the largest in the image first
             (the best-determined of them is published); more cost time, not accuracy.
+        parallels: heading from the ceiling's parallels (Xu eqs. 8-10) every frame,
+            fused with a block's heading when both are seen.
+        parallels_min_px: shortest image segment used as a parallel.
+        parallels_gate_deg: a line farther than this from the heading (modulo the
+            period) is not a parallel of the ceiling's axes.
+        heading_cue: a frame with no block fix but two or more parallels gives a
+            heading-only estimate (``x_m = y_m = None``, ``yaw_period_rad``) instead of a
+            Failure (its reason is kept as ``diagnostics["no_fix"]``).
     """
 
     shape_tol: float = 0.08
@@ -100,6 +118,10 @@ class BlockOptions(EstimatorOptions):
     edge_points: int = 12
     six_dof_check: bool = True
     max_fixes: int = 1
+    parallels: bool = True
+    parallels_min_px: float = 60.0
+    parallels_gate_deg: float = 1.0
+    heading_cue: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,6 +152,9 @@ class BlockEstimator(Estimator):
         if o.max_fixes < 1:
             raise ConfigError(None, "options.max_fixes",
                               f"expected at least 1, found {o.max_fixes}")
+        if not o.parallels_min_px > 0 or not o.parallels_gate_deg > 0:
+            raise ConfigError(None, "options.parallels_gate_deg",
+                              "expected parallels_min_px and parallels_gate_deg > 0")
         if o.edge_points < 4:
             raise ConfigError(None, "options.edge_points",
                               f"expected at least 4, found {o.edge_points}")
@@ -147,6 +172,34 @@ class BlockEstimator(Estimator):
                             for b in site.blocks]
         self._bright = any(b.appearance == "bright" for b in site.blocks)
         self._dark = markers is not None or any(b.appearance != "bright" for b in site.blocks)
+        self._segs = SegmentDetector("fld", o.parallels_min_px) if o.parallels else None
+        self._corridor = site.corridor if site.has_section("corridor") else None
+        self._parallels_mode = ""
+
+    def _parallels(self, grey: np.ndarray, hint: float | None,
+                   pose: np.ndarray | None = None) -> ParallelsHeading | None:
+        """The heading from the frame's ceiling parallels, the branch nearest ``hint``.
+
+        With a pose near the truth (a block's fix, the tracker's prior) and the site's
+        ceiling lines (corridor section), the lines are measured where they must be
+        (:func:`.seams.predicted_chords`); else segments are detected on the frame."""
+        segs = np.zeros((0, 4))
+        if pose is not None and self._corridor is not None:
+            segs = predicted_chords(self.geo, self._corridor, pose)
+            mode = "predicted"
+        if len(segs) < 2:
+            segs = self._segs(grey)
+            mode = "detected"
+        if len(segs) < 2:
+            return None
+        sn, _, rms = refine_undistorted(self.geo.camera, grey, segs)
+        good = np.isfinite(rms) if mode == "predicted" else np.ones(len(sn), bool)
+        length = np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
+        h, _ = robust_heading(sn[good, :2], sn[good, 2:], self.geo.R_vehicle_cam, hint,
+                              math.radians(self.options.parallels_gate_deg), length[good],
+                              PERIOD_RAD)
+        self._parallels_mode = mode
+        return h
 
     # -- per frame ---------------------------------------------------------------------
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
@@ -191,19 +244,40 @@ class BlockEstimator(Estimator):
         diag = {"unknown_marker_ids": tuple(unknown), "quads": len(dark) + len(bright),
                 "quads_skipped": skipped}
         if not fixes:
-            ms = elapsed_ms(t0)
-            if ambiguous:
-                return self.fail(t_ns, AMBIGUOUS, "a symmetric block fits in several ways "
-                                 "and no prior tells them apart", ms=ms, **diag)
-            if partial or any(cv2.contourArea(c) >= PARTIAL_AREA_PX for c in others):
-                return self.fail(t_ns, PARTIAL_BLOCK, "a block is only partly in view",
-                                 ms=ms, **diag)
-            if unknown:
-                return self.fail(t_ns, UNKNOWN_MARKER, f"marker ids {unknown} are not in "
-                                 "the site", ms=ms, **diag)
-            return self.fail(t_ns, NO_BLOCK, "no block or marker of the site in view",
+            got = self._fail(t_ns, ambiguous, partial, unknown, others, diag, t0)
+            if not self.options.parallels:
+                return got
+            known = prior is not None and prior and prior.x_m is not None \
+                and prior.y_m is not None
+            h = self._parallels(grey, prior.yaw_rad if prior else None,
+                                np.array([prior.x_m, prior.y_m, prior.yaw_rad])
+                                if known else None)
+            if h is None or not self.options.heading_cue:
+                return got
+            cov = np.diag([np.inf, np.inf, h.sigma_rad ** 2])
+            diag.update(no_fix=got.reason, yaw_period_rad=h.period_rad,
+                        parallels_mode=self._parallels_mode,
+                        parallels_n=h.n_lines, parallels_sigma_rad=h.sigma_rad,
+                        ms=elapsed_ms(t0))
+            return PoseEstimate(t_ns, self.name, None, None, h.yaw_rad,
+                                HEADING_ONLY_QUALITY, cov=cov, diagnostics=diag)
+        return self._publish(t_ns, fixes, diag, t0, grey)
+
+    def _fail(self, t_ns: int, ambiguous: int, partial: int, unknown: list[int],
+              others: list[np.ndarray], diag: dict[str, Any], t0: float) -> Estimate:
+        """The Failure of a frame with no fix, the most telling reason first."""
+        ms = elapsed_ms(t0)
+        if ambiguous:
+            return self.fail(t_ns, AMBIGUOUS, "a symmetric block fits in several ways "
+                             "and no prior tells them apart", ms=ms, **diag)
+        if partial or any(cv2.contourArea(c) >= PARTIAL_AREA_PX for c in others):
+            return self.fail(t_ns, PARTIAL_BLOCK, "a block is only partly in view",
                              ms=ms, **diag)
-        return self._publish(t_ns, fixes, diag, t0)
+        if unknown:
+            return self.fail(t_ns, UNKNOWN_MARKER, f"marker ids {unknown} are not in "
+                             "the site", ms=ms, **diag)
+        return self.fail(t_ns, NO_BLOCK, "no block or marker of the site in view",
+                         ms=ms, **diag)
 
     def _is_marker_size(self, pv: np.ndarray) -> bool:
         """A quad (coarse corners on the ceiling, V) of about a marker's side."""
@@ -224,9 +298,25 @@ class BlockEstimator(Estimator):
         return any(d == dark for _, d in self._perimeters)
 
     def _publish(self, t_ns: int, fixes: list[_Fix], diag: dict[str, Any],
-                 t0: float) -> PoseEstimate:
+                 t0: float, grey: np.ndarray) -> PoseEstimate:
         best = min(fixes, key=lambda f: f.refined.cov[0, 0] + f.refined.cov[1, 1])
         r = best.refined
+        pose, cov = np.array(r.pose, float), np.array(r.cov, float)
+        h = self._parallels(grey, float(pose[2]), pose) if self.options.parallels else None
+        if h is not None:
+            # one Kalman update of the block's (x, y, yaw) by the parallels' heading
+            s2 = cov[2, 2] + h.sigma_rad ** 2
+            dyaw = math.remainder(h.yaw_rad - pose[2], 2 * math.pi)
+            agree = abs(dyaw) <= PARALLELS_AGREE_SIGMA * math.sqrt(s2)
+            diag.update(parallels_n=h.n_lines, parallels_yaw_rad=h.yaw_rad,
+                        parallels_sigma_rad=h.sigma_rad, block_yaw_rad=float(pose[2]),
+                        parallels_mode=self._parallels_mode,
+                        parallels_fused=agree)
+            if agree:
+                gain = cov[:, 2] / s2
+                pose = pose + gain * dyaw
+                cov = cov - np.outer(gain, cov[2, :])
+                cov = 0.5 * (cov + cov.T)
         diag.update(source=best.source, rms_px=r.rms_px, shape_m=best.shape_m,
                     n_edge=r.n, fixes=len(fixes), resolved_by=best.resolved_by,
                     corners_norm=best.corners_norm, corners_w=best.corners_w)  # overlays
@@ -237,8 +327,8 @@ class BlockEstimator(Estimator):
         if best.resolved_by == "prior":
             quality = min(quality, 0.7)
         diag["ms"] = elapsed_ms(t0)
-        return PoseEstimate(t_ns, self.name, float(r.pose[0]), float(r.pose[1]),
-                            float(r.pose[2]), quality, cov=r.cov, diagnostics=diag)
+        return PoseEstimate(t_ns, self.name, float(pose[0]), float(pose[1]),
+                            wrap_pi(float(pose[2])), quality, cov=cov, diagnostics=diag)
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
                resolved_by: str) -> _Fix | None:

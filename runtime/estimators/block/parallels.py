@@ -95,3 +95,61 @@ def heading_from_parallels(p1_norm: np.ndarray, p2_norm: np.ndarray,
     if hint_yaw_rad is not None:
         yaw = hint_yaw_rad + math.remainder(yaw - hint_yaw_rad, period_rad)
     return ParallelsHeading(wrap_pi(yaw), sigma, period_rad, int(len(phi)))
+
+
+def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.ndarray,
+                   hint_yaw_rad: float | None = None, gate_rad: float = math.radians(1.0),
+                   weights: np.ndarray | None = None, period_rad: float = PERIOD_RAD
+                   ) -> tuple[ParallelsHeading | None, np.ndarray]:
+    """:func:`heading_from_parallels` on the lines that agree: lines off the ceiling's
+    axes (a marker turned 45 degrees, clutter) are dropped. The reference is the hint
+    when given, else the weighted circular mean of all lines refined once with a gate
+    of 3 ``gate_rad``; lines within ``gate_rad`` (modulo the period) of it are kept.
+
+    ``weights`` (``(N,)``, e.g. the lines' lengths) multiply eq. 10's ``|m_xy|^2``.
+
+    Returns:
+        ``(heading or None, kept)``: ``kept`` is the ``(N,)`` mask of the lines used.
+    """
+    phi, w = line_headings(p1_norm, p2_norm, R_vehicle_cam)
+    if weights is not None:
+        w = w * np.asarray(weights, float)
+    ok = np.isfinite(phi) & (w > 1e-12)
+    if np.count_nonzero(ok) < MIN_LINES:
+        return None, np.zeros(len(phi), bool)
+    k = 2 * math.pi / period_rad
+
+    def mean(sel: np.ndarray) -> float:
+        z = np.sum(w[sel] * np.exp(1j * k * phi[sel]))
+        return math.atan2(z.imag, z.real) / k
+
+    def near(ref: float, gate: float) -> np.ndarray:
+        res = np.abs(np.remainder(phi - ref + period_rad / 2, period_rad) - period_rad / 2)
+        return ok & (res < gate)
+
+    ref = hint_yaw_rad if hint_yaw_rad is not None else mean(ok)
+    if hint_yaw_rad is None:
+        sel = near(ref, 3 * gate_rad)
+        if np.count_nonzero(sel) >= MIN_LINES:
+            ref = mean(sel)
+    kept = near(ref, gate_rad)
+    if np.count_nonzero(kept) < MIN_LINES:
+        return None, kept
+    h = _weighted(phi[kept], w[kept], period_rad)
+    if hint_yaw_rad is not None:
+        h = ParallelsHeading(wrap_pi(hint_yaw_rad + math.remainder(h.yaw_rad - hint_yaw_rad,
+                                                                   period_rad)),
+                             h.sigma_rad, h.period_rad, h.n_lines)
+    return h, kept
+
+
+def _weighted(phi: np.ndarray, w: np.ndarray, period_rad: float) -> ParallelsHeading:
+    """The weighted circular mean of line headings and its sigma (see the module)."""
+    k = 2 * math.pi / period_rad
+    z = np.sum(w * np.exp(1j * k * phi))
+    yaw = math.atan2(z.imag, z.real) / k
+    res = np.remainder(phi - yaw + period_rad / 2, period_rad) - period_rad / 2
+    dof = max(len(phi) - 1, 1)
+    sigma = max(math.sqrt(float(np.sum(w * res * res)) / float(np.sum(w)) / dof),
+                SIGMA_FLOOR_RAD)
+    return ParallelsHeading(wrap_pi(yaw), sigma, period_rad, int(len(phi)))

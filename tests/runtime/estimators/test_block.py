@@ -110,7 +110,8 @@ def test_marker_at_the_image_edge_through_strong_distortion():
 def test_a_marker_not_in_the_site_is_ignored(rig):
     seen = marker_site((9, 0.4, 0.2, 0.0))
     img = render_frame(rig, seen, 0.0, 0.0, 0.0, NOISY)
-    est = BlockEstimator(rig, marker_site((7, 3.0, 0.0, 0.0))).estimate(img, 0)
+    est = BlockEstimator(rig, marker_site((7, 3.0, 0.0, 0.0)),
+                         {"heading_cue": False}).estimate(img, 0)
     assert not est and est.reason == "unknown_marker"
     assert est.diagnostics["unknown_marker_ids"] == (9,)
 
@@ -120,9 +121,15 @@ def test_rectangle_is_ambiguous_without_a_prior_and_resolved_with_one(rig):
     site = Site(3.0, blocks=(Block("A", RECT, "dark"),))
     x, y, yaw = 2.2, 0.1, math.radians(12.0)
     img = render_frame(rig, site, x, y, yaw, NOISY)
-    est = BlockEstimator(rig, site)
+    est = BlockEstimator(rig, site, {"heading_cue": False})
     none = est.estimate(img, 0)
     assert not none and none.reason == "ambiguous"
+    # with the heading cue (default) the rectangle's sides still give the heading
+    cue = BlockEstimator(rig, site).estimate(img, 0)
+    assert cue and cue.x_m is None and cue.y_m is None
+    assert cue.diagnostics["no_fix"] == "ambiguous"
+    assert abs(math.remainder(cue.yaw_rad - yaw, cue.diagnostics["yaw_period_rad"])) \
+        < math.radians(0.05)
     got = est.estimate(img, 0, prior=prior_at(x + 0.1, y - 0.1, yaw + 0.2))
     assert got and got.diagnostics["resolved_by"] == "prior"
     assert math.hypot(got.x_m - x, got.y_m - y) < 0.005
@@ -136,7 +143,7 @@ def test_rectangle_is_ambiguous_without_a_prior_and_resolved_with_one(rig):
 def test_square_block_is_ambiguous_without_a_prior(rig, appearance):
     site = Site(3.0, blocks=(Block("S", SQUARE, appearance),))
     img = render_frame(rig, site, 2.1, 0.0, 0.3, NOISY)
-    got = BlockEstimator(rig, site).estimate(img, 0)
+    got = BlockEstimator(rig, site, {"heading_cue": False}).estimate(img, 0)
     assert not got and got.reason == "ambiguous"
 
 
@@ -157,7 +164,8 @@ def test_a_partly_occluded_block_is_a_partial_block(rig):
     dark = img < (BLOCK_GREY + 150) / 2
     v, u = np.nonzero(dark)
     img[v.min():(v.min() + v.max()) // 2, u.min():(u.min() + u.max()) // 2] = 150
-    got = BlockEstimator(rig, site).estimate(img, 0, prior=prior_at(x, y, yaw))
+    got = BlockEstimator(rig, site, {"heading_cue": False}).estimate(
+        img, 0, prior=prior_at(x, y, yaw))
     assert not got and got.reason == "partial_block"
 
 
@@ -165,7 +173,7 @@ def test_nothing_in_view_is_no_block(rig):
     site = Site(3.0, blocks=(Block("A", RECT + 20.0, "dark"),))
     img = render_frame(rig, site, 0.0, 0.0, 0.0, NOISY)
     got = BlockEstimator(rig, site).estimate(img, 0)
-    assert not got and got.reason == "no_block"
+    assert not got and got.reason == "no_block"    # no block, no parallels in view
 
 
 def test_packaged_site_localizes_and_is_registered(rig):
@@ -206,3 +214,22 @@ def _node(text: str):
         p = Path(d) / "site.yaml"
         p.write_text(text)
         return load_yaml(p)
+
+
+# -- heading from the ceiling's parallels ------------------------------------------------
+def test_parallels_heading_is_fused_with_the_block_and_given_alone_between_blocks(rig):
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    est = BlockEstimator(rig, site)
+    x, y, yaw = 0.55, 0.4, math.radians(17.0)            # marker 0 and the tile seams
+    got = est.estimate(render_frame(rig, site, x, y, yaw, NOISY), 0)
+    assert got and got.x_m is not None and got.diagnostics["parallels_fused"]
+    assert got.diagnostics["parallels_n"] >= 2
+    assert abs(math.degrees(got.yaw_rad - yaw)) < 0.05
+    assert got.cov[2, 2] < got.diagnostics["parallels_sigma_rad"] ** 2 + 1e-18
+    # between blocks: a heading-only cue, modulo a quarter turn
+    x, y, yaw = -2.0, 0.0, math.radians(-33.0)
+    alone = est.estimate(render_frame(rig, site, x, y, yaw, NOISY), 0)
+    assert alone and alone.x_m is None and alone.diagnostics["no_fix"] == "no_block"
+    assert abs(math.degrees(math.remainder(alone.yaw_rad - yaw, math.pi / 2))) < 0.05
+    off = BlockEstimator(rig, site, {"parallels": False})
+    assert not off.estimate(render_frame(rig, site, x, y, yaw, NOISY), 0)
