@@ -21,12 +21,14 @@ from ceilkit.runtime.estimators.base import Estimator
 from ceilkit.runtime.estimators.block.estimator import BlockEstimator
 from ceilkit.runtime.estimators.corridor.estimator import CorridorEstimator
 from ceilkit.runtime.estimators.lights.estimator import LightsEstimator
+from ceilkit.runtime.estimators.paper_block import PaperBlockEstimator
 from ceilkit.runtime.estimators.paper_corridor import PaperCorridorEstimator
 from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator
 
 ESTIMATORS: Mapping[str, type[Estimator]] = {
     cls.name: cls for cls in (CorridorEstimator, PaperCorridorEstimator,
-                              LightsEstimator, PaperLightsEstimator, BlockEstimator)
+                              LightsEstimator, PaperLightsEstimator, BlockEstimator,
+                              PaperBlockEstimator)
 }
 """Every estimator by its name (the ``--method`` values)."""
 

@@ -313,10 +313,7 @@ class BlockEstimator(Estimator):
                         parallels_mode=self._parallels_mode,
                         parallels_fused=agree)
             if agree:
-                gain = cov[:, 2] / s2
-                pose = pose + gain * dyaw
-                cov = cov - np.outer(gain, cov[2, :])
-                cov = 0.5 * (cov + cov.T)
+                pose, cov = self._fuse(pose, cov, h)
         diag.update(source=best.source, rms_px=r.rms_px, shape_m=best.shape_m,
                     n_edge=r.n, fixes=len(fixes), resolved_by=best.resolved_by,
                     corners_norm=best.corners_norm, corners_w=best.corners_w)  # overlays
@@ -329,6 +326,15 @@ class BlockEstimator(Estimator):
         diag["ms"] = elapsed_ms(t0)
         return PoseEstimate(t_ns, self.name, float(pose[0]), float(pose[1]),
                             wrap_pi(float(pose[2])), quality, cov=cov, diagnostics=diag)
+
+    def _fuse(self, pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """One Kalman update of the block's ``(x, y, yaw)`` by the parallels' heading."""
+        s2 = cov[2, 2] + h.sigma_rad ** 2
+        gain = cov[:, 2] / s2
+        pose = pose + gain * math.remainder(h.yaw_rad - pose[2], 2 * math.pi)
+        cov = cov - np.outer(gain, cov[2, :])
+        return pose, 0.5 * (cov + cov.T)
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
                resolved_by: str) -> _Fix | None:
