@@ -78,6 +78,9 @@ class Ros2Config:
         qos_depth: history depth of every publisher and subscription (reliable).
         max_velocity_dt_s: the longest gap between two poses a velocity is taken over.
         diagnostics_period_s: the longest time between two diagnostics messages.
+        wait_subscribers_s: on opening, wait up to this long for a subscriber to the
+            poses (DDS discovery takes a moment: a replay would otherwise publish its
+            first frames to no one); 0: do not wait.
     """
 
     node_name: str = "ceilkit"
@@ -92,6 +95,7 @@ class Ros2Config:
     qos_depth: int = 100
     max_velocity_dt_s: float = 0.5
     diagnostics_period_s: float = 1.0
+    wait_subscribers_s: float = 0.0
 
 
 def velocity_between(a: PoseEstimate, b: PoseEstimate, max_dt_s: float
@@ -234,7 +238,20 @@ class Ros2Node:
         self._rclpy = rclpy
         self._thread = threading.Thread(target=self._spin, name="ceilkit-ros2", daemon=True)
         self._thread.start()
+        if cfg.wait_subscribers_s > 0 and not self.wait_for_subscribers(cfg.wait_subscribers_s):
+            log.warning("no subscriber to %s after %.1f s: publishing anyway",
+                        cfg.pose_topic, cfg.wait_subscribers_s)
         return self
+
+    def wait_for_subscribers(self, timeout_s: float, count: int = 1) -> bool:
+        """Wait (at most ``timeout_s``) until ``count`` subscribers match the poses'
+        publisher; whether they did."""
+        end = time.monotonic() + timeout_s
+        while self._pub_pose.get_subscription_count() < count:
+            if time.monotonic() >= end:
+                return False
+            time.sleep(0.02)
+        return True
 
     def _spin(self) -> None:
         while not self._closing.is_set():
