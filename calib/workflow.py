@@ -290,6 +290,9 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
             raise ConfigError(None, "fix", f"--fix {name} holds the rig's value, but there "
                               f"is no --rig: give the measured value, {name}=VALUE")
     the_site = Site.load(site)
+    if the_site.corridor is None and the_site.has_lights:
+        return mount_upward(placements, the_site, site, out, rig=rig, camera=camera,
+                            fix=fixes, **upward)
     if upward:
         raise ConfigError(None, next(iter(upward)), "applies to an upward (lights) rig; "
                           "this site has corridor lines")
@@ -348,6 +351,63 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
         viz_plots.mount_png(res.per_placement_rms_px, res.rms_px,
                             [o[0] for o in res.outliers])),)
     return MountRun(Path(out), tuple(lines), written)
+
+
+def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, *,
+                 rig: Path | None = None, camera: Path | None = None,
+                 fix: dict[str, float | None] | None = None, poses: Path | None = None,
+                 max_frames: int = 120) -> MountRun:
+    """Fit an upward (lights) rig's mount from a drive under the site's ``lights`` and
+    write ``out`` (rig.yaml) when every parameter is determined
+    (:func:`~ceilkit.calib.mount_upward.calibrate_mount_upward`).
+
+    ``recording``: a recording (frames and, unless ``poses`` is given, ``truth.csv``
+    with the vehicle's poses at the frame stamps). ``poses``: a ``t_ns,x,y,yaw_deg``
+    table at its own stamps (motion capture, a total station): interpolated, and its
+    time offset to the frames estimated and reported. The rig's (or nominal: tilt 90,
+    at the vehicle's origin, 0.5 m up) mount is only the start of the search.
+
+    Raises:
+        ConfigError: ``placements`` (no recording), ``fix`` (the upward fit holds
+            nothing), ``poses`` / truth.csv missing or malformed.
+        CalibrationError: too few frames with lights and poses, a residual or a
+            parameter's 1 sigma above its limit (naming what to add); nothing written.
+    """
+    from .mount_upward import calibrate_mount_upward, load_light_frames, load_pose_csv
+
+    if recording is None:
+        raise ConfigError(None, "placements", "the upward (lights) fit needs a recording "
+                          "of a drive under the lights")
+    if fix:
+        raise ConfigError(None, "fix", "the upward (lights) fit determines every "
+                          "parameter or refuses; it holds none (--fix applies to the "
+                          "corridor fit)")
+    if rig is not None:
+        the_rig = Rig.load(rig)
+        camera_ref = the_rig.camera_file
+    else:
+        the_rig = Rig(load_camera(camera), Mount(z_m=0.5))
+        camera_ref = str(camera)
+    _check_writable(out)
+    frames, table = load_light_frames(recording, the_rig, max_frames)
+    if poses is not None:
+        table = load_pose_csv(poses)
+    if table is None:
+        raise ConfigError(Path(recording) / "truth.csv", None,
+                          "file not found: the upward fit needs the vehicle's poses "
+                          "(truth.csv, or --poses a t_ns,x,y,yaw_deg table)")
+    res = calibrate_mount_upward(the_rig, the_site, frames, table,
+                                 estimate_offset=None if poses is None else True)
+    lines = res.lines()
+    header = provenance_header(
+        "rig.yaml written by ceilcal mount (upward lights rig)",
+        [f"drive: {recording} ({len(frames)} frames)", f"site: {site}"]
+        + ([f"poses: {poses}"] if poses is not None else []) + lines)
+    ref = None
+    if camera_ref is not None:
+        ref = os.path.relpath(Path(camera_ref).resolve(), Path(out).resolve().parent)
+    the_rig.with_mount(res.mount).save(out, header, camera_ref=ref)
+    return MountRun(Path(out), tuple(lines))
 
 
 # -- light map -------------------------------------------------------------------------

@@ -17,7 +17,8 @@ def register(app: typer.Typer) -> None:
     def mount(
         placements: Path = typer.Argument(..., help="A placements file (YAML: image, y, "
                                           "yaw per placement) or a recording with "
-                                          "truth.csv."),
+                                          "truth.csv; for an upward lights rig, a drive "
+                                          "under the site's lights."),
         site: Path = typer.Option(..., help="site.yaml with the corridor's lines."),
         out: Path = typer.Option(Path("rig.yaml"), help="The rig file to write."),
         rig: Path = typer.Option(None, help="A rig whose camera (and held values) to use."),
@@ -32,8 +33,12 @@ def register(app: typer.Typer) -> None:
                                        "recording."),
         plots: Path = typer.Option(None, "--plots",
                                    help="Folder for PNG plots (residual per placement)."),
+        poses: Path = typer.Option(None, help="Upward (lights) rig: vehicle poses at "
+                                   "their own stamps (t_ns,x,y,yaw_deg; motion capture), "
+                                   "interpolated, their time offset estimated."),
     ) -> None:
         """Fit tilt, swing, pan and the offsets (and the height below the ceiling)."""
+        upward = {"poses": poses} if poses is not None else {}
         run = workflow.mount(placements, site, out, rig=rig, camera=camera, drive=drive,
-                             fix=fix or (), max_frames=max_frames, plots=plots)
+                             fix=fix or (), max_frames=max_frames, plots=plots, **upward)
         typer.echo("\n".join(run.lines()))
