@@ -192,7 +192,9 @@ class BlockEstimator(Estimator):
             mode = "detected"
         if len(segs) < 2:
             return None
-        sn, _, rms = refine_undistorted(self.geo.camera, grey, segs)
+        # predicted chords sit within a pixel or two of their line: no wider retry
+        sn, _, rms = refine_undistorted(self.geo.camera, grey, segs, retry_half_width_px=(
+            None if mode == "predicted" else 6.0))
         good = np.isfinite(rms) if mode == "predicted" else np.ones(len(sn), bool)
         length = np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
         h, _ = robust_heading(sn[good, :2], sn[good, 2:], self.geo.R_vehicle_cam, hint,

@@ -22,9 +22,9 @@ from ceilkit.runtime.geometry.rotations import rot_z
 
 REACH_M = 3.5        # ceiling lines looked for this far from the camera's ceiling point
 STEP_M = 0.1         # sample spacing along a line on the ceiling
-CHORD_SAMPLES = 4    # samples per chord (a chord spans (CHORD_SAMPLES - 1) * STEP_M)
+CHORD_SAMPLES = 11   # samples per chord (a chord spans (CHORD_SAMPLES - 1) * STEP_M)
 MARGIN_PX = 8.0      # chord ends kept this far inside the frame
-MAX_CHORDS = 24      # chords measured per frame (spread over the lines)
+MAX_CHORDS = 20      # chords measured per frame (spread over the lines)
 
 
 def site_lines(corridor, centre: np.ndarray, reach_m: float = REACH_M
