@@ -172,3 +172,5 @@ def test_initialpose_from_another_process_changes_the_track(tmp_path, ros_env):
                                                         - y0)
     got = json.loads(out.read_text())
     assert len(got["poses"]) == len([r for r in after if r["y"] != ""])
+    assert got["odom"], "x and y known on consecutive frames: Odometry with a velocity"
+    assert all(o["frame"] == "map" and o["child"] == "base_link" for o in got["odom"])
