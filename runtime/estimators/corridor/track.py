@@ -122,30 +122,7 @@ class LineTracker:
         vis = front & (px[..., 0] >= m) & (px[..., 0] <= cam.width - 1 - m) \
             & (px[..., 1] >= max(m, st.rows[0])) & (px[..., 1] <= min(cam.height - 1 - m,
                                                                       st.rows[1]))
-        chords, lines = [], []
-        for j in range(st.site_y.size):
-            idx = np.flatnonzero(vis[j])
-            if idx.size < 2:
-                continue
-            # the longest run of consecutive visible samples
-            breaks = np.flatnonzero(np.diff(idx) > 1)
-            runs = np.split(idx, breaks + 1)
-            run = max(runs, key=len)
-            p = px[j, run]
-            step = np.hypot(*np.diff(p, axis=0).T)
-            arc = np.concatenate([[0.0], np.cumsum(step)])
-            total = float(arc[-1])
-            if total < MIN_CHORD_PX:
-                continue
-            n = max(1, int(round(total / CHORD_PX)))
-            cuts = np.interp(np.linspace(0.0, total, n + 1), arc, np.arange(arc.size))
-            ends = np.stack([np.interp(cuts, np.arange(arc.size), p[:, 0]),
-                             np.interp(cuts, np.arange(arc.size), p[:, 1])], axis=1)
-            chords.append(np.concatenate([ends[:-1], ends[1:]], axis=1))
-            lines.append(np.full(n, j))
-        if not chords:
-            return np.zeros((0, 4)), np.zeros(0, int)
-        return np.concatenate(chords), np.concatenate(lines)
+        return _cut_chords(px, vis)
 
     def measure(self, grey: np.ndarray, psi_rad: float, camera_y_m: float
                 ) -> LineMeasurement | None:
@@ -174,6 +151,44 @@ class LineTracker:
         f = self.setup.f_px
         return (math.atan2(self.search_px, f) * 2.0,
                 self.search_px / f * self.setup.ceiling_above_cam_m * 2.0)
+
+
+def _cut_chords(px: np.ndarray, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(chords (K, 4), line (K,))``: each line's longest run of visible samples
+    (``px (J, S, 2)``, ``vis (J, S)``), cut into chords of about :data:`CHORD_PX` of
+    arc length; runs shorter than :data:`MIN_CHORD_PX` are left out."""
+    n_lines = vis.shape[0]
+    pad = np.zeros((n_lines, 1), np.int8)
+    d = np.diff(np.concatenate([pad, vis.view(np.int8), pad], axis=1), axis=1)
+    row, start = np.nonzero(d == 1)
+    stop = np.nonzero(d == -1)[1]                       # exclusive, same order
+    # per line the longest run (the first of equal ones)
+    pick = np.lexsort((start, -(stop - start), row))
+    first = np.ones(pick.size, bool)
+    first[1:] = row[pick][1:] != row[pick][:-1]
+    pick = pick[first]
+    both = vis[:, 1:] & vis[:, :-1]
+    dp = np.diff(np.where(vis[..., None], px, 0.0), axis=1)
+    step = np.where(both, np.hypot(dp[..., 0], dp[..., 1]), 0.0)
+    arc = np.concatenate([np.zeros((n_lines, 1)), np.cumsum(step, axis=1)], axis=1)
+    chords, lines = [], []
+    for j, a, b in zip(row[pick].tolist(), start[pick].tolist(), stop[pick].tolist(),
+                       strict=True):
+        if b - a < 2:
+            continue
+        arc_j = arc[j, a:b]
+        total = float(arc_j[-1] - arc_j[0])
+        if total < MIN_CHORD_PX:
+            continue
+        n = max(1, int(round(total / CHORD_PX)))
+        cut = arc_j[0] + total * (np.arange(n + 1) / n)
+        ends = np.stack([np.interp(cut, arc_j, px[j, a:b, 0]),
+                         np.interp(cut, arc_j, px[j, a:b, 1])], axis=1)
+        chords.append(np.concatenate([ends[:-1], ends[1:]], axis=1))
+        lines.append(np.full(n, j))
+    if not chords:
+        return np.zeros((0, 4)), np.zeros(0, int)
+    return np.concatenate(chords), np.concatenate(lines)
 
 
 __all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "LineMeasurement", "LineTracker", "REACH_M"]
