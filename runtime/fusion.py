@@ -100,6 +100,8 @@ class FusionOptions:
         default_sigma_m, default_sigma_rad: 1σ of a fix that carries no covariance.
         cell_m: spacing of a regular layout: the cell probability is reported.
         start_speed_mps, start_turn_rps: 1σ of the velocity when a track starts.
+        odo_scale_sigma: 1σ of the wheel odometry's scale factor when a track starts
+            (a state of the filter: a scale error is a bias, not white noise).
     """
 
     noise: ekf.MotionNoise = field(default_factory=ekf.MotionNoise)
@@ -122,6 +124,7 @@ class FusionOptions:
     cell_m: float | None = None
     start_speed_mps: float = 2.5
     start_turn_rps: float = math.radians(90.0)
+    odo_scale_sigma: float = 0.05
 
 
 @dataclass(frozen=True, eq=False)
@@ -293,7 +296,7 @@ class Fusion:
     def start(self, t_ns: int, pose: tuple[float, float, float], cov: np.ndarray) -> None:
         """Start the track at ``pose`` (x, y, yaw) with covariance ``cov`` (3, 3)."""
         s, P = ekf.initial_state(pose, cov, self.options.start_speed_mps,
-                                 self.options.start_turn_rps)
+                                 self.options.start_turn_rps, self.options.odo_scale_sigma)
         t_odo = None if self._f is None else self._f.latest.t_odo_ns
         self._f = FilterBuffer(_Node(int(t_ns), s, P, t_odo), self.options)
         self._t_fix_ns = int(t_ns)
@@ -557,8 +560,11 @@ class FusionReport:
         fu = self.fusion
         cues = ", ".join(f"{m} {n}" for m, n in fu.contributions.most_common()) or "none"
         gated = ", ".join(f"{m} {n}" for m, n in fu.gated.most_common()) or "none"
-        out = [f"fusion: fixes applied {cues}; gated {gated}; odometry rows "
-               f"{fu.odometry_rows}; late rows re-filtered {fu.refiltered}"]
+        out = [f"fusion: fixes applied {cues}; gated {gated}; resets "
+               f"{fu.relocalizations + fu.start_poses} ({fu.relocalizations} "
+               f"relocalizations, {fu.start_poses} start poses); odometry rows "
+               f"{fu.odometry_rows}, ceiling-plane increments {fu.plane_increments}; "
+               f"late rows re-filtered {fu.refiltered}"]
         if self.values:
             inside = [v <= ekf.chi2_quantile(0.95, d) for v, d in self.values]
             dof = round(float(np.mean([d for _, d in self.values])))

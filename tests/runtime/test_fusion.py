@@ -226,3 +226,24 @@ def test_quality_falls_while_no_absolute_cue_confirms_the_track():
         fu.add_odometry(k * DT, 0.0, 0.0, 0.0)
         res = fu.update(Failure(k * DT, "lights", "no_lights"))
     assert res.estimate.quality < 0.8
+
+
+def test_summary_line_counts_resets_and_cues():
+    from ceilkit.runtime.fusion import FusionReport
+
+    fu = Fusion()
+    for k in range(10):
+        fu.update(_frame(_lights(k, 1.0, 2.0), _corridor(k, 2.0)))
+    for k in range(10, 13):
+        fu.update(_lights(k, 4.0, 2.0, math.pi / 2, mode="global"))
+    fu.set_start_pose(13 * DT, 0.0, 0.0, 0.0)
+    fu.update(Failure(13 * DT, "lights", "no_lights"))
+    line = FusionReport(fu).lines()[0]
+    assert "fixes applied lights 11, corridor 10" in line
+    assert "resets 3 (2 relocalizations, 1 start poses)" in line
+
+
+def test_odometry_scale_prior_is_an_option():
+    fu = Fusion(FusionOptions(odo_scale_sigma=0.02))
+    fu.update(_lights(0, 1.0, 2.0))
+    assert fu._f.latest.P[-1, -1] == pytest.approx(0.02 ** 2)
