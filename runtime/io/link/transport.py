@@ -47,7 +47,6 @@ import stat
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -58,6 +57,7 @@ from ceilkit.runtime.estimators.base import Estimate, Failure
 from ceilkit.runtime.geometry.geodesy import LocalTangentPlane
 
 from . import mavlink, nmea, nmea_gps
+from .outbox import Outbox
 
 log = logging.getLogger("ceilkit.link")
 
@@ -68,8 +68,6 @@ GST and HDT (needs the site's geodetic origin)."""
 MAX_FIX_AGE_NS = 10_000_000_000  # an estimate older than this is stamped with "now" (a replay)
 PERIOD_NS = 1_000_000_000
 MAX_RX_PENDING = 4096
-STALL_REPORT_NS = 10_000_000_000
-"""While the peer stays backed up (messages dropped), one log line per this period."""
 
 
 # ------------------------------------------------------------------------ protocols
@@ -359,7 +357,10 @@ class _Disconnected(Exception):
 
 
 class LinkBase:
-    """The state machine shared by every link; subclasses provide the port hooks."""
+    """The state machine shared by every link; subclasses provide the port hooks.
+
+    What waits to be written (framing, the bound, stall reports) is its :class:`Outbox`.
+    """
 
     def __init__(self, protocol: str | LinkProtocol = "nmea", *, max_buffer_bytes: int = 1024,
                  on_receive: Callable[[Received], None] | None = None,
@@ -380,9 +381,8 @@ class LinkBase:
         self.backoff_s = backoff_s
         self.service_interval_s = service_interval_s
         self._lock = threading.RLock()
-        self._queue: deque[bytes] = deque()
-        self._queued_bytes = 0
-        self._head = b""            # the unwritten rest of a message already started
+        self._outbox = Outbox(self.max_buffer_bytes, lambda: self.clock_ns(),
+                              lambda: self.describe(), self._count)
         self._rx = b""
         self._counters = LinkCounters()
         self._state = "closed"
@@ -397,9 +397,6 @@ class LinkBase:
         self._next_periodic_ns = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._stall_since: int | None = None   # link clock of the first drop of a stall
-        self._stall_drops = 0
-        self._stall_reported = 0
 
     # ---------------------------------------------------------------- port hooks
 
@@ -499,12 +496,12 @@ class LinkBase:
     def stalled(self) -> bool:
         """The peer is not reading: messages are being dropped (reported on the log
         while it lasts, at most every 10 s)."""
-        return self._stall_since is not None
+        return self._outbox.stalled
 
     @property
     def pending_bytes(self) -> int:
         """Bytes accepted by :meth:`send` and not yet written."""
-        return self._queued_bytes + len(self._head)
+        return self._outbox.pending_bytes
 
     def send(self, est: Estimate, relocalized: bool = False,
              capture_ns: int | None = None) -> None:
@@ -579,34 +576,7 @@ class LinkBase:
         if self._state != "connected":
             self._count(dropped=1)
             return
-        self._queue.append(msg)
-        self._queued_bytes += len(msg)
-        while self._queued_bytes + len(self._head) > self.max_buffer_bytes and self._queue:
-            old = self._queue.popleft()  # oldest not-yet-started message: stale
-            self._queued_bytes -= len(old)
-            self._count(dropped=1)
-            self._stalling()
-
-    def _stalling(self) -> None:
-        """A message was dropped because the peer is backed up: report, rate-limited."""
-        now = self.clock_ns()
-        self._stall_drops += 1
-        if self._stall_since is None:
-            self._stall_since = self._stall_reported = now
-            log.warning("link %s stalled: the peer is not reading; dropping the oldest "
-                        "messages", self.describe())
-        elif now - self._stall_reported >= STALL_REPORT_NS:
-            self._stall_reported = now
-            log.warning("link %s still stalled after %.0f s: %d messages dropped",
-                        self.describe(), (now - self._stall_since) / 1e9, self._stall_drops)
-
-    def _flowing(self) -> None:
-        """Everything queued went out: a stall, if any, is over."""
-        if self._stall_since is not None:
-            log.warning("link %s flowing again after %.1f s (%d messages dropped)",
-                        self.describe(), (self.clock_ns() - self._stall_since) / 1e9,
-                        self._stall_drops)
-            self._stall_since, self._stall_drops = None, 0
+        self._outbox.put(msg)
 
     def _poll_locked(self, now: int) -> None:
         if self._state == "disconnected" and now >= self._next_attempt_ns:
@@ -625,19 +595,7 @@ class LinkBase:
                 self._lost(now, str(exc))
 
     def _pump(self) -> None:
-        while self._head or self._queue:
-            if not self._head:
-                self._head = self._queue.popleft()
-                self._queued_bytes -= len(self._head)
-            n = self._write_some(self._head)
-            if n:
-                self._count(bytes_sent=n)
-            if n < len(self._head):
-                self._head = self._head[n:]
-                return
-            self._head = b""
-            self._count(sent=1)
-        self._flowing()
+        self._outbox.pump(self._write_some)
 
     def _read(self) -> bool:
         """Read and dispatch what the controller sent; True if answers were queued."""
@@ -664,12 +622,8 @@ class LinkBase:
         return answered
 
     def _lost(self, now: int, why: str) -> None:
-        dropped = len(self._queue) + (1 if self._head else 0)
-        self._queue.clear()
-        self._queued_bytes = 0
-        self._head = b""
+        dropped = self._outbox.clear()
         self._rx = b""
-        self._stall_since, self._stall_drops = None, 0  # lost, not stalled
         if dropped:
             self._count(dropped=dropped)
         try:
