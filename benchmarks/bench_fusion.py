@@ -119,6 +119,55 @@ def confident_wrong(pubs, traj: Trajectory, ks=None) -> int:
     return n
 
 
+def write_recording(folder: Path, rig: Rig, site: Site, frames: list[Frame],
+                    traj: Trajectory, odometry=None) -> Path:
+    """The frames as a SPEC recording (frames, rig, site, truth.csv, odometry.csv)."""
+    with RecordingWriter(folder, rig, site, truth=True) as w:
+        for k, f in enumerate(frames):
+            w.write(f)
+            w.write_truth(f.t_ns, *traj.pose(k))
+    if odometry is not None:
+        rows = "".join(f"{int(t)},{dx:.9f},{dy:.9f},{math.degrees(a):.9f}\n" for t, dx, dy, a
+                       in zip(odometry.t_ns, odometry.dx_m, odometry.dy_m, odometry.dyaw_rad,
+                               strict=True))
+        (folder / "odometry.csv").write_text("t_ns,dx,dy,dyaw_deg\n" + rows)
+    return folder
+
+
+def replayed(folder: Path, name: str, method: str, start_pose=None):
+    """``ceilrun replay`` of a recording with a MAVLink ODOMETRY link to a file: the
+    published poses (None where a failure row) and each pose's reset_counter decoded
+    from the link's bytes with pymavlink."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    from ceilkit.runtime.io.recording import load_poses
+    from ceilkit.runtime.session import LinkConfig
+
+    out = folder / name
+    link = out / "link.bin"
+    out.mkdir(parents=True, exist_ok=True)
+    replay(folder, out, method=method, start_pose=start_pose,
+           link=LinkConfig(str(link), "mavlink-odometry"))
+    table = load_poses(out / "poses.csv")
+    parser = mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    resets = {}
+    for msg in parser.parse_buffer(link.read_bytes()) or []:
+        if msg.get_type() == "ODOMETRY":
+            resets[int(msg.time_usec)] = int(msg.reset_counter)
+    pubs, counter = [], []
+    for k in range(len(table.t_ns)):
+        x, y = table.x_m[k], table.y_m[k]
+        ok = np.isfinite(table.yaw_rad[k])
+        pubs.append(PoseEstimate(int(table.t_ns[k]), table.method[k],
+                                 float(x) if np.isfinite(x) else None,
+                                 float(y) if np.isfinite(y) else None,
+                                 float(table.yaw_rad[k]), float(table.quality[k]))
+                    if ok else None)
+        counter.append(resets.get(int(table.t_ns[k]) // 1000))
+    return pubs, counter
+
+
 # ----------------------------------------------------------------------- scenarios
 def mixed_site() -> Site:
     rng = np.random.default_rng(1)
@@ -240,6 +289,22 @@ def scenario_teleport(quick: bool) -> None:
                confident_wrong(pubs, traj, range(first, end + 1)))
         report("teleport", m, "  of them while covered (after the move)",
                confident_wrong(pubs, traj, range(jump, n1 + nc)))
+    # the same drive as a SPEC recording through replay; resets from the link's bytes
+    rec = Path(tempfile.mkdtemp())
+    for m, odo_m in (("auto", None), ("auto+odo", odo)):
+        folder = write_recording(rec / m, rig, site, frames, traj, odo_m)
+        pubs, counter = replayed(folder, "replay", "auto", traj.pose(0))
+        seen = [c for c in counter if c is not None]
+        bumps = [k for k in range(1, n) if counter[k] is not None and
+                 counter[k] != next((c for c in counter[k - 1::-1] if c is not None), counter[k])]
+        after = [k for k in bumps if k >= n1]
+        report("teleport", m + "/rec", "ODOMETRY messages decoded", len(seen))
+        report("teleport", m + "/rec", "reset_counter bumps after the cover", len(after))
+        if after:
+            report("teleport", m + "/rec", "frames from first view to relocalized",
+                   after[0] - first + 1)
+        report("teleport", m + "/rec", "quality >= 0.8 wrong by > 5 cm",
+               confident_wrong(pubs, traj))
     del alone
 
 
