@@ -251,6 +251,40 @@ class FaultWatch:
                         self._reason)
 
 
+class CameraLoss:
+    """A live camera that sends no frame for ``fault_after_s`` is lost: one line, the
+    pipeline's sinks are told ``camera_lost`` (``telemetry.camera_losses`` counts it),
+    and the fault is cleared by the next frame."""
+
+    def __init__(self, pipeline: Pipeline, watch: FaultWatch, fault_after_s: float,
+                 start_ns: int) -> None:
+        self.pipeline = pipeline
+        self.watch = watch
+        self.fault_after_ns = fault_after_s * 1e9
+        self.last_frame_ns = start_ns
+        self.faulted = False
+
+    def waiting(self, now_ns: int) -> None:
+        """No frame came in a wait slice ending at ``now_ns``."""
+        if not self.faulted and now_ns - self.last_frame_ns > self.fault_after_ns:
+            self.faulted = True
+            self.pipeline.telemetry.camera_losses += 1
+            log.warning("no frame for %.1f s: camera lost, waiting for it "
+                        "(the link reports camera_lost)",
+                        (now_ns - self.last_frame_ns) / 1e9)
+            self.pipeline.set_fault("camera_lost")
+
+    def frame(self, capture_ns: int) -> None:
+        """A frame captured at ``capture_ns`` arrived."""
+        if self.faulted:
+            self.faulted = False
+            log.warning("camera back after %.1f s; running again",
+                        (capture_ns - self.last_frame_ns) / 1e9)
+            self.pipeline.set_fault(None)
+            self.watch.wrong_size = None
+        self.last_frame_ns = capture_ns
+
+
 @dataclass(frozen=True, eq=False)
 class LiveResult:
     """How the live loop went.
@@ -311,8 +345,7 @@ def run_live(source: FrameSource, pipeline: Pipeline,
     tel = pipeline.telemetry
     watch = FaultWatch(pipeline, camera_size)
     start = clock()
-    last_frame_ns = start
-    faulted = False
+    camera = CameraLoss(pipeline, watch, fault_after_s, start)
     try:
         while not stop.is_set():
             if max_frames and tel.frames >= max_frames:
@@ -322,27 +355,14 @@ def run_live(source: FrameSource, pipeline: Pipeline,
                 if frame is None:
                     if source.closed:
                         break
-                    now = clock()
-                    if not faulted and now - last_frame_ns > fault_after_s * 1e9:
-                        faulted = True
-                        tel.camera_losses += 1
-                        log.warning("no frame for %.1f s: camera lost, waiting for it "
-                                    "(the link reports camera_lost)",
-                                    (now - last_frame_ns) / 1e9)
-                        pipeline.set_fault("camera_lost")
+                    camera.waiting(clock())
                     continue
             else:
                 frame = source.read()
                 if frame is None:
                     break
             capture_ns = frame.t_ns if source.live else clock()
-            if faulted:
-                faulted = False
-                log.warning("camera back after %.1f s; running again",
-                            (capture_ns - last_frame_ns) / 1e9)
-                pipeline.set_fault(None)
-                watch.wrong_size = None
-            last_frame_ns = capture_ns
+            camera.frame(capture_ns)
             if rec is not None:
                 rec.write(frame)  # in the log before its pose goes out
             watch.frame(frame, tel.frames)
