@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.honesty import MODEL_REASONS
 from ceilkit.runtime.features.grey import to_grey
 
 
@@ -128,6 +129,7 @@ FAILURE_REASONS: Mapping[str, str] = MappingProxyType({
     "no_block": "no block or marker of the site in view",
     "partial_block": "a block is only partly in view (cut by the frame's edge or occluded)",
     "unknown_marker": "the only markers in view are not in the site",
+    **MODEL_REASONS,   # the model checks (estimators/honesty.py, docs/methods/honesty.md)
 })
 """Every reason an estimator may give, with its meaning (docs/methods list them too)."""
 

@@ -37,6 +37,7 @@ from ceilkit.runtime.estimators.base import (
     Estimate,
     Estimator,
     EstimatorOptions,
+    Failure,
     PoseEstimate,
     elapsed_ms,
 )
@@ -67,7 +68,21 @@ from ceilkit.runtime.estimators.corridor.setup import (
     default_match_tol_m,
 )
 from ceilkit.runtime.estimators.corridor.track import LineTracker
+from ceilkit.runtime.estimators.honesty import (
+    DEFAULT_ALPHA,
+    HEADING_DISAGREES,
+    MISFIT,
+    OUTSIDE_SITE,
+    VANISHING_LINE,
+    WEAK_GEOMETRY,
+    Misfit,
+    SiteExtent,
+    check_options,
+    misfit,
+    outside_site,
+)
 from ceilkit.runtime.features.lines import SegmentDetector
+from ceilkit.runtime.geometry.rotations import wrap_pi
 
 MIN_LENGTH_SHARE = 0.04
 """The default shortest segment, as a share of the image width."""
@@ -98,6 +113,23 @@ class CorridorOptions(EstimatorOptions):
         gn_iterations: most joint Gauss-Newton steps on ``(psi, c_y)``.
         min_elevation_deg: image rows whose rays all rise less than this above the
             horizon hold no useful ceiling and are not searched.
+        noise_px: the expected standard deviation of a fitted endpoint (px): the
+            chi-square test of the fit's residuals (``misfit``) is against it.
+        misfit_alpha: the chi-square test's false-alarm rate on a fit that is noise.
+        max_vp_elevation_deg: the forward family's free vanishing point may lie at
+            most this far off the vanishing line the calibrated mount predicts
+            (``vanishing_line``).
+        max_vanishing_line_deg: the line through both families' free vanishing points
+            may be at most this far from the predicted one (``vanishing_line``; larger:
+            the across family is often two short segments, whose vanishing point is
+            poorly determined).
+        max_heading_change_deg: the refinement may move the heading at most this far
+            from the vanishing point's (``heading_disagrees``).
+        min_lines: fewest distinct site lines matched (``weak_geometry``).
+        min_spread: the matched forward endpoints must span at least this share of
+            the image width (``weak_geometry``).
+        site_margin_m: the pose may lie at most this far outside the site's extent
+            (``outside_site``).
         track: with a prior, search for the site lines only across their predicted
             image lines (:mod:`~.track`: 1-D edge searches, no line detector); the
             global path runs when that check fails and every ``track_full_every``-th
@@ -122,6 +154,14 @@ class CorridorOptions(EstimatorOptions):
     track: bool = False
     track_search_px: float = 5.0
     track_full_every: int = 30
+    noise_px: float = 1.0
+    misfit_alpha: float = DEFAULT_ALPHA
+    max_vp_elevation_deg: float = 5.0
+    max_vanishing_line_deg: float = 10.0
+    max_heading_change_deg: float = 2.0
+    min_lines: int = 2
+    min_spread: float = 0.1
+    site_margin_m: float = 1.5
 
 
 class CorridorEstimator(Estimator):
@@ -151,6 +191,8 @@ class CorridorEstimator(Estimator):
         self.detector = SegmentDetector(o.detector, min_length_px, rows=self.setup.rows,
                                         merge=False)
         self.angle_tol_rad = math.radians(o.angle_tol_deg)
+        check_options(o)
+        self.extent = SiteExtent.from_site(site)
         self._ctx = LabelContext(self.setup, cam, self.angle_tol_rad, self.match_tol_m,
                                  self.detector.min_length_px)
         self.lines_track = (LineTracker(self.setup, cam, o.track_search_px) if o.track
@@ -266,11 +308,15 @@ class CorridorEstimator(Estimator):
         return best
 
     def _pose(self, t_ns: int, fr: FrameLines, best: Labeling, gd: GNInputs,
-              fit: PanOffsetFit, fit_rms: np.ndarray, t0: float) -> PoseEstimate:
-        """The pose, its quality and diagnostics from the refined fit."""
+              fit: PanOffsetFit, fit_rms: np.ndarray, t0: float) -> Estimate:
+        """The pose, its quality and diagnostics from the refined fit, or the Failure of
+        the first model check it does not pass (:meth:`_model_check`)."""
         yaw, y_m, cov = vehicle_pose(fit, self.setup)
         along, across = best.along, best.across
         vl = vanishing_line_check(fr.lines, fr.len_n, along, across, self.setup.R_level_cam)
+        groups = np.concatenate([gd.y, 1e9 + np.arange(gd.p0.size)])
+        mf = misfit(fit.residuals_px, self.options.noise_px, 2, groups,
+                    self.options.misfit_alpha, huber_px=1.0)
         quality = (min(1.0, best.n_lines / 3.0) * min(1.0, gd.n_a / 4.0)
                    / (1.0 + (fit.rms_px / 1.5) ** 2))
         if best.ambiguous:
@@ -289,14 +335,69 @@ class CorridorEstimator(Estimator):
             "camera_y_m": fit.camera_y_m,
             "ambiguous": bool(best.ambiguous),
             "hypothesis": best.how,
-            **vl,
+            "heading_change_deg": math.degrees(wrap_pi(fit.psi_rad - best.psi_rad)),
+            "spread": self._spread(fr, along & (best.assign >= 0)),
+            **vl, **mf.diagnostics(),
             # for overlays (references, no copies): the undistorted normalized segments,
             # the two families and the site line of each forward segment (-1: none)
             "segments_n": fr.segs, "along": along, "across": across, "assign": best.assign,
             "ms": elapsed_ms(t0),
         }
+        failed = self._model_check(mf, diag, y_m, t_ns)
+        if failed is not None:
+            return failed
+        if mf.inflation != 1.0:
+            cov = cov * mf.inflation
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(np.clip(quality, 0, 1)),
                             y_m - self.setup.axis_y_m, cov, diag)
+
+    def _spread(self, fr: FrameLines, matched: np.ndarray) -> float:
+        """The matched forward endpoints' extent (bounding-box diagonal, undistorted) as a
+        share of the image width."""
+        if not matched.any():
+            return 0.0
+        ep = fr.segs[matched].reshape(-1, 2)
+        span = math.hypot(float(np.ptp(ep[:, 0])), float(np.ptp(ep[:, 1])))
+        return span * self.setup.f_px / self.rig.camera.width
+
+    def _model_check(self, mf: Misfit, diag: dict[str, Any], y_m: float,
+                     t_ns: int) -> Failure | None:
+        """Whether the model explains the frame (docs/methods/honesty.md): the Failure
+        of the first check that fails, in this order: ``misfit`` (chi-square of the
+        residuals against ``noise_px``), ``vanishing_line`` (the free vanishing points
+        against the calibrated mount), ``heading_disagrees`` (refined against
+        vanishing-point heading), ``weak_geometry`` (site lines matched, spread),
+        ``outside_site``; None when all pass."""
+        o = self.options
+        if not mf.passed:
+            return self.fail(t_ns, MISFIT, mf.detail(), **diag)
+        for key, what, most in (
+                ("vp_along_elevation_deg", "the forward vanishing point is",
+                 o.max_vp_elevation_deg),
+                ("vanishing_line_residual_deg", "the vanishing line is",
+                 o.max_vanishing_line_deg)):
+            v = diag[key]
+            if math.isfinite(v) and abs(v) > most:
+                return self.fail(t_ns, VANISHING_LINE,
+                                 f"{what} {abs(v):.1f} deg off the calibrated mount's "
+                                 f"vanishing line (at most {most:g}): the mount's tilt and "
+                                 f"swing are wrong, or the lines are not the site's", **diag)
+        change = abs(diag["heading_change_deg"])
+        if change > o.max_heading_change_deg:
+            return self.fail(t_ns, HEADING_DISAGREES,
+                             f"the refinement moved the heading {change:.1f} deg from the "
+                             f"vanishing point's (at most {o.max_heading_change_deg:g})",
+                             **diag)
+        if diag["n_lines_matched"] < o.min_lines or diag["spread"] < o.min_spread:
+            return self.fail(t_ns, WEAK_GEOMETRY,
+                             f"{diag['n_lines_matched']} site lines matched (at least "
+                             f"{o.min_lines}), spanning {diag['spread']:.2f} of the image "
+                             f"width (at least {o.min_spread:g})", **diag)
+        out = outside_site(self.extent, None, y_m, o.site_margin_m)
+        if out is not None:
+            return self.fail(t_ns, OUTSIDE_SITE, out, **diag)
+        return None
+
 
 
 def _median_finite(a: np.ndarray) -> float:

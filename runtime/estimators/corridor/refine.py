@@ -16,7 +16,7 @@ Example::
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -125,12 +125,16 @@ class PanOffsetFit:
         psi_rad, camera_y_m: the solution. cov: ``((p00, p01), (p10, p11))`` of
             ``(psi, c_y)`` (rad², rad m, m²; inf where the normal equations are
             singular). rms_px: the residuals' rms (NaN without residuals).
+        residuals_px: ``(K + B,)`` the last step's pixel residuals (along endpoints
+            first, then across segments), for the model check
+            (:mod:`~ceilkit.runtime.estimators.honesty`).
     """
 
     psi_rad: float
     camera_y_m: float
     cov: tuple[tuple[float, float], tuple[float, float]]
     rms_px: float
+    residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False)
 
 
 def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: CorridorSetup,
@@ -166,7 +170,7 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
         nan = float("nan")
         cov = ((np.inf, nan), (nan, np.inf))        # (as T diag(inf, inf) T^T: inf * 0)
     rms_px = math.sqrt(float(r @ r) / r.size) if r.size else float("nan")
-    return PanOffsetFit(psi, cy, cov, rms_px)
+    return PanOffsetFit(psi, cy, cov, rms_px, r)
 
 
 def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup

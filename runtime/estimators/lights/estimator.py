@@ -47,6 +47,15 @@ from ceilkit.runtime.estimators.base import (
     PoseEstimate,
     elapsed_ms,
 )
+from ceilkit.runtime.estimators.honesty import (
+    DEFAULT_ALPHA,
+    MISFIT,
+    OUTSIDE_SITE,
+    SiteExtent,
+    check_options,
+    misfit,
+    outside_site,
+)
 from ceilkit.runtime.estimators.lights.matching import Candidate, PatternMatcher
 from ceilkit.runtime.estimators.lights.observe import (
     Observation,
@@ -87,6 +96,11 @@ class LightsOptions(EstimatorOptions):
         max_view_angle_deg: spots seen further than this from the vertical are ignored
             (tiny, poorly resolved, and the edge of a fisheye image circle).
         max_spots: examine at most this many candidate regions, nearest the nadir first.
+        noise_px: the expected standard deviation of a light's centroid, per image axis
+            (px): the chi-square test of the refined fit (``misfit``) is against it.
+        misfit_alpha: the chi-square test's false-alarm rate on a fit that is noise.
+        site_margin_m: the pose may lie at most this far outside the site's extent
+            (the lights' bounding box; ``outside_site``).
         track: with a prior, look for the lights only in windows around their predicted
             pixels (:mod:`~.track`); the global path runs when the window check fails
             and every ``track_full_every``-th tracked frame. Off by default.
@@ -105,6 +119,9 @@ class LightsOptions(EstimatorOptions):
     prior_gate_m: float | None = None
     max_view_angle_deg: float = 75.0
     max_spots: int = 12
+    noise_px: float = 1.0
+    misfit_alpha: float = DEFAULT_ALPHA
+    site_margin_m: float = 1.5
     track: bool = False
     track_window_px: float = 10.0
     track_full_every: int = 30
@@ -151,6 +168,8 @@ class LightsEstimator(Estimator):
         if o.gate_m <= 0 or diameter_m < 0:
             raise ConfigError(None, "options.gate_m",
                               "expected gate_m > 0 and light_diameter_m >= 0")
+        check_options(o)
+        self.extent = SiteExtent.from_site(site)
         self.ceiling_height_m = site.ceiling_height_m
         self.lights_w = np.asarray(site.lights_m, float)
         spacing_m = _min_spacing(self.lights_w)
@@ -182,7 +201,8 @@ class LightsEstimator(Estimator):
 
         Returns:
             :class:`PoseEstimate` (``lateral_m`` None) or a Failure with reason
-            ``no_lights``, ``too_few_lights``, ``no_match`` or ``ambiguous``.
+            ``no_lights``, ``too_few_lights``, ``no_match``, ``ambiguous``, or a model
+            check's (:meth:`checked`): ``misfit``, ``outside_site``.
         """
         if self.windows is not None and prior is not None and prior.x_m is not None \
                 and prior.y_m is not None:
@@ -218,12 +238,35 @@ class LightsEstimator(Estimator):
                      "rms_px": rms, "mode": mode, "score": cand.score,
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": elapsed_ms(t0)})
-        return PoseEstimate(t_ns, NAME, x, y, yaw, quality, None, cov, diag)
+        return self.checked(t_ns, x, y, yaw, quality, cov, res, diag)
+
+    def checked(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float, quality: float,
+                cov: np.ndarray, res_px: np.ndarray, diag: dict[str, Any]) -> Estimate:
+        """The pose, once the model check passes (docs/methods/honesty.md), else the
+        Failure of the first check that fails: ``misfit`` (the chi-square of the
+        refined residual norms ``res_px (K,)`` against ``noise_px``; each norm split
+        evenly over u and v gives the same statistic over the 2K residuals, 3 fitted),
+        ``outside_site``. A passing fit's covariance is scaled by
+        :attr:`~ceilkit.runtime.estimators.honesty.Misfit.inflation` (1 when the
+        reduced chi-square is at most 1)."""
+        o = self.options
+        mf = misfit(np.repeat(np.asarray(res_px, float) / math.sqrt(2.0), 2), o.noise_px, 3,
+                    alpha=o.misfit_alpha)
+        diag.update(mf.diagnostics())
+        if not mf.passed:
+            return self.fail(t_ns, MISFIT, mf.detail(), **diag)
+        out = outside_site(self.extent, x_m, y_m, o.site_margin_m)
+        if out is not None:
+            return self.fail(t_ns, OUTSIDE_SITE, out, **diag)
+        if mf.inflation != 1.0:
+            cov = cov * mf.inflation
+        return PoseEstimate(t_ns, NAME, x_m, y_m, yaw_rad, quality, None, cov, diag)
 
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
                  t0: float) -> PoseEstimate | None:
         """The window fix around ``prior`` (:mod:`~.track`), or ``None``: the window
-        check failed, or a global search is due (``track_full_every``)."""
+        check or the model check (:meth:`checked`) failed, or a global search is due
+        (``track_full_every``)."""
         every = self.options.track_full_every
         if every > 0 and self._window_fixes >= every:
             self._window_fixes = 0
@@ -243,8 +286,11 @@ class LightsEstimator(Estimator):
                 "kept": None, "inliers": k, "matched_lights": tuple(fix.pairs[:, 1].tolist()),
                 "pairs": fix.pairs, "rms_px": rms, "mode": "window", "score": float(k),
                 "runner_up_score": None, "ms": elapsed_ms(t0)}
-        return PoseEstimate(t_ns, NAME, fix.x_m, fix.y_m, fix.yaw_rad, quality, None,
-                            fix.cov, diag)
+        # the same model check as the global path; a window fix that fails it is not
+        # published: the global search decides the frame
+        out = self.checked(t_ns, fix.x_m, fix.y_m, fix.yaw_rad, quality, fix.cov,
+                           fix.res_px, diag)
+        return out if isinstance(out, PoseEstimate) else None
 
     def _candidate(self, obs: Observation, prior: PoseEstimate | None, t_ns: int,
                    diag: dict[str, Any]
