@@ -27,6 +27,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -578,3 +579,38 @@ def render_views(board: Board, camera: CameraModel, n_views: int, rng: np.random
 __all__ = ["ARUCO_DICTIONARIES", "SUBPIX_FRACTION", "Board", "CharucoBoard", "ChessBoard",
            "Detection", "look_at_pose", "parse_board", "refine_corners", "render_board",
            "render_views"]
+
+
+# -- printing ---------------------------------------------------------------------------------
+
+
+def printable_board(board: Board, dpi: float, label: str = "") -> np.ndarray:
+    """The board as a grey image to print at ``dpi`` (pure black squares on white, the
+    board's white margin around them, ``label`` written below it).
+
+    Pixel ``(u, v)`` shows the board point at its centre, ``(u + 0.5, v + 0.5)`` pixel
+    pitches from the paper's corner: squares are ``square_m * dpi / 0.0254`` pixels,
+    every edge within half a pixel of its true place at 100% print scale.
+    """
+    if not (math.isfinite(dpi) and 50 <= dpi <= 2400):
+        raise ConfigError(None, "dpi", f"expected 50-2400 dots per inch, found {dpi!r}")
+    pitch = 0.0254 / float(dpi)
+    x0, y0, x1, y1 = board.extent_m
+    m = getattr(board, "margin_squares", 1.0) * board.square_m  # type: ignore[attr-defined]
+    w = int(math.ceil((x1 - x0 + 2 * m) / pitch))
+    h = int(math.ceil((y1 - y0 + 2 * m) / pitch))
+    text_h = int(math.ceil(0.012 / pitch)) if label else 0
+    uu, vv = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    xy = np.stack([x0 - m + uu * pitch, y0 - m + vv * pitch], axis=-1)
+    img = np.where(board.texture(xy) < 0.2, 0, 255).astype(np.uint8)   # black ink only
+    if label:
+        strip = np.full((text_h, w), 255, np.uint8)
+        scale = 0.6 * text_h / 30.0
+        (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        if tw > w:
+            scale *= w / tw
+        cv2.putText(strip, label, (int(0.02 * w), int(0.7 * text_h)),
+                    cv2.FONT_HERSHEY_SIMPLEX, scale, 0, max(1, int(round(scale * 2))),
+                    cv2.LINE_AA)
+        img = np.vstack([img, strip])
+    return img

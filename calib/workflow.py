@@ -410,6 +410,42 @@ def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, 
     return MountRun(Path(out), tuple(lines))
 
 
+# -- printable board -------------------------------------------------------------------
+def board(board: Board, out: Path, *, dpi: float = 300.0) -> Path:
+    """Write ``board`` as a printable PNG or PDF (by ``out``'s suffix) at ``dpi``, with
+    its exact ``--board``/``--square`` arguments printed below it
+    (:func:`~ceilkit.calib.boards.printable_board`). Print at 100% scale and measure a
+    square before calibrating.
+
+    Raises:
+        ConfigError: ``out`` (not .png or .pdf), ``dpi``.
+        OutputError: ``out`` cannot be written.
+    """
+    from .boards import printable_board
+
+    suffix = Path(out).suffix.lower()
+    if suffix not in (".png", ".pdf"):
+        raise ConfigError(None, "out", f"expected a .png or .pdf file, found {out}")
+    _check_writable(Path(out))
+    marker = getattr(board, "marker_m", None)
+    label = (f"--board {board.spec} --square {board.square_m:g}"
+             + (f" --marker {marker:g}" if marker is not None else "")
+             + f"  (square {1000 * board.square_m:g} mm at {dpi:g} dpi; print at 100%)")
+    img = printable_board(board, dpi, label)
+    from io import BytesIO
+
+    from PIL import Image
+
+    buf = BytesIO()
+    pil = Image.fromarray(img)
+    if suffix == ".png":
+        pil.save(buf, format="PNG", dpi=(dpi, dpi))
+    else:
+        pil.save(buf, format="PDF", resolution=float(dpi))
+    atomic_write_bytes(Path(out), buf.getvalue())
+    return Path(out)
+
+
 # -- light map -------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class LightmapRun:
