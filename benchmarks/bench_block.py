@@ -165,6 +165,7 @@ def main() -> None:
                      f"CPU median {np.median(c):.2f} ms, p95 {np.percentile(c, 95):.2f} ms")
     lines += drive(rig, site, geo, tg, methods["block"], args.drive_step, rng,
                    Path(args.out))
+    lines += odometry_drives(rig, site, geo, methods["block"], rng)
     for line in lines:
         print(line)
     out = Path(args.out)
@@ -215,6 +216,59 @@ def drive(rig, site, geo, tg, est, step_m: float, rng, out: Path) -> list[str]:
             f"block or marker fully in view, localized {100 * len(ok) / max(len(full), 1):.1f}%"
             f" ({by_prior} resolved by the prior; failures: {', '.join(reasons) or 'none'}),"
             f" position median {np.median(pos):.2f} mm"]
+
+
+def odometry_drives(rig, site, geo, est, rng, step_m: float = 0.03) -> list[str]:
+    """Ceiling-plane odometry (block/odometry.py) chained from one block fix to the next:
+    drift as % of the distance travelled, and the next block's fix against the chained
+    pose in units of the chained 1-sigma (position)."""
+    from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
+    legs = [(0.5, 2.3, 0.30, 0.4), (2.3, 3.8, -0.25, 1.1), (3.8, 5.2, 0.10, -0.3),
+            (5.2, 6.8, 0.20, 2.0), (6.8, 8.5, -0.15, 0.7)]
+    pct, jump, ms, starts = [], [], [], 0
+    for x0, x1, amp, yaw0 in legs:
+        odo = PlaneOdometry(geo)
+        n = int(round((x1 - x0) / step_m)) + 1
+        pose, cov, dist, last = None, None, 0.0, None
+        for i in range(n):
+            x = x0 + i * step_m
+            y = amp * math.sin(math.pi * i / (n - 1))
+            yaw = yaw0 + 0.2 * math.sin(2 * math.pi * i / (n - 1))
+            img = render_frame(rig, site, x, y, yaw, OPTIONS, rng)
+            c0 = time.thread_time()
+            inc = odo.step(img)
+            ms.append(1e3 * (time.thread_time() - c0))
+            if i == 0:
+                fix = est.estimate(img, i, None)
+                starts += int(bool(fix) and fix.x_m is not None)   # else from the truth
+                pose = np.array([fix.x_m, fix.y_m, fix.yaw_rad]) if fix and \
+                    fix.x_m is not None else np.array([x, y, yaw])
+                cov = np.asarray(fix.cov, float) if fix and fix.x_m is not None \
+                    else np.zeros((3, 3))
+                last = (x, y)
+                continue
+            if inc is None:
+                continue
+            c, s_ = math.cos(pose[2]), math.sin(pose[2])
+            d = np.array([c * inc.dx_m - s_ * inc.dy_m, s_ * inc.dx_m + c * inc.dy_m])
+            F = np.eye(3)
+            F[0, 2], F[1, 2] = -d[1], d[0]
+            G = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]])
+            cov = F @ cov @ F.T + G @ inc.cov @ G.T
+            pose = pose + np.array([d[0], d[1], inc.dyaw_rad])
+            dist += math.hypot(x - last[0], y - last[1])
+            last = (x, y)
+        pct.append(100 * math.hypot(pose[0] - x, pose[1] - y) / max(dist, 1e-9))
+        fix = est.estimate(img, n, None)
+        if fix and fix.x_m is not None:
+            e = np.array([fix.x_m - pose[0], fix.y_m - pose[1]])
+            S = cov[:2, :2] + np.asarray(fix.cov, float)[:2, :2]
+            jump.append(math.sqrt(float(e @ np.linalg.solve(S, e))))
+    return [f"ceiling-plane odometry, {len(legs)} drives between fixes ({step_m} m steps): "
+            f"drift median {np.median(pct):.3f}% of distance (max {np.max(pct):.3f}%), "
+            f"next fix vs chained pose {', '.join(f'{j:.2f}' for j in jump)} sigma "
+            f"({len(jump)} legs ending on a fix, {starts} starting on one, the rest from the "
+            f"true pose); {np.median(ms):.2f} ms CPU/step median"]
 
 
 if __name__ == "__main__":
