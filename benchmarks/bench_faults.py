@@ -3,9 +3,11 @@
 Prints the figures and saves them as JSON in ``--out``:
 
 * ``kill``: ``--kills`` (50) recording runs of the simulator (``ceilrun --device
-  sim:corridor --record R --serial WIRE``), each SIGKILLed at a random moment (seeded,
-  0 to 6 s after the process started: start-up included). For each: does the
-  recording open and replay, and is every frame whose ``$PCEIL`` reached the wire in it?
+  sim:corridor --record R --serial PTY``, the serial side a pty opened by its path),
+  each SIGKILLed at a random moment (seeded: a fifth 0-3 s after the process started,
+  i.e. during start-up, the rest 0-4 s after the first ``$PCEIL`` reached the pty).
+  For each: does the recording open and replay, and is every frame whose ``$PCEIL``
+  reached the pty (its stamp) in the recording's frames.csv?
 * ``disk``: a session recording onto a disk that fills mid-run and is freed later: a
   real 2 MB tmpfs (``mount -t tmpfs -o size=2m``, as root; ballast deleted at frame 60)
   or else the ``FullDisk`` fake. The pose stream's sentences, its longest gap between
@@ -30,7 +32,9 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+import tty
 from pathlib import Path
 
 import numpy as np
@@ -46,45 +50,110 @@ RUN = ("from ceilkit.cli.ceilrun import main; import sys; "
 def _sent_ms(wire: Path) -> list[int]:
     if not wire.exists():
         return []
-    return [int(line.split(b",")[2]) for line in wire.read_bytes().split(b"\r\n")[:-1]
+    return _stamps_ms(wire.read_bytes())
+
+
+def _stamps_ms(data: bytes) -> list[int]:
+    """The capture times (ms) of the whole ``$PCEIL`` sentences in ``data``."""
+    return [int(line.split(b",")[2]) for line in data.split(b"\r\n")[:-1]
             if line.startswith(b"$PCEIL,")]
 
 
-def bench_kills(n: int, seed: int) -> dict:
+class _Pty:
+    """A pseudo-terminal pair: ceilrun opens the slave by its path (``/dev/pts/N``) as a
+    serial port; a thread reads everything that reaches the master (the controller)."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        self.path = os.ttyname(self.slave)
+        self.data = bytearray()
+        self.first_pose: float | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            if select.select([self.master], [], [], 0.02)[0]:
+                try:
+                    chunk = os.read(self.master, 65536)
+                except OSError:
+                    return
+                self.data += chunk
+                if self.first_pose is None and b"$PCEIL" in self.data:
+                    self.first_pose = time.monotonic()
+
+    def close(self) -> bytes:
+        if self._stop.is_set():
+            return bytes(self.data)
+        time.sleep(0.1)  # what the kernel still holds for the master
+        self._stop.set()
+        self._thread.join()
+        os.close(self.master)
+        os.close(self.slave)
+        return bytes(self.data)
+
+
+def bench_kills(n: int, seed: int, startup_share: float = 0.2) -> dict:
+    """``n`` SIGKILLs of ``ceilrun --device sim:corridor --record R --serial PTY``: a
+    share ``startup_share`` at 0-3 s after the process started (start-up: port, camera,
+    folder), the rest at 0-4 s after the first ``$PCEIL`` reached the pty."""
     rng = np.random.default_rng(seed)
     out = {"kills": n, "replayed": 0, "no_folder": 0, "sent": 0, "sent_missing": 0,
-           "frames": 0, "only_in_log": 0, "repaired": 0, "failures": []}
-    for k, after in enumerate(rng.uniform(0.0, 6.0, n)):
+           "frames": 0, "only_in_log": 0, "repaired": 0, "partial_left": 0,
+           "serial": "pty (slave opened by its /dev/pts path)", "failures": [],
+           "runs": []}
+    for k in range(n):
+        at_start = bool(rng.uniform() < startup_share)
+        after = float(rng.uniform(0.0, 3.0 if at_start else 4.0))
         tmp = Path(tempfile.mkdtemp(prefix="bench_kill_"))
-        rec, wire = tmp / "rec", tmp / "wire.nmea"
+        rec, pty = tmp / "rec", _Pty()
+        data = b""
         try:
             proc = subprocess.Popen([sys.executable, "-c", RUN, "--device", "sim:corridor",
-                                     "--record", str(rec), "--serial", str(wire)],
+                                     "--record", str(rec), "--serial", pty.path],
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            time.sleep(float(after))
+            if not at_start:
+                deadline = time.monotonic() + 120
+                while pty.first_pose is None and time.monotonic() < deadline \
+                        and proc.poll() is None:
+                    time.sleep(0.01)
+            time.sleep(after)
             proc.send_signal(signal.SIGKILL)
             proc.wait()
-            sent = set(_sent_ms(wire))
+            data = pty.close()
+            sent = set(_stamps_ms(data))
             out["sent"] += len(sent)
+            out["partial_left"] += len(list(tmp.glob(".rec.partial*")))
+            moment = f"{after:4.2f} s after {'start' if at_start else 'first pose'}"
             if not rec.exists():
                 out["no_folder"] += 1
                 out["sent_missing"] += len(sent)
+                out["runs"].append({"at": moment, "sent": len(sent), "recorded": None})
+                print(f"  kill {k:2d} {moment}: {len(sent):3d} sent, no recording yet")
                 continue
             try:
                 recording = Recording(rec)
-                replay(rec, tmp / "replay")
+                res = replay(rec, tmp / "replay")
                 out["replayed"] += 1
             except Exception as exc:  # noqa: BLE001 - counted and shown
-                out["failures"].append(f"kill {k} at {after:.2f} s: {exc}")
+                out["failures"].append(f"kill {k} {moment}: {exc}")
                 continue
             stamps = {int(t) // 1_000_000 for t in recording.t_ns}
-            out["sent_missing"] += len(sent - stamps)
+            missing = len(sent - stamps)
+            out["sent_missing"] += missing
             out["frames"] += len(recording)
             out["only_in_log"] += recording.logged
             out["repaired"] += repair_recording(rec)
-            print(f"  kill {k:2d} at {after:4.2f} s: {len(sent):3d} sent, "
-                  f"{len(recording):3d} recorded ({recording.logged} only in the log)")
+            out["runs"].append({"at": moment, "sent": len(sent), "recorded": len(recording),
+                                "replayed": res.telemetry.frames, "missing": missing,
+                                "only_in_log": recording.logged})
+            print(f"  kill {k:2d} {moment}: {len(sent):3d} sent, {len(recording):3d} "
+                  f"recorded ({recording.logged} only in the log), {missing} sent but "
+                  f"missing, {res.telemetry.frames} replayed")
         finally:
+            pty.close()
             shutil.rmtree(tmp, ignore_errors=True)
     return out
 
@@ -222,7 +291,7 @@ def main() -> None:
           f"{kills['sent']} poses sent, {kills['sent_missing']} of their frames missing "
           f"from the recording; {kills['frames']} frames recorded, "
           f"{kills['only_in_log']} of them only in the write-ahead log (repaired "
-          f"{kills['repaired']})")
+          f"{kills['repaired']}); half-made folders left: {kills['partial_left']}")
     for f in kills["failures"]:
         print("  FAILED", f)
     print("disk: the disk fills mid-run")
