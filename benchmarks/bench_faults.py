@@ -9,7 +9,8 @@ Prints the figures and saves them as JSON in ``--out``:
   For each: does the recording open and replay, and is every frame whose ``$PCEIL``
   reached the pty (its stamp) in the recording's frames.csv?
 * ``disk``: a session recording onto a disk that fills mid-run and is freed later: a
-  real 2 MB tmpfs (``mount -t tmpfs -o size=2m``, as root; ballast deleted at frame 60)
+  real 64 MB tmpfs (``mount -t tmpfs -o size=64m``, as root) filled by a ballast
+  file to 1 MB free, the ballast deleted at frame 60
   or else the ``FullDisk`` fake. The pose stream's sentences, its longest gap between
   frames (wall time) against the same run without a fault, the lines logged, frames not
   recorded.
@@ -43,6 +44,8 @@ from ceilkit.runtime.io.recording import FullDisk, Recording, repair_recording
 from ceilkit.runtime.replay import replay
 from ceilkit.runtime.session import LinkConfig, SessionConfig, run_session
 
+TMPFS_MB = 64          # holds a 300-frame sim recording (about 145 kB a frame)
+ROOM_BYTES = 1_000_000  # what the ballast leaves free: the disk fills after a few frames
 RUN = ("from ceilkit.cli.ceilrun import main; import sys; "
        "sys.argv = ['ceilrun', *sys.argv[1:]]; main()")
 
@@ -171,7 +174,8 @@ def _mount_tmpfs(path: Path) -> bool:
     if os.geteuid() != 0:
         return False
     path.mkdir(parents=True, exist_ok=True)
-    return subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(path)],
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={TMPFS_MB}m", "tmpfs",
+                           str(path)],
                           capture_output=True).returncode == 0
 
 
@@ -208,17 +212,17 @@ def bench_disk(frames: int) -> dict:
     try:
         base = _session(tmp, tmp / "baseline", None, lambda tel: None, frames)
         if real:
-            ballast = mnt / "ballast"
-            ballast.write_bytes(b"\0" * 1_200_000)
+            ballast = mnt / "ballast"  # leaves room for a few frames only
+            st = os.statvfs(mnt)
+            ballast.write_bytes(b"\0" * (st.f_bavail * st.f_frsize - ROOM_BYTES))
 
             def free(tel):
                 if tel.frames == 60 and ballast.exists():
                     ballast.unlink()
-                    shutil.rmtree(mnt / "rec" / "frames", ignore_errors=True)
-                    (mnt / "rec" / "frames").mkdir()
 
             fault = _session(tmp, mnt / "rec", None, free, frames)
-            how = "tmpfs size=2m (ballast and old PNGs deleted at frame 60)"
+            how = (f"tmpfs size={TMPFS_MB}m filled by a ballast file to "
+                   f"{ROOM_BYTES // 1000} kB free, the ballast deleted at frame 60")
         else:
             disk = FullDisk(fail_after_bytes=4_000_000)
 

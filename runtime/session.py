@@ -63,7 +63,7 @@ log = logging.getLogger("ceilkit.session")
 
 SIM_FRAMES = 300
 """Frames the simulator renders when ``frames`` is 0."""
-WAIT_BACKOFF_S = (0.5, 8.0)
+WAIT_BACKOFF_S = (0.5, 2.0)
 """``wait``: first and longest delay between attempts to open a camera or port."""
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 """Signals that stop a session cleanly (SIGHUP: the ssh session dropped)."""
