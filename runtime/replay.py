@@ -150,12 +150,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
             contextlib.ExitStack() as stack:
         more = [*sinks, the_link] if the_link is not None else list(sinks)
         if ros2 is not None:
-            from ceilkit.runtime.io.ros2 import Ros2Node
-
-            node = Ros2Node(ros2)
-            if track:
-                node.attach(tracker)
-            more.append(stack.enter_context(node))
+            more.append(_open_ros2(ros2, tracker if track else None, stack))
         pipeline = Pipeline(tap or estimator, [PoseFileSink(writer, clock), *more],
                             tracker if track else None, clock)
         res = _run(rec, pipeline, realtime, progress, clock,
@@ -169,6 +164,17 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
                                   result.lines())
         result = dataclasses.replace(result, report=path)
     return result
+
+
+def _open_ros2(config: Any, tracker: Any, stack: contextlib.ExitStack) -> Any:
+    """The ROS 2 node (closed by ``stack``), feeding ``tracker`` (``/initialpose``,
+    odometry) unless it is ``None``; rclpy is imported only here."""
+    from ceilkit.runtime.io.ros2 import Ros2Node
+
+    node = Ros2Node(config)
+    if tracker is not None:
+        node.attach(tracker)
+    return stack.enter_context(node)
 
 
 def _run(rec: Recording, pipeline: Pipeline, realtime: bool,

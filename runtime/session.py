@@ -425,14 +425,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                                         config.start_pose,
                                         config.link_odometry or config.ros2 is not None)
     record = record_folder(config.record) if config.record is not None else None
-    check_outputs(session_inputs(config, rig), _session_outputs(config, record))
-    if config.out is not None and (config.out / "poses.csv").exists() and not config.force:
-        raise refuse_existing(config.out / "poses.csv")
-    if record is not None and not config.force:
-        if is_mcap(record) and record.exists():
-            raise refuse_existing(record, "a recording is")
-        if not is_mcap(record):
-            RecordingWriter.check_free(record)
+    _check_free(config, rig, record)
     cap = config.capture
     start = time.monotonic()
     source = open_waiting(
@@ -464,18 +457,10 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                 guards.append(OutputGuard("poses.csv", config.out, unit="row"))
                 sinks.append(PoseFileSink(writer, guard=guards[-1]))
             recorder = None
-            if record is not None and is_mcap(record):
+            if record is not None:
                 guards.append(OutputGuard("recording", record))
-                mcap = stack.enter_context(McapWriter(record, rig, site, config.force,
-                                                      truth_of=truth))
-                recorder = McapRecorder(mcap, guards[-1])
-                sinks.append(McapSink(mcap, guards[-1]))
-            elif record is not None:
-                guards.append(OutputGuard("recording", record))
-                recorder = AsyncRecorder(
-                    stack.enter_context(RecordingWriter(record, rig, site, truth_of=truth,
-                                                        force=config.force, disk=disk)),
-                    fsync_every_s=config.fsync_every_s, guard=guards[-1])
+                recorder = _open_recorder(config, record, rig, site, truth, disk,
+                                          guards[-1], stack, sinks)
             if meter is not None:
                 sinks.append(MeterSink(meter))
             pipeline = Pipeline(view.watch(estimator, sinks) if view else estimator, sinks,
@@ -491,6 +476,35 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                          source.reopens if isinstance(source, CameraSource) else 0,
                          meter.result() if meter is not None else None, record,
                          tuple(line for g in guards for line in g.lines()))
+
+
+def _check_free(config: SessionConfig, rig: Any, record: Path | None) -> None:
+    """Refuse, before anything is opened, an output that is an input or that exists
+    (without ``force``)."""
+    check_outputs(session_inputs(config, rig), _session_outputs(config, record))
+    if config.out is not None and (config.out / "poses.csv").exists() and not config.force:
+        raise refuse_existing(config.out / "poses.csv")
+    if record is not None and not config.force:
+        if is_mcap(record) and record.exists():
+            raise refuse_existing(record, "a recording is")
+        if not is_mcap(record):
+            RecordingWriter.check_free(record)
+
+
+def _open_recorder(config: SessionConfig, record: Path, rig: Any, site: Any, truth: Any,
+                   disk: Disk, guard: OutputGuard, stack: contextlib.ExitStack,
+                   sinks: list[PoseSink]) -> Any:
+    """The recorder of ``record`` (an MCAP file, or a SPEC folder written by a thread),
+    opened and closed by ``stack``; an MCAP recording's pose sink joins ``sinks``."""
+    if is_mcap(record):
+        mcap = stack.enter_context(McapWriter(record, rig, site, config.force,
+                                              truth_of=truth))
+        sinks.append(McapSink(mcap, guard))
+        return McapRecorder(mcap, guard)
+    return AsyncRecorder(
+        stack.enter_context(RecordingWriter(record, rig, site, truth_of=truth,
+                                            force=config.force, disk=disk)),
+        fsync_every_s=config.fsync_every_s, guard=guard)
 
 
 def _open_ros2(config: Any, tracker: Any, source: Any, stack: contextlib.ExitStack) -> Any:

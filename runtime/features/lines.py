@@ -19,6 +19,9 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from types import MappingProxyType
+
 import cv2
 import numpy as np
 
@@ -37,7 +40,6 @@ from ceilkit.runtime.features.edges import (
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.camera import CameraModel
 
-DETECTORS = ("fld", "lsd", "hough")
 MIN_FIT_POINTS = 4   # located edge points a segment needs to be refitted
 
 
@@ -47,12 +49,60 @@ def segment_lengths(segs: np.ndarray) -> np.ndarray:
     return np.hypot(s[:, 2] - s[:, 0], s[:, 3] - s[:, 1])
 
 
+class FldKernel:
+    """cv2.ximgproc's FastLineDetector (Canny thresholds ``canny``; ``merge``: OpenCV's
+    ``do_merge`` of collinear pieces)."""
+
+    def __init__(self, min_length_px: float, canny: tuple[float, float],
+                 merge: bool) -> None:
+        self._det = cv2.ximgproc.createFastLineDetector(
+            int(max(5, min_length_px * 0.5)), 1.414, canny[0], canny[1], 3, bool(merge))
+
+    def detect(self, gray: np.ndarray) -> np.ndarray | None:
+        """Raw segments of an 8-bit grey image (any shape OpenCV returns), or None."""
+        return self._det.detect(gray)
+
+
+class LsdKernel:
+    """OpenCV's LSD with standard refinement (``canny`` and ``merge`` do not apply)."""
+
+    def __init__(self, min_length_px: float, canny: tuple[float, float],
+                 merge: bool) -> None:
+        self._det = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
+
+    def detect(self, gray: np.ndarray) -> np.ndarray | None:
+        """Raw segments of an 8-bit grey image, or None."""
+        return self._det.detect(gray)[0]
+
+
+class HoughKernel:
+    """Canny edges, then the probabilistic Hough transform (``merge`` does not apply)."""
+
+    def __init__(self, min_length_px: float, canny: tuple[float, float],
+                 merge: bool) -> None:
+        self.min_length_px = min_length_px
+        self.canny = canny
+
+    def detect(self, gray: np.ndarray) -> np.ndarray | None:
+        """Raw segments of an 8-bit grey image, or None."""
+        edges = cv2.Canny(gray, self.canny[0], self.canny[1], L2gradient=True)
+        return cv2.HoughLinesP(edges, 1.0, np.pi / 720, 30,
+                               minLineLength=self.min_length_px, maxLineGap=3)
+
+
+KERNELS: Mapping[str, type] = MappingProxyType({
+    "fld": FldKernel, "lsd": LsdKernel, "hough": HoughKernel})
+"""Line detector name -> its kernel class: to add or replace a detector, write a class
+with ``__init__(min_length_px, canny, merge)`` and ``detect(gray)`` and add it here."""
+DETECTORS = tuple(KERNELS)
+
+
 class SegmentDetector:
     """A reusable line-segment detector on 8-bit grey images.
 
     Args:
-        method: ``fld`` (cv2.ximgproc FastLineDetector), ``lsd`` (cv2 LSD) or
-            ``hough`` (Canny + probabilistic Hough).
+        method: a name in :data:`KERNELS`: ``fld`` (cv2.ximgproc FastLineDetector),
+            ``lsd`` (cv2 LSD) or ``hough`` (Canny + probabilistic Hough).
         min_length_px: shortest segment kept, pixels.
         canny: ``(low, high)`` hysteresis thresholds for ``fld`` and ``hough``.
         rows: ``(v0, v1)``: detect only in image rows ``v0 <= v < v1`` (a region of
@@ -64,21 +114,14 @@ class SegmentDetector:
     def __init__(self, method: str = "fld", min_length_px: float = 20.0,
                  canny: tuple[float, float] = (40.0, 100.0),
                  rows: tuple[int, int] | None = None, merge: bool = True) -> None:
-        if method not in DETECTORS:
+        if method not in KERNELS:
             raise ConfigError(None, "detector",
                               f"expected one of {', '.join(DETECTORS)}, found {method!r}")
         self.method = method
         self.min_length_px = float(min_length_px)
         self.canny = (float(canny[0]), float(canny[1]))
         self.rows = None if rows is None else (max(0, int(rows[0])), int(rows[1]))
-        if method == "fld":
-            self._det = cv2.ximgproc.createFastLineDetector(
-                int(max(5, min_length_px * 0.5)), 1.414, self.canny[0], self.canny[1], 3,
-                bool(merge))
-        elif method == "lsd":
-            self._det = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
-        else:
-            self._det = None
+        self.kernel = KERNELS[method](self.min_length_px, self.canny, merge)
 
     def __call__(self, gray: np.ndarray) -> np.ndarray:
         """Segments ``(N, 4)`` in pixels, at least ``min_length_px`` long."""
@@ -88,14 +131,7 @@ class SegmentDetector:
             gray = gray[v0:max(v0, self.rows[1])]
             if gray.shape[0] < 2:
                 return np.zeros((0, 4))
-        if self.method == "hough":
-            edges = cv2.Canny(gray, self.canny[0], self.canny[1], L2gradient=True)
-            found = cv2.HoughLinesP(edges, 1.0, np.pi / 720, 30,
-                                    minLineLength=self.min_length_px, maxLineGap=3)
-        else:
-            found = self._det.detect(gray)
-            if isinstance(found, tuple):
-                found = found[0]
+        found = self.kernel.detect(gray)
         if found is None or len(found) == 0:
             return np.zeros((0, 4))
         segs = np.asarray(found, dtype=np.float64).reshape(-1, 4)

@@ -18,13 +18,7 @@ OFF_PATH = ("sim", "viz")
 MAX_CLASS_LINES = 300
 MAX_FUNCTION_LINES = 80
 
-EXEMPT = {
-    # TODO(issue 10): split run_session (93 lines). session.py held helper B's uncommitted
-    # ROS2/MCAP edits past the architecture helper's cut-off, so it was left alone.
-    "runtime/session.py::run_session": "93 lines; split pending (B's file during #10)",
-    # TODO(issue 10): split replay (81 lines); replay.py was not the architecture
-    # helper's file (another helper had uncommitted edits in it).
-    "runtime/replay.py::replay": "81 lines; split pending (another helper's file)",
+EXEMPT: dict[str, str] = {
 }
 """``path::qualified name`` -> why it is over its limit for now. Keep this tiny."""
 
