@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 from ceilkit.runtime.errors import OutputError
 from ceilkit.runtime.estimators.base import Estimate, Failure
-from ceilkit.runtime.io.recording import RecordingWriter
+from ceilkit.runtime.io.recording import RecordingWriter, guarded_log
 from ceilkit.runtime.io.sources import Frame, FrameSource, LiveSource
 from ceilkit.runtime.pipeline import OutputGuard, Pipeline, Telemetry
 
@@ -99,27 +99,9 @@ class AsyncRecorder:
         """Log ``frame`` (on the caller's thread: it is on disk when this returns)."""
         if self._error is not None:
             raise self._error
-        guard = self.guard
-        if guard is not None and not guard.due("log"):
-            guard.skip()
-            return
-        try:
-            self.writer.log(frame)
-        except OutputError as exc:
-            if guard is None:
-                raise
-            if getattr(exc, "errno", 0) is None:  # not an image: never recordable
-                self.skipped_images += 1
-                if self.skipped_images == 1:
-                    log.warning("%s; not recorded", exc)
-                return
-            guard.skip()
-            guard.failed(exc, self.writer.count, "log")
-            return
-        self.queued += 1
-        if guard is not None:
-            guard.ok(self.writer.count - 1, "log")
-        self._wake.set()
+        if guarded_log(self, lambda: self.writer.log(frame)):
+            self.queued += 1
+            self._wake.set()
 
     def _convert(self) -> bool:
         """One frame to PNG; whether the encoder should try again at once."""

@@ -59,6 +59,7 @@ from ceilkit.runtime.io.recording import (
     Truth,
     _encode_png,
     check_frame_image,
+    guarded_log,
     refuse_existing,
 )
 from ceilkit.runtime.io.sources import Frame, SourceBase
@@ -295,25 +296,8 @@ class McapRecorder:
         return (self.guard.lost if self.guard is not None else 0) + self.skipped_images
 
     def write(self, frame: Frame) -> None:
-        guard = self.guard
-        if guard is not None and not guard.due("log"):
-            guard.skip()
-            return
-        try:
-            self.writer.write_frame(frame)
-        except OutputError as exc:
-            if getattr(exc, "errno", 0) is None:
-                self.skipped_images += 1
-                if self.skipped_images == 1:
-                    log.warning("%s; not recorded", exc)
-                return
-            if guard is None:
-                raise
-            guard.skip()
-            guard.failed(exc, self.writer.count, "log")
-            return
-        if guard is not None:
-            guard.ok(self.writer.count - 1, "log")
+        """Put ``frame`` into the file (see :func:`~ceilkit.runtime.io.recording.guarded_log`)."""
+        guarded_log(self, lambda: self.writer.write_frame(frame))
 
     def close(self) -> None:
         self.writer.close()

@@ -41,10 +41,10 @@ import struct
 import threading
 import zlib
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -899,6 +899,35 @@ class Recording(SourceBase):
         f = self.frame(self._i)
         self._i += 1
         return f
+
+
+def guarded_log(recorder: Any, write: Callable[[], None]) -> bool:
+    """Run ``write`` (one frame into ``recorder.writer``) under ``recorder.guard``;
+    whether the frame was written. A frame that is no image is counted in
+    ``recorder.skipped_images`` (warned once) and never recorded; with a guard, a
+    failing disk pauses the recording (``guard.failed``), without one it raises. The
+    one policy of the folder recorder (live.AsyncRecorder) and the MCAP recorder.
+    """
+    guard = recorder.guard
+    if guard is not None and not guard.due("log"):
+        guard.skip()
+        return False
+    try:
+        write()
+    except OutputError as exc:
+        if getattr(exc, "errno", 0) is None:  # not an image: never recordable
+            recorder.skipped_images += 1
+            if recorder.skipped_images == 1:
+                log.warning("%s; not recorded", exc)
+            return False
+        if guard is None:
+            raise
+        guard.skip()
+        guard.failed(exc, recorder.writer.count, "log")
+        return False
+    if guard is not None:
+        guard.ok(recorder.writer.count - 1, "log")
+    return True
 
 
 # --------------------------------------------------------------------------- poses
