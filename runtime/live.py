@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 from ceilkit.runtime.errors import OutputError
 from ceilkit.runtime.estimators.base import Estimate, Failure
-from ceilkit.runtime.io.recording import RecordingWriter, guarded_log
+from ceilkit.runtime.io.recording import GuardedRecorder, RecordingWriter, guarded_log
 from ceilkit.runtime.io.sources import Frame, FrameSource, LiveSource
 from ceilkit.runtime.pipeline import OutputGuard, Pipeline, Telemetry
 
@@ -51,7 +51,7 @@ REPORT_EVERY_S = 10.0
 """At most one report of a continuing fault per this many seconds."""
 
 
-class AsyncRecorder:
+class AsyncRecorder(GuardedRecorder):
     """Records frames through a :class:`RecordingWriter`: the raw frame into its
     write-ahead log at once (:meth:`write`), the PNG on a background thread, in order.
 
@@ -84,16 +84,6 @@ class AsyncRecorder:
         self.skipped_images = 0
         self._thread = threading.Thread(target=self._run, name="ceilkit-record", daemon=True)
         self._thread.start()
-
-    @property
-    def count(self) -> int:
-        """Frames recorded so far (in the log or as PNGs)."""
-        return self.writer.count
-
-    @property
-    def not_recorded(self) -> int:
-        """Frames that a full disk (or a frame that is no image) kept out."""
-        return (self.guard.lost if self.guard is not None else 0) + self.skipped_images
 
     def write(self, frame: Frame) -> None:
         """Log ``frame`` (on the caller's thread: it is on disk when this returns)."""

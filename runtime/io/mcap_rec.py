@@ -53,16 +53,18 @@ from ceilkit.runtime.io import ros2_msgs as msgs
 from ceilkit.runtime.io.recording import (
     ODOMETRY_HEADER,
     CsvFile,
+    GuardedRecorder,
     Odometry,
     Recording,
     RecordingWriter,
+    StoredFrames,
     Truth,
     _encode_png,
     check_frame_image,
     guarded_log,
     refuse_existing,
 )
-from ceilkit.runtime.io.sources import Frame, SourceBase
+from ceilkit.runtime.io.sources import Frame
 
 log = logging.getLogger("ceilkit.mcap")
 
@@ -276,7 +278,7 @@ def _config_files(rig: Rig, site: Site, header: str = "") -> dict[str, bytes]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-class McapRecorder:
+class McapRecorder(GuardedRecorder):
     """The live loop's recorder for an ``.mcap`` (what
     :class:`~ceilkit.runtime.live.AsyncRecorder` is for a folder): :meth:`write`
     puts the frame's PNG into the file on the loop's thread, before its pose goes out.
@@ -286,14 +288,6 @@ class McapRecorder:
         self.writer = writer
         self.guard = guard
         self.skipped_images = 0
-
-    @property
-    def count(self) -> int:
-        return self.writer.count
-
-    @property
-    def not_recorded(self) -> int:
-        return (self.guard.lost if self.guard is not None else 0) + self.skipped_images
 
     def write(self, frame: Frame) -> None:
         """Put ``frame`` into the file (see :func:`~ceilkit.runtime.io.recording.guarded_log`)."""
@@ -384,7 +378,7 @@ def read_mcap(path: str | Path) -> tuple[list[Any], dict[int, Any], dict[str, by
     return messages, channels, attachments, complete
 
 
-class McapRecording(SourceBase):
+class McapRecording(StoredFrames):
     """An MCAP recording opened for reading; a frame source, as
     :class:`~ceilkit.runtime.io.recording.Recording` is for a folder (same
     attributes: ``rig``, ``site``, ``truth``, ``odometry``, ``t_ns``, ``index``).
@@ -482,12 +476,6 @@ class McapRecording(SourceBase):
         check_frame_image(image, where, self.rig)
         return Frame(image, int(self.t_ns[k]), int(self.index[k]))
 
-    def read(self) -> Frame | None:
-        if self._i >= len(self):
-            return None
-        f = self.frame(self._i)
-        self._i += 1
-        return f
 
 
 def _truth(rows: list[tuple[int, float, float, float]]) -> Truth:
@@ -498,6 +486,15 @@ def _truth(rows: list[tuple[int, float, float, float]]) -> Truth:
 
 
 # ---------------------------------------------------------------------------- convert
+def _copy_truth(truth: Truth | None, writer: Any) -> None:
+    """Every row of ``truth`` (if any) through ``writer.write_truth``."""
+    if truth is None:
+        return
+    for k in range(truth.t_ns.size):
+        writer.write_truth(int(truth.t_ns[k]), float(truth.x_m[k]), float(truth.y_m[k]),
+                           float(truth.yaw_rad[k]))
+
+
 def convert_recording(src: str | Path, dst: str | Path, force: bool = False) -> int:
     """A SPEC recording folder to an ``.mcap`` file, or an ``.mcap`` to a SPEC folder
     (by the suffixes); the number of frames converted. Frames are lossless PNGs both
@@ -521,11 +518,7 @@ def convert_recording(src: str | Path, dst: str | Path, force: bool = False) -> 
                 f = rec.frame(k)
                 w.write_png(int(rec.index[k]), f.t_ns, _encode_png(f.image, src),
                             _image_format(f.image))
-            if rec.truth is not None:
-                tr = rec.truth
-                for k in range(tr.t_ns.size):
-                    w.write_truth(int(tr.t_ns[k]), float(tr.x_m[k]), float(tr.y_m[k]),
-                                  float(tr.yaw_rad[k]))
+            _copy_truth(rec.truth, w)
             if rec.odometry is not None:
                 od = rec.odometry
                 for k in range(len(od)):
@@ -538,11 +531,7 @@ def convert_recording(src: str | Path, dst: str | Path, force: bool = False) -> 
         for k in range(len(mrec)):
             f = mrec.frame(k)
             w.write(Frame(f.image, f.t_ns, k))
-        if mrec.truth is not None:
-            tr = mrec.truth
-            for k in range(tr.t_ns.size):
-                w.write_truth(int(tr.t_ns[k]), float(tr.x_m[k]), float(tr.y_m[k]),
-                              float(tr.yaw_rad[k]))
+        _copy_truth(mrec.truth, w)
     if mrec.odometry is not None:
         od = mrec.odometry
         out = CsvFile(dst / "odometry.csv", ODOMETRY_HEADER)

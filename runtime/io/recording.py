@@ -809,7 +809,46 @@ def check_frame_image(image: np.ndarray, path: str | Path, rig: Rig) -> None:
                           "camera at its calibrated size")
 
 
-class Recording(SourceBase):
+class StoredFrames(SourceBase):
+    """A recording's frames read in order (``read``) by index (``frame(k)``): the
+    shared half of :class:`Recording` and the MCAP recording."""
+
+    _i = 0
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+    def frame(self, k: int) -> Frame:
+        raise NotImplementedError
+
+    def read(self) -> Frame | None:
+        if self._i >= len(self):
+            return None
+        f = self.frame(self._i)
+        self._i += 1
+        return f
+
+
+class GuardedRecorder:
+    """What the live loop asks of a recorder (``writer``, ``guard``, frames kept out):
+    the shared half of the folder recorder (live.AsyncRecorder) and the MCAP one."""
+
+    writer: Any
+    guard: Any = None
+    skipped_images = 0
+
+    @property
+    def count(self) -> int:
+        """Frames recorded so far."""
+        return self.writer.count
+
+    @property
+    def not_recorded(self) -> int:
+        """Frames that a full disk (or a frame that is no image) kept out."""
+        return (self.guard.lost if self.guard is not None else 0) + self.skipped_images
+
+
+class Recording(StoredFrames):
     """A SPEC recording opened for reading; also a frame source.
 
     The whole folder is checked when opened: ``frames.csv`` header and rows, every
@@ -893,12 +932,6 @@ class Recording(SourceBase):
         check_frame_image(image, path, self.rig)
         return Frame(image, int(self.t_ns[k]), i)
 
-    def read(self) -> Frame | None:
-        if self._i >= len(self):
-            return None
-        f = self.frame(self._i)
-        self._i += 1
-        return f
 
 
 def guarded_log(recorder: Any, write: Callable[[], None]) -> bool:

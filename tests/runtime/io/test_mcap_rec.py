@@ -99,7 +99,7 @@ def test_sigkilled_mcap_recording_reads_and_replays_every_finished_frame(tmp_pat
     proc = subprocess.Popen([sys.executable, "-c", RUN, "--device", "sim:corridor",
                              "--record", str(rec), "--out", str(out)],
                             stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 120  # a loaded machine starts slowly
     poses = out / "poses.csv"
     while time.monotonic() < deadline and proc.poll() is None:
         if poses.exists() and poses.read_bytes().count(b"\n") > 8:
@@ -118,9 +118,9 @@ def test_sigkilled_mcap_recording_reads_and_replays_every_finished_frame(tmp_pat
             pass
     assert not mcap_summary(rec)["complete"]  # killed: no summary, no footer
     recording = McapRecording(rec)
-    assert seen >= len(recording) > 8
     with open(poses, newline="") as fh:
         written = [int(r["t_ns"]) for r in csv.DictReader(fh)]
+    assert seen >= len(recording) >= len(written) >= 8  # header + 8 rows seen before the kill
     assert set(written) <= set(recording.t_ns.tolist())  # every finished frame is in it
     res = replay(rec, tmp_path / "replay")
     assert res.telemetry.frames == len(recording)
