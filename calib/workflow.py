@@ -250,6 +250,15 @@ def _fix_lines(fixes: dict[str, float | None], rig: Path | None) -> list[str]:
     return out
 
 
+def _start_rig(rig: str | Path | None, camera: str | Path | None) -> tuple[Rig, str | None]:
+    """The rig a mount fit starts from (``rig``, else ``camera`` on a nominal mount at
+    0.5 m) and the camera file the written rig.yaml names."""
+    if rig is not None:
+        the_rig = Rig.load(rig)
+        return the_rig, the_rig.camera_file
+    return Rig(load_camera(camera), Mount(z_m=0.5)), str(camera)
+
+
 def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = None,
           camera: Path | None = None, drive: Path | None = None,
           fix: Sequence[str] = (), max_frames: int = 8,
@@ -299,12 +308,7 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
     if placements is None:
         raise ConfigError(None, "placements", "the corridor fit needs measured placements "
                           "(a placements file or a recording with truth.csv)")
-    if rig is not None:
-        the_rig = Rig.load(rig)
-        camera_ref = the_rig.camera_file
-    else:
-        the_rig = Rig(load_camera(camera), Mount(z_m=0.5))
-        camera_ref = str(camera)
+    the_rig, camera_ref = _start_rig(rig, camera)
     the_rig = the_rig.with_mount(_fixed_mount(the_rig.mount, fixes,
                                               the_site.ceiling_height_m))
     reasons = {n: (f"--fix {n} (the rig's value)" if v is None else f"--fix {n} (typed)")
@@ -382,12 +386,7 @@ def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, 
         raise ConfigError(None, "fix", "the upward (lights) fit determines every "
                           "parameter or refuses; it holds none (--fix applies to the "
                           "corridor fit)")
-    if rig is not None:
-        the_rig = Rig.load(rig)
-        camera_ref = the_rig.camera_file
-    else:
-        the_rig = Rig(load_camera(camera), Mount(z_m=0.5))
-        camera_ref = str(camera)
+    the_rig, camera_ref = _start_rig(rig, camera)
     _check_writable(out)
     frames, table = load_light_frames(recording, the_rig, max_frames)
     if poses is not None:

@@ -11,17 +11,15 @@ import typer
 
 from ceilkit.calib import workflow
 from ceilkit.calib.boards import parse_board
+from ceilkit.cli.common import BOARD_OPTION, MARKER_OPTION, SQUARE_OPTION
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
     def board(
-        board: str = typer.Option(..., "--board",
-                                  help="chess:COLSxROWS (inner corners) or "
-                                       "charuco:SXxSY[:DICT][:legacy] (squares)."),
-        square: float = typer.Option(..., "--square", help="Square side, metres."),
-        marker: float = typer.Option(None, "--marker",
-                                     help="ChArUco marker side, metres (0.75 square)."),
+        board: str = BOARD_OPTION,
+        square: float = SQUARE_OPTION,
+        marker: float = MARKER_OPTION,
         dpi: float = typer.Option(300.0, "--dpi", help="Print resolution, dots per inch."),
         out: Path = typer.Option(..., "--out", help="The .png or .pdf to write."),
     ) -> None:

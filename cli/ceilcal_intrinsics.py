@@ -18,6 +18,7 @@ import typer
 
 from ceilkit.calib import workflow
 from ceilkit.calib.boards import parse_board
+from ceilkit.cli.common import BOARD_OPTION, MARKER_OPTION, SQUARE_OPTION
 
 
 def _progress(i: int, n: int, fname: str, found: bool) -> None:
@@ -35,12 +36,9 @@ def register(app: typer.Typer) -> None:
         video: Path = typer.Option(None, "--video", help="A video file of the board."),
         device: str = typer.Option(None, "--device",
                                    help="A live camera: index (0) or path (/dev/video0)."),
-        board: str = typer.Option(..., "--board",
-                                  help="chess:COLSxROWS (inner corners) or "
-                                       "charuco:SXxSY[:DICT][:legacy] (squares)."),
-        square: float = typer.Option(..., "--square", help="Square side, metres."),
-        marker: float = typer.Option(None, "--marker",
-                                     help="ChArUco marker side, metres (0.75 square)."),
+        board: str = BOARD_OPTION,
+        square: float = SQUARE_OPTION,
+        marker: float = MARKER_OPTION,
         legacy: bool = typer.Option(False, "--legacy",
                                     help="ChArUco layout of boards made before OpenCV 4.6."),
         detector: str = typer.Option("auto", "--detector",

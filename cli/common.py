@@ -187,3 +187,11 @@ def provenance_header(what: str, lines: list[str] | None = None) -> str:
     from ceilkit.calib.workflow import provenance_header as header
 
     return header(what, lines or ())
+
+
+# The board options that `ceilcal board` and `ceilcal intrinsics` share.
+BOARD_OPTION = typer.Option(..., "--board", help="chess:COLSxROWS (inner corners) or "
+                                                 "charuco:SXxSY[:DICT][:legacy] (squares).")
+SQUARE_OPTION = typer.Option(..., "--square", help="Square side, metres.")
+MARKER_OPTION = typer.Option(None, "--marker",
+                             help="ChArUco marker side, metres (0.75 square).")
