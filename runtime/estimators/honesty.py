@@ -87,6 +87,15 @@ def chi2_quantile(p: float, dof: int) -> float:
     return float(chi2.ppf(p, dof))
 
 
+@lru_cache(maxsize=1024)
+def _f_quantile(p: float, dfn: int, dfd: int) -> float:
+    """The ``p`` quantile of the F distribution (``scipy.stats.f.ppf``, cached: a
+    frame's fit asks for the same few degrees of freedom again and again)."""
+    from scipy.stats import f as f_dist
+
+    return float(f_dist.ppf(p, dfn, dfd))
+
+
 @dataclass(frozen=True)
 class Misfit:
     """The chi-square test of a fit's residuals.
@@ -152,9 +161,7 @@ def design_effect(r: np.ndarray, groups: np.ndarray | None, level: float = 0.99)
         return 1.0
     if not ms_w > 0:
         return m
-    from scipy.stats import f as f_dist
-
-    ratio = (ms_b / ms_w) / float(f_dist.ppf(level, g, n - g))
+    ratio = (ms_b / ms_w) / _f_quantile(level, g, n - g)
     if ratio <= 1.0:
         return 1.0
     rho = (ratio - 1.0) / (ratio + m - 1.0)

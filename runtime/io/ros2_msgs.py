@@ -50,6 +50,10 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 """``DiagnosticStatus.level`` values."""
 
 
+PLANAR_AXES = (0, 1, 5)
+"""(x, y, yaw) among ROS's (x, y, z, roll, pitch, yaw) covariance axes."""
+
+
 def split_stamp(t_ns: int) -> dict[str, int]:
     """Integer ns to ``builtin_interfaces/Time`` fields (``sec`` may be negative)."""
     sec, nsec = divmod(int(t_ns), 1_000_000_000)
@@ -101,10 +105,7 @@ def cov6(cov3: np.ndarray) -> list[float]:
     """A (3, 3) covariance of (x, y, yaw) as the 36 row-major values over
     (x, y, z, roll, pitch, yaw)."""
     c = np.zeros((6, 6))
-    idx = (0, 1, 5)
-    for a, i in enumerate(idx):
-        for b, j in enumerate(idx):
-            c[i, j] = cov3[a, b]
+    c[np.ix_(PLANAR_AXES, PLANAR_AXES)] = cov3
     c[2, 2] = c[3, 3] = c[4, 4] = PLANAR_VAR
     return [float(v) for v in c.ravel()]
 
@@ -112,7 +113,7 @@ def cov6(cov3: np.ndarray) -> list[float]:
 def cov3_of(cov36: Sequence[float]) -> np.ndarray:
     """The (3, 3) block over (x, y, yaw) of 36 row-major values."""
     c = np.asarray(cov36, float).reshape(6, 6)
-    return c[np.ix_((0, 1, 5), (0, 1, 5))].copy()
+    return c[np.ix_(PLANAR_AXES, PLANAR_AXES)].copy()
 
 
 def pose_with_cov(x_m: float, y_m: float, yaw_rad: float, cov3: np.ndarray) -> dict[str, Any]:

@@ -65,7 +65,11 @@ from ceilkit.runtime.estimators.block.pnp import (
     six_dof_check,
 )
 from ceilkit.runtime.estimators.block.seams import predicted_chords
-from ceilkit.runtime.features.lines import SegmentDetector, refine_undistorted
+from ceilkit.runtime.features.lines import (
+    SegmentDetector,
+    refine_undistorted,
+    segment_lengths,
+)
 from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 from ceilkit.runtime.geometry.rotations import wrap_pi
@@ -196,7 +200,7 @@ class BlockEstimator(Estimator):
         sn, _, rms = refine_undistorted(self.geo.camera, grey, segs, retry_half_width_px=(
             None if mode == "predicted" else 6.0))
         good = np.isfinite(rms) if mode == "predicted" else np.ones(len(sn), bool)
-        length = np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
+        length = segment_lengths(segs)
         h, _ = robust_heading(sn[good, :2], sn[good, 2:], self.geo.R_vehicle_cam, hint,
                               math.radians(self.options.parallels_gate_deg), length[good],
                               PERIOD_RAD)
@@ -249,8 +253,7 @@ class BlockEstimator(Estimator):
             got = self._fail(t_ns, ambiguous, partial, unknown, others, diag, t0)
             if not self.options.parallels:
                 return got
-            known = prior is not None and prior and prior.x_m is not None \
-                and prior.y_m is not None
+            known = bool(prior) and prior.x_m is not None and prior.y_m is not None
             h = self._parallels(grey, prior.yaw_rad if prior else None,
                                 np.array([prior.x_m, prior.y_m, prior.yaw_rad])
                                 if known else None)
@@ -306,15 +309,11 @@ class BlockEstimator(Estimator):
         pose, cov = np.array(r.pose, float), np.array(r.cov, float)
         h = self._parallels(grey, float(pose[2]), pose) if self.options.parallels else None
         if h is not None:
-            # one Kalman update of the block's (x, y, yaw) by the parallels' heading
-            s2 = cov[2, 2] + h.sigma_rad ** 2
-            dyaw = math.remainder(h.yaw_rad - pose[2], 2 * math.pi)
-            agree = abs(dyaw) <= PARALLELS_AGREE_SIGMA * math.sqrt(s2)
             diag.update(parallels_n=h.n_lines, parallels_yaw_rad=h.yaw_rad,
                         parallels_sigma_rad=h.sigma_rad, block_yaw_rad=float(pose[2]),
-                        parallels_mode=self._parallels_mode,
-                        parallels_fused=agree)
-            if agree:
+                        parallels_mode=self._parallels_mode)
+            diag["parallels_fused"] = _agrees(pose, cov, h)
+            if diag["parallels_fused"]:
                 pose, cov = self._fuse(pose, cov, h)
         diag.update(source=best.source, rms_px=r.rms_px, shape_m=best.shape_m,
                     n_edge=r.n, fixes=len(fixes), resolved_by=best.resolved_by,
@@ -438,3 +437,10 @@ def _pick_by_prior(fits: list, prior: PoseEstimate | None) -> int | None:
     if best > 1.0 or second < PRIOR_MARGIN * best:
         return None
     return int(order[0])
+
+
+def _agrees(pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading) -> bool:
+    """Whether the parallels' heading is within :data:`PARALLELS_AGREE_SIGMA` of a
+    block's (their combined sigma): only then is it fused."""
+    dyaw = math.remainder(h.yaw_rad - pose[2], 2 * math.pi)
+    return abs(dyaw) <= PARALLELS_AGREE_SIGMA * math.sqrt(cov[2, 2] + h.sigma_rad ** 2)

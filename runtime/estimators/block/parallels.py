@@ -84,17 +84,7 @@ def heading_from_parallels(p1_norm: np.ndarray, p2_norm: np.ndarray,
     ok = np.isfinite(phi) & (w > 1e-12)
     if np.count_nonzero(ok) < MIN_LINES:
         return None
-    phi, w = phi[ok], w[ok]
-    k = 2 * math.pi / period_rad
-    z = np.sum(w * np.exp(1j * k * phi))
-    yaw = math.atan2(z.imag, z.real) / k
-    res = np.array([math.remainder(p - yaw, period_rad) for p in phi])
-    dof = max(len(phi) - 1, 1)
-    sigma = max(math.sqrt(float(np.sum(w * res * res)) / float(np.sum(w)) / dof),
-                SIGMA_FLOOR_RAD)
-    if hint_yaw_rad is not None:
-        yaw = hint_yaw_rad + math.remainder(yaw - hint_yaw_rad, period_rad)
-    return ParallelsHeading(wrap_pi(yaw), sigma, period_rad, int(len(phi)))
+    return _near_hint(_weighted(phi[ok], w[ok], period_rad), hint_yaw_rad)
 
 
 def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.ndarray,
@@ -117,38 +107,45 @@ def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.n
     ok = np.isfinite(phi) & (w > 1e-12)
     if np.count_nonzero(ok) < MIN_LINES:
         return None, np.zeros(len(phi), bool)
-    k = 2 * math.pi / period_rad
-
-    def mean(sel: np.ndarray) -> float:
-        z = np.sum(w[sel] * np.exp(1j * k * phi[sel]))
-        return math.atan2(z.imag, z.real) / k
 
     def near(ref: float, gate: float) -> np.ndarray:
-        res = np.abs(np.remainder(phi - ref + period_rad / 2, period_rad) - period_rad / 2)
-        return ok & (res < gate)
+        return ok & (np.abs(_wrapped(phi - ref, period_rad)) < gate)
 
-    ref = hint_yaw_rad if hint_yaw_rad is not None else mean(ok)
+    ref = hint_yaw_rad if hint_yaw_rad is not None else _mean(phi[ok], w[ok], period_rad)
     if hint_yaw_rad is None:
         sel = near(ref, 3 * gate_rad)
         if np.count_nonzero(sel) >= MIN_LINES:
-            ref = mean(sel)
+            ref = _mean(phi[sel], w[sel], period_rad)
     kept = near(ref, gate_rad)
     if np.count_nonzero(kept) < MIN_LINES:
         return None, kept
-    h = _weighted(phi[kept], w[kept], period_rad)
-    if hint_yaw_rad is not None:
-        h = ParallelsHeading(wrap_pi(hint_yaw_rad + math.remainder(h.yaw_rad - hint_yaw_rad,
-                                                                   period_rad)),
-                             h.sigma_rad, h.period_rad, h.n_lines)
-    return h, kept
+    return _near_hint(_weighted(phi[kept], w[kept], period_rad), hint_yaw_rad), kept
+
+
+def _wrapped(a: np.ndarray, period_rad: float) -> np.ndarray:
+    """``a`` modulo the period, in ``[-period/2, period/2)``."""
+    return np.remainder(a + period_rad / 2, period_rad) - period_rad / 2
+
+
+def _mean(phi: np.ndarray, w: np.ndarray, period_rad: float) -> float:
+    """The weighted circular mean of line headings modulo the period."""
+    k = 2 * math.pi / period_rad
+    z = np.sum(w * np.exp(1j * k * phi))
+    return math.atan2(z.imag, z.real) / k
+
+
+def _near_hint(h: ParallelsHeading, hint_yaw_rad: float | None) -> ParallelsHeading:
+    """``h`` on the branch nearest ``hint_yaw_rad`` (unchanged without a hint)."""
+    if hint_yaw_rad is None:
+        return h
+    yaw = hint_yaw_rad + math.remainder(h.yaw_rad - hint_yaw_rad, h.period_rad)
+    return ParallelsHeading(wrap_pi(yaw), h.sigma_rad, h.period_rad, h.n_lines)
 
 
 def _weighted(phi: np.ndarray, w: np.ndarray, period_rad: float) -> ParallelsHeading:
     """The weighted circular mean of line headings and its sigma (see the module)."""
-    k = 2 * math.pi / period_rad
-    z = np.sum(w * np.exp(1j * k * phi))
-    yaw = math.atan2(z.imag, z.real) / k
-    res = np.remainder(phi - yaw + period_rad / 2, period_rad) - period_rad / 2
+    yaw = _mean(phi, w, period_rad)
+    res = _wrapped(phi - yaw, period_rad)
     dof = max(len(phi) - 1, 1)
     sigma = max(math.sqrt(float(np.sum(w * res * res)) / float(np.sum(w)) / dof),
                 SIGMA_FLOOR_RAD)

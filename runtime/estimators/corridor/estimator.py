@@ -399,7 +399,6 @@ class CorridorEstimator(Estimator):
         return None
 
 
-
 def _median_finite(a: np.ndarray) -> float:
     """The median of the finite values of ``a`` (NaN if none); as ``np.median``, without
     its overhead on a few values."""
