@@ -27,6 +27,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -44,16 +45,50 @@ MIN_CHARUCO_CORNERS = 6
 
 
 SUBPIX_FRACTION = 0.35      # cornerSubPix half-window over the corner's shortest spacing
+WORKING_MPX = 1.0
+"""Boards are found on an image decimated to about this many megapixels (an integer
+factor, box-averaged), then refined at full resolution: ``findChessboardCorners`` on a
+12 Mpx view takes minutes, on its 1 Mpx decimation well under a second."""
+
+
+def working_factor(shape: tuple[int, ...], working_mpx: float = WORKING_MPX) -> int:
+    """The integer decimation factor for an image of ``shape`` ``(H, W, ...)``:
+    ``round(sqrt(H * W / working_mpx / 1e6))``, at least 1 (1: no decimation; a
+    ``working_mpx`` of 0 also means none).
+
+    Example: a 4000x3000 image at 1 Mpx is decimated by 3 (1333x1000)."""
+    if working_mpx <= 0:
+        return 1
+    return max(1, int(math.floor(math.sqrt(shape[0] * shape[1] / (working_mpx * 1e6))
+                                 + 0.5)))
+
+
+def decimate(grey: np.ndarray, factor: int) -> np.ndarray:
+    """``grey`` box-averaged over ``factor`` x ``factor`` pixels (the last partial
+    rows and columns dropped). Pixel ``j`` of the result is centred on full-resolution
+    pixel ``factor * j + (factor - 1) / 2`` (SPEC §1 centres), see :func:`undecimate`."""
+    if factor <= 1:
+        return grey
+    h, w = grey.shape[:2]
+    hs, ws = h // factor, w // factor
+    return cv2.resize(grey[:hs * factor, :ws * factor], (ws, hs),
+                      interpolation=cv2.INTER_AREA)
+
+
+def undecimate(points_px: np.ndarray, factor: int) -> np.ndarray:
+    """Pixels ``(..., 2)`` of a :func:`decimate`-d image in the full-resolution one."""
+    return np.asarray(points_px, np.float64) * factor + (factor - 1) / 2.0
 
 
 def refine_corners(grey: np.ndarray, corners: np.ndarray, cols: int, rows: int,
-                   half: int | None = None) -> np.ndarray:
+                   half: int | None = None, max_half: int = 11) -> np.ndarray:
     """Chessboard corners refined by ``cv2.cornerSubPix``, each with its own window.
 
     ``cornerSubPix`` assumes that every edge inside its window passes through the
     corner; an edge that does not (the far side of a neighbouring square, the board's
     border) pulls the corner. A square of side ``s`` px puts such edges ``s`` away, so
-    each corner gets the half-window ``0.35 * s`` (3 to 11 px), ``s`` its shortest
+    each corner gets the half-window ``0.35 * s`` (3 to ``max_half`` px, 11 unless a
+    decimated detection scales it), ``s`` its shortest
     distance to a grid neighbour: the shortest sides of a foreshortened board are where a
     fixed window fails (OpenCV's sample ``left02.jpg``: 11 px against 22 px squares moves
     its corners by up to 5 px). Corners that share a half-window are refined together.
@@ -63,6 +98,7 @@ def refine_corners(grey: np.ndarray, corners: np.ndarray, cols: int, rows: int,
         corners: ``(rows * cols, 1, 2)`` float32 from ``findChessboardCorners``, row-major.
         cols, rows: inner corners across and down.
         half: one half-window for every corner (px) instead, or None.
+        max_half: the largest half-window, px.
 
     Returns:
         ``(rows * cols, 1, 2)`` float32 refined corners, px (SPEC §1).
@@ -79,7 +115,7 @@ def refine_corners(grey: np.ndarray, corners: np.ndarray, cols: int, rows: int,
     near[:, 1:] = np.minimum(near[:, 1:], dx)
     near[:-1, :] = np.minimum(near[:-1, :], dy)
     near[1:, :] = np.minimum(near[1:, :], dy)
-    halves = np.clip(np.floor(SUBPIX_FRACTION * near), 3, 11).astype(int).ravel()
+    halves = np.clip(np.floor(SUBPIX_FRACTION * near), 3, max_half).astype(int).ravel()
     for h in np.unique(halves):
         idx = np.flatnonzero(halves == h)
         pts[idx] = cv2.cornerSubPix(grey, np.ascontiguousarray(pts[idx]), (int(h), int(h)),
@@ -166,6 +202,11 @@ class ChessBoard(Board):
     OpenCV's calibration sample does with 11), ``sb`` (``findChessboardCornersSB``, more
     robust to blur but biased by about 0.4% in focal length on our renders), or ``auto``
     (classic, then sb).
+
+    ``working_mpx``: an image larger than this (megapixels) is searched decimated by
+    :func:`working_factor` and its corners refined at full resolution by
+    :func:`refine_corners` with windows up to ``11 * factor`` px; 0 searches at full
+    resolution.
     """
 
     cols: int
@@ -174,6 +215,7 @@ class ChessBoard(Board):
     margin_squares: float = 1.0
     detector: str = "auto"
     subpix_half: int | None = None
+    working_mpx: float = WORKING_MPX
 
     def __post_init__(self) -> None:
         if self.subpix_half is not None and self.subpix_half < 2:
@@ -188,6 +230,7 @@ class ChessBoard(Board):
         if self.detector not in ("auto", "sb", "classic"):
             raise ConfigError(None, "detector", f"expected auto, sb or classic, found "
                               f"{self.detector!r}")
+        _check_working(self.working_mpx)
 
     @property
     def spec(self) -> str:  # type: ignore[override]
@@ -208,13 +251,26 @@ class ChessBoard(Board):
 
     def detect(self, image: np.ndarray, name: str = "") -> Detection | None:
         grey = to_grey(image)
+        f = working_factor(grey.shape, self.working_mpx)
+        corners = self._find(decimate(grey, f), self.subpix_half if f == 1 else None)
+        if corners is None:
+            return None
+        if f > 1:              # found at the working size: refined at full resolution
+            corners = refine_corners(grey, undecimate(corners, f).astype(np.float32),
+                                     self.cols, self.rows, self.subpix_half, 11 * f)
+        px = corners.reshape(-1, 2).astype(np.float64)
+        ids = np.arange(px.shape[0])
+        h, w = grey.shape[:2]
+        return Detection(name, (w, h), ids, px, self.corners_board)
+
+    def _find(self, grey: np.ndarray, half: int | None) -> np.ndarray | None:
+        """``(rows * cols, 1, 2)`` corners of ``grey`` by the chosen detector, or None."""
         found, corners = False, None
         if self.detector in ("auto", "classic"):
             flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
             found, corners = cv2.findChessboardCorners(grey, (self.cols, self.rows), flags=flags)
             if found and corners is not None:
-                corners = refine_corners(grey, corners, self.cols, self.rows,
-                                         self.subpix_half)
+                corners = refine_corners(grey, corners, self.cols, self.rows, half)
         if not found and self.detector in ("auto", "sb"):
             flags = (cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
                      | cv2.CALIB_CB_ACCURACY)
@@ -222,10 +278,7 @@ class ChessBoard(Board):
                                                          flags=flags)
         if not found or corners is None or len(corners) != self.cols * self.rows:
             return None
-        px = corners.reshape(-1, 2).astype(np.float64)
-        ids = np.arange(px.shape[0])
-        h, w = grey.shape[:2]
-        return Detection(name, (w, h), ids, px, self.corners_board)
+        return corners
 
     def texture(self, xy_m: np.ndarray) -> np.ndarray:
         s = self.square_m
@@ -280,7 +333,8 @@ class ChessBoard(Board):
         for a, b in sizes:
             if a >= 2 and b >= 2 and (a, b) not in seen:
                 seen.add((a, b))
-                out.append(ChessBoard(a, b, self.square_m, detector=self.detector))
+                out.append(ChessBoard(a, b, self.square_m, detector=self.detector,
+                                      working_mpx=self.working_mpx))
         return out
 
 
@@ -293,6 +347,10 @@ class CharucoBoard(Board):
         square_m, marker_m: square and marker side lengths in metres.
         dictionary: an ArUco dictionary name without ``DICT_`` (e.g. ``4X4_50``).
         legacy: the pre-4.6 layout (``cv2.aruco.CharucoBoard.setLegacyPattern``).
+        working_mpx: as :class:`ChessBoard`: markers and corners are found on a
+            decimated image, the corners refined by ``cornerSubPix`` at full resolution
+            (half-window 0.8 of the gap between a corner and the nearest marker edge,
+            2 to ``11 * factor`` px).
     """
 
     squares_x: int
@@ -302,6 +360,7 @@ class CharucoBoard(Board):
     dictionary: str = "4X4_50"
     legacy: bool = False
     margin_squares: float = 0.5
+    working_mpx: float = WORKING_MPX
     _cv: object = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -314,6 +373,7 @@ class CharucoBoard(Board):
         if not 0 < self.marker_m < self.square_m:
             raise ConfigError(None, "marker", f"expected a marker size in (0, "
                               f"{self.square_m:g}) metres, found {self.marker_m:g}")
+        _check_working(self.working_mpx)
         name = self.dictionary.upper().removeprefix("DICT_")
         if name not in ARUCO_DICTIONARIES:
             raise ConfigError(None, "board", f"unknown ArUco dictionary {self.dictionary!r} "
@@ -352,21 +412,29 @@ class CharucoBoard(Board):
     def detect(self, image: np.ndarray, name: str = "") -> Detection | None:
         grey = to_grey(image)
         h, w = grey.shape[:2]
+        f = working_factor(grey.shape, self.working_mpx)
         detector = cv2.aruco.CharucoDetector(self.cv_board)
-        corners, ids, _, _ = detector.detectBoard(grey)
+        corners, ids, _, _ = detector.detectBoard(decimate(grey, f))
         if ids is None or corners is None or len(ids) < MIN_CHARUCO_CORNERS:
             return None
         ids = ids.ravel().astype(np.int32)
         if self.cv_board.checkCharucoCornersCollinear(ids.reshape(-1, 1)):
             return None
-        obj, img = self.cv_board.matchImagePoints(corners, ids.reshape(-1, 1))
+        if f > 1:              # found at the working size: refined at full resolution
+            gap = 0.5 * (1.0 - self.marker_m / self.square_m)    # marker edge, squares
+            corners = _refine_scattered(grey, undecimate(corners.reshape(-1, 2), f),
+                                        0.8 * gap, 11 * f)
+        obj, img = self.cv_board.matchImagePoints(
+            np.asarray(corners, np.float32).reshape(-1, 1, 2), ids.reshape(-1, 1))
         return Detection(name, (w, h), ids, np.asarray(img, np.float64).reshape(-1, 2),
                          np.asarray(obj, np.float64).reshape(-1, 3))
 
     def markers_found(self, image: np.ndarray) -> int:
         """How many markers of this board's dictionary ``image`` shows."""
         detector = cv2.aruco.CharucoDetector(self.cv_board)
-        _, _, _, marker_ids = detector.detectBoard(to_grey(image))
+        grey = to_grey(image)
+        _, _, _, marker_ids = detector.detectBoard(
+            decimate(grey, working_factor(grey.shape, self.working_mpx)))
         return 0 if marker_ids is None else len(marker_ids)
 
     @cached_property
@@ -397,11 +465,30 @@ class CharucoBoard(Board):
                           (sy, sx, not self.legacy)):
             try:
                 out.append(CharucoBoard(a, b, self.square_m, self.marker_m, self.dictionary,
-                                        leg))
+                                        leg, working_mpx=self.working_mpx))
             except ConfigError:
                 pass
         return out
 
+
+
+def _check_working(working_mpx: float) -> None:
+    if not (math.isfinite(working_mpx) and working_mpx >= 0):
+        raise ConfigError(None, "working_mpx", f"expected a size in megapixels >= 0 (0: full "
+                          f"resolution), found {working_mpx!r}")
+
+
+def _refine_scattered(grey: np.ndarray, pts_px: np.ndarray, fraction: float, max_half: int
+                      ) -> np.ndarray:
+    """Corners ``(N, 2)`` (not a full grid) refined by ``cornerSubPix`` with one
+    half-window: ``fraction`` of their median nearest-neighbour spacing, 2 to
+    ``max_half`` px (a ChArUco corner's window must stop short of the markers' edges)."""
+    pts = np.asarray(pts_px, np.float32).reshape(-1, 1, 2).copy()
+    d = np.linalg.norm(pts[:, None, 0, :] - pts[None, :, 0, :], axis=2)
+    np.fill_diagonal(d, np.inf)
+    half = int(np.clip(np.floor(fraction * np.median(d.min(axis=1))), 2, max_half))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    return cv2.cornerSubPix(grey, pts, (half, half), (-1, -1), crit)
 
 
 def _x_junctions(grey: np.ndarray, pts_px: np.ndarray, spacing_px: np.ndarray,
@@ -459,6 +546,28 @@ def parse_board(spec: str, square_m: float, marker_m: float | None = None,
 # -- rendering (tests and simulation) --------------------------------------------------------
 
 
+_RENDER_SUBPIXELS = 4_000_000   # sub-pixels traced at once (bounds a large render's memory)
+
+
+def _render_rows(board: Board, camera: CameraModel, R: np.ndarray, t: np.ndarray,
+                 supersample: int, v0: int, v1: int) -> np.ndarray:
+    """Rows ``v0:v1`` of the noise-free render, grey levels 0..255 (float)."""
+    K = camera.K.copy()
+    K[1, 2] -= v0                           # the strip is a camera with its centre moved
+    strip = dataclasses.replace(camera, height=v1 - v0, K=K)
+    rays = subpixel_rays(strip, supersample)
+    n = R[:, 2]
+    denom = rays @ n
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lam = (n @ t) / denom
+        X = rays * lam[..., None] - t
+        xy = X @ R[:, :2]                     # R^T (X - t), first two components
+    valid = np.isfinite(lam) & (lam > 0)
+    xy = np.where(valid[..., None], xy, 1e6)
+    val = np.where(valid, board.texture(xy), 0.35)
+    return val.reshape(v1 - v0, supersample, camera.width, supersample).mean(axis=(1, 3)) * 255.0
+
+
 def render_board(board: Board, camera: CameraModel, rvec_cam_board: np.ndarray,
                  t_cam_board_m: np.ndarray, rng: np.random.Generator | None = None,
                  noise_sigma: float = 2.0, blur_sigma_px: float = 0.7,
@@ -483,19 +592,10 @@ def render_board(board: Board, camera: CameraModel, rvec_cam_board: np.ndarray,
     rng = np.random.default_rng(0) if rng is None else rng
     R, _ = cv2.Rodrigues(np.asarray(rvec_cam_board, np.float64).reshape(3))
     t = np.asarray(t_cam_board_m, np.float64).reshape(3)
-    rays = subpixel_rays(camera, supersample)
-    n = R[:, 2]
-    denom = rays @ n
-    with np.errstate(invalid="ignore", divide="ignore"):
-        lam = (n @ t) / denom
-        X = rays * lam[..., None] - t
-        xy = X @ R[:, :2]                     # R^T (X - t), first two components
-    valid = np.isfinite(lam) & (lam > 0)
-    xy = np.where(valid[..., None], xy, 1e6)
-    val = board.texture(xy)
-    val = np.where(valid, val, 0.35)
     H, W = camera.height, camera.width
-    img = val.reshape(H, supersample, W, supersample).mean(axis=(1, 3)) * 255.0
+    strip = max(1, _RENDER_SUBPIXELS // (W * supersample * supersample))
+    img = np.concatenate([_render_rows(board, camera, R, t, supersample, v0,
+                                       min(H, v0 + strip)) for v0 in range(0, H, strip)])
     if blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
     if noise_sigma > 0:
@@ -576,9 +676,9 @@ def render_views(board: Board, camera: CameraModel, n_views: int, rng: np.random
     return out
 
 
-__all__ = ["ARUCO_DICTIONARIES", "SUBPIX_FRACTION", "Board", "CharucoBoard", "ChessBoard",
-           "Detection", "look_at_pose", "parse_board", "refine_corners", "render_board",
-           "render_views"]
+__all__ = ["ARUCO_DICTIONARIES", "SUBPIX_FRACTION", "WORKING_MPX", "Board", "CharucoBoard",
+           "ChessBoard", "Detection", "decimate", "look_at_pose", "parse_board",
+           "refine_corners", "render_board", "render_views", "undecimate", "working_factor"]
 
 
 # -- printing ---------------------------------------------------------------------------------

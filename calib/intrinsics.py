@@ -529,7 +529,7 @@ def read_grey(path: str | Path) -> np.ndarray:
 def _board_key(board: Board) -> str:
     extra = (f":{board.marker_m:g}" if isinstance(board, CharucoBoard)
              else f":{getattr(board, 'detector', '')}:w{getattr(board, 'subpix_half', None)}")
-    return f"{board.spec}:{board.square_m:g}{extra}"
+    return f"{board.spec}:{board.square_m:g}{extra}:m{getattr(board, 'working_mpx', 0):g}"
 
 
 def _file_key(path: Path, board: Board) -> str:
@@ -611,7 +611,8 @@ def _board_size_text(board: Board) -> str:
 def _classic(boards: Sequence[Board]) -> list[Board]:
     """The chessboards among ``boards`` with the classic detector (others unchanged)."""
     return [ChessBoard(b.cols, b.rows, b.square_m, b.margin_squares, "classic",
-                       b.subpix_half) if isinstance(b, ChessBoard) else b for b in boards]
+                       b.subpix_half, b.working_mpx) if isinstance(b, ChessBoard) else b
+            for b in boards]
 
 
 def _no_board_error(board: Board, samples: Sequence[tuple[str, np.ndarray]], n: int

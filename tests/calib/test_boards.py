@@ -9,9 +9,13 @@ from ceilkit.calib.boards import (
     CharucoBoard,
     ChessBoard,
     Detection,
+    decimate,
     look_at_pose,
     parse_board,
+    refine_corners,
     render_board,
+    undecimate,
+    working_factor,
 )
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.geometry.camera import CameraModel
@@ -116,3 +120,64 @@ def test_grid_extends_finds_corners_beyond_a_sub_grid():
     det = Detection("a", (640, 480), np.arange(28), grid, sub.corners_board)
     left, right, top, bottom = sub.grid_extends(img, det)
     assert (left, right, top, bottom) == (1, 1, 1, 1)
+
+
+# -- the working resolution (issue 16: large frames) ----------------------------------------
+
+BIG = CameraModel.pinhole(2304, 1728, fx=1900.0, dist=[-0.12, 0.04, 0.0, 0.0, 0.0])
+
+
+def test_working_factor_decimate_and_undecimate_agree():
+    assert working_factor((3000, 4000)) == 3 and working_factor((1000, 1000)) == 1
+    assert working_factor((1728, 2304)) == 2 and working_factor((3000, 4000), 0.0) == 1
+    grey = np.zeros((30, 31), np.uint8)
+    grey[12:15, 18:21] = 255                   # a 3x3 block centred on pixel (19, 13)
+    small = decimate(grey, 3)
+    assert small.shape == (10, 10)
+    v, u = np.unravel_index(np.argmax(small), small.shape)
+    np.testing.assert_allclose(undecimate(np.array([u, v]), 3), [19.0, 13.0])
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf")])
+def test_working_size_is_validated(bad):
+    for make in (lambda: ChessBoard(9, 6, 0.03, working_mpx=bad),
+                 lambda: CharucoBoard(7, 5, 0.04, 0.03, working_mpx=bad)):
+        with pytest.raises(ConfigError) as e:
+            make()
+        assert e.value.key == "working_mpx"
+
+
+def _rms(det, px):
+    e = np.linalg.norm(det.points_px - px[det.ids], axis=1)
+    flipped = np.linalg.norm(det.points_px[::-1] - px[det.ids], axis=1)   # a 180 deg order
+    e = min(e, flipped, key=lambda a: float(a.max()))
+    return float(np.sqrt(np.mean(e ** 2)))
+
+
+def test_decimated_chessboard_finds_the_full_resolution_corners():
+    board = ChessBoard(9, 6, 0.03)
+    rvec, t = look_at_pose(board, 0.45, 30.0, 60.0, 15.0, (0.02, -0.01))
+    img, px, vis = render_board(board, BIG, rvec, t, np.random.default_rng(7),
+                                blur_sigma_px=1.2, supersample=1)
+    assert vis.all()
+    det = board.detect(img)                                  # found at 1152x864
+    full = ChessBoard(9, 6, 0.03, working_mpx=0.0).detect(img)
+    assert det is not None and full is not None and len(det) == len(full) == 54
+    # the same corners: the full-resolution grid refined with the same windows
+    same = refine_corners(img, full.points_px.reshape(-1, 1, 2).astype(np.float32), 9, 6,
+                          max_half=22).reshape(-1, 2)
+    assert np.abs(det.points_px - same).max() < 0.1
+    assert _rms(det, px) <= _rms(full, px) + 0.02
+
+
+def test_decimated_charuco_is_as_accurate_as_full_resolution():
+    board = CharucoBoard(7, 5, 0.04, 0.03)
+    rvec, t = look_at_pose(board, 0.55, 25.0, 200.0, -10.0, (0.01, 0.02))
+    img, px, vis = render_board(board, BIG, rvec, t, np.random.default_rng(8),
+                                blur_sigma_px=1.2, supersample=1)
+    det = board.detect(img)
+    full = CharucoBoard(7, 5, 0.04, 0.03, working_mpx=0.0).detect(img)
+    assert det is not None and full is not None and len(det) == len(full) == 24
+    assert np.array_equal(np.sort(det.ids), np.sort(full.ids))
+    assert _rms(det, px) <= _rms(full, px) + 0.02
+    assert _rms(det, px) < 0.15
