@@ -5,6 +5,7 @@ from __future__ import annotations
 from . import (
     ceilcal_board,
     ceilcal_calibrate,
+    ceilcal_exposure,
     ceilcal_intrinsics,
     ceilcal_lightmap,
     ceilcal_mount,
@@ -16,7 +17,7 @@ app = make_app("ceilcal", "Calibrate a ceiling-vision rig: intrinsics, mount, li
                "simulate recordings.")
 
 for _module in (ceilcal_simulate, ceilcal_intrinsics, ceilcal_mount, ceilcal_lightmap,
-                ceilcal_calibrate, ceilcal_board):
+                ceilcal_calibrate, ceilcal_board, ceilcal_exposure):
     _module.register(app)
 
 from . import ceilcal_autopilot  # noqa: E402 - registered after the calibration commands

@@ -8,6 +8,7 @@ kills the process at once.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 from enum import Enum
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import typer
 
+from ceilkit.runtime.config.capture import load_capture
 from ceilkit.runtime.errors import ConfigError, LinkError
 from ceilkit.runtime.estimators.registry import AUTO, METHOD_NAMES
 from ceilkit.runtime.io.link.transport import is_serial_path
@@ -172,6 +174,8 @@ def live(
     fourcc: str = typer.Option("", help="Pixel format, e.g. MJPG or YUYV."),
     exposure: float = typer.Option(None, help="Manual exposure (turns auto-exposure off)."),
     gain: float = typer.Option(None, help="Manual gain."),
+    capture: Path = typer.Option(None, "--capture", help="capture.yaml (ceilcal exposure): "
+                                 "its exposure and gain, unless given here."),
     status: bool = typer.Option(False, "--status", help="Print a live status line."),
     force: bool = typer.Option(False, "--force", help="Replace an existing poses.csv or "
                                "recording (refused otherwise)."),
@@ -199,7 +203,8 @@ def live(
         device, rig, site, method, parse_options(option),
         _link(serial, protocol, baud, sysid, compid, mavlink_missing_x,
               _parse_origin(ekf_origin)),
-        record, out, frames, CaptureSettings(width, height, fps, fourcc, exposure, gain),
+        record, out, frames, _capture(capture, CaptureSettings(width, height, fps, fourcc,
+                                                               exposure, gain)),
         view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every,
         start_pose=_start_pose(start_pose), link_odometry=link_odometry,
         wheel_track_m=wheel_track, ros2=_ros2(ros2, ros2_namespace, ros2_odometry))
@@ -211,6 +216,16 @@ def live(
     with stop_on_signals() as stop:
         result = run_session(config, stop, show)
     _err("ceilrun: " + "\n".join(result.lines()))
+
+
+def _capture(path: Path | None, settings: CaptureSettings) -> CaptureSettings:
+    """``settings`` with the capture file's exposure and gain where not given."""
+    if path is None:
+        return settings
+    cap = load_capture(path)
+    return dataclasses.replace(
+        settings, exposure=cap.exposure if settings.exposure is None else settings.exposure,
+        gain=cap.gain if settings.gain is None else settings.gain)
 
 
 @app.command()
