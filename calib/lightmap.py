@@ -53,6 +53,8 @@ from ceilkit.runtime.features.spots import SpotParams, detect_spots
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 from ceilkit.runtime.io.recording import Recording, Truth, load_poses, load_truth
 
+from .poses import PoseTable
+
 
 @dataclass(frozen=True, eq=False)
 class LightMap:
@@ -66,6 +68,9 @@ class LightMap:
         frames_used: frames with a pose that were read.
         detections: ceiling points used (all frames).
         unassigned: detections in no retained cluster (spurious spots, too few views).
+        offset_s: the poses' time offset to the frames used (pose time = frame stamp +
+            offset), seconds; None when the poses were at the frames' stamps.
+        offset_sigma_s: its 1 sigma when it was estimated (None: given or exact).
     """
 
     lights_m: np.ndarray
@@ -75,6 +80,8 @@ class LightMap:
     frames_used: int
     detections: int
     unassigned: int
+    offset_s: float | None = None
+    offset_sigma_s: float | None = None
 
 
 def load_pose_table(path: str | Path) -> Truth:
@@ -223,24 +230,146 @@ def check_spot_lights(recording: Recording, ceiling_height_m: float,
             "`corridor` lines and use the corridor method. Nothing written")
 
 
-def survey_lights(recording: Recording, poses: Truth | None = None, *,
+# the time offset search between a pose table and the frames (pose time = frame stamp
+# + offset): +-MAX_OFFSET_S on a grid of OFFSET_STEPS, then refined
+MAX_OFFSET_S = 0.1
+OFFSET_STEPS = 41
+# no pose is interpolated across a gap of the pose table longer than this
+MAX_GAP_S = 0.25
+
+
+@dataclass(frozen=True, eq=False)
+class _Detections:
+    """Every frame's spots as ceiling points in V, with their frame's stamp."""
+
+    t_ns: np.ndarray                 # (K,) the stamp of each point's frame
+    q_v: np.ndarray                  # (K, 2) ceiling points in V, metres
+    frame: np.ndarray                # (K,) frame index
+    frames_used: int
+
+    def world(self, table: PoseTable, offset_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(K', 2)`` points in W at ``offset_s`` and the mask of points with a pose."""
+        pose = table.at(self.t_ns, offset_s * 1e9, MAX_GAP_S * 1e9)
+        ok = np.all(np.isfinite(pose), axis=1)
+        x, y, yaw = pose[ok].T
+        c, s = np.cos(yaw), np.sin(yaw)
+        q = self.q_v[ok]
+        return np.stack([c * q[:, 0] - s * q[:, 1] + x, s * q[:, 0] + c * q[:, 1] + y],
+                        1), ok
+
+
+def _detections(recording: Recording, table: PoseTable, height: float,
+                spot_params: SpotParams | None, valid: np.ndarray,
+                margin_s: float | None) -> _Detections:
+    """Spots of every frame whose pose the table holds ``margin_s`` either side (None:
+    only frames whose stamp is a row of the table)."""
+    rig = recording.rig
+    ts, qs, fs = [], [], []
+    used = 0
+    for k in range(len(recording)):
+        t = np.full(1, int(recording.t_ns[k]))
+        if margin_s is None:
+            if not table.exact(t):
+                continue
+        elif not all(np.isfinite(table.at(t, o * 1e9, MAX_GAP_S * 1e9)).all()
+                     for o in (-margin_s, 0.0, margin_s)):
+            continue
+        used += 1
+        spots = detect_spots(recording.frame(k).image, spot_params, valid)
+        if len(spots) == 0:
+            continue
+        q, ok = ceiling_points(rig, height, spots.centroids_px)
+        qs.append(q[ok][:, :2])
+        ts.append(np.full(int(ok.sum()), t[0], np.int64))
+        fs.append(np.full(int(ok.sum()), k))
+    if used == 0:
+        raise ConfigError(recording.folder, "truth.csv",
+                          "no pose matches a frame stamp (frames.csv t_ns): the poses "
+                          "cover none of the frames")
+    return _Detections(_cat(ts, 0).astype(np.int64), _cat(qs, (0, 2)),
+                       _cat(fs, 0).astype(int), used)
+
+
+def _cat(parts: list[np.ndarray], empty_shape) -> np.ndarray:
+    return np.concatenate(parts) if parts else np.zeros(empty_shape)
+
+
+def _labels(det: _Detections, table: PoseTable, offset_s: float, cluster_m: float,
+            min_views: int) -> np.ndarray:
+    """``(K,)`` each point's light (nearest centre within ``cluster_m``), -1: none."""
+    P, ok = det.world(table, offset_s)
+    C = cluster_points(P, det.frame[ok], cluster_m, min_views)[0]
+    lab = np.full(det.t_ns.size, -1)
+    if C.shape[0]:
+        d = np.linalg.norm(P[:, None] - C[None], axis=2)
+        k = np.argmin(d, axis=1)
+        lab[np.flatnonzero(ok)] = np.where(d[np.arange(P.shape[0]), k] < cluster_m, k, -1)
+    return lab
+
+
+def _scatter(det: _Detections, table: PoseTable, offset_s: float,
+             labels: np.ndarray) -> float:
+    """Sum of squared distances of the points at ``offset_s`` from their light's mean,
+    over the points ``labels`` assigns (the same points at every offset)."""
+    P, ok = det.world(table, offset_s)
+    lab = labels[ok]
+    J = 0.0
+    for k in np.unique(lab[lab >= 0]):
+        pk = P[lab == k]
+        J += float(((pk - pk.mean(axis=0)) ** 2).sum())
+    return J
+
+
+def estimate_offset(det: _Detections, table: PoseTable, cluster_m: float,
+                    min_views: int) -> tuple[float, float]:
+    """The pose table's time offset to the frames (s) and its 1 sigma: the offset at
+    which every light's detections from all frames fall closest together (a wrong
+    offset smears each light along the drive). A drive that stands still does not
+    determine it, and then it does not matter: the sigma says so."""
+    from scipy.optimize import minimize_scalar
+
+    grid = np.linspace(-MAX_OFFSET_S, MAX_OFFSET_S, OFFSET_STEPS)
+    lab = _labels(det, table, 0.0, cluster_m, min_views)
+    best = float(grid[int(np.argmin([_scatter(det, table, o, lab) for o in grid]))])
+    lab = _labels(det, table, best, cluster_m, min_views)
+    step = float(grid[1] - grid[0])
+    lo, hi = max(best - step, -MAX_OFFSET_S), min(best + step, MAX_OFFSET_S)
+    res = minimize_scalar(lambda o: _scatter(det, table, o, lab), bounds=(lo, hi),
+                          method="bounded", options={"xatol": 1e-5})
+    tau, h = float(res.x), 1e-3
+    J0 = _scatter(det, table, tau, lab)
+    curv = (_scatter(det, table, tau + h, lab) - 2 * J0
+            + _scatter(det, table, tau - h, lab)) / h ** 2
+    n_lights = np.unique(lab[lab >= 0]).size
+    dof = max(2 * int((lab >= 0).sum()) - 2 * n_lights - 1, 1)
+    sigma = math.sqrt(2 * (J0 / dof) / curv) if curv > 0 else math.inf
+    return tau, sigma
+
+
+def survey_lights(recording: Recording, poses: Truth | PoseTable | None = None, *,
                   ceiling_height_m: float | None = None, cluster_m: float = 0.15,
                   min_views: int = 3, spot_params: SpotParams | None = None,
-                  max_view_angle_deg: float = 60.0) -> LightMap:
+                  max_view_angle_deg: float = 60.0,
+                  offset_s: float | None = None) -> LightMap:
     """Build a light map from a recording with known poses.
 
     Args:
         recording: frames, rig and site (its ``ceiling_height`` unless overridden).
-        poses: known vehicle poses, matched to frames by exact stamp (default: the
-            recording's ``truth.csv``).
+        poses: known vehicle poses (default: the recording's ``truth.csv``). Poses at
+            the frames' own stamps are used as they are; poses at their own stamps
+            (motion capture, a total station) are interpolated at each frame's stamp
+            (not across a gap longer than ``MAX_GAP_S``) and their time offset to the
+            frames is estimated (:func:`estimate_offset`) unless ``offset_s`` is given.
         cluster_m: detections of one light lie within this of each other (and distinct
             lights further apart).
         min_views: fewest frames that must see a light.
         max_view_angle_deg: spots further from the vertical are not used (the
             steepest views are the least precise).
+        offset_s: the known time offset (pose time = frame stamp + offset), seconds:
+            the poses are interpolated with it and it is not estimated.
 
     Raises:
-        ConfigError: no poses, or none matching a frame; a ceiling below the camera.
+        ConfigError: no poses, or none covering a frame; a ceiling below the camera.
         CalibrationError: no light was seen often enough; lamps that are not spot
             lights (:func:`check_spot_lights`).
     """
@@ -250,40 +379,29 @@ def survey_lights(recording: Recording, poses: Truth | None = None, *,
                           "the survey needs known poses: truth.csv or --poses FILE")
     if cluster_m <= 0 or min_views < 1:
         raise ConfigError(None, "cluster_m", "expected cluster_m > 0 and min_views >= 1")
+    table = truth if isinstance(truth, PoseTable) else PoseTable.from_truth(truth)
     rig = recording.rig
     height = recording.site.ceiling_height_m if ceiling_height_m is None else ceiling_height_m
-    site = Site(height)
-    check_rig_site(rig, replace(site, source=recording.site.source))
+    check_rig_site(rig, replace(Site(height), source=recording.site.source))
     check_spot_lights(recording, height, spot_params, max_view_angle_deg)
     valid = view_mask(rig, math.radians(max_view_angle_deg))
-    pts, ids = [], []
-    used = 0
-    for k in range(len(recording)):
-        pose = truth.lookup(int(recording.t_ns[k]))
-        if pose is None:
-            continue
-        used += 1
-        frame = recording.frame(k)
-        spots = detect_spots(frame.image, spot_params, valid)
-        if len(spots) == 0:
-            continue
-        q, ok = ceiling_points(rig, height, spots.centroids_px)
-        q = q[ok]
-        x, y, yaw = pose
-        c, s = math.cos(yaw), math.sin(yaw)
-        pw = np.stack([c * q[:, 0] - s * q[:, 1] + x, s * q[:, 0] + c * q[:, 1] + y], 1)
-        pts.append(pw)
-        ids.append(np.full(pw.shape[0], k))
-    if used == 0:
-        raise ConfigError(recording.folder, "truth.csv",
-                          "no pose matches a frame stamp (frames.csv t_ns)")
-    P = np.concatenate(pts) if pts else np.zeros((0, 2))
-    F = np.concatenate(ids) if ids else np.zeros(0, int)
-    C, sig, spread, views, unassigned = cluster_points(P, F, cluster_m, min_views)
+    # poses at (some of) the frames' own stamps are used as they are
+    stamped = offset_s is None and bool(np.isin(table.t_ns, recording.t_ns).all())
+    estimate = offset_s is None and not stamped
+    det = _detections(recording, table, height, spot_params, valid,
+                      None if stamped else MAX_OFFSET_S if estimate else abs(offset_s))
+    sigma_off = None
+    if estimate:
+        offset_s, sigma_off = estimate_offset(det, table, cluster_m, min_views)
+    P, ok = det.world(table, offset_s or 0.0)
+    C, sig, spread, views, unassigned = cluster_points(P, det.frame[ok], cluster_m,
+                                                       min_views)
     if C.shape[0] == 0:
         raise CalibrationError(f"{recording.folder}: no light seen in {min_views} or more "
-                               f"frames ({P.shape[0]} detections in {used} frames)")
-    return LightMap(C, sig, spread, views, used, int(P.shape[0]), unassigned)
+                               f"frames ({P.shape[0]} detections in {det.frames_used} "
+                               "frames)")
+    return LightMap(C, sig, spread, views, det.frames_used, int(P.shape[0]), unassigned,
+                    offset_s, sigma_off)
 
 
 # ------------------------------------------------------------------ chaining survey
@@ -808,6 +926,11 @@ def lightmap_header_lines(lm: LightMap) -> list[str]:
              f"in {lm.frames_used} frames ({lm.unassigned} unassigned)",
              "per light (same order as `lights`): sigma_mm = standard error of the centre, "
              "spread_mm = scatter of single-frame detections, views"]
+    if lm.offset_s is not None:
+        how = ("as given" if lm.offset_sigma_s is None
+               else f"+- {1e3 * lm.offset_sigma_s:.3f} ms (1 sigma), estimated")
+        lines.insert(1, f"pose time offset {1e3 * lm.offset_s:+.3f} ms {how} (pose time = "
+                        "frame stamp + offset; poses interpolated at the frame stamps)")
     for i, (p, s, sp, v) in enumerate(zip(lm.lights_m, lm.sigma_m, lm.spread_m, lm.views,
                                           strict=True)):
         lines.append(f"  lights[{i}] ({p[0]:.3f}, {p[1]:.3f}): sigma_mm {1e3 * s:.2f}  "

@@ -41,6 +41,8 @@ from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.features.spots import detect_spots
 from ceilkit.runtime.geometry.rotations import R_vehicle_cam, rot_z
 
+from .poses import PoseTable, load_pose_csv
+
 R_UP = R_vehicle_cam(0.0, math.pi / 2, 0.0)
 PARAMS_UP = ("heading", "ax", "ay", "mx", "my", "mz")
 # a fitted parameter whose 1 sigma exceeds this is not determined by the data: refused
@@ -73,43 +75,6 @@ class LightFrame:
     t_ns: int
     spots_px: np.ndarray
     label: str = ""
-
-
-@dataclass(frozen=True, eq=False)
-class PoseTable:
-    """Vehicle poses at their own stamps (``t_ns`` int64 increasing, x, y, yaw rad).
-
-    :meth:`at` interpolates (SE(2): position linear, heading along the shorter arc)
-    at ``t + offset_ns``; outside the table it returns NaN (no extrapolation).
-    """
-
-    t_ns: np.ndarray
-    x_m: np.ndarray
-    y_m: np.ndarray
-    yaw_rad: np.ndarray
-
-    def at(self, t_ns: np.ndarray, offset_ns: float = 0.0) -> np.ndarray:
-        """``(N, 3)`` poses at ``t_ns + offset_ns``; NaN rows outside the table."""
-        t = np.asarray(t_ns, float) + float(offset_ns)
-        tt = self.t_ns.astype(float)
-        if tt.size == 1:
-            out = np.full((t.size, 3), np.nan)
-            hit = t == tt[0]
-            out[hit] = [self.x_m[0], self.y_m[0], self.yaw_rad[0]]
-            return out
-        k = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, tt.size - 2)
-        a = (t - tt[k]) / (tt[k + 1] - tt[k])
-        dyaw = np.angle(np.exp(1j * (self.yaw_rad[k + 1] - self.yaw_rad[k])))
-        out = np.stack([self.x_m[k] + a * (self.x_m[k + 1] - self.x_m[k]),
-                        self.y_m[k] + a * (self.y_m[k + 1] - self.y_m[k]),
-                        self.yaw_rad[k] + a * dyaw], axis=1)
-        out[(t < tt[0]) | (t > tt[-1])] = np.nan
-        return out
-
-    def exact(self, t_ns: np.ndarray) -> bool:
-        """True when every stamp of ``t_ns`` is a row of the table."""
-        t = np.asarray(t_ns, np.int64)
-        return bool(np.isin(t, self.t_ns).all())
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,51 +231,10 @@ def load_light_frames(source, rig: Rig, max_frames: int = 120
     for k in ks:
         f = rec.frame(k)
         frames.append(observe(rig, f.image, f.t_ns, f"frame {f.index}"))
-    table = None
-    if rec.truth is not None:
-        tr = rec.truth
-        table = PoseTable(np.asarray(tr.t_ns, np.int64), np.asarray(tr.x_m, float),
-                          np.asarray(tr.y_m, float), np.asarray(tr.yaw_rad, float))
+    table = PoseTable.from_truth(rec.truth) if rec.truth is not None else None
     return frames, table
 
 
-def load_pose_csv(path) -> PoseTable:
-    """A pose table from a ``t_ns,x,y,yaw_deg`` CSV (motion capture, a total station) at
-    its own stamps; rows sorted by time.
-
-    Raises:
-        ConfigError: the file, naming the row and column that is wrong.
-    """
-    from pathlib import Path
-
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(path, None, f"cannot read: {exc.strerror}") from None
-    rows = [r for r in text.splitlines() if r.strip() and not r.startswith("#")]
-    if not rows or rows[0].replace(" ", "") != "t_ns,x,y,yaw_deg":
-        raise ConfigError(path, "header", "expected the header t_ns,x,y,yaw_deg")
-    vals = []
-    for i, r in enumerate(rows[1:], start=2):
-        parts = r.split(",")
-        if len(parts) != 4:
-            raise ConfigError(path, f"row {i}", f"expected 4 values, found {len(parts)}")
-        try:
-            vals.append((int(parts[0]), float(parts[1]), float(parts[2]), float(parts[3])))
-        except ValueError:
-            raise ConfigError(path, f"row {i}", f"not a number: {r!r}") from None
-    if len(vals) < 2:
-        raise ConfigError(path, None, "expected at least two poses")
-    a = sorted(vals)
-    t = np.array([v[0] for v in a], np.int64)
-    if np.any(np.diff(t) <= 0):
-        raise ConfigError(path, "t_ns", "two rows have the same stamp")
-    return PoseTable(t, np.array([v[1] for v in a]), np.array([v[2] for v in a]),
-                     np.unwrap(np.radians([v[3] for v in a])))
-
-
-# ------------------------------------------------------------------------------ fit
 class _Fit:
     def __init__(self, rig: Rig, site: Site, frames: Sequence[LightFrame], poses: PoseTable,
                  fit_offset: bool, radius_m: float):

@@ -465,14 +465,17 @@ class LightmapRun:
 def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
              known: KnownLights | None = None, ceiling_height_m: float | None = None,
              cluster_m: float = 0.15, min_views: int = 3,
-             plots: Path | None = None) -> LightmapRun:
+             plots: Path | None = None, pose_offset_ms: float | None = None
+             ) -> LightmapRun:
     """Survey the ceiling lights of ``recording`` and write them as the ``lights`` of
     ``out`` (site.yaml; its other sections kept when it exists, else the recording's).
 
     With ``known`` (lights measured in W), the frames are chained (no pose needed);
     otherwise each frame's pose comes from ``poses`` (truth.csv or poses.csv layout) or
-    the recording's truth.csv. ``plots``: write ``lightmap.png`` there (each light's
-    1σ, the drive: the poses used, or the recording's truth.csv).
+    the recording's truth.csv; poses at their own stamps are interpolated and their
+    time offset estimated unless ``pose_offset_ms`` gives it. ``plots``: write
+    ``lightmap.png`` there (each light's 1σ, the drive: the poses used, or the
+    recording's truth.csv).
 
     Raises:
         ConfigError: ``poses`` with ``known``; bad inputs or options.
@@ -483,14 +486,15 @@ def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
     if known is None:
         table = load_pose_table(poses) if poses is not None else None
         lm = survey_lights(rec, table, ceiling_height_m=ceiling_height_m,
-                           cluster_m=cluster_m, min_views=min_views)
+                           cluster_m=cluster_m, min_views=min_views,
+                           offset_s=None if pose_offset_ms is None else pose_offset_ms / 1e3)
         header = provenance_header("ceilcal lightmap: site map with surveyed lights",
                                    lightmap_header_lines(lm))
         write_site(lm, out, base, header, ceiling_height_m)
         drive = table if table is not None else rec.truth
         return LightmapRun(lm, out, f"{lm.frames_used} frames",
                            _lightmap_plot(plots, lm, drive, base))
-    if poses is not None:
+    if poses is not None or pose_offset_ms is not None:
         raise ConfigError(None, "poses", "a chaining survey (known lights) uses no poses")
     res = survey_chain(rec, known, ceiling_height_m=ceiling_height_m, min_views=min_views)
     lm = res.lightmap

@@ -71,7 +71,12 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(..., "--out", help="site.yaml to write (other sections "
                                  "kept if it exists)."),
         poses: Path = typer.Option(None, "--poses", help="Known poses: truth.csv or "
-                                   "poses.csv layout (default: RECORDING/truth.csv)."),
+                                   "poses.csv layout (default: RECORDING/truth.csv); "
+                                   "at their own stamps: interpolated, their time "
+                                   "offset estimated."),
+        pose_offset_ms: float = typer.Option(None, "--pose-offset-ms", help="The poses' "
+                                             "known time offset (pose time = frame stamp "
+                                             "+ offset), ms: not estimated."),
         ceiling_height: float = typer.Option(None, "--ceiling-height",
                                              help="Ceiling height, m (default: the site's)."),
         cluster: float = typer.Option(0.15, "--cluster", help="Clustering radius, m."),
@@ -94,7 +99,7 @@ def register(app: typer.Typer) -> None:
                                    help="Folder for PNG plots (lights, 1-sigma, drive)."),
     ) -> None:
         """Build the `lights` of a site map: from known poses, or by chaining frames."""
-        run = workflow.lightmap(recording, out, poses=poses,
+        run = workflow.lightmap(recording, out, poses=poses, pose_offset_ms=pose_offset_ms,
                                 known=_known(known_light, second_light, start_yaw,
                                              anchor_frame, keep_height),
                                 ceiling_height_m=ceiling_height, cluster_m=cluster,

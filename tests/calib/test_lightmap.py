@@ -17,12 +17,13 @@ from ceilkit.calib.lightmap import (
     survey_lights,
     write_site,
 )
+from ceilkit.calib.poses import PoseTable
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.io.recording import Recording
-from ceilkit.runtime.sim.render import SimOptions, Trajectory, random_poses
+from ceilkit.runtime.sim.render import SimOptions, Trajectory, random_poses, straight_drive
 
 OPTS = SimOptions(noise_sigma=2.0, blur_px=0.8, light_radius_m=0.08, supersample=2)
 
@@ -98,9 +99,9 @@ def test_survey_errors(recording, tmp_path):
     out, _ = recording
     rec = Recording(out)
     t = load_pose_table(out / "truth.csv")
-    shifted = type(t)(t.t_ns + 1, t.x_m, t.y_m, t.yaw_rad)
+    later = type(t)(t.t_ns + 10**12, t.x_m, t.y_m, t.yaw_rad)   # covering no frame
     with pytest.raises(ConfigError, match="no pose matches"):
-        survey_lights(rec, shifted)
+        survey_lights(rec, later)
     with pytest.raises(CalibrationError, match="no light seen"):
         survey_lights(rec, min_views=1000)
     with pytest.raises(ConfigError, match="ceiling"):
@@ -267,3 +268,40 @@ def test_chain_adjustment_covariance_is_consistent(second):
     # |error| / radial sigma of a 2-D Gaussian averages 0.89
     assert 0.6 < np.mean(r) < 1.2, np.mean(r)
     assert np.mean(r > 2.5) < 0.05
+
+
+def test_mocap_poses_at_120_hz_interpolated_and_their_offset_estimated(tmp_path):
+    """Poses at their own 120 Hz stamps, 6.67 ms late (8 samples of a 1200 Hz drive):
+    the offset is found within its sigma and 0.1 ms, and the map is as good as with
+    poses at the frames' stamps; ignoring the offset smears it by about a centimetre."""
+    from ceilkit.runtime.config.rig import Rig
+    from helpers import CONFIGS
+
+    rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
+    site = Site.load(CONFIGS / "lights" / "site.yaml")
+    hz = 1200
+    dense = straight_drive(8 * hz, fps=hz, speed_mps=0.8, x0_m=2.5, weave_m=1.0,
+                           weave_period_m=3.0, yaw_wobble_rad=math.radians(20),
+                           rng=np.random.default_rng(0))
+    ks = np.linspace(30, 8 * hz - 30, 12).astype(int)
+    out = simulate_recording(rig, site, Trajectory(dense.t_ns[ks], dense.x_m[ks],
+                                                   dense.y_m[ks], dense.yaw_rad[ks]),
+                             tmp_path / "rec", OPTS, seed=0)
+    lag = 8
+    js = np.arange(lag, 8 * hz, hz // 120)
+    mocap = PoseTable(dense.t_ns[js], dense.x_m[js - lag], dense.y_m[js - lag],
+                      dense.yaw_rad[js - lag])
+    rec = Recording(out)
+    exact = survey_lights(rec)
+    lm = survey_lights(rec, mocap)
+    true_s = lag / hz
+    assert exact.offset_s is None
+    assert abs(lm.offset_s - true_s) < max(3 * lm.offset_sigma_s, 2e-5)
+    assert abs(lm.offset_s - true_s) < 1e-4
+    err = _match(lm.lights_m, site.lights_m)
+    assert lm.lights_m.shape[0] >= 10 and np.median(err) < 0.004, err
+    ignored = survey_lights(rec, mocap, offset_s=0.0)
+    assert np.median(_match(ignored.lights_m, site.lights_m)) > 2 * np.median(err)
+    from ceilkit.calib.lightmap import lightmap_header_lines
+    assert any("pose time offset" in line and "estimated" in line
+               for line in lightmap_header_lines(lm))
