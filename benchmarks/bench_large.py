@@ -15,11 +15,20 @@ writes them as PNG into a temporary folder and runs what ``ceilcal intrinsics`` 
 Each calibration is compared with the true lens at full resolution (the downscale's
 model scaled up: ``f * k``, ``c * k + (k - 1) / 2``): focal and principal point errors
 and the largest pixel difference of the true and the estimated model over the image
-(a grid of pixels: true ray, estimated projection). Prints a table, saves it as JSON in
-``--out``.
+(a grid of pixels: true ray, estimated projection).
+
+With ``--ceilrun`` it measures the runtime instead: the packaged ``lights`` example's
+camera scaled by ``--scale`` (6.25: 4000x3000 from 640x480), one simulated frame, and
+the lights estimator built and run on it with its working size (``working_mpx`` 1,
+the default) and at full resolution (``working_mpx`` 0, the code before): build and
+estimate times (the estimate's median of ``--repeats`` after one warm-up run, on one
+core), their peak traced memory (tracemalloc, a second pass), and the pose error.
+
+Prints a table, saves it as JSON in ``--out``.
 
     .venv/bin/python benchmarks/bench_large.py [--views 8] [--width 4000 --height 3000]
         [--charuco] [--no-full] [--out benchmarks/out/large]
+    .venv/bin/python benchmarks/bench_large.py --ceilrun [--scale 6.25] [--repeats 5]
 """
 
 from __future__ import annotations
@@ -115,6 +124,84 @@ def bench(board: Board, n_views: int, width: int, height: int, full: bool) -> di
     return out
 
 
+def scaled_rig(rig, k: float):
+    """``rig`` with its camera's image ``k`` times larger (the same lens)."""
+    import dataclasses
+
+    cam = rig.camera
+    K = cam.K.copy()
+    K[:2, :2] *= k
+    K[:2, 2] = K[:2, 2] * k + (k - 1) / 2
+    big = dataclasses.replace(cam, width=int(round(cam.width * k)),
+                              height=int(round(cam.height * k)), K=K, P=None)
+    return dataclasses.replace(rig, camera=big)
+
+
+def bench_ceilrun(scale: float, repeats: int) -> dict:
+    import math
+    import tracemalloc
+
+    from ceilkit.runtime.config.rig import Rig
+    from ceilkit.runtime.config.site import Site
+    from ceilkit.runtime.devices import packaged_config
+    from ceilkit.runtime.estimators.lights import LightsEstimator
+    from ceilkit.runtime.sim.render import SimOptions, render_frame
+
+    cfg = packaged_config("lights")
+    site = Site.load(cfg / "site.yaml")
+    rig = scaled_rig(Rig.load(cfg / "rig.yaml"), scale)
+    x, y, yaw = 1.0, 0.5, 0.3
+    t0 = time.perf_counter()
+    img = render_frame(rig, site, x, y, yaw, SimOptions(supersample=1),
+                       rng=np.random.default_rng(0))
+    out: dict = {"size": [rig.camera.width, rig.camera.height], "render_s":
+                 time.perf_counter() - t0}
+    for label, mpx in (("working", 1.0), ("full", 0.0)):
+        t0 = time.perf_counter()
+        est = LightsEstimator(rig, site, {"working_mpx": mpx})
+        build_ms = 1e3 * (time.perf_counter() - t0)
+        est.estimate(img, 0)                                   # warm-up (imports, caches)
+        times = []
+        for i in range(repeats):
+            t0 = time.perf_counter()
+            res = est.estimate(img, i + 1)
+            times.append(1e3 * (time.perf_counter() - t0))
+        tracemalloc.start()
+        LightsEstimator(rig, site, {"working_mpx": mpx})
+        build_peak = tracemalloc.get_traced_memory()[1] / 1e6
+        tracemalloc.reset_peak()
+        est.estimate(img, 99)
+        est_peak = tracemalloc.get_traced_memory()[1] / 1e6
+        tracemalloc.stop()
+        row = {"factor": est.observer.factor, "build_ms": build_ms,
+               "estimate_ms": float(np.median(times)), "build_peak_mb": build_peak,
+               "estimate_peak_mb": est_peak, "ok": bool(res)}
+        if res:
+            row["pos_err_mm"] = 1e3 * math.hypot(res.x_m - x, res.y_m - y)
+            row["yaw_err_deg"] = abs(math.degrees(math.remainder(res.yaw_rad - yaw,
+                                                                 2 * math.pi)))
+        else:
+            row["reason"] = f"{res.reason}: {res.detail}"
+        out[label] = row
+    return out
+
+
+def main_ceilrun(a: argparse.Namespace) -> None:
+    r = bench_ceilrun(a.scale, a.repeats)
+    print(f"lights estimator on a {r['size'][0]}x{r['size'][1]} simulated frame "
+          f"(render {r['render_s']:.1f} s)")
+    for label in ("working", "full"):
+        m = r[label]
+        res = (f"error {m['pos_err_mm']:.2f} mm {m['yaw_err_deg']:.3f} deg" if m["ok"]
+               else m["reason"])
+        print(f"  {label:<8} factor {m['factor']}: build {m['build_ms']:.0f} ms "
+              f"(peak {m['build_peak_mb']:.0f} MB), estimate {m['estimate_ms']:.1f} ms "
+              f"(peak {m['estimate_peak_mb']:.0f} MB); {res}")
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / "ceilrun.json").write_text(json.dumps(r, indent=1))
+    print(f"saved {a.out / 'ceilrun.json'}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=8)
@@ -123,8 +210,15 @@ def main() -> None:
     ap.add_argument("--charuco", action="store_true", help="also a ChArUco board")
     ap.add_argument("--no-full", action="store_true", help="skip the full-resolution run")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/large"))
+    ap.add_argument("--ceilrun", action="store_true",
+                    help="the lights estimator on a large frame instead")
+    ap.add_argument("--scale", type=float, default=6.25)
+    ap.add_argument("--repeats", type=int, default=5)
     a = ap.parse_args()
     cv2.setNumThreads(1)
+    if a.ceilrun:
+        main_ceilrun(a)
+        return
     boards: list[Board] = [ChessBoard(9, 6, 0.03)]
     if a.charuco:
         boards.append(CharucoBoard(7, 5, 0.04, 0.03))

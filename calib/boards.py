@@ -38,6 +38,7 @@ import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.features.working import decimate, undecimate, working_factor
 from ceilkit.runtime.geometry.camera import CameraModel, subpixel_rays
 
 ARUCO_DICTIONARIES = tuple(n[5:] for n in dir(cv2.aruco) if n.startswith("DICT_"))
@@ -47,37 +48,9 @@ MIN_CHARUCO_CORNERS = 6
 SUBPIX_FRACTION = 0.35      # cornerSubPix half-window over the corner's shortest spacing
 WORKING_MPX = 1.0
 """Boards are found on an image decimated to about this many megapixels (an integer
-factor, box-averaged), then refined at full resolution: ``findChessboardCorners`` on a
-12 Mpx view takes minutes, on its 1 Mpx decimation well under a second."""
-
-
-def working_factor(shape: tuple[int, ...], working_mpx: float = WORKING_MPX) -> int:
-    """The integer decimation factor for an image of ``shape`` ``(H, W, ...)``:
-    ``round(sqrt(H * W / working_mpx / 1e6))``, at least 1 (1: no decimation; a
-    ``working_mpx`` of 0 also means none).
-
-    Example: a 4000x3000 image at 1 Mpx is decimated by 3 (1333x1000)."""
-    if working_mpx <= 0:
-        return 1
-    return max(1, int(math.floor(math.sqrt(shape[0] * shape[1] / (working_mpx * 1e6))
-                                 + 0.5)))
-
-
-def decimate(grey: np.ndarray, factor: int) -> np.ndarray:
-    """``grey`` box-averaged over ``factor`` x ``factor`` pixels (the last partial
-    rows and columns dropped). Pixel ``j`` of the result is centred on full-resolution
-    pixel ``factor * j + (factor - 1) / 2`` (SPEC §1 centres), see :func:`undecimate`."""
-    if factor <= 1:
-        return grey
-    h, w = grey.shape[:2]
-    hs, ws = h // factor, w // factor
-    return cv2.resize(grey[:hs * factor, :ws * factor], (ws, hs),
-                      interpolation=cv2.INTER_AREA)
-
-
-def undecimate(points_px: np.ndarray, factor: int) -> np.ndarray:
-    """Pixels ``(..., 2)`` of a :func:`decimate`-d image in the full-resolution one."""
-    return np.asarray(points_px, np.float64) * factor + (factor - 1) / 2.0
+factor, box-averaged: :mod:`ceilkit.runtime.features.working`), then refined at full
+resolution: ``findChessboardCorners`` on a 12 Mpx view takes seconds to minutes, on
+its 1 Mpx decimation well under a second."""
 
 
 def refine_corners(grey: np.ndarray, corners: np.ndarray, cols: int, rows: int,

@@ -298,7 +298,8 @@ def check_options(options: Any) -> None:
         ConfigError: ``options.NAME`` of the first that is not.
     """
     for name in ("noise_px", "misfit_alpha", "max_vp_elevation_deg", "max_vanishing_line_deg",
-                 "max_heading_change_deg", "min_lines", "min_spread", "site_margin_m"):
+                 "max_heading_change_deg", "min_lines", "min_spread", "site_margin_m",
+                 "working_mpx"):
         if not hasattr(options, name):
             continue
         v = float(getattr(options, name))

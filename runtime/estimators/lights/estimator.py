@@ -66,6 +66,7 @@ from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_ma
 from ceilkit.runtime.estimators.lights.refine import _median, refine_pose_ceiling
 from ceilkit.runtime.estimators.lights.track import WindowTracker
 from ceilkit.runtime.features.spots import SpotParams
+from ceilkit.runtime.features.working import WORKING_MPX, working_factor
 
 NAME = "lights"
 DEFAULT_LIGHT_DIAMETER_M = 0.16
@@ -107,6 +108,10 @@ class LightsOptions(EstimatorOptions):
         track_window_px: how far (px) a light may lie from its predicted pixel.
         track_full_every: a global search after this many window fixes (0: only when
             the window check fails).
+        working_mpx: a frame larger than this (megapixels) is searched for spots
+            decimated by an integer factor and its centroids refined at full resolution
+            (:mod:`~ceilkit.runtime.features.working`; ``spot_params`` are then in
+            pixels of the decimated frame); 0: always at full resolution.
     """
 
     min_contrast: float = 0.0
@@ -125,6 +130,7 @@ class LightsOptions(EstimatorOptions):
     track: bool = False
     track_window_px: float = 10.0
     track_full_every: int = 30
+    working_mpx: float = WORKING_MPX
 
 
 def light_diameter_m(options: LightsOptions, site: Site) -> float:
@@ -182,7 +188,9 @@ class LightsEstimator(Estimator):
         self.nadir_px = nadir_px(rig)
         self.observer = SpotObserver(rig, self.ceiling_height_m, 0.5 * diameter_m,
                                      o.spot_params or SpotParams(), self.valid_mask,
-                                     self.nadir_px, o.max_spots)
+                                     self.nadir_px, o.max_spots,
+                                     working_factor((rig.camera.height, rig.camera.width),
+                                                    o.working_mpx))
         self.visibility = VisibilityTable(rig, self.ceiling_height_m, self.lights_w,
                                           self.valid_mask, self.nadir_px, o.max_spots)
         self.matcher = PatternMatcher(self.lights_w, o.gate_m,

@@ -30,7 +30,8 @@ from ceilkit.runtime.estimators.lights.rays import (
     mount_arrays,
     project_lights,
 )
-from ceilkit.runtime.features.spots import SpotParams, Spots, detect_spots
+from ceilkit.runtime.features.spots import SpotParams, Spots
+from ceilkit.runtime.features.working import decimated_mask, detect_spots_working
 
 JAC_STEP_PX = 8  # node spacing of the per-pixel spot table
 VIEW_MARGIN_PX = 12.0  # a light's centre this far inside the image border is reported
@@ -85,23 +86,27 @@ class SpotObserver:
         valid_mask: ``(H, W)`` uint8, non-zero where spots are looked for.
         nadir_px: where regions are examined from (nearest first).
         max_spots: examine at most this many candidate regions.
+        factor: spots are found on the frame decimated by this
+            (:func:`~ceilkit.runtime.features.working.detect_spots_working`).
     """
 
     def __init__(self, rig: Rig, ceiling_height_m: float, light_radius_m: float,
                  spot_params: SpotParams, valid_mask: np.ndarray,
-                 nadir_px: tuple[float, float], max_spots: int):
+                 nadir_px: tuple[float, float], max_spots: int, factor: int = 1):
         self.rig, self.ceiling_height_m = rig, ceiling_height_m
         self.light_radius_m = light_radius_m
         self.spot_params, self.valid_mask = spot_params, valid_mask
         self.nadir_px, self.max_spots = nadir_px, max_spots
         self.t_vehicle_cam = mount_arrays(rig.mount)[1]
         self.table = spot_table(rig, ceiling_height_m, light_radius_m)
+        self.factor = factor
+        self.valid_small = decimated_mask(valid_mask, factor)
 
     def observe(self, grey: np.ndarray) -> Observation:
         """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
         reliability order (nearest the camera first) and their pixel Jacobians."""
-        spots = detect_spots(grey, self.spot_params, self.valid_mask, self.nadir_px,
-                             self.max_spots)
+        spots = detect_spots_working(grey, self.spot_params, self.valid_mask, self.nadir_px,
+                                     self.max_spots, self.factor, self.valid_small)
         if len(spots) == 0:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
         q, ok = ceiling_points(self.rig, self.ceiling_height_m, spots.centroids_px)
