@@ -43,6 +43,7 @@ from ceilkit.runtime.errors import CalibrationError, ConfigError, OutputError
 from ceilkit.runtime.io.capture import open_video
 from ceilkit.runtime.io.recording import Recording, Truth
 from ceilkit.runtime.replay import ReplayResult, replay
+from ceilkit.runtime.session import CaptureSettings
 from ceilkit.runtime.sim.realism import resolve as resolve_realism
 from ceilkit.runtime.sim.render import SimOptions, Trajectory
 from ceilkit.runtime.viz import plots as viz_plots
@@ -143,13 +144,15 @@ def intrinsics(board: Board, out: Path, *, folder: Path | None = None,
                model: str = "plumb_bob", plots: Path | None = None, name: str = "camera",
                fix_aspect_ratio: bool = False, min_views: int = 5, max_views: int = 40,
                every: int = 1, cache: bool = True, progress: Progress | None = None,
-               meter: TextIO | None = None) -> IntrinsicsRun:
+               meter: TextIO | None = None,
+               capture: CaptureSettings = CaptureSettings()) -> IntrinsicsRun:
     """Calibrate a camera from ``board`` views and write ``out`` (camera.yaml).
 
     Exactly one source: ``folder`` (images; detections cached beside ``out`` unless
     ``cache`` is False), ``video`` (a file) or ``device`` (a live camera); a stream keeps
     the diverse views until coverage and accuracy suffice (``max_views`` at most,
-    ``every`` N-th frame), drawing a coverage meter on ``meter``.
+    ``every`` N-th frame), drawing a coverage meter on ``meter``. ``capture``: the
+    camera's format, exposure and gain for ``device`` (as ``ceilrun`` opens it).
 
     Raises:
         ConfigError: ``source`` (not exactly one), ``model``, ``board`` (wrong size).
@@ -169,7 +172,9 @@ def intrinsics(board: Board, out: Path, *, folder: Path | None = None,
         views = detect_images(files, board, det_cache, progress)
         inputs = f"{folder} ({len(files)} images, {len(views)} with the board)"
     else:
-        src = open_video(str(video) if video is not None else str(device))
+        src = open_video(str(video) if video is not None else str(device),
+                         capture.width, capture.height, capture.fps, capture.fourcc,
+                         capture.exposure, capture.gain)
         stop = StopRule(max_views=max_views, min_views=max(12, min_views))
         views = capture_views(src, board, model, stop, every=every, meter=meter)
         inputs = f"{video if video is not None else f'device {device}'} ({len(views)} views)"

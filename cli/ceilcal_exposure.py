@@ -15,6 +15,7 @@ from pathlib import Path
 import typer
 
 from ceilkit.calib import exposure as assistant
+from ceilkit.cli.common import FOURCC_OPTION, FPS_OPTION, HEIGHT_OPTION, WIDTH_OPTION
 from ceilkit.runtime.errors import ConfigError
 
 
@@ -53,10 +54,10 @@ def register(app: typer.Typer) -> None:
                                   "dB), comma-separated."),
         settle: int = typer.Option(3, "--settle", help="Frames skipped after each change."),
         frames: int = typer.Option(3, "--frames", help="Frames scored per setting."),
-        width: int = typer.Option(0, help="Capture width (0: driver default)."),
-        height: int = typer.Option(0, help="Capture height."),
-        fps: float = typer.Option(0.0, help="Capture rate."),
-        fourcc: str = typer.Option("", help="Pixel format, e.g. MJPG or YUYV."),
+        width: int = WIDTH_OPTION,
+        height: int = HEIGHT_OPTION,
+        fps: float = FPS_OPTION,
+        fourcc: str = FOURCC_OPTION,
     ) -> None:
         """Sweep exposure and gain on a camera; write the best for the method."""
         run = assistant.assist(

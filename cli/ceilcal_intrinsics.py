@@ -2,7 +2,8 @@
 
     ceilcal intrinsics (FOLDER | --video FILE | --device DEV) --board chess:9x6 \\
         --square 0.025 [--model plumb_bob|rational_polynomial|equidistant] \\
-        --out camera.yaml [--plots DIR]
+        --out camera.yaml [--plots DIR] \\
+        [--width W --height H --fps F --fourcc MJPG --exposure E --gain G --capture FILE]
 
 Parses, calls :func:`ceilkit.calib.workflow.intrinsics`, prints: the report goes to
 stdout, progress and warnings to stderr, the camera to ``--out`` (atomically, with a
@@ -18,7 +19,19 @@ import typer
 
 from ceilkit.calib import workflow
 from ceilkit.calib.boards import parse_board
-from ceilkit.cli.common import BOARD_OPTION, MARKER_OPTION, SQUARE_OPTION
+from ceilkit.cli.common import (
+    BOARD_OPTION,
+    CAPTURE_OPTION,
+    EXPOSURE_OPTION,
+    FOURCC_OPTION,
+    FPS_OPTION,
+    GAIN_OPTION,
+    HEIGHT_OPTION,
+    MARKER_OPTION,
+    SQUARE_OPTION,
+    WIDTH_OPTION,
+    capture_settings,
+)
 
 
 def _progress(i: int, n: int, fname: str, found: bool) -> None:
@@ -56,13 +69,21 @@ def register(app: typer.Typer) -> None:
         every: int = typer.Option(1, "--every", help="Live/video: look at 1 frame in N."),
         no_cache: bool = typer.Option(False, "--no-cache",
                                       help="Detect again; do not read or write the cache."),
+        width: int = WIDTH_OPTION,
+        height: int = HEIGHT_OPTION,
+        fps: float = FPS_OPTION,
+        fourcc: str = FOURCC_OPTION,
+        exposure: float = EXPOSURE_OPTION,
+        gain: float = GAIN_OPTION,
+        capture: Path = CAPTURE_OPTION,
     ) -> None:
         """Calibrate the camera's intrinsics from views of a board."""
         run = workflow.intrinsics(
             parse_board(board, square, marker, legacy, detector), out, folder=folder,
             video=video, device=device, model=model, plots=plots, name=name,
             fix_aspect_ratio=fix_aspect_ratio, min_views=min_views, max_views=max_views,
-            every=every, cache=not no_cache, progress=_progress, meter=sys.stderr)
+            every=every, cache=not no_cache, progress=_progress, meter=sys.stderr,
+            capture=capture_settings(capture, width, height, fps, fourcc, exposure, gain))
         typer.echo("\n".join(run.lines()))
         for w in run.warnings:
             typer.echo(f"ceilcal: warning: {w}", err=True)

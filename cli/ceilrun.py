@@ -8,7 +8,6 @@ kills the process at once.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import sys
 from enum import Enum
@@ -16,7 +15,6 @@ from pathlib import Path
 
 import typer
 
-from ceilkit.runtime.config.capture import load_capture
 from ceilkit.runtime.errors import ConfigError, LinkError
 from ceilkit.runtime.estimators.registry import AUTO, METHOD_NAMES
 from ceilkit.runtime.io.link.transport import is_serial_path
@@ -31,7 +29,6 @@ from ceilkit.runtime.io.recording import (
 from ceilkit.runtime.multi import parse_start_pose
 from ceilkit.runtime.replay import replay as run_replay
 from ceilkit.runtime.session import (
-    CaptureSettings,
     LinkConfig,
     SessionConfig,
     check_outputs,
@@ -39,7 +36,21 @@ from ceilkit.runtime.session import (
     stop_on_signals,
 )
 
-from .common import TERM_LINE, echo_err, make_app, parse_options, quiet_opencv
+from .common import (
+    CAPTURE_OPTION,
+    EXPOSURE_OPTION,
+    FOURCC_OPTION,
+    FPS_OPTION,
+    GAIN_OPTION,
+    HEIGHT_OPTION,
+    TERM_LINE,
+    WIDTH_OPTION,
+    capture_settings,
+    echo_err,
+    make_app,
+    parse_options,
+    quiet_opencv,
+)
 
 METHOD_HELP = (f"Estimator: auto (every method the site supports, fused; on a site with one "
                f"method and no odometry or start pose, that method), or one of "
@@ -168,14 +179,13 @@ def live(
     out: Path = typer.Option(None, help="Write poses.csv into this folder."),
     frames: int = typer.Option(0, help="Stop after this many frames (0: run until stopped; "
                                "sim: 300)."),
-    width: int = typer.Option(0, help="Capture width (0: driver default)."),
-    height: int = typer.Option(0, help="Capture height."),
-    fps: float = typer.Option(0.0, help="Capture rate."),
-    fourcc: str = typer.Option("", help="Pixel format, e.g. MJPG or YUYV."),
-    exposure: float = typer.Option(None, help="Manual exposure (turns auto-exposure off)."),
-    gain: float = typer.Option(None, help="Manual gain."),
-    capture: Path = typer.Option(None, "--capture", help="capture.yaml (ceilcal exposure): "
-                                 "its exposure and gain, unless given here."),
+    width: int = WIDTH_OPTION,
+    height: int = HEIGHT_OPTION,
+    fps: float = FPS_OPTION,
+    fourcc: str = FOURCC_OPTION,
+    exposure: float = EXPOSURE_OPTION,
+    gain: float = GAIN_OPTION,
+    capture: Path = CAPTURE_OPTION,
     status: bool = typer.Option(False, "--status", help="Print a live status line."),
     force: bool = typer.Option(False, "--force", help="Replace an existing poses.csv or "
                                "recording (refused otherwise)."),
@@ -203,8 +213,8 @@ def live(
         device, rig, site, method, parse_options(option),
         _link(serial, protocol, baud, sysid, compid, mavlink_missing_x,
               _parse_origin(ekf_origin)),
-        record, out, frames, _capture(capture, CaptureSettings(width, height, fps, fourcc,
-                                                               exposure, gain)),
+        record, out, frames, capture_settings(capture, width, height, fps, fourcc, exposure,
+                                          gain),
         view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every,
         start_pose=_start_pose(start_pose), link_odometry=link_odometry,
         wheel_track_m=wheel_track, ros2=_ros2(ros2, ros2_namespace, ros2_odometry))
@@ -216,16 +226,6 @@ def live(
     with stop_on_signals() as stop:
         result = run_session(config, stop, show)
     _err("ceilrun: " + "\n".join(result.lines()))
-
-
-def _capture(path: Path | None, settings: CaptureSettings) -> CaptureSettings:
-    """``settings`` with the capture file's exposure and gain where not given."""
-    if path is None:
-        return settings
-    cap = load_capture(path)
-    return dataclasses.replace(
-        settings, exposure=cap.exposure if settings.exposure is None else settings.exposure,
-        gain=cap.gain if settings.gain is None else settings.gain)
 
 
 @app.command()

@@ -12,8 +12,10 @@ user reads ``ceilrun: error: --method: unknown method 'magic' (...)``.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from collections.abc import Mapping
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
@@ -22,6 +24,7 @@ import typer.core
 
 from ceilkit.runtime.errors import CeilkitError, ConfigError
 from ceilkit.runtime.io.recording import FORCE_HINT
+from ceilkit.runtime.session import CaptureSettings
 
 FLAGS: Mapping[str, str] = MappingProxyType({
     "method": "--method", "rig": "--rig", "site": "--site",
@@ -195,3 +198,32 @@ BOARD_OPTION = typer.Option(..., "--board", help="chess:COLSxROWS (inner corners
 SQUARE_OPTION = typer.Option(..., "--square", help="Square side, metres.")
 MARKER_OPTION = typer.Option(None, "--marker",
                              help="ChArUco marker side, metres (0.75 square).")
+
+
+# The camera-format options that `ceilrun` (live), `ceilcal intrinsics --device` and
+# `ceilcal exposure` share: one definition each (runtime.session.CaptureSettings).
+WIDTH_OPTION = typer.Option(0, "--width", help="Capture width (0: driver default).")
+HEIGHT_OPTION = typer.Option(0, "--height", help="Capture height.")
+FPS_OPTION = typer.Option(0.0, "--fps", help="Capture rate.")
+FOURCC_OPTION = typer.Option("", "--fourcc", "--pixel-format",
+                             help="Pixel format, e.g. MJPG or YUYV.")
+EXPOSURE_OPTION = typer.Option(None, "--exposure",
+                               help="Manual exposure (turns auto-exposure off).")
+GAIN_OPTION = typer.Option(None, "--gain", help="Manual gain.")
+CAPTURE_OPTION = typer.Option(None, "--capture", help="capture.yaml (ceilcal exposure): "
+                              "its exposure and gain, unless given here.")
+
+
+def capture_settings(path: Path | None, width: int, height: int, fps: float, fourcc: str,
+                     exposure: float | None, gain: float | None) -> CaptureSettings:
+    """The camera settings of the options above, with the capture file's (``path``,
+    written by ``ceilcal exposure``) exposure and gain where not given."""
+    settings = CaptureSettings(width, height, fps, fourcc, exposure, gain)
+    if path is None:
+        return settings
+    from ceilkit.runtime.config.capture import load_capture
+
+    cap = load_capture(path)
+    return dataclasses.replace(
+        settings, exposure=cap.exposure if settings.exposure is None else settings.exposure,
+        gain=cap.gain if settings.gain is None else settings.gain)

@@ -7,9 +7,8 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from ceilkit.cli.ceilcal import app
-from ceilkit.cli.ceilrun import _capture
+from ceilkit.cli.common import capture_settings
 from ceilkit.runtime.config.capture import load_capture
-from ceilkit.runtime.session import CaptureSettings
 
 
 def test_exposure_writes_the_capture_file_ceilrun_reads(tmp_path):
@@ -20,9 +19,9 @@ def test_exposure_writes_the_capture_file_ceilrun_reads(tmp_path):
     assert res.exit_code == 0, res.output
     assert "best for lights: exposure 100, gain 0" in res.stdout
     assert load_capture(out).exposure == 100.0
-    settings = _capture(out, CaptureSettings(width=640))
+    settings = capture_settings(out, 640, 0, 0.0, "", None, None)
     assert (settings.width, settings.exposure, settings.gain) == (640, 100.0, 0.0)
-    mine = _capture(out, CaptureSettings(exposure=30.0))
+    mine = capture_settings(out, 0, 0, 0.0, "", 30.0, None)
     assert (mine.exposure, mine.gain) == (30.0, 0.0)      # the command line wins
 
 

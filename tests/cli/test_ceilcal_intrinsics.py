@@ -80,3 +80,32 @@ def test_needs_exactly_one_source(tmp_path):
     r = CliRunner().invoke(app, ["intrinsics", "--board", "chess:9x6", "--square", "0.03",
                                  "--out", str(tmp_path / "c.yaml")])
     assert r.exit_code == 1 and "exactly one image source" in r.output
+
+
+def test_device_takes_ceilruns_camera_settings(tmp_path, monkeypatch):
+    """--device opens the camera with the format, exposure and gain options ceilrun
+    has; a capture file fills the exposure and gain not given."""
+    from ceilkit.calib import workflow
+    from ceilkit.runtime.config.capture import CaptureFile, save_capture
+    from ceilkit.runtime.errors import CaptureError
+
+    seen = []
+
+    def fake_open(device, *args):
+        seen.append((device, *args))
+        raise CaptureError(f"{device}: fake camera")
+
+    monkeypatch.setattr(workflow, "open_video", fake_open)
+    save_capture(CaptureFile(exposure=120.0, gain=3.0), tmp_path / "capture.yaml")
+    out = tmp_path / "camera.yaml"
+    base = ["intrinsics", "--device", "/dev/video7", "--board", "chess:9x6", "--square",
+            "0.03", "--out", str(out)]
+    r = CliRunner().invoke(app, base + ["--width", "1280", "--height", "720", "--fps", "60",
+                                        "--pixel-format", "MJPG", "--exposure", "50",
+                                        "--gain", "2"])
+    assert r.exit_code == 1 and "fake camera" in r.output
+    assert seen[-1] == ("/dev/video7", 1280, 720, 60.0, "MJPG", 50.0, 2.0)
+    r = CliRunner().invoke(app, base + ["--fourcc", "YUYV", "--capture",
+                                        str(tmp_path / "capture.yaml"), "--gain", "1"])
+    assert seen[-1] == ("/dev/video7", 0, 0, 0.0, "YUYV", 120.0, 1.0)
+    assert not out.exists()
