@@ -49,6 +49,7 @@ from ceilkit.runtime.sim.render import SimOptions, Trajectory
 from ceilkit.runtime.viz import plots as viz_plots
 
 from .boards import Board
+from .export import write_exports
 from .intrinsics import (
     DetectionCache,
     IntrinsicsResult,
@@ -197,9 +198,22 @@ class MountRun:
     rig_path: Path
     report: tuple[str, ...]
     plots: tuple[Path, ...] = ()
+    exports: tuple[Path, ...] = ()
 
     def lines(self) -> list[str]:
-        return [*self.report, f"wrote {self.rig_path}"] + [f"wrote {p}" for p in self.plots]
+        return [*self.report, f"wrote {self.rig_path}"] + [
+            f"wrote {p}" for p in self.exports + self.plots]
+
+
+def _save_rig(rig: Rig, out: Path, header: str, camera_ref: str | None) -> tuple[Path, ...]:
+    """Write ``rig`` to ``out`` (naming ``camera_ref`` relative to it) and, beside it,
+    the mount as a URDF joint, a ROS 2 static transform and ArduPilot VISO_POS_X/Y/Z
+    (:func:`~ceilkit.calib.export.write_exports`, the same header). Returns those."""
+    ref = None
+    if camera_ref is not None:
+        ref = os.path.relpath(Path(camera_ref).resolve(), Path(out).resolve().parent)
+    rig.save(out, header, camera_ref=ref)
+    return write_exports(rig.mount, out, header).paths()
 
 
 def parse_fix(fix: Sequence[str]) -> dict[str, float | None]:
@@ -352,14 +366,11 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
         "rig.yaml written by ceilcal mount",
         [f"placements: {placements} ({len(pls)})", f"site: {site}"]
         + ([f"drive: {drive}"] if drive else []) + lines)
-    ref = None
-    if camera_ref is not None:
-        ref = os.path.relpath(Path(camera_ref).resolve(), Path(out).resolve().parent)
-    the_rig.with_mount(res.mount).save(out, header, camera_ref=ref)
+    exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
     written = () if plots is None else (_write_plot(plots, "mount_residuals.png",
         viz_plots.mount_png(res.per_placement_rms_px, res.rms_px,
                             [o[0] for o in res.outliers])),)
-    return MountRun(Path(out), tuple(lines), written)
+    return MountRun(Path(out), tuple(lines), written, exports)
 
 
 def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, *,
@@ -407,11 +418,8 @@ def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, 
         "rig.yaml written by ceilcal mount (upward lights rig)",
         [f"drive: {recording} ({len(frames)} frames)", f"site: {site}"]
         + ([f"poses: {poses}"] if poses is not None else []) + lines)
-    ref = None
-    if camera_ref is not None:
-        ref = os.path.relpath(Path(camera_ref).resolve(), Path(out).resolve().parent)
-    the_rig.with_mount(res.mount).save(out, header, camera_ref=ref)
-    return MountRun(Path(out), tuple(lines))
+    exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
+    return MountRun(Path(out), tuple(lines), exports=exports)
 
 
 # -- printable board -------------------------------------------------------------------
