@@ -323,6 +323,48 @@ def _search_heading(fit: _Fit, theta: np.ndarray, gate_px: float) -> np.ndarray:
     return best
 
 
+def covariance(J: np.ndarray, s2: float, px: np.ndarray, rig: Rig) -> np.ndarray:
+    """The parameters' covariance: the residuals' scatter ``s2`` through ``J``, plus a
+    common radial scale and a rotation of the centroids about the principal point
+    (:data:`SYSTEMATIC_SCALE`, :data:`SYSTEMATIC_ROTATION`) through the sensitivity
+    ``d theta = -(J^T J)^-1 J^T dr``."""
+    JtJ_inv = np.linalg.pinv(J.T @ J)
+    cov = s2 * JtJ_inv
+    c = np.array([rig.camera.cx, rig.camera.cy])
+    for dr in ((-(px - c) * SYSTEMATIC_SCALE).ravel(),          # r = pred - obs
+               (-np.stack([-(px - c)[:, 1], (px - c)[:, 0]], axis=1)
+                * SYSTEMATIC_ROTATION).ravel()):
+        g = -JtJ_inv @ (J.T @ dr)
+        cov = cov + np.outer(g, g)
+    return cov
+
+
+def lean_of(ax: float, ay: float, cov2: np.ndarray) -> tuple[float, float, bool]:
+    """The lean from the vertical (rad), the 1 sigma of its magnitude (along its
+    direction, so of tilt = 90 deg - lean) and whether it is significant."""
+    lean = math.hypot(ax, ay)
+    if lean > 1e-12:
+        u = np.array([ax, ay]) / lean
+        s_lean = math.sqrt(max(float(u @ cov2 @ u), 0.0))
+    else:
+        s_lean = math.sqrt(max(0.5 * (cov2[0, 0] + cov2[1, 1]), 0.0))
+    return lean, s_lean, lean > max(LEAN_SIGMAS * s_lean, math.radians(0.001))
+
+
+def refuse_undetermined(limits: Sequence[tuple[str, float, float, str]]) -> None:
+    """Raise CalibrationError for the first ``(name, sigma, limit, what to add)`` whose
+    sigma is above its limit (radians for pan and tilt, seconds for offset, else m)."""
+    for name, s, lim, what in limits:
+        if not s <= lim:
+            unit = (f"{math.degrees(s):.3f} deg (limit {math.degrees(lim):.3f})"
+                    if name in ("pan", "tilt") else f"{1000 * s:.2f} mm (limit "
+                    f"{1000 * lim:.1f})" if name != "offset" else
+                    f"{1000 * s:.2f} ms (limit {1000 * lim:.1f})")
+            raise CalibrationError(
+                f"{name} is not determined by this drive: 1 sigma {unit}; add {what}, or "
+                f"measure it and give --fix. Nothing written")
+
+
 def calibrate_mount_upward(rig: Rig, site: Site, frames: Sequence[LightFrame],
                            poses: PoseTable, *, estimate_offset: bool | None = None,
                            light_diameter_m: float | None = None,
@@ -379,26 +421,9 @@ def calibrate_mount_upward(rig: Rig, site: Site, frames: Sequence[LightFrame],
             f"the fit leaves {rms:.2f} px RMS (refused above {MAX_RMS_UP_PX:g} px): the "
             "poses, the site's lights or the camera disagree with the images; check them. "
             "Nothing written")
-    J = sol.jac
-    JtJ_inv = np.linalg.pinv(J.T @ J)
-    cov = s2 * JtJ_inv
-    # a common radial scale of the centroids: d theta = -(J^T J)^-1 J^T dr
-    fk, lk, px = fit.assoc
-    c = np.array([rig.camera.cx, rig.camera.cy])
-    for dr in ((-(px - c) * SYSTEMATIC_SCALE).ravel(),          # r = pred - obs
-               (-np.stack([-(px - c)[:, 1], (px - c)[:, 0]], axis=1)
-                * SYSTEMATIC_ROTATION).ravel()):
-        g = -JtJ_inv @ (J.T @ dr)
-        cov = cov + np.outer(g, g)
+    cov = covariance(sol.jac, s2, fit.assoc[2], rig)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    lean = math.hypot(theta[1], theta[2])
-    # sigma of the lean's magnitude (along its direction), of tilt = 90 deg - lean
-    if lean > 1e-12:
-        u = np.array([theta[1], theta[2]]) / lean
-        s_lean = math.sqrt(max(float(u @ cov[1:3, 1:3] @ u), 0.0))
-    else:
-        s_lean = math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
-    significant = lean > max(LEAN_SIGMAS * s_lean, math.radians(0.001))
+    lean, s_lean, significant = lean_of(theta[1], theta[2], cov[1:3, 1:3])
     mount = to_mount(*theta[:6], level=not significant)
     sigma = {"pan": float(sd[0]), "tilt": s_lean, "mx": float(sd[3]), "my": float(sd[4]),
              "mz": float(sd[5])}
@@ -413,15 +438,7 @@ def calibrate_mount_upward(rig: Rig, site: Site, frames: Sequence[LightFrame],
     if estimate_offset:
         limits.append(("offset", sigma["offset"], MAX_SIGMA_UP["offset"],
                        "a drive whose speed and turn rate vary"))
-    for name, s, lim, what in limits:
-        if not s <= lim:
-            unit = (f"{math.degrees(s):.3f} deg (limit {math.degrees(lim):.3f})"
-                    if name in ("pan", "tilt") else f"{1000 * s:.2f} mm (limit "
-                    f"{1000 * lim:.1f})" if name != "offset" else
-                    f"{1000 * s:.2f} ms (limit {1000 * lim:.1f})")
-            raise CalibrationError(
-                f"{name} is not determined by this drive: 1 sigma {unit}; add {what}, or "
-                f"measure it and give --fix. Nothing written")
+    refuse_undetermined(limits)
     return UpwardResult(mount, sigma, rms, frames_used, n,
                         float(theta[6]) if estimate_offset else None, lean, significant)
 

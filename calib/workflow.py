@@ -376,7 +376,7 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
 def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, *,
                  rig: Path | None = None, camera: Path | None = None,
                  fix: dict[str, float | None] | None = None, poses: Path | None = None,
-                 max_frames: int = 120) -> MountRun:
+                 max_frames: int = 120, spin: bool = False) -> MountRun:
     """Fit an upward (lights) rig's mount from a drive under the site's ``lights`` and
     write ``out`` (rig.yaml) when every parameter is determined
     (:func:`~ceilkit.calib.mount_upward.calibrate_mount_upward`).
@@ -386,6 +386,7 @@ def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, 
     table at its own stamps (motion capture, a total station): interpolated, and its
     time offset to the frames estimated and reported. The rig's (or nominal: tilt 90,
     at the vehicle's origin, 0.5 m up) mount is only the start of the search.
+    ``spin``: the recording is a spin in place, no poses (:func:`mount_spin`).
 
     Raises:
         ConfigError: ``placements`` (no recording), ``fix`` (the upward fit holds
@@ -398,6 +399,12 @@ def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, 
     if recording is None:
         raise ConfigError(None, "placements", "the upward (lights) fit needs a recording "
                           "of a drive under the lights")
+    if spin:
+        if poses is not None:
+            raise ConfigError(None, "poses", "a spin in place needs no poses (give "
+                              "either --spin or --poses)")
+        return mount_spin(recording, the_site, site, out, rig=rig, camera=camera,
+                          fix=fix or {}, max_frames=max_frames)
     if fix:
         raise ConfigError(None, "fix", "the upward (lights) fit determines every "
                           "parameter or refuses; it holds none (--fix applies to the "
@@ -473,6 +480,47 @@ class LightmapRun:
         return [f"{self.site_path}: {lm.lights_m.shape[0]} lights from {self.how}; median "
                 f"1-sigma {1e3 * float(np.median(lm.sigma_m)):.1f} mm"] \
             + [f"wrote {p}" for p in self.plots]
+
+
+def mount_spin(recording: Path, the_site: Site, site: Path, out: Path, *,
+               rig: Path | None = None, camera: Path | None = None,
+               fix: dict[str, float | None], max_frames: int = 120) -> MountRun:
+    """Fit an upward rig's lean, lever arm and height from a spin in place under the
+    site's ``lights``, no poses (:func:`~ceilkit.calib.mount_spin.calibrate_mount_spin`),
+    the pan held at ``fix['pan']`` (a spin cannot determine it); write ``out``.
+
+    Raises:
+        ConfigError: ``fix``: no pan, or a parameter other than pan.
+        CalibrationError: too little turn, not in place, an undetermined parameter.
+    """
+    from .mount_spin import calibrate_mount_spin, load_spin
+
+    if "pan" not in fix:
+        raise ConfigError(None, "fix", "a spin in place does not determine the pan (the "
+                          "lever arm turns with it): measure it and give --fix pan=DEG, "
+                          "or --fix pan with a --rig holding it, or drive under the lights "
+                          "with poses instead. Nothing written")
+    extra = sorted(set(fix) - {"pan"})
+    if extra:
+        raise ConfigError(None, "fix", f"--fix {extra[0]}: the spin fit determines it; "
+                          "only the pan can be held")
+    the_rig, camera_ref = _start_rig(rig, camera)
+    _check_writable(out)
+    pan = the_rig.mount.pan_rad + the_rig.mount.swing_rad if fix["pan"] is None \
+        else fix["pan"]
+    frames, start = load_spin(Recording(recording), the_rig, the_site, max_frames)
+    res = calibrate_mount_spin(the_rig, the_site, frames, start, pan)
+    lines = res.lines()
+    how = "the rig's value" if fix["pan"] is None else "typed"
+    header = provenance_header(
+        "rig.yaml written by ceilcal mount --spin (upward lights rig, spin in place)",
+        [f"spin: {recording} ({len(frames)} frames placed)", f"site: {site}",
+         f"held: pan (--fix pan, {how}; not measured by this fit)"] + lines)
+    ref = None
+    if camera_ref is not None:
+        ref = os.path.relpath(Path(camera_ref).resolve(), Path(out).resolve().parent)
+    the_rig.with_mount(res.mount).save(out, header, camera_ref=ref)
+    return MountRun(Path(out), tuple(lines))
 
 
 def lightmap(recording: Path, out: Path, *, poses: Path | None = None,

@@ -36,9 +36,14 @@ def register(app: typer.Typer) -> None:
         poses: Path = typer.Option(None, help="Upward (lights) rig: vehicle poses at "
                                    "their own stamps (t_ns,x,y,yaw_deg; motion capture), "
                                    "interpolated, their time offset estimated."),
+        spin: bool = typer.Option(False, "--spin", help="Upward (lights) rig: the "
+                                  "recording is a spin in place, no poses; needs --fix "
+                                  "pan (a spin does not determine it)."),
     ) -> None:
         """Fit tilt, swing, pan and the offsets (and the height below the ceiling)."""
         upward = {"poses": poses} if poses is not None else {}
+        if spin:
+            upward["spin"] = True
         run = workflow.mount(placements, site, out, rig=rig, camera=camera, drive=drive,
                              fix=fix or (), max_frames=max_frames, plots=plots, **upward)
         typer.echo("\n".join(run.lines()))
