@@ -17,10 +17,11 @@ model scaled up: ``f * k``, ``c * k + (k - 1) / 2``): focal and principal point 
 and the largest pixel difference of the true and the estimated model over the image
 (a grid of pixels: true ray, estimated projection).
 
-With ``--ceilrun`` it measures the runtime instead: the packaged ``lights`` example's
-camera scaled by ``--scale`` (6.25: 4000x3000 from 640x480), one simulated frame, and
-the lights estimator built and run on it with its working size (``working_mpx`` 1,
-the default) and at full resolution (``working_mpx`` 0, the code before): build and
+With ``--ceilrun`` it measures the runtime instead: the packaged ``lights`` and
+``corridor`` examples' cameras scaled by ``--scale`` (6.25: 4000x3000 from 640x480),
+one simulated frame each, and the estimator built and run on it with its working size
+(``working_mpx`` 1, the default) and at full resolution (``working_mpx`` 0, the code
+before): build and
 estimate times (the estimate's median of ``--repeats`` after one warm-up run, on one
 core), their peak traced memory (tracemalloc, a second pass), and the pose error.
 
@@ -137,28 +138,30 @@ def scaled_rig(rig, k: float):
     return dataclasses.replace(rig, camera=big)
 
 
-def bench_ceilrun(scale: float, repeats: int) -> dict:
+def bench_ceilrun(method: str, scale: float, repeats: int) -> dict:
+    """One simulated frame of the packaged ``method`` example at ``scale``: the estimator
+    built and run with its working size and at full resolution."""
     import math
     import tracemalloc
 
     from ceilkit.runtime.config.rig import Rig
     from ceilkit.runtime.config.site import Site
     from ceilkit.runtime.devices import packaged_config
-    from ceilkit.runtime.estimators.lights import LightsEstimator
+    from ceilkit.runtime.estimators.registry import make_estimator
     from ceilkit.runtime.sim.render import SimOptions, render_frame
 
-    cfg = packaged_config("lights")
+    cfg = packaged_config(method)
     site = Site.load(cfg / "site.yaml")
     rig = scaled_rig(Rig.load(cfg / "rig.yaml"), scale)
-    x, y, yaw = 1.0, 0.5, 0.3
+    x, y, yaw = (1.0, 0.5, 0.3) if method == "lights" else (2.0, 0.1, 0.05)
     t0 = time.perf_counter()
     img = render_frame(rig, site, x, y, yaw, SimOptions(supersample=1),
                        rng=np.random.default_rng(0))
-    out: dict = {"size": [rig.camera.width, rig.camera.height], "render_s":
-                 time.perf_counter() - t0}
+    out: dict = {"method": method, "size": [rig.camera.width, rig.camera.height],
+                 "render_s": time.perf_counter() - t0}
     for label, mpx in (("working", 1.0), ("full", 0.0)):
         t0 = time.perf_counter()
-        est = LightsEstimator(rig, site, {"working_mpx": mpx})
+        est = make_estimator(method, rig, site, {"working_mpx": mpx})
         build_ms = 1e3 * (time.perf_counter() - t0)
         est.estimate(img, 0)                                   # warm-up (imports, caches)
         times = []
@@ -167,17 +170,20 @@ def bench_ceilrun(scale: float, repeats: int) -> dict:
             res = est.estimate(img, i + 1)
             times.append(1e3 * (time.perf_counter() - t0))
         tracemalloc.start()
-        LightsEstimator(rig, site, {"working_mpx": mpx})
+        make_estimator(method, rig, site, {"working_mpx": mpx})
         build_peak = tracemalloc.get_traced_memory()[1] / 1e6
         tracemalloc.reset_peak()
         est.estimate(img, 99)
         est_peak = tracemalloc.get_traced_memory()[1] / 1e6
         tracemalloc.stop()
-        row = {"factor": est.observer.factor, "build_ms": build_ms,
+        factor = (est.observer.factor if method == "lights" else est.detector.factor)
+        row = {"factor": factor, "build_ms": build_ms,
                "estimate_ms": float(np.median(times)), "build_peak_mb": build_peak,
                "estimate_peak_mb": est_peak, "ok": bool(res)}
         if res:
-            row["pos_err_mm"] = 1e3 * math.hypot(res.x_m - x, res.y_m - y)
+            row["quality"] = res.quality
+            row["pos_err_mm"] = 1e3 * (math.hypot(res.x_m - x, res.y_m - y)
+                                       if res.x_m is not None else abs(res.y_m - y))
             row["yaw_err_deg"] = abs(math.degrees(math.remainder(res.yaw_rad - yaw,
                                                                  2 * math.pi)))
         else:
@@ -187,18 +193,20 @@ def bench_ceilrun(scale: float, repeats: int) -> dict:
 
 
 def main_ceilrun(a: argparse.Namespace) -> None:
-    r = bench_ceilrun(a.scale, a.repeats)
-    print(f"lights estimator on a {r['size'][0]}x{r['size'][1]} simulated frame "
-          f"(render {r['render_s']:.1f} s)")
-    for label in ("working", "full"):
-        m = r[label]
-        res = (f"error {m['pos_err_mm']:.2f} mm {m['yaw_err_deg']:.3f} deg" if m["ok"]
-               else m["reason"])
-        print(f"  {label:<8} factor {m['factor']}: build {m['build_ms']:.0f} ms "
-              f"(peak {m['build_peak_mb']:.0f} MB), estimate {m['estimate_ms']:.1f} ms "
-              f"(peak {m['estimate_peak_mb']:.0f} MB); {res}")
+    results = [bench_ceilrun(m, a.scale, a.repeats) for m in ("lights", "corridor")]
+    for r in results:
+        print(f"{r['method']} estimator on a {r['size'][0]}x{r['size'][1]} simulated frame "
+              f"(render {r['render_s']:.1f} s)")
+        for label in ("working", "full"):
+            m = r[label]
+            what = "position" if r["method"] == "lights" else "lateral"
+            res = (f"{what} error {m['pos_err_mm']:.2f} mm, yaw {m['yaw_err_deg']:.4f} deg, "
+                   f"quality {m['quality']:.2f}" if m["ok"] else m["reason"])
+            print(f"  {label:<8} factor {m['factor']}: build {m['build_ms']:.0f} ms "
+                  f"(peak {m['build_peak_mb']:.0f} MB), estimate {m['estimate_ms']:.1f} ms "
+                  f"(peak {m['estimate_peak_mb']:.0f} MB); {res}")
     a.out.mkdir(parents=True, exist_ok=True)
-    (a.out / "ceilrun.json").write_text(json.dumps(r, indent=1))
+    (a.out / "ceilrun.json").write_text(json.dumps(results, indent=1))
     print(f"saved {a.out / 'ceilrun.json'}")
 
 

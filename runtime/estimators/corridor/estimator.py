@@ -82,6 +82,7 @@ from ceilkit.runtime.estimators.honesty import (
     outside_site,
 )
 from ceilkit.runtime.features.lines import SegmentDetector
+from ceilkit.runtime.features.working import WORKING_MPX, working_factor
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 MIN_LENGTH_SHARE = 0.04
@@ -138,6 +139,11 @@ class CorridorOptions(EstimatorOptions):
             its prediction.
         track_full_every: a global search after this many tracked fixes (0: only when
             the check fails).
+        working_mpx: a frame larger than this (megapixels) is searched for segments
+            decimated by an integer factor (:mod:`~ceilkit.runtime.features.working`);
+            the segments are refitted on the full frame with a profile half-width of
+            :func:`~ceilkit.runtime.features.lines.edge_half_width_px`; 0: always at
+            full resolution.
         min_contrast: (inherited) grey-level spread below which a frame is blank.
     """
 
@@ -154,6 +160,7 @@ class CorridorOptions(EstimatorOptions):
     track: bool = False
     track_search_px: float = 5.0
     track_full_every: int = 30
+    working_mpx: float = WORKING_MPX
     noise_px: float = 1.0
     misfit_alpha: float = DEFAULT_ALPHA
     max_vp_elevation_deg: float = 5.0
@@ -189,7 +196,8 @@ class CorridorEstimator(Estimator):
         min_length_px = (MIN_LENGTH_SHARE * cam.width if o.min_length_px is None
                          else float(o.min_length_px))
         self.detector = SegmentDetector(o.detector, min_length_px, rows=self.setup.rows,
-                                        merge=False)
+                                        merge=False, factor=working_factor(
+                                            (cam.height, cam.width), o.working_mpx))
         self.angle_tol_rad = math.radians(o.angle_tol_deg)
         check_options(o)
         self.extent = SiteExtent.from_site(site)

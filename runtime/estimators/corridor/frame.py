@@ -21,6 +21,7 @@ from ceilkit.runtime.estimators.corridor.geometry import ceiling_points, level_n
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.lines import (
     SegmentDetector,
+    edge_half_width_px,
     refine_segments,
     refine_undistorted,
     segment_lengths,
@@ -70,7 +71,9 @@ def frame_segments(grey: np.ndarray, camera: CameraModel, detector: SegmentDetec
     segs_px, fit_rms = detect(grey, detector, max_segments, refine)
     if not edge_fit or segs_px.shape[0] < 2:
         return (*undistorted(camera, segs_px, None), fit_rms)
-    segs_n, pol, rms = refine_undistorted(camera, grey, segs_px)
+    hw = edge_half_width_px(detector.factor)        # wider after a decimated search
+    segs_n, pol, rms = refine_undistorted(camera, grey, segs_px, half_width_px=hw,
+                                          retry_half_width_px=1.5 * hw)
     fit_rms = np.where(np.isfinite(rms), rms, fit_rms)
     return segs_n, segment_lengths(segs_px), pol, fit_rms
 

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.corridor import CorridorEstimator
 from ceilkit.runtime.estimators.lights import LightsEstimator
+from ceilkit.runtime.features.lines import SegmentDetector, segment_lengths
 from ceilkit.runtime.features.spots import detect_spots
 from ceilkit.runtime.features.working import (
     decimate,
@@ -84,3 +86,39 @@ def test_working_size_is_validated(lights_rig, lights_site, bad):
     with pytest.raises(ConfigError) as e:
         LightsEstimator(lights_rig, lights_site, {"working_mpx": bad})
     assert e.value.key == "options.working_mpx"
+
+
+def _scaled(rig, k):
+    cam = rig.camera
+    K = cam.K.copy()
+    K[:2, :2] *= k
+    K[:2, 2] = K[:2, 2] * k + (k - 1) / 2
+    return dataclasses.replace(rig, camera=dataclasses.replace(
+        cam, width=k * cam.width, height=k * cam.height, K=K, P=None))
+
+
+def test_decimated_segments_come_back_in_full_resolution_pixels():
+    img = np.full((600, 800), 150, np.uint8)
+    img[:, 300:] = 60                                   # a vertical edge at u = 299.5
+    img[400:, :] = 220                                  # a horizontal one at v = 399.5
+    segs = SegmentDetector("fld", 100.0, merge=False, factor=2)(img)
+    assert segs.shape[0] >= 2
+    vertical = segs[np.abs(segs[:, 0] - segs[:, 2]) < 1.0]
+    horizontal = segs[np.abs(segs[:, 1] - segs[:, 3]) < 1.0]
+    assert np.abs(vertical[:, [0, 2]] - 299.5).max() < 1.5
+    assert np.abs(horizontal[:, [1, 3]] - 399.5).max() < 1.5
+    assert (segment_lengths(segs) >= 100.0).all()
+
+
+def test_corridor_estimator_on_a_frame_above_its_working_size(corridor_rig, corridor_site):
+    from ceilkit.runtime.sim.render import SimOptions, render_frame
+
+    rig = _scaled(corridor_rig, 2)
+    img = render_frame(rig, corridor_site, 2.0, 0.1, 0.05, SimOptions(supersample=1),
+                       rng=np.random.default_rng(0))
+    est = CorridorEstimator(rig, corridor_site, {"working_mpx": 0.3})    # factor 2
+    assert est.detector.factor == 2
+    out = est.estimate(img, 0)
+    assert out, out
+    assert abs(out.y_m - 0.1) < 0.001 and abs(math.degrees(out.yaw_rad - 0.05)) < 0.01
+    assert out.quality >= 0.5
