@@ -34,6 +34,15 @@ def _spot_frame(h=1500, w=2000, sigma=9.0, seed=0):
     return np.clip(img, 0, 255).round().astype(np.uint8)
 
 
+def _scaled(rig, k):
+    cam = rig.camera
+    K = cam.K.copy()
+    K[:2, :2] *= k
+    K[:2, 2] = K[:2, 2] * k + (k - 1) / 2
+    return dataclasses.replace(rig, camera=dataclasses.replace(
+        cam, width=k * cam.width, height=k * cam.height, K=K, P=None))
+
+
 def test_factor_decimate_undecimate():
     assert working_factor((3000, 4000)) == 3 and working_factor((480, 640)) == 1
     assert working_factor((3000, 4000), 0.0) == 1
@@ -65,12 +74,7 @@ def test_decimated_spots_match_the_truth_and_scale_their_moments():
 def test_lights_estimator_on_a_frame_above_its_working_size(lights_rig, lights_site):
     from ceilkit.runtime.sim.render import SimOptions, render_frame
 
-    cam = lights_rig.camera
-    K = cam.K.copy()
-    K[:2, :2] *= 2
-    K[:2, 2] = K[:2, 2] * 2 + 0.5
-    rig = dataclasses.replace(lights_rig, camera=dataclasses.replace(
-        cam, width=2 * cam.width, height=2 * cam.height, K=K, P=None))
+    rig = _scaled(lights_rig, 2)
     img = render_frame(rig, lights_site, 1.0, 0.5, 0.3, SimOptions(supersample=1),
                        rng=np.random.default_rng(0))
     est = LightsEstimator(rig, lights_site, {"working_mpx": 0.3})     # factor 2
@@ -86,15 +90,6 @@ def test_working_size_is_validated(lights_rig, lights_site, bad):
     with pytest.raises(ConfigError) as e:
         LightsEstimator(lights_rig, lights_site, {"working_mpx": bad})
     assert e.value.key == "options.working_mpx"
-
-
-def _scaled(rig, k):
-    cam = rig.camera
-    K = cam.K.copy()
-    K[:2, :2] *= k
-    K[:2, 2] = K[:2, 2] * k + (k - 1) / 2
-    return dataclasses.replace(rig, camera=dataclasses.replace(
-        cam, width=k * cam.width, height=k * cam.height, K=K, P=None))
 
 
 def test_decimated_segments_come_back_in_full_resolution_pixels():
