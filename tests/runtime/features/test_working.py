@@ -71,15 +71,20 @@ def test_decimated_spots_match_the_truth_and_scale_their_moments():
     np.testing.assert_allclose(s.areas_px, small.areas_px * 4)
 
 
-def test_lights_estimator_on_a_frame_above_its_working_size(lights_rig, lights_site):
+def _estimate_doubled(cls, rig, site, x, y, yaw):
+    """``cls`` at working size 0.3 Mpx (factor 2) on a frame of twice ``rig``'s size."""
     from ceilkit.runtime.sim.render import SimOptions, render_frame
 
-    rig = _scaled(lights_rig, 2)
-    img = render_frame(rig, lights_site, 1.0, 0.5, 0.3, SimOptions(supersample=1),
+    rig = _scaled(rig, 2)
+    img = render_frame(rig, site, x, y, yaw, SimOptions(supersample=1),
                        rng=np.random.default_rng(0))
-    est = LightsEstimator(rig, lights_site, {"working_mpx": 0.3})     # factor 2
+    est = cls(rig, site, {"working_mpx": 0.3})
+    return est, est.estimate(img, 0)
+
+
+def test_lights_estimator_on_a_frame_above_its_working_size(lights_rig, lights_site):
+    est, out = _estimate_doubled(LightsEstimator, lights_rig, lights_site, 1.0, 0.5, 0.3)
     assert est.observer.factor == 2
-    out = est.estimate(img, 0)
     assert out, out
     assert math.hypot(out.x_m - 1.0, out.y_m - 0.5) < 0.005
     assert abs(math.degrees(out.yaw_rad - 0.3)) < 0.1
@@ -106,14 +111,9 @@ def test_decimated_segments_come_back_in_full_resolution_pixels():
 
 
 def test_corridor_estimator_on_a_frame_above_its_working_size(corridor_rig, corridor_site):
-    from ceilkit.runtime.sim.render import SimOptions, render_frame
-
-    rig = _scaled(corridor_rig, 2)
-    img = render_frame(rig, corridor_site, 2.0, 0.1, 0.05, SimOptions(supersample=1),
-                       rng=np.random.default_rng(0))
-    est = CorridorEstimator(rig, corridor_site, {"working_mpx": 0.3})    # factor 2
+    est, out = _estimate_doubled(CorridorEstimator, corridor_rig, corridor_site, 2.0, 0.1,
+                                 0.05)
     assert est.detector.factor == 2
-    out = est.estimate(img, 0)
     assert out, out
     assert abs(out.y_m - 0.1) < 0.001 and abs(math.degrees(out.yaw_rad - 0.05)) < 0.01
     assert out.quality >= 0.5
