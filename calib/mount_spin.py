@@ -18,7 +18,7 @@ refuses it.
 
 Example::
 
-    frames, yaws = load_spin(Recording("spin1"), start_rig, site)
+    frames, yaws = load_placed_frames(Recording("spin1"), start_rig, site)
     res = calibrate_mount_spin(start_rig, site, frames, yaws, pan_rad=math.radians(4.0))
 """
 
@@ -149,9 +149,9 @@ def in_place_test(fit: _SpinFit, p: np.ndarray) -> tuple[float, float]:
     return F, float(f_dist.ppf(1.0 - IN_PLACE_ALPHA, extra, dof))
 
 
-def load_spin(recording, rig: Rig, site: Site, max_frames: int = 120
-              ) -> tuple[list[LightFrame], np.ndarray]:
-    """A spin recording's spot frames and each frame's starting vehicle pose
+def load_placed_frames(recording, rig: Rig, site: Site, max_frames: int = 120
+                       ) -> tuple[list[LightFrame], np.ndarray]:
+    """A recording's spot frames (a spin, a drive) and each frame's starting vehicle pose
     ``(K, 3)`` from the lights method with ``rig`` (frames it cannot place are left
     out: their heading would have no start). The start rig is only approximate (its
     lever arm and height are what the fit finds), so the method's misfit checks are
@@ -203,7 +203,7 @@ def calibrate_mount_spin(rig: Rig, site: Site, frames: Sequence[LightFrame],
     """Fit lean, lever arm and height of an upward rig from a spin in place, the pan
     held at ``pan_rad`` (see the module doc).
 
-    ``start_poses``: ``(K, 3)`` each frame's vehicle pose with ``rig`` (:func:`load_spin`):
+    ``start_poses``: ``(K, 3)`` each frame's vehicle pose with ``rig`` (:func:`load_placed_frames`):
     the centre starts at their mean, each yaw at its own.
 
     Raises:
@@ -259,4 +259,4 @@ def calibrate_mount_spin(rig: Rig, site: Site, frames: Sequence[LightFrame],
                       (float(p[5]), float(p[6])), _turn_deg(p[7:]), pan_rad)
 
 
-__all__ = ["MIN_TURN_DEG", "SpinResult", "calibrate_mount_spin", "load_spin"]
+__all__ = ["MIN_TURN_DEG", "SpinResult", "calibrate_mount_spin", "load_placed_frames"]

@@ -323,18 +323,22 @@ def _search_heading(fit: _Fit, theta: np.ndarray, gate_px: float) -> np.ndarray:
     return best
 
 
-def covariance(J: np.ndarray, s2: float, px: np.ndarray, rig: Rig) -> np.ndarray:
+def covariance(J: np.ndarray, s2: float, px: np.ndarray, rig: Rig,
+               px_scale: float = 1.0) -> np.ndarray:
     """The parameters' covariance: the residuals' scatter ``s2`` through ``J``, plus a
     common radial scale and a rotation of the centroids about the principal point
     (:data:`SYSTEMATIC_SCALE`, :data:`SYSTEMATIC_ROTATION`) through the sensitivity
-    ``d theta = -(J^T J)^-1 J^T dr``."""
+    ``d theta = -(J^T J)^-1 J^T dr``. The first ``2 len(px)`` rows of ``J`` are the
+    pixel residuals divided by ``px_scale``; any further rows (other residuals) see no
+    systematic shift."""
     JtJ_inv = np.linalg.pinv(J.T @ J)
     cov = s2 * JtJ_inv
     c = np.array([rig.camera.cx, rig.camera.cy])
+    pad = np.zeros(J.shape[0] - 2 * px.shape[0])
     for dr in ((-(px - c) * SYSTEMATIC_SCALE).ravel(),          # r = pred - obs
                (-np.stack([-(px - c)[:, 1], (px - c)[:, 0]], axis=1)
                 * SYSTEMATIC_ROTATION).ravel()):
-        g = -JtJ_inv @ (J.T @ dr)
+        g = -JtJ_inv @ (J.T @ np.r_[dr / px_scale, pad])
         cov = cov + np.outer(g, g)
     return cov
 

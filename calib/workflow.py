@@ -405,19 +405,24 @@ def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, 
                               "either --spin or --poses)")
         return mount_spin(recording, the_site, site, out, rig=rig, camera=camera,
                           fix=fix or {}, max_frames=max_frames)
+    if poses is None and not (Path(recording) / "truth.csv").exists():
+        if fix and "my" in fix:
+            return mount_drive(recording, the_site, site, out, rig=rig, camera=camera,
+                               fix=fix, max_frames=max_frames)
+        raise ConfigError(Path(recording) / "truth.csv", None,
+                          "file not found: the upward fit needs the vehicle's poses "
+                          "(truth.csv, or --poses a t_ns,x,y,yaw_deg table); with none, "
+                          "a drive gives all but the lever arm's y: hold it with --fix "
+                          "my=VALUE (measured, or from --spin)")
     if fix:
-        raise ConfigError(None, "fix", "the upward (lights) fit determines every "
-                          "parameter or refuses; it holds none (--fix applies to the "
-                          "corridor fit)")
+        raise ConfigError(None, "fix", "the upward (lights) fit with poses determines "
+                          "every parameter or refuses; it holds none (--fix applies to "
+                          "the corridor fit, a spin or a drive without poses)")
     the_rig, camera_ref = _start_rig(rig, camera)
     _check_writable(out)
     frames, table = load_light_frames(recording, the_rig, max_frames)
     if poses is not None:
         table = load_pose_csv(poses)
-    if table is None:
-        raise ConfigError(Path(recording) / "truth.csv", None,
-                          "file not found: the upward fit needs the vehicle's poses "
-                          "(truth.csv, or --poses a t_ns,x,y,yaw_deg table)")
     res = calibrate_mount_upward(the_rig, the_site, frames, table,
                                  estimate_offset=None if poses is None else True)
     lines = res.lines()
@@ -493,7 +498,7 @@ def mount_spin(recording: Path, the_site: Site, site: Path, out: Path, *,
         ConfigError: ``fix``: no pan, or a parameter other than pan.
         CalibrationError: too little turn, not in place, an undetermined parameter.
     """
-    from .mount_spin import calibrate_mount_spin, load_spin
+    from .mount_spin import calibrate_mount_spin, load_placed_frames
 
     if "pan" not in fix:
         raise ConfigError(None, "fix", "a spin in place does not determine the pan (the "
@@ -508,7 +513,7 @@ def mount_spin(recording: Path, the_site: Site, site: Path, out: Path, *,
     _check_writable(out)
     pan = the_rig.mount.pan_rad + the_rig.mount.swing_rad if fix["pan"] is None \
         else fix["pan"]
-    frames, start = load_spin(Recording(recording), the_rig, the_site, max_frames)
+    frames, start = load_placed_frames(Recording(recording), the_rig, the_site, max_frames)
     res = calibrate_mount_spin(the_rig, the_site, frames, start, pan)
     lines = res.lines()
     how = "the rig's value" if fix["pan"] is None else "typed"
@@ -516,11 +521,42 @@ def mount_spin(recording: Path, the_site: Site, site: Path, out: Path, *,
         "rig.yaml written by ceilcal mount --spin (upward lights rig, spin in place)",
         [f"spin: {recording} ({len(frames)} frames placed)", f"site: {site}",
          f"held: pan (--fix pan, {how}; not measured by this fit)"] + lines)
-    ref = None
-    if camera_ref is not None:
-        ref = os.path.relpath(Path(camera_ref).resolve(), Path(out).resolve().parent)
-    the_rig.with_mount(res.mount).save(out, header, camera_ref=ref)
-    return MountRun(Path(out), tuple(lines))
+    exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
+    return MountRun(Path(out), tuple(lines), exports=exports)
+
+
+def mount_drive(recording: Path, the_site: Site, site: Path, out: Path, *,
+                rig: Path | None = None, camera: Path | None = None,
+                fix: dict[str, float | None], max_frames: int = 120) -> MountRun:
+    """Fit an upward rig's pan, lean, ``x`` and height from a drive under the site's
+    ``lights`` with no poses, the wheels' no-sideways-motion tying the camera's path to
+    the vehicle's (:func:`~ceilkit.calib.mount_drive.calibrate_mount_drive`), ``y`` held
+    at ``fix['my']`` (a drive cannot determine it); write ``out``.
+
+    Raises:
+        ConfigError: ``fix``: a parameter other than my.
+        CalibrationError: too few frames, an undetermined parameter (naming what to add).
+    """
+    from .mount_drive import calibrate_mount_drive
+    from .mount_spin import load_placed_frames
+
+    extra = sorted(set(fix) - {"my"})
+    if extra:
+        raise ConfigError(None, "fix", f"--fix {extra[0]}: the drive fit determines it; "
+                          "only my can be held")
+    the_rig, camera_ref = _start_rig(rig, camera)
+    _check_writable(out)
+    my = the_rig.mount.y_m if fix["my"] is None else fix["my"]
+    frames, start = load_placed_frames(Recording(recording), the_rig, the_site, max_frames)
+    res = calibrate_mount_drive(the_rig, the_site, frames, start, my)
+    lines = res.lines()
+    how = "the rig's value" if fix["my"] is None else "typed"
+    header = provenance_header(
+        "rig.yaml written by ceilcal mount (upward lights rig, drive without poses)",
+        [f"drive: {recording} ({len(frames)} frames placed)", f"site: {site}",
+         f"held: my (--fix my, {how}; not measured by this fit)"] + lines)
+    exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
+    return MountRun(Path(out), tuple(lines), exports=exports)
 
 
 def lightmap(recording: Path, out: Path, *, poses: Path | None = None,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from ceilkit.calib.mount_spin import calibrate_mount_spin, load_spin
+from ceilkit.calib.mount_spin import calibrate_mount_spin, load_placed_frames
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
 from ceilkit.runtime.config.rig import Mount, Rig
@@ -44,7 +44,7 @@ def _start():
 
 def test_lever_arm_and_height_from_a_spin(spin):
     site = Site.load(SITE)
-    frames, start = load_spin(Recording(spin), _start(), site)
+    frames, start = load_placed_frames(Recording(spin), _start(), site)
     res = calibrate_mount_spin(_start(), site, frames, start, math.radians(4.0))
     m = res.mount
     for k, a, b in (("mx", m.x_m, TRUE.x_m), ("my", m.y_m, TRUE.y_m),
@@ -78,10 +78,10 @@ def test_cli_writes_the_rig_with_the_pan_recorded_as_held(spin, tmp_path):
 def test_refuses_a_spin_off_the_spot_and_a_small_turn(tmp_path):
     site = Site.load(SITE)
     moved = _spin(tmp_path / "moved", n=8, drift_m=0.3, seed=1)
-    frames, start = load_spin(Recording(moved), _start(), site)
+    frames, start = load_placed_frames(Recording(moved), _start(), site)
     with pytest.raises(CalibrationError, match="did not turn in place"):
         calibrate_mount_spin(_start(), site, frames, start, math.radians(4.0))
     small = _spin(tmp_path / "small", n=6, turn=math.radians(60), seed=2)
-    frames, start = load_spin(Recording(small), _start(), site)
+    frames, start = load_placed_frames(Recording(small), _start(), site)
     with pytest.raises(CalibrationError, match="turn a full circle"):
         calibrate_mount_spin(_start(), site, frames, start, math.radians(4.0))
