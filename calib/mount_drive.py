@@ -40,6 +40,7 @@ from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import CalibrationError, ConfigError
 
+from .mount_spin import PosedFit
 from .mount_upward import (
     DEFAULT_LIGHT_DIAMETER_M,
     MAX_FIELD_DEG,
@@ -47,12 +48,9 @@ from .mount_upward import (
     MAX_SIGMA_UP,
     MIN_FRAMES,
     LightFrame,
-    _Fit,
     covariance,
     lean_of,
-    predict_px,
     refuse_undetermined,
-    rotation,
     to_mount,
 )
 
@@ -91,7 +89,7 @@ class DriveResult:
                 "determine it)"]
 
 
-class _DriveFit(_Fit):
+class _DriveFit(PosedFit):
     """Parameters ``p = (heading, ax, ay, mx, mz, x_1, y_1, yaw_1, ...)``, ``my`` held."""
 
     def __init__(self, rig: Rig, site: Site, frames: Sequence[LightFrame], my: float,
@@ -104,20 +102,6 @@ class _DriveFit(_Fit):
 
     def split(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.r_[p[:4], self.my, p[4]], p[5:].reshape(-1, 3)
-
-    def all_predictions(self, p: np.ndarray) -> list[np.ndarray]:
-        theta, poses = self.split(p)
-        R_vc, L = rotation(*theta[:3]), self.lights.shape[0]
-        return [predict_px(self.rig, self.H, self.lights, np.repeat(pk[None], L, axis=0),
-                           R_vc, theta[3:6], self.radius) for pk in poses]
-
-    def pixel_residuals(self, p: np.ndarray) -> np.ndarray:
-        fk, lk, px = self.assoc
-        theta, poses = self.split(p)
-        pr = predict_px(self.rig, self.H, self.lights[lk], poses[fk], rotation(*theta[:3]),
-                        theta[3:6], self.radius)
-        r = (pr - px).ravel()
-        return np.where(np.isfinite(r), r, 50.0)
 
     def steps(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each tied pair's sideways step of the vehicle's origin and the step's

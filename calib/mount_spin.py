@@ -89,9 +89,33 @@ class SpinResult:
                 f"z {m.z_m:.4f} m +- {s['mz']:.4f} (1 sigma)"]
 
 
-class _SpinFit(_Fit):
-    """The upward fit with the poses ``(cx, cy, yaw_k)`` among the unknowns: parameters
-    ``p = (ax, ay, mx, my, mz, cx, cy, yaw_1 .. yaw_K)``, the heading held at ``pan``."""
+class PosedFit(_Fit):
+    """The upward fit with the vehicle poses among the unknowns: a subclass maps its
+    parameters ``p`` to ``(theta, poses)`` in :meth:`split` (``theta`` = heading, ax,
+    ay, mx, my, mz as :func:`~ceilkit.calib.mount_upward.rotation` and
+    :func:`~ceilkit.calib.mount_upward.predict_px` take them; ``poses`` ``(K, 3)``)."""
+
+    def split(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def all_predictions(self, p: np.ndarray) -> list[np.ndarray]:
+        theta, poses = self.split(p)
+        R_vc, L = rotation(*theta[:3]), self.lights.shape[0]
+        return [predict_px(self.rig, self.H, self.lights, np.repeat(pk[None], L, axis=0),
+                           R_vc, theta[3:6], self.radius) for pk in poses]
+
+    def pixel_residuals(self, p: np.ndarray) -> np.ndarray:
+        fk, lk, px = self.assoc
+        theta, poses = self.split(p)
+        pr = predict_px(self.rig, self.H, self.lights[lk], poses[fk], rotation(*theta[:3]),
+                        theta[3:6], self.radius)
+        r = (pr - px).ravel()
+        return np.where(np.isfinite(r), r, 50.0)
+
+
+class _SpinFit(PosedFit):
+    """Parameters ``p = (ax, ay, mx, my, mz, cx, cy, yaw_1 .. yaw_K)``, the heading held
+    at ``pan``: one centre for every frame."""
 
     def __init__(self, rig: Rig, site: Site, frames: Sequence[LightFrame], pan: float,
                  radius_m: float):
@@ -103,19 +127,8 @@ class _SpinFit(_Fit):
         poses = np.column_stack([np.full(k, p[5]), np.full(k, p[6]), p[7:]])
         return np.r_[self.pan, p[:5]], poses
 
-    def all_predictions(self, p: np.ndarray) -> list[np.ndarray]:
-        theta, poses = self.split(p)
-        R_vc, L = rotation(*theta[:3]), self.lights.shape[0]
-        return [predict_px(self.rig, self.H, self.lights, np.repeat(pk[None], L, axis=0),
-                           R_vc, theta[3:6], self.radius) for pk in poses]
-
     def residuals(self, p: np.ndarray) -> np.ndarray:
-        fk, lk, px = self.assoc
-        theta, poses = self.split(p)
-        pr = predict_px(self.rig, self.H, self.lights[lk], poses[fk], rotation(*theta[:3]),
-                        theta[3:6], self.radius)
-        r = (pr - px).ravel()
-        return np.where(np.isfinite(r), r, 50.0)
+        return self.pixel_residuals(p)
 
 
 class _FreeFit(_SpinFit):

@@ -515,14 +515,9 @@ def mount_spin(recording: Path, the_site: Site, site: Path, out: Path, *,
         else fix["pan"]
     frames, start = load_placed_frames(Recording(recording), the_rig, the_site, max_frames)
     res = calibrate_mount_spin(the_rig, the_site, frames, start, pan)
-    lines = res.lines()
-    how = "the rig's value" if fix["pan"] is None else "typed"
-    header = provenance_header(
-        "rig.yaml written by ceilcal mount --spin (upward lights rig, spin in place)",
-        [f"spin: {recording} ({len(frames)} frames placed)", f"site: {site}",
-         f"held: pan (--fix pan, {how}; not measured by this fit)"] + lines)
-    exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
-    return MountRun(Path(out), tuple(lines), exports=exports)
+    return _save_held_fit(the_rig, res, out, camera_ref, "spin in place",
+                          f"spin: {recording} ({len(frames)} frames placed)", site,
+                          "pan", fix["pan"] is None)
 
 
 def mount_drive(recording: Path, the_site: Site, site: Path, out: Path, *,
@@ -549,12 +544,20 @@ def mount_drive(recording: Path, the_site: Site, site: Path, out: Path, *,
     my = the_rig.mount.y_m if fix["my"] is None else fix["my"]
     frames, start = load_placed_frames(Recording(recording), the_rig, the_site, max_frames)
     res = calibrate_mount_drive(the_rig, the_site, frames, start, my)
+    return _save_held_fit(the_rig, res, out, camera_ref, "drive without poses",
+                          f"drive: {recording} ({len(frames)} frames placed)", site, "my",
+                          fix["my"] is None)
+
+
+def _save_held_fit(the_rig: Rig, res, out: Path, camera_ref, kind: str, source: str,
+                   site: Path, held: str, from_rig: bool) -> MountRun:
+    """Write an upward fit that held one parameter (``held``), saying so in the header."""
     lines = res.lines()
-    how = "the rig's value" if fix["my"] is None else "typed"
+    how = "the rig's value" if from_rig else "typed"
     header = provenance_header(
-        "rig.yaml written by ceilcal mount (upward lights rig, drive without poses)",
-        [f"drive: {recording} ({len(frames)} frames placed)", f"site: {site}",
-         f"held: my (--fix my, {how}; not measured by this fit)"] + lines)
+        f"rig.yaml written by ceilcal mount (upward lights rig, {kind})",
+        [source, f"site: {site}",
+         f"held: {held} (--fix {held}, {how}; not measured by this fit)"] + lines)
     exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
     return MountRun(Path(out), tuple(lines), exports=exports)
 
