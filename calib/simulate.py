@@ -1,4 +1,4 @@
-"""Simulated recordings: render a trajectory through a rig in a site, with truth.
+"""Simulated recordings, board views and placements, each with its truth.
 
 The library function behind ``ceilcal simulate``: a SPEC recording (``frames/``,
 ``frames.csv``, ``rig.yaml``, ``site.yaml``) plus ``truth.csv`` holding the vehicle
@@ -9,6 +9,10 @@ Example::
     traj = straight_drive(300, fps=30.0, speed_mps=0.5, y_m=0.05, weave_m=0.1)
     simulate_recording(rig, site, traj, "out/sim", SimOptions(noise_sigma=2.0), seed=1)
 
+:func:`simulate_boards` renders board views through a camera (for ``ceilcal
+intrinsics``), :func:`simulate_placements` the vehicle parked at measured placements
+with their placements file (for ``ceilcal mount``).
+
 :func:`make_trajectory` gives the trajectories ``ceilcal simulate`` offers by name
 (``drive``, ``random``) or reads one from a ``truth.csv``-layout file.
 """
@@ -16,14 +20,20 @@ Example::
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import fields
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from ceilkit.runtime.config.camera import save_camera
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.config.yaml import atomic_write_bytes
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.io.capture import list_images
 from ceilkit.runtime.io.recording import RecordingWriter
 from ceilkit.runtime.sim.realism import Realism
 from ceilkit.runtime.sim.render import (
@@ -34,6 +44,10 @@ from ceilkit.runtime.sim.render import (
     random_poses,
     straight_drive,
 )
+
+from .boards import Board, render_views
+
+PLACEMENTS_FILE = "placements.yaml"
 
 
 def site_x_range(site: Site) -> tuple[float, float]:
@@ -114,4 +128,105 @@ def simulate_recording(rig: Rig, site: Site, trajectory: Trajectory, out_dir: st
     return out
 
 
-__all__ = ["make_trajectory", "simulate_recording", "site_x_range"]
+DEFAULT_PLACEMENTS: tuple[tuple[float, float], ...] = (
+    (0.0, 0.0), (0.25, 0.0), (-0.25, 0.0), (0.1, 12.0), (-0.1, -12.0))
+"""``(y_m, yaw_deg)`` of the placements ``ceilcal simulate --kind placements`` renders by
+default: three lateral positions and two turned by 12 deg (one turned placement makes
+the forward offset observable, docs/calibration.md)."""
+
+
+def _new_folder(out: Path) -> None:
+    """``out`` created; refused when it already holds images or a placements file."""
+    if out.exists() and (not out.is_dir() or list_images(out)
+                         or (out / PLACEMENTS_FILE).exists()):
+        raise ConfigError(out, None, "already holds images or is a file; give a new folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(out, None, f"cannot create: {exc.strerror}") from None
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise ConfigError(path, None, "cannot encode the image")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def simulate_boards(board: Board, camera: CameraModel, n_views: int, out_dir: str | Path,
+                    seed: int = 0, noise_sigma: float = 2.0, blur_px: float = 0.7,
+                    supersample: int = 2, header: str = "") -> Path:
+    """Render ``n_views`` views of ``board`` through ``camera`` into ``out_dir`` (new):
+    ``view_00.png ...`` (what ``ceilcal intrinsics FOLDER`` reads) and the true camera
+    as ``camera_truth.yaml`` (after ``header``).
+
+    The views spread the board over the image and tilt it by up to 40 deg in every
+    direction (:func:`~ceilkit.calib.boards.render_views`, every corner in view), from
+    ``np.random.default_rng(seed)``. Returns ``out_dir`` as a Path.
+
+    Raises:
+        ConfigError: ``views`` (< 5: too few for intrinsics), ``out_dir`` not new.
+    """
+    if n_views < 5:
+        raise ConfigError(None, "views", f"expected at least 5 views, found {n_views}")
+    out = Path(out_dir)
+    views = render_views(board, camera, n_views, np.random.default_rng(seed),
+                         noise_sigma=noise_sigma, blur_sigma_px=blur_px,
+                         supersample=supersample)
+    _new_folder(out)
+    for k, (image, _, _) in enumerate(views):
+        _write_png(out / f"view_{k:02d}.png", image)
+    save_camera(camera, out / "camera_truth.yaml", header)
+    return out
+
+
+def placement_poses(site: Site, placements: Sequence[tuple[float, float]]) -> Trajectory:
+    """The vehicle poses of ``placements`` (``(y_m, yaw_deg)`` each): spread evenly in x
+    over the middle half of what the site has on its ceiling, stamped 1 s apart."""
+    x0, x1 = site_x_range(site)
+    n = len(placements)
+    xs = x0 + (x1 - x0) * (0.25 + 0.5 * (np.arange(n) + 0.5) / n)
+    ys = np.array([float(y) for y, _ in placements])
+    yaws = np.radians([float(a) for _, a in placements])
+    return Trajectory(np.arange(n, dtype=np.int64) * 1_000_000_000, xs, ys, yaws)
+
+
+def simulate_placements(rig: Rig, site: Site, placements: Sequence[tuple[float, float]],
+                        out_dir: str | Path, options: SimOptions = SimOptions(),
+                        seed: int = 0, header: str = "") -> Path:
+    """Render the vehicle parked at each of ``placements`` (``(y_m, yaw_deg)``,
+    :func:`placement_poses`) into ``out_dir`` (new): ``p00.png ...``, the placements
+    file ``placements.yaml`` (image, y, yaw per placement, as ``ceilcal mount`` reads
+    it; the x of each in a comment), the site as ``site.yaml`` and the true rig as
+    ``rig_truth.yaml`` (camera inline), each after ``header``.
+
+    Raises:
+        ConfigError: ``placements`` (none, or a y or yaw out of range), ``out_dir`` not new.
+    """
+    if not placements:
+        raise ConfigError(None, "placements", "expected at least one placement")
+    for y, yaw in placements:
+        if not (abs(y) <= 100 and abs(yaw) <= 180):
+            raise ConfigError(None, "placements", f"y {y} m, yaw {yaw} deg: expected "
+                              "|y| <= 100 m and |yaw| <= 180 deg")
+    out = Path(out_dir)
+    traj = placement_poses(site, placements)
+    src = SimSource(rig, site, traj, options, seed)
+    _new_folder(out)
+    rows = []
+    with src:
+        for frame in src:
+            name = f"p{frame.index:02d}.png"
+            _write_png(out / name, frame.image)
+            x, y, yaw = src.pose(frame.index)
+            rows.append(f"  - {{image: {name}, y: {y:.4f}, yaw: {math.degrees(yaw):.4f}}}"
+                        f"   # x {x:.3f} m")
+    atomic_write_bytes(out / PLACEMENTS_FILE,
+                       (header + "placements:\n" + "\n".join(rows) + "\n").encode())
+    site.save(out / "site.yaml", header)
+    rig.save(out / "rig_truth.yaml", header)
+    return out
+
+
+__all__ = ["DEFAULT_PLACEMENTS", "PLACEMENTS_FILE", "make_trajectory", "placement_poses",
+           "simulate_boards", "simulate_placements", "simulate_recording", "site_x_range"]

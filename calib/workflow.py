@@ -79,7 +79,14 @@ from .mount import (
     load_placements,
     unobservable,
 )
-from .simulate import make_trajectory, simulate_recording
+from .simulate import (
+    DEFAULT_PLACEMENTS,
+    PLACEMENTS_FILE,
+    make_trajectory,
+    simulate_placements,
+    simulate_recording,
+)
+from .simulate import simulate_boards as simulate_board_views
 
 Progress = Callable[[int, int, str, bool], None]
 """``progress(i, n, name, found)`` after each image of a detection."""
@@ -646,12 +653,75 @@ class SimulateRun:
                 f"{t.y_m.max():.3f} m, seed {self.seed}, {self.ms_per_frame:.0f} ms/frame"]
 
 
+def parse_placements(items: Sequence[str]) -> list[tuple[float, float]]:
+    """``--placement Y,YAW`` items (metres, degrees) as ``(y_m, yaw_deg)``.
+
+    Raises:
+        ConfigError: ``placements``: an item that is not two numbers.
+    """
+    out = []
+    for item in items:
+        parts = str(item).split(",")
+        try:
+            y, yaw = (float(v) for v in parts)
+        except ValueError:
+            raise ConfigError(None, "placements", f"expected Y,YAW (m, deg), found "
+                              f"{item!r}") from None
+        out.append((y, yaw))
+    return out
+
+
+@dataclass(frozen=True)
+class SimulatedFiles:
+    """A written folder of simulated images (board views, placements) and their truth."""
+
+    folder: Path
+    what: str
+    seed: int
+
+    def lines(self) -> list[str]:
+        return [f"wrote {self.what} to {self.folder}, seed {self.seed}"]
+
+
+def simulate_boards(out: Path, board: Board, *, camera: Path | None = None,
+                    rig: Path | None = None, views: int = 30, seed: int = 0,
+                    noise_sigma: float = 2.0, blur_px: float = 0.7,
+                    supersample: int = 2) -> SimulatedFiles:
+    """Render ``views`` board views through ``camera`` (camera.yaml; default the camera
+    of ``rig``, default the packaged corridor's) into ``out`` (new), with the true
+    camera as ``camera_truth.yaml`` (:func:`~ceilkit.calib.simulate.simulate_boards`).
+
+    Raises:
+        ConfigError: ``views``, a bad camera or rig file, ``out`` not new.
+    """
+    if camera is not None:
+        the_camera = load_camera(camera)
+    else:
+        the_camera = Rig.load(rig if rig is not None else packaged_file("rig.yaml")).camera
+    if noise_sigma < 0 or blur_px < 0 or supersample < 1:
+        raise ConfigError(None, "options.noise_sigma" if noise_sigma < 0 else
+                          "options.blur_px" if blur_px < 0 else "options.supersample",
+                          "expected noise >= 0, blur >= 0, supersample >= 1")
+    marker = getattr(board, "marker_m", None)
+    header = provenance_header("true camera of simulated board views by ceilcal simulate",
+                               [f"board: {board.spec}, square {board.square_m:g} m"
+                                + (f", marker {marker:g} m" if marker is not None else ""),
+                                f"{views} views, seed {seed}"])
+    folder = simulate_board_views(board, the_camera, views, out, seed, noise_sigma, blur_px,
+                                  supersample, header)
+    return SimulatedFiles(folder, f"{views} views of {board.spec} "
+                          f"({the_camera.width}x{the_camera.height}) and camera_truth.yaml",
+                          seed)
+
+
 def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
              frames: int = 300, fps: float = 30.0, trajectory: str = "drive",
              lateral_m: float = 0.0, weave_m: float = 0.0, wobble_deg: float = 0.0,
              speed_mps: float = 0.5, noise_sigma: float = 2.0, blur_px: float = 0.8,
              supersample: int = 3, clutter: bool = False, seed: int = 0,
-             sim_preset: str | None = None, sim_faults: tuple[str, ...] = ()) -> SimulateRun:
+             sim_preset: str | None = None, sim_faults: tuple[str, ...] = (),
+             placements: Sequence[tuple[float, float]] | None = None
+             ) -> SimulateRun | SimulatedFiles:
     """Render a simulated recording (frames, rig, site, truth.csv) into ``out`` (new).
 
     ``rig`` and ``site`` default to the packaged corridor example's; ``trajectory`` is
@@ -660,6 +730,10 @@ def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
     of the ``presets.yaml`` beside the site, ``sim_faults`` are ``KNOB=VALUE`` realism
     knobs on top (:func:`ceilkit.runtime.sim.realism.resolve`). Nothing is written when
     an argument is bad.
+
+    ``placements`` (``(y_m, yaw_deg)`` each; empty: the default set): instead of a
+    drive, the vehicle parked at each, with the placements file ``ceilcal mount`` reads
+    (:func:`~ceilkit.calib.simulate.simulate_placements`).
 
     Raises:
         ConfigError: a bad value, keyed by the name of the field it sets
@@ -671,6 +745,14 @@ def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
     realism = resolve_realism(site_file, sim_preset, tuple(sim_faults))
     options = SimOptions(noise_sigma=noise_sigma, blur_px=blur_px, supersample=supersample,
                          clutter=clutter)
+    if placements is not None:
+        if realism is not None and realism.active:
+            raise ConfigError(None, "sim-preset", "applies to drives, not placements")
+        header = provenance_header("simulated placements by ceilcal simulate (truth)")
+        folder = simulate_placements(the_rig, the_site, placements or DEFAULT_PLACEMENTS,
+                                     out, options, seed, header)
+        return SimulatedFiles(folder, f"{len(placements or DEFAULT_PLACEMENTS)} "
+                              f"placements and {folder / PLACEMENTS_FILE}", seed)
     traj = make_trajectory(trajectory, the_site, frames, fps, speed_mps, lateral_m, weave_m,
                            wobble_deg, np.random.default_rng(seed))
     t0 = time.perf_counter()
@@ -735,7 +817,7 @@ def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Pat
         run = mount(placements, site, rig_path, camera=cam_path, drive=drive, plots=plots)
         for line in run.report:
             say("  " + line)
-        for path in run.plots:
+        for path in run.exports + run.plots:
             say(f"  wrote {path}")
     else:
         say(f"step 2/3: mount: kept {rig_path}")
@@ -753,4 +835,5 @@ def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Pat
 
 __all__ = ["CalibrateRun", "IntrinsicsRun", "LightmapRun", "MountRun", "SimulateRun",
            "calibrate", "intrinsics", "lightmap", "mount", "packaged_file",
-           "provenance_header", "simulate"]
+           "parse_placements", "provenance_header", "simulate", "simulate_boards",
+           "SimulatedFiles"]

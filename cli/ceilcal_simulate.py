@@ -1,4 +1,5 @@
-"""`ceilcal simulate`: render a simulated recording (frames + truth) for a rig and site.
+"""`ceilcal simulate`: simulated data with truth: a recording (frames + truth) for a rig
+and site, board views through a lens, or placement images with their placements file.
 
 Parses, calls :func:`ceilkit.calib.workflow.simulate`, prints one line. A bad value is
 reported with the flag the user typed (``cli/common.py`` maps the library's names).
@@ -11,6 +12,8 @@ from pathlib import Path
 import typer
 
 from ceilkit.calib import workflow
+from ceilkit.calib.boards import parse_board
+from ceilkit.runtime.errors import ConfigError
 
 
 def register(app: typer.Typer) -> None:
@@ -18,7 +21,10 @@ def register(app: typer.Typer) -> None:
     group callback keeps it a subcommand)."""
     @app.command("simulate")
     def simulate(
-        out: Path = typer.Option(..., "--out", help="Recording folder to write (new)."),
+        out: Path = typer.Option(..., "--out", help="Folder to write (new)."),
+        kind: str = typer.Option("drive", "--kind", help="drive: a recording with truth; "
+                                 "boards: board views for ceilcal intrinsics; placements: "
+                                 "parked images and placements.yaml for ceilcal mount."),
         rig: Path = typer.Option(None, "--rig", help="rig.yaml (default: packaged corridor)."),
         site: Path = typer.Option(None, "--site",
                                   help="site.yaml (default: packaged corridor)."),
@@ -40,12 +46,36 @@ def register(app: typer.Typer) -> None:
         sim_fault: list[str] = typer.Option(None, "--sim-fault", metavar="KNOB=VALUE",
                                             help="A realism knob (repeatable), on top of "
                                             "--sim-preset; see docs/simulator.md."),
+        board: str = typer.Option(None, "--board", help="boards: chess:COLSxROWS or "
+                                  "charuco:SXxSY[:DICT] (as ceilcal intrinsics)."),
+        square: float = typer.Option(None, "--square", help="boards: square side, metres."),
+        marker: float = typer.Option(None, "--marker", help="boards: ChArUco marker side, m."),
+        camera: Path = typer.Option(None, "--camera", help="boards: the lens (camera.yaml; "
+                                    "default: the --rig's camera)."),
+        views: int = typer.Option(30, "--views", help="boards: number of views."),
+        placement: list[str] = typer.Option(None, "--placement", metavar="Y,YAW",
+                                            help="placements: lateral m, heading deg "
+                                            "(repeatable; default 5: 0,0 0.25,0 -0.25,0 "
+                                            "0.1,12 -0.1,-12)."),
     ) -> None:
-        """Render a simulated recording (frames, rig, site and truth.csv)."""
+        """Render simulated data with its truth: a recording, board views or placements."""
+        if kind == "boards":
+            if board is None or square is None:
+                raise ConfigError(None, "board", "--kind boards needs --board and --square")
+            typer.echo("\n".join(workflow.simulate_boards(
+                out, parse_board(board, square, marker), camera=camera, rig=rig,
+                views=views, seed=seed, noise_sigma=noise, blur_px=blur,
+                supersample=supersample).lines()))
+            return
+        if kind not in ("drive", "placements"):
+            raise ConfigError(None, "kind", f"expected drive, boards or placements, found "
+                              f"{kind!r}")
         run = workflow.simulate(out, rig=rig, site=site, frames=frames, fps=fps,
                                 trajectory=trajectory, lateral_m=lateral, weave_m=weave,
                                 wobble_deg=wobble, speed_mps=speed, noise_sigma=noise,
                                 blur_px=blur, supersample=supersample, clutter=clutter,
                                 seed=seed, sim_preset=sim_preset,
-                                sim_faults=tuple(sim_fault or ()))
+                                sim_faults=tuple(sim_fault or ()),
+                                placements=None if kind == "drive" else
+                                workflow.parse_placements(placement or ()))
         typer.echo("\n".join(run.lines()))

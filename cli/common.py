@@ -44,7 +44,8 @@ COMMAND_FLAGS: Mapping[str, Mapping[str, str]] = MappingProxyType({
         "speed_mps": "--speed", "y_m": "--lateral", "weave_m": "--weave",
         "yaw_wobble_rad": "--wobble", "x_range": "--trajectory", "y_range": "--lateral",
         "trajectory": "--trajectory", "sim-preset": "--sim-preset",
-        "sim-fault": "--sim-fault",
+        "sim-fault": "--sim-fault", "placements": "--placement", "views": "--views",
+        "kind": "--kind",
     }),
     "intrinsics": MappingProxyType({"source": "FOLDER|--video|--device"}),
     # ceilcal lightmap: KnownLights fields and the survey's arguments

@@ -2,8 +2,26 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
+
+
+def replay_errors(rec: Path, poses: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Absolute heading (deg) and lateral (m) errors of a poses.csv against truth.csv."""
+    from ceilkit.runtime.io.recording import Recording, load_poses
+
+    truth = Recording(rec).truth
+    got = load_poses(poses)
+    dh, dy = [], []
+    for t, y, yaw in zip(got.t_ns, got.y_m, got.yaw_rad, strict=True):
+        _, ty, tyaw = truth.lookup(int(t))
+        dh.append(abs(math.degrees(math.remainder(yaw - tyaw, 2 * math.pi))))
+        dy.append(abs(y - ty))
+    a, b = np.array(dh), np.array(dy)
+    return a[np.isfinite(a)], b[np.isfinite(b)]

@@ -2,7 +2,6 @@
 is typed in (the camera comes from rendered boards, the mount from placements)."""
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -13,22 +12,8 @@ from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
 from ceilkit.cli.ceilrun import app as ceilrun
 from ceilkit.runtime.config.rig import Rig
-from ceilkit.runtime.io.recording import Recording, load_poses
 from ceilkit.runtime.sim.render import SimOptions, Trajectory, straight_drive
-from helpers import CONFIGS
-
-
-def replay_errors(rec: Path, poses: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Absolute heading (deg) and lateral (m) errors of a poses.csv against truth.csv."""
-    truth = Recording(rec).truth
-    got = load_poses(poses)
-    dh, dy = [], []
-    for t, y, yaw in zip(got.t_ns, got.y_m, got.yaw_rad, strict=True):
-        _, ty, tyaw = truth.lookup(int(t))
-        dh.append(abs(math.degrees(math.remainder(yaw - tyaw, 2 * math.pi))))
-        dy.append(abs(y - ty))
-    a, b = np.array(dh), np.array(dy)
-    return a[np.isfinite(a)], b[np.isfinite(b)]
+from helpers import CONFIGS, replay_errors
 
 
 def test_calibrate_then_replay(tmp_path, corridor_rig, corridor_site):

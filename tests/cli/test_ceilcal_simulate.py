@@ -100,3 +100,51 @@ def test_single_command_app_keeps_its_subcommand(tmp_path):
     res = runner.invoke(one, ["--out", str(tmp_path / "s")])
     assert res.exit_code != 0 and not (tmp_path / "s").exists()
     assert "simulate" in runner.invoke(one, ["--help"]).output
+
+
+def test_simulate_boards_and_placements(tmp_path):
+    from ceilkit.calib.mount import load_placements
+    from ceilkit.runtime.config.camera import load_camera
+    from ceilkit.runtime.io.capture import list_images
+
+    rig = small_rig(tmp_path, w=160, h=120)
+    res = runner.invoke(app, ["simulate", "--kind", "boards", "--board", "chess:5x4",
+                              "--square", "0.03", "--views", "5", "--rig", str(rig),
+                              "--supersample", "1", "--out", str(tmp_path / "b")])
+    assert res.exit_code == 0, res.output
+    assert len(list_images(tmp_path / "b")) == 5
+    assert load_camera(tmp_path / "b" / "camera_truth.yaml").width == 160
+    res = runner.invoke(app, ["simulate", "--kind", "placements", "--rig", str(rig),
+                              "--placement", "0.2,0", "--placement", "-0.1,15",
+                              "--supersample", "1", "--out", str(tmp_path / "p")])
+    assert res.exit_code == 0, res.output
+    pls = load_placements(tmp_path / "p" / "placements.yaml",
+                          Rig.load(rig).camera)
+    assert [p.label for p in pls] == ["p00.png", "p01.png"]
+    assert np.allclose([(p.y_m, np.degrees(p.yaw_rad)) for p in pls], [(0.2, 0), (-0.1, 15)])
+    assert Rig.load(tmp_path / "p" / "rig_truth.yaml").mount == Rig.load(rig).mount
+
+
+@pytest.mark.parametrize("args,flag", [
+    (["--kind", "boards"], "--board"),
+    (["--kind", "boards", "--board", "chess:5x4", "--square", "0.03", "--views", "3"],
+     "--views"),
+    (["--kind", "weird"], "--kind"),
+    (["--kind", "placements", "--placement", "0.1"], "--placement"),
+    (["--kind", "boards", "--board", "chess:5x4", "--square", "0.03", "--noise", "-1"],
+     "--noise"),
+])
+def test_simulate_kinds_bad_values_name_the_flag(tmp_path, args, flag):
+    res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "x"), *args])
+    assert res.exit_code == 1
+    assert f"error: {flag}:" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "x").exists()
+
+
+def test_simulate_placements_refuses_a_folder_with_images(tmp_path):
+    rig = small_rig(tmp_path, w=96, h=72)
+    args = ["simulate", "--kind", "placements", "--rig", str(rig), "--supersample", "1",
+            "--placement", "0,0", "--out", str(tmp_path / "p")]
+    assert runner.invoke(app, args).exit_code == 0
+    res = runner.invoke(app, args)
+    assert res.exit_code == 1 and "give a new folder" in res.output
