@@ -46,3 +46,21 @@ def test_simulate_recording_refuses_an_existing_recording(tmp_path, corridor_rig
     simulate_recording(rig, corridor_site, traj, tmp_path / "rec")
     with pytest.raises(ConfigError, match="already"):
         simulate_recording(rig, corridor_site, traj, tmp_path / "rec")
+
+
+def test_simulate_boards_charuco_views_are_detected(tmp_path):
+    """ChArUco views through a chosen lens: every view is found by the detector that
+    `ceilcal intrinsics` runs."""
+    from ceilkit.calib.boards import parse_board
+    from ceilkit.calib.intrinsics import detect_images, image_files
+    from ceilkit.calib.simulate import simulate_boards
+    from ceilkit.runtime.config.camera import load_camera
+    from ceilkit.runtime.config.rig import Rig
+    from helpers import CONFIGS
+
+    cam = Rig.load(CONFIGS / "corridor" / "rig.yaml").camera.scaled(320, 240)
+    board = parse_board("charuco:5x4", 0.04)
+    out = simulate_boards(board, cam, 5, tmp_path / "b", seed=2, supersample=1)
+    views = detect_images(image_files(out), board)
+    assert len(views) == 5
+    assert load_camera(out / "camera_truth.yaml").fx == cam.fx
