@@ -16,7 +16,8 @@ module). Three groups:
   around what saturates);
 * **camera**: ``motion_blur_ms`` (exposure time: the frame integrates the vehicle's
   motion over it), ``rolling_shutter_ms`` (readout from the top row to the bottom: a
-  row sees the pose at its own time), ``auto_exposure`` (gain swings of that
+  row sees the pose at its own time; the frame's stamp is the middle of the centre
+  row's exposure, so the centre row sees the stamp's pose), ``auto_exposure`` (gain swings of that
   relative amplitude, period ``ae_period_s``), ``jpeg`` (quality: encoded and decoded
   as MJPEG does).
 
@@ -491,12 +492,14 @@ def _wall_gloss(v: np.ndarray, rays: S.Rays, site: Site, options: R.SimOptions,
 
 # --------------------------------------------------------------------------- in time
 def _time_offsets(real: Realism) -> np.ndarray:
-    """Sub-frame times (s) after the frame's stamp (the top row's exposure start)."""
+    """Sub-frame times (s) relative to the frame's stamp, from the top row's exposure
+    start to the bottom row's exposure end: the stamp is the middle of the centre row's
+    exposure (docs/conventions.md), so they run from ``-span/2`` to ``+span/2``."""
     span = (real.motion_blur_ms + real.rolling_shutter_ms) / 1e3
     if span <= 0:
         return np.zeros(1)
     k = real.time_samples or int(np.clip(math.ceil(span / 5e-3) + 1, 2, 8))
-    return np.linspace(0.0, span, k)
+    return np.linspace(-0.5 * span, 0.5 * span, k)
 
 
 def _row_weights(real: Realism, taus: np.ndarray, rows: int) -> np.ndarray:
@@ -524,7 +527,9 @@ def _flicker_rows(real: Realism, t0_s: float, rows: int) -> np.ndarray:
     cos(2 pi 2 f t) over the row's exposure window (2 ms when exposure is 0)."""
     om = 2 * math.pi * 2 * real.mains_hz
     te = real.motion_blur_ms / 1e3 or 2e-3
-    a = t0_s + (np.arange(rows) / max(rows - 1, 1)) * real.rolling_shutter_ms / 1e3
+    ro = real.rolling_shutter_ms / 1e3
+    # each row's exposure start; the centre row's exposure is centred on the stamp
+    a = t0_s - 0.5 * (ro + te) + (np.arange(rows) / max(rows - 1, 1)) * ro
     mean = (np.sin(om * (a + te)) - np.sin(om * a)) / (om * te)
     return 1.0 + real.flicker * mean
 
