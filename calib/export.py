@@ -132,6 +132,9 @@ def write_exports(mount: Mount, rig_path: str | Path, header: str) -> Exports:
     atomic_write_text(paths.ardupilot, header
                       + "# camera optical centre in the body frame FRD, m (autopilot at "
                         "V's origin: subtract its position otherwise)\n"
+                      + "# for --protocol mavlink-odometry (ODOMETRY carries the camera's "
+                        "position); with --protocol mavlink (VISION_POSITION_ESTIMATE, "
+                        "the vehicle's reference point) VISO_POS is 0, 0, 0 instead\n"
                       + f"VISO_POS_X,{_num(x)}\nVISO_POS_Y,{_num(y)}\nVISO_POS_Z,{_num(z)}\n")
     return paths
 
