@@ -1,8 +1,10 @@
 """Benchmark of the fusion (issue 12): the fused pose beside each method alone.
 
 Simulated drives (``runtime/sim/render.py``; noise and blur of :class:`SimOptions`,
-``supersample=1`` to keep the run short on a shared machine), each through the real
-``Pipeline`` with ``make_localizer`` as ``ceilrun`` builds it:
+``supersample=1`` to keep the run short on a shared machine), each written to disk as a
+SPEC recording (frames/, frames.csv, rig.yaml, site.yaml, truth.csv, odometry.csv) and
+run through ``replay`` (the library function of ``ceilrun replay``), every method on
+the same recording:
 
 * **mixed**: a corridor with lamp rows and seams (configs/corridor) plus two rows of
   spot lights (made here): ``corridor``, ``lights`` and ``auto`` on the same frames;
@@ -20,6 +22,9 @@ Simulated drives (``runtime/sim/render.py``; noise and blur of :class:`SimOption
   frame of the covered stretch against the 95% chi-square band of a 12-run mean, the
   share of poses inside their own 95% ellipsoid;
 * **no-track**: ``replay(track=False)`` of a recording of 60 random poses.
+
+The teleport also runs in-process (``Pipeline`` with ``make_localizer``) beside its
+recordings.
 
 Prints a table and saves ``benchmarks/out/bench_fusion.csv`` (scenario, run, figure,
 value).
@@ -127,11 +132,51 @@ def write_recording(folder: Path, rig: Rig, site: Site, frames: list[Frame],
             w.write(f)
             w.write_truth(f.t_ns, *traj.pose(k))
     if odometry is not None:
-        rows = "".join(f"{int(t)},{dx:.9f},{dy:.9f},{math.degrees(a):.9f}\n" for t, dx, dy, a
-                       in zip(odometry.t_ns, odometry.dx_m, odometry.dy_m, odometry.dyaw_rad,
-                               strict=True))
-        (folder / "odometry.csv").write_text("t_ns,dx,dy,dyaw_deg\n" + rows)
+        write_odometry(folder, odometry)
     return folder
+
+
+def published(table) -> list:
+    """The rows of a ``poses.csv`` (:func:`load_poses`) as poses (None: a failure row)."""
+    pubs = []
+    for k in range(len(table.t_ns)):
+        x, y = table.x_m[k], table.y_m[k]
+        ok = np.isfinite(table.yaw_rad[k])
+        pubs.append(PoseEstimate(int(table.t_ns[k]), table.method[k],
+                                 float(x) if np.isfinite(x) else None,
+                                 float(y) if np.isfinite(y) else None,
+                                 float(table.yaw_rad[k]), float(table.quality[k]))
+                    if ok else None)
+    return pubs
+
+
+def replay_poses(folder: Path, name: str, method: str, start_pose=None) -> list:
+    """``ceilrun replay`` (its library function) of a SPEC recording with ``method``
+    (odometry from its ``odometry.csv``): what it published, one per frame, as the
+    pipeline hands it to its sinks (with the full covariance, which ``poses.csv``
+    gives only as sigmas)."""
+    sink = ListSink()
+    replay(folder, folder / name, method=method, start_pose=start_pose, sinks=[sink])
+    return [e for e, _ in sink.items]
+
+
+def link_recording(src: Path, dst: Path, odometry=None) -> Path:
+    """A SPEC recording sharing ``src``'s frames (symlinks) with its own odometry.csv."""
+    dst.mkdir(parents=True)
+    for p in src.iterdir():
+        if p.name != "odometry.csv" and (p.is_file() or p.name == "frames"):
+            (dst / p.name).symlink_to(p.resolve())
+    if odometry is not None:
+        write_odometry(dst, odometry)
+    return dst
+
+
+def write_odometry(folder: Path, odometry) -> None:
+    """``odometry.csv`` (SPEC) of an :class:`Odometry`."""
+    rows = "".join(f"{int(t)},{dx:.9f},{dy:.9f},{math.degrees(a):.9f}\n" for t, dx, dy, a
+                   in zip(odometry.t_ns, odometry.dx_m, odometry.dy_m, odometry.dyaw_rad,
+                          strict=True))
+    (folder / "odometry.csv").write_text("t_ns,dx,dy,dyaw_deg\n" + rows)
 
 
 def replayed(folder: Path, name: str, method: str, start_pose=None):
@@ -148,23 +193,14 @@ def replayed(folder: Path, name: str, method: str, start_pose=None):
     out.mkdir(parents=True, exist_ok=True)
     replay(folder, out, method=method, start_pose=start_pose,
            link=LinkConfig(str(link), "mavlink-odometry"))
-    table = load_poses(out / "poses.csv")
+    pubs = published(load_poses(out / "poses.csv"))
     parser = mavlink2.MAVLink(None)
     parser.robust_parsing = True
     resets = {}
     for msg in parser.parse_buffer(link.read_bytes()) or []:
         if msg.get_type() == "ODOMETRY":
             resets[int(msg.time_usec)] = int(msg.reset_counter)
-    pubs, counter = [], []
-    for k in range(len(table.t_ns)):
-        x, y = table.x_m[k], table.y_m[k]
-        ok = np.isfinite(table.yaw_rad[k])
-        pubs.append(PoseEstimate(int(table.t_ns[k]), table.method[k],
-                                 float(x) if np.isfinite(x) else None,
-                                 float(y) if np.isfinite(y) else None,
-                                 float(table.yaw_rad[k]), float(table.quality[k]))
-                    if ok else None)
-        counter.append(resets.get(int(table.t_ns[k]) // 1000))
+    counter = [None if e is None else resets.get(e.t_ns // 1000) for e in pubs]
     return pubs, counter
 
 
@@ -195,7 +231,8 @@ def scenario_mixed(quick: bool) -> None:
     n = 90 if quick else 300
     traj = weave(n, 15.0, 2.0, 0.0, 0.6, 0.15)
     frames = render(rig, site, traj, np.zeros(n, bool), seed=11)
-    res = {m: errors(run(m, rig, site, frames)[0], traj) for m in ("corridor", "lights", "auto")}
+    folder = write_recording(Path(tempfile.mkdtemp()) / "mixed", rig, site, frames, traj)
+    res = {m: errors(replay_poses(folder, m, m), traj) for m in ("corridor", "lights", "auto")}
     both = np.isfinite(res["lights"][:, 0]) & np.isfinite(res["corridor"][:, 1]) & \
         np.isfinite(res["auto"][:, 0])
     report("mixed", "all", "frames published by every run", both.sum())
@@ -227,8 +264,9 @@ def scenario_grid(quick: bool) -> None:
     a = speed * t_ns / 1e9 / radius
     traj = Trajectory(t_ns, radius * np.cos(a) + 0.3, radius * np.sin(a) + 0.2, a + math.pi / 2)
     frames = render(rig, site, traj, np.zeros(n, bool), seed=12)
-    for m, kw in (("lights", {}), ("auto", {"start_pose": traj.pose(0)})):
-        pubs = run(m, rig, site, frames, **kw)[0]
+    folder = write_recording(Path(tempfile.mkdtemp()) / "grid", rig, site, frames, traj)
+    for m, start in (("lights", None), ("auto", traj.pose(0))):
+        pubs = replay_poses(folder, m, m, start)
         e = errors(pubs, traj)
         pos = np.hypot(e[:, 0], e[:, 1])
         ok = np.isfinite(pos)
@@ -342,7 +380,9 @@ def scenario_odometry(quick: bool) -> None:
     covered[n_before:n_before + n_cover] = True
     frames = render(rig, site, traj, covered, seed=14)
     stretch = range(n_before, n_before + n_cover)
-    pubs = run("lights", rig, site, frames)[0]
+    rec = Path(tempfile.mkdtemp())
+    folder = write_recording(rec / "odometry", rig, site, frames, traj)
+    pubs = replay_poses(folder, "lights", "lights")
     pos = np.hypot(*errors(pubs, traj)[:, :2].T)
     report("odometry", "lights", "published in the 30 s stretch, %",
            100 * np.mean(np.isfinite(pos[n_before:n_before + n_cover])))
@@ -350,7 +390,8 @@ def scenario_odometry(quick: bool) -> None:
     table, end_err, end_sig, wrong, shown = [], [], [], 0, 0
     for seed in range(runs):
         odo = odometry_rows(traj, 1.02, np.random.default_rng(100 + seed))
-        pubs = run("auto", rig, site, frames, odometry=odo)[0]
+        seeded = link_recording(folder, rec / f"seed{seed}", odo)
+        pubs = replay_poses(seeded, "auto", "auto")
         vals = [nees(pubs[k], traj.pose(k)) if isinstance(pubs[k], PoseEstimate) else None
                 for k in stretch]
         shown += sum(v is not None for v in vals)
