@@ -39,7 +39,13 @@ from typing import Any
 
 import numpy as np
 
-from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
+from ceilkit.runtime.estimators.base import (
+    INCREMENT,
+    Estimate,
+    Failure,
+    PlaneIncrement,
+    PoseEstimate,
+)
 from ceilkit.runtime.geometry import ekf
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.tracking import TrackResult
@@ -51,30 +57,9 @@ the next row's own noise covers the motion again (ekf's 0.002 over-covered x by 
 over 30 s of odometry alone: mean NEES 1.94 -> 2.82, bench_fusion)."""
 UNKNOWN_X_VAR = 1e6      # m²: x of a track started by the corridor method alone
 UNAMBIGUOUS_MODES = ("global",)  # a lights fix found with no help from the prior
-INCREMENT = "increment"
-"""``diagnostics`` key of a cue carrying a ceiling-plane odometry increment: a
-:class:`PlaneIncrement`."""
 YAW_PERIOD = "yaw_period_rad"
 """``diagnostics`` key of a heading-only cue whose heading is known modulo this period
 (heading from parallels: pi, or pi/2 on a square grid)."""
-
-
-@dataclass(frozen=True)
-class PlaneIncrement:
-    """The vehicle's motion measured by the camera between two frames (ceiling-plane
-    odometry), carried by a cue as ``diagnostics["increment"]``.
-
-    Attributes:
-        t0_ns: the earlier frame's capture time (the cue's ``t_ns`` is the later's).
-        dx_m, dy_m, dyaw_rad: the motion in V at ``t0_ns`` (forward, left, CCW).
-        cov: its ``(3, 3)`` covariance (dx, dy, dyaw).
-    """
-
-    t0_ns: int
-    dx_m: float
-    dy_m: float
-    dyaw_rad: float
-    cov: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -182,12 +167,19 @@ class FilterBuffer:
         return _Node(t_ns, s, P, n.t_odo_ns)
 
     def _apply(self, n: _Node, ev: _Event) -> _Node:
-        n = self._propagate(n, ev.t_ns)
         if ev.kind == "odo":
-            dt = 0.0 if n.t_odo_ns is None else (ev.t_ns - n.t_odo_ns) * 1e-9
-            d, cov, scaled = ev.data
+            d, cov, scaled, t0 = ev.data
+            # an increment measured from t0 (ceiling-plane odometry: the previous frame)
+            # is the motion over [t0, t]: the motion model must not carry it as well
+            n = self._propagate(n, ev.t_ns if t0 is None else min(t0, ev.t_ns))
+            since = n.t_odo_ns if t0 is None else t0
+            dt = 0.0 if since is None else (ev.t_ns - since) * 1e-9
             s, P = ekf.predict_odometry(n.s, n.P, d, dt, self.options.noise, cov, scaled)
-            return _Node(n.t_ns, s, P, ev.t_ns)
+            # wheel rows come between frames: the pose holds between them; a camera's
+            # increment comes with its frame: a frame without one is crossed on the
+            # velocity it set (holding would stop the track)
+            return _Node(max(n.t_ns, ev.t_ns), s, P, ev.t_ns if t0 is None else n.t_odo_ns)
+        n = self._propagate(n, ev.t_ns)
         z, rows, R = ev.data
         s, P, _ = ekf.update(n.s, n.P, z, rows, R)
         return _Node(n.t_ns, s, P, n.t_odo_ns)
@@ -283,6 +275,7 @@ class Fusion:
         self._t_wheel_ns: int | None = None   # the last wheel odometry row
         self._jumped = False         # a start pose was set: the next pose is a reset
         self.plane_increments = 0
+        self._t_plane_ns: int | None = None   # the last ceiling-plane increment
         self.start_poses = 0
 
     @property
@@ -345,7 +338,7 @@ class Fusion:
             self.odometry_rows += 1
             self._t_wheel_ns = t_ns if self._t_wheel_ns is None else max(t_ns, self._t_wheel_ns)
             if self._f is not None:
-                self._f.add(_Event(t_ns, "odo", (d, c, True)))
+                self._f.add(_Event(t_ns, "odo", (d, c, True, None)))
 
     def _wheels(self, t_ns: int) -> bool:
         """Wheel odometry rows are coming (the last within ``odometry_timeout_s``)."""
@@ -362,8 +355,10 @@ class Fusion:
             inc = c.diagnostics.get(INCREMENT) if c.diagnostics else None
             if isinstance(inc, PlaneIncrement):
                 self._f.add(_Event(t_ns, "odo", ((inc.dx_m, inc.dy_m, inc.dyaw_rad),
-                                                 np.asarray(inc.cov, float), False)))
+                                                 np.asarray(inc.cov, float), False,
+                                                 int(inc.t0_ns))))
                 self.plane_increments += 1
+                self._t_plane_ns = t_ns
                 return
 
     def feed(self, odometry: Any, first: int, t_ns: int) -> int:
@@ -382,8 +377,9 @@ class Fusion:
         if f is None:
             return True
         n = f.latest
-        odo = n.t_odo_ns is not None and \
-            (t_ns - n.t_odo_ns) * 1e-9 <= self.options.odometry_timeout_s
+        last = max(n.t_odo_ns or 0, self._t_plane_ns or 0) if \
+            n.t_odo_ns is not None or self._t_plane_ns is not None else None
+        odo = last is not None and (t_ns - last) * 1e-9 <= self.options.odometry_timeout_s
         return not odo and (t_ns - self._t_fix_ns) * 1e-9 > self.options.lost_after_s
 
     def predict(self, t_ns: int, method: str = NAME) -> PoseEstimate | None:
@@ -590,5 +586,5 @@ def _failure(est: Estimate, cues: tuple) -> Failure:
     return first
 
 
-__all__ = ["Fusion", "FusionOptions", "FusionReport", "FilterBuffer", "PlaneIncrement",
-           "measurement", "nees", "NAME", "INCREMENT", "YAW_PERIOD"]
+__all__ = ["Fusion", "FusionOptions", "FusionReport", "FilterBuffer",
+           "measurement", "nees", "NAME", "YAW_PERIOD"]

@@ -109,6 +109,29 @@ class Failure:
 Estimate = PoseEstimate | Failure
 
 
+INCREMENT = "increment"
+"""``diagnostics`` key of an estimate carrying a ceiling-plane odometry increment: a
+:class:`PlaneIncrement` (any method's estimator may emit one; the fusion consumes it)."""
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneIncrement:
+    """The vehicle's motion measured by the camera between two frames (ceiling-plane
+    odometry), carried by an estimate (pose or Failure) as ``diagnostics["increment"]``.
+
+    Attributes:
+        t0_ns: the earlier frame's capture time (the estimate's ``t_ns`` is the later's).
+        dx_m, dy_m, dyaw_rad: the motion in V at ``t0_ns`` (forward, left, CCW).
+        cov: its ``(3, 3)`` covariance (dx, dy, dyaw).
+    """
+
+    t0_ns: int
+    dx_m: float
+    dy_m: float
+    dyaw_rad: float
+    cov: np.ndarray
+
+
 # -- failure reasons: stable codes, counted by the runtime and sent on the link ----------
 BAD_FRAME = "bad_frame"
 BLANK_FRAME = "blank_frame"

@@ -193,7 +193,7 @@ def test_set_start_pose_from_another_thread_resets_the_track_at_the_next_frame()
 
 
 def test_plane_increment_carries_the_pose_without_wheels():
-    from ceilkit.runtime.fusion import INCREMENT, PlaneIncrement
+    from ceilkit.runtime.estimators.base import INCREMENT, PlaneIncrement
 
     fu = Fusion()
     fu.update(_lights(0, 0.0, 0.0))
@@ -204,6 +204,20 @@ def test_plane_increment_carries_the_pose_without_wheels():
                                 diagnostics=MappingProxyType({INCREMENT: inc})))
     assert fu.plane_increments == 10
     assert res.estimate.x_m == pytest.approx(0.10, abs=2e-3)
+
+
+def test_plane_increment_replaces_the_motion_model_over_its_interval():
+    """An increment measured from the previous frame is the whole motion since then:
+    the constant-velocity model must not move the track over the same interval too."""
+    from ceilkit.runtime.estimators.base import INCREMENT, PlaneIncrement
+
+    fu = Fusion()
+    for k in range(5):                      # 0.03 m a frame: the track learns the speed
+        fu.update(_lights(k, 0.03 * k, 0.0))
+    inc = PlaneIncrement(4 * DT, 0.03, 0.0, 0.0, np.diag([1e-8, 1e-8, 1e-8]))
+    res = fu.update(Failure(5 * DT, "block", "no_block",
+                            diagnostics=MappingProxyType({INCREMENT: inc})))
+    assert res.estimate.x_m == pytest.approx(0.15, abs=2e-3)   # 0.18 when counted twice
 
 
 def test_heading_known_modulo_a_period_takes_the_branch_nearest_the_track():

@@ -25,6 +25,7 @@ gave a pose), ``unknown_marker_ids``, and the 6-DoF check ``pnp6_tilt_deg``,
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -36,6 +37,7 @@ from ceilkit.runtime.config.site import check_rig_site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import (
     AMBIGUOUS,
+    INCREMENT,
     Estimate,
     Estimator,
     EstimatorOptions,
@@ -50,6 +52,7 @@ from ceilkit.runtime.estimators.block.detect import (
     read_marker,
     side_lengths_m,
 )
+from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
 from ceilkit.runtime.estimators.block.parallels import (
     PERIOD_RAD,
     ParallelsHeading,
@@ -113,6 +116,9 @@ class BlockOptions(EstimatorOptions):
         heading_cue: a frame with no block fix but two or more parallels gives a
             heading-only estimate (``x_m = y_m = None``, ``yaw_period_rad``) instead of a
             Failure (its reason is kept as ``diagnostics["no_fix"]``).
+        plane_odometry: a frame with no block fix carries the ceiling-plane odometry
+            since the previous frame (:mod:`.odometry`) as ``diagnostics["increment"]``
+            for the fusion; frames with a fix only keep the image (no KLT).
     """
 
     shape_tol: float = 0.08
@@ -126,6 +132,7 @@ class BlockOptions(EstimatorOptions):
     parallels_min_px: float = 60.0
     parallels_gate_deg: float = 1.0
     heading_cue: bool = True
+    plane_odometry: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -179,6 +186,7 @@ class BlockEstimator(Estimator):
         self._segs = SegmentDetector("fld", o.parallels_min_px) if o.parallels else None
         self._corridor = site.corridor if site.has_section("corridor") else None
         self._parallels_mode = ""
+        self._odo = PlaneOdometry(self.geo) if o.plane_odometry else None
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
                    pose: np.ndarray | None = None) -> ParallelsHeading | None:
@@ -210,6 +218,18 @@ class BlockEstimator(Estimator):
     # -- per frame ---------------------------------------------------------------------
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
+        got = self._frame(grey, t_ns, prior, t0)
+        if self._odo is None:
+            return got
+        fixed = bool(got) and got.x_m is not None
+        inc = self._odo.increment(grey, t_ns, measure=not fixed)
+        if inc is None:
+            return got
+        return dataclasses.replace(got, diagnostics={**got.diagnostics, INCREMENT: inc,
+                                                     "ms": elapsed_ms(t0)})
+
+    def _frame(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
+               t0: float) -> Estimate:
         o = self.options
         others: list[np.ndarray] = []
         small = decimate(grey)

@@ -9,7 +9,9 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.block.odometry import PlaneOdometry, plane_motion
+from ceilkit.runtime.estimators.base import INCREMENT, PlaneIncrement
+from ceilkit.runtime.estimators.block.estimator import BlockEstimator
+from ceilkit.runtime.estimators.block.odometry import PlaneOdometry, corner_like, plane_motion
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.sim.render import SimOptions, render_frame
 from helpers import CONFIGS
@@ -44,3 +46,26 @@ def test_rendered_step_gives_the_motion():
     assert math.hypot(inc.dx_m - dx, inc.dy_m - dy) < 0.001
     assert abs(math.degrees(inc.dyaw_rad) - 1.0) < 0.05
     assert np.all(np.linalg.eigvalsh(inc.cov) > 0)
+
+
+def test_points_on_a_straight_edge_are_not_corners():
+    img = np.full((80, 80), 200, np.uint8)
+    img[20:60, 20:60] = 40                          # a dark square
+    pts = np.array([[20.0, 20.0], [40.0, 20.0], [20.0, 40.0], [59.5, 59.5]])
+    assert corner_like(img, pts).tolist() == [True, False, False, True]
+
+
+def test_block_estimator_carries_the_increment_only_without_a_fix():
+    import dataclasses
+
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    bare = dataclasses.replace(site, blocks=(), markers=None)   # blocks painted over
+    est = BlockEstimator(rig, site)
+    opts = SimOptions(noise_sigma=2.0, blur_px=1.0)
+    got = [est.estimate(render_frame(rig, s, x, 0.4, 0.0, opts), k * 33_000_000)
+           for k, (s, x) in enumerate([(site, 0.6), (bare, 0.63), (bare, 0.66)])]
+    assert got[0].x_m is not None and INCREMENT not in got[0].diagnostics
+    inc = got[2].diagnostics[INCREMENT]
+    assert isinstance(inc, PlaneIncrement) and inc.t0_ns == 33_000_000
+    assert abs(inc.dx_m - 0.03) < 0.001 and abs(inc.dy_m) < 0.001
