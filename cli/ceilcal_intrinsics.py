@@ -4,6 +4,7 @@
         --square 0.025 [--model plumb_bob|rational_polynomial|equidistant] \\
         --out camera.yaml [--plots DIR] \\
         [--width W --height H --fps F --fourcc MJPG --exposure E --gain G --capture FILE]
+    ceilcal intrinsics --ceiling RECORDING [--compare camera.yaml] --out camera.yaml
 
 Parses, calls :func:`ceilkit.calib.workflow.intrinsics`, prints: the report goes to
 stdout, progress and warnings to stderr, the camera to ``--out`` (atomically, with a
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import typer
 
-from ceilkit.calib import workflow
+from ceilkit.calib import selfcal, workflow
 from ceilkit.calib.boards import parse_board
 from ceilkit.cli.common import (
     BOARD_OPTION,
@@ -49,8 +50,12 @@ def register(app: typer.Typer) -> None:
         video: Path = typer.Option(None, "--video", help="A video file of the board."),
         device: str = typer.Option(None, "--device",
                                    help="A live camera: index (0) or path (/dev/video0)."),
-        board: str = BOARD_OPTION,
-        square: float = SQUARE_OPTION,
+        board: str = typer.Option(None, "--board", help=BOARD_OPTION.help),
+        square: float = typer.Option(None, "--square", help=SQUARE_OPTION.help),
+        ceiling: Path = typer.Option(None, "--ceiling", help="A drive recording under a "
+                                     "tiled ceiling: no board (docs/calibration.md)."),
+        compare: Path = typer.Option(None, "--compare",
+                                     help="--ceiling: a board camera.yaml to compare."),
         marker: float = MARKER_OPTION,
         legacy: bool = typer.Option(False, "--legacy",
                                     help="ChArUco layout of boards made before OpenCV 4.6."),
@@ -77,7 +82,14 @@ def register(app: typer.Typer) -> None:
         gain: float = GAIN_OPTION,
         capture: Path = CAPTURE_OPTION,
     ) -> None:
-        """Calibrate the camera's intrinsics from views of a board."""
+        """Calibrate the camera's intrinsics from views of a board (or the ceiling)."""
+        if ceiling is not None:
+            run = selfcal.intrinsics_from_ceiling(ceiling, out, compare=compare, name=name)
+            typer.echo("\n".join(run.lines()))
+            return
+        if board is None or square is None:
+            raise typer.BadParameter("--board and --square are required (or --ceiling "
+                                     "RECORDING)")
         run = workflow.intrinsics(
             parse_board(board, square, marker, legacy, detector), out, folder=folder,
             video=video, device=device, model=model, plots=plots, name=name,
