@@ -35,6 +35,7 @@ from ceilkit.runtime.features.working import decimated_mask, detect_spots_workin
 
 JAC_STEP_PX = 8  # node spacing of the per-pixel spot table
 VIEW_MARGIN_PX = 12.0  # a light's centre this far inside the image border is reported
+MAX_BUDGET_FACTOR = 4  # regions examined at most: this many times max_spots
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,16 +105,25 @@ class SpotObserver:
 
     def observe(self, grey: np.ndarray) -> Observation:
         """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
-        reliability order (nearest the camera first) and their pixel Jacobians."""
-        spots = detect_spots_working(grey, self.spot_params, self.valid_mask, self.nadir_px,
-                                     self.max_spots, self.factor, self.valid_small)
+        reliability order (nearest the camera first) and their pixel Jacobians.
+
+        At most ``max_spots`` regions are examined, nearest the nadir first; when some
+        of them are not lights (a grille, a pipe crossing, a window: wrong size or
+        shape for a light there) and the budget was used up, the budget is doubled (up
+        to :data:`MAX_BUDGET_FACTOR` times) so that clutter does not hide the lights
+        behind it; the first ``max_spots`` plausible spots are kept."""
+        budget = self.max_spots
+        while True:
+            spots, q, ok, table = self._examine(grey, budget)
+            exhausted = spots.rejected.get("beyond_max_regions", 0) > 0
+            if (int(ok.sum()) >= self.max_spots or not exhausted
+                    or budget >= MAX_BUDGET_FACTOR * self.max_spots):
+                break
+            budget *= 2
         if len(spots) == 0:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
-        q, ok = ceiling_points(self.rig, self.ceiling_height_m, spots.centroids_px)
-        table = interp_grid(self.table, JAC_STEP_PX, spots.centroids_px)
-        ok &= np.isfinite(table[:, 0])
-        if self.light_radius_m > 0 and np.any(ok):
-            ok &= self.plausible(spots, table, ok)
+        if int(ok.sum()) > self.max_spots:             # the first max_spots examined
+            ok &= np.cumsum(ok) <= self.max_spots
         J = table[:, :4].reshape(-1, 2, 2)
         candidates_px = spots.centroids_px
         if not ok.all():
@@ -122,6 +132,21 @@ class SpotObserver:
         rng = np.hypot(q[:, 0] - t_vc[0], q[:, 1] - t_vc[1])
         return Observation(spots, q, rng.argsort(kind="stable"), J,
                            candidates_px, ok)
+
+    def _examine(self, grey: np.ndarray, budget: int
+                 ) -> tuple[Spots, np.ndarray, np.ndarray, np.ndarray]:
+        """Spots of at most ``budget`` regions, their ceiling points, which are
+        plausible lights, and their table rows."""
+        spots = detect_spots_working(grey, self.spot_params, self.valid_mask, self.nadir_px,
+                                     budget, self.factor, self.valid_small)
+        if len(spots) == 0:
+            return spots, np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 8))
+        q, ok = ceiling_points(self.rig, self.ceiling_height_m, spots.centroids_px)
+        table = interp_grid(self.table, JAC_STEP_PX, spots.centroids_px)
+        ok &= np.isfinite(table[:, 0])
+        if self.light_radius_m > 0 and np.any(ok):
+            ok &= self.plausible(spots, table, ok)
+        return spots, q, ok, table
 
     @staticmethod
     def plausible(spots: Spots, table: np.ndarray, ok: np.ndarray) -> np.ndarray:
