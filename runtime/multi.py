@@ -9,9 +9,10 @@ fuses.
 
 :func:`make_localizer` builds the estimator and its tracker for a ``--method``:
 an explicit name is today's single method behind the constant-velocity
-:class:`~ceilkit.runtime.tracking.Tracker`; ``auto`` is the fusion, except on a site
-with one method, no odometry and no start pose, where it is that method as before
-(the same poses, bytes and quality as ``--method NAME``).
+:class:`~ceilkit.runtime.tracking.Tracker` (one emitting ceiling-plane odometry,
+``block`` with ``plane_odometry``, behind the fusion, which chains it between
+fixes); ``auto`` is the fusion, except on a site with one method, no odometry and no
+start pose, where it is that method as ``--method NAME`` runs it.
 
 Example::
 
@@ -110,12 +111,21 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
     if method != AUTO:
         if start_pose is not None:
             raise ConfigError(None, "start_pose", "a start pose needs --method auto")
-        return make_estimator(method, rig, site, options), Tracker()
+        return _single(make_estimator(method, rig, site, options), site, fusion)
     auto = AutoEstimator(rig, site, options)
     if len(auto.estimators) == 1 and start_pose is None and not odometry:
-        return auto.estimators[0], Tracker()
+        return _single(auto.estimators[0], site, fusion)
     fusion = fusion or FusionOptions(cell_m=regular_spacing_m(site))
     return auto, Fusion(fusion, start_pose=start_pose)
+
+
+def _single(est: Estimator, site: Site, fusion: FusionOptions | None
+            ) -> tuple[Estimator, Tracker | Fusion]:
+    """One method and its tracker: the constant-velocity one, or the fusion for a
+    method emitting ceiling-plane odometry (it chains the increments between fixes)."""
+    if not getattr(est.options, "plane_odometry", False):
+        return est, Tracker()
+    return est, Fusion(fusion or FusionOptions(cell_m=regular_spacing_m(site)))
 
 
 def parse_start_pose(text: str) -> tuple[float, float, float]:

@@ -29,6 +29,18 @@ def test_auto_on_a_one_method_site_is_that_method(lights_rig, lights_site):
         AutoEstimator(lights_rig, lights_site, {"nope": 1})
 
 
+def test_block_with_plane_odometry_runs_behind_the_fusion():
+    from ceilkit.runtime.config.rig import Rig
+    from ceilkit.runtime.config.site import Site
+    from helpers import CONFIGS
+
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    assert isinstance(make_localizer("block", rig, site)[1], Fusion)
+    off = make_localizer("block", rig, site, {"plane_odometry": False})[1]
+    assert isinstance(off, Tracker) and not isinstance(off, Fusion)
+
+
 # -- the "Done when" scenarios of issue 12, small, through SPEC recordings and replay --
 def _record(tmp_path, name, rig, site, traj, covered=None, odometry=None):
     """The drive rendered and written as a SPEC recording (frames, rig, site, truth)."""
