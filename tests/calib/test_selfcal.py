@@ -63,3 +63,29 @@ def test_too_few_frames_and_no_grid_refuse():
     lights = Site.load(CONFIGS / "lights" / "site.yaml")
     with pytest.raises(ConfigError, match="corridor"):
         selfcal.tile_grid(lights, rig)
+
+
+def _recording(tmp_path, rig: Rig, name: str, n: int = len(POSES)):
+    from ceilkit.calib.simulate import simulate_recording
+    from ceilkit.runtime.sim.render import Trajectory
+
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    p = np.array(POSES[:n])
+    traj = Trajectory(np.arange(len(p), dtype=np.int64) * 33_333_333, p[:, 0], p[:, 1],
+                      p[:, 2])
+    return simulate_recording(rig, site, traj, tmp_path / name,
+                              SimOptions(noise_sigma=2.0, blur_px=0.8, supersample=1))
+
+
+def test_from_a_recording_writes_camera_or_nothing(tmp_path):
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    out = tmp_path / "camera.yaml"
+    run = selfcal.intrinsics_from_ceiling(_recording(tmp_path, rig, "drive"), out,
+                                          compare=CONFIGS / "block" / "camera.yaml")
+    assert out.exists() and "from the ceiling" in out.read_text()
+    assert any("board" in line for line in run.lines())
+    flat = CameraModel.pinhole(640, 480, 450.0, dist=np.zeros(5))
+    rec = _recording(tmp_path, dataclasses.replace(rig, camera=flat), "flat", 4)
+    with pytest.raises(CalibrationError, match="add perspective variety"):
+        selfcal.intrinsics_from_ceiling(rec, tmp_path / "flat.yaml")
+    assert not (tmp_path / "flat.yaml").exists()
