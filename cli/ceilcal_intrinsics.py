@@ -84,6 +84,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Calibrate the camera's intrinsics from views of a board (or the ceiling)."""
         if ceiling is not None:
+            if folder is not None or video is not None or device is not None or board:
+                raise typer.BadParameter("--ceiling reads a drive: give no FOLDER, "
+                                         "--video, --device or --board with it")
             run = selfcal.intrinsics_from_ceiling(ceiling, out, compare=compare, name=name)
             typer.echo("\n".join(run.lines()))
             return
