@@ -115,7 +115,10 @@ def main() -> None:
     cv2.setNumThreads(1)
     rig, site = Rig.load(CONFIG / "rig.yaml"), Site.load(CONFIG / "site.yaml")
     geo = PlanarGeometry.of(rig, site)
-    methods = {n: ESTIMATORS[n](rig, site) for n in ("block", "paper-block") if n in ESTIMATORS}
+    # independent frames: no ceiling-plane odometry between them (timed on the drives)
+    methods = {n: ESTIMATORS[n](rig, site, {"plane_odometry": False} if n == "block" else None)
+               for n in ("block", "paper-block") if n in ESTIMATORS}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
     tg = targets(site)
     rows: list[dict] = []
