@@ -71,12 +71,15 @@ def _offsets(side: int, stride: int) -> np.ndarray:
     return off
 
 
-def _border_sum(g: np.ndarray, side: int) -> np.ndarray:
-    """The sum over the border of every block of ``g`` ``(M, side²)`` (row-major
-    ``side x side`` blocks): ``(M,)``, the whole block's sum less its inside's (two
-    reductions instead of four strided ones)."""
-    inner = g.reshape(-1, side, side)[:, 1:-1, 1:-1].sum(axis=(1, 2))
-    return g.sum(axis=1) - inner
+@functools.lru_cache(maxsize=16)
+def _counts(side: int) -> np.ndarray:
+    """``(side², 2)`` float32 ``(1, on the border)`` of a ``side x side`` block: one
+    product gives a block's sum and its border's sum."""
+    b = np.zeros((side, side), np.float32)
+    b[0, :] = b[-1, :] = b[:, 0] = b[:, -1] = 1.0
+    out = np.stack([np.ones(side * side, np.float32), b.ravel()], axis=1)
+    out.setflags(write=False)
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,15 +190,15 @@ class WindowTracker:
         g = np.ascontiguousarray(grey).ravel().take(
             (corner[:, 1] * w + corner[:, 0])[:, None] + _offsets(side, w)
         ).astype(np.float32)                                                   # (M, side²)
-        i_b = _border_sum(g, side) * np.float32(1.0 / (4 * side - 4))
+        cols = _counts(side)
+        i_b = (g @ cols[:, 1]) * np.float32(1.0 / (4 * side - 4))
         peak = g.max(axis=1)
-        obj = g > (0.5 * (i_b + peak))[:, None]
-        area = np.count_nonzero(obj, axis=1)
-        # the bright part touches the border when not all of it is inside
-        touches = np.count_nonzero(obj.reshape(-1, side, side)[:, 1:-1, 1:-1],
-                                   axis=(1, 2)) < area
-        i_o = np.einsum("ij,ij->i", g, obj, dtype=np.float32) / np.maximum(area, 1)
-        wts = g - (i_b + CORE * (i_o - i_b))[:, None]
+        obj = (g > (0.5 * (i_b + peak))[:, None]).astype(np.float32)
+        n_obj = obj @ cols                       # (M, 2): bright pixels, on the border
+        area = n_obj[:, 0].astype(np.int64)
+        touches = n_obj[:, 1] > 0                # the bright part reaches the border
+        i_o = np.einsum("ij,ij->i", g, obj) / np.maximum(area, 1)
+        wts = np.subtract(g, (i_b + CORE * (i_o - i_b))[:, None], out=g)
         np.maximum(wts, 0.0, out=wts)
         mom = (wts @ _monomials(side)).astype(np.float64)                     # (M, 6)
         m00 = mom[:, 0]
