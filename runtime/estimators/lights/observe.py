@@ -36,6 +36,7 @@ from ceilkit.runtime.features.working import decimated_mask, detect_spots_workin
 JAC_STEP_PX = 8  # node spacing of the per-pixel spot table
 VIEW_MARGIN_PX = 12.0  # a light's centre this far inside the image border is reported
 MAX_BUDGET_FACTOR = 4  # regions examined at most: this many times max_spots
+DISC_POINTS = 24  # a light's outline, for its image centroid
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,10 +58,47 @@ class Observation:
     kept: np.ndarray | None = None  # which of them passed the checks (None: all)
 
 
+def disc_offsets(rig: Rig, ceiling_height_m: float, light_radius_m: float,
+                 step_px: int = JAC_STEP_PX) -> np.ndarray:
+    """``(GH, GW, 2)`` on the table's nodes: the area centroid of a light's disc
+    (radius ``light_radius_m``, centred on the node's ceiling point) as the camera sees
+    it, minus the node. Perspective moves a disc's image centroid off the image of its
+    centre, towards the side seen larger (for a camera tilted 45 deg, 2.5 m below 8 cm
+    lights, up to about a pixel); the observed centroid minus this is the image of the
+    light's centre. Zero for ``light_radius_m`` 0; NaN where no ray rises."""
+    cam = rig.camera
+    us = np.arange(0, cam.width - 1 + step_px, step_px, dtype=float)
+    vs = np.arange(0, cam.height - 1 + step_px, step_px, dtype=float)
+    uu, vv = np.meshgrid(us, vs)
+    px = np.stack([uu.ravel(), vv.ravel()], 1)
+    out = np.zeros((px.shape[0], 2))
+    if light_radius_m > 0:
+        q, ok = ceiling_points(rig, ceiling_height_m, px)
+        th = np.linspace(0.0, 2 * math.pi, DISC_POINTS, endpoint=False)
+        ring = light_radius_m * np.stack([np.cos(th), np.sin(th)], 1)
+        pts = (q[:, None, :2] + ring[None]).reshape(-1, 2)
+        img = project_lights(rig, ceiling_height_m, pts, 0.0, 0.0, 0.0).reshape(-1, th.size, 2)
+        out = polygon_centroids(img) - px
+        out[~ok] = np.nan
+    return out.reshape(vs.size, us.size, 2)
+
+
+def polygon_centroids(p: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` area centroids of ``N`` closed polygons ``(N, K, 2)`` (shoelace)."""
+    x, y = p[..., 0], p[..., 1]
+    xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cr = x * yn - xn * y
+    a = cr.sum(axis=1)
+    a = np.where(np.abs(a) > 1e-12, a, np.nan)
+    return np.stack([((x + xn) * cr).sum(axis=1) / (3 * a),
+                     ((y + yn) * cr).sum(axis=1) / (3 * a)], axis=1)
+
+
 def spot_table(rig: Rig, ceiling_height_m: float, light_radius_m: float) -> np.ndarray:
-    """``(GH, GW, 8)`` per-node table (nodes every :data:`JAC_STEP_PX` px): the pixel
-    Jacobian ``J`` (4, row-major), ``C⁻¹`` of the predicted spot moments (00, 01, 11)
-    and the predicted area (see :meth:`SpotObserver.plausible`); NaN where no ray rises."""
+    """``(GH, GW, 10)`` per-node table (nodes every :data:`JAC_STEP_PX` px): the pixel
+    Jacobian ``J`` (4, row-major), ``C⁻¹`` of the predicted spot moments (00, 01, 11),
+    the predicted area (see :meth:`SpotObserver.plausible`) and the disc's centroid
+    offset (u, v; :func:`disc_offsets`); NaN where no ray rises."""
     J = jacobian_grid(rig, ceiling_height_m, JAC_STEP_PX)
     gh, gw = J.shape[:2]
     J = J.reshape(-1, 2, 2)
@@ -70,10 +108,11 @@ def spot_table(rig: Rig, ceiling_height_m: float, light_radius_m: float) -> np.n
     C = 0.25 * r2 * np.einsum("nij,nkj->nik", Jf, Jf) + 0.8 * np.eye(2)
     Ci = np.linalg.inv(C)
     a_pred = math.pi * r2 * np.abs(np.linalg.det(Jf))
+    off = disc_offsets(rig, ceiling_height_m, light_radius_m).reshape(-1, 2)
     out = np.concatenate([J.reshape(-1, 4), Ci[:, 0, 0:1], Ci[:, 0, 1:2], Ci[:, 1, 1:2],
-                          a_pred[:, None]], axis=1)
+                          a_pred[:, None], np.nan_to_num(off)], axis=1)
     out[~fin] = np.nan
-    return out.reshape(gh, gw, 8)
+    return out.reshape(gh, gw, 10)
 
 
 class SpotObserver:
@@ -141,12 +180,20 @@ class SpotObserver:
                                      budget, self.factor, self.valid_small)
         if len(spots) == 0:
             return spots, np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 8))
-        q, ok = ceiling_points(self.rig, self.ceiling_height_m, spots.centroids_px)
         table = interp_grid(self.table, JAC_STEP_PX, spots.centroids_px)
+        q, ok = ceiling_points(self.rig, self.ceiling_height_m,
+                               self.centres(spots.centroids_px, table))
         ok &= np.isfinite(table[:, 0])
         if self.light_radius_m > 0 and np.any(ok):
             ok &= self.plausible(spots, table, ok)
         return spots, q, ok, table
+
+    @staticmethod
+    def centres(centroids_px: np.ndarray, table: np.ndarray) -> np.ndarray:
+        """The images of the lights' centres: the spots' centroids minus their disc's
+        centroid offset (``table``: the spots' :func:`spot_table` rows)."""
+        off = table[:, 8:10]
+        return centroids_px - np.where(np.isfinite(off), off, 0.0)
 
     @staticmethod
     def plausible(spots: Spots, table: np.ndarray, ok: np.ndarray) -> np.ndarray:

@@ -224,7 +224,8 @@ class WindowTracker:
              yaw_rad: float):
         """The refined pose from the found lights (known association) with the outlier
         pass and the frame's checks: ``(x, y, yaw, cov, res, spots, pairs)`` or ``None``."""
-        q, ok = ceiling_points(self.rig, self.ceiling_height_m, spots.centroids_px)
+        q, ok = ceiling_points(self.rig, self.ceiling_height_m,
+                               self.observer.centres(spots.centroids_px, tab))
         if not ok.all():
             return None
         J = tab[:, :4].reshape(-1, 2, 2)
