@@ -130,6 +130,8 @@ class WindowTracker:
         self.rig, self.ceiling_height_m = rig, ceiling_height_m
         self.lights_w = np.asarray(lights_w, float)
         self.observer, self.visibility = observer, visibility
+        # the spot table's predicted area alone (the prediction reads nothing else)
+        self._area_table = np.ascontiguousarray(observer.table[..., 7])
         self.window_px = float(window_px)
         self.min_contrast = float(min_contrast)
         self.min_share = float(min_share)
@@ -165,7 +167,7 @@ class WindowTracker:
             return None
         px = project_lights(self.rig, self.ceiling_height_m, self.lights_w[idx], x_m, y_m,
                             yaw_rad)
-        area = interp_grid(self.observer.table, JAC_STEP_PX, px)[:, 7]   # predicted area
+        area = interp_grid(self._area_table, JAC_STEP_PX, px)             # predicted area
         fin = np.isfinite(px[:, 0]) & np.isfinite(area)
         if np.count_nonzero(fin) < 3:
             return None
