@@ -77,6 +77,21 @@ def test_missing_lights_fail_the_window_check(lights_rig, lights_site):
     assert not out
 
 
+def test_a_light_cut_by_its_window_border_is_not_found(lights_rig, lights_site):
+    # the window check's border contact: a light whose bright part reaches its window's
+    # border (cut off, or a neighbour's) does not count, one wholly inside does
+    x, y, yaw = POSES[0]
+    img = frame(lights_rig, lights_site, x, y, yaw, 5)
+    w: WindowTracker = LightsEstimator(lights_rig, lights_site, {"track": True}).windows
+    idx, px, m, corner, half = w._predict(x, y, yaw)
+    _, good, _ = w._measure(img, corner, half, m)
+    assert good.all()
+    shifted = corner.copy()
+    shifted[0] += half          # the first window's corner moved onto its light's centre
+    _, good2, _ = w._measure(img, shifted, half, m)
+    assert not good2[0] and good2[1:].all()
+
+
 def test_schedule_runs_a_global_search(lights_rig, lights_site):
     est = LightsEstimator(lights_rig, lights_site, {"track": True, "track_full_every": 2})
     x, y, yaw = POSES[2]
