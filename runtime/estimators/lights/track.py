@@ -35,6 +35,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.observe import JAC_STEP_PX, SpotObserver, VisibilityTable
@@ -60,15 +61,6 @@ def _monomials(side: int) -> np.ndarray:
     out = np.stack([np.ones_like(x), x, x * x, y, y * y, x * y], axis=1).astype(np.float32)
     out.setflags(write=False)
     return out
-
-
-@functools.lru_cache(maxsize=16)
-def _offsets(side: int, stride: int) -> np.ndarray:
-    """Flat offsets ``(side²,)`` of a block in an image ``stride`` wide."""
-    r = np.arange(side)
-    off = (r[:, None] * stride + r[None, :]).ravel()
-    off.setflags(write=False)
-    return off
 
 
 @functools.lru_cache(maxsize=16)
@@ -188,10 +180,13 @@ class WindowTracker:
                  ) -> tuple[Spots, np.ndarray, np.ndarray]:
         """The windows' spots (centroids in the frame), which pass the window check and
         the spot table at their centroids."""
-        side, w = 2 * half + 1, self.width
-        g = np.ascontiguousarray(grey).ravel().take(
-            (corner[:, 1] * w + corner[:, 0])[:, None] + _offsets(side, w)
-        ).astype(np.float32)                                                   # (M, side²)
+        side = 2 * half + 1
+        # every side x side window of the frame as a read-only view; the predicted ones
+        # copied out row by row in one indexing (no per-pixel index array)
+        h, w = grey.shape
+        views = as_strided(grey, (h - side + 1, w - side + 1, side, side),
+                           grey.strides * 2, writeable=False)
+        g = views[corner[:, 1], corner[:, 0]].reshape(-1, side * side).astype(np.float32)
         cols = _counts(side)
         i_b = (g @ cols[:, 1]) * np.float32(1.0 / (4 * side - 4))
         peak = g.max(axis=1)
