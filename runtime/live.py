@@ -28,6 +28,7 @@ back-off, and the first frame back clears the fault.
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import threading
@@ -82,6 +83,7 @@ class AsyncRecorder(GuardedRecorder):
         self._closing = threading.Event()
         self.queued = 0
         self.skipped_images = 0
+        self._pending: collections.deque[int] = collections.deque()  # run frame numbers
         self._thread = threading.Thread(target=self._run, name="ceilkit-record", daemon=True)
         self._thread.start()
 
@@ -89,9 +91,12 @@ class AsyncRecorder(GuardedRecorder):
         """Log ``frame`` (on the caller's thread: it is on disk when this returns)."""
         if self._error is not None:
             raise self._error
-        if guarded_log(self, lambda: self.writer.log(frame)):
+        self._pending.append(frame.index)   # before the log: the encoder may take it at once
+        if guarded_log(self, lambda: self.writer.log(frame), frame.index):
             self.queued += 1
             self._wake.set()
+        else:
+            self._pending.pop()
 
     def _convert(self) -> bool:
         """One frame to PNG; whether the encoder should try again at once."""
@@ -103,15 +108,24 @@ class AsyncRecorder(GuardedRecorder):
         except OutputError as exc:
             if getattr(exc, "errno", 0) is None:
                 writer.skip_next()
+                self._next_frame(pop=True)
                 return True
             if guard is None:
                 self._error = exc
             else:
-                guard.failed(exc, writer.converted, "encode")
+                guard.failed(exc, self._next_frame(), "encode")
             return False
-        if done and guard is not None:
-            guard.ok(writer.converted - 1, "encode")
+        if done:
+            at = self._next_frame(pop=True)
+            if guard is not None:
+                guard.ok(at, "encode")
         return done
+
+    def _next_frame(self, pop: bool = False) -> int:
+        """The run's frame number of the next frame to encode (the messages name it)."""
+        if not self._pending:
+            return self.writer.converted
+        return self._pending.popleft() if pop else self._pending[0]
 
     def _sync(self) -> None:
         try:
@@ -120,7 +134,7 @@ class AsyncRecorder(GuardedRecorder):
             if self.guard is None:
                 self._error = exc
             else:
-                self.guard.failed(exc, self.writer.converted, "encode")
+                self.guard.failed(exc, self._next_frame(), "encode")
 
     def _run(self) -> None:
         try:  # Linux: a thread's own nice value; the estimator wins a contended core

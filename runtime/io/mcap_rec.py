@@ -291,7 +291,7 @@ class McapRecorder(GuardedRecorder):
 
     def write(self, frame: Frame) -> None:
         """Put ``frame`` into the file (see :func:`~ceilkit.runtime.io.recording.guarded_log`)."""
-        guarded_log(self, lambda: self.writer.write_frame(frame))
+        guarded_log(self, lambda: self.writer.write_frame(frame), frame.index)
 
     def close(self) -> None:
         self.writer.close()

@@ -934,12 +934,14 @@ class Recording(StoredFrames):
 
 
 
-def guarded_log(recorder: Any, write: Callable[[], None]) -> bool:
+def guarded_log(recorder: Any, write: Callable[[], None], at: int | None = None) -> bool:
     """Run ``write`` (one frame into ``recorder.writer``) under ``recorder.guard``;
     whether the frame was written. A frame that is no image is counted in
     ``recorder.skipped_images`` (warned once) and never recorded; with a guard, a
     failing disk pauses the recording (``guard.failed``), without one it raises. The
     one policy of the folder recorder (live.AsyncRecorder) and the MCAP recorder.
+    ``at`` is the run's frame number (the frame's ``index``, as the user sees it) that
+    the guard's lines name; by default the recorder's own count.
     """
     guard = recorder.guard
     if guard is not None and not guard.due("log"):
@@ -956,10 +958,10 @@ def guarded_log(recorder: Any, write: Callable[[], None]) -> bool:
         if guard is None:
             raise
         guard.skip()
-        guard.failed(exc, recorder.writer.count, "log")
+        guard.failed(exc, recorder.writer.count if at is None else at, "log")
         return False
     if guard is not None:
-        guard.ok(recorder.writer.count - 1, "log")
+        guard.ok(recorder.writer.count - 1 if at is None else at, "log")
     return True
 
 

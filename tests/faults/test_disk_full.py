@@ -20,7 +20,7 @@ from ceilkit.runtime.io.recording import (
 )
 from ceilkit.runtime.session import LinkConfig, SessionConfig, run_session
 
-FRAMES = 300
+FRAMES = 60
 
 
 def _wire_stamps(path) -> list[int]:
@@ -37,7 +37,7 @@ def test_a_full_disk_mid_run_pauses_the_outputs_and_never_the_link(tmp_path, log
     freed = threading.Event()
 
     def on_frame(tel):
-        if tel.frames == 40:  # an operator deletes old files
+        if tel.frames == 30:  # an operator deletes old files
             disk.full = False
             freed.set()
 
@@ -89,3 +89,43 @@ def test_a_short_write_is_rolled_back(tmp_path):
     w.write(Failure(3, "corridor", "too_few_lines"))
     w.close()
     assert load_poses(tmp_path / "poses.csv").t_ns.tolist() == [1, 3]
+
+
+def test_the_lines_name_the_runs_frame_not_the_recorders_count(tmp_path, log_lines,
+                                                               corridor_rig, corridor_site):
+    """A recording that starts at run frame 100 and pauses twice: each line names the
+    frame the user sees (its index in the run), never the recording's own count."""
+    import os
+
+    import numpy as np
+
+    from ceilkit.runtime.io.recording import OsDisk, RecordingWriter
+    from ceilkit.runtime.io.sources import Frame
+    from ceilkit.runtime.live import AsyncRecorder
+    from ceilkit.runtime.pipeline import OutputGuard
+
+    class LogDisk(FullDisk):  # only the write-ahead log fills (the encoder keeps up)
+        def replace_file(self, path, data):
+            OsDisk.replace_file(self, path, data)
+
+        def append(self, fd, parts):
+            if "frames.wal" in os.readlink(f"/proc/self/fd/{fd}"):
+                return super().append(fd, parts)
+            return OsDisk.append(self, fd, parts)
+
+    disk = LogDisk()
+    guard = OutputGuard("recording", tmp_path, retry_s=0.0)
+    frames = [Frame(np.full((4, 4), k % 250, np.uint8), (k + 1) * 10_000_000, k)
+              for k in range(100, 130)]
+    with AsyncRecorder(RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site,
+                                       disk=disk), guard=guard) as rec:
+        for f in frames:
+            disk.full = f.index in range(105, 110) or f.index in range(120, 124)
+            rec.write(f)
+    stopped = [ln for ln in log_lines if "recording stopped at frame" in ln]
+    resumed = [ln for ln in log_lines if "recording resumed at frame" in ln]
+    assert [ln.split("stopped at frame ")[1].split(",")[0] for ln in stopped] == ["105",
+                                                                                 "120"]
+    assert [ln.split("resumed at frame ")[1].split(" ")[0] for ln in resumed] == ["110",
+                                                                                 "124"]
+    assert guard.lost == 9 and len(Recording(tmp_path / "rec")) == 21
