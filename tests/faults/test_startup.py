@@ -74,3 +74,20 @@ def test_a_stop_while_waiting_ends_cleanly_with_nothing_on_disk(tmp_path):
                       stop)
     assert res.run.stopped and res.telemetry.frames == 0
     assert os.listdir(tmp_path) == []
+
+
+def test_a_mistyped_port_never_becomes_an_output_file(tmp_path, monkeypatch):
+    """A path under /dev or named tty* that does not exist is a missing port (one line,
+    nothing on disk); a path elsewhere is a regular file receiving the wire (docs/serial.md)."""
+    monkeypatch.chdir(tmp_path)
+    for port in ("/dev/ttyUSB9", "/dev/tty-typo", "/dev/serial0x", "ttyACM7"):
+        res = CliRunner().invoke(app, ["--device", "sim:corridor", "--frames", "2",
+                                       "--out", "run", "--serial", port])
+        assert res.exit_code == 1, port
+        assert res.stderr.strip().splitlines() == [
+            f"ceilrun: error: cannot open serial port {port}: no such device "
+            "(is the adapter plugged in? see ls /dev/serial/by-id/)"], port
+        assert os.listdir(tmp_path) == [], port
+    res = CliRunner().invoke(app, ["--device", "sim:corridor", "--frames", "2",
+                                   "--serial", "wire.nmea"])
+    assert res.exit_code == 0 and (tmp_path / "wire.nmea").read_bytes().count(b"$PCEIL,") == 2
