@@ -29,7 +29,10 @@ def test_a_port_appearing_later_is_waited_for_without_debris(tmp_path, log_lines
     seen_before: list[list[str]] = []
     pty: list[int] = []
 
-    def plug_in():
+    def plug_in():  # ~1 s after the run began waiting (back-off retries in between)
+        import time
+
+        time.sleep(1.0)
         seen_before.append(sorted(os.listdir(tmp_path)))
         master, slave = os.openpty()
         pty.extend((master, slave))
