@@ -103,6 +103,13 @@ class _DriveFit(PosedFit):
     def split(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.r_[p[:4], self.my, p[4]], p[5:].reshape(-1, 3)
 
+    GATES = (30.0, 10.0, 5.0, 3.0, 3.0)   # the last twice: the scales settle
+
+    def least_squares(self, p: np.ndarray, final: bool):
+        """A sparse solve: each frame's pose touches its own sightings and steps."""
+        return least_squares(self.residuals, p, method="trf", jac_sparsity=self.sparsity(),
+                             x_scale="jac")
+
     def steps(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each tied pair's sideways step of the vehicle's origin and the step's
         length, metres."""
@@ -153,27 +160,6 @@ def _pairs(t_ns: np.ndarray) -> np.ndarray:
     return np.stack([k, k + 1], axis=1)
 
 
-def _solve(fit: _DriveFit, p: np.ndarray):
-    """Associate at shrinking gates and refit, the pixel scatter re-measured."""
-    sol = None
-    for gate in (30.0, 10.0, 5.0, 3.0, 3.0):
-        n = fit.associate(p, gate)
-        if n < p.size:
-            break
-        sol = least_squares(fit.residuals, p, method="trf", jac_sparsity=fit.sparsity(),
-                            x_scale="jac")
-        p = sol.x
-        fit.remeasure(p)
-    n = fit.associate(p, 3.0)
-    if sol is None or n < p.size:
-        raise CalibrationError(
-            f"only {n} light sightings matched the site's lights over the drive: drive "
-            "under more lights, check site.yaml's lights and the camera. Nothing written")
-    sol = least_squares(fit.residuals, p, method="trf", jac_sparsity=fit.sparsity(),
-                        x_scale="jac")
-    return sol.x, sol, n
-
-
 def calibrate_mount_drive(rig: Rig, site: Site, frames: Sequence[LightFrame],
                           start_poses: np.ndarray, my_m: float, *,
                           light_diameter_m: float | None = None) -> DriveResult:
@@ -203,7 +189,7 @@ def calibrate_mount_drive(rig: Rig, site: Site, frames: Sequence[LightFrame],
     fit.max_angle = math.radians(MAX_FIELD_DEG)
     m0 = rig.mount
     p = np.r_[m0.pan_rad + m0.swing_rad, 0.0, 0.0, m0.x_m, m0.z_m, P.ravel()]
-    p, sol, n = _solve(fit, p)
+    p, sol, n = fit.solve(p, "over the drive: drive")
     r_px = fit.pixel_residuals(p)
     rms = math.sqrt(float(np.mean(r_px * r_px)))
     if rms > MAX_RMS_UP_PX:

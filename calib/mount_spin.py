@@ -95,8 +95,37 @@ class PosedFit(_Fit):
     ay, mx, my, mz as :func:`~ceilkit.calib.mount_upward.rotation` and
     :func:`~ceilkit.calib.mount_upward.predict_px` take them; ``poses`` ``(K, 3)``)."""
 
+    GATES = (30.0, 10.0, 5.0, 3.0)   # the association gates, px, shrinking
+
     def split(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
+
+    def least_squares(self, p: np.ndarray, final: bool):
+        """One solve from ``p`` (``final``: the last one, the covariance's)."""
+        return least_squares(self.residuals, p, method="lm",
+                             **({} if final else {"x_scale": 0.01}))
+
+    def remeasure(self, p: np.ndarray) -> None:
+        """Re-measure the residuals' scales after a solve (none here)."""
+
+    def solve(self, p: np.ndarray, advice: str) -> tuple[np.ndarray, object, int]:
+        """Associate at :attr:`GATES` and refit; the last solution and its sightings.
+        ``advice``: where the sightings were too few and what to do, for the error."""
+        sol = None
+        for gate in self.GATES:
+            n = self.associate(p, gate)
+            if n < p.size:
+                break
+            sol = self.least_squares(p, final=False)
+            p = sol.x
+            self.remeasure(p)
+        n = self.associate(p, self.GATES[-1])
+        if sol is None or n < p.size:
+            raise CalibrationError(
+                f"only {n} light sightings matched the site's lights {advice} under more "
+                "lights, check site.yaml's lights and the camera. Nothing written")
+        sol = self.least_squares(p, final=True)
+        return sol.x, sol, n
 
     def all_predictions(self, p: np.ndarray) -> list[np.ndarray]:
         theta, poses = self.split(p)
@@ -191,25 +220,6 @@ def _turn_deg(yaw: np.ndarray) -> float:
     return float(np.degrees(u.max() - u.min())) if u.size else 0.0
 
 
-def _solve(fit: _SpinFit, p: np.ndarray) -> tuple[np.ndarray, object, int]:
-    """Associate at shrinking gates and refit; the last solution and its sightings."""
-    scale = np.r_[[0.01] * 5, 0.01, 0.01, [0.01] * (p.size - 7)]
-    sol = None
-    for gate in (30.0, 10.0, 5.0, 3.0):
-        n = fit.associate(p, gate)
-        if n < p.size:
-            break
-        sol = least_squares(fit.residuals, p, method="lm", x_scale=scale)
-        p = sol.x
-    n = fit.associate(p, 3.0)
-    if sol is None or n < p.size:
-        raise CalibrationError(
-            f"only {n} light sightings matched the site's lights in the spin: spin under "
-            "more lights, check site.yaml's lights and the camera. Nothing written")
-    sol = least_squares(fit.residuals, p, method="lm")
-    return sol.x, sol, n
-
-
 def calibrate_mount_spin(rig: Rig, site: Site, frames: Sequence[LightFrame],
                          start_poses: np.ndarray, pan_rad: float, *,
                          light_diameter_m: float | None = None) -> SpinResult:
@@ -244,7 +254,7 @@ def calibrate_mount_spin(rig: Rig, site: Site, frames: Sequence[LightFrame],
     # the lights placed the vehicle as if the lever arm were the start's: the centre is
     # the mean of those places over the turn
     p = np.r_[0.0, 0.0, m0.x_m, m0.y_m, m0.z_m, P[:, 0].mean(), P[:, 1].mean(), P[:, 2]]
-    p, sol, n = _solve(fit, p)
+    p, sol, n = fit.solve(p, "in the spin: spin")
     r = fit.residuals(p)
     rms = math.sqrt(float(np.mean(r * r)))
     if rms > MAX_RMS_UP_PX:

@@ -505,22 +505,17 @@ def mount_spin(recording: Path, the_site: Site, site: Path, out: Path, *,
         ConfigError: ``fix``: no pan, or a parameter other than pan.
         CalibrationError: too little turn, not in place, an undetermined parameter.
     """
-    from .mount_spin import calibrate_mount_spin, load_placed_frames
+    from .mount_spin import calibrate_mount_spin
 
     if "pan" not in fix:
         raise ConfigError(None, "fix", "a spin in place does not determine the pan (the "
                           "lever arm turns with it): measure it and give --fix pan=DEG, "
                           "or --fix pan with a --rig holding it, or drive under the lights "
                           "with poses instead. Nothing written")
-    extra = sorted(set(fix) - {"pan"})
-    if extra:
-        raise ConfigError(None, "fix", f"--fix {extra[0]}: the spin fit determines it; "
-                          "only the pan can be held")
-    the_rig, camera_ref = _start_rig(rig, camera)
-    _check_writable(out)
+    the_rig, camera_ref, frames, start = _held_start(
+        recording, the_site, out, rig, camera, fix, "pan", "the spin fit", max_frames)
     pan = the_rig.mount.pan_rad + the_rig.mount.swing_rad if fix["pan"] is None \
         else fix["pan"]
-    frames, start = load_placed_frames(Recording(recording), the_rig, the_site, max_frames)
     res = calibrate_mount_spin(the_rig, the_site, frames, start, pan)
     return _save_held_fit(the_rig, res, out, camera_ref, "spin in place",
                           f"spin: {recording} ({len(frames)} frames placed)", site,
@@ -540,20 +535,33 @@ def mount_drive(recording: Path, the_site: Site, site: Path, out: Path, *,
         CalibrationError: too few frames, an undetermined parameter (naming what to add).
     """
     from .mount_drive import calibrate_mount_drive
-    from .mount_spin import load_placed_frames
 
-    extra = sorted(set(fix) - {"my"})
-    if extra:
-        raise ConfigError(None, "fix", f"--fix {extra[0]}: the drive fit determines it; "
-                          "only my can be held")
-    the_rig, camera_ref = _start_rig(rig, camera)
-    _check_writable(out)
+    the_rig, camera_ref, frames, start = _held_start(
+        recording, the_site, out, rig, camera, fix, "my", "the drive fit", max_frames)
     my = the_rig.mount.y_m if fix["my"] is None else fix["my"]
-    frames, start = load_placed_frames(Recording(recording), the_rig, the_site, max_frames)
     res = calibrate_mount_drive(the_rig, the_site, frames, start, my)
     return _save_held_fit(the_rig, res, out, camera_ref, "drive without poses",
                           f"drive: {recording} ({len(frames)} frames placed)", site, "my",
                           fix["my"] is None)
+
+
+def _held_start(recording: Path, the_site: Site, out: Path, rig: Path | None,
+                camera: Path | None, fix: dict[str, float | None], held: str, fit: str,
+                max_frames: int):
+    """For an upward fit holding ``held`` only: refuse any other ``--fix``, then the
+    start rig, its camera file, and the recording's frames placed by the lights with
+    their start poses (:func:`~ceilkit.calib.mount_spin.load_placed_frames`)."""
+    from .mount_spin import load_placed_frames
+
+    extra = sorted(set(fix) - {held})
+    if extra:
+        label = "the pan" if held == "pan" else held
+        raise ConfigError(None, "fix", f"--fix {extra[0]}: {fit} determines it; "
+                          f"only {label} can be held")
+    the_rig, camera_ref = _start_rig(rig, camera)
+    _check_writable(out)
+    frames, start = load_placed_frames(Recording(recording), the_rig, the_site, max_frames)
+    return the_rig, camera_ref, frames, start
 
 
 def _save_held_fit(the_rig: Rig, res, out: Path, camera_ref, kind: str, source: str,

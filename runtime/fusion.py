@@ -377,9 +377,8 @@ class Fusion:
         if f is None:
             return True
         n = f.latest
-        last = max(n.t_odo_ns or 0, self._t_plane_ns or 0) if \
-            n.t_odo_ns is not None or self._t_plane_ns is not None else None
-        odo = last is not None and (t_ns - last) * 1e-9 <= self.options.odometry_timeout_s
+        stamps = [t for t in (n.t_odo_ns, self._t_plane_ns) if t is not None]
+        odo = bool(stamps) and (t_ns - max(stamps)) * 1e-9 <= self.options.odometry_timeout_s
         return not odo and (t_ns - self._t_fix_ns) * 1e-9 > self.options.lost_after_s
 
     def predict(self, t_ns: int, method: str = NAME) -> PoseEstimate | None:

@@ -146,19 +146,12 @@ class SpotObserver:
         """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
         reliability order (nearest the camera first) and their pixel Jacobians.
 
-        At most ``max_spots`` regions are examined, nearest the nadir first; when some
-        of them are not lights (a grille, a pipe crossing, a window: wrong size or
-        shape for a light there) and the budget was used up, the budget is doubled (up
-        to :data:`MAX_BUDGET_FACTOR` times) so that clutter does not hide the lights
-        behind it; the first ``max_spots`` plausible spots are kept."""
-        budget = self.max_spots
-        while True:
-            spots, q, ok, table = self._examine(grey, budget)
-            exhausted = spots.rejected.get("beyond_max_regions", 0) > 0
-            if (int(ok.sum()) >= self.max_spots or not exhausted
-                    or budget >= MAX_BUDGET_FACTOR * self.max_spots):
-                break
-            budget *= 2
+        Up to :data:`MAX_BUDGET_FACTOR` x ``max_spots`` regions are examined, nearest
+        the nadir first, and the first ``max_spots`` that fit a light there are kept:
+        regions that are not lights (a grille, a pipe crossing, a window: wrong size or
+        shape for a light at their place) do not hide the lights behind them. One
+        detection: examining more regions costs little beside the threshold."""
+        spots, q, ok, table = self._examine(grey, MAX_BUDGET_FACTOR * self.max_spots)
         if len(spots) == 0:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
         if int(ok.sum()) > self.max_spots:             # the first max_spots examined
