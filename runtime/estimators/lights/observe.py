@@ -24,6 +24,7 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.rays import (
+    GridTable,
     ceiling_points,
     interp_grid,
     jacobian_grid,
@@ -139,6 +140,7 @@ class SpotObserver:
         self.nadir_px, self.max_spots = nadir_px, max_spots
         self.t_vehicle_cam = mount_arrays(rig.mount)[1]
         self.table = spot_table(rig, ceiling_height_m, light_radius_m)
+        self.grid = GridTable(self.table, JAC_STEP_PX)   # the table read at any pixel
         self.factor = factor
         self.valid_small = decimated_mask(valid_mask, factor)
 
@@ -265,6 +267,13 @@ class VisibilityTable:
     def __call__(self, x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
         """``(M,)`` map lights the detector should report from a pose: inside the image
         and the view mask, and among the ``max_spots`` nearest the nadir."""
+        return self.locate(x_m, y_m, yaw_rad)[0]
+
+    def locate(self, x_m: float, y_m: float, yaw_rad: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(visible (M,), cell (M,), z (M,))``: what :meth:`__call__` answers, each
+        light's cell as a flat index into the table padded by one cell of ``inf``
+        (``(NI + 2) x (NJ + 2)``, row-major), and the lights in V as ``x + iy``."""
         # the lights in V, x + iy: Rz(-yaw) (L - t)
         z = (self._lights_c - complex(x_m, y_m)) * complex(math.cos(yaw_rad),
                                                            -math.sin(yaw_rad))
@@ -274,12 +283,19 @@ class VisibilityTable:
         # cells of the padded table (a border of inf): off the table is not visible
         i = np.minimum(np.maximum(i, -1), ni) + 1
         j = np.minimum(np.maximum(j, -1), nj) + 1
-        d = self._padded[i * (nj + 2) + j]
+        cell = i * (nj + 2) + j
+        d = self._padded[cell]
         ok = np.isfinite(d)
         if ok.sum() > self.max_spots:
             ok[np.argsort(d, kind="stable")[self.max_spots:]] = False
-        return ok
+        return ok, cell, z
 
+    def cell_centres(self) -> np.ndarray:
+        """``((NI + 2) (NJ + 2), 2)`` the V coordinates (m) of the padded table's cell
+        centres, in the order of :meth:`locate`'s ``cell``."""
+        ni, nj = self.table.shape
+        gi, gj = np.meshgrid(np.arange(-1, ni + 1), np.arange(-1, nj + 1), indexing="ij")
+        return self.origin_m[None, :] + self.cell_m * np.stack([gi.ravel(), gj.ravel()], 1)
 
 __all__ = ["JAC_STEP_PX", "VIEW_MARGIN_PX", "Observation", "SpotObserver", "VisibilityTable",
            "spot_table"]

@@ -49,15 +49,14 @@ def ceiling_points(rig: Rig, ceiling_height_m: float, points_px: np.ndarray
     if px.shape[0] == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
     xy = rig.camera.unproject(px)
-    rays_c = np.ones((xy.shape[0], 3))
-    rays_c[:, :2] = xy
     R_vc, t_vc = mount_arrays(rig.mount)
-    rays_v = rays_c @ R_vc.T
-    dz = ceiling_height_m - rig.mount.z_m
-    ok = rays_v[:, 2] > 1e-6 * np.sqrt((rays_v * rays_v).sum(axis=1))       # |ray|
-    s = np.where(ok, dz / np.where(ok, rays_v[:, 2], 1.0), np.nan)
-    q = t_vc[None, :2] + s[:, None] * rays_v[:, :2]
-    return q, ok
+    rays_v = xy @ R_vc[:, :2].T + R_vc[:, 2]             # R (x, y, 1) of every pixel
+    rz = rays_v[:, 2]
+    ok = rz > 1e-6 * np.sqrt(np.einsum("ij,ij->i", rays_v, rays_v))        # |ray|
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (ceiling_height_m - rig.mount.z_m) / rz
+    s[~ok] = np.nan
+    return t_vc[:2] + s[:, None] * rays_v[:, :2], ok
 
 
 def project_lights(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray, x_m: float,
@@ -132,6 +131,43 @@ def interp_grid(grid: np.ndarray, step_px: int, points_px: np.ndarray) -> np.nda
     return (1 - b) * (ua * c[:, 0] + a * c[:, 1]) + b * (ua * c[:, 2] + a * c[:, 3])
 
 
+class GridTable:
+    """:func:`interp_grid` of one table, its cells' bilinear coefficients computed once
+    (``v00, v01 - v00, v10 - v00, v11 - v10 - v01 + v00``): a reading is one gather and
+    one product (the same numbers to ~1e-15 relative, in about half the time).
+
+    Args:
+        grid: ``(GH, GW, ...)`` per-node table (nodes every ``step_px`` px from pixel 0).
+    """
+
+    def __init__(self, grid: np.ndarray, step_px: int) -> None:
+        gh, gw = grid.shape[:2]
+        self.tail = grid.shape[2:]
+        g = np.asarray(grid, float).reshape(gh, gw, -1)
+        v00, v01, v10, v11 = g[:-1, :-1], g[:-1, 1:], g[1:, :-1], g[1:, 1:]
+        coef = np.stack([v00, v01 - v00, v10 - v00, v11 - v10 - v01 + v00], axis=2)
+        self._coef = np.ascontiguousarray(coef.reshape((gh - 1) * (gw - 1), 4, -1))
+        self._coef.setflags(write=False)
+        self._scale = 1.0 / step_px
+        self._hi = np.array([gw - 1.0, gh - 1.0])
+        self._cell_hi = np.array([gw - 2, gh - 2])
+        self._cells_w = gw - 1
+
+    def __call__(self, points_px: np.ndarray) -> np.ndarray:
+        """``(N, ...)`` the table at pixels ``(N, 2)`` (clamped to the grid)."""
+        f = np.asarray(points_px, float).reshape(-1, 2) * self._scale
+        np.maximum(f, 0.0, out=f)
+        np.minimum(f, self._hi, out=f)
+        i = np.minimum(f.astype(np.intp), self._cell_hi)
+        f -= i                                                # (a, b) within the cell
+        c = self._coef[i[:, 1] * self._cells_w + i[:, 0]]     # (N, 4, C)
+        w = np.empty((f.shape[0], 1, 4))
+        w[:, 0, 0] = 1.0
+        w[:, 0, 1:3] = f
+        w[:, 0, 3] = f[:, 0] * f[:, 1]
+        return (w @ c).reshape((f.shape[0],) + self.tail)
+
+
 def view_mask(rig: Rig, max_angle_rad: float) -> np.ndarray:
     """``(H, W)`` uint8: 255 where a pixel's ray rises within ``max_angle_rad`` of the
     vertical (computed on a 4x coarser grid, then enlarged)."""
@@ -176,5 +212,6 @@ def max_pair_m(rig: Rig, ceiling_height_m: float, gate_m: float) -> float:
     return float(np.linalg.norm(q[:, None] - q[None], axis=2).max()) + 2 * gate_m
 
 
-__all__ = ["ceiling_points", "interp_grid", "jacobian_grid", "max_pair_m", "mount_arrays",
-           "nadir_px", "pixel_scale", "project_lights", "project_poses", "view_mask"]
+__all__ = ["GridTable", "ceiling_points", "interp_grid", "jacobian_grid", "max_pair_m",
+           "mount_arrays", "nadir_px", "pixel_scale", "project_lights", "project_poses",
+           "view_mask"]

@@ -39,7 +39,12 @@ from numpy.lib.stride_tricks import as_strided
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.observe import JAC_STEP_PX, SpotObserver, VisibilityTable
-from ceilkit.runtime.estimators.lights.rays import ceiling_points, interp_grid, project_lights
+from ceilkit.runtime.estimators.lights.rays import (
+    ceiling_points,
+    interp_grid,
+    pixel_scale,
+    project_lights,
+)
 from ceilkit.runtime.estimators.lights.refine import _median, refine_pose_ceiling
 from ceilkit.runtime.features.spots import Spots, perception_level
 
@@ -70,6 +75,30 @@ def _counts(side: int) -> np.ndarray:
     b = np.zeros((side, side), np.float32)
     b[0, :] = b[-1, :] = b[:, 0] = b[:, -1] = 1.0
     out = np.stack([np.ones(side * side, np.float32), b.ravel()], axis=1)
+    out.setflags(write=False)
+    return out
+
+
+def prediction_cells(rig: Rig, ceiling_height_m: float, visibility: VisibilityTable,
+                     spot_table: np.ndarray) -> np.ndarray:
+    """``(cells, 9)`` per cell of the visibility table (padded, in the order of
+    :meth:`~.observe.VisibilityTable.locate`): the cell centre in V ``(qx, qy)``, its
+    pixel ``(u, v)``, the pixel Jacobian there ``d(u, v)/d(qx, qy)`` (row-major) and the
+    predicted spot area (px², from the spot table); NaN where the cell is not seen.
+
+    A light's pixel is the centre's plus the Jacobian times the light's offset from the
+    centre (at most half a cell): off by the map's curvature over half a cell, a few
+    hundredths of a pixel for the fisheye of configs/lights (10 cm cells), against a
+    window margin of ``window_px``. Built once per rig and site."""
+    q = visibility.cell_centres()
+    out = np.full((q.shape[0], 9), np.nan)
+    out[:, :2] = q
+    seen = np.isfinite(np.pad(visibility.table, 1, constant_values=np.inf).ravel())
+    if np.any(seen):
+        px = project_lights(rig, ceiling_height_m, q[seen], 0.0, 0.0, 0.0)
+        out[seen, 2:4] = px
+        out[seen, 4:8] = pixel_scale(rig, ceiling_height_m, q[seen]).reshape(-1, 4)
+        out[seen, 8] = interp_grid(spot_table[..., 7], JAC_STEP_PX, px)
     out.setflags(write=False)
     return out
 
@@ -122,8 +151,7 @@ class WindowTracker:
         self.rig, self.ceiling_height_m = rig, ceiling_height_m
         self.lights_w = np.asarray(lights_w, float)
         self.observer, self.visibility = observer, visibility
-        # the spot table's predicted area alone (the prediction reads nothing else)
-        self._area_table = np.ascontiguousarray(observer.table[..., 7])
+        self._cells = prediction_cells(rig, ceiling_height_m, visibility, observer.table)
         self.window_px = float(window_px)
         self.min_contrast = float(min_contrast)
         self.min_share = float(min_share)
@@ -152,16 +180,24 @@ class WindowTracker:
 
     def _predict(self, x_m: float, y_m: float, yaw_rad: float):
         """``(map indices, predicted px, predicted count, window corners, half side)``
-        of the finite predictions, or ``None`` (fewer than 3, or windows too big)."""
-        idx = np.flatnonzero(self.visibility(x_m, y_m, yaw_rad))
+        of the finite predictions, or ``None`` (fewer than 3, or windows too big).
+
+        One lookup: the visibility table's cell of every map light, and the pixel
+        there from :func:`prediction_cells` (the cell centre's pixel plus its
+        Jacobian times the light's offset from the centre); no projection."""
+        ok, cell, z = self.visibility.locate(x_m, y_m, yaw_rad)
+        idx = np.flatnonzero(ok)
         m = idx.size
         if m < 3:
             return None
-        px = project_lights(self.rig, self.ceiling_height_m, self.lights_w[idx], x_m, y_m,
-                            yaw_rad)
-        area = interp_grid(self._area_table, JAC_STEP_PX, px)             # predicted area
+        c = self._cells[cell[idx]]                                          # (M, 9)
+        z = z[idx]
+        dq = np.stack([z.real, z.imag], axis=1) - c[:, :2]                 # (M, 2) m
+        px = c[:, 2:4] + (c[:, 4:8].reshape(-1, 2, 2) @ dq[:, :, None])[:, :, 0]
+        area = c[:, 8]
         fin = np.isfinite(px[:, 0]) & np.isfinite(area)
-        if np.count_nonzero(fin) < 3:
+        n_fin = int(np.count_nonzero(fin))
+        if n_fin < 3:
             return None
         r_spot = math.sqrt(max(float(area[fin].max()), 1.0) / math.pi)
         half = int(min(MAX_HALF_PX, math.ceil(r_spot * 1.6 + self.window_px)))
@@ -169,7 +205,8 @@ class WindowTracker:
         w, h = self.width, self.height
         if side >= min(w, h):
             return None
-        idx, px = idx[fin], px[fin]
+        if n_fin < m:
+            idx, px = idx[fin], px[fin]
         # window corners, kept inside the image (a window at the border is shifted in)
         corner = np.rint(px).astype(np.int64) - half
         np.maximum(corner, 0, out=corner)
@@ -211,7 +248,7 @@ class WindowTracker:
         i_b, i_o = i_b.astype(np.float64), i_o.astype(np.float64)
         spots = Spots(cent, area.astype(float), i_o - i_b,
                       perception_level(i_o, i_b, np.maximum(area, 1)), cov, m)
-        tab = interp_grid(self.observer.table, JAC_STEP_PX, cent)
+        tab = self.observer.grid(cent)
         good &= np.isfinite(tab[:, 0])
         if self.observer.light_radius_m > 0 and good.any():
             good &= self.observer.plausible(spots, tab, good)
@@ -247,4 +284,4 @@ class WindowTracker:
         return x, y, yaw, cov_p, res, spots, pairs
 
 
-__all__ = ["CORE", "MAX_HALF_PX", "WindowFix", "WindowTracker"]
+__all__ = ["CORE", "MAX_HALF_PX", "WindowFix", "WindowTracker", "prediction_cells"]

@@ -27,6 +27,7 @@ from ceilkit.runtime.estimators.lights import (
     refine_pose,
     refine_pose_ceiling,
 )
+from ceilkit.runtime.estimators.lights.rays import GridTable
 from ceilkit.runtime.geometry.camera import CameraModel
 from helpers import CONFIGS
 
@@ -296,6 +297,21 @@ def test_interp_grid_and_jacobian_table(lights_rig):
     np.testing.assert_allclose(interp_grid(table, 16, px), exact, rtol=0.02, atol=0.5)
 
 
+def test_grid_table_reads_as_interp_grid(lights_rig):
+    """GridTable (cached cell coefficients) gives interp_grid's numbers, clamping and
+    NaN nodes included; a fails-if-broken check on a random table."""
+    rng = np.random.default_rng(4)
+    grid = rng.normal(size=(7, 9, 3, 2))
+    grid[2, 3, 1, 0] = np.nan
+    px = np.concatenate([rng.uniform(-20, 90, (200, 2)), [[0.0, 0.0], [80.0, 60.0],
+                                                          [30.0, 20.0]]])
+    want = interp_grid(grid, 10, px)
+    got = GridTable(grid, 10)(px)
+    assert got.shape == want.shape == (203, 3, 2)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(np.isnan(got), np.isnan(want)) and np.isnan(want).any()
+
+
 def test_visibility_table_matches_projection(lights_rig, lights_site, tilted_rig):
     """The estimator's table lookup of the lights in view agrees with projecting them
     (up to lights on the edge of a table cell)."""
@@ -322,7 +338,7 @@ def test_visibility_table_matches_projection(lights_rig, lights_site, tilted_rig
 
 def test_small_helpers_match_numpy():
     """The plain-float 3x3 solve and the short median give numpy's numbers."""
-    from ceilkit.runtime.estimators.lights.refine import _median, _solve3
+    from ceilkit.runtime.estimators.lights.refine import _inv3, _median, _solve3
 
     rng = np.random.default_rng(3)
     for _ in range(20):
@@ -331,7 +347,9 @@ def test_small_helpers_match_numpy():
         N = A.T @ A
         want = np.linalg.solve(N + 1e-9 * np.eye(3), g)
         np.testing.assert_allclose(_solve3(N, g, 1e-9), want, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(_inv3(N), np.linalg.inv(N), rtol=1e-9, atol=1e-15)
     assert _solve3(np.zeros((3, 3)), np.ones(3), 0.0) is None       # not positive definite
+    assert _inv3(np.zeros((3, 3))) is None and _inv3(np.full((3, 3), np.nan)) is None
     for n in (1, 2, 5, 8):
         x = rng.normal(size=n)
         assert _median(x) == float(np.median(x))

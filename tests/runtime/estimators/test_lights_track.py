@@ -92,6 +92,30 @@ def test_a_light_cut_by_its_window_border_is_not_found(lights_rig, lights_site):
     assert not good2[0] and good2[1:].all()
 
 
+def test_prediction_table_agrees_with_projection(lights_rig, lights_site):
+    """The windows' places from the prediction table (a lookup) are the projected
+    lights' pixels to a few hundredths of a pixel, for the lights the visibility
+    table reports."""
+    from ceilkit.runtime.estimators.lights.rays import project_lights
+
+    est = LightsEstimator(lights_rig, lights_site, {"track": True})
+    w: WindowTracker = est.windows
+    rng = np.random.default_rng(7)
+    worst, n = 0.0, 0
+    for _ in range(30):
+        x, y, yaw = rng.uniform(1, 17), rng.uniform(-4, 4), rng.uniform(-3, 3)
+        pred = w._predict(x, y, yaw)
+        if pred is None:
+            continue
+        idx, px, m, corner, half = pred
+        assert np.array_equal(idx, np.flatnonzero(est.visibility(x, y, yaw)))
+        exact = project_lights(lights_rig, 3.0, est.lights_w[idx], x, y, yaw)
+        worst = max(worst, float(np.abs(px - exact).max()))
+        n += idx.size
+        assert np.all(corner >= 0) and np.all(corner + 2 * half < (640, 480))
+    assert n > 100 and worst < 0.1, (n, worst)
+
+
 def test_schedule_runs_a_global_search(lights_rig, lights_site):
     est = LightsEstimator(lights_rig, lights_site, {"track": True, "track_full_every": 2})
     x, y, yaw = POSES[2]
