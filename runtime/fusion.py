@@ -391,7 +391,7 @@ class Fusion:
         self._drain(t_ns)
         if self._lost(t_ns):
             return None
-        pose = self._publish(self._f.node_at(t_ns), method, {})
+        pose = self._publish(self._f.node_at(t_ns), method, {}, velocity=True)
         sig = max(np.sqrt(np.diag(np.asarray(pose.cov)[:2, :2])))
         return pose if sig <= self.options.prior_sigma_m else None
 
@@ -495,7 +495,10 @@ class Fusion:
                 self._candidates = []
         self._candidates.append(fix)
 
-    def _publish(self, n: _Node, method: str, diag: dict[str, Any]) -> PoseEstimate:
+    def _publish(self, n: _Node, method: str, diag: dict[str, Any],
+                 velocity: bool = False) -> PoseEstimate:
+        """The pose of node ``n``; with ``velocity``, the state's velocity too (a
+        prior's, for the estimators' rolling-shutter rows)."""
         o = self.options
         cov = np.array(n.P[:3, :3])
         sd = np.sqrt(np.diag(cov))
@@ -515,7 +518,8 @@ class Fusion:
                             float(n.s[0]) if observed[0] else None,
                             float(n.s[1]) if observed[1] else None,
                             float(n.s[2]), float(quality), None, cov,
-                            MappingProxyType(diag))
+                            MappingProxyType(diag),
+                            tuple(float(v) for v in n.s[3:6]) if velocity else None)
 
 
 def nees(est: PoseEstimate, truth: tuple[float, float, float]) -> tuple[float, int] | None:

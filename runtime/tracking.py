@@ -4,7 +4,9 @@ Per frame the tracker predicts the pose at the frame's time (the estimators'
 ``prior``), then checks the estimator's measurement against the prediction:
 
 * inside the gate: accepted; the published pose is the measurement itself (the
-  estimators are more accurate than a motion model), the velocity is smoothed;
+  estimators are more accurate than a motion model), the velocity is smoothed (the
+  track's first sample taken whole); a prediction carries the velocity once one was
+  measured (``PoseEstimate.velocity``, for a rolling shutter's rows);
 * outside the gate: replaced by ``Failure(reason="gated")``, unless
   ``confirm`` consecutive measurements agree with each other away from the
   track: then the track is re-localized there and the result says so
@@ -51,6 +53,7 @@ class _State:
     vx: float = 0.0
     vy: float = 0.0
     vyaw: float = 0.0
+    moving: bool = False  # a velocity measured (before: at rest, assumed, not known)
 
 
 class Tracker:
@@ -82,7 +85,8 @@ class Tracker:
             t_ns=t_ns, method=method,
             x_m=None if s.x is None else s.x + s.vx * dt,
             y_m=None if s.y is None else s.y + s.vy * dt,
-            yaw_rad=wrap_pi(s.yaw + s.vyaw * dt), quality=0.0)
+            yaw_rad=wrap_pi(s.yaw + s.vyaw * dt), quality=0.0,
+            velocity=(s.vx, s.vy, s.vyaw) if s.moving else None)
 
     def _inside(self, a: PoseEstimate, b: PoseEstimate, dt_s: float) -> bool:
         o = self.options
@@ -116,8 +120,11 @@ class Tracker:
         dt = (est.t_ns - s.t_ns) * 1e-9
         if self._inside(est, pred, 0.0 if dt <= 0 else dt):
             self._candidates = []
-            a = self.options.velocity_smoothing
+            # the first velocity sample of a track is taken whole (before it the
+            # velocity is not known, not zero), later ones smoothed
+            a = self.options.velocity_smoothing if s.moving else 1.0
             if dt > 1e-6:
+                s.moving = True
                 if est.x_m is not None and s.x is not None:
                     s.vx = (1 - a) * s.vx + a * (est.x_m - s.x) / dt
                 if est.y_m is not None and s.y is not None:

@@ -59,6 +59,11 @@ class PoseEstimate:
         quality: confidence in [0, 1].
         cov: 3x3 covariance of ``(x, y, yaw)`` (m², rad²); unobserved terms are inf.
         diagnostics: method-specific figures (residuals, counts), for logs and reports.
+        velocity: ``(vx m/s, vy m/s, yaw rate rad/s)`` in W, or ``None``: what a track's
+            prediction (the estimators' prior) knows of the motion; an estimator uses
+            it for the rows of a rolling-shutter frame (``readout_ms``,
+            :mod:`~ceilkit.runtime.geometry.shutter`). A velocity the track does not
+            observe (x on the corridor method alone) is 0.
     """
 
     t_ns: int
@@ -70,6 +75,7 @@ class PoseEstimate:
     lateral_m: float | None = None
     cov: np.ndarray | None = None
     diagnostics: Mapping[str, Any] = field(default_factory=_empty)
+    velocity: tuple[float, float, float] | None = None
 
     def __bool__(self) -> bool:
         return True

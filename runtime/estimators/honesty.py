@@ -299,7 +299,8 @@ def check_options(options: Any) -> None:
     """
     for name in ("noise_px", "misfit_alpha", "max_vp_elevation_deg", "max_vanishing_line_deg",
                  "max_heading_change_deg", "min_lines", "min_spread", "site_margin_m",
-                 "working_mpx"):
+                 "working_mpx", "readout_ms", "rate_sigma_dps", "speed_sigma_mps",
+                 "unknown_rate_dps", "unknown_speed_mps"):
         if not hasattr(options, name):
             continue
         v = float(getattr(options, name))

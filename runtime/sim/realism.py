@@ -52,6 +52,7 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.config.yaml import Node, load_yaml
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry.shutter import row_times_s
 from ceilkit.runtime.sim import render as R
 from ceilkit.runtime.sim import scene as S
 
@@ -80,7 +81,10 @@ class Realism:
         mains_hz: mains frequency, Hz.
         gloss: reflectance of glossy walls (lamps mirrored in them) and glare, [0, 1].
         motion_blur_ms: exposure time, ms (0: instantaneous).
-        rolling_shutter_ms: readout time, top row to bottom row, ms (0: global).
+        rolling_shutter_ms: readout time, top row to bottom row, ms (0: global); row
+            ``v`` sees the pose at ``(v / (H - 1) - 1/2) rolling_shutter_ms`` after the
+            stamp (:func:`~ceilkit.runtime.geometry.shutter.row_times_s`), the estimators'
+            ``readout_ms`` option has the same meaning.
         auto_exposure: relative amplitude of auto-exposure gain swings, [0, 1).
         ae_period_s: period of the swings, s.
         jpeg: JPEG quality 1..100 (0: none).
@@ -509,7 +513,8 @@ def _row_weights(real: Realism, taus: np.ndarray, rows: int) -> np.ndarray:
     if k == 1:
         return np.ones((rows, 1))
     ro, te = real.rolling_shutter_ms / 1e3, real.motion_blur_ms / 1e3
-    start = (np.arange(rows) / max(rows - 1, 1)) * ro
+    # each row's exposure start after the first sub-frame (geometry.shutter's row times)
+    start = row_times_s(np.arange(rows), rows, ro) - 0.5 * te - taus[0]
     m = 16 if te > 0 else 1
     pts = start[:, None] + (np.arange(m) + 0.5) / m * te          # (rows, m)
     pos = np.clip(pts / (taus[-1] - taus[0]) * (k - 1), 0, k - 1)
@@ -529,7 +534,7 @@ def _flicker_rows(real: Realism, t0_s: float, rows: int) -> np.ndarray:
     te = real.motion_blur_ms / 1e3 or 2e-3
     ro = real.rolling_shutter_ms / 1e3
     # each row's exposure start; the centre row's exposure is centred on the stamp
-    a = t0_s - 0.5 * (ro + te) + (np.arange(rows) / max(rows - 1, 1)) * ro
+    a = t0_s + row_times_s(np.arange(rows), rows, ro) - 0.5 * te
     mean = (np.sin(om * (a + te)) - np.sin(om * a)) / (om * te)
     return 1.0 + real.flicker * mean
 

@@ -36,7 +36,6 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.base import (
     Estimate,
     Estimator,
-    EstimatorOptions,
     Failure,
     PoseEstimate,
     elapsed_ms,
@@ -58,7 +57,10 @@ from ceilkit.runtime.estimators.corridor.hypotheses import (
 from ceilkit.runtime.estimators.corridor.refine import (
     GNInputs,
     PanOffsetFit,
+    RowRates,
+    camera_y_speed,
     gauss_newton,
+    gauss_newton_rows,
     gn_inputs,
     vehicle_pose,
 )
@@ -81,9 +83,11 @@ from ceilkit.runtime.estimators.honesty import (
     misfit,
     outside_site,
 )
+from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.lines import SegmentDetector
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
 from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.geometry.shutter import row_times_s
 
 MIN_LENGTH_SHARE = 0.04
 """The default shortest segment, as a share of the image width."""
@@ -94,7 +98,7 @@ histogram (they are near the horizon or point at the vanishing line)."""
 
 
 @dataclass(frozen=True)
-class CorridorOptions(EstimatorOptions):
+class CorridorOptions(ShutterOptions):
     """What a user may set (``--option KEY=VALUE``).
 
     Attributes:
@@ -144,6 +148,11 @@ class CorridorOptions(EstimatorOptions):
             the segments are refitted on the full frame with a profile half-width of
             :func:`~ceilkit.runtime.features.lines.edge_half_width_px`; 0: always at
             full resolution.
+        readout_ms, rate_sigma_dps, speed_sigma_mps, unknown_rate_dps,
+            unknown_speed_mps: (inherited) a rolling shutter
+            (:class:`~ceilkit.runtime.estimators.rows.ShutterOptions`): each endpoint
+            is predicted from the pose at its row's time, moved by the prior's yaw
+            rate and lateral speed; their uncertainty is added to the covariance.
         min_contrast: (inherited) grey-level spread below which a frame is blank.
     """
 
@@ -243,8 +252,7 @@ class CorridorEstimator(Estimator):
             along, across = np.ones(n, bool), np.zeros(n, bool)
             lab = Labeling((m.n_lines, float(n)), psi, cy, along, across, m.line,
                            m.n_lines, False, "window")
-            gd = gn_inputs(fr, along, across, m.line, st)
-            fit = gauss_newton(psi, cy, gd, st, o.gn_iterations)
+            gd, fit = self._fit(fr, along, across, m.line, psi, cy, prior)
             reach_psi, reach_cy = self.lines_track.reach()
             if (fit.rms_px <= o.inlier_px
                     and abs(math.remainder(fit.psi_rad - psi, 2 * math.pi)) <= reach_psi
@@ -292,10 +300,41 @@ class CorridorEstimator(Estimator):
         if isinstance(best, Unresolved):
             return self.fail(t_ns, best.reason, best.detail, n_segments=n_seg,
                              segments_n=segs)
-        gd = gn_inputs(fr, best.along, best.across, best.assign, self.setup)
-        fit = gauss_newton(best.psi_rad, best.camera_y_m, gd, self.setup,
-                           self.options.gn_iterations)
+        gd, fit = self._fit(fr, best.along, best.across, best.assign, best.psi_rad,
+                            best.camera_y_m, prior)
         return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0)
+
+    def _rows(self, fr: FrameLines, prior: PoseEstimate | None
+              ) -> tuple[np.ndarray, RowRates] | None:
+        """A rolling shutter's row times ``(N, 2)`` of the segments' endpoints and the
+        rates they are predicted with (:func:`~ceilkit.runtime.estimators.rows.row_motion`
+        as :class:`~.refine.RowRates`), or None (a global shutter)."""
+        motion = row_motion(self.options, prior)
+        if motion is None:
+            return None
+        (_, vy, w), (_, s_v, s_w) = motion
+        cam = self.rig.camera
+        v = cam.distort(fr.segs.reshape(-1, 2))[:, 1].reshape(-1, 2)
+        tau = row_times_s(v, cam.height, self.options.readout_ms / 1e3)
+        yaw = prior.yaw_rad if prior is not None else 0.0
+        # the camera's y speed adds the turn's sweep of the mount offset; its sigma too
+        t_vx = abs(camera_y_speed(yaw, 0.0, 1.0, self.setup))
+        return tau, RowRates(w, camera_y_speed(yaw, vy, w, self.setup), s_w,
+                             math.hypot(s_v, t_vx * s_w))
+
+    def _fit(self, fr: FrameLines, along: np.ndarray, across: np.ndarray,
+             assign: np.ndarray, psi_rad: float, camera_y_m: float,
+             prior: PoseEstimate | None) -> tuple[GNInputs, PanOffsetFit]:
+        """The refinement (:func:`~.refine.gauss_newton`, or with a rolling shutter
+        :func:`~.refine.gauss_newton_rows`) of a labeled frame from ``(psi, c_y)``."""
+        rows = self._rows(fr, prior)
+        gd = gn_inputs(fr, along, across, assign, self.setup,
+                       None if rows is None else rows[0])
+        if rows is None:
+            return gd, gauss_newton(psi_rad, camera_y_m, gd, self.setup,
+                                    self.options.gn_iterations)
+        return gd, gauss_newton_rows(psi_rad, camera_y_m, gd, self.setup,
+                                     self.options.gn_iterations, rows[1])
 
     def _best_labeling(self, pans: list[float], fr: FrameLines, prior: PoseEstimate | None
                        ) -> Labeling | Unresolved | None:

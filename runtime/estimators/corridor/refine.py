@@ -6,6 +6,12 @@ predicted image line, and each across segment's endpoint offset from the line
 joining its midpoint to the across vanishing point. Huber weights (k = 1 px); the
 covariance is ``max(sigma^2, 0.01) (J^T W J)^-1``.
 
+A rolling shutter (:class:`RowRates`): each observation is seen from the pose at its
+row's time ``tau`` (:func:`~ceilkit.runtime.geometry.shutter.row_times_s`), to first
+order ``psi + w tau`` and ``c_y + v tau`` with ``w`` the yaw rate and ``v`` the camera's
+y speed in W, taken from the prior's velocity; what their uncertainty does to the pose
+is added to the covariance (:func:`gauss_newton_rows`).
+
 Example::
 
     gn = gn_inputs(fr, labeling.along, labeling.across, labeling.assign, setup)
@@ -54,12 +60,40 @@ class GNInputs:
     mx_b: np.ndarray
     my_b: np.ndarray
     scale_b: np.ndarray
+    tau: np.ndarray | None = None
+    tau_b: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class RowRates:
+    """A rolling shutter's motion prior for :func:`gauss_newton`.
+
+    Attributes:
+        w_rps, v_mps: the camera's yaw rate (rad/s) and y speed in W (m/s) expected
+            (the prior's velocity: ``v = vy + w (Rz(yaw) t_VC)_x``; 0 when not known).
+        sigma_w_rps, sigma_v_mps: their standard deviations.
+    """
+
+    w_rps: float
+    v_mps: float
+    sigma_w_rps: float
+    sigma_v_mps: float
+
+
+def camera_y_speed(yaw_rad: float, vy_mps: float, w_rps: float,
+                   setup: CorridorSetup) -> float:
+    """The camera's y speed in W (m/s) of a vehicle at ``yaw_rad`` moving at ``vy_mps``
+    and turning at ``w_rps``: ``vy + w (Rz(yaw) t_VC)_x``."""
+    t_vx = math.cos(yaw_rad) * setup.t_vc[0] - math.sin(yaw_rad) * setup.t_vc[1]
+    return vy_mps + w_rps * t_vx
 
 
 def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.ndarray,
-              setup: CorridorSetup) -> GNInputs:
+              setup: CorridorSetup, tau_s: np.ndarray | None = None) -> GNInputs:
     """:class:`GNInputs` of the forward segments ``along`` matched by ``assign`` ``(N,)``
-    (site line index, -1 none) and the ``across`` segments."""
+    (site line index, -1 none) and the ``across`` segments. ``tau_s`` ``(N, 2)``: each
+    endpoint's row time (s, :func:`~ceilkit.runtime.geometry.shutter.row_times_s`; an
+    across segment takes its endpoints' mean), None for a global shutter."""
     ia = np.flatnonzero(along & (assign >= 0))
     ep = fr.segs[ia].reshape(-1, 2)
     ex, ey = ep[:, 0], ep[:, 1]
@@ -72,13 +106,16 @@ def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.
         ez=m2[0] * ex + m2[1] * ey + m2[2],
         p0=m0[0] * lb[0] + m0[1] * lb[1] + m0[2] * lb[2],
         p1=m1[0] * lb[0] + m1[1] * lb[1] + m1[2] * lb[2],
-        mx_b=fr.mx[ib], my_b=fr.my[ib], scale_b=fr.len_n[ib] * (setup.f_px / math.sqrt(2.0)))
+        mx_b=fr.mx[ib], my_b=fr.my[ib], scale_b=fr.len_n[ib] * (setup.f_px / math.sqrt(2.0)),
+        tau=None if tau_s is None else tau_s[ia].ravel(),
+        tau_b=None if tau_s is None else tau_s[ib].mean(axis=1))
 
 
 def residuals(psi_rad: float, camera_y_m: float, gd: GNInputs,
               setup: CorridorSetup) -> np.ndarray:
     """``(K + B, 3)``: the pixel residuals (column 2) and their Jacobian in
-    ``(psi, c_y)`` (columns 0, 1), along endpoints first, then across segments.
+    ``(psi, c_y)`` (columns 0, 1), along endpoints first, then across segments (a global
+    shutter: every observation at the stamp's pose).
 
     With ``R_cw = R^T Rz(-psi)`` the ceiling line ``y = y_j`` is seen as
     ``l = R_cw (0, h, -(y_j - c_y)) = h vb - (y_j - c_y) m2`` (``vb`` the across
@@ -171,6 +208,55 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
         cov = ((np.inf, nan), (nan, np.inf))        # (as T diag(inf, inf) T^T: inf * 0)
     rms_px = math.sqrt(float(r @ r) / r.size) if r.size else float("nan")
     return PanOffsetFit(psi, cy, cov, rms_px, r)
+
+
+def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
+                      setup: CorridorSetup, iterations: int, rates: RowRates
+                      ) -> PanOffsetFit:
+    """:func:`gauss_newton` for a rolling shutter (``gd`` with row times): each
+    observation predicted from ``(psi + w tau, c_y + v tau)`` (first order) with the
+    rates ``w, v`` of ``rates`` held fixed (fitting them too lets the frame's own small
+    systematic errors pull them: the pose gets worse). The rates' uncertainty is added
+    to the covariance as a consider term, ``S diag(sigma_w^2, sigma_v^2) S^T`` with
+    ``S`` the solution's sensitivity to the rates."""
+    x = np.array([psi_rad, camera_y_m])
+    tau = np.concatenate([gd.tau, gd.tau_b])
+    r = np.zeros(0)
+    H = Jw = Jr = None
+    wrr = 0.0
+    for _ in range(max(1, iterations)):
+        A = residuals(float(x[0]), float(x[1]), gd, setup)
+        J = A[:, :2]
+        Jr = J * tau[:, None]                       # d r / d (w, v)
+        r = A[:, 2] + Jr @ np.array([rates.w_rps, rates.v_mps])
+        hw = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))    # Huber, k = 1 px
+        Jw = J * hw[:, None]
+        H = Jw.T @ J
+        wrr = float(r @ (hw * r))
+        try:
+            d = -np.linalg.solve(H, Jw.T @ r)
+        except np.linalg.LinAlgError:
+            H = None
+            break
+        x = x + d
+        if abs(d[0]) < STEP_DONE[0] and abs(d[1]) < STEP_DONE[1]:
+            break
+    C = None
+    if H is not None:
+        try:
+            Hi = np.linalg.inv(H)
+            S = -Hi @ (Jw.T @ Jr)                     # d (psi, c_y) / d (w, v)
+            sig = np.array([rates.sigma_w_rps, rates.sigma_v_mps])
+            C = max(wrr / max(1, r.size - 2), MIN_SIGMA2_PX2) * Hi + (S * sig ** 2) @ S.T
+        except np.linalg.LinAlgError:
+            C = None
+    if C is None or not np.all(np.isfinite(C)):
+        nan = float("nan")
+        cov = ((np.inf, nan), (nan, np.inf))
+    else:
+        cov = ((float(C[0, 0]), float(C[0, 1])), (float(C[1, 0]), float(C[1, 1])))
+    rms_px = math.sqrt(float(r @ r) / r.size) if r.size else float("nan")
+    return PanOffsetFit(float(x[0]), float(x[1]), cov, rms_px, r)
 
 
 def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup

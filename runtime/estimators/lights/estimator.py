@@ -65,8 +65,11 @@ from ceilkit.runtime.estimators.lights.observe import (
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
 from ceilkit.runtime.estimators.lights.refine import _median, refine_pose_ceiling
 from ceilkit.runtime.estimators.lights.track import WindowTracker
+from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.spots import SpotParams
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
+from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.geometry.shutter import row_times_s
 
 NAME = "lights"
 DEFAULT_LIGHT_DIAMETER_M = 0.16
@@ -77,7 +80,7 @@ OUTLIER_MEDIANS = 4.0  # a residual this many times the median (and > max_residu
 
 
 @dataclass(frozen=True)
-class LightsOptions(EstimatorOptions):
+class LightsOptions(ShutterOptions):
     """What a user may set for ``lights`` (``--option KEY=VALUE``).
 
     Attributes:
@@ -112,6 +115,13 @@ class LightsOptions(EstimatorOptions):
             decimated by an integer factor and its centroids refined at full resolution
             (:mod:`~ceilkit.runtime.features.working`; ``spot_params`` are then in
             pixels of the decimated frame); 0: always at full resolution.
+        readout_ms, rate_sigma_dps, speed_sigma_mps, unknown_rate_dps,
+            unknown_speed_mps: (inherited) a rolling shutter
+            (:class:`~ceilkit.runtime.estimators.rows.ShutterOptions`): each light is
+            predicted from the pose at its spot's row time, moved by the prior's
+            velocity; what the velocity's uncertainty does to the pose is added to the
+            covariance (the global and prior-associated paths; the window tracker
+            does not model it).
     """
 
     min_contrast: float = 0.0
@@ -233,7 +243,7 @@ class LightsEstimator(Estimator):
         if not isinstance(found, tuple):
             return found
         cand, runner, mode = found
-        pairs, (x, y, yaw, cov, res) = self._refine(obs, cand)
+        pairs, (x, y, yaw, cov, res) = self._refine(obs, cand, prior)
         k = pairs.shape[0]
         min_k = 2 if mode == "tracked" else self.options.min_inliers
         if k < min_k or not np.all(np.isfinite(cov)):
@@ -341,20 +351,58 @@ class LightsEstimator(Estimator):
                              f"({r.x_m:.2f}, {r.y_m:.2f})): a symmetric layout", **diag)
         return cand, (cands[1] if len(cands) > 1 else None), mode
 
-    def _refine(self, obs: Observation, cand: Candidate
+    def _refine(self, obs: Observation, cand: Candidate, prior: PoseEstimate | None = None
                 ) -> tuple[np.ndarray, tuple[float, float, float, np.ndarray, np.ndarray]]:
         """The inlier pairs and :func:`refine_pose_ceiling` of a candidate, after one
-        pass that drops residuals beyond ``max(max_residual_px, 4 x median)``."""
+        pass that drops residuals beyond ``max(max_residual_px, 4 x median)``; with a
+        rolling shutter (``readout_ms``) each light seen from its row's pose
+        (:meth:`_fit`)."""
+        motion = row_motion(self.options, prior)
         pairs = cand.pairs
-        fit = refine_pose_ceiling(obs.q_v[pairs[:, 0]], obs.jac_px[pairs[:, 0]],
-                                  self.lights_w[pairs[:, 1]], cand.x_m, cand.y_m, cand.yaw_rad)
+        fit = self._fit(obs, pairs, (cand.x_m, cand.y_m, cand.yaw_rad), motion)
         res = fit[4]
         bad = res > max(self.options.max_residual_px, OUTLIER_MEDIANS * _median(res))
         if bad.any() and pairs.shape[0] - int(bad.sum()) >= 2:
             pairs = pairs[~bad]
-            fit = refine_pose_ceiling(obs.q_v[pairs[:, 0]], obs.jac_px[pairs[:, 0]],
-                                      self.lights_w[pairs[:, 1]], *fit[:3])
+            fit = self._fit(obs, pairs, fit[:3], motion)
         return pairs, fit
+
+    def _fit(self, obs: Observation, pairs: np.ndarray, start: tuple[float, float, float],
+             motion: tuple[tuple[float, float, float], tuple[float, float, float]] | None
+             ) -> tuple[float, float, float, np.ndarray, np.ndarray]:
+        """:func:`refine_pose_ceiling` of ``pairs`` from ``start``. With ``motion``
+        (:func:`~ceilkit.runtime.estimators.rows.row_motion`) a spot at row time ``tau``
+        saw the lights from the pose moved by ``(dx, dy, dyaw) = velocity tau``: to first
+        order the light ``L`` seen from the stamp's pose ``t`` at
+        ``L - (dx, dy) - dyaw perp(L - t)``; each velocity component moved by its sigma
+        refits once, and the moves' outer products are added to the covariance (what
+        the velocity's uncertainty does to the pose)."""
+        q, jac = obs.q_v[pairs[:, 0]], obs.jac_px[pairs[:, 0]]
+        lights = self.lights_w[pairs[:, 1]]
+        if motion is None:
+            return refine_pose_ceiling(q, jac, lights, *start)
+        cam = self.rig.camera
+        tau = row_times_s(obs.spots.centroids_px[pairs[:, 0], 1], cam.height,
+                          self.options.readout_ms / 1e3)
+        velocity, sigma = motion
+
+        def refit(v: tuple[float, float, float], p0: tuple[float, float, float]
+                  ) -> tuple[float, float, float, np.ndarray, np.ndarray]:
+            rel = lights - np.array(p0[:2])
+            moved = (lights - tau[:, None] * np.array(v[:2])
+                     - (tau * v[2])[:, None] * np.stack([-rel[:, 1], rel[:, 0]], axis=1))
+            return refine_pose_ceiling(q, jac, moved, *p0)
+
+        fit = refit(velocity, start)
+        p = np.array(fit[:3])
+        cov = np.array(fit[3], float)
+        for j in range(3):
+            v = list(velocity)
+            v[j] += sigma[j]
+            d = np.array(refit(tuple(v), tuple(fit[:3]))[:3]) - p
+            d[2] = wrap_pi(d[2])
+            cov = cov + np.outer(d, d)
+        return fit[0], fit[1], fit[2], cov, fit[4]
 
 
 def pose_quality(k: int, rms_px: float, best: Candidate, runner: Candidate | None,

@@ -1,0 +1,119 @@
+"""A rolling shutter (issue 16): row times, the simulator's definition of them, and the
+corridor and lights estimators' correction (``readout_ms``) against truth."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
+from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.geometry.shutter import row_times_s
+from ceilkit.runtime.sim.realism import Realism, _row_weights, _time_offsets, render_real
+from ceilkit.runtime.sim.render import SimOptions, Trajectory
+from ceilkit.runtime.tracking import Tracker
+
+CONFIGS = Path(__file__).resolve().parents[3] / "configs"
+READOUT_MS = 25.0
+# a vehicle turning at 0.35 rad/s while moving sideways at 0.3 m/s (and forward)
+VELOCITY = {"corridor": (0.8, 0.3, 0.35), "lights": (0.5, 0.3, 0.35)}
+START = {"corridor": (4.0, 0.1, math.radians(3.0)), "lights": (2.0, -2.0, math.radians(30.0))}
+
+
+def test_row_times_span_the_readout_about_the_centre_row() -> None:
+    tau = row_times_s(np.array([0.0, 239.5, 479.0]), 480, 0.025)
+    np.testing.assert_allclose(tau, [-0.0125, 0.0, 0.0125])
+    assert row_times_s(np.array([100.0]), 480, 0.0)[0] == 0.0
+
+
+def test_simulator_rows_see_the_pose_at_their_row_time() -> None:
+    """The simulator's rolling_shutter_ms is the estimators' readout_ms: each row's
+    sub-frame weights average to its row time (no exposure: an instant per row)."""
+    real = Realism(rolling_shutter_ms=READOUT_MS, time_samples=9)
+    taus = _time_offsets(real)
+    w = _row_weights(real, taus, 480)
+    np.testing.assert_allclose(w.sum(axis=1), 1.0)
+    np.testing.assert_allclose(w @ taus, row_times_s(np.arange(480), 480, READOUT_MS / 1e3),
+                               atol=1e-12)
+
+
+def _frame(method: str) -> tuple[Rig, Site, np.ndarray, tuple[float, float, float]]:
+    rig = Rig.load(CONFIGS / method / "rig.yaml")
+    site = Site.load(CONFIGS / method / "site.yaml")
+    x0, y0, a0 = START[method]
+    vx, vy, w = VELOCITY[method]
+    t = np.array([-10 ** 8, 0, 10 ** 8], np.int64)       # +-0.1 s: constant velocity
+    traj = Trajectory(t, x0 + vx * t / 1e9, y0 + vy * t / 1e9, a0 + w * t / 1e9)
+    img = render_real(rig, site, traj.pose_at, 0, SimOptions(noise_sigma=0.0),
+                      Realism(rolling_shutter_ms=READOUT_MS, time_samples=16))
+    return rig, site, img, (x0, y0, a0)
+
+
+@pytest.mark.parametrize("method", ["corridor", "lights"])
+def test_readout_time_takes_the_skew_back(method: str) -> None:
+    """Noise-free skewed render: with the camera's readout time and the vehicle's
+    velocity the pose is the stamp's (to the render's own accuracy); with a global
+    shutter assumed it is biased by the skew; the covariance covers the error."""
+    rig, site, img, (x, y, yaw) = _frame(method)
+    prior = PoseEstimate(0, "track", x if method == "lights" else None, y, yaw, 0.0,
+                         velocity=VELOCITY[method])
+
+    def error(readout_ms: float) -> tuple[float, float, PoseEstimate]:
+        est = make_estimator(method, rig, site, {"readout_ms": readout_ms})
+        e = est.estimate(img, 0, prior)
+        assert isinstance(e, PoseEstimate), e
+        d_pos = math.hypot(e.y_m - y, 0.0 if e.x_m is None else e.x_m - x)
+        return d_pos, abs(math.degrees(wrap_pi(e.yaw_rad - yaw))), e
+
+    pos0, yaw0, _ = error(0.0)
+    pos1, yaw1, e = error(READOUT_MS)
+    assert pos0 > 3e-3 and yaw0 > 0.04                  # the skew, taken as the pose
+    assert pos1 < 0.25 * pos0 and yaw1 < 0.25 * yaw0
+    assert pos1 < 1.5e-3 and yaw1 < 0.02
+    sd = np.sqrt(np.diag(e.cov))
+    assert abs(e.y_m - y) < 3 * sd[1] and math.radians(yaw1) < 3 * sd[2]
+
+
+def test_without_a_velocity_the_covariance_covers_the_skew() -> None:
+    """No prior (velocity unknown): the pose keeps the skew's bias, and its covariance
+    grows to cover it (the unknown_* sigmas), so it is not published as confident."""
+    rig, site, img, (_, y, yaw) = _frame("corridor")
+    e = make_estimator("corridor", rig, site, {"readout_ms": READOUT_MS}).estimate(img, 0)
+    g = make_estimator("corridor", rig, site).estimate(img, 0)
+    assert isinstance(e, PoseEstimate) and isinstance(g, PoseEstimate)
+    assert abs(e.y_m - y) > 3 * math.sqrt(g.cov[1, 1])      # global shutter: too small
+    assert abs(e.y_m - y) < 3 * math.sqrt(e.cov[1, 1])
+    assert abs(wrap_pi(e.yaw_rad - yaw)) < 3 * math.sqrt(e.cov[2, 2])
+
+
+def test_row_motion_and_its_options() -> None:
+    o = ShutterOptions(readout_ms=20.0, rate_sigma_dps=2.0, speed_sigma_mps=0.1)
+    assert row_motion(ShutterOptions(), None) is None
+    v, s = row_motion(o, PoseEstimate(0, "t", 0.0, 0.0, 0.0, 0.0, velocity=(1.0, 2.0, 0.5)))
+    assert v == (1.0, 2.0, 0.5) and s == pytest.approx((0.1, 0.1, math.radians(2.0)))
+    v, s = row_motion(o, PoseEstimate(0, "t", 0.0, 0.0, 0.0, 0.0))
+    assert v == (0.0, 0.0, 0.0) and s == pytest.approx((0.5, 0.5, math.radians(30.0)))
+    rig = Rig.load(CONFIGS / "corridor" / "rig.yaml")
+    site = Site.load(CONFIGS / "corridor" / "site.yaml")
+    with pytest.raises(ConfigError, match="readout_ms"):
+        make_estimator("corridor", rig, site, {"readout_ms": "-5"})
+    with pytest.raises(ConfigError, match="rate_sigma_dps"):
+        make_estimator("lights", Rig.load(CONFIGS / "lights" / "rig.yaml"),
+                       Site.load(CONFIGS / "lights" / "site.yaml"), {"rate_sigma_dps": "nan"})
+
+
+def test_tracker_prior_carries_the_velocity_once_measured() -> None:
+    tr = Tracker()
+    tr.update(PoseEstimate(0, "m", 1.0, 2.0, 0.0, 0.9))
+    assert tr.predict(10 ** 8).velocity is None          # one fix: velocity not known
+    tr.update(PoseEstimate(10 ** 8, "m", 1.05, 2.02, 0.01, 0.9))
+    v = tr.predict(2 * 10 ** 8).velocity
+    assert v == pytest.approx((0.5, 0.2, 0.1))           # the first sample, whole
