@@ -51,10 +51,24 @@ class PtyReader:
 
 def _pose_transcript(protocol: str, data: bytes) -> bytes:
     """The pose messages of a transcript (the 1 Hz heartbeat/status messages depend on
-    wall-clock timing and are left out)."""
+    wall-clock timing and are left out). NMEA's ``seq`` is shared with ``$PCEIS``, so a
+    status sent while a loaded machine works on the first frame shifts it: the pose
+    sentences' seqs must increase, and are renumbered 0, 1, ... (checksum recomputed)."""
     if protocol == "nmea":
-        return b"".join(line + b"\n" for line in data.split(b"\n")
-                        if line.startswith(b"$PCEIL,"))
+        lines = [line.rstrip(b"\r") for line in data.split(b"\n")
+                 if line.startswith(b"$PCEIL,")]
+        seqs = [int(line.split(b",")[1]) for line in lines]
+        assert all(b > a for a, b in zip(seqs, seqs[1:], strict=False)), seqs
+        out = []
+        for k, line in enumerate(lines):
+            body = line[1:line.index(b"*")].split(b",")
+            body[1] = str(k).encode()
+            text = b",".join(body)
+            check = 0
+            for ch in text:
+                check ^= ch
+            out.append(b"$" + text + b"*%02X\r\n" % check)
+        return b"".join(out)
     frames, _ = mavlink.split_frames(data)
     return b"".join(f.payload for f in frames if f.msg_id == 102)
 
