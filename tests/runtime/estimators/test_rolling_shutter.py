@@ -117,3 +117,53 @@ def test_tracker_prior_carries_the_velocity_once_measured() -> None:
     tr.update(PoseEstimate(10 ** 8, "m", 1.05, 2.02, 0.01, 0.9))
     v = tr.predict(2 * 10 ** 8).velocity
     assert v == pytest.approx((0.5, 0.2, 0.1))           # the first sample, whole
+
+
+def test_fusion_prior_carries_its_velocity() -> None:
+    from ceilkit.runtime.fusion import Fusion
+
+    fu = Fusion()
+    dt = 10 ** 8
+    cov = np.diag([1e-6, 1e-6, 1e-6])
+    for k in range(20):
+        fu.update(PoseEstimate(k * dt, "lights", 1.0 + 0.05 * k, 2.0 - 0.02 * k,
+                               0.01 * k, 0.9, None, cov))
+    assert fu.update(PoseEstimate(20 * dt, "lights", 2.0, 1.6, 0.2, 0.9, None,
+                                  cov)).estimate.velocity is None   # a published pose
+    v = fu.predict(21 * dt).velocity
+    assert v == pytest.approx((0.5, -0.2, 0.1), abs=0.02)
+
+
+def test_a_drive_with_the_tracker_is_corrected_and_covered() -> None:
+    """As on the vehicle (benchmarks/bench_realistic.py): the tracker's prediction is
+    the prior; with the readout time the weaving drive's heading and lateral errors
+    shrink, and every covariance covers its error (NEES within its 99 % bound)."""
+    from scipy.stats import chi2
+
+    from ceilkit.runtime.sim.render import SimSource, straight_drive
+
+    rig = Rig.load(CONFIGS / "corridor" / "rig.yaml")
+    site = Site.load(CONFIGS / "corridor" / "site.yaml")
+    traj = straight_drive(10, 30.0, speed_mps=0.8, y_m=0.1, weave_m=0.25,
+                          yaw_wobble_rad=math.radians(4.0), rng=np.random.default_rng(5))
+    src = SimSource(rig, site, traj, seed=5, realism=Realism(rolling_shutter_ms=READOUT_MS))
+    frames = [src.render(k) for k in range(len(traj))]
+    errs = {}
+    for ro in (0.0, READOUT_MS):
+        est = make_estimator("corridor", rig, site, {"readout_ms": ro})
+        tr, e_y, e_yaw, nees = Tracker(), [], [], []
+        for k, f in enumerate(frames):
+            e = est.estimate(f.image, f.t_ns, tr.predict(f.t_ns))
+            tr.update(e)
+            assert isinstance(e, PoseEstimate), e
+            _, y, yaw = src.pose(k)
+            d = np.array([e.y_m - y, wrap_pi(e.yaw_rad - yaw)])
+            e_y.append(abs(d[0]))
+            e_yaw.append(abs(math.degrees(d[1])))
+            nees.append(float(d @ np.linalg.solve(e.cov[1:, 1:], d)))
+        errs[ro] = (np.median(e_y), np.median(e_yaw), max(nees))
+    (y0, a0, _), (y1, a1, n1) = errs[0.0], errs[READOUT_MS]
+    assert y0 > 5e-3 and a0 > 0.15                      # the skew, unmodelled
+    assert y1 < 0.35 * y0 and a1 < 0.3 * a0
+    assert n1 < chi2.ppf(0.99, 2)
+    assert errs[0.0][2] > chi2.ppf(0.99, 2)             # unmodelled: overconfident
