@@ -469,17 +469,27 @@ def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.n
     return rows
 
 
+def rows_to_spots(rows: np.ndarray, n_candidates: int = 0,
+                  rejected: dict[str, int] | None = None) -> Spots:
+    """:class:`Spots` of measured regions ``rows (K, 8)``: ``(u, v, I_o, I_b, c00,
+    c01, c11, area)`` (px, grey levels, px², px), their perception index from
+    :func:`perception_level` (the area floored at 1 px)."""
+    i_o, i_b, area = rows[:, 2], rows[:, 3], rows[:, 7]
+    cov = np.empty((rows.shape[0], 2, 2))
+    cov[:, 0, 0], cov[:, 1, 1] = rows[:, 4], rows[:, 6]
+    cov[:, 0, 1] = cov[:, 1, 0] = rows[:, 5]
+    return Spots(rows[:, 0:2].copy(), area.copy(), i_o - i_b,
+                 perception_level(i_o, i_b, np.maximum(area, 1.0)), cov, n_candidates,
+                 {} if rejected is None else rejected)
+
+
 def _select_lights(r: np.ndarray, n_candidates: int, params: SpotParams, relative: bool,
                    rejected: dict[str, int]) -> Spots:
     """The measured regions ``r`` ``(K, 8)`` that look like lights: bright enough
     (perception level), round enough, not dim beside the brightest, at most
     ``params.max_spots`` of them (the brightest)."""
-    c = r[:, 0:2].copy()
-    i_o, i_b, area = r[:, 2], r[:, 3], r[:, 7]
-    cov = np.empty((r.shape[0], 2, 2))
-    cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 0], cov[:, 1, 1] = r[:, 4], r[:, 5], r[:, 5], r[:, 6]
-    contrast = i_o - i_b
-    level = perception_level(i_o, i_b, area)
+    spots = rows_to_spots(r, n_candidates, rejected)
+    cov, contrast, level = spots.cov_px, spots.contrast, spots.level
     keep = level >= params.min_level
     rejected["level"] = rejected.get("level", 0) + keep.size - int(np.count_nonzero(keep))
     if params.min_axis_ratio > 0:
@@ -490,7 +500,6 @@ def _select_lights(r: np.ndarray, n_candidates: int, params: SpotParams, relativ
         bad = keep & (contrast < params.min_relative_contrast * contrast[keep].max())
         rejected["dim"] = int(np.count_nonzero(bad))
         keep &= ~bad
-    spots = Spots(c, area, contrast, level, cov, n_candidates, rejected)
     if not keep.all():
         spots = spots.select(keep)
     if len(spots) > params.max_spots:
@@ -564,4 +573,4 @@ def detect_spots(image: np.ndarray, params: SpotParams | None = None,
 
 
 __all__ = ["SpotParams", "Spots", "detect_spots", "empty_spots", "niblack_mask",
-           "perception_level", "regions_to_spots", "tile_niblack_mask"]
+           "perception_level", "regions_to_spots", "rows_to_spots", "tile_niblack_mask"]

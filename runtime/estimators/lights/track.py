@@ -30,12 +30,10 @@ Example::
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.observe import JAC_STEP_PX, SpotObserver, VisibilityTable
@@ -46,37 +44,11 @@ from ceilkit.runtime.estimators.lights.rays import (
     project_lights,
 )
 from ceilkit.runtime.estimators.lights.refine import _median, refine_pose_ceiling
-from ceilkit.runtime.features.spots import Spots, perception_level
-
-CORE = 0.4
-"""Centroid weights count from ``I_b + CORE (I_o - I_b)`` (as the global detector)."""
+from ceilkit.runtime.features.spots import Spots, rows_to_spots
+from ceilkit.runtime.features.windows import CORE, window_stats
 
 MAX_HALF_PX = 40
 """A window is at most ``2 MAX_HALF_PX + 1`` pixels wide (large spots near the nadir)."""
-
-
-@functools.lru_cache(maxsize=16)
-def _monomials(side: int) -> np.ndarray:
-    """``(side², 6)`` float32 ``(1, x, x², y, y², x y)`` of a ``side x side`` block,
-    row-major, ``x, y`` from the block's centre (small numbers: float32 keeps the
-    moments to ~1e-6 px)."""
-    y, x = np.divmod(np.arange(side * side, dtype=float), side)
-    x -= side // 2
-    y -= side // 2
-    out = np.stack([np.ones_like(x), x, x * x, y, y * y, x * y], axis=1).astype(np.float32)
-    out.setflags(write=False)
-    return out
-
-
-@functools.lru_cache(maxsize=16)
-def _counts(side: int) -> np.ndarray:
-    """``(side², 2)`` float32 ``(1, on the border)`` of a ``side x side`` block: one
-    product gives a block's sum and its border's sum."""
-    b = np.zeros((side, side), np.float32)
-    b[0, :] = b[-1, :] = b[:, 0] = b[:, -1] = 1.0
-    out = np.stack([np.ones(side * side, np.float32), b.ravel()], axis=1)
-    out.setflags(write=False)
-    return out
 
 
 def prediction_cells(rig: Rig, ceiling_height_m: float, visibility: VisibilityTable,
@@ -217,38 +189,10 @@ class WindowTracker:
                  ) -> tuple[Spots, np.ndarray, np.ndarray]:
         """The windows' spots (centroids in the frame), which pass the window check and
         the spot table at their centroids."""
-        side = 2 * half + 1
-        # every side x side window of the frame as a read-only view; the predicted ones
-        # copied out row by row in one indexing (no per-pixel index array)
-        h, w = grey.shape
-        views = as_strided(grey, (h - side + 1, w - side + 1, side, side),
-                           grey.strides * 2, writeable=False)
-        g = views[corner[:, 1], corner[:, 0]].reshape(-1, side * side).astype(np.float32)
-        cols = _counts(side)
-        i_b = (g @ cols[:, 1]) * np.float32(1.0 / (4 * side - 4))
-        peak = g.max(axis=1)
-        obj = (g > (0.5 * (i_b + peak))[:, None]).astype(np.float32)
-        n_obj = obj @ cols                       # (M, 2): bright pixels, on the border
-        area = n_obj[:, 0].astype(np.int64)
-        touches = n_obj[:, 1] > 0                # the bright part reaches the border
-        i_o = np.einsum("ij,ij->i", g, obj) / np.maximum(area, 1)
-        wts = np.subtract(g, (i_b + CORE * (i_o - i_b))[:, None], out=g)
-        np.maximum(wts, 0.0, out=wts)
-        mom = (wts @ _monomials(side)).astype(np.float64)                     # (M, 6)
-        m00 = mom[:, 0]
-        good = (peak - i_b >= self.min_contrast) & ~touches & (area > 0) & (m00 > 0)
-        m00 = np.where(good, m00, 1.0)
-        mom /= m00[:, None]
-        cx, cy = mom[:, 1], mom[:, 3]
-        cov = np.empty((m00.size, 2, 2))
-        cov[:, 0, 0] = mom[:, 2] - cx * cx
-        cov[:, 0, 1] = cov[:, 1, 0] = mom[:, 5] - cx * cy
-        cov[:, 1, 1] = mom[:, 4] - cy * cy
-        cent = corner + (half + np.stack([cx, cy], axis=1))
-        i_b, i_o = i_b.astype(np.float64), i_o.astype(np.float64)
-        spots = Spots(cent, area.astype(float), i_o - i_b,
-                      perception_level(i_o, i_b, np.maximum(area, 1)), cov, m)
-        tab = self.observer.grid(cent)
+        rows, good, contrast = window_stats(grey, corner, 2 * half + 1)
+        good &= contrast >= self.min_contrast
+        spots = rows_to_spots(rows, m)
+        tab = self.observer.grid(spots.centroids_px)
         good &= np.isfinite(tab[:, 0])
         if self.observer.light_radius_m > 0 and good.any():
             good &= self.observer.plausible(spots, tab, good)
