@@ -18,6 +18,7 @@ case's ``rolling_shutter_ms``; ``--no-readout``: left at 0, a global shutter ass
 Prints the table and saves it as CSV in ``--out``.
 
     .venv/bin/python benchmarks/bench_realistic.py [--frames 20] [--out benchmarks/out/realistic]
+        [--methods lights] [--option spot_stage=windowed]
 """
 
 from __future__ import annotations
@@ -58,11 +59,11 @@ def _median(a: list[float]) -> float:
 
 
 def run_case(method: str, realism: Realism | None, frames: int, seed: int,
-             readout: bool = True) -> dict:
+             readout: bool = True, options: dict[str, str] | None = None) -> dict:
     rig = Rig.load(CONFIGS / method / "rig.yaml")
     site = Site.load(CONFIGS / method / "site.yaml")
     ro = realism.rolling_shutter_ms if realism is not None and readout else 0.0
-    est = make_estimator(method, rig, site, {"readout_ms": ro})
+    est = make_estimator(method, rig, site, {"readout_ms": ro, **(options or {})})
     traj = straight_drive(frames, 30.0, rng=np.random.default_rng(seed), **DRIVES[method])
     src = SimSource(rig, site, traj, seed=seed, realism=realism)
     tracker = Tracker()
@@ -123,15 +124,18 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/realistic"))
     ap.add_argument("--no-readout", action="store_true",
                     help="leave the estimators' readout_ms at 0 (a global shutter assumed)")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="an estimator option for every method run (as ceilrun --option)")
     a = ap.parse_args()
+    options = dict(o.split("=", 1) for o in a.option)
     a.out.mkdir(parents=True, exist_ok=True)
     only = [c for c in a.cases.split(",") if c] or None
     rows = []
     print(" | ".join(FIELDS))
     for method in a.methods.split(","):
         for name, real in cases(method, only):
-            r = {"method": method, "case": name, **run_case(method, real, a.frames, a.seed,
-                                                             not a.no_readout)}
+            r = {"method": method, "case": name,
+                 **run_case(method, real, a.frames, a.seed, not a.no_readout, options)}
             rows.append(r)
             print(" | ".join(f"{r[k]:.3g}" if isinstance(r[k], float) else str(r[k])
                              for k in FIELDS), flush=True)

@@ -76,6 +76,7 @@ DEFAULT_LIGHT_DIAMETER_M = 0.16
 """A light's visible diameter when neither the options nor the site give one."""
 TRACK_MIN_SHARE = 0.6  # a prior is trusted when this share of the spots match near it
 PRIOR_RESOLVE = (1.0, math.radians(20.0))  # (m, rad): a rival this near the prior wins
+SPOT_STAGES = ("windowed", "full")  # the spot stages (LightsOptions.spot_stage)
 OUTLIER_MEDIANS = 4.0  # a residual this many times the median (and > max_residual_px) is out
 
 
@@ -122,6 +123,10 @@ class LightsOptions(ShutterOptions):
             velocity; what the velocity's uncertainty does to the pose is added to the
             covariance (the global and prior-associated paths; the window tracker
             does not model it).
+        spot_stage: at working resolution, ``full`` (the Niblack mask and region
+            statistics of the whole frame) or ``windowed`` (the mask and regions of the
+            frame decimated by 2, each region's spot read at full resolution in a
+            window around it: :func:`~ceilkit.runtime.features.windows.detect_spots_windowed`).
     """
 
     min_contrast: float = 0.0
@@ -141,6 +146,7 @@ class LightsOptions(ShutterOptions):
     track_window_px: float = 10.0
     track_full_every: int = 30
     working_mpx: float = WORKING_MPX
+    spot_stage: str = "full"
 
 
 def light_diameter_m(options: LightsOptions, site: Site) -> float:
@@ -185,6 +191,9 @@ class LightsEstimator(Estimator):
             raise ConfigError(None, "options.gate_m",
                               "expected gate_m > 0 and light_diameter_m >= 0")
         check_options(o)
+        if o.spot_stage not in SPOT_STAGES:
+            raise ConfigError(None, "options.spot_stage",
+                              f"expected one of {', '.join(SPOT_STAGES)}, found {o.spot_stage!r}")
         self.extent = SiteExtent.from_site(site)
         self.ceiling_height_m = site.ceiling_height_m
         self.lights_w = np.asarray(site.lights_m, float)
@@ -200,7 +209,7 @@ class LightsEstimator(Estimator):
                                      o.spot_params or SpotParams(), self.valid_mask,
                                      self.nadir_px, o.max_spots,
                                      working_factor((rig.camera.height, rig.camera.width),
-                                                    o.working_mpx))
+                                                    o.working_mpx), o.spot_stage)
         self.visibility = VisibilityTable(rig, self.ceiling_height_m, self.lights_w,
                                           self.valid_mask, self.nadir_px, o.max_spots)
         self.matcher = PatternMatcher(self.lights_w, o.gate_m,

@@ -32,6 +32,7 @@ from ceilkit.runtime.estimators.lights.rays import (
     project_lights,
 )
 from ceilkit.runtime.features.spots import SpotParams, Spots
+from ceilkit.runtime.features.windows import detect_spots_windowed
 from ceilkit.runtime.features.working import decimated_mask, detect_spots_working
 
 JAC_STEP_PX = 8  # node spacing of the per-pixel spot table
@@ -129,11 +130,16 @@ class SpotObserver:
         max_spots: examine at most this many candidate regions.
         factor: spots are found on the frame decimated by this
             (:func:`~ceilkit.runtime.features.working.detect_spots_working`).
+        stage: the spot stage at working resolution (``factor`` 1): ``windowed``
+            (found on the frame decimated by 2, read at full resolution in windows:
+            :func:`~ceilkit.runtime.features.windows.detect_spots_windowed`) or
+            ``full`` (:func:`~ceilkit.runtime.features.spots.detect_spots`).
     """
 
     def __init__(self, rig: Rig, ceiling_height_m: float, light_radius_m: float,
                  spot_params: SpotParams, valid_mask: np.ndarray,
-                 nadir_px: tuple[float, float], max_spots: int, factor: int = 1):
+                 nadir_px: tuple[float, float], max_spots: int, factor: int = 1,
+                 stage: str = "full"):
         self.rig, self.ceiling_height_m = rig, ceiling_height_m
         self.light_radius_m = light_radius_m
         self.spot_params, self.valid_mask = spot_params, valid_mask
@@ -143,6 +149,8 @@ class SpotObserver:
         self.grid = GridTable(self.table, JAC_STEP_PX)   # the table read at any pixel
         self.factor = factor
         self.valid_small = decimated_mask(valid_mask, factor)
+        self.windowed = stage == "windowed" and factor == 1
+        self.valid_half = decimated_mask(valid_mask, 2) if self.windowed else None
 
     def observe(self, grey: np.ndarray) -> Observation:
         """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
@@ -171,8 +179,12 @@ class SpotObserver:
                  ) -> tuple[Spots, np.ndarray, np.ndarray, np.ndarray]:
         """Spots of at most ``budget`` regions, their ceiling points, which are
         plausible lights, and their table rows."""
-        spots = detect_spots_working(grey, self.spot_params, self.valid_mask, self.nadir_px,
-                                     budget, self.factor, self.valid_small)
+        if self.windowed:
+            spots = detect_spots_windowed(grey, self.spot_params, self.valid_half,
+                                          self.nadir_px, budget)
+        else:
+            spots = detect_spots_working(grey, self.spot_params, self.valid_mask,
+                                         self.nadir_px, budget, self.factor, self.valid_small)
         if len(spots) == 0:
             return spots, np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 8))
         table = interp_grid(self.table, JAC_STEP_PX, spots.centroids_px)
