@@ -142,6 +142,35 @@ SMALL_HALF_PX = 10
 """Windows up to this half side are measured in one stack, the larger ones in another."""
 
 
+def _read_boxes(grey: np.ndarray, box: np.ndarray, centre: np.ndarray, half: np.ndarray,
+                min_contrast: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`window_stats` rows ``(K, 8)`` and ``ok (K,)`` of regions' boxes ``(K, 4)``
+    ``(x, y, w, h)`` (full-frame px): windows of half side ``half (K,)`` centred on
+    ``centre (K, 2)`` (shifted into the frame at its border), in two stacks (the small
+    ones, the large ones); the spot's pixels within its box grown by 2 px (the
+    detector's centroid window), the window's border beyond it the background."""
+    H, W = grey.shape
+    rows = np.empty((box.shape[0], 8))
+    ok = np.zeros(box.shape[0], bool)
+    big = half > SMALL_HALF_PX
+    for sel in (~big, big):
+        if not sel.any():
+            continue
+        hs = int(half[sel].max())
+        side = 2 * hs + 1
+        if side >= min(H, W):
+            continue
+        corner = centre[sel] - hs
+        np.maximum(corner, 0, out=corner)
+        np.minimum(corner, (W - side, H - side), out=corner)
+        b = box[sel]
+        rect = np.concatenate([b[:, :2] - 2, b[:, :2] + b[:, 2:] + 1], 1) - np.tile(corner, 2)
+        r, good, contrast = window_stats(grey, corner, side, rect)
+        rows[sel] = r
+        ok[sel] = good & (contrast >= min_contrast)
+    return rows, ok
+
+
 def detect_spots_windowed(grey: np.ndarray, params: SpotParams | None = None,
                           valid_small: np.ndarray | None = None,
                           centre_px: tuple[float, float] | None = None,
@@ -172,7 +201,6 @@ def detect_spots_windowed(grey: np.ndarray, params: SpotParams | None = None,
         :class:`Spots` in the examination order (nearest ``centre_px`` first).
     """
     params = params or SpotParams()
-    H, W = grey.shape
     f = int(factor)
     small = decimate(grey, f)
     win = max(3, int(round(params.window_px / f)) | 1)
@@ -200,30 +228,8 @@ def detect_spots_windowed(grey: np.ndarray, params: SpotParams | None = None,
         todo = todo[:max_regions]
     if todo.size == 0:
         return empty_spots(n, rejected)
-    # windows centred on the boxes' centres (shifted into the frame at its border), in
-    # two stacks: the small ones, and the large ones
-    c_int = np.rint(centre[todo]).astype(np.int64)
-    hw = half[todo]
-    rows = np.empty((todo.size, 8))
-    ok = np.zeros(todo.size, bool)
-    big = hw > SMALL_HALF_PX
-    for sel in (~big, big):
-        if not sel.any():
-            continue
-        hs = int(hw[sel].max())
-        side = 2 * hs + 1
-        if side >= min(H, W):
-            continue
-        corner = c_int[sel] - hs
-        np.maximum(corner, 0, out=corner)
-        np.minimum(corner, (W - side, H - side), out=corner)
-        # the spot's pixels within its region's box grown by 2 px (as the detector's
-        # centroid window); the border beyond is the background
-        box = f * np.concatenate([b[todo][sel, :2], b[todo][sel, :2] + b[todo][sel, 2:]], 1)
-        rect = box + (-2, -2, 1, 1) - np.tile(corner, 2)
-        r, good, contrast = window_stats(grey, corner, side, rect)
-        rows[sel] = r
-        ok[sel] = good & (contrast >= params.min_contrast)
+    rows, ok = _read_boxes(grey, f * b[todo], np.rint(centre[todo]).astype(np.int64),
+                           half[todo], params.min_contrast)
     area = rows[:, 7]
     small_spot = ok & (area < params.min_area_px)
     large_spot = ok & (area > params.max_area_px)
