@@ -122,7 +122,7 @@ class LightsOptions(ShutterOptions):
             predicted from the pose at its spot's row time, moved by the prior's
             velocity; what the velocity's uncertainty does to the pose is added to the
             covariance (the global and prior-associated paths; the window tracker
-            does not model it).
+            does not model it, so with ``readout_ms`` > 0 ``track`` is not used).
         spot_stage: at working resolution, ``full`` (the Niblack mask and region
             statistics of the whole frame) or ``windowed`` (the mask and regions of the
             frame decimated by 2, each region's spot read at full resolution in a
@@ -231,8 +231,10 @@ class LightsEstimator(Estimator):
             ``no_lights``, ``too_few_lights``, ``no_match``, ``ambiguous``, or a model
             check's (:meth:`checked`): ``misfit``, ``outside_site``.
         """
+        # the window tracker does not model a rolling shutter: with readout_ms the
+        # global path (which does) decides every frame
         if self.windows is not None and prior is not None and prior.x_m is not None \
-                and prior.y_m is not None:
+                and prior.y_m is not None and self.options.readout_ms <= 0:
             fast = self._tracked(grey, t_ns, prior, t0)
             if fast is not None:
                 return fast

@@ -167,3 +167,18 @@ def test_a_drive_with_the_tracker_is_corrected_and_covered() -> None:
     assert y1 < 0.35 * y0 and a1 < 0.3 * a0
     assert n1 < chi2.ppf(0.99, 2)
     assert errs[0.0][2] > chi2.ppf(0.99, 2)             # unmodelled: overconfident
+
+
+def test_lights_window_tracker_is_not_used_with_a_readout_time() -> None:
+    """The window tracker does not model the rows: with readout_ms the global path (which
+    does) estimates the frame, so the skew is taken back with track=true too."""
+    rig, site, img, (x, y, yaw) = _frame("lights")
+    prior = PoseEstimate(0, "track", x, y, yaw, 0.0, velocity=VELOCITY["lights"])
+    modes = {}
+    for ro in (0.0, READOUT_MS):
+        e = make_estimator("lights", rig, site, {"readout_ms": ro, "track": True}
+                           ).estimate(img, 0, prior)
+        assert isinstance(e, PoseEstimate), e
+        modes[ro] = (e.diagnostics["mode"], math.hypot(e.x_m - x, e.y_m - y))
+    assert modes[0.0][0] == "window" and modes[READOUT_MS][0] != "window"
+    assert modes[READOUT_MS][1] < 1.5e-3 < modes[0.0][1]
