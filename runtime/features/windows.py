@@ -21,7 +21,6 @@ import functools
 
 import cv2
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
 from .spots import (
     SpotParams,
@@ -93,11 +92,12 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
         a spot whose bright part does not reach the window's border (not cut off, not
         a neighbour's) and has positive weight; ``contrast`` the peak above ``I_b``.
     """
+    grey = np.ascontiguousarray(grey)
     h, w = grey.shape
     # every side x side block of the frame as a read-only view; the wanted ones copied
     # out row by row in one indexing (no per-pixel index array)
-    views = as_strided(grey, (h - side + 1, w - side + 1, side, side), grey.strides * 2,
-                       writeable=False)
+    views = np.ndarray((h - side + 1, w - side + 1, side, side), np.uint8,
+                       grey, 0, grey.strides * 2)
     g = views[corner[:, 1], corner[:, 0]].reshape(-1, side * side).astype(np.float32)
     cols = _counts(side)
     i_b = (g @ cols[:, 1]) * np.float32(1.0 / (4 * side - 4))

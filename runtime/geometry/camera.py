@@ -91,6 +91,7 @@ class CameraModel:
         object.__setattr__(self, "P", _frozen(P, (3, 4)))
         object.__setattr__(self, "_key", (self.width, self.height, self.model,
                                           (self.K + 0.0).tobytes(), (self.dist + 0.0).tobytes()))
+        object.__setattr__(self, "_distorted", bool(np.any(self.dist != 0.0)))
 
     # -- identity -------------------------------------------------------------------
     @property
@@ -148,7 +149,7 @@ class CameraModel:
 
     @property
     def is_distorted(self) -> bool:
-        return bool(np.any(self.dist != 0.0))
+        return self._distorted  # type: ignore[attr-defined]
 
     def scaled(self, width: int, height: int) -> CameraModel:
         """The same lens on a sensor resampled to ``width`` x ``height``."""

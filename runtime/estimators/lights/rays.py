@@ -53,9 +53,8 @@ def ceiling_points(rig: Rig, ceiling_height_m: float, points_px: np.ndarray
     rays_v = xy @ R_vc[:, :2].T + R_vc[:, 2]             # R (x, y, 1) of every pixel
     rz = rays_v[:, 2]
     ok = rz > 1e-6 * np.sqrt(np.einsum("ij,ij->i", rays_v, rays_v))        # |ray|
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (ceiling_height_m - rig.mount.z_m) / rz
-    s[~ok] = np.nan
+    s = np.divide(ceiling_height_m - rig.mount.z_m, rz, out=np.full_like(rz, np.nan),
+                  where=ok)
     return t_vc[:2] + s[:, None] * rays_v[:, :2], ok
 
 

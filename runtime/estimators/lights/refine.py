@@ -105,40 +105,50 @@ def refine_pose_ceiling(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarra
     J = np.asarray(jac_px, float).reshape(-1, 2, 2)
     L = np.asarray(lights_w, float).reshape(-1, 2)
     k = q.shape[0]
-    D = np.empty((k, 2, 3))          # d q̂ / d(x, y, yaw) of every light
+    # With Rz(-yaw) = [[c, s], [-s, c]] and (u, v) = Rz(-yaw) t, the residuals are
+    # r = c J L + s J L_perp - u J e_x - v J e_y - J q (L_perp = (L_y, -L_x)): a fixed
+    # basis B (5, 2k) and pose-dependent weights, so the residuals and their Jacobian
+    # at a pose are one (4, 5) @ (5, 2k) product
+    B = np.empty((5, k, 2))
+    np.matmul(J, L[:, :, None], out=B[0, :, :, None])
+    np.matmul(J, (L[:, ::-1] * (1.0, -1.0))[:, :, None], out=B[1, :, :, None])
+    B[2] = J[:, :, 0]
+    B[3] = J[:, :, 1]
+    np.matmul(J, q[:, :, None], out=B[4, :, :, None])
+    B = B.reshape(5, -1)
 
     def resid(x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
         """Residuals ``(2k,)`` px (light by light, u then v) and their Jacobian
-        ``(2k, 3)`` at a pose."""
+        transposed ``(3, 2k)`` (d/dx, d/dy, d/dyaw) at a pose."""
         c, s = math.cos(yaw), math.sin(yaw)
-        qh = (L - (x, y)) @ np.array([[c, -s], [s, c]])      # q̂ = Rz(-yaw) (L - t)
-        r = (J @ (qh - q)[:, :, None]).reshape(-1)
-        # A = J @ d q̂ / d(x, y, yaw), d q̂ / d(x, y, yaw) = [[-c, -s, q̂y], [s, -c, -q̂x]]
-        D[:, :, :2] = ((-c, -s), (s, -c))
-        D[:, 0, 2] = qh[:, 1]
-        D[:, 1, 2] = -qh[:, 0]
-        return r, (J @ D).reshape(-1, 3)
+        u, v = c * x + s * y, c * y - s * x
+        out = np.array([[c, s, -u, -v, -1.0],
+                        [0.0, 0.0, -c, s, 0.0],
+                        [0.0, 0.0, -s, -c, 0.0],
+                        [-s, c, -v, u, 0.0]]) @ B
+        return out[0], out[1:]
 
     p = (float(x_m), float(y_m), float(yaw_rad))
-    r, A = resid(*p)
+    r, At = resid(*p)
     ssr = float(r @ r)
     for _ in range(iterations):
-        if not (math.isfinite(ssr) and np.isfinite(A).all()):
+        N = At @ At.T
+        if not (math.isfinite(ssr) and math.isfinite(N[0, 0] + N[1, 1] + N[2, 2])):
             break
-        step = _solve3(A.T @ A, A.T @ r, 1e-9)
+        step = _solve3(N, At @ r, 1e-9)
         if step is None:
             break
         p_new = (p[0] - step[0], p[1] - step[1], p[2] - step[2])
-        r_new, A_new = resid(*p_new)
+        r_new, At_new = resid(*p_new)
         ssr_new = float(r_new @ r_new)
         if not math.isfinite(ssr_new) or ssr_new > ssr:
             break
-        p, r, A, ssr = p_new, r_new, A_new, ssr_new
+        p, r, At, ssr = p_new, r_new, At_new, ssr_new
         if max(abs(step[0]), abs(step[1])) < 1e-5 and abs(step[2]) < 1e-6:
             break
     dof = 2 * k - 3
     s2 = max(ssr / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
-    inv = _inv3(A.T @ A)
+    inv = _inv3(At @ At.T)
     cov = np.full((3, 3), np.inf) if inv is None else s2 * inv
     rr = r.reshape(-1, 2)
     norms = np.sqrt(rr[:, 0] ** 2 + rr[:, 1] ** 2)
