@@ -87,7 +87,7 @@ class PaperBlockEstimator(BlockEstimator):
         return _Fix(source, ref, float("nan"), sides.corners_norm, corners_w, resolved_by)
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
-                   pose: np.ndarray | None = None):
+                   pose: np.ndarray | None = None, max_chords: int = 0):
         """Eq. 10 on the frame's detected lines (the paper has no prediction)."""
         return super()._parallels(grey, hint, None)
 

@@ -281,22 +281,39 @@ def _signed_area(pts: np.ndarray) -> float:
     return 0.5 * float(np.dot(u, np.roll(v, -1)) - np.dot(np.roll(u, -1), v))
 
 
-def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12
-                ) -> tuple[np.ndarray, np.ndarray]:
+def _float_crop(grey: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
+    """The part of ``grey`` that bilinear samples at ``pts`` ``(N, 2)`` read, as float32,
+    and its top-left pixel ``(x0, y0)``. A sample outside the frame reads the frame's
+    edge (``BORDER_REPLICATE``) as it would on the whole frame: the crop reaches the
+    frame's edge on that side. (Converting the whole frame costs more than the
+    profiles.)"""
+    h, w = grey.shape
+    fin = pts[np.all(np.isfinite(pts), axis=1)]
+    if not fin.size:
+        return grey.astype(np.float32), (0, 0)
+    lo = np.floor(fin.min(axis=0)).clip(-1, max(h, w)).astype(int)
+    hi = np.floor(fin.max(axis=0)).clip(-1, max(h, w)).astype(int) + 2
+    x0, y0 = min(max(int(lo[0]), 0), w - 1), min(max(int(lo[1]), 0), h - 1)
+    x1, y1 = max(min(int(hi[0]), w), x0 + 1), max(min(int(hi[1]), h), y0 + 1)
+    return grey[y0:y1, x0:x1].astype(np.float32), (x0, y0)
+
+
+def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
+                search_px: float = EDGE_SEARCH_PX) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel points of each side of a coarse quad ``(4, 2)`` (side k: corner k to k+1).
 
     Along each side, ``per_side`` stations (leaving :data:`EDGE_END_SKIP` of the side out
-    at each end); at each, the grey profile across the side (±:data:`EDGE_SEARCH_PX`,
-    bilinear) is searched for its steepest interval and the step located where the
-    profile crosses half way between its two ends. Stations whose step is weak (below a
-    quarter of the side's median) or at the search window's end are dropped.
+    at each end); at each, the grey profile across the side (±``search_px``, bilinear)
+    is searched for its steepest interval and the step located where the profile
+    crosses half way between its two ends. Stations whose step is weak (below a
+    quarter of the side's median) or at the search window's end are dropped. Only the
+    samples' bounding box of the frame is read (:func:`_float_crop`).
 
     Returns:
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
     """
-    g = np.asarray(grey, np.float32)
-    h, w = g.shape
-    offs = np.arange(-EDGE_SEARCH_PX, EDGE_SEARCH_PX + 1e-9, EDGE_STEP_PX)
+    h, w = grey.shape
+    offs = np.arange(-search_px, search_px + 1e-9, EDGE_STEP_PX)
     t = np.linspace(EDGE_END_SKIP, 1 - EDGE_END_SKIP, per_side)
     p0 = corners_px
     p1 = np.roll(corners_px, -1, axis=0)
@@ -306,8 +323,9 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12
     normal = np.stack([-tang[:, 1], tang[:, 0]], axis=1)
     base = p0[:, None, :] + t[None, :, None] * d[:, None, :]               # (4, S, 2)
     samp = base[:, :, None, :] + offs[None, None, :, None] * normal[:, None, None, :]
-    mx = samp[..., 0].astype(np.float32).reshape(-1, offs.size)
-    my = samp[..., 1].astype(np.float32).reshape(-1, offs.size)
+    g, (x0, y0) = _float_crop(grey, samp.reshape(-1, 2))
+    mx = (samp[..., 0] - x0).astype(np.float32).reshape(-1, offs.size)
+    my = (samp[..., 1] - y0).astype(np.float32).reshape(-1, offs.size)
     prof = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     grad = np.abs(np.diff(prof, axis=1))                                    # (4S, K-1)
     k = np.argmax(grad, axis=1)

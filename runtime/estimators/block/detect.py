@@ -24,6 +24,7 @@ import numpy as np
 
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.features.quads import (
+    EDGE_SEARCH_PX,
     MIN_QUAD_AREA_PX,
     QUIET_CELLS,
     MarkerCodes,
@@ -209,8 +210,8 @@ class Sides:
 
 
 def _sides_once(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
-                per_side: int) -> Sides | None:
-    pts, side = edge_points(grey, corners_px, per_side)
+                per_side: int, search_px: float = EDGE_SEARCH_PX) -> Sides | None:
+    pts, side = edge_points(grey, corners_px, per_side, search_px)
     counts = np.bincount(side, minlength=4)
     if np.any(counts < MIN_SIDE_POINTS):
         return None
@@ -222,17 +223,44 @@ def _sides_once(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
 
 
 def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
-                  per_side: int, passes: int = 2) -> Sides | None:
+                  per_side: int, passes: int = 2, search_px: float = EDGE_SEARCH_PX
+                  ) -> Sides | None:
     """The quad's sides measured on the frame (see the module docstring), ``passes``
     times: each pass about the corners the previous one found (a coarse contour's
-    corners may be a few pixels off); None when a side has fewer than
-    :data:`MIN_SIDE_POINTS` points."""
-    got = _sides_once(grey, corners_px, geo, per_side)
-    for _ in range(passes - 1):
-        if got is None:
+    corners, a predicted quad's, may be a few pixels off); the first pass looks for
+    the edges ``search_px`` across each side, the next ones :data:`EDGE_SEARCH_PX`.
+    None when a side has fewer than :data:`MIN_SIDE_POINTS` points. The passes before
+    the last fit the sides in pixels (no lens model: straight over a short run, and
+    only the next pass's stations depend on them)."""
+    for k in range(passes - 1):
+        pts, side = edge_points(grey, corners_px, per_side,
+                                search_px if k == 0 else EDGE_SEARCH_PX)
+        if np.any(np.bincount(side, minlength=4) < MIN_SIDE_POINTS):
             return None
-        again = geo.camera.distort(got.corners_norm)
-        if not np.all(np.isfinite(again)):
-            return got
-        got = _sides_once(grey, again, geo, per_side) or got
-    return got
+        corners_px = corners_of(fit_side_lines(pts, side))
+        if corners_px is None:
+            return None
+    return _sides_once(grey, corners_px, geo, per_side,
+                       search_px if passes == 1 else EDGE_SEARCH_PX)
+
+
+_CONTRAST_T = np.array([0.3, 0.5, 0.7])   # step_contrast: stations along each side
+CONTRAST_INSET = 0.1                       # ... inwards/outwards, share of the way to the centre
+
+
+def step_contrast(grey: np.ndarray, corners_px: np.ndarray) -> float:
+    """The grey just inside a quad ``(4, 2)`` px over the grey just outside it (medians
+    of 12 bilinear samples each, :data:`CONTRAST_INSET` of the way from three points of
+    every side towards and away from the centre): below 1 for a dark block or a
+    marker's black border on the ceiling, above 1 for a bright block. NaN when the
+    outside reads black."""
+    c = corners_px.mean(axis=0)
+    on = (corners_px[:, None, :] + _CONTRAST_T[None, :, None]
+          * (np.roll(corners_px, -1, axis=0) - corners_px)[:, None, :]).reshape(-1, 2)
+    step = CONTRAST_INSET * (c - on)
+    pts = np.concatenate([on + step, on - step]).astype(np.float32)
+    vals = cv2.remap(grey, pts[:, 0].reshape(1, -1), pts[:, 1].reshape(1, -1),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
+    n = len(on)
+    outside = float(np.median(vals[n:]))
+    return float(np.median(vals[:n])) / outside if outside > 0 else float("nan")

@@ -51,6 +51,7 @@ from ceilkit.runtime.estimators.block.detect import (
     measure_sides,
     read_marker,
     side_lengths_m,
+    step_contrast,
 )
 from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
 from ceilkit.runtime.estimators.block.parallels import (
@@ -64,16 +65,17 @@ from ceilkit.runtime.estimators.block.pnp import (
     ceiling_points_vehicle,
     closed_form,
     magnification,
+    project_px,
     refine,
     six_dof_check,
 )
-from ceilkit.runtime.estimators.block.seams import predicted_chords
+from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, predicted_chords
 from ceilkit.runtime.features.lines import (
     SegmentDetector,
     refine_undistorted,
     segment_lengths,
 )
-from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad
+from ceilkit.runtime.features.quads import BORDER_PX, MarkerCodes, Quad, sharpen_quad
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
@@ -89,6 +91,10 @@ RMS_BAD_PX = 1.0            # edge residual RMS at which quality reaches 0
 PARALLELS_AGREE_SIGMA = 4.0  # a parallels heading farther than this many sigma from the
                              # block's is reported, not fused
 HEADING_ONLY_QUALITY = 0.5  # quality of a heading-only cue (no position)
+TRACK_MIN_SHARE = 0.75      # window check: share of a side's stations with an edge point
+TRACK_MAX_RMS_PX = 0.5      # window check: edge residual RMS of the refined pose
+WINDOW_CHORDS = 12         # chords for the parallels on a window fix (global: MAX_CHORDS)
+WINDOW = "window"           # diagnostics["mode"] of a window fix (else "global")
 
 
 @dataclass(frozen=True)
@@ -119,6 +125,13 @@ class BlockOptions(EstimatorOptions):
         plane_odometry: a frame with no block fix carries the ceiling-plane odometry
             since the previous frame (:mod:`.odometry`) as ``diagnostics["increment"]``
             for the fusion; frames with a fix only keep the image (no KLT).
+        track: with a prior (a position), measure the blocks and markers the prior
+            puts fully in view on their predicted outlines (no search of the frame,
+            :meth:`BlockEstimator._tracked`); the global path runs when the window
+            check fails and every ``track_full_every``-th tracked frame. Off by default.
+        track_window_px: how far (px) a side may lie from its predicted place.
+        track_full_every: a global search after this many window fixes (0: only when
+            the window check fails).
     """
 
     shape_tol: float = 0.08
@@ -133,6 +146,22 @@ class BlockOptions(EstimatorOptions):
     parallels_gate_deg: float = 1.0
     heading_cue: bool = True
     plane_odometry: bool = True
+    track: bool = False
+    track_window_px: float = 4.0
+    track_full_every: int = 30
+
+
+@dataclass(frozen=True, eq=False)
+class _Target:
+    """A block or marker of the site as the window path predicts it: ``corners_w``
+    ``(4, 2)`` in the order its sides are measured, ``symmetric`` when its shape also
+    fits its corners turned (the prior then decides the correspondence)."""
+
+    source: str
+    corners_w: np.ndarray
+    dark: bool
+    symmetric: bool
+    min_side_m: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,9 +216,17 @@ class BlockEstimator(Estimator):
         self._corridor = site.corridor if site.has_section("corridor") else None
         self._parallels_mode = ""
         self._odo = PlaneOdometry(self.geo) if o.plane_odometry else None
+        if not o.track_window_px > 0 or o.track_full_every < 0:
+            raise ConfigError(None, "options.track_window_px",
+                              "expected track_window_px > 0 and track_full_every >= 0")
+        self._targets = _targets(site, markers, o.shape_tol)
+        self._corners_all = (np.concatenate([t.corners_w for t in self._targets])
+                             if self._targets else np.zeros((0, 2)))
+        self._window_fixes = 0  # window fixes since the last global search
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
-                   pose: np.ndarray | None = None) -> ParallelsHeading | None:
+                   pose: np.ndarray | None = None, max_chords: int = MAX_CHORDS
+                   ) -> ParallelsHeading | None:
         """The heading from the frame's ceiling parallels, the branch nearest ``hint``.
 
         With a pose near the truth (a block's fix, the tracker's prior) and the site's
@@ -197,7 +234,7 @@ class BlockEstimator(Estimator):
         (:func:`.seams.predicted_chords`); else segments are detected on the frame."""
         segs = np.zeros((0, 4))
         if pose is not None and self._corridor is not None:
-            segs = predicted_chords(self.geo, self._corridor, pose)
+            segs = predicted_chords(self.geo, self._corridor, pose, max_chords=max_chords)
             mode = "predicted"
         if len(segs) < 2:
             segs = self._segs(grey)
@@ -218,7 +255,12 @@ class BlockEstimator(Estimator):
     # -- per frame ---------------------------------------------------------------------
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
-        got = self._frame(grey, t_ns, prior, t0)
+        got = None
+        if self.options.track and prior is not None and prior.x_m is not None \
+                and prior.y_m is not None:
+            got = self._tracked(grey, t_ns, prior, t0)
+        if got is None:
+            got = self._frame(grey, t_ns, prior, t0)
         if self._odo is None:
             return got
         fixed = bool(got) and got.x_m is not None
@@ -288,6 +330,75 @@ class BlockEstimator(Estimator):
                                 HEADING_ONLY_QUALITY, cov=cov, diagnostics=diag)
         return self._publish(t_ns, fixes, diag, t0, grey)
 
+    # -- the window path (option track) -------------------------------------------------
+    def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
+                 t0: float) -> PoseEstimate | None:
+        """The fix from the blocks and markers measured where the prior puts them, or
+        None (the global path decides the frame): nothing fully in view, every window
+        check failed (:meth:`_window_fix`), or a global search is due
+        (``track_full_every``)."""
+        o = self.options
+        if o.track_full_every > 0 and self._window_fixes >= o.track_full_every:
+            self._window_fixes = 0
+            return None
+        pose0 = np.array([prior.x_m, prior.y_m, prior.yaw_rad], float)
+        fixes: list[_Fix] = []
+        tried = 0
+        for tgt, px in self._predicted(pose0):
+            tried += 1
+            fix = self._window_fix(grey, tgt, px)
+            if fix is not None:
+                fixes.append(fix)
+                if len(fixes) >= o.max_fixes:
+                    break
+        if not fixes:
+            self._window_fixes = 0
+            return None
+        self._window_fixes += 1
+        diag = {"unknown_marker_ids": (), "quads": tried, "quads_skipped": 0}
+        return self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
+
+    def _predicted(self, pose: np.ndarray) -> list[tuple[_Target, np.ndarray]]:
+        """``(target, corners px (4, 2))`` of the targets fully in view from ``pose``
+        (a margin of the search window inside the frame), the largest first."""
+        if not self._targets:
+            return []
+        px = project_px(self.geo, pose, self._corners_all).reshape(-1, 4, 2)
+        margin = BORDER_PX + self.options.track_window_px + 1.0
+        inside = self.geo.camera.in_image(px.reshape(-1, 2), margin).reshape(-1, 4).all(1)
+        u, v = px[..., 0], px[..., 1]
+        area = np.abs(np.sum(u * np.roll(v, -1, 1) - np.roll(u, -1, 1) * v, axis=1))
+        order = [k for k in np.argsort(-area) if inside[k]]
+        return [(self._targets[k], px[k]) for k in order]
+
+    def _window_fix(self, grey: np.ndarray, tgt: _Target, px: np.ndarray) -> _Fix | None:
+        """The fix of one target measured on its predicted outline ``px`` ``(4, 2)``, or
+        None when the window check fails: a side with fewer than
+        :data:`TRACK_MIN_SHARE` of its stations on an edge, the wrong contrast across
+        the outline (:func:`.detect.step_contrast` against ``dark_ratio`` /
+        ``bright_ratio``), a shape off the block's by more than ``shape_tol``, an edge
+        residual over :data:`TRACK_MAX_RMS_PX`, or a refined outline more than
+        ``track_window_px`` from the predicted one."""
+        o = self.options
+        sides = measure_sides(grey, px, self.geo, o.edge_points, passes=2,
+                              search_px=o.track_window_px)
+        if sides is None or np.any(np.bincount(sides.side, minlength=4)
+                                   < TRACK_MIN_SHARE * o.edge_points):
+            return None
+        found = self.geo.camera.distort(sides.corners_norm)
+        ratio = step_contrast(grey, found)
+        if not (ratio < o.dark_ratio if tgt.dark else ratio > o.bright_ratio):
+            return None
+        fix = self._solve(sides, tgt.corners_w, tgt.source,
+                          "prior" if tgt.symmetric else WINDOW)
+        if fix is None or fix.refined.rms_px > TRACK_MAX_RMS_PX \
+                or fix.shape_m > o.shape_tol * tgt.min_side_m:
+            return None
+        moved = project_px(self.geo, fix.refined.pose, tgt.corners_w) - px
+        if not np.all(np.hypot(moved[:, 0], moved[:, 1]) <= o.track_window_px):
+            return None
+        return fix
+
     def _fail(self, t_ns: int, ambiguous: int, partial: int, unknown: list[int],
               others: list[np.ndarray], diag: dict[str, Any], t0: float) -> Estimate:
         """The Failure of a frame with no fix, the most telling reason first."""
@@ -323,11 +434,15 @@ class BlockEstimator(Estimator):
         return any(d == dark for _, d in self._perimeters)
 
     def _publish(self, t_ns: int, fixes: list[_Fix], diag: dict[str, Any],
-                 t0: float, grey: np.ndarray) -> PoseEstimate:
+                 t0: float, grey: np.ndarray, mode: str = "global") -> PoseEstimate:
+        """The published estimate of the best fix (``mode``: ``global`` or
+        :data:`WINDOW`; the 6-DoF check of the mount runs on global fixes only)."""
         best = min(fixes, key=lambda f: f.refined.cov[0, 0] + f.refined.cov[1, 1])
         r = best.refined
         pose, cov = np.array(r.pose, float), np.array(r.cov, float)
-        h = self._parallels(grey, float(pose[2]), pose) if self.options.parallels else None
+        h = (self._parallels(grey, float(pose[2]), pose,
+                             max_chords=WINDOW_CHORDS if mode == WINDOW else MAX_CHORDS)
+             if self.options.parallels else None)
         if h is not None:
             diag.update(parallels_n=h.n_lines, parallels_yaw_rad=h.yaw_rad,
                         parallels_sigma_rad=h.sigma_rad, block_yaw_rad=float(pose[2]),
@@ -338,7 +453,8 @@ class BlockEstimator(Estimator):
         diag.update(source=best.source, rms_px=r.rms_px, shape_m=best.shape_m,
                     n_edge=r.n, fixes=len(fixes), resolved_by=best.resolved_by,
                     corners_norm=best.corners_norm, corners_w=best.corners_w)  # overlays
-        if self.options.six_dof_check:
+        diag["mode"] = mode
+        if self.options.six_dof_check and mode != WINDOW:
             diag.update(six_dof_check(self.geo, best.corners_norm, best.corners_w,
                                       float(r.pose[2])))
         quality = float(np.clip(1.0 - r.rms_px / RMS_BAD_PX, 0.0, 1.0))
@@ -436,6 +552,32 @@ class BlockEstimator(Estimator):
                 if rms < tol:
                     out.append((blk, shift, rms, (float(t[0]), float(t[1]), yaw)))
         return out
+
+
+def _targets(site: Any, markers: Any, shape_tol: float) -> list[_Target]:
+    """Every block and marker of the site as a :class:`_Target`."""
+    out = []
+    for b in site.blocks:
+        c = np.asarray(b.corners_m, float)
+        side = float(side_lengths_m(c).min())
+        out.append(_Target(f"block:{b.id}", c, b.appearance != "bright",
+                           _turn_fits(c, shape_tol * side), side))
+    for p in markers.poses if markers is not None else ():
+        out.append(_Target(f"marker:{p.id}", p.corners_m(), True, False, float(p.size_m)))
+    return out
+
+
+def _turn_fits(corners: np.ndarray, tol_m: float) -> bool:
+    """Whether the quad ``(4, 2)`` fits itself with its corners turned by one, two or
+    three places within ``tol_m`` (RMS): a square (4 ways), a rectangle (2)."""
+    for shift in (1, 2, 3):
+        cw = np.roll(corners, -shift, axis=0)
+        yaw, t = fit_rigid_2d(corners, cw)
+        r = corners @ np.array([[math.cos(yaw), math.sin(yaw)],
+                                [-math.sin(yaw), math.cos(yaw)]]) + t - cw
+        if float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) < tol_m:
+            return True
+    return False
 
 
 def _shoelace(p: np.ndarray) -> float:

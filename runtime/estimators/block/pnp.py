@@ -105,29 +105,47 @@ def project_norm(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) ->
 
 
 def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> np.ndarray:
-    """Pixels ``(N, 2)`` of ceiling points ``(N, 2)`` in W for a vehicle pose."""
-    return geo.camera.distort(project_norm(geo, pose, points_w))
+    """Pixels ``(N, 2)`` of ceiling points ``(N, 2)`` in W for a vehicle pose; NaN for
+    a point behind the camera."""
+    x, y, yaw = pose
+    R_wc = rot_z(yaw) @ geo.R_vehicle_cam
+    c = rot_z(yaw) @ geo.t_vehicle_cam + np.array([x, y, 0.0])
+    p = np.hstack([points_w, np.full((len(points_w), 1), geo.ceiling_m)]) - c
+    pc = p @ R_wc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = np.where(pc[:, 2:3] > 1e-9, pc[:, :2] / pc[:, 2:3], np.nan)
+    return geo.camera.distort(norm)
 
 
 def magnification(camera: CameraModel, points_norm: np.ndarray) -> np.ndarray:
     """``(N,)`` pixels per normalized unit at each point: ``sqrt |det J|`` of the lens."""
-    p = np.asarray(points_norm, float)
+    p = np.asarray(points_norm, float).reshape(-1, 2)
     e = MAGNIFY_EPS
-    a = camera.distort(p)
-    du = (camera.distort(p + [e, 0.0]) - a) / e
-    dv = (camera.distort(p + [0.0, e]) - a) / e
+    a, pu, pv = camera.distort(np.concatenate([p, p + [e, 0.0], p + [0.0, e]])
+                               ).reshape(3, -1, 2)
+    du, dv = (pu - a) / e, (pv - a) / e
     return np.sqrt(np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]))
 
 
-def _side_residuals(geo: PlanarGeometry, pose: np.ndarray, corners_w: np.ndarray,
+def _side_residuals(geo: PlanarGeometry, poses: np.ndarray, corners_w: np.ndarray,
                     edge_norm: np.ndarray, side: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    c = project_norm(geo, pose, corners_w)
-    n = c[[1, 2, 3, 0]]                                          # side k: corner k -> k+1
-    a, b = c[:, 1] - n[:, 1], n[:, 0] - c[:, 0]                  # the line through both
+    """``(P, M)`` residuals (px) of the edge points for each of ``poses`` ``(P, 3)`` at
+    once (the pose and its finite-difference steps in one pass)."""
+    x, y, yaw = poses[:, 0, None], poses[:, 1, None], poses[:, 2, None]
+    cz, sz = np.cos(yaw), np.sin(yaw)
+    dx, dy = corners_w[None, :, 0] - x, corners_w[None, :, 1] - y         # (P, 4)
+    t = geo.t_vehicle_cam
+    q = np.stack([dx * cz + dy * sz - t[0], dy * cz - dx * sz - t[1],
+                  np.broadcast_to(geo.ceiling_m - t[2], dx.shape)], axis=2)   # in V
+    pc = q @ geo.R_vehicle_cam                                           # (P, 4, 3)
+    c = pc[..., :2] / pc[..., 2:3]
+    n = c[:, [1, 2, 3, 0]]                                       # side k: corner k -> k+1
+    a, b = c[..., 1] - n[..., 1], n[..., 0] - c[..., 0]          # the line through both
     norm = np.hypot(a, b)
     a, b = a / norm, b / norm
-    off = -(a * c[:, 0] + b * c[:, 1])
-    return (a[side] * edge_norm[:, 0] + b[side] * edge_norm[:, 1] + off[side]) * scale
+    off = -(a * c[..., 0] + b * c[..., 1])
+    return (a[:, side] * edge_norm[:, 0] + b[:, side] * edge_norm[:, 1]
+            + off[:, side]) * scale
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,12 +165,12 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
     side ``side`` (M,) (side k runs from corner k to k+1 of ``corners_w``), residuals in
     px by ``scale`` (M,) (:func:`magnification`). Needs M >= 3 over three sides."""
     pose = np.array(pose0, float)
-    args = (corners_w, edge_norm, side, scale)
-    eye = np.eye(3) * JAC_EPS
+    args = (np.asarray(corners_w, float), edge_norm, side, scale)
+    steps = np.vstack([np.zeros(3), np.eye(3) * JAC_EPS])
     for it in range(GN_ITERATIONS + 1):
-        r = _side_residuals(geo, pose, *args)
-        J = np.stack([(_side_residuals(geo, pose + eye[k], *args) - r) / JAC_EPS
-                      for k in range(3)], axis=1)
+        rr = _side_residuals(geo, pose + steps, *args)
+        r = rr[0]
+        J = ((rr[1:] - r) / JAC_EPS).T
         if it == GN_ITERATIONS:
             break
         step, *_ = np.linalg.lstsq(J, -r, rcond=None)
