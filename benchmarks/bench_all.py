@@ -22,16 +22,22 @@ Entries per recording:
   project's :class:`~ceilkit.runtime.tracking.Tracker` fed by that entry's own
   estimates (as ``ceilrun`` runs it), so a lost track falls back to the global path
   and is counted in the timing;
-* **baselines** (``paper-corridor``, ``paper-lights``; ``paper-lights`` with both
-  centroid readings when it has the option);
+* **baselines** (``paper-corridor``, ``paper-lights``, ``paper-block``;
+  ``paper-lights`` with both centroid readings when it has the option);
 * **reference kernels**: a full-frame memory pass (``cv2.mean``), the line
   detectors alone (FastLineDetector as the corridor estimator configures it, LSD,
-  EdgeDrawing), one global threshold plus ``connectedComponentsWithStats``, and the
-  spot stage's Niblack mask.
+  EdgeDrawing), one global threshold plus ``connectedComponentsWithStats``, the
+  spot stage's Niblack mask, and for blocks the quad search's decimation, threshold
+  and ``findContours``.
 
-Accuracy per method entry: yaw error and lateral (corridor) or position (lights)
-error against ``truth.csv``, median and p95 over the frames estimated, and the share
-of frames estimated.
+The recordings: a corridor drive, a lights drive, and a drive along configs/block's
+blocks and markers (a site with ``blocks`` or ``markers`` runs the ``block`` method,
+its ``block +prior`` entry the window path of docs/methods/block.md).
+
+Accuracy per method entry: yaw error and lateral (corridor) or position (lights,
+block) error against ``truth.csv``, median and p95 over the frames estimated (a
+block frame's heading-only cue is not counted as estimated), and the share of
+frames estimated.
 
 Output: a table on stdout and ``benchmarks/out/bench_all.csv`` (``--out``), whose
 ``#`` header lines give the provenance: date, command, git commit, Python, NumPy and
@@ -83,6 +89,8 @@ def make_recordings(folder: Path, frames: int, fresh: bool) -> list[Path]:
         # a drive across the hall at 30 deg, 0.8 m/s
         ("lights", dict(speed_mps=0.8, x0_m=2.0, y_m=-2.5, yaw_rad=math.radians(30.0),
                         weave_m=0.3)),
+        # along configs/block's blocks and markers, 0.8 m/s, weaving 0.2 m
+        ("block", dict(speed_mps=0.8, x0_m=0.3, y_m=0.0, weave_m=0.2)),
     ]
     for name, kw in specs:
         rec = folder / f"{name}_{frames}"
@@ -164,8 +172,9 @@ def entries(data: Data) -> list[Entry]:
     g = data.grey
     rig, site = data.rig, data.site
     out: list[Entry] = []
-    is_corridor = site.corridor is not None
-    main = "corridor" if is_corridor else "lights"
+    is_block = site.has_section("blocks") or site.has_section("markers")
+    is_corridor = site.corridor is not None and not is_block
+    main = "block" if is_block else "corridor" if is_corridor else "lights"
     est = make_estimator(main, rig, site, None)
     out.append(method_entry(main, "method", est, data, False))
     if has_option(type(est.options), "track"):
@@ -175,7 +184,7 @@ def entries(data: Data) -> list[Entry]:
                             make_estimator(main, rig, site, None), data, True))
     paper = make_estimator(f"paper-{main}", rig, site, None)
     out.append(method_entry(f"paper-{main}", "baseline", paper, data, False))
-    if not is_corridor and has_option(type(paper.options), "weighted"):
+    if main == "lights" and has_option(type(paper.options), "weighted"):
         for w in (False, True):
             out.append(method_entry(f"paper-lights weighted={w}", "baseline",
                                     make_estimator("paper-lights", rig, site, {"weighted": w}),
@@ -183,7 +192,15 @@ def entries(data: Data) -> list[Entry]:
     # reference kernels
     out.append(Entry("kernel: cv2.mean (full-frame pass)", "kernel",
                      lambda k: cv2.mean(g[k])))
-    if is_corridor:
+    if is_block:
+        def thr_contours(k: int):     # the quad search's kernels on the decimated frame
+            small = cv2.resize(g[k], None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+            _, m = cv2.threshold(small, 100, 255, cv2.THRESH_BINARY_INV)
+            return cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+
+        out.append(Entry("kernel: decimate + threshold + findContours", "kernel",
+                         thr_contours))
+    elif is_corridor:
         det = est.detector
         out.append(Entry(f"kernel: {det.method} alone (as configured)", "kernel",
                          lambda k: det(g[k])))
@@ -235,7 +252,7 @@ def run(data: Data, ents: list[Entry], warmup: int = 3) -> None:
 def accuracy(e: Entry, data: Data) -> dict[str, float]:
     yaw_e, pos_e, ok = [], [], 0
     for res, (x, y, yaw) in zip(e.results, data.truth, strict=True):
-        if not res:
+        if not res or (res.x_m is None and res.y_m is None):   # a heading-only cue
             continue
         ok += 1
         yaw_e.append(abs(math.degrees(math.remainder(res.yaw_rad - yaw, 2 * math.pi))))
