@@ -61,6 +61,15 @@ def fit_rigid_2d(q: np.ndarray, p: np.ndarray, w: np.ndarray | None = None
     return yaw, pm - _rotate(yaw, qm)
 
 
+def rigid_fit_rms(q: np.ndarray, p: np.ndarray) -> tuple[float, np.ndarray, float]:
+    """:func:`fit_rigid_2d` of ``q`` onto ``p`` ``(N, 2)`` and the fit's RMS residual:
+    ``(yaw_rad, t (2,), rms)``."""
+    yaw, t = fit_rigid_2d(q, p)
+    c, s = math.cos(yaw), math.sin(yaw)
+    r = q @ np.array([[c, s], [-s, c]]) + t - p
+    return yaw, t, float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+
+
 def fit_rigid_2d_complex(q_c: np.ndarray, p_c: np.ndarray) -> tuple[complex, complex]:
     """:func:`fit_rigid_2d` (unweighted) on points as complex numbers ``x + iy``.
 

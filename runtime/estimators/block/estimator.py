@@ -51,7 +51,6 @@ from ceilkit.runtime.estimators.block.detect import (
     measure_sides,
     read_marker,
     side_lengths_m,
-    step_contrast,
 )
 from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
 from ceilkit.runtime.estimators.block.parallels import (
@@ -65,18 +64,17 @@ from ceilkit.runtime.estimators.block.pnp import (
     ceiling_points_vehicle,
     closed_form,
     magnification,
-    project_px,
     refine,
     six_dof_check,
 )
 from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, predicted_chords
+from ceilkit.runtime.estimators.block.window import WINDOW, Windows, shape_fits, targets_of
 from ceilkit.runtime.features.lines import (
     SegmentDetector,
     refine_undistorted,
     segment_lengths,
 )
-from ceilkit.runtime.features.quads import BORDER_PX, MarkerCodes, Quad, sharpen_quad
-from ceilkit.runtime.geometry.fits import fit_rigid_2d
+from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 NO_BLOCK = "no_block"
@@ -91,10 +89,7 @@ RMS_BAD_PX = 1.0            # edge residual RMS at which quality reaches 0
 PARALLELS_AGREE_SIGMA = 4.0  # a parallels heading farther than this many sigma from the
                              # block's is reported, not fused
 HEADING_ONLY_QUALITY = 0.5  # quality of a heading-only cue (no position)
-TRACK_MIN_SHARE = 0.75      # window check: share of a side's stations with an edge point
-TRACK_MAX_RMS_PX = 0.5      # window check: edge residual RMS of the refined pose
 WINDOW_CHORDS = 12         # chords for the parallels on a window fix (global: MAX_CHORDS)
-WINDOW = "window"           # diagnostics["mode"] of a window fix (else "global")
 
 
 @dataclass(frozen=True)
@@ -152,19 +147,6 @@ class BlockOptions(EstimatorOptions):
 
 
 @dataclass(frozen=True, eq=False)
-class _Target:
-    """A block or marker of the site as the window path predicts it: ``corners_w``
-    ``(4, 2)`` in the order its sides are measured, ``symmetric`` when its shape also
-    fits its corners turned (the prior then decides the correspondence)."""
-
-    source: str
-    corners_w: np.ndarray
-    dark: bool
-    symmetric: bool
-    min_side_m: float
-
-
-@dataclass(frozen=True, eq=False)
 class _Fix:
     source: str
     refined: Refined
@@ -219,9 +201,7 @@ class BlockEstimator(Estimator):
         if not o.track_window_px > 0 or o.track_full_every < 0:
             raise ConfigError(None, "options.track_window_px",
                               "expected track_window_px > 0 and track_full_every >= 0")
-        self._targets = _targets(site, markers, o.shape_tol)
-        self._corners_all = (np.concatenate([t.corners_w for t in self._targets])
-                             if self._targets else np.zeros((0, 2)))
+        self.windows = Windows(self.geo, targets_of(site, markers, o.shape_tol), o)
         self._window_fixes = 0  # window fixes since the last global search
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
@@ -300,7 +280,7 @@ class BlockEstimator(Estimator):
             if not self._may_be_block(pv, is_dark):
                 skipped += 1
                 if q.at_border:
-                    partial += 1 if self._may_be_cut_block(q, is_dark) else 0
+                    partial += any(d == is_dark for _, d in self._perimeters)
                 continue
             got = self._block_fix(grey, sharpen_quad(q), is_dark, prior)
             if isinstance(got, _Fix):
@@ -333,71 +313,22 @@ class BlockEstimator(Estimator):
     # -- the window path (option track) -------------------------------------------------
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
                  t0: float) -> PoseEstimate | None:
-        """The fix from the blocks and markers measured where the prior puts them, or
-        None (the global path decides the frame): nothing fully in view, every window
-        check failed (:meth:`_window_fix`), or a global search is due
-        (``track_full_every``)."""
+        """The fix from the targets measured where the prior puts them, or None (the
+        global path decides): nothing in view, every window check failed
+        (:meth:`.window.Windows.fix`), or a global search is due."""
         o = self.options
         if o.track_full_every > 0 and self._window_fixes >= o.track_full_every:
             self._window_fixes = 0
             return None
-        pose0 = np.array([prior.x_m, prior.y_m, prior.yaw_rad], float)
-        fixes: list[_Fix] = []
-        tried = 0
-        for tgt, px in self._predicted(pose0):
-            tried += 1
-            fix = self._window_fix(grey, tgt, px)
-            if fix is not None:
-                fixes.append(fix)
-                if len(fixes) >= o.max_fixes:
-                    break
+        fixes, tried = self.windows.fixes(
+            grey, np.array([prior.x_m, prior.y_m, prior.yaw_rad], float), self._solve,
+            o.max_fixes)
         if not fixes:
             self._window_fixes = 0
             return None
         self._window_fixes += 1
         diag = {"unknown_marker_ids": (), "quads": tried, "quads_skipped": 0}
         return self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
-
-    def _predicted(self, pose: np.ndarray) -> list[tuple[_Target, np.ndarray]]:
-        """``(target, corners px (4, 2))`` of the targets fully in view from ``pose``
-        (a margin of the search window inside the frame), the largest first."""
-        if not self._targets:
-            return []
-        px = project_px(self.geo, pose, self._corners_all).reshape(-1, 4, 2)
-        margin = BORDER_PX + self.options.track_window_px + 1.0
-        inside = self.geo.camera.in_image(px.reshape(-1, 2), margin).reshape(-1, 4).all(1)
-        u, v = px[..., 0], px[..., 1]
-        area = np.abs(np.sum(u * np.roll(v, -1, 1) - np.roll(u, -1, 1) * v, axis=1))
-        order = [k for k in np.argsort(-area) if inside[k]]
-        return [(self._targets[k], px[k]) for k in order]
-
-    def _window_fix(self, grey: np.ndarray, tgt: _Target, px: np.ndarray) -> _Fix | None:
-        """The fix of one target measured on its predicted outline ``px`` ``(4, 2)``, or
-        None when the window check fails: a side with fewer than
-        :data:`TRACK_MIN_SHARE` of its stations on an edge, the wrong contrast across
-        the outline (:func:`.detect.step_contrast` against ``dark_ratio`` /
-        ``bright_ratio``), a shape off the block's by more than ``shape_tol``, an edge
-        residual over :data:`TRACK_MAX_RMS_PX`, or a refined outline more than
-        ``track_window_px`` from the predicted one."""
-        o = self.options
-        sides = measure_sides(grey, px, self.geo, o.edge_points, passes=2,
-                              search_px=o.track_window_px)
-        if sides is None or np.any(np.bincount(sides.side, minlength=4)
-                                   < TRACK_MIN_SHARE * o.edge_points):
-            return None
-        found = self.geo.camera.distort(sides.corners_norm)
-        ratio = step_contrast(grey, found)
-        if not (ratio < o.dark_ratio if tgt.dark else ratio > o.bright_ratio):
-            return None
-        fix = self._solve(sides, tgt.corners_w, tgt.source,
-                          "prior" if tgt.symmetric else WINDOW)
-        if fix is None or fix.refined.rms_px > TRACK_MAX_RMS_PX \
-                or fix.shape_m > o.shape_tol * tgt.min_side_m:
-            return None
-        moved = project_px(self.geo, fix.refined.pose, tgt.corners_w) - px
-        if not np.all(np.hypot(moved[:, 0], moved[:, 1]) <= o.track_window_px):
-            return None
-        return fix
 
     def _fail(self, t_ns: int, ambiguous: int, partial: int, unknown: list[int],
               others: list[np.ndarray], diag: dict[str, Any], t0: float) -> Estimate:
@@ -429,9 +360,6 @@ class BlockEstimator(Estimator):
         per = float(np.sum(side_lengths_m(pv)))
         return any(abs(per / p - 1.0) < COARSE_TOL
                    for p, d in self._perimeters if d == dark)
-
-    def _may_be_cut_block(self, q: Quad, dark: bool) -> bool:
-        return any(d == dark for _, d in self._perimeters)
 
     def _publish(self, t_ns: int, fixes: list[_Fix], diag: dict[str, Any],
                  t0: float, grey: np.ndarray, mode: str = "global") -> PoseEstimate:
@@ -466,12 +394,7 @@ class BlockEstimator(Estimator):
 
     def _fuse(self, pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading
               ) -> tuple[np.ndarray, np.ndarray]:
-        """One Kalman update of the block's ``(x, y, yaw)`` by the parallels' heading."""
-        s2 = cov[2, 2] + h.sigma_rad ** 2
-        gain = cov[:, 2] / s2
-        pose = pose + gain * math.remainder(h.yaw_rad - pose[2], 2 * math.pi)
-        cov = cov - np.outer(gain, cov[2, :])
-        return pose, 0.5 * (cov + cov.T)
+        return _heading_update(pose, cov, h)
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
                resolved_by: str) -> _Fix | None:
@@ -519,7 +442,7 @@ class BlockEstimator(Estimator):
         if _shoelace(pv) < 0:
             pv, cn = pv[::-1].copy(), cn[::-1].copy()
             sides = Sides(cn, sides.edge_norm, (2 - sides.side) % 4, sides.stations)
-        fits = self._shape_fits(pv, dark)
+        fits = shape_fits(self.site.blocks, pv, dark, self.options.shape_tol)
         if not fits:
             return PARTIAL_BLOCK if quad.at_border else None
         if len(fits) > 1:
@@ -534,50 +457,16 @@ class BlockEstimator(Estimator):
         corners_w = np.roll(blk.corners_m, -shift, axis=0)
         return self._solve(sides, corners_w, f"block:{blk.id}", resolved)
 
-    def _shape_fits(self, pv: np.ndarray, dark: bool) -> list[tuple[Any, int, float, tuple]]:
-        """``(block, shift, rms_m, (x, y, yaw))`` of every block and corner shift whose
-        shape the quad ``pv`` (V, counter-clockwise) fits within ``shape_tol``."""
-        out = []
-        for blk in self.site.blocks:
-            if (blk.appearance == "bright") == dark:
-                continue
-            side = np.linalg.norm(np.roll(blk.corners_m, -1, axis=0) - blk.corners_m, axis=1)
-            tol = self.options.shape_tol * float(side.min())
-            for shift in range(4):
-                cw = np.roll(blk.corners_m, -shift, axis=0)
-                yaw, t = fit_rigid_2d(pv, cw)
-                r = pv @ np.array([[math.cos(yaw), math.sin(yaw)],
-                                   [-math.sin(yaw), math.cos(yaw)]]) + t - cw
-                rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
-                if rms < tol:
-                    out.append((blk, shift, rms, (float(t[0]), float(t[1]), yaw)))
-        return out
 
 
-def _targets(site: Any, markers: Any, shape_tol: float) -> list[_Target]:
-    """Every block and marker of the site as a :class:`_Target`."""
-    out = []
-    for b in site.blocks:
-        c = np.asarray(b.corners_m, float)
-        side = float(side_lengths_m(c).min())
-        out.append(_Target(f"block:{b.id}", c, b.appearance != "bright",
-                           _turn_fits(c, shape_tol * side), side))
-    for p in markers.poses if markers is not None else ():
-        out.append(_Target(f"marker:{p.id}", p.corners_m(), True, False, float(p.size_m)))
-    return out
-
-
-def _turn_fits(corners: np.ndarray, tol_m: float) -> bool:
-    """Whether the quad ``(4, 2)`` fits itself with its corners turned by one, two or
-    three places within ``tol_m`` (RMS): a square (4 ways), a rectangle (2)."""
-    for shift in (1, 2, 3):
-        cw = np.roll(corners, -shift, axis=0)
-        yaw, t = fit_rigid_2d(corners, cw)
-        r = corners @ np.array([[math.cos(yaw), math.sin(yaw)],
-                                [-math.sin(yaw), math.cos(yaw)]]) + t - cw
-        if float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) < tol_m:
-            return True
-    return False
+def _heading_update(pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """One Kalman update of the block's ``(x, y, yaw)`` by the parallels' heading."""
+    s2 = cov[2, 2] + h.sigma_rad ** 2
+    gain = cov[:, 2] / s2
+    pose = pose + gain * math.remainder(h.yaw_rad - pose[2], 2 * math.pi)
+    cov = cov - np.outer(gain, cov[2, :])
+    return pose, 0.5 * (cov + cov.T)
 
 
 def _shoelace(p: np.ndarray) -> float:
