@@ -69,7 +69,7 @@ from ceilkit.runtime.estimators.corridor.setup import (
     check_setup,
     default_match_tol_m,
 )
-from ceilkit.runtime.estimators.corridor.track import LineTracker
+from ceilkit.runtime.estimators.corridor.track import LinePoints, LineTracker
 from ceilkit.runtime.estimators.honesty import (
     DEFAULT_ALPHA,
     HEADING_DISAGREES,
@@ -247,12 +247,12 @@ class CorridorEstimator(Estimator):
         m = self.lines_track.measure(grey, psi, cy)
         out = None
         if m is not None:
-            n = m.segs_n.shape[0]
+            n = m.n_lines
             fr = frame_lines(m.segs_n, m.polarity, st, self.angle_tol_rad, o.inlier_px)
             along, across = np.ones(n, bool), np.zeros(n, bool)
-            lab = Labeling((m.n_lines, float(n)), psi, cy, along, across, m.line,
-                           m.n_lines, False, "window")
-            gd, fit = self._fit(fr, along, across, m.line, psi, cy, prior)
+            lab = Labeling((n, float(n)), psi, cy, along, across, m.seg_line, n, False,
+                           "window")
+            gd, fit = self._fit_points(m, psi, cy, prior)
             reach_psi, reach_cy = self.lines_track.reach()
             if (fit.rms_px <= o.inlier_px
                     and abs(math.remainder(fit.psi_rad - psi, 2 * math.pi)) <= reach_psi
@@ -304,37 +304,50 @@ class CorridorEstimator(Estimator):
                             best.camera_y_m, prior)
         return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0)
 
-    def _rows(self, fr: FrameLines, prior: PoseEstimate | None
-              ) -> tuple[np.ndarray, RowRates] | None:
-        """A rolling shutter's row times ``(N, 2)`` of the segments' endpoints and the
-        rates they are predicted with (:func:`~ceilkit.runtime.estimators.rows.row_motion`
+    def _rates(self, prior: PoseEstimate | None) -> RowRates | None:
+        """A rolling shutter's rates (:func:`~ceilkit.runtime.estimators.rows.row_motion`
         as :class:`~.refine.RowRates`), or None (a global shutter)."""
         motion = row_motion(self.options, prior)
         if motion is None:
             return None
         (_, vy, w), (_, s_v, s_w) = motion
-        cam = self.rig.camera
-        v = cam.distort(fr.segs.reshape(-1, 2))[:, 1].reshape(-1, 2)
-        tau = row_times_s(v, cam.height, self.options.readout_ms / 1e3)
         yaw = prior.yaw_rad if prior is not None else 0.0
         # the camera's y speed adds the turn's sweep of the mount offset; its sigma too
         t_vx = abs(camera_y_speed(yaw, 0.0, 1.0, self.setup))
-        return tau, RowRates(w, camera_y_speed(yaw, vy, w, self.setup), s_w,
-                             math.hypot(s_v, t_vx * s_w))
+        return RowRates(w, camera_y_speed(yaw, vy, w, self.setup), s_w,
+                        math.hypot(s_v, t_vx * s_w))
+
+    def _row_times(self, v_px: np.ndarray) -> np.ndarray:
+        """Row times (s) of image rows ``v_px`` (any shape) for ``readout_ms``."""
+        return row_times_s(v_px, self.rig.camera.height, self.options.readout_ms / 1e3)
+
+    def _solve(self, gd: GNInputs, psi_rad: float, camera_y_m: float,
+               rates: RowRates | None) -> PanOffsetFit:
+        """:func:`~.refine.gauss_newton` from ``(psi, c_y)``, or with a rolling shutter
+        :func:`~.refine.gauss_newton_rows`."""
+        if rates is None:
+            return gauss_newton(psi_rad, camera_y_m, gd, self.setup, self.options.gn_iterations)
+        return gauss_newton_rows(psi_rad, camera_y_m, gd, self.setup,
+                                 self.options.gn_iterations, rates)
 
     def _fit(self, fr: FrameLines, along: np.ndarray, across: np.ndarray,
              assign: np.ndarray, psi_rad: float, camera_y_m: float,
              prior: PoseEstimate | None) -> tuple[GNInputs, PanOffsetFit]:
-        """The refinement (:func:`~.refine.gauss_newton`, or with a rolling shutter
-        :func:`~.refine.gauss_newton_rows`) of a labeled frame from ``(psi, c_y)``."""
-        rows = self._rows(fr, prior)
-        gd = gn_inputs(fr, along, across, assign, self.setup,
-                       None if rows is None else rows[0])
-        if rows is None:
-            return gd, gauss_newton(psi_rad, camera_y_m, gd, self.setup,
-                                    self.options.gn_iterations)
-        return gd, gauss_newton_rows(psi_rad, camera_y_m, gd, self.setup,
-                                     self.options.gn_iterations, rows[1])
+        """The refinement (:meth:`_solve`) of a labeled frame from ``(psi, c_y)``."""
+        rates = self._rates(prior)
+        tau = None
+        if rates is not None:
+            tau = self._row_times(self.rig.camera.distort(fr.segs.reshape(-1, 2))[:, 1]
+                                  .reshape(-1, 2))
+        gd = gn_inputs(fr, along, across, assign, self.setup, tau)
+        return gd, self._solve(gd, psi_rad, camera_y_m, rates)
+
+    def _fit_points(self, m: LinePoints, psi_rad: float, camera_y_m: float,
+                    prior: PoseEstimate) -> tuple[GNInputs, PanOffsetFit]:
+        """The refinement (:meth:`_solve`) of the tracked path's edge points ``m``."""
+        rates = self._rates(prior)
+        gd = m.gn_inputs(self.setup, None if rates is None else self._row_times(m.v_px))
+        return gd, self._solve(gd, psi_rad, camera_y_m, rates)
 
     def _best_labeling(self, pans: list[float], fr: FrameLines, prior: PoseEstimate | None
                        ) -> Labeling | Unresolved | None:

@@ -43,6 +43,35 @@ def test_edge_searches_agree_with_the_global_path(corridor_rig, corridor_site, t
         assert t.x_m is None and np.isfinite(t.cov[1, 1]) and t.cov[1, 1] > 0
 
 
+def test_noise_free_tracked_equals_global(corridor_rig, corridor_site, tracked):
+    glob = CorridorEstimator(corridor_rig, corridor_site)
+    clean = SimOptions(noise_sigma=0.0, blur_px=0.8)
+    for k, (x, y, yaw) in enumerate(POSES):
+        img = render_frame(corridor_rig, corridor_site, x, y, yaw,
+                           rng=np.random.default_rng(k), options=clean)
+        g = glob.estimate(img, 0)
+        t = tracked.estimate(img, 0, prior(y + 0.01, yaw + 0.005))
+        assert g and t and t.diagnostics["hypothesis"] == "window"
+        assert t.diagnostics["n_lines_matched"] == g.diagnostics["n_lines_matched"]
+        assert abs(t.y_m - g.y_m) < 2e-4
+        assert abs(math.degrees(t.yaw_rad - g.yaw_rad)) < 0.01
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_prediction_20_px_off_falls_back(corridor_rig, corridor_site, tracked, sign):
+    x, y, yaw = POSES[0]
+    img = frame(corridor_rig, corridor_site, x, y, yaw, 3)
+    st = tracked.setup
+    # 20 px off where the camera looks down (fewer where it looks further up the ceiling)
+    off_m = sign * 20.0 / st.f_px * st.ceiling_above_cam_m
+    cam_y = y + off_m + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
+    assert tracked.lines_track.measure(img, yaw + st.pan_rad, cam_y) is None
+    out = tracked.estimate(img, 0, prior(y + off_m, yaw))
+    g = CorridorEstimator(corridor_rig, corridor_site).estimate(img, 0, prior(y + off_m, yaw))
+    assert out and out.diagnostics["hypothesis"] != "window"
+    assert out.y_m == g.y_m and out.yaw_rad == g.yaw_rad
+
+
 def test_far_prior_falls_back_to_the_global_path(corridor_rig, corridor_site, tracked):
     x, y, yaw = POSES[1]
     img = frame(corridor_rig, corridor_site, x, y, yaw, 7)

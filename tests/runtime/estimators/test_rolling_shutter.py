@@ -182,3 +182,19 @@ def test_lights_window_tracker_is_not_used_with_a_readout_time() -> None:
         modes[ro] = (e.diagnostics["mode"], math.hypot(e.x_m - x, e.y_m - y))
     assert modes[0.0][0] == "window" and modes[READOUT_MS][0] != "window"
     assert modes[READOUT_MS][1] < 1.5e-3 < modes[0.0][1]
+
+
+def test_corridor_edge_searches_take_the_skew_back_too() -> None:
+    """The corridor's tracked path (track=true) times each located edge point by its row:
+    on the skewed render it is a window fix as close to the stamp's pose as the global
+    path with the readout time, and the global shutter's bias is gone."""
+    rig, site, img, (x, y, yaw) = _frame("corridor")
+    prior = PoseEstimate(0, "track", None, y, yaw, 0.0, velocity=VELOCITY["corridor"])
+    out = {}
+    for ro in (0.0, READOUT_MS):
+        e = make_estimator("corridor", rig, site, {"readout_ms": ro, "track": True,
+                                                   "track_full_every": 0}).estimate(img, 0, prior)
+        assert isinstance(e, PoseEstimate) and e.diagnostics["hypothesis"] == "window", e
+        out[ro] = (abs(e.y_m - y), abs(math.degrees(wrap_pi(e.yaw_rad - yaw))))
+    assert out[0.0][0] > 3e-3 and out[0.0][1] > 0.04
+    assert out[READOUT_MS][0] < 1.5e-3 and out[READOUT_MS][1] < 0.02
