@@ -227,7 +227,11 @@ def locate_steps(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner
     gs = prof * polarity[:, None, None]                      # rises across the step
     mid = gs[:, :, [0, 1, -2, -1]].sum(axis=2) * 0.25        # the two sides' middle
     k = np.argmax(gs[:, :, i0 + 1:i1 + 1] - gs[:, :, i0 - 1:i1 - 1], axis=2) + i0
-    near = np.take_along_axis(gs, k[:, :, None] + _NEIGHBOURS, axis=2) - mid[:, :, None]
+    # the samples at k - 1, k, k + 1 by flat indices (np.take_along_axis's own index
+    # building costs more than the gather on these small arrays)
+    o_n = gs.shape[2]
+    flat = (np.arange(k.size) * o_n + k.ravel())[:, None] + _NEIGHBOURS
+    near = gs.reshape(-1)[flat].reshape(*k.shape, 3) - mid[:, :, None]
     hm, hk, hp = near[:, :, 0], near[:, :, 1], near[:, :, 2]    # at k - 1, k, k + 1
     # the crossing is in [k - 1, k] or [k, k + 1] (the derivative peaks at k)
     lo = hk > 0

@@ -45,7 +45,6 @@ from ceilkit.runtime.estimators.corridor.refine import GNInputs
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.edges import classify, edge_grid, fit_lines_robust, locate
 from ceilkit.runtime.geometry.camera import CameraModel
-from ceilkit.runtime.geometry.rotations import rot_z
 
 REACH_M = 8.0
 """Ceiling points further than this from the camera are not searched (tiny, blurred)."""
@@ -128,49 +127,57 @@ class LineTracker:
         self._margin = self.search_px + 2.0
         self._offs, _, self._inner = edge_grid(8, self.search_px)
         self._offs32 = self._offs.astype(np.float32)
+        MT = setup.R_level_cam.T[:, :, None, None]
+        self._cols = (MT[:, 0], MT[:, 1], setup.ceiling_above_cam_m * MT[:, 2])
 
     def predicted_points(self, psi_rad: float, camera_y_m: float
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(px (J, S, 2), normal (J, S, 2), visible (J, S))``: the site lines' image
-        points for camera pan ``psi_rad`` and camera y ``camera_y_m``, the unit normals
-        of the image lines there (left of the direction of growing W x) and which are
-        searched."""
+        """``(pu, pv, visible)``, each ``(J, S)``: the site lines' image points (pixel
+        columns and rows) for camera pan ``psi_rad`` and camera y ``camera_y_m`` at the
+        :data:`SAMPLES` places along them, and which are searched (in view, not at
+        either end of the places: their normals need both neighbours)."""
         st, cam = self.setup, self.camera
-        R_cw = st.R_level_cam.T @ rot_z(-psi_rad)
-        h = st.ceiling_above_cam_m
-        u = self._u[None, :]
+        c, s = math.cos(psi_rad), math.sin(psi_rad)
+        a0, a1, h_a2 = self._cols              # R_level_cam^T's columns (3, 1, 1), h a2
         dy = (st.site_y - camera_y_m)[:, None]
-        d0, d1, d2 = (u * R[0] + (dy * R[1] + h * R[2]) for R in R_cw)      # (J, S)
-        front = (d2 > 1e-6) & (u * u + dy * dy <= REACH_M * REACH_M)
-        z = np.where(front, d2, 1.0)
-        x, y = d0 / z, d1 / z
+        # (3, J, S): R_cw (u, y_j - c_y, h), R_cw = R_level_cam^T Rz(-psi), for every
+        # line j and place u
+        d = (c * a0 - s * a1) * self._u + ((s * a0 + c * a1) * dy + h_a2)
+        front = (d[2] > 1e-6) & self._near(dy)
+        z = 1.0 / np.where(front, d[2], 1.0)
+        x, y = d[0] * z, d[1] * z
         front &= x * x + y * y <= st.field_radius ** 2
-        px = cam.distort(np.stack([x.ravel(), y.ravel()], axis=1)).reshape(*x.shape, 2)
+        px = cam.distort(np.stack([x.ravel(), y.ravel()], axis=1))
+        pu, pv = px[:, 0].reshape(x.shape), px[:, 1].reshape(x.shape)
         m = self._margin
-        vis = front & (px[..., 0] >= m) & (px[..., 0] <= cam.width - 1 - m) \
-            & (px[..., 1] >= max(m, st.rows[0])) & (px[..., 1] <= min(cam.height - 1 - m,
-                                                                      st.rows[1]))
-        vis[:, 0] = vis[:, -1] = False                      # (no central difference)
-        tan = np.zeros_like(px)
-        tan[:, 1:-1] = px[:, 2:] - px[:, :-2]
-        inv = 1.0 / np.maximum(np.hypot(tan[..., 0], tan[..., 1]), 1e-12)
-        nrm = np.stack([-tan[..., 1] * inv, tan[..., 0] * inv], axis=-1)
-        return px, nrm, vis
+        vis = front & (pu >= m) & (pu <= cam.width - 1 - m) \
+            & (pv >= max(m, st.rows[0])) & (pv <= min(cam.height - 1 - m, st.rows[1]))
+        vis[:, 0] = vis[:, -1] = False
+        return pu, pv, vis
+
+    def _near(self, dy: np.ndarray) -> np.ndarray:
+        """``(J, S)``: the places within :data:`REACH_M` of the camera on the ceiling."""
+        return self._u * self._u + dy * dy <= REACH_M * REACH_M
 
     def measure(self, grey: np.ndarray, psi_rad: float, camera_y_m: float
                 ) -> LinePoints | None:
         """The edge points located on a ``(H, W)`` uint8 frame around the site lines
         predicted for ``(psi_rad, camera_y_m)``; ``None`` when fewer than two site lines
         hold :data:`MIN_POINTS` points of the right kind on a straight line."""
-        px, nrm, vis = self.predicted_points(psi_rad, camera_y_m)
+        pu, pv, vis = self.predicted_points(psi_rad, camera_y_m)
         jj, ss = np.nonzero(vis)
         n_lines = self.setup.site_y.size
-        if np.unique(jj).size < 2:
+        if jj.size == 0 or jj[0] == jj[-1]:
             return None
-        base, nv = px[jj, ss], nrm[jj, ss]                               # (P, 2)
+        # the unit left normal of the image line (central differences along it)
+        tu = pu[jj, ss + 1] - pu[jj, ss - 1]
+        tv = pv[jj, ss + 1] - pv[jj, ss - 1]
+        inv = 1.0 / np.maximum(np.hypot(tu, tv), 1e-12)
+        nu, nv = -tv * inv, tu * inv                                     # (P,)
+        bu, bv = pu[jj, ss], pv[jj, ss]
         offs, inner = self._offs, self._inner
-        mu = (base[:, 0:1] + nv[:, 0:1] * offs).astype(np.float32)       # (P, O)
-        mv = (base[:, 1:2] + nv[:, 1:2] * offs).astype(np.float32)
+        mu = (bu[:, None] + nu[:, None] * self._offs32).astype(np.float32)   # (P, O)
+        mv = (bv[:, None] + nv[:, None] * self._offs32).astype(np.float32)
         prof = cv2.remap(grey, mu, mv, cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
         pol, _ = classify(prof, offs, MIN_STEP, MIN_DEPTH, shift=False)
@@ -185,7 +192,8 @@ class LineTracker:
         if np.unique(jj[ok]).size < 2:
             return None
         jj, ss = jj[ok], ss[ok]
-        found_px = base[ok] + loc[ok, None] * nv[ok]
+        lo = loc[ok]
+        found_px = np.stack([bu[ok] + lo * nu[ok], bv[ok] + lo * nv[ok]], axis=1)
         xy = self.camera.unproject_fast(found_px)
         # per site line, a straight line through its points (undistorted), outliers out
         S = SAMPLES
