@@ -91,8 +91,26 @@ class HoughKernel:
                                minLineLength=self.min_length_px, maxLineGap=3)
 
 
+class EdKernel:
+    """cv2.ximgproc's EdgeDrawing with its EDLines line fit (``canny`` and ``merge`` do
+    not apply; its own gradient threshold and anchors; ``min_length_px`` is its
+    shortest line)."""
+
+    def __init__(self, min_length_px: float, canny: tuple[float, float],
+                 merge: bool) -> None:
+        self._ed = cv2.ximgproc.createEdgeDrawing()
+        params = cv2.ximgproc.EdgeDrawing.Params()
+        params.MinLineLength = int(max(5, min_length_px * 0.5))
+        self._ed.setParams(params)
+
+    def detect(self, gray: np.ndarray) -> np.ndarray | None:
+        """Raw segments of an 8-bit grey image, or None."""
+        self._ed.detectEdges(np.ascontiguousarray(gray))
+        return self._ed.detectLines()
+
+
 KERNELS: Mapping[str, type] = MappingProxyType({
-    "fld": FldKernel, "lsd": LsdKernel, "hough": HoughKernel})
+    "fld": FldKernel, "lsd": LsdKernel, "hough": HoughKernel, "ed": EdKernel})
 """Line detector name -> its kernel class: to add or replace a detector, write a class
 with ``__init__(min_length_px, canny, merge)`` and ``detect(gray)`` and add it here."""
 DETECTORS = tuple(KERNELS)
@@ -103,7 +121,8 @@ class SegmentDetector:
 
     Args:
         method: a name in :data:`KERNELS`: ``fld`` (cv2.ximgproc FastLineDetector),
-            ``lsd`` (cv2 LSD) or ``hough`` (Canny + probabilistic Hough).
+            ``lsd`` (cv2 LSD), ``hough`` (Canny + probabilistic Hough) or ``ed``
+            (cv2.ximgproc EdgeDrawing/EDLines).
         min_length_px: shortest segment kept, pixels.
         canny: ``(low, high)`` hysteresis thresholds for ``fld`` and ``hough``.
         rows: ``(v0, v1)``: detect only in image rows ``v0 <= v < v1`` (a region of

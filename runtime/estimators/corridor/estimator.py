@@ -102,7 +102,8 @@ class CorridorOptions(ShutterOptions):
     """What a user may set (``--option KEY=VALUE``).
 
     Attributes:
-        detector: ``fld``, ``lsd`` or ``hough`` (see :mod:`~ceilkit.runtime.features.lines`).
+        detector: ``fld``, ``lsd``, ``hough`` or ``ed`` (see
+            :mod:`~ceilkit.runtime.features.lines`).
         refine: sub-pixel refinement of segments on image gradients in pixel space
             (``lines.refine_segments``).
         edge_fit: locate each segment's edge on cross profiles, fit it in undistorted

@@ -41,7 +41,7 @@ def edge_image(angle_deg: float, offset_px: float, noise: float, seed: int) -> n
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
-@pytest.mark.parametrize("method", ["fld", "lsd", "hough"])
+@pytest.mark.parametrize("method", ["fld", "lsd", "hough", "ed"])
 def test_detectors_find_the_edge(method):
     img = edge_image(10.0, 0.3, 2.0, 0)
     segs = detect_segments(img, method, 30)
