@@ -17,7 +17,8 @@ the frames are decoded once before the loop.
 
 Entries per recording:
 
-* **methods** without a prior (every frame on its own, the ``--no-track`` path);
+* **methods** without a prior (every frame on its own, the ``--no-track`` path); with
+  ``--detectors`` also the corridor's global path with each other line detector;
 * **methods with a prior**: the estimator's ``track`` option on, the prior from the
   project's :class:`~ceilkit.runtime.tracking.Tracker` fed by that entry's own
   estimates (as ``ceilrun`` runs it), so a lost track falls back to the global path
@@ -43,7 +44,8 @@ Output: a table on stdout and ``benchmarks/out/bench_all.csv`` (``--out``), whos
 ``#`` header lines give the provenance: date, command, git commit, Python, NumPy and
 OpenCV versions, CPU model, OpenCV threads, load average before and after.
 
-    .venv/bin/python benchmarks/bench_all.py [--frames 200] [--fresh] [--recording DIR]
+    .venv/bin/python benchmarks/bench_all.py [--frames 200] [--fresh] [--recording DIR]\
+        [--detectors]
 """
 
 from __future__ import annotations
@@ -168,7 +170,13 @@ def has_option(est_cls_options, name: str) -> bool:
     return name in {f.name for f in dataclasses.fields(est_cls_options)}
 
 
-def entries(data: Data) -> list[Entry]:
+DETECTOR_VARIANTS = (("detector=lsd", {"detector": "lsd"}), ("detector=ed", {"detector": "ed"}),
+                     ("detector=hough", {"detector": "hough"}),
+                     ("fld on the frame decimated by 2", {"working_mpx": 0.1}))
+"""``--detectors``: the corridor's global path with each other line detector."""
+
+
+def entries(data: Data, detectors: bool = False) -> list[Entry]:
     g = data.grey
     rig, site = data.rig, data.site
     out: list[Entry] = []
@@ -182,6 +190,10 @@ def entries(data: Data) -> list[Entry]:
                                 make_estimator(main, rig, site, {"track": True}), data, True))
     out.append(method_entry(f"{main} +prior (global)", "tracked-global",
                             make_estimator(main, rig, site, None), data, True))
+    if is_corridor and detectors:
+        for label, opts in DETECTOR_VARIANTS:
+            out.append(method_entry(f"{main} {label}", "method",
+                                    make_estimator(main, rig, site, opts), data, False))
     paper = make_estimator(f"paper-{main}", rig, site, None)
     out.append(method_entry(f"paper-{main}", "baseline", paper, data, False))
     if main == "lights" and has_option(type(paper.options), "weighted"):
@@ -228,8 +240,10 @@ def entries(data: Data) -> list[Entry]:
     return out
 
 
-def run(data: Data, ents: list[Entry], warmup: int = 3) -> None:
-    """Every entry on every frame, interleaved, the order rotated per frame."""
+def run(data: Data, ents: list[Entry], warmup: int = 3, cpu_time: bool = False) -> None:
+    """Every entry on every frame, interleaved, the order rotated per frame; timed by the
+    wall clock, or with ``cpu_time`` by this thread's CPU time (``time.thread_time_ns``:
+    what the call itself spent, without the time other processes held the core)."""
     for k in range(min(warmup, len(data.grey))):
         for e in ents:
             e.call(k)
@@ -237,7 +251,7 @@ def run(data: Data, ents: list[Entry], warmup: int = 3) -> None:
         if e.reset is not None:
             e.reset()
     n = len(ents)
-    clock = time.perf_counter_ns
+    clock = time.thread_time_ns if cpu_time else time.perf_counter_ns
     for k in range(len(data.grey)):
         r = k % n
         for e in ents[r:] + ents[:r]:
@@ -323,6 +337,12 @@ def main() -> None:
     ap.add_argument("--fresh", action="store_true", help="write the recordings again")
     ap.add_argument("--recording", type=Path, action="append", default=[],
                     help="also run on this SPEC recording (with truth.csv)")
+    ap.add_argument("--detectors", action="store_true",
+                    help="also the corridor's global path with LSD, EDLines, Hough and FLD "
+                         "on the frame decimated by 2")
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="time each call by the thread's CPU time, not the wall clock (a "
+                         "machine shared with other jobs)")
     ap.add_argument("--out", type=Path, default=OUT / "bench_all.csv")
     args = ap.parse_args()
     cv2.setNumThreads(1)
@@ -331,9 +351,9 @@ def main() -> None:
     all_rows: list[dict[str, object]] = []
     for folder in recs:
         data = load(folder)
-        ents = entries(data)
+        ents = entries(data, args.detectors)
         t0 = time.perf_counter()
-        run(data, ents)
+        run(data, ents, cpu_time=args.cpu_time)
         rows = rows_of(data, ents)
         all_rows += rows
         print(f"== {data.name}: {len(data.grey)} frames "
@@ -360,8 +380,9 @@ def main() -> None:
         f"# load average before {load_before[0]:.2f} {load_before[1]:.2f} "
         f"{load_before[2]:.2f}, after {load_after[0]:.2f} {load_after[1]:.2f} "
         f"{load_after[2]:.2f} (a shared machine: read the ratios)",
-        "# every call timed (perf_counter_ns), entries interleaved frame by frame in one "
-        "process; times in ms; errors against truth.csv",
+        f"# every call timed ({'thread_time_ns: CPU' if args.cpu_time else 'perf_counter_ns: wall'}"
+        " time), entries interleaved frame by frame in one process; times in ms; errors "
+        "against truth.csv",
     ]
     lines = header + [",".join(COLUMNS)]
     for r in all_rows:

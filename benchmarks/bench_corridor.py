@@ -106,7 +106,8 @@ def report(rig: Rig, site: Site, frames, detectors: bool, title: str, repeat: in
         ests += [("fld+refine", CorridorEstimator(rig, site, {"refine": True})),
                  ("no edge_fit", CorridorEstimator(rig, site, {"edge_fit": False})),
                  ("lsd", CorridorEstimator(rig, site, {"detector": "lsd"})),
-                 ("hough", CorridorEstimator(rig, site, {"detector": "hough"}))]
+                 ("hough", CorridorEstimator(rig, site, {"detector": "hough"})),
+                 ("ed", CorridorEstimator(rig, site, {"detector": "ed"}))]
     ests.append(("paper-corridor", PaperCorridorEstimator(rig, site)))
     for name, est in ests:
         print(f"{name:15s} {run(est, frames, in_view, repeat, ours.detector)}", flush=True)
