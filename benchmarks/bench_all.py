@@ -17,8 +17,9 @@ the frames are decoded once before the loop.
 
 Entries per recording:
 
-* **methods** without a prior (every frame on its own, the ``--no-track`` path); with
-  ``--detectors`` also the corridor's global path with each other line detector;
+* **methods** without a prior (every frame on its own, the ``--no-track`` path), and
+  ``lights`` with its other spot stage (``spot_stage=windowed``); with ``--detectors``
+  also the corridor's global path with each other line detector;
 * **methods with a prior**: the estimator's ``track`` option on, the prior from the
   project's :class:`~ceilkit.runtime.tracking.Tracker` fed by that entry's own
   estimates (as ``ceilrun`` runs it), so a lost track falls back to the global path
@@ -28,8 +29,8 @@ Entries per recording:
 * **reference kernels**: a full-frame memory pass (``cv2.mean``), the line
   detectors alone (FastLineDetector as the corridor estimator configures it, LSD,
   EdgeDrawing), one global threshold plus ``connectedComponentsWithStats``, the
-  spot stage's Niblack mask, and for blocks the quad search's decimation, threshold
-  and ``findContours``.
+  spot stage's Niblack mask and the windowed stage's (on the frame decimated by 2),
+  and for blocks the quad search's decimation, threshold and ``findContours``.
 
 The recordings: a corridor drive, a lights drive, and a drive along configs/block's
 blocks and markers (a site with ``blocks`` or ``markers`` runs the ``block`` method,
@@ -71,6 +72,7 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.spots import niblack_mask
+from ceilkit.runtime.features.working import decimate
 from ceilkit.runtime.io.recording import Recording
 from ceilkit.runtime.sim.render import SimOptions, straight_drive
 from ceilkit.runtime.tracking import Tracker
@@ -188,6 +190,10 @@ def entries(data: Data, detectors: bool = False) -> list[Entry]:
     if has_option(type(est.options), "track"):
         out.append(method_entry(f"{main} +prior", "tracked",
                                 make_estimator(main, rig, site, {"track": True}), data, True))
+    if has_option(type(est.options), "spot_stage"):      # the other spot stage
+        out.append(method_entry(f"{main} spot_stage=windowed", "method",
+                                make_estimator(main, rig, site, {"spot_stage": "windowed"}),
+                                data, False))
     out.append(method_entry(f"{main} +prior (global)", "tracked-global",
                             make_estimator(main, rig, site, None), data, True))
     if is_corridor and detectors:
@@ -237,6 +243,8 @@ def entries(data: Data, detectors: bool = False) -> list[Entry]:
         out.append(Entry("kernel: threshold + connectedComponentsWithStats", "kernel", thr_cc))
         out.append(Entry("kernel: Niblack mask (spot stage)", "kernel",
                          lambda k: niblack_mask(g[k])))
+        out.append(Entry("kernel: decimate by 2 + Niblack mask (windowed stage)", "kernel",
+                         lambda k: niblack_mask(decimate(g[k], 2), 21)))
     return out
 
 

@@ -1,9 +1,11 @@
 """The tracked fast path of ``lights``: look for each light only where the prior says.
 
 With a prior pose (the tracker's or the fusion's prediction), the map lights the
-detector should report from it (:class:`~.observe.VisibilityTable`) are projected
-into the image, and each is looked for in a small square window around its predicted
-pixel (a few hundred pixels, all windows in one stack): the window's border gives the
+detector should report from it (:class:`~.observe.VisibilityTable`) are placed in
+the image by one lookup (:func:`prediction_cells`, no projection per frame), and each
+is looked for in a small square window around its predicted pixel (a few hundred
+pixels, all windows in one stack: :func:`~ceilkit.runtime.features.windows.window_stats`):
+the window's border gives the
 background ``I_b``, the pixels above half way from it to the window's peak are the
 light, ``I_o`` their mean, and the centroid is weighted by ``max(I - I_b - 0.4 (I_o -
 I_b), 0)``, the same reading as the global detector's
