@@ -198,9 +198,7 @@ class BlockEstimator(Estimator):
         self._corridor = site.corridor if site.has_section("corridor") else None
         self._parallels_mode = ""
         self._odo = PlaneOdometry(self.geo) if o.plane_odometry else None
-        if not o.track_window_px > 0 or o.track_full_every < 0:
-            raise ConfigError(None, "options.track_window_px",
-                              "expected track_window_px > 0 and track_full_every >= 0")
+        _check_track_options(o)
         self.windows = Windows(self.geo, targets_of(site, markers, o.shape_tol), o)
         self._window_fixes = 0  # window fixes since the last global search
 
@@ -457,6 +455,15 @@ class BlockEstimator(Estimator):
         corners_w = np.roll(blk.corners_m, -shift, axis=0)
         return self._solve(sides, corners_w, f"block:{blk.id}", resolved)
 
+
+
+def _check_track_options(o: BlockOptions) -> None:
+    """ConfigError naming ``options.KEY`` of the first impossible window-path option."""
+    for key, ok, want in (("track_window_px", o.track_window_px > 0, "a number > 0"),
+                          ("track_full_every", o.track_full_every >= 0, "an integer >= 0")):
+        if not ok:
+            raise ConfigError(None, f"options.{key}",
+                              f"expected {want}, found {getattr(o, key)!r}")
 
 
 def _heading_update(pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading

@@ -118,6 +118,10 @@ def test_a_global_search_runs_on_schedule(rig, site):
 
 
 def test_bad_track_options_are_one_line_errors(rig, site):
-    for bad in ({"track_window_px": 0.0}, {"track_full_every": -1}):
-        with pytest.raises(ConfigError, match="track_window_px"):
+    # each names the key that is wrong (not the other one)
+    for bad in ({"track_window_px": 0.0}, {"track_window_px": float("nan")},
+                {"track_full_every": -1}):
+        (key, value), = bad.items()
+        with pytest.raises(ConfigError, match=f"options.{key}") as err:
             BlockEstimator(rig, site, {"track": True, **bad})
+        assert "\n" not in str(err.value) and repr(value) in str(err.value)
