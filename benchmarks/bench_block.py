@@ -233,6 +233,24 @@ def odometry_drives(rig, site, geo, est, rng, step_m: float = 0.03, seeds: int =
                      seeds, dt_ns, seen, hidden)
 
 
+def track_before(fu, got, t: int, dt_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """The fusion's pose ``(3,)`` and covariance ``(3, 3)`` at a fix's time before the
+    fix: the previous frame's node carried by the fix frame's own increment when it has
+    one (the fusion applies it before the fix), as the fusion's own predict_odometry
+    does; else the node predicted to ``t`` by its motion model."""
+    from ceilkit.runtime.estimators.base import INCREMENT
+    from ceilkit.runtime.geometry import ekf
+    inc = got.diagnostics.get(INCREMENT)
+    if inc is None:
+        node = fu._f.node_at(t)
+        return node.s[:3], node.P[:3, :3]
+    node = fu._f.node_at(int(inc.t0_ns))
+    s, P = ekf.predict_odometry(node.s, node.P, (inc.dx_m, inc.dy_m, inc.dyaw_rad),
+                                (t - inc.t0_ns) * 1e-9, fu.options.noise,
+                                np.asarray(inc.cov, float), False)
+    return s[:3], P[:3, :3]
+
+
 def fused_drives(rig, site, rng, options: dict, label: str, step_m: float, seeds: int,
                  dt_ns: int, seen: int, hidden: int) -> list[str]:
     """Drives through the site (x 0.3 -> 8.7 m, weaving; one per seed): the block
@@ -245,7 +263,7 @@ def fused_drives(rig, site, rng, options: dict, label: str, step_m: float, seeds
     predicted to its time: the Mahalanobis distance with the innovation covariance
     (track + fix, 2 dof position and 3 dof pose) and the track's correction in units of
     its own published 1-sigma; the track's drift before it as % of the distance since
-    the last fix."""
+    the last fix. The track at a fix: :func:`track_before`."""
     from ceilkit.runtime.estimators.registry import make_estimator
     from ceilkit.runtime.fusion import Fusion, measurement
     from ceilkit.runtime.geometry import ekf
@@ -270,8 +288,7 @@ def fused_drives(rig, site, rng, options: dict, label: str, step_m: float, seeds
             ms.append(1e3 * (time.thread_time() - c0))
             fix = bool(got) and got.x_m is not None
             if fix and since and fu.tracking:
-                node = fu._f.node_at(t)
-                s, P = node.s[:3], node.P[:3, :3]
+                s, P = track_before(fu, got, t, dt_ns)
                 R = measurement(got, fu.options).R
                 e = np.array([got.x_m - s[0], got.y_m - s[1], wrap_pi(got.yaw_rad - s[2])])
                 m2.append(math.sqrt(ekf.nis(e[:2], P[:2, :2] + R[:2, :2])))

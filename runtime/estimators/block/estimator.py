@@ -117,9 +117,10 @@ class BlockOptions(EstimatorOptions):
         heading_cue: a frame with no block fix but two or more parallels gives a
             heading-only estimate (``x_m = y_m = None``, ``yaw_period_rad``) instead of a
             Failure (its reason is kept as ``diagnostics["no_fix"]``).
-        plane_odometry: a frame with no block fix carries the ceiling-plane odometry
-            since the previous frame (:mod:`.odometry`) as ``diagnostics["increment"]``
-            for the fusion; frames with a fix only keep the image (no KLT).
+        plane_odometry: a frame with no block fix, and the first fix after such
+            frames, carries the ceiling-plane odometry since the previous frame
+            (:mod:`.odometry`) as ``diagnostics["increment"]`` for the fusion; other
+            frames with a fix only keep the image (no KLT).
         track: with a prior (a position), measure the blocks and markers the prior
             puts fully in view on their predicted outlines (no search of the frame,
             :meth:`BlockEstimator._tracked`); the global path runs when the window
@@ -199,6 +200,7 @@ class BlockEstimator(Estimator):
         self._parallels_mode = ""
         self._odo = PlaneOdometry(self.geo) if o.plane_odometry else None
         _check_track_options(o)
+        self._fixed = True      # the previous frame had a fix (no track to carry yet)
         self.windows = Windows(self.geo, targets_of(site, markers, o.shape_tol), o)
         self._window_fixes = 0  # window fixes since the last global search
 
@@ -233,16 +235,15 @@ class BlockEstimator(Estimator):
     # -- per frame ---------------------------------------------------------------------
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
-        got = None
-        if self.options.track and prior is not None and prior.x_m is not None \
-                and prior.y_m is not None:
-            got = self._tracked(grey, t_ns, prior, t0)
+        known = prior is not None and prior.x_m is not None and prior.y_m is not None
+        got = self._tracked(grey, t_ns, prior, t0) if self.options.track and known else None
         if got is None:
             got = self._frame(grey, t_ns, prior, t0)
         if self._odo is None:
             return got
-        fixed = bool(got) and got.x_m is not None
-        inc = self._odo.increment(grey, t_ns, measure=not fixed)
+        fixed, gap = bool(got) and got.x_m is not None, not self._fixed
+        self._fixed = fixed
+        inc = self._odo.increment(grey, t_ns, measure=not fixed or gap)
         if inc is None:
             return got
         return dataclasses.replace(got, diagnostics={**got.diagnostics, INCREMENT: inc,
@@ -321,10 +322,9 @@ class BlockEstimator(Estimator):
         fixes, tried = self.windows.fixes(
             grey, np.array([prior.x_m, prior.y_m, prior.yaw_rad], float), self._solve,
             o.max_fixes)
+        self._window_fixes = self._window_fixes + 1 if fixes else 0
         if not fixes:
-            self._window_fixes = 0
             return None
-        self._window_fixes += 1
         diag = {"unknown_marker_ids": (), "quads": tried, "quads_skipped": 0}
         return self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
 

@@ -7,8 +7,9 @@ undistorted and met with the ceiling plane in V (:func:`.pnp.ceiling_points_vehi
 a rigid 2-D fit ``q_prev ~ R(dyaw) p_now + (dx, dy)`` with one pass dropping pairs off
 by more than 3 MADs gives the motion in the earlier frame's V. The covariance is the
 fit's residual scatter, ``s² (JᵀJ)⁻¹``, scaled by :data:`VAR_FACTOR`: the ratio of
-the measured scatter of increments (against the truth) to that covariance. Only
-corner-like features are tracked (:func:`corner_like`).
+the measured scatter of increments (against the truth) to that covariance
+(``benchmarks/calib_odometry_noise.py`` measures it). Only corner-like features,
+spread over the frame, are tracked (:func:`corner_like`).
 
 Example::
 
@@ -29,24 +30,28 @@ from ceilkit.runtime.estimators.base import PlaneIncrement
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 
-MAX_CORNERS = 150
-CORNER_QUALITY = 0.01
+MAX_CORNERS = 150        # corners tracked per frame, at most
+CANDIDATES = 150         # corner candidates (goodFeaturesToTrack) before the filter
+CORNER_QUALITY = 0.01    # of the frame's strongest
+GRID = (4, 3)            # corner_like: cells across and down; strength judged per cell
 MIN_ISOTROPY = 0.4       # smaller / larger structure-tensor eigenvalue of a kept corner
 HALF_WIN = 3
 WEAK_SHARE = 0.15        # a kept corner's smaller eigenvalue, as a share of ...
-STRONG_PERCENTILE = 90   # ... this percentile of the candidates' (not of the single
-                         # strongest: a marker's corners would leave only the marker)
+STRONG_PERCENTILE = 90   # ... this percentile of its cell's candidates' (not of the
+                         # frame's: a marker's corners would leave only the marker)
 MIN_TRACKS = 12
 MAX_GAP_S = 0.5          # frames farther apart than this are not matched
-VAR_FACTOR = np.array([1.3, 1.3, 8.0])
-"""Measured / fitted variance of (dx, dy, dyaw), summed over 10-step stretches of
-simulated drives (configs/block with its blocks and markers painted over: what the
-odometry carries between fixes; 2 seeds x 3 drives of 40 frames, 3 cm steps, with the
-corner filter): position 0.88-1.44, yaw 8-13 (per single step 1.0-1.3 and 2.2-2.9):
-the fit's covariance is scaled by it (``cov * outer(sqrt f, sqrt f)``). The yaw's
-errors are correlated from frame to frame (lag-1 ~0.7), so chained as white noise the
-fit's own covariance under-covers the heading drift and, through the lever arm, the
-position after it."""
+VAR_FACTOR = np.array([1.4, 5.3, 6.1])
+"""Measured / fitted variance of (dx, dy, dyaw) by ``benchmarks/calib_odometry_noise.py``
+(``--drives 6 --frames 160``, seeds 1 and 2 pooled: 1908 increments through
+configs/block, 3 cm steps, blocks and markers on frames 0-3 of every 30), over sums of
+50 steps (the legs between fixes of bench_block's fused drives): 1.07²/1.29²,
+2.52²/2.06², 2.38²/2.57² (seed 1/2; per step only 1.0-1.2²: the lateral and heading
+errors are correlated from step to step, so a white chain of the fit's covariance
+under-covers a long leg). The fit's covariance is scaled by it
+(``cov * outer(sqrt f, sqrt f)``): honest at a 50-frame horizon, over-covering shorter
+gaps, under-covering much longer ones. (The earlier (1.3, 1.3, 8) was measured when
+the tracks bunched on the strongest corners.)"""
 FB_MAX_PX = 0.5          # forward-backward disagreement of a kept track
 LK = {"winSize": (21, 21), "maxLevel": 3,
       "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
@@ -101,7 +106,12 @@ def corner_like(grey: np.ndarray, pts: np.ndarray) -> np.ndarray:
     smaller eigenvalue at least :data:`MIN_ISOTROPY` of its larger. A point on a tile
     seam or a lamp's side slides along it (the aperture problem): its track
     under-measures the motion along the line, the same way frame after frame (on the
-    tile ceiling of configs/block a -1.6 % scale bias, correlated from step to step)."""
+    tile ceiling of configs/block a -1.6 % scale bias, correlated from step to step).
+    A corner is also strong for its part of the frame (:data:`GRID` cells) and among
+    the first ``MAX_CORNERS / cells`` kept there (``pts`` in the order of strength):
+    tracks spread over the ceiling, not bunched on a marker, whose corners' KLT errors
+    share their windows' pixels and move together (the fit's scatter then hides them:
+    increments beside a marker were 2-2.6x their sigma, NEES 42)."""
     gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)
     h, w = grey.shape
@@ -115,8 +125,23 @@ def corner_like(grey: np.ndarray, pts: np.ndarray) -> np.ndarray:
     a, b, d = np.sum(ax * ax, 1), np.sum(ax * ay, 1), np.sum(ay * ay, 1)
     root = np.sqrt((a - d) ** 2 + 4 * b * b)
     lo, hi = 0.5 * (a + d - root), 0.5 * (a + d + root)
-    strong = lo >= WEAK_SHARE * np.percentile(lo, STRONG_PERCENTILE)
-    return strong & (lo >= MIN_ISOTROPY * np.maximum(hi, 1e-9))
+    cell = (c[:, 1] * GRID[1] // h) * GRID[0] + c[:, 0] * GRID[0] // w
+    ref = np.zeros(GRID[0] * GRID[1])
+    used = np.unique(cell)
+    for k in used:
+        ref[k] = np.percentile(lo[cell == k], STRONG_PERCENTILE)
+    # a cell of noise has no strong corners of its own: the cells' median is the floor
+    ref = np.maximum(ref, np.median(ref[used]))
+    good = (lo >= WEAK_SHARE * ref[cell]) & (lo >= MIN_ISOTROPY * np.maximum(hi, 1e-9))
+    # the first few good ones of each cell (rank within the cell, in the given order)
+    idx = np.flatnonzero(good)
+    order = np.argsort(cell[idx], kind="stable")
+    sc = cell[idx][order]
+    start = np.searchsorted(sc, sc)                      # first index of each's cell
+    rank = np.empty(len(idx), int)
+    rank[order] = np.arange(len(idx)) - start
+    good[idx[rank >= MAX_CORNERS // ref.size]] = False
+    return good
 
 
 class PlaneOdometry:
@@ -154,7 +179,7 @@ class PlaneOdometry:
         return PlaneIncrement(t_prev, inc.dx_m, inc.dy_m, inc.dyaw_rad, inc.cov)
 
     def _motion(self, prev: np.ndarray, grey: np.ndarray) -> Increment | None:
-        pts = cv2.goodFeaturesToTrack(prev, MAX_CORNERS, CORNER_QUALITY, 8, blockSize=5)
+        pts = cv2.goodFeaturesToTrack(prev, CANDIDATES, CORNER_QUALITY, 8, blockSize=5)
         if pts is None or len(pts) < MIN_TRACKS:
             return None
         pts = pts[corner_like(prev, pts.reshape(-1, 2))]
