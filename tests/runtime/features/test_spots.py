@@ -193,3 +193,46 @@ def test_detect_spots_batched_equals_one_by_one():
     np.testing.assert_array_equal(a.centroids_px, b.centroids_px)
     np.testing.assert_array_equal(a.areas_px, b.areas_px)
     np.testing.assert_allclose(a.cov_px, b.cov_px, rtol=1e-9, atol=1e-12)
+
+
+def test_vignetted_plateau_centroid_is_the_disc_centre(monkeypatch):
+    """Vignetting tilts a light's plateau; the weighted centroid is taken on the window
+    divided by the plateau's own linear gain, so the gain does not move it (without
+    the flattening it moves ~0.1 px towards the bright side)."""
+    from ceilkit.runtime.features import spots as spots_mod
+
+    truth = np.array([[60.3, 50.6], [150.7, 110.2], [190.4, 45.9]])
+    img = blobs(truth, radius=12.0, noise=0.0).astype(np.float64)
+    h, w = img.shape
+    gain = 1.0 - 1e-3 * (np.arange(w)[None, :] - 120.0) - 6e-4 * (np.arange(h)[:, None] - 80.0)
+    noise = np.random.default_rng(3).normal(0, 0.5, img.shape)
+
+    def shift() -> np.ndarray:
+        """How far the gain moves each centroid (px)."""
+        c = [detect_spots(np.clip(np.rint(img * g + noise), 0, 255).astype(np.uint8)
+                          ).centroids_px for g in (gain, 1.0)]
+        assert c[0].shape == c[1].shape == (3, 2)
+        return np.linalg.norm(c[0] - c[1], axis=1)
+
+    assert shift().max() < 0.01
+    monkeypatch.setattr(spots_mod, "FLAT_MIN_AREA_PX", 10 ** 9)     # flattening off
+    assert shift().min() > 0.05
+
+
+def test_peaked_spot_is_not_flattened():
+    """A peaked light (a Gaussian): its slope is its shape, not a gain; the plane leaves
+    it rough, so the window is used as it is."""
+    from ceilkit.runtime.features.spots import flattened
+
+    yy, xx = np.mgrid[:41, :41].astype(float)
+    win = np.clip(60 + 170 * np.exp(-((xx - 20.4) ** 2 + (yy - 19.7) ** 2) / (2 * 6.0 ** 2)),
+                  0, 255).astype(np.uint8)
+    obj = (win > 145).astype(np.uint8)
+    assert flattened(win, obj, 170.0) is None
+    disc = (xx - 20.4) ** 2 + (yy - 19.7) ** 2 < 15.0 ** 2
+    flat = np.where(disc, 230, 60).astype(np.uint8)                 # a flat plateau
+    assert flattened(flat, disc, 170.0) is None                     # nothing to take out
+    tilted = np.rint(flat * (1.0 + 2e-3 * (xx - 20.0))).astype(np.uint8)
+    out = flattened(tilted, disc, 170.0)
+    core = out[disc & ((xx - 20.4) ** 2 + (yy - 19.7) ** 2 < 11.0 ** 2)]
+    assert np.ptp(core) < 1.5 < np.ptp(tilted[disc])                # its tilt taken out
