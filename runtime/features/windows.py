@@ -4,7 +4,8 @@ A window's own square (``2 half + 1`` px, centred in a stack of ``side x side``
 blocks) holds one spot: the square's border gives the background ``I_b``, the pixels
 above half way from it to the square's peak are the spot, ``I_o`` their mean, and the
 centroid and second moments are weighted by ``max(I - I_b - CORE (I_o - I_b), 0)``,
-the reading of the global detector (:func:`~.spots.detect_spots`). No per-window
+the reading of the global detector (:func:`~.spots.detect_spots`; a large light's
+window is first divided by its plateau's gain, :func:`~.spots.flattened`). No per-window
 Python: every reduction is one array operation or one matrix product over the stack.
 
 Convention (SPEC §1): pixels ``(u, v)``, origin at the centre of the top-left pixel.
@@ -23,11 +24,13 @@ import cv2
 import numpy as np
 
 from .spots import (
+    FLAT_MIN_AREA_PX,
     SpotParams,
     Spots,
     _examination_order,
     _select_lights,
     empty_spots,
+    flattened,
     niblack_mask,
 )
 from .working import decimate
@@ -116,6 +119,12 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
     area = n_obj[:, 0]
     touches = n_obj[:, 1] > 0                    # the bright part reaches the border
     i_o = np.einsum("ij,ij->i", g, obj) / np.maximum(area, 1.0)
+    # a large light's plateau divided by its own gain (vignetting), as the detector does
+    for i in np.flatnonzero(area >= FLAT_MIN_AREA_PX).tolist():
+        flat = flattened(g[i].reshape(side, side), obj[i].reshape(side, side),
+                         float(i_o[i] - i_b[i]))
+        if flat is not None:
+            g[i] = flat.ravel()
     wts = np.subtract(g, (i_b + CORE * (i_o - i_b))[:, None], out=g)
     np.maximum(wts, 0.0, out=wts)
     if inside is not None:

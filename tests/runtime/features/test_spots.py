@@ -236,3 +236,29 @@ def test_peaked_spot_is_not_flattened():
     out = flattened(tilted, disc, 170.0)
     core = out[disc & ((xx - 20.4) ** 2 + (yy - 19.7) ** 2 < 11.0 ** 2)]
     assert np.ptp(core) < 1.5 < np.ptp(tilted[disc])                # its tilt taken out
+
+
+def test_window_stats_flatten_the_plateau_too(monkeypatch):
+    """The tracked path's windows (features/windows.window_stats) read a vignetted
+    light as the detector does: the gain does not move the centroid."""
+    from ceilkit.runtime.features import windows as windows_mod
+
+    truth = np.array([[60.3, 50.6], [150.7, 110.2], [190.4, 45.9]])
+    img = blobs(truth, radius=12.0, noise=0.0).astype(np.float64)
+    h, w = img.shape
+    gain = 1.0 - 1e-3 * (np.arange(w)[None, :] - 120.0) - 6e-4 * (np.arange(h)[:, None] - 80.0)
+    side = 41
+    corner = np.rint(truth).astype(np.int64) - side // 2
+
+    def shift() -> np.ndarray:
+        c = []
+        for g in (gain, 1.0):
+            rows, ok, _ = windows_mod.window_stats(
+                np.clip(np.rint(img * g), 0, 255).astype(np.uint8), corner, side)
+            assert ok.all()
+            c.append(rows[:, :2])
+        return np.linalg.norm(c[0] - c[1], axis=1)
+
+    assert shift().max() < 0.01
+    monkeypatch.setattr(windows_mod, "FLAT_MIN_AREA_PX", 10 ** 9)  # flattening off
+    assert shift().min() > 0.05
