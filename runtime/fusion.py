@@ -80,8 +80,8 @@ class FusionOptions:
         fix_inflation: factor on an estimator's covariance (their fits are optimistic),
             for a method not in ``inflation``.
         inflation: the factor per method, measured (docs/fusion.md): the corridor's
-            covariance already covers its error; the lights' errors come in streaks of
-            frames sharing one bias, which a per-frame filter would count again and again.
+            covariance already covers its error; the lights' errors are correlated from
+            frame to frame, which a per-frame filter would count again and again.
         fix_floor_m, fix_floor_rad: 1σ floors of a fix (unmodelled biases).
         coast_hazard_per_s: the rate at which something no model of the filter holds
             (the vehicle carried while the camera is covered, wheels slipping) happens
