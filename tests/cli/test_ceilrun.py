@@ -49,11 +49,20 @@ class PtyReader:
         return bytes(self.data)
 
 
+def _nmea_checksum(text: bytes) -> int:
+    """The XOR of a sentence's bytes between ``$`` and ``*``."""
+    check = 0
+    for ch in text:
+        check ^= ch
+    return check
+
+
 def _pose_transcript(protocol: str, data: bytes) -> bytes:
     """The pose messages of a transcript (the 1 Hz heartbeat/status messages depend on
     wall-clock timing and are left out). NMEA's ``seq`` is shared with ``$PCEIS``, so a
     status sent while a loaded machine works on the first frame shifts it: the pose
-    sentences' seqs must increase, and are renumbered 0, 1, ... (checksum recomputed)."""
+    sentences' seqs must increase, and are renumbered 0, 1, ... (each sentence's own
+    checksum checked first, then recomputed)."""
     if protocol == "nmea":
         lines = [line.rstrip(b"\r") for line in data.split(b"\n")
                  if line.startswith(b"$PCEIL,")]
@@ -61,13 +70,12 @@ def _pose_transcript(protocol: str, data: bytes) -> bytes:
         assert all(b > a for a, b in zip(seqs, seqs[1:], strict=False)), seqs
         out = []
         for k, line in enumerate(lines):
-            body = line[1:line.index(b"*")].split(b",")
+            star = line.index(b"*")
+            assert line[star + 1:] == b"%02X" % _nmea_checksum(line[1:star]), line
+            body = line[1:star].split(b",")
             body[1] = str(k).encode()
             text = b",".join(body)
-            check = 0
-            for ch in text:
-                check ^= ch
-            out.append(b"$" + text + b"*%02X\r\n" % check)
+            out.append(b"$" + text + b"*%02X\r\n" % _nmea_checksum(text))
         return b"".join(out)
     frames, _ = mavlink.split_frames(data)
     return b"".join(f.payload for f in frames if f.msg_id == 102)
