@@ -40,6 +40,7 @@ from ceilkit.runtime.estimators.base import (
     PoseEstimate,
     elapsed_ms,
 )
+from ceilkit.runtime.estimators.corridor.consensus import consensus_fit
 from ceilkit.runtime.estimators.corridor.frame import (
     FrameLines,
     frame_lines,
@@ -301,8 +302,7 @@ class CorridorEstimator(Estimator):
         if isinstance(best, Unresolved):
             return self.fail(t_ns, best.reason, best.detail, n_segments=n_seg,
                              segments_n=segs)
-        gd, fit = self._fit(fr, best.along, best.across, best.assign, best.psi_rad,
-                            best.camera_y_m, prior)
+        best, gd, fit = self._fit_labeling(fr, best, prior)
         return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0)
 
     def _rates(self, prior: PoseEstimate | None) -> RowRates | None:
@@ -331,17 +331,25 @@ class CorridorEstimator(Estimator):
         return gauss_newton_rows(psi_rad, camera_y_m, gd, self.setup,
                                  self.options.gn_iterations, rates)
 
-    def _fit(self, fr: FrameLines, along: np.ndarray, across: np.ndarray,
-             assign: np.ndarray, psi_rad: float, camera_y_m: float,
-             prior: PoseEstimate | None) -> tuple[GNInputs, PanOffsetFit]:
-        """The refinement (:meth:`_solve`) of a labeled frame from ``(psi, c_y)``."""
+    def _fit_labeling(self, fr: FrameLines, lab: Labeling, prior: PoseEstimate | None
+                      ) -> tuple[Labeling, GNInputs, PanOffsetFit]:
+        """The refinement (:meth:`_solve`) of a labeled frame on the matched forward
+        segments that lie on the site's ceiling lines (:func:`~.consensus.consensus_fit`:
+        a pipe or a cable tray matched by the 1-D association is left out)."""
         rates = self._rates(prior)
         tau = None
         if rates is not None:
             tau = self._row_times(self.rig.camera.distort(fr.segs.reshape(-1, 2))[:, 1]
                                   .reshape(-1, 2))
-        gd = gn_inputs(fr, along, across, assign, self.setup, tau)
-        return gd, self._solve(gd, psi_rad, camera_y_m, rates)
+
+        def inputs(assign: np.ndarray) -> GNInputs:
+            return gn_inputs(fr, lab.along, lab.across, assign, self.setup, tau)
+
+        def solve(gd: GNInputs, psi_rad: float, camera_y_m: float) -> PanOffsetFit:
+            return self._solve(gd, psi_rad, camera_y_m, rates)
+
+        return consensus_fit(fr, lab, self.setup, self.options.inlier_px, inputs, solve,
+                             rates)
 
     def _fit_points(self, m: LinePoints, psi_rad: float, camera_y_m: float,
                     prior: PoseEstimate) -> tuple[GNInputs, PanOffsetFit]:
@@ -388,6 +396,7 @@ class CorridorEstimator(Estimator):
             "n_along": int(np.count_nonzero(along)),
             "n_across": int(np.count_nonzero(across)),
             "n_lines_matched": int(best.n_lines),
+            "n_off_ceiling": int(best.n_off_ceiling),
             "n_steps": int(np.count_nonzero(np.abs(pol_a) == 1)),
             "n_thin": int(np.count_nonzero(pol_a == 0)),
             "rms_px": fit.rms_px,
@@ -450,10 +459,14 @@ class CorridorEstimator(Estimator):
                              f"vanishing point's (at most {o.max_heading_change_deg:g})",
                              **diag)
         if diag["n_lines_matched"] < o.min_lines or diag["spread"] < o.min_spread:
+            off = diag["n_off_ceiling"]
             return self.fail(t_ns, WEAK_GEOMETRY,
                              f"{diag['n_lines_matched']} site lines matched (at least "
                              f"{o.min_lines}), spanning {diag['spread']:.2f} of the image "
-                             f"width (at least {o.min_spread:g})", **diag)
+                             f"width (at least {o.min_spread:g})"
+                             + (f"; {off} forward segments off the site's ceiling lines "
+                                f"(pipes, trays: lines at another height?)" if off else ""),
+                             **diag)
         out = outside_site(self.extent, None, y_m, o.site_margin_m)
         if out is not None:
             return self.fail(t_ns, OUTSIDE_SITE, out, **diag)

@@ -208,6 +208,8 @@ class Labeling:
         n_lines: site lines matched. ambiguous: a tie left to the prior.
         how: the rule that chose the forward family (``prior``, ``elongation``,
             ``spacing``, ``paper_rule``, with ``+absence`` when absence settled).
+        n_off_ceiling: forward segments the association matched that the pixel
+            consensus left out (:mod:`.consensus`: at another height, or not the site's).
     """
 
     score: tuple[int, float]
@@ -219,6 +221,7 @@ class Labeling:
     n_lines: int
     ambiguous: bool
     how: str
+    n_off_ceiling: int = 0
 
 
 @dataclass(frozen=True)
