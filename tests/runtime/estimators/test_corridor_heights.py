@@ -22,14 +22,14 @@ CONFIGS = Path(__file__).resolve().parents[3] / "configs" / "corridor"
 POSE = (0.3, 0.1, 0.2)                                  # x, y, yaw of the vehicle
 
 
-@pytest.fixture(scope="module")
-def rig() -> Rig:
-    return Rig.load(CONFIGS / "rig.yaml")
+@pytest.fixture
+def rig(corridor_rig: Rig) -> Rig:
+    return corridor_rig
 
 
-@pytest.fixture(scope="module")
-def site() -> Site:
-    return Site.load(CONFIGS / "site.yaml")
+@pytest.fixture
+def site(corridor_site: Site) -> Site:
+    return corridor_site
 
 
 def projected(rig: Rig, pose: tuple[float, float, float],
