@@ -137,6 +137,9 @@ class CorridorOptions(ShutterOptions):
             the image width (``weak_geometry``).
         site_margin_m: the pose may lie at most this far outside the site's extent
             (``outside_site``).
+        consensus: leave out the matched forward segments the ceiling does not explain
+            (:mod:`~.consensus`: pipes, ducts, cable trays at another height); False
+            fits every matched segment (the former behaviour, for comparisons).
         track: with a prior, search for the site lines only across their predicted
             image lines (:mod:`~.track`: 1-D edge searches, no line detector); the
             global path runs when that check fails and every ``track_full_every``-th
@@ -168,6 +171,7 @@ class CorridorOptions(ShutterOptions):
     inlier_px: float = 2.5
     gn_iterations: int = 6
     min_elevation_deg: float = 3.0
+    consensus: bool = True
     track: bool = False
     track_search_px: float = 5.0
     track_full_every: int = 30
@@ -348,6 +352,9 @@ class CorridorEstimator(Estimator):
         def solve(gd: GNInputs, psi_rad: float, camera_y_m: float) -> PanOffsetFit:
             return self._solve(gd, psi_rad, camera_y_m, rates)
 
+        if not self.options.consensus:
+            gd = inputs(lab.assign)
+            return lab, gd, solve(gd, lab.psi_rad, lab.camera_y_m)
         return consensus_fit(fr, lab, self.setup, self.options.inlier_px, inputs, solve,
                              rates)
 
