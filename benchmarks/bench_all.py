@@ -310,6 +310,22 @@ def cpu_model() -> str:
     return platform.processor() or "?"
 
 
+def provenance(script: str, load_before: tuple[float, float, float],
+               load_after: tuple[float, float, float], notes: list[str]) -> list[str]:
+    """The ``#`` header of a benchmark's CSV: date, command, versions, CPU and OpenCV
+    threads, the load average before and after (a shared machine), then ``notes``."""
+    return [
+        f"# {script}: {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}",
+        f"# command: {' '.join(sys.argv)}",
+        f"# git: {git_commit()}  python {platform.python_version()}  numpy {np.__version__}"
+        f"  opencv {cv2.__version__}",
+        f"# cpu: {cpu_model()} x {os.cpu_count()}  opencv threads {cv2.getNumThreads()}",
+        f"# load average before {load_before[0]:.2f} {load_before[1]:.2f} "
+        f"{load_before[2]:.2f}, after {load_after[0]:.2f} {load_after[1]:.2f} "
+        f"{load_after[2]:.2f} (a shared machine: read the ratios)",
+        *notes]
+
+
 COLUMNS = ["recording", "entry", "kind", "calls", "median_ms", "p95_ms", "mean_ms",
            "ratio_to_mean_pass", "ratio_to_line_detector", "ok_share", "yaw_err_med_deg",
            "yaw_err_p95_deg", "pos_err_med_mm", "pos_err_p95_mm"]
@@ -379,19 +395,10 @@ def main() -> None:
                   f"{fmt(r['ratio_to_line_detector']):>6s} {acc}", flush=True)
     load_after = os.getloadavg()
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    header = [
-        f"# bench_all.py: {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}",
-        f"# command: {' '.join(sys.argv)}",
-        f"# git: {git_commit()}  python {platform.python_version()}  numpy {np.__version__}"
-        f"  opencv {cv2.__version__}",
-        f"# cpu: {cpu_model()} x {os.cpu_count()}  opencv threads {cv2.getNumThreads()}",
-        f"# load average before {load_before[0]:.2f} {load_before[1]:.2f} "
-        f"{load_before[2]:.2f}, after {load_after[0]:.2f} {load_after[1]:.2f} "
-        f"{load_after[2]:.2f} (a shared machine: read the ratios)",
+    header = provenance("bench_all.py", load_before, load_after, [
         f"# every call timed ({'thread_time_ns: CPU' if args.cpu_time else 'perf_counter_ns: wall'}"
         " time), entries interleaved frame by frame in one process; times in ms; errors "
-        "against truth.csv",
-    ]
+        "against truth.csv"])
     lines = header + [",".join(COLUMNS)]
     for r in all_rows:
         lines.append(",".join(fmt(r.get(c, float("nan"))) for c in COLUMNS))

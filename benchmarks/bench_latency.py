@@ -5,11 +5,16 @@ pre-rendered) are served by a fake camera device (``capture.FakeCamera``) throug
 real ``CameraSource`` (grabber thread, stamped with ``time.monotonic_ns`` at grab,
 latest-frame policy), the estimator (``track`` on or off), the
 :class:`~ceilkit.runtime.tracking.Tracker` and a ``SerialLink`` writing NMEA into a
-real pseudo-terminal (a thread drains the other end), run by ``run_live`` as ``ceilrun``
-runs it. Latency is the pipeline's ``latency_ms``: from the grab stamp to the link's
+real pseudo-terminal, run by ``run_live`` as ``ceilrun`` runs it. The other end of the
+terminal is drained by another process, as a controller is (``--peer-thread``: by a thread
+of this process, as before: a thread woken by every write competes for the GIL at the
+moment the loop takes it back, which is the benchmark's, not the vehicle's).
+Latency is the pipeline's ``latency_ms``: from the grab stamp to the link's
 bytes written (the link is the only sink). Besides it, per frame: the estimator's time
 and the rest (``latency - estimate``: queueing, copy and grey conversion, tracking,
-encoding, writing), and its share of the latency.
+encoding, writing), and its share of the latency; the rest split into ``wait`` (grab
+stamp to the loop taking the frame), ``track`` (prior and gate) and ``output`` (encode
+and write).
 
 The configurations run in short runs (``--run-s`` seconds each) alternating round by
 round (``--rounds``), so a load change on the shared machine hits them alike; the
@@ -25,13 +30,13 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
-from bench_all import cpu_model, git_commit
+from bench_all import provenance
 from bench_pipeline import PtyPeer
 
 from ceilkit.runtime.config.rig import Rig
@@ -49,7 +54,24 @@ OUT = ROOT / "benchmarks" / "out"
 CONFIGS = ROOT / "configs"
 COLUMNS = ["config", "method", "track", "frames", "dropped", "estimated",
            "latency_med_ms", "latency_p95_ms", "estimate_med_ms", "rest_med_ms",
-           "rest_p95_ms", "rest_share_med", "track_med_ms", "output_med_ms"]
+           "rest_p95_ms", "rest_share_med", "wait_med_ms", "track_med_ms", "output_med_ms"]
+DRAIN = "import os, sys\nwhile os.read(int(sys.argv[1]), 65536):\n    pass\n"
+
+
+class ProcessPeer:
+    """The controller's end of a pseudo-terminal, drained by a child process."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        self.path = os.ttyname(self.slave)
+        self._proc = subprocess.Popen([sys.executable, "-c", DRAIN, str(self.master)],
+                                      pass_fds=(self.master,))
+
+    def close(self) -> None:
+        self._proc.terminate()
+        self._proc.wait(5)
+        os.close(self.master)
+        os.close(self.slave)
 
 
 def frames_of(config: str, n: int) -> tuple[Rig, Site, list[np.ndarray]]:
@@ -63,10 +85,11 @@ def frames_of(config: str, n: int) -> tuple[Rig, Site, list[np.ndarray]]:
 
 
 def one_run(rig: Rig, site: Site, method: str, track: bool, images: list[np.ndarray],
-            fps: float, seconds: float) -> dict[str, list[float] | int]:
+            fps: float, seconds: float, peer_thread: bool = False
+            ) -> dict[str, list[float] | int]:
     """One live run: the telemetry's per-frame lists and counters."""
     cam = FakeCamera(images, fps)
-    peer = PtyPeer()
+    peer = PtyPeer() if peer_thread else ProcessPeer()
     est = make_estimator(method, rig, site, {"track": True} if track else None)
     try:
         with CameraSource("fake", open_capture=cam.open) as source, \
@@ -77,7 +100,7 @@ def one_run(rig: Rig, site: Site, method: str, track: bool, images: list[np.ndar
         peer.close()
     tel = res.telemetry
     return {"latency": list(tel.latency_ms), "estimate": list(tel.estimate_ms),
-            "track": list(tel.track_ms), "output": list(tel.output_ms),
+            "wait": list(tel.wait_ms), "track": list(tel.track_ms), "output": list(tel.output_ms),
             "frames": tel.frames, "dropped": tel.dropped, "estimated": tel.estimated}
 
 
@@ -91,6 +114,8 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--run-s", type=float, default=3.0, help="seconds per run")
     ap.add_argument("--out", type=Path, default=OUT / "bench_latency.csv")
+    ap.add_argument("--peer-thread", action="store_true",
+                    help="drain the terminal in a thread of this process, not a child")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     load0 = os.getloadavg()
@@ -103,7 +128,8 @@ def main() -> None:
             order.reverse()
         for config, method, track in order:
             rig, site, images = data[config]
-            got = one_run(rig, site, method, track, images, args.fps, args.run_s)
+            got = one_run(rig, site, method, track, images, args.fps, args.run_s,
+                          args.peer_thread)
             acc = pooled.setdefault((config, track), {"method": method})
             for k, v in got.items():
                 acc[k] = acc.get(k, [] if isinstance(v, list) else 0) + v
@@ -119,25 +145,22 @@ def main() -> None:
                      "latency_p95_ms": _q(a["latency"], 95),
                      "estimate_med_ms": _q(a["estimate"], 50),
                      "rest_med_ms": _q(rest, 50), "rest_p95_ms": _q(rest, 95),
-                     "rest_share_med": _q(share, 50), "track_med_ms": _q(a["track"], 50),
+                     "rest_share_med": _q(share, 50), "wait_med_ms": _q(a["wait"], 50),
+                     "track_med_ms": _q(a["track"], 50),
                      "output_med_ms": _q(a["output"], 50)})
     print(f"{'config':9s} {'track':5s} {'frames':>6s} {'drop':>4s} {'lat med':>8s} "
           f"{'p95':>6s} {'est med':>8s} {'rest med':>8s} {'p95':>6s} {'share':>6s} "
-          f"{'track':>6s} {'output':>6s}")
+          f"{'wait':>6s} {'track':>6s} {'output':>6s}")
     for w in rows:
         print(f"{w['config']:9s} {str(w['track']):5s} {w['frames']:6d} {w['dropped']:4d} "
               f"{w['latency_med_ms']:8.3f} {w['latency_p95_ms']:6.3f} "
               f"{w['estimate_med_ms']:8.3f} {w['rest_med_ms']:8.3f} {w['rest_p95_ms']:6.3f} "
-              f"{w['rest_share_med']:6.2f} {w['track_med_ms']:6.3f} "
+              f"{w['rest_share_med']:6.2f} {w['wait_med_ms']:6.3f} {w['track_med_ms']:6.3f} "
               f"{w['output_med_ms']:6.3f}")
-    prov = [f"# date {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}",
-            f"# command {' '.join([Path(sys.argv[0]).name, *sys.argv[1:]])}",
-            f"# git {git_commit()}  python {sys.version.split()[0]}  numpy "
-            f"{np.__version__}  opencv {cv2.__version__}",
-            f"# cpu {cpu_model()} x {os.cpu_count()}  opencv threads {cv2.getNumThreads()}",
-            f"# fps {args.fps}  rounds {args.rounds}  run {args.run_s} s",
-            "# load average before {:.2f} {:.2f} {:.2f}, after {:.2f} {:.2f} {:.2f}".format(
-                *load0, *load1)]
+    prov = provenance("bench_latency.py", load0, load1, [
+        f"# fps {args.fps}  rounds {args.rounds}  run {args.run_s} s  peer "
+        f"{'thread' if args.peer_thread else 'process'}; times in ms, medians and p95 "
+        "over every frame of every round"])
     print("\n".join(prov))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:

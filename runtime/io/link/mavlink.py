@@ -39,6 +39,7 @@ right-handed, z-down NED. The covariance follows as ``J C J^T`` with
 
 from __future__ import annotations
 
+import binascii
 import math
 import struct
 from collections.abc import Iterator, Sequence
@@ -84,13 +85,27 @@ UNOBSERVED_VAR_M2 = 1.0e6      # (1 km)^2: what ODOMETRY says about a coordinate
 UNOBSERVED_POLICIES = ("skip", "nan")
 
 
+_REVERSED_BITS = bytes(int(f"{i:08b}"[::-1], 2) for i in range(256))
+"""Each byte with its bits in reverse order (``0x01`` -> ``0x80``)."""
+
+
+def _reverse16(v: int) -> int:
+    return _REVERSED_BITS[v & 0xFF] << 8 | _REVERSED_BITS[v >> 8]
+
+
 def crc_x25(data: bytes, crc: int = 0xFFFF) -> int:
-    """MAVLink's checksum (CRC-16/MCRF4XX: poly 0x1021 reflected, init 0xFFFF)."""
-    for b in data:
-        tmp = b ^ (crc & 0xFF)
-        tmp = (tmp ^ (tmp << 4)) & 0xFF
-        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
-    return crc
+    """MAVLink's checksum (CRC-16/MCRF4XX: poly 0x1021 reflected, init 0xFFFF).
+
+    The reflected CRC of ``data`` is the plain CCITT CRC (``binascii.crc_hqx``, poly
+    0x1021, most significant bit first) of the bit-reversed bytes, from the
+    bit-reversed start value, bit-reversed: two C calls (about 1 us for a 130-byte
+    frame, where the bytewise Python loop took 125 us).
+
+    >>> hex(crc_x25(b"123456789"))
+    '0x6f91'
+    """
+    return _reverse16(binascii.crc_hqx(bytes(data).translate(_REVERSED_BITS),
+                                       _reverse16(crc)))
 
 
 def frame_v2(msg_id: int, payload: bytes, seq: int, sysid: int, compid: int) -> bytes:
@@ -202,6 +217,10 @@ def urt_index(i: int, j: int) -> int:
     return i * 6 - i * (i - 1) // 2 + (j - i)
 
 
+_URT = tuple(tuple(urt_index(i, j) for j in range(6)) for i in range(6))
+"""urt_index by row and column."""
+
+
 def ned_from_world(x_m: float | None, y_m: float | None, yaw_rad: float
                    ) -> tuple[float | None, float | None, float]:
     """``(north, east, yaw_ned)`` from a pose in W: ``(x, -y, -yaw)``, yaw wrapped to [-pi, pi)."""
@@ -228,31 +247,29 @@ def covariance_ned(cov_world: np.ndarray | None, *, z_var_m2: float, roll_pitch_
         VISO_YAW_M_NSE, PX4 EKF2_EVP_NOISE / EKF2_EVA_NOISE).
     """
     nan = float("nan")
-    observed = [x_observed, y_observed, True]
+    observed = (x_observed, y_observed, True)
     if cov_world is None:
         return [nan] * 21
-    c = np.asarray(cov_world, dtype=float).reshape(3, 3)
-    sign = np.array([1.0, -1.0, -1.0])  # J = diag(sign); J C J^T elementwise (inf-safe)
-    c = c * np.outer(sign, sign)
-    idx = [0, 1, 5]  # (x, y, yaw) -> rows of the 6x6
+    # plain floats (a 3x3 in numpy costs ~60 us per message in element accesses)
+    rows = np.asarray(cov_world, dtype=float).reshape(3, 3).tolist()
+    sign = (1.0, -1.0, -1.0)  # J = diag(sign); J C J^T elementwise (inf-safe)
+    c = [[rows[a][b] * (sign[a] * sign[b]) for b in range(3)] for a in range(3)]
     for a in range(3):
         for b in range(3):
-            if observed[a] and observed[b] and not math.isfinite(c[a, b]):
+            if observed[a] and observed[b] and not math.isfinite(c[a][b]):
                 return [nan] * 21
     out = [0.0] * 21
-    out[urt_index(2, 2)] = float(z_var_m2)
-    out[urt_index(3, 3)] = float(roll_pitch_var_rad2)
-    out[urt_index(4, 4)] = float(roll_pitch_var_rad2)
+    out[_URT[2][2]] = float(z_var_m2)
+    out[_URT[3][3]] = float(roll_pitch_var_rad2)
+    out[_URT[4][4]] = float(roll_pitch_var_rad2)
+    idx = (0, 1, 5)  # (x, y, yaw) -> rows of the 6x6
     for a in range(3):
         for b in range(a, 3):
-            ok = observed[a] and observed[b]
-            out[urt_index(idx[a], idx[b])] = float(c[a, b]) if ok else nan
-    if not x_observed:  # every entry in an unobserved row/column
-        for k in range(6):
-            out[urt_index(0, k)] = nan
-    if not y_observed:
-        for k in range(6):
-            out[urt_index(1, k)] = nan
+            out[_URT[idx[a]][idx[b]]] = c[a][b] if observed[a] and observed[b] else nan
+    for k, seen in ((0, x_observed), (1, y_observed)):
+        if not seen:  # every entry in an unobserved row/column
+            for j in range(6):
+                out[_URT[k][j]] = nan
     return out
 
 

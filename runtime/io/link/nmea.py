@@ -36,8 +36,10 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 import re
+import struct
 from dataclasses import dataclass
 
 from ceilkit.runtime.errors import LinkError
@@ -63,19 +65,35 @@ def checksum(body: str) -> str:
     >>> checksum("PCEIS,0,0,V,none,")
     '3C'
     """
+    return _HEX[_xor(body.encode("ascii"))]
+
+
+def _xor(data: bytes) -> int:
+    # XOR of the bytes, 8 at a time as big integers (a sentence is a few such words)
+    n = len(data)
+    pad = data + bytes(-n % 8)
     c = 0
-    for byte in body.encode("ascii"):
-        c ^= byte
-    return f"{c:02X}"
+    for (word,) in _WORDS.iter_unpack(pad):
+        c ^= word
+    c ^= c >> 32
+    c ^= c >> 16
+    c ^= c >> 8
+    return c & 0xFF
+
+
+_WORDS = struct.Struct("<Q")
+_HEX = tuple(f"{c:02X}" for c in range(256))
 
 
 def _sentence(body: str) -> bytes:
-    out = f"${body}*{checksum(body)}\r\n".encode("ascii")
+    raw = body.encode("ascii")
+    out = b"$%b*%b\r\n" % (raw, _HEX[_xor(raw)].encode("ascii"))
     if len(out) > MAX_SENTENCE_LEN:  # cannot happen with the clamps below; a guard, not a check
         raise LinkError(f"NMEA sentence of {len(out)} characters exceeds {MAX_SENTENCE_LEN}")
     return out
 
 
+@functools.lru_cache(maxsize=256)
 def safe_token(text: str, max_len: int) -> str:
     """``text`` with NMEA-reserved characters replaced by ``_``, cut to ``max_len``."""
     return _SAFE.sub("_", text)[:max_len]
@@ -83,8 +101,8 @@ def safe_token(text: str, max_len: int) -> str:
 
 def _fmt_fixed(value: float, decimals: int) -> str:
     s = f"{value:.{decimals}f}"
-    if float(s) == 0.0:  # no "-0.000"
-        s = f"{0.0:.{decimals}f}"
+    if s[0] == "-" and not s.strip("-0."):  # no "-0.000"
+        s = s[1:]
     return s
 
 

@@ -29,7 +29,9 @@ Guarantees:
   optional service thread every ``service_interval_s``) sends the 1 Hz HEARTBEAT
   (MAVLink, not while faulted) or the 1 Hz ``$PCEIS`` status (NMEA, while there has
   been no valid pose for 1 s, or while faulted), and reads what the controller sends
-  back: each message goes to ``on_receive`` and, as a line, to ``rx_log``.
+  back: each message goes to ``on_receive`` and, as a line, to ``rx_log``. With a
+  service thread (a serial port's default: it wakes as soon as input arrives), reading
+  back is left to it: ``send()`` only encodes and writes.
 
 Times: ``clock_ns`` (default ``time.monotonic_ns``, the clock frames are stamped
 with) drives the periodic messages and the back-off; poses carry their own
@@ -527,7 +529,9 @@ class LinkBase:
                 self._count(skipped=1)
             else:
                 self._enqueue(msg)
-            self._poll_locked(now)
+            # with a service thread, reading back is its work (it wakes on input): the
+            # pose's path is encode and write only
+            self._poll_locked(now, read=self._thread is None)
 
     def relocalized(self) -> None:
         """The pose jumped (a relocalization): bump MAVLink's reset_counter."""
@@ -578,7 +582,7 @@ class LinkBase:
             return
         self._outbox.put(msg)
 
-    def _poll_locked(self, now: int) -> None:
+    def _poll_locked(self, now: int, read: bool = True) -> None:
         if self._state == "disconnected" and now >= self._next_attempt_ns:
             self._try_reopen(now)
         if self.periodic_enabled and now >= self._next_periodic_ns:
@@ -589,7 +593,7 @@ class LinkBase:
         if self._state == "connected":
             try:
                 self._pump()
-                if self._read():
+                if read and self._read():
                     self._pump()  # answers (TIMESYNC) go out at once: PX4 times the round trip
             except _Disconnected as exc:
                 self._lost(now, str(exc))
