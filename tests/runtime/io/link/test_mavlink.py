@@ -35,6 +35,24 @@ def test_crc_x25_check_value():
     assert mavlink.crc_x25(b"123456789") == 0x6F91
 
 
+def _crc_bytewise(data: bytes, crc: int = 0xFFFF) -> int:
+    # the MAVLink C library's crc_accumulate, one byte at a time
+    for b in data:
+        tmp = b ^ (crc & 0xFF)
+        tmp = (tmp ^ (tmp << 4)) & 0xFF
+        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return crc
+
+
+def test_crc_x25_matches_bytewise_accumulation():
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 2, 7, 8, 9, 130, 280):
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        start = int(rng.integers(0, 65536))
+        assert mavlink.crc_x25(data, start) == _crc_bytewise(data, start)
+        assert mavlink.crc_x25(data) == _crc_bytewise(data)
+
+
 def test_heartbeat_golden():
     # fd | len 09 | incompat 00 | compat 00 | seq 07 | sys 01 | comp c5 (197) | id 000000 |
     # custom_mode 00000000 | type 12 (18) | autopilot 08 | base_mode 00 | status 04 |

@@ -153,3 +153,17 @@ def test_decode_rejects(text, words):
 def test_split_sentences_keeps_partial_rest():
     lines, rest = nmea.split_sentences(b"$A*00\r\n\r\n$B*01\r\n$PCE")
     assert lines == [b"$A*00", b"$B*01"] and rest == b"$PCE"
+
+
+def test_checksum_matches_bytewise_xor():
+    rng = np.random.default_rng(4)
+    for n in range(0, 90):  # every length modulo the 8-byte words
+        body = bytes(rng.integers(32, 127, n, dtype=np.uint8)).decode("ascii")
+        assert nmea.checksum(body) == xor_hex(body.encode("ascii"))
+
+
+@pytest.mark.parametrize("value, decimals, text", [
+    (-0.0, 3, "0.000"), (-0.0004, 3, "0.000"), (-0.0005, 3, "-0.001"), (-0.004, 2, "0.00"),
+    (-0.006, 2, "-0.01"), (0.0004, 3, "0.000"), (-10.0, 2, "-10.00")])
+def test_fixed_point_has_no_negative_zero(value, decimals, text):
+    assert nmea._fmt_fixed(value, decimals) == text
