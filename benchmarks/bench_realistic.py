@@ -127,6 +127,9 @@ def main() -> None:
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="an estimator option for every method run (as ceilrun --option)")
     a = ap.parse_args()
+    bad = [o for o in a.option if "=" not in o]
+    if bad:
+        ap.error(f"--option {bad[0]!r}: expected KEY=VALUE")
     options = dict(o.split("=", 1) for o in a.option)
     a.out.mkdir(parents=True, exist_ok=True)
     only = [c for c in a.cases.split(",") if c] or None
