@@ -70,7 +70,7 @@ from ceilkit.runtime.estimators.corridor.setup import (
     check_setup,
     default_match_tol_m,
 )
-from ceilkit.runtime.estimators.corridor.track import LinePoints, LineTracker
+from ceilkit.runtime.estimators.corridor.track import LineTracker
 from ceilkit.runtime.estimators.honesty import (
     DEFAULT_ALPHA,
     HEADING_DISAGREES,
@@ -253,12 +253,14 @@ class CorridorEstimator(Estimator):
         m = self.lines_track.measure(grey, psi, cy)
         out = None
         if m is not None:
-            n = m.n_lines
+            n = m.segs_n.shape[0]
             fr = frame_lines(m.segs_n, m.polarity, st, self.angle_tol_rad, o.inlier_px)
             along, across = np.ones(n, bool), np.zeros(n, bool)
-            lab = Labeling((n, float(n)), psi, cy, along, across, m.seg_line, n, False,
-                           "window")
-            gd, fit = self._fit_points(m, psi, cy, prior)
+            lab = Labeling((m.n_lines, float(n)), psi, cy, along, across, m.line,
+                           m.n_lines, False, "window")
+            rates = self._rates(prior)
+            gd = gn_inputs(fr, along, across, m.line, st, self._segment_times(fr, rates))
+            fit = self._solve(gd, psi, cy, rates)
             reach_psi, reach_cy = self.lines_track.reach()
             if (fit.rms_px <= o.inlier_px
                     and abs(math.remainder(fit.psi_rad - psi, 2 * math.pi)) <= reach_psi
@@ -341,10 +343,7 @@ class CorridorEstimator(Estimator):
         segments that lie on the site's ceiling lines (:func:`~.consensus.consensus_fit`:
         a pipe or a cable tray matched by the 1-D association is left out)."""
         rates = self._rates(prior)
-        tau = None
-        if rates is not None:
-            tau = self._row_times(self.rig.camera.distort(fr.segs.reshape(-1, 2))[:, 1]
-                                  .reshape(-1, 2))
+        tau = self._segment_times(fr, rates)
 
         def inputs(assign: np.ndarray) -> GNInputs:
             return gn_inputs(fr, lab.along, lab.across, assign, self.setup, tau)
@@ -358,12 +357,14 @@ class CorridorEstimator(Estimator):
         return consensus_fit(fr, lab, self.setup, self.options.inlier_px, inputs, solve,
                              rates)
 
-    def _fit_points(self, m: LinePoints, psi_rad: float, camera_y_m: float,
-                    prior: PoseEstimate) -> tuple[GNInputs, PanOffsetFit]:
-        """The refinement (:meth:`_solve`) of the tracked path's edge points ``m``."""
-        rates = self._rates(prior)
-        gd = m.gn_inputs(self.setup, None if rates is None else self._row_times(m.v_px))
-        return gd, self._solve(gd, psi_rad, camera_y_m, rates)
+    def _segment_times(self, fr: FrameLines, rates: RowRates | None
+                       ) -> np.ndarray | None:
+        """The row times ``(N, 2)`` (s) of the segments' endpoints with a rolling shutter
+        (``rates`` not None), else None."""
+        if rates is None:
+            return None
+        return self._row_times(self.rig.camera.distort(fr.segs.reshape(-1, 2))[:, 1]
+                               .reshape(-1, 2))
 
     def _best_labeling(self, pans: list[float], fr: FrameLines, prior: PoseEstimate | None
                        ) -> Labeling | Unresolved | None:
