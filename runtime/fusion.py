@@ -519,7 +519,17 @@ class Fusion:
                             float(n.s[1]) if observed[1] else None,
                             float(n.s[2]), float(quality), None, cov,
                             MappingProxyType(diag),
-                            tuple(float(v) for v in n.s[3:6]) if velocity else None)
+                            tuple(float(v) for v in n.s[3:6])
+                            if velocity and self._velocity_known(n) else None)
+
+    def _velocity_known(self, n: _Node) -> bool:
+        """Whether the filter has measured its velocity: its 1-sigma well under the
+        start's (a new track's velocity is its start guess, 0, not a measurement; as
+        with the light tracker, the estimators then assume it unknown)."""
+        sd = np.sqrt(np.maximum(np.diag(n.P)[3:6], 0.0))
+        o = self.options
+        return bool(sd[0] < 0.5 * o.start_speed_mps and sd[1] < 0.5 * o.start_speed_mps
+                    and sd[2] < 0.5 * o.start_turn_rps)
 
 
 def nees(est: PoseEstimate, truth: tuple[float, float, float]) -> tuple[float, int] | None:

@@ -134,6 +134,24 @@ def test_fusion_prior_carries_its_velocity() -> None:
     assert v == pytest.approx((0.5, -0.2, 0.1), abs=0.02)
 
 
+def test_fusion_prior_velocity_unknown_on_a_new_track() -> None:
+    """Review finding: one fix into a track the filter's velocity is its start guess
+    (0, with the start's 2.5 m/s and 90 deg/s sigma), not a measurement: the prior
+    carries none, so the rows are predicted with the options' unknown spreads, not
+    with the tight ones of a measured velocity. After a second fix it is measured."""
+    from ceilkit.runtime.fusion import Fusion
+
+    fu = Fusion()
+    cov = np.diag([1e-6] * 3)
+    fu.update(PoseEstimate(0, "lights", 1.0, 2.0, 0.0, 0.9, None, cov))
+    prior = fu.predict(10 ** 8)
+    assert prior is not None and prior.velocity is None
+    _, s = row_motion(ShutterOptions(readout_ms=20.0), prior)
+    assert s == pytest.approx((0.5, 0.5, math.radians(30.0)))
+    fu.update(PoseEstimate(10 ** 8, "lights", 1.05, 2.02, 0.01, 0.9, None, cov))
+    assert fu.predict(2 * 10 ** 8).velocity == pytest.approx((0.5, 0.2, 0.1), abs=0.05)
+
+
 def test_a_drive_with_the_tracker_is_corrected_and_covered() -> None:
     """As on the vehicle (benchmarks/bench_realistic.py): the tracker's prediction is
     the prior; with the readout time the weaving drive's heading and lateral errors
