@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ceilkit.runtime.estimators.corridor.association import SEAM_STEP
 from ceilkit.runtime.estimators.corridor.frame import FrameLines
 from ceilkit.runtime.estimators.corridor.geometry import (
     along_offsets,
@@ -188,8 +189,10 @@ def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: f
     :func:`vanishing_scale` if larger) picks the core, which is fitted first; the
     core's scatter about that fit sets the gate (:data:`GATE_SIGMAS` robust scales, at
     least :data:`GATE_FLOOR_PX`, at most ``inlier_px`` or :data:`GATE_SIGMAS` times the
-    frame's scale if larger), and the matched segments within the gate at each fit are
-    fitted again until they settle (at most :data:`CONSENSUS_ROUNDS` fits). A core on
+    frame's scale if larger; a step on a seam's line, a doubtful kind, within
+    :data:`~.association.SEAM_STEP` of it), and the matched segments within the gate at
+    each fit are fitted again until they settle (at most :data:`CONSENSUS_ROUNDS`
+    fits). A core on
     fewer than :data:`CORE_MIN_LINES` site lines says nothing of the scatter: then all
     matched segments are fitted first, and the gate is its largest. Returns the
     labeling with the segments left out unmatched (``n_lines`` recounted,
@@ -205,6 +208,8 @@ def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: f
     shift = rate_shift(lab.psi_rad, lab.camera_y_m, gd_all, st, rates)
     cons = ceiling_consensus(lab.psi_rad, cands, line_of, gd_all, st, 2.0 * sigma, sigma,
                              shift)
+    pol = fr.pol[ia]
+    kind_gate = np.where((st.edge_kind[line_of] == 0) & (np.abs(pol) == 1), SEAM_STEP, 1.0)
     psi, cy, inl, gate = lab.psi_rad, cons.camera_y_m, cons.inlier, None
     if cons.n_lines < CORE_MIN_LINES:
         cy, inl, gate = lab.camera_y_m, np.ones(ia.size, bool), most
@@ -220,7 +225,7 @@ def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: f
             k = 2 * np.count_nonzero(inl)
             scale = 1.4826 * float(np.median(d[inl])) * math.sqrt(k / (k - 2))
             gate = min(most, max(GATE_FLOOR_PX, GATE_SIGMAS * scale))
-        now = d.max(axis=1) <= gate
+        now = d.max(axis=1) <= gate * kind_gate
         if np.array_equal(now, inl) or not now.any():
             break
         inl = now

@@ -137,6 +137,25 @@ def test_pipes_near_the_seams_do_not_pull_the_lateral(rig, site, drop_m):
     assert r.diagnostics["n_lines_matched"] == clean.diagnostics["n_lines_matched"]
 
 
+def test_a_step_hugging_a_seam_is_left_out(rig, site):
+    """A pipe's edge (a step) whose image lies within a pixel of a seam's (a seam is a
+    thin line): a step on a seam must fit three times better than the gate
+    (association.SEAM_STEP), so it does not pull the lateral."""
+    lines = ceiling_lines(site, POSE[0])
+    seams = projected(rig, POSE, [ab for ab in lines if abs(ab[0][1]) > 0.2])
+    lamps = projected(rig, POSE, [ab for ab in lines if abs(ab[0][1]) < 0.2])
+    pipes = projected(rig, POSE, pipe_lines(rig, site, POSE, 0.35, (0.452,)))
+    ceil = np.vstack([seams, lamps])
+    pol = np.r_[np.zeros(len(seams)), np.full(len(lamps), np.nan)]     # seams thin
+    est = CorridorEstimator(rig, site)
+    clean = est.estimate_segments(ceil, 0, polarity=pol)
+    r = est.estimate_segments(np.vstack([ceil, pipes]), 0,
+                              polarity=np.r_[pol, np.ones(len(pipes))])
+    assert clean and r, (clean, r)
+    assert r.diagnostics["n_off_ceiling"] == len(pipes) >= 1
+    assert abs(r.y_m - clean.y_m) < 1e-6
+
+
 def test_only_lines_at_another_height_in_view_fail(rig, site):
     """Only pipes in view, one seen beside a seam, one between the site's lines: a
     Failure with a reason, never a lateral."""
