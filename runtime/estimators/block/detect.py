@@ -215,6 +215,12 @@ def _sides_once(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
     counts = np.bincount(side, minlength=4)
     if np.any(counts < MIN_SIDE_POINTS):
         return None
+    return _sides_of(pts, side, geo, per_side)
+
+
+def _sides_of(pts: np.ndarray, side: np.ndarray, geo: PlanarGeometry,
+              per_side: int) -> Sides | None:
+    """The side lines of edge points ``pts`` (px) through the lens, or None."""
     norm = geo.camera.unproject_fast(pts)
     corners = corners_of(fit_side_lines(norm, side))
     if corners is None:
@@ -232,6 +238,7 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
     None when a side has fewer than :data:`MIN_SIDE_POINTS` points. The passes before
     the last fit the sides in pixels (no lens model: straight over a short run, and
     only the next pass's stations depend on them)."""
+    pts = side = None
     for k in range(passes - 1):
         pts, side = edge_points(grey, corners_px, per_side,
                                 search_px if k == 0 else EDGE_SEARCH_PX)
@@ -240,8 +247,14 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
         corners_px = corners_of(fit_side_lines(pts, side))
         if corners_px is None:
             return None
-    return _sides_once(grey, corners_px, geo, per_side,
-                       search_px if passes == 1 else EDGE_SEARCH_PX)
+    got = _sides_once(grey, corners_px, geo, per_side,
+                      search_px if passes == 1 else EDGE_SEARCH_PX)
+    if got is not None or pts is None:
+        return got
+    # the last pass lost a side (its narrower search about corners a pass moved):
+    # the previous pass's points, through the lens, are still a measurement (as
+    # before the window path: a later pass that fails keeps the earlier one)
+    return _sides_of(pts, side, geo, per_side)
 
 
 _CONTRAST_T = np.array([0.3, 0.5, 0.7])   # step_contrast: stations along each side

@@ -233,3 +233,34 @@ def test_parallels_heading_is_fused_with_the_block_and_given_alone_between_block
     assert abs(math.degrees(math.remainder(alone.yaw_rad - yaw, math.pi / 2))) < 0.05
     off = BlockEstimator(rig, site, {"parallels": False})
     assert not off.estimate(render_frame(rig, site, x, y, yaw, NOISY), 0)
+
+
+def test_a_side_lost_on_the_last_edge_pass_keeps_the_previous_pass(rig, monkeypatch):
+    """Review finding (83434b6): when the window path's last edge pass finds too few
+    points on a side (its narrower search about corners a pass moved), the quad is
+    measured by the pass before it, as it was before 83434b6, not dropped."""
+    from ceilkit.runtime.estimators.block import detect
+
+    kite = np.array([[2.0, -0.2], [2.7, -0.25], [2.55, 0.2], [2.05, 0.25]])
+    site = Site(3.0, blocks=(Block("K", kite, "dark"),))
+    est = BlockEstimator(rig, site)
+    grey = render_frame(rig, site, 2.1, 0.0, math.radians(-40.0), NOISY)
+    quads = detect.find_quads(grey, True, 0.5)
+    assert quads
+    from ceilkit.runtime.features.quads import sharpen_quad
+
+    corners = sharpen_quad(quads[0]).corners_px
+    n = est.options.edge_points
+    full = detect.measure_sides(grey, corners, est.geo, n, passes=2)
+    assert full is not None
+    real, calls = detect.edge_points, []
+
+    def last_pass_loses_side_0(*a, **k):
+        pts, side = real(*a, **k)
+        calls.append(1)
+        return (pts[side != 0], side[side != 0]) if len(calls) == 2 else (pts, side)
+
+    monkeypatch.setattr(detect, "edge_points", last_pass_loses_side_0)
+    kept = detect.measure_sides(grey, corners, est.geo, n, passes=2)
+    assert len(calls) == 2 and kept is not None
+    np.testing.assert_allclose(kept.corners_norm, full.corners_norm, atol=2e-3)
