@@ -433,8 +433,17 @@ def _world_rays(rig: Rig, pose: tuple[float, float, float], options: R.SimOption
 def _overlay(img: np.ndarray, rig: Rig, site: Site, pose: tuple[float, float, float],
              t_s: float, options: R.SimOptions, real: Realism, lay: Layout) -> np.ndarray:
     """Draw the layout's objects, stains and glossy-wall reflections over ``img``."""
+    return _overlay_split(img, None, rig, site, pose, t_s, options, real, lay)[0]
+
+
+def _overlay_split(img: np.ndarray, em: np.ndarray | None, rig: Rig, site: Site,
+                   pose: tuple[float, float, float], t_s: float, options: R.SimOptions,
+                   real: Realism, lay: Layout) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`_overlay`, and the lamps' emission ``em`` (the part that flickers) hidden
+    where an object below the ceiling covers it (a person walking under the camera
+    hides the lamps' flicker too, not only their light)."""
     if not (lay.objects or lay.stains.size or real.gloss):
-        return img
+        return img, em
     rays, g, ok = _world_rays(rig, pose, options, t_s)
     hp, wp = g.ncy * R.CELL_PX, g.ncx * R.CELL_PX
     H, W = img.shape
@@ -445,12 +454,20 @@ def _overlay(img: np.ndarray, rig: Rig, site: Site, pose: tuple[float, float, fl
         v = _stain(v, rays, site, lay.stains)
     if real.gloss:
         v = _wall_gloss(v, rays, site, options, real.gloss)
+    keep = np.ones_like(v) if em is not None and lay.objects else None
     for obj in lay.objects:
         cov, val = obj.draw(rays)
         v = v + cov * (val - v)
+        if keep is not None:
+            keep = keep * (1.0 - cov)
     out = full.ravel().copy()
     out[ok] = v
-    return np.ascontiguousarray(out.reshape(hp, wp)[:H, :W])
+    img = np.ascontiguousarray(out.reshape(hp, wp)[:H, :W])
+    if keep is None:
+        return img, em
+    clear = np.ones((hp, wp), F32).ravel()
+    clear[ok] = keep
+    return img, (em * clear.reshape(hp, wp)[:H, :W]).astype(F32)
 
 
 def _stain(v: np.ndarray, rays: S.Rays, site: Site, stains: np.ndarray) -> np.ndarray:
@@ -563,7 +580,7 @@ def render_real(rig: Rig, site: Site, pose_at: Callable[[float], tuple[float, fl
         out = R.render_radiance(rig, site, *pose, options, emitters=lay.emitters,
                                 split=split)
         img, em = out if split else (out, None)
-        img = _overlay(img, rig, site, pose, t0 + tau, options, real, lay)
+        img, em = _overlay_split(img, em, rig, site, pose, t0 + tau, options, real, lay)
         wj = wts[:, j:j + 1].astype(F32)
         acc = img * wj if acc is None else acc + img * wj
         if em is not None:

@@ -90,6 +90,24 @@ def test_corridor_example_off_matches_render_frame():
 
 
 # --------------------------------------------------------------------------- scene
+def test_an_object_hides_the_lamps_flicker_too(up_rig):
+    """The lamps' emission layer (modulated per row by ``flicker`` after the scene is
+    drawn) is hidden under an object as their light is: a person walking under the
+    camera once showed the lamps through them, darker rows in flicker's troughs."""
+    site = Site(CEIL)
+    pipe = S.PipeX(y=0.3, z=2.2, r=0.05, grey=90.0, spec=0.0)
+    lay = RL.Layout((pipe,), None, np.zeros((0, 4)))
+    base = sim.render_radiance(up_rig, site, 0.0, 0.0, 0.0, CLEAN)
+    em = np.full(base.shape, 100.0, np.float32)
+    img, hidden = RL._overlay_split(base, em, up_rig, site, (0.0, 0.0, 0.0), 0.0, CLEAN,
+                                    Realism(pipes=1), lay)
+    dark = img[60] < sim.CEILING_GREY - 20          # the pipe's columns on row 60
+    assert dark.any() and np.all(hidden[60][dark][1:-1] == 0.0)   # edges: part covered
+    assert np.all(hidden[60][~dark][:5] == 100.0)    # the open ceiling keeps its emission
+    assert np.array_equal(img, RL._overlay(base, up_rig, site, (0.0, 0.0, 0.0), 0.0, CLEAN,
+                                           Realism(pipes=1), lay))
+
+
 def test_pipe_darkens_where_projected(up_rig):
     site = Site(CEIL)
     pipe = S.PipeX(y=0.3, z=2.2, r=0.05, grey=90.0, spec=0.0)
