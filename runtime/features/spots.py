@@ -327,12 +327,17 @@ _BATCH_MAX_SIDE = 64
 
 
 @functools.lru_cache(maxsize=64)
-def _block_monomials(h: int, w: int) -> np.ndarray:
-    """``(h w, 6)`` float64 ``(1, x, x², y, y², x y)`` of the pixels of an ``h x w`` block,
-    row-major (read-only): ``weights (K, h w) @ this`` are the raw moments
-    ``m00, m10, m20, m01, m02, m11`` of ``K`` blocks in one product."""
+def _block_monomials(h: int, w: int, origin: int = 0,
+                     dtype: type = np.float64) -> np.ndarray:
+    """``(h w, 6)`` ``(1, x, x², y, y², x y)`` of the pixels of an ``h x w`` block,
+    row-major, ``x, y`` from pixel ``(origin, origin)`` (read-only): ``weights (K, h w)
+    @ this`` are the raw moments ``m00, m10, m20, m01, m02, m11`` of ``K`` blocks in one
+    product. From the block's centre the numbers are small enough for float32
+    (:func:`~.windows.window_stats`: moments to ~1e-6 px)."""
     y, x = np.divmod(np.arange(h * w, dtype=float), w)
-    out = np.stack([np.ones_like(x), x, x * x, y, y * y, x * y], axis=1)
+    x -= origin
+    y -= origin
+    out = np.stack([np.ones_like(x), x, x * x, y, y * y, x * y], axis=1).astype(dtype)
     out.setflags(write=False)
     return out
 

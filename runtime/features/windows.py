@@ -27,6 +27,7 @@ from .spots import (
     FLAT_MIN_AREA_PX,
     SpotParams,
     Spots,
+    _block_monomials,
     _examination_order,
     _select_lights,
     empty_spots,
@@ -37,19 +38,6 @@ from .working import decimate
 
 CORE = 0.4
 """Centroid weights count from ``I_b + CORE (I_o - I_b)`` (as the global detector)."""
-
-
-@functools.lru_cache(maxsize=16)
-def _monomials(side: int) -> np.ndarray:
-    """``(side², 6)`` float32 ``(1, x, x², y, y², x y)`` of a ``side x side`` block,
-    row-major, ``x, y`` from the block's centre (small numbers: float32 keeps the
-    moments to ~1e-6 px)."""
-    y, x = np.divmod(np.arange(side * side, dtype=float), side)
-    x -= side // 2
-    y -= side // 2
-    out = np.stack([np.ones_like(x), x, x * x, y, y * y, x * y], axis=1).astype(np.float32)
-    out.setflags(write=False)
-    return out
 
 
 @functools.lru_cache(maxsize=16)
@@ -129,7 +117,8 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
     np.maximum(wts, 0.0, out=wts)
     if inside is not None:
         wts *= inside
-    mom = (wts @ _monomials(side)).astype(np.float64)                     # (K, 6)
+    mom = (wts @ _block_monomials(side, side, side // 2, np.float32)  # (K, 6)
+           ).astype(np.float64)
     m00 = mom[:, 0]
     ok = ~touches & (area > 0) & (m00 > 0)
     mom /= np.where(ok, m00, 1.0)[:, None]

@@ -324,10 +324,6 @@ class CorridorEstimator(Estimator):
         return RowRates(w, camera_y_speed(yaw, vy, w, self.setup), s_w,
                         math.hypot(s_v, t_vx * s_w))
 
-    def _row_times(self, v_px: np.ndarray) -> np.ndarray:
-        """Row times (s) of image rows ``v_px`` (any shape) for ``readout_ms``."""
-        return row_times_s(v_px, self.rig.camera.height, self.options.readout_ms / 1e3)
-
     def _solve(self, gd: GNInputs, psi_rad: float, camera_y_m: float,
                rates: RowRates | None) -> PanOffsetFit:
         """:func:`~.refine.gauss_newton` from ``(psi, c_y)``, or with a rolling shutter
@@ -363,8 +359,8 @@ class CorridorEstimator(Estimator):
         (``rates`` not None), else None."""
         if rates is None:
             return None
-        return self._row_times(self.rig.camera.distort(fr.segs.reshape(-1, 2))[:, 1]
-                               .reshape(-1, 2))
+        v_px = self.rig.camera.distort(fr.segs.reshape(-1, 2))[:, 1].reshape(-1, 2)
+        return row_times_s(v_px, self.rig.camera.height, self.options.readout_ms / 1e3)
 
     def _best_labeling(self, pans: list[float], fr: FrameLines, prior: PoseEstimate | None
                        ) -> Labeling | Unresolved | None:
