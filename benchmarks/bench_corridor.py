@@ -24,8 +24,14 @@ back with ``ceilkit.runtime.io.recording.Recording``, as data from outside the p
 would be; ``--recording DIR`` runs on an existing recording (with ``truth.csv``)
 instead.
 
+``--chord-px 48,96,144 --recording DIR`` instead runs the tracked path (``track=true``,
+the prior from the project's ``Tracker`` fed by each entry's own estimates) with each
+chord length (``track.CHORD_PX``) on a recorded drive, the entries interleaved frame by
+frame, every call timed by the thread's CPU time: how the time and the accuracy move with
+the number of chords searched.
+
     .venv/bin/python benchmarks/bench_corridor.py [--frames 60] [--clutter] [--detectors]
-        [--lateral 0.8] [--recording DIR] [--repeat 3]
+        [--lateral 0.8] [--recording DIR] [--repeat 3] [--chord-px 48,96]
 """
 
 from __future__ import annotations
@@ -42,11 +48,13 @@ import numpy as np
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.corridor import CorridorEstimator, visible_along_lines
+from ceilkit.runtime.estimators.corridor import CorridorEstimator, track, visible_along_lines
+from ceilkit.runtime.estimators.corridor.track import CHORD_PX
 from ceilkit.runtime.estimators.paper_corridor import PaperCorridorEstimator
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.io.recording import Recording
 from ceilkit.runtime.sim.render import SimOptions, Trajectory, render_frame
+from ceilkit.runtime.tracking import Tracker
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "corridor"
 
@@ -127,6 +135,52 @@ def recording_frames(folder: Path, rig: Rig | None = None, site: Site | None = N
     return rec.rig, rec.site, frames
 
 
+def chord_sweep(folder: Path, chord_px: list[float]) -> None:
+    """The tracked path with each chord length on the drive recorded in ``folder``
+    (module doc, ``--chord-px``)."""
+    rec = Recording(folder)
+    if rec.truth is None:
+        raise SystemExit(f"{folder}: no truth.csv")
+    frames = [rec.frame(k) for k in range(len(rec))]
+    truth = [rec.truth.lookup(f.t_ns) for f in frames]
+    grey = [to_grey(f.image) for f in frames]
+    ents = [(c, CorridorEstimator(rec.rig, rec.site, {"track": True}), Tracker())
+            for c in chord_px]
+
+    def call(c: float, est: CorridorEstimator, tr: Tracker, k: int):
+        track.CHORD_PX = c
+        out = est.estimate(grey[k], frames[k].t_ns, tr.predict(frames[k].t_ns))
+        tr.update(out)
+        return out
+
+    for c, est, tr in ents:                        # warm-up, then start the tracks over
+        for k in range(min(3, len(frames))):
+            call(c, est, tr, k)
+        tr.reset()
+    times = {c: [] for c in chord_px}
+    errs = {c: [] for c in chord_px}
+    for k in range(len(frames)):
+        r = k % len(ents)
+        for c, est, tr in ents[r:] + ents[:r]:
+            t = time.thread_time_ns()
+            out = call(c, est, tr, k)
+            times[c].append((time.thread_time_ns() - t) * 1e-6)
+            if out and truth[k] is not None:
+                _x, y, yaw = truth[k]
+                errs[c].append((abs(math.degrees(math.remainder(out.yaw_rad - yaw,
+                                                                2 * math.pi))),
+                                abs(out.y_m - y) * 1e3))
+    track.CHORD_PX = CHORD_PX
+    print(f"== tracked path by chord length, {folder}, {len(frames)} frames, CPU time")
+    for c in chord_px:
+        e = np.array(errs[c]).reshape(-1, 2) if errs[c] else np.full((1, 2), np.nan)
+        t = np.array(times[c])
+        print(f"chord {c:5.0f} px  ok {len(errs[c]):3d}/{len(frames)}  heading deg med "
+              f"{np.median(e[:, 0]):.4f} p95 {np.percentile(e[:, 0], 95):.4f}  lateral mm med "
+              f"{np.median(e[:, 1]):.3f} p95 {np.percentile(e[:, 1], 95):.3f}  ms med "
+              f"{np.median(t):.3f} p95 {np.percentile(t, 95):.3f}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=60)
@@ -138,8 +192,15 @@ def main() -> None:
     ap.add_argument("--recording", type=Path, help="run on this SPEC recording instead")
     ap.add_argument("--repeat", type=int, default=1,
                     help="call each frame this many times (every call is timed)")
+    ap.add_argument("--chord-px", help="with --recording: the tracked path with each of "
+                    "these chord lengths (comma-separated px)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    if args.chord_px:
+        if args.recording is None:
+            raise SystemExit("--chord-px needs --recording DIR (a drive: the tracker's prior)")
+        chord_sweep(args.recording, [float(v) for v in args.chord_px.split(",")])
+        return
     print("OpenCV threads: 1 (cv2.setNumThreads(1)); times are one core's, median and p95 "
           f"of every call ({args.repeat} per frame)")
     if args.recording is not None:
