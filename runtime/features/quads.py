@@ -25,6 +25,7 @@ Example::
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -44,6 +45,8 @@ EDGE_SEARCH_PX = 3.0       # edge_points: how far across the side a step is look
 THRESH_WIN_PX = 23        # aruco's adaptive threshold window (one scale)
 EDGE_STEP_PX = 0.5         # edge_points: sampling step across the side
 EDGE_END_SKIP = 0.15       # edge_points: fraction of each side left out at the corners
+_NEXT = np.array([1, 2, 3, 0])      # corner k+1 of a quad
+_TURN = np.array([-1.0, 1.0])       # (y, x) -> (-y, x): a direction turned a quarter
 
 
 @functools.lru_cache(maxsize=16)
@@ -281,21 +284,31 @@ def _signed_area(pts: np.ndarray) -> float:
     return 0.5 * float(np.dot(u, np.roll(v, -1)) - np.dot(np.roll(u, -1), v))
 
 
-def _float_crop(grey: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
-    """The part of ``grey`` that bilinear samples at ``pts`` ``(N, 2)`` read, as float32,
-    and its top-left pixel ``(x0, y0)``. A sample outside the frame reads the frame's
-    edge (``BORDER_REPLICATE``) as it would on the whole frame: the crop reaches the
-    frame's edge on that side. (Converting the whole frame costs more than the
-    profiles.)"""
+def _float_crop(grey: np.ndarray, lo: np.ndarray, hi: np.ndarray
+                ) -> tuple[np.ndarray, tuple[int, int]]:
+    """The part of ``grey`` that bilinear samples inside the box ``lo``..``hi`` (px,
+    ``(2,)`` each, finite) read, as float32, and its top-left pixel ``(x0, y0)``. A
+    sample outside the frame reads the frame's edge (``BORDER_REPLICATE``) as it would
+    on the whole frame: the crop reaches the frame's edge on that side. (Converting the
+    whole frame costs more than the profiles.)"""
     h, w = grey.shape
-    fin = pts[np.all(np.isfinite(pts), axis=1)]
-    if not fin.size:
-        return grey.astype(np.float32), (0, 0)
-    lo = np.floor(fin.min(axis=0)).clip(-1, max(h, w)).astype(int)
-    hi = np.floor(fin.max(axis=0)).clip(-1, max(h, w)).astype(int) + 2
-    x0, y0 = min(max(int(lo[0]), 0), w - 1), min(max(int(lo[1]), 0), h - 1)
-    x1, y1 = max(min(int(hi[0]), w), x0 + 1), max(min(int(hi[1]), h), y0 + 1)
+    x0 = min(max(math.floor(lo[0]), 0), w - 1)
+    y0 = min(max(math.floor(lo[1]), 0), h - 1)
+    x1 = max(min(math.floor(hi[0]) + 2, w), x0 + 1)
+    y1 = max(min(math.floor(hi[1]) + 2, h), y0 + 1)
     return grey[y0:y1, x0:x1].astype(np.float32), (x0, y0)
+
+
+@functools.lru_cache(maxsize=16)
+def _stations(per_side: int, search_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """edge_points' offsets across a side ``(K,)``, stations along it ``(S,)`` and the
+    side of every station ``(4 S,)`` (read-only: shared between calls)."""
+    offs = np.arange(-search_px, search_px + 1e-9, EDGE_STEP_PX)
+    t = np.linspace(EDGE_END_SKIP, 1 - EDGE_END_SKIP, per_side)
+    side = np.repeat(np.arange(4), per_side)
+    for a in (offs, t, side):
+        a.flags.writeable = False
+    return offs, t, side
 
 
 def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
@@ -307,30 +320,32 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     is searched for its steepest interval and the step located where the profile
     crosses half way between its two ends. Stations whose step is weak (below a
     quarter of the side's median) or at the search window's end are dropped. Only the
-    samples' bounding box of the frame is read (:func:`_float_crop`).
+    part of the frame the samples read is converted (:func:`_float_crop`).
 
     Returns:
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
     """
     h, w = grey.shape
-    offs = np.arange(-search_px, search_px + 1e-9, EDGE_STEP_PX)
-    t = np.linspace(EDGE_END_SKIP, 1 - EDGE_END_SKIP, per_side)
-    p0 = corners_px
-    p1 = np.roll(corners_px, -1, axis=0)
-    d = p1 - p0
-    length = np.linalg.norm(d, axis=1, keepdims=True)
+    offs, t, side = _stations(per_side, float(search_px))
+    p0 = np.asarray(corners_px, float)
+    d = p0[_NEXT] - p0
+    length = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])[:, None]
     tang = d / np.maximum(length, 1e-9)
-    normal = np.stack([-tang[:, 1], tang[:, 0]], axis=1)
+    normal = tang[:, ::-1] * _TURN                                          # (-ty, tx)
     base = p0[:, None, :] + t[None, :, None] * d[:, None, :]               # (4, S, 2)
     samp = base[:, :, None, :] + offs[None, None, :, None] * normal[:, None, None, :]
-    g, (x0, y0) = _float_crop(grey, samp.reshape(-1, 2))
-    mx = (samp[..., 0] - x0).astype(np.float32).reshape(-1, offs.size)
-    my = (samp[..., 1] - y0).astype(np.float32).reshape(-1, offs.size)
-    prof = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if np.isfinite(p0).all():
+        # samples are linear in the station and the offset: the extreme ones are at the
+        # first and last of each (their box is every sample's)
+        ends = samp[:, ::max(per_side - 1, 1), ::offs.size - 1].reshape(-1, 2)
+        g, (x0, y0) = _float_crop(grey, ends.min(axis=0), ends.max(axis=0))
+    else:
+        g, (x0, y0) = grey.astype(np.float32), (0, 0)
+    shifted = (samp - np.array([x0, y0], float)).astype(np.float32).reshape(-1, offs.size, 2)
+    prof = cv2.remap(g, shifted, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     grad = np.abs(np.diff(prof, axis=1))                                    # (4S, K-1)
     k = np.argmax(grad, axis=1)
     rows = np.arange(grad.shape[0])
-    inner = (k > 0) & (k < grad.shape[1] - 1)
     # the step's middle: where the profile crosses half way between its two ends,
     # interpolated in the steepest interval (unbiased for a symmetric blur, unlike the
     # peak of a sampled gradient)
@@ -338,13 +353,13 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     d0, d1 = prof[rows, k] - mid, prof[rows, k + 1] - mid
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(np.abs(d0 - d1) > 1e-6, d0 / (d0 - d1), 0.5)
-    inner &= (frac > -1.0) & (frac < 2.0)
     off = offs[0] + (k + np.clip(frac, -1.0, 2.0)) * EDGE_STEP_PX           # across, px
     strength = grad[rows, k].reshape(4, per_side)
-    med = np.median(strength, axis=1, keepdims=True)
-    strong = (strength > 0.25 * med).ravel()
-    side = np.repeat(np.arange(4), per_side)
+    srt = np.sort(strength, axis=1)                   # the median of each side's steps
+    med = 0.5 * (srt[:, (per_side - 1) // 2] + srt[:, per_side // 2])
     pts = base.reshape(-1, 2) + off[:, None] * normal[side]
-    inside = ((pts[:, 0] > 0) & (pts[:, 0] < w - 1) & (pts[:, 1] > 0) & (pts[:, 1] < h - 1))
-    keep = inner & strong & inside
+    u, v = pts[:, 0], pts[:, 1]
+    keep = ((k > 0) & (k < grad.shape[1] - 1) & (frac > -1.0) & (frac < 2.0)
+            & (strength > 0.25 * med[:, None]).ravel()
+            & (u > 0) & (u < w - 1) & (v > 0) & (v < h - 1))
     return pts[keep], side[keep]
