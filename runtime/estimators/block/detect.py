@@ -258,6 +258,7 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
 
 
 _CONTRAST_T = np.array([0.3, 0.5, 0.7])   # step_contrast: stations along each side
+_NEXT_CORNER = np.array([1, 2, 3, 0])      # step_contrast: corner k+1 of a quad
 CONTRAST_INSET = 0.1                       # ... inwards/outwards, share of the way to the centre
 
 
@@ -269,11 +270,12 @@ def step_contrast(grey: np.ndarray, corners_px: np.ndarray) -> float:
     outside reads black."""
     c = corners_px.mean(axis=0)
     on = (corners_px[:, None, :] + _CONTRAST_T[None, :, None]
-          * (np.roll(corners_px, -1, axis=0) - corners_px)[:, None, :]).reshape(-1, 2)
+          * (corners_px[_NEXT_CORNER] - corners_px)[:, None, :]).reshape(-1, 2)
     step = CONTRAST_INSET * (c - on)
     pts = np.concatenate([on + step, on - step]).astype(np.float32)
-    vals = cv2.remap(grey, pts[:, 0].reshape(1, -1), pts[:, 1].reshape(1, -1),
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
-    n = len(on)
-    outside = float(np.median(vals[n:]))
-    return float(np.median(vals[:n])) / outside if outside > 0 else float("nan")
+    vals = cv2.remap(grey, pts.reshape(1, -1, 2), None, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(2, -1)
+    n = vals.shape[1]                     # the medians inside (row 0) and outside (1)
+    srt = np.sort(vals, axis=1).astype(float)
+    inside, outside = 0.5 * (srt[:, (n - 1) // 2] + srt[:, n // 2])
+    return float(inside / outside) if outside > 0 else float("nan")

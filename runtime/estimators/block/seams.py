@@ -13,6 +13,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -28,21 +29,26 @@ MAX_CHORDS = 20      # chords measured per frame (spread over the lines)
 
 
 def site_lines(corridor, centre: np.ndarray, reach_m: float = REACH_M
-               ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``(point, direction)`` in W of the site's ceiling lines within ``reach_m`` of
-    ``centre`` (W, ``(2,)``)."""
-    out = []
-    for y in corridor.lines_along_m:
-        if abs(y - centre[1]) < reach_m:
-            out.append((np.array([centre[0], y]), np.array([1.0, 0.0])))
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """``(points, directions)`` ``(L, 2)`` each, in W, of the site's ceiling lines within
+    ``reach_m`` of ``centre`` (W, ``(2,)``): the lines along x first, then across."""
+    along = np.asarray(corridor.lines_along_m, float).reshape(-1)
+    along = along[np.abs(along - centre[1]) < reach_m]
+    p0 = np.empty((len(along), 2))
+    p0[:, 0], p0[:, 1] = centre[0], along
+    d = np.zeros((len(along), 2))
+    d[:, 0] = 1.0
     a = corridor.lines_across
     if a is not None and a.spacing_m > 0:
         k0 = math.ceil((centre[0] - reach_m - a.first_m) / a.spacing_m)
         k1 = math.floor((centre[0] + reach_m - a.first_m) / a.spacing_m)
-        for k in range(k0, k1 + 1):
-            out.append((np.array([a.first_m + k * a.spacing_m, centre[1]]),
-                        np.array([0.0, 1.0])))
-    return out
+        across = a.first_m + np.arange(k0, k1 + 1) * a.spacing_m
+        q0 = np.empty((len(across), 2))
+        q0[:, 0], q0[:, 1] = across, centre[1]
+        e = np.zeros((len(across), 2))
+        e[:, 1] = 1.0
+        p0, d = np.concatenate([p0, q0]), np.concatenate([d, e])
+    return p0, d
 
 
 def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
@@ -50,33 +56,47 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
     """Pixel chords ``(N, 4)`` along the site's ceiling lines seen from ``pose``, at most
     ``max_chords`` of them spread over the lines (one projection of every sample)."""
     x, y, yaw = (float(v) for v in pose)
-    R_wc = rot_z(yaw) @ geo.R_vehicle_cam
-    c = rot_z(yaw) @ geo.t_vehicle_cam + np.array([x, y, 0.0])
+    rz = rot_z(yaw)
+    R_wc = rz @ geo.R_vehicle_cam
+    c = rz @ geo.t_vehicle_cam + np.array([x, y, 0.0])
     axis = R_wc[:, 2]
     s = (geo.ceiling_m - c[2]) / axis[2] if axis[2] > 1e-6 else 0.0
     centre = (c + s * axis)[:2]
-    lines = site_lines(corridor, centre, reach_m)
-    if not lines:
+    p0, d = site_lines(corridor, centre, reach_m)
+    if not len(p0):
         return np.zeros((0, 4))
-    t = np.arange(-reach_m, reach_m + 1e-9, STEP_M)
-    p0 = np.array([p for p, _ in lines])
-    d = np.array([q for _, q in lines])
-    pts = (p0[:, None, :] + t[None, :, None] * d[:, None, :]).reshape(-1, 2)
-    pc = (np.hstack([pts, np.full((len(pts), 1), geo.ceiling_m)]) - c) @ R_wc
+    t = _samples(reach_m)
+    n_lines, n_t = len(p0), len(t)
+    pts = np.empty((n_lines, n_t, 3))
+    pts[..., :2] = p0[:, None, :] + t[None, :, None] * d[:, None, :]
+    pts[..., 2] = geo.ceiling_m
+    pc = (pts.reshape(-1, 3) - c) @ R_wc
     front = pc[:, 2] > 1e-6
-    px = np.full((len(pts), 2), np.nan)
-    if np.any(front):
-        px[front] = geo.camera.distort(pc[front, :2] / pc[front, 2:3])
-    inside = (front & geo.camera.in_image(px, MARGIN_PX)).reshape(len(lines), len(t))
-    px = px.reshape(len(lines), len(t), 2)
+    if front.all():
+        px = geo.camera.distort(pc[:, :2] / pc[:, 2:3])
+    else:
+        px = np.full((len(pc), 2), np.nan)
+        if np.any(front):
+            px[front] = geo.camera.distort(pc[front, :2] / pc[front, 2:3])
+    inside = (front & geo.camera.in_image(px, MARGIN_PX)).reshape(n_lines, n_t)
+    px = px.reshape(n_lines, n_t, 2)
     k = CHORD_SAMPLES - 1
-    n = len(t) - k
-    cs = np.concatenate([np.zeros((len(lines), 1), int), np.cumsum(inside, axis=1)], axis=1)
-    full = (cs[:, k + 1:] - cs[:, :n]) == CHORD_SAMPLES           # (L, n) windows inside
-    # non-overlapping windows: every k-th start
-    full[:, np.arange(n) % k != 0] = False
-    li, si = np.nonzero(full)
+    # non-overlapping windows of CHORD_SAMPLES samples, every k-th start, all inside
+    starts = np.arange(0, n_t - k, k)
+    cs = np.zeros((n_lines, n_t + 1), int)
+    np.cumsum(inside, axis=1, out=cs[:, 1:])
+    li, sj = np.nonzero((cs[:, starts + k + 1] - cs[:, starts]) == CHORD_SAMPLES)
+    si = starts[sj]
     if len(li) > max_chords:
         pick = np.round(np.linspace(0, len(li) - 1, max_chords)).astype(int)
         li, si = li[pick], si[pick]
     return np.hstack([px[li, si], px[li, si + k]])
+
+
+@functools.lru_cache(maxsize=4)
+def _samples(reach_m: float) -> np.ndarray:
+    """The samples' positions along a line, ``-reach_m`` to ``reach_m`` by
+    :data:`STEP_M` (read-only: shared between calls)."""
+    t = np.arange(-reach_m, reach_m + 1e-9, STEP_M)
+    t.flags.writeable = False
+    return t
