@@ -111,8 +111,9 @@ class PaperLightsEstimator(Estimator):
         """``(centroids_px (N, 2), Q_real in V (N, 2))`` of the identified lights."""
         grey = to_grey(np.asarray(image))
         mask = tile_niblack_mask(grey, self.options.tile_px, self.options.k)
+        # the paper's steps: every region measured, a light cut by the frame's edge too
         spots = regions_to_spots(grey, mask, self.params, weighted=False,
-                                 rethreshold=False, relative=False)
+                                 rethreshold=False, relative=False, drop_cut=False)
         if len(spots) == 0:
             return np.zeros((0, 2)), np.zeros((0, 2))
         xy = self.rig.camera.unproject(spots.centroids_px)      # Eqs. 10-12 inverted

@@ -465,17 +465,18 @@ def axis_ratios(cov_px: np.ndarray) -> np.ndarray:
 def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
                      weighted: bool = True, rethreshold: bool = True,
                      relative: bool = True, centre_px: tuple[float, float] | None = None,
-                     max_regions: int | None = None) -> Spots:
+                     max_regions: int | None = None, drop_cut: bool = True) -> Spots:
     """Identify lights among the connected regions of ``mask`` (see the module doc).
 
     With ``centre_px``, regions are examined nearest that pixel first (the principal
     point: the sharpest, best-resolved lights), at most ``max_regions`` of them that
-    pass the size checks.
+    pass the size checks. With ``drop_cut`` a region reaching the frame's edge (a light
+    cut by it, its centroid biased inwards) is dropped (``rejected["cut"]``).
     """
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     rejected: dict[str, int] = {}
     rows = _measure_regions(grey, mask, contours, params, weighted, rethreshold, centre_px,
-                            max_regions, rejected)
+                            max_regions, rejected, drop_cut)
     if not rows:
         return empty_spots(len(contours), rejected)
     return _select_lights(np.array(rows, float).reshape(-1, 8), len(contours), params,
@@ -494,7 +495,7 @@ def _examination_order(boxes: np.ndarray, centre_px: tuple[float, float] | None)
 def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.ndarray],
                      params: SpotParams, weighted: bool, rethreshold: bool,
                      centre_px: tuple[float, float] | None, max_regions: int | None,
-                     rejected: dict[str, int]) -> list[list[float]]:
+                     rejected: dict[str, int], drop_cut: bool = True) -> list[list[float]]:
     """One row ``(u, v, i_obj, i_bg, c_uu, c_uv, c_vv, area)`` per region of a plausible
     size, in the order examined; the others are counted in ``rejected`` by reason."""
 
@@ -505,12 +506,18 @@ def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.n
     order = _examination_order(b, centre_px)
     box_area = b[:, 2] * b[:, 3]
     alone = _alone(b)
+    H, W = grey.shape
+    # a region reaching the frame's edge is a light cut by it: its centroid lies inside
+    # the light's, by up to its radius (on a tilted rig a far light leaving the top of
+    # the frame moved the pose by 2 cm)
+    cut = drop_cut & ((b[:, 0] <= 0) | (b[:, 1] <= 0) | (b[:, 0] + b[:, 2] >= W)
+                      | (b[:, 1] + b[:, 3] >= H))
     # lone regions of a plausible size are measured together, in the order examined
     # (a few more than can be examined: some are dropped); any other one by one
-    H, W = grey.shape
     grown = b[:, 2:] + 2 * np.maximum(2, b[:, 2:] // 2)
     batch = (alone & (box_area >= params.min_area_px) & (box_area <= 4 * params.max_area_px)
-             & (grown[:, 0] <= min(W, _BATCH_MAX_SIDE)) & (grown[:, 1] <= min(H, _BATCH_MAX_SIDE)))
+             & (grown[:, 0] <= min(W, _BATCH_MAX_SIDE)) & (grown[:, 1] <= min(H, _BATCH_MAX_SIDE))
+             & ~cut)
     todo = order[batch[order]]
     if max_regions is not None:
         todo = todo[:max_regions + 2]
@@ -521,7 +528,7 @@ def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.n
         for i, ci in enumerate(todo[good].tolist()):
             row_of[ci] = i
         table = stats[good].tolist()
-    rects, lone = b.tolist(), alone.tolist()
+    rects, lone, cut_l = b.tolist(), alone.tolist(), cut.tolist()
     rows: list[list[float]] = []
     for ci in order.tolist():
         if max_regions is not None and len(rows) >= max_regions:
@@ -530,6 +537,9 @@ def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.n
         x0, y0, bw, bh = rects[ci]
         if bw * bh < params.min_area_px:
             drop("small")
+            continue
+        if cut_l[ci]:
+            drop("cut")
             continue
         if bw * bh > 4 * params.max_area_px:
             area = params.max_area_px + 1

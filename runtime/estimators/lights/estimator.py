@@ -211,7 +211,8 @@ class LightsEstimator(Estimator):
                                      working_factor((rig.camera.height, rig.camera.width),
                                                     o.working_mpx), o.spot_stage)
         self.visibility = VisibilityTable(rig, self.ceiling_height_m, self.lights_w,
-                                          self.valid_mask, self.nadir_px, o.max_spots)
+                                          self.valid_mask, self.nadir_px, o.max_spots,
+                                          0.5 * diameter_m)
         self.matcher = PatternMatcher(self.lights_w, o.gate_m,
                                       max_pair_m(rig, self.ceiling_height_m, o.gate_m),
                                       visible=self.visibility)

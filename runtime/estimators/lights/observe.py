@@ -37,6 +37,10 @@ from ceilkit.runtime.features.working import decimated_mask, detect_spots_workin
 
 JAC_STEP_PX = 8  # node spacing of the per-pixel spot table
 VIEW_MARGIN_PX = 12.0  # a light's centre this far inside the image border is reported
+RIM_MARGIN_PX = 1.5  # ... and a disc of RIM_REACH x its radius this far: nearer the
+RIM_REACH = 1.6      # border its centroid is pulled inwards (a cut light, or one whose outer
+# part the local threshold loses: the frame's mirrored border raises it), 1-7 px on the
+# corridor rig's 18 px lights within 10 px of the border, 0.1 px beyond (bench_fusion mixed)
 MAX_BUDGET_FACTOR = 4  # regions examined at most: this many times max_spots
 DISC_POINTS = 24  # a light's outline, for its image centroid
 
@@ -193,7 +197,24 @@ class SpotObserver:
         ok &= np.isfinite(table[:, 0])
         if self.light_radius_m > 0 and np.any(ok):
             ok &= self.plausible(spots, table, ok)
+            ok &= self.uncut(spots.centroids_px, table)
         return spots, q, ok, table
+
+    def uncut(self, centroids_px: np.ndarray, table: np.ndarray) -> np.ndarray:
+        """Spots whose light lies well inside the frame: a disc of :data:`RIM_REACH` x
+        its radius ``r``, through the local Jacobian ``J`` (reaching ``r |J_u|`` and
+        ``r |J_v|`` from the centre, ``J``'s rows' norms), inside by :data:`RIM_MARGIN_PX`.
+        Nearer the frame's edge a light's centroid is pulled inwards: cut by the edge,
+        or with its outer part below the local threshold (the frame's mirrored border
+        raises it), which the detector's own check (its region reaching the edge)
+        cannot see. On the tilted corridor rig a far light leaving the top of the frame
+        moved the pose by 2 cm in x."""
+        cam, r = self.rig.camera, RIM_REACH * self.light_radius_m
+        reach_u = r * np.hypot(table[:, 0], table[:, 1]) + RIM_MARGIN_PX
+        reach_v = r * np.hypot(table[:, 2], table[:, 3]) + RIM_MARGIN_PX
+        u, v = centroids_px[:, 0], centroids_px[:, 1]
+        return ((u - reach_u >= -0.5) & (u + reach_u <= cam.width - 0.5)
+                & (v - reach_v >= -0.5) & (v + reach_v <= cam.height - 0.5))
 
     @staticmethod
     def centres(centroids_px: np.ndarray, table: np.ndarray) -> np.ndarray:
@@ -239,7 +260,9 @@ class VisibilityTable:
 
     A table over the ceiling in V: the pixel distance from the nadir of a light there,
     ``inf`` where the detector cannot report it (outside the image by
-    :data:`VIEW_MARGIN_PX`, or outside the view mask). It covers the ceiling seen by the
+    :data:`VIEW_MARGIN_PX`, a disc of :data:`RIM_REACH` x ``light_radius_m`` around it
+    not inside by :data:`RIM_MARGIN_PX`: the observer drops such a light, its centroid
+    biased, or outside the view mask). It covers the ceiling seen by the
     view mask (from its pixels every 8 px), in at most 200 x 200 cells; calling it is a
     lookup, not a projection.
 
@@ -249,7 +272,8 @@ class VisibilityTable:
     """
 
     def __init__(self, rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
-                 valid_mask: np.ndarray, nadir_px: tuple[float, float], max_spots: int):
+                 valid_mask: np.ndarray, nadir_px: tuple[float, float], max_spots: int,
+                 light_radius_m: float = 0.0):
         cam = rig.camera
         self.max_spots = max_spots
         self._lights_c = lights_w[:, 0] + 1j * lights_w[:, 1]     # x + iy
@@ -268,6 +292,13 @@ class VisibilityTable:
         px = project_lights(rig, ceiling_height_m, g, 0.0, 0.0, 0.0)
         ok = np.isfinite(px[:, 0])
         ok[ok] = cam.in_image(px[ok], margin_px=VIEW_MARGIN_PX)
+        if light_radius_m > 0:      # the whole disc inside: the detector drops a cut light
+            for a in np.linspace(0.0, 2 * math.pi, DISC_POINTS, endpoint=False):
+                idx = np.nonzero(ok)[0]
+                rim = project_lights(rig, ceiling_height_m, g[idx] + RIM_REACH * light_radius_m
+                                     * np.array([math.cos(a), math.sin(a)]), 0.0, 0.0, 0.0)
+                ok[idx] = np.isfinite(rim[:, 0]) & cam.in_image(
+                    np.nan_to_num(rim, nan=-1e9), margin_px=RIM_MARGIN_PX)
         idx = np.nonzero(ok)[0]
         uv = np.round(px[idx]).astype(int)
         ok[idx[valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
@@ -309,5 +340,5 @@ class VisibilityTable:
         gi, gj = np.meshgrid(np.arange(-1, ni + 1), np.arange(-1, nj + 1), indexing="ij")
         return self.origin_m[None, :] + self.cell_m * np.stack([gi.ravel(), gj.ravel()], 1)
 
-__all__ = ["JAC_STEP_PX", "VIEW_MARGIN_PX", "Observation", "SpotObserver", "VisibilityTable",
-           "spot_table"]
+__all__ = ["JAC_STEP_PX", "RIM_MARGIN_PX", "RIM_REACH", "VIEW_MARGIN_PX", "Observation",
+           "SpotObserver", "VisibilityTable", "spot_table"]
