@@ -105,7 +105,7 @@ class FusionOptions:
     prior_sigma_m: float = 0.5
     fix_inflation: float = 2.0
     inflation: Mapping[str, float] = field(
-        default_factory=lambda: MappingProxyType({"corridor": 1.0, "lights": 3.0}))
+        default_factory=lambda: MappingProxyType({"corridor": 1.0, "lights": 1.5}))
     fix_floor_m: float = 0.00005
     fix_floor_rad: float = math.radians(0.003)
     coast_hazard_per_s: float = 0.5
