@@ -79,6 +79,54 @@ def test_planar_pnp_is_exact_without_noise(make_rig):
     assert abs(check["pnp6_tilt_deg"]) < 1e-6 and abs(check["pnp6_height_m"]) < 1e-6
 
 
+def test_an_offset_shared_by_a_sides_points_is_in_the_covariance(rig):
+    """A whole side moved (a seam flush with the block's edge moves every station the
+    same way): the fit's white covariance does not average it out; the side-offset
+    term, measured by the block's known size, covers the pose error it makes."""
+    geo = PlanarGeometry.of(rig, Site(3.0))
+    truth = np.array([2.1, 0.05, math.radians(12.0)])
+    t = np.linspace(0.15, 0.85, 12)
+    pts = np.concatenate([SQUARE[k] + t[:, None] * (SQUARE[(k + 1) % 4] - SQUARE[k])
+                          for k in range(4)])
+    side = np.repeat(np.arange(4), t.size)
+    norm = project_norm(geo, truth, pts)
+    scale = magnification(rig.camera, norm)
+    rng = np.random.default_rng(0)
+    white = norm + rng.normal(0.0, 0.05, norm.shape) / scale[:, None]      # 0.05 px
+    clean = refine(geo, truth, SQUARE, white, side, scale)
+    # side 1 moved 0.3 px along its normal (towards the block's inside)
+    d = norm[side == 1][-1] - norm[side == 1][0]
+    n = np.array([-d[1], d[0]]) / np.hypot(*d)
+    moved = white.copy()
+    moved[side == 1] += 0.3 * n / scale[side == 1, None]
+    got = refine(geo, truth, SQUARE, moved, side, scale)
+    e = got.pose - truth
+    assert math.hypot(e[0], e[1]) > 5 * math.sqrt(clean.cov[0, 0])   # a real bias
+    assert float(e @ np.linalg.solve(got.cov, e)) < 7.81             # covered (95 %, 3 dof)
+    # the white covariance of the same geometry (the clean fit's) would not cover it
+    assert float(e @ np.linalg.solve(clean.cov, e)) > 30.0
+    # and on clean sides the term stays small: the clean pose's sigma is the noise's
+    ec = clean.pose - truth
+    assert float(ec @ np.linalg.solve(clean.cov, ec)) < 11.3
+    assert math.sqrt(clean.cov[0, 0]) < 0.3 * math.sqrt(got.cov[0, 0])
+
+
+def test_a_block_edge_on_a_seam_is_biased_and_its_covariance_says_so(rig):
+    """configs/block's bright tile B ends on the tile seam at x = 5.4 m: the half seam
+    left outside it, narrower than the blur, pulls that edge ~1.3 mm in; the pose's
+    covariance covers it (it was 0.19 mm 1-sigma against 1.2-1.5 mm of error)."""
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    est = BlockEstimator(rig, site, {"plane_odometry": False})
+    rng = np.random.default_rng(4)
+    for x, y, yaw in [(5.2, -0.3, 0.1), (5.4, -0.1, 0.25)]:
+        img = render_frame(rig, site, x, y, yaw, NOISY, rng)
+        got = est.estimate(img, 0, prior_at(x, y, yaw))
+        assert got and got.diagnostics["source"] == "block:B"
+        e = np.array([got.x_m - x, got.y_m - y])
+        assert 0.0008 < abs(e[0]) < 0.003                           # the seam's bias
+        assert float(e @ np.linalg.solve(np.asarray(got.cov)[:2, :2], e)) < 9.21  # 99 %
+
+
 # -- markers -------------------------------------------------------------------------------
 @pytest.mark.parametrize("x, y, yaw_deg", [(0.2, 0.1, 0.0), (-0.3, 0.35, 71.0),
                                            (0.1, -0.2, -160.0)])
