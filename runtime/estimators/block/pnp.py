@@ -205,21 +205,18 @@ def side_offset_cov(r: np.ndarray, J: np.ndarray, side: np.ndarray, A: np.ndarra
     and ``g_k = Σ_{i in k} J_i``, the least-squares pose's covariance from independent
     side offsets of variance ``σ_b²`` is ``σ_b² A (Σ_k g_k g_kᵀ) A`` with
     ``A = (JᵀJ)⁻¹``. Zero for fewer than three sides."""
-    ks = np.unique(side)
-    if ks.size < 3:
+    n = np.bincount(side, minlength=4).astype(float)
+    on = n > 0
+    K = int(np.count_nonzero(on))
+    if K < 3:
         return np.zeros((3, 3))
-    K = ks.size
-    means2, noise, G = 0.0, 0.0, np.zeros((3, 3))
-    for k in ks.tolist():
-        on = side == k
-        n = int(np.count_nonzero(on))
-        rk = r[on]
-        m = float(rk.mean())
-        means2 += m * m
-        noise += float(((rk - m) ** 2).sum()) / max(n - 1, 1) / n
-        g = J[on].sum(axis=0)
-        G += np.outer(g, g)
-    var_b = max(means2 - noise * (K - 2) / K, 0.0) / (K - 2)
+    n = n[on]
+    m = np.bincount(side, r, minlength=4)[on] / n                      # side means
+    sq = np.bincount(side, r * r, minlength=4)[on]
+    within = np.maximum(sq - n * m * m, 0.0) / np.maximum(n - 1.0, 1.0)
+    g = np.stack([np.bincount(side, J[:, j], minlength=4)[on] for j in range(3)], 1)
+    G = g.T @ g                                                         # Σ_k g_k g_kᵀ
+    var_b = max(float(m @ m) - float((within / n).sum()) * (K - 2) / K, 0.0) / (K - 2)
     return var_b * (A @ G @ A)
 
 
