@@ -418,9 +418,8 @@ def undistort_segments(camera: CameraModel, segs_px: np.ndarray) -> np.ndarray:
 def segment_lines(segs: np.ndarray) -> np.ndarray:
     """Homogeneous lines ``(N, 3)`` through segments ``(N, 4)``, ``hypot(a, b) = 1``."""
     s = np.asarray(segs, dtype=np.float64).reshape(-1, 4)
-    p1 = np.hstack([s[:, :2], np.ones((s.shape[0], 1))])
-    p2 = np.hstack([s[:, 2:], np.ones((s.shape[0], 1))])
-    ln = np.cross(p1, p2)
+    x1, y1, x2, y2 = s[:, 0], s[:, 1], s[:, 2], s[:, 3]
+    ln = np.stack([y1 - y2, x2 - x1, x1 * y2 - y1 * x2], axis=1)    # (x1, y1, 1) x (x2, y2, 1)
     return ln / np.maximum(np.hypot(ln[:, 0], ln[:, 1]), 1e-300)[:, None]
 
 

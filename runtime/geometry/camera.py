@@ -92,6 +92,10 @@ class CameraModel:
         object.__setattr__(self, "_key", (self.width, self.height, self.model,
                                           (self.K + 0.0).tobytes(), (self.dist + 0.0).tobytes()))
         object.__setattr__(self, "_distorted", bool(np.any(self.dist != 0.0)))
+        k8 = np.zeros(8)
+        if self.model != "equidistant":
+            k8[:dist.size] = dist
+        object.__setattr__(self, "_k8", tuple(float(v) for v in k8))
 
     # -- identity -------------------------------------------------------------------
     @property
@@ -179,9 +183,7 @@ class CameraModel:
                 sc = np.where(r > 1e-12, thd / r, 1.0)
             xd, yd = x * sc, y * sc
         else:
-            k = np.zeros(8)
-            k[:d.size] = d
-            k1, k2, p1, p2, k3, k4, k5, k6 = k
+            k1, k2, p1, p2, k3, k4, k5, k6 = self._k8  # type: ignore[attr-defined]
             r2 = x * x + y * y
             rad = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
             xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)

@@ -173,7 +173,10 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
         J = ((rr[1:] - r) / JAC_EPS).T
         if it == GN_ITERATIONS:
             break
-        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        try:                        # the normal equations: a 3x3 solve (lstsq's SVD: 3x)
+            step = np.linalg.solve(J.T @ J, -(J.T @ r))
+        except np.linalg.LinAlgError:
+            step, *_ = np.linalg.lstsq(J, -r, rcond=None)
         if np.max(np.abs(step)) < GN_STEP_EPS:
             break                   # r, J at the converged pose serve the covariance
         pose = pose + step

@@ -116,7 +116,8 @@ class Windows:
         margin = BORDER_PX + self.options.track_window_px + 1.0
         inside = self.geo.camera.in_image(px.reshape(-1, 2), margin).reshape(-1, 4).all(1)
         u, v = px[..., 0], px[..., 1]
-        area = np.abs(np.sum(u * np.roll(v, -1, 1) - np.roll(u, -1, 1) * v, axis=1))
+        nxt = [1, 2, 3, 0]
+        area = np.abs(np.sum(u * v[:, nxt] - u[:, nxt] * v, axis=1))
         return [(self.targets[k], px[k]) for k in np.argsort(-area) if inside[k]]
 
     def fixes(self, grey: np.ndarray, pose: np.ndarray, solve: Callable[..., Any],
