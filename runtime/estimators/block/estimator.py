@@ -67,7 +67,7 @@ from ceilkit.runtime.estimators.block.pnp import (
     refine,
     six_dof_check,
 )
-from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, predicted_chords
+from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides, predicted_chords
 from ceilkit.runtime.estimators.block.window import WINDOW, Windows, shape_fits, targets_of
 from ceilkit.runtime.features.lines import (
     SegmentDetector,
@@ -197,6 +197,7 @@ class BlockEstimator(Estimator):
         self._dark = markers is not None or any(b.appearance != "bright" for b in site.blocks)
         self._segs = SegmentDetector("fld", o.parallels_min_px) if o.parallels else None
         self._corridor = site.corridor if site.has_section("corridor") else None
+        self._lined = LinedSides(self._corridor)
         self._parallels_mode = ""
         self._odo = PlaneOdometry(self.geo) if o.plane_odometry else None
         _check_track_options(o)
@@ -399,8 +400,9 @@ class BlockEstimator(Estimator):
         x, y, yaw, shape = closed_form(self.geo, sides.corners_norm, corners_w)
         if not math.isfinite(x):
             return None
-        scale = magnification(self.geo.camera, sides.edge_norm)
-        ref = refine(self.geo, (x, y, yaw), corners_w, sides.edge_norm, sides.side, scale)
+        edge, side = self._lined.clean(corners_w, sides.edge_norm, sides.side)
+        scale = magnification(self.geo.camera, edge)
+        ref = refine(self.geo, (x, y, yaw), corners_w, edge, side, scale)
         if not np.all(np.isfinite(ref.pose)):
             return None
         return _Fix(source, ref, shape, sides.corners_norm, corners_w, resolved_by)

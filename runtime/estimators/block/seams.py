@@ -51,6 +51,67 @@ def site_lines(corridor, centre: np.ndarray, reach_m: float = REACH_M
     return p0, d
 
 
+ON_LINE_M = 0.015     # sides_on_lines: a block's side this near a ceiling line touches it
+ON_LINE_SIN = math.sin(math.radians(2.0))   # ... and this near parallel to it
+
+
+def sides_on_lines(corridor, corners_w: np.ndarray, tol_m: float = ON_LINE_M) -> np.ndarray:
+    """``(4,)`` bool: which sides of a block (side k from corner k to k+1 of
+    ``corners_w`` ``(4, 2)``, W) lie on one of the site's ceiling lines (a seam, a
+    T-bar, a lamp's edge): parallel to it and both ends within ``tol_m``. Such a side's
+    edge is not a clean step: a line narrower than the blur just outside it moves
+    every station's half-way crossing the same way (configs/block's tile B ends on the
+    x = 5.4 m seam: ~0.3 px, 1.3 mm of x error). ``corridor=None``: none."""
+    out = np.zeros(4, bool)
+    if corridor is None:
+        return out
+    c = np.asarray(corners_w, float)
+    p0, d = site_lines(corridor, c.mean(axis=0), float(np.ptp(c, axis=0).max()) + 1.0)
+    if len(p0) == 0:
+        return out
+    a, b = c, c[[1, 2, 3, 0]]
+    run = b - a
+    length = np.hypot(run[:, 0], run[:, 1])
+    for k in range(4):
+        cross = np.abs(run[k, 0] * d[:, 1] - run[k, 1] * d[:, 0]) / max(length[k], 1e-12)
+        da = np.abs((a[k, 0] - p0[:, 0]) * d[:, 1] - (a[k, 1] - p0[:, 1]) * d[:, 0])
+        db = np.abs((b[k, 0] - p0[:, 0]) * d[:, 1] - (b[k, 1] - p0[:, 1]) * d[:, 0])
+        out[k] = bool(np.any((cross < ON_LINE_SIN) & (da < tol_m) & (db < tol_m)))
+    return out
+
+
+class LinedSides:
+    """The sides of a block the refinement leaves out: those on a ceiling line of the
+    site (:func:`sides_on_lines`) whose opposite side is not (a pair both on lines
+    shrinks or grows the block evenly: its centre does not move, and the size check's
+    term, :func:`.pnp.side_offset_cov`, covers it). ``self(corners_w)`` gives ``(4,)``
+    bool, cached per corner order (a block's, and each of its symmetric turns)."""
+
+    def __init__(self, corridor) -> None:
+        self.corridor = corridor
+        self._cache: dict[bytes, np.ndarray] = {}
+
+    def __call__(self, corners_w: np.ndarray) -> np.ndarray:
+        key = np.asarray(corners_w, float).tobytes()
+        got = self._cache.get(key)
+        if got is None:
+            on = sides_on_lines(self.corridor, corners_w)
+            got = on & ~on[[2, 3, 0, 1]]
+            got.setflags(write=False)
+            self._cache[key] = got
+        return got
+
+    def clean(self, corners_w: np.ndarray, edge: np.ndarray, side: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """The edge points ``(M, 2)`` and their sides ``(M,)`` without those of the
+        left-out sides of ``corners_w``."""
+        drop = self(corners_w)
+        if not drop.any():
+            return edge, side
+        keep = ~drop[side]
+        return edge[keep], side[keep]
+
+
 def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
                      reach_m: float = REACH_M, max_chords: int = MAX_CHORDS) -> np.ndarray:
     """Pixel chords ``(N, 4)`` along the site's ceiling lines seen from ``pose``, at most
