@@ -226,6 +226,10 @@ def detect_quads(grey: np.ndarray, dark: bool, min_area_px: float = MIN_QUAD_ARE
     return out
 
 
+_NEXT4 = np.array([1, 2, 3, 0])
+_PREV4 = np.array([3, 0, 1, 2])
+
+
 def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float = 0.5
                       ) -> np.ndarray:
     """Corners ``(4, 2)`` of a four-sided contour ``(M, 2)`` (every boundary pixel) as
@@ -247,7 +251,7 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
             return poly
         idx.append(int(hit[0]))
     i0 = np.array(idx)
-    run = (np.roll(i0, -1) - i0) % m
+    run = (i0[_NEXT4] - i0) % m
     lo = i0 + np.rint(run * (0.5 - SIDE_FIT_KEEP / 2)).astype(int)
     hi = i0 + np.rint(run * (0.5 + SIDE_FIT_KEEP / 2)).astype(int)
     count = hi - lo
@@ -268,11 +272,13 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     flip = np.where(a * (mx - c[0]) + b * (my - c[1]) < 0, -1.0, 1.0)   # outwards
     a, b = a * flip, b * flip
     lines = np.stack([a, b, -(a * mx + b * my) - outwards_px], axis=1)
-    corners = np.cross(np.roll(lines, 1, axis=0), lines)
-    if np.any(np.abs(corners[:, 2]) < 1e-12):
+    p = lines[_PREV4]                      # side k-1 meets side k (no np.cross/np.roll)
+    w = p[:, 0] * lines[:, 1] - p[:, 1] * lines[:, 0]
+    if np.any(np.abs(w) < 1e-12):
         return poly
-    out = corners[:, :2] / corners[:, 2:3]
-    side = np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1)
+    out = np.stack([(p[:, 1] * lines[:, 2] - p[:, 2] * lines[:, 1]) / w,
+                    (p[:, 2] * lines[:, 0] - p[:, 0] * lines[:, 2]) / w], axis=1)
+    side = np.linalg.norm(poly[_NEXT4] - poly, axis=1)
     if np.max(np.linalg.norm(out - poly, axis=1)) > 0.25 * float(side.min()):
         return poly
     return out
@@ -281,7 +287,8 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
 def _signed_area(pts: np.ndarray) -> float:
     """Shoelace area of a polygon ``(n, 2)`` in (u, v): > 0 clockwise as displayed."""
     u, v = pts[:, 0], pts[:, 1]
-    return 0.5 * float(np.dot(u, np.roll(v, -1)) - np.dot(np.roll(u, -1), v))
+    nxt = np.arange(1, u.size + 1) % u.size
+    return 0.5 * float(np.dot(u, v[nxt]) - np.dot(u[nxt], v))
 
 
 def _float_crop(grey: np.ndarray, lo: np.ndarray, hi: np.ndarray

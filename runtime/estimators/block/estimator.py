@@ -480,7 +480,8 @@ def _heading_update(pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading
 
 def _shoelace(p: np.ndarray) -> float:
     x, y = p[:, 0], p[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+    nxt = np.arange(1, x.size + 1) % x.size
+    return 0.5 * float(np.dot(x, y[nxt]) - np.dot(x[nxt], y))
 
 
 def _pick_by_prior(fits: list, prior: PoseEstimate | None) -> int | None:

@@ -84,7 +84,7 @@ def shape_fits(blocks: Any, pv: np.ndarray, dark: bool, shape_tol: float
             continue
         tol = shape_tol * float(side_lengths_m(blk.corners_m).min())
         for shift in range(4):
-            yaw, t, rms = rigid_fit_rms(pv, np.roll(blk.corners_m, -shift, axis=0))
+            yaw, t, rms = rigid_fit_rms(pv, blk.corners_m[(np.arange(4) + shift) % 4])
             if rms < tol:
                 out.append((blk, shift, rms, (float(t[0]), float(t[1]), yaw)))
     return out
