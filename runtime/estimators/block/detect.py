@@ -102,6 +102,7 @@ def find_quads(grey: np.ndarray, dark: bool, ratio: float,
 
 
 _PREV_SIDE = np.array([3, 0, 1, 2])
+_NEXT_SIDE = np.array([1, 2, 3, 0])
 
 
 def fit_side_lines(points: np.ndarray, side: np.ndarray) -> np.ndarray:
@@ -144,7 +145,8 @@ def sharpen_corners(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 8
 
 def side_lengths_m(points_v: np.ndarray) -> np.ndarray:
     """``(4,)`` side lengths of a quad ``(4, 2)`` on the ceiling (side k: corner k to k+1)."""
-    return np.linalg.norm(np.roll(points_v, -1, axis=0) - points_v, axis=1)
+    d = points_v[_NEXT_SIDE] - points_v
+    return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
 
 
 @functools.lru_cache(maxsize=8)

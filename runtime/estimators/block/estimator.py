@@ -422,7 +422,7 @@ class BlockEstimator(Estimator):
         if pose is None:
             return marker_id
         # corner s of the quad is the printed top-left: aruco's corner 0 (SPEC §2)
-        sides = Sides(np.roll(sides.corners_norm, -s, axis=0), sides.edge_norm,
+        sides = Sides(sides.corners_norm[(np.arange(4) + s) % 4], sides.edge_norm,
                       (sides.side - s) % 4, sides.stations)
         return self._solve(sides, pose.corners_m(), f"marker:{marker_id}", "id")
 
@@ -454,7 +454,7 @@ class BlockEstimator(Estimator):
         else:
             blk, shift, _, _ = fits[0]
             resolved = "shape"
-        corners_w = np.roll(blk.corners_m, -shift, axis=0)
+        corners_w = blk.corners_m[(np.arange(4) + shift) % 4]
         return self._solve(sides, corners_w, f"block:{blk.id}", resolved)
 
 
