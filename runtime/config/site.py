@@ -13,6 +13,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -273,6 +274,28 @@ class Site:
         for polygon in self.ignore_m:
             mask |= points_in_polygon(pts, polygon)
         return mask
+
+    def touches_ignored(self, corners_w: np.ndarray) -> bool:
+        """Whether a quad ``(4, 2)`` (a block's or a marker's corners, W) reaches into an
+        ``ignore`` region: a corner, the centre or a side's midpoint inside one."""
+        if not self.ignore_m:
+            return False
+        c = np.asarray(corners_w, float).reshape(-1, 2)
+        probe = np.concatenate([c, c.mean(axis=0, keepdims=True),
+                                0.5 * (c + c[np.arange(1, len(c) + 1) % len(c)])])
+        return bool(self.ignored(probe).any())
+
+    def without_ignored(self) -> Site:
+        """This site without the blocks and markers that reach into an ``ignore`` region
+        (SPEC §2: regions no method should use); itself when it has no region."""
+        if not self.ignore_m:
+            return self
+        blocks = tuple(b for b in self.blocks if not self.touches_ignored(b.corners_m))
+        markers = self.markers
+        if markers is not None:
+            markers = dataclasses.replace(markers, poses=tuple(
+                m for m in markers.poses if not self.touches_ignored(m.corners_m())))
+        return dataclasses.replace(self, blocks=blocks, markers=markers)
 
     def to_dict(self) -> dict[str, Any]:
         """The ``site.yaml`` mapping; :meth:`from_node` of it gives this site back."""

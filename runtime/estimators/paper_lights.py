@@ -101,7 +101,11 @@ class PaperLightsEstimator(Estimator):
                                  min_relative_contrast=0.0, min_axis_ratio=0.0,
                                  max_spots=o.max_spots)
         self.angle_bin_rad = math.radians(o.angle_bin_deg)
-        self.lights_w = np.asarray(site.lights_m, float)
+        lights = np.asarray(site.lights_m, float)
+        self.lights_w = lights[~site.ignored(lights)]    # SPEC §2: ignore regions unused
+        if self.lights_w.shape[0] < 3:
+            raise ConfigError(site.source, "ignore", "fewer than 3 lights of the map lie "
+                              "outside the ignore regions: paper-lights needs 3")
         self.pair_i, self.pair_j = np.triu_indices(self.lights_w.shape[0], 1)
         # camera (x, y) -> vehicle (x, y) for a camera looking up
         self.R2_vehicle_cam = rig.mount.R_vehicle_cam[:2, :2]

@@ -166,6 +166,7 @@ class BlockEstimator(Estimator):
 
     def __init__(self, rig: Any, site: Any,
                  options: BlockOptions | dict[str, Any] | None = None) -> None:
+        site = _usable(site)
         super().__init__(rig, site, options)
         check_rig_site(rig, site)
         o = self.options
@@ -215,7 +216,7 @@ class BlockEstimator(Estimator):
         (:func:`.seams.predicted_chords`); else segments are detected on the frame."""
         segs = np.zeros((0, 4))
         if pose is not None and self._corridor is not None:
-            segs = predicted_chords(self.geo, self._corridor, pose, max_chords=max_chords)
+            segs = predicted_chords(self.geo, self._corridor, pose, max_chords, self.site)
             mode = "predicted"
         if len(segs) < 2:
             segs = self._segs(grey)
@@ -476,6 +477,16 @@ def _heading_update(pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading
     pose = pose + gain * math.remainder(h.yaw_rad - pose[2], 2 * math.pi)
     cov = cov - np.outer(gain, cov[2, :])
     return pose, 0.5 * (cov + cov.T)
+
+
+def _usable(site: Any) -> Any:
+    """The site without the blocks and markers reaching into an ``ignore`` region (SPEC
+    §2: no method uses them); a ConfigError when none is left."""
+    used = site.without_ignored()
+    if site.ignore_m and not (used.has_section("blocks") or used.has_section("markers")):
+        raise ConfigError(site.source, "ignore", "every block and marker reaches into an "
+                          "ignore region: the block method has nothing to use")
+    return used
 
 
 def _shoelace(p: np.ndarray) -> float:

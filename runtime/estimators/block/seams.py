@@ -113,9 +113,11 @@ class LinedSides:
 
 
 def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
-                     reach_m: float = REACH_M, max_chords: int = MAX_CHORDS) -> np.ndarray:
+                     max_chords: int = MAX_CHORDS, site=None, reach_m: float = REACH_M
+                     ) -> np.ndarray:
     """Pixel chords ``(N, 4)`` along the site's ceiling lines seen from ``pose``, at most
-    ``max_chords`` of them spread over the lines (one projection of every sample)."""
+    ``max_chords`` of them spread over the lines (one projection of every sample).
+    With ``site``, samples inside its ``ignore`` regions are not used (SPEC §2)."""
     x, y, yaw = (float(v) for v in pose)
     rz = rot_z(yaw)
     R_wc = rz @ geo.R_vehicle_cam
@@ -140,6 +142,8 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
         if np.any(front):
             px[front] = geo.camera.distort(pc[front, :2] / pc[front, 2:3])
     inside = (front & geo.camera.in_image(px, MARGIN_PX)).reshape(n_lines, n_t)
+    if site is not None and site.ignore_m:
+        inside &= ~site.ignored(pts[..., :2])
     px = px.reshape(n_lines, n_t, 2)
     k = CHORD_SAMPLES - 1
     # non-overlapping windows of CHORD_SAMPLES samples, every k-th start, all inside

@@ -196,7 +196,15 @@ class LightsEstimator(Estimator):
                               f"expected one of {', '.join(SPOT_STAGES)}, found {o.spot_stage!r}")
         self.extent = SiteExtent.from_site(site)
         self.ceiling_height_m = site.ceiling_height_m
-        self.lights_w = np.asarray(site.lights_m, float)
+        all_w = np.asarray(site.lights_m, float)
+        # lights in an ignore region (SPEC §2: no method uses them): not in the map the
+        # method matches, expects or refines against; ``site_ids`` maps back
+        keep = ~site.ignored(all_w)
+        if not keep.any():
+            raise ConfigError(site.source, "ignore", "every light of the map lies in an "
+                              "ignore region: the lights method has nothing to use")
+        self.site_ids = np.flatnonzero(keep)
+        self.lights_w = all_w[keep]
         spacing_m = _min_spacing(self.lights_w)
         if spacing_m < 1e-3:
             raise ConfigError(site.source, "lights",
@@ -263,8 +271,9 @@ class LightsEstimator(Estimator):
                              **diag)
         rms = math.sqrt(float((res * res).sum()) / res.size)
         quality = pose_quality(k, rms, cand, runner, mode)
-        diag.update({"inliers": k, "matched_lights": tuple(pairs[:, 1].tolist()),
-                     "pairs": pairs,  # (spot index in spots_px, light index in the site)
+        site_pairs = np.column_stack([pairs[:, 0], self.site_ids[pairs[:, 1]]])
+        diag.update({"inliers": k, "matched_lights": tuple(site_pairs[:, 1].tolist()),
+                     "pairs": site_pairs,  # (spot index in spots_px, light index in the site)
                      "rms_px": rms, "mode": mode, "score": cand.score,
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": elapsed_ms(t0)})
@@ -313,8 +322,10 @@ class LightsEstimator(Estimator):
         quality = pose_quality(k, rms, cand, None, "tracked")
         diag = {"spots": len(fix.spots), "candidates": fix.predicted,
                 "spots_px": fix.spots.centroids_px, "candidates_px": fix.predicted_px,
-                "kept": None, "inliers": k, "matched_lights": tuple(fix.pairs[:, 1].tolist()),
-                "pairs": fix.pairs, "rms_px": rms, "mode": "window", "score": float(k),
+                "kept": None, "inliers": k,
+                "matched_lights": tuple(self.site_ids[fix.pairs[:, 1]].tolist()),
+                "pairs": np.column_stack([fix.pairs[:, 0], self.site_ids[fix.pairs[:, 1]]]),
+                "rms_px": rms, "mode": "window", "score": float(k),
                 "runner_up_score": None, "ms": elapsed_ms(t0)}
         # the same model check as the global path; a window fix that fails it is not
         # published: the global search decides the frame

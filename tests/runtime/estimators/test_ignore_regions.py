@@ -1,0 +1,103 @@
+"""SPEC §2 ``ignore``: regions of the ceiling no method uses. A light, block or marker
+there is not in the map the method matches, expects or refines against; a ceiling line
+there gives the block method's parallels no chord."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.estimators.block.estimator import BlockEstimator
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.block.seams import predicted_chords
+from ceilkit.runtime.estimators.lights.rays import project_lights
+from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.sim.render import SimOptions, render_frame
+from helpers import CONFIGS
+
+NOISY = SimOptions(noise_sigma=2.0, blur_px=0.8)
+
+
+def square(cx: float, cy: float, half: float) -> np.ndarray:
+    return np.array([[cx - half, cy - half], [cx + half, cy - half], [cx + half, cy + half],
+                     [cx - half, cy + half]])
+
+
+def test_a_moved_light_in_an_ignore_region_is_not_used():
+    """A lamp moved 3 cm since the survey is within the outlier pass's reach: it is
+    matched and pulls the pose 6 mm. Marked as an ignore region, it is not used: the
+    pose comes from the others, and the diagnostics still name the site's indices."""
+    rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
+    site = Site.load(CONFIGS / "lights" / "site.yaml")
+    x, y, yaw = 4.6, 0.3, math.radians(20.0)
+    lights = np.array(site.lights_m, float)
+    k = int(np.argmin(np.hypot(lights[:, 0] - x, lights[:, 1] - y)))   # the one overhead
+    moved = lights.copy()
+    moved[k] += (0.03, 0.0)
+    truth = dataclasses.replace(site, lights_m=moved)
+    img = render_frame(rig, truth, x, y, yaw, NOISY, np.random.default_rng(2))
+    plain = make_estimator("lights", rig, site, None).estimate(img, 0)
+    marked = dataclasses.replace(site, ignore_m=(square(*lights[k], 0.3),))
+    got = make_estimator("lights", rig, marked, None).estimate(img, 0)
+    assert plain and got
+    assert k in plain.diagnostics["matched_lights"]
+    assert k not in got.diagnostics["matched_lights"]
+    err_plain = math.hypot(plain.x_m - x, plain.y_m - y)
+    err = math.hypot(got.x_m - x, got.y_m - y)
+    assert err_plain > 0.004 and err < 0.001
+    # the indices are the site's: each matched spot is where the site's light of that
+    # index projects from the true pose
+    pairs = np.asarray(got.diagnostics["pairs"], int)
+    spots = np.asarray(got.diagnostics["spots_px"], float)[pairs[:, 0]]
+    px = project_lights(rig, site.ceiling_height_m, lights[pairs[:, 1]], x, y, yaw)
+    assert np.max(np.hypot(*(spots - px).T)) < 1.0
+
+
+def test_a_marker_in_an_ignore_region_is_not_used():
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    m1 = site.markers.pose(1)
+    marked = dataclasses.replace(site, ignore_m=(square(m1.x_m, m1.y_m, 0.3),))
+    used = marked.without_ignored()
+    assert [m.id for m in used.markers.poses] == [0, 2, 3]
+    assert [b.id for b in used.blocks] == ["A", "B"]
+    x, y, yaw = m1.x_m, m1.y_m + 0.1, 0.2                      # marker 1 overhead, alone
+    img = render_frame(rig, site, x, y, yaw, NOISY, np.random.default_rng(5))
+    prior = PoseEstimate(0, "prior", x, y, yaw, 1.0)
+    opts = {"plane_odometry": False}
+    seen = BlockEstimator(rig, site, opts).estimate(img, 0, prior)
+    assert seen and seen.diagnostics["source"] == "marker:1"
+    got = BlockEstimator(rig, marked, opts).estimate(img, 0, prior)
+    assert not (got and got.x_m is not None and got.diagnostics.get("source") == "marker:1")
+
+
+def test_parallels_take_no_chord_inside_an_ignore_region():
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    geo = PlanarGeometry.of(rig, site)
+    pose = np.array([3.0, 0.0, 0.1])
+    every = predicted_chords(geo, site.corridor, pose, 40, site)
+    marked = dataclasses.replace(site, ignore_m=(square(3.0, 0.0, 50.0),))   # all of it
+    assert len(every) > 4 and len(predicted_chords(geo, site.corridor, pose, 40, marked)) == 0
+
+
+def test_everything_ignored_is_a_one_line_error():
+    rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
+    site = Site.load(CONFIGS / "lights" / "site.yaml")
+    marked = dataclasses.replace(site, ignore_m=(square(0.0, 0.0, 100.0),))
+    for method in ("lights", "paper-lights"):
+        with pytest.raises(ConfigError) as e:
+            make_estimator(method, rig, marked, None)
+        assert "ignore" in str(e.value) and "\n" not in str(e.value)
+    brig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    bsite = Site.load(CONFIGS / "block" / "site.yaml")
+    with pytest.raises(ConfigError) as e:
+        BlockEstimator(brig, dataclasses.replace(bsite, ignore_m=(square(0.0, 0.0, 100.0),)))
+    assert "ignore" in str(e.value) and "\n" not in str(e.value)
