@@ -200,7 +200,7 @@ class BlockEstimator(Estimator):
         self._corridor = site.corridor if site.has_section("corridor") else None
         self._lined = LinedSides(self._corridor)
         self._parallels_mode = ""
-        self._odo = PlaneOdometry(self.geo) if o.plane_odometry else None
+        self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
         _check_track_options(o)
         self._fixed = True      # the previous frame had a fix (no track to carry yet)
         self.windows = Windows(self.geo, targets_of(site, markers, o.shape_tol), o)
@@ -245,7 +245,7 @@ class BlockEstimator(Estimator):
             return got
         fixed, gap = bool(got) and got.x_m is not None, not self._fixed
         self._fixed = fixed
-        inc = self._odo.increment(grey, t_ns, measure=not fixed or gap)
+        inc = self._odo.increment(grey, t_ns, not fixed or gap, prior)
         if inc is None:
             return got
         return dataclasses.replace(got, diagnostics={**got.diagnostics, INCREMENT: inc,

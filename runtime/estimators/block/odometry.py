@@ -147,8 +147,9 @@ def corner_like(grey: np.ndarray, pts: np.ndarray) -> np.ndarray:
 class PlaneOdometry:
     """Frame-to-frame ceiling-plane odometry (see the module); one instance per stream."""
 
-    def __init__(self, geo: PlanarGeometry) -> None:
+    def __init__(self, geo: PlanarGeometry, site=None) -> None:
         self.geo = geo
+        self.site = site if site is not None and site.ignore_m else None
         self._prev: np.ndarray | None = None
         self._t_prev: int | None = None
 
@@ -163,22 +164,25 @@ class PlaneOdometry:
             return None
         return self._motion(prev, grey)
 
-    def increment(self, grey: np.ndarray, t_ns: int, measure: bool = True
+    def increment(self, grey: np.ndarray, t_ns: int, measure: bool = True, near=None
                   ) -> PlaneIncrement | None:
         """The motion since the previous frame (at its stamp ``t0_ns``) as a
         :class:`~ceilkit.runtime.estimators.base.PlaneIncrement`; ``measure=False`` only
-        keeps the frame (an absolute fix makes the increment moot: no KLT spent)."""
+        keeps the frame (an absolute fix makes the increment moot: no KLT spent).
+        ``near``: a pose (``x_m``, ``y_m``, ``yaw_rad``; the prior) that places the
+        tracks on the ceiling: those inside the site's ``ignore`` regions are not used
+        (SPEC §2: a fan, a moving shadow); without it every track counts."""
         prev, t_prev = self._prev, self._t_prev
         self._prev, self._t_prev = grey, int(t_ns)
         if not measure or prev is None or t_prev is None or not \
                 0 < (t_ns - t_prev) * 1e-9 <= MAX_GAP_S:
             return None
-        inc = self._motion(prev, grey)
+        inc = self._motion(prev, grey, near)
         if inc is None:
             return None
         return PlaneIncrement(t_prev, inc.dx_m, inc.dy_m, inc.dyaw_rad, inc.cov)
 
-    def _motion(self, prev: np.ndarray, grey: np.ndarray) -> Increment | None:
+    def _motion(self, prev: np.ndarray, grey: np.ndarray, near=None) -> Increment | None:
         pts = cv2.goodFeaturesToTrack(prev, CANDIDATES, CORNER_QUALITY, 8, blockSize=5)
         if pts is None or len(pts) < MIN_TRACKS:
             return None
@@ -195,4 +199,9 @@ class PlaneOdometry:
         q = ceiling_points_vehicle(self.geo, cam.unproject(pts.reshape(-1, 2)[ok]))
         p = ceiling_points_vehicle(self.geo, cam.unproject(nxt.reshape(-1, 2)[ok]))
         good = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(p), axis=1)
+        if self.site is not None and near is not None and near.x_m is not None \
+                and near.y_m is not None:
+            c, s = math.cos(near.yaw_rad), math.sin(near.yaw_rad)
+            w = q @ np.array([[c, s], [-s, c]]) + (near.x_m, near.y_m)     # V -> W
+            good &= ~self.site.ignored(np.where(np.isfinite(w), w, 0.0))
         return plane_motion(q[good], p[good])

@@ -70,7 +70,7 @@ from ceilkit.runtime.estimators.corridor.setup import (
     check_setup,
     default_match_tol_m,
 )
-from ceilkit.runtime.estimators.corridor.track import LineTracker
+from ceilkit.runtime.estimators.corridor.track import LineTracker, without_ignored
 from ceilkit.runtime.estimators.honesty import (
     DEFAULT_ALPHA,
     HEADING_DISAGREES,
@@ -84,6 +84,7 @@ from ceilkit.runtime.estimators.honesty import (
     misfit,
     outside_site,
 )
+from ceilkit.runtime.estimators.ignore import IgnoreRegions
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.lines import SegmentDetector
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
@@ -221,6 +222,7 @@ class CorridorEstimator(Estimator):
         self.lines_track = (LineTracker(self.setup, cam, o.track_search_px) if o.track
                             else None)
         self._tracked_fixes = 0  # tracked fixes since the last global search
+        self._ignore = IgnoreRegions.of(rig, site)
 
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
@@ -236,6 +238,9 @@ class CorridorEstimator(Estimator):
                 return fast
         segs, len_px, pol, fit_rms = frame_segments(grey, self.rig.camera, self.detector,
                                                     o.max_segments, o.refine, o.edge_fit)
+        keep = None if self._ignore is None else self._ignore.keep_segments(segs, prior)
+        if keep is not None:        # SPEC §2: nothing inside an ignore region is used
+            segs, len_px, pol, fit_rms = segs[keep], len_px[keep], pol[keep], fit_rms[keep]
         return self._from_segments(segs, len_px, t_ns, prior, fit_rms, pol, t0)
 
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
@@ -250,7 +255,7 @@ class CorridorEstimator(Estimator):
         yaw = prior.yaw_rad
         psi = yaw + st.pan_rad
         cy = float(prior.y_m) + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
-        m = self.lines_track.measure(grey, psi, cy)
+        m = without_ignored(self.lines_track.measure(grey, psi, cy), self._ignore, prior)
         out = None
         if m is not None:
             n = m.segs_n.shape[0]

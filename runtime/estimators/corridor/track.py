@@ -27,6 +27,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -84,6 +85,20 @@ class LineMeasurement:
     @property
     def n_lines(self) -> int:
         return int(np.unique(self.line).size)
+
+
+def without_ignored(m: LineMeasurement | None, regions, pose) -> LineMeasurement | None:
+    """``m`` without the chords inside the site's ``ignore`` regions seen from ``pose``
+    (:class:`~ceilkit.runtime.estimators.ignore.IgnoreRegions`; SPEC §2), None when
+    fewer than two site lines keep a chord; ``m`` itself with no region or no pose."""
+    keep = None if m is None or regions is None else regions.keep_segments(m.segs_n, pose)
+    if keep is None or keep.all():
+        return m
+    if np.unique(m.line[keep]).size < 2:
+        return None
+    return dataclasses.replace(m, segs_n=m.segs_n[keep], segs_px=m.segs_px[keep],
+                               line=m.line[keep], polarity=m.polarity[keep],
+                               rms_px=m.rms_px[keep])
 
 
 class LineTracker:

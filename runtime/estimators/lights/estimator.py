@@ -247,7 +247,7 @@ class LightsEstimator(Estimator):
             fast = self._tracked(grey, t_ns, prior, t0)
             if fast is not None:
                 return fast
-        obs = self.observer.observe(grey)
+        obs = self.observer.observe(grey).outside(self.site, prior)   # SPEC §2 ignore
         n = len(obs.spots)
         diag: dict[str, Any] = {"spots": n, "candidates": obs.spots.n_candidates,
                                 # for overlays (references): spots used, examined, kept

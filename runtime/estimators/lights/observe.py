@@ -17,6 +17,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -62,6 +63,22 @@ class Observation:
     jac_px: np.ndarray
     candidates_px: np.ndarray | None = None  # every examined spot's centroid (overlays)
     kept: np.ndarray | None = None  # which of them passed the checks (None: all)
+
+    def outside(self, site, pose) -> Observation:
+        """Without the spots whose ceiling point lies in one of the site's ``ignore``
+        regions seen from ``pose`` (``x_m``, ``y_m``, ``yaw_rad``: a prior; SPEC §2),
+        itself when there is none or the pose has no position."""
+        if not site.ignore_m or pose is None or pose.x_m is None or pose.y_m is None:
+            return self
+        c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+        w = self.q_v @ np.array([[c, s], [-s, c]]) + (pose.x_m, pose.y_m)   # V -> W
+        keep = ~site.ignored(w)
+        if keep.all():
+            return self
+        new = np.cumsum(keep) - 1
+        return dataclasses.replace(self, spots=self.spots.select(keep), q_v=self.q_v[keep],
+                                   order=new[self.order[keep[self.order]]],
+                                   jac_px=self.jac_px[keep])
 
 
 def disc_offsets(rig: Rig, ceiling_height_m: float, light_radius_m: float,

@@ -104,3 +104,33 @@ def test_tracks_spread_past_a_marker():
     e = np.array([inc.dx_m - dx, inc.dy_m - dy, inc.dyaw_rad])
     assert float(e @ np.linalg.solve(inc.cov, e)) < 16.3     # chi-square 3 dof, 99.9 %
     assert math.hypot(e[0], e[1]) < 3e-4
+
+
+def test_tracks_inside_an_ignore_region_are_not_used():
+    """With a pose placing the tracks on the ceiling, those inside the site's ``ignore``
+    regions (a fan, a moving shadow) are not used; a region elsewhere changes nothing."""
+    import dataclasses
+
+    from ceilkit.runtime.estimators.base import PoseEstimate
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    opts = SimOptions(noise_sigma=2.0, blur_px=1.0)
+    x, y, yaw = 1.0, 0.1, 0.3
+    a = render_frame(rig, site, x, y, yaw, opts, np.random.default_rng(1))
+    b = render_frame(rig, site, x + 0.03, y, yaw, opts, np.random.default_rng(2))
+    near = PoseEstimate(0, "prior", x, y, yaw, 1.0)
+
+    def step(s, pose):
+        odo = PlaneOdometry(PlanarGeometry.of(rig, s), s)
+        odo.increment(a, 0)
+        return odo.increment(b, 33_000_000, near=pose)
+
+    def box(cx, cy, h):
+        return np.array([[cx - h, cy - h], [cx + h, cy - h], [cx + h, cy + h], [cx - h, cy + h]])
+
+    plain = step(site, near)
+    far = step(dataclasses.replace(site, ignore_m=(box(40.0, 40.0, 1.0),)), near)
+    assert plain is not None and far is not None and far.dx_m == plain.dx_m
+    everywhere = dataclasses.replace(site, ignore_m=(box(x, y, 50.0),))
+    assert step(everywhere, near) is None                      # every track ignored
+    assert step(everywhere, None) is not None                  # no pose: none placed

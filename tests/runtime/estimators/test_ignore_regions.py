@@ -101,3 +101,67 @@ def test_everything_ignored_is_a_one_line_error():
     with pytest.raises(ConfigError) as e:
         BlockEstimator(brig, dataclasses.replace(bsite, ignore_m=(square(0.0, 0.0, 100.0),)))
     assert "ignore" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_spots_inside_an_ignore_region_are_dropped_with_a_prior():
+    """With a prior placing the frame on the ceiling, a spot inside an ignore region (a
+    reflection, a skylight) is not used; without one nothing can be placed."""
+    rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
+    site = Site.load(CONFIGS / "lights" / "site.yaml")
+    x, y, yaw = 4.6, 0.3, math.radians(20.0)
+    img = render_frame(rig, site, x, y, yaw, NOISY, np.random.default_rng(2))
+    est = make_estimator("lights", rig, site, None)
+    obs = est.observer.observe(img)
+    lights = np.array(site.lights_m, float)
+    k = int(np.argmin(np.hypot(lights[:, 0] - x, lights[:, 1] - y)))
+    marked = dataclasses.replace(site, ignore_m=(square(*lights[k], 0.3),))
+    prior = PoseEstimate(0, "prior", x, y, yaw, 1.0)
+    out = obs.outside(marked, prior)
+    assert len(out.spots) == len(obs.spots) - 1
+    assert sorted(out.order.tolist()) == list(range(len(out.spots)))
+    # the dropped one is the spot nearest that light's pixel
+    px = project_lights(rig, site.ceiling_height_m, lights[k:k + 1], x, y, yaw)[0]
+    d = np.hypot(*(obs.spots.centroids_px - px).T)
+    assert not np.any(np.all(np.isclose(out.spots.centroids_px, obs.spots.centroids_px[
+        np.argmin(d)]), axis=1))
+    assert obs.outside(marked, None) is obs and obs.outside(site, prior) is obs
+
+
+@pytest.mark.parametrize("track", [False, True])
+def test_corridor_lines_inside_an_ignore_region_are_not_used(track):
+    """With a prior placing the frame (x known: a fused track, a start pose), segments
+    and chords inside an ignore region are not used; a region elsewhere changes
+    nothing; a prior without x places nothing."""
+    rig = Rig.load(CONFIGS / "corridor" / "rig.yaml")
+    site = Site.load(CONFIGS / "corridor" / "site.yaml")
+    x, y, yaw = 6.0, 0.05, math.radians(3.0)
+    img = render_frame(rig, site, x, y, yaw, NOISY, np.random.default_rng(3))
+    opts = {"track": track}
+    prior = PoseEstimate(0, "prior", x, y, yaw, 1.0)
+    plain = make_estimator("corridor", rig, site, opts).estimate(img, 0, prior)
+    assert plain and abs(plain.y_m - y) < 0.002
+
+    def run(region, p):
+        s = dataclasses.replace(site, ignore_m=(region,))
+        return make_estimator("corridor", rig, s, opts).estimate(img, 0, p)
+
+    far = run(square(x + 200.0, 0.0, 1.0), prior)
+    assert far and far.y_m == plain.y_m and far.yaw_rad == plain.yaw_rad
+    everywhere = run(square(x, y, 100.0), prior)
+    assert not everywhere                                       # nothing left to use
+    no_x = PoseEstimate(0, "prior", None, y, yaw, 1.0)
+    assert run(square(x, y, 100.0), no_x)                      # nothing placed
+
+
+def test_corridor_keeps_the_lines_outside_a_partial_ignore_region():
+    rig = Rig.load(CONFIGS / "corridor" / "rig.yaml")
+    site = Site.load(CONFIGS / "corridor" / "site.yaml")
+    x, y, yaw = 6.0, 0.05, math.radians(3.0)
+    img = render_frame(rig, site, x, y, yaw, NOISY, np.random.default_rng(3))
+    prior = PoseEstimate(0, "prior", x, y, yaw, 1.0)
+    left = np.array([[-50.0, 0.3], [50.0, 0.3], [50.0, 5.0], [-50.0, 5.0]])  # y > 0.3
+    s = dataclasses.replace(site, ignore_m=(left,))
+    got = make_estimator("corridor", rig, s, None).estimate(img, 0, prior)
+    plain = make_estimator("corridor", rig, site, None).estimate(img, 0, prior)
+    assert got and abs(got.y_m - y) < 0.001 and abs(math.degrees(got.yaw_rad - yaw)) < 0.01
+    assert got.diagnostics["n_segments"] < plain.diagnostics["n_segments"]

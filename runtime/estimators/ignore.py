@@ -1,0 +1,64 @@
+"""SPEC §2 ``ignore`` regions for image features: where on the ceiling a feature seen
+from a pose lies, and whether a region holds it.
+
+Map features (lights, blocks, markers) inside a region are left out of the maps when an
+estimator is built (``Site.ignored``, ``Site.without_ignored``). A feature found on the
+frame can only be placed on the ceiling through a pose: the prior's. With one (its
+``x_m`` and ``y_m`` known), features whose ceiling point lies in a region are not used;
+without one, they are (nothing places them).
+
+Example::
+
+    regions = IgnoreRegions.of(rig, site)          # None when the site has none
+    keep = regions.keep_segments(segs_norm, prior)  # (N,) bool, or None: no pose
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
+
+
+class IgnoreRegions:
+    """The site's ``ignore`` regions seen through the rig (module doc)."""
+
+    def __init__(self, geo: PlanarGeometry, site: Any) -> None:
+        self.geo, self.site = geo, site
+
+    @classmethod
+    def of(cls, rig: Any, site: Any) -> IgnoreRegions | None:
+        """The regions of ``site`` for ``rig``; None when the site has none."""
+        return cls(PlanarGeometry.of(rig, site), site) if site.ignore_m else None
+
+    def inside(self, points_norm: np.ndarray, pose: Any) -> np.ndarray | None:
+        """``(N,)`` bool: which undistorted normalized image points ``(N, 2)`` see the
+        ceiling inside a region from ``pose`` (``x_m``, ``y_m``, ``yaw_rad``); None
+        when the pose has no position. A ray that does not rise to the ceiling is not
+        inside."""
+        if pose is None or pose.x_m is None or pose.y_m is None:
+            return None
+        q = ceiling_points_vehicle(self.geo, np.asarray(points_norm, float).reshape(-1, 2))
+        c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+        w = q @ np.array([[c, s], [-s, c]]) + (pose.x_m, pose.y_m)            # V -> W
+        ok = np.all(np.isfinite(w), axis=1)
+        out = np.zeros(len(w), bool)
+        out[ok] = self.site.ignored(w[ok])
+        return out
+
+    def keep_segments(self, segs_norm: np.ndarray, pose: Any) -> np.ndarray | None:
+        """``(N,)`` bool: the segments ``(N, 4)`` (undistorted normalized endpoints)
+        none of whose ends and middle lies in a region; None when the pose has no
+        position."""
+        s = np.asarray(segs_norm, float).reshape(-1, 4)
+        pts = np.concatenate([s[:, :2], s[:, 2:], 0.5 * (s[:, :2] + s[:, 2:])])
+        hit = self.inside(pts, pose)
+        if hit is None:
+            return None
+        return ~hit.reshape(3, -1).any(axis=0)
+
+
+__all__ = ["IgnoreRegions"]
