@@ -23,6 +23,22 @@ import numpy as np
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
 
 
+def ignored_from(site: Any, points_v: np.ndarray, pose: Any) -> np.ndarray | None:
+    """``(N,)`` bool: which ceiling points ``(N, 2)`` in V (a frame's features met with
+    the ceiling) lie in one of ``site``'s ``ignore`` regions when the vehicle is at
+    ``pose`` (``x_m``, ``y_m``, ``yaw_rad``: a prior); None when the site has no region
+    or the pose no position. Points that are not finite are not inside."""
+    if not site.ignore_m or pose is None or pose.x_m is None or pose.y_m is None:
+        return None
+    q = np.asarray(points_v, float).reshape(-1, 2)
+    c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+    w = q @ np.array([[c, s], [-s, c]]) + (pose.x_m, pose.y_m)                # V -> W
+    ok = np.all(np.isfinite(w), axis=1)
+    out = np.zeros(len(w), bool)
+    out[ok] = site.ignored(w[ok])
+    return out
+
+
 class IgnoreRegions:
     """The site's ``ignore`` regions seen through the rig (module doc)."""
 
@@ -42,12 +58,7 @@ class IgnoreRegions:
         if pose is None or pose.x_m is None or pose.y_m is None:
             return None
         q = ceiling_points_vehicle(self.geo, np.asarray(points_norm, float).reshape(-1, 2))
-        c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
-        w = q @ np.array([[c, s], [-s, c]]) + (pose.x_m, pose.y_m)            # V -> W
-        ok = np.all(np.isfinite(w), axis=1)
-        out = np.zeros(len(w), bool)
-        out[ok] = self.site.ignored(w[ok])
-        return out
+        return ignored_from(self.site, q, pose)
 
     def keep_segments(self, segs_norm: np.ndarray, pose: Any) -> np.ndarray | None:
         """``(N,)`` bool: the segments ``(N, 4)`` (undistorted normalized endpoints)
@@ -61,4 +72,4 @@ class IgnoreRegions:
         return ~hit.reshape(3, -1).any(axis=0)
 
 
-__all__ = ["IgnoreRegions"]
+__all__ = ["IgnoreRegions", "ignored_from"]

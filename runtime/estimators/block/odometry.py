@@ -28,6 +28,7 @@ import numpy as np
 
 from ceilkit.runtime.estimators.base import PlaneIncrement
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
+from ceilkit.runtime.estimators.ignore import ignored_from
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 
 MAX_CORNERS = 150        # corners tracked per frame, at most
@@ -199,9 +200,7 @@ class PlaneOdometry:
         q = ceiling_points_vehicle(self.geo, cam.unproject(pts.reshape(-1, 2)[ok]))
         p = ceiling_points_vehicle(self.geo, cam.unproject(nxt.reshape(-1, 2)[ok]))
         good = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(p), axis=1)
-        if self.site is not None and near is not None and near.x_m is not None \
-                and near.y_m is not None:
-            c, s = math.cos(near.yaw_rad), math.sin(near.yaw_rad)
-            w = q @ np.array([[c, s], [-s, c]]) + (near.x_m, near.y_m)     # V -> W
-            good &= ~self.site.ignored(np.where(np.isfinite(w), w, 0.0))
+        hit = None if self.site is None else ignored_from(self.site, q, near)
+        if hit is not None:                      # SPEC §2: a region's tracks are not used
+            good &= ~hit
         return plane_motion(q[good], p[good])

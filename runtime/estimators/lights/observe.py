@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.estimators.ignore import ignored_from
 from ceilkit.runtime.estimators.lights.rays import (
     GridTable,
     ceiling_points,
@@ -68,13 +69,10 @@ class Observation:
         """Without the spots whose ceiling point lies in one of the site's ``ignore``
         regions seen from ``pose`` (``x_m``, ``y_m``, ``yaw_rad``: a prior; SPEC §2),
         itself when there is none or the pose has no position."""
-        if not site.ignore_m or pose is None or pose.x_m is None or pose.y_m is None:
+        hit = ignored_from(site, self.q_v, pose)
+        if hit is None or not hit.any():
             return self
-        c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
-        w = self.q_v @ np.array([[c, s], [-s, c]]) + (pose.x_m, pose.y_m)   # V -> W
-        keep = ~site.ignored(w)
-        if keep.all():
-            return self
+        keep = ~hit
         new = np.cumsum(keep) - 1
         return dataclasses.replace(self, spots=self.spots.select(keep), q_v=self.q_v[keep],
                                    order=new[self.order[keep[self.order]]],
