@@ -23,16 +23,30 @@ import numpy as np
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
 
 
+def _pose(pose: Any) -> np.ndarray | None:
+    """``(x, y, yaw)`` of a pose estimate (``x_m``, ``y_m``, ``yaw_rad``) or of a
+    ``(3,)`` array; None when there is none or it has no position."""
+    if pose is None:
+        return None
+    if hasattr(pose, "x_m"):
+        if pose.x_m is None or pose.y_m is None:
+            return None
+        return np.array([pose.x_m, pose.y_m, pose.yaw_rad], float)
+    return np.asarray(pose, float).reshape(3)
+
+
 def ignored_from(site: Any, points_v: np.ndarray, pose: Any) -> np.ndarray | None:
     """``(N,)`` bool: which ceiling points ``(N, 2)`` in V (a frame's features met with
     the ceiling) lie in one of ``site``'s ``ignore`` regions when the vehicle is at
-    ``pose`` (``x_m``, ``y_m``, ``yaw_rad``: a prior); None when the site has no region
+    ``pose`` (``x_m``, ``y_m``, ``yaw_rad``: a prior, or an ``(x, y, yaw)`` array);
+    None when the site has no region
     or the pose no position. Points that are not finite are not inside."""
-    if not site.ignore_m or pose is None or pose.x_m is None or pose.y_m is None:
+    xyz = _pose(pose)
+    if not site.ignore_m or xyz is None:
         return None
     q = np.asarray(points_v, float).reshape(-1, 2)
-    c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
-    w = q @ np.array([[c, s], [-s, c]]) + (pose.x_m, pose.y_m)                # V -> W
+    c, s = math.cos(xyz[2]), math.sin(xyz[2])
+    w = q @ np.array([[c, s], [-s, c]]) + xyz[:2]                             # V -> W
     ok = np.all(np.isfinite(w), axis=1)
     out = np.zeros(len(w), bool)
     out[ok] = site.ignored(w[ok])
@@ -55,7 +69,7 @@ class IgnoreRegions:
         ceiling inside a region from ``pose`` (``x_m``, ``y_m``, ``yaw_rad``); None
         when the pose has no position. A ray that does not rise to the ceiling is not
         inside."""
-        if pose is None or pose.x_m is None or pose.y_m is None:
+        if _pose(pose) is None:
             return None
         q = ceiling_points_vehicle(self.geo, np.asarray(points_norm, float).reshape(-1, 2))
         return ignored_from(self.site, q, pose)

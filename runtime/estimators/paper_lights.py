@@ -103,9 +103,9 @@ class PaperLightsEstimator(Estimator):
         self.angle_bin_rad = math.radians(o.angle_bin_deg)
         lights = np.asarray(site.lights_m, float)
         self.lights_w = lights[~site.ignored(lights)]    # SPEC §2: ignore regions unused
-        if self.lights_w.shape[0] < 3:
-            raise ConfigError(site.source, "ignore", "fewer than 3 lights of the map lie "
-                              "outside the ignore regions: paper-lights needs 3")
+        if self.lights_w.shape[0] == 0:
+            raise ConfigError(site.source, "ignore", "every light of the map lies in an "
+                              "ignore region: paper-lights has nothing to use")
         self.pair_i, self.pair_j = np.triu_indices(self.lights_w.shape[0], 1)
         # camera (x, y) -> vehicle (x, y) for a camera looking up
         self.R2_vehicle_cam = rig.mount.R_vehicle_cam[:2, :2]

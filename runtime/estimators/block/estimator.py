@@ -69,6 +69,7 @@ from ceilkit.runtime.estimators.block.pnp import (
 )
 from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides, predicted_chords
 from ceilkit.runtime.estimators.block.window import WINDOW, Windows, shape_fits, targets_of
+from ceilkit.runtime.estimators.ignore import IgnoreRegions
 from ceilkit.runtime.features.lines import (
     SegmentDetector,
     refine_undistorted,
@@ -170,18 +171,7 @@ class BlockEstimator(Estimator):
         super().__init__(rig, site, options)
         check_rig_site(rig, site)
         o = self.options
-        for key in ("shape_tol", "marker_size_tol", "dark_ratio", "bright_ratio"):
-            if not getattr(o, key) > 0:
-                raise ConfigError(None, f"options.{key}", f"expected > 0, found {getattr(o, key)}")
-        if o.max_fixes < 1:
-            raise ConfigError(None, "options.max_fixes",
-                              f"expected at least 1, found {o.max_fixes}")
-        if not o.parallels_min_px > 0 or not o.parallels_gate_deg > 0:
-            raise ConfigError(None, "options.parallels_gate_deg",
-                              "expected parallels_min_px and parallels_gate_deg > 0")
-        if o.edge_points < 4:
-            raise ConfigError(None, "options.edge_points",
-                              f"expected at least 4, found {o.edge_points}")
+        _check_options(o)
         self.geo = PlanarGeometry.of(rig, site)
         markers = site.markers if site.has_section("markers") else None
         self._markers = markers
@@ -201,7 +191,7 @@ class BlockEstimator(Estimator):
         self._lined = LinedSides(self._corridor)
         self._parallels_mode = ""
         self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
-        _check_track_options(o)
+        self._ignore = IgnoreRegions.of(rig, site)
         self._fixed = True      # the previous frame had a fix (no track to carry yet)
         self.windows = Windows(self.geo, targets_of(site, markers, o.shape_tol), o)
         self._window_fixes = 0  # window fixes since the last global search
@@ -227,6 +217,8 @@ class BlockEstimator(Estimator):
         sn, _, rms = refine_undistorted(self.geo.camera, grey, segs, retry_half_width_px=(
             None if mode == "predicted" else 6.0))
         good = np.isfinite(rms) if mode == "predicted" else np.ones(len(sn), bool)
+        if self._ignore is not None and pose is not None:    # SPEC §2: not in a region
+            good &= self._ignore.keep_segments(sn, pose)
         length = segment_lengths(segs)
         h, _ = robust_heading(sn[good, :2], sn[good, 2:], self.geo.R_vehicle_cam, hint,
                               math.radians(self.options.parallels_gate_deg), length[good],
@@ -477,6 +469,23 @@ def _heading_update(pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading
     pose = pose + gain * math.remainder(h.yaw_rad - pose[2], 2 * math.pi)
     cov = cov - np.outer(gain, cov[2, :])
     return pose, 0.5 * (cov + cov.T)
+
+
+def _check_options(o: BlockOptions) -> None:
+    """One-line errors for the options that cannot work (the window path's too)."""
+    for key in ("shape_tol", "marker_size_tol", "dark_ratio", "bright_ratio"):
+        if not getattr(o, key) > 0:
+            raise ConfigError(None, f"options.{key}", f"expected > 0, found {getattr(o, key)}")
+    if o.max_fixes < 1:
+        raise ConfigError(None, "options.max_fixes",
+                          f"expected at least 1, found {o.max_fixes}")
+    if not o.parallels_min_px > 0 or not o.parallels_gate_deg > 0:
+        raise ConfigError(None, "options.parallels_gate_deg",
+                          "expected parallels_min_px and parallels_gate_deg > 0")
+    if o.edge_points < 4:
+        raise ConfigError(None, "options.edge_points",
+                          f"expected at least 4, found {o.edge_points}")
+    _check_track_options(o)
 
 
 def _usable(site: Any) -> Any:

@@ -186,6 +186,7 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
     try:
         A = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
+        pose[2] = wrap_pi(pose[2])
         return Refined(pose, np.full((3, 3), np.inf), rms, int(r.size))
     cov = s2 * A + side_offset_cov(r, J, side, A)
     pose[2] = wrap_pi(pose[2])

@@ -74,9 +74,13 @@ class Observation:
             return self
         keep = ~hit
         new = np.cumsum(keep) - 1
+        kept = self.kept
+        if self.candidates_px is not None:      # the overlays: an ignored one is rejected
+            kept = np.ones(len(self.candidates_px), bool) if kept is None else kept.copy()
+            kept[np.flatnonzero(kept)[~keep]] = False
         return dataclasses.replace(self, spots=self.spots.select(keep), q_v=self.q_v[keep],
                                    order=new[self.order[keep[self.order]]],
-                                   jac_px=self.jac_px[keep])
+                                   jac_px=self.jac_px[keep], kept=kept)
 
 
 def disc_offsets(rig: Rig, ceiling_height_m: float, light_radius_m: float,

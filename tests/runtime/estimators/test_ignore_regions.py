@@ -165,3 +165,30 @@ def test_corridor_keeps_the_lines_outside_a_partial_ignore_region():
     plain = make_estimator("corridor", rig, site, None).estimate(img, 0, prior)
     assert got and abs(got.y_m - y) < 0.001 and abs(math.degrees(got.yaw_rad - yaw)) < 0.01
     assert got.diagnostics["n_segments"] < plain.diagnostics["n_segments"]
+
+
+def test_the_block_parallels_take_no_detected_segment_inside_a_region():
+    """With a pose, the parallels' chords inside a region are not predicted; when none
+    is left the frame's detected segments stand in, and those inside the region are
+    dropped too (a region over the whole view: no heading from it)."""
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    x, y, yaw = 3.0, 0.0, 0.1
+    img = render_frame(rig, site, x, y, yaw, NOISY, np.random.default_rng(1))
+    pose = np.array([x, y, yaw])
+    plain = BlockEstimator(rig, site, {"plane_odometry": False})
+    assert plain._parallels(img, yaw, pose) is not None
+    marked = dataclasses.replace(site, ignore_m=(square(x, y, 30.0),), blocks=(), markers=None)
+    with pytest.raises(ConfigError):          # nothing left for the block method at all
+        BlockEstimator(rig, marked)
+    over_view = dataclasses.replace(site, ignore_m=(square(x, y, 4.0),))   # marker 3 left
+    est = BlockEstimator(rig, over_view, {"plane_odometry": False})
+    assert est._parallels(img, yaw, pose) is None
+    assert est._parallels(img, yaw, None) is not None          # no pose: nothing placed
+
+
+def test_a_site_with_two_lights_and_no_region_still_builds_paper_lights():
+    rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
+    site = Site.load(CONFIGS / "lights" / "site.yaml")
+    two = dataclasses.replace(site, lights_m=np.asarray(site.lights_m)[:2])
+    make_estimator("paper-lights", rig, two, None)
