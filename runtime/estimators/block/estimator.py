@@ -60,6 +60,7 @@ from ceilkit.runtime.estimators.block.parallels import (
 )
 from ceilkit.runtime.estimators.block.pnp import (
     PlanarGeometry,
+    PooledSideOffsets,
     Refined,
     ceiling_points_vehicle,
     closed_form,
@@ -189,6 +190,7 @@ class BlockEstimator(Estimator):
         self._segs = SegmentDetector("fld", o.parallels_min_px) if o.parallels else None
         self._corridor = site.corridor if site.has_section("corridor") else None
         self._lined = LinedSides(self._corridor)
+        self._pooled = PooledSideOffsets()
         self._parallels_mode = ""
         self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
         self._ignore = IgnoreRegions.of(rig, site)
@@ -395,7 +397,7 @@ class BlockEstimator(Estimator):
             return None
         edge, side = self._lined.clean(corners_w, sides.edge_norm, sides.side)
         scale = magnification(self.geo.camera, edge)
-        ref = refine(self.geo, (x, y, yaw), corners_w, edge, side, scale)
+        ref = self._pooled(source, refine(self.geo, (x, y, yaw), corners_w, edge, side, scale))
         if not np.all(np.isfinite(ref.pose)):
             return None
         return _Fix(source, ref, shape, sides.corners_norm, corners_w, resolved_by)
