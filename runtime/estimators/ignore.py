@@ -39,10 +39,12 @@ def ignored_from(site: Any, points_v: np.ndarray, pose: Any) -> np.ndarray | Non
     """``(N,)`` bool: which ceiling points ``(N, 2)`` in V (a frame's features met with
     the ceiling) lie in one of ``site``'s ``ignore`` regions when the vehicle is at
     ``pose`` (``x_m``, ``y_m``, ``yaw_rad``: a prior, or an ``(x, y, yaw)`` array);
-    None when the site has no region
-    or the pose no position. Points that are not finite are not inside."""
+    None when the site has no region or the pose no position. Points that are not
+    finite are not inside."""
+    if not site.ignore_m:                 # the common case: no work on the frame path
+        return None
     xyz = _pose(pose)
-    if not site.ignore_m or xyz is None:
+    if xyz is None:
         return None
     q = np.asarray(points_v, float).reshape(-1, 2)
     c, s = math.cos(xyz[2]), math.sin(xyz[2])

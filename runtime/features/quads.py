@@ -226,8 +226,20 @@ def detect_quads(grey: np.ndarray, dark: bool, min_area_px: float = MIN_QUAD_ARE
     return out
 
 
-_NEXT4 = np.array([1, 2, 3, 0])
-_PREV4 = np.array([3, 0, 1, 2])
+_PREV = np.array([3, 0, 1, 2])      # side k-1 of a quad
+
+
+def line_corners(lines: np.ndarray) -> np.ndarray | None:
+    """``(4, 2)`` corners of four side lines ``(4, 3)`` ``(a, b, c)`` (corner k: side
+    k-1 meets side k), None when two neighbouring sides are parallel. The cross product
+    of each line with the previous one, written out (np.cross/np.roll cost 10x more)."""
+    p = lines[_PREV]
+    a0, b0, c0 = p[:, 0], p[:, 1], p[:, 2]
+    a1, b1, c1 = lines[:, 0], lines[:, 1], lines[:, 2]
+    w = a0 * b1 - b0 * a1
+    if np.any(np.abs(w) < 1e-12):
+        return None
+    return np.stack([(b0 * c1 - c0 * b1) / w, (c0 * a1 - a0 * c1) / w], axis=1)
 
 
 def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float = 0.5
@@ -251,7 +263,7 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
             return poly
         idx.append(int(hit[0]))
     i0 = np.array(idx)
-    run = (i0[_NEXT4] - i0) % m
+    run = (i0[_NEXT] - i0) % m
     lo = i0 + np.rint(run * (0.5 - SIDE_FIT_KEEP / 2)).astype(int)
     hi = i0 + np.rint(run * (0.5 + SIDE_FIT_KEEP / 2)).astype(int)
     count = hi - lo
@@ -272,13 +284,10 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     flip = np.where(a * (mx - c[0]) + b * (my - c[1]) < 0, -1.0, 1.0)   # outwards
     a, b = a * flip, b * flip
     lines = np.stack([a, b, -(a * mx + b * my) - outwards_px], axis=1)
-    p = lines[_PREV4]                      # side k-1 meets side k (no np.cross/np.roll)
-    w = p[:, 0] * lines[:, 1] - p[:, 1] * lines[:, 0]
-    if np.any(np.abs(w) < 1e-12):
+    out = line_corners(lines)
+    if out is None:
         return poly
-    out = np.stack([(p[:, 1] * lines[:, 2] - p[:, 2] * lines[:, 1]) / w,
-                    (p[:, 2] * lines[:, 0] - p[:, 0] * lines[:, 2]) / w], axis=1)
-    side = np.linalg.norm(poly[_NEXT4] - poly, axis=1)
+    side = np.linalg.norm(poly[_NEXT] - poly, axis=1)
     if np.max(np.linalg.norm(out - poly, axis=1)) > 0.25 * float(side.min()):
         return poly
     return out

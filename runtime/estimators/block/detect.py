@@ -31,6 +31,7 @@ from ceilkit.runtime.features.quads import (
     Quad,
     detect_quads,
     edge_points,
+    line_corners,
 )
 
 BG_SHRINK = 16             # background(): the frame shrunk by this factor
@@ -101,10 +102,6 @@ def find_quads(grey: np.ndarray, dark: bool, ratio: float,
                  q.contour_px * f + o, f) for q in quads]
 
 
-_PREV_SIDE = np.array([3, 0, 1, 2])
-_NEXT_SIDE = np.array([1, 2, 3, 0])
-
-
 def fit_side_lines(points: np.ndarray, side: np.ndarray) -> np.ndarray:
     """``(4, 3)`` total-least-squares lines ``(a, b, c)``, ``|(a, b)| = 1``, of the points
     ``(M, 2)`` of each side ``side`` ``(M,)`` (0..3) at once (every side needs two)."""
@@ -123,13 +120,7 @@ def fit_side_lines(points: np.ndarray, side: np.ndarray) -> np.ndarray:
 def corners_of(lines: np.ndarray) -> np.ndarray | None:
     """``(4, 2)`` corners of four side lines ``(4, 3)`` (corner k: side k-1 meets side k),
     None when two neighbouring sides are parallel."""
-    p = lines[_PREV_SIDE]                    # side k-1 (np.cross/np.roll cost 10x more)
-    a0, b0, c0 = p[:, 0], p[:, 1], p[:, 2]
-    a1, b1, c1 = lines[:, 0], lines[:, 1], lines[:, 2]
-    w = a0 * b1 - b0 * a1
-    if np.any(np.abs(w) < 1e-12):
-        return None
-    return np.stack([(b0 * c1 - c0 * b1) / w, (c0 * a1 - a0 * c1) / w], axis=1)
+    return line_corners(lines)
 
 
 def sharpen_corners(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 8
@@ -143,9 +134,12 @@ def sharpen_corners(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 8
     return corners_of(fit_side_lines(pts, side))
 
 
+_NEXT_CORNER = np.array([1, 2, 3, 0])      # corner k+1 of a quad
+
+
 def side_lengths_m(points_v: np.ndarray) -> np.ndarray:
     """``(4,)`` side lengths of a quad ``(4, 2)`` on the ceiling (side k: corner k to k+1)."""
-    d = points_v[_NEXT_SIDE] - points_v
+    d = points_v[_NEXT_CORNER] - points_v
     return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
 
 
@@ -266,7 +260,6 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
 
 
 _CONTRAST_T = np.array([0.3, 0.5, 0.7])   # step_contrast: stations along each side
-_NEXT_CORNER = np.array([1, 2, 3, 0])      # step_contrast: corner k+1 of a quad
 CONTRAST_INSET = 0.1                       # ... inwards/outwards, share of the way to the centre
 
 

@@ -79,10 +79,9 @@ def test_planar_pnp_is_exact_without_noise(make_rig):
     assert abs(check["pnp6_tilt_deg"]) < 1e-6 and abs(check["pnp6_height_m"]) < 1e-6
 
 
-def test_an_offset_shared_by_a_sides_points_is_in_the_covariance(rig):
-    """A whole side moved (a seam flush with the block's edge moves every station the
-    same way): the fit's white covariance does not average it out; the side-offset
-    term, measured by the block's known size, covers the pose error it makes."""
+def square_edges(rig: Rig):
+    """The 0.4 m SQUARE's edge points seen from a pose, 12 per side: ``(geo, truth,
+    norm (M, 2), side (M,), scale (M,) px per unit, normal (M, 2) each side's normal)``."""
     geo = PlanarGeometry.of(rig, Site(3.0))
     truth = np.array([2.1, 0.05, math.radians(12.0)])
     t = np.linspace(0.15, 0.85, 12)
@@ -91,14 +90,24 @@ def test_an_offset_shared_by_a_sides_points_is_in_the_covariance(rig):
     side = np.repeat(np.arange(4), t.size)
     norm = project_norm(geo, truth, pts)
     scale = magnification(rig.camera, norm)
+    normal = np.zeros_like(norm)
+    for k in range(4):
+        d = norm[side == k][-1] - norm[side == k][0]
+        normal[side == k] = np.array([-d[1], d[0]]) / np.hypot(*d)
+    return geo, truth, norm, side, scale, normal
+
+
+def test_an_offset_shared_by_a_sides_points_is_in_the_covariance(rig):
+    """A whole side moved (a seam flush with the block's edge moves every station the
+    same way): the fit's white covariance does not average it out; the side-offset
+    term, measured by the block's known size, covers the pose error it makes."""
+    geo, truth, norm, side, scale, normal = square_edges(rig)
     rng = np.random.default_rng(0)
     white = norm + rng.normal(0.0, 0.05, norm.shape) / scale[:, None]      # 0.05 px
     clean = refine(geo, truth, SQUARE, white, side, scale)
     # side 1 moved 0.3 px along its normal (towards the block's inside)
-    d = norm[side == 1][-1] - norm[side == 1][0]
-    n = np.array([-d[1], d[0]]) / np.hypot(*d)
     moved = white.copy()
-    moved[side == 1] += 0.3 * n / scale[side == 1, None]
+    moved[side == 1] += 0.3 * normal[side == 1] / scale[side == 1, None]
     got = refine(geo, truth, SQUARE, moved, side, scale)
     e = got.pose - truth
     assert math.hypot(e[0], e[1]) > 5 * math.sqrt(clean.cov[0, 0])   # a real bias
@@ -116,18 +125,7 @@ def test_side_offsets_pooled_over_frames_cover_the_pose_error(rig):
     one frame's size check has 2 degrees of freedom and often under-states the
     offsets; pooled per target over frames, the 95 % ellipse holds about 95 %."""
     from ceilkit.runtime.estimators.block.pnp import PooledSideOffsets
-    geo = PlanarGeometry.of(rig, Site(3.0))
-    truth = np.array([2.1, 0.05, math.radians(12.0)])
-    t = np.linspace(0.15, 0.85, 12)
-    pts = np.concatenate([SQUARE[k] + t[:, None] * (SQUARE[(k + 1) % 4] - SQUARE[k])
-                          for k in range(4)])
-    side = np.repeat(np.arange(4), t.size)
-    norm = project_norm(geo, truth, pts)
-    scale = magnification(rig.camera, norm)
-    normal = np.zeros_like(norm)
-    for k in range(4):
-        d = norm[side == k][-1] - norm[side == k][0]
-        normal[side == k] = np.array([-d[1], d[0]]) / np.hypot(*d)
+    geo, truth, norm, side, scale, normal = square_edges(rig)
     rng = np.random.default_rng(1)
     pool = PooledSideOffsets()
     inside = {"frame": 0, "pooled": 0}
