@@ -204,11 +204,23 @@ def detect_quads(grey: np.ndarray, dark: bool, min_area_px: float = MIN_QUAD_ARE
     and shape are checked by the caller. ``regions`` (list of contours) receives every
     large region that was not a convex quad, for the caller's diagnostics.
     """
-    mask = _threshold(grey, dark)
+    return quads_of_mask(_threshold(grey, dark), min_area_px, regions, sharpen)
+
+
+def quads_of_mask(mask: np.ndarray, min_area_px: float = MIN_QUAD_AREA_PX,
+                  regions: list[np.ndarray] | None = None, sharpen: bool = True
+                  ) -> list[Quad]:
+    """:func:`detect_quads` of a foreground mask ``(H, W)`` uint8 (0 or 255) already
+    made: its outer contours' convex four-vertex simplifications."""
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    h, w = grey.shape
+    h, w = mask.shape
     out: list[Quad] = []
+    # a closed path of n unit or diagonal steps encloses at most (n sqrt 2)² / (4 pi):
+    # shorter contours cannot reach min_area_px (most are specks: skipped uncounted)
+    min_len = math.sqrt(2.0 * math.pi * min_area_px)
     for c in contours:
+        if len(c) < min_len:
+            continue
         area = cv2.contourArea(c)
         if area < min_area_px:
             continue

@@ -29,9 +29,9 @@ from ceilkit.runtime.features.quads import (
     QUIET_CELLS,
     MarkerCodes,
     Quad,
-    detect_quads,
     edge_points,
     line_corners,
+    quads_of_mask,
 )
 
 BG_SHRINK = 16             # background(): the frame shrunk by this factor
@@ -45,17 +45,22 @@ _OPEN = np.ones((3, 3), np.uint8)
 _OPEN_SMALL = np.ones((2, 2), np.uint8)
 
 
-def background(grey: np.ndarray, dark: bool, shrink: int = BG_SHRINK) -> np.ndarray:
-    """The ceiling's grey around each pixel ``(H, W)`` float32: the frame shrunk by
-    ``shrink``, its local maximum (``dark``: blocks darker than the ceiling drop
-    out) or minimum taken over :data:`BG_WINDOW` cells, and grown back. Vignetting and
-    exposure scale it as they scale the block, so a ratio to it is a fixed threshold."""
+_BG_KERNEL = np.ones((BG_WINDOW, BG_WINDOW), np.uint8)
+
+
+def background(grey: np.ndarray, dark: bool, shrink: int = BG_SHRINK,
+               scale: float = 1.0) -> np.ndarray:
+    """The ceiling's grey around each pixel ``(H, W)`` float32 times ``scale``: the
+    frame shrunk by ``shrink``, its local maximum (``dark``: blocks darker than the
+    ceiling drop out) or minimum taken over :data:`BG_WINDOW` cells, and grown back.
+    Vignetting and exposure scale it as they scale the block, so a ratio to it is a
+    fixed threshold (``scale``: that ratio, applied on the shrunk frame)."""
     h, w = grey.shape
     small = cv2.resize(grey, (max(1, w // shrink), max(1, h // shrink)),
                        interpolation=cv2.INTER_AREA)
-    k = np.ones((BG_WINDOW, BG_WINDOW), np.uint8)
-    small = cv2.dilate(small, k) if dark else cv2.erode(small, k)
-    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+    small = cv2.dilate(small, _BG_KERNEL) if dark else cv2.erode(small, _BG_KERNEL)
+    return cv2.resize(small.astype(np.float32) * np.float32(scale), (w, h),
+                      interpolation=cv2.INTER_LINEAR)
 
 
 def decimate(grey: np.ndarray) -> np.ndarray:
@@ -81,17 +86,16 @@ def find_quads(grey: np.ndarray, dark: bool, ratio: float,
     if small is None:
         small = decimate(grey) if DECIMATE > 1 else grey
     f = grey.shape[1] / small.shape[1]
-    bg = background(small, dark, max(1, int(round(BG_SHRINK / f))))
-    g = small.astype(np.float32)
-    mask = ((g < ratio * bg) if dark else (g > ratio * bg)).astype(np.uint8) * 255
+    bg = background(small, dark, max(1, int(round(BG_SHRINK / f))), ratio)
+    mask = cv2.compare(small.astype(np.float32), bg, cv2.CMP_LT if dark else cv2.CMP_GT)
     if f < 1.5:
         mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, _OPEN)
     else:      # an even kernel: erode and dilate about opposite anchors (no shift)
         mask = cv2.dilate(cv2.erode(mask, _OPEN_SMALL, anchor=(0, 0)), _OPEN_SMALL,
                           anchor=(1, 1))
     found: list[np.ndarray] = []
-    quads = detect_quads(mask, dark=False, min_area_px=MIN_QUAD_AREA_PX / (f * f),
-                         regions=found, sharpen=False)
+    quads = quads_of_mask(mask, min_area_px=MIN_QUAD_AREA_PX / (f * f), regions=found,
+                          sharpen=False)
     if others is not None:
         others.extend((c * f).astype(np.float32) for c in found)
     if f == 1:

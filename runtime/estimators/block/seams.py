@@ -22,8 +22,9 @@ from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.geometry.rotations import rot_z
 
 REACH_M = 3.5        # ceiling lines looked for this far from the camera's ceiling point
-STEP_M = 0.1         # sample spacing along a line on the ceiling
-CHORD_SAMPLES = 11   # samples per chord (a chord spans (CHORD_SAMPLES - 1) * STEP_M)
+CHORD_M = 1.0        # a chord's length on the ceiling
+STEP_M = 0.5         # sample spacing along a line: a chord's ends and middle are checked
+IGNORE_STEP_M = 0.1  # a chord's samples against the site's ignore regions
 MARGIN_PX = 8.0      # chord ends kept this far inside the frame
 MAX_CHORDS = 20      # chords measured per frame (spread over the lines)
 
@@ -142,20 +143,30 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
         if np.any(front):
             px[front] = geo.camera.distort(pc[front, :2] / pc[front, 2:3])
     inside = (front & geo.camera.in_image(px, MARGIN_PX)).reshape(n_lines, n_t)
-    if site is not None and site.ignore_m:
-        inside &= ~site.ignored(pts[..., :2])
     px = px.reshape(n_lines, n_t, 2)
-    k = CHORD_SAMPLES - 1
-    # non-overlapping windows of CHORD_SAMPLES samples, every k-th start, all inside
+    k = round(CHORD_M / STEP_M)
+    # non-overlapping chords, every k-th sample a start, each of its k + 1 samples inside
+    # (its ends and middle: a chord is short against the frame, and its measurement
+    # drops it if it leaves the frame between them)
     starts = np.arange(0, n_t - k, k)
-    cs = np.zeros((n_lines, n_t + 1), int)
-    np.cumsum(inside, axis=1, out=cs[:, 1:])
-    li, sj = np.nonzero((cs[:, starts + k + 1] - cs[:, starts]) == CHORD_SAMPLES)
+    ok = inside[:, starts]
+    for j in range(1, k + 1):
+        ok = ok & inside[:, starts + j]
+    li, sj = np.nonzero(ok)
     si = starts[sj]
-    if len(li) > max_chords:
-        pick = np.round(np.linspace(0, len(li) - 1, max_chords)).astype(int)
+    if site is not None and site.ignore_m and len(li):
+        # SPEC §2: no chord crosses an ignore region (tested every IGNORE_STEP_M)
+        along = np.arange(0.0, CHORD_M + 1e-9, IGNORE_STEP_M)
+        dense = (p0[li, None, :] + (t[si][:, None] + along)[:, :, None] * d[li, None, :])
+        clear = ~site.ignored(dense).any(axis=1)
+        li, si = li[clear], si[clear]
+    n = len(li)
+    if n > max_chords:
+        # spread evenly over the list (round(j (n - 1) / (m - 1)), in integers)
+        m1 = max(max_chords - 1, 1)
+        pick = (2 * np.arange(max_chords) * (n - 1) + m1) // (2 * m1)
         li, si = li[pick], si[pick]
-    return np.hstack([px[li, si], px[li, si + k]])
+    return np.concatenate([px[li, si], px[li, si + k]], axis=1)
 
 
 @functools.lru_cache(maxsize=4)
