@@ -268,13 +268,11 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     has too few points."""
     poly = poly.astype(float)
     m = contour.shape[0]
-    idx = []
-    for v in poly:
-        hit = np.flatnonzero((contour[:, 0] == v[0]) & (contour[:, 1] == v[1]))
-        if hit.size == 0:
-            return poly
-        idx.append(int(hit[0]))
-    i0 = np.array(idx)
+    # each vertex's first place on the contour (one comparison of all four)
+    hit = (contour[None, :, 0] == poly[:, 0, None]) & (contour[None, :, 1] == poly[:, 1, None])
+    i0 = np.argmax(hit, axis=1)
+    if not hit[np.arange(4), i0].all():
+        return poly
     run = (i0[_NEXT] - i0) % m
     lo = i0 + np.rint(run * (0.5 - SIDE_FIT_KEEP / 2)).astype(int)
     hi = i0 + np.rint(run * (0.5 + SIDE_FIT_KEEP / 2)).astype(int)
@@ -299,9 +297,9 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     out = line_corners(lines)
     if out is None:
         return poly
-    side = np.linalg.norm(poly[_NEXT] - poly, axis=1)
-    if np.max(np.linalg.norm(out - poly, axis=1)) > 0.25 * float(side.min()):
-        return poly
+    d, moved = poly[_NEXT] - poly, out - poly
+    if (moved * moved).sum(axis=1).max() > 0.0625 * float((d * d).sum(axis=1).min()):
+        return poly                                  # a corner moved over 1/4 of a side
     return out
 
 

@@ -148,13 +148,30 @@ def side_lengths_m(points_v: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _cell_grid(n: int) -> tuple[np.ndarray, int]:
+def _cell_grid(n: int) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
     """read_marker's samples ``(k*k, 1, 2)`` float32 (column, row in cells of an n-cell
-    black square, its quiet ring included) and k, the samples per side."""
+    black square, its quiet ring included), k, the samples per side, and the flat
+    indices of the quiet ring's cells and of the black border's (read-only)."""
     t = (np.arange(n + 2 * QUIET_CELLS) - QUIET_CELLS + 0.5)[:, None] + _CELL_SUB[None, :]
     cols, rows = np.meshgrid(t.ravel(), t.ravel())
     grid = np.stack([cols.ravel(), rows.ravel()], axis=1).reshape(-1, 1, 2)
-    return grid.astype(np.float32), t.size
+    g = n + 2 * QUIET_CELLS
+    ring = np.ones((g, g), bool)
+    ring[1:-1, 1:-1] = False
+    border = np.zeros((g, g), bool)
+    border[1:-1, 1:-1] = True
+    border[2:-2, 2:-2] = False
+    out = (grid.astype(np.float32), t.size, np.flatnonzero(ring), np.flatnonzero(border))
+    for a in (out[0], out[2], out[3]):
+        a.flags.writeable = False
+    return out
+
+
+def _median(x: np.ndarray) -> float:
+    """The median of a short 1-D array (``np.median``'s number, a fraction of its call)."""
+    s = np.sort(x)
+    m = s.size // 2
+    return float(s[m]) if s.size % 2 else 0.5 * float(s[m - 1] + s[m])
 
 
 def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
@@ -174,7 +191,7 @@ def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
     """
     n = codes.bits + 2                                   # cells across the black square
     g = n + 2 * QUIET_CELLS
-    grid, k = _cell_grid(n)
+    grid, k, ring, border = _cell_grid(n)
     square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
     H = cv2.getPerspectiveTransform(square, np.asarray(corners_norm, np.float32))
     norm = cv2.perspectiveTransform(grid, H).reshape(-1, 2)
@@ -183,17 +200,15 @@ def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
         return None
     vals = cv2.remap(grey, px[:, 0].reshape(k, k), px[:, 1].reshape(k, k),
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    cells = vals.astype(np.float32).reshape(g, 2, g, 2).mean(axis=(1, 3))
-    ring = np.ones((g, g), bool)
-    ring[1:-1, 1:-1] = False
-    border = np.zeros((g, g), bool)
-    border[1:-1, 1:-1] = True
-    border[2:-2, 2:-2] = False
-    white, black = float(np.median(cells[ring])), float(np.median(cells[border]))
+    # each cell: the mean of its 2x2 samples
+    cells = vals.reshape(g, 2, g, 2).sum(axis=(1, 3), dtype=np.float32) * np.float32(0.25)
+    flat = cells.ravel()
+    on_border = flat[border]
+    white, black = _median(flat[ring]), _median(on_border)
     if white - black < MIN_MARKER_CONTRAST:
         return None
     thr = 0.5 * (white + black)
-    if int(np.count_nonzero(cells[border] > thr)) > BORDER_ERRORS:
+    if int(np.count_nonzero(on_border > thr)) > BORDER_ERRORS:
         return None
     return codes.identify(cells[2:-2, 2:-2] > thr)
 

@@ -52,12 +52,9 @@ from ceilkit.runtime.estimators.block.detect import (
     read_marker,
     side_lengths_m,
 )
+from ceilkit.runtime.estimators.block.heading import ParallelsStage
 from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
-from ceilkit.runtime.estimators.block.parallels import (
-    PERIOD_RAD,
-    ParallelsHeading,
-    robust_heading,
-)
+from ceilkit.runtime.estimators.block.parallels import ParallelsHeading
 from ceilkit.runtime.estimators.block.pnp import (
     PlanarGeometry,
     PooledSideOffsets,
@@ -68,14 +65,8 @@ from ceilkit.runtime.estimators.block.pnp import (
     refine,
     six_dof_check,
 )
-from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides, predicted_chords
+from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides
 from ceilkit.runtime.estimators.block.window import WINDOW, Windows, shape_fits, targets_of
-from ceilkit.runtime.estimators.ignore import IgnoreRegions
-from ceilkit.runtime.features.lines import (
-    SegmentDetector,
-    refine_undistorted,
-    segment_lengths,
-)
 from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
@@ -186,14 +177,17 @@ class BlockEstimator(Estimator):
         self._perimeters = [(float(np.sum(side_lengths_m(b.corners_m))), b.appearance != "bright")
                             for b in site.blocks]
         self._bright = any(b.appearance == "bright" for b in site.blocks)
+        # per polarity (dark?): whether every block of it is symmetric (4 or 2 ways)
+        blocks = targets_of(site, None, o.shape_tol)
+        self._symmetric_only = {d: any(t.dark == d for t in blocks)
+                                and all(t.symmetric for t in blocks if t.dark == d)
+                                for d in (True, False)}
         self._dark = markers is not None or any(b.appearance != "bright" for b in site.blocks)
-        self._segs = SegmentDetector("fld", o.parallels_min_px) if o.parallels else None
-        self._corridor = site.corridor if site.has_section("corridor") else None
-        self._lined = LinedSides(self._corridor)
+        self._heading = ParallelsStage(self.geo, site, o.parallels_min_px,
+                                       o.parallels_gate_deg)
+        self._lined = LinedSides(self._heading.corridor)
         self._pooled = PooledSideOffsets()
-        self._parallels_mode = ""
         self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
-        self._ignore = IgnoreRegions.of(rig, site)
         self._fixed = True      # the previous frame had a fix (no track to carry yet)
         self.windows = Windows(self.geo, targets_of(site, markers, o.shape_tol), o)
         self._window_fixes = 0  # window fixes since the last global search
@@ -201,32 +195,8 @@ class BlockEstimator(Estimator):
     def _parallels(self, grey: np.ndarray, hint: float | None,
                    pose: np.ndarray | None = None, max_chords: int = MAX_CHORDS
                    ) -> ParallelsHeading | None:
-        """The heading from the frame's ceiling parallels, the branch nearest ``hint``.
-
-        With a pose near the truth (a block's fix, the tracker's prior) and the site's
-        ceiling lines (corridor section), the lines are measured where they must be
-        (:func:`.seams.predicted_chords`); else segments are detected on the frame."""
-        segs = np.zeros((0, 4))
-        if pose is not None and self._corridor is not None:
-            segs = predicted_chords(self.geo, self._corridor, pose, max_chords, self.site)
-            mode = "predicted"
-        if len(segs) < 2:
-            segs = self._segs(grey)
-            mode = "detected"
-        if len(segs) < 2:
-            return None
-        # predicted chords sit within a pixel or two of their line: no wider retry
-        sn, _, rms = refine_undistorted(self.geo.camera, grey, segs, retry_half_width_px=(
-            None if mode == "predicted" else 6.0))
-        good = np.isfinite(rms) if mode == "predicted" else np.ones(len(sn), bool)
-        if self._ignore is not None and pose is not None:    # SPEC §2: not in a region
-            good &= self._ignore.keep_segments(sn, pose)
-        length = segment_lengths(segs)
-        h, _ = robust_heading(sn[good, :2], sn[good, 2:], self.geo.R_vehicle_cam, hint,
-                              math.radians(self.options.parallels_gate_deg), length[good],
-                              PERIOD_RAD)
-        self._parallels_mode = mode
-        return h
+        """The heading from the frame's ceiling parallels (:class:`.heading.ParallelsStage`)."""
+        return self._heading(grey, hint, pose, max_chords)
 
     # -- per frame ---------------------------------------------------------------------
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
@@ -252,38 +222,9 @@ class BlockEstimator(Estimator):
         small = decimate(grey)
         dark = find_quads(grey, True, o.dark_ratio, others, small) if self._dark else []
         bright = find_quads(grey, False, o.bright_ratio, others, small) if self._bright else []
-        fixes: list[_Fix] = []
-        unknown: list[int] = []
-        ambiguous, partial, skipped = 0, 0, 0
         cands = sorted([(q, True) for q in dark] + [(q, False) for q in bright],
                        key=lambda c: -c[0].area_px)              # the largest first
-        for q, is_dark in cands:
-            if len(fixes) >= o.max_fixes:
-                break
-            pv = ceiling_points_vehicle(self.geo, self.geo.camera.unproject_fast(q.corners_px))
-            if not np.all(np.isfinite(pv)):
-                continue
-            if is_dark and self._is_marker_size(pv):
-                q = sharpen_quad(q)
-                got = self._marker_fix(grey, q)
-                if isinstance(got, _Fix):
-                    fixes.append(got)
-                    continue
-                if isinstance(got, int):
-                    unknown.append(got)
-                    continue
-            if not self._may_be_block(pv, is_dark):
-                skipped += 1
-                if q.at_border:
-                    partial += any(d == is_dark for _, d in self._perimeters)
-                continue
-            got = self._block_fix(grey, sharpen_quad(q), is_dark, prior)
-            if isinstance(got, _Fix):
-                fixes.append(got)
-            elif got == AMBIGUOUS:
-                ambiguous += 1
-            elif got == PARTIAL_BLOCK:
-                partial += 1
+        fixes, unknown, (ambiguous, partial, skipped) = self._fixes(grey, cands, prior)
         diag = {"unknown_marker_ids": tuple(unknown), "quads": len(dark) + len(bright),
                 "quads_skipped": skipped}
         if not fixes:
@@ -298,12 +239,63 @@ class BlockEstimator(Estimator):
                 return got
             cov = np.diag([np.inf, np.inf, h.sigma_rad ** 2])
             diag.update(no_fix=got.reason, yaw_period_rad=h.period_rad,
-                        parallels_mode=self._parallels_mode,
+                        parallels_mode=self._heading.mode,
                         parallels_n=h.n_lines, parallels_sigma_rad=h.sigma_rad,
                         ms=elapsed_ms(t0))
             return PoseEstimate(t_ns, self.name, None, None, h.yaw_rad,
                                 HEADING_ONLY_QUALITY, cov=cov, diagnostics=diag)
         return self._publish(t_ns, fixes, diag, t0, grey)
+
+    def _fixes(self, grey: np.ndarray, cands: list[tuple[Quad, bool]],
+               prior: PoseEstimate | None) -> tuple[list[_Fix], list[int], list[int]]:
+        """``(fixes, unknown marker ids, [ambiguous, partial, skipped])`` of the quads
+        ``(quad, dark)``, the first first, up to ``max_fixes`` fixes. Without a prior a
+        quad that can only be a symmetric block (every block of its polarity is) cannot
+        be told apart: it is measured last, only when nothing else gave a fix (for the
+        frame's reason), so a marker beside it costs no wasted measurement."""
+        known = bool(prior) and prior.x_m is not None and prior.y_m is not None
+        fixes: list[_Fix] = []
+        unknown: list[int] = []
+        counts = [0, 0, 0]
+        # every quad's coarse corners on the ceiling in one pass through the lens
+        pvs = ceiling_points_vehicle(self.geo, self.geo.camera.unproject_fast(
+            np.concatenate([q.corners_px for q, _ in cands]))).reshape(-1, 4, 2) \
+            if cands else np.zeros((0, 4, 2))
+        later: list[tuple[Quad, bool]] = []
+        for (q, is_dark), pv in zip(cands, pvs, strict=True):
+            if len(fixes) >= self.options.max_fixes:
+                break
+            if not np.isfinite(pv).all():
+                continue
+            if is_dark and self._is_marker_size(pv):
+                q = sharpen_quad(q)
+                got = self._marker_fix(grey, q)
+                if isinstance(got, (_Fix, int)):
+                    (fixes if isinstance(got, _Fix) else unknown).append(got)
+                    continue
+            if not self._may_be_block(pv, is_dark):
+                counts[2] += 1
+                if q.at_border:
+                    counts[1] += any(d == is_dark for _, d in self._perimeters)
+            elif not known and self._symmetric_only[is_dark]:
+                later.append((q, is_dark))
+            else:
+                self._count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
+                                  fixes, counts)
+        for q, is_dark in later if not fixes else ():
+            self._count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
+                              fixes, counts)
+        return fixes, unknown, counts
+
+    @staticmethod
+    def _count_block(got: Any, fixes: list[_Fix], counts: list[int]) -> None:
+        """A block's outcome: its fix kept, or counted (ambiguous, partial)."""
+        if isinstance(got, _Fix):
+            fixes.append(got)
+        elif got == AMBIGUOUS:
+            counts[0] += 1
+        elif got == PARTIAL_BLOCK:
+            counts[1] += 1
 
     # -- the window path (option track) -------------------------------------------------
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
@@ -368,7 +360,7 @@ class BlockEstimator(Estimator):
         if h is not None:
             diag.update(parallels_n=h.n_lines, parallels_yaw_rad=h.yaw_rad,
                         parallels_sigma_rad=h.sigma_rad, block_yaw_rad=float(pose[2]),
-                        parallels_mode=self._parallels_mode)
+                        parallels_mode=self._heading.mode)
             diag["parallels_fused"] = _agrees(pose, cov, h)
             if diag["parallels_fused"]:
                 pose, cov = self._fuse(pose, cov, h)

@@ -1,0 +1,86 @@
+"""The block method's heading stage: the ceiling's parallels measured on a frame
+(:mod:`.parallels` turns them into a heading, Xu et al. eqs. 8-10).
+
+With a pose near the truth (a block's fix, the tracker's prior) and the site's ceiling
+lines (its corridor section), the lines are measured where they must be
+(:func:`.seams.predicted_chords`, ``mode = "predicted"``); else segments are detected on
+the frame (FastLineDetector, ``mode = "detected"``). Segments in the site's ``ignore``
+regions are not used (SPEC §2) when a pose places them.
+
+Example::
+
+    stage = ParallelsStage(geo, site, min_px=60.0, gate_deg=1.0)
+    h = stage(grey, hint_yaw_rad, pose)       # ParallelsHeading or None; stage.mode
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ceilkit.runtime.estimators.block.parallels import (
+    PERIOD_RAD,
+    ParallelsHeading,
+    robust_heading,
+)
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, predicted_chords
+from ceilkit.runtime.estimators.ignore import IgnoreRegions
+from ceilkit.runtime.features.lines import (
+    SegmentDetector,
+    refine_undistorted,
+    segment_lengths,
+)
+
+
+class ParallelsStage:
+    """The heading from a frame's ceiling parallels (see the module).
+
+    Args:
+        geo: the rig and ceiling.
+        site: the site (its corridor section's lines, its ignore regions).
+        min_px: shortest detected segment used as a parallel.
+        gate_deg: a line farther than this from the heading (modulo the period) is not
+            a parallel of the ceiling's axes.
+    """
+
+    def __init__(self, geo: PlanarGeometry, site: Any, min_px: float, gate_deg: float
+                 ) -> None:
+        self.geo, self.site = geo, site
+        self.corridor = site.corridor if site.has_section("corridor") else None
+        self.gate_rad = math.radians(gate_deg)
+        self.detector = SegmentDetector("fld", min_px)
+        self.ignore = IgnoreRegions(geo, site) if site.ignore_m else None
+        self.mode = ""           # how the last heading's lines were found
+
+    def __call__(self, grey: np.ndarray, hint: float | None,
+                 pose: np.ndarray | None = None, max_chords: int = MAX_CHORDS
+                 ) -> ParallelsHeading | None:
+        """The heading from ``grey`` ``(H, W)`` uint8, the branch nearest ``hint``
+        (radians, or None), the lines predicted from ``pose`` ``(x, y, yaw)`` when
+        given (at most ``max_chords`` chords); None with fewer than two lines."""
+        segs = np.zeros((0, 4))
+        if pose is not None and self.corridor is not None:
+            segs = predicted_chords(self.geo, self.corridor, pose, max_chords, self.site)
+            mode = "predicted"
+        if len(segs) < 2:
+            segs = self.detector(grey)
+            mode = "detected"
+        if len(segs) < 2:
+            return None
+        # predicted chords sit within a pixel or two of their line: no wider retry
+        sn, _, rms = refine_undistorted(self.geo.camera, grey, segs, retry_half_width_px=(
+            None if mode == "predicted" else 6.0))
+        good = np.isfinite(rms) if mode == "predicted" else np.ones(len(sn), bool)
+        if self.ignore is not None and pose is not None:    # SPEC §2: not in a region
+            good &= self.ignore.keep_segments(sn, pose)
+        length = segment_lengths(segs)
+        h, _ = robust_heading(sn[good, :2], sn[good, 2:], self.geo.R_vehicle_cam, hint,
+                              self.gate_rad, length[good], PERIOD_RAD)
+        self.mode = mode
+        return h
+
+
+__all__ = ["ParallelsStage"]
