@@ -36,6 +36,8 @@ _FAST_CRITERIA = (cv2.TERM_CRITERIA_COUNT, _FAST_ITERATIONS, 0.0)
 _FAST_TOL_PX = 1e-4
 _FAST_BORDER_NODES = (33, 25)
 _POLYNOMIAL_MODELS = ("plumb_bob", "rational_polynomial")
+FEW_POINTS = 64      # distort: up to this many points, cv2.projectPoints (faster below ~100)
+_ZERO3 = np.zeros(3)
 # the ray table (:func:`subpixel_rays`): the lens inverted exactly every _TABLE_STEP_PX
 # pixels (_TABLE_PAD nodes beyond the border), a node whose inverse reprojects more than
 # _TABLE_TOL_PX off has no ray
@@ -170,10 +172,17 @@ class CameraModel:
         """Pixels ``(N, 2)`` of normalized points ``(N, 2)`` (through the lens distortion).
 
         OpenCV's formulas (``cv2.projectPoints``, ``cv2.fisheye.distortPoints``) in
-        numpy: fast on millions of points (the simulator's ray grids)."""
+        numpy: fast on millions of points (the simulator's ray grids). A few points
+        of a polynomial lens (up to :data:`FEW_POINTS`: a quad's corners, a chord's
+        ends) go through ``cv2.projectPoints`` itself, one call instead of twenty (it
+        has no skew term: a skewed ``K`` stays in numpy)."""
         xy = np.asarray(xy_norm, dtype=np.float64).reshape(-1, 2)
-        x, y = xy[:, 0], xy[:, 1]
         d = self.dist
+        if xy.shape[0] <= FEW_POINTS and self.model != "equidistant" and self.K[0, 1] == 0:
+            p = np.ones((xy.shape[0], 3))
+            p[:, :2] = xy
+            return cv2.projectPoints(p, _ZERO3, _ZERO3, self.K, d)[0].reshape(-1, 2)
+        x, y = xy[:, 0], xy[:, 1]
         if self.model == "equidistant":
             r = np.hypot(x, y)
             th = np.arctan(r)
