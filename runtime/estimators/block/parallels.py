@@ -58,10 +58,15 @@ def line_headings(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.nd
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Per line (two normalized image points each, ``(N, 2)``): the heading
     ``atan2(m_x, m_y)`` of eq. 10 (modulo pi/2 on a grid) and its weight ``|m_xy|^2``."""
-    a = np.hstack([np.asarray(p1_norm, float).reshape(-1, 2), np.ones((len(p1_norm), 1))])
-    b = np.hstack([np.asarray(p2_norm, float).reshape(-1, 2), np.ones((len(p2_norm), 1))])
-    m = np.cross(a, b) @ np.asarray(R_vehicle_cam, float).T        # R_VC l, row-wise
-    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
+    a = np.asarray(p1_norm, float).reshape(-1, 2)
+    b = np.asarray(p2_norm, float).reshape(-1, 2)
+    # l = (x1, y1, 1) x (x2, y2, 1), written out
+    ln = np.empty((a.shape[0], 3))
+    ln[:, 0] = a[:, 1] - b[:, 1]
+    ln[:, 1] = b[:, 0] - a[:, 0]
+    ln[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    m = ln @ np.asarray(R_vehicle_cam, float).T                      # R_VC l, row-wise
+    m /= np.maximum(np.sqrt((m * m).sum(axis=1)), 1e-300)[:, None]
     return np.arctan2(m[:, 0], m[:, 1]), m[:, 0] ** 2 + m[:, 1] ** 2
 
 

@@ -26,6 +26,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -43,6 +44,7 @@ JAC_EPS = 1e-6              # finite-difference step, m and rad
 SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
 MAGNIFY_EPS = 1e-4          # normalized step for the lens's local magnification
+_ZERO3 = np.zeros(3)
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,6 +123,14 @@ def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> n
 def magnification(camera: CameraModel, points_norm: np.ndarray) -> np.ndarray:
     """``(N,)`` pixels per normalized unit at each point: ``sqrt |det J|`` of the lens."""
     p = np.asarray(points_norm, float).reshape(-1, 2)
+    if p.shape[0] and camera.model in ("plumb_bob", "rational_polynomial") \
+            and camera.K[0, 1] == 0:
+        # cv2.projectPoints' Jacobian: with no rotation and the points at z = 1, the
+        # pixel's derivative by the translation is its derivative by the point
+        P = np.ones((p.shape[0], 3))
+        P[:, :2] = p
+        J = cv2.projectPoints(P, _ZERO3, _ZERO3, camera.K, camera.dist)[1][:, 3:5]
+        return np.sqrt(np.abs(J[0::2, 0] * J[1::2, 1] - J[0::2, 1] * J[1::2, 0]))
     e = MAGNIFY_EPS
     a, pu, pv = camera.distort(np.concatenate([p, p + [e, 0.0], p + [0.0, e]])
                                ).reshape(3, -1, 2)
@@ -257,6 +267,13 @@ def side_offset_cov(r: np.ndarray, J: np.ndarray, side: np.ndarray, A: np.ndarra
     return var_b, A @ G @ A
 
 
+@functools.lru_cache(maxsize=8)
+def _mount_tilt_swing(R_bytes: bytes) -> tuple[float, float]:
+    """The rig's tilt and swing (:func:`mount_angles` of ``R_vehicle_cam``, cached)."""
+    _, tilt, swing = mount_angles(np.frombuffer(R_bytes, float).reshape(3, 3))
+    return tilt, swing
+
+
 def six_dof_check(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray,
                   yaw_rad: float) -> dict[str, float]:
     """The unconstrained 6-DoF PnP (IPPE, on undistorted points) against the rig.
@@ -275,7 +292,7 @@ def six_dof_check(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.n
     R_wc = R_cw.T
     centre = -R_wc @ tvec.ravel()
     _, tilt6, swing6 = mount_angles(rot_z(-yaw_rad) @ R_wc)
-    _, tilt, swing = mount_angles(geo.R_vehicle_cam)
+    tilt, swing = _mount_tilt_swing(geo.R_vehicle_cam.tobytes())
     out = {"pnp6_tilt_deg": math.degrees(tilt6 - tilt),
            "pnp6_height_m": float(centre[2] - geo.t_vehicle_cam[2])}
     if abs(tilt - math.pi / 2) > VERTICAL_RAD:        # swing is pan's twin when looking up
