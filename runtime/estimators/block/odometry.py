@@ -9,7 +9,10 @@ by more than 3 MADs gives the motion in the earlier frame's V. The covariance is
 fit's residual scatter, ``s² (JᵀJ)⁻¹``, scaled by :data:`VAR_FACTOR`: the ratio of
 the measured scatter of increments (against the truth) to that covariance
 (``benchmarks/calib_odometry_noise.py`` measures it). Only corner-like features,
-spread over the frame, are tracked (:func:`corner_like`).
+spread over the frame, are tracked (:func:`corner_like`). The corners a step tracked
+(its fit's inliers) are carried to the next step: they are detected afresh only every
+:data:`REDETECT_EVERY` steps, or when fewer than :data:`REDETECT_SHARE` of them remain
+(the detection is two thirds of a step's time).
 
 Example::
 
@@ -42,18 +45,23 @@ STRONG_PERCENTILE = 90   # ... this percentile of its cell's candidates' (not of
                          # frame's: a marker's corners would leave only the marker)
 MIN_TRACKS = 12
 MAX_GAP_S = 0.5          # frames farther apart than this are not matched
-VAR_FACTOR = np.array([1.4, 5.3, 6.1])
+VAR_FACTOR = np.array([1.1, 2.0, 4.5])
 """Measured / fitted variance of (dx, dy, dyaw) by ``benchmarks/calib_odometry_noise.py``
-(``--drives 6 --frames 160``, seeds 1 and 2 pooled: 1908 increments through
+(``--drives 6 --frames 160``, seeds 1 and 2 pooled: 1907 increments through
 configs/block, 3 cm steps, blocks and markers on frames 0-3 of every 30), over sums of
-50 steps (the legs between fixes of bench_block's fused drives): 1.07²/1.29²,
-2.52²/2.06², 2.38²/2.57² (seed 1/2; per step only 1.0-1.2²: the lateral and heading
-errors are correlated from step to step, so a white chain of the fit's covariance
-under-covers a long leg). The fit's covariance is scaled by it
-(``cov * outer(sqrt f, sqrt f)``): honest at a 50-frame horizon, over-covering shorter
-gaps, under-covering much longer ones. (The earlier (1.3, 1.3, 8) was measured when
-the tracks bunched on the strongest corners.)"""
+50 steps (the legs between fixes of bench_block's fused drives): 0.80²/0.89²,
+1.50²/1.32², 2.10²/2.15² (seed 1/2; per step 0.99-1.20²: the heading errors are
+correlated from step to step, so a white chain of the fit's covariance under-covers a
+long leg). The fit's covariance is scaled by it (``cov * outer(sqrt f, sqrt f)``):
+honest at a 50-frame horizon, over-covering shorter gaps, under-covering much longer
+ones. With the corners detected afresh on every step (before the tracks were carried,
+:data:`REDETECT_EVERY`) the same drives gave (1.4, 5.3, 6.1): more of the error was
+shared from step to step. (The earlier (1.3, 1.3, 8) was measured when the tracks
+bunched on the strongest corners.)"""
 FB_MAX_PX = 0.5          # forward-backward disagreement of a kept track
+REDETECT_EVERY = 5       # the tracks carried from frame to frame are detected afresh
+                         # after this many steps ...
+REDETECT_SHARE = 0.7     # ... or when fewer than this share of those detected remain
 LK = {"winSize": (21, 21), "maxLevel": 3,
       "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
 
@@ -67,6 +75,7 @@ class Increment:
     dyaw_rad: float
     cov: np.ndarray
     n: int
+    kept: np.ndarray | None = None    # (N,) bool: the pairs the fit kept (not outliers)
 
 
 def plane_motion(q_prev: np.ndarray, p_now: np.ndarray) -> Increment | None:
@@ -99,7 +108,7 @@ def plane_motion(q_prev: np.ndarray, p_now: np.ndarray) -> Increment | None:
     cov = s2 * np.linalg.inv(J.T @ J)
     f = np.sqrt(VAR_FACTOR)
     cov = cov * np.outer(f, f)
-    return Increment(float(t[0]), float(t[1]), float(yaw), cov, n)
+    return Increment(float(t[0]), float(t[1]), float(yaw), cov, n, keep)
 
 
 def corner_like(grey: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -153,10 +162,16 @@ class PlaneOdometry:
         self.site = site if site is not None and site.ignore_m else None
         self._prev: np.ndarray | None = None
         self._t_prev: int | None = None
+        # the corners tracked into the previous frame (N, 1, 2) float32, carried to
+        # the next step instead of detecting again; how many were detected, how old
+        self._tracks: np.ndarray | None = None
+        self._detected = 0
+        self._age = 0
 
     def reset(self) -> None:
         self._prev = None
         self._t_prev = None
+        self._tracks = None
 
     def step(self, grey: np.ndarray) -> Increment | None:
         """The motion since the previous frame given to :meth:`step`, or None."""
@@ -177,18 +192,36 @@ class PlaneOdometry:
         self._prev, self._t_prev = grey, int(t_ns)
         if not measure or prev is None or t_prev is None or not \
                 0 < (t_ns - t_prev) * 1e-9 <= MAX_GAP_S:
+            self._tracks = None          # the carried corners belong to another frame
             return None
         inc = self._motion(prev, grey, near)
         if inc is None:
             return None
         return PlaneIncrement(t_prev, inc.dx_m, inc.dy_m, inc.dyaw_rad, inc.cov)
 
-    def _motion(self, prev: np.ndarray, grey: np.ndarray, near=None) -> Increment | None:
+    def _corners(self, prev: np.ndarray) -> np.ndarray | None:
+        """The corners of ``prev`` to track: those carried from the last step (tracked
+        into ``prev``), else detected afresh (:func:`corner_like` of
+        ``goodFeaturesToTrack``'s), every :data:`REDETECT_EVERY` steps or when fewer
+        than :data:`REDETECT_SHARE` of them remain. Carrying them costs no detection
+        (two thirds of a step's time) and measures the same motion: each step's KLT
+        error is its own, wherever the patch came from."""
+        carried = self._tracks
+        if carried is not None and self._age < REDETECT_EVERY \
+                and len(carried) >= max(MIN_TRACKS, REDETECT_SHARE * self._detected):
+            self._age += 1
+            return carried
         pts = cv2.goodFeaturesToTrack(prev, CANDIDATES, CORNER_QUALITY, 8, blockSize=5)
         if pts is None or len(pts) < MIN_TRACKS:
             return None
         pts = pts[corner_like(prev, pts.reshape(-1, 2))]
-        if len(pts) < MIN_TRACKS:
+        self._detected, self._age = len(pts), 1
+        return pts if len(pts) >= MIN_TRACKS else None
+
+    def _motion(self, prev: np.ndarray, grey: np.ndarray, near=None) -> Increment | None:
+        pts = self._corners(prev)
+        self._tracks = None
+        if pts is None:
             return None
         nxt, st, _ = cv2.calcOpticalFlowPyrLK(prev, grey, pts, None, **LK)
         back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, prev, nxt, None, **LK)
@@ -203,4 +236,12 @@ class PlaneOdometry:
         hit = None if self.site is None else ignored_from(self.site, q, near)
         if hit is not None:                      # SPEC §2: a region's tracks are not used
             good &= ~hit
-        return plane_motion(q[good], p[good])
+        inc = plane_motion(q[good], p[good])
+        if inc is not None:
+            # carried to the next step: the fit's inliers, not at the frame's edge
+            idx = np.flatnonzero(ok)[np.flatnonzero(good)[inc.kept]]
+            h, w = grey.shape
+            u, v = nxt[idx, 0, 0], nxt[idx, 0, 1]
+            self._tracks = nxt[idx[(u >= HALF_WIN) & (u < w - HALF_WIN) & (v >= HALF_WIN)
+                                   & (v < h - HALF_WIN)]]
+        return inc
