@@ -97,6 +97,24 @@ def square_edges(rig: Rig):
     return geo, truth, norm, side, scale, normal
 
 
+@pytest.mark.parametrize("cam", [
+    CameraModel.pinhole(640, 480, 450.0, dist=[-0.1, 0.03, 0.001, -0.002, 0.01]),
+    CameraModel.pinhole(640, 480, 450.0, dist=[0.1, -0.05, 0.001, -0.002, 0.01, 0.02, -0.01,
+                                               0.003], model="rational_polynomial"),
+    CameraModel.pinhole(640, 480, 450.0, dist=[0.05, -0.01, 0.002, 0.0], model="equidistant"),
+], ids=lambda c: c.model)
+def test_the_lens_magnification_is_the_distortions_jacobian(cam):
+    """sqrt |det d(pixel)/d(normalized point)|: OpenCV's Jacobian for the polynomial
+    lenses, finite differences otherwise; both against central differences."""
+    p = np.random.default_rng(2).uniform(-0.6, 0.6, (30, 2))
+    e = 1e-6
+    du = (cam.distort(p + [e, 0]) - cam.distort(p - [e, 0])) / (2 * e)
+    dv = (cam.distort(p + [0, e]) - cam.distort(p - [0, e])) / (2 * e)
+    want = np.sqrt(np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]))
+    np.testing.assert_allclose(magnification(cam, p), want, rtol=1e-3)
+    assert magnification(cam, np.zeros((0, 2))).shape == (0,)
+
+
 def test_an_offset_shared_by_a_sides_points_is_in_the_covariance(rig):
     """A whole side moved (a seam flush with the block's edge moves every station the
     same way): the fit's white covariance does not average it out; the side-offset
@@ -227,6 +245,28 @@ def test_square_block_is_ambiguous_without_a_prior(rig, appearance):
     img = render_frame(rig, site, 2.1, 0.0, 0.3, NOISY)
     got = BlockEstimator(rig, site, {"heading_cue": False}).estimate(img, 0)
     assert not got and got.reason == "ambiguous"
+
+
+def test_without_a_prior_a_symmetric_block_waits_for_the_marker_beside_it(rig, monkeypatch):
+    """A symmetric block can only be ambiguous without a prior: with a marker in view
+    the marker fixes the frame and the block is not measured; with the marker's id not
+    in the site the block is measured last and the frame is still ``ambiguous``."""
+    x, y, yaw = 2.2, 0.1, math.radians(12.0)
+    seen = dataclasses.replace(marker_site((7, 2.3, 0.55, 10.0)),
+                               blocks=(Block("A", RECT, "dark"),))
+    img = render_frame(rig, seen, x, y, yaw, NOISY)
+    calls = []
+    orig = BlockEstimator._block_fix
+    monkeypatch.setattr(BlockEstimator, "_block_fix",
+                        lambda self, *a: calls.append(1) or orig(self, *a))
+    got = BlockEstimator(rig, seen, {"heading_cue": False}).estimate(img, 0)
+    assert got and got.diagnostics["source"] == "marker:7" and not calls
+    assert math.hypot(got.x_m - x, got.y_m - y) < 0.005
+    other = dataclasses.replace(marker_site((8, 2.3, 0.55, 10.0)),
+                                blocks=(Block("A", RECT, "dark"),))
+    got = BlockEstimator(rig, other, {"heading_cue": False}).estimate(img, 0)
+    assert not got and got.reason == "ambiguous" and calls
+    assert got.diagnostics["unknown_marker_ids"] == (7,)
 
 
 def test_an_asymmetric_block_needs_no_prior(rig):

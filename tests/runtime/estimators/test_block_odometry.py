@@ -48,6 +48,36 @@ def test_rendered_step_gives_the_motion():
     assert np.all(np.linalg.eigvalsh(inc.cov) > 0)
 
 
+def test_corners_are_carried_between_steps_and_detected_again_after_a_break(monkeypatch):
+    """A step's tracked corners are the next step's: the corners are detected once per
+    REDETECT_EVERY steps, and afresh after a frame kept without measuring (the carried
+    corners belong to the frame before it). The motion stays exact to a fraction of a mm."""
+    import ceilkit.runtime.estimators.block.odometry as odometry
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    odo = PlaneOdometry(PlanarGeometry.of(rig, site))
+    opts = SimOptions(noise_sigma=2.0, blur_px=1.0)
+    calls = []
+    detect = odometry.cv2.goodFeaturesToTrack
+    monkeypatch.setattr(odometry.cv2, "goodFeaturesToTrack",
+                        lambda *a, **k: calls.append(1) or detect(*a, **k))
+    n = odometry.REDETECT_EVERY + 2
+    poses = [(1.0 + 0.03 * k, 0.1 + 0.005 * k, 0.3 + 0.004 * k) for k in range(n + 2)]
+    frames = [render_frame(rig, site, *p, opts) for p in poses]
+    for k in range(n):
+        inc = odo.increment(frames[k], k * 33_333_333)
+        if k:
+            assert inc is not None
+            (x0, y0, a0), (x1, y1, _) = poses[k - 1], poses[k]
+            c, s = math.cos(a0), math.sin(a0)
+            dx, dy = c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0)
+            assert math.hypot(inc.dx_m - dx, inc.dy_m - dy) < 0.001
+    assert len(calls) == 2                   # steps 1-5 carry one detection, step 6 anew
+    odo.increment(frames[n], n * 33_333_333, measure=False)
+    assert odo.increment(frames[n + 1], (n + 1) * 33_333_333) is not None
+    assert len(calls) == 3
+
+
 def test_points_on_a_straight_edge_are_not_corners():
     img = np.full((80, 80), 200, np.uint8)
     img[20:60, 20:60] = 40                          # a dark square

@@ -226,6 +226,27 @@ def test_distort_matches_opencv(cam):
     assert cam.distort(np.zeros((0, 2))).shape == (0, 2)
 
 
+@pytest.mark.parametrize("cam", DISTORT_CAMS, ids=lambda c: c.model)
+def test_a_few_points_give_the_pixels_of_many(cam):
+    """Up to FEW_POINTS points go through one cv2.projectPoints call, more through numpy:
+    the same pixels either way, NaN where the numpy path gives NaN; a skewed K stays
+    in numpy (OpenCV's projection has no skew term)."""
+    from ceilkit.runtime.geometry.camera import FEW_POINTS
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-1.0, 1.0, (3 * FEW_POINTS, 2))
+    xy[7] = np.nan
+    many = cam.distort(xy)
+    few = np.concatenate([cam.distort(xy[k:k + FEW_POINTS])
+                          for k in range(0, len(xy), FEW_POINTS)])
+    np.testing.assert_allclose(few, many, atol=1e-9)
+    assert np.isnan(few[7]).all() and np.isnan(many[7]).all()
+    K = cam.K.copy()
+    K[0, 1] = 2.5
+    skewed = CameraModel(cam.width, cam.height, K, cam.dist, cam.model)
+    np.testing.assert_allclose(skewed.distort(xy[:4]), skewed.distort(xy)[:4], atol=1e-9)
+    assert not np.allclose(skewed.distort(xy[:4]), cam.distort(xy[:4]))
+
+
 def test_unproject_fast_matches_unproject():
     cam = CameraModel.pinhole(640, 480, 400.0, dist=[-0.08, 0.02, 0.001, -0.001, 0])
     px = np.random.default_rng(0).uniform([-0.5, -0.5], [639.5, 479.5], (200, 2))
