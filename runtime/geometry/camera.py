@@ -94,6 +94,8 @@ class CameraModel:
         object.__setattr__(self, "_key", (self.width, self.height, self.model,
                                           (self.K + 0.0).tobytes(), (self.dist + 0.0).tobytes()))
         object.__setattr__(self, "_distorted", bool(np.any(self.dist != 0.0)))
+        object.__setattr__(self, "_opencv_projects",
+                           self.model in _POLYNOMIAL_MODELS and float(self.K[0, 1]) == 0.0)
         k8 = np.zeros(8)
         if self.model != "equidistant":
             k8[:dist.size] = dist
@@ -157,6 +159,12 @@ class CameraModel:
     def is_distorted(self) -> bool:
         return self._distorted  # type: ignore[attr-defined]
 
+    @property
+    def opencv_projects(self) -> bool:
+        """Whether ``cv2.projectPoints`` (no rotation, no translation) gives this lens's
+        pixels: a polynomial model and no skew (OpenCV's projection has no skew term)."""
+        return self._opencv_projects  # type: ignore[attr-defined]
+
     def scaled(self, width: int, height: int) -> CameraModel:
         """The same lens on a sensor resampled to ``width`` x ``height``."""
         sx, sy = width / self.width, height / self.height
@@ -178,7 +186,7 @@ class CameraModel:
         has no skew term: a skewed ``K`` stays in numpy)."""
         xy = np.asarray(xy_norm, dtype=np.float64).reshape(-1, 2)
         d = self.dist
-        if xy.shape[0] <= FEW_POINTS and self.model != "equidistant" and self.K[0, 1] == 0:
+        if xy.shape[0] <= FEW_POINTS and self.opencv_projects:
             p = np.ones((xy.shape[0], 3))
             p[:, :2] = xy
             return cv2.projectPoints(p, _ZERO3, _ZERO3, self.K, d)[0].reshape(-1, 2)

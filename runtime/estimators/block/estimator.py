@@ -150,6 +150,15 @@ class _Fix:
     resolved_by: str
 
 
+@dataclass
+class _Counts:
+    """A frame's quads that gave no fix: ambiguous, partly seen, not a block's size."""
+
+    ambiguous: int = 0
+    partial: int = 0
+    skipped: int = 0
+
+
 class BlockEstimator(Estimator):
     """The vehicle pose from a reference block or a marker on the ceiling (see module)."""
 
@@ -224,7 +233,8 @@ class BlockEstimator(Estimator):
         bright = find_quads(grey, False, o.bright_ratio, others, small) if self._bright else []
         cands = sorted([(q, True) for q in dark] + [(q, False) for q in bright],
                        key=lambda c: -c[0].area_px)              # the largest first
-        fixes, unknown, (ambiguous, partial, skipped) = self._fixes(grey, cands, prior)
+        fixes, unknown, n = self._fixes(grey, cands, prior)
+        ambiguous, partial, skipped = n.ambiguous, n.partial, n.skipped
         diag = {"unknown_marker_ids": tuple(unknown), "quads": len(dark) + len(bright),
                 "quads_skipped": skipped}
         if not fixes:
@@ -247,16 +257,18 @@ class BlockEstimator(Estimator):
         return self._publish(t_ns, fixes, diag, t0, grey)
 
     def _fixes(self, grey: np.ndarray, cands: list[tuple[Quad, bool]],
-               prior: PoseEstimate | None) -> tuple[list[_Fix], list[int], list[int]]:
-        """``(fixes, unknown marker ids, [ambiguous, partial, skipped])`` of the quads
-        ``(quad, dark)``, the first first, up to ``max_fixes`` fixes. Without a prior a
-        quad that can only be a symmetric block (every block of its polarity is) cannot
-        be told apart: it is measured last, only when nothing else gave a fix (for the
-        frame's reason), so a marker beside it costs no wasted measurement."""
+               prior: PoseEstimate | None) -> tuple[list[_Fix], list[int], _Counts]:
+        """``(fixes, unknown marker ids, counts)`` of the quads ``(quad, dark)`` in their
+        order, up to ``max_fixes`` fixes. Without a prior a quad that can only be a
+        symmetric block (every block of its polarity fits itself turned, within
+        ``shape_tol``) is measured last, only when nothing else gave a fix: it is then
+        ``ambiguous`` (or, for a block symmetric only within the tolerance, a fit by
+        shape alone), so a marker beside it is preferred and costs no wasted
+        measurement; the frame's reason is the same."""
         known = bool(prior) and prior.x_m is not None and prior.y_m is not None
         fixes: list[_Fix] = []
         unknown: list[int] = []
-        counts = [0, 0, 0]
+        counts = _Counts()
         # every quad's coarse corners on the ceiling in one pass through the lens
         pvs = ceiling_points_vehicle(self.geo, self.geo.camera.unproject_fast(
             np.concatenate([q.corners_px for q, _ in cands]))).reshape(-1, 4, 2) \
@@ -274,28 +286,20 @@ class BlockEstimator(Estimator):
                     (fixes if isinstance(got, _Fix) else unknown).append(got)
                     continue
             if not self._may_be_block(pv, is_dark):
-                counts[2] += 1
+                counts.skipped += 1
                 if q.at_border:
-                    counts[1] += any(d == is_dark for _, d in self._perimeters)
+                    counts.partial += any(d == is_dark for _, d in self._perimeters)
             elif not known and self._symmetric_only[is_dark]:
                 later.append((q, is_dark))
             else:
-                self._count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
-                                  fixes, counts)
+                _count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
+                             fixes, counts)
         for q, is_dark in later if not fixes else ():
-            self._count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
-                              fixes, counts)
+            if len(fixes) >= self.options.max_fixes:
+                break
+            _count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
+                         fixes, counts)
         return fixes, unknown, counts
-
-    @staticmethod
-    def _count_block(got: Any, fixes: list[_Fix], counts: list[int]) -> None:
-        """A block's outcome: its fix kept, or counted (ambiguous, partial)."""
-        if isinstance(got, _Fix):
-            fixes.append(got)
-        elif got == AMBIGUOUS:
-            counts[0] += 1
-        elif got == PARTIAL_BLOCK:
-            counts[1] += 1
 
     # -- the window path (option track) -------------------------------------------------
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
@@ -444,6 +448,16 @@ class BlockEstimator(Estimator):
         corners_w = blk.corners_m[(np.arange(4) + shift) % 4]
         return self._solve(sides, corners_w, f"block:{blk.id}", resolved)
 
+
+
+def _count_block(got: Any, fixes: list[_Fix], counts: _Counts) -> None:
+    """A block's outcome: its fix kept, or counted (ambiguous, partial)."""
+    if isinstance(got, _Fix):
+        fixes.append(got)
+    elif got == AMBIGUOUS:
+        counts.ambiguous += 1
+    elif got == PARTIAL_BLOCK:
+        counts.partial += 1
 
 
 def _check_track_options(o: BlockOptions) -> None:

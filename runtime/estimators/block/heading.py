@@ -51,7 +51,8 @@ class ParallelsStage:
         self.geo, self.site = geo, site
         self.corridor = site.corridor if site.has_section("corridor") else None
         self.gate_rad = math.radians(gate_deg)
-        self.detector = SegmentDetector("fld", min_px)
+        self.min_px = float(min_px)
+        self._detector: SegmentDetector | None = None     # made on first use
         self.ignore = IgnoreRegions(geo, site) if site.ignore_m else None
         self.mode = ""           # how the last heading's lines were found
 
@@ -66,7 +67,9 @@ class ParallelsStage:
             segs = predicted_chords(self.geo, self.corridor, pose, max_chords, self.site)
             mode = "predicted"
         if len(segs) < 2:
-            segs = self.detector(grey)
+            if self._detector is None:
+                self._detector = SegmentDetector("fld", self.min_px)
+            segs = self._detector(grey)
             mode = "detected"
         if len(segs) < 2:
             return None

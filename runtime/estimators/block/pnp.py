@@ -123,8 +123,7 @@ def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> n
 def magnification(camera: CameraModel, points_norm: np.ndarray) -> np.ndarray:
     """``(N,)`` pixels per normalized unit at each point: ``sqrt |det J|`` of the lens."""
     p = np.asarray(points_norm, float).reshape(-1, 2)
-    if p.shape[0] and camera.model in ("plumb_bob", "rational_polynomial") \
-            and camera.K[0, 1] == 0:
+    if p.shape[0] and camera.opencv_projects:
         # cv2.projectPoints' Jacobian: with no rotation and the points at z = 1, the
         # pixel's derivative by the translation is its derivative by the point
         P = np.ones((p.shape[0], 3))
@@ -292,7 +291,7 @@ def six_dof_check(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.n
     R_wc = R_cw.T
     centre = -R_wc @ tvec.ravel()
     _, tilt6, swing6 = mount_angles(rot_z(-yaw_rad) @ R_wc)
-    tilt, swing = _mount_tilt_swing(geo.R_vehicle_cam.tobytes())
+    tilt, swing = _mount_tilt_swing(np.asarray(geo.R_vehicle_cam, np.float64).tobytes())
     out = {"pnp6_tilt_deg": math.degrees(tilt6 - tilt),
            "pnp6_height_m": float(centre[2] - geo.t_vehicle_cam[2])}
     if abs(tilt - math.pi / 2) > VERTICAL_RAD:        # swing is pan's twin when looking up

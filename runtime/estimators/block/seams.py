@@ -144,7 +144,7 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
             px[front] = geo.camera.distort(pc[front, :2] / pc[front, 2:3])
     inside = (front & geo.camera.in_image(px, MARGIN_PX)).reshape(n_lines, n_t)
     px = px.reshape(n_lines, n_t, 2)
-    k = round(CHORD_M / STEP_M)
+    k = max(1, round(CHORD_M / STEP_M))      # samples a chord spans (k STEP_M metres)
     # non-overlapping chords, every k-th sample a start, each of its k + 1 samples inside
     # (its ends and middle: a chord is short against the frame, and its measurement
     # drops it if it leaves the frame between them)
@@ -156,7 +156,7 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
     si = starts[sj]
     if site is not None and site.ignore_m and len(li):
         # SPEC §2: no chord crosses an ignore region (tested every IGNORE_STEP_M)
-        along = np.arange(0.0, CHORD_M + 1e-9, IGNORE_STEP_M)
+        along = np.arange(0.0, k * STEP_M + 1e-9, IGNORE_STEP_M)
         dense = (p0[li, None, :] + (t[si][:, None] + along)[:, :, None] * d[li, None, :])
         clear = ~site.ignored(dense).any(axis=1)
         li, si = li[clear], si[clear]

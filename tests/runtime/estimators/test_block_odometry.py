@@ -50,8 +50,9 @@ def test_rendered_step_gives_the_motion():
 
 def test_corners_are_carried_between_steps_and_detected_again_after_a_break(monkeypatch):
     """A step's tracked corners are the next step's: the corners are detected once per
-    REDETECT_EVERY steps, and afresh after a frame kept without measuring (the carried
-    corners belong to the frame before it). The motion stays exact to a fraction of a mm."""
+    REDETECT_EVERY steps, and afresh after a frame kept without measuring or a gap (the
+    carried corners belong to another frame). The motion stays exact to a fraction of
+    a mm."""
     import ceilkit.runtime.estimators.block.odometry as odometry
     rig = Rig.load(CONFIGS / "block" / "rig.yaml")
     site = Site.load(CONFIGS / "block" / "site.yaml")
@@ -61,8 +62,11 @@ def test_corners_are_carried_between_steps_and_detected_again_after_a_break(monk
     detect = odometry.cv2.goodFeaturesToTrack
     monkeypatch.setattr(odometry.cv2, "goodFeaturesToTrack",
                         lambda *a, **k: calls.append(1) or detect(*a, **k))
+    fits = []
+    fit = odometry.plane_motion
+    monkeypatch.setattr(odometry, "plane_motion", lambda q, p: fits.append(fit(q, p)) or fits[-1])
     n = odometry.REDETECT_EVERY + 2
-    poses = [(1.0 + 0.03 * k, 0.1 + 0.005 * k, 0.3 + 0.004 * k) for k in range(n + 2)]
+    poses = [(1.0 + 0.03 * k, 0.1 + 0.005 * k, 0.3 + 0.004 * k) for k in range(n + 4)]
     frames = [render_frame(rig, site, *p, opts) for p in poses]
     for k in range(n):
         inc = odo.increment(frames[k], k * 33_333_333)
@@ -72,10 +76,16 @@ def test_corners_are_carried_between_steps_and_detected_again_after_a_break(monk
             c, s = math.cos(a0), math.sin(a0)
             dx, dy = c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0)
             assert math.hypot(inc.dx_m - dx, inc.dy_m - dy) < 0.001
+            assert 0 < len(odo._tracks) <= fits[-1].n    # only the fit's inliers go on
     assert len(calls) == 2                   # steps 1-5 carry one detection, step 6 anew
     odo.increment(frames[n], n * 33_333_333, measure=False)
     assert odo.increment(frames[n + 1], (n + 1) * 33_333_333) is not None
     assert len(calls) == 3
+    # a gap over MAX_GAP_S: no increment, and the corners carried past it are dropped
+    t_gap = (n + 1) * 33_333_333 + int(2e9 * odometry.MAX_GAP_S)
+    assert odo.increment(frames[n + 2], t_gap) is None
+    assert odo.increment(frames[n + 3], t_gap + 33_333_333) is not None
+    assert len(calls) == 4
 
 
 def test_points_on_a_straight_edge_are_not_corners():

@@ -15,7 +15,7 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import PoseEstimate
 from ceilkit.runtime.estimators.block.estimator import BlockEstimator
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
 from ceilkit.runtime.estimators.block.seams import predicted_chords
 from ceilkit.runtime.estimators.lights.rays import project_lights
 from ceilkit.runtime.estimators.registry import make_estimator
@@ -86,6 +86,30 @@ def test_parallels_take_no_chord_inside_an_ignore_region():
     every = predicted_chords(geo, site.corridor, pose, 40, site)
     marked = dataclasses.replace(site, ignore_m=(square(3.0, 0.0, 50.0),))   # all of it
     assert len(every) > 4 and len(predicted_chords(geo, site.corridor, pose, 40, marked)) == 0
+
+
+def test_a_small_region_between_a_chords_samples_drops_that_chord_only():
+    """The lines are sampled every 0.5 m for the frame test, but a chord is tested
+    against the regions every 0.1 m: a 0.1 m region on a seam a quarter of the way
+    along one chord (between its samples) drops that chord and no other."""
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    geo = PlanarGeometry.of(rig, site)
+    pose = np.array([3.0, 0.0, 0.1])
+    every = predicted_chords(geo, site.corridor, pose, 1000, site)
+    # a chord along x at y = 0.6 m, its start on the ceiling (W)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    q = ceiling_points_vehicle(geo, rig.camera.unproject(every[:, :2]))
+    start = pose[:2] + q @ np.array([[c, s], [-s, c]])
+    along = np.flatnonzero(np.abs(start[:, 1] - 0.6) < 1e-6)
+    assert len(along) >= 1
+    k = along[0]
+    quarter = start[k] + np.array([0.25, 0.0])
+    assert abs(math.remainder(quarter[0], 0.6)) > 0.1       # no across seam in the region
+    marked = dataclasses.replace(site, ignore_m=(square(quarter[0], quarter[1], 0.05),))
+    left = predicted_chords(geo, site.corridor, pose, 1000, marked)
+    assert len(left) == len(every) - 1
+    assert not np.any(np.all(np.abs(left - every[k]) < 1e-9, axis=1))
 
 
 def test_everything_ignored_is_a_one_line_error():
