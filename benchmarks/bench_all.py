@@ -69,6 +69,8 @@ import numpy as np
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.spots import niblack_mask
@@ -146,7 +148,7 @@ class Entry:
     """One timed thing: ``call(k)`` runs it on frame k and returns what it returns."""
 
     name: str
-    kind: str                               # method | tracked | baseline | kernel
+    kind: str                               # method | tracked | baseline | stage | kernel
     call: Callable[[int], object]
     times_ns: list[int] = field(default_factory=list)
     results: list[object] = field(default_factory=list)
@@ -218,6 +220,11 @@ def entries(data: Data, detectors: bool = False) -> list[Entry]:
 
         out.append(Entry("kernel: decimate + threshold + findContours", "kernel",
                          thr_contours))
+        # the stage between blocks: one ceiling-plane odometry step per frame (from the
+        # previous frame), as the block method runs it on frames without a fix
+        odo = PlaneOdometry(PlanarGeometry.of(rig, site), site)
+        out.append(Entry("block: ceiling-plane odometry step", "stage",
+                         lambda k: odo.step(g[k]), reset=odo.reset))
     elif is_corridor:
         det = est.detector
         out.append(Entry(f"kernel: {det.method} alone (as configured)", "kernel",
