@@ -180,7 +180,7 @@ def sharpen_quad(quad: Quad) -> Quad:
     if quad.contour_px is None:
         return quad
     pts = _side_fit_corners(quad.contour_px, quad.corners_px, 0.5 * quad.pixel_px)
-    if _signed_area(pts) < 0:
+    if signed_area(pts) < 0:
         pts = pts[::-1].copy()
     return Quad(pts, quad.area_px, quad.at_border, None, quad.pixel_px)
 
@@ -303,7 +303,7 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     return out
 
 
-def _signed_area(pts: np.ndarray) -> float:
+def signed_area(pts: np.ndarray) -> float:
     """Shoelace area of a polygon ``(n, 2)`` in (u, v): > 0 clockwise as displayed."""
     u, v = pts[:, 0], pts[:, 1]
     nxt = np.arange(1, u.size + 1) % u.size

@@ -38,6 +38,7 @@ _FAST_BORDER_NODES = (33, 25)
 _POLYNOMIAL_MODELS = ("plumb_bob", "rational_polynomial")
 FEW_POINTS = 64      # distort: up to this many points, cv2.projectPoints (faster below ~100)
 _ZERO3 = np.zeros(3)
+JACOBIAN_EPS = 1e-4  # distort_jacobian's normalized step where OpenCV does not project
 # the ray table (:func:`subpixel_rays`): the lens inverted exactly every _TABLE_STEP_PX
 # pixels (_TABLE_PAD nodes beyond the border), a node whose inverse reprojects more than
 # _TABLE_TOL_PX off has no ray
@@ -187,9 +188,7 @@ class CameraModel:
         xy = np.asarray(xy_norm, dtype=np.float64).reshape(-1, 2)
         d = self.dist
         if xy.shape[0] <= FEW_POINTS and self.opencv_projects:
-            p = np.ones((xy.shape[0], 3))
-            p[:, :2] = xy
-            return cv2.projectPoints(p, _ZERO3, _ZERO3, self.K, d)[0].reshape(-1, 2)
+            return self._cv_project(xy)[0].reshape(-1, 2)
         x, y = xy[:, 0], xy[:, 1]
         if self.model == "equidistant":
             r = np.hypot(x, y)
@@ -207,6 +206,27 @@ class CameraModel:
             yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         K = self.K
         return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
+
+    def distort_jacobian(self, xy_norm: np.ndarray) -> np.ndarray:
+        """``(N, 2, 2)`` d(pixel)/d(normalized point) at normalized points ``(N, 2)``:
+        ``cv2.projectPoints``' own Jacobian where it projects this lens
+        (:attr:`opencv_projects`; with no rotation and the points at z = 1 the pixel's
+        derivative by the translation is its derivative by the point), else forward
+        differences of :meth:`distort` by :data:`JACOBIAN_EPS`."""
+        xy = np.asarray(xy_norm, dtype=np.float64).reshape(-1, 2)
+        if xy.shape[0] and self.opencv_projects:
+            return self._cv_project(xy)[1][:, 3:5].reshape(-1, 2, 2)
+        e = JACOBIAN_EPS
+        a, pu, pv = self.distort(np.concatenate([xy, xy + [e, 0.0], xy + [0.0, e]])
+                                 ).reshape(3, -1, 2)
+        return np.stack([(pu - a) / e, (pv - a) / e], axis=2)
+
+    def _cv_project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``cv2.projectPoints`` of normalized points ``(N, 2)`` at z = 1 (no rotation,
+        no translation): ``(pixels (N, 1, 2), Jacobian (2N, 10 + coefficients))``."""
+        p = np.ones((xy.shape[0], 3))
+        p[:, :2] = xy
+        return cv2.projectPoints(p, _ZERO3, _ZERO3, self.K, self.dist)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Pixels ``(N, 2)`` of 3-D points ``(N, 3)`` in the camera frame.

@@ -104,4 +104,12 @@ def fit_similarity_2d(q: np.ndarray, p: np.ndarray) -> tuple[float, float, np.nd
     return s, theta, pm - s * _rotate(theta, qm)
 
 
-__all__ = ["fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d"]
+def short_median(x: np.ndarray) -> float:
+    """``np.median`` of a short 1-D array (a fit's residuals, a marker's cells): the same
+    number for a fraction of its call."""
+    s = np.sort(x)
+    n = s.size
+    return float(s[n // 2]) if n % 2 else float((s[n // 2 - 1] + s[n // 2]) / 2)
+
+
+__all__ = ["fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d", "short_median"]

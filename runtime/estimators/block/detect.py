@@ -33,6 +33,7 @@ from ceilkit.runtime.features.quads import (
     line_corners,
     quads_of_mask,
 )
+from ceilkit.runtime.geometry.fits import short_median
 
 BG_SHRINK = 16             # background(): the frame shrunk by this factor
 BG_WINDOW = 9              # background(): local max/min over this many shrunk cells
@@ -121,12 +122,6 @@ def fit_side_lines(points: np.ndarray, side: np.ndarray) -> np.ndarray:
     return np.stack([a, b, -(a * mx + b * my)], axis=1)
 
 
-def corners_of(lines: np.ndarray) -> np.ndarray | None:
-    """``(4, 2)`` corners of four side lines ``(4, 3)`` (corner k: side k-1 meets side k),
-    None when two neighbouring sides are parallel."""
-    return line_corners(lines)
-
-
 def sharpen_corners(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 8
                     ) -> np.ndarray | None:
     """A quad's corners ``(4, 2)`` px as its sides' edge lines meet, on ``grey`` itself
@@ -135,7 +130,7 @@ def sharpen_corners(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 8
     pts, side = edge_points(grey, corners_px, per_side)
     if np.any(np.bincount(side, minlength=4) < 3):
         return None
-    return corners_of(fit_side_lines(pts, side))
+    return line_corners(fit_side_lines(pts, side))
 
 
 _NEXT_CORNER = np.array([1, 2, 3, 0])      # corner k+1 of a quad
@@ -165,13 +160,6 @@ def _cell_grid(n: int) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
     for a in (out[0], out[2], out[3]):
         a.flags.writeable = False
     return out
-
-
-def _median(x: np.ndarray) -> float:
-    """The median of a short 1-D array (``np.median``'s number, a fraction of its call)."""
-    s = np.sort(x)
-    m = s.size // 2
-    return float(s[m]) if s.size % 2 else 0.5 * float(s[m - 1] + s[m])
 
 
 def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
@@ -204,7 +192,7 @@ def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
     cells = vals.reshape(g, 2, g, 2).sum(axis=(1, 3), dtype=np.float32) * np.float32(0.25)
     flat = cells.ravel()
     on_border = flat[border]
-    white, black = _median(flat[ring]), _median(on_border)
+    white, black = short_median(flat[ring]), short_median(on_border)
     if white - black < MIN_MARKER_CONTRAST:
         return None
     thr = 0.5 * (white + black)
@@ -243,7 +231,7 @@ def _sides_of(pts: np.ndarray, side: np.ndarray, geo: PlanarGeometry,
               per_side: int) -> Sides | None:
     """The side lines of edge points ``pts`` (px) through the lens, or None."""
     norm = geo.camera.unproject_fast(pts)
-    corners = corners_of(fit_side_lines(norm, side))
+    corners = line_corners(fit_side_lines(norm, side))
     if corners is None:
         return None
     return Sides(corners, norm, side, 4 * per_side)
@@ -265,7 +253,7 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
                                 search_px if k == 0 else EDGE_SEARCH_PX)
         if np.any(np.bincount(side, minlength=4) < MIN_SIDE_POINTS):
             return None
-        corners_px = corners_of(fit_side_lines(pts, side))
+        corners_px = line_corners(fit_side_lines(pts, side))
         if corners_px is None:
             return None
     got = _sides_once(grey, corners_px, geo, per_side,

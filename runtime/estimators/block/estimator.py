@@ -67,7 +67,7 @@ from ceilkit.runtime.estimators.block.pnp import (
 )
 from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides
 from ceilkit.runtime.estimators.block.window import WINDOW, Windows, shape_fits, targets_of
-from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad
+from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad, signed_area
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 NO_BLOCK = "no_block"
@@ -186,8 +186,9 @@ class BlockEstimator(Estimator):
         self._perimeters = [(float(np.sum(side_lengths_m(b.corners_m))), b.appearance != "bright")
                             for b in site.blocks]
         self._bright = any(b.appearance == "bright" for b in site.blocks)
+        targets = targets_of(site, markers, o.shape_tol)
         # per polarity (dark?): whether every block of it is symmetric (4 or 2 ways)
-        blocks = targets_of(site, None, o.shape_tol)
+        blocks = [t for t in targets if t.source.startswith("block:")]
         self._symmetric_only = {d: any(t.dark == d for t in blocks)
                                 and all(t.symmetric for t in blocks if t.dark == d)
                                 for d in (True, False)}
@@ -198,7 +199,7 @@ class BlockEstimator(Estimator):
         self._pooled = PooledSideOffsets()
         self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
         self._fixed = True      # the previous frame had a fix (no track to carry yet)
-        self.windows = Windows(self.geo, targets_of(site, markers, o.shape_tol), o)
+        self.windows = Windows(self.geo, targets, o)
         self._window_fixes = 0  # window fixes since the last global search
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
@@ -234,11 +235,10 @@ class BlockEstimator(Estimator):
         cands = sorted([(q, True) for q in dark] + [(q, False) for q in bright],
                        key=lambda c: -c[0].area_px)              # the largest first
         fixes, unknown, n = self._fixes(grey, cands, prior)
-        ambiguous, partial, skipped = n.ambiguous, n.partial, n.skipped
         diag = {"unknown_marker_ids": tuple(unknown), "quads": len(dark) + len(bright),
-                "quads_skipped": skipped}
+                "quads_skipped": n.skipped}
         if not fixes:
-            got = self._fail(t_ns, ambiguous, partial, unknown, others, diag, t0)
+            got = self._fail(t_ns, n, unknown, others, diag, t0)
             if not self.options.parallels:
                 return got
             known = bool(prior) and prior.x_m is not None and prior.y_m is not None
@@ -320,14 +320,14 @@ class BlockEstimator(Estimator):
         diag = {"unknown_marker_ids": (), "quads": tried, "quads_skipped": 0}
         return self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
 
-    def _fail(self, t_ns: int, ambiguous: int, partial: int, unknown: list[int],
+    def _fail(self, t_ns: int, n: _Counts, unknown: list[int],
               others: list[np.ndarray], diag: dict[str, Any], t0: float) -> Estimate:
         """The Failure of a frame with no fix, the most telling reason first."""
         ms = elapsed_ms(t0)
-        if ambiguous:
+        if n.ambiguous:
             return self.fail(t_ns, AMBIGUOUS, "a symmetric block fits in several ways "
                              "and no prior tells them apart", ms=ms, **diag)
-        if partial or any(cv2.contourArea(c) >= PARTIAL_AREA_PX for c in others):
+        if n.partial or any(cv2.contourArea(c) >= PARTIAL_AREA_PX for c in others):
             return self.fail(t_ns, PARTIAL_BLOCK, "a block is only partly in view",
                              ms=ms, **diag)
         if unknown:
@@ -430,7 +430,7 @@ class BlockEstimator(Estimator):
             return None
         # the camera sees the ceiling mirrored: counter-clockwise from above is wanted
         cn = sides.corners_norm
-        if _shoelace(pv) < 0:
+        if signed_area(pv) < 0:
             pv, cn = pv[::-1].copy(), cn[::-1].copy()
             sides = Sides(cn, sides.edge_norm, (2 - sides.side) % 4, sides.stations)
         fits = shape_fits(self.site.blocks, pv, dark, self.options.shape_tol)
@@ -504,12 +504,6 @@ def _usable(site: Any) -> Any:
         raise ConfigError(site.source, "ignore", "every block and marker reaches into an "
                           "ignore region: the block method has nothing to use")
     return used
-
-
-def _shoelace(p: np.ndarray) -> float:
-    x, y = p[:, 0], p[:, 1]
-    nxt = np.arange(1, x.size + 1) % x.size
-    return 0.5 * float(np.dot(x, y[nxt]) - np.dot(x[nxt], y))
 
 
 def _pick_by_prior(fits: list, prior: PoseEstimate | None) -> int | None:

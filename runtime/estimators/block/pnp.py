@@ -43,8 +43,6 @@ GN_STEP_EPS = 1e-6          # converged when the next step (m, rad) is below thi
 JAC_EPS = 1e-6              # finite-difference step, m and rad
 SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
-MAGNIFY_EPS = 1e-4          # normalized step for the lens's local magnification
-_ZERO3 = np.zeros(3)
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,19 +120,8 @@ def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> n
 
 def magnification(camera: CameraModel, points_norm: np.ndarray) -> np.ndarray:
     """``(N,)`` pixels per normalized unit at each point: ``sqrt |det J|`` of the lens."""
-    p = np.asarray(points_norm, float).reshape(-1, 2)
-    if p.shape[0] and camera.opencv_projects:
-        # cv2.projectPoints' Jacobian: with no rotation and the points at z = 1, the
-        # pixel's derivative by the translation is its derivative by the point
-        P = np.ones((p.shape[0], 3))
-        P[:, :2] = p
-        J = cv2.projectPoints(P, _ZERO3, _ZERO3, camera.K, camera.dist)[1][:, 3:5]
-        return np.sqrt(np.abs(J[0::2, 0] * J[1::2, 1] - J[0::2, 1] * J[1::2, 0]))
-    e = MAGNIFY_EPS
-    a, pu, pv = camera.distort(np.concatenate([p, p + [e, 0.0], p + [0.0, e]])
-                               ).reshape(3, -1, 2)
-    du, dv = (pu - a) / e, (pv - a) / e
-    return np.sqrt(np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]))
+    J = camera.distort_jacobian(points_norm)
+    return np.sqrt(np.abs(J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]))
 
 
 def _side_residuals(geo: PlanarGeometry, poses: np.ndarray, corners_w: np.ndarray,

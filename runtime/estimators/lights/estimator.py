@@ -63,11 +63,12 @@ from ceilkit.runtime.estimators.lights.observe import (
     VisibilityTable,
 )
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
-from ceilkit.runtime.estimators.lights.refine import _median, refine_pose_ceiling
+from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
 from ceilkit.runtime.estimators.lights.track import WindowTracker
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.spots import SpotParams
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
+from ceilkit.runtime.geometry.fits import short_median
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.geometry.shutter import row_times_s
 
@@ -384,7 +385,7 @@ class LightsEstimator(Estimator):
         pairs = cand.pairs
         fit = self._fit(obs, pairs, (cand.x_m, cand.y_m, cand.yaw_rad), motion)
         res = fit[4]
-        bad = res > max(self.options.max_residual_px, OUTLIER_MEDIANS * _median(res))
+        bad = res > max(self.options.max_residual_px, OUTLIER_MEDIANS * short_median(res))
         if bad.any() and pairs.shape[0] - int(bad.sum()) >= 2:
             pairs = pairs[~bad]
             fit = self._fit(obs, pairs, fit[:3], motion)

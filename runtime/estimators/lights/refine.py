@@ -196,11 +196,4 @@ def _solve3(N: np.ndarray, g: np.ndarray, ridge: float) -> tuple[float, float, f
     return x0, x1, x2
 
 
-def _median(x: np.ndarray) -> float:
-    """``np.median`` of a short 1-D array, the same number for less overhead."""
-    s = np.sort(x)
-    n = s.size
-    return float(s[n // 2]) if n % 2 else float((s[n // 2 - 1] + s[n // 2]) / 2)
-
-
 __all__ = ["refine_pose", "refine_pose_ceiling"]

@@ -45,9 +45,10 @@ from ceilkit.runtime.estimators.lights.rays import (
     pixel_scale,
     project_lights,
 )
-from ceilkit.runtime.estimators.lights.refine import _median, refine_pose_ceiling
+from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
 from ceilkit.runtime.features.spots import Spots, rows_to_spots
 from ceilkit.runtime.features.windows import CORE, window_stats
+from ceilkit.runtime.geometry.fits import short_median
 
 MAX_HALF_PX = 40
 """A window is at most ``2 MAX_HALF_PX + 1`` pixels wide (large spots near the nadir)."""
@@ -213,7 +214,7 @@ class WindowTracker:
         L = self.lights_w[idx]
         fit = refine_pose_ceiling(q, J, L, x_m, y_m, yaw_rad)
         res = fit[4]
-        bad = res > max(self.max_residual_px, self.outlier_medians * _median(res))
+        bad = res > max(self.max_residual_px, self.outlier_medians * short_median(res))
         if bad.any():
             if idx.size - int(bad.sum()) < 3:
                 return None

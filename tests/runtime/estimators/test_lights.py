@@ -338,7 +338,8 @@ def test_visibility_table_matches_projection(lights_rig, lights_site, tilted_rig
 
 def test_small_helpers_match_numpy():
     """The plain-float 3x3 solve and the short median give numpy's numbers."""
-    from ceilkit.runtime.estimators.lights.refine import _inv3, _median, _solve3
+    from ceilkit.runtime.estimators.lights.refine import _inv3, _solve3
+    from ceilkit.runtime.geometry.fits import short_median as _median
 
     rng = np.random.default_rng(3)
     for _ in range(20):
