@@ -40,7 +40,12 @@ from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
 
 GN_ITERATIONS = 4
 GN_STEP_EPS = 1e-6          # converged when the next step (m, rad) is below this
+GN_LINEAR_EPS = 1e-4        # a step (m, rad) below this ends the fit: the closed form's
+                            # start is 20-40 µm off on configs/block, its first step then
+                            # leaves ~1e-9 (Gauss-Newton converges quadratically)
 JAC_EPS = 1e-6              # finite-difference step, m and rad
+_JAC_STEPS = np.vstack([np.zeros(3), np.eye(3) * JAC_EPS])   # the pose and its steps
+_JAC_STEPS.flags.writeable = False
 SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
 
@@ -193,25 +198,29 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
     px by ``scale`` (M,) (:func:`magnification`). Needs M >= 3 over three sides."""
     pose = np.array(pose0, float)
     args = (np.asarray(corners_w, float), edge_norm, side, scale)
-    steps = np.vstack([np.zeros(3), np.eye(3) * JAC_EPS])
     for it in range(GN_ITERATIONS + 1):
-        rr = _side_residuals(geo, pose + steps, *args)
+        rr = _side_residuals(geo, pose + _JAC_STEPS, *args)
         r = rr[0]
         J = ((rr[1:] - r) / JAC_EPS).T
+        JtJ = J.T @ J
         if it == GN_ITERATIONS:
             break
         try:                        # the normal equations: a 3x3 solve (lstsq's SVD: 3x)
-            step = np.linalg.solve(J.T @ J, -(J.T @ r))
+            step = np.linalg.solve(JtJ, -(J.T @ r))
         except np.linalg.LinAlgError:
             step, *_ = np.linalg.lstsq(J, -r, rcond=None)
-        if np.max(np.abs(step)) < GN_STEP_EPS:
+        size = float(np.max(np.abs(step)))
+        if size < GN_STEP_EPS:
             break                   # r, J at the converged pose serve the covariance
         pose = pose + step
+        if size < GN_LINEAR_EPS:    # the next step would be ~size² (< 1e-8): r moves
+            r = r + J @ step        # linearly, J stays; no second evaluation
+            break
     rms = float(np.sqrt(np.mean(r * r)))
     dof = max(r.size - 3, 1)
     s2 = max(float(r @ r) / dof, SIGMA_FLOOR_PX ** 2)
     try:
-        A = np.linalg.inv(J.T @ J)
+        A = np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:
         pose[2] = wrap_pi(pose[2])
         return Refined(pose, np.full((3, 3), np.inf), rms, int(r.size))

@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.features.quads import detect_quads, edge_points, marker_dictionary
+from ceilkit.runtime.features import quads
+from ceilkit.runtime.features.quads import (
+    MarkerCodes,
+    detect_quads,
+    edge_points,
+    marker_cells,
+    marker_dictionary,
+)
 
 
 def square_image(corners: np.ndarray, inside: int = 40, outside: int = 150) -> np.ndarray:
@@ -45,3 +52,30 @@ def test_edge_points_find_a_blurred_step_to_a_tenth_of_a_pixel(x0):
 def test_unknown_dictionary_is_a_one_line_error():
     with pytest.raises(ConfigError, match="markers.dictionary"):
         marker_dictionary("DICT_9X9_1")
+
+
+@pytest.mark.parametrize("name", ["DICT_4X4_50", "DICT_APRILTAG_36h11", "DICT_7X7_1000"])
+def test_marker_codes_read_every_turn_and_correct_up_to_max_errors(name):
+    codes = MarkerCodes(name)
+    rng = np.random.default_rng(1)
+    n_ids = marker_dictionary(name).bytesList.shape[0]
+    for marker_id in rng.choice(n_ids, 6, replace=False):
+        printed = marker_cells(name, int(marker_id))[1:-1, 1:-1].astype(bool)
+        for s in range(4):
+            # an outline whose corner s is the printed top-left reads the code turned
+            read = np.rot90(printed, -s).copy()
+            assert codes.identify(read) == (marker_id, s, 0)
+            flip = rng.choice(read.size, codes.max_errors, replace=False)
+            read.flat[flip] ^= True
+            assert codes.identify(read) == (marker_id, s, codes.max_errors)
+    noise = rng.random((200, codes.bits, codes.bits)) > 0.5
+    got = [codes.identify(c) for c in noise]
+    assert all(g is None or g[2] <= codes.max_errors for g in got)
+
+
+def test_bit_count_without_numpy_2_agrees():
+    words = np.random.default_rng(2).integers(0, 2 ** 63, 1000, dtype=np.uint64)
+    want = np.array([bin(int(w)).count("1") for w in words])
+    assert np.array_equal(quads._BYTE_BITS[words.view(np.uint8).reshape(-1, 8)].sum(axis=1),
+                          want)
+    assert np.array_equal(quads._bit_count(words), want)
