@@ -258,20 +258,21 @@ def quads_of_mask(mask: np.ndarray, min_area_px: float = MIN_QUAD_AREA_PX,
     return out
 
 
-_PREV = np.array([3, 0, 1, 2])      # side k-1 of a quad
-
-
 def line_corners(lines: np.ndarray) -> np.ndarray | None:
     """``(4, 2)`` corners of four side lines ``(4, 3)`` ``(a, b, c)`` (corner k: side
     k-1 meets side k), None when two neighbouring sides are parallel. The cross product
-    of each line with the previous one, written out (np.cross/np.roll cost 10x more)."""
-    p = lines[_PREV]
-    a0, b0, c0 = p[:, 0], p[:, 1], p[:, 2]
-    a1, b1, c1 = lines[:, 0], lines[:, 1], lines[:, 2]
-    w = a0 * b1 - b0 * a1
-    if np.any(np.abs(w) < 1e-12):
-        return None
-    return np.stack([(b0 * c1 - c0 * b1) / w, (c0 * a1 - a0 * c1) / w], axis=1)
+    of each line with the previous one, in Python floats (four 3-vectors: numpy's calls
+    cost more than the arithmetic)."""
+    ls = np.asarray(lines, float).tolist()
+    out = []
+    a0, b0, c0 = ls[3]
+    for a1, b1, c1 in ls:
+        w = a0 * b1 - b0 * a1
+        if abs(w) < 1e-12:
+            return None
+        out.append(((b0 * c1 - c0 * b1) / w, (c0 * a1 - a0 * c1) / w))
+        a0, b0, c0 = a1, b1, c1
+    return np.array(out)
 
 
 def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float = 0.5
@@ -282,10 +283,10 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     ``approxPolyDP``'s vertices ``poly`` ``(4, 2)`` are contour points within its
     tolerance of the outline, often pixels off the true corners; here each side's line
     is fitted to the contour points along its middle (:data:`SIDE_FIT_KEEP` of the run
-    between two vertices), moved half a pixel outwards (the contour runs through the
-    region's boundary pixels, the edge lies between them and the background:
-    ``outwards_px``) and met with its neighbours'. Falls back to ``poly`` when a side
-    has too few points."""
+    between two vertices; ``cv2.fitLine``'s total least squares), moved half a pixel
+    outwards (the contour runs through the region's boundary pixels, the edge lies
+    between them and the background: ``outwards_px``) and met with its neighbours'.
+    Falls back to ``poly`` when a side has too few points."""
     poly = poly.astype(float)
     m = contour.shape[0]
     # each vertex's first place on the contour (one comparison of all four)
@@ -294,26 +295,22 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     if not hit[np.arange(4), i0].all():
         return poly
     run = (i0[_NEXT] - i0) % m
-    lo = i0 + np.rint(run * (0.5 - SIDE_FIT_KEEP / 2)).astype(int)
-    hi = i0 + np.rint(run * (0.5 + SIDE_FIT_KEEP / 2)).astype(int)
-    count = hi - lo
-    if np.any(count < 3):
+    first = [round(r * (0.5 - SIDE_FIT_KEEP / 2)) for r in run.tolist()]
+    count = [round(r * (0.5 + SIDE_FIT_KEEP / 2)) - f for r, f in zip(run.tolist(), first,
+                                                                    strict=True)]
+    if min(count) < 3:
         return poly
-    side = np.repeat(np.arange(4), count)
-    at = (np.arange(side.size) - np.repeat(np.cumsum(count) - count, count)
-          + np.repeat(lo, count)) % m
-    q = contour[at]
-    n = count.astype(float)
-    mx = np.bincount(side, q[:, 0], 4) / n
-    my = np.bincount(side, q[:, 1], 4) / n
-    dx, dy = q[:, 0] - mx[side], q[:, 1] - my[side]
-    theta = 0.5 * np.arctan2(2 * np.bincount(side, dx * dy, 4),
-                             np.bincount(side, dx * dx, 4) - np.bincount(side, dy * dy, 4))
-    a, b = -np.sin(theta), np.cos(theta)                     # normal to each side's run
-    c = poly.mean(axis=0)
-    flip = np.where(a * (mx - c[0]) + b * (my - c[1]) < 0, -1.0, 1.0)   # outwards
-    a, b = a * flip, b * flip
-    lines = np.stack([a, b, -(a * mx + b * my) - outwards_px], axis=1)
+    ring = np.concatenate([contour, contour]).astype(np.float32)   # a run may wrap
+    cx, cy = (float(v) * 0.25 for v in poly.sum(axis=0))
+    lines = np.empty((4, 3))
+    starts = [(i + f) % m for i, f in zip(i0.tolist(), first, strict=True)]
+    for k, (start, n) in enumerate(zip(starts, count, strict=True)):
+        vx, vy, mx, my = (float(v) for v in cv2.fitLine(ring[start:start + n], cv2.DIST_L2,
+                                                         0, 0.01, 0.01).ravel())
+        a, b = -vy, vx                                        # normal to the side's run
+        if a * (mx - cx) + b * (my - cy) < 0:                 # outwards
+            a, b = -a, -b
+        lines[k] = a, b, -(a * mx + b * my) - outwards_px
     out = line_corners(lines)
     if out is None:
         return poly
@@ -324,10 +321,15 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
 
 
 def signed_area(pts: np.ndarray) -> float:
-    """Shoelace area of a polygon ``(n, 2)`` in (u, v): > 0 clockwise as displayed."""
-    u, v = pts[:, 0], pts[:, 1]
-    nxt = np.arange(1, u.size + 1) % u.size
-    return 0.5 * float(np.dot(u, v[nxt]) - np.dot(u[nxt], v))
+    """Shoelace area of a polygon ``(n, 2)`` in (u, v): > 0 clockwise as displayed (in
+    Python floats: a quad's four corners)."""
+    p = np.asarray(pts, float).tolist()
+    u0, v0 = p[-1]
+    twice = 0.0
+    for u1, v1 in p:
+        twice += u0 * v1 - u1 * v0
+        u0, v0 = u1, v1
+    return 0.5 * twice
 
 
 def _float_crop(grey: np.ndarray, lo: np.ndarray, hi: np.ndarray

@@ -36,7 +36,7 @@ _FAST_CRITERIA = (cv2.TERM_CRITERIA_COUNT, _FAST_ITERATIONS, 0.0)
 _FAST_TOL_PX = 1e-4
 _FAST_BORDER_NODES = (33, 25)
 _POLYNOMIAL_MODELS = ("plumb_bob", "rational_polynomial")
-FEW_POINTS = 64      # distort: up to this many points, cv2.projectPoints (faster below ~100)
+FEW_POINTS = 32      # distort: up to this many points, cv2.projectPoints (faster below ~50)
 _ZERO3 = np.zeros(3)
 JACOBIAN_EPS = 1e-4  # distort_jacobian's normalized step where OpenCV does not project
 # the ray table (:func:`subpixel_rays`): the lens inverted exactly every _TABLE_STEP_PX
@@ -101,6 +101,12 @@ class CameraModel:
         if self.model != "equidistant":
             k8[:dist.size] = dist
         object.__setattr__(self, "_k8", tuple(float(v) for v in k8))
+        object.__setattr__(self, "_K_rows", ((float(self.K[0, 0]), float(self.K[0, 1]),
+                                               float(self.K[0, 2])),
+                                              (float(self.K[1, 1]), float(self.K[1, 2]))))
+        # which terms of OpenCV's polynomial are there (distort skips the others)
+        object.__setattr__(self, "_terms", (bool(np.any(k8[[0, 1, 4]])), bool(np.any(k8[2:4])),
+                                            bool(np.any(k8[5:]))))
 
     # -- identity -------------------------------------------------------------------
     @property
@@ -198,14 +204,27 @@ class CameraModel:
             with np.errstate(divide="ignore", invalid="ignore"):
                 sc = np.where(r > 1e-12, thd / r, 1.0)
             xd, yd = x * sc, y * sc
-        else:
+        else:           # the terms of the lens only (a call's cost is its numpy calls)
             k1, k2, p1, p2, k3, k4, k5, k6 = self._k8  # type: ignore[attr-defined]
-            r2 = x * x + y * y
-            rad = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-            xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        K = self.K
-        return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
+            radial, tangential, rational = self._terms  # type: ignore[attr-defined]
+            xd, yd = x, y
+            if radial or rational or tangential:
+                r2 = x * x + y * y
+            if radial or rational:
+                rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)) if radial else 1.0
+                if rational:
+                    rad = rad / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+                xd, yd = x * rad, y * rad
+            if tangential:
+                xy2 = 2 * x * y
+                xd = xd + p1 * xy2 + p2 * (r2 + 2 * x * x)
+                yd = yd + p1 * (r2 + 2 * y * y) + p2 * xy2
+        fx, skew, cx = self._K_rows[0]  # type: ignore[attr-defined]
+        fy, cy = self._K_rows[1]  # type: ignore[attr-defined]
+        out = np.empty((xy.shape[0], 2))
+        out[:, 0] = fx * xd + (skew * yd + cx if skew else cx)
+        out[:, 1] = fy * yd + cy
+        return out
 
     def distort_jacobian(self, xy_norm: np.ndarray) -> np.ndarray:
         """``(N, 2, 2)`` d(pixel)/d(normalized point) at normalized points ``(N, 2)``:

@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.geometry.camera import CameraModel
-from ceilkit.runtime.geometry.fits import fit_rigid_2d
+from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex
 from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
 
 GN_ITERATIONS = 4
@@ -94,9 +94,12 @@ def closed_form(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.nda
     q = ceiling_points_vehicle(geo, corners_norm)
     if not np.all(np.isfinite(q)):
         return math.nan, math.nan, math.nan, math.nan
-    yaw, t = fit_rigid_2d(q, np.asarray(corners_w, float))
-    r = q @ rot_z(yaw)[:2, :2].T + t - corners_w
-    return float(t[0]), float(t[1]), float(yaw), float(np.sqrt(np.mean(np.sum(r * r, 1))))
+    p = np.asarray(corners_w, float)
+    qc, pc = q[:, 0] + 1j * q[:, 1], p[:, 0] + 1j * p[:, 1]   # the four points' form
+    rot, t = fit_rigid_2d_complex(qc, pc)
+    r = rot * qc + t - pc
+    rms = math.sqrt(float(np.mean(r.real * r.real + r.imag * r.imag)))
+    return t.real, t.imag, math.atan2(rot.imag, rot.real), rms
 
 
 def project_norm(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> np.ndarray:

@@ -226,6 +226,26 @@ def test_distort_matches_opencv(cam):
     assert cam.distort(np.zeros((0, 2))).shape == (0, 2)
 
 
+@pytest.mark.parametrize("dist", [[0, 0, 0, 0, 0], [-0.1, 0.03, 0, 0, 0],
+                                  [0, 0, 0.002, -0.001, 0], [0, 0, 0, 0, 0.01],
+                                  [0, 0, 0, 0, 0, 0.02, 0, 0], [0.1, 0, 0, 0, 0, 0, 0, 0.003]],
+                         ids=["none", "radial", "tangential", "k3", "k4", "k1+k6"])
+def test_distort_with_some_terms_zero_matches_opencv(dist):
+    """distort leaves out the lens terms that are zero: each subset is OpenCV's pixels,
+    with a skewed K too."""
+    model = "plumb_bob" if len(dist) == 5 else "rational_polynomial"
+    xy = np.random.default_rng(4).uniform(-1.2, 1.2, (200, 2))
+    pts = np.hstack([xy, np.ones((xy.shape[0], 1))])
+    for skew in (0.0, 2.5):
+        cam = CameraModel(100, 80, np.array([[90.0, skew, 49.5], [0.0, 88.0, 39.5],
+                                             [0.0, 0.0, 1.0]]), np.array(dist, float), model)
+        ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), cam.K, cam.dist)
+        ref = ref.reshape(-1, 2)
+        if skew:                     # OpenCV has no skew: add it to the unskewed pixels
+            ref[:, 0] += skew * (ref[:, 1] - 39.5) / 88.0
+        np.testing.assert_allclose(cam.distort(xy), ref, atol=1e-8)
+
+
 @pytest.mark.parametrize("cam", DISTORT_CAMS, ids=lambda c: c.model)
 def test_a_few_points_give_the_pixels_of_many(cam):
     """Up to FEW_POINTS points go through one cv2.projectPoints call, more through numpy:
