@@ -100,8 +100,10 @@ class BlockOptions(EstimatorOptions):
             bright block.
         edge_points: edge stations per side for the refinement.
         six_dof_check: report the unconstrained 6-DoF PnP's disagreement with the rig.
-        max_fixes: blocks and markers solved per frame, the largest in the image first
-            (the best-determined of them is published); more cost time, not accuracy.
+        max_fixes: blocks and markers solved per frame (the best-determined of them is
+            published): the dark quads first (markers, dark blocks), the largest in the
+            image first, then the bright ones, searched only when the dark gave fewer;
+            more cost time, not accuracy.
         parallels: heading from the ceiling's parallels (Xu eqs. 8-10) every frame,
             fused with a block's heading when both are seen.
         parallels_min_px: shortest image segment used as a parallel.
@@ -230,12 +232,26 @@ class BlockEstimator(Estimator):
         o = self.options
         others: list[np.ndarray] = []
         small = decimate(grey)
-        dark = find_quads(grey, True, o.dark_ratio, others, small) if self._dark else []
-        bright = find_quads(grey, False, o.bright_ratio, others, small) if self._bright else []
-        cands = sorted([(q, True) for q in dark] + [(q, False) for q in bright],
-                       key=lambda c: -c[0].area_px)              # the largest first
-        fixes, unknown, n = self._fixes(grey, cands, prior)
-        diag = {"unknown_marker_ids": tuple(unknown), "quads": len(dark) + len(bright),
+        fixes: list[_Fix] = []
+        unknown: list[int] = []
+        n = _Counts()
+        later: list[tuple[Quad, bool]] = []
+        found = 0
+        # the dark quads first (markers: an id, never ambiguous), the bright ones only
+        # when those gave fewer than max_fixes fixes (their search is half the cost)
+        for dark, wanted, ratio in ((True, self._dark, o.dark_ratio),
+                                    (False, self._bright, o.bright_ratio)):
+            if not wanted or len(fixes) >= o.max_fixes:
+                continue
+            quads = find_quads(grey, dark, ratio, others, small)
+            found += len(quads)
+            self._fixes(grey, [(q, dark) for q in sorted(quads, key=lambda q: -q.area_px)],
+                        prior, fixes, unknown, n, later)
+        for q, is_dark in later if not fixes else ():
+            if len(fixes) >= o.max_fixes:
+                break
+            _count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior), fixes, n)
+        diag = {"unknown_marker_ids": tuple(unknown), "quads": found,
                 "quads_skipped": n.skipped}
         if not fixes:
             got = self._fail(t_ns, n, unknown, others, diag, t0)
@@ -257,23 +273,21 @@ class BlockEstimator(Estimator):
         return self._publish(t_ns, fixes, diag, t0, grey)
 
     def _fixes(self, grey: np.ndarray, cands: list[tuple[Quad, bool]],
-               prior: PoseEstimate | None) -> tuple[list[_Fix], list[int], _Counts]:
-        """``(fixes, unknown marker ids, counts)`` of the quads ``(quad, dark)`` in their
-        order, up to ``max_fixes`` fixes. Without a prior a quad that can only be a
-        symmetric block (every block of its polarity fits itself turned, within
-        ``shape_tol``) is measured last, only when nothing else gave a fix: it is then
-        ``ambiguous`` (or, for a block symmetric only within the tolerance, a fit by
-        shape alone), so a marker beside it is preferred and costs no wasted
+               prior: PoseEstimate | None, fixes: list[_Fix], unknown: list[int],
+               counts: _Counts, later: list[tuple[Quad, bool]]) -> None:
+        """The quads ``(quad, dark)`` in their order, up to ``max_fixes`` fixes: their
+        fixes, the marker ids not in the site and the counts added to ``fixes``,
+        ``unknown``, ``counts``. Without a prior a quad that can only be a symmetric
+        block (every block of its polarity fits itself turned, within ``shape_tol``)
+        goes to ``later``, measured by the caller only when nothing else gave a fix:
+        it is then ``ambiguous`` (or, for a block symmetric only within the tolerance,
+        a fit by shape alone), so a marker beside it is preferred and costs no wasted
         measurement; the frame's reason is the same."""
         known = bool(prior) and prior.x_m is not None and prior.y_m is not None
-        fixes: list[_Fix] = []
-        unknown: list[int] = []
-        counts = _Counts()
         # every quad's coarse corners on the ceiling in one pass through the lens
         pvs = ceiling_points_vehicle(self.geo, self.geo.camera.unproject_fast(
             np.concatenate([q.corners_px for q, _ in cands]))).reshape(-1, 4, 2) \
             if cands else np.zeros((0, 4, 2))
-        later: list[tuple[Quad, bool]] = []
         for (q, is_dark), pv in zip(cands, pvs, strict=True):
             if len(fixes) >= self.options.max_fixes:
                 break
@@ -294,12 +308,6 @@ class BlockEstimator(Estimator):
             else:
                 _count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
                              fixes, counts)
-        for q, is_dark in later if not fixes else ():
-            if len(fixes) >= self.options.max_fixes:
-                break
-            _count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
-                         fixes, counts)
-        return fixes, unknown, counts
 
     # -- the window path (option track) -------------------------------------------------
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,

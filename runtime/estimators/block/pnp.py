@@ -46,6 +46,7 @@ GN_LINEAR_EPS = 1e-4        # a step (m, rad) below this ends the fit: the close
 JAC_EPS = 1e-6              # finite-difference step, m and rad
 _JAC_STEPS = np.vstack([np.zeros(3), np.eye(3) * JAC_EPS])   # the pose and its steps
 _JAC_STEPS.flags.writeable = False
+_SIDES = np.arange(4)
 SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
 
@@ -80,9 +81,10 @@ def ceiling_points_vehicle(geo: PlanarGeometry, points_norm: np.ndarray) -> np.n
     """``(N, 2)`` points of the ceiling in V (x, y) seen at normalized image points
     ``(N, 2)``; NaN for rays that do not rise to the ceiling."""
     xy = np.asarray(points_norm, float).reshape(-1, 2)
-    d = np.hstack([xy, np.ones((xy.shape[0], 1))]) @ geo.R_vehicle_cam.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(d[:, 2] > 1e-9, geo.rise_m / d[:, 2], np.nan)
+    R = geo.R_vehicle_cam
+    d = xy @ R[:, :2].T + R[:, 2]                      # R (x, y, 1), row-wise
+    dz = d[:, 2]
+    s = np.divide(geo.rise_m, dz, out=np.full(dz.shape, np.nan), where=dz > 1e-9)
     return geo.t_vehicle_cam[:2] + s[:, None] * d[:, :2]
 
 
@@ -250,16 +252,18 @@ def side_offset_cov(r: np.ndarray, J: np.ndarray, side: np.ndarray, A: np.ndarra
     and ``g_k = Σ_{i in k} J_i``, the least-squares pose's covariance from independent
     side offsets of variance ``σ_b²`` is ``σ_b² A (Σ_k g_k g_kᵀ) A`` with
     ``A = (JᵀJ)⁻¹``. ``(0, None)`` for fewer than three sides (no size check)."""
-    n = np.bincount(side, minlength=4).astype(float)
+    onehot = (side[:, None] == _SIDES).astype(float)                   # (M, 4)
+    n = onehot.sum(axis=0)
     on = n > 0
     K = int(np.count_nonzero(on))
     if K < 3:
         return 0.0, None
     n = n[on]
-    m = np.bincount(side, r, minlength=4)[on] / n                      # side means
-    sq = np.bincount(side, r * r, minlength=4)[on]
-    within = np.maximum(sq - n * m * m, 0.0) / np.maximum(n - 1.0, 1.0)
-    g = np.stack([np.bincount(side, J[:, j], minlength=4)[on] for j in range(3)], 1)
+    # per side: the sum of r, of r², and of each Jacobian column, in one product
+    sums = onehot.T @ np.column_stack([r, r * r, J])                    # (4, 5)
+    m = sums[on, 0] / n                                                 # side means
+    within = np.maximum(sums[on, 1] - n * m * m, 0.0) / np.maximum(n - 1.0, 1.0)
+    g = sums[on, 2:]
     G = g.T @ g                                                         # Σ_k g_k g_kᵀ
     var_b = max(float(m @ m) - float((within / n).sum()) * (K - 2) / K, 0.0) / (K - 2)
     return var_b, A @ G @ A

@@ -106,10 +106,12 @@ class Windows:
         self.options = options
         self._corners = (np.concatenate([t.corners_w for t in targets]) if targets
                          else np.zeros((0, 2)))
+        self._bright = np.array([not t.dark for t in targets], bool)
 
     def predicted(self, pose: np.ndarray) -> list[tuple[Target, np.ndarray]]:
         """``(target, corners px (4, 2))`` of the targets fully in view from ``pose``
-        (a margin of the search window inside the frame), the largest first."""
+        (a margin of the search window inside the frame): the dark ones first (markers,
+        dark blocks), each polarity the largest first, the global path's order."""
         if not self.targets:
             return []
         px = project_px(self.geo, pose, self._corners).reshape(-1, 4, 2)
@@ -118,12 +120,13 @@ class Windows:
         u, v = px[..., 0], px[..., 1]
         nxt = [1, 2, 3, 0]
         area = np.abs(np.sum(u * v[:, nxt] - u[:, nxt] * v, axis=1))
-        return [(self.targets[k], px[k]) for k in np.argsort(-area) if inside[k]]
+        return [(self.targets[k], px[k]) for k in np.lexsort((-area, self._bright))
+                if inside[k]]
 
     def fixes(self, grey: np.ndarray, pose: np.ndarray, solve: Callable[..., Any],
               most: int) -> tuple[list[Any], int]:
-        """Up to ``most`` fixes (:meth:`fix`) of the targets in view from ``pose``, the
-        largest first, and how many targets were tried."""
+        """Up to ``most`` fixes (:meth:`fix`) of the targets in view from ``pose``, in
+        :meth:`predicted`'s order, and how many targets were tried."""
         out: list[Any] = []
         tried = 0
         for tgt, px in self.predicted(pose):
