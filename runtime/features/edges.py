@@ -31,11 +31,13 @@ Example::
 from __future__ import annotations
 
 import functools
+import math
 
 import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.jit import njit
 
 PROFILE_STEP_PX = 0.5      # spacing of profile samples across a segment
 SIDE_PX = 1.0              # a profile's sides: its outer SIDE_PX at either end
@@ -153,31 +155,77 @@ def classify(prof: np.ndarray, offs: np.ndarray, min_step: float, min_depth: flo
     n = prof.shape[0]
     if n == 0:
         return np.full(n, np.nan), (np.full(n, np.nan) if shift else None)
-    sl, sr, inner, inv_l, inv_r = profile_parts(offs)
-    left = prof[:, sl].sum(axis=1) * inv_l
-    right = prof[:, sr].sum(axis=1) * inv_r
-    step = right - left
-    pin = np.ascontiguousarray(prof[:, inner])
-    k_lo = np.argmin(pin, axis=1)
-    k_hi = np.argmax(pin, axis=1)
-    dip = np.minimum(left, right) - pin.min(axis=1)
-    bump = pin.max(axis=1) - np.maximum(left, right)
-    valley = dip >= bump
-    depth = np.where(valley, dip, bump)
-    k = np.where(valley, k_lo, k_hi)
-    a_step = np.abs(step)
-    thin = (depth >= min_depth) & (depth > a_step) & (k > 0) & (k < pin.shape[1] - 1)
-    is_step = (a_step >= min_step) & (a_step > np.maximum(depth, 0.0))
-    pol = np.where(thin, 0.0, np.where(is_step, np.sign(step), np.nan))
-    if not shift:
-        return pol, None
+    il, ir, ii = _part_indices(offs)
+    pol, out = _classify(np.ascontiguousarray(prof, np.float64), np.asarray(offs, np.float64),
+                         il, ir, ii, float(min_step), float(min_depth), PROFILE_STEP_PX)
+    return pol, (out if shift else None)
+
+
+@njit
+def _classify(prof, offs, il, ir, ii, min_step, min_depth, step_px
+              ):  # pragma: no cover - compiled
+    """:func:`classify` of ``prof (N, O)``, the parts' indices from
+    :func:`_part_indices`: ``(polarity (N,), shift (N,))``."""
+    n = prof.shape[0]
+    m = ii.size
+    pol = np.full(n, np.nan)
     out = np.full(n, np.nan)
-    r = np.flatnonzero(thin)
-    if r.size:
-        kk = k[r]
-        out[r] = offs[inner][kk] + PROFILE_STEP_PX * vertex(pin[r, kk - 1], pin[r, kk],
-                                                             pin[r, kk + 1])
+    for r in range(n):
+        left = 0.0
+        for i in il:
+            left += prof[r, i]
+        left /= il.size
+        right = 0.0
+        for i in ir:
+            right += prof[r, i]
+        right /= ir.size
+        step = right - left
+        k_lo = k_hi = 0
+        lo = hi = prof[r, ii[0]]
+        for j in range(1, m):
+            v = prof[r, ii[j]]
+            if v < lo:
+                lo, k_lo = v, j
+            if v > hi:
+                hi, k_hi = v, j
+        dip = min(left, right) - lo
+        bump = hi - max(left, right)
+        if dip >= bump:
+            depth, k = dip, k_lo
+        else:
+            depth, k = bump, k_hi
+        a_step = abs(step)
+        if depth >= min_depth and depth > a_step and 0 < k < m - 1:
+            pol[r] = 0.0
+            out[r] = offs[ii[k]] + step_px * _vertex(prof[r, ii[k - 1]], prof[r, ii[k]],
+                                                     prof[r, ii[k + 1]])
+        elif a_step >= min_step and a_step > max(depth, 0.0):
+            pol[r] = np.sign(step)
     return pol, out
+
+
+@njit
+def _vertex(y0, y1, y2):  # pragma: no cover - compiled
+    """:func:`vertex` of three numbers."""
+    den = y0 - 2.0 * y1 + y2
+    if abs(den) > 1e-9:
+        return min(max(0.5 * (y0 - y2) / den, -1.0), 1.0)
+    return 0.0
+
+
+def _part_indices(offs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`profile_parts`' left, right and inner parts as index arrays (int64)."""
+    return _part_indices_of(offs.tobytes())
+
+
+@functools.lru_cache(maxsize=64)
+def _part_indices_of(offs_bytes: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    offs = np.frombuffer(offs_bytes, dtype=np.float64)
+    idx = np.arange(offs.size)
+    out = tuple(np.ascontiguousarray(idx[p], np.int64) for p in _profile_parts(offs_bytes)[:3])
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 def profile_parts(offs: np.ndarray) -> tuple:
@@ -222,24 +270,11 @@ def locate_steps(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner
     The edge is where the profile crosses the middle of its two sides' levels (its two
     outer samples at either end), the crossing nearest the derivative's peak (less
     locked to the pixel grid than a parabola), within the inner part."""
-    i0, i1 = inner.start + 1, inner.stop + 1     # the inner part, in offs
-    o_max = offs[1:-1][inner][-1]
-    gs = prof * polarity[:, None, None]                      # rises across the step
-    mid = gs[:, :, [0, 1, -2, -1]].sum(axis=2) * 0.25        # the two sides' middle
-    k = np.argmax(gs[:, :, i0 + 1:i1 + 1] - gs[:, :, i0 - 1:i1 - 1], axis=2) + i0
-    # the samples at k - 1, k, k + 1 by flat indices (np.take_along_axis's own index
-    # building costs more than the gather on these small arrays)
-    o_n = gs.shape[2]
-    flat = (np.arange(k.size) * o_n + k.ravel())[:, None] + _NEIGHBOURS
-    near = gs.reshape(-1)[flat].reshape(*k.shape, 3) - mid[:, :, None]
-    hm, hk, hp = near[:, :, 0], near[:, :, 1], near[:, :, 2]    # at k - 1, k, k + 1
-    # the crossing is in [k - 1, k] or [k, k + 1] (the derivative peaks at k)
-    lo = hk > 0
-    h0 = np.where(lo, hm, hk)
-    h1 = np.where(lo, hk, hp)
-    o = offs[k - lo] + PROFILE_STEP_PX * (-h0) / np.where(h1 > h0, h1 - h0, 1.0)
-    ok = (h0 <= 0) & (h1 > 0) & (np.abs(o) <= o_max)
-    return np.where(ok, o, np.nan)
+    out = np.full(prof.shape[:2], np.nan)
+    _locate(np.ascontiguousarray(prof, np.float64), np.asarray(polarity, np.float64),
+            np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
+            out)
+    return out
 
 
 def thin_sign(prof: np.ndarray, inner: slice) -> tuple[np.ndarray, np.ndarray]:
@@ -260,17 +295,11 @@ def locate_thin(prof: np.ndarray, offs: np.ndarray, inner: slice) -> np.ndarray:
     profiles ``prof (S, A, O)``: the centroid of the line's part beyond half its height
     (over its sides), within the inner part; not found where the extremum is at the
     inner part's end."""
-    i0, i1 = inner.start + 1, inner.stop + 1
-    o_in = offs[1:-1][inner]
-    sgn, side = thin_sign(prof, inner)
-    gt = prof[:, :, i0:i1] * sgn[:, None, None]               # peaks on the line
-    top = gt.max(axis=2, keepdims=True)
-    w = np.maximum(gt - 0.5 * ((sgn * side)[:, None, None] + top), 0.0)
-    sw = w.sum(axis=2)
-    o = (w * o_in).sum(axis=2) / np.maximum(sw, 1e-12)
-    k_pk = np.argmax(gt, axis=2)
-    ok = (sw > 0) & (k_pk > 0) & (k_pk < o_in.size - 1)
-    return np.where(ok, o, np.nan)
+    out = np.full(prof.shape[:2], np.nan)
+    _locate(np.ascontiguousarray(prof, np.float64), np.zeros(prof.shape[0]),
+            np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
+            out)
+    return out
 
 
 def locate(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner: slice
@@ -278,14 +307,69 @@ def locate(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner: slic
     """Edge offsets ``(S, A)`` (px, NaN where not found) on profiles ``prof (S, A, O)``
     of segments of known kind ``polarity (S,)`` (``+-1`` steps, ``0`` thin lines, NaN
     not located): :func:`locate_steps` and :func:`locate_thin`."""
-    loc = np.full(prof.shape[:2], np.nan)
-    st = np.abs(polarity) == 1.0
-    th = polarity == 0.0
-    if np.any(st):
-        loc[st] = locate_steps(prof[st], polarity[st], offs, inner)
-    if np.any(th):
-        loc[th] = locate_thin(prof[th], offs, inner)
-    return loc
+    out = np.full(prof.shape[:2], np.nan)
+    _locate(np.ascontiguousarray(prof, np.float64), np.asarray(polarity, np.float64),
+            np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
+            out)
+    return out
+
+
+@njit
+def _locate(prof, pol, offs, i0, i1, step_px, out):  # pragma: no cover - compiled
+    """:func:`locate` into ``out (S, A)`` (left NaN where not located): the inner part
+    is ``offs[i0:i1]``."""
+    n_s, n_a, n_o = prof.shape
+    o_max = offs[i1 - 1]
+    m = i1 - i0
+    for s in range(n_s):
+        p = pol[s]
+        if abs(p) == 1.0:
+            for a in range(n_a):
+                g = prof[s, a]
+                mid = 0.25 * p * (g[0] + g[1] + g[n_o - 2] + g[n_o - 1])
+                k, best = i0, -np.inf
+                for j in range(i0, i1):
+                    d = p * (g[j + 1] - g[j - 1])
+                    if d > best:
+                        k, best = j, d
+                hm, hk, hp = p * g[k - 1] - mid, p * g[k] - mid, p * g[k + 1] - mid
+                if hk > 0:
+                    h0, h1, kk = hm, hk, k - 1
+                else:
+                    h0, h1, kk = hk, hp, k
+                o = offs[kk] + step_px * (-h0) / (h1 - h0 if h1 > h0 else 1.0)
+                if h0 <= 0 and h1 > 0 and abs(o) <= o_max:
+                    out[s, a] = o
+        elif p == 0.0:
+            # a valley (dark line) or a bump, from the mean of its sides and extremes
+            side = lo = hi = 0.0
+            for a in range(n_a):
+                g = prof[s, a]
+                side += 0.5 * (g[0] + g[n_o - 1])
+                mn = mx = g[i0]
+                for j in range(i0 + 1, i1):
+                    mn = min(mn, g[j])
+                    mx = max(mx, g[j])
+                lo += mn
+                hi += mx
+            side /= n_a
+            sgn = -1.0 if side - lo / n_a >= hi / n_a - side else 1.0
+            for a in range(n_a):
+                g = prof[s, a]
+                top, k_pk = -np.inf, 0
+                for j in range(m):
+                    v = sgn * g[i0 + j]
+                    if v > top:
+                        top, k_pk = v, j
+                level = 0.5 * (sgn * side + top)
+                sw = swo = 0.0
+                for j in range(m):
+                    w = sgn * g[i0 + j] - level
+                    if w > 0.0:
+                        sw += w
+                        swo += w * offs[i0 + j]
+                if sw > 0 and 0 < k_pk < m - 1:
+                    out[s, a] = swo / max(sw, 1e-12)
 
 
 # ----------------------------------------------------------------------------- fit
@@ -295,25 +379,71 @@ def fit_lines(x: np.ndarray, y: np.ndarray, w: np.ndarray
     with ``w (N, A)`` True: ``(lines, res, n, ssr)``, the lines ``(N, 3)``
     (``|(a, b)| = 1``), the points' signed residuals ``(N, A)``, how many points
     ``(N,)`` (float) and the sum of their squared residuals ``(N,)``."""
-    wf = w.astype(np.float64)
-    n = wf.sum(axis=1)
-    sw = np.maximum(n, 1e-12)
-    cx = (wf * x).sum(axis=1) / sw
-    cy = (wf * y).sum(axis=1) / sw
-    dx = x - cx[:, None]
-    dy = y - cy[:, None]
-    wdx = wf * dx
-    sxx = (wdx * dx).sum(axis=1)
-    syy = (wf * dy * dy).sum(axis=1)
-    sxy = (wdx * dy).sum(axis=1)
-    th = 0.5 * np.arctan2(2 * sxy, sxx - syy)          # direction of the major axis
-    a, b = -np.sin(th), np.cos(th)
-    line = np.empty((a.size, 3))
-    line[:, 0] = a
-    line[:, 1] = b
-    line[:, 2] = -(a * cx + b * cy)
-    res = x * a[:, None] + y * b[:, None] + line[:, 2:3]
-    return line, res, n, ((wf * res) * res).sum(axis=1)
+    x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
+    w = np.ascontiguousarray(w, np.bool_)
+    line, res, n, ssr = _empty_fits(x.shape)
+    _fit_rows(x, y, w, line, res, n, ssr)
+    return line, res, n, ssr
+
+
+def _empty_fits(shape: tuple[int, int]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    return np.empty((shape[0], 3)), np.empty(shape), np.empty(shape[0]), np.empty(shape[0])
+
+
+@njit
+def _fit_row(x, y, w, line, res, cnt, ssr, r):  # pragma: no cover - compiled
+    """The total-least-squares line of one row's points ``x, y, w (A,)`` into ``line
+    (3,)``, ``res (A,)``, ``cnt[r]``, ``ssr[r]`` (:func:`fit_lines`)."""
+    n = sx = sy = 0.0
+    for i in range(x.size):
+        if w[i]:
+            n += 1.0
+            sx += x[i]
+            sy += y[i]
+    sw = max(n, 1e-12)
+    cx, cy = sx / sw, sy / sw
+    sxx = syy = sxy = 0.0
+    for i in range(x.size):
+        if w[i]:
+            dx, dy = x[i] - cx, y[i] - cy
+            sxx += dx * dx
+            syy += dy * dy
+            sxy += dx * dy
+    th = 0.5 * math.atan2(2.0 * sxy, sxx - syy)          # direction of the major axis
+    a, b = -math.sin(th), math.cos(th)
+    c = -(a * cx + b * cy)
+    line[0], line[1], line[2] = a, b, c
+    q = 0.0
+    for i in range(x.size):
+        res[i] = x[i] * a + y[i] * b + c
+        if w[i]:
+            q += res[i] * res[i]
+    cnt[r] = n
+    ssr[r] = q
+
+
+@njit
+def _fit_rows(x, y, w, line, res, cnt, ssr):  # pragma: no cover - compiled
+    """:func:`_fit_row` of every row."""
+    for r in range(x.shape[0]):
+        _fit_row(x[r], y[r], w[r], line[r], res[r], cnt, ssr, r)
+
+
+@njit
+def _fit_robust(x, y, good, floor, sigmas, line, res, cnt, ssr
+                ):  # pragma: no cover - compiled
+    """:func:`fit_lines_robust` row by row; ``good`` becomes the points kept."""
+    for r in range(x.shape[0]):
+        _fit_row(x[r], y[r], good[r], line[r], res[r], cnt, ssr, r)
+        lim = max(sigmas * math.sqrt(ssr[r] / max(cnt[r], 1.0)), floor)
+        dropped = False
+        for i in range(x.shape[1]):
+            if good[r, i] and not abs(res[r, i]) <= lim:
+                good[r, i] = False
+                dropped = True
+        if dropped:
+            _fit_row(x[r], y[r], good[r], line[r], res[r], cnt, ssr, r)
 
 
 def fit_lines_robust(x: np.ndarray, y: np.ndarray, good: np.ndarray, f_px: float
@@ -322,13 +452,10 @@ def fit_lines_robust(x: np.ndarray, y: np.ndarray, good: np.ndarray, f_px: float
     more without the points beyond :data:`OUTLIER_SIGMAS` sigma and
     :data:`OUTLIER_FLOOR_PX` (``f_px``: pixels per normalized unit). Returns ``(lines,
     res, n, ssr, kept)`` (``kept (N, A)``: the points of the final fit)."""
-    line, res, cnt, ssr = fit_lines(x, y, good)
-    sig = np.sqrt(ssr / np.maximum(cnt, 1))
-    keep = good & (np.abs(res) <= np.maximum(OUTLIER_SIGMAS * sig,
-                                             OUTLIER_FLOOR_PX / f_px)[:, None])
-    if (keep != good).any():
-        good = keep
-        line, res, cnt, ssr = fit_lines(x, y, good)
+    x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
+    good = np.array(good, np.bool_, order="C")
+    line, res, cnt, ssr = _empty_fits(x.shape)
+    _fit_robust(x, y, good, OUTLIER_FLOOR_PX / f_px, OUTLIER_SIGMAS, line, res, cnt, ssr)
     return line, res, cnt, ssr, good
 
 

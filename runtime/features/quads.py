@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.jit import njit
 
 DICTIONARY_NAMES = tuple(sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_")))
 """Every dictionary name ``cv2.aruco`` knows (``DICT_4X4_50`` ... ``DICT_APRILTAG_36h11``)."""
@@ -46,7 +47,6 @@ THRESH_WIN_PX = 23        # aruco's adaptive threshold window (one scale)
 EDGE_STEP_PX = 0.5         # edge_points: sampling step across the side
 EDGE_END_SKIP = 0.15       # edge_points: fraction of each side left out at the corners
 _NEXT = np.array([1, 2, 3, 0])      # corner k+1 of a quad
-_TURN = np.array([-1.0, 1.0])       # (y, x) -> (-y, x): a direction turned a quarter
 
 
 @functools.lru_cache(maxsize=16)
@@ -332,21 +332,6 @@ def signed_area(pts: np.ndarray) -> float:
     return 0.5 * twice
 
 
-def _float_crop(grey: np.ndarray, lo: np.ndarray, hi: np.ndarray
-                ) -> tuple[np.ndarray, tuple[int, int]]:
-    """The part of ``grey`` that bilinear samples inside the box ``lo``..``hi`` (px,
-    ``(2,)`` each, finite) read, as float32, and its top-left pixel ``(x0, y0)``. A
-    sample outside the frame reads the frame's edge (``BORDER_REPLICATE``) as it would
-    on the whole frame: the crop reaches the frame's edge on that side. (Converting the
-    whole frame costs more than the profiles.)"""
-    h, w = grey.shape
-    x0 = min(max(math.floor(lo[0]), 0), w - 1)
-    y0 = min(max(math.floor(lo[1]), 0), h - 1)
-    x1 = max(min(math.floor(hi[0]) + 2, w), x0 + 1)
-    y1 = max(min(math.floor(hi[1]) + 2, h), y0 + 1)
-    return grey[y0:y1, x0:x1].astype(np.float32), (x0, y0)
-
-
 @functools.lru_cache(maxsize=16)
 def _stations(per_side: int, search_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """edge_points' offsets across a side ``(K,)``, stations along it ``(S,)`` and the
@@ -367,47 +352,81 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     at each end); at each, the grey profile across the side (±``search_px``, bilinear)
     is searched for its steepest interval and the step located where the profile
     crosses half way between its two ends. Stations whose step is weak (below a
-    quarter of the side's median) or at the search window's end are dropped. Only the
-    part of the frame the samples read is converted (:func:`_float_crop`).
+    quarter of the side's median) or at the search window's end are dropped. One
+    compiled loop (:func:`_edge_points`); the samples are bilinear in float (the
+    frame's edge replicated), not rounded to OpenCV's 1/32 px grid.
 
     Returns:
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
     """
+    offs, t, _ = _stations(per_side, float(search_px))
+    p0 = np.ascontiguousarray(corners_px, np.float64).reshape(4, 2)
+    if not np.isfinite(p0).all():
+        return np.zeros((0, 2)), np.zeros(0, np.int64)
+    pts, side, n = _edge_points(np.ascontiguousarray(grey, np.uint8), p0, offs, t,
+                                EDGE_STEP_PX)
+    return pts[:n], side[:n]
+
+
+@njit
+def _edge_points(grey, p0, offs, t, step):  # pragma: no cover - compiled
+    """:func:`edge_points` on a ``(4, 2)`` quad of finite corners: ``(points (4 S, 2),
+    side (4 S,), count)``, the first ``count`` kept. Samples are bilinear in float
+    (the frame's edge replicated beyond it), at offsets ``offs (K,)`` across each side
+    at the fractions ``t (S,)`` along it."""
     h, w = grey.shape
-    offs, t, side = _stations(per_side, float(search_px))
-    p0 = np.asarray(corners_px, float)
-    d = p0[_NEXT] - p0
-    length = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])[:, None]
-    tang = d / np.maximum(length, 1e-9)
-    normal = tang[:, ::-1] * _TURN                                          # (-ty, tx)
-    base = p0[:, None, :] + t[None, :, None] * d[:, None, :]               # (4, S, 2)
-    samp = base[:, :, None, :] + offs[None, None, :, None] * normal[:, None, None, :]
-    if np.isfinite(p0).all():
-        # samples are linear in the station and the offset: the extreme ones are at the
-        # first and last of each (their box is every sample's)
-        ends = samp[:, ::max(per_side - 1, 1), ::offs.size - 1].reshape(-1, 2)
-        g, (x0, y0) = _float_crop(grey, ends.min(axis=0), ends.max(axis=0))
-    else:
-        g, (x0, y0) = grey.astype(np.float32), (0, 0)
-    shifted = (samp - np.array([x0, y0], float)).astype(np.float32).reshape(-1, offs.size, 2)
-    prof = cv2.remap(g, shifted, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    grad = np.abs(np.diff(prof, axis=1))                                    # (4S, K-1)
-    k = np.argmax(grad, axis=1)
-    rows = np.arange(grad.shape[0])
-    # the step's middle: where the profile crosses half way between its two ends,
-    # interpolated in the steepest interval (unbiased for a symmetric blur, unlike the
-    # peak of a sampled gradient)
-    mid = 0.25 * (prof[:, 0] + prof[:, 1] + prof[:, -1] + prof[:, -2])
-    d0, d1 = prof[rows, k] - mid, prof[rows, k + 1] - mid
-    with np.errstate(divide="ignore", invalid="ignore"):
-        frac = np.where(np.abs(d0 - d1) > 1e-6, d0 / (d0 - d1), 0.5)
-    off = offs[0] + (k + np.clip(frac, -1.0, 2.0)) * EDGE_STEP_PX           # across, px
-    strength = grad[rows, k].reshape(4, per_side)
-    srt = np.sort(strength, axis=1)                   # the median of each side's steps
-    med = 0.5 * (srt[:, (per_side - 1) // 2] + srt[:, per_side // 2])
-    pts = base.reshape(-1, 2) + off[:, None] * normal[side]
-    u, v = pts[:, 0], pts[:, 1]
-    keep = ((k > 0) & (k < grad.shape[1] - 1) & (frac > -1.0) & (frac < 2.0)
-            & (strength > 0.25 * med[:, None]).ravel()
-            & (u > 0) & (u < w - 1) & (v > 0) & (v < h - 1))
-    return pts[keep], side[keep]
+    n_st, n_off = t.size, offs.size
+    prof = np.empty(n_off)
+    pts = np.empty((4 * n_st, 2))
+    side = np.empty(4 * n_st, np.int64)
+    off = np.empty((4, n_st))
+    strength = np.empty((4, n_st))
+    good = np.zeros((4, n_st), np.bool_)
+    for s in range(4):
+        ax, ay = p0[s, 0], p0[s, 1]
+        dx, dy = p0[(s + 1) % 4, 0] - ax, p0[(s + 1) % 4, 1] - ay
+        inv = 1.0 / max(math.sqrt(dx * dx + dy * dy), 1e-9)
+        nx, ny = -dy * inv, dx * inv                       # the side's left normal
+        for j in range(n_st):
+            bx, by = ax + t[j] * dx, ay + t[j] * dy
+            for i in range(n_off):
+                prof[i] = _bilinear(grey, bx + offs[i] * nx, by + offs[i] * ny, w, h)
+            k, best = 0, -1.0
+            for i in range(n_off - 1):
+                g = abs(prof[i + 1] - prof[i])
+                if g > best:
+                    k, best = i, g
+            mid = 0.25 * (prof[0] + prof[1] + prof[n_off - 1] + prof[n_off - 2])
+            d0, d1 = prof[k] - mid, prof[k + 1] - mid
+            frac = d0 / (d0 - d1) if abs(d0 - d1) > 1e-6 else 0.5
+            o = offs[0] + (k + min(max(frac, -1.0), 2.0)) * step
+            off[s, j] = o
+            strength[s, j] = best
+            u, v = bx + o * nx, by + o * ny
+            good[s, j] = (0 < k < n_off - 2 and -1.0 < frac < 2.0
+                          and 0.0 < u < w - 1 and 0.0 < v < h - 1)
+            pts[s * n_st + j, 0] = u
+            pts[s * n_st + j, 1] = v
+    n = 0
+    for s in range(4):
+        srt = np.sort(strength[s])
+        med = 0.5 * (srt[(n_st - 1) // 2] + srt[n_st // 2])
+        for j in range(n_st):
+            if good[s, j] and strength[s, j] > 0.25 * med:
+                pts[n] = pts[s * n_st + j]
+                side[n] = s
+                n += 1
+    return pts, side, n
+
+
+@njit
+def _bilinear(grey, x, y, w, h):  # pragma: no cover - compiled
+    """The frame's grey level at ``(x, y)`` (px), bilinear, its edge replicated."""
+    x0 = math.floor(x)
+    y0 = math.floor(y)
+    fx, fy = x - x0, y - y0
+    xa, xb = min(max(x0, 0), w - 1), min(max(x0 + 1, 0), w - 1)
+    ya, yb = min(max(y0, 0), h - 1), min(max(y0 + 1, 0), h - 1)
+    top = grey[ya, xa] + fx * (np.float64(grey[ya, xb]) - grey[ya, xa])
+    bot = grey[yb, xa] + fx * (np.float64(grey[yb, xb]) - grey[yb, xa])
+    return top + fy * (bot - top)

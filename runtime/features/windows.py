@@ -5,8 +5,8 @@ blocks) holds one spot: the square's border gives the background ``I_b``, the pi
 above half way from it to the square's peak are the spot, ``I_o`` their mean, and the
 centroid and second moments are weighted by ``max(I - I_b - CORE (I_o - I_b), 0)``,
 the reading of the global detector (:func:`~.spots.detect_spots`; a large light's
-window is first divided by its plateau's gain, :func:`~.spots.flattened`). No per-window
-Python: every reduction is one array operation or one matrix product over the stack.
+window is first divided by its plateau's gain, :func:`~.spots.flattened`). Two compiled
+loops (:mod:`ceilkit.runtime.jit`) read every window: its levels, then its moments.
 
 Convention (SPEC §1): pixels ``(u, v)``, origin at the centre of the top-left pixel.
 
@@ -18,48 +18,28 @@ Example::
 
 from __future__ import annotations
 
-import functools
-
 import cv2
 import numpy as np
 
+from ceilkit.runtime.jit import njit
+
 from .spots import (
+    _FLAT_ERODE_PX,
+    _FLAT_MAX_RESIDUAL,
+    _FLAT_MIN_GAIN,
+    _FLAT_MIN_PX,
     FLAT_MIN_AREA_PX,
     SpotParams,
     Spots,
-    _block_monomials,
     _examination_order,
     _select_lights,
     empty_spots,
-    flattened,
     niblack_mask,
 )
 from .working import decimate
 
 CORE = 0.4
 """Centroid weights count from ``I_b + CORE (I_o - I_b)`` (as the global detector)."""
-
-
-@functools.lru_cache(maxsize=16)
-def _counts(side: int) -> np.ndarray:
-    """``(side², 2)`` float32 ``(1, on the border)`` of a ``side x side`` block: one
-    product gives a block's sum and its border's sum."""
-    b = np.zeros((side, side), np.float32)
-    b[0, :] = b[-1, :] = b[:, 0] = b[:, -1] = 1.0
-    out = np.stack([np.ones(side * side, np.float32), b.ravel()], axis=1)
-    out.setflags(write=False)
-    return out
-
-
-@functools.lru_cache(maxsize=16)
-def _coords(side: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(x, y)`` int16 ``(1, side²)`` block coordinates of a ``side x side`` block's
-    pixels, row-major (read-only)."""
-    y, x = np.divmod(np.arange(side * side, dtype=np.int16), np.int16(side))
-    x, y = x[None, :], y[None, :]
-    x.setflags(write=False)
-    y.setflags(write=False)
-    return x, y
 
 
 def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
@@ -82,48 +62,24 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
         frame pixels, second moments px², area in px); ``ok`` where the window holds
         a spot whose bright part does not reach the window's border (not cut off, not
         a neighbour's) and has positive weight; ``contrast`` the peak above ``I_b``.
+
+    One compiled loop over the windows (:func:`_read_windows`).
     """
-    grey = np.ascontiguousarray(grey)
-    h, w = grey.shape
-    # every side x side block of the frame as a read-only view; the wanted ones copied
-    # out row by row in one indexing (no per-pixel index array)
-    views = np.ndarray((h - side + 1, w - side + 1, side, side), np.uint8,
-                       grey, 0, grey.strides * 2)
-    g = views[corner[:, 1], corner[:, 0]].reshape(-1, side * side).astype(np.float32)
-    cols = _counts(side)
-    i_b = (g @ cols[:, 1]) * np.float32(1.0 / (4 * side - 4))
-    if rect is None:
-        inside = None
-        peak = g.max(axis=1)
-        obj = (g > (0.5 * (i_b + peak))[:, None]).astype(np.float32)
-    else:
-        x, y = _coords(side)
-        r = rect.astype(np.int16)
-        inside = ((x >= r[:, 0:1]) & (x <= r[:, 2:3]) & (y >= r[:, 1:2])
-                  & (y <= r[:, 3:4]))
-        peak = np.where(inside, g, np.float32(0.0)).max(axis=1)
-        obj = ((g > (0.5 * (i_b + peak))[:, None]) & inside).astype(np.float32)
-    n_obj = obj @ cols                           # (K, 2): bright pixels, on the border
-    area = n_obj[:, 0]
-    touches = n_obj[:, 1] > 0                    # the bright part reaches the border
-    i_o = np.einsum("ij,ij->i", g, obj) / np.maximum(area, 1.0)
-    # a large light's plateau divided by its own gain (vignetting), as the detector does
-    for i in np.flatnonzero(area >= FLAT_MIN_AREA_PX).tolist():
-        flat = flattened(g[i].reshape(side, side), obj[i].reshape(side, side),
-                         float(i_o[i] - i_b[i]))
-        if flat is not None:
-            g[i] = flat.ravel()
-    wts = np.subtract(g, (i_b + CORE * (i_o - i_b))[:, None], out=g)
-    np.maximum(wts, 0.0, out=wts)
-    if inside is not None:
-        wts *= inside
-    mom = (wts @ _block_monomials(side, side, side // 2, np.float32)  # (K, 6)
-           ).astype(np.float64)
+    grey = np.ascontiguousarray(grey, np.uint8)
+    corner = np.ascontiguousarray(corner, np.int64).reshape(-1, 2)
+    k = corner.shape[0]
+    r = (np.ascontiguousarray(rect, np.int64).reshape(-1, 4) if rect is not None
+         else np.tile(np.array([0, 0, side - 1, side - 1], np.int64), (k, 1)))
+    out = _read_windows(grey, corner, side, r, CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX,
+                        _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN)
+    i_b, peak, area, i_o = out[:, 0], out[:, 1], out[:, 2], out[:, 4]
+    touches = out[:, 3] > 0
+    mom = out[:, 5:]                              # m00 m10 m20 m01 m02 m11
     m00 = mom[:, 0]
     ok = ~touches & (area > 0) & (m00 > 0)
     mom /= np.where(ok, m00, 1.0)[:, None]
     cx, cy = mom[:, 1], mom[:, 3]
-    rows = np.empty((m00.size, 8))
+    rows = np.empty((k, 8))
     mid = side // 2
     rows[:, 0] = corner[:, 0] + mid + cx
     rows[:, 1] = corner[:, 1] + mid + cy
@@ -133,7 +89,169 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
     rows[:, 5] = mom[:, 5] - cx * cy
     rows[:, 6] = mom[:, 4] - cy * cy
     rows[:, 7] = area
-    return rows, ok, (peak - i_b).astype(np.float64)
+    return rows, ok, peak - i_b
+
+
+@njit
+def _read_windows(grey, corner, side, rect, core, flat_min_area, erode, min_px,
+                  max_residual, min_gain):  # pragma: no cover - compiled
+    """Per window ``(I_b, peak, area, on_border, I_o, m00, m10, m20, m01, m02, m11)``
+    (K, 11) float64: the border's mean; the peak inside ``rect`` (0 when it holds no
+    pixel); the pixels inside above half way from ``I_b`` to the peak (their count,
+    whether one lies on the window's border, their mean); the raw moments, ``(x, y)``
+    from the window's centre, of ``max(I - I_b - core (I_o - I_b), 0)`` inside
+    ``rect``, where ``I`` is the window divided by its plateau's gain when the spot
+    has ``flat_min_area`` pixels or more and the plane explains the plateau
+    (:func:`_plateau`, the reading of :func:`~.spots.flattened`)."""
+    k = corner.shape[0]
+    out = np.zeros((k, 11))
+    last = side - 1
+    obj = np.zeros((side, side), np.uint8)
+    tmp = np.zeros((side, side), np.uint8)
+    for n in range(k):
+        x0, y0 = corner[n, 0], corner[n, 1]
+        win = grey[y0:y0 + side, x0:x0 + side]
+        box = (max(rect[n, 0], 0), max(rect[n, 1], 0), min(rect[n, 2], last),
+               min(rect[n, 3], last))
+        i_b, peak, area, edge, i_o = _levels(win, box, obj)
+        base = i_b + core * (i_o - i_b)
+        plane = (False, 1.0, 0.0, 0.0, 0.0, 0.0)
+        if area >= flat_min_area:
+            plane = _plateau(win, obj, tmp, i_o - i_b, erode, min_px, max_residual)
+        out[n, 0] = i_b
+        out[n, 1] = peak
+        out[n, 2] = area
+        out[n, 3] = edge
+        out[n, 4] = i_o
+        _weighted_moments(win, box, base, plane, min_gain, out[n, 5:])
+    return out
+
+
+@njit
+def _levels(win, box, obj):  # pragma: no cover - compiled
+    """``(I_b, peak, area, on_border, I_o)`` of one window (:func:`_read_windows`);
+    ``obj`` (the window's shape) is set to the spot's pixels (1)."""
+    side = win.shape[0]
+    last = side - 1
+    rx0, ry0, rx1, ry1 = box
+    s = 0
+    for j in range(side):
+        s += np.int64(win[0, j]) + np.int64(win[last, j])
+    for i in range(1, last):
+        s += np.int64(win[i, 0]) + np.int64(win[i, last])
+    i_b = s / (4 * side - 4)
+    peak = 0
+    for i in range(ry0, ry1 + 1):
+        for j in range(rx0, rx1 + 1):
+            if win[i, j] > peak:
+                peak = win[i, j]
+    level = 0.5 * (i_b + peak)
+    area = 0
+    total = 0
+    edge = 0
+    obj[:, :] = 0
+    for i in range(ry0, ry1 + 1):
+        for j in range(rx0, rx1 + 1):
+            v = win[i, j]
+            if v > level:
+                obj[i, j] = 1
+                area += 1
+                total += np.int64(v)
+                if i == 0 or j == 0 or i == last or j == last:
+                    edge = 1
+    return i_b, float(peak), float(area), float(edge), total / max(area, 1)
+
+
+@njit
+def _weighted_moments(win, box, base, plane, min_gain, out):  # pragma: no cover - compiled
+    """Into ``out (6,)``: ``m00, m10, m20, m01, m02, m11`` of ``max(I - base, 0)`` over
+    ``box``, ``(x, y)`` from the window's centre, ``I`` divided by the gain ``plane``
+    (:func:`_plateau`) when it holds one."""
+    flat, a, b, c, xc, yc = plane
+    mid = win.shape[0] // 2
+    rx0, ry0, rx1, ry1 = box
+    m00 = m10 = m20 = m01 = m02 = m11 = 0.0
+    for i in range(ry0, ry1 + 1):
+        y = i - mid
+        r0 = r1 = r2 = 0.0
+        gy = 1.0 + (c / a) * (i - yc)
+        for j in range(rx0, rx1 + 1):
+            if flat:
+                v = win[i, j] / max(gy + (b / a) * (j - xc), min_gain) - base
+            else:
+                v = win[i, j] - base
+            if v > 0.0:
+                x = j - mid
+                r0 += v
+                r1 += v * x
+                r2 += v * x * x
+        m00 += r0
+        m10 += r1
+        m20 += r2
+        m01 += r0 * y
+        m02 += r0 * y * y
+        m11 += r1 * y
+    out[0], out[1], out[2], out[3], out[4], out[5] = m00, m10, m20, m01, m02, m11
+
+
+@njit
+def _plateau(win, obj, tmp, contrast, erode, min_px, max_residual
+             ):  # pragma: no cover - compiled
+    """The plane ``a + b (x - xc) + c (y - yc)`` of a light's plateau in its window, as
+    :func:`~.spots.flattened` fits it: ``(ok, a, b, c, xc, yc)``, ``(x, y)`` column and
+    row in the window. ``obj`` (the spot's pixels, 0/1) is eroded ``erode`` times by a
+    3x3 cross, outside the window 0 (``tmp``: scratch of its shape; ``obj`` is left
+    eroded)."""
+    h, w = obj.shape
+    for _ in range(erode):
+        tmp[:, :] = obj
+        for i in range(h):
+            for j in range(w):
+                if tmp[i, j] and (i == 0 or j == 0 or i == h - 1 or j == w - 1
+                                  or not (tmp[i - 1, j] and tmp[i + 1, j]
+                                          and tmp[i, j - 1] and tmp[i, j + 1])):
+                    obj[i, j] = 0
+    n = sx = sy = 0.0
+    for i in range(h):
+        for j in range(w):
+            if obj[i, j]:
+                n += 1.0
+                sx += j
+                sy += i
+    if n < min_px:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    xc, yc = sx / n, sy / n
+    sxx = sxy = syy = g0 = gx = gy = gg = 0.0
+    for i in range(h):
+        for j in range(w):
+            if obj[i, j]:
+                dx, dy = j - xc, i - yc
+                g = np.float64(win[i, j])
+                sxx += dx * dx
+                sxy += dx * dy
+                syy += dy * dy
+                g0 += g
+                gx += g * dx
+                gy += g * dy
+                gg += g * g
+    det = sxx * syy - sxy * sxy
+    if not (sxx >= n and syy >= n and det > 0):          # spread over >= 1 px each way
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    a = g0 / n
+    b = (syy * gx - sxy * gy) / det
+    c = (sxx * gy - sxy * gx) / det
+    if not a > 0:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    ssr = gg - n * a * a - b * gx - c * gy
+    if ssr > n * (max_residual * contrast) ** 2:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    s2 = max(ssr, 0.0) / max(n - 3.0, 1.0)
+    var = s2 * (sxx + syy) / det
+    slope2 = b * b + c * c
+    if not slope2 > 0:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    shrink = slope2 / (slope2 + var)
+    return True, a, b * shrink, c * shrink, xc, yc
 
 
 SMALL_HALF_PX = 10

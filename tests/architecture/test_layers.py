@@ -1,6 +1,6 @@
 """Folders are layers: a module imports only its own layer and the layers below it.
 
-The order, lowest first (docs/architecture.md): errors, geometry, config, features,
+The order, lowest first (docs/architecture.md): errors, jit, geometry, config, features,
 estimators, io, sim, viz, the orchestration modules at runtime/'s top (pipeline, tracking,
 live, replay, metrics, devices, ...), calib, cli. The test parses every source file's
 imports (lazy ones inside functions too), so a violation fails here before it ships.
@@ -15,7 +15,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = {"runtime": "ceilkit.runtime", "calib": "ceilkit.calib", "cli": "ceilkit.cli"}
-LAYERS = ["errors", "geometry", "config", "features", "estimators", "io", "sim", "viz",
+LAYERS = ["errors", "jit", "geometry", "config", "features", "estimators", "io", "sim", "viz",
           "runtime", "calib", "cli"]
 """Layer names, lowest first; ``runtime`` is the orchestration at runtime/'s top."""
 
@@ -29,7 +29,7 @@ def layer_of(module: str) -> int | None:
         return LAYERS.index(parts[1])
     if parts[1] != "runtime":
         return None
-    if len(parts) >= 3 and parts[2] in LAYERS[:8]:
+    if len(parts) >= 3 and parts[2] in LAYERS[:9]:
         return LAYERS.index(parts[2])
     return LAYERS.index("runtime")
 
@@ -67,7 +67,7 @@ def test_layers_are_known_folders():
     """Every runtime subfolder is a layer: a new folder must be placed in the order."""
     folders = {p.name for p in (ROOT / "runtime").iterdir()
                if p.is_dir() and (p / "__init__.py").exists()}
-    assert folders <= set(LAYERS[:8]), folders - set(LAYERS[:8])
+    assert folders <= set(LAYERS[:9]), folders - set(LAYERS[:9])
 
 
 @pytest.mark.parametrize("path", sources(), ids=lambda p: str(p.relative_to(ROOT)))

@@ -37,6 +37,7 @@ import numpy as np
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex
 from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
+from ceilkit.runtime.jit import njit
 
 GN_ITERATIONS = 4
 GN_STEP_EPS = 1e-6          # converged when the next step (m, rad) is below this
@@ -202,25 +203,17 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
     side ``side`` (M,) (side k runs from corner k to k+1 of ``corners_w``), residuals in
     px by ``scale`` (M,) (:func:`magnification`). Needs M >= 3 over three sides."""
     pose = np.array(pose0, float)
-    args = (np.asarray(corners_w, float), edge_norm, side, scale)
-    for it in range(GN_ITERATIONS + 1):
-        rr = _side_residuals(geo, pose + _JAC_STEPS, *args)
-        r = rr[0]
-        J = ((rr[1:] - r) / JAC_EPS).T
-        JtJ = J.T @ J
-        if it == GN_ITERATIONS:
-            break
-        try:                        # the normal equations: a 3x3 solve (lstsq's SVD: 3x)
-            step = np.linalg.solve(JtJ, -(J.T @ r))
-        except np.linalg.LinAlgError:
-            step, *_ = np.linalg.lstsq(J, -r, rcond=None)
-        size = float(np.max(np.abs(step)))
-        if size < GN_STEP_EPS:
-            break                   # r, J at the converged pose serve the covariance
-        pose = pose + step
-        if size < GN_LINEAR_EPS:    # the next step would be ~size² (< 1e-8): r moves
-            r = r + J @ step        # linearly, J stays; no second evaluation
-            break
+    cw = np.ascontiguousarray(corners_w, np.float64)
+    en = np.ascontiguousarray(edge_norm, np.float64)
+    sd = np.ascontiguousarray(side, np.int64)
+    sc = np.ascontiguousarray(scale, np.float64)
+    r, J, JtJ = np.empty(sd.size), np.empty((sd.size, 3)), np.empty((3, 3))
+    solved = _gauss_newton(np.ascontiguousarray(geo.R_vehicle_cam, np.float64),
+                           np.ascontiguousarray(geo.t_vehicle_cam, np.float64),
+                           float(geo.ceiling_m), pose, cw, en, sd, sc, r, J, JtJ)
+    if not solved:                  # a singular step: numpy's least squares, from pose0
+        pose = np.array(pose0, float)
+        r, J, JtJ = _gauss_newton_numpy(geo, pose, cw, en, sd, sc)
     rms = float(np.sqrt(np.mean(r * r)))
     dof = max(r.size - 3, 1)
     s2 = max(float(r @ r) / dof, SIGMA_FLOOR_PX ** 2)
@@ -233,6 +226,136 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
     cov = s2 * A if unit is None else s2 * A + var_b * unit
     pose[2] = wrap_pi(pose[2])
     return Refined(pose, cov, rms, int(r.size), var_b, unit)
+
+
+def _gauss_newton_numpy(geo: PlanarGeometry, pose: np.ndarray, *args: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_gauss_newton` in numpy with ``lstsq`` where the normal equations are
+    singular (``pose`` is moved in place): ``(r, J, JᵀJ)``."""
+    for it in range(GN_ITERATIONS + 1):
+        rr = _side_residuals(geo, pose + _JAC_STEPS, *args)
+        r = rr[0]
+        J = ((rr[1:] - r) / JAC_EPS).T
+        JtJ = J.T @ J
+        if it == GN_ITERATIONS:
+            break
+        try:
+            step = np.linalg.solve(JtJ, -(J.T @ r))
+        except np.linalg.LinAlgError:
+            step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        size = float(np.max(np.abs(step)))
+        if size < GN_STEP_EPS:
+            break
+        pose += step
+        if size < GN_LINEAR_EPS:
+            r = r + J @ step
+            break
+    return r, J, JtJ
+
+
+@njit
+def _gauss_newton(R, t, ceiling_m, pose, corners_w, edge_norm, side, scale, r, J, JtJ
+                  ):  # pragma: no cover - compiled
+    """Gauss-Newton of :func:`refine` from ``pose`` (moved in place): the residuals
+    ``r (M,)`` (px), their Jacobian ``J (M, 3)`` (forward differences of
+    :data:`JAC_EPS`) and ``JᵀJ`` at the end, written into the arrays given. At most
+    :data:`GN_ITERATIONS` steps; ends on a step below :data:`GN_STEP_EPS` (``r, J`` at
+    the converged pose) or below :data:`GN_LINEAR_EPS` (``r`` moved linearly by the
+    step, ``J`` kept). False (the caller falls back) when the normal equations are
+    singular."""
+    m = side.size
+    rp = np.empty(m)
+    g = np.empty(3)
+    step = np.empty(3)
+    for it in range(GN_ITERATIONS + 1):
+        _sides_at(R, t, ceiling_m, pose[0], pose[1], pose[2], corners_w, edge_norm, side,
+                  scale, r)
+        for c in range(3):
+            _sides_at(R, t, ceiling_m, pose[0] + (JAC_EPS if c == 0 else 0.0),
+                      pose[1] + (JAC_EPS if c == 1 else 0.0),
+                      pose[2] + (JAC_EPS if c == 2 else 0.0), corners_w, edge_norm, side,
+                      scale, rp)
+            for i in range(m):
+                J[i, c] = (rp[i] - r[i]) / JAC_EPS
+        for a in range(3):
+            g[a] = 0.0
+            for b in range(3):
+                JtJ[a, b] = 0.0
+            for i in range(m):
+                g[a] -= J[i, a] * r[i]
+                for b in range(3):
+                    JtJ[a, b] += J[i, a] * J[i, b]
+        if it == GN_ITERATIONS:
+            break
+        if not _solve3(JtJ, g, step):
+            return False
+        size = max(abs(step[0]), abs(step[1]), abs(step[2]))
+        if size < GN_STEP_EPS:
+            break
+        for a in range(3):
+            pose[a] += step[a]
+        if size < GN_LINEAR_EPS:
+            for i in range(m):
+                r[i] += J[i, 0] * step[0] + J[i, 1] * step[1] + J[i, 2] * step[2]
+            break
+    return True
+
+
+@njit
+def _sides_at(R, t, ceiling_m, x, y, yaw, corners_w, edge_norm, side, scale, out
+              ):  # pragma: no cover - compiled
+    """:func:`_side_residuals` of one pose into ``out (M,)``."""
+    cz, sz = math.cos(yaw), math.sin(yaw)
+    c = np.empty((4, 2))
+    for k in range(4):
+        dx, dy = corners_w[k, 0] - x, corners_w[k, 1] - y
+        q0, q1, q2 = dx * cz + dy * sz - t[0], dy * cz - dx * sz - t[1], ceiling_m - t[2]
+        p0 = q0 * R[0, 0] + q1 * R[1, 0] + q2 * R[2, 0]
+        p1 = q0 * R[0, 1] + q1 * R[1, 1] + q2 * R[2, 1]
+        p2 = q0 * R[0, 2] + q1 * R[1, 2] + q2 * R[2, 2]
+        c[k, 0], c[k, 1] = p0 / p2, p1 / p2
+    ln = np.empty((4, 3))
+    for k in range(4):
+        n = (k + 1) % 4
+        a, b = c[k, 1] - c[n, 1], c[n, 0] - c[k, 0]
+        norm = math.hypot(a, b)
+        a, b = a / norm, b / norm
+        ln[k, 0], ln[k, 1], ln[k, 2] = a, b, -(a * c[k, 0] + b * c[k, 1])
+    for i in range(side.size):
+        k = side[i]
+        out[i] = (ln[k, 0] * edge_norm[i, 0] + ln[k, 1] * edge_norm[i, 1]
+                  + ln[k, 2]) * scale[i]
+
+
+@njit
+def _solve3(A, b, x):  # pragma: no cover - compiled
+    """``x`` of ``A x = b`` (3x3), Gaussian elimination with partial pivoting as LAPACK's
+    ``gesv``; False on a zero pivot (singular)."""
+    M = np.empty((3, 4))
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = A[i, j]
+        M[i, 3] = b[i]
+    for col in range(3):
+        piv = col
+        for i in range(col + 1, 3):
+            if abs(M[i, col]) > abs(M[piv, col]):
+                piv = i
+        if M[piv, col] == 0.0:
+            return False
+        if piv != col:
+            for j in range(4):
+                M[col, j], M[piv, j] = M[piv, j], M[col, j]
+        for i in range(col + 1, 3):
+            f = M[i, col] / M[col, col]
+            for j in range(col, 4):
+                M[i, j] -= f * M[col, j]
+    for i in range(2, -1, -1):
+        acc = M[i, 3]
+        for j in range(i + 1, 3):
+            acc -= M[i, j] * x[j]
+        x[i] = acc / M[i, i]
+    return True
 
 
 def side_offset_cov(r: np.ndarray, J: np.ndarray, side: np.ndarray, A: np.ndarray

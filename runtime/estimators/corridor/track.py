@@ -37,6 +37,7 @@ from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.lines import refine_undistorted
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.rotations import rot_z
+from ceilkit.runtime.jit import njit
 
 REACH_M = 8.0
 """Ceiling points further than this from the camera are not searched (tiny, blurred)."""
@@ -170,40 +171,69 @@ class LineTracker:
 
 def _cut_chords(px: np.ndarray, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(chords (K, 4), line (K,))``: each line's longest run of visible samples
-    (``px (J, S, 2)``, ``vis (J, S)``), cut into chords of about :data:`CHORD_PX` of
-    arc length; runs shorter than :data:`MIN_CHORD_PX` are left out."""
-    n_lines = vis.shape[0]
-    pad = np.zeros((n_lines, 1), np.int8)
-    d = np.diff(np.concatenate([pad, vis.view(np.int8), pad], axis=1), axis=1)
-    row, start = np.nonzero(d == 1)
-    stop = np.nonzero(d == -1)[1]                       # exclusive, same order
-    # per line the longest run (the first of equal ones)
-    pick = np.lexsort((start, -(stop - start), row))
-    first = np.ones(pick.size, bool)
-    first[1:] = row[pick][1:] != row[pick][:-1]
-    pick = pick[first]
-    both = vis[:, 1:] & vis[:, :-1]
-    dp = np.diff(np.where(vis[..., None], px, 0.0), axis=1)
-    step = np.where(both, np.hypot(dp[..., 0], dp[..., 1]), 0.0)
-    arc = np.concatenate([np.zeros((n_lines, 1)), np.cumsum(step, axis=1)], axis=1)
-    chords, lines = [], []
-    for j, a, b in zip(row[pick].tolist(), start[pick].tolist(), stop[pick].tolist(),
-                       strict=True):
+    (``px (J, S, 2)``, ``vis (J, S)``; the first of equal runs), cut into chords of
+    about :data:`CHORD_PX` of arc length (ends interpolated along the arc as
+    ``np.interp``); runs shorter than :data:`MIN_CHORD_PX` are left out."""
+    chords, line, n = _chords_of_runs(np.ascontiguousarray(px, np.float64),
+                                      np.ascontiguousarray(vis, np.bool_), CHORD_PX,
+                                      MIN_CHORD_PX)
+    return chords[:n], line[:n]
+
+
+@njit
+def _chords_of_runs(px, vis, chord_px, min_chord_px):  # pragma: no cover - compiled
+    """:func:`_cut_chords` into preallocated rows: ``(chords, line, count)``."""
+    n_lines, n_s = vis.shape
+    runs = np.zeros((n_lines, 2), np.int64)
+    for j in range(n_lines):
+        best_a, best_len, a = 0, 0, -1
+        for i in range(n_s + 1):
+            on = i < n_s and vis[j, i]
+            if on and a < 0:
+                a = i
+            elif not on and a >= 0:
+                if i - a > best_len:
+                    best_a, best_len = a, i - a
+                a = -1
+        runs[j, 0], runs[j, 1] = best_a, best_a + best_len
+    arc = np.zeros((n_lines, n_s))           # arc length along each run from its start
+    count = np.zeros(n_lines, np.int64)      # chords of each line
+    for j in range(n_lines):
+        a, b = runs[j, 0], runs[j, 1]
         if b - a < 2:
             continue
-        arc_j = arc[j, a:b]
-        total = float(arc_j[-1] - arc_j[0])
-        if total < MIN_CHORD_PX:
+        for i in range(a + 1, b):
+            arc[j, i - a] = arc[j, i - a - 1] + math.hypot(px[j, i, 0] - px[j, i - 1, 0],
+                                                           px[j, i, 1] - px[j, i - 1, 1])
+        if arc[j, b - a - 1] >= min_chord_px:
+            count[j] = max(1, int(np.rint(arc[j, b - a - 1] / chord_px)))
+    chords = np.empty((count.sum(), 4))
+    line = np.empty(count.sum(), np.int64)
+    n = 0
+    for j in range(n_lines):
+        k = count[j]
+        if k == 0:
             continue
-        n = max(1, int(round(total / CHORD_PX)))
-        cut = arc_j[0] + total * (np.arange(n + 1) / n)
-        ends = np.stack([np.interp(cut, arc_j, px[j, a:b, 0]),
-                         np.interp(cut, arc_j, px[j, a:b, 1])], axis=1)
-        chords.append(np.concatenate([ends[:-1], ends[1:]], axis=1))
-        lines.append(np.full(n, j))
-    if not chords:
-        return np.zeros((0, 4)), np.zeros(0, int)
-    return np.concatenate(chords), np.concatenate(lines)
+        a, b = runs[j, 0], runs[j, 1]
+        m = b - a
+        total = arc[j, m - 1]
+        seg = 0
+        pu, pv = px[j, a, 0], px[j, a, 1]
+        for c in range(1, k + 1):
+            x = total * (c / k)
+            while seg < m - 2 and arc[j, seg + 1] <= x:
+                seg += 1
+            if x >= total:
+                u, v = px[j, b - 1, 0], px[j, b - 1, 1]
+            else:
+                t = (x - arc[j, seg]) / (arc[j, seg + 1] - arc[j, seg])
+                u = px[j, a + seg, 0] + t * (px[j, a + seg + 1, 0] - px[j, a + seg, 0])
+                v = px[j, a + seg, 1] + t * (px[j, a + seg + 1, 1] - px[j, a + seg, 1])
+            chords[n, 0], chords[n, 1], chords[n, 2], chords[n, 3] = pu, pv, u, v
+            line[n] = j
+            n += 1
+            pu, pv = u, v
+    return chords, line, n
 
 
 __all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "LineMeasurement", "LineTracker", "REACH_M"]

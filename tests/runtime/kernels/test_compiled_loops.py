@@ -1,0 +1,364 @@
+"""The compiled loops (runtime/jit.py users) against plain numpy readings of the same
+method, on random and edge-case inputs.
+
+Each reference below is the array formulation the loop replaced (kept here, short, as
+the oracle): the loops must give the same numbers (to float rounding) and the same
+decisions (which points, which windows, which chords)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.block import pnp
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.corridor import track
+from ceilkit.runtime.features import edges, quads, windows
+from ceilkit.runtime.features.spots import FLAT_MIN_AREA_PX, flattened
+from helpers import CONFIGS
+
+# ----------------------------------------------------------------------------- windows
+
+
+def window_stats_reference(grey, corner, side, rect=None):
+    """One window at a time: border mean, half-peak object, flattened plateau, moments."""
+    rows, ok, contrast = [], [], []
+    mid = side // 2
+    for n, (x0, y0) in enumerate(corner):
+        g = grey[y0:y0 + side, x0:x0 + side].astype(np.float64)
+        border = np.ones((side, side), bool)
+        border[1:-1, 1:-1] = False
+        i_b = g[border].mean()
+        inside = np.zeros((side, side), bool)
+        if rect is None:
+            inside[:] = True
+        else:
+            x_a, y_a, x_b, y_b = rect[n]
+            inside[max(y_a, 0):y_b + 1, max(x_a, 0):x_b + 1] = True
+        peak = g[inside].max() if inside.any() else 0.0
+        obj = (g > 0.5 * (i_b + peak)) & inside
+        area = int(obj.sum())
+        i_o = g[obj].sum() / max(area, 1)
+        if area >= FLAT_MIN_AREA_PX:
+            flat = flattened(grey[y0:y0 + side, x0:x0 + side], obj.astype(np.float32),
+                             float(i_o - i_b))
+            if flat is not None:
+                g = flat.astype(np.float64)
+        w = np.maximum(g - (i_b + windows.CORE * (i_o - i_b)), 0.0) * inside
+        y, x = np.mgrid[0:side, 0:side] - mid
+        m00 = w.sum()
+        good = not (obj & border).any() and area > 0 and m00 > 0
+        d = m00 if good else 1.0
+        cx, cy = (w * x).sum() / d, (w * y).sum() / d
+        rows.append([x0 + mid + cx, y0 + mid + cy, i_o, i_b, (w * x * x).sum() / d - cx * cx,
+                     (w * x * y).sum() / d - cx * cy, (w * y * y).sum() / d - cy * cy, area])
+        ok.append(good)
+        contrast.append(peak - i_b)
+    return np.array(rows), np.array(ok), np.array(contrast)
+
+
+def spots_image(rng, shape=(160, 200), n=6, tilt=0.0):
+    """Gaussian and flat-topped (vignetted) lights on a noisy background."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    img = np.full(shape, 35.0)
+    centres = rng.uniform([20, 20], [w - 20, h - 20], (n, 2))
+    for k, (u, v) in enumerate(centres):
+        r2 = (xx - u) ** 2 + (yy - v) ** 2
+        if k % 2:
+            img += 150.0 * np.exp(-r2 / (2 * rng.uniform(1.5, 3.0) ** 2))
+        else:      # a large plateau with a linear gain across it (vignetting)
+            gain = 1.0 + tilt * (xx - u) / 20.0
+            img += 170.0 * gain / (1.0 + np.exp(np.sqrt(r2) - rng.uniform(11, 14)))
+    img += rng.normal(0.0, 1.5, shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), centres
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_window_stats_equals_the_per_window_reading(seed):
+    rng = np.random.default_rng(seed)
+    img, centres = spots_image(rng, tilt=0.15 * seed)
+    for side in (21, 41):
+        corner = np.clip(np.rint(centres).astype(np.int64) - side // 2, 0,
+                         (img.shape[1] - side, img.shape[0] - side))
+        corner = np.vstack([corner, [[0, 0]]])          # a flat window too
+        for rect in (None, np.column_stack([rng.integers(-2, 6, (len(corner), 2)),
+                                            rng.integers(side - 6, side + 2,
+                                                         (len(corner), 2))])):
+            want = window_stats_reference(img, corner, side, rect)
+            got = windows.window_stats(img, corner, side, rect)
+            np.testing.assert_array_equal(got[1], want[1])
+            np.testing.assert_allclose(got[2], want[2], atol=1e-9)
+            np.testing.assert_allclose(got[0][got[1]], want[0][want[1]], rtol=1e-7,
+                                       atol=1e-6)
+    # the large lights were flattened (the plateau's slope moved their centroids)
+    assert seed == 0 or any(window_stats_reference(img, corner, 41)[0][:, 7]
+                            >= FLAT_MIN_AREA_PX)
+
+
+# ----------------------------------------------------------------------------- edges
+
+def classify_reference(prof, offs, min_step, min_depth):
+    sl, sr, inner, inv_l, inv_r = edges.profile_parts(offs)
+    left, right = prof[:, sl].sum(1) * inv_l, prof[:, sr].sum(1) * inv_r
+    step = right - left
+    pin = prof[:, inner]
+    dip = np.minimum(left, right) - pin.min(1)
+    bump = pin.max(1) - np.maximum(left, right)
+    valley = dip >= bump
+    depth = np.where(valley, dip, bump)
+    k = np.where(valley, pin.argmin(1), pin.argmax(1))
+    thin = (depth >= min_depth) & (depth > abs(step)) & (k > 0) & (k < pin.shape[1] - 1)
+    is_step = (abs(step) >= min_step) & (abs(step) > np.maximum(depth, 0))
+    pol = np.where(thin, 0.0, np.where(is_step, np.sign(step), np.nan))
+    shift = np.full(len(pol), np.nan)
+    for r in np.flatnonzero(thin):
+        kk = k[r]
+        shift[r] = offs[inner][kk] + edges.PROFILE_STEP_PX * edges.vertex(
+            pin[r, kk - 1:kk], pin[r, kk:kk + 1], pin[r, kk + 1:kk + 2])[0]
+    return pol, shift
+
+
+def locate_reference(prof, pol, offs, inner):
+    i0, i1 = inner.start + 1, inner.stop + 1
+    out = np.full(prof.shape[:2], np.nan)
+    for s in range(prof.shape[0]):
+        for a in range(prof.shape[1]):
+            g = prof[s, a]
+            if abs(pol[s]) == 1:
+                gs = g * pol[s]
+                mid = 0.25 * (gs[0] + gs[1] + gs[-2] + gs[-1])
+                k = i0 + int(np.argmax(gs[i0 + 1:i1 + 1] - gs[i0 - 1:i1 - 1]))
+                lo = gs[k] - mid > 0
+                h0, h1 = (gs[k - 1] - mid, gs[k] - mid) if lo else (gs[k] - mid,
+                                                                     gs[k + 1] - mid)
+                o = offs[k - lo] + edges.PROFILE_STEP_PX * -h0 / (h1 - h0 if h1 > h0 else 1)
+                if h0 <= 0 < h1 and abs(o) <= offs[i1 - 1]:
+                    out[s, a] = o
+            elif pol[s] == 0:
+                side = 0.5 * (prof[s, :, 0] + prof[s, :, -1]).mean()
+                inn = prof[s, :, i0:i1]
+                sgn = -1.0 if side - inn.min(1).mean() >= inn.max(1).mean() - side else 1.0
+                gt = g[i0:i1] * sgn
+                w = np.maximum(gt - 0.5 * (sgn * side + gt.max()), 0)
+                k = int(np.argmax(gt))
+                if w.sum() > 0 and 0 < k < gt.size - 1:
+                    out[s, a] = (w * offs[i0:i1]).sum() / w.sum()
+    return out
+
+
+def random_profiles(rng, n, n_along, offs):
+    """Steps, dark and bright thin lines, and flat noise, at random places."""
+    kind = rng.integers(0, 4, n)
+    centre = rng.uniform(-2.5, 2.5, (n, 1, 1))
+    o = offs[None, None, :] - centre - rng.normal(0, 0.3, (n, n_along, 1))
+    step = 60.0 / (1.0 + np.exp(-o / 0.7)) * rng.choice([-1.0, 1.0], (n, 1, 1))
+    line = 50.0 * np.exp(-o ** 2 / 0.8)
+    base = np.select([kind[:, None, None] == 0, kind[:, None, None] == 1,
+                      kind[:, None, None] == 2], [step, -line, line], 0.0)
+    return 100.0 + base * rng.uniform(0.2, 1.5, (n, 1, 1)) + rng.normal(0, 2.0,
+                                                                        (n, n_along, offs.size))
+
+
+@pytest.mark.parametrize("half_width", [4.0, 6.0])
+def test_classify_and_locate_equal_the_array_reading(half_width):
+    rng = np.random.default_rng(7)
+    offs, t, inner = edges.edge_grid(8, half_width)
+    prof = random_profiles(rng, 400, t.size, offs)
+    mean = prof.mean(axis=1)
+    pol, shift = edges.classify(mean, offs, 20.0, 8.0)
+    want_pol, want_shift = classify_reference(mean, offs, 20.0, 8.0)
+    np.testing.assert_array_equal(pol, want_pol)
+    np.testing.assert_allclose(shift, want_shift, atol=1e-12)
+    assert {0.0, 1.0, -1.0} <= set(pol[np.isfinite(pol)].tolist()) and np.isnan(pol).any()
+    loc = edges.locate(prof, pol, offs, inner)
+    np.testing.assert_allclose(loc, locate_reference(prof, pol, offs, inner), atol=1e-12)
+    assert np.isfinite(loc).mean() > 0.3
+
+
+def fit_reference(x, y, good, f_px):
+    lines, kept = [], good.copy()
+    for r in range(x.shape[0]):
+        for _ in range(2):
+            w = kept[r]
+            cx, cy = x[r, w].mean() if w.any() else 0.0, y[r, w].mean() if w.any() else 0.0
+            dx, dy = x[r, w] - cx, y[r, w] - cy
+            th = 0.5 * math.atan2(2 * (dx * dy).sum(), (dx * dx).sum() - (dy * dy).sum())
+            a, b = -math.sin(th), math.cos(th)
+            res = x[r] * a + y[r] * b - (a * cx + b * cy)
+            sig = math.sqrt((res[w] ** 2).sum() / max(w.sum(), 1))
+            drop = w & ~(np.abs(res) <= max(edges.OUTLIER_SIGMAS * sig,
+                                            edges.OUTLIER_FLOOR_PX / f_px))
+            if _ == 0 and drop.any():
+                kept[r] &= ~drop
+                continue
+            lines.append([a, b, -(a * cx + b * cy)])
+            break
+    return np.array(lines), kept
+
+
+def test_robust_line_fit_equals_the_array_reading():
+    rng = np.random.default_rng(3)
+    n, m = 200, 20
+    th = rng.uniform(0, np.pi, (n, 1))
+    s = rng.uniform(-1, 1, (n, m))
+    off = np.where(rng.random((n, m)) < 0.03, 0.05, 0.0) + rng.normal(0, 1e-3, (n, m))
+    x = 0.3 + s * np.cos(th) - off * np.sin(th)              # outliers across the line
+    y = -0.2 + s * np.sin(th) + off * np.cos(th)
+    good = rng.random((n, m)) < 0.9
+    line, res, cnt, ssr, kept = edges.fit_lines_robust(x, y, good, 500.0)
+    want_line, want_kept = fit_reference(x, y, good, 500.0)
+    np.testing.assert_array_equal(kept, want_kept)
+    sign = np.sign((line[:, :2] * want_line[:, :2]).sum(axis=1))[:, None]
+    np.testing.assert_allclose(line, want_line * sign, atol=1e-9)
+    np.testing.assert_array_equal(cnt, kept.sum(axis=1))
+    np.testing.assert_allclose(ssr, ((res * kept) ** 2).sum(axis=1), rtol=1e-9, atol=1e-18)
+    assert not np.array_equal(kept, good)                   # the outliers were dropped
+
+
+# ----------------------------------------------------------------------------- quads
+
+def edge_points_reference(grey, corners, per_side, search_px):
+    offs, t, side = quads._stations(per_side, search_px)
+    h, w = grey.shape
+    g = grey.astype(np.float32)
+    pts, sides = [], []
+    for s in range(4):
+        p0, p1 = corners[s], corners[(s + 1) % 4]
+        d = p1 - p0
+        nrm = np.array([-d[1], d[0]]) / max(np.hypot(*d), 1e-9)
+        found = []
+        for tj in t:
+            base = p0 + tj * d
+            smp = (base + offs[:, None] * nrm).astype(np.float32)
+            prof = cv2.remap(g, smp[None, :, :], None, cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_REPLICATE)[0].astype(float)
+            grad = np.abs(np.diff(prof))
+            k = int(np.argmax(grad))
+            mid = 0.25 * (prof[0] + prof[1] + prof[-1] + prof[-2])
+            d0, d1 = prof[k] - mid, prof[k + 1] - mid
+            frac = d0 / (d0 - d1) if abs(d0 - d1) > 1e-6 else 0.5
+            p = base + (offs[0] + (k + np.clip(frac, -1, 2)) * quads.EDGE_STEP_PX) * nrm
+            ok = 0 < k < grad.size - 1 and -1 < frac < 2 and 0 < p[0] < w - 1 \
+                and 0 < p[1] < h - 1
+            found.append((p, grad[k], ok))
+        med = np.median([f[1] for f in found])
+        for p, st, ok in found:
+            if ok and st > 0.25 * med:
+                pts.append(p)
+                sides.append(s)
+    return np.array(pts).reshape(-1, 2), np.array(sides, int)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_edge_points_equal_the_array_reading(seed):
+    rng = np.random.default_rng(seed)
+    img = np.full((240, 320), 200.0)
+    quad = np.array([[100, 60], [230, 75], [220, 190], [90, 170]], float) \
+        + rng.normal(0, 3, (4, 2))
+    mask = np.zeros_like(img, np.uint8)
+    cv2.fillConvexPoly(mask, np.rint(quad * 16).astype(np.int32), 1, cv2.LINE_AA, 4)
+    img[mask > 0] = 60.0
+    img = cv2.GaussianBlur(img, (0, 0), 1.0) + rng.normal(0, 2.0, img.shape)
+    grey = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    coarse = quad + rng.normal(0, 1.0, (4, 2))
+    pts, side = quads.edge_points(grey, coarse, 12, 3.0)
+    want, want_side = edge_points_reference(grey, coarse, 12, 3.0)
+    np.testing.assert_array_equal(side, want_side)
+    # the reference samples on OpenCV's 1/32 px grid, the loop exactly
+    np.testing.assert_allclose(pts, want, atol=0.03)
+    assert len(pts) >= 44
+    # a quad reaching past the frame: points outside are dropped, none is NaN
+    off = coarse + np.array([-120.0, 0.0])
+    p2, _ = quads.edge_points(grey, off, 12, 3.0)
+    assert np.all((p2[:, 0] > 0) & (p2[:, 0] < 319))
+    empty, s_empty = quads.edge_points(grey, np.full((4, 2), np.nan), 12, 3.0)
+    assert empty.shape == (0, 2) and s_empty.shape == (0,)
+
+
+# ----------------------------------------------------------------------------- corridor
+
+def cut_chords_reference(px, vis):
+    chords, lines = [], []
+    for j in range(vis.shape[0]):
+        runs, a = [], None
+        for i, on in enumerate(list(vis[j]) + [False]):
+            if on and a is None:
+                a = i
+            elif not on and a is not None:
+                runs.append((a, i))
+                a = None
+        if not runs:
+            continue
+        a, b = max(runs, key=lambda r: (r[1] - r[0], -r[0]))
+        if b - a < 2:
+            continue
+        seg = np.diff(px[j, a:b], axis=0)
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+        if arc[-1] < track.MIN_CHORD_PX:
+            continue
+        n = max(1, int(round(arc[-1] / track.CHORD_PX)))
+        cut = arc[-1] * np.arange(n + 1) / n
+        ends = np.stack([np.interp(cut, arc, px[j, a:b, 0]),
+                         np.interp(cut, arc, px[j, a:b, 1])], axis=1)
+        chords.append(np.concatenate([ends[:-1], ends[1:]], axis=1))
+        lines += [j] * n
+    if not chords:
+        return np.zeros((0, 4)), np.zeros(0, int)
+    return np.concatenate(chords), np.array(lines)
+
+
+def test_cut_chords_equal_the_array_reading():
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        n_lines, n_s = rng.integers(1, 7), rng.integers(2, 90)
+        px = np.cumsum(rng.uniform(0, rng.choice([3.0, 12.0, 70.0]), (n_lines, n_s, 2)),
+                       axis=1)
+        vis = rng.random((n_lines, n_s)) < rng.choice([0.6, 0.95, 1.0])
+        got, line = track._cut_chords(px, vis)
+        want, want_line = cut_chords_reference(px, vis)
+        np.testing.assert_array_equal(line, want_line)
+        np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- block pnp
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.2])
+def test_block_gauss_newton_equals_its_numpy_reading(monkeypatch, noise_px):
+    """The compiled Gauss-Newton and the numpy one (the fallback on a singular step)
+    reach the same pose, covariance and residuals; a singular step takes the fallback."""
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    geo = PlanarGeometry.of(rig, Site(3.0))
+    square = np.array([[2.0, -0.2], [2.4, -0.2], [2.4, 0.2], [2.0, 0.2]])
+    truth = np.array([2.1, 0.05, math.radians(12.0)])
+    t = np.linspace(0.15, 0.85, 12)
+    pts = np.concatenate([square[k] + t[:, None] * (square[(k + 1) % 4] - square[k])
+                          for k in range(4)])
+    side = np.repeat(np.arange(4), t.size)
+    norm = pnp.project_norm(geo, truth, pts)
+    norm = norm + np.random.default_rng(5).normal(0, noise_px / 450.0, norm.shape)
+    scale = pnp.magnification(rig.camera, norm)
+    start = (2.12, 0.04, math.radians(12.5))
+    got = pnp.refine(geo, start, square, norm, side, scale)
+    monkeypatch.setattr(pnp, "_gauss_newton", lambda *a: False)
+    want = pnp.refine(geo, start, square, norm, side, scale)
+    np.testing.assert_allclose(got.pose, want.pose, atol=1e-10)
+    np.testing.assert_allclose(got.cov, want.cov, rtol=1e-6, atol=1e-18)
+    assert abs(got.rms_px - want.rms_px) < 1e-9 and got.n == want.n
+    if noise_px == 0:
+        np.testing.assert_allclose(got.pose, truth, atol=1e-9)
+
+
+def test_solve3_is_gesv_and_reports_a_singular_matrix():
+    rng = np.random.default_rng(0)
+    x = np.empty(3)
+    for _ in range(50):
+        A, b = rng.normal(size=(3, 3)), rng.normal(size=3)
+        assert pnp._solve3(A, b, x)
+        np.testing.assert_allclose(x, np.linalg.solve(A, b), rtol=1e-9, atol=1e-12)
+    assert not pnp._solve3(np.zeros((3, 3)), np.ones(3), x)
