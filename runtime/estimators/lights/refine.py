@@ -2,8 +2,9 @@
 
 :func:`refine_pose_ceiling` (what the estimator runs) linearizes the pixel residual at
 each observation through its pixel Jacobian, so a step costs a 3x3 solve
-(:func:`_solve3`) and no projection; :func:`refine_pose` reprojects the map lights
-through the lens at every step and is kept as the reference it is tested against.
+(:func:`_cholesky3`) and no projection, all in one compiled loop
+(:func:`_gauss_newton`); :func:`refine_pose` reprojects the map lights through the lens
+at every step and is kept as the reference it is tested against.
 Both return the covariance ``s² (JᵀJ)⁻¹``, ``s`` the pixel residual (floored).
 
 Convention (SPEC §1): ``X_W = Rz(yaw) X_V + (x, y, 0)``; ceiling points in V, metres;
@@ -23,6 +24,7 @@ import numpy as np
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.rays import project_poses
 from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.jit import njit
 
 
 def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
@@ -101,58 +103,129 @@ def refine_pose_ceiling(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarra
     Returns:
         As :func:`refine_pose`: ``(x, y, yaw, cov (3, 3), residual norms (K,) px)``.
     """
-    q = np.asarray(q_v, float).reshape(-1, 2)
-    J = np.asarray(jac_px, float).reshape(-1, 2, 2)
-    L = np.asarray(lights_w, float).reshape(-1, 2)
+    q = np.ascontiguousarray(q_v, np.float64).reshape(-1, 2)
+    J = np.ascontiguousarray(jac_px, np.float64).reshape(-1, 2, 2)
+    L = np.ascontiguousarray(lights_w, np.float64).reshape(-1, 2)
+    pose = np.array([x_m, y_m, yaw_rad], float)
+    N = np.empty((3, 3))
+    norms = np.empty(q.shape[0])
+    ssr = _gauss_newton(q, J, L, pose, int(iterations), N, norms)
     k = q.shape[0]
-    # With Rz(-yaw) = [[c, s], [-s, c]] and (u, v) = Rz(-yaw) t, the residuals are
-    # r = c J L + s J L_perp - u J e_x - v J e_y - J q (L_perp = (L_y, -L_x)): a fixed
-    # basis B (5, 2k) and pose-dependent weights, so the residuals and their Jacobian
-    # at a pose are one (4, 5) @ (5, 2k) product
-    B = np.empty((5, k, 2))
-    np.matmul(J, L[:, :, None], out=B[0, :, :, None])
-    np.matmul(J, (L[:, ::-1] * (1.0, -1.0))[:, :, None], out=B[1, :, :, None])
-    B[2] = J[:, :, 0]
-    B[3] = J[:, :, 1]
-    np.matmul(J, q[:, :, None], out=B[4, :, :, None])
-    B = B.reshape(5, -1)
-
-    def resid(x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals ``(2k,)`` px (light by light, u then v) and their Jacobian
-        transposed ``(3, 2k)`` (d/dx, d/dy, d/dyaw) at a pose."""
-        c, s = math.cos(yaw), math.sin(yaw)
-        u, v = c * x + s * y, c * y - s * x
-        out = np.array([[c, s, -u, -v, -1.0],
-                        [0.0, 0.0, -c, s, 0.0],
-                        [0.0, 0.0, -s, -c, 0.0],
-                        [-s, c, -v, u, 0.0]]) @ B
-        return out[0], out[1:]
-
-    p = (float(x_m), float(y_m), float(yaw_rad))
-    r, At = resid(*p)
-    ssr = float(r @ r)
-    for _ in range(iterations):
-        N = At @ At.T
-        if not (math.isfinite(ssr) and math.isfinite(N[0, 0] + N[1, 1] + N[2, 2])):
-            break
-        step = _solve3(N, At @ r, 1e-9)
-        if step is None:
-            break
-        p_new = (p[0] - step[0], p[1] - step[1], p[2] - step[2])
-        r_new, At_new = resid(*p_new)
-        ssr_new = float(r_new @ r_new)
-        if not math.isfinite(ssr_new) or ssr_new > ssr:
-            break
-        p, r, At, ssr = p_new, r_new, At_new, ssr_new
-        if max(abs(step[0]), abs(step[1])) < 1e-5 and abs(step[2]) < 1e-6:
-            break
     dof = 2 * k - 3
     s2 = max(ssr / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
-    inv = _inv3(At @ At.T)
+    inv = _inv3(N)
     cov = np.full((3, 3), np.inf) if inv is None else s2 * inv
-    rr = r.reshape(-1, 2)
-    norms = np.sqrt(rr[:, 0] ** 2 + rr[:, 1] ** 2)
-    return p[0], p[1], float(wrap_pi(p[2])), cov, norms
+    return float(pose[0]), float(pose[1]), float(wrap_pi(pose[2])), cov, norms
+
+
+@njit
+def _gauss_newton(q, J, L, pose, iterations, N, norms):  # pragma: no cover - compiled
+    """The Gauss-Newton of :func:`refine_pose_ceiling` from ``pose`` (moved in place):
+    the sum of squared residuals at the end; ``N`` = JᵀJ there and ``norms`` each
+    light's residual norm (px).
+
+    With ``Rz(-yaw) = [[c, s], [-s, c]]`` and ``(u, v) = Rz(-yaw) t``, light i's
+    residual is ``c J L + s J L_perp - u J e_x - v J e_y - J q`` (``L_perp = (L_y,
+    -L_x)``): a fixed basis ``B (5, 2k)`` weighted by the pose. A step is kept only if
+    it lowers the sum (a ridge of 1e-9 on the normal equations, a Cholesky solve);
+    steps end below 1e-5 m and 1e-6 rad."""
+    k = q.shape[0]
+    B = np.empty((5, 2 * k))
+    for i in range(k):
+        for a in range(2):
+            j0, j1 = J[i, a, 0], J[i, a, 1]
+            B[0, 2 * i + a] = j0 * L[i, 0] + j1 * L[i, 1]
+            B[1, 2 * i + a] = j0 * L[i, 1] - j1 * L[i, 0]
+            B[2, 2 * i + a] = j0
+            B[3, 2 * i + a] = j1
+            B[4, 2 * i + a] = j0 * q[i, 0] + j1 * q[i, 1]
+    r = np.empty(2 * k)
+    At = np.empty((3, 2 * k))
+    r_new = np.empty(2 * k)
+    At_new = np.empty((3, 2 * k))
+    g = np.empty(3)
+    ssr = _residuals(B, pose[0], pose[1], pose[2], r, At)
+    for _ in range(iterations):
+        _normal(At, r, N, g)
+        if not (math.isfinite(ssr) and math.isfinite(N[0, 0] + N[1, 1] + N[2, 2])):
+            break
+        ok, s0, s1, s2 = _cholesky3(N, g, 1e-9)
+        if not ok:
+            break
+        x, y, yaw = pose[0] - s0, pose[1] - s1, pose[2] - s2
+        ssr_new = _residuals(B, x, y, yaw, r_new, At_new)
+        if not math.isfinite(ssr_new) or ssr_new > ssr:
+            break
+        pose[0], pose[1], pose[2] = x, y, yaw
+        r[:] = r_new
+        At[:, :] = At_new
+        ssr = ssr_new
+        if max(abs(s0), abs(s1)) < 1e-5 and abs(s2) < 1e-6:
+            break
+    _normal(At, r, N, g)
+    for i in range(k):
+        norms[i] = math.sqrt(r[2 * i] ** 2 + r[2 * i + 1] ** 2)
+    return ssr
+
+
+@njit
+def _residuals(B, x, y, yaw, r, At):  # pragma: no cover - compiled
+    """Residuals ``r (2k,)`` and their Jacobian transposed ``At (3, 2k)`` at a pose (see
+    :func:`_gauss_newton`); returns the sum of squares."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    u, v = c * x + s * y, c * y - s * x
+    ssr = 0.0
+    for j in range(B.shape[1]):
+        b0, b1, b2, b3, b4 = B[0, j], B[1, j], B[2, j], B[3, j], B[4, j]
+        r[j] = c * b0 + s * b1 - u * b2 - v * b3 - b4
+        At[0, j] = -c * b2 + s * b3
+        At[1, j] = -s * b2 - c * b3
+        At[2, j] = -s * b0 + c * b1 - v * b2 + u * b3
+        ssr += r[j] * r[j]
+    return ssr
+
+
+@njit
+def _normal(At, r, N, g):  # pragma: no cover - compiled
+    """``N = At Atᵀ`` and ``g = At r``."""
+    for a in range(3):
+        g[a] = 0.0
+        for b in range(3):
+            N[a, b] = 0.0
+    for j in range(At.shape[1]):
+        for a in range(3):
+            g[a] += At[a, j] * r[j]
+            for b in range(3):
+                N[a, b] += At[a, j] * At[b, j]
+
+
+@njit
+def _cholesky3(N, g, ridge):  # pragma: no cover - compiled
+    """``(ok, x)``: ``x = (N + ridge I)⁻¹ g`` for a symmetric ``(3, 3)`` ``N`` by
+    Cholesky, as ``(ok, x0, x1, x2)``; ``ok`` False if the matrix is not positive
+    definite."""
+    a, b, c = N[0, 0] + ridge, N[0, 1], N[0, 2]
+    d, e, f = N[1, 1] + ridge, N[1, 2], N[2, 2] + ridge
+    if not a > 0:
+        return False, 0.0, 0.0, 0.0
+    l00 = math.sqrt(a)
+    l10, l20 = b / l00, c / l00
+    t = d - l10 * l10
+    if not t > 0:
+        return False, 0.0, 0.0, 0.0
+    l11 = math.sqrt(t)
+    l21 = (e - l20 * l10) / l11
+    t = f - l20 * l20 - l21 * l21
+    if not t > 0:
+        return False, 0.0, 0.0, 0.0
+    l22 = math.sqrt(t)
+    z0 = g[0] / l00
+    z1 = (g[1] - l10 * z0) / l11
+    z2 = (g[2] - l20 * z0 - l21 * z1) / l22
+    x2 = z2 / l22
+    x1 = (z1 - l21 * x2) / l11
+    x0 = (z0 - l10 * x1 - l20 * x2) / l00
+    return True, x0, x1, x2
 
 
 def _inv3(N: np.ndarray) -> np.ndarray | None:
@@ -165,35 +238,6 @@ def _inv3(N: np.ndarray) -> np.ndarray | None:
         return None
     D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
     return np.array([[A, B, C], [B, D, E], [C, E, F]]) * (1.0 / det)
-
-
-def _solve3(N: np.ndarray, g: np.ndarray, ridge: float) -> tuple[float, float, float] | None:
-    """``(N + ridge I)⁻¹ g`` for a symmetric ``(3, 3)`` ``N`` and ``g`` ``(3,)`` by Cholesky,
-    in plain floats (a 3x3 system costs less than the call to a general solver);
-    ``None`` if the matrix is not positive definite."""
-    (a, b, c), (_, d, e), (_, _, f) = N.tolist()
-    a, d, f = a + ridge, d + ridge, f + ridge
-    g0, g1, g2 = g.tolist()
-    if not a > 0:
-        return None
-    l00 = math.sqrt(a)
-    l10, l20 = b / l00, c / l00
-    t = d - l10 * l10
-    if not t > 0:
-        return None
-    l11 = math.sqrt(t)
-    l21 = (e - l20 * l10) / l11
-    t = f - l20 * l20 - l21 * l21
-    if not t > 0:
-        return None
-    l22 = math.sqrt(t)
-    z0 = g0 / l00
-    z1 = (g1 - l10 * z0) / l11
-    z2 = (g2 - l20 * z0 - l21 * z1) / l22
-    x2 = z2 / l22
-    x1 = (z1 - l21 * x2) / l11
-    x0 = (z0 - l10 * x1 - l20 * x2) / l00
-    return x0, x1, x2
 
 
 __all__ = ["refine_pose", "refine_pose_ceiling"]

@@ -338,7 +338,7 @@ def test_visibility_table_matches_projection(lights_rig, lights_site, tilted_rig
 
 def test_small_helpers_match_numpy():
     """The plain-float 3x3 solve and the short median give numpy's numbers."""
-    from ceilkit.runtime.estimators.lights.refine import _inv3, _solve3
+    from ceilkit.runtime.estimators.lights.refine import _cholesky3, _inv3
     from ceilkit.runtime.geometry.fits import short_median as _median
 
     rng = np.random.default_rng(3)
@@ -347,9 +347,11 @@ def test_small_helpers_match_numpy():
         g = rng.normal(size=3)
         N = A.T @ A
         want = np.linalg.solve(N + 1e-9 * np.eye(3), g)
-        np.testing.assert_allclose(_solve3(N, g, 1e-9), want, rtol=1e-9, atol=1e-12)
+        ok, *x = _cholesky3(N, g, 1e-9)
+        assert ok
+        np.testing.assert_allclose(x, want, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(_inv3(N), np.linalg.inv(N), rtol=1e-9, atol=1e-15)
-    assert _solve3(np.zeros((3, 3)), np.ones(3), 0.0) is None       # not positive definite
+    assert not _cholesky3(np.zeros((3, 3)), np.ones(3), 0.0)[0]      # not positive definite
     assert _inv3(np.zeros((3, 3))) is None and _inv3(np.full((3, 3), np.nan)) is None
     for n in (1, 2, 5, 8):
         x = rng.normal(size=n)
