@@ -10,16 +10,25 @@ Compiled with :func:`njit`: ``cache=True`` (the machine code is kept beside the 
 or in numba's user cache when that is not writable, so only the first run on a machine
 compiles), ``nogil=True`` (a capture thread runs beside the estimator), no fast-math
 (the results are IEEE like numpy's, reassociation aside).
+
+A loop is made on its first call: about 0.7 s for the first of a process (numba's
+start), then milliseconds each from the cache (seconds each to compile, once per
+machine). :func:`warm_up` does that before the first frame: each module that holds
+loops registers a :func:`warmer` that calls them once on tiny inputs of the types it
+passes them, and ``ceilrun`` runs every registered warmer after building the
+estimator.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numba
 
 F = TypeVar("F", bound=Callable[..., Any])
+_WARMERS: list[Callable[[], object]] = []
 
 
 def njit(fn: F) -> F:
@@ -27,4 +36,20 @@ def njit(fn: F) -> F:
     return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
 
 
-__all__ = ["njit"]
+def warmer(fn: F) -> F:
+    """Register ``fn`` (no arguments) for :func:`warm_up`: it calls its module's loops
+    once, on tiny inputs of the dtypes and ranks the module passes them."""
+    _WARMERS.append(fn)
+    return fn
+
+
+def warm_up() -> float:
+    """Load (the first time on a machine: compile) every loop registered so far, now
+    rather than on the first frame; the seconds it took."""
+    t0 = time.perf_counter()
+    for fn in list(_WARMERS):
+        fn()
+    return time.perf_counter() - t0
+
+
+__all__ = ["njit", "warm_up", "warmer"]

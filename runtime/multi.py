@@ -36,6 +36,7 @@ from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import Estimate, Estimator, PoseEstimate
 from ceilkit.runtime.estimators.registry import AUTO, make_estimator, site_methods
 from ceilkit.runtime.fusion import Fusion, FusionOptions
+from ceilkit.runtime.jit import warm_up
 from ceilkit.runtime.tracking import Tracker
 
 
@@ -105,18 +106,25 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
         fusion: the fusion's options (default: :class:`FusionOptions` with the site's
             light spacing as ``cell_m``).
 
+    The compiled loops the estimators use are loaded here (:func:`~.jit.warm_up`), not
+    on the first frame.
+
     Raises:
         ConfigError: a bad method, option, or a start pose with an explicit method.
     """
     if method != AUTO:
         if start_pose is not None:
             raise ConfigError(None, "start_pose", "a start pose needs --method auto")
-        return _single(make_estimator(method, rig, site, options), site, fusion)
-    auto = AutoEstimator(rig, site, options)
-    if len(auto.estimators) == 1 and start_pose is None and not odometry:
-        return _single(auto.estimators[0], site, fusion)
-    fusion = fusion or FusionOptions(cell_m=regular_spacing_m(site))
-    return auto, Fusion(fusion, start_pose=start_pose)
+        out = _single(make_estimator(method, rig, site, options), site, fusion)
+    else:
+        auto = AutoEstimator(rig, site, options)
+        if len(auto.estimators) == 1 and start_pose is None and not odometry:
+            out = _single(auto.estimators[0], site, fusion)
+        else:
+            fusion = fusion or FusionOptions(cell_m=regular_spacing_m(site))
+            out = auto, Fusion(fusion, start_pose=start_pose)
+    warm_up()
+    return out
 
 
 def _single(est: Estimator, site: Site, fusion: FusionOptions | None

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.jit import njit
+from ceilkit.runtime.jit import njit, warmer
 
 PROFILE_STEP_PX = 0.5      # spacing of profile samples across a segment
 SIDE_PX = 1.0              # a profile's sides: its outer SIDE_PX at either end
@@ -457,6 +457,17 @@ def fit_lines_robust(x: np.ndarray, y: np.ndarray, good: np.ndarray, f_px: float
     line, res, cnt, ssr = _empty_fits(x.shape)
     _fit_robust(x, y, good, OUTLIER_FLOOR_PX / f_px, OUTLIER_SIGMAS, line, res, cnt, ssr)
     return line, res, cnt, ssr, good
+
+
+@warmer
+def _warm() -> None:
+    offs, t, inner = edge_grid(4, 4.0)
+    prof = np.tile(np.where(offs > 0, 200.0, 50.0), (2, t.size, 1))
+    pol, _ = classify(prof.mean(axis=1), offs, 20.0, 8.0)
+    locate(prof, pol, offs, inner)
+    x = np.tile(np.arange(6.0), (2, 1))
+    fit_lines(x, x, np.ones(x.shape, bool))
+    fit_lines_robust(x, x, np.ones(x.shape, bool), 500.0)
 
 
 __all__ = ["classify", "directions", "edge_grid", "fit_lines", "fit_lines_robust", "locate",

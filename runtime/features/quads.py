@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.jit import njit
+from ceilkit.runtime.jit import njit, warmer
 
 DICTIONARY_NAMES = tuple(sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_")))
 """Every dictionary name ``cv2.aruco`` knows (``DICT_4X4_50`` ... ``DICT_APRILTAG_36h11``)."""
@@ -430,3 +430,10 @@ def _bilinear(grey, x, y, w, h):  # pragma: no cover - compiled
     top = grey[ya, xa] + fx * (np.float64(grey[ya, xb]) - grey[ya, xa])
     bot = grey[yb, xa] + fx * (np.float64(grey[yb, xb]) - grey[yb, xa])
     return top + fy * (bot - top)
+
+
+@warmer
+def _warm() -> None:
+    g = np.zeros((40, 40), np.uint8)
+    g[10:30, 10:30] = 200
+    edge_points(g, np.array([[10.0, 10.0], [30.0, 10.0], [30.0, 30.0], [10.0, 30.0]]), 4)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ceilkit.runtime.jit import njit
+from ceilkit.runtime.jit import njit, warmer
 
 from .spots import (
     _FLAT_ERODE_PX,
@@ -357,5 +357,12 @@ def detect_spots_windowed(grey: np.ndarray, params: SpotParams | None = None,
         return empty_spots(n, rejected)
     return _select_lights(rows[ok], n, params, True, rejected)
 
+
+@warmer
+def _warm() -> None:
+    g = np.zeros((9, 9), np.uint8)
+    g[4, 4] = 200
+    window_stats(g, np.zeros((1, 2), np.int64), 9)
+    window_stats(g, np.zeros((1, 2), np.int64), 9, np.array([[1, 1, 7, 7]]))
 
 __all__ = ["CORE", "SMALL_HALF_PX", "detect_spots_windowed", "window_stats"]

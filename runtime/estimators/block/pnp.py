@@ -37,7 +37,7 @@ import numpy as np
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex
 from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
-from ceilkit.runtime.jit import njit
+from ceilkit.runtime.jit import njit, warmer
 
 GN_ITERATIONS = 4
 GN_STEP_EPS = 1e-6          # converged when the next step (m, rad) is below this
@@ -423,3 +423,14 @@ def six_dof_check(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.n
     if abs(tilt - math.pi / 2) > VERTICAL_RAD:        # swing is pan's twin when looking up
         out["pnp6_swing_deg"] = math.degrees(wrap_pi(swing6 - swing))
     return out
+
+
+@warmer
+def _warm() -> None:
+    R = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]).T.copy()
+    square = np.array([[1.0, -0.2], [1.4, -0.2], [1.4, 0.2], [1.0, 0.2]])
+    edge = np.zeros((8, 2))
+    side = np.repeat(np.arange(4), 2)
+    r, J, JtJ = np.empty(8), np.empty((8, 3)), np.empty((3, 3))
+    _gauss_newton(R, np.zeros(3), 3.0, np.array([1.2, 0.0, 0.0]), square, edge, side,
+                  np.ones(8), r, J, JtJ)

@@ -37,7 +37,7 @@ from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.lines import refine_undistorted
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.rotations import rot_z
-from ceilkit.runtime.jit import njit
+from ceilkit.runtime.jit import njit, warmer
 
 REACH_M = 8.0
 """Ceiling points further than this from the camera are not searched (tiny, blurred)."""
@@ -234,6 +234,12 @@ def _chords_of_runs(px, vis, chord_px, min_chord_px):  # pragma: no cover - comp
             n += 1
             pu, pv = u, v
     return chords, line, n
+
+
+@warmer
+def _warm() -> None:
+    px = np.stack([np.linspace(0.0, 100.0, 5), np.zeros(5)], axis=1)[None]
+    _cut_chords(px, np.ones((1, 5), bool))
 
 
 __all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "LineMeasurement", "LineTracker", "REACH_M"]

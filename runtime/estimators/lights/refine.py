@@ -24,7 +24,7 @@ import numpy as np
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.rays import project_poses
 from ceilkit.runtime.geometry.rotations import wrap_pi
-from ceilkit.runtime.jit import njit
+from ceilkit.runtime.jit import njit, warmer
 
 
 def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
@@ -238,6 +238,12 @@ def _inv3(N: np.ndarray) -> np.ndarray | None:
         return None
     D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
     return np.array([[A, B, C], [B, D, E], [C, E, F]]) * (1.0 / det)
+
+
+@warmer
+def _warm() -> None:
+    q = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    refine_pose_ceiling(q, np.tile(np.eye(2) * 300.0, (3, 1, 1)), q, 0.0, 0.0, 0.0)
 
 
 __all__ = ["refine_pose", "refine_pose_ceiling"]

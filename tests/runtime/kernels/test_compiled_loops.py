@@ -362,3 +362,24 @@ def test_solve3_is_gesv_and_reports_a_singular_matrix():
         assert pnp._solve3(A, b, x)
         np.testing.assert_allclose(x, np.linalg.solve(A, b), rtol=1e-9, atol=1e-12)
     assert not pnp._solve3(np.zeros((3, 3)), np.ones(3), x)
+
+
+# ----------------------------------------------------------------------------- warm-up
+
+def test_warm_up_makes_every_loop_before_the_first_frame():
+    """Every compiled loop of the per-frame path is made by :func:`jit.warm_up` (each
+    module's warmer covers its loops), so no frame pays numba's start or a compile."""
+    import numba
+
+    from ceilkit.runtime import jit
+    from ceilkit.runtime.estimators.lights import refine
+
+    jit.warm_up()
+    loops = [(m.__name__, name) for m in (windows, quads, edges, track, pnp, refine)
+             for name, obj in vars(m).items()
+             if isinstance(obj, numba.core.registry.CPUDispatcher)
+             and obj.py_func.__module__ == m.__name__]
+    assert len(loops) >= 15
+    cold = [f"{mod}.{name}" for mod, name in loops
+            if not getattr(__import__(mod, fromlist=[name]), name).signatures]
+    assert not cold, cold
