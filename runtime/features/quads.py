@@ -283,34 +283,15 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     ``approxPolyDP``'s vertices ``poly`` ``(4, 2)`` are contour points within its
     tolerance of the outline, often pixels off the true corners; here each side's line
     is fitted to the contour points along its middle (:data:`SIDE_FIT_KEEP` of the run
-    between two vertices; ``cv2.fitLine``'s total least squares), moved half a pixel
+    between two vertices; total least squares, :func:`_side_lines`), moved half a pixel
     outwards (the contour runs through the region's boundary pixels, the edge lies
     between them and the background: ``outwards_px``) and met with its neighbours'.
     Falls back to ``poly`` when a side has too few points."""
-    poly = poly.astype(float)
-    m = contour.shape[0]
-    # each vertex's first place on the contour (one comparison of all four)
-    hit = (contour[None, :, 0] == poly[:, 0, None]) & (contour[None, :, 1] == poly[:, 1, None])
-    i0 = np.argmax(hit, axis=1)
-    if not hit[np.arange(4), i0].all():
+    poly = np.ascontiguousarray(poly, np.float64)
+    ok, lines = _side_lines(np.ascontiguousarray(contour, np.float64), poly, SIDE_FIT_KEEP,
+                            float(outwards_px))
+    if not ok:
         return poly
-    run = (i0[_NEXT] - i0) % m
-    first = [round(r * (0.5 - SIDE_FIT_KEEP / 2)) for r in run.tolist()]
-    count = [round(r * (0.5 + SIDE_FIT_KEEP / 2)) - f for r, f in zip(run.tolist(), first,
-                                                                    strict=True)]
-    if min(count) < 3:
-        return poly
-    ring = np.concatenate([contour, contour]).astype(np.float32)   # a run may wrap
-    cx, cy = (float(v) * 0.25 for v in poly.sum(axis=0))
-    lines = np.empty((4, 3))
-    starts = [(i + f) % m for i, f in zip(i0.tolist(), first, strict=True)]
-    for k, (start, n) in enumerate(zip(starts, count, strict=True)):
-        vx, vy, mx, my = (float(v) for v in cv2.fitLine(ring[start:start + n], cv2.DIST_L2,
-                                                         0, 0.01, 0.01).ravel())
-        a, b = -vy, vx                                        # normal to the side's run
-        if a * (mx - cx) + b * (my - cy) < 0:                 # outwards
-            a, b = -a, -b
-        lines[k] = a, b, -(a * mx + b * my) - outwards_px
     out = line_corners(lines)
     if out is None:
         return poly
@@ -318,6 +299,54 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     if (moved * moved).sum(axis=1).max() > 0.0625 * float((d * d).sum(axis=1).min()):
         return poly                                  # a corner moved over 1/4 of a side
     return out
+
+
+@njit
+def _side_lines(contour, poly, keep, outwards_px):  # pragma: no cover - compiled
+    """``(ok, lines (4, 3))`` of :func:`_side_fit_corners`: each vertex's first place on
+    the contour (not found: not ok), the middle ``keep`` of each run between two
+    vertices (fewer than 3 points: not ok) fitted by total least squares (the major
+    axis, as ``cv2.fitLine``'s L2), its normal turned outwards (from the vertices'
+    centroid) and the line moved ``outwards_px`` along it."""
+    m = contour.shape[0]
+    lines = np.zeros((4, 3))
+    i0 = np.empty(4, np.int64)
+    for k in range(4):
+        i0[k] = -1
+        for i in range(m):
+            if contour[i, 0] == poly[k, 0] and contour[i, 1] == poly[k, 1]:
+                i0[k] = i
+                break
+        if i0[k] < 0:
+            return False, lines
+    cx = 0.25 * (poly[0, 0] + poly[1, 0] + poly[2, 0] + poly[3, 0])
+    cy = 0.25 * (poly[0, 1] + poly[1, 1] + poly[2, 1] + poly[3, 1])
+    for k in range(4):
+        run = (i0[(k + 1) % 4] - i0[k]) % m
+        first = int(np.rint(run * (0.5 - keep / 2)))
+        count = int(np.rint(run * (0.5 + keep / 2))) - first
+        if count < 3:
+            return False, lines
+        start = (i0[k] + first) % m
+        mx = my = 0.0
+        for j in range(count):
+            mx += contour[(start + j) % m, 0]
+            my += contour[(start + j) % m, 1]
+        mx /= count
+        my /= count
+        sxx = syy = sxy = 0.0
+        for j in range(count):
+            dx = contour[(start + j) % m, 0] - mx
+            dy = contour[(start + j) % m, 1] - my
+            sxx += dx * dx
+            syy += dy * dy
+            sxy += dx * dy
+        t = 0.5 * math.atan2(2.0 * sxy, sxx - syy)          # the run's direction
+        a, b = -math.sin(t), math.cos(t)                   # normal to it
+        if a * (mx - cx) + b * (my - cy) < 0:              # outwards
+            a, b = -a, -b
+        lines[k, 0], lines[k, 1], lines[k, 2] = a, b, -(a * mx + b * my) - outwards_px
+    return True, lines
 
 
 def signed_area(pts: np.ndarray) -> float:
@@ -437,3 +466,4 @@ def _warm() -> None:
     g = np.zeros((40, 40), np.uint8)
     g[10:30, 10:30] = 200
     edge_points(g, np.array([[10.0, 10.0], [30.0, 10.0], [30.0, 30.0], [10.0, 30.0]]), 4)
+    detect_quads(g, False, 100.0)                    # a contour's sides (_side_lines)

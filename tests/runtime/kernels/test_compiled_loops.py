@@ -386,3 +386,39 @@ def test_warm_up_makes_every_loop_before_the_first_frame():
         cold += [f"{m.__name__}.{name}" for name, obj in loops.items()
                  if name not in inner and not obj.signatures]
     assert n >= 15 and not cold, cold
+
+
+def side_fit_reference(contour, poly, outwards_px=0.5):
+    """Each side's middle fitted by cv2.fitLine (L2), moved outwards, met."""
+    m = len(contour)
+    i0 = [int(np.flatnonzero((contour == v).all(axis=1))[0]) for v in poly]
+    cx, cy = poly.mean(axis=0)
+    ring = np.concatenate([contour, contour]).astype(np.float32)
+    lines = []
+    for k in range(4):
+        run = (i0[(k + 1) % 4] - i0[k]) % m
+        first = round(run * (0.5 - quads.SIDE_FIT_KEEP / 2))
+        n = round(run * (0.5 + quads.SIDE_FIT_KEEP / 2)) - first
+        start = (i0[k] + first) % m
+        vx, vy, mx, my = cv2.fitLine(ring[start:start + n], cv2.DIST_L2, 0, 0.01, 0.01).ravel()
+        a, b = -vy, vx
+        if a * (mx - cx) + b * (my - cy) < 0:
+            a, b = -a, -b
+        lines.append([a, b, -(a * mx + b * my) - outwards_px])
+    return quads.line_corners(np.array(lines, float))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_side_fit_corners_equal_opencvs_line_fit(seed):
+    rng = np.random.default_rng(seed)
+    img = np.zeros((200, 260), np.uint8)
+    quad = np.array([[60, 40], [200, 55], [190, 160], [50, 150]], float) + rng.normal(0, 4, (4, 2))
+    cv2.fillConvexPoly(img, np.rint(quad * 16).astype(np.int32), 255, cv2.LINE_8, 4)
+    (found,) = quads.detect_quads(img, False, 500.0, sharpen=False)
+    got = quads._side_fit_corners(found.contour_px, found.corners_px)
+    want = side_fit_reference(found.contour_px, found.corners_px)
+    np.testing.assert_allclose(got, want, atol=1e-3)      # OpenCV's fit is float32
+    assert not np.array_equal(got, found.corners_px)
+    # a vertex not on the contour: the vertices as they are
+    off = found.corners_px + [[0.5, 0.0], [0, 0], [0, 0], [0, 0]]
+    np.testing.assert_array_equal(quads._side_fit_corners(found.contour_px, off), off)
