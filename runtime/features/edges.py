@@ -155,17 +155,18 @@ def classify(prof: np.ndarray, offs: np.ndarray, min_step: float, min_depth: flo
     n = prof.shape[0]
     if n == 0:
         return np.full(n, np.nan), (np.full(n, np.nan) if shift else None)
-    il, ir, ii = _part_indices(offs)
-    pol, out = _classify(np.ascontiguousarray(prof, np.float64), np.asarray(offs, np.float64),
-                         il, ir, ii, float(min_step), float(min_depth), PROFILE_STEP_PX)
+    il, ir, ii = part_indices(offs)
+    pol, out = classify_rows(np.ascontiguousarray(prof, np.float64),
+                             np.asarray(offs, np.float64), il, ir, ii, float(min_step),
+                             float(min_depth), PROFILE_STEP_PX)
     return pol, (out if shift else None)
 
 
 @njit
-def _classify(prof, offs, il, ir, ii, min_step, min_depth, step_px
+def classify_rows(prof, offs, il, ir, ii, min_step, min_depth, step_px
               ):  # pragma: no cover - compiled
     """:func:`classify` of ``prof (N, O)``, the parts' indices from
-    :func:`_part_indices`: ``(polarity (N,), shift (N,))``."""
+    :func:`part_indices`: ``(polarity (N,), shift (N,))``."""
     n = prof.shape[0]
     m = ii.size
     pol = np.full(n, np.nan)
@@ -213,7 +214,7 @@ def _vertex(y0, y1, y2):  # pragma: no cover - compiled
     return 0.0
 
 
-def _part_indices(offs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def part_indices(offs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`profile_parts`' left, right and inner parts as index arrays (int64)."""
     return _part_indices_of(offs.tobytes())
 
@@ -271,7 +272,7 @@ def locate_steps(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner
     outer samples at either end), the crossing nearest the derivative's peak (less
     locked to the pixel grid than a parabola), within the inner part."""
     out = np.full(prof.shape[:2], np.nan)
-    _locate(np.ascontiguousarray(prof, np.float64), np.asarray(polarity, np.float64),
+    locate_rows(np.ascontiguousarray(prof, np.float64), np.asarray(polarity, np.float64),
             np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
             out)
     return out
@@ -296,7 +297,7 @@ def locate_thin(prof: np.ndarray, offs: np.ndarray, inner: slice) -> np.ndarray:
     (over its sides), within the inner part; not found where the extremum is at the
     inner part's end."""
     out = np.full(prof.shape[:2], np.nan)
-    _locate(np.ascontiguousarray(prof, np.float64), np.zeros(prof.shape[0]),
+    locate_rows(np.ascontiguousarray(prof, np.float64), np.zeros(prof.shape[0]),
             np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
             out)
     return out
@@ -308,14 +309,14 @@ def locate(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner: slic
     of segments of known kind ``polarity (S,)`` (``+-1`` steps, ``0`` thin lines, NaN
     not located): :func:`locate_steps` and :func:`locate_thin`."""
     out = np.full(prof.shape[:2], np.nan)
-    _locate(np.ascontiguousarray(prof, np.float64), np.asarray(polarity, np.float64),
+    locate_rows(np.ascontiguousarray(prof, np.float64), np.asarray(polarity, np.float64),
             np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
             out)
     return out
 
 
 @njit
-def _locate(prof, pol, offs, i0, i1, step_px, out):  # pragma: no cover - compiled
+def locate_rows(prof, pol, offs, i0, i1, step_px, out):  # pragma: no cover - compiled
     """:func:`locate` into ``out (S, A)`` (left NaN where not located): the inner part
     is ``offs[i0:i1]``."""
     n_s, n_a, n_o = prof.shape
@@ -431,7 +432,7 @@ def _fit_rows(x, y, w, line, res, cnt, ssr):  # pragma: no cover - compiled
 
 
 @njit
-def _fit_robust(x, y, good, floor, sigmas, line, res, cnt, ssr
+def fit_robust_rows(x, y, good, floor, sigmas, line, res, cnt, ssr
                 ):  # pragma: no cover - compiled
     """:func:`fit_lines_robust` row by row; ``good`` becomes the points kept."""
     for r in range(x.shape[0]):
@@ -455,7 +456,7 @@ def fit_lines_robust(x: np.ndarray, y: np.ndarray, good: np.ndarray, f_px: float
     x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
     good = np.array(good, np.bool_, order="C")
     line, res, cnt, ssr = _empty_fits(x.shape)
-    _fit_robust(x, y, good, OUTLIER_FLOOR_PX / f_px, OUTLIER_SIGMAS, line, res, cnt, ssr)
+    fit_robust_rows(x, y, good, OUTLIER_FLOOR_PX / f_px, OUTLIER_SIGMAS, line, res, cnt, ssr)
     return line, res, cnt, ssr, good
 
 
@@ -470,6 +471,7 @@ def _warm() -> None:
     fit_lines_robust(x, x, np.ones(x.shape, bool), 500.0)
 
 
-__all__ = ["classify", "directions", "edge_grid", "fit_lines", "fit_lines_robust", "locate",
+__all__ = ["classify", "classify_rows", "directions", "edge_grid", "fit_lines",
+           "fit_lines_robust", "fit_robust_rows", "locate", "locate_rows", "part_indices",
            "locate_steps", "locate_thin", "profile_offsets", "profile_parts", "profiles_along",
            "profiles_at", "sample_profiles", "thin_sign", "vertex"]

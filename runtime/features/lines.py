@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from types import MappingProxyType
 
@@ -27,11 +28,16 @@ import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.features.edges import (
+    OUTLIER_FLOOR_PX,
+    OUTLIER_SIGMAS,
+    PROFILE_STEP_PX,
     classify,
+    classify_rows,
     directions,
     edge_grid,
-    fit_lines_robust,
-    locate,
+    fit_robust_rows,
+    locate_rows,
+    part_indices,
     profile_offsets,
     profiles_along,
     profiles_at,
@@ -40,6 +46,7 @@ from ceilkit.runtime.features.edges import (
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.working import decimate, undecimate
 from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.jit import njit
 
 MIN_FIT_POINTS = 4   # located edge points a segment needs to be refitted
 
@@ -344,21 +351,17 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     offs, t, inner = edge_grid(n_along, half_width_px)
     d_all, nrm_all = directions(s)
     prof = profiles_along(gray, s, d_all, nrm_all, offs, t)                    # (N, A, O)
-    pol, _ = classify(prof.sum(axis=1) * (1.0 / n_along), offs, min_step, min_depth,
-                      shift=False)
-    # the steps, then the thin lines (each segment is fitted on its own: order is free)
-    sel = np.concatenate([np.flatnonzero(np.abs(pol) == 1.0), np.flatnonzero(pol == 0.0)])
-    loc = locate(prof[sel], pol[sel], offs, inner)  # edge offsets along the left normal, px
-    ends, line, rms_sel, ok = _fit_located(camera, s, sel, t, loc, d_all, nrm_all)
-    idx = sel[ok]
-    ln = line[ok]
-    e = ends[idx].reshape(-1, 2, 2)                   # (M, endpoint, xy)
-    # keep the orientation of the pixel segment: its left side stays positive
-    flip = ((e[:, 1, 0] - e[:, 0, 0]) * ln[:, 1] - (e[:, 1, 1] - e[:, 0, 1]) * ln[:, 0] < 0)
-    ln[flip] *= -1
-    dist = e[:, :, 0] * ln[:, 0, None] + e[:, :, 1] * ln[:, 1, None] + ln[:, 2, None]
-    ends[idx] = (e - dist[:, :, None] * ln[:, None, :2]).reshape(-1, 4)
-    rms[idx] = rms_sel[ok]
+    il, ir, ii = part_indices(offs)
+    # each segment's kind from its mean profile, then its edge on every profile (steps
+    # and thin lines; a segment of unclear kind is not located) as pixels
+    pol, pts, good = _kind_and_points(prof, s, d_all, nrm_all, offs, t, il, ir, ii,
+                                      inner.start + 1, inner.stop + 1, float(min_step),
+                                      float(min_depth), PROFILE_STEP_PX)
+    # the endpoints and the located points through the lens in one call
+    xy = camera.unproject_fast(np.concatenate([s.reshape(-1, 2), pts[good]]))
+    ends = xy[:2 * n].reshape(n, 4)
+    _fit_segments(xy[2 * n:], good, ends, rms, 0.5 * (camera.fx + camera.fy),
+                  OUTLIER_FLOOR_PX, OUTLIER_SIGMAS, MIN_FIT_POINTS)
     unclear = np.flatnonzero(np.isnan(pol))
     if unclear.size and retry_half_width_px is not None \
             and retry_half_width_px > half_width_px:
@@ -369,33 +372,70 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     return ends, pol, rms
 
 
-def _fit_located(camera: CameraModel, s: np.ndarray, sel: np.ndarray, t: np.ndarray,
-                 loc: np.ndarray, d_all: np.ndarray, nrm_all: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The lines through the located edge points of segments ``s[sel]`` (offsets ``loc
-    (S, A)`` at the fractions ``t (A,)``, NaN: not located), undistorted with all the
-    endpoints in one call (:meth:`CameraModel.unproject_fast`). Returns ``(ends (N, 4)
-    undistorted endpoints, lines (S, 3), rms_px (S,), fitted (S,) with at least
-    MIN_FIT_POINTS points)``."""
-    n = s.shape[0]
-    good = np.isfinite(loc)
-    # (points not located stay at 0: they have no weight in the fit)
-    n_good = int(np.count_nonzero(good))
-    px = np.empty((2 * n + n_good, 2))
-    px[:2 * n] = s.reshape(-1, 2)
-    pts = (s[sel, :2].T[:, :, None] + t * d_all[sel].T[:, :, None]
-           + loc * nrm_all[sel].T[:, :, None])                                  # (2, S, A)
-    px[2 * n:] = pts[:, good].T
-    xy_all = camera.unproject_fast(px)
-    ends = xy_all[:2 * n].reshape(n, 4)
-    x = np.zeros(good.shape)
-    y = np.zeros(good.shape)
-    x[good] = xy_all[2 * n:, 0]
-    y[good] = xy_all[2 * n:, 1]
-    f = 0.5 * (camera.fx + camera.fy)
-    line, _, cnt, ssr, _ = fit_lines_robust(x, y, good, f)
-    ok = cnt >= MIN_FIT_POINTS
-    return ends, line, f * np.sqrt(ssr / np.maximum(cnt, 1)), ok
+@njit
+def _kind_and_points(prof, s, d, nrm, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
+                     step_px):  # pragma: no cover - compiled
+    """``(polarity (N,), points (N, A, 2) px, located (N, A))``: each segment's kind
+    from its mean profile (:func:`~.edges.classify`) and, for a step or a thin line, its
+    edge on the profile at each place ``t`` along it (:func:`~.edges.locate`) as a
+    pixel ``p1 + t d + offset nrm``."""
+    n, n_a, n_o = prof.shape
+    mean = np.zeros((n, n_o))
+    for r in range(n):
+        for a in range(n_a):
+            for o in range(n_o):
+                mean[r, o] += prof[r, a, o]
+        for o in range(n_o):
+            mean[r, o] *= 1.0 / n_a
+    pol, _ = classify_rows(mean, offs, il, ir, ii, min_step, min_depth, step_px)
+    loc = np.full((n, n_a), np.nan)
+    locate_rows(prof, pol, offs, i0, i1, step_px, loc)
+    pts = np.zeros((n, n_a, 2))
+    good = np.zeros((n, n_a), np.bool_)
+    for r in range(n):
+        for a in range(n_a):
+            if math.isfinite(loc[r, a]):
+                good[r, a] = True
+                pts[r, a, 0] = s[r, 0] + t[a] * d[r, 0] + loc[r, a] * nrm[r, 0]
+                pts[r, a, 1] = s[r, 1] + t[a] * d[r, 1] + loc[r, a] * nrm[r, 1]
+    return pol, pts, good
+
+
+@njit
+def _fit_segments(xy, good, ends, rms, f_px, floor_px, sigmas, min_points
+                  ):  # pragma: no cover - compiled
+    """Each segment's line through its located points (undistorted, ``xy (K, 2)`` in
+    the order of ``good (N, A)``; :func:`~.edges.fit_lines_robust`): with at least
+    ``min_points`` points, its undistorted endpoints ``ends (N, 4)`` are projected on
+    the line (its left side, as the pixel segment's, kept positive) and ``rms (N,)``
+    set (pixels of the focal length ``f_px``); other rows are left as they are."""
+    n, n_a = good.shape
+    x = np.zeros((n, n_a))
+    y = np.zeros((n, n_a))
+    k = 0
+    for r in range(n):
+        for a in range(n_a):
+            if good[r, a]:
+                x[r, a], y[r, a] = xy[k, 0], xy[k, 1]
+                k += 1
+    kept = good.copy()
+    line = np.empty((n, 3))
+    res = np.empty((n, n_a))
+    cnt = np.empty(n)
+    ssr = np.empty(n)
+    fit_robust_rows(x, y, kept, floor_px / f_px, sigmas, line, res, cnt, ssr)
+    for r in range(n):
+        if cnt[r] < min_points:
+            continue
+        a, b, c = line[r, 0], line[r, 1], line[r, 2]
+        # keep the orientation of the pixel segment: its left side stays positive
+        if (ends[r, 2] - ends[r, 0]) * b - (ends[r, 3] - ends[r, 1]) * a < 0:
+            a, b, c = -a, -b, -c
+        for e in range(2):
+            dist = ends[r, 2 * e] * a + ends[r, 2 * e + 1] * b + c
+            ends[r, 2 * e] -= dist * a
+            ends[r, 2 * e + 1] -= dist * b
+        rms[r] = f_px * math.sqrt(ssr[r] / max(cnt[r], 1.0))
 
 
 def shift_segments(segs_px: np.ndarray, shift_px: np.ndarray) -> np.ndarray:
