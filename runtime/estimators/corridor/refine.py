@@ -30,6 +30,7 @@ from ceilkit.runtime.estimators.corridor.frame import FrameLines
 from ceilkit.runtime.estimators.corridor.geometry import vanishing_directions
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.jit import njit, warmer
 
 STEP_DONE = (1e-5, 2e-4)
 """A step below this in ``(psi rad, c_y m)`` converges: the next is far smaller."""
@@ -180,23 +181,11 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
     ``(psi, c_y)`` from the given start; stops on a step below :data:`STEP_DONE` or
     singular normal equations. The residuals and weights of the last step describe the
     solution (its step was below the threshold, the one after it far smaller)."""
-    psi, cy = psi_rad, camera_y_m
-    h00 = h01 = h10 = h11 = wrr = 0.0
-    r = np.zeros(0)
-    for _ in range(max(1, iterations)):
-        A = residuals(psi, cy, gd, setup)                    # (K, 3): J_psi, J_cy, r
-        r = A[:, 2]
-        w = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))  # Huber, k = 1 px
-        # the weighted normal equations and sum of w r^2 in one product
-        (h00, h01, g0), (h10, h11, g1), (_, _, wrr) = ((A * w[:, None]).T @ A).tolist()
-        det = h00 * h11 - h01 * h10
-        if not abs(det) > 1e-300:
-            break
-        d_psi = -(h11 * g0 - h01 * g1) / det
-        d_cy = -(h00 * g1 - h10 * g0) / det
-        psi, cy = psi + d_psi, cy + d_cy
-        if abs(d_psi) < STEP_DONE[0] and abs(d_cy) < STEP_DONE[1]:
-            break
+    r = np.empty(gd.e0.size + gd.p0.size)
+    psi, cy, h00, h01, h10, h11, wrr = _huber_steps(
+        float(psi_rad), float(camera_y_m), gd.y, gd.e0, gd.e1, gd.ez, gd.p0, gd.p1, gd.mx_b,
+        gd.my_b, gd.scale_b, np.array(setup.R_rows), setup.ceiling_above_cam_m, setup.f_px,
+        max(1, iterations), STEP_DONE[0], STEP_DONE[1], r)
     dof = max(1, r.size - 2)
     sigma2 = wrr / dof
     det = h00 * h11 - h01 * h10
@@ -208,6 +197,66 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
         cov = ((np.inf, nan), (nan, np.inf))        # (as T diag(inf, inf) T^T: inf * 0)
     rms_px = math.sqrt(float(r @ r) / r.size) if r.size else float("nan")
     return PanOffsetFit(psi, cy, cov, rms_px, r)
+
+
+@njit
+def _huber_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, R, h, f, iterations,
+                 done_psi, done_cy, r):  # pragma: no cover - compiled
+    """The steps of :func:`gauss_newton` (the residuals of :func:`residuals`, written
+    out): ``(psi, c_y, h00, h01, h10, h11, Σ w r²)`` with the normal matrix and ``r``
+    (the residuals, px) of the last step's start."""
+    na, kb = e0.size, p0.size
+    m2x, m2y = R[2, 0], R[2, 1]
+    h00 = h01 = h10 = h11 = wrr = 0.0
+    for _ in range(iterations):
+        c, s = math.cos(psi), math.sin(psi)
+        va0, va1, va2 = (c * R[0, 0] - s * R[1, 0], c * R[0, 1] - s * R[1, 1],
+                         c * R[0, 2] - s * R[1, 2])
+        vb0, vb1, vb2 = (s * R[0, 0] + c * R[1, 0], s * R[0, 1] + c * R[1, 1],
+                         s * R[0, 2] + c * R[1, 2])
+        h00 = h01 = h11 = g0 = g1 = wrr = 0.0
+        for i in range(na + kb):
+            if i < na:
+                dy = y[i] - cy
+                l0 = h * vb0 - dy * m2x
+                l1 = h * vb1 - dy * m2y
+                q = 1.0 / math.hypot(l0, l1)
+                u = (h * (s * e0[i] + c * e1[i]) - dy * ez[i]) * q
+                dn_psi = h * (l0 * va0 + l1 * va1) * q
+                dn_cy = (l0 * m2x + l1 * m2y) * q
+                fq = f * q
+                j0 = (h * (c * e0[i] - s * e1[i]) - u * dn_psi) * fq
+                j1 = (ez[i] - u * dn_cy) * fq
+                ri = u * f
+            else:
+                b = i - na
+                bx = vb0 - vb2 * mx[b]
+                by = vb1 - vb2 * my[b]
+                den = math.hypot(bx, by)
+                dden = (bx * (va0 - va2 * mx[b]) + by * (va1 - va2 * my[b])) / den
+                num = s * p0[b] + c * p1[b]
+                scale = scale_b[b] / den
+                j0 = ((c * p0[b] - s * p1[b]) - num * dden / den) * scale
+                j1 = 0.0
+                ri = num * scale
+            r[i] = ri
+            w = min(1.0, 1.0 / max(abs(ri), 1e-9))            # Huber, k = 1 px
+            h00 += w * j0 * j0
+            h01 += w * j0 * j1
+            h11 += w * j1 * j1
+            g0 += w * j0 * ri
+            g1 += w * j1 * ri
+            wrr += w * ri * ri
+        h10 = h01
+        det = h00 * h11 - h01 * h10
+        if not abs(det) > 1e-300:
+            break
+        d_psi = -(h11 * g0 - h01 * g1) / det
+        d_cy = -(h00 * g1 - h10 * g0) / det
+        psi, cy = psi + d_psi, cy + d_cy
+        if abs(d_psi) < done_psi and abs(d_cy) < done_cy:
+            break
+    return psi, cy, h00, h01, h10, h11, wrr
 
 
 def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
@@ -278,3 +327,12 @@ def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup
     cov[1, 2] = cov[2, 1] = p10 - t_vx * p00
     cov[1, 1] = t_vx * t_vx * p00 - t_vx * (p01 + p10) + p11
     return yaw, y_m, cov
+
+
+@warmer
+def _warm() -> None:
+    one, none = np.ones(2), np.zeros(0)
+    _huber_steps(0.0, 0.0, one, one, one, one, none, none, none, none, none, np.eye(3), 2.0,
+                 400.0, 1, 1e-5, 2e-4, np.empty(2))
+    _huber_steps(0.0, 0.0, none, none, none, none, one, one, one, one, one, np.eye(3), 2.0,
+                 400.0, 1, 1e-5, 2e-4, np.empty(2))

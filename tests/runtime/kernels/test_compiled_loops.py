@@ -422,3 +422,45 @@ def test_side_fit_corners_equal_opencvs_line_fit(seed):
     # a vertex not on the contour: the vertices as they are
     off = found.corners_px + [[0.5, 0.0], [0, 0], [0, 0], [0, 0]]
     np.testing.assert_array_equal(quads._side_fit_corners(found.contour_px, off), off)
+
+
+# ----------------------------------------------------------------------------- corridor GN
+
+def test_corridor_gauss_newton_equals_the_residuals_reading(monkeypatch):
+    """The compiled Huber steps against the loop over :func:`refine.residuals` on the
+    packaged corridor rig (its frame's lines from a rendered frame)."""
+    from ceilkit.runtime.estimators.corridor import refine as cref
+    from ceilkit.runtime.estimators.registry import make_estimator
+    from ceilkit.runtime.sim.render import SimOptions, render_frame
+
+    rig = Rig.load(CONFIGS / "corridor" / "rig.yaml")
+    site = Site.load(CONFIGS / "corridor" / "site.yaml")
+    est = make_estimator("corridor", rig, site)
+    seen = []
+    real = cref.gauss_newton
+
+    def spy(psi, cy, gd, setup, iterations):
+        seen.append((psi, cy, gd, setup, iterations))
+        return real(psi, cy, gd, setup, iterations)
+
+    import ceilkit.runtime.estimators.corridor.estimator as cest
+    monkeypatch.setattr(cest, "gauss_newton", spy)
+    for k, pose in enumerate([(3.0, 0.1, 0.02), (6.0, -0.2, -0.05)]):
+        img = render_frame(rig, site, *pose, rng=np.random.default_rng(k),
+                           options=SimOptions(noise_sigma=2.0, blur_px=0.8))
+        assert est.estimate(img, k, None)
+    monkeypatch.undo()
+    assert seen
+    for psi0, cy0, gd, setup, iterations in seen:
+        got = cref.gauss_newton(psi0 + 0.01, cy0 - 0.02, gd, setup, iterations)
+        psi, cy = psi0 + 0.01, cy0 - 0.02
+        for _ in range(max(1, iterations)):
+            A = cref.residuals(psi, cy, gd, setup)
+            w = np.minimum(1.0, 1.0 / np.maximum(np.abs(A[:, 2]), 1e-9))
+            H = (A[:, :2] * w[:, None]).T @ A[:, :2]
+            d = -np.linalg.solve(H, (A[:, :2] * w[:, None]).T @ A[:, 2])
+            psi, cy = psi + d[0], cy + d[1]
+            if abs(d[0]) < cref.STEP_DONE[0] and abs(d[1]) < cref.STEP_DONE[1]:
+                break
+        assert abs(got.psi_rad - psi) < 1e-12 and abs(got.camera_y_m - cy) < 1e-12
+        np.testing.assert_allclose(got.residuals_px, A[:, 2], atol=1e-9)
