@@ -39,7 +39,6 @@ Example::
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -47,6 +46,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.jit import njit, warmer
 
 _REDUCE = 4  # the Niblack statistics are computed on a 1/_REDUCE image
 _CORE = 0.4  # centroid weights count from I_b + _CORE (I_o - I_b)
@@ -307,6 +307,66 @@ def flattened(win: np.ndarray, obj: np.ndarray, contrast: float) -> np.ndarray |
     return win / np.maximum(gain, _FLAT_MIN_GAIN, dtype=np.float32)
 
 
+@njit
+def _plateau(win, obj, tmp, contrast, erode, min_px, max_residual
+             ):  # pragma: no cover - compiled
+    """The plane ``a + b (x - xc) + c (y - yc)`` of a light's plateau in its window, as
+    :func:`~.spots.flattened` fits it: ``(ok, a, b, c, xc, yc)``, ``(x, y)`` column and
+    row in the window. ``obj`` (the spot's pixels, 0/1) is eroded ``erode`` times by a
+    3x3 cross, outside the window 0 (``tmp``: scratch of its shape; ``obj`` is left
+    eroded)."""
+    h, w = obj.shape
+    for _ in range(erode):
+        tmp[:, :] = obj
+        for i in range(h):
+            for j in range(w):
+                if tmp[i, j] and (i == 0 or j == 0 or i == h - 1 or j == w - 1
+                                  or not (tmp[i - 1, j] and tmp[i + 1, j]
+                                          and tmp[i, j - 1] and tmp[i, j + 1])):
+                    obj[i, j] = 0
+    n = sx = sy = 0.0
+    for i in range(h):
+        for j in range(w):
+            if obj[i, j]:
+                n += 1.0
+                sx += j
+                sy += i
+    if n < min_px:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    xc, yc = sx / n, sy / n
+    sxx = sxy = syy = g0 = gx = gy = gg = 0.0
+    for i in range(h):
+        for j in range(w):
+            if obj[i, j]:
+                dx, dy = j - xc, i - yc
+                g = np.float64(win[i, j])
+                sxx += dx * dx
+                sxy += dx * dy
+                syy += dy * dy
+                g0 += g
+                gx += g * dx
+                gy += g * dy
+                gg += g * g
+    det = sxx * syy - sxy * sxy
+    if not (sxx >= n and syy >= n and det > 0):          # spread over >= 1 px each way
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    a = g0 / n
+    b = (syy * gx - sxy * gy) / det
+    c = (sxx * gy - sxy * gx) / det
+    if not a > 0:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    ssr = gg - n * a * a - b * gx - c * gy
+    if ssr > n * (max_residual * contrast) ** 2:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    s2 = max(ssr, 0.0) / max(n - 3.0, 1.0)
+    var = s2 * (sxx + syy) / det
+    slope2 = b * b + c * c
+    if not slope2 > 0:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
+    shrink = slope2 / (slope2 + var)
+    return True, a, b * shrink, c * shrink, xc, yc
+
+
 def _alone(boxes: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: no other box reaches box ``i`` grown as in :func:`_region_stats`."""
     n = boxes.shape[0]
@@ -326,53 +386,6 @@ def _alone(boxes: np.ndarray) -> np.ndarray:
 _BATCH_MAX_SIDE = 64
 
 
-@functools.lru_cache(maxsize=64)
-def _block_monomials(h: int, w: int, origin: int = 0,
-                     dtype: type = np.float64) -> np.ndarray:
-    """``(h w, 6)`` ``(1, x, x², y, y², x y)`` of the pixels of an ``h x w`` block,
-    row-major, ``x, y`` from pixel ``(origin, origin)`` (read-only): ``weights (K, h w)
-    @ this`` are the raw moments ``m00, m10, m20, m01, m02, m11`` of ``K`` blocks in one
-    product. From the block's centre the numbers are small enough for float32
-    (:func:`~.windows.window_stats`: moments to ~1e-6 px)."""
-    y, x = np.divmod(np.arange(h * w, dtype=float), w)
-    x -= origin
-    y -= origin
-    out = np.stack([np.ones_like(x), x, x * x, y, y * y, x * y], axis=1).astype(dtype)
-    out.setflags(write=False)
-    return out
-
-
-@functools.lru_cache(maxsize=64)
-def _block_offsets(h: int, w: int, stride: int) -> np.ndarray:
-    """``(h w,)`` int64 flat offsets of an ``h x w`` block's pixels in a row-major image
-    ``stride`` pixels wide (read-only)."""
-    out = (np.arange(h)[:, None] * stride + np.arange(w)[None, :]).ravel()
-    out.setflags(write=False)
-    return out
-
-
-def _blocks(flat: np.ndarray, width: int, corner: np.ndarray, size: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Rectangles of a row-major image copied into one stack of equal blocks.
-
-    Args:
-        flat: the image ``(H, W)`` raveled, ``(H W,)``; ``width``: ``W``.
-        corner: ``(K, 2)`` int ``(x, y)`` top-left pixel of each rectangle.
-        size: ``(K, 2)`` int ``(w, h)`` of each rectangle (inside the image).
-
-    Returns:
-        ``(blocks (K, h w), inside (K, h w) bool, h, w)``: every block is ``h x w`` (the
-        largest rectangle) from its corner, row-major; ``inside`` marks the rectangle's
-        own pixels (the others, past its right or bottom edge or wrapped around the
-        image, are some other pixels of the image).
-    """
-    w, h = int(size[:, 0].max()), int(size[:, 1].max())
-    inside = ((np.arange(h) < size[:, 1:])[:, :, None]
-              & (np.arange(w) < size[:, :1])[:, None, :]).reshape(-1, h * w)
-    idx = np.add.outer(corner[:, 1] * width + corner[:, 0], _block_offsets(h, w, width))
-    return flat.take(idx, mode="clip"), inside, h, w
-
-
 def _lone_region_stats(grey: np.ndarray, mask: np.ndarray, boxes: np.ndarray,
                        weighted: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_region_stats` of many lone regions at once (``contour=None``: no other
@@ -381,10 +394,8 @@ def _lone_region_stats(grey: np.ndarray, mask: np.ndarray, boxes: np.ndarray,
 
     A lone region's candidate pixels are all inside its own box, so its area and
     object sum come from the centroid window (the box grown by 2 px) like the weights;
-    only the ring needs the grown box (its grey sum, one ``cv2.sumElems`` per region).
-    The centroid windows are copied into one ``(K, h w)`` stack (``h x w`` the largest
-    window, each block from its window's corner, the pixels past the window masked);
-    the raw moments of all windows are one matrix product with :func:`_block_monomials`.
+    only the ring needs the grown box (its grey sum). One compiled loop over the
+    regions (:func:`_lone_stats`).
 
     Args:
         grey: ``(H, W)`` uint8 image; ``mask``: ``(H, W)`` uint8 candidate mask (0/255).
@@ -399,59 +410,105 @@ def _lone_region_stats(grey: np.ndarray, mask: np.ndarray, boxes: np.ndarray,
         function takes a special branch (no candidate pixel, no ring pixel, no positive
         weight): the caller measures those rows with it.
     """
-    H, W = grey.shape
-    b = np.asarray(boxes, np.int64).reshape(-1, 4)
-    size = np.array([W, H])
-    flat_grey = np.ascontiguousarray(grey).ravel()
-    # the grown box [lo, hi) (x, y): its grey sum, one call per region (a stack of
-    # grown boxes costs more: they are four times the windows)
-    grow = np.maximum(2, b[:, 2:] // 2)
-    lo = np.maximum(b[:, :2] - grow, 0)
-    hi = np.minimum(b[:, :2] + b[:, 2:] + grow, size)
-    s_box = np.array([cv2.sumElems(grey[y0:y1, x0:x1])[0] for (x0, y0), (x1, y1)
-                      in zip(lo.tolist(), hi.tolist(), strict=True)])
-    n_box = (hi[:, 0] - lo[:, 0]) * (hi[:, 1] - lo[:, 1])
-    # the centroid window [c0, c0 + size_c): object pixels, grey levels
-    c0 = np.maximum(b[:, :2] - 2, 0)
-    size_c = np.minimum(b[:, :2] + b[:, 2:] + 2, size) - c0
-    g, inside, h, w = _blocks(flat_grey, W, c0, size_c)
-    m, _, _, _ = _blocks(np.ascontiguousarray(mask).ravel(), W, c0, size_c)
-    k = b.shape[0]
-    obj = (m > 0) & inside
-    area = np.count_nonzero(obj, axis=1).astype(float)
-    s_obj = (g * obj).sum(axis=1, dtype=np.int64).astype(float)
-    n_ring = n_box - area
-    ok = (area > 0) & (n_ring > 0)
-    i_o = s_obj * (1.0 / np.where(ok, area, 1.0))    # as cv2.mean: sum * (1 / count)
-    i_b = (s_box - i_o * area) / np.where(ok, n_ring, 1.0)
-    if weighted:
-        # as cv2.subtract(window, base, dtype=CV_32F) then max(., 0): in float32
-        base = (i_b + _CORE * (i_o - i_b)).astype(np.float32)
-        wts = np.subtract(g, base[:, None], dtype=np.float32)
-        for i in np.flatnonzero(ok & (area >= FLAT_MIN_AREA_PX)).tolist():
-            flat = flattened(g[i].reshape(h, w), obj[i].reshape(h, w), i_o[i] - i_b[i])
-            if flat is not None:
-                np.subtract(flat.ravel(), base[i], out=wts[i])
-        np.maximum(wts, 0.0, out=wts)
-        wts *= inside
-    else:
-        wts = obj
-    # the raw moments of every window in its own coordinates (cv2.moments of the window)
-    m00, m10, m20, m01, m02, m11 = (wts.astype(np.float64) @ _block_monomials(h, w)).T
-    ok &= m00 > 0
-    m00 = np.where(ok, m00, 1.0)
-    cx, cy = m10 * (1.0 / m00), m01 * (1.0 / m00)
-    # (u, v) summed in the order of _region_stats: window offset in the grown box first
-    off, lo = (c0 - lo).astype(float), lo.astype(float)   # window in the grown box
-    out = np.empty((k, 8))
-    out[:, 0] = m10 / m00 + off[:, 0] + lo[:, 0]
-    out[:, 1] = m01 / m00 + off[:, 1] + lo[:, 1]
-    out[:, 2], out[:, 3] = i_o, i_b
-    out[:, 4] = (m20 - m10 * cx) / m00
-    out[:, 5] = (m11 - m10 * cy) / m00
-    out[:, 6] = (m02 - m01 * cy) / m00
-    out[:, 7] = area
+    b = np.ascontiguousarray(boxes, np.int64).reshape(-1, 4)
+    out = np.empty((b.shape[0], 8))
+    ok = _lone_stats(np.ascontiguousarray(grey, np.uint8), np.ascontiguousarray(mask, np.uint8),
+                     b, bool(weighted), _CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX, _FLAT_MIN_PX,
+                     _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN, out)
     return out, ok
+
+
+@njit
+def _lone_stats(grey, mask, boxes, weighted, core, flat_min_area, erode, min_px,
+                max_residual, min_gain, out):  # pragma: no cover - compiled
+    """:func:`_lone_region_stats` into ``out (K, 8)``; returns ``ok (K,)``. The weights
+    are float32 as ``cv2.subtract(..., dtype=CV_32F)`` gives them (a flattened
+    plateau's gain too, as :func:`flattened` computes it), their moments summed in
+    float64 (exact for these windows, as ``cv2.moments``)."""
+    H, W = grey.shape
+    k = boxes.shape[0]
+    ok = np.zeros(k, np.bool_)
+    for n in range(k):
+        x0, y0, bw, bh = boxes[n, 0], boxes[n, 1], boxes[n, 2], boxes[n, 3]
+        gx, gy = max(2, bw // 2), max(2, bh // 2)
+        lx, ly = max(x0 - gx, 0), max(y0 - gy, 0)
+        hx, hy = min(x0 + bw + gx, W), min(y0 + bh + gy, H)
+        s_box = 0.0
+        for i in range(ly, hy):
+            for j in range(lx, hx):
+                s_box += grey[i, j]
+        n_box = (hx - lx) * (hy - ly)
+        cx0, cy0 = max(x0 - 2, 0), max(y0 - 2, 0)
+        cx1, cy1 = min(x0 + bw + 2, W), min(y0 + bh + 2, H)
+        win = grey[cy0:cy1, cx0:cx1]
+        obj = (mask[cy0:cy1, cx0:cx1] > 0).astype(np.uint8)
+        area = 0
+        s_obj = 0
+        for i in range(cy1 - cy0):
+            for j in range(cx1 - cx0):
+                if obj[i, j]:
+                    area += 1
+                    s_obj += np.int64(win[i, j])
+        n_ring = n_box - area
+        good = area > 0 and n_ring > 0
+        i_o = s_obj * (1.0 / (area if good else 1.0))      # as cv2.mean: sum * (1 / count)
+        i_b = (s_box - i_o * area) / (n_ring if good else 1.0)
+        m = np.zeros(6)
+        if weighted:
+            base = np.float32(i_b + core * (i_o - i_b))
+            plane = (False, 1.0, 0.0, 0.0, 0.0, 0.0)
+            if good and area >= flat_min_area:
+                tmp = np.empty_like(obj)
+                plane = _plateau(win, obj.copy(), tmp, i_o - i_b, erode, min_px, max_residual)
+            _float32_moments(win, base, plane, min_gain, m)
+        else:
+            for i in range(cy1 - cy0):
+                for j in range(cx1 - cx0):
+                    if obj[i, j]:
+                        _add_moments(m, 1.0, j, i)
+        good = good and m[0] > 0
+        m00 = m[0] if good else 1.0
+        cx, cy = m[1] * (1.0 / m00), m[3] * (1.0 / m00)
+        out[n, 0] = m[1] / m00 + float(cx0 - lx) + float(lx)
+        out[n, 1] = m[3] / m00 + float(cy0 - ly) + float(ly)
+        out[n, 2], out[n, 3] = i_o, i_b
+        out[n, 4] = (m[2] - m[1] * cx) / m00
+        out[n, 5] = (m[5] - m[1] * cy) / m00
+        out[n, 6] = (m[4] - m[3] * cy) / m00
+        out[n, 7] = area
+        ok[n] = good
+    return ok
+
+
+@njit
+def _float32_moments(win, base, plane, min_gain, m):  # pragma: no cover - compiled
+    """Into ``m (6,)``: the raw moments of ``max(I - base, 0)`` in float32 over the
+    window, ``I`` the window or, when ``plane`` holds one, the window divided by the
+    plateau's gain in float32 as :func:`flattened` computes it."""
+    flat, a, b, c, xc, yc = plane
+    bx, cy_, x32, y32 = np.float32(b / a), np.float32(c / a), np.float32(xc), np.float32(yc)
+    one, lo = np.float32(1.0), np.float32(min_gain)
+    for i in range(win.shape[0]):
+        gy = cy_ * (np.float32(i) - y32)
+        for j in range(win.shape[1]):
+            if flat:
+                gain = max((one + bx * (np.float32(j) - x32)) + gy, lo)
+                v = np.float32(np.float32(win[i, j]) / gain) - base
+            else:
+                v = np.float32(win[i, j]) - base
+            if v > 0:
+                _add_moments(m, np.float64(v), j, i)
+
+
+@njit
+def _add_moments(m, w, x, y):  # pragma: no cover - compiled
+    """``m += w (1, x, x², y, y², x y)``."""
+    m[0] += w
+    m[1] += w * x
+    m[2] += w * x * x
+    m[3] += w * y
+    m[4] += w * y * y
+    m[5] += w * x * y
 
 
 def axis_ratios(cov_px: np.ndarray) -> np.ndarray:
@@ -666,6 +723,15 @@ def detect_spots(image: np.ndarray, params: SpotParams | None = None,
     if valid is not None and valid.shape == mask.shape:
         mask = cv2.bitwise_and(mask, valid, dst=mask)
     return regions_to_spots(grey, mask, params, centre_px=centre_px, max_regions=max_regions)
+
+
+@warmer
+def _warm() -> None:
+    g = np.full((12, 12), 40, np.uint8)
+    g[4:8, 4:8] = 200
+    m = np.where(g > 100, 255, 0).astype(np.uint8)
+    for weighted in (True, False):
+        _lone_region_stats(g, m, np.array([[4, 4, 4, 4]]), weighted)
 
 
 __all__ = ["SpotParams", "Spots", "detect_spots", "empty_spots", "niblack_mask",

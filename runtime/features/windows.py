@@ -32,6 +32,7 @@ from .spots import (
     SpotParams,
     Spots,
     _examination_order,
+    _plateau,
     _select_lights,
     empty_spots,
     niblack_mask,
@@ -192,66 +193,6 @@ def _weighted_moments(win, box, base, plane, min_gain, out):  # pragma: no cover
         m02 += r0 * y * y
         m11 += r1 * y
     out[0], out[1], out[2], out[3], out[4], out[5] = m00, m10, m20, m01, m02, m11
-
-
-@njit
-def _plateau(win, obj, tmp, contrast, erode, min_px, max_residual
-             ):  # pragma: no cover - compiled
-    """The plane ``a + b (x - xc) + c (y - yc)`` of a light's plateau in its window, as
-    :func:`~.spots.flattened` fits it: ``(ok, a, b, c, xc, yc)``, ``(x, y)`` column and
-    row in the window. ``obj`` (the spot's pixels, 0/1) is eroded ``erode`` times by a
-    3x3 cross, outside the window 0 (``tmp``: scratch of its shape; ``obj`` is left
-    eroded)."""
-    h, w = obj.shape
-    for _ in range(erode):
-        tmp[:, :] = obj
-        for i in range(h):
-            for j in range(w):
-                if tmp[i, j] and (i == 0 or j == 0 or i == h - 1 or j == w - 1
-                                  or not (tmp[i - 1, j] and tmp[i + 1, j]
-                                          and tmp[i, j - 1] and tmp[i, j + 1])):
-                    obj[i, j] = 0
-    n = sx = sy = 0.0
-    for i in range(h):
-        for j in range(w):
-            if obj[i, j]:
-                n += 1.0
-                sx += j
-                sy += i
-    if n < min_px:
-        return False, 1.0, 0.0, 0.0, 0.0, 0.0
-    xc, yc = sx / n, sy / n
-    sxx = sxy = syy = g0 = gx = gy = gg = 0.0
-    for i in range(h):
-        for j in range(w):
-            if obj[i, j]:
-                dx, dy = j - xc, i - yc
-                g = np.float64(win[i, j])
-                sxx += dx * dx
-                sxy += dx * dy
-                syy += dy * dy
-                g0 += g
-                gx += g * dx
-                gy += g * dy
-                gg += g * g
-    det = sxx * syy - sxy * sxy
-    if not (sxx >= n and syy >= n and det > 0):          # spread over >= 1 px each way
-        return False, 1.0, 0.0, 0.0, 0.0, 0.0
-    a = g0 / n
-    b = (syy * gx - sxy * gy) / det
-    c = (sxx * gy - sxy * gx) / det
-    if not a > 0:
-        return False, 1.0, 0.0, 0.0, 0.0, 0.0
-    ssr = gg - n * a * a - b * gx - c * gy
-    if ssr > n * (max_residual * contrast) ** 2:
-        return False, 1.0, 0.0, 0.0, 0.0, 0.0
-    s2 = max(ssr, 0.0) / max(n - 3.0, 1.0)
-    var = s2 * (sxx + syy) / det
-    slope2 = b * b + c * c
-    if not slope2 > 0:
-        return False, 1.0, 0.0, 0.0, 0.0, 0.0
-    shrink = slope2 / (slope2 + var)
-    return True, a, b * shrink, c * shrink, xc, yc
 
 
 SMALL_HALF_PX = 10

@@ -18,7 +18,7 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.block import pnp
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.estimators.corridor import track
-from ceilkit.runtime.features import edges, quads, windows
+from ceilkit.runtime.features import edges, quads, spots, windows
 from ceilkit.runtime.features.spots import FLAT_MIN_AREA_PX, flattened
 from helpers import CONFIGS
 
@@ -376,7 +376,7 @@ def test_warm_up_makes_every_loop_before_the_first_frame():
 
     jit.warm_up()
     cold, n = [], 0
-    for m in (windows, quads, edges, track, pnp, refine):
+    for m in (windows, spots, quads, edges, track, pnp, refine):
         loops = {name: obj for name, obj in vars(m).items()
                  if isinstance(obj, numba.core.registry.CPUDispatcher)
                  and obj.py_func.__module__ == m.__name__}
@@ -464,3 +464,34 @@ def test_corridor_gauss_newton_equals_the_residuals_reading(monkeypatch):
                 break
         assert abs(got.psi_rad - psi) < 1e-12 and abs(got.camera_y_m - cy) < 1e-12
         np.testing.assert_allclose(got.residuals_px, A[:, 2], atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- spots
+
+@pytest.mark.parametrize("seed", range(3))
+def test_lone_regions_equal_the_one_by_one_reading_with_flattened_plateaus(seed):
+    """Large vignetted lights (their plateaus flattened) measured by the compiled loop
+    are what :func:`_region_stats` (OpenCV, :func:`flattened`) measures."""
+    from ceilkit.runtime.features.spots import (
+        _alone,
+        _lone_region_stats,
+        _region_stats,
+        niblack_mask,
+    )
+
+    rng = np.random.default_rng(seed)
+    img, _ = spots_image(rng, shape=(220, 300), n=6, tilt=0.2)
+    mask = niblack_mask(img, 41, 0.8, 10.0, 0.2)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    boxes = np.array([cv2.boundingRect(c) for c in contours])
+    boxes = boxes[_alone(boxes)]
+    stats, ok = _lone_region_stats(img, mask, boxes, True)
+    assert (stats[ok, 7] >= FLAT_MIN_AREA_PX).any()
+    for row, b, good in zip(stats, boxes, ok, strict=True):
+        if not good:
+            continue
+        u, v, i_o, i_b, cov, area = _region_stats(img, mask, None, *b, True)
+        assert (row[2], row[3], row[7]) == (i_o, i_b, area)
+        np.testing.assert_allclose(row[:2], [u, v], atol=1e-6)
+        np.testing.assert_allclose(row[4:7], [cov[0, 0], cov[0, 1], cov[1, 1]],
+                                   rtol=1e-6, atol=1e-9)
