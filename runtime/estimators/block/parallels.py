@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.jit import njit, warmer
 
 PERIOD_RAD = math.pi / 2      # lines along both axes: heading known modulo a quarter turn
 MIN_LINES = 2
@@ -106,25 +107,81 @@ def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.n
     Returns:
         ``(heading or None, kept)``: ``kept`` is the ``(N,)`` mask of the lines used.
     """
-    phi, w = line_headings(p1_norm, p2_norm, R_vehicle_cam)
-    if weights is not None:
-        w = w * np.asarray(weights, float)
-    ok = np.isfinite(phi) & (w > 1e-12)
-    if np.count_nonzero(ok) < MIN_LINES:
-        return None, np.zeros(len(phi), bool)
-
-    def near(ref: float, gate: float) -> np.ndarray:
-        return ok & (np.abs(_wrapped(phi - ref, period_rad)) < gate)
-
-    ref = hint_yaw_rad if hint_yaw_rad is not None else _mean(phi[ok], w[ok], period_rad)
-    if hint_yaw_rad is None:
-        sel = near(ref, 3 * gate_rad)
-        if np.count_nonzero(sel) >= MIN_LINES:
-            ref = _mean(phi[sel], w[sel], period_rad)
-    kept = near(ref, gate_rad)
-    if np.count_nonzero(kept) < MIN_LINES:
+    p1 = np.ascontiguousarray(p1_norm, np.float64).reshape(-1, 2)
+    p2 = np.ascontiguousarray(p2_norm, np.float64).reshape(-1, 2)
+    wts = (np.ones(p1.shape[0]) if weights is None
+           else np.ascontiguousarray(weights, np.float64).reshape(-1))
+    kept = np.zeros(p1.shape[0], np.bool_)
+    found, yaw, sigma, n = _robust(p1, p2, np.ascontiguousarray(R_vehicle_cam, np.float64),
+                                   wts, 0.0 if hint_yaw_rad is None else float(hint_yaw_rad),
+                                   hint_yaw_rad is not None, float(gate_rad),
+                                   float(period_rad), MIN_LINES, SIGMA_FLOOR_RAD, kept)
+    if not found:
         return None, kept
-    return _near_hint(_weighted(phi[kept], w[kept], period_rad), hint_yaw_rad), kept
+    return _near_hint(ParallelsHeading(wrap_pi(yaw), sigma, period_rad, n), hint_yaw_rad), kept
+
+
+@njit
+def _robust(p1, p2, R, weights, hint, has_hint, gate, period, min_lines, floor, kept
+            ):  # pragma: no cover - compiled
+    """:func:`robust_heading` in one loop: ``(found, yaw, sigma, n)`` and ``kept (N,)``
+    (the lines used) set; each line's heading and weight as :func:`line_headings`."""
+    n_l = p1.shape[0]
+    phi = np.empty(n_l)
+    w = np.empty(n_l)
+    ok = np.zeros(n_l, np.bool_)
+    n_ok = 0
+    for i in range(n_l):
+        l0 = p1[i, 1] - p2[i, 1]
+        l1 = p2[i, 0] - p1[i, 0]
+        l2 = p1[i, 0] * p2[i, 1] - p1[i, 1] * p2[i, 0]
+        m0 = l0 * R[0, 0] + l1 * R[0, 1] + l2 * R[0, 2]
+        m1 = l0 * R[1, 0] + l1 * R[1, 1] + l2 * R[1, 2]
+        m2 = l0 * R[2, 0] + l1 * R[2, 1] + l2 * R[2, 2]
+        inv = 1.0 / max(math.sqrt(m0 * m0 + m1 * m1 + m2 * m2), 1e-300)
+        m0, m1 = m0 * inv, m1 * inv
+        phi[i] = math.atan2(m0, m1)
+        w[i] = (m0 * m0 + m1 * m1) * weights[i]
+        ok[i] = math.isfinite(phi[i]) and w[i] > 1e-12
+        n_ok += ok[i]
+    if n_ok < min_lines:
+        return False, 0.0, 0.0, 0
+    ref = hint if has_hint else _circular_mean(phi, w, ok, period)
+    if not has_hint:
+        sel = ok & (np.abs(_wrap_period(phi - ref, period)) < 3 * gate)
+        if sel.sum() >= min_lines:
+            ref = _circular_mean(phi, w, sel, period)
+    kept[:] = ok & (np.abs(_wrap_period(phi - ref, period)) < gate)
+    n = int(kept.sum())
+    if n < min_lines:
+        return False, 0.0, 0.0, 0
+    yaw = _circular_mean(phi, w, kept, period)
+    res = _wrap_period(phi - yaw, period)
+    sw = swr = 0.0
+    for i in range(n_l):
+        if kept[i]:
+            sw += w[i]
+            swr += w[i] * res[i] * res[i]
+    sigma = max(math.sqrt(swr / sw / max(n - 1, 1)), floor)
+    return True, yaw, sigma, n
+
+
+@njit
+def _circular_mean(phi, w, use, period):  # pragma: no cover - compiled
+    """:func:`_mean` of the lines ``use``."""
+    k = 2 * math.pi / period
+    zr = zi = 0.0
+    for i in range(phi.size):
+        if use[i]:
+            zr += w[i] * math.cos(k * phi[i])
+            zi += w[i] * math.sin(k * phi[i])
+    return math.atan2(zi, zr) / k
+
+
+@njit
+def _wrap_period(a, period):  # pragma: no cover - compiled
+    """:func:`_wrapped` of an array."""
+    return np.remainder(a + period / 2, period) - period / 2
 
 
 def _wrapped(a: np.ndarray, period_rad: float) -> np.ndarray:
@@ -155,3 +212,10 @@ def _weighted(phi: np.ndarray, w: np.ndarray, period_rad: float) -> ParallelsHea
     sigma = max(math.sqrt(float(np.sum(w * res * res)) / float(np.sum(w)) / dof),
                 SIGMA_FLOOR_RAD)
     return ParallelsHeading(wrap_pi(yaw), sigma, period_rad, int(len(phi)))
+
+
+@warmer
+def _warm() -> None:
+    p1 = np.array([[0.0, 0.0], [0.0, 0.1], [0.1, 0.0]])
+    robust_heading(p1, p1 + [0.2, 0.0], np.eye(3), None)
+    robust_heading(p1, p1 + [0.2, 0.0], np.eye(3), 0.0, weights=np.ones(3))

@@ -107,26 +107,36 @@ def closed_form(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.nda
 
 def project_norm(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> np.ndarray:
     """Normalized image points ``(N, 2)`` of ceiling points ``(N, 2)`` in W for a vehicle
-    pose ``(x, y, yaw)`` (no lens distortion)."""
-    x, y, yaw = pose
-    R_wc = rot_z(yaw) @ geo.R_vehicle_cam
-    c = rot_z(yaw) @ geo.t_vehicle_cam + np.array([x, y, 0.0])
-    p = np.hstack([points_w, np.full((len(points_w), 1), geo.ceiling_m)]) - c
-    pc = p @ R_wc                                    # R_cam_world @ p, row-wise
-    return pc[:, :2] / pc[:, 2:3]
+    pose ``(x, y, yaw)`` (no lens distortion); NaN for a point behind the camera."""
+    x, y, yaw = (float(v) for v in pose)
+    return ceiling_norm(geo.R_vehicle_cam, geo.t_vehicle_cam, float(geo.ceiling_m), x, y,
+                        yaw, np.ascontiguousarray(points_w, np.float64).reshape(-1, 2))
 
 
 def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> np.ndarray:
     """Pixels ``(N, 2)`` of ceiling points ``(N, 2)`` in W for a vehicle pose; NaN for
     a point behind the camera."""
-    x, y, yaw = pose
-    R_wc = rot_z(yaw) @ geo.R_vehicle_cam
-    c = rot_z(yaw) @ geo.t_vehicle_cam + np.array([x, y, 0.0])
-    p = np.hstack([points_w, np.full((len(points_w), 1), geo.ceiling_m)]) - c
-    pc = p @ R_wc
-    with np.errstate(divide="ignore", invalid="ignore"):
-        norm = np.where(pc[:, 2:3] > 1e-9, pc[:, :2] / pc[:, 2:3], np.nan)
-    return geo.camera.distort(norm)
+    return geo.camera.distort(project_norm(geo, pose, points_w))
+
+
+@njit
+def ceiling_norm(R, t, ceiling_m, x, y, yaw, points_w):  # pragma: no cover - compiled
+    """Normalized image points ``(N, 2)`` of ceiling points ``points_w (N, 2)`` in W
+    (at height ``ceiling_m``) from the vehicle pose ``(x, y, yaw)`` and the mount ``(R,
+    t)`` (``X_V = R X_C + t``); NaN where a point is not in front of the camera
+    (``z_C <= 1e-9``). The camera coordinates are ``Rᵀ (Rz(-yaw) (p - (x, y)) - t)``."""
+    cz, sz = math.cos(yaw), math.sin(yaw)
+    out = np.empty((points_w.shape[0], 2))
+    for i in range(points_w.shape[0]):
+        dx, dy = points_w[i, 0] - x, points_w[i, 1] - y
+        q0, q1, q2 = dx * cz + dy * sz - t[0], dy * cz - dx * sz - t[1], ceiling_m - t[2]
+        p2 = q0 * R[0, 2] + q1 * R[1, 2] + q2 * R[2, 2]
+        if p2 > 1e-9:
+            out[i, 0] = (q0 * R[0, 0] + q1 * R[1, 0] + q2 * R[2, 0]) / p2
+            out[i, 1] = (q0 * R[0, 1] + q1 * R[1, 1] + q2 * R[2, 1]) / p2
+        else:
+            out[i, 0] = out[i, 1] = np.nan
+    return out
 
 
 def magnification(camera: CameraModel, points_norm: np.ndarray) -> np.ndarray:
@@ -434,3 +444,4 @@ def _warm() -> None:
     r, J, JtJ = np.empty(8), np.empty((8, 3)), np.empty((3, 3))
     _gauss_newton(R, np.zeros(3), 3.0, np.array([1.2, 0.0, 0.0]), square, edge, side,
                   np.ones(8), r, J, JtJ)
+    ceiling_norm(R, np.zeros(3), 3.0, 1.2, 0.0, 0.0, square)

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_norm
 from ceilkit.runtime.geometry.rotations import rot_z
 
 REACH_M = 3.5        # ceiling lines looked for this far from the camera's ceiling point
@@ -131,17 +131,16 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
         return np.zeros((0, 4))
     t = _samples(reach_m)
     n_lines, n_t = len(p0), len(t)
-    pts = np.empty((n_lines, n_t, 3))
-    pts[..., :2] = p0[:, None, :] + t[None, :, None] * d[:, None, :]
-    pts[..., 2] = geo.ceiling_m
-    pc = (pts.reshape(-1, 3) - c) @ R_wc
-    front = pc[:, 2] > 1e-6
+    pts = (p0[:, None, :] + t[None, :, None] * d[:, None, :]).reshape(-1, 2)
+    norm = ceiling_norm(geo.R_vehicle_cam, geo.t_vehicle_cam, float(geo.ceiling_m), x, y,
+                        yaw, pts)
+    front = np.isfinite(norm[:, 0])
     if front.all():
-        px = geo.camera.distort(pc[:, :2] / pc[:, 2:3])
+        px = geo.camera.distort(norm)
     else:
-        px = np.full((len(pc), 2), np.nan)
+        px = np.full((len(norm), 2), np.nan)
         if np.any(front):
-            px[front] = geo.camera.distort(pc[front, :2] / pc[front, 2:3])
+            px[front] = geo.camera.distort(norm[front])
     inside = (front & geo.camera.in_image(px, MARGIN_PX)).reshape(n_lines, n_t)
     px = px.reshape(n_lines, n_t, 2)
     k = max(1, round(CHORD_M / STEP_M))      # samples a chord spans (k STEP_M metres)

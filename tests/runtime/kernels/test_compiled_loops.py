@@ -376,7 +376,10 @@ def test_warm_up_makes_every_loop_before_the_first_frame():
 
     jit.warm_up()
     cold, n = [], 0
-    for m in (windows, spots, quads, edges, track, pnp, refine):
+    from ceilkit.runtime.estimators.block import parallels
+    from ceilkit.runtime.estimators.corridor import refine as cref
+
+    for m in (windows, spots, quads, edges, track, pnp, refine, parallels, cref):
         loops = {name: obj for name, obj in vars(m).items()
                  if isinstance(obj, numba.core.registry.CPUDispatcher)
                  and obj.py_func.__module__ == m.__name__}
@@ -495,3 +498,84 @@ def test_lone_regions_equal_the_one_by_one_reading_with_flattened_plateaus(seed)
         np.testing.assert_allclose(row[:2], [u, v], atol=1e-6)
         np.testing.assert_allclose(row[4:7], [cov[0, 0], cov[0, 1], cov[1, 1]],
                                    rtol=1e-6, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- block view
+
+def test_ceiling_norm_equals_the_matrix_reading():
+    """Ceiling points to normalized image points (the block's predictions): as
+    ``(p - c) @ Rz(yaw) R`` with NaN behind the camera."""
+    from ceilkit.runtime.geometry.rotations import rot_z
+
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    geo = PlanarGeometry.of(rig, Site(3.0))
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        x, y, yaw = rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-np.pi, np.pi)
+        pts = np.column_stack([x, y]) + rng.uniform(-4, 4, (30, 2))
+        rz = rot_z(yaw)
+        c = rz @ geo.t_vehicle_cam + [x, y, 0.0]
+        pc = (np.column_stack([pts, np.full(30, geo.ceiling_m)]) - c) @ (rz @ geo.R_vehicle_cam)
+        want = np.where(pc[:, 2:] > 1e-9, pc[:, :2] / pc[:, 2:], np.nan)
+        got = pnp.project_norm(geo, (x, y, yaw), pts)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+        assert np.isnan(got).any() == np.isnan(want).any()
+
+
+def robust_reference(p1, p2, R, hint, gate, w_extra, period=np.pi / 2):
+    from ceilkit.runtime.estimators.block.parallels import MIN_LINES, SIGMA_FLOOR_RAD
+
+    ln = np.column_stack([p1[:, 1] - p2[:, 1], p2[:, 0] - p1[:, 0],
+                          p1[:, 0] * p2[:, 1] - p1[:, 1] * p2[:, 0]])
+    m = ln @ R.T
+    m /= np.linalg.norm(m, axis=1)[:, None]
+    phi, w = np.arctan2(m[:, 0], m[:, 1]), (m[:, 0] ** 2 + m[:, 1] ** 2) * w_extra
+    ok = np.isfinite(phi) & (w > 1e-12)
+    if ok.sum() < MIN_LINES:
+        return None, np.zeros(len(phi), bool)
+    wrap = lambda a: np.remainder(a + period / 2, period) - period / 2      # noqa: E731
+    k = 2 * np.pi / period
+
+    def mean(sel):
+        z = np.sum(w[sel] * np.exp(1j * k * phi[sel]))
+        return math.atan2(z.imag, z.real) / k
+
+    ref = hint if hint is not None else mean(ok)
+    if hint is None:
+        sel = ok & (np.abs(wrap(phi - ref)) < 3 * gate)
+        if sel.sum() >= MIN_LINES:
+            ref = mean(sel)
+    kept = ok & (np.abs(wrap(phi - ref)) < gate)
+    if kept.sum() < MIN_LINES:
+        return None, kept
+    yaw = mean(kept)
+    res = wrap(phi[kept] - yaw)
+    sigma = max(math.sqrt(np.sum(w[kept] * res ** 2) / w[kept].sum()
+                          / max(kept.sum() - 1, 1)), SIGMA_FLOOR_RAD)
+    return (yaw, sigma), kept
+
+
+@pytest.mark.parametrize("hint", [None, 0.3])
+def test_robust_heading_equals_the_array_reading(hint):
+    from ceilkit.runtime.estimators.block.parallels import robust_heading
+    from ceilkit.runtime.geometry.rotations import wrap_pi
+
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    R = rig.mount.R_vehicle_cam
+    rng = np.random.default_rng(8)
+    for _ in range(30):
+        n = rng.integers(1, 15)
+        p1 = rng.uniform(-0.5, 0.5, (n, 2))
+        ang = 0.3 + rng.choice([0.0, np.pi / 2], n) + rng.normal(0, 0.004, n)
+        ang[rng.random(n) < 0.2] += rng.uniform(0.1, 1.0)             # off the axes
+        p2 = p1 + 0.3 * np.column_stack([np.cos(ang), np.sin(ang)])
+        w_extra = rng.uniform(0.5, 2.0, n)
+        got, kept = robust_heading(p1, p2, R, hint, math.radians(1.0), w_extra)
+        want, want_kept = robust_reference(p1, p2, R, hint, math.radians(1.0), w_extra)
+        np.testing.assert_array_equal(kept, want_kept)
+        assert (got is None) == (want is None)
+        if got is not None:
+            yaw = want[0] if hint is None else hint + math.remainder(want[0] - hint,
+                                                                     np.pi / 2)
+            assert abs(math.remainder(got.yaw_rad - wrap_pi(yaw), 2 * np.pi)) < 1e-12
+            assert abs(got.sigma_rad - want[1]) < 1e-12 and got.n_lines == kept.sum()
