@@ -374,11 +374,11 @@ def test_warm_up_makes_every_loop_before_the_first_frame():
     from ceilkit.runtime import jit
     from ceilkit.runtime.estimators.lights import refine
 
-    jit.warm_up()
-    cold, n = [], 0
     from ceilkit.runtime.estimators.block import parallels
     from ceilkit.runtime.estimators.corridor import refine as cref
 
+    jit.warm_up()
+    cold, n = [], 0
     for m in (windows, spots, quads, edges, track, pnp, refine, parallels, cref):
         loops = {name: obj for name, obj in vars(m).items()
                  if isinstance(obj, numba.core.registry.CPUDispatcher)
