@@ -372,10 +372,9 @@ def test_warm_up_makes_every_loop_before_the_first_frame():
     import numba
 
     from ceilkit.runtime import jit
-    from ceilkit.runtime.estimators.lights import refine
-
     from ceilkit.runtime.estimators.block import parallels
     from ceilkit.runtime.estimators.corridor import refine as cref
+    from ceilkit.runtime.estimators.lights import refine
 
     jit.warm_up()
     cold, n = [], 0
