@@ -316,17 +316,26 @@ def _plateau(win, obj, tmp, contrast, erode, min_px, max_residual
     3x3 cross, outside the window 0 (``tmp``: scratch of its shape; ``obj`` is left
     eroded)."""
     h, w = obj.shape
+    # the spot's box: erosion only removes, and beyond the box every pixel is 0
+    i0, i1, j0, j1 = h, -1, w, -1
+    for i in range(h):
+        for j in range(w):
+            if obj[i, j]:
+                i0, i1 = min(i0, i), max(i1, i)
+                j0, j1 = min(j0, j), max(j1, j)
+    if i1 < 0:
+        return False, 1.0, 0.0, 0.0, 0.0, 0.0
     for _ in range(erode):
-        tmp[:, :] = obj
-        for i in range(h):
-            for j in range(w):
-                if tmp[i, j] and (i == 0 or j == 0 or i == h - 1 or j == w - 1
+        tmp[i0:i1 + 1, j0:j1 + 1] = obj[i0:i1 + 1, j0:j1 + 1]
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                if tmp[i, j] and (i == i0 or j == j0 or i == i1 or j == j1
                                   or not (tmp[i - 1, j] and tmp[i + 1, j]
                                           and tmp[i, j - 1] and tmp[i, j + 1])):
                     obj[i, j] = 0
     n = sx = sy = 0.0
-    for i in range(h):
-        for j in range(w):
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
             if obj[i, j]:
                 n += 1.0
                 sx += j
@@ -335,8 +344,8 @@ def _plateau(win, obj, tmp, contrast, erode, min_px, max_residual
         return False, 1.0, 0.0, 0.0, 0.0, 0.0
     xc, yc = sx / n, sy / n
     sxx = sxy = syy = g0 = gx = gy = gg = 0.0
-    for i in range(h):
-        for j in range(w):
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
             if obj[i, j]:
                 dx, dy = j - xc, i - yc
                 g = np.float64(win[i, j])
