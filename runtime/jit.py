@@ -26,6 +26,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numba
+import numpy as np
 
 F = TypeVar("F", bound=Callable[..., Any])
 _WARMERS: list[Callable[[], object]] = []
@@ -34,6 +35,14 @@ _WARMERS: list[Callable[[], object]] = []
 def njit(fn: F) -> F:
     """``numba.njit`` with the project's settings (see module)."""
     return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+
+
+def arr(a: Any, dtype: Any) -> Any:
+    """``a`` as a loop takes every array: C-contiguous, writable, of ``dtype`` (numba
+    compiles a read-only array, a site's cached corners, a frame from a read-only
+    buffer, as another type: it would compile again on the first such frame). Copies
+    only what is not so already."""
+    return np.require(a, dtype, ("C", "W"))
 
 
 def warmer(fn: F) -> F:
@@ -52,4 +61,4 @@ def warm_up() -> float:
     return time.perf_counter() - t0
 
 
-__all__ = ["njit", "warm_up", "warmer"]
+__all__ = ["arr", "njit", "warm_up", "warmer"]

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 PROFILE_STEP_PX = 0.5      # spacing of profile samples across a segment
 SIDE_PX = 1.0              # a profile's sides: its outer SIDE_PX at either end
@@ -156,8 +156,8 @@ def classify(prof: np.ndarray, offs: np.ndarray, min_step: float, min_depth: flo
     if n == 0:
         return np.full(n, np.nan), (np.full(n, np.nan) if shift else None)
     il, ir, ii = part_indices(offs)
-    pol, out = classify_rows(np.ascontiguousarray(prof, np.float64),
-                             np.asarray(offs, np.float64), il, ir, ii, float(min_step),
+    pol, out = classify_rows(arr(prof, np.float64), arr(offs, np.float64), arr(il, np.int64),
+                             arr(ir, np.int64), arr(ii, np.int64), float(min_step),
                              float(min_depth), PROFILE_STEP_PX)
     return pol, (out if shift else None)
 
@@ -272,9 +272,8 @@ def locate_steps(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner
     outer samples at either end), the crossing nearest the derivative's peak (less
     locked to the pixel grid than a parabola), within the inner part."""
     out = np.full(prof.shape[:2], np.nan)
-    locate_rows(np.ascontiguousarray(prof, np.float64), np.asarray(polarity, np.float64),
-            np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
-            out)
+    locate_rows(arr(prof, np.float64), arr(polarity, np.float64), arr(offs, np.float64),
+                inner.start + 1, inner.stop + 1, PROFILE_STEP_PX, out)
     return out
 
 
@@ -297,9 +296,8 @@ def locate_thin(prof: np.ndarray, offs: np.ndarray, inner: slice) -> np.ndarray:
     (over its sides), within the inner part; not found where the extremum is at the
     inner part's end."""
     out = np.full(prof.shape[:2], np.nan)
-    locate_rows(np.ascontiguousarray(prof, np.float64), np.zeros(prof.shape[0]),
-            np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
-            out)
+    locate_rows(arr(prof, np.float64), np.zeros(prof.shape[0]), arr(offs, np.float64),
+                inner.start + 1, inner.stop + 1, PROFILE_STEP_PX, out)
     return out
 
 
@@ -309,9 +307,8 @@ def locate(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner: slic
     of segments of known kind ``polarity (S,)`` (``+-1`` steps, ``0`` thin lines, NaN
     not located): :func:`locate_steps` and :func:`locate_thin`."""
     out = np.full(prof.shape[:2], np.nan)
-    locate_rows(np.ascontiguousarray(prof, np.float64), np.asarray(polarity, np.float64),
-            np.asarray(offs, np.float64), inner.start + 1, inner.stop + 1, PROFILE_STEP_PX,
-            out)
+    locate_rows(arr(prof, np.float64), arr(polarity, np.float64), arr(offs, np.float64),
+                inner.start + 1, inner.stop + 1, PROFILE_STEP_PX, out)
     return out
 
 
@@ -380,8 +377,7 @@ def fit_lines(x: np.ndarray, y: np.ndarray, w: np.ndarray
     with ``w (N, A)`` True: ``(lines, res, n, ssr)``, the lines ``(N, 3)``
     (``|(a, b)| = 1``), the points' signed residuals ``(N, A)``, how many points
     ``(N,)`` (float) and the sum of their squared residuals ``(N,)``."""
-    x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
-    w = np.ascontiguousarray(w, np.bool_)
+    x, y, w = arr(x, np.float64), arr(y, np.float64), arr(w, np.bool_)
     line, res, n, ssr = _empty_fits(x.shape)
     _fit_rows(x, y, w, line, res, n, ssr)
     return line, res, n, ssr
@@ -453,7 +449,7 @@ def fit_lines_robust(x: np.ndarray, y: np.ndarray, good: np.ndarray, f_px: float
     more without the points beyond :data:`OUTLIER_SIGMAS` sigma and
     :data:`OUTLIER_FLOOR_PX` (``f_px``: pixels per normalized unit). Returns ``(lines,
     res, n, ssr, kept)`` (``kept (N, A)``: the points of the final fit)."""
-    x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
+    x, y = arr(x, np.float64), arr(y, np.float64)
     good = np.array(good, np.bool_, order="C")
     line, res, cnt, ssr = _empty_fits(x.shape)
     fit_robust_rows(x, y, good, OUTLIER_FLOOR_PX / f_px, OUTLIER_SIGMAS, line, res, cnt, ssr)

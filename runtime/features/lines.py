@@ -46,7 +46,7 @@ from ceilkit.runtime.features.edges import (
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.working import decimate, undecimate
 from ceilkit.runtime.geometry.camera import CameraModel
-from ceilkit.runtime.jit import njit
+from ceilkit.runtime.jit import arr, njit, warmer
 
 MIN_FIT_POINTS = 4   # located edge points a segment needs to be refitted
 
@@ -354,13 +354,15 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     il, ir, ii = part_indices(offs)
     # each segment's kind from its mean profile, then its edge on every profile (steps
     # and thin lines; a segment of unclear kind is not located) as pixels
-    pol, pts, good = _kind_and_points(prof, s, d_all, nrm_all, offs, t, il, ir, ii,
+    pol, pts, good = _kind_and_points(arr(prof, np.float64), arr(s, np.float64), d_all,
+                                      nrm_all, arr(offs, np.float64), arr(t, np.float64),
+                                      arr(il, np.int64), arr(ir, np.int64), arr(ii, np.int64),
                                       inner.start + 1, inner.stop + 1, float(min_step),
                                       float(min_depth), PROFILE_STEP_PX)
     # the endpoints and the located points through the lens in one call
     xy = camera.unproject_fast(np.concatenate([s.reshape(-1, 2), pts[good]]))
     ends = xy[:2 * n].reshape(n, 4)
-    _fit_segments(xy[2 * n:], good, ends, rms, 0.5 * (camera.fx + camera.fy),
+    _fit_segments(arr(xy[2 * n:], np.float64), good, ends, rms, 0.5 * (camera.fx + camera.fy),
                   OUTLIER_FLOOR_PX, OUTLIER_SIGMAS, MIN_FIT_POINTS)
     unclear = np.flatnonzero(np.isnan(pol))
     if unclear.size and retry_half_width_px is not None \
@@ -486,3 +488,11 @@ def merge_segments(segs: np.ndarray, angle_tol_rad: float = np.radians(2.0),
         label[members] = len(groups)
         groups.append(np.concatenate([[i], members[members != i]]))
     return groups
+
+
+@warmer
+def _warm() -> None:
+    g = np.full((40, 60), 50, np.uint8)
+    g[:, 30:] = 200
+    cam = CameraModel.pinhole(60, 40, 50.0)
+    refine_undistorted(cam, g, np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]]))

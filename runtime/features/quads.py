@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 DICTIONARY_NAMES = tuple(sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_")))
 """Every dictionary name ``cv2.aruco`` knows (``DICT_4X4_50`` ... ``DICT_APRILTAG_36h11``)."""
@@ -287,8 +287,8 @@ def _side_fit_corners(contour: np.ndarray, poly: np.ndarray, outwards_px: float 
     outwards (the contour runs through the region's boundary pixels, the edge lies
     between them and the background: ``outwards_px``) and met with its neighbours'.
     Falls back to ``poly`` when a side has too few points."""
-    poly = np.ascontiguousarray(poly, np.float64)
-    ok, lines = _side_lines(np.ascontiguousarray(contour, np.float64), poly, SIDE_FIT_KEEP,
+    poly = arr(poly, np.float64)
+    ok, lines = _side_lines(arr(contour, np.float64), poly, SIDE_FIT_KEEP,
                             float(outwards_px))
     if not ok:
         return poly
@@ -389,10 +389,11 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
     """
     offs, t, _ = _stations(per_side, float(search_px))
-    p0 = np.ascontiguousarray(corners_px, np.float64).reshape(4, 2)
+    p0 = arr(corners_px, np.float64).reshape(4, 2)
     if not np.isfinite(p0).all():
         return np.zeros((0, 2)), np.zeros(0, np.int64)
-    pts, side, n = _edge_points(np.ascontiguousarray(grey, np.uint8), p0, offs, t,
+    pts, side, n = _edge_points(arr(grey, np.uint8), p0, arr(offs, np.float64),
+                                arr(t, np.float64),
                                 EDGE_STEP_PX)
     return pts[:n], side[:n]
 
@@ -450,7 +451,10 @@ def _edge_points(grey, p0, offs, t, step):  # pragma: no cover - compiled
 
 @njit
 def _bilinear(grey, x, y, w, h):  # pragma: no cover - compiled
-    """The frame's grey level at ``(x, y)`` (px), bilinear, its edge replicated."""
+    """The frame's grey level at ``(x, y)`` (px), bilinear, its edge replicated (a
+    place far outside reads the edge, as OpenCV's remap does)."""
+    x = min(max(x, -1.0), float(w))
+    y = min(max(y, -1.0), float(h))
     x0 = math.floor(x)
     y0 = math.floor(y)
     fx, fy = x - x0, y - y0

@@ -46,7 +46,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.features.grey import to_grey
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 _REDUCE = 4  # the Niblack statistics are computed on a 1/_REDUCE image
 _CORE = 0.4  # centroid weights count from I_b + _CORE (I_o - I_b)
@@ -419,9 +419,9 @@ def _lone_region_stats(grey: np.ndarray, mask: np.ndarray, boxes: np.ndarray,
         function takes a special branch (no candidate pixel, no ring pixel, no positive
         weight): the caller measures those rows with it.
     """
-    b = np.ascontiguousarray(boxes, np.int64).reshape(-1, 4)
+    b = arr(boxes, np.int64).reshape(-1, 4)
     out = np.empty((b.shape[0], 8))
-    ok = _lone_stats(np.ascontiguousarray(grey, np.uint8), np.ascontiguousarray(mask, np.uint8),
+    ok = _lone_stats(arr(grey, np.uint8), arr(mask, np.uint8),
                      b, bool(weighted), _CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX, _FLAT_MIN_PX,
                      _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN, out)
     return out, ok

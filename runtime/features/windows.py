@@ -21,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 from .spots import (
     _FLAT_ERODE_PX,
@@ -66,10 +66,10 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
 
     One compiled loop over the windows (:func:`_read_windows`).
     """
-    grey = np.ascontiguousarray(grey, np.uint8)
-    corner = np.ascontiguousarray(corner, np.int64).reshape(-1, 2)
+    grey = arr(grey, np.uint8)
+    corner = arr(corner, np.int64).reshape(-1, 2)
     k = corner.shape[0]
-    r = (np.ascontiguousarray(rect, np.int64).reshape(-1, 4) if rect is not None
+    r = (arr(rect, np.int64).reshape(-1, 4) if rect is not None
          else np.tile(np.array([0, 0, side - 1, side - 1], np.int64), (k, 1)))
     out = _read_windows(grey, corner, side, r, CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX,
                         _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN)

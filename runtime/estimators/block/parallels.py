@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceilkit.runtime.geometry.rotations import wrap_pi
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 PERIOD_RAD = math.pi / 2      # lines along both axes: heading known modulo a quarter turn
 MIN_LINES = 2
@@ -107,12 +107,12 @@ def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.n
     Returns:
         ``(heading or None, kept)``: ``kept`` is the ``(N,)`` mask of the lines used.
     """
-    p1 = np.ascontiguousarray(p1_norm, np.float64).reshape(-1, 2)
-    p2 = np.ascontiguousarray(p2_norm, np.float64).reshape(-1, 2)
+    p1 = arr(p1_norm, np.float64).reshape(-1, 2)
+    p2 = arr(p2_norm, np.float64).reshape(-1, 2)
     wts = (np.ones(p1.shape[0]) if weights is None
-           else np.ascontiguousarray(weights, np.float64).reshape(-1))
+           else arr(weights, np.float64).reshape(-1))
     kept = np.zeros(p1.shape[0], np.bool_)
-    found, yaw, sigma, n = _robust(p1, p2, np.ascontiguousarray(R_vehicle_cam, np.float64),
+    found, yaw, sigma, n = _robust(p1, p2, arr(R_vehicle_cam, np.float64),
                                    wts, 0.0 if hint_yaw_rad is None else float(hint_yaw_rad),
                                    hint_yaw_rad is not None, float(gate_rad),
                                    float(period_rad), MIN_LINES, SIGMA_FLOOR_RAD, kept)

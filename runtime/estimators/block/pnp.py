@@ -37,7 +37,7 @@ import numpy as np
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex
 from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 GN_ITERATIONS = 4
 GN_STEP_EPS = 1e-6          # converged when the next step (m, rad) is below this
@@ -109,8 +109,9 @@ def project_norm(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) ->
     """Normalized image points ``(N, 2)`` of ceiling points ``(N, 2)`` in W for a vehicle
     pose ``(x, y, yaw)`` (no lens distortion); NaN for a point behind the camera."""
     x, y, yaw = (float(v) for v in pose)
-    return ceiling_norm(geo.R_vehicle_cam, geo.t_vehicle_cam, float(geo.ceiling_m), x, y,
-                        yaw, np.ascontiguousarray(points_w, np.float64).reshape(-1, 2))
+    return ceiling_norm(arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
+                        float(geo.ceiling_m), x, y, yaw,
+                        arr(points_w, np.float64).reshape(-1, 2), 1e-9)
 
 
 def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> np.ndarray:
@@ -120,18 +121,18 @@ def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> n
 
 
 @njit
-def ceiling_norm(R, t, ceiling_m, x, y, yaw, points_w):  # pragma: no cover - compiled
+def ceiling_norm(R, t, ceiling_m, x, y, yaw, points_w, min_z):  # pragma: no cover - compiled
     """Normalized image points ``(N, 2)`` of ceiling points ``points_w (N, 2)`` in W
     (at height ``ceiling_m``) from the vehicle pose ``(x, y, yaw)`` and the mount ``(R,
     t)`` (``X_V = R X_C + t``); NaN where a point is not in front of the camera
-    (``z_C <= 1e-9``). The camera coordinates are ``Rᵀ (Rz(-yaw) (p - (x, y)) - t)``."""
+    (``z_C <= min_z``). The camera coordinates are ``Rᵀ (Rz(-yaw) (p - (x, y)) - t)``."""
     cz, sz = math.cos(yaw), math.sin(yaw)
     out = np.empty((points_w.shape[0], 2))
     for i in range(points_w.shape[0]):
         dx, dy = points_w[i, 0] - x, points_w[i, 1] - y
         q0, q1, q2 = dx * cz + dy * sz - t[0], dy * cz - dx * sz - t[1], ceiling_m - t[2]
         p2 = q0 * R[0, 2] + q1 * R[1, 2] + q2 * R[2, 2]
-        if p2 > 1e-9:
+        if p2 > min_z:
             out[i, 0] = (q0 * R[0, 0] + q1 * R[1, 0] + q2 * R[2, 0]) / p2
             out[i, 1] = (q0 * R[0, 1] + q1 * R[1, 1] + q2 * R[2, 1]) / p2
         else:
@@ -213,13 +214,10 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
     side ``side`` (M,) (side k runs from corner k to k+1 of ``corners_w``), residuals in
     px by ``scale`` (M,) (:func:`magnification`). Needs M >= 3 over three sides."""
     pose = np.array(pose0, float)
-    cw = np.ascontiguousarray(corners_w, np.float64)
-    en = np.ascontiguousarray(edge_norm, np.float64)
-    sd = np.ascontiguousarray(side, np.int64)
-    sc = np.ascontiguousarray(scale, np.float64)
+    cw, en = arr(corners_w, np.float64), arr(edge_norm, np.float64)
+    sd, sc = arr(side, np.int64), arr(scale, np.float64)
     r, J, JtJ = np.empty(sd.size), np.empty((sd.size, 3)), np.empty((3, 3))
-    solved = _gauss_newton(np.ascontiguousarray(geo.R_vehicle_cam, np.float64),
-                           np.ascontiguousarray(geo.t_vehicle_cam, np.float64),
+    solved = _gauss_newton(arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
                            float(geo.ceiling_m), pose, cw, en, sd, sc, r, J, JtJ)
     if not solved:                  # a singular step: numpy's least squares, from pose0
         pose = np.array(pose0, float)
@@ -444,4 +442,4 @@ def _warm() -> None:
     r, J, JtJ = np.empty(8), np.empty((8, 3)), np.empty((3, 3))
     _gauss_newton(R, np.zeros(3), 3.0, np.array([1.2, 0.0, 0.0]), square, edge, side,
                   np.ones(8), r, J, JtJ)
-    ceiling_norm(R, np.zeros(3), 3.0, 1.2, 0.0, 0.0, square)
+    project_norm(PlanarGeometry(None, R, np.zeros(3), 3.0), (1.2, 0.0, 0.0), square)

@@ -20,6 +20,7 @@ import numpy as np
 
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_norm
 from ceilkit.runtime.geometry.rotations import rot_z
+from ceilkit.runtime.jit import arr
 
 REACH_M = 3.5        # ceiling lines looked for this far from the camera's ceiling point
 CHORD_M = 1.0        # a chord's length on the ceiling
@@ -132,8 +133,8 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
     t = _samples(reach_m)
     n_lines, n_t = len(p0), len(t)
     pts = (p0[:, None, :] + t[None, :, None] * d[:, None, :]).reshape(-1, 2)
-    norm = ceiling_norm(geo.R_vehicle_cam, geo.t_vehicle_cam, float(geo.ceiling_m), x, y,
-                        yaw, pts)
+    norm = ceiling_norm(arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
+                        float(geo.ceiling_m), x, y, yaw, arr(pts, np.float64), 1e-6)
     front = np.isfinite(norm[:, 0])
     if front.all():
         px = geo.camera.distort(norm)

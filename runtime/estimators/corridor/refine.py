@@ -30,7 +30,7 @@ from ceilkit.runtime.estimators.corridor.frame import FrameLines
 from ceilkit.runtime.estimators.corridor.geometry import vanishing_directions
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.geometry.rotations import wrap_pi
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 STEP_DONE = (1e-5, 2e-4)
 """A step below this in ``(psi rad, c_y m)`` converges: the next is far smaller."""
@@ -183,8 +183,9 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
     solution (its step was below the threshold, the one after it far smaller)."""
     r = np.empty(gd.e0.size + gd.p0.size)
     psi, cy, h00, h01, h10, h11, wrr = _huber_steps(
-        float(psi_rad), float(camera_y_m), gd.y, gd.e0, gd.e1, gd.ez, gd.p0, gd.p1, gd.mx_b,
-        gd.my_b, gd.scale_b, np.array(setup.R_rows), setup.ceiling_above_cam_m, setup.f_px,
+        float(psi_rad), float(camera_y_m), *(arr(a, np.float64) for a in (
+            gd.y, gd.e0, gd.e1, gd.ez, gd.p0, gd.p1, gd.mx_b, gd.my_b, gd.scale_b)),
+        np.array(setup.R_rows, np.float64), float(setup.ceiling_above_cam_m), float(setup.f_px),
         max(1, iterations), STEP_DONE[0], STEP_DONE[1], r)
     dof = max(1, r.size - 2)
     sigma2 = wrr / dof

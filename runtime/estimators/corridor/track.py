@@ -37,7 +37,7 @@ from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.lines import refine_undistorted
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.rotations import rot_z
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 REACH_M = 8.0
 """Ceiling points further than this from the camera are not searched (tiny, blurred)."""
@@ -174,8 +174,7 @@ def _cut_chords(px: np.ndarray, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray
     (``px (J, S, 2)``, ``vis (J, S)``; the first of equal runs), cut into chords of
     about :data:`CHORD_PX` of arc length (ends interpolated along the arc as
     ``np.interp``); runs shorter than :data:`MIN_CHORD_PX` are left out."""
-    chords, line, n = _chords_of_runs(np.ascontiguousarray(px, np.float64),
-                                      np.ascontiguousarray(vis, np.bool_), CHORD_PX,
+    chords, line, n = _chords_of_runs(arr(px, np.float64), arr(vis, np.bool_), CHORD_PX,
                                       MIN_CHORD_PX)
     return chords[:n], line[:n]
 

@@ -24,7 +24,7 @@ import numpy as np
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.rays import project_poses
 from ceilkit.runtime.geometry.rotations import wrap_pi
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 
 def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
@@ -103,9 +103,9 @@ def refine_pose_ceiling(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarra
     Returns:
         As :func:`refine_pose`: ``(x, y, yaw, cov (3, 3), residual norms (K,) px)``.
     """
-    q = np.ascontiguousarray(q_v, np.float64).reshape(-1, 2)
-    J = np.ascontiguousarray(jac_px, np.float64).reshape(-1, 2, 2)
-    L = np.ascontiguousarray(lights_w, np.float64).reshape(-1, 2)
+    q = arr(q_v, np.float64).reshape(-1, 2)
+    J = arr(jac_px, np.float64).reshape(-1, 2, 2)
+    L = arr(lights_w, np.float64).reshape(-1, 2)
     pose = np.array([x_m, y_m, yaw_rad], float)
     N = np.empty((3, 3))
     norms = np.empty(q.shape[0])
@@ -113,7 +113,7 @@ def refine_pose_ceiling(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarra
     k = q.shape[0]
     dof = 2 * k - 3
     s2 = max(ssr / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
-    inv = _inv3(N)
+    inv = _inv3(N) if math.isfinite(ssr) else None      # a NaN residual: no covariance
     cov = np.full((3, 3), np.inf) if inv is None else s2 * inv
     return float(pose[0]), float(pose[1]), float(wrap_pi(pose[2])), cov, norms
 

@@ -18,6 +18,7 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.block import pnp
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.estimators.corridor import track
+from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
 from ceilkit.runtime.features import edges, quads, spots, windows
 from ceilkit.runtime.features.spots import FLAT_MIN_AREA_PX, flattened
 from helpers import CONFIGS
@@ -366,28 +367,59 @@ def test_solve3_is_gesv_and_reports_a_singular_matrix():
 
 # ----------------------------------------------------------------------------- warm-up
 
-def test_warm_up_makes_every_loop_before_the_first_frame():
-    """Every compiled loop of the per-frame path is made by :func:`jit.warm_up` (each
-    module's warmer covers its loops), so no frame pays numba's start or a compile."""
-    import numba
-
-    from ceilkit.runtime import jit
+def _loop_modules():
     from ceilkit.runtime.estimators.block import parallels
     from ceilkit.runtime.estimators.corridor import refine as cref
     from ceilkit.runtime.estimators.lights import refine
+    from ceilkit.runtime.features import lines
 
+    return (windows, spots, quads, edges, lines, track, pnp, refine, parallels, cref)
+
+
+def _loops():
+    """``{module.name: dispatcher}`` of every compiled loop of the per-frame path."""
+    import numba
+
+    return {f"{m.__name__}.{name}": obj for m in _loop_modules()
+            for name, obj in vars(m).items()
+            if isinstance(obj, numba.core.registry.CPUDispatcher)
+            and obj.py_func.__module__ == m.__name__}
+
+
+def test_warm_up_makes_every_loop_before_the_first_frame():
+    """Every compiled loop is made by :func:`jit.warm_up` (each module's warmer covers its
+    loops): frames of the three methods, tracked and not, one of them a read-only
+    buffer, compile nothing more, so no frame pays numba's start or a compile."""
+    from ceilkit.runtime import jit
+    from ceilkit.runtime.multi import make_localizer
+    from ceilkit.runtime.sim.render import SimOptions, render_frame
+
+    loops = _loops()
+    assert len(loops) >= 30
     jit.warm_up()
-    cold, n = [], 0
-    for m in (windows, spots, quads, edges, track, pnp, refine, parallels, cref):
-        loops = {name: obj for name, obj in vars(m).items()
-                 if isinstance(obj, numba.core.registry.CPUDispatcher)
-                 and obj.py_func.__module__ == m.__name__}
-        # a loop called only from other loops is compiled into them, not on its own
-        inner = {c for obj in loops.values() for c in obj.py_func.__code__.co_names}
-        n += len(loops)
-        cold += [f"{m.__name__}.{name}" for name, obj in loops.items()
-                 if name not in inner and not obj.signatures]
-    assert n >= 15 and not cold, cold
+    # a loop called only from other loops is compiled into them, not on its own
+    inner = {c for d in loops.values() for c in d.py_func.__code__.co_names}
+    cold = [k for k, d in loops.items() if k.rsplit(".", 1)[1] not in inner
+            and not d.signatures]
+    assert not cold, cold
+    before = {k: set(d.signatures) for k, d in loops.items()}
+    for method in ("block", "lights", "corridor"):
+        rig = Rig.load(CONFIGS / method / "rig.yaml")
+        site = Site.load(CONFIGS / method / "site.yaml")
+        start = ((site.markers.poses[0].x_m, site.markers.poses[0].y_m)
+                 if method == "block" else (3.0, 0.0))
+        for opts in ({"track": True}, None):
+            est, tracker = make_localizer(method, rig, site, opts)
+            for k in range(4):
+                img = render_frame(rig, site, start[0] + 0.02 * k, start[1], 0.01 * k,
+                                   options=SimOptions(noise_sigma=2.0, blur_px=0.8),
+                                   rng=np.random.default_rng(k))
+                img.setflags(write=k != 1)        # a frame from a read-only buffer
+                out = est.estimate(img, k * 33_000_000, tracker.predict(k * 33_000_000))
+                tracker.update(out)
+                assert out
+    grown = {k: set(d.signatures) - before[k] for k, d in loops.items()}
+    assert not any(grown.values()), {k: v for k, v in grown.items() if v}
 
 
 def side_fit_reference(contour, poly, outwards_px=0.5):
@@ -578,3 +610,25 @@ def test_robust_heading_equals_the_array_reading(hint):
                                                                      np.pi / 2)
             assert abs(math.remainder(got.yaw_rad - wrap_pi(yaw), 2 * np.pi)) < 1e-12
             assert abs(got.sigma_rad - want[1]) < 1e-12 and got.n_lines == kept.sum()
+
+
+def test_edge_stations_far_outside_the_frame_read_its_edge():
+    """A quad corner far off the frame (a refine pass's corners from nearly parallel
+    sides) samples the frame's edge, as OpenCV's remap does, not the opposite edge."""
+    g = np.zeros((40, 60), np.uint8)
+    g[:, 59] = 200                                  # the right edge bright, the left dark
+    assert quads._bilinear(g, 1e20, 20.0, 60, 40) == 200.0
+    assert quads._bilinear(g, -1e20, 20.0, 60, 40) == 0.0
+    assert quads._bilinear(g, 59.0, 1e20, 60, 40) == 200.0
+
+
+def test_lights_refine_with_a_nan_point_has_no_covariance():
+    """A ceiling point that is NaN (a ray that does not rise) leaves the fit without a
+    covariance (inf), as before the compiled loop, never NaN."""
+    rng = np.random.default_rng(0)
+    L = rng.normal(0, 3, (3, 2))
+    q = L + rng.normal(0, 0.01, (3, 2))
+    q[0, 0] = np.nan
+    J = rng.normal(0, 300, (3, 2, 2))
+    *_, cov, _ = refine_pose_ceiling(q, J, L, 0.1, -0.1, 0.05)
+    assert np.all(np.isinf(cov))
