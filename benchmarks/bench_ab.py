@@ -22,6 +22,7 @@ run ``bench_all.py`` once to make them).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib
 import importlib.util
 import math
@@ -50,7 +51,9 @@ def older(spec: str) -> tuple[object, str, object, object]:
     path, src_name = source.rsplit(":", 1)
     mod = importlib.import_module(mod_name)
     pkg = mod_name.rsplit(".", 1)[0]
-    sp = importlib.util.spec_from_file_location(f"{pkg}._before_{abs(hash(path))}", path)
+    # a name fixed by the path: numba's cache of the file's loops records it
+    tag = hashlib.sha1(str(Path(path).resolve()).encode()).hexdigest()[:10]
+    sp = importlib.util.spec_from_file_location(f"{pkg}._before_{tag}", path)
     old = importlib.util.module_from_spec(sp)
     sys.modules[sp.name] = old
     sp.loader.exec_module(old)
