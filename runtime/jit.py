@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 F = TypeVar("F", bound=Callable[..., Any])
-_WARMERS: list[Callable[[], object]] = []
+_PENDING: list[Callable[[], object]] = []   # warmers not yet run
 
 
 def njit(fn: F) -> F:
@@ -38,30 +38,37 @@ def njit(fn: F) -> F:
 
 
 def arr(a: Any, dtype: Any) -> Any:
-    """``a`` as a loop takes every array: C-contiguous, writable, of ``dtype`` (numba
-    compiles a read-only array, a site's cached corners, a frame from a read-only
-    buffer, as another type: it would compile again on the first such frame). Copies
-    only what is not so already."""
-    if type(a) is np.ndarray and a.dtype == dtype:
+    """``a`` as a loop takes every input array: C-contiguous, of ``dtype``, read-only
+    (numba compiles a read-only array as another type than a writable one; the site's
+    corners and the cached constants are read-only, a frame may be: one kind for all
+    inputs is one machine code per loop). A writable array becomes a read-only view;
+    nothing is copied unless its dtype or layout differ. (The arrays a loop writes
+    into are made by its caller and passed as they are.)"""
+    if type(a) is not np.ndarray or a.dtype != dtype:
+        a = np.ascontiguousarray(a, dtype)
+    flags = a.flags
+    if not flags.c_contiguous:
+        a = np.ascontiguousarray(a)
         flags = a.flags
-        if flags.c_contiguous and flags.writeable:
-            return a                         # (np.require itself costs 2 us a call)
-    return np.require(a, dtype, ("C", "W"))
+    if flags.writeable:
+        a = a.view()
+        a.setflags(write=False)
+    return a
 
 
 def warmer(fn: F) -> F:
     """Register ``fn`` (no arguments) for :func:`warm_up`: it calls its module's loops
     once, on tiny inputs of the dtypes and ranks the module passes them."""
-    _WARMERS.append(fn)
+    _PENDING.append(fn)
     return fn
 
 
 def warm_up() -> float:
-    """Load (the first time on a machine: compile) every loop registered so far, now
-    rather than on the first frame; the seconds it took."""
+    """Load (the first time on a machine: compile) every loop registered since the last
+    call, now rather than on the first frame; the seconds it took."""
     t0 = time.perf_counter()
-    for fn in list(_WARMERS):
-        fn()
+    while _PENDING:
+        _PENDING.pop(0)()
     return time.perf_counter() - t0
 
 

@@ -46,7 +46,6 @@ LOCATE_MARGIN_PX = 1.0     # an edge is located this far inside the profile's en
 ALONG_RANGE = (0.05, 0.95)  # where along a segment its profiles are taken (fractions)
 OUTLIER_SIGMAS = 3.0       # the robust fit drops points beyond this many sigma ...
 OUTLIER_FLOOR_PX = 0.5     # ... and beyond this many pixels
-_NEIGHBOURS = np.array([-1, 0, 1])
 
 
 def directions(segs_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -271,10 +270,7 @@ def locate_steps(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner
     The edge is where the profile crosses the middle of its two sides' levels (its two
     outer samples at either end), the crossing nearest the derivative's peak (less
     locked to the pixel grid than a parabola), within the inner part."""
-    out = np.full(prof.shape[:2], np.nan)
-    locate_rows(arr(prof, np.float64), arr(polarity, np.float64), arr(offs, np.float64),
-                inner.start + 1, inner.stop + 1, PROFILE_STEP_PX, out)
-    return out
+    return locate(prof, polarity, offs, inner)
 
 
 def thin_sign(prof: np.ndarray, inner: slice) -> tuple[np.ndarray, np.ndarray]:
@@ -295,10 +291,7 @@ def locate_thin(prof: np.ndarray, offs: np.ndarray, inner: slice) -> np.ndarray:
     profiles ``prof (S, A, O)``: the centroid of the line's part beyond half its height
     (over its sides), within the inner part; not found where the extremum is at the
     inner part's end."""
-    out = np.full(prof.shape[:2], np.nan)
-    locate_rows(arr(prof, np.float64), np.zeros(prof.shape[0]), arr(offs, np.float64),
-                inner.start + 1, inner.stop + 1, PROFILE_STEP_PX, out)
-    return out
+    return locate(prof, np.zeros(prof.shape[0]), offs, inner)
 
 
 def locate(prof: np.ndarray, polarity: np.ndarray, offs: np.ndarray, inner: slice

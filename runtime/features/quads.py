@@ -362,15 +362,14 @@ def signed_area(pts: np.ndarray) -> float:
 
 
 @functools.lru_cache(maxsize=16)
-def _stations(per_side: int, search_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """edge_points' offsets across a side ``(K,)``, stations along it ``(S,)`` and the
-    side of every station ``(4 S,)`` (read-only: shared between calls)."""
+def _stations(per_side: int, search_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """edge_points' offsets across a side ``(K,)`` and stations along it ``(S,)``
+    (read-only: shared between calls)."""
     offs = np.arange(-search_px, search_px + 1e-9, EDGE_STEP_PX)
     t = np.linspace(EDGE_END_SKIP, 1 - EDGE_END_SKIP, per_side)
-    side = np.repeat(np.arange(4), per_side)
-    for a in (offs, t, side):
+    for a in (offs, t):
         a.flags.writeable = False
-    return offs, t, side
+    return offs, t
 
 
 def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
@@ -388,7 +387,7 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     Returns:
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
     """
-    offs, t, _ = _stations(per_side, float(search_px))
+    offs, t = _stations(per_side, float(search_px))
     p0 = arr(corners_px, np.float64).reshape(4, 2)
     if not np.isfinite(p0).all():
         return np.zeros((0, 2)), np.zeros(0, np.int64)
@@ -409,7 +408,6 @@ def _edge_points(grey, p0, offs, t, step):  # pragma: no cover - compiled
     prof = np.empty(n_off)
     pts = np.empty((4 * n_st, 2))
     side = np.empty(4 * n_st, np.int64)
-    off = np.empty((4, n_st))
     strength = np.empty((4, n_st))
     good = np.zeros((4, n_st), np.bool_)
     for s in range(4):
@@ -426,11 +424,13 @@ def _edge_points(grey, p0, offs, t, step):  # pragma: no cover - compiled
                 g = abs(prof[i + 1] - prof[i])
                 if g > best:
                     k, best = i, g
+            # the step's middle: where the profile crosses half way between its two
+            # ends, in the steepest interval (unbiased for a symmetric blur, unlike the
+            # peak of a sampled gradient)
             mid = 0.25 * (prof[0] + prof[1] + prof[n_off - 1] + prof[n_off - 2])
             d0, d1 = prof[k] - mid, prof[k + 1] - mid
             frac = d0 / (d0 - d1) if abs(d0 - d1) > 1e-6 else 0.5
             o = offs[0] + (k + min(max(frac, -1.0), 2.0)) * step
-            off[s, j] = o
             strength[s, j] = best
             u, v = bx + o * nx, by + o * ny
             good[s, j] = (0 < k < n_off - 2 and -1.0 < frac < 2.0

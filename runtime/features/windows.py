@@ -5,8 +5,8 @@ blocks) holds one spot: the square's border gives the background ``I_b``, the pi
 above half way from it to the square's peak are the spot, ``I_o`` their mean, and the
 centroid and second moments are weighted by ``max(I - I_b - CORE (I_o - I_b), 0)``,
 the reading of the global detector (:func:`~.spots.detect_spots`; a large light's
-window is first divided by its plateau's gain, :func:`~.spots.flattened`). Two compiled
-loops (:mod:`ceilkit.runtime.jit`) read every window: its levels, then its moments.
+window is first divided by its plateau's gain, :func:`~.spots.flattened`). One compiled
+loop (:mod:`ceilkit.runtime.jit`) reads every window: its levels, then its moments.
 
 Convention (SPEC §1): pixels ``(u, v)``, origin at the centre of the top-left pixel.
 
@@ -171,14 +171,15 @@ def _weighted_moments(win, box, base, plane, min_gain, out):  # pragma: no cover
     flat, a, b, c, xc, yc = plane
     mid = win.shape[0] // 2
     rx0, ry0, rx1, ry1 = box
+    ba, ca = b / a, c / a                          # the gain's slopes
     m00 = m10 = m20 = m01 = m02 = m11 = 0.0
     for i in range(ry0, ry1 + 1):
         y = i - mid
         r0 = r1 = r2 = 0.0
-        gy = 1.0 + (c / a) * (i - yc)
+        gy = 1.0 + ca * (i - yc)
         for j in range(rx0, rx1 + 1):
             if flat:
-                v = win[i, j] / max(gy + (b / a) * (j - xc), min_gain) - base
+                v = win[i, j] / max(gy + ba * (j - xc), min_gain) - base
             else:
                 v = win[i, j] - base
             if v > 0.0:
@@ -305,5 +306,6 @@ def _warm() -> None:
     g[4, 4] = 200
     window_stats(g, np.zeros((1, 2), np.int64), 9)
     window_stats(g, np.zeros((1, 2), np.int64), 9, np.array([[1, 1, 7, 7]]))
+
 
 __all__ = ["CORE", "SMALL_HALF_PX", "detect_spots_windowed", "window_stats"]

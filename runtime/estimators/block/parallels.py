@@ -55,22 +55,6 @@ class ParallelsHeading:
     n_lines: int
 
 
-def line_headings(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Per line (two normalized image points each, ``(N, 2)``): the heading
-    ``atan2(m_x, m_y)`` of eq. 10 (modulo pi/2 on a grid) and its weight ``|m_xy|^2``."""
-    a = np.asarray(p1_norm, float).reshape(-1, 2)
-    b = np.asarray(p2_norm, float).reshape(-1, 2)
-    # l = (x1, y1, 1) x (x2, y2, 1), written out
-    ln = np.empty((a.shape[0], 3))
-    ln[:, 0] = a[:, 1] - b[:, 1]
-    ln[:, 1] = b[:, 0] - a[:, 0]
-    ln[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    m = ln @ np.asarray(R_vehicle_cam, float).T                      # R_VC l, row-wise
-    m /= np.maximum(np.sqrt((m * m).sum(axis=1)), 1e-300)[:, None]
-    return np.arctan2(m[:, 0], m[:, 1]), m[:, 0] ** 2 + m[:, 1] ** 2
-
-
 def heading_from_parallels(p1_norm: np.ndarray, p2_norm: np.ndarray,
                            R_vehicle_cam: np.ndarray, hint_yaw_rad: float | None = None,
                            period_rad: float = PERIOD_RAD) -> ParallelsHeading | None:
@@ -86,11 +70,8 @@ def heading_from_parallels(p1_norm: np.ndarray, p2_norm: np.ndarray,
     Returns:
         :class:`ParallelsHeading`, or None with fewer than :data:`MIN_LINES` lines.
     """
-    phi, w = line_headings(p1_norm, p2_norm, R_vehicle_cam)
-    ok = np.isfinite(phi) & (w > 1e-12)
-    if np.count_nonzero(ok) < MIN_LINES:
-        return None
-    return _near_hint(_weighted(phi[ok], w[ok], period_rad), hint_yaw_rad)
+    return robust_heading(p1_norm, p2_norm, R_vehicle_cam, hint_yaw_rad, math.inf, None,
+                          period_rad)[0]                      # (no gate: every line)
 
 
 def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.ndarray,
@@ -125,7 +106,10 @@ def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.n
 def _robust(p1, p2, R, weights, hint, has_hint, gate, period, min_lines, floor, kept
             ):  # pragma: no cover - compiled
     """:func:`robust_heading` in one loop: ``(found, yaw, sigma, n)`` and ``kept (N,)``
-    (the lines used) set; each line's heading and weight as :func:`line_headings`."""
+    (the lines used) set. Each line's heading is eq. 10's ``atan2(m_x, m_y)`` (modulo
+    the period) with ``m = R l / |R l|``, ``l = (x1, y1, 1) x (x2, y2, 1)``, and its
+    weight ``|m_xy|²`` times ``weights``; the heading is their weighted circular mean
+    (:func:`_circular_mean`), its sigma their weighted spread about it (floored)."""
     n_l = p1.shape[0]
     phi = np.empty(n_l)
     w = np.empty(n_l)
@@ -168,7 +152,8 @@ def _robust(p1, p2, R, weights, hint, has_hint, gate, period, min_lines, floor, 
 
 @njit
 def _circular_mean(phi, w, use, period):  # pragma: no cover - compiled
-    """:func:`_mean` of the lines ``use``."""
+    """The weighted circular mean of the headings ``phi`` of the lines ``use``, modulo
+    the period."""
     k = 2 * math.pi / period
     zr = zi = 0.0
     for i in range(phi.size):
@@ -180,20 +165,8 @@ def _circular_mean(phi, w, use, period):  # pragma: no cover - compiled
 
 @njit
 def _wrap_period(a, period):  # pragma: no cover - compiled
-    """:func:`_wrapped` of an array."""
-    return np.remainder(a + period / 2, period) - period / 2
-
-
-def _wrapped(a: np.ndarray, period_rad: float) -> np.ndarray:
     """``a`` modulo the period, in ``[-period/2, period/2)``."""
-    return np.remainder(a + period_rad / 2, period_rad) - period_rad / 2
-
-
-def _mean(phi: np.ndarray, w: np.ndarray, period_rad: float) -> float:
-    """The weighted circular mean of line headings modulo the period."""
-    k = 2 * math.pi / period_rad
-    z = np.sum(w * np.exp(1j * k * phi))
-    return math.atan2(z.imag, z.real) / k
+    return np.remainder(a + period / 2, period) - period / 2
 
 
 def _near_hint(h: ParallelsHeading, hint_yaw_rad: float | None) -> ParallelsHeading:
@@ -202,16 +175,6 @@ def _near_hint(h: ParallelsHeading, hint_yaw_rad: float | None) -> ParallelsHead
         return h
     yaw = hint_yaw_rad + math.remainder(h.yaw_rad - hint_yaw_rad, h.period_rad)
     return ParallelsHeading(wrap_pi(yaw), h.sigma_rad, h.period_rad, h.n_lines)
-
-
-def _weighted(phi: np.ndarray, w: np.ndarray, period_rad: float) -> ParallelsHeading:
-    """The weighted circular mean of line headings and its sigma (see the module)."""
-    yaw = _mean(phi, w, period_rad)
-    res = _wrapped(phi - yaw, period_rad)
-    dof = max(len(phi) - 1, 1)
-    sigma = max(math.sqrt(float(np.sum(w * res * res)) / float(np.sum(w)) / dof),
-                SIGMA_FLOOR_RAD)
-    return ParallelsHeading(wrap_pi(yaw), sigma, period_rad, int(len(phi)))
 
 
 @warmer

@@ -437,9 +437,6 @@ def six_dof_check(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.n
 def _warm() -> None:
     R = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]).T.copy()
     square = np.array([[1.0, -0.2], [1.4, -0.2], [1.4, 0.2], [1.0, 0.2]])
-    edge = np.zeros((8, 2))
-    side = np.repeat(np.arange(4), 2)
-    r, J, JtJ = np.empty(8), np.empty((8, 3)), np.empty((3, 3))
-    _gauss_newton(R, np.zeros(3), 3.0, np.array([1.2, 0.0, 0.0]), square, edge, side,
-                  np.ones(8), r, J, JtJ)
-    project_norm(PlanarGeometry(None, R, np.zeros(3), 3.0), (1.2, 0.0, 0.0), square)
+    geo = PlanarGeometry(None, R, np.zeros(3), 3.0)         # (no lens: not used here)
+    edge = project_norm(geo, (1.2, 0.0, 0.0), square[np.repeat(np.arange(4), 2)])
+    refine(geo, (1.2, 0.0, 0.0), square, edge, np.repeat(np.arange(4), 2), np.ones(8))

@@ -332,8 +332,7 @@ def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup
 
 @warmer
 def _warm() -> None:
-    one, none = np.ones(2), np.zeros(0)
-    _huber_steps(0.0, 0.0, one, one, one, one, none, none, none, none, none, np.eye(3), 2.0,
-                 400.0, 1, 1e-5, 2e-4, np.empty(2))
-    _huber_steps(0.0, 0.0, none, none, none, none, one, one, one, one, one, np.eye(3), 2.0,
-                 400.0, 1, 1e-5, 2e-4, np.empty(2))
+    one, none = arr(np.ones(2), np.float64), arr(np.zeros(0), np.float64)
+    for a, b in ((one, none), (none, one)):          # along endpoints; across segments
+        _huber_steps(0.0, 0.0, a, a, a, a, b, b, b, b, b, np.eye(3), 2.0, 400.0, 1, 1e-5,
+                     2e-4, np.empty(2))

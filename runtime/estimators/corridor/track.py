@@ -174,14 +174,12 @@ def _cut_chords(px: np.ndarray, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray
     (``px (J, S, 2)``, ``vis (J, S)``; the first of equal runs), cut into chords of
     about :data:`CHORD_PX` of arc length (ends interpolated along the arc as
     ``np.interp``); runs shorter than :data:`MIN_CHORD_PX` are left out."""
-    chords, line, n = _chords_of_runs(arr(px, np.float64), arr(vis, np.bool_), CHORD_PX,
-                                      MIN_CHORD_PX)
-    return chords[:n], line[:n]
+    return _chords_of_runs(arr(px, np.float64), arr(vis, np.bool_), CHORD_PX, MIN_CHORD_PX)
 
 
 @njit
 def _chords_of_runs(px, vis, chord_px, min_chord_px):  # pragma: no cover - compiled
-    """:func:`_cut_chords` into preallocated rows: ``(chords, line, count)``."""
+    """:func:`_cut_chords`: ``(chords, line)``."""
     n_lines, n_s = vis.shape
     runs = np.zeros((n_lines, 2), np.int64)
     for j in range(n_lines):
@@ -208,7 +206,7 @@ def _chords_of_runs(px, vis, chord_px, min_chord_px):  # pragma: no cover - comp
             count[j] = max(1, int(np.rint(arc[j, b - a - 1] / chord_px)))
     chords = np.empty((count.sum(), 4))
     line = np.empty(count.sum(), np.int64)
-    n = 0
+    n = 0                                    # chords written
     for j in range(n_lines):
         k = count[j]
         if k == 0:
@@ -232,7 +230,7 @@ def _chords_of_runs(px, vis, chord_px, min_chord_px):  # pragma: no cover - comp
             line[n] = j
             n += 1
             pu, pv = u, v
-    return chords, line, n
+    return chords, line
 
 
 @warmer

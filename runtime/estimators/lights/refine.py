@@ -157,8 +157,8 @@ def _gauss_newton(q, J, L, pose, iterations, N, norms):  # pragma: no cover - co
         if not math.isfinite(ssr_new) or ssr_new > ssr:
             break
         pose[0], pose[1], pose[2] = x, y, yaw
-        r[:] = r_new
-        At[:, :] = At_new
+        r, r_new = r_new, r                       # the new residuals kept, no copy
+        At, At_new = At_new, At
         ssr = ssr_new
         if max(abs(s0), abs(s1)) < 1e-5 and abs(s2) < 1e-6:
             break

@@ -225,7 +225,7 @@ def test_robust_line_fit_equals_the_array_reading():
 # ----------------------------------------------------------------------------- quads
 
 def edge_points_reference(grey, corners, per_side, search_px):
-    offs, t, side = quads._stations(per_side, search_px)
+    offs, t = quads._stations(per_side, search_px)
     h, w = grey.shape
     g = grey.astype(np.float32)
     pts, sides = [], []
