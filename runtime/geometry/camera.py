@@ -18,6 +18,7 @@ Example::
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +26,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.jit import njit, warmer
 
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant")
 N_COEFFS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
@@ -45,6 +47,10 @@ JACOBIAN_EPS = 1e-4  # distort_jacobian's normalized step where OpenCV does not 
 _TABLE_STEP_PX = 2
 _TABLE_PAD = 3
 _TABLE_TOL_PX = 0.05
+LENS_LINEAR, LENS_POLYNOMIAL, LENS_EQUIDISTANT = 0, 1, 2
+"""The lens codes of :attr:`CameraModel.lens`: no distortion, OpenCV's polynomial
+(plumb_bob, rational_polynomial), OpenCV's fisheye (equidistant)."""
+_UNDISTORT_MAX_ITER, _UNDISTORT_EPS = 50, 1e-12   # as _UNDISTORT_CRITERIA
 
 
 def _frozen(a: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -104,6 +110,15 @@ class CameraModel:
         object.__setattr__(self, "_K_rows", ((float(self.K[0, 0]), float(self.K[0, 1]),
                                                float(self.K[0, 2])),
                                               (float(self.K[1, 1]), float(self.K[1, 2]))))
+        # the lens for compiled loops (:func:`undistort_points`): its code and
+        # (fx, fy, cx, cy, skew, k0..k7)
+        code = (LENS_LINEAR if not self._distorted else
+                LENS_EQUIDISTANT if self.model == "equidistant" else LENS_POLYNOMIAL)
+        lens = np.zeros(13)
+        lens[:5] = (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2], self.K[0, 1])
+        lens[5:5 + dist.size] = dist
+        lens.setflags(write=False)
+        object.__setattr__(self, "_lens", (code, lens))
         # which terms of OpenCV's polynomial are there (distort skips the others)
         object.__setattr__(self, "_terms", (bool(np.any(k8[[0, 1, 4]])), bool(np.any(k8[2:4])),
                                             bool(np.any(k8[5:]))))
@@ -165,6 +180,14 @@ class CameraModel:
     @property
     def is_distorted(self) -> bool:
         return self._distorted  # type: ignore[attr-defined]
+
+    @property
+    def lens(self) -> tuple[int, np.ndarray]:
+        """``(code, params (13,))``: the lens as compiled loops take it
+        (:func:`undistort_points`): :data:`LENS_LINEAR`, :data:`LENS_POLYNOMIAL` or
+        :data:`LENS_EQUIDISTANT`, and ``(fx, fy, cx, cy, skew, coefficients...)``
+        (zero-padded, read-only)."""
+        return self._lens  # type: ignore[attr-defined]
 
     @property
     def opencv_projects(self) -> bool:
@@ -350,6 +373,99 @@ def _fast_unproject_ok(camera: CameraModel) -> bool:
     return bool(np.all(np.abs(back - border) <= _FAST_TOL_PX))
 
 
+@njit
+def undistort_points(px, code, lens, out):  # pragma: no cover - compiled
+    """Into ``out (N, 2)``: :meth:`CameraModel.unproject` of pixels ``px (N, 2)`` for
+    a lens ``(code, lens)`` (:attr:`CameraModel.lens`), in a compiled loop: OpenCV's
+    own iterations (``cv2.undistortPoints``, ``cv2.fisheye.undistortPoints``, 50 at
+    most, to 1e-12), so the same numbers to ~1e-12. Like OpenCV, the polynomial and
+    fisheye inverses ignore a skewed ``K``'s skew, and a fisheye point whose angle
+    does not converge is ``(-1e6, -1e6)``."""
+    fx, fy, cx, cy, skew = lens[0], lens[1], lens[2], lens[3], lens[4]
+    k = lens[5:]
+    for n in range(px.shape[0]):
+        u, v = px[n, 0], px[n, 1]
+        if code == 0:
+            out[n, 0] = (u - cx - skew * (v - cy) / fy) / fx
+            out[n, 1] = (v - cy) / fy
+        elif code == 1:
+            out[n, 0], out[n, 1] = _undistort_polynomial(u, v, fx, fy, cx, cy, k)
+        else:
+            out[n, 0], out[n, 1] = _undistort_fisheye(u, v, fx, fy, cx, cy, k)
+
+
+@njit
+def _undistort_polynomial(u, v, fx, fy, cx, cy, k):  # pragma: no cover - compiled
+    """OpenCV's ``cvUndistortPointsInternal`` for one pixel (no tilt, no thin prism):
+    fixed-point steps until the point reprojects within 1e-12 px."""
+    ifx, ify = 1.0 / fx, 1.0 / fy
+    x0 = x = (u - cx) * ifx
+    y0 = y = (v - cy) * ify
+    error = np.inf
+    for _ in range(_UNDISTORT_MAX_ITER):
+        if error < _UNDISTORT_EPS:
+            break
+        r2 = x * x + y * y
+        icdist = ((1 + ((k[7] * r2 + k[6]) * r2 + k[5]) * r2)
+                  / (1 + ((k[4] * r2 + k[1]) * r2 + k[0]) * r2))
+        if icdist < 0:
+            return x0, y0
+        dx = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+        dy = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+        x = (x0 - dx) * icdist
+        y = (y0 - dy) * icdist
+        r2 = x * x + y * y
+        r4 = r2 * r2
+        r6 = r4 * r2
+        cdist = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
+        icdist2 = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+        xd = x * cdist * icdist2 + k[2] * 2 * x * y + k[3] * (r2 + 2 * x * x)
+        yd = y * cdist * icdist2 + k[2] * (r2 + 2 * y * y) + k[3] * 2 * x * y
+        error = math.hypot(xd * fx + cx - u, yd * fy + cy - v)
+    return x, y
+
+
+@njit
+def _undistort_fisheye(u, v, fx, fy, cx, cy, k):  # pragma: no cover - compiled
+    """OpenCV's ``fisheye::undistortPoints`` for one pixel: Newton steps on the angle
+    ``theta`` until a step is below 1e-12; ``(-1e6, -1e6)`` when they do not converge
+    or the angle changes sign."""
+    wx, wy = (u - cx) / fx, (v - cy) / fy
+    theta_d = min(max(-math.pi / 2, math.sqrt(wx * wx + wy * wy)), math.pi / 2)
+    theta = theta_d
+    converged = False
+    scale = 1.0
+    if abs(theta_d) > _UNDISTORT_EPS:
+        for _ in range(_UNDISTORT_MAX_ITER):
+            t2 = theta * theta
+            t4 = t2 * t2
+            t6 = t4 * t2
+            t8 = t6 * t2
+            fix = ((theta * (1 + k[0] * t2 + k[1] * t4 + k[2] * t6 + k[3] * t8) - theta_d)
+                   / (1 + 3 * k[0] * t2 + 5 * k[1] * t4 + 7 * k[2] * t6 + 9 * k[3] * t8))
+            theta = theta - fix
+            if abs(fix) < _UNDISTORT_EPS:
+                converged = True
+                break
+        scale = math.tan(theta) / theta_d
+    else:
+        converged = True
+    flipped = (theta_d < 0 and theta > 0) or (theta_d > 0 and theta < 0)
+    if converged and not flipped:
+        return wx * scale, wy * scale
+    return -1e6, -1e6
+
+
+@warmer
+def _warm() -> None:
+    px = np.zeros((1, 2))
+    px.setflags(write=False)
+    for cam in (CameraModel.pinhole(4, 4, 2.0),
+                CameraModel.pinhole(4, 4, 2.0, dist=[0.1, 0, 0, 0, 0]),
+                CameraModel.pinhole(4, 4, 2.0, dist=[0.1, 0, 0, 0], model="equidistant")):
+        undistort_points(px, *cam.lens, np.empty((1, 2)))
+
+
 @functools.lru_cache(maxsize=8)
 def subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
     """``(H*ss, W*ss, 3)`` rays (z = 1, NaN where the lens has no inverse) of the
@@ -383,4 +499,5 @@ def subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
     return rays
 
 
-__all__ = ["CameraModel", "DISTORTION_MODELS", "subpixel_rays"]
+__all__ = ["CameraModel", "DISTORTION_MODELS", "LENS_EQUIDISTANT", "LENS_LINEAR",
+           "LENS_POLYNOMIAL", "subpixel_rays", "undistort_points"]

@@ -321,8 +321,8 @@ class LightsEstimator(Estimator):
         cand = Candidate(fix.x_m, fix.y_m, fix.yaw_rad, fix.pairs, float(k), 0.0,
                          fix.predicted - fix.found)
         quality = pose_quality(k, rms, cand, None, "tracked")
-        diag = {"spots": len(fix.spots), "candidates": fix.predicted,
-                "spots_px": fix.spots.centroids_px, "candidates_px": fix.predicted_px,
+        diag = {"spots": fix.found, "candidates": fix.predicted,
+                "spots_px": fix.centroids_px, "candidates_px": fix.predicted_px,
                 "kept": None, "inliers": k,
                 "matched_lights": tuple(self.site_ids[fix.pairs[:, 1]].tolist()),
                 "pairs": np.column_stack([fix.pairs[:, 0], self.site_ids[fix.pairs[:, 1]]]),

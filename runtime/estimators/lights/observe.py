@@ -288,6 +288,8 @@ class VisibilityTable:
     Attributes:
         origin_m: ``(2,)`` V coordinates of cell ``(0, 0)``; ``cell_m``: cell side.
         table: ``(NI, NJ)`` float32 distances from the nadir, px (``inf``: not seen).
+        padded: the table with a border of ``inf`` cells, flat (``(NI + 2) (NJ + 2)``,
+            row-major; read-only): what :meth:`locate`'s ``cell`` indexes.
     """
 
     def __init__(self, rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
@@ -324,7 +326,8 @@ class VisibilityTable:
         d = np.hypot(px[:, 0] - nadir_px[0], px[:, 1] - nadir_px[1])
         self.table = np.where(ok, d, np.inf).astype(np.float32).reshape(n[0], n[1])
         # the same, with a border of inf cells: a clipped index off the table lands there
-        self._padded = np.pad(self.table, 1, constant_values=np.inf).ravel()
+        self.padded = np.pad(self.table, 1, constant_values=np.inf).ravel()
+        self.padded.setflags(write=False)
 
     def __call__(self, x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
         """``(M,)`` map lights the detector should report from a pose: inside the image
@@ -346,7 +349,7 @@ class VisibilityTable:
         i = np.minimum(np.maximum(i, -1), ni) + 1
         j = np.minimum(np.maximum(j, -1), nj) + 1
         cell = i * (nj + 2) + j
-        d = self._padded[cell]
+        d = self.padded[cell]
         ok = np.isfinite(d)
         if ok.sum() > self.max_spots:
             ok[np.argsort(d, kind="stable")[self.max_spots:]] = False

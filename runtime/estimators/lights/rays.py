@@ -137,6 +137,12 @@ class GridTable:
 
     Args:
         grid: ``(GH, GW, ...)`` per-node table (nodes every ``step_px`` px from pixel 0).
+
+    Attributes:
+        coef: ``((GH - 1) (GW - 1), 4, C)`` the cells' coefficients (read-only).
+        limits: ``(1 / step_px, GW - 1, GH - 1, GW - 2, GH - 2, GW - 1)``: the scale,
+            the clamps of a node coordinate and of a cell index, the cells per row (for
+            a compiled reading: :func:`~.track._grid_row`).
     """
 
     def __init__(self, grid: np.ndarray, step_px: int) -> None:
@@ -145,12 +151,14 @@ class GridTable:
         g = np.asarray(grid, float).reshape(gh, gw, -1)
         v00, v01, v10, v11 = g[:-1, :-1], g[:-1, 1:], g[1:, :-1], g[1:, 1:]
         coef = np.stack([v00, v01 - v00, v10 - v00, v11 - v10 - v01 + v00], axis=2)
-        self._coef = np.ascontiguousarray(coef.reshape((gh - 1) * (gw - 1), 4, -1))
-        self._coef.setflags(write=False)
+        self.coef = np.ascontiguousarray(coef.reshape((gh - 1) * (gw - 1), 4, -1))
+        self.coef.setflags(write=False)
         self._scale = 1.0 / step_px
         self._hi = np.array([gw - 1.0, gh - 1.0])
         self._cell_hi = np.array([gw - 2, gh - 2])
         self._cells_w = gw - 1
+        self.limits = np.array([self._scale, gw - 1.0, gh - 1.0, gw - 2, gh - 2, gw - 1.0])
+        self.limits.setflags(write=False)
 
     def __call__(self, points_px: np.ndarray) -> np.ndarray:
         """``(N, ...)`` the table at pixels ``(N, 2)`` (clamped to the grid)."""
@@ -159,7 +167,7 @@ class GridTable:
         np.minimum(f, self._hi, out=f)
         i = np.minimum(f.astype(np.intp), self._cell_hi)
         f -= i                                                # (a, b) within the cell
-        c = self._coef[i[:, 1] * self._cells_w + i[:, 0]]     # (N, 4, C)
+        c = self.coef[i[:, 1] * self._cells_w + i[:, 0]]      # (N, 4, C)
         w = np.empty((f.shape[0], 1, 4))
         w[:, 0, 0] = 1.0
         w[:, 0, 1:3] = f

@@ -13,6 +13,16 @@ I_b), 0)``, the same reading as the global detector's
 window is its light's), so the pose is :func:`~.refine.refine_pose_ceiling` from the
 prior, with the same outlier pass as the global path.
 
+The whole path, from the prior to the refined pose, is one compiled call
+(:func:`_track`, :mod:`ceilkit.runtime.jit`): a tracked frame is a few thousand pixels
+and a dozen 3x3 solves, which in numpy cost a hundred calls of a few microseconds each.
+Its stages (:func:`_predict`, :func:`_measure`, :func:`_fit`) are the same reading as
+the array functions they stand for (:meth:`~.observe.VisibilityTable.locate`,
+:func:`~ceilkit.runtime.features.windows.window_stats`,
+:class:`~.rays.GridTable`, :meth:`~.observe.SpotObserver.plausible`,
+:func:`~.rays.ceiling_points`, :func:`~.refine.refine_pose_ceiling`), and are tested
+against them.
+
 The window check: a light counts when its window has contrast, its bright part does
 not touch the window's border (not cut off, not a neighbour's), and its area and
 shape fit the light at that place (:meth:`~.observe.SpotObserver.plausible`); the
@@ -40,15 +50,22 @@ import numpy as np
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.observe import JAC_STEP_PX, SpotObserver, VisibilityTable
 from ceilkit.runtime.estimators.lights.rays import (
-    ceiling_points,
     interp_grid,
+    mount_arrays,
     pixel_scale,
     project_lights,
 )
-from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
-from ceilkit.runtime.features.spots import Spots, rows_to_spots
-from ceilkit.runtime.features.windows import CORE, window_stats
-from ceilkit.runtime.geometry.fits import short_median
+from ceilkit.runtime.estimators.lights.refine import _gauss_newton
+from ceilkit.runtime.features.spots import (
+    _FLAT_ERODE_PX,
+    _FLAT_MAX_RESIDUAL,
+    _FLAT_MIN_GAIN,
+    _FLAT_MIN_PX,
+    FLAT_MIN_AREA_PX,
+)
+from ceilkit.runtime.features.windows import CORE, _read_windows
+from ceilkit.runtime.geometry.camera import undistort_points
+from ceilkit.runtime.jit import arr, njit, warmer
 
 MAX_HALF_PX = 40
 """A window is at most ``2 MAX_HALF_PX + 1`` pixels wide (large spots near the nadir)."""
@@ -83,12 +100,14 @@ class WindowFix:
     """What the windows found and the pose they give.
 
     Attributes:
-        x_m, y_m, yaw_rad, cov, res_px: the refined pose, its covariance and the kept
-            lights' residuals (px), as :func:`~.refine.refine_pose_ceiling`.
-        spots: the found lights (the kept ones), as the global detector's :class:`Spots`.
-        pairs: ``(K, 2)`` (index in ``spots``, map light index).
+        x_m, y_m, yaw_rad: the refined pose; ``cov`` its covariance (3, 3);
+            ``res_px`` the kept lights' residual norms (px), as
+            :func:`~.refine.refine_pose_ceiling`.
+        centroids_px: ``(F, 2)`` the found lights' centroids (every window that held a
+            plausible light).
+        pairs: ``(K, 2)`` (index in ``centroids_px``, map light index) of the kept ones.
         predicted: how many lights the prior says the detector should report.
-        found: how many windows held a plausible light.
+        found: how many windows held a plausible light (``F``).
         predicted_px: ``(M, 2)`` the predicted pixels (for overlays).
     """
 
@@ -97,11 +116,19 @@ class WindowFix:
     yaw_rad: float
     cov: np.ndarray
     res_px: np.ndarray
-    spots: Spots
+    centroids_px: np.ndarray
     pairs: np.ndarray
     predicted: int
     found: int
     predicted_px: np.ndarray
+
+
+# why a window fix was refused (:func:`_track`'s status; 0: a fix)
+FIX, FEW_PREDICTED, WINDOW_TOO_BIG, FEW_FOUND, NO_RAY, FEW_KEPT, CHECK = range(7)
+
+# the tracker's numbers, one read-only vector for the compiled call (_params)
+_P_WINDOW, _P_CONTRAST, _P_SHARE, _P_RESIDUAL, _P_MEDIANS, _P_GATE_M, _P_GATE_RAD, \
+    _P_DZ, _P_RADIUS = range(9)
 
 
 class WindowTracker:
@@ -124,9 +151,8 @@ class WindowTracker:
                  min_contrast: float, min_share: float, max_residual_px: float,
                  outlier_medians: float, gate_m: float, gate_rad: float) -> None:
         self.rig, self.ceiling_height_m = rig, ceiling_height_m
-        self.lights_w = np.asarray(lights_w, float)
+        self.lights_w = arr(lights_w, np.float64)
         self.observer, self.visibility = observer, visibility
-        self._cells = prediction_cells(rig, ceiling_height_m, visibility, observer.table)
         self.window_px = float(window_px)
         self.min_contrast = float(min_contrast)
         self.min_share = float(min_share)
@@ -134,101 +160,372 @@ class WindowTracker:
         self.gate_m, self.gate_rad = gate_m, gate_rad
         cam = rig.camera
         self.width, self.height = cam.width, cam.height
+        # everything the compiled call reads, made once (read-only arrays)
+        params = np.zeros(9)
+        params[[_P_WINDOW, _P_CONTRAST, _P_SHARE, _P_RESIDUAL, _P_MEDIANS, _P_GATE_M,
+                _P_GATE_RAD, _P_DZ, _P_RADIUS]] = (
+            window_px, min_contrast, min_share, max_residual_px, outlier_medians, gate_m,
+            gate_rad, ceiling_height_m - rig.mount.z_m, observer.light_radius_m)
+        R_vc, t_vc = mount_arrays(rig.mount)
+        vis = visibility
+        grid = observer.grid
+        self._consts = (
+            arr(prediction_cells(rig, ceiling_height_m, visibility, observer.table),
+                np.float64),
+            arr(vis.padded, np.float32),
+            arr([vis.origin_m[0], vis.origin_m[1], vis.cell_m], np.float64),
+            arr([vis.table.shape[0], vis.table.shape[1], vis.max_spots, cam.width,
+                 cam.height, MAX_HALF_PX], np.int64),
+            arr(grid.coef, np.float64),
+            arr(grid.limits, np.float64),
+            *cam.lens, arr(R_vc, np.float64), arr(t_vc, np.float64), arr(params, np.float64))
+        self._cells = self._consts[0]
 
     def observe(self, grey: np.ndarray, x_m: float, y_m: float, yaw_rad: float
                 ) -> WindowFix | None:
         """The pose from the windows around the lights predicted from ``(x, y, yaw)``
         on a ``(H, W)`` uint8 frame, or ``None`` when the window check fails."""
-        pred = self._predict(x_m, y_m, yaw_rad)
-        if pred is None:
+        out = _track(arr(grey, np.uint8), float(x_m), float(y_m), float(yaw_rad),
+                     self.lights_w, *self._consts)
+        status, x, y, yaw, cov, res, cen, pairs, m, found, px = out
+        if status != FIX:
             return None
-        idx, px, m, corner, half = pred
-        spots, good, tab = self._measure(grey, corner, half, m)
-        n_found = int(np.count_nonzero(good))
-        if n_found < max(3, math.ceil(self.min_share * m)):
-            return None
-        fit = self._fit(spots.select(good), idx[good], tab[good], x_m, y_m, yaw_rad)
-        if fit is None:
-            return None
-        x, y, yaw, cov_p, res, spots, pairs = fit
-        return WindowFix(x, y, yaw, cov_p, res, spots, pairs, m, n_found, px)
+        return WindowFix(x, y, yaw, cov, res, cen, pairs, m, found, px)
 
     def _predict(self, x_m: float, y_m: float, yaw_rad: float):
         """``(map indices, predicted px, predicted count, window corners, half side)``
-        of the finite predictions, or ``None`` (fewer than 3, or windows too big).
-
-        One lookup: the visibility table's cell of every map light, and the pixel
-        there from :func:`prediction_cells` (the cell centre's pixel plus its
-        Jacobian times the light's offset from the centre); no projection."""
-        ok, cell, z = self.visibility.locate(x_m, y_m, yaw_rad)
-        idx = np.flatnonzero(ok)
-        m = idx.size
-        if m < 3:
-            return None
-        c = self._cells[cell[idx]]                                          # (M, 9)
-        z = z[idx]
-        dq = np.stack([z.real, z.imag], axis=1) - c[:, :2]                 # (M, 2) m
-        px = c[:, 2:4] + (c[:, 4:8].reshape(-1, 2, 2) @ dq[:, :, None])[:, :, 0]
-        area = c[:, 8]
-        fin = np.isfinite(px[:, 0]) & np.isfinite(area)
-        n_fin = int(np.count_nonzero(fin))
-        if n_fin < 3:
-            return None
-        r_spot = math.sqrt(max(float(area[fin].max()), 1.0) / math.pi)
-        half = int(min(MAX_HALF_PX, math.ceil(r_spot * 1.6 + self.window_px)))
-        side = 2 * half + 1
-        w, h = self.width, self.height
-        if side >= min(w, h):
-            return None
-        if n_fin < m:
-            idx, px = idx[fin], px[fin]
-        # window corners, kept inside the image (a window at the border is shifted in)
-        corner = np.rint(px).astype(np.int64) - half
-        np.maximum(corner, 0, out=corner)
-        np.minimum(corner, (w - side, h - side), out=corner)
-        return idx, px, m, corner, half
+        of the finite predictions, or ``None`` (fewer than 3, or windows too big)
+        (:func:`_predict`)."""
+        c = self._consts
+        status, idx, px, m, corner, half = _predict(
+            float(x_m), float(y_m), float(yaw_rad), self.lights_w, c[0], c[1], c[2], c[3],
+            c[-1][_P_WINDOW])
+        return None if status != FIX else (idx, px, m, corner, half)
 
     def _measure(self, grey: np.ndarray, corner: np.ndarray, half: int, m: int
-                 ) -> tuple[Spots, np.ndarray, np.ndarray]:
-        """The windows' spots (centroids in the frame), which pass the window check and
-        the spot table at their centroids."""
-        rows, good, contrast = window_stats(grey, corner, 2 * half + 1)
-        good &= contrast >= self.min_contrast
-        spots = rows_to_spots(rows, m)
-        tab = self.observer.grid(spots.centroids_px)
-        good &= np.isfinite(tab[:, 0])
-        if self.observer.light_radius_m > 0 and good.any():
-            good &= self.observer.plausible(spots, tab, good)
-        return spots, good, tab
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(rows (K, 8), good (K,), table rows (K, 10))`` of the windows at
+        ``corner (K, 2)``: :func:`~ceilkit.runtime.features.windows.window_stats`'s
+        rows, which pass the window check and the spot table's (:func:`_measure`)."""
+        c = self._consts
+        return _measure(arr(grey, np.uint8), np.ascontiguousarray(corner, np.int64),
+                        int(half), c[4], c[5], c[-1])
 
-    def _fit(self, spots: Spots, idx: np.ndarray, tab: np.ndarray, x_m: float, y_m: float,
-             yaw_rad: float):
-        """The refined pose from the found lights (known association) with the outlier
-        pass and the frame's checks: ``(x, y, yaw, cov, res, spots, pairs)`` or ``None``."""
-        q, ok = ceiling_points(self.rig, self.ceiling_height_m,
-                               self.observer.centres(spots.centroids_px, tab))
-        if not ok.all():
-            return None
-        J = tab[:, :4].reshape(-1, 2, 2)
-        pairs = np.stack([np.arange(idx.size), idx], axis=1)
-        L = self.lights_w[idx]
-        fit = refine_pose_ceiling(q, J, L, x_m, y_m, yaw_rad)
-        res = fit[4]
-        bad = res > max(self.max_residual_px, self.outlier_medians * short_median(res))
-        if bad.any():
-            if idx.size - int(bad.sum()) < 3:
-                return None
-            keep = ~bad
-            pairs = pairs[keep]
-            fit = refine_pose_ceiling(q[keep], J[keep], L[keep], *fit[:3])
-            res = fit[4]
-        x, y, yaw, cov_p, res = fit
-        rms = math.sqrt(float((res * res).sum()) / res.size)
-        if (rms > self.max_residual_px or not np.all(np.isfinite(cov_p))
-                or math.hypot(x - x_m, y - y_m) > self.gate_m
-                or abs(math.remainder(yaw - yaw_rad, 2 * math.pi)) > self.gate_rad):
-            return None
-        return x, y, yaw, cov_p, res, spots, pairs
+
+@njit
+def _track(grey, x, y, yaw, lights, cells, vis, vis_geo, ints, coef, limits, lens_code,
+           lens, R, t, params):  # pragma: no cover - compiled
+    """The window fix from a prior ``(x, y, yaw)`` (module doc): ``(status, x, y, yaw,
+    cov (3, 3), res (K,), centroids (F, 2), pairs (K, 2), predicted, found,
+    predicted_px (M, 2))``, status :data:`FIX` or why not (the rest then empty)."""
+    status, idx, px, m, corner, half = _predict(x, y, yaw, lights, cells, vis, vis_geo,
+                                                 ints, params[_P_WINDOW])
+    if status != FIX:
+        return _refused(status, px, m)
+    rows, good, tab = _measure(grey, corner, half, coef, limits, params)
+    n_found = 0
+    for i in range(good.size):
+        n_found += good[i]
+    if n_found < max(3, math.ceil(params[_P_SHARE] * m)):
+        return _refused(FEW_FOUND, px, m)
+    cen = np.empty((n_found, 2))
+    jac = np.empty((n_found, 2, 2))
+    centres = np.empty((n_found, 2))
+    L = np.empty((n_found, 2))
+    pairs = np.empty((n_found, 2), np.int64)
+    f = 0
+    for i in range(good.size):
+        if not good[i]:
+            continue
+        cen[f, 0], cen[f, 1] = rows[i, 0], rows[i, 1]
+        # the light's centre: the centroid minus its disc's offset (SpotObserver.centres)
+        ou, ov = tab[i, 8], tab[i, 9]
+        centres[f, 0] = rows[i, 0] - (ou if math.isfinite(ou) else 0.0)
+        centres[f, 1] = rows[i, 1] - (ov if math.isfinite(ov) else 0.0)
+        jac[f, 0, 0], jac[f, 0, 1], jac[f, 1, 0], jac[f, 1, 1] = (tab[i, 0], tab[i, 1],
+                                                                  tab[i, 2], tab[i, 3])
+        L[f, 0], L[f, 1] = lights[idx[i], 0], lights[idx[i], 1]
+        pairs[f, 0], pairs[f, 1] = f, idx[i]
+        f += 1
+    q = np.empty((n_found, 2))
+    if not _ceiling_points(centres, lens_code, lens, R, t, params[_P_DZ], q):
+        return _refused(NO_RAY, px, m)
+    status, fx, fy, fyaw, cov, res, keep = _fit(q, jac, L, x, y, yaw, params)
+    if status != FIX:
+        return _refused(status, px, m)
+    return (FIX, fx, fy, fyaw, cov, res, cen, pairs[keep], m, n_found, px)
+
+
+@njit
+def _refused(status, px, m):  # pragma: no cover - compiled
+    return (status, 0.0, 0.0, 0.0, np.full((3, 3), np.inf), np.empty(0), np.empty((0, 2)),
+            np.empty((0, 2), np.int64), m, 0, px)
+
+
+@njit
+def _predict(x, y, yaw, lights, cells, vis, vis_geo, ints, window_px
+             ):  # pragma: no cover - compiled
+    """``(status, map indices (K,), predicted px (K, 2), predicted count, window corners
+    (K, 2), half side)`` of the lights the visibility table reports from ``(x, y,
+    yaw)`` (:meth:`~.observe.VisibilityTable.locate`: the ``max_spots`` nearest the
+    nadir, ties in map order), placed by the prediction table
+    (:func:`prediction_cells`: the cell centre's pixel plus its Jacobian times the
+    light's offset from the centre) and kept where that is finite. Status
+    :data:`FEW_PREDICTED` below 3, :data:`WINDOW_TOO_BIG` when the windows (sized by
+    the largest predicted spot) would not fit the frame."""
+    ni, nj, max_spots, w, h, max_half = ints[0], ints[1], ints[2], ints[3], ints[4], ints[5]
+    ox, oy, cell_m = vis_geo[0], vis_geo[1], vis_geo[2]
+    n = lights.shape[0]
+    c, s = math.cos(yaw), -math.sin(yaw)
+    zr = np.empty(n)
+    zi = np.empty(n)
+    cell = np.empty(n, np.int64)
+    d = np.empty(n, np.float32)
+    seen = 0
+    for k in range(n):
+        # the light in V, x + iy: (L - t) Rz(-yaw), as a complex product
+        a, b = lights[k, 0] - x, lights[k, 1] - y
+        zr[k] = a * c - b * s
+        zi[k] = a * s + b * c
+        i = min(max(np.int64(np.rint((zr[k] - ox) / cell_m)), -1), ni) + 1
+        j = min(max(np.int64(np.rint((zi[k] - oy) / cell_m)), -1), nj) + 1
+        cell[k] = i * (nj + 2) + j
+        d[k] = vis[cell[k]]
+        if math.isfinite(d[k]):
+            seen += 1
+    ok = np.empty(n, np.bool_)
+    for k in range(n):
+        ok[k] = math.isfinite(d[k])
+    if seen > max_spots:                 # the max_spots nearest the nadir (stable)
+        order = np.argsort(d, kind="mergesort")
+        for r in range(max_spots, n):
+            ok[order[r]] = False
+        seen = max_spots
+    m = seen
+    idx = np.empty(m, np.int64)
+    px = np.empty((m, 2))
+    area = np.empty(m)
+    fin = np.zeros(m, np.bool_)
+    r = 0
+    for k in range(n):
+        if ok[k]:
+            idx[r] = k
+            e = cells[cell[k]]
+            dx, dy = zr[k] - e[0], zi[k] - e[1]
+            px[r, 0] = e[2] + (e[4] * dx + e[5] * dy)
+            px[r, 1] = e[3] + (e[6] * dx + e[7] * dy)
+            area[r] = e[8]
+            fin[r] = math.isfinite(px[r, 0]) and math.isfinite(area[r])
+            r += 1
+    n_fin = 0
+    a_max = -np.inf
+    for r in range(m):
+        if fin[r]:
+            n_fin += 1
+            a_max = max(a_max, area[r])
+    none = np.empty(0, np.int64)
+    if m < 3 or n_fin < 3:
+        return FEW_PREDICTED, none, px, m, np.empty((0, 2), np.int64), 0
+    r_spot = math.sqrt(max(a_max, 1.0) / math.pi)
+    half = np.int64(min(max_half, math.ceil(r_spot * 1.6 + window_px)))
+    side = 2 * half + 1
+    if side >= min(w, h):
+        return WINDOW_TOO_BIG, none, px, m, np.empty((0, 2), np.int64), 0
+    if n_fin < m:
+        idx, px = idx[fin], px[fin]
+    corner = np.empty((n_fin, 2), np.int64)
+    for r in range(n_fin):
+        # a window at the border is shifted in
+        corner[r, 0] = min(max(np.int64(np.rint(px[r, 0])) - half, 0), w - side)
+        corner[r, 1] = min(max(np.int64(np.rint(px[r, 1])) - half, 0), h - side)
+    return FIX, idx, px, m, corner, half
+
+
+@njit
+def _measure(grey, corner, half, coef, limits, params):  # pragma: no cover - compiled
+    """``(rows (K, 8), good (K,), table (K, 10))`` of the windows at ``corner``:
+    :func:`~ceilkit.runtime.features.windows.window_stats`' rows ``(u, v, I_o, I_b,
+    c00, c01, c11, area)``; ``good`` where the window check passes (a spot clear of
+    the window's border, contrast ``>= min_contrast``), the spot table is finite at the
+    centroid and (a light of known radius) its size and shape fit
+    (:meth:`~.observe.SpotObserver.plausible`); the spot table's row at each good
+    centroid (:class:`~.rays.GridTable`; NaN elsewhere)."""
+    k = corner.shape[0]
+    side = 2 * half + 1
+    rect = np.empty((k, 4), np.int64)
+    for i in range(k):
+        rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3] = 0, 0, side - 1, side - 1
+    out = _read_windows(grey, corner, side, rect, CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX,
+                        _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN)
+    rows = np.empty((k, 8))
+    good = np.zeros(k, np.bool_)
+    tab = np.full((k, coef.shape[2]), np.nan)
+    check_shape = params[_P_RADIUS] > 0
+    for i in range(k):
+        i_b, peak, area, touches, i_o = out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4]
+        m00 = out[i, 5]
+        ok = touches == 0 and area > 0 and m00 > 0
+        div = m00 if ok else 1.0
+        cx, cy = out[i, 6] / div, out[i, 8] / div
+        rows[i, 0] = corner[i, 0] + half + cx
+        rows[i, 1] = corner[i, 1] + half + cy
+        rows[i, 2] = i_o
+        rows[i, 3] = i_b
+        rows[i, 4] = out[i, 7] / div - cx * cx
+        rows[i, 5] = out[i, 10] / div - cx * cy
+        rows[i, 6] = out[i, 9] / div - cy * cy
+        rows[i, 7] = area
+        if not (ok and peak - i_b >= params[_P_CONTRAST]):
+            continue
+        _grid_row(coef, limits, rows[i, 0], rows[i, 1], tab[i])
+        if not math.isfinite(tab[i, 0]):
+            continue
+        good[i] = not check_shape or _plausible(rows[i], tab[i])
+    return rows, good, tab
+
+
+@njit
+def _grid_row(coef, limits, u, v, out):  # pragma: no cover - compiled
+    """Into ``out (C,)``: :class:`~.rays.GridTable`'s reading at pixel ``(u, v)``
+    (``limits``: :attr:`~.rays.GridTable.limits`)."""
+    scale, hi_u, hi_v, cell_hi_u, cell_hi_v, cells_w = (limits[0], limits[1], limits[2],
+                                                        limits[3], limits[4], limits[5])
+    fu = min(max(u * scale, 0.0), hi_u)
+    fv = min(max(v * scale, 0.0), hi_v)
+    iu = min(np.int64(fu), np.int64(cell_hi_u))
+    iv = min(np.int64(fv), np.int64(cell_hi_v))
+    a, b = fu - iu, fv - iv
+    ab = a * b
+    c = coef[iv * np.int64(cells_w) + iu]
+    for j in range(out.size):
+        out[j] = c[0, j] + a * c[1, j] + b * c[2, j] + ab * c[3, j]
+
+
+@njit
+def _plausible(row, t):  # pragma: no cover - compiled
+    """:meth:`~.observe.SpotObserver.plausible` of one spot ``row`` (window_stats' row)
+    against its spot-table row ``t``."""
+    a_pred, a = t[7], row[7]
+    if not (a >= 0.15 * a_pred - 3 and a <= 5.0 * a_pred + 40):
+        return False
+    s00, s01, s11 = row[4], row[5], row[6]
+    c00, c01, c11 = t[4], t[5], t[6]
+    m00 = c00 * s00 + c01 * s01
+    m01 = c00 * s01 + c01 * s11
+    m10 = c01 * s00 + c11 * s01
+    m11 = c01 * s01 + c11 * s11
+    tr = m00 + m11
+    det = m00 * m11 - m01 * m10
+    disc = math.sqrt(max(tr * tr / 4 - det, 0.0))
+    lo, hi = tr / 2 - disc, tr / 2 + disc
+    root = math.sqrt(max(det, 0.0))
+    return lo > 0 and lo >= 0.2 * hi and root > 0.05 and root < 6.0
+
+
+@njit
+def _ceiling_points(px, lens_code, lens, R, t, dz, q):  # pragma: no cover - compiled
+    """Into ``q (N, 2)``: :func:`~.rays.ceiling_points` of pixels ``px (N, 2)`` (``dz``:
+    the ceiling's height above the camera); False when a ray does not rise."""
+    xy = np.empty_like(px)
+    undistort_points(px, lens_code, lens, xy)
+    for i in range(px.shape[0]):
+        x, y = xy[i, 0], xy[i, 1]
+        rx = R[0, 0] * x + R[0, 1] * y + R[0, 2]
+        ry = R[1, 0] * x + R[1, 1] * y + R[1, 2]
+        rz = R[2, 0] * x + R[2, 1] * y + R[2, 2]
+        if not rz > 1e-6 * math.sqrt(rx * rx + ry * ry + rz * rz):
+            return False
+        s = dz / rz
+        q[i, 0] = t[0] + s * rx
+        q[i, 1] = t[1] + s * ry
+    return True
+
+
+@njit
+def _fit(q, jac, L, x, y, yaw, params):  # pragma: no cover - compiled
+    """``(status, x, y, yaw, cov, res, keep)``: :func:`~.refine.refine_pose_ceiling`
+    from the prior, one outlier pass (residuals beyond ``max(max_residual_px,
+    outlier_medians x median)`` dropped, refitted from the first fit) and the frame's
+    checks (RMS, a finite covariance, within the prior's gate): status :data:`FEW_KEPT`
+    or :data:`CHECK` when they fail."""
+    k = q.shape[0]
+    keep = np.ones(k, np.bool_)
+    fx, fy, fyaw, cov, res = _refine(q, jac, L, x, y, yaw)
+    limit = max(params[_P_RESIDUAL], params[_P_MEDIANS] * _median(res))
+    n_bad = 0
+    for i in range(k):
+        if res[i] > limit:
+            keep[i] = False
+            n_bad += 1
+    if n_bad:
+        if k - n_bad < 3:
+            return FEW_KEPT, 0.0, 0.0, 0.0, cov, res, keep
+        fx, fy, fyaw, cov, res = _refine(q[keep], jac[keep], L[keep], fx, fy, fyaw)
+    ss = 0.0
+    for i in range(res.size):
+        ss += res[i] * res[i]
+    rms = math.sqrt(ss / res.size)
+    finite = True
+    for a in range(3):
+        for b in range(3):
+            finite = finite and math.isfinite(cov[a, b])
+    d_yaw = fyaw - yaw
+    d_yaw -= 2 * math.pi * np.rint(d_yaw / (2 * math.pi))
+    if (rms > params[_P_RESIDUAL] or not finite
+            or math.hypot(fx - x, fy - y) > params[_P_GATE_M]
+            or abs(d_yaw) > params[_P_GATE_RAD]):
+        return CHECK, fx, fy, fyaw, cov, res, keep
+    return FIX, fx, fy, fyaw, cov, res, keep
+
+
+@njit
+def _refine(q, jac, L, x, y, yaw):  # pragma: no cover - compiled
+    """:func:`~.refine.refine_pose_ceiling` (3 iterations, a 0.1 px noise floor):
+    ``(x, y, yaw in [-pi, pi), cov, residual norms)``."""
+    k = q.shape[0]
+    pose = np.array([x, y, yaw])
+    N = np.empty((3, 3))
+    norms = np.empty(k)
+    ssr = _gauss_newton(q, jac, L, pose, 3, N, norms)
+    dof = 2 * k - 3
+    s2 = max(ssr / dof if dof > 0 else 0.0, 0.1 ** 2)
+    cov = np.full((3, 3), np.inf)
+    if math.isfinite(ssr):
+        a, b, c, d, e, f = N[0, 0], N[0, 1], N[0, 2], N[1, 1], N[1, 2], N[2, 2]
+        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+        det = a * A + b * B + c * C
+        if math.isfinite(det) and abs(det) > 1e-300:
+            D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+            g = s2 * (1.0 / det)
+            cov[0, 0], cov[0, 1], cov[0, 2] = A * g, B * g, C * g
+            cov[1, 0], cov[1, 1], cov[1, 2] = B * g, D * g, E * g
+            cov[2, 0], cov[2, 1], cov[2, 2] = C * g, E * g, F * g
+    wrapped = (pose[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return pose[0], pose[1], wrapped, cov, norms
+
+
+@njit
+def _median(x):  # pragma: no cover - compiled
+    """:func:`~ceilkit.runtime.geometry.fits.short_median`."""
+    s = np.sort(x)
+    n = s.size
+    return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
+
+
+@warmer
+def _warm() -> None:
+    from ceilkit.runtime.geometry.camera import CameraModel
+
+    cam = CameraModel.pinhole(16, 16, 10.0)
+    grey = arr(np.zeros((16, 16), np.uint8), np.uint8)
+    f = arr(np.zeros((1, 2)), np.float64)
+    _track(grey, 0.0, 0.0, 0.0, f, arr(np.zeros((1, 9)), np.float64),
+           arr(np.zeros(1), np.float32), arr(np.zeros(3), np.float64),
+           arr(np.ones(6), np.int64), arr(np.zeros((1, 4, 10)), np.float64),
+           arr(np.ones(6), np.float64), *cam.lens, arr(np.eye(3), np.float64),
+           arr(np.zeros(3), np.float64), arr(np.zeros(9), np.float64))
+    _measure(grey, np.zeros((1, 2), np.int64), 1, arr(np.zeros((1, 4, 10)), np.float64),
+             arr(np.ones(6), np.float64), arr(np.zeros(9), np.float64))
 
 
 __all__ = ["CORE", "MAX_HALF_PX", "WindowFix", "WindowTracker", "prediction_cells"]

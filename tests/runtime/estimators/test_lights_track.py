@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import lights_track_reference as reference
 import numpy as np
 import pytest
 
@@ -141,3 +142,37 @@ def test_track_options_from_cli_strings(lights_rig, lights_site):
                           {"track": "true", "track_window_px": "6", "track_full_every": "10"})
     assert est.options.track and est.options.track_window_px == 6.0
     assert est.windows is not None and est.windows.window_px == 6.0
+
+
+def test_compiled_window_fix_equals_the_array_reading(lights_rig, lights_site):
+    """The compiled fix (one call from the prior to the refined pose) decides as the
+    array functions it stands for (tests/lights_track_reference.py)
+    and gives their numbers: priors near and far, lights cut by the frame's border,
+    a window moved off its light."""
+    est = LightsEstimator(lights_rig, lights_site, {"track": True})
+    w: WindowTracker = est.windows
+    rng = np.random.default_rng(11)
+    fixes = refused = 0
+    for k in range(12):
+        x, y, yaw = rng.uniform(1, 17), rng.uniform(-4, 4), rng.uniform(-3, 3)
+        img = frame(lights_rig, lights_site, x, y, yaw, 20 + k)
+        for err in (0.0, 0.03, 0.3):
+            px, py, pyaw = x + rng.normal(0, err), y + rng.normal(0, err), yaw + rng.normal(0, err)
+            a = w.observe(img, px, py, pyaw)
+            b = reference.observe(w, img, px, py, pyaw)
+            assert (a is None) == (b is None), (k, err)
+            if a is None:
+                refused += 1
+                continue
+            fixes += 1
+            x_b, y_b, yaw_b, cov_b, res_b, cen_b, pairs_b, m_b, found_b, pred_b = b
+            # the same pose to float rounding carried through three Gauss-Newton steps
+            assert abs(a.x_m - x_b) < 1e-6 and abs(a.y_m - y_b) < 1e-6
+            assert abs(a.yaw_rad - yaw_b) < 1e-7
+            np.testing.assert_allclose(a.cov, cov_b, rtol=1e-4)
+            np.testing.assert_allclose(a.res_px, res_b, atol=1e-4)
+            np.testing.assert_allclose(a.centroids_px, cen_b, atol=1e-9)
+            np.testing.assert_allclose(a.predicted_px, pred_b, atol=1e-9)
+            assert np.array_equal(a.pairs, pairs_b)
+            assert (a.predicted, a.found) == (m_b, found_b)
+    assert fixes >= 20 and refused >= 3, (fixes, refused)

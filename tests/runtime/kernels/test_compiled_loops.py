@@ -632,3 +632,32 @@ def test_lights_refine_with_a_nan_point_has_no_covariance():
     J = rng.normal(0, 300, (3, 2, 2))
     *_, cov, _ = refine_pose_ceiling(q, J, L, 0.1, -0.1, 0.05)
     assert np.all(np.isinf(cov))
+
+
+# ------------------------------------------------------------------------------- lens
+
+
+@pytest.mark.parametrize("model,dist,skew", [
+    ("plumb_bob", [0.0] * 5, 1.5),
+    ("plumb_bob", [-0.3, 0.1, 0.001, -0.002, 0.0], 0.0),
+    ("plumb_bob", [-0.3, 0.1, 0.001, -0.002, -0.02], 2.0),
+    ("rational_polynomial", [0.2, 0.05, 0.001, -0.002, 0.01, 0.3, 0.02, 0.01], 0.0),
+    ("equidistant", [0.05, -0.01, 0.002, 0.0], 0.0),
+    ("equidistant", [-0.3, 0.2, -0.1, 0.02], 1.5),
+])
+def test_undistort_points_is_opencvs_inverse(model, dist, skew):
+    """The compiled lens inverse gives OpenCV's numbers (CameraModel.unproject) wherever
+    the lens has an inverse (the point reprojects), over and beyond the image."""
+    from ceilkit.runtime.geometry.camera import CameraModel, undistort_points
+
+    K = np.array([[300.0, skew, 320.0], [0.0, 310.0, 240.0], [0.0, 0.0, 1.0]])
+    cam = CameraModel(640, 480, K, dist, model=model)
+    rng = np.random.default_rng(3)
+    px = np.stack([rng.uniform(-40, 680, 3000), rng.uniform(-40, 520, 3000)], 1)
+    px[:4] = [[320.0, 240.0], [0.0, 0.0], [639.0, 479.0], [320.0, 0.0]]
+    ref = cam.unproject(px)
+    out = np.empty_like(px)
+    undistort_points(px, *cam.lens, out)
+    has_inverse = cam.reprojects(px, ref, 1e-6)
+    assert has_inverse[:4].all() and has_inverse.mean() > 0.8
+    assert np.abs(out - ref)[has_inverse].max() < 1e-10
