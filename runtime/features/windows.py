@@ -18,6 +18,8 @@ Example::
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -109,29 +111,37 @@ def _read_windows(grey, corner, side, rect, core, flat_min_area, erode, min_px,
     last = side - 1
     obj = np.zeros((side, side), np.uint8)
     tmp = np.zeros((side, side), np.uint8)
+    row_peak = np.zeros(side, np.uint8)
     for n in range(k):
         x0, y0 = corner[n, 0], corner[n, 1]
         win = grey[y0:y0 + side, x0:x0 + side]
         box = (max(rect[n, 0], 0), max(rect[n, 1], 0), min(rect[n, 2], last),
                min(rect[n, 3], last))
-        i_b, peak, area, edge, i_o = _levels(win, box, obj)
+        i_b, peak, area, edge, i_o, above = _levels(win, box, row_peak)
         base = i_b + core * (i_o - i_b)
         plane = (False, 1.0, 0.0, 0.0, 0.0, 0.0)
         if area >= flat_min_area:
+            _mark(win, box, above, obj)
             plane = _plateau(win, obj, tmp, i_o - i_b, erode, min_px, max_residual)
         out[n, 0] = i_b
         out[n, 1] = peak
         out[n, 2] = area
         out[n, 3] = edge
         out[n, 4] = i_o
-        _weighted_moments(win, box, base, plane, min_gain, out[n, 5:])
+        if plane[0]:
+            _weighted_moments(win, box, base, plane, min_gain, out[n, 5:])
+        else:
+            _plain_moments(win, box, base, row_peak, out[n, 5:])
     return out
 
 
 @njit
-def _levels(win, box, obj):  # pragma: no cover - compiled
-    """``(I_b, peak, area, on_border, I_o)`` of one window (:func:`_read_windows`);
-    ``obj`` (the window's shape) is set to the spot's pixels (1)."""
+def _levels(win, box, row_peak):  # pragma: no cover - compiled
+    """``(I_b, peak, area, on_border, I_o, above)`` of one window
+    (:func:`_read_windows`): the spot's pixels are those of ``box`` at or above the
+    integer ``above`` (a grey level is above the half-peak level ``L`` exactly when it
+    is at least ``floor(L) + 1``), counted in integers. ``row_peak`` gets each box
+    row's peak: the rows below a level are skipped."""
     side = win.shape[0]
     last = side - 1
     rx0, ry0, rx1, ry1 = box
@@ -143,31 +153,93 @@ def _levels(win, box, obj):  # pragma: no cover - compiled
     i_b = s / (4 * side - 4)
     peak = 0
     for i in range(ry0, ry1 + 1):
+        p = np.uint8(0)
         for j in range(rx0, rx1 + 1):
-            if win[i, j] > peak:
-                peak = win[i, j]
-    level = 0.5 * (i_b + peak)
+            p = max(p, win[i, j])
+        row_peak[i] = p
+        peak = max(peak, np.int64(p))
+    above = np.int64(math.floor(0.5 * (i_b + peak))) + 1
     area = 0
     total = 0
+    for i in range(ry0, ry1 + 1):
+        if row_peak[i] < above:
+            continue
+        row_n = 0
+        row_total = 0
+        for j in range(rx0, rx1 + 1):
+            v = np.int64(win[i, j])
+            hit = v >= above
+            row_n += hit
+            row_total += v if hit else 0
+        area += row_n
+        total += row_total
     edge = 0
+    if area:             # a spot pixel on the window's border (inside the box)
+        for i in (0, last):
+            if ry0 <= i <= ry1:
+                for j in range(rx0, rx1 + 1):
+                    if win[i, j] >= above:
+                        edge = 1
+        for j in (0, last):
+            if rx0 <= j <= rx1:
+                for i in range(ry0, ry1 + 1):
+                    if win[i, j] >= above:
+                        edge = 1
+    return i_b, float(peak), float(area), float(edge), total / max(area, 1), above
+
+
+@njit
+def _mark(win, box, above, obj):  # pragma: no cover - compiled
+    """``obj`` (the window's shape) set to the spot's pixels (1), 0 elsewhere."""
+    rx0, ry0, rx1, ry1 = box
     obj[:, :] = 0
     for i in range(ry0, ry1 + 1):
         for j in range(rx0, rx1 + 1):
-            v = win[i, j]
-            if v > level:
-                obj[i, j] = 1
-                area += 1
-                total += np.int64(v)
-                if i == 0 or j == 0 or i == last or j == last:
-                    edge = 1
-    return i_b, float(peak), float(area), float(edge), total / max(area, 1)
+            obj[i, j] = win[i, j] >= above
+
+
+@njit
+def _plain_moments(win, box, base, row_peak, out):  # pragma: no cover - compiled
+    """:func:`_weighted_moments` without a plateau: the pixels above ``base`` (the
+    integers from ``floor(base) + 1``; rows whose peak ``row_peak`` is below, none)
+    summed in integers per row (exact), the weights' ``- base`` applied to each row's
+    sums."""
+    mid = win.shape[0] // 2
+    rx0, ry0, rx1, ry1 = box
+    above = np.int64(math.floor(base)) + 1
+    m00 = m10 = m20 = m01 = m02 = m11 = 0.0
+    for i in range(ry0, ry1 + 1):
+        if row_peak[i] < above:
+            continue
+        n = sv = svx = svxx = sx = sxx = 0
+        for j in range(rx0, rx1 + 1):
+            v = np.int64(win[i, j])
+            if v >= above:
+                x = j - mid
+                n += 1
+                sv += v
+                svx += v * x
+                svxx += v * x * x
+                sx += x
+                sxx += x * x
+        r0 = sv - base * n
+        r1 = svx - base * sx
+        r2 = svxx - base * sxx
+        y = i - mid
+        m00 += r0
+        m10 += r1
+        m20 += r2
+        m01 += r0 * y
+        m02 += r0 * y * y
+        m11 += r1 * y
+    out[0], out[1], out[2], out[3], out[4], out[5] = m00, m10, m20, m01, m02, m11
 
 
 @njit
 def _weighted_moments(win, box, base, plane, min_gain, out):  # pragma: no cover - compiled
     """Into ``out (6,)``: ``m00, m10, m20, m01, m02, m11`` of ``max(I - base, 0)`` over
     ``box``, ``(x, y)`` from the window's centre, ``I`` divided by the gain ``plane``
-    (:func:`_plateau`) when it holds one."""
+    (:func:`_plateau`)."""
     flat, a, b, c, xc, yc = plane
     mid = win.shape[0] // 2
     rx0, ry0, rx1, ry1 = box
@@ -178,10 +250,7 @@ def _weighted_moments(win, box, base, plane, min_gain, out):  # pragma: no cover
         r0 = r1 = r2 = 0.0
         gy = 1.0 + ca * (i - yc)
         for j in range(rx0, rx1 + 1):
-            if flat:
-                v = win[i, j] / max(gy + ba * (j - xc), min_gain) - base
-            else:
-                v = win[i, j] - base
+            v = win[i, j] / max(gy + ba * (j - xc), min_gain) - base
             if v > 0.0:
                 x = j - mid
                 r0 += v

@@ -291,6 +291,7 @@ class CameraModel:
         if not self.is_distorted:
             x = (px[:, 0, 0] - self.cx - self.K[0, 1] * (px[:, 0, 1] - self.cy) / self.fy)
             return np.stack([x / self.fx, (px[:, 0, 1] - self.cy) / self.fy], axis=1)
+        px = self._unskewed(px)
         if self.model == "equidistant":
             out = cv2.fisheye.undistortPoints(px, self.K, self.dist,
                                               criteria=_UNDISTORT_CRITERIA)
@@ -315,8 +316,18 @@ class CameraModel:
         return self._undistort_fixed(px)
 
     def _undistort_fixed(self, px: np.ndarray) -> np.ndarray:
-        return cv2.undistortPoints(px.reshape(-1, 1, 2), self.K, self.dist,
+        return cv2.undistortPoints(self._unskewed(px.reshape(-1, 1, 2)), self.K, self.dist,
                                    criteria=_FAST_CRITERIA).reshape(-1, 2)
+
+    def _unskewed(self, px: np.ndarray) -> np.ndarray:
+        """Pixels ``(N, 1, 2)`` with ``K``'s skew taken off (OpenCV's inverses ignore
+        it): what an unskewed ``K`` shows of the same normalized points."""
+        skew = float(self.K[0, 1])
+        if not skew:
+            return px
+        px = px.copy()
+        px[:, 0, 0] -= skew * (px[:, 0, 1] - self.cy) / self.fy
+        return px
 
     def reprojects(self, points_px: np.ndarray, xy_norm: np.ndarray, tol_px: float
                    ) -> np.ndarray:
@@ -376,11 +387,15 @@ def _fast_unproject_ok(camera: CameraModel) -> bool:
 @njit
 def undistort_points(px, code, lens, out):  # pragma: no cover - compiled
     """Into ``out (N, 2)``: :meth:`CameraModel.unproject` of pixels ``px (N, 2)`` for
-    a lens ``(code, lens)`` (:attr:`CameraModel.lens`), in a compiled loop: OpenCV's
-    own iterations (``cv2.undistortPoints``, ``cv2.fisheye.undistortPoints``, 50 at
-    most, to 1e-12), so the same numbers to ~1e-12. Like OpenCV, the polynomial and
-    fisheye inverses ignore a skewed ``K``'s skew, and a fisheye point whose angle
-    does not converge is ``(-1e6, -1e6)``."""
+    a lens ``(code, lens)`` (:attr:`CameraModel.lens`), in a compiled loop: the
+    inverse OpenCV converges to (``cv2.undistortPoints``, ``cv2.fisheye.undistortPoints``
+    to 1e-12): the same numbers wherever the lens has one, to OpenCV's convergence
+    (its polynomial iterations stop up to 1e-6 px off far out on a strong lens, these
+    reproject within 1e-12 px; beyond, where the
+    distortion folds over, each returns some point that does not reproject: check with
+    :meth:`CameraModel.reprojects`). A skewed ``K``'s skew is taken off the pixel
+    first (OpenCV's inverses ignore it); a fisheye point whose angle does not converge
+    is ``(-1e6, -1e6)``, as OpenCV's."""
     fx, fy, cx, cy, skew = lens[0], lens[1], lens[2], lens[3], lens[4]
     k = lens[5:]
     for n in range(px.shape[0]):
@@ -388,7 +403,10 @@ def undistort_points(px, code, lens, out):  # pragma: no cover - compiled
         if code == 0:
             out[n, 0] = (u - cx - skew * (v - cy) / fy) / fx
             out[n, 1] = (v - cy) / fy
-        elif code == 1:
+            continue
+        if skew != 0.0:
+            u = u - skew * (v - cy) / fy
+        if code == 1:
             out[n, 0], out[n, 1] = _undistort_polynomial(u, v, fx, fy, cx, cy, k)
         else:
             out[n, 0], out[n, 1] = _undistort_fisheye(u, v, fx, fy, cx, cy, k)
@@ -396,33 +414,58 @@ def undistort_points(px, code, lens, out):  # pragma: no cover - compiled
 
 @njit
 def _undistort_polynomial(u, v, fx, fy, cx, cy, k):  # pragma: no cover - compiled
-    """OpenCV's ``cvUndistortPointsInternal`` for one pixel (no tilt, no thin prism):
-    fixed-point steps until the point reprojects within 1e-12 px."""
-    ifx, ify = 1.0 / fx, 1.0 / fy
-    x0 = x = (u - cx) * ifx
-    y0 = y = (v - cy) * ify
-    error = np.inf
+    """The normalized point whose distortion is pixel ``(u, v)`` (OpenCV's polynomial
+    lens, no tilt, no thin prism): Newton's steps on the distortion from the distorted
+    point, until a step moves the pixel by less than 1e-12 px (50 at most), the
+    inverse ``cv2.undistortPoints`` converges to. A step that does not bring the
+    point nearer its pixel, or crosses a fold of the distortion (far out, where the
+    Jacobian's determinant turns negative: a second, outer preimage), is halved."""
+    x0 = (u - cx) / fx
+    y0 = (v - cy) / fy
+    x, y = x0, y0
+    ex, ey, a, b, c, d = _polynomial_step(x, y, x0, y0, k)
+    err = ex * ex + ey * ey
     for _ in range(_UNDISTORT_MAX_ITER):
-        if error < _UNDISTORT_EPS:
+        det = a * d - b * c
+        if not (math.isfinite(det) and det != 0.0):
             break
-        r2 = x * x + y * y
-        icdist = ((1 + ((k[7] * r2 + k[6]) * r2 + k[5]) * r2)
-                  / (1 + ((k[4] * r2 + k[1]) * r2 + k[0]) * r2))
-        if icdist < 0:
-            return x0, y0
-        dx = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
-        dy = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
-        x = (x0 - dx) * icdist
-        y = (y0 - dy) * icdist
-        r2 = x * x + y * y
-        r4 = r2 * r2
-        r6 = r4 * r2
-        cdist = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
-        icdist2 = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
-        xd = x * cdist * icdist2 + k[2] * 2 * x * y + k[3] * (r2 + 2 * x * x)
-        yd = y * cdist * icdist2 + k[2] * (r2 + 2 * y * y) + k[3] * 2 * x * y
-        error = math.hypot(xd * fx + cx - u, yd * fy + cy - v)
+        sx = (d * ex - b * ey) / det
+        sy = (a * ey - c * ex) / det
+        t = 1.0
+        for _ in range(30):
+            xn, yn = x - t * sx, y - t * sy
+            exn, eyn, an, bn, cn, dn = _polynomial_step(xn, yn, x0, y0, k)
+            errn = exn * exn + eyn * eyn
+            if errn <= err and an * dn - bn * cn > 0:     # nearer, and not past a fold
+                break
+            t *= 0.5
+        else:
+            break
+        x, y, ex, ey, a, b, c, d, err = xn, yn, exn, eyn, an, bn, cn, dn, errn
+        if max(abs(t * sx) * fx, abs(t * sy) * fy) < _UNDISTORT_EPS:
+            break
     return x, y
+
+
+@njit
+def _polynomial_step(x, y, x0, y0, k):  # pragma: no cover - compiled
+    """``(ex, ey, dxd/dx, dxd/dy, dyd/dx, dyd/dy)``: the distortion of the normalized
+    point ``(x, y)`` minus ``(x0, y0)``, and its Jacobian."""
+    r2 = x * x + y * y
+    num = 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
+    den = 1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7]))
+    dnum = k[0] + r2 * (2 * k[1] + 3 * k[4] * r2)
+    dden = k[5] + r2 * (2 * k[6] + 3 * k[7] * r2)
+    rad = num / den
+    drad = (dnum * den - num * dden) / (den * den)     # d rad / d r2
+    p1, p2 = k[2], k[3]
+    ex = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - x0
+    ey = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - y0
+    xy2 = 2 * x * y * drad
+    a = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+    b = xy2 + 2 * p1 * x + 2 * p2 * y
+    d = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+    return ex, ey, a, b, b, d
 
 
 @njit
