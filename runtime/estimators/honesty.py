@@ -217,6 +217,23 @@ def misfit(residuals_px: np.ndarray, sigma_px: float, n_params: int,
                   covariance_inflation(r, reduced, sigma_px, huber_px, groups))
 
 
+def misfit_sum(sum_sq_px: float, n: int, sigma_px: float, n_params: int,
+               alpha: float = DEFAULT_ALPHA) -> Misfit:
+    """:func:`misfit` of ``n`` independent least-squares residuals (no groups, no
+    Huber) given by their sum of squares ``sum_sq_px`` (px²): the same test in a few
+    scalar operations, for a fit whose residuals are already summed. Its inflation is
+    1: least squares hides nothing, and independent residuals carry no design effect.
+    """
+    dof = n - int(n_params)
+    rms = math.sqrt(sum_sq_px / n) if n else float("nan")
+    if n and not math.isfinite(sum_sq_px):
+        return Misfit(math.inf, dof, math.inf, 0.0, sigma_px, rms, math.inf)
+    chi2 = sum_sq_px / (sigma_px * sigma_px) if n else 0.0
+    if dof < 1:
+        return Misfit(chi2, dof, float("nan"), math.inf, sigma_px, rms, 1.0)
+    return Misfit(chi2, dof, chi2 / dof, chi2_quantile(1.0 - alpha, dof), sigma_px, rms, 1.0)
+
+
 @dataclass(frozen=True)
 class SiteExtent:
     """The box in W that a site's ceiling features span (m); ``inf`` bounds where the
@@ -317,4 +334,4 @@ def check_options(options: Any) -> None:
 __all__ = ["DEFAULT_ALPHA", "HEADING_DISAGREES", "MISFIT", "MODEL_REASONS", "Misfit",
            "OUTSIDE_SITE", "SiteExtent", "VANISHING_LINE", "WEAK_GEOMETRY", "check_options",
            "chi2_quantile", "covariance_inflation", "design_effect", "huber_cost", "misfit",
-           "outside_site"]
+           "misfit_sum", "outside_site"]

@@ -53,7 +53,7 @@ from ceilkit.runtime.estimators.honesty import (
     OUTSIDE_SITE,
     SiteExtent,
     check_options,
-    misfit,
+    misfit_sum,
     outside_site,
 )
 from ceilkit.runtime.estimators.lights.matching import Candidate, PatternMatcher
@@ -285,21 +285,19 @@ class LightsEstimator(Estimator):
         """The pose, once the model check passes (docs/methods/honesty.md), else the
         Failure of the first check that fails: ``misfit`` (the chi-square of the
         refined residual norms ``res_px (K,)`` against ``noise_px``; each norm split
-        evenly over u and v gives the same statistic over the 2K residuals, 3 fitted),
-        ``outside_site``. A passing fit's covariance is scaled by
-        :attr:`~ceilkit.runtime.estimators.honesty.Misfit.inflation` (1 when the
-        reduced chi-square is at most 1)."""
+        evenly over u and v gives the same statistic over the 2K residuals, 3 fitted:
+        :func:`~ceilkit.runtime.estimators.honesty.misfit_sum`), ``outside_site``. A
+        least-squares fit of independent residuals has an inflation of 1: a passing
+        fit's covariance is the refinement's."""
         o = self.options
-        mf = misfit(np.repeat(np.asarray(res_px, float) / math.sqrt(2.0), 2), o.noise_px, 3,
-                    alpha=o.misfit_alpha)
+        res = np.asarray(res_px, float)
+        mf = misfit_sum(float(res @ res), 2 * res.size, o.noise_px, 3, o.misfit_alpha)
         diag.update(mf.diagnostics())
         if not mf.passed:
             return self.fail(t_ns, MISFIT, mf.detail(), **diag)
         out = outside_site(self.extent, x_m, y_m, o.site_margin_m)
         if out is not None:
             return self.fail(t_ns, OUTSIDE_SITE, out, **diag)
-        if mf.inflation != 1.0:
-            cov = cov * mf.inflation
         return PoseEstimate(t_ns, NAME, x_m, y_m, yaw_rad, quality, None, cov, diag)
 
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
@@ -321,11 +319,12 @@ class LightsEstimator(Estimator):
         cand = Candidate(fix.x_m, fix.y_m, fix.yaw_rad, fix.pairs, float(k), 0.0,
                          fix.predicted - fix.found)
         quality = pose_quality(k, rms, cand, None, "tracked")
+        site_pairs = fix.pairs.copy()      # (spot index in spots_px, light index in the site)
+        ids = site_pairs[:, 1] = self.site_ids[fix.pairs[:, 1]]
         diag = {"spots": fix.found, "candidates": fix.predicted,
                 "spots_px": fix.centroids_px, "candidates_px": fix.predicted_px,
                 "kept": None, "inliers": k,
-                "matched_lights": tuple(self.site_ids[fix.pairs[:, 1]].tolist()),
-                "pairs": np.column_stack([fix.pairs[:, 0], self.site_ids[fix.pairs[:, 1]]]),
+                "matched_lights": tuple(ids.tolist()), "pairs": site_pairs,
                 "rms_px": rms, "mode": "window", "score": float(k),
                 "runner_up_score": None, "ms": elapsed_ms(t0)}
         # the same model check as the global path; a window fix that fails it is not

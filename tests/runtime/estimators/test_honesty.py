@@ -333,3 +333,21 @@ def test_clean_lights_fit_keeps_its_covariance(lrig, lsite):
     assert isinstance(on, PoseEstimate), on
     assert on.diagnostics["chi2_reduced"] <= 1.0
     assert np.array_equal(on.cov, off.cov)
+
+
+def test_misfit_sum_is_the_least_squares_misfit():
+    """The scalar test of summed least-squares residuals (the lights' fit) gives
+    misfit's numbers: passing, failing, non-finite, no degrees of freedom."""
+    from ceilkit.runtime.estimators.honesty import misfit, misfit_sum
+
+    rng = np.random.default_rng(5)
+    for n, scale in ((12, 0.5), (12, 3.0), (40, 1.0), (3, 1.0), (2, 1.0), (0, 1.0)):
+        r = rng.normal(0.0, scale, n)
+        a, b = misfit(r, 1.0, 3), misfit_sum(float(r @ r), n, 1.0, 3)
+        assert (a.dof, a.passed, a.inflation) == (b.dof, b.passed, b.inflation)
+        for name in ("chi2", "reduced", "limit", "rms_px"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert (math.isnan(x) and math.isnan(y)) or x == pytest.approx(y, rel=1e-12)
+    r = np.array([1.0, np.inf, 0.5, 0.2])
+    a, b = misfit(r, 1.0, 3), misfit_sum(float(r @ r), 4, 1.0, 3)
+    assert not a.passed and not b.passed and a.inflation == b.inflation == math.inf

@@ -664,3 +664,16 @@ def test_undistort_points_is_opencvs_inverse(model, dist, skew):
     assert has_inverse[0] and has_inverse.mean() > 0.8
     assert np.abs(out - ref)[has_inverse].max() * 300.0 < 1e-5           # px
     assert cam.reprojects(px, out, 1e-9)[has_inverse].all()
+
+
+def test_frame_check_statistics_equal_opencvs():
+    """The frame check's mean and deviation of the 1-in-16 sample are
+    cv2.meanStdDev's, for frame sizes that are and are not multiples of the step."""
+    from ceilkit.runtime.estimators.base import _sample_stats
+
+    rng = np.random.default_rng(2)
+    for shape in ((480, 640), (481, 643), (5, 3), (1, 1)):
+        g = rng.integers(0, 256, shape).astype(np.uint8)
+        mean, std = (float(np.ravel(v)[0]) for v in cv2.meanStdDev(g[::4, ::4]))
+        got = _sample_stats(g, 4)
+        assert got[0] == pytest.approx(mean, abs=1e-9) and got[1] == pytest.approx(std, abs=1e-9)
