@@ -291,7 +291,7 @@ class CameraModel:
         if not self.is_distorted:
             x = (px[:, 0, 0] - self.cx - self.K[0, 1] * (px[:, 0, 1] - self.cy) / self.fy)
             return np.stack([x / self.fx, (px[:, 0, 1] - self.cy) / self.fy], axis=1)
-        px = self._unskewed(px)
+        px = _unskewed(self.K, px)
         if self.model == "equidistant":
             out = cv2.fisheye.undistortPoints(px, self.K, self.dist,
                                               criteria=_UNDISTORT_CRITERIA)
@@ -316,18 +316,9 @@ class CameraModel:
         return self._undistort_fixed(px)
 
     def _undistort_fixed(self, px: np.ndarray) -> np.ndarray:
-        return cv2.undistortPoints(self._unskewed(px.reshape(-1, 1, 2)), self.K, self.dist,
+        return cv2.undistortPoints(_unskewed(self.K, px.reshape(-1, 1, 2)), self.K, self.dist,
                                    criteria=_FAST_CRITERIA).reshape(-1, 2)
 
-    def _unskewed(self, px: np.ndarray) -> np.ndarray:
-        """Pixels ``(N, 1, 2)`` with ``K``'s skew taken off (OpenCV's inverses ignore
-        it): what an unskewed ``K`` shows of the same normalized points."""
-        skew = float(self.K[0, 1])
-        if not skew:
-            return px
-        px = px.copy()
-        px[:, 0, 0] -= skew * (px[:, 0, 1] - self.cy) / self.fy
-        return px
 
     def reprojects(self, points_px: np.ndarray, xy_norm: np.ndarray, tol_px: float
                    ) -> np.ndarray:
@@ -366,6 +357,17 @@ class CameraModel:
         p = np.asarray(points_px).reshape(-1, 2)
         return ((p[:, 0] >= -0.5 + margin_px) & (p[:, 0] <= self.width - 0.5 - margin_px)
                 & (p[:, 1] >= -0.5 + margin_px) & (p[:, 1] <= self.height - 0.5 - margin_px))
+
+
+def _unskewed(K: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Pixels ``(N, 1, 2)`` with ``K``'s skew taken off (OpenCV's inverses ignore it):
+    what an unskewed ``K`` shows of the same normalized points."""
+    skew = float(K[0, 1])
+    if not skew:
+        return px
+    px = px.copy()
+    px[:, 0, 0] -= skew * (px[:, 0, 1] - K[1, 2]) / K[1, 1]
+    return px
 
 
 @functools.lru_cache(maxsize=16)
