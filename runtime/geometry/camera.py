@@ -415,6 +415,34 @@ def undistort_points(px, code, lens, out):  # pragma: no cover - compiled
 
 
 @njit
+def distort_points(xy, code, lens, out):  # pragma: no cover - compiled
+    """Into ``out (N, 2)``: :meth:`CameraModel.distort` of normalized points ``xy (N, 2)``
+    for a lens ``(code, lens)`` (:attr:`CameraModel.lens`), in a compiled loop (its
+    formulas: OpenCV's polynomial and fisheye models, ``K`` with its skew)."""
+    fx, fy, cx, cy, skew = lens[0], lens[1], lens[2], lens[3], lens[4]
+    k = lens[5:]
+    for n in range(xy.shape[0]):
+        x, y = xy[n, 0], xy[n, 1]
+        xd, yd = x, y
+        if code == 2:
+            r = math.sqrt(x * x + y * y)
+            th = math.atan(r)
+            t2 = th * th
+            thd = th * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+            sc = thd / r if r > 1e-12 else 1.0
+            xd, yd = x * sc, y * sc
+        elif code == 1:
+            r2 = x * x + y * y
+            rad = ((1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4])))
+                   / (1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7]))))
+            xy2 = 2 * x * y
+            xd = x * rad + k[2] * xy2 + k[3] * (r2 + 2 * x * x)
+            yd = y * rad + k[2] * (r2 + 2 * y * y) + k[3] * xy2
+        out[n, 0] = fx * xd + skew * yd + cx
+        out[n, 1] = fy * yd + cy
+
+
+@njit
 def _undistort_polynomial(u, v, fx, fy, cx, cy, k):  # pragma: no cover - compiled
     """The normalized point whose distortion is pixel ``(u, v)`` (OpenCV's polynomial
     lens, no tilt, no thin prism): Newton's steps on the distortion from the distorted
@@ -509,6 +537,7 @@ def _warm() -> None:
                 CameraModel.pinhole(4, 4, 2.0, dist=[0.1, 0, 0, 0, 0]),
                 CameraModel.pinhole(4, 4, 2.0, dist=[0.1, 0, 0, 0], model="equidistant")):
         undistort_points(px, *cam.lens, np.empty((1, 2)))
+        distort_points(px, *cam.lens, np.empty((1, 2)))
 
 
 @functools.lru_cache(maxsize=8)
@@ -545,4 +574,4 @@ def subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
 
 
 __all__ = ["CameraModel", "DISTORTION_MODELS", "LENS_EQUIDISTANT", "LENS_LINEAR",
-           "LENS_POLYNOMIAL", "subpixel_rays", "undistort_points"]
+           "LENS_POLYNOMIAL", "distort_points", "subpixel_rays", "undistort_points"]

@@ -34,9 +34,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
-from ceilkit.runtime.features.lines import refine_undistorted
-from ceilkit.runtime.geometry.camera import CameraModel
-from ceilkit.runtime.geometry.rotations import rot_z
+from ceilkit.runtime.features.edges import (
+    OUTLIER_FLOOR_PX,
+    OUTLIER_SIGMAS,
+    PROFILE_STEP_PX,
+    edge_grid,
+    part_indices,
+)
+from ceilkit.runtime.features.lines import MIN_FIT_POINTS, _fit_segments, _kind_and_points
+from ceilkit.runtime.features.quads import _bilinear
+from ceilkit.runtime.geometry.camera import CameraModel, distort_points, undistort_points
 from ceilkit.runtime.jit import arr, njit, warmer
 
 REACH_M = 8.0
@@ -51,6 +58,13 @@ MIN_CHORD_PX = 20.0
 
 SAMPLES = 121
 """Samples along each site line (W's x, over ``±REACH_M`` of the camera)."""
+
+N_ALONG = 8
+"""Cross profiles per chord (as :func:`~ceilkit.runtime.features.lines.refine_undistorted`)."""
+
+MIN_STEP, MIN_DEPTH = 20.0, 8.0
+"""A chord's edge kind: the least step and thin-line depth (grey levels; as
+:func:`~ceilkit.runtime.features.lines.refine_undistorted`'s defaults)."""
 
 MAX_CHORD_RMS_PX = 1.0
 """A chord whose located points scatter more than this about their line is dropped."""
@@ -117,49 +131,37 @@ class LineTracker:
         self.search_px = float(search_px)
         self._u = np.linspace(-REACH_M, REACH_M, SAMPLES)
         self._margin = self.search_px + 2.0
+        offs, t, inner = edge_grid(N_ALONG, self.search_px)
+        il, ir, ii = part_indices(offs)
+        params = np.array([setup.ceiling_above_cam_m, setup.field_radius, self._margin,
+                           setup.rows[0], setup.rows[1], camera.width, camera.height,
+                           setup.f_px, inner.start + 1, inner.stop + 1])
+        # what the compiled measurement reads, made once (read-only arrays)
+        self._consts = (arr(setup.R_level_cam, np.float64), arr(setup.site_y, np.float64),
+                        arr(self._u, np.float64), arr(setup.edge_kind, np.float64),
+                        arr(offs, np.float64), arr(t, np.float64), arr(il, np.int64),
+                        arr(ir, np.int64), arr(ii, np.int64), *camera.lens,
+                        arr(params, np.float64))
 
     def predicted_chords(self, psi_rad: float, camera_y_m: float
                          ) -> tuple[np.ndarray, np.ndarray]:
         """``(chords (K, 4) px, line (K,))``: the visible stretches of every site line
         for camera pan ``psi_rad`` and camera y ``camera_y_m``, cut into chords of about
-        :data:`CHORD_PX`."""
-        st, cam = self.setup, self.camera
-        R_cw = st.R_level_cam.T @ rot_z(-psi_rad)
-        h = st.ceiling_above_cam_m
-        u = self._u[None, :]
-        dy = (st.site_y - camera_y_m)[:, None]
-        d0, d1, d2 = (u * R[0] + (dy * R[1] + h * R[2]) for R in R_cw)      # (J, S)
-        front = (d2 > 1e-6) & (u * u + dy * dy <= REACH_M * REACH_M)
-        z = np.where(front, d2, 1.0)
-        x, y = d0 / z, d1 / z
-        front &= x * x + y * y <= st.field_radius ** 2
-        px = cam.distort(np.stack([x.ravel(), y.ravel()], axis=1)).reshape(*x.shape, 2)
-        m = self._margin
-        vis = front & (px[..., 0] >= m) & (px[..., 0] <= cam.width - 1 - m) \
-            & (px[..., 1] >= max(m, st.rows[0])) & (px[..., 1] <= min(cam.height - 1 - m,
-                                                                      st.rows[1]))
-        return _cut_chords(px, vis)
+        :data:`CHORD_PX` (:func:`_predict`)."""
+        c = self._consts
+        return _predict(float(psi_rad), float(camera_y_m), c[0], c[1], c[2], c[9], c[10],
+                        c[11])
 
     def measure(self, grey: np.ndarray, psi_rad: float, camera_y_m: float
                 ) -> LineMeasurement | None:
         """The chords located on a ``(H, W)`` uint8 frame around the site lines
         predicted for ``(psi_rad, camera_y_m)``; ``None`` when fewer than two site lines
-        hold a located chord of the right kind."""
-        chords, line = self.predicted_chords(psi_rad, camera_y_m)
-        if np.unique(line).size < 2:
+        hold a located chord of the right kind. One compiled call (:func:`_measure`)."""
+        found, segs_n, chords, line, pol, rms, n = _measure(
+            arr(grey, np.uint8), float(psi_rad), float(camera_y_m), *self._consts)
+        if not found:
             return None
-        segs_n, pol, rms = refine_undistorted(self.camera, grey, chords,
-                                              half_width_px=self.search_px,
-                                              retry_half_width_px=None)
-        want_step = self.setup.edge_kind[line] != 0
-        ok = (np.isfinite(rms) & (rms <= MAX_CHORD_RMS_PX)
-              & np.where(want_step, np.abs(pol) == 1.0, pol == 0.0))
-        if ok.any():
-            ok &= rms <= CHORD_RMS_MEDIANS * float(np.median(rms[ok]))
-        if np.unique(line[ok]).size < 2:
-            return None
-        return LineMeasurement(segs_n[ok], chords[ok], line[ok], pol[ok], rms[ok],
-                               int(chords.shape[0]))
+        return LineMeasurement(segs_n, chords, line, pol, rms, n)
 
     def reach(self) -> tuple[float, float]:
         """``(psi_rad, c_y m)``: how far from the prior a refined fit may move and still
@@ -167,6 +169,128 @@ class LineTracker:
         f = self.setup.f_px
         return (math.atan2(self.search_px, f) * 2.0,
                 self.search_px / f * self.setup.ceiling_above_cam_m * 2.0)
+
+
+@njit
+def _predict(psi, cam_y, R_lc, site_y, u, lens_code, lens, p):  # pragma: no cover - compiled
+    """``(chords (K, 4) px, line (K,))`` of :meth:`LineTracker.predicted_chords`: every
+    site line ``y = site_y[j]`` sampled at ``u`` (W's x from the camera), seen from
+    the camera rotation ``R_cw = R_level_camᵀ Rz(-psi)`` at ``h = p[0]`` below the
+    ceiling; a sample is visible in front of the camera, within :data:`REACH_M` on the
+    ceiling, inside the lens's field (``p[1]``) and ``p[2]`` px inside the image's
+    rows ``p[3]..p[4]`` (``p[5] x p[6]`` px); each line's longest visible run is cut
+    into chords (:func:`_chords_of_runs`)."""
+    h, field_r, m = p[0], p[1], p[2]
+    row0, row1, w, hh = p[3], p[4], p[5], p[6]
+    c, s = math.cos(-psi), math.sin(-psi)
+    R = np.empty((3, 3))
+    for i in range(3):                     # R_lcᵀ Rz(-psi)
+        R[i, 0] = R_lc[0, i] * c + R_lc[1, i] * s
+        R[i, 1] = -R_lc[0, i] * s + R_lc[1, i] * c
+        R[i, 2] = R_lc[2, i]
+    n_j, n_s = site_y.size, u.size
+    xy = np.empty((n_j * n_s, 2))
+    front = np.empty((n_j, n_s), np.bool_)
+    for j in range(n_j):
+        dy = site_y[j] - cam_y
+        for i in range(n_s):
+            d0 = u[i] * R[0, 0] + (dy * R[0, 1] + h * R[0, 2])
+            d1 = u[i] * R[1, 0] + (dy * R[1, 1] + h * R[1, 2])
+            d2 = u[i] * R[2, 0] + (dy * R[2, 1] + h * R[2, 2])
+            f = d2 > 1e-6 and u[i] * u[i] + dy * dy <= REACH_M * REACH_M
+            z = d2 if f else 1.0
+            x, y = d0 / z, d1 / z
+            front[j, i] = f and x * x + y * y <= field_r * field_r
+            xy[j * n_s + i, 0], xy[j * n_s + i, 1] = x, y
+    px = np.empty((n_j * n_s, 2))
+    distort_points(xy, lens_code, lens, px)
+    px = px.reshape(n_j, n_s, 2)
+    vis = np.empty((n_j, n_s), np.bool_)
+    lo_v, hi_v = max(m, row0), min(hh - 1 - m, row1)
+    for j in range(n_j):
+        for i in range(n_s):
+            pu, pv = px[j, i, 0], px[j, i, 1]
+            vis[j, i] = front[j, i] and m <= pu <= w - 1 - m and lo_v <= pv <= hi_v
+    return _chords_of_runs(px, vis, CHORD_PX, MIN_CHORD_PX)
+
+
+@njit
+def _measure(grey, psi, cam_y, R_lc, site_y, u, edge_kind, offs, t, il, ir, ii,
+             lens_code, lens, p):  # pragma: no cover - compiled
+    """:meth:`LineTracker.measure`: ``(found, segs_n, chords, line, polarity, rms,
+    searched)``. The chords of :func:`_predict` are measured as
+    :func:`~ceilkit.runtime.features.lines.refine_undistorted` measures segments (its
+    compiled stages: the kind from the mean profile, the edge on each profile, the
+    points undistorted and a robust line fitted), with the profiles sampled bilinear in
+    float (the frame's edge replicated) and the lens inverted exactly
+    (:func:`~ceilkit.runtime.geometry.camera.undistort_points`); then the chords of the
+    wrong kind or a poor fit are dropped (:data:`MAX_CHORD_RMS_PX`,
+    :data:`CHORD_RMS_MEDIANS`). ``found`` is False when fewer than two site lines are
+    predicted or keep a chord."""
+    chords, line = _predict(psi, cam_y, R_lc, site_y, u, lens_code, lens, p)
+    n = chords.shape[0]
+    empty = (False, np.empty((0, 4)), np.empty((0, 4)), np.empty(0, np.int64),
+             np.empty(0), np.empty(0), n)
+    if _distinct(line) < 2:
+        return empty
+    n_a, n_o = t.size, offs.size
+    hh, w = grey.shape
+    d = np.empty((n, 2))
+    nrm = np.empty((n, 2))
+    prof = np.empty((n, n_a, n_o))
+    for r in range(n):
+        d[r, 0], d[r, 1] = chords[r, 2] - chords[r, 0], chords[r, 3] - chords[r, 1]
+        inv = 1.0 / max(math.hypot(d[r, 0], d[r, 1]), 1e-9)
+        nrm[r, 0], nrm[r, 1] = -d[r, 1] * inv, d[r, 0] * inv
+        for a in range(n_a):
+            bu, bv = chords[r, 0] + t[a] * d[r, 0], chords[r, 1] + t[a] * d[r, 1]
+            for o in range(n_o):
+                prof[r, a, o] = _bilinear(grey, bu + offs[o] * nrm[r, 0],
+                                          bv + offs[o] * nrm[r, 1], w, hh)
+    pol, pts, good = _kind_and_points(prof, chords, d, nrm, offs, t, il, ir, ii,
+                                      np.int64(p[8]), np.int64(p[9]), MIN_STEP, MIN_DEPTH,
+                                      PROFILE_STEP_PX)
+    n_good = 0
+    for r in range(n):
+        for a in range(n_a):
+            n_good += good[r, a]
+    px = np.empty((2 * n + n_good, 2))
+    for r in range(n):
+        px[2 * r, 0], px[2 * r, 1] = chords[r, 0], chords[r, 1]
+        px[2 * r + 1, 0], px[2 * r + 1, 1] = chords[r, 2], chords[r, 3]
+    k = 2 * n
+    for r in range(n):
+        for a in range(n_a):
+            if good[r, a]:
+                px[k, 0], px[k, 1] = pts[r, a, 0], pts[r, a, 1]
+                k += 1
+    xy = np.empty_like(px)
+    undistort_points(px, lens_code, lens, xy)
+    ends = xy[:2 * n].copy().reshape(n, 4)
+    rms = np.full(n, np.nan)
+    _fit_segments(xy[2 * n:].copy(), good, ends, rms, p[7], OUTLIER_FLOOR_PX, OUTLIER_SIGMAS,
+                  MIN_FIT_POINTS)
+    ok = np.zeros(n, np.bool_)
+    for r in range(n):
+        kind_ok = abs(pol[r]) == 1.0 if edge_kind[line[r]] != 0 else pol[r] == 0.0
+        ok[r] = math.isfinite(rms[r]) and rms[r] <= MAX_CHORD_RMS_PX and kind_ok
+    if ok.any():
+        limit = CHORD_RMS_MEDIANS * np.median(rms[ok])
+        for r in range(n):
+            ok[r] = ok[r] and rms[r] <= limit
+    if _distinct(line[ok]) < 2:
+        return empty
+    return True, ends[ok], chords[ok], line[ok], pol[ok], rms[ok], n
+
+
+@njit
+def _distinct(line):  # pragma: no cover - compiled
+    """How many distinct values a sorted ``line`` holds."""
+    k = 0
+    for i in range(line.size):
+        if i == 0 or line[i] != line[i - 1]:
+            k += 1
+    return k
 
 
 def _cut_chords(px: np.ndarray, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -237,6 +361,16 @@ def _chords_of_runs(px, vis, chord_px, min_chord_px):  # pragma: no cover - comp
 def _warm() -> None:
     px = np.stack([np.linspace(0.0, 100.0, 5), np.zeros(5)], axis=1)[None]
     _cut_chords(px, np.ones((1, 5), bool))
+    cam = CameraModel.pinhole(64, 48, 50.0)
+    offs, t, inner = edge_grid(N_ALONG, 4.0)
+    il, ir, ii = part_indices(offs)
+    f = np.float64
+    _measure(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, arr(np.eye(3), f),
+             arr([-1.0, 1.0], f), arr(np.linspace(-1.0, 1.0, 5), f), arr([0.0, 0.0], f),
+             arr(offs, f), arr(t, f), arr(il, np.int64), arr(ir, np.int64),
+             arr(ii, np.int64), *cam.lens,
+             arr([2.0, 1.0, 6.0, 0.0, 48.0, 64.0, 48.0, 50.0, inner.start + 1,
+                  inner.stop + 1], f))
 
 
 __all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "LineMeasurement", "LineTracker", "REACH_M"]

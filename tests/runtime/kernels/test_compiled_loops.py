@@ -677,3 +677,23 @@ def test_frame_check_statistics_equal_opencvs():
         mean, std = (float(np.ravel(v)[0]) for v in cv2.meanStdDev(g[::4, ::4]))
         got = _sample_stats(g, 4)
         assert got[0] == pytest.approx(mean, abs=1e-9) and got[1] == pytest.approx(std, abs=1e-9)
+
+
+@pytest.mark.parametrize("model,dist,skew", [
+    ("plumb_bob", [0.0] * 5, 1.5),
+    ("plumb_bob", [-0.3, 0.1, 0.001, -0.002, -0.02], 2.0),
+    ("plumb_bob", [0.1, 0.0, 0.0, 0.0, 0.0], 0.0),
+    ("rational_polynomial", [0.2, 0.05, 0.001, -0.002, 0.01, 0.3, 0.02, 0.01], 0.0),
+    ("equidistant", [-0.3, 0.2, -0.1, 0.02], 1.5),
+])
+def test_distort_points_is_the_camera_models(model, dist, skew):
+    from ceilkit.runtime.geometry.camera import CameraModel, distort_points
+
+    K = np.array([[300.0, skew, 320.0], [0.0, 310.0, 240.0], [0.0, 0.0, 1.0]])
+    cam = CameraModel(640, 480, K, dist, model=model)
+    xy = np.random.default_rng(4).uniform(-1.2, 1.2, (500, 2))
+    xy[0] = 0.0
+    out = np.empty_like(xy)
+    distort_points(xy, *cam.lens, out)
+    np.testing.assert_allclose(out, cam.distort(xy), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out[:8], cam.distort(xy[:8]), rtol=0, atol=1e-9)  # OpenCV's
