@@ -13,11 +13,11 @@ Example::
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from ceilkit.runtime.estimators.corridor.geometry import ceiling_points, level_normals
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.lines import (
     SegmentDetector,
@@ -28,6 +28,7 @@ from ceilkit.runtime.features.lines import (
     undistort_segments,
 )
 from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.jit import arr, njit, warmer
 
 MAX_CEILING_LENGTH_M = 10.0
 """Ceiling lengths (the forward-family evidence) are capped at this."""
@@ -115,27 +116,72 @@ def frame_lines(segs: np.ndarray, pol: np.ndarray, setup: CorridorSetup,
     """The per-frame arrays of undistorted normalized segments ``segs (N, 4)`` with
     polarities ``pol (N,)``; the family gate is ``angle_tol_rad``, or ``2 inlier_px``
     over a segment's pixel length where that is tighter."""
-    dx, dy = segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]
-    len_n = np.hypot(dx, dy)
-    lines_t = np.empty((3, segs.shape[0]))                      # segment_lines, (3, N)
-    inv = 1.0 / np.maximum(len_n, 1e-300)
-    np.multiply(-dy, inv, out=lines_t[0])
-    np.multiply(dx, inv, out=lines_t[1])
-    np.multiply(segs[:, 0] * segs[:, 3] - segs[:, 2] * segs[:, 1], inv, out=lines_t[2])
-    lines = lines_t.T
-    ceil_pts = ceiling_points(segs, setup.R_level_cam, setup.ceiling_above_cam_m)
-    cdx, cdy = ceil_pts[:, 2] - ceil_pts[:, 0], ceil_pts[:, 3] - ceil_pts[:, 1]
-    ceil_full = np.hypot(cdx, cdy)                  # NaN above the horizon
-    ceil_len = np.minimum(ceil_full, MAX_CEILING_LENGTH_M)
-    ceil_len[~(ceil_len >= 0)] = 0.0
-    # across segments as long as a lamp is wide (see association.lamp_anchors)
-    width = setup.lamp_width_m[:, None]
-    lamp_end = (np.isfinite(ceil_full)[None, :]
-                & (np.abs(ceil_full[None, :] - width) < LAMP_END_TOL * width))
-    return FrameLines(
-        segs=segs, lines=lines, lines_t=lines_t, len_n=len_n,
-        mx=0.5 * (segs[:, 0] + segs[:, 2]), my=0.5 * (segs[:, 1] + segs[:, 3]),
-        q=level_normals(lines, setup.R_level_cam), pol=pol, ceil_len=ceil_len,
-        ceil_sx=ceil_pts[:, 0] + ceil_pts[:, 2], ceil_sy=ceil_pts[:, 1] + ceil_pts[:, 3],
-        lamp_end=lamp_end,
-        tol=np.minimum(angle_tol_rad, 2 * inlier_px / np.maximum(len_n * setup.f_px, 1)))
+    lines_t, len_n, mx, my, q, ceil_len, ceil_sx, ceil_sy, lamp_end, tol = _frame_arrays(
+        arr(segs, np.float64).reshape(-1, 4), arr(setup.R_level_cam, np.float64),
+        float(setup.ceiling_above_cam_m), arr(setup.lamp_width_m, np.float64),
+        float(angle_tol_rad), float(inlier_px), float(setup.f_px))
+    return FrameLines(segs=segs, lines=lines_t.T, lines_t=lines_t, len_n=len_n, mx=mx, my=my,
+                      q=q, pol=pol, ceil_len=ceil_len, ceil_sx=ceil_sx, ceil_sy=ceil_sy,
+                      lamp_end=lamp_end, tol=tol)
+
+
+@njit
+def _frame_arrays(segs, R, h, lamp_w, angle_tol, inlier_px, f_px
+                  ):  # pragma: no cover - compiled
+    """:func:`frame_lines`' arrays in one loop over the segments: ``(lines_t (3, N),
+    len_n, mx, my, q (N, 3), ceil_len, ceil_sx, ceil_sy, lamp_end (L, N), tol)``.
+    A segment's line ``(-dy, dx, x0 y1 - x1 y0) / len``; its level normal ``R l``; its
+    endpoints on the ceiling ``h (R p)_xy / (R p)_z`` (NaN where ``(R p)_z <= 1e-6``,
+    above the horizon: :func:`~.geometry.ceiling_points`), their distance capped at
+    :data:`MAX_CEILING_LENGTH_M` (0 when NaN); as long as lamp row l is wide within
+    :data:`LAMP_END_TOL`; the family gate ``min(angle_tol, 2 inlier_px / max(len
+    f_px, 1))``."""
+    n = segs.shape[0]
+    n_l = lamp_w.size
+    lines_t = np.empty((3, n))
+    len_n = np.empty(n)
+    mx = np.empty(n)
+    my = np.empty(n)
+    q = np.empty((n, 3))
+    ceil_len = np.empty(n)
+    ceil_sx = np.empty(n)
+    ceil_sy = np.empty(n)
+    lamp_end = np.zeros((n_l, n), np.bool_)
+    tol = np.empty(n)
+    cx = np.empty(2)
+    cy = np.empty(2)
+    for i in range(n):
+        x0, y0, x1, y1 = segs[i, 0], segs[i, 1], segs[i, 2], segs[i, 3]
+        dx, dy = x1 - x0, y1 - y0
+        ln = math.hypot(dx, dy)
+        inv = 1.0 / max(ln, 1e-300)
+        a, b, c = -dy * inv, dx * inv, (x0 * y1 - x1 * y0) * inv
+        lines_t[0, i], lines_t[1, i], lines_t[2, i] = a, b, c
+        len_n[i] = ln
+        mx[i], my[i] = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+        for k in range(3):
+            q[i, k] = a * R[k, 0] + b * R[k, 1] + c * R[k, 2]
+        for e in range(2):
+            x, y = segs[i, 2 * e], segs[i, 2 * e + 1]
+            pz = x * R[2, 0] + y * R[2, 1] + R[2, 2]
+            if pz > 1e-6:
+                g = h / pz
+                cx[e] = (x * R[0, 0] + y * R[0, 1] + R[0, 2]) * g
+                cy[e] = (x * R[1, 0] + y * R[1, 1] + R[1, 2]) * g
+            else:
+                cx[e] = cy[e] = np.nan
+        full = math.hypot(cx[1] - cx[0], cy[1] - cy[0])        # NaN above the horizon
+        ceil_len[i] = min(full, MAX_CEILING_LENGTH_M) if full >= 0 else 0.0
+        ceil_sx[i], ceil_sy[i] = cx[0] + cx[1], cy[0] + cy[1]
+        if math.isfinite(full):
+            for m in range(n_l):
+                lamp_end[m, i] = abs(full - lamp_w[m]) < LAMP_END_TOL * lamp_w[m]
+        tol[i] = min(angle_tol, 2 * inlier_px / max(ln * f_px, 1.0))
+    return lines_t, len_n, mx, my, q, ceil_len, ceil_sx, ceil_sy, lamp_end, tol
+
+
+@warmer
+def _warm() -> None:
+    f = np.float64
+    _frame_arrays(arr(np.array([[0.0, 0.0, 0.1, 0.0]]), f), arr(np.eye(3), f), 2.0,
+                  arr(np.array([0.3]), f), 0.1, 2.0, 500.0)

@@ -27,6 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ceilkit.runtime.geometry.rotations import rot_z
+from ceilkit.runtime.jit import arr, njit, warmer
 
 Rows = Sequence[Sequence[float]]
 """A 3x3 matrix as rows: an ``(3, 3)`` array or nested float tuples (faster scalar math)."""
@@ -151,28 +152,60 @@ def vanishing_line_check(lines: np.ndarray, len_n: np.ndarray, along: np.ndarray
     against the calibrated tilt and swing. Keys ``vanishing_line_residual_deg``,
     ``vp_along_elevation_deg``, ``implied_tilt_deg``, ``implied_swing_deg`` (NaN where
     a family has fewer than two segments)."""
-    n_pred = R_level_cam[2, :]
-    nan = float("nan")
-    out = {"vanishing_line_residual_deg": nan, "vp_along_elevation_deg": nan,
-           "implied_tilt_deg": nan, "implied_swing_deg": nan}
+    lines_t = np.ascontiguousarray(np.asarray(lines, np.float64).reshape(-1, 3).T)
+    r, e, t, s = _vanishing_line(arr(lines_t, np.float64), arr(len_n, np.float64),
+                                 arr(along, np.bool_), arr(across, np.bool_),
+                                 arr(R_level_cam, np.float64))
+    return {"vanishing_line_residual_deg": r, "vp_along_elevation_deg": e,
+            "implied_tilt_deg": t, "implied_swing_deg": s}
+
+
+@njit
+def _vanishing_line(lines_t, len_n, along, across, R):  # pragma: no cover - compiled
+    """:func:`vanishing_line_check`'s ``(residual, elevation, tilt, swing)`` (deg, NaN
+    where a family has fewer than two segments) from the lines ``(3, N)``: each
+    family's free vanishing point (:func:`free_vanishing_points`, weights ``len²``)."""
+    nan = np.nan
     if np.count_nonzero(along) < 2:
-        return out
-    two = np.count_nonzero(across) >= 2
-    w = len_n ** 2
-    fams = (along, across) if two else (along,)
-    v = free_vanishing_points(lines, np.array([np.where(f, w, 0.0) for f in fams]))
-    va = v[0]
-    out["vp_along_elevation_deg"] = math.degrees(math.asin(min(1.0, abs(float(n_pred @ va)))))
-    if two:
-        vb = v[1]
-        n = np.array([va[1] * vb[2] - va[2] * vb[1], va[2] * vb[0] - va[0] * vb[2],
-                      va[0] * vb[1] - va[1] * vb[0]])
-        nn = math.sqrt(float(n @ n))
-        if nn > 1e-12:
-            n /= nn
-            out["vanishing_line_residual_deg"] = math.degrees(
-                math.acos(min(1.0, abs(float(n @ n_pred)))))
-            tilt, swing = mount_from_vanishing_line(n)
-            out["implied_tilt_deg"] = math.degrees(tilt)
-            out["implied_swing_deg"] = math.degrees(swing)
-    return out
+        return nan, nan, nan, nan
+    va = _family_point(lines_t, len_n, along)
+    n_pred = R[2]
+    elev = math.degrees(math.asin(min(1.0, abs(n_pred[0] * va[0] + n_pred[1] * va[1]
+                                                + n_pred[2] * va[2]))))
+    if np.count_nonzero(across) < 2:
+        return nan, elev, nan, nan
+    vb = _family_point(lines_t, len_n, across)
+    n = np.array([va[1] * vb[2] - va[2] * vb[1], va[2] * vb[0] - va[0] * vb[2],
+                  va[0] * vb[1] - va[1] * vb[0]])
+    nn = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    if not nn > 1e-12:
+        return nan, elev, nan, nan
+    n /= nn
+    resid = math.degrees(math.acos(min(1.0, abs(n[0] * n_pred[0] + n[1] * n_pred[1]
+                                                 + n[2] * n_pred[2]))))
+    if n[2] < 0:            # mount_from_vanishing_line
+        n = -n
+    tilt, swing = math.asin(min(1.0, n[2])), math.atan2(-n[0], -n[1])
+    return resid, elev, math.degrees(tilt), math.degrees(swing)
+
+
+@njit
+def _family_point(lines_t, len_n, fam):  # pragma: no cover - compiled
+    """The smallest eigenvector of ``sum w l lᵀ`` over the lines of one family
+    (``w = len²``)."""
+    S = np.zeros((3, 3))
+    for k in range(len_n.size):
+        if fam[k]:
+            w = len_n[k] * len_n[k]
+            for i in range(3):
+                for j in range(3):
+                    S[i, j] += lines_t[i, k] * (lines_t[j, k] * w)
+    return np.linalg.eigh(S)[1][:, 0].copy()
+
+
+@warmer
+def _warm() -> None:
+    f = np.float64
+    lines_t = arr(np.array([[0.0, 0.1, 0.2], [1.0, 1.0, 1.0], [0.1, 0.2, 0.3]]), f)
+    on = arr(np.ones(3, bool), np.bool_)
+    _vanishing_line(lines_t, arr(np.ones(3), f), on, on, arr(np.eye(3), f))

@@ -697,3 +697,85 @@ def test_distort_points_is_the_camera_models(model, dist, skew):
     distort_points(xy, *cam.lens, out)
     np.testing.assert_allclose(out, cam.distort(xy), rtol=0, atol=1e-9)
     np.testing.assert_allclose(out[:8], cam.distort(xy[:8]), rtol=0, atol=1e-9)  # OpenCV's
+
+
+# --------------------------------------------------------------------------- corridor
+
+
+def frame_lines_reference(segs, R, h, lamp_w, angle_tol, inlier_px, f_px):
+    """The array reading of frame_lines (before its loop)."""
+    from ceilkit.runtime.estimators.corridor.frame import LAMP_END_TOL, MAX_CEILING_LENGTH_M
+
+    dx, dy = segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]
+    len_n = np.hypot(dx, dy)
+    inv = 1.0 / np.maximum(len_n, 1e-300)
+    lines_t = np.stack([-dy * inv, dx * inv, (segs[:, 0] * segs[:, 3]
+                                             - segs[:, 2] * segs[:, 1]) * inv])
+    p = segs.reshape(-1, 2) @ R.T[:2] + R.T[2]
+    up = p[:, 2:3] > 1e-6
+    X = np.where(up, p[:, :2] * (h / np.where(up, p[:, 2:3], 1.0)), np.nan).reshape(-1, 4)
+    full = np.hypot(X[:, 2] - X[:, 0], X[:, 3] - X[:, 1])
+    ceil_len = np.minimum(full, MAX_CEILING_LENGTH_M)
+    ceil_len[~(ceil_len >= 0)] = 0.0
+    lamp_end = np.isfinite(full)[None] & (np.abs(full[None] - lamp_w[:, None])
+                                          < LAMP_END_TOL * lamp_w[:, None])
+    tol = np.minimum(angle_tol, 2 * inlier_px / np.maximum(len_n * f_px, 1))
+    return (lines_t, len_n, 0.5 * (segs[:, 0] + segs[:, 2]), 0.5 * (segs[:, 1] + segs[:, 3]),
+            lines_t.T @ R.T, ceil_len, X[:, 0] + X[:, 2], X[:, 1] + X[:, 3], lamp_end, tol)
+
+
+def test_frame_arrays_equal_the_array_reading():
+    from ceilkit.runtime.estimators.corridor.frame import _frame_arrays
+    from ceilkit.runtime.geometry.rotations import R_vehicle_cam
+
+    rng = np.random.default_rng(8)
+    R = R_vehicle_cam(0.0, 0.6, 0.05)
+    lamp_w = np.array([0.3, 1.2])
+    for n in (0, 1, 7, 40):
+        segs = rng.uniform(-1.5, 1.5, (n, 4))
+        if n:
+            segs[0, 2:] = segs[0, :2]                       # a zero-length segment
+        got = _frame_arrays(segs, R, 2.5, lamp_w, 0.05, 2.0, 500.0)
+        want = frame_lines_reference(segs, R, 2.5, lamp_w, 0.05, 2.0, 500.0)
+        for g, w in zip(got, want, strict=True):
+            assert g.shape == w.shape and np.array_equal(np.isnan(g), np.isnan(w))
+            if g.dtype == bool:
+                assert np.array_equal(g, w)
+            else:
+                np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12)
+
+
+def test_vanishing_line_equals_the_eigenvector_reading():
+    """The compiled mount check gives the batched eigh's numbers (either sign of an
+    eigenvector), with one family, two, and too few segments."""
+    from ceilkit.runtime.estimators.corridor.geometry import mount_from_vanishing_line
+    from ceilkit.runtime.estimators.corridor.geometry import vanishing_line_check as check
+    from ceilkit.runtime.geometry.rotations import R_vehicle_cam
+
+    R = R_vehicle_cam(0.0, 0.5, 0.05)
+    rng = np.random.default_rng(9)
+    for n, share in ((12, 0.5), (12, 1.0), (3, 0.5), (1, 1.0)):
+        lines = rng.normal(size=(n, 3))
+        lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
+        len_n = rng.uniform(0.05, 0.5, n)
+        along = rng.random(n) < share
+        across = ~along
+        got = check(lines, len_n, along, across, R)
+        w = len_n ** 2
+        fams = [f for f in (along, across) if f.sum() >= 2]
+        if along.sum() < 2:
+            assert all(math.isnan(v) for v in got.values())
+            continue
+        v = [np.linalg.eigh((lines * (w * f)[:, None]).T @ lines)[1][:, 0] for f in fams]
+        assert got["vp_along_elevation_deg"] == pytest.approx(
+            math.degrees(math.asin(min(1.0, abs(R[2] @ v[0])))), abs=1e-9)
+        if len(fams) == 2:
+            nv = np.cross(v[0], v[1])
+            nv /= np.linalg.norm(nv)
+            tilt, swing = mount_from_vanishing_line(nv)
+            assert got["implied_tilt_deg"] == pytest.approx(math.degrees(tilt), abs=1e-9)
+            assert got["implied_swing_deg"] == pytest.approx(math.degrees(swing), abs=1e-9)
+            assert got["vanishing_line_residual_deg"] == pytest.approx(
+                math.degrees(math.acos(min(1.0, abs(nv @ R[2])))), abs=1e-9)
+        else:
+            assert math.isnan(got["vanishing_line_residual_deg"])
