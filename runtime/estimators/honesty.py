@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.jit import arr, njit, warmer
 
 MISFIT = "misfit"
 VANISHING_LINE = "vanishing_line"
@@ -202,19 +203,38 @@ def misfit(residuals_px: np.ndarray, sigma_px: float, n_params: int,
     With no degrees of freedom left (``N <= n_params``) the test cannot fail (limit
     inf): the estimator's feature-count check must refuse such a fit.
     """
-    r = np.asarray(residuals_px, dtype=float).ravel()
+    r = arr(residuals_px, np.float64).ravel()
     n = r.size
     dof = n - int(n_params)
-    rms = math.sqrt(float(r @ r) / n) if n else float("nan")
-    if n and not np.all(np.isfinite(r)):
+    ssr, finite, chi2 = _sums(r, float(sigma_px), float(huber_px))
+    rms = math.sqrt(ssr / n) if n else float("nan")
+    if n and not finite:
         return Misfit(math.inf, dof, math.inf, 0.0, sigma_px, rms, math.inf)
-    chi2 = float(huber_cost(r / sigma_px, huber_px / sigma_px).sum()) if n else 0.0
     if dof < 1:
         return Misfit(chi2, dof, float("nan"), math.inf, sigma_px, rms, 1.0)
     reduced = chi2 / dof
     limit = chi2_quantile(1.0 - alpha, dof)
     return Misfit(chi2, dof, reduced, limit, sigma_px, rms,
                   covariance_inflation(r, reduced, sigma_px, huber_px, groups))
+
+
+@njit
+def _sums(r, sigma, huber):  # pragma: no cover - compiled
+    """``(sum r², all finite, sum huber_cost(r / sigma, huber / sigma))`` in one loop."""
+    ssr = chi2 = 0.0
+    finite = True
+    k = huber / sigma
+    for i in range(r.size):
+        ssr += r[i] * r[i]
+        finite = finite and math.isfinite(r[i])
+        a = abs(r[i] / sigma)
+        chi2 += a * a if a <= k else 2.0 * k * a - k * k
+    return ssr, finite, chi2
+
+
+@warmer
+def _warm() -> None:
+    _sums(arr(np.ones(2), np.float64), 1.0, math.inf)
 
 
 def misfit_sum(sum_sq_px: float, n: int, sigma_px: float, n_params: int,

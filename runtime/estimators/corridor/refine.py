@@ -95,21 +95,59 @@ def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.
     (site line index, -1 none) and the ``across`` segments. ``tau_s`` ``(N, 2)``: each
     endpoint's row time (s, :func:`~ceilkit.runtime.geometry.shutter.row_times_s`; an
     across segment takes its endpoints' mean), None for a global shutter."""
-    ia = np.flatnonzero(along & (assign >= 0))
-    ep = fr.segs[ia].reshape(-1, 2)
-    ex, ey = ep[:, 0], ep[:, 1]
-    m0, m1, m2 = setup.R_rows
-    ib = np.flatnonzero(across)
-    lb = fr.lines_t[:, ib]
-    return GNInputs(
-        n_a=ia.size, y=np.repeat(setup.site_y[assign[ia]], 2),
-        e0=m0[0] * ex + m0[1] * ey + m0[2], e1=m1[0] * ex + m1[1] * ey + m1[2],
-        ez=m2[0] * ex + m2[1] * ey + m2[2],
-        p0=m0[0] * lb[0] + m0[1] * lb[1] + m0[2] * lb[2],
-        p1=m1[0] * lb[0] + m1[1] * lb[1] + m1[2] * lb[2],
-        mx_b=fr.mx[ib], my_b=fr.my[ib], scale_b=fr.len_n[ib] * (setup.f_px / math.sqrt(2.0)),
-        tau=None if tau_s is None else tau_s[ia].ravel(),
-        tau_b=None if tau_s is None else tau_s[ib].mean(axis=1))
+    f64 = np.float64
+    n_a, y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b = _gn_arrays(
+        arr(fr.segs, f64).reshape(-1, 4), arr(fr.lines_t, f64), arr(fr.mx, f64),
+        arr(fr.my, f64), arr(fr.len_n, f64), arr(along, np.bool_), arr(across, np.bool_),
+        arr(assign, np.int64), arr(setup.site_y, f64), arr(setup.R_level_cam, f64),
+        float(setup.f_px))
+    tau = tau_b = None
+    if tau_s is not None:
+        tau = tau_s[np.flatnonzero(along & (assign >= 0))].ravel()
+        tau_b = tau_s[np.flatnonzero(across)].mean(axis=1)
+    return GNInputs(n_a=n_a, y=y, e0=e0, e1=e1, ez=ez, p0=p0, p1=p1, mx_b=mx_b, my_b=my_b,
+                    scale_b=scale_b, tau=tau, tau_b=tau_b)
+
+
+@njit
+def _gn_arrays(segs, lines_t, mx, my, len_n, along, across, assign, site_y, R, f_px
+               ):  # pragma: no cover - compiled
+    """:func:`gn_inputs`' arrays in one loop: ``(n_a, y, e0, e1, ez, p0, p1, mx_b, my_b,
+    scale_b)``: the matched forward segments' endpoints ``p`` as ``R p`` (``e0, e1,
+    ez``) with their site line's ``y`` (twice), the across segments' lines as ``R[0]
+    l``, ``R[1] l`` with their midpoints and ``len f_px / sqrt 2``."""
+    n = segs.shape[0]
+    n_a = n_b = 0
+    for i in range(n):
+        n_a += along[i] and assign[i] >= 0
+        n_b += across[i]
+    y = np.empty(2 * n_a)
+    e0 = np.empty(2 * n_a)
+    e1 = np.empty(2 * n_a)
+    ez = np.empty(2 * n_a)
+    p0 = np.empty(n_b)
+    p1 = np.empty(n_b)
+    mx_b = np.empty(n_b)
+    my_b = np.empty(n_b)
+    scale_b = np.empty(n_b)
+    k = b = 0
+    for i in range(n):
+        if along[i] and assign[i] >= 0:
+            for e in range(2):
+                ex, ey = segs[i, 2 * e], segs[i, 2 * e + 1]
+                y[k] = site_y[assign[i]]
+                e0[k] = R[0, 0] * ex + R[0, 1] * ey + R[0, 2]
+                e1[k] = R[1, 0] * ex + R[1, 1] * ey + R[1, 2]
+                ez[k] = R[2, 0] * ex + R[2, 1] * ey + R[2, 2]
+                k += 1
+        if across[i]:
+            l0, l1, l2 = lines_t[0, i], lines_t[1, i], lines_t[2, i]
+            p0[b] = R[0, 0] * l0 + R[0, 1] * l1 + R[0, 2] * l2
+            p1[b] = R[1, 0] * l0 + R[1, 1] * l1 + R[1, 2] * l2
+            mx_b[b], my_b[b] = mx[i], my[i]
+            scale_b[b] = len_n[i] * (f_px / math.sqrt(2.0))
+            b += 1
+    return n_a, y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b
 
 
 def residuals(psi_rad: float, camera_y_m: float, gd: GNInputs,
@@ -336,3 +374,9 @@ def _warm() -> None:
     for a, b in ((one, none), (none, one)):          # along endpoints; across segments
         _huber_steps(0.0, 0.0, a, a, a, a, b, b, b, b, b, np.eye(3), 2.0, 400.0, 1, 1e-5,
                      2e-4, np.empty(2))
+    f = np.float64
+    seg = arr(np.array([[0.0, 0.0, 0.1, 0.0]]), f)
+    on = arr(np.ones(1, bool), np.bool_)
+    _gn_arrays(seg, arr(np.ones((3, 1)), f), arr(np.zeros(1), f), arr(np.zeros(1), f),
+               arr(np.ones(1), f), on, on, arr(np.zeros(1, np.int64), np.int64),
+               arr(np.zeros(1), f), arr(np.eye(3), f), 400.0)

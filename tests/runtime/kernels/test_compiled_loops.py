@@ -779,3 +779,33 @@ def test_vanishing_line_equals_the_eigenvector_reading():
                 math.degrees(math.acos(min(1.0, abs(nv @ R[2])))), abs=1e-9)
         else:
             assert math.isnan(got["vanishing_line_residual_deg"])
+
+
+def test_gn_inputs_equal_the_array_reading(corridor_rig, corridor_site):
+    """gn_inputs' compiled arrays are the array reading's: matched forward endpoints
+    through R with their site line's y, across lines through R, row times kept."""
+    from ceilkit.runtime.estimators.corridor.frame import frame_lines
+    from ceilkit.runtime.estimators.corridor.refine import gn_inputs
+    from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
+
+    st = CorridorSetup.build(corridor_rig, corridor_site, math.radians(5.0))
+    R = st.R_level_cam
+    rng = np.random.default_rng(12)
+    for n in (0, 1, 9, 30):
+        segs = rng.uniform(-1, 1, (n, 4))
+        fr = frame_lines(segs, np.zeros(n), st, 0.05, 2.0)
+        along = rng.random(n) < 0.6
+        across = ~along & (rng.random(n) < 0.7)
+        assign = np.where(rng.random(n) < 0.8, rng.integers(0, st.site_y.size, n), -1)
+        tau = rng.random((n, 2))
+        got = gn_inputs(fr, along, across, assign, st, tau)
+        ia, ib = np.flatnonzero(along & (assign >= 0)), np.flatnonzero(across)
+        ep = segs[ia].reshape(-1, 2) @ R[:, :2].T + R[:, 2]
+        lb = fr.lines[ib] @ R[:2].T
+        want = {"y": np.repeat(st.site_y[assign[ia]], 2), "e0": ep[:, 0], "e1": ep[:, 1],
+                "ez": ep[:, 2], "p0": lb[:, 0], "p1": lb[:, 1], "mx_b": fr.mx[ib],
+                "my_b": fr.my[ib], "scale_b": fr.len_n[ib] * st.f_px / math.sqrt(2.0),
+                "tau": tau[ia].ravel(), "tau_b": tau[ib].mean(axis=1)}
+        assert got.n_a == ia.size
+        for k, w in want.items():
+            np.testing.assert_allclose(getattr(got, k), w, rtol=1e-12, atol=1e-14, err_msg=k)
