@@ -44,8 +44,9 @@ from ceilkit.runtime.features.edges import (
     sample_profiles,
 )
 from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.features.quads import _bilinear
 from ceilkit.runtime.features.working import decimate, undecimate
-from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.camera import CameraModel, undistort_points
 from ceilkit.runtime.jit import arr, njit, warmer
 
 MIN_FIT_POINTS = 4   # located edge points a segment needs to be refitted
@@ -374,6 +375,93 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     return ends, pol, rms
 
 
+def refine_chords(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
+                  half_width_px: float = 4.0, n_along: int = 8, min_step: float = 20.0,
+                  min_depth: float = 8.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`refine_undistorted` of short chords predicted near their edges (no wider
+    retry), in one compiled call (:func:`_refine_core`): the same stages, with the
+    profiles sampled bilinear in float (the frame's edge replicated; not OpenCV's
+    remap, rounded to 1/32 px and to grey levels) and the lens inverted exactly
+    (:func:`~ceilkit.runtime.geometry.camera.undistort_points`). Returns
+    ``(segs_n, polarity, rms_px)`` as :func:`refine_undistorted`."""
+    s = arr(segs_px, np.float64).reshape(-1, 4)
+    offs, t, inner = edge_grid(n_along, half_width_px)
+    il, ir, ii = part_indices(offs)
+    return _refine_core(arr(gray, np.uint8), s, arr(offs, np.float64), arr(t, np.float64),
+                        arr(il, np.int64), arr(ir, np.int64), arr(ii, np.int64),
+                        inner.start + 1, inner.stop + 1, float(min_step), float(min_depth),
+                        *camera.lens, 0.5 * (camera.fx + camera.fy))
+
+
+@njit
+def _refine_core(grey, chords, offs, t, il, ir, ii, i0, i1, min_step, min_depth, lens_code,
+                 lens, f_px):  # pragma: no cover - compiled
+    """:func:`refine_chords`: ``(segs_n (N, 4), polarity (N,), rms (N,))``."""
+    n = chords.shape[0]
+    n_a, n_o = t.size, offs.size
+    hh, w = grey.shape
+    d = np.empty((n, 2))
+    nrm = np.empty((n, 2))
+    prof = np.empty((n, n_a, n_o))
+    for r in range(n):
+        d[r, 0], d[r, 1] = chords[r, 2] - chords[r, 0], chords[r, 3] - chords[r, 1]
+        inv = 1.0 / max(math.hypot(d[r, 0], d[r, 1]), 1e-9)
+        nrm[r, 0], nrm[r, 1] = -d[r, 1] * inv, d[r, 0] * inv
+        # the chord's samples all inside the frame (its box's corners): no clamping
+        inside = True
+        for a in (0, n_a - 1):
+            for o in (0, n_o - 1):
+                su = chords[r, 0] + t[a] * d[r, 0] + offs[o] * nrm[r, 0]
+                sv = chords[r, 1] + t[a] * d[r, 1] + offs[o] * nrm[r, 1]
+                inside = inside and 0.0 <= su < w - 1 and 0.0 <= sv < hh - 1
+        for a in range(n_a):
+            bu, bv = chords[r, 0] + t[a] * d[r, 0], chords[r, 1] + t[a] * d[r, 1]
+            for o in range(n_o):
+                su, sv = bu + offs[o] * nrm[r, 0], bv + offs[o] * nrm[r, 1]
+                if inside:
+                    prof[r, a, o] = _bilinear_inside(grey, su, sv)
+                else:
+                    prof[r, a, o] = _bilinear(grey, su, sv, w, hh)
+    pol, pts, good = _kind_and_points(prof, chords, d, nrm, offs, t, il, ir, ii,
+                                      i0, i1, min_step, min_depth,
+                                      PROFILE_STEP_PX)
+    n_good = 0
+    for r in range(n):
+        for a in range(n_a):
+            n_good += good[r, a]
+    px = np.empty((2 * n + n_good, 2))
+    for r in range(n):
+        px[2 * r, 0], px[2 * r, 1] = chords[r, 0], chords[r, 1]
+        px[2 * r + 1, 0], px[2 * r + 1, 1] = chords[r, 2], chords[r, 3]
+    k = 2 * n
+    for r in range(n):
+        for a in range(n_a):
+            if good[r, a]:
+                px[k, 0], px[k, 1] = pts[r, a, 0], pts[r, a, 1]
+                k += 1
+    xy = np.empty_like(px)
+    undistort_points(px, lens_code, lens, xy)
+    ends = xy[:2 * n].copy().reshape(n, 4)
+    rms = np.full(n, np.nan)
+    _fit_segments(xy[2 * n:].copy(), good, ends, rms, f_px, OUTLIER_FLOOR_PX, OUTLIER_SIGMAS,
+                  MIN_FIT_POINTS)
+    return ends, pol, rms
+
+
+@njit
+def _bilinear_inside(grey, x, y):  # pragma: no cover - compiled
+    """:func:`~.quads._bilinear` at ``(x, y)`` with ``0 <= x < W - 1`` and ``0 <= y <
+    H - 1`` (no clamping): the same number."""
+    x0 = np.int64(x)
+    y0 = np.int64(y)
+    fx, fy = x - x0, y - y0
+    a, b = np.float64(grey[y0, x0]), np.float64(grey[y0, x0 + 1])
+    c, d = np.float64(grey[y0 + 1, x0]), np.float64(grey[y0 + 1, x0 + 1])
+    top = a + fx * (b - a)
+    bot = c + fx * (d - c)
+    return top + fy * (bot - top)
+
+
 @njit
 def _kind_and_points(prof, s, d, nrm, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
                      step_px):  # pragma: no cover - compiled
@@ -496,3 +584,4 @@ def _warm() -> None:
     g[:, 30:] = 200
     cam = CameraModel.pinhole(60, 40, 50.0)
     refine_undistorted(cam, g, np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]]))
+    refine_chords(cam, g, np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]]))

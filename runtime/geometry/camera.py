@@ -446,7 +446,8 @@ def distort_points(xy, code, lens, out):  # pragma: no cover - compiled
 def _undistort_polynomial(u, v, fx, fy, cx, cy, k):  # pragma: no cover - compiled
     """The normalized point whose distortion is pixel ``(u, v)`` (OpenCV's polynomial
     lens, no tilt, no thin prism): Newton's steps on the distortion from the distorted
-    point, until a step moves the pixel by less than 1e-12 px (50 at most), the
+    point, until the point reprojects within 1e-12 px or a step moves it less (50 at
+    most), the
     inverse ``cv2.undistortPoints`` converges to. A step that does not bring the
     point nearer its pixel, or crosses a fold of the distortion (far out, where the
     Jacobian's determinant turns negative: a second, outer preimage), is halved."""
@@ -455,7 +456,10 @@ def _undistort_polynomial(u, v, fx, fy, cx, cy, k):  # pragma: no cover - compil
     x, y = x0, y0
     ex, ey, a, b, c, d = _polynomial_step(x, y, x0, y0, k)
     err = ex * ex + ey * ey
+    f2 = max(fx, fy) ** 2
     for _ in range(_UNDISTORT_MAX_ITER):
+        if err * f2 < _UNDISTORT_EPS * _UNDISTORT_EPS:     # reprojects within 1e-12 px
+            break
         det = a * d - b * c
         if not (math.isfinite(det) and det != 0.0):
             break

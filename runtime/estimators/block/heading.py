@@ -30,6 +30,7 @@ from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, predicted_chords
 from ceilkit.runtime.estimators.ignore import IgnoreRegions
 from ceilkit.runtime.features.lines import (
     SegmentDetector,
+    refine_chords,
     refine_undistorted,
     segment_lengths,
 )
@@ -73,9 +74,12 @@ class ParallelsStage:
             mode = "detected"
         if len(segs) < 2:
             return None
-        # predicted chords sit within a pixel or two of their line: no wider retry
-        sn, _, rms = refine_undistorted(self.geo.camera, grey, segs, retry_half_width_px=(
-            None if mode == "predicted" else 6.0))
+        # predicted chords sit within a pixel or two of their line: no wider retry, one
+        # compiled call (refine_chords)
+        if mode == "predicted":
+            sn, _, rms = refine_chords(self.geo.camera, grey, segs)
+        else:
+            sn, _, rms = refine_undistorted(self.geo.camera, grey, segs)
         good = np.isfinite(rms) if mode == "predicted" else np.ones(len(sn), bool)
         if self.ignore is not None and pose is not None:    # SPEC §2: not in a region
             good &= self.ignore.keep_segments(sn, pose)

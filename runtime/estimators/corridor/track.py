@@ -34,16 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
-from ceilkit.runtime.features.edges import (
-    OUTLIER_FLOOR_PX,
-    OUTLIER_SIGMAS,
-    PROFILE_STEP_PX,
-    edge_grid,
-    part_indices,
-)
-from ceilkit.runtime.features.lines import MIN_FIT_POINTS, _fit_segments, _kind_and_points
-from ceilkit.runtime.features.quads import _bilinear
-from ceilkit.runtime.geometry.camera import CameraModel, distort_points, undistort_points
+from ceilkit.runtime.features.edges import edge_grid, part_indices
+from ceilkit.runtime.features.lines import _refine_core
+from ceilkit.runtime.geometry.camera import CameraModel, distort_points
 from ceilkit.runtime.jit import arr, njit, warmer
 
 REACH_M = 8.0
@@ -218,12 +211,8 @@ def _predict(psi, cam_y, R_lc, site_y, u, lens_code, lens, p):  # pragma: no cov
 def _measure(grey, psi, cam_y, R_lc, site_y, u, edge_kind, offs, t, il, ir, ii,
              lens_code, lens, p):  # pragma: no cover - compiled
     """:meth:`LineTracker.measure`: ``(found, segs_n, chords, line, polarity, rms,
-    searched)``. The chords of :func:`_predict` are measured as
-    :func:`~ceilkit.runtime.features.lines.refine_undistorted` measures segments (its
-    compiled stages: the kind from the mean profile, the edge on each profile, the
-    points undistorted and a robust line fitted), with the profiles sampled bilinear in
-    float (the frame's edge replicated) and the lens inverted exactly
-    (:func:`~ceilkit.runtime.geometry.camera.undistort_points`); then the chords of the
+    searched)``. The chords of :func:`_predict` are measured by
+    :func:`~ceilkit.runtime.features.lines.refine_chords`' loop; then the chords of the
     wrong kind or a poor fit are dropped (:data:`MAX_CHORD_RMS_PX`,
     :data:`CHORD_RMS_MEDIANS`). ``found`` is False when fewer than two site lines are
     predicted or keep a chord."""
@@ -233,43 +222,8 @@ def _measure(grey, psi, cam_y, R_lc, site_y, u, edge_kind, offs, t, il, ir, ii,
              np.empty(0), np.empty(0), n)
     if _distinct(line) < 2:
         return empty
-    n_a, n_o = t.size, offs.size
-    hh, w = grey.shape
-    d = np.empty((n, 2))
-    nrm = np.empty((n, 2))
-    prof = np.empty((n, n_a, n_o))
-    for r in range(n):
-        d[r, 0], d[r, 1] = chords[r, 2] - chords[r, 0], chords[r, 3] - chords[r, 1]
-        inv = 1.0 / max(math.hypot(d[r, 0], d[r, 1]), 1e-9)
-        nrm[r, 0], nrm[r, 1] = -d[r, 1] * inv, d[r, 0] * inv
-        for a in range(n_a):
-            bu, bv = chords[r, 0] + t[a] * d[r, 0], chords[r, 1] + t[a] * d[r, 1]
-            for o in range(n_o):
-                prof[r, a, o] = _bilinear(grey, bu + offs[o] * nrm[r, 0],
-                                          bv + offs[o] * nrm[r, 1], w, hh)
-    pol, pts, good = _kind_and_points(prof, chords, d, nrm, offs, t, il, ir, ii,
-                                      np.int64(p[8]), np.int64(p[9]), MIN_STEP, MIN_DEPTH,
-                                      PROFILE_STEP_PX)
-    n_good = 0
-    for r in range(n):
-        for a in range(n_a):
-            n_good += good[r, a]
-    px = np.empty((2 * n + n_good, 2))
-    for r in range(n):
-        px[2 * r, 0], px[2 * r, 1] = chords[r, 0], chords[r, 1]
-        px[2 * r + 1, 0], px[2 * r + 1, 1] = chords[r, 2], chords[r, 3]
-    k = 2 * n
-    for r in range(n):
-        for a in range(n_a):
-            if good[r, a]:
-                px[k, 0], px[k, 1] = pts[r, a, 0], pts[r, a, 1]
-                k += 1
-    xy = np.empty_like(px)
-    undistort_points(px, lens_code, lens, xy)
-    ends = xy[:2 * n].copy().reshape(n, 4)
-    rms = np.full(n, np.nan)
-    _fit_segments(xy[2 * n:].copy(), good, ends, rms, p[7], OUTLIER_FLOOR_PX, OUTLIER_SIGMAS,
-                  MIN_FIT_POINTS)
+    ends, pol, rms = _refine_core(grey, chords, offs, t, il, ir, ii, np.int64(p[8]),
+                                  np.int64(p[9]), MIN_STEP, MIN_DEPTH, lens_code, lens, p[7])
     ok = np.zeros(n, np.bool_)
     for r in range(n):
         kind_ok = abs(pol[r]) == 1.0 if edge_kind[line[r]] != 0 else pol[r] == 0.0

@@ -809,3 +809,31 @@ def test_gn_inputs_equal_the_array_reading(corridor_rig, corridor_site):
         assert got.n_a == ia.size
         for k, w in want.items():
             np.testing.assert_allclose(getattr(got, k), w, rtol=1e-12, atol=1e-14, err_msg=k)
+
+
+def test_refine_chords_reads_as_refine_undistorted():
+    """The compiled chord refinement (profiles bilinear in float, the exact lens
+    inverse) gives refine_undistorted's kinds and, on blurred steps and seams through a
+    distorted lens, its lines to a few hundredths of a pixel (the remap's samples are
+    rounded to 1/32 px and to grey levels)."""
+    from ceilkit.runtime.features.lines import refine_chords, refine_undistorted
+    from ceilkit.runtime.geometry.camera import CameraModel
+
+    cam = CameraModel.pinhole(320, 240, 260.0, dist=[-0.1, 0.02, 0.0, 0.0, 0.0])
+    yy, xx = np.mgrid[0:240, 0:320].astype(float)
+    img = 60.0 + 120.0 / (1.0 + np.exp(-(xx - 0.12 * yy - 140.0) / 0.8))      # a step
+    img -= 70.0 * np.exp(-((yy - 0.05 * xx - 60.0) ** 2) / (2 * 1.2 ** 2))      # a seam
+    img += np.random.default_rng(5).normal(0.0, 1.0, img.shape)
+    grey = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    chords = np.array([[140.0 + 0.12 * 100, 100.0, 140.0 + 0.12 * 150, 150.0],
+                       [140.0 + 0.12 * 180, 180.0, 140.0 + 0.12 * 230, 230.0],
+                       [100.0, 65.0, 150.0, 67.5], [200.0, 70.0, 250.0, 72.5],
+                       [300.0, 10.0, 330.0, 12.0]])                 # past the frame's edge
+    want = refine_undistorted(cam, grey, chords, retry_half_width_px=None)
+    got = refine_chords(cam, grey, chords)
+    np.testing.assert_array_equal(np.isnan(got[1]), np.isnan(want[1]))
+    fin = np.isfinite(want[1]) & np.isfinite(want[2])
+    assert fin[:4].all()
+    np.testing.assert_array_equal(got[1][fin], want[1][fin])
+    np.testing.assert_allclose(got[0][fin] * cam.fx, want[0][fin] * cam.fx, atol=0.05)
+    np.testing.assert_allclose(got[2][fin], want[2][fin], atol=0.05)
