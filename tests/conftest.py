@@ -27,3 +27,16 @@ def lights_rig() -> Rig:
 @pytest.fixture
 def lights_site() -> Site:
     return Site.load(CONFIGS / "lights" / "site.yaml")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_loops() -> None:
+    """Every compiled loop (runtime/jit.py) made once, before any test: loaded from
+    numba's cache, or on a fresh machine compiled here (about 45 s on a slow 2-core VM),
+    so a test that starts ``ceilrun`` in a subprocess and waits for its first pose finds
+    them cached rather than compiling all of them within its deadline."""
+    import ceilkit.runtime.estimators.registry  # noqa: F401 (every method's modules)
+    import ceilkit.runtime.multi  # noqa: F401
+    from ceilkit.runtime import jit
+
+    jit.warm_up()

@@ -29,11 +29,18 @@ def kill_run(folder: Path, after_s: float) -> tuple[Path, Path]:
                              "--record", str(rec), "--serial", str(wire),
                              "--fsync-every", "0"],
                             stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
-    deadline = time.monotonic() + 60
+    # a generous wait: a machine's first run compiles the per-frame loops (runtime/jit.py)
+    deadline = time.monotonic() + 240
+    sent = False
     while time.monotonic() < deadline and proc.poll() is None:
-        if wire.exists() and b"$PCEIL" in wire.read_bytes():
+        sent = wire.exists() and b"$PCEIL" in wire.read_bytes()
+        if sent:
             break
         time.sleep(0.01)
+    if not sent:
+        proc.kill()
+        proc.wait()
+        raise AssertionError(f"no pose reached the link in 240 s (exit {proc.returncode})")
     time.sleep(after_s)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
