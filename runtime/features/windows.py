@@ -207,7 +207,7 @@ def _plain_moments(win, box, base, row_peak, out):  # pragma: no cover - compile
     mid = win.shape[0] // 2
     rx0, ry0, rx1, ry1 = box
     above = np.int64(math.floor(base)) + 1
-    m00 = m10 = m20 = m01 = m02 = m11 = 0.0
+    out[:] = 0.0
     for i in range(ry0, ry1 + 1):
         if row_peak[i] < above:
             continue
@@ -222,17 +222,7 @@ def _plain_moments(win, box, base, row_peak, out):  # pragma: no cover - compile
                 svxx += v * x * x
                 sx += x
                 sxx += x * x
-        r0 = sv - base * n
-        r1 = svx - base * sx
-        r2 = svxx - base * sxx
-        y = i - mid
-        m00 += r0
-        m10 += r1
-        m20 += r2
-        m01 += r0 * y
-        m02 += r0 * y * y
-        m11 += r1 * y
-    out[0], out[1], out[2], out[3], out[4], out[5] = m00, m10, m20, m01, m02, m11
+        _add_row(out, sv - base * n, svx - base * sx, svxx - base * sxx, i - mid)
 
 
 @njit
@@ -244,9 +234,8 @@ def _weighted_moments(win, box, base, plane, min_gain, out):  # pragma: no cover
     mid = win.shape[0] // 2
     rx0, ry0, rx1, ry1 = box
     ba, ca = b / a, c / a                          # the gain's slopes
-    m00 = m10 = m20 = m01 = m02 = m11 = 0.0
+    out[:] = 0.0
     for i in range(ry0, ry1 + 1):
-        y = i - mid
         r0 = r1 = r2 = 0.0
         gy = 1.0 + ca * (i - yc)
         for j in range(rx0, rx1 + 1):
@@ -256,13 +245,19 @@ def _weighted_moments(win, box, base, plane, min_gain, out):  # pragma: no cover
                 r0 += v
                 r1 += v * x
                 r2 += v * x * x
-        m00 += r0
-        m10 += r1
-        m20 += r2
-        m01 += r0 * y
-        m02 += r0 * y * y
-        m11 += r1 * y
-    out[0], out[1], out[2], out[3], out[4], out[5] = m00, m10, m20, m01, m02, m11
+        _add_row(out, r0, r1, r2, i - mid)
+
+
+@njit
+def _add_row(m, r0, r1, r2, y):  # pragma: no cover - compiled
+    """A row's sums ``r0, r1, r2`` (``w``, ``w x``, ``w x²``) at ``y`` into the moments
+    ``m (6,)``: ``m00, m10, m20, m01, m02, m11``."""
+    m[0] += r0
+    m[1] += r1
+    m[2] += r2
+    m[3] += r0 * y
+    m[4] += r0 * y * y
+    m[5] += r1 * y
 
 
 SMALL_HALF_PX = 10

@@ -132,7 +132,7 @@ def _frame_arrays(segs, R, h, lamp_w, angle_tol, inlier_px, f_px
     len_n, mx, my, q (N, 3), ceil_len, ceil_sx, ceil_sy, lamp_end (L, N), tol)``.
     A segment's line ``(-dy, dx, x0 y1 - x1 y0) / len``; its level normal ``R l``; its
     endpoints on the ceiling ``h (R p)_xy / (R p)_z`` (NaN where ``(R p)_z <= 1e-6``,
-    above the horizon: :func:`~.geometry.ceiling_points`), their distance capped at
+    above the horizon), their distance capped at
     :data:`MAX_CEILING_LENGTH_M` (0 when NaN); as long as lamp row l is wide within
     :data:`LAMP_END_TOL`; the family gate ``min(angle_tol, 2 inlier_px / max(len
     f_px, 1))``."""

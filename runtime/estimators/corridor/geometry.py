@@ -110,20 +110,6 @@ def across_offsets(q: np.ndarray, psi_rad: float, ceiling_above_cam_m: float) ->
                         np.nan)
 
 
-def ceiling_points(segs: np.ndarray, R_level_cam: np.ndarray,
-                   ceiling_above_cam_m: float) -> np.ndarray:
-    """Endpoints of segments ``(N, 4)`` (normalized coordinates) back-projected onto the
-    ceiling: ``(N, 4)`` level-frame ``(x, y)`` of each endpoint relative to the camera
-    (m; NaN above the horizon). Needs no pan."""
-    R_T = np.ascontiguousarray(R_level_cam.T)
-    n = segs.shape[0]
-    p = segs.reshape(-1, 2) @ R_T[:2] + R_T[2]                   # R (x, y, 1), (2N, 3)
-    up = p[:, 2:3] > 1e-6
-    X = np.full((2 * n, 2), np.nan)
-    np.multiply(p[:, :2], ceiling_above_cam_m / np.where(up, p[:, 2:3], 1.0), out=X, where=up)
-    return X.reshape(n, 4)
-
-
 def free_vanishing_points(lines: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """The unit homogeneous points ``(F, 3)`` closest (algebraically, weighted) to the
     lines ``(N, 3)`` of each of F families: the smallest eigenvector of
@@ -153,40 +139,42 @@ def vanishing_line_check(lines: np.ndarray, len_n: np.ndarray, along: np.ndarray
     ``vp_along_elevation_deg``, ``implied_tilt_deg``, ``implied_swing_deg`` (NaN where
     a family has fewer than two segments)."""
     lines_t = np.ascontiguousarray(np.asarray(lines, np.float64).reshape(-1, 3).T)
-    r, e, t, s = _vanishing_line(arr(lines_t, np.float64), arr(len_n, np.float64),
-                                 arr(along, np.bool_), arr(across, np.bool_),
-                                 arr(R_level_cam, np.float64))
-    return {"vanishing_line_residual_deg": r, "vp_along_elevation_deg": e,
-            "implied_tilt_deg": t, "implied_swing_deg": s}
+    resid, elev, n = _vanishing_line(arr(lines_t, np.float64), arr(len_n, np.float64),
+                                     arr(along, np.bool_), arr(across, np.bool_),
+                                     arr(R_level_cam, np.float64))
+    tilt = swing = float("nan")
+    if math.isfinite(n[0]):
+        tilt, swing = (math.degrees(a) for a in mount_from_vanishing_line(n))
+    return {"vanishing_line_residual_deg": resid, "vp_along_elevation_deg": elev,
+            "implied_tilt_deg": tilt, "implied_swing_deg": swing}
 
 
 @njit
 def _vanishing_line(lines_t, len_n, along, across, R):  # pragma: no cover - compiled
-    """:func:`vanishing_line_check`'s ``(residual, elevation, tilt, swing)`` (deg, NaN
-    where a family has fewer than two segments) from the lines ``(3, N)``: each
-    family's free vanishing point (:func:`free_vanishing_points`, weights ``len²``)."""
+    """:func:`vanishing_line_check`'s ``(residual deg, elevation deg, n (3,))`` from the
+    lines ``(3, N)``: each family's free vanishing point (:func:`free_vanishing_points`,
+    weights ``len²``) and the unit vanishing line ``n`` through both (NaN where a family
+    has fewer than two segments)."""
     nan = np.nan
+    no_line = np.full(3, np.nan)
     if np.count_nonzero(along) < 2:
-        return nan, nan, nan, nan
+        return nan, nan, no_line
     va = _family_point(lines_t, len_n, along)
     n_pred = R[2]
     elev = math.degrees(math.asin(min(1.0, abs(n_pred[0] * va[0] + n_pred[1] * va[1]
                                                 + n_pred[2] * va[2]))))
     if np.count_nonzero(across) < 2:
-        return nan, elev, nan, nan
+        return nan, elev, no_line
     vb = _family_point(lines_t, len_n, across)
     n = np.array([va[1] * vb[2] - va[2] * vb[1], va[2] * vb[0] - va[0] * vb[2],
                   va[0] * vb[1] - va[1] * vb[0]])
     nn = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
     if not nn > 1e-12:
-        return nan, elev, nan, nan
+        return nan, elev, no_line
     n /= nn
     resid = math.degrees(math.acos(min(1.0, abs(n[0] * n_pred[0] + n[1] * n_pred[1]
                                                  + n[2] * n_pred[2]))))
-    if n[2] < 0:            # mount_from_vanishing_line
-        n = -n
-    tilt, swing = math.asin(min(1.0, n[2])), math.atan2(-n[0], -n[1])
-    return resid, elev, math.degrees(tilt), math.degrees(swing)
+    return resid, elev, n
 
 
 @njit

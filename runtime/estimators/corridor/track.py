@@ -122,16 +122,15 @@ class LineTracker:
     def __init__(self, setup: CorridorSetup, camera: CameraModel, search_px: float) -> None:
         self.setup, self.camera = setup, camera
         self.search_px = float(search_px)
-        self._u = np.linspace(-REACH_M, REACH_M, SAMPLES)
-        self._margin = self.search_px + 2.0
         offs, t, inner = edge_grid(N_ALONG, self.search_px)
         il, ir, ii = part_indices(offs)
-        params = np.array([setup.ceiling_above_cam_m, setup.field_radius, self._margin,
+        params = np.array([setup.ceiling_above_cam_m, setup.field_radius, self.search_px + 2.0,
                            setup.rows[0], setup.rows[1], camera.width, camera.height,
                            setup.f_px, inner.start + 1, inner.stop + 1])
         # what the compiled measurement reads, made once (read-only arrays)
         self._consts = (arr(setup.R_level_cam, np.float64), arr(setup.site_y, np.float64),
-                        arr(self._u, np.float64), arr(setup.edge_kind, np.float64),
+                        arr(np.linspace(-REACH_M, REACH_M, SAMPLES), np.float64),
+                        arr(setup.edge_kind, np.float64),
                         arr(offs, np.float64), arr(t, np.float64), arr(il, np.int64),
                         arr(ir, np.int64), arr(ii, np.int64), *camera.lens,
                         arr(params, np.float64))

@@ -106,16 +106,50 @@ def refine_pose_ceiling(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarra
     q = arr(q_v, np.float64).reshape(-1, 2)
     J = arr(jac_px, np.float64).reshape(-1, 2, 2)
     L = arr(lights_w, np.float64).reshape(-1, 2)
-    pose = np.array([x_m, y_m, yaw_rad], float)
-    N = np.empty((3, 3))
-    norms = np.empty(q.shape[0])
-    ssr = _gauss_newton(q, J, L, pose, int(iterations), N, norms)
+    return _refine(q, J, L, float(x_m), float(y_m), float(yaw_rad), int(iterations),
+                   float(sigma_floor_px))
+
+
+@njit
+def _refine(q, J, L, x, y, yaw, iterations, sigma_floor):  # pragma: no cover - compiled
+    """:func:`refine_pose_ceiling` (also called by the lights' compiled window fix):
+    ``(x, y, yaw in [-pi, pi), cov, residual norms)``. The covariance is ``s² N⁻¹`` by
+    cofactors, inf where ``N`` is singular or not finite or a residual is NaN."""
     k = q.shape[0]
+    pose = np.array([x, y, yaw])
+    N = np.empty((3, 3))
+    norms = np.empty(k)
+    ssr = _gauss_newton(q, J, L, pose, iterations, N, norms)
     dof = 2 * k - 3
-    s2 = max(ssr / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
-    inv = _inv3(N) if math.isfinite(ssr) else None      # a NaN residual: no covariance
-    cov = np.full((3, 3), np.inf) if inv is None else s2 * inv
-    return float(pose[0]), float(pose[1]), float(wrap_pi(pose[2])), cov, norms
+    s2 = max(ssr / dof if dof > 0 else 0.0, sigma_floor * sigma_floor)
+    cov = np.full((3, 3), np.inf)
+    if math.isfinite(ssr):
+        _scaled_inverse(N, s2, cov)
+    return pose[0], pose[1], (pose[2] + math.pi) % (2.0 * math.pi) - math.pi, cov, norms
+
+
+def _inv3(N: np.ndarray) -> np.ndarray | None:
+    """The inverse of a symmetric ``(3, 3)`` matrix by cofactors, or ``None`` when it is
+    singular or not finite (:func:`_scaled_inverse`)."""
+    out = np.empty((3, 3))
+    return out if _scaled_inverse(arr(N, np.float64), 1.0, out) else None
+
+
+@njit
+def _scaled_inverse(N, scale, out):  # pragma: no cover - compiled
+    """``out = scale N⁻¹`` for a symmetric ``(3, 3)`` ``N`` by cofactors (``scale (C /
+    det)``); False, ``out`` untouched, when ``N`` is singular or not finite."""
+    a, b, c, d, e, f = N[0, 0], N[0, 1], N[0, 2], N[1, 1], N[1, 2], N[2, 2]
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * A + b * B + c * C
+    if not (math.isfinite(det) and abs(det) > 1e-300):
+        return False
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    r = 1.0 / det
+    out[0, 0], out[0, 1], out[0, 2] = scale * (A * r), scale * (B * r), scale * (C * r)
+    out[1, 0], out[1, 1], out[1, 2] = scale * (B * r), scale * (D * r), scale * (E * r)
+    out[2, 0], out[2, 1], out[2, 2] = scale * (C * r), scale * (E * r), scale * (F * r)
+    return True
 
 
 @njit
@@ -228,22 +262,11 @@ def _cholesky3(N, g, ridge):  # pragma: no cover - compiled
     return True, x0, x1, x2
 
 
-def _inv3(N: np.ndarray) -> np.ndarray | None:
-    """The inverse of a symmetric ``(3, 3)`` matrix by cofactors in plain floats (a
-    tenth of ``np.linalg.inv``'s call), or ``None`` when it is singular or not finite."""
-    (a, b, c), (_, d, e), (_, _, f) = N.tolist()
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    det = a * A + b * B + c * C
-    if not (math.isfinite(det) and abs(det) > 1e-300):
-        return None
-    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-    return np.array([[A, B, C], [B, D, E], [C, E, F]]) * (1.0 / det)
-
-
 @warmer
 def _warm() -> None:
     q = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     refine_pose_ceiling(q, np.tile(np.eye(2) * 300.0, (3, 1, 1)), q, 0.0, 0.0, 0.0)
+    _inv3(np.eye(3))
 
 
 __all__ = ["refine_pose", "refine_pose_ceiling"]

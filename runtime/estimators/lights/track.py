@@ -55,7 +55,7 @@ from ceilkit.runtime.estimators.lights.rays import (
     pixel_scale,
     project_lights,
 )
-from ceilkit.runtime.estimators.lights.refine import _gauss_newton
+from ceilkit.runtime.estimators.lights.refine import _refine
 from ceilkit.runtime.features.spots import (
     _FLAT_ERODE_PX,
     _FLAT_MAX_RESIDUAL,
@@ -450,7 +450,7 @@ def _fit(q, jac, L, x, y, yaw, params):  # pragma: no cover - compiled
     or :data:`CHECK` when they fail."""
     k = q.shape[0]
     keep = np.ones(k, np.bool_)
-    fx, fy, fyaw, cov, res = _refine(q, jac, L, x, y, yaw)
+    fx, fy, fyaw, cov, res = _refine(q, jac, L, x, y, yaw, 3, 0.1)
     limit = max(params[_P_RESIDUAL], params[_P_MEDIANS] * _median(res))
     n_bad = 0
     for i in range(k):
@@ -460,7 +460,7 @@ def _fit(q, jac, L, x, y, yaw, params):  # pragma: no cover - compiled
     if n_bad:
         if k - n_bad < 3:
             return FEW_KEPT, 0.0, 0.0, 0.0, cov, res, keep
-        fx, fy, fyaw, cov, res = _refine(q[keep], jac[keep], L[keep], fx, fy, fyaw)
+        fx, fy, fyaw, cov, res = _refine(q[keep], jac[keep], L[keep], fx, fy, fyaw, 3, 0.1)
     ss = 0.0
     for i in range(res.size):
         ss += res[i] * res[i]
@@ -476,32 +476,6 @@ def _fit(q, jac, L, x, y, yaw, params):  # pragma: no cover - compiled
             or abs(d_yaw) > params[_P_GATE_RAD]):
         return CHECK, fx, fy, fyaw, cov, res, keep
     return FIX, fx, fy, fyaw, cov, res, keep
-
-
-@njit
-def _refine(q, jac, L, x, y, yaw):  # pragma: no cover - compiled
-    """:func:`~.refine.refine_pose_ceiling` (3 iterations, a 0.1 px noise floor):
-    ``(x, y, yaw in [-pi, pi), cov, residual norms)``."""
-    k = q.shape[0]
-    pose = np.array([x, y, yaw])
-    N = np.empty((3, 3))
-    norms = np.empty(k)
-    ssr = _gauss_newton(q, jac, L, pose, 3, N, norms)
-    dof = 2 * k - 3
-    s2 = max(ssr / dof if dof > 0 else 0.0, 0.1 ** 2)
-    cov = np.full((3, 3), np.inf)
-    if math.isfinite(ssr):
-        a, b, c, d, e, f = N[0, 0], N[0, 1], N[0, 2], N[1, 1], N[1, 2], N[2, 2]
-        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-        det = a * A + b * B + c * C
-        if math.isfinite(det) and abs(det) > 1e-300:
-            D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-            g = s2 * (1.0 / det)
-            cov[0, 0], cov[0, 1], cov[0, 2] = A * g, B * g, C * g
-            cov[1, 0], cov[1, 1], cov[1, 2] = B * g, D * g, E * g
-            cov[2, 0], cov[2, 1], cov[2, 2] = C * g, E * g, F * g
-    wrapped = (pose[2] + math.pi) % (2.0 * math.pi) - math.pi
-    return pose[0], pose[1], wrapped, cov, norms
 
 
 @njit
