@@ -443,6 +443,33 @@ def distort_points(xy, code, lens, out):  # pragma: no cover - compiled
 
 
 @njit
+def magnification_points(xy, code, lens, out):  # pragma: no cover - compiled
+    """Into ``out (N,)``: pixels per normalized unit at normalized points ``xy (N, 2)``,
+    ``sqrt |det J|`` of the lens ``(code, lens)`` (:attr:`CameraModel.lens`): the
+    polynomial model's Jacobian in closed form (``K``'s skew leaves the determinant
+    alone), a fisheye's by forward differences of :data:`JACOBIAN_EPS` (as
+    :meth:`CameraModel.distort_jacobian`)."""
+    fx, fy = lens[0], lens[1]
+    k = lens[5:]
+    one, a = np.empty((1, 2)), np.empty((3, 2))
+    for n in range(xy.shape[0]):
+        x, y = xy[n, 0], xy[n, 1]
+        if code == 0:
+            det = fx * fy
+        elif code == 1:
+            _, _, ja, jb, jc, jd = _polynomial_step(x, y, 0.0, 0.0, k)
+            det = fx * fy * (ja * jd - jb * jc)
+        else:
+            for j in range(3):
+                one[0, 0] = x + (JACOBIAN_EPS if j == 1 else 0.0)
+                one[0, 1] = y + (JACOBIAN_EPS if j == 2 else 0.0)
+                distort_points(one, code, lens, a[j:j + 1])
+            det = ((a[1, 0] - a[0, 0]) * (a[2, 1] - a[0, 1])
+                   - (a[2, 0] - a[0, 0]) * (a[1, 1] - a[0, 1])) / (JACOBIAN_EPS * JACOBIAN_EPS)
+        out[n] = math.sqrt(abs(det))
+
+
+@njit
 def _undistort_polynomial(u, v, fx, fy, cx, cy, k):  # pragma: no cover - compiled
     """The normalized point whose distortion is pixel ``(u, v)`` (OpenCV's polynomial
     lens, no tilt, no thin prism): Newton's steps on the distortion from the distorted
@@ -542,6 +569,7 @@ def _warm() -> None:
                 CameraModel.pinhole(4, 4, 2.0, dist=[0.1, 0, 0, 0], model="equidistant")):
         undistort_points(px, *cam.lens, np.empty((1, 2)))
         distort_points(px, *cam.lens, np.empty((1, 2)))
+        magnification_points(px, *cam.lens, np.empty(1))
 
 
 @functools.lru_cache(maxsize=8)
@@ -578,4 +606,5 @@ def subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
 
 
 __all__ = ["CameraModel", "DISTORTION_MODELS", "LENS_EQUIDISTANT", "LENS_LINEAR",
-           "LENS_POLYNOMIAL", "distort_points", "subpixel_rays", "undistort_points"]
+           "LENS_POLYNOMIAL", "distort_points", "magnification_points", "subpixel_rays",
+           "undistort_points"]

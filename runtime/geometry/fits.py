@@ -18,6 +18,8 @@ import math
 
 import numpy as np
 
+from ceilkit.runtime.jit import njit
+
 
 def _centred_sums(q: np.ndarray, p: np.ndarray, w: np.ndarray | None
                   ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray]:
@@ -112,4 +114,22 @@ def short_median(x: np.ndarray) -> float:
     return float(s[n // 2]) if n % 2 else float((s[n // 2 - 1] + s[n // 2]) / 2)
 
 
-__all__ = ["fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d", "short_median"]
+@njit
+def scaled_inverse3(N, scale, out):  # pragma: no cover - compiled
+    """``out = scale N⁻¹`` for a symmetric ``(3, 3)`` ``N`` by cofactors (``scale (C /
+    det)``); False, ``out`` untouched, when ``N`` is singular or not finite."""
+    a, b, c, d, e, f = N[0, 0], N[0, 1], N[0, 2], N[1, 1], N[1, 2], N[2, 2]
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * A + b * B + c * C
+    if not (math.isfinite(det) and abs(det) > 1e-300):
+        return False
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    r = 1.0 / det
+    out[0, 0], out[0, 1], out[0, 2] = scale * (A * r), scale * (B * r), scale * (C * r)
+    out[1, 0], out[1, 1], out[1, 2] = scale * (B * r), scale * (D * r), scale * (E * r)
+    out[2, 0], out[2, 1], out[2, 2] = scale * (C * r), scale * (E * r), scale * (F * r)
+    return True
+
+
+__all__ = ["fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d", "scaled_inverse3",
+           "short_median"]

@@ -17,6 +17,7 @@ Everything returns arrays or frozen dataclasses; nothing raises per frame.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -25,15 +26,21 @@ import numpy as np
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.features.quads import (
     EDGE_SEARCH_PX,
+    EDGE_STEP_PX,
     MIN_QUAD_AREA_PX,
     QUIET_CELLS,
     MarkerCodes,
     Quad,
+    _bilinear,
+    _edge_points,
+    _stations,
     edge_points,
     line_corners,
     quads_of_mask,
 )
+from ceilkit.runtime.geometry.camera import CameraModel, undistort_points
 from ceilkit.runtime.geometry.fits import short_median
+from ceilkit.runtime.jit import arr, njit, warmer
 
 BG_SHRINK = 16             # background(): the frame shrunk by this factor
 BG_WINDOW = 9              # background(): local max/min over this many shrunk cells
@@ -218,25 +225,6 @@ class Sides:
     stations: int
 
 
-def _sides_once(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
-                per_side: int, search_px: float = EDGE_SEARCH_PX) -> Sides | None:
-    pts, side = edge_points(grey, corners_px, per_side, search_px)
-    counts = np.bincount(side, minlength=4)
-    if np.any(counts < MIN_SIDE_POINTS):
-        return None
-    return _sides_of(pts, side, geo, per_side)
-
-
-def _sides_of(pts: np.ndarray, side: np.ndarray, geo: PlanarGeometry,
-              per_side: int) -> Sides | None:
-    """The side lines of edge points ``pts`` (px) through the lens, or None."""
-    norm = geo.camera.unproject_fast(pts)
-    corners = line_corners(fit_side_lines(norm, side))
-    if corners is None:
-        return None
-    return Sides(corners, norm, side, 4 * per_side)
-
-
 def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
                   per_side: int, passes: int = 2, search_px: float = EDGE_SEARCH_PX
                   ) -> Sides | None:
@@ -246,28 +234,120 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
     the edges ``search_px`` across each side, the next ones :data:`EDGE_SEARCH_PX`.
     None when a side has fewer than :data:`MIN_SIDE_POINTS` points. The passes before
     the last fit the sides in pixels (no lens model: straight over a short run, and
-    only the next pass's stations depend on them)."""
-    pts = side = None
-    for k in range(passes - 1):
-        pts, side = edge_points(grey, corners_px, per_side,
-                                search_px if k == 0 else EDGE_SEARCH_PX)
-        if np.any(np.bincount(side, minlength=4) < MIN_SIDE_POINTS):
-            return None
-        corners_px = line_corners(fit_side_lines(pts, side))
-        if corners_px is None:
-            return None
-    got = _sides_once(grey, corners_px, geo, per_side,
-                      search_px if passes == 1 else EDGE_SEARCH_PX)
-    if got is not None or pts is None:
-        return got
-    # the last pass lost a side (its narrower search about corners a pass moved):
-    # the previous pass's points, through the lens, are still a measurement (as
-    # before the window path: a later pass that fails keeps the earlier one)
-    return _sides_of(pts, side, geo, per_side)
+    only the next pass's stations depend on them). One compiled call
+    (:func:`measure_core`)."""
+    p0 = arr(corners_px, np.float64).reshape(4, 2)
+    if not np.isfinite(p0).all():
+        return None
+    code, lens = geo.camera.lens
+    first, t = _stations(per_side, float(search_px))
+    rest, _ = _stations(per_side, EDGE_SEARCH_PX)
+    corners = np.empty((4, 2))
+    edge = np.empty((4 * per_side, 2))
+    side = np.empty(4 * per_side, np.int64)
+    n = measure_core(arr(grey, np.uint8), p0, passes, first, rest, t, EDGE_STEP_PX,
+                     code, lens, corners, edge, side)
+    if n < 0:
+        return None
+    return Sides(corners, edge[:n], side[:n], 4 * per_side)
 
 
-_CONTRAST_T = np.array([0.3, 0.5, 0.7])   # step_contrast: stations along each side
-CONTRAST_INSET = 0.1                       # ... inwards/outwards, share of the way to the centre
+@njit
+def measure_core(grey, p0, passes, first, rest, t, step, code, lens, corners, edge, side
+                 ):  # pragma: no cover - compiled
+    """:func:`measure_sides` of the quad ``p0 (4, 2)`` px (finite): the corners
+    (normalized) into ``corners (4, 2)``, the edge points (normalized) and their sides
+    into the first ``count`` rows of ``edge (4 S, 2)``, ``side (4 S,)``; returns
+    ``count``, or -1 (no measurement). Offsets across a side: ``first (K,)`` on the
+    first pass, ``rest`` after; stations ``t (S,)`` along it. A last pass that loses
+    a side keeps the previous pass's points (through the lens)."""
+    cur = p0.copy()
+    lines = np.empty((4, 3))
+    prev_pts = np.empty((0, 2))
+    prev_side = np.empty(0, np.int64)
+    have_prev = False
+    for k in range(passes):
+        pts, sd, n = _edge_points(grey, cur, first if k == 0 else rest, t, step)
+        if _too_few(sd, n):
+            if k == passes - 1 and have_prev:
+                return _lens_sides(prev_pts, prev_side, code, lens, lines, corners, edge, side)
+            return -1
+        if k == passes - 1:
+            got = _lens_sides(pts[:n], sd[:n], code, lens, lines, corners, edge, side)
+            if got < 0 and have_prev:
+                return _lens_sides(prev_pts, prev_side, code, lens, lines, corners, edge,
+                                   side)
+            return got
+        _fit_lines(pts[:n], sd[:n], lines)
+        if not _line_corners(lines, cur):
+            return -1
+        prev_pts, prev_side, have_prev = pts[:n], sd[:n], True
+    return -1
+
+
+@njit
+def _too_few(side, n):  # pragma: no cover - compiled
+    """Whether a side of the first ``n`` points has fewer than MIN_SIDE_POINTS."""
+    counts = np.zeros(4, np.int64)
+    for i in range(n):
+        counts[side[i]] += 1
+    return counts.min() < MIN_SIDE_POINTS
+
+
+@njit
+def _lens_sides(pts, sd, code, lens, lines, corners, edge, side):  # pragma: no cover
+    """The points ``pts`` (px) through the lens into ``edge``, their sides' lines met
+    into ``corners``: the count, or -1 when two neighbouring sides are parallel."""
+    n = pts.shape[0]
+    norm = edge[:n]
+    undistort_points(pts, code, lens, norm)
+    side[:n] = sd
+    _fit_lines(norm, sd, lines)
+    return n if _line_corners(lines, corners) else -1
+
+
+@njit
+def _fit_lines(points, side, lines):  # pragma: no cover - compiled
+    """:func:`fit_side_lines` into ``lines (4, 3)``."""
+    s = np.zeros((4, 6))                       # n, Σx, Σy and the centred moments
+    for i in range(points.shape[0]):
+        k = side[i]
+        s[k, 0] += 1.0
+        s[k, 1] += points[i, 0]
+        s[k, 2] += points[i, 1]
+    for k in range(4):
+        s[k, 1] /= s[k, 0]
+        s[k, 2] /= s[k, 0]
+    for i in range(points.shape[0]):
+        k = side[i]
+        dx, dy = points[i, 0] - s[k, 1], points[i, 1] - s[k, 2]
+        s[k, 3] += dx * dx
+        s[k, 4] += dy * dy
+        s[k, 5] += dx * dy
+    for k in range(4):
+        theta = 0.5 * math.atan2(2.0 * s[k, 5], s[k, 3] - s[k, 4])
+        a, b = -math.sin(theta), math.cos(theta)
+        lines[k, 0], lines[k, 1], lines[k, 2] = a, b, -(a * s[k, 1] + b * s[k, 2])
+
+
+@njit
+def _line_corners(lines, out):  # pragma: no cover - compiled
+    """:func:`~ceilkit.runtime.features.quads.line_corners` into ``out (4, 2)``;
+    False (``out`` partly written) when two neighbouring sides are parallel."""
+    a0, b0, c0 = lines[3, 0], lines[3, 1], lines[3, 2]
+    for k in range(4):
+        a1, b1, c1 = lines[k, 0], lines[k, 1], lines[k, 2]
+        w = a0 * b1 - b0 * a1
+        if abs(w) < 1e-12:
+            return False
+        out[k, 0] = (b0 * c1 - c0 * b1) / w
+        out[k, 1] = (c0 * a1 - a0 * c1) / w
+        a0, b0, c0 = a1, b1, c1
+    return True
+
+
+CONTRAST_T = (0.3, 0.5, 0.7)   # step_contrast: stations along each side
+CONTRAST_INSET = 0.1           # ... inwards/outwards, share of the way to the centre
 
 
 def step_contrast(grey: np.ndarray, corners_px: np.ndarray) -> float:
@@ -275,15 +355,39 @@ def step_contrast(grey: np.ndarray, corners_px: np.ndarray) -> float:
     of 12 bilinear samples each, :data:`CONTRAST_INSET` of the way from three points of
     every side towards and away from the centre): below 1 for a dark block or a
     marker's black border on the ceiling, above 1 for a bright block. NaN when the
-    outside reads black."""
-    c = corners_px.mean(axis=0)
-    on = (corners_px[:, None, :] + _CONTRAST_T[None, :, None]
-          * (corners_px[_NEXT_CORNER] - corners_px)[:, None, :]).reshape(-1, 2)
-    step = CONTRAST_INSET * (c - on)
-    pts = np.concatenate([on + step, on - step]).astype(np.float32)
-    vals = cv2.remap(grey, pts.reshape(1, -1, 2), None, cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE).reshape(2, -1)
-    n = vals.shape[1]                     # the medians inside (row 0) and outside (1)
-    srt = np.sort(vals, axis=1).astype(float)
-    inside, outside = 0.5 * (srt[:, (n - 1) // 2] + srt[:, n // 2])
-    return float(inside / outside) if outside > 0 else float("nan")
+    outside reads black. One compiled call (:func:`contrast_core`)."""
+    return contrast_core(arr(grey, np.uint8), arr(corners_px, np.float64).reshape(4, 2))
+
+
+@njit
+def contrast_core(grey, corners):  # pragma: no cover - compiled
+    """:func:`step_contrast` (samples bilinear in float, the frame's edge replicated)."""
+    h, w = grey.shape
+    cx = 0.25 * (corners[0, 0] + corners[1, 0] + corners[2, 0] + corners[3, 0])
+    cy = 0.25 * (corners[0, 1] + corners[1, 1] + corners[2, 1] + corners[3, 1])
+    inside, outside = np.empty(12), np.empty(12)
+    for k in range(4):
+        n = (k + 1) % 4
+        for j in range(3):
+            f = CONTRAST_T[j]
+            ox = corners[k, 0] + f * (corners[n, 0] - corners[k, 0])
+            oy = corners[k, 1] + f * (corners[n, 1] - corners[k, 1])
+            sx, sy = CONTRAST_INSET * (cx - ox), CONTRAST_INSET * (cy - oy)
+            inside[3 * k + j] = _bilinear(grey, ox + sx, oy + sy, w, h)
+            outside[3 * k + j] = _bilinear(grey, ox - sx, oy - sy, w, h)
+    inside.sort()
+    outside.sort()
+    a, b = 0.5 * (inside[5] + inside[6]), 0.5 * (outside[5] + outside[6])
+    return a / b if b > 0 else np.nan
+
+
+@warmer
+def _warm() -> None:
+    g = np.zeros((40, 40), np.uint8)
+    g[10:30, 10:30] = 200
+    sq = np.array([[10.0, 10.0], [30.0, 10.0], [30.0, 30.0], [10.0, 30.0]])
+    step_contrast(g, sq)
+    for cam in (CameraModel.pinhole(40, 40, 20.0),
+                CameraModel.pinhole(40, 40, 20.0, dist=[0.1, 0, 0, 0, 0])):
+        geo = PlanarGeometry(cam, np.eye(3), np.zeros(3), 3.0)
+        measure_sides(g, sq, geo, 4, passes=2, search_px=4.0)

@@ -60,13 +60,18 @@ from ceilkit.runtime.estimators.block.pnp import (
     PooledSideOffsets,
     Refined,
     ceiling_points_vehicle,
-    closed_form,
-    magnification,
-    refine,
     six_dof_check,
+    solve,
 )
 from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides
-from ceilkit.runtime.estimators.block.window import WINDOW, Windows, shape_fits, targets_of
+from ceilkit.runtime.estimators.block.window import (
+    WINDOW,
+    Target,
+    WindowFix,
+    Windows,
+    shape_fits,
+    targets_of,
+)
 from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad, signed_area
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
@@ -201,7 +206,7 @@ class BlockEstimator(Estimator):
         self._pooled = PooledSideOffsets()
         self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
         self._fixed = True      # the previous frame had a fix (no track to carry yet)
-        self.windows = Windows(self.geo, targets, o)
+        self.windows = Windows(self.geo, targets, o, self._lined)
         self._window_fixes = 0  # window fixes since the last global search
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
@@ -320,13 +325,20 @@ class BlockEstimator(Estimator):
             self._window_fixes = 0
             return None
         fixes, tried = self.windows.fixes(
-            grey, np.array([prior.x_m, prior.y_m, prior.yaw_rad], float), self._solve,
+            grey, np.array([prior.x_m, prior.y_m, prior.yaw_rad], float), self._window_fix,
             o.max_fixes)
         self._window_fixes = self._window_fixes + 1 if fixes else 0
         if not fixes:
             return None
         diag = {"unknown_marker_ids": (), "quads": tried, "quads_skipped": 0}
         return self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
+
+    def _window_fix(self, tgt: Target, got: WindowFix) -> _Fix:
+        """The fix of a target that passed the window check, its covariance pooled
+        (a symmetric block's correspondence is the prior's)."""
+        return _Fix(tgt.source, self._pooled(tgt.source, got.refined), got.shape_m,
+                    got.sides.corners_norm, tgt.corners_w,
+                    "prior" if tgt.symmetric else WINDOW)
 
     def _fail(self, t_ns: int, n: _Counts, unknown: list[int],
               others: list[np.ndarray], diag: dict[str, Any], t0: float) -> Estimate:
@@ -396,12 +408,14 @@ class BlockEstimator(Estimator):
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
                resolved_by: str) -> _Fix | None:
-        x, y, yaw, shape = closed_form(self.geo, sides.corners_norm, corners_w)
-        if not math.isfinite(x):
+        """The fix of measured sides as the block ``corners_w`` (:func:`.pnp.solve`,
+        the sides on a ceiling line left out), its covariance pooled per target."""
+        got = solve(self.geo, sides.corners_norm, corners_w, sides.edge_norm, sides.side,
+                    self._lined(corners_w))
+        if got is None:
             return None
-        edge, side = self._lined.clean(corners_w, sides.edge_norm, sides.side)
-        scale = magnification(self.geo.camera, edge)
-        ref = self._pooled(source, refine(self.geo, (x, y, yaw), corners_w, edge, side, scale))
+        shape, ref = got
+        ref = self._pooled(source, ref)
         if not np.all(np.isfinite(ref.pose)):
             return None
         return _Fix(source, ref, shape, sides.corners_norm, corners_w, resolved_by)

@@ -34,8 +34,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ceilkit.runtime.geometry.camera import CameraModel
-from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex
+from ceilkit.runtime.geometry.camera import CameraModel, magnification_points
+from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex, scaled_inverse3
 from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -400,6 +400,146 @@ def side_offset_cov(r: np.ndarray, J: np.ndarray, side: np.ndarray, A: np.ndarra
     return var_b, A @ G @ A
 
 
+SOLVED, NO_CLOSED_FORM, SINGULAR = 0, 1, 2     # solve_core's outcomes
+
+
+def solve(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray,
+          edge_norm: np.ndarray, side: np.ndarray, drop: np.ndarray
+          ) -> tuple[float, Refined] | None:
+    """``(rms_m, refined)``: :func:`closed_form` of the corners (its RMS on the
+    ceiling), then :func:`refine` from it on the edge points ``(M, 2)`` of the sides
+    not in ``drop`` ``(4,)`` bool, weighted by the lens's :func:`magnification`; None
+    when a corner's ray misses the ceiling. One compiled call (:func:`solve_core`); a
+    singular Gauss-Newton step falls back to :func:`refine`'s least squares."""
+    code, lens = geo.camera.lens
+    out, cov, unit = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
+    cw, en = arr(corners_w, np.float64), arr(edge_norm, np.float64)
+    sd, dr = arr(side, np.int64), arr(drop, np.bool_)
+    status, n, rms, var_b, has_unit = solve_core(
+        arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
+        float(geo.ceiling_m), code, lens, arr(corners_norm, np.float64), cw, en, sd, dr,
+        out, cov, unit)
+    if status == NO_CLOSED_FORM:
+        return None
+    if status == SINGULAR:
+        keep = ~dr[sd]
+        return float(out[3]), refine(geo, (out[0], out[1], out[2]), cw, en[keep], sd[keep],
+                                     magnification(geo.camera, en[keep]))
+    return float(out[3]), Refined(out[:3].copy(), cov, rms, n, var_b,
+                                  unit if has_unit else None)
+
+
+@njit
+def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, side, drop,
+               out, cov, unit):  # pragma: no cover - compiled
+    """:func:`solve` in one call: into ``out (4,)`` the pose ``(x, y, yaw)`` and the
+    closed form's RMS on the ceiling, into ``cov`` and ``unit`` ``(3, 3)``
+    :class:`Refined`'s; returns ``(status, n, rms_px, σ_b², has unit)``, status
+    :data:`SOLVED`, :data:`NO_CLOSED_FORM` or :data:`SINGULAR` (``out`` then holds
+    the closed form, for the caller's least squares)."""
+    # the closed form: the corners on the ceiling (V), rigidly fitted to the block's
+    rise = ceiling_m - t[2]
+    q = np.empty((4, 2))
+    for i in range(4):
+        x, y = corners_norm[i, 0], corners_norm[i, 1]
+        dz = R[2, 0] * x + R[2, 1] * y + R[2, 2]
+        if not dz > 1e-9:
+            return NO_CLOSED_FORM, 0, np.nan, 0.0, False
+        s = rise / dz
+        q[i, 0] = t[0] + s * (R[0, 0] * x + R[0, 1] * y + R[0, 2])
+        q[i, 1] = t[1] + s * (R[1, 0] * x + R[1, 1] * y + R[1, 2])
+        if not (math.isfinite(q[i, 0]) and math.isfinite(q[i, 1])):
+            return NO_CLOSED_FORM, 0, np.nan, 0.0, False
+    qx, qy = 0.25 * q[:, 0].sum(), 0.25 * q[:, 1].sum()
+    px, py = 0.25 * corners_w[:, 0].sum(), 0.25 * corners_w[:, 1].sum()
+    sc = ss = 0.0
+    for i in range(4):
+        ax, ay = q[i, 0] - qx, q[i, 1] - qy
+        bx, by = corners_w[i, 0] - px, corners_w[i, 1] - py
+        sc += ax * bx + ay * by
+        ss += ax * by - ay * bx
+    size = math.hypot(sc, ss)
+    c, s = (sc / size, ss / size) if size > 0 else (1.0, 0.0)
+    tx, ty = px - (c * qx - s * qy), py - (s * qx + c * qy)
+    e2 = 0.0
+    for i in range(4):
+        rx = c * q[i, 0] - s * q[i, 1] + tx - corners_w[i, 0]
+        ry = s * q[i, 0] + c * q[i, 1] + ty - corners_w[i, 1]
+        e2 += rx * rx + ry * ry
+    out[0], out[1], out[2], out[3] = tx, ty, math.atan2(s, c), math.sqrt(0.25 * e2)
+    # the edge points of the sides kept, weighted by the lens's magnification
+    m = 0
+    for i in range(side.size):
+        m += not drop[side[i]]
+    en, sd = np.empty((m, 2)), np.empty(m, np.int64)
+    j = 0
+    for i in range(side.size):
+        if not drop[side[i]]:
+            en[j, 0], en[j, 1], sd[j] = edge_norm[i, 0], edge_norm[i, 1], side[i]
+            j += 1
+    scale = np.empty(m)
+    magnification_points(en, code, lens, scale)
+    pose = out[:3].copy()
+    r, J, JtJ = np.empty(m), np.empty((m, 3)), np.empty((3, 3))
+    if not _gauss_newton(R, t, ceiling_m, pose, corners_w, en, sd, scale, r, J, JtJ):
+        return SINGULAR, m, np.nan, 0.0, False
+    ssr = 0.0
+    for i in range(m):
+        ssr += r[i] * r[i]
+    rms = math.sqrt(ssr / m)
+    s2 = max(ssr / max(m - 3, 1), SIGMA_FLOOR_PX * SIGMA_FLOOR_PX)
+    out[0], out[1] = pose[0], pose[1]
+    out[2] = (pose[2] + math.pi) % (2.0 * math.pi) - math.pi
+    A = np.empty((3, 3))
+    if not scaled_inverse3(JtJ, 1.0, A):
+        cov[:] = np.inf
+        return SOLVED, m, rms, 0.0, False
+    var_b, has_unit = _side_offsets(r, J, sd, A, unit)
+    for a in range(3):
+        for b in range(3):
+            cov[a, b] = s2 * A[a, b] + (var_b * unit[a, b] if has_unit else 0.0)
+    return SOLVED, m, rms, var_b, has_unit
+
+
+@njit
+def _side_offsets(r, J, side, A, unit):  # pragma: no cover - compiled
+    """:func:`side_offset_cov` in a loop: ``(σ_b², has unit)``, ``U`` into ``unit``."""
+    sums = np.zeros((4, 6))                    # n, Σr, Σr², ΣJ (3) per side
+    for i in range(side.size):
+        k = side[i]
+        sums[k, 0] += 1.0
+        sums[k, 1] += r[i]
+        sums[k, 2] += r[i] * r[i]
+        for c in range(3):
+            sums[k, 3 + c] += J[i, c]
+    K = 0
+    for k in range(4):
+        K += sums[k, 0] > 0
+    if K < 3:
+        return 0.0, False
+    mm = noise = 0.0
+    G = np.zeros((3, 3))
+    for k in range(4):
+        n = sums[k, 0]
+        if n == 0:
+            continue
+        m = sums[k, 1] / n
+        mm += m * m
+        noise += max(sums[k, 2] - n * m * m, 0.0) / max(n - 1.0, 1.0) / n
+        for a in range(3):
+            for b in range(3):
+                G[a, b] += sums[k, 3 + a] * sums[k, 3 + b]
+    var_b = max(mm - noise * (K - 2) / K, 0.0) / (K - 2)
+    for a in range(3):                         # U = A G A
+        for b in range(3):
+            acc = 0.0
+            for i in range(3):
+                for j in range(3):
+                    acc += A[a, i] * G[i, j] * A[j, b]
+            unit[a, b] = acc
+    return var_b, True
+
+
 @functools.lru_cache(maxsize=8)
 def _mount_tilt_swing(R_bytes: bytes) -> tuple[float, float]:
     """The rig's tilt and swing (:func:`mount_angles` of ``R_vehicle_cam``, cached)."""
@@ -440,3 +580,5 @@ def _warm() -> None:
     geo = PlanarGeometry(None, R, np.zeros(3), 3.0)         # (no lens: not used here)
     edge = project_norm(geo, (1.2, 0.0, 0.0), square[np.repeat(np.arange(4), 2)])
     refine(geo, (1.2, 0.0, 0.0), square, edge, np.repeat(np.arange(4), 2), np.ones(8))
+    geo = PlanarGeometry(CameraModel.pinhole(4, 4, 2.0), R, np.zeros(3), 3.0)
+    solve(geo, edge[::2], square, edge, np.repeat(np.arange(4), 2), np.zeros(4, bool))

@@ -19,8 +19,8 @@ import math
 import numpy as np
 
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_norm
-from ceilkit.runtime.geometry.rotations import rot_z
-from ceilkit.runtime.jit import arr
+from ceilkit.runtime.geometry.camera import distort_points
+from ceilkit.runtime.jit import arr, njit, warmer
 
 REACH_M = 3.5        # ceiling lines looked for this far from the camera's ceiling point
 CHORD_M = 1.0        # a chord's length on the ceiling
@@ -119,54 +119,131 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
                      ) -> np.ndarray:
     """Pixel chords ``(N, 4)`` along the site's ceiling lines seen from ``pose``, at most
     ``max_chords`` of them spread over the lines (one projection of every sample).
-    With ``site``, samples inside its ``ignore`` regions are not used (SPEC §2)."""
+    With ``site``, samples inside its ``ignore`` regions are not used (SPEC §2). One
+    compiled call (:func:`chords_core`); the ignore regions' test after it."""
     x, y, yaw = (float(v) for v in pose)
-    rz = rot_z(yaw)
-    R_wc = rz @ geo.R_vehicle_cam
-    c = rz @ geo.t_vehicle_cam + np.array([x, y, 0.0])
-    axis = R_wc[:, 2]
-    s = (geo.ceiling_m - c[2]) / axis[2] if axis[2] > 1e-6 else 0.0
-    centre = (c + s * axis)[:2]
-    p0, d = site_lines(corridor, centre, reach_m)
-    if not len(p0):
-        return np.zeros((0, 4))
-    t = _samples(reach_m)
-    n_lines, n_t = len(p0), len(t)
-    pts = (p0[:, None, :] + t[None, :, None] * d[:, None, :]).reshape(-1, 2)
-    norm = ceiling_norm(arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
-                        float(geo.ceiling_m), x, y, yaw, arr(pts, np.float64), 1e-6)
-    front = np.isfinite(norm[:, 0])
-    if front.all():
-        px = geo.camera.distort(norm)
-    else:
-        px = np.full((len(norm), 2), np.nan)
-        if np.any(front):
-            px[front] = geo.camera.distort(norm[front])
-    inside = (front & geo.camera.in_image(px, MARGIN_PX)).reshape(n_lines, n_t)
-    px = px.reshape(n_lines, n_t, 2)
+    along = _along(corridor)
+    a = corridor.lines_across
+    first, spacing = (float(a.first_m), float(a.spacing_m)) if a is not None else (0.0, 0.0)
+    ignoring = site is not None and bool(site.ignore_m)
+    cam = geo.camera
+    code, lens = cam.lens
     k = max(1, round(CHORD_M / STEP_M))      # samples a chord spans (k STEP_M metres)
-    # non-overlapping chords, every k-th sample a start, each of its k + 1 samples inside
-    # (its ends and middle: a chord is short against the frame, and its measurement
-    # drops it if it leaves the frame between them)
-    starts = np.arange(0, n_t - k, k)
-    ok = inside[:, starts]
-    for j in range(1, k + 1):
-        ok = ok & inside[:, starts + j]
-    li, sj = np.nonzero(ok)
-    si = starts[sj]
-    if site is not None and site.ignore_m and len(li):
-        # SPEC §2: no chord crosses an ignore region (tested every IGNORE_STEP_M)
-        along = np.arange(0.0, k * STEP_M + 1e-9, IGNORE_STEP_M)
-        dense = (p0[li, None, :] + (t[si][:, None] + along)[:, :, None] * d[li, None, :])
-        clear = ~site.ignored(dense).any(axis=1)
-        li, si = li[clear], si[clear]
-    n = len(li)
+    t = _samples(reach_m)
+    chords, li, si, p0, d = chords_core(
+        arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
+        float(geo.ceiling_m), code, lens, x, y, yaw, along, first, spacing, float(reach_m),
+        t, k, float(cam.width), float(cam.height), MARGIN_PX,
+        -1 if ignoring else max_chords)
+    if not ignoring or not len(li):
+        return chords
+    # SPEC §2: no chord crosses an ignore region (tested every IGNORE_STEP_M)
+    step = np.arange(0.0, k * STEP_M + 1e-9, IGNORE_STEP_M)
+    dense = (p0[li, None, :] + (t[si][:, None] + step)[:, :, None] * d[li, None, :])
+    chords = chords[~site.ignored(dense).any(axis=1)]
+    n = len(chords)
     if n > max_chords:
-        # spread evenly over the list (round(j (n - 1) / (m - 1)), in integers)
-        m1 = max(max_chords - 1, 1)
-        pick = (2 * np.arange(max_chords) * (n - 1) + m1) // (2 * m1)
-        li, si = li[pick], si[pick]
-    return np.concatenate([px[li, si], px[li, si + k]], axis=1)
+        chords = chords[_spread(n, max_chords)]
+    return chords
+
+
+def _spread(n: int, m: int) -> np.ndarray:
+    """``m`` indices spread evenly over ``n`` (round(j (n - 1) / (m - 1)), in integers)."""
+    m1 = max(m - 1, 1)
+    return (2 * np.arange(m) * (n - 1) + m1) // (2 * m1)
+
+
+def _along(corridor) -> np.ndarray:
+    """The corridor's ``lines_along_m`` as a read-only float array (cached on it)."""
+    got = _ALONG.get(id(corridor))
+    if got is None or got[0] is not corridor:
+        got = (corridor, arr(np.asarray(corridor.lines_along_m, float).reshape(-1),
+                             np.float64))
+        _ALONG[id(corridor)] = got
+    return got[1]
+
+
+_ALONG: dict[int, tuple] = {}
+
+
+@njit
+def chords_core(R, t, ceiling_m, code, lens, x, y, yaw, along, first, spacing, reach_m,
+                samples, k, width, height, margin, max_chords):  # pragma: no cover
+    """:func:`predicted_chords` without the ignore regions: ``(chords (N, 4) px, line
+    (N,), start sample (N,), line points (L, 2), directions (L, 2))`` (the lines of
+    :func:`site_lines` about the camera's ceiling point). ``max_chords < 0``: every
+    candidate chord, not spread (the caller drops the ignored ones first)."""
+    cz, sz = math.cos(yaw), math.sin(yaw)
+    # the optical axis meets the ceiling at the centre of the lines looked for
+    ax = cz * R[0, 2] - sz * R[1, 2]
+    ay = sz * R[0, 2] + cz * R[1, 2]
+    az = R[2, 2]
+    cx = cz * t[0] - sz * t[1] + x
+    cy = sz * t[0] + cz * t[1] + y
+    s = (ceiling_m - t[2]) / az if az > 1e-6 else 0.0
+    ox, oy = cx + s * ax, cy + s * ay
+    n_along = 0
+    for i in range(along.size):
+        n_along += abs(along[i] - oy) < reach_m
+    k0 = k1 = 0
+    if spacing > 0:
+        k0 = math.ceil((ox - reach_m - first) / spacing)
+        k1 = math.floor((ox + reach_m - first) / spacing)
+    n_lines = n_along + max(k1 - k0 + 1, 0) if spacing > 0 else n_along
+    p0, d = np.empty((n_lines, 2)), np.zeros((n_lines, 2))
+    j = 0
+    for i in range(along.size):
+        if abs(along[i] - oy) < reach_m:
+            p0[j, 0], p0[j, 1], d[j, 0] = ox, along[i], 1.0
+            j += 1
+    for i in range(n_lines - n_along):
+        p0[j, 0], p0[j, 1], d[j, 1] = first + (k0 + i) * spacing, oy, 1.0
+        j += 1
+    n_t = samples.size
+    pts = np.empty((n_lines * n_t, 2))
+    for li in range(n_lines):
+        for ti in range(n_t):
+            pts[li * n_t + ti, 0] = p0[li, 0] + samples[ti] * d[li, 0]
+            pts[li * n_t + ti, 1] = p0[li, 1] + samples[ti] * d[li, 1]
+    norm = ceiling_norm(R, t, ceiling_m, x, y, yaw, pts, 1e-6)
+    px = np.empty_like(norm)
+    distort_points(norm, code, lens, px)
+    inside = np.empty(n_lines * n_t, np.bool_)
+    lo_u, hi_u = -0.5 + margin, width - 0.5 - margin
+    lo_v, hi_v = -0.5 + margin, height - 0.5 - margin
+    for i in range(n_lines * n_t):
+        u, v = px[i, 0], px[i, 1]
+        inside[i] = (math.isfinite(norm[i, 0]) and lo_u <= u <= hi_u and lo_v <= v <= hi_v)
+    # non-overlapping chords, every k-th sample a start, each of its k + 1 samples
+    # inside (its ends and middle: a chord is short against the frame, and its
+    # measurement drops it if it leaves the frame between them)
+    n_start = (n_t - k + k - 1) // k if n_t > k else 0
+    cand_l = np.empty(n_lines * n_start, np.int64)
+    cand_s = np.empty(n_lines * n_start, np.int64)
+    n = 0
+    for li in range(n_lines):
+        for sj in range(n_start):
+            st = sj * k
+            ok = True
+            for q in range(k + 1):
+                ok = ok and inside[li * n_t + st + q]
+            if ok:
+                cand_l[n], cand_s[n] = li, st
+                n += 1
+    m = n
+    if 0 <= max_chords < n:
+        m = max_chords
+    chords = np.empty((m, 4))
+    out_l, out_s = np.empty(m, np.int64), np.empty(m, np.int64)
+    m1 = max(m - 1, 1)
+    for j in range(m):
+        c = j if m == n else (2 * j * (n - 1) + m1) // (2 * m1)
+        li, st = cand_l[c], cand_s[c]
+        a, b = li * n_t + st, li * n_t + st + k
+        chords[j, 0], chords[j, 1] = px[a, 0], px[a, 1]
+        chords[j, 2], chords[j, 3] = px[b, 0], px[b, 1]
+        out_l[j], out_s[j] = li, st
+    return chords, out_l, out_s, p0, d
 
 
 @functools.lru_cache(maxsize=4)
@@ -176,3 +253,15 @@ def _samples(reach_m: float) -> np.ndarray:
     t = np.arange(-reach_m, reach_m + 1e-9, STEP_M)
     t.flags.writeable = False
     return t
+
+
+@warmer
+def _warm() -> None:
+    from ceilkit.runtime.geometry.camera import CameraModel
+    cam = CameraModel.pinhole(64, 48, 40.0)
+    geo = PlanarGeometry(cam, np.diag([1.0, -1.0, -1.0]).T.copy(), np.zeros(3), 3.0)
+
+    class _Corridor:
+        lines_along_m = (0.0, 0.6)
+        lines_across = None
+    predicted_chords(geo, _Corridor(), (0.0, 0.0, 0.0))

@@ -5,19 +5,20 @@ markers are measured where the prior puts them, with no search of the frame.
 (:meth:`Windows.predicted`: those fully in view, the largest first) and measures one on
 its predicted outline (:meth:`Windows.fix`): a first edge pass ``track_window_px``
 across each side in pixels, then the undistorted pass about the corners it found
-(:func:`.detect.measure_sides`), solved by the caller's planar PnP; the **window check**
-refuses a fix that does not look like the predicted block. The estimator falls back to
-its global path then (docs/methods/block.md).
+(:func:`.detect.measure_sides`), solved by planar PnP (:func:`.pnp.solve`), all in one
+compiled call; the **window check** refuses a fix that does not look like the predicted
+block. The estimator falls back to its global path then (docs/methods/block.md).
 
 Example::
 
     win = Windows(geo, targets_of(site, site.markers, 0.08), options)
     for target, px in win.predicted((x, y, yaw)):
-        fix = win.fix(grey, target, px, solve)      # a fix, or None: the check failed
+        got = win.fix(grey, target, px)     # a WindowFix, or None: the check failed
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -26,13 +27,21 @@ import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import (
     Sides,
-    measure_sides,
+    contrast_core,
+    measure_core,
     side_lengths_m,
-    step_contrast,
 )
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, project_px
-from ceilkit.runtime.features.quads import BORDER_PX
+from ceilkit.runtime.estimators.block.pnp import (
+    SOLVED,
+    PlanarGeometry,
+    Refined,
+    ceiling_norm,
+    solve_core,
+)
+from ceilkit.runtime.features.quads import BORDER_PX, EDGE_SEARCH_PX, EDGE_STEP_PX, _stations
+from ceilkit.runtime.geometry.camera import distort_points
 from ceilkit.runtime.geometry.fits import rigid_fit_rms
+from ceilkit.runtime.jit import arr, njit, warmer
 
 TRACK_MIN_SHARE = 0.75      # window check: share of a side's stations with an edge point
 TRACK_MAX_RMS_PX = 0.5      # window check: edge residual RMS of the refined pose
@@ -90,6 +99,17 @@ def shape_fits(blocks: Any, pv: np.ndarray, dark: bool, shape_tol: float
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class WindowFix:
+    """A target measured on its predicted outline and solved: its ``sides`` (the
+    corners and edge points, normalized), the closed form's ``shape_m`` and the
+    ``refined`` pose (its covariance not yet pooled)."""
+
+    sides: Sides
+    shape_m: float
+    refined: Refined
+
+
 class Windows:
     """The site's targets predicted and measured from a prior (see the module).
 
@@ -98,70 +118,168 @@ class Windows:
         targets: :func:`targets_of` the site.
         options: the block method's options (``track_window_px``, ``edge_points``,
             ``dark_ratio``, ``bright_ratio``, ``shape_tol``).
+        drop: ``drop(corners_w)``: ``(4,)`` bool, the sides the refinement leaves out
+            (:class:`.seams.LinedSides`); none when not given.
     """
 
-    def __init__(self, geo: PlanarGeometry, targets: list[Target], options: Any) -> None:
+    def __init__(self, geo: PlanarGeometry, targets: list[Target], options: Any,
+                 drop: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         self.geo = geo
         self.targets = targets
         self.options = options
-        self._corners = (np.concatenate([t.corners_w for t in targets]) if targets
-                         else np.zeros((0, 2)))
-        self._bright = np.array([not t.dark for t in targets], bool)
+        self._corners = arr(np.concatenate([t.corners_w for t in targets]) if targets
+                            else np.zeros((0, 2)), np.float64)
+        self._bright = arr(np.array([not t.dark for t in targets], bool), np.bool_)
+        none = arr(np.zeros(4, bool), np.bool_)
+        self._drop = [none if drop is None else arr(drop(t.corners_w), np.bool_)
+                      for t in targets]
+        self._mount = (arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
+                       float(geo.ceiling_m))
 
     def predicted(self, pose: np.ndarray) -> list[tuple[Target, np.ndarray]]:
         """``(target, corners px (4, 2))`` of the targets fully in view from ``pose``
         (a margin of the search window inside the frame): the dark ones first (markers,
-        dark blocks), each polarity the largest first, the global path's order."""
+        dark blocks), each polarity the largest first, the global path's order. One
+        compiled call (:func:`predict_core`)."""
         if not self.targets:
             return []
-        px = project_px(self.geo, pose, self._corners).reshape(-1, 4, 2)
-        margin = BORDER_PX + self.options.track_window_px + 1.0
-        inside = self.geo.camera.in_image(px.reshape(-1, 2), margin).reshape(-1, 4).all(1)
-        u, v = px[..., 0], px[..., 1]
-        nxt = [1, 2, 3, 0]
-        area = np.abs(np.sum(u * v[:, nxt] - u[:, nxt] * v, axis=1))
-        return [(self.targets[k], px[k]) for k in np.lexsort((-area, self._bright))
-                if inside[k]]
+        x, y, yaw = (float(v) for v in pose)
+        cam = self.geo.camera
+        px, order = predict_core(*self._mount, *cam.lens, x, y, yaw, self._corners,
+                                 self._bright, float(cam.width), float(cam.height),
+                                 BORDER_PX + self.options.track_window_px + 1.0)
+        return [(self.targets[k], px[k]) for k in order]
 
-    def fixes(self, grey: np.ndarray, pose: np.ndarray, solve: Callable[..., Any],
-              most: int) -> tuple[list[Any], int]:
-        """Up to ``most`` fixes (:meth:`fix`) of the targets in view from ``pose``, in
-        :meth:`predicted`'s order, and how many targets were tried."""
+    def fixes(self, grey: np.ndarray, pose: np.ndarray,
+              accept: Callable[[Target, WindowFix], Any], most: int
+              ) -> tuple[list[Any], int]:
+        """Up to ``most`` fixes of the targets in view from ``pose``, in
+        :meth:`predicted`'s order (each :meth:`fix` that passes the window check, given
+        to ``accept(target, window_fix)``: the estimator's fix, or None), and how many
+        targets were tried."""
         out: list[Any] = []
         tried = 0
         for tgt, px in self.predicted(pose):
             tried += 1
-            got = self.fix(grey, tgt, px, solve)
+            got = self.fix(grey, tgt, px)
+            got = accept(tgt, got) if got is not None else None
             if got is not None:
                 out.append(got)
                 if len(out) >= most:
                     break
         return out, tried
 
-    def fix(self, grey: np.ndarray, tgt: Target, px: np.ndarray,
-            solve: Callable[[Sides, np.ndarray, str, str], Any]) -> Any:
-        """The fix of one target measured on its predicted outline ``px`` ``(4, 2)``
-        (``solve(sides, corners_w, source, resolved_by)``: the estimator's planar PnP,
-        a fix with ``refined`` and ``shape_m``, or None), or None when the window check
-        fails: a side with fewer than :data:`TRACK_MIN_SHARE` of its stations on an
-        edge, the wrong contrast across the outline (:func:`.detect.step_contrast`
-        against ``dark_ratio`` / ``bright_ratio``), a shape off the block's by more than
-        ``shape_tol``, an edge residual over :data:`TRACK_MAX_RMS_PX`, or a refined
-        outline more than ``track_window_px`` from the predicted one."""
+    def fix(self, grey: np.ndarray, tgt: Target, px: np.ndarray) -> WindowFix | None:
+        """The target measured on its predicted outline ``px`` ``(4, 2)`` and solved
+        (:func:`.detect.measure_sides` in two passes, :func:`.pnp.solve`), or None when
+        the window check fails: a side with fewer than :data:`TRACK_MIN_SHARE` of its
+        stations on an edge, the wrong contrast across the outline
+        (:func:`.detect.step_contrast` against ``dark_ratio`` / ``bright_ratio``), a
+        shape off the block's by more than ``shape_tol``, an edge residual over
+        :data:`TRACK_MAX_RMS_PX`, or a refined outline more than ``track_window_px``
+        from the predicted one. One compiled call (:func:`window_core`)."""
         o = self.options
-        sides = measure_sides(grey, px, self.geo, o.edge_points, passes=2,
-                              search_px=o.track_window_px)
-        if sides is None or np.any(np.bincount(sides.side, minlength=4)
-                                   < TRACK_MIN_SHARE * o.edge_points):
+        k = self.targets.index(tgt)
+        code, lens = self.geo.camera.lens
+        first, t = _stations(o.edge_points, float(o.track_window_px))
+        rest, _ = _stations(o.edge_points, EDGE_SEARCH_PX)
+        corners, edge = np.empty((4, 2)), np.empty((4 * o.edge_points, 2))
+        side = np.empty(4 * o.edge_points, np.int64)
+        pose, cov, unit = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
+        ok, n, m, rms, var_b, has_unit = window_core(
+            arr(grey, np.uint8), arr(px, np.float64), first, rest, t, EDGE_STEP_PX,
+            code, lens, *self._mount, arr(tgt.corners_w, np.float64), self._drop[k],
+            TRACK_MIN_SHARE * o.edge_points, tgt.dark, o.dark_ratio, o.bright_ratio,
+            TRACK_MAX_RMS_PX, o.shape_tol * tgt.min_side_m, float(o.track_window_px),
+            corners, edge, side, pose, cov, unit)
+        if not ok:
             return None
-        ratio = step_contrast(grey, self.geo.camera.distort(sides.corners_norm))
-        if not (ratio < o.dark_ratio if tgt.dark else ratio > o.bright_ratio):
-            return None
-        fix = solve(sides, tgt.corners_w, tgt.source, "prior" if tgt.symmetric else WINDOW)
-        if fix is None or fix.refined.rms_px > TRACK_MAX_RMS_PX \
-                or fix.shape_m > o.shape_tol * tgt.min_side_m:
-            return None
-        moved = project_px(self.geo, fix.refined.pose, tgt.corners_w) - px
-        if not np.all(np.hypot(moved[:, 0], moved[:, 1]) <= o.track_window_px):
-            return None
-        return fix
+        sides = Sides(corners, edge[:n], side[:n], 4 * o.edge_points)
+        return WindowFix(sides, float(pose[3]), Refined(pose[:3].copy(), cov, rms, m, var_b,
+                                                        unit if has_unit else None))
+
+
+@njit
+def predict_core(R, t, ceiling_m, code, lens, x, y, yaw, corners_w, bright, width, height,
+                 margin):  # pragma: no cover - compiled
+    """:meth:`Windows.predicted`: ``(px (T, 4, 2), order)``, the targets (corners
+    ``corners_w (4 T, 2)``) fully inside the frame by ``margin``, dark first, each
+    polarity by decreasing area in the image."""
+    n = bright.size
+    norm = ceiling_norm(R, t, ceiling_m, x, y, yaw, corners_w, 1e-9)
+    flat = np.empty_like(norm)
+    distort_points(norm, code, lens, flat)
+    px = flat.reshape(n, 4, 2)
+    key = np.empty(n)
+    inside = np.zeros(n, np.bool_)
+    lo_u, hi_u = -0.5 + margin, width - 0.5 - margin
+    lo_v, hi_v = -0.5 + margin, height - 0.5 - margin
+    for i in range(n):
+        ok = True
+        area = 0.0
+        for c in range(4):
+            u, v = px[i, c, 0], px[i, c, 1]
+            ok = ok and lo_u <= u <= hi_u and lo_v <= v <= hi_v
+            nu, nv = px[i, (c + 1) % 4, 0], px[i, (c + 1) % 4, 1]
+            area += u * nv - nu * v
+        inside[i] = ok
+        key[i] = (1e12 if bright[i] else 0.0) - abs(area)
+    order = np.argsort(key, kind="mergesort")
+    kept = np.empty(n, np.int64)
+    m = 0
+    for i in order:
+        if inside[i]:
+            kept[m] = i
+            m += 1
+    return px, kept[:m]
+
+
+@njit
+def window_core(grey, px, first, rest, t, step, code, lens, R, tv, ceiling_m, corners_w,
+                drop, min_count, dark, dark_ratio, bright_ratio, max_rms, max_shape,
+                window_px, corners, edge, side, out, cov, unit):  # pragma: no cover
+    """:meth:`Windows.fix` in one call: ``(ok, edge points, points used, rms_px, σ_b²,
+    has unit)``, the sides into ``corners``, ``edge``, ``side`` and the pose, shape,
+    covariance as :func:`.pnp.solve_core` writes them."""
+    fail = (False, 0, 0, np.nan, 0.0, False)
+    n = measure_core(grey, px, 2, first, rest, t, step, code, lens, corners, edge, side)
+    if n < 0:
+        return fail
+    counts = np.zeros(4)
+    for i in range(n):
+        counts[side[i]] += 1.0
+    if counts.min() < min_count:
+        return fail
+    cpx = np.empty((4, 2))
+    distort_points(corners, code, lens, cpx)
+    ratio = contrast_core(grey, cpx)
+    if not (ratio < dark_ratio if dark else ratio > bright_ratio):
+        return fail
+    status, m, rms, var_b, has_unit = solve_core(R, tv, ceiling_m, code, lens, corners,
+                                                 corners_w, edge[:n], side[:n], drop, out,
+                                                 cov, unit)
+    if status != SOLVED or rms > max_rms or out[3] > max_shape:
+        return fail
+    if not (math.isfinite(out[0]) and math.isfinite(out[1]) and math.isfinite(out[2])):
+        return fail
+    norm = ceiling_norm(R, tv, ceiling_m, out[0], out[1], out[2], corners_w, 1e-9)
+    moved = np.empty((4, 2))
+    distort_points(norm, code, lens, moved)
+    for c in range(4):
+        if not math.hypot(moved[c, 0] - px[c, 0], moved[c, 1] - px[c, 1]) <= window_px:
+            return fail
+    return True, n, m, rms, var_b, has_unit
+
+
+@warmer
+def _warm() -> None:
+    from types import SimpleNamespace
+
+    from ceilkit.runtime.geometry.camera import CameraModel
+    geo = PlanarGeometry(CameraModel.pinhole(64, 48, 40.0), np.eye(3), np.zeros(3), 3.0)
+    square = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+    options = SimpleNamespace(track_window_px=4.0, edge_points=4, dark_ratio=0.6,
+                              bright_ratio=1.3, shape_tol=0.08)
+    win = Windows(geo, [Target("block:warm", square, True, True, 1.0)], options)
+    grey = np.full((48, 64), 200, np.uint8)
+    win.fix(grey, win.targets[0], win.predicted((0.0, 0.0, 0.0))[0][1])

@@ -23,6 +23,7 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.rays import project_poses
+from ceilkit.runtime.geometry.fits import scaled_inverse3 as _scaled_inverse
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -133,23 +134,6 @@ def _inv3(N: np.ndarray) -> np.ndarray | None:
     singular or not finite (:func:`_scaled_inverse`)."""
     out = np.empty((3, 3))
     return out if _scaled_inverse(arr(N, np.float64), 1.0, out) else None
-
-
-@njit
-def _scaled_inverse(N, scale, out):  # pragma: no cover - compiled
-    """``out = scale N⁻¹`` for a symmetric ``(3, 3)`` ``N`` by cofactors (``scale (C /
-    det)``); False, ``out`` untouched, when ``N`` is singular or not finite."""
-    a, b, c, d, e, f = N[0, 0], N[0, 1], N[0, 2], N[1, 1], N[1, 2], N[2, 2]
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    det = a * A + b * B + c * C
-    if not (math.isfinite(det) and abs(det) > 1e-300):
-        return False
-    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-    r = 1.0 / det
-    out[0, 0], out[0, 1], out[0, 2] = scale * (A * r), scale * (B * r), scale * (C * r)
-    out[1, 0], out[1, 1], out[1, 2] = scale * (B * r), scale * (D * r), scale * (E * r)
-    out[2, 0], out[2, 1], out[2, 2] = scale * (C * r), scale * (E * r), scale * (F * r)
-    return True
 
 
 @njit

@@ -357,11 +357,15 @@ def test_parallels_heading_is_fused_with_the_block_and_given_alone_between_block
     assert not off.estimate(render_frame(rig, site, x, y, yaw, NOISY), 0)
 
 
-def test_a_side_lost_on_the_last_edge_pass_keeps_the_previous_pass(rig, monkeypatch):
+def test_a_side_lost_on_the_last_edge_pass_keeps_the_previous_pass(rig):
     """Review finding (83434b6): when the window path's last edge pass finds too few
     points on a side (its narrower search about corners a pass moved), the quad is
-    measured by the pass before it, as it was before 83434b6, not dropped."""
+    measured by the pass before it, as it was before 83434b6, not dropped. The
+    compiled measurement (detect.measure_core) is given a last pass whose search
+    cannot find any step (two samples across each side): it keeps the first pass's
+    points, through the lens, which is the one-pass measurement exactly."""
     from ceilkit.runtime.estimators.block import detect
+    from ceilkit.runtime.features.quads import EDGE_STEP_PX, _stations, sharpen_quad
 
     kite = np.array([[2.0, -0.2], [2.7, -0.25], [2.55, 0.2], [2.05, 0.25]])
     site = Site(3.0, blocks=(Block("K", kite, "dark"),))
@@ -369,20 +373,18 @@ def test_a_side_lost_on_the_last_edge_pass_keeps_the_previous_pass(rig, monkeypa
     grey = render_frame(rig, site, 2.1, 0.0, math.radians(-40.0), NOISY)
     quads = detect.find_quads(grey, True, 0.5)
     assert quads
-    from ceilkit.runtime.features.quads import sharpen_quad
-
     corners = sharpen_quad(quads[0]).corners_px
     n = est.options.edge_points
-    full = detect.measure_sides(grey, corners, est.geo, n, passes=2)
-    assert full is not None
-    real, calls = detect.edge_points, []
-
-    def last_pass_loses_side_0(*a, **k):
-        pts, side = real(*a, **k)
-        calls.append(1)
-        return (pts[side != 0], side[side != 0]) if len(calls) == 2 else (pts, side)
-
-    monkeypatch.setattr(detect, "edge_points", last_pass_loses_side_0)
-    kept = detect.measure_sides(grey, corners, est.geo, n, passes=2)
-    assert len(calls) == 2 and kept is not None
-    np.testing.assert_allclose(kept.corners_norm, full.corners_norm, atol=2e-3)
+    one = detect.measure_sides(grey, corners, est.geo, n, passes=1, search_px=4.0)
+    assert one is not None
+    first, t = _stations(n, 4.0)
+    blind = np.array([-0.5, 0.5])                    # no interval inside: no edge found
+    out = (np.empty((4, 2)), np.empty((4 * n, 2)), np.empty(4 * n, np.int64))
+    got = detect.measure_core(grey, corners, 2, first, blind, t, EDGE_STEP_PX,
+                              *rig.camera.lens, *out)
+    assert got == len(one.side)
+    np.testing.assert_array_equal(out[0], one.corners_norm)
+    np.testing.assert_array_equal(out[2][:got], one.side)
+    # with nothing before it to fall back on, a blind pass measures nothing
+    assert detect.measure_core(grey, corners, 1, blind, blind, t, EDGE_STEP_PX,
+                               *rig.camera.lens, *out) == -1

@@ -368,12 +368,15 @@ def test_solve3_is_gesv_and_reports_a_singular_matrix():
 # ----------------------------------------------------------------------------- warm-up
 
 def _loop_modules():
-    from ceilkit.runtime.estimators.block import parallels
+    from ceilkit.runtime.estimators.block import detect, parallels, seams
+    from ceilkit.runtime.estimators.block import window as bwindow
     from ceilkit.runtime.estimators.corridor import refine as cref
     from ceilkit.runtime.estimators.lights import refine
     from ceilkit.runtime.features import lines
+    from ceilkit.runtime.geometry import camera, fits
 
-    return (windows, spots, quads, edges, lines, track, pnp, refine, parallels, cref)
+    return (windows, spots, quads, edges, lines, track, pnp, refine, parallels, cref,
+            detect, seams, bwindow, camera, fits)
 
 
 def _loops():
