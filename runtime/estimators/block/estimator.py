@@ -334,8 +334,7 @@ class BlockEstimator(Estimator):
         return self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
 
     def _window_fix(self, tgt: Target, got: WindowFix) -> _Fix:
-        """The fix of a target that passed the window check, its covariance pooled
-        (a symmetric block's correspondence is the prior's)."""
+        """A fix that passed the window check (:meth:`.window.Windows.fix`), pooled."""
         return _Fix(tgt.source, self._pooled(tgt.source, got.refined), got.shape_m,
                     got.sides.corners_norm, tgt.corners_w,
                     "prior" if tgt.symmetric else WINDOW)
@@ -387,7 +386,7 @@ class BlockEstimator(Estimator):
                         parallels_mode=self._heading.mode)
             diag["parallels_fused"] = _agrees(pose, cov, h)
             if diag["parallels_fused"]:
-                pose, cov = self._fuse(pose, cov, h)
+                pose, cov = _heading_update(pose, cov, h)
         diag.update(source=best.source, rms_px=r.rms_px, shape_m=best.shape_m,
                     n_edge=r.n, fixes=len(fixes), resolved_by=best.resolved_by,
                     corners_norm=best.corners_norm, corners_w=best.corners_w)  # overlays
@@ -401,10 +400,6 @@ class BlockEstimator(Estimator):
         diag["ms"] = elapsed_ms(t0)
         return PoseEstimate(t_ns, self.name, float(pose[0]), float(pose[1]),
                             wrap_pi(float(pose[2])), quality, cov=cov, diagnostics=diag)
-
-    def _fuse(self, pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading
-              ) -> tuple[np.ndarray, np.ndarray]:
-        return _heading_update(pose, cov, h)
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
                resolved_by: str) -> _Fix | None:
