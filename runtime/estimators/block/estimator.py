@@ -304,7 +304,7 @@ class BlockEstimator(Estimator):
                 if isinstance(got, (_Fix, int)):
                     (fixes if isinstance(got, _Fix) else unknown).append(got)
                     continue
-            if not self._may_be_block(pv, is_dark):
+            if not _may_be_block(self._perimeters, pv, is_dark):
                 counts.skipped += 1
                 if q.at_border:
                     counts.partial += any(d == is_dark for _, d in self._perimeters)
@@ -362,14 +362,6 @@ class BlockEstimator(Estimator):
         side = float(np.mean(side_lengths_m(pv)))
         return bool(np.any(np.abs(side / self._sizes_m - 1.0) < self.options.marker_size_tol))
 
-    def _may_be_block(self, pv: np.ndarray, dark: bool) -> bool:
-        """The coarse quad is about the size of a block of its polarity: its perimeter on
-        the ceiling within :data:`COARSE_TOL` (relative) of one block's (a cheap gate
-        before the quad is measured on its edges)."""
-        per = float(np.sum(side_lengths_m(pv)))
-        return any(abs(per / p - 1.0) < COARSE_TOL
-                   for p, d in self._perimeters if d == dark)
-
     def _publish(self, t_ns: int, fixes: list[_Fix], diag: dict[str, Any],
                  t0: float, grey: np.ndarray, mode: str = "global") -> PoseEstimate:
         """The published estimate of the best fix (``mode``: ``global`` or
@@ -404,16 +396,18 @@ class BlockEstimator(Estimator):
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
                resolved_by: str) -> _Fix | None:
         """The fix of measured sides as the block ``corners_w`` (:func:`.pnp.solve`,
-        the sides on a ceiling line left out), its covariance pooled per target."""
+        the sides on a ceiling line left out), its covariance pooled per target; None
+        when the edge residual RMS exceeds :data:`RMS_BAD_PX` (quality 0: a quad cut
+        by the frame or by clutter that still fits the block's shape)."""
         got = solve(self.geo, sides.corners_norm, corners_w, sides.edge_norm, sides.side,
                     self._lined(corners_w))
         if got is None:
             return None
         shape, ref = got
-        ref = self._pooled(source, ref)
-        if not np.all(np.isfinite(ref.pose)):
-            return None
-        return _Fix(source, ref, shape, sides.corners_norm, corners_w, resolved_by)
+        if not (np.all(np.isfinite(ref.pose)) and ref.rms_px <= RMS_BAD_PX):
+            return None         # the block's outline does not explain its edges
+        return _Fix(source, self._pooled(source, ref), shape, sides.corners_norm, corners_w,
+                    resolved_by)
 
     def _marker_fix(self, grey: np.ndarray, quad: Quad) -> _Fix | int | None:
         """A fix from a marker-sized dark quad, the id read when the site does not hold
@@ -463,8 +457,17 @@ class BlockEstimator(Estimator):
             blk, shift, _, _ = fits[0]
             resolved = "shape"
         corners_w = blk.corners_m[(np.arange(4) + shift) % 4]
-        return self._solve(sides, corners_w, f"block:{blk.id}", resolved)
+        got = self._solve(sides, corners_w, f"block:{blk.id}", resolved)
+        return PARTIAL_BLOCK if got is None and quad.at_border else got
 
+
+
+def _may_be_block(perimeters: list[tuple[float, bool]], pv: np.ndarray, dark: bool) -> bool:
+    """The coarse quad ``pv`` (V) is about the size of a block of its polarity: its
+    perimeter on the ceiling within :data:`COARSE_TOL` (relative) of one of
+    ``perimeters`` ``(perimeter, dark)`` (a cheap gate before its edges are measured)."""
+    per = float(np.sum(side_lengths_m(pv)))
+    return any(abs(per / p - 1.0) < COARSE_TOL for p, d in perimeters if d == dark)
 
 
 def _count_block(got: Any, fixes: list[_Fix], counts: _Counts) -> None:

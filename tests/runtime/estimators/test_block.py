@@ -388,3 +388,24 @@ def test_a_side_lost_on_the_last_edge_pass_keeps_the_previous_pass(rig):
     # with nothing before it to fall back on, a blind pass measures nothing
     assert detect.measure_core(grey, corners, 1, blind, blind, t, EDGE_STEP_PX,
                                *rig.camera.lens, *out) == -1
+
+
+def test_a_block_cut_by_the_frame_gives_no_fix_and_the_marker_beside_it_does(rig):
+    """Found on bench_all's block drive (frame 32, a scheduled global search with a
+    prior): block A runs off the frame's edge, its quad still fits A's shape within
+    shape_tol, and being the largest dark quad it was solved first, at an edge RMS of
+    1.8 px: published with quality 0, 22 mm and 1.1 deg off (4 sigma in yaw). A fix
+    whose edge RMS exceeds RMS_BAD_PX is now no fix: the marker beside it is taken."""
+    from ceilkit.runtime.estimators.block.estimator import RMS_BAD_PX
+
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    x, y, yaw = 1.153333, -0.06511, 0.19550080468740974
+    grey = render_frame(rig, site, x, y, yaw, SimOptions(noise_sigma=2.0, blur_px=0.8),
+                        np.random.default_rng(32))
+    est = BlockEstimator(rig, site, {"plane_odometry": False})
+    out = est.estimate(grey, 0, PoseEstimate(0, "prior", x + 4e-4, y + 3e-4, yaw + 1e-3, 1.0))
+    assert out and out.diagnostics["quads"] >= 2            # block A's quad was found
+    assert out.diagnostics["source"] == "marker:0"
+    assert out.diagnostics["rms_px"] < RMS_BAD_PX and out.quality > 0.8
+    assert math.hypot(out.x_m - x, out.y_m - y) < 0.002
+    assert abs(math.degrees(math.remainder(out.yaw_rad - yaw, 2 * math.pi))) < 0.05
