@@ -290,9 +290,19 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
                           "the forward lines do not match the site's lines_along")
     ambiguous = is_ambiguous(m)
     if ambiguous:
-        m, ambiguous = settle_by_absence(m, chosen.offsets_m, chosen.weights, chosen.compat,
-                                         chosen.psi_rad, setup, ctx.camera,
-                                         ctx.min_length_px, ctx.match_tol_m)
+        settled, ambiguous = settle_by_absence(m, chosen.offsets_m, chosen.weights,
+                                               chosen.compat, chosen.psi_rad, setup,
+                                               ctx.camera, ctx.min_length_px, ctx.match_tol_m)
+        if settled is not m and prior is not None and prior.y_m is not None:
+            # the prior chose m (the shift nearest it); the lines the frame misses
+            # choose the runner-up: neither is trusted (a flip away from a good prior
+            # published a lateral three seams off, at a sigma of 0.4 mm: a wall's
+            # clutter imitating seams, docs/methods/corridor.md)
+            return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
+                              f"the prior's lateral shift ({m.shift_m:+.3f} m) and the "
+                              f"frame's ({settled.shift_m:+.3f} m: fewer site lines "
+                              "missing) disagree")
+        m = settled
         if not ambiguous and how != "prior":
             how += "+absence"
     if ambiguous and (prior is None or prior.y_m is None):
