@@ -128,3 +128,20 @@ def predicted(geo, targets, pose, margin):
     area = np.abs(np.sum(u * v[:, nxt] - u[:, nxt] * v, axis=1))
     bright = np.array([not t.dark for t in targets])
     return [(k, px[k]) for k in np.lexsort((-area, bright)) if inside[k]]
+
+
+def side_offset_cov(r, J, side, A):
+    """:func:`.pnp.side_offset_cov` in arrays: ``(σ_b², U or None)``."""
+    onehot = (side[:, None] == np.arange(4)).astype(float)              # (M, 4)
+    n = onehot.sum(axis=0)
+    on = n > 0
+    K = int(np.count_nonzero(on))
+    if K < 3:
+        return 0.0, None
+    n = n[on]
+    sums = onehot.T @ np.column_stack([r, r * r, J])                    # (4, 5)
+    m = sums[on, 0] / n
+    within = np.maximum(sums[on, 1] - n * m * m, 0.0) / np.maximum(n - 1.0, 1.0)
+    g = sums[on, 2:]
+    var_b = max(float(m @ m) - float((within / n).sum()) * (K - 2) / K, 0.0) / (K - 2)
+    return var_b, A @ (g.T @ g) @ A

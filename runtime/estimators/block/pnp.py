@@ -47,7 +47,6 @@ GN_LINEAR_EPS = 1e-4        # a step (m, rad) below this ends the fit: the close
 JAC_EPS = 1e-6              # finite-difference step, m and rad
 _JAC_STEPS = np.vstack([np.zeros(3), np.eye(3) * JAC_EPS])   # the pose and its steps
 _JAC_STEPS.flags.writeable = False
-_SIDES = np.arange(4)
 SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
 
@@ -382,22 +381,12 @@ def side_offset_cov(r: np.ndarray, J: np.ndarray, side: np.ndarray, A: np.ndarra
     (K - 2)`` (``s_k`` the scatter within side k: white noise's share of the means)
     and ``g_k = Σ_{i in k} J_i``, the least-squares pose's covariance from independent
     side offsets of variance ``σ_b²`` is ``σ_b² A (Σ_k g_k g_kᵀ) A`` with
-    ``A = (JᵀJ)⁻¹``. ``(0, None)`` for fewer than three sides (no size check)."""
-    onehot = (side[:, None] == _SIDES).astype(float)                   # (M, 4)
-    n = onehot.sum(axis=0)
-    on = n > 0
-    K = int(np.count_nonzero(on))
-    if K < 3:
-        return 0.0, None
-    n = n[on]
-    # per side: the sum of r, of r², and of each Jacobian column, in one product
-    sums = onehot.T @ np.column_stack([r, r * r, J])                    # (4, 5)
-    m = sums[on, 0] / n                                                 # side means
-    within = np.maximum(sums[on, 1] - n * m * m, 0.0) / np.maximum(n - 1.0, 1.0)
-    g = sums[on, 2:]
-    G = g.T @ g                                                         # Σ_k g_k g_kᵀ
-    var_b = max(float(m @ m) - float((within / n).sum()) * (K - 2) / K, 0.0) / (K - 2)
-    return var_b, A @ G @ A
+    ``A = (JᵀJ)⁻¹``. ``(0, None)`` for fewer than three sides (no size check). One
+    compiled loop (:func:`_side_offsets`)."""
+    unit = np.empty((3, 3))
+    var_b, has_unit = _side_offsets(arr(r, np.float64), arr(J, np.float64),
+                                    arr(side, np.int64), arr(A, np.float64), unit)
+    return var_b, unit if has_unit else None
 
 
 SOLVED, NO_CLOSED_FORM, SINGULAR = 0, 1, 2     # solve_core's outcomes

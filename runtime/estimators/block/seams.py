@@ -122,7 +122,7 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
     With ``site``, samples inside its ``ignore`` regions are not used (SPEC §2). One
     compiled call (:func:`chords_core`); the ignore regions' test after it."""
     x, y, yaw = (float(v) for v in pose)
-    along = _along(corridor)
+    along = _along(tuple(corridor.lines_along_m))
     a = corridor.lines_across
     first, spacing = (float(a.first_m), float(a.spacing_m)) if a is not None else (0.0, 0.0)
     ignoring = site is not None and bool(site.ignore_m)
@@ -153,17 +153,10 @@ def _spread(n: int, m: int) -> np.ndarray:
     return (2 * np.arange(m) * (n - 1) + m1) // (2 * m1)
 
 
-def _along(corridor) -> np.ndarray:
-    """The corridor's ``lines_along_m`` as a read-only float array (cached on it)."""
-    got = _ALONG.get(id(corridor))
-    if got is None or got[0] is not corridor:
-        got = (corridor, arr(np.asarray(corridor.lines_along_m, float).reshape(-1),
-                             np.float64))
-        _ALONG[id(corridor)] = got
-    return got[1]
-
-
-_ALONG: dict[int, tuple] = {}
+@functools.lru_cache(maxsize=8)
+def _along(lines_along_m: tuple[float, ...]) -> np.ndarray:
+    """A corridor's ``lines_along_m`` as the read-only float array the loop takes."""
+    return arr(np.asarray(lines_along_m, float).reshape(-1), np.float64)
 
 
 @njit

@@ -131,8 +131,8 @@ class Windows:
                             else np.zeros((0, 2)), np.float64)
         self._bright = arr(np.array([not t.dark for t in targets], bool), np.bool_)
         none = arr(np.zeros(4, bool), np.bool_)
-        self._drop = [none if drop is None else arr(drop(t.corners_w), np.bool_)
-                      for t in targets]
+        self._drop = {t.source: none if drop is None else arr(drop(t.corners_w), np.bool_)
+                      for t in targets}
         self._mount = (arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
                        float(geo.ceiling_m))
 
@@ -179,7 +179,6 @@ class Windows:
         :data:`TRACK_MAX_RMS_PX`, or a refined outline more than ``track_window_px``
         from the predicted one. One compiled call (:func:`window_core`)."""
         o = self.options
-        k = self.targets.index(tgt)
         code, lens = self.geo.camera.lens
         first, t = _stations(o.edge_points, float(o.track_window_px))
         rest, _ = _stations(o.edge_points, EDGE_SEARCH_PX)
@@ -188,7 +187,7 @@ class Windows:
         pose, cov, unit = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
         ok, n, m, rms, var_b, has_unit = window_core(
             arr(grey, np.uint8), arr(px, np.float64), first, rest, t, EDGE_STEP_PX,
-            code, lens, *self._mount, arr(tgt.corners_w, np.float64), self._drop[k],
+            code, lens, *self._mount, arr(tgt.corners_w, np.float64), self._drop[tgt.source],
             TRACK_MIN_SHARE * o.edge_points, tgt.dark, o.dark_ratio, o.bright_ratio,
             TRACK_MAX_RMS_PX, o.shape_tol * tgt.min_side_m, float(o.track_window_px),
             corners, edge, side, pose, cov, unit)

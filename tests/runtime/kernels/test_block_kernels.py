@@ -116,6 +116,22 @@ def test_planar_solve_equals_closed_form_then_refine(scene):
                      np.zeros(4, bool)) is None
 
 
+@pytest.mark.parametrize("sides", [(0, 1, 2, 3), (0, 1, 3), (1, 2), (2,)])
+def test_side_offset_cov_equals_the_array_reading(sides):
+    rng = np.random.default_rng(len(sides))
+    side = np.repeat(np.array(sides), 9)
+    r, J = rng.normal(0, 0.3, side.size), rng.normal(0, 50.0, (side.size, 3))
+    r[side == sides[0]] += 0.4                    # one side offset as a whole
+    A = np.linalg.inv(J.T @ J)
+    want = ref.side_offset_cov(r, J, side, A)
+    got = pnp.side_offset_cov(r, J, side, A)
+    assert got[0] == pytest.approx(want[0], rel=1e-9, abs=1e-15)
+    assert (got[1] is None) == (want[1] is None) == (len(sides) < 3)
+    if want[1] is not None:
+        assert want[0] > 0
+        np.testing.assert_allclose(got[1], want[1], rtol=1e-9, atol=1e-20)
+
+
 @pytest.mark.parametrize("model,dist,skew", [
     ("plumb_bob", [-0.3, 0.1, 0.001, -0.002, 0.0], 0.0),
     ("rational_polynomial", [-0.3, 0.1, 0.001, -0.002, 0.01, 0.05, 0.01, 0.002], 0.0),
