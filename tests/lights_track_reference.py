@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from lights_reference import centres, locate, plausible
 
 from ceilkit.runtime.estimators.lights.rays import ceiling_points
 from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
@@ -35,7 +36,7 @@ def observe(w: WindowTracker, grey: np.ndarray, x_m: float, y_m: float, yaw_rad:
 
 
 def predict(w: WindowTracker, x_m: float, y_m: float, yaw_rad: float):
-    ok, cell, z = w.visibility.locate(x_m, y_m, yaw_rad)
+    ok, cell, z = locate(w.visibility, x_m, y_m, yaw_rad)
     idx = np.flatnonzero(ok)
     m = idx.size
     if m < 3:
@@ -69,12 +70,12 @@ def measure(w: WindowTracker, grey: np.ndarray, corner: np.ndarray, half: int):
     tab = w.observer.grid(spots.centroids_px)
     good &= np.isfinite(tab[:, 0])
     if w.observer.light_radius_m > 0 and good.any():
-        good &= w.observer.plausible(spots, tab, good)
+        good &= plausible(spots, tab, good)
     return spots, good, tab
 
 
 def fit_pose(w: WindowTracker, spots, idx, tab, x_m, y_m, yaw_rad):
-    q, ok = ceiling_points(w.rig, w.ceiling_height_m, w.observer.centres(spots.centroids_px, tab))
+    q, ok = ceiling_points(w.rig, w.ceiling_height_m, centres(spots.centroids_px, tab))
     if not ok.all():
         return None
     J = tab[:, :4].reshape(-1, 2, 2)

@@ -18,37 +18,20 @@ Example::
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex
+from ceilkit.runtime.estimators.lights.observe import locate_core
 from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.jit import arr, njit, warmer
 
 MISSING_PENALTY = 0.5
 """A candidate's score: its inliers minus this per map light it should show but does not."""
 _SAME_BIN = (0.5, math.radians(8.0))    # (m, rad): a vote bin next to a verified pose
 _SAME_POSE = (0.3, math.radians(5.0))   # (m, rad): a verified pose already found
-
-
-@functools.lru_cache(maxsize=32)
-def _arange(n: int) -> np.ndarray:
-    """``np.arange(n)``, computed once per ``n`` (read-only)."""
-    a = np.arange(n)
-    a.setflags(write=False)
-    return a
-
-
-@functools.lru_cache(maxsize=32)
-def _triu(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``np.triu_indices(n, 1)``, computed once per ``n`` (read-only)."""
-    a, b = np.triu_indices(n, 1)
-    a.setflags(write=False)
-    b.setflags(write=False)
-    return a, b
 
 
 @dataclass(frozen=True)
@@ -93,13 +76,16 @@ class PatternMatcher:
 
     Built once per map: every map pair shorter than ``max_pair_m`` with its length,
     sorted (a pair-distance hash). ``match`` returns verified candidates, best first.
+    The vote, its bins and the verification of each are one compiled call
+    (:func:`_match`); the array reading they stand for is kept with the tests.
 
     Args:
         lights_w: ``(M, 2)`` map light centres in W.
         gate_m: largest distance of an inlier from its map light (ceiling metres).
         max_pair_m: longest pair that can be seen in one frame.
-        visible: optional ``f(x, y, yaw) -> (M,) bool``: map lights the camera should see
-            from a pose (used to penalize poses whose visible lights are not observed).
+        visible: optional :class:`~.observe.VisibilityTable` of the same lights: the
+            map lights the camera should see from a pose (poses whose visible lights
+            are not observed are penalized).
     """
 
     def __init__(self, lights_w: np.ndarray, gate_m: float = 0.08, max_pair_m: float = 1e9,
@@ -124,57 +110,42 @@ class PatternMatcher:
         self.pair_d = d[keep][order]
         # per-map structures of the vote, in complex form (x + iy): each pair's midpoint
         # and unit direction i -> j
-        self._lights_c = self.lights_w[:, 0] + 1j * self.lights_w[:, 1]
-        vp = self._lights_c[self.pair_j] - self._lights_c[self.pair_i]
-        self._pair_mid = 0.5 * (self._lights_c[self.pair_i] + self._lights_c[self.pair_j])
-        self._pair_dir = vp / np.maximum(np.abs(vp), 1e-12)
-        self._lights_row = self._lights_c[None, :]
+        lights_c = self.lights_w[:, 0] + 1j * self.lights_w[:, 1]
+        vp = lights_c[self.pair_j] - lights_c[self.pair_i]
+        pair_dir = vp / np.maximum(np.abs(vp), 1e-12)
+        pair_mid = 0.5 * (lights_c[self.pair_i] + lights_c[self.pair_j])
+        if visible is None:   # a table that sees nothing: no light is ever missing
+            vis = (arr(self.lights_w, np.float64), arr(np.full(1, np.inf), np.float32),
+                   arr([0.0, 0.0, 1.0], np.float64), arr([-1, -1, 0], np.int64))
+        else:
+            vis = visible.arrays
+        # what the compiled calls read (read-only)
+        self._map = (arr(lights_c, np.complex128), arr(self.pair_d, np.float64),
+                     arr(pair_mid, np.complex128), arr(pair_dir, np.complex128))
+        self._vis = vis
+        self._params = arr([gate_m, self.yaw_bin_rad, self.pos_bin_m, self.top_bins,
+                            self.max_bins, self.max_observed], np.float64)
 
     # -- association ------------------------------------------------------------------
     def associate(self, q_v: np.ndarray, yaw: float, t: np.ndarray, gate_m: float
                   ) -> np.ndarray:
         """``(K, 2)`` (observed, map) pairs: mutual nearest neighbours within ``gate_m``."""
-        q = np.asarray(q_v, float).reshape(-1, 2)
-        return self._associate(q[:, 0] + 1j * q[:, 1], complex(math.cos(yaw), math.sin(yaw)),
-                               complex(t[0], t[1]), gate_m)
-
-    def _associate(self, qc: np.ndarray, rot: complex, t: complex, gate_m: float
-                   ) -> np.ndarray:
-        d = np.abs((qc * rot + t)[:, None] - self._lights_row)       # (N, M) ceiling metres
-        j = d.argmin(axis=1)
-        ok = (d.min(axis=1) < gate_m) & (d.argmin(axis=0)[j] == _arange(j.size))
-        idx = ok.nonzero()[0]
-        out = np.empty((idx.size, 2), np.intp)
-        out[:, 0], out[:, 1] = idx, j[idx]
-        return out
+        return _associate(_complex(q_v), complex(math.cos(yaw), math.sin(yaw)),
+                          complex(t[0], t[1]), self._map[0], float(gate_m))
 
     def verify(self, q_v: np.ndarray, yaw: float, t: np.ndarray, gate_m: float | None = None
                ) -> Candidate | None:
-        """Associate, refit, re-associate; ``None`` with fewer than two inliers."""
-        q = np.asarray(q_v, float).reshape(-1, 2)
-        return self._verify(q[:, 0] + 1j * q[:, 1], yaw, complex(t[0], t[1]),
-                            self.gate_m if gate_m is None else gate_m)
-
-    def _verify(self, qc: np.ndarray, yaw: float, t: complex, gate: float
-                ) -> Candidate | None:
-        pairs = self._associate(qc, complex(math.cos(yaw), math.sin(yaw)), t, gate)
-        if pairs.shape[0] < 2:
+        """Associate within ``gate_m`` (default: the matcher's gate), refit the rigid
+        transform, re-associate within the matcher's gate; ``None`` with fewer than two
+        inliers. Its score counts the map lights the pose should show but that matched
+        nothing (``visible``)."""
+        out = _verify(_complex(q_v), float(yaw), complex(t[0], t[1]),
+                      self.gate_m if gate_m is None else float(gate_m), self.gate_m,
+                      self._map[0], *self._vis)
+        ok, x, y, yaw_v, pairs, score, rms, missing = out
+        if not ok:
             return None
-        rot, t = fit_rigid_2d_complex(qc[pairs[:, 0]], self._lights_c[pairs[:, 1]])
-        pairs = self._associate(qc, rot, t, self.gate_m)
-        if pairs.shape[0] < 2:
-            return None
-        res = np.abs(qc[pairs[:, 0]] * rot + t - self._lights_c[pairs[:, 1]])
-        rms = math.sqrt(float((res * res).sum()) / res.size)
-        yaw = math.atan2(rot.imag, rot.real)
-        score = float(pairs.shape[0])
-        missing = 0
-        if self.visible is not None:
-            vis = self.visible(t.real, t.imag, yaw)
-            vis[pairs[:, 1]] = False
-            missing = int(vis.sum())
-            score -= MISSING_PENALTY * missing
-        return Candidate(float(t.real), float(t.imag), float(yaw), pairs, score, rms, missing)
+        return Candidate(x, y, yaw_v, pairs, score, rms, missing)
 
     # -- global -------------------------------------------------------------------------
     def hypotheses(self, q_v: np.ndarray) -> np.ndarray:
@@ -184,96 +155,253 @@ class PatternMatcher:
         ``2 gate_m``) give two poses, one per orientation: the rotation takes ``b - a``
         onto ``j - i`` (or ``i - j``), the translation takes the midpoints together.
         """
-        q = np.asarray(q_v, float).reshape(-1, 2)
-        qc = q[:, 0] + 1j * q[:, 1]
-        a, b = _triu(qc.size)
-        if a.size == 0 or self.pair_d.size == 0:
-            return np.zeros((0, 3))
-        qa, qb = qc[a], qc[b]
-        vq = qb - qa
-        d_obs = np.abs(vq)
-        tol = 2.0 * self.gate_m
-        lohi = np.searchsorted(self.pair_d, np.concatenate([d_obs - tol, d_obs + tol]))
-        lo, hi = lohi[:a.size], lohi[a.size:]
-        cnt = hi - lo
-        total = int(cnt.sum())
-        if total == 0:
-            return np.zeros((0, 3))
-        obs_k = np.repeat(_arange(a.size), cnt)
-        mp = _arange(total) + np.repeat(lo - (np.cumsum(cnt) - cnt), cnt)
-        uq = np.conj(vq / np.maximum(d_obs, 1e-12))
-        rot = self._pair_dir[mp] * uq[obs_k]
-        rmq = rot * (0.5 * (qa + qb))[obs_k]
-        mid = self._pair_mid[mp]
-        yaw = np.arctan2(rot.imag, rot.real)                 # np.angle(rot)
-        # the reversed orientation: rot -> -rot, yaw -> yaw + pi
-        out = np.empty((2 * total, 3))
-        out[:total, 0] = yaw
-        out[total:, 0] = yaw - np.copysign(np.pi, yaw)
-        t_fwd, t_rev = mid - rmq, mid + rmq
-        out[:total, 1], out[:total, 2] = t_fwd.real, t_fwd.imag
-        out[total:, 1], out[total:, 2] = t_rev.real, t_rev.imag
-        return out
+        return _hypotheses(_complex(q_v), *self._map[1:], 2.0 * self.gate_m)
 
     def match(self, q_v: np.ndarray, order: np.ndarray | None = None) -> list[Candidate]:
         """Verified, distinct candidates for observed ceiling points ``(N, 2)``, best first.
 
         ``order`` ranks the observations (most reliable first); the hashing uses the
         first ``max_observed`` of them, the verification all of them.
+
+        The poses :meth:`hypotheses` votes for are binned (:attr:`yaw_bin_rad`,
+        :attr:`pos_bin_m`); the bins are looked at by their votes, most first (ties in
+        the order of their first vote): a bin's pose is its votes' circular mean yaw and
+        median position, verified (:meth:`verify`) unless a candidate already lies near
+        it; a verified pose near an earlier one is dropped. Bins far below the best
+        cannot hold a rival of similar support: the search stops at the first bin with
+        fewer than ``max(3, 0.2 best)`` votes once a candidate is found, and past
+        ``top_bins`` at the first with fewer than half the best (a regular layout spreads
+        its votes over many equally good poses).
         """
         n = q_v.shape[0]
         if n < 2 or self.lights_w.shape[0] < 2:
             return []
         use = np.arange(n) if order is None else np.asarray(order)
-        use = use[:self.max_observed]
-        hyp = self.hypotheses(q_v[use])
-        qc = q_v[:, 0] + 1j * q_v[:, 1]
-        if hyp.shape[0] == 0:
-            return []
-        # bin indices (3, K), rows contiguous (reductions along a row are fast)
-        bins_3 = (self.yaw_bin_rad, self.pos_bin_m, self.pos_bin_m)
-        kb = np.floor(hyp / bins_3).astype(np.int64).T.copy()
-        kb -= kb.min(axis=1)[:, None]
-        span = kb.max(axis=1) + 1
-        key = (kb[0] * span[1] + kb[1]) * span[2] + kb[2]
-        # the stable order of the keys from one plain sort of (key, index) packed in
-        # an int64 (a stable argsort costs several times more)
-        nk = key.size
-        if float(span[0]) * float(span[1]) * float(span[2]) * nk < 2.0 ** 62:
-            packed = np.sort(key * nk + _arange(nk))
-            srt, ks = packed % nk, packed // nk
-        else:   # a map too large to pack (kilometres of bins): the direct way
-            srt = key.argsort(kind="stable")
-            ks = key[srt]
-        starts = np.concatenate([[0], np.flatnonzero(ks[1:] != ks[:-1]) + 1])
-        counts = np.diff(np.concatenate([starts, [ks.size]]))
-        top = (-counts).argsort(kind="stable")[:self.max_bins]
-        # the bins in the order looked at, as plain ints: (first vote in srt, votes)
-        bins = list(zip(starts[top].tolist(), counts[top].tolist(), strict=True))
-        best = bins[0][1]
-        cands: list[Candidate] = []
-        for n_done, (first, count) in enumerate(bins):
-            # bins far below the best cannot hold a rival of similar support; past
-            # `top_bins`, only bins near the best count are looked at (a regular
-            # layout spreads its votes over many equally good poses)
-            if cands and count < max(3, 0.2 * best):
-                break
-            if n_done >= self.top_bins and count < 0.5 * best:
-                break
-            h = hyp[srt[first:first + count]]
-            yaw = math.atan2(np.sin(h[:, 0]).sum(), np.cos(h[:, 0]).sum())
-            hs = np.sort(h[:, 1:], axis=0)
-            t = (0.5 * (hs[(count - 1) // 2] + hs[count // 2])).tolist()     # medians
-            if any(near_pose(t[0], t[1], yaw, o, *_SAME_BIN) for o in cands):
-                continue   # a neighbouring bin of a pose already verified
-            c = self._verify(qc, yaw, complex(t[0], t[1]), self.gate_m)
-            if c is None:
-                continue
-            if any(near_pose(c.x_m, c.y_m, c.yaw_rad, o, *_SAME_POSE) for o in cands):
-                continue
-            cands.append(c)
+        poses, pairs, offsets = _match(_complex(q_v), arr(use, np.int64), *self._map,
+                                       self._params, *self._vis)
+        cands = [Candidate(p[0], p[1], p[2], pairs[a:b], p[3], p[4], int(p[5]))
+                 for p, a, b in zip(poses.tolist(), offsets[:-1].tolist(),
+                                    offsets[1:].tolist(), strict=True)]
         cands.sort(key=lambda c: (-c.score, -c.inliers, c.rms_m))
         return cands
+
+
+def _complex(q_v: np.ndarray) -> np.ndarray:
+    """Points ``(N, 2)`` as ``x + iy`` (read-only, as a compiled call takes them)."""
+    q = np.asarray(q_v, float).reshape(-1, 2)
+    return arr(q[:, 0] + 1j * q[:, 1], np.complex128)
+
+
+@njit
+def _associate(qc, rot, t, lights_c, gate):  # pragma: no cover - compiled
+    """``(K, 2)`` (observed, map) pairs of points ``qc`` moved by ``rot q + t``: mutual
+    nearest neighbours (the first of equal distances) within ``gate``."""
+    n, m = qc.size, lights_c.size
+    d = np.empty((n, m))
+    for i in range(n):
+        p = qc[i] * rot + t
+        for j in range(m):
+            d[i, j] = abs(p - lights_c[j])
+    near = np.empty(n, np.int64)
+    for i in range(n):
+        near[i] = np.argmin(d[i]) if m else 0
+    out = np.empty((n, 2), np.int64)
+    k = 0
+    for i in range(n):
+        if m == 0:
+            break
+        j = near[i]
+        if not d[i, j] < gate:
+            continue
+        best = 0
+        for r in range(1, n):
+            if d[r, j] < d[best, j]:
+                best = r
+        if best == i:
+            out[k, 0], out[k, 1] = i, j
+            k += 1
+    return out[:k].copy()
+
+
+@njit
+def _verify(qc, yaw, t, gate, gate_m, lights_c, vis_lights, padded, geo, ints
+            ):  # pragma: no cover - compiled
+    """:meth:`PatternMatcher.verify` in a compiled call: ``(found, x, y, yaw, pairs (K,
+    2), score, rms_m, missing)``; the rigid refit is
+    :func:`~ceilkit.runtime.geometry.fits.fit_rigid_2d_complex`'s, the lights a pose
+    should show :func:`~.observe.locate_core`'s."""
+    none = np.empty((0, 2), np.int64)
+    pairs = _associate(qc, complex(math.cos(yaw), math.sin(yaw)), t, lights_c, gate)
+    k = pairs.shape[0]
+    if k < 2:
+        return False, 0.0, 0.0, 0.0, none, 0.0, 0.0, 0
+    qm, pm = 0j, 0j
+    for r in range(k):
+        qm += qc[pairs[r, 0]]
+        pm += lights_c[pairs[r, 1]]
+    qm, pm = qm / k, pm / k
+    sc = 0j
+    for r in range(k):
+        sc += (qc[pairs[r, 0]] - qm).conjugate() * (lights_c[pairs[r, 1]] - pm)
+    rot = sc / abs(sc) if abs(sc) > 0 else 1.0 + 0j
+    t = pm - rot * qm
+    pairs = _associate(qc, rot, t, lights_c, gate_m)
+    k = pairs.shape[0]
+    if k < 2:
+        return False, 0.0, 0.0, 0.0, none, 0.0, 0.0, 0
+    ss = 0.0
+    for r in range(k):
+        e = abs(qc[pairs[r, 0]] * rot + t - lights_c[pairs[r, 1]])
+        ss += e * e
+    yaw = math.atan2(rot.imag, rot.real)
+    missing = 0
+    if ints[0] >= 0:
+        vis = locate_core(t.real, t.imag, yaw, vis_lights, padded, geo, ints)[0]
+        for r in range(k):
+            vis[pairs[r, 1]] = False
+        for j in range(vis.size):
+            missing += vis[j]
+    score = k - MISSING_PENALTY * missing
+    return True, t.real, t.imag, yaw, pairs, score, math.sqrt(ss / k), missing
+
+
+@njit
+def _hypotheses(qc, pair_d, pair_mid, pair_dir, tol):  # pragma: no cover - compiled
+    """:meth:`PatternMatcher.hypotheses` of points ``qc``: the poses of the observed
+    pairs in ``np.triu_indices`` order, each with its map pairs within ``tol`` in length
+    order, the reversed orientations after all the forward ones."""
+    n = qc.size
+    n_pairs = n * (n - 1) // 2
+    lo = np.empty(n_pairs, np.int64)
+    hi = np.empty(n_pairs, np.int64)
+    total = 0
+    k = 0
+    for a in range(n):
+        for b in range(a + 1, n):
+            d = abs(qc[b] - qc[a])
+            lo[k] = np.searchsorted(pair_d, d - tol)
+            hi[k] = np.searchsorted(pair_d, d + tol)
+            total += hi[k] - lo[k]
+            k += 1
+    out = np.empty((2 * total, 3))
+    r = 0
+    k = 0
+    for a in range(n):
+        for b in range(a + 1, n):
+            vq = qc[b] - qc[a]
+            uq = (vq / max(abs(vq), 1e-12)).conjugate()
+            mid_q = 0.5 * (qc[a] + qc[b])
+            for mp in range(lo[k], hi[k]):
+                rot = pair_dir[mp] * uq
+                rmq = rot * mid_q
+                yaw = math.atan2(rot.imag, rot.real)
+                out[r, 0] = yaw
+                out[total + r, 0] = yaw - math.copysign(math.pi, yaw)
+                fwd, rev = pair_mid[mp] - rmq, pair_mid[mp] + rmq
+                out[r, 1], out[r, 2] = fwd.real, fwd.imag
+                out[total + r, 1], out[total + r, 2] = rev.real, rev.imag
+                r += 1
+            k += 1
+    return out
+
+
+@njit
+def _match(qc, use, lights_c, pair_d, pair_mid, pair_dir, params, vis_lights, padded, geo,
+           ints):  # pragma: no cover - compiled
+    """:meth:`PatternMatcher.match` before the candidates are made and sorted:
+    ``(poses (C, 6), pairs (P, 2), offsets (C + 1,))``, a candidate's row ``(x, y,
+    yaw, score, rms_m, missing)``, its pairs ``pairs[offsets[c]:offsets[c + 1]]``, in the
+    order found (``params``: gate, yaw bin, position bin, top_bins, max_bins,
+    max_observed)."""
+    gate, yaw_bin, pos_bin = params[0], params[1], params[2]
+    top_bins, max_bins, max_observed = np.int64(params[3]), np.int64(params[4]), \
+        np.int64(params[5])
+    poses = np.empty((max_bins, 6))
+    offsets = np.zeros(max_bins + 1, np.int64)
+    all_pairs = np.empty((max_bins * qc.size, 2), np.int64)
+    hyp = _hypotheses(qc[use[:max_observed]], pair_d, pair_mid, pair_dir, 2.0 * gate)
+    nk = hyp.shape[0]
+    if nk == 0:
+        return poses[:0], all_pairs[:0], offsets[:1]
+    # bins: (yaw, x, y) cells; each pose's cell as one key, its votes in a stable order
+    kb = np.empty((nk, 3), np.int64)
+    size = (yaw_bin, pos_bin, pos_bin)
+    for r in range(nk):
+        for c in range(3):
+            kb[r, c] = np.int64(math.floor(hyp[r, c] / size[c]))
+    low = np.empty(3, np.int64)
+    span = np.empty(3, np.int64)
+    for c in range(3):
+        low[c] = kb[:, c].min()
+        span[c] = kb[:, c].max() - low[c] + 1
+    key = np.empty(nk, np.int64)
+    for r in range(nk):
+        key[r] = ((kb[r, 0] - low[0]) * span[1] + kb[r, 1] - low[1]) * span[2] \
+            + kb[r, 2] - low[2]
+    srt = np.argsort(key, kind="mergesort")
+    starts = np.empty(nk, np.int64)
+    counts = np.empty(nk, np.int64)
+    nb = 0
+    for r in range(nk):
+        if r == 0 or key[srt[r]] != key[srt[r - 1]]:
+            starts[nb] = r
+            nb += 1
+    for b in range(nb):
+        counts[b] = (starts[b + 1] if b + 1 < nb else nk) - starts[b]
+    top = np.argsort(-counts[:nb], kind="mergesort")[:max_bins]
+    best = counts[top[0]]
+    n_cand = 0
+    for n_done in range(top.size):
+        first, count = starts[top[n_done]], counts[top[n_done]]
+        if n_cand and count < max(3, 0.2 * best):
+            break
+        if n_done >= top_bins and count < 0.5 * best:
+            break
+        s, c, xs, ys = 0.0, 0.0, np.empty(count), np.empty(count)
+        for r in range(count):
+            h = srt[first + r]
+            s += math.sin(hyp[h, 0])
+            c += math.cos(hyp[h, 0])
+            xs[r], ys[r] = hyp[h, 1], hyp[h, 2]
+        yaw = math.atan2(s, c)
+        xs.sort()
+        ys.sort()
+        tx = 0.5 * (xs[(count - 1) // 2] + xs[count // 2])          # medians
+        ty = 0.5 * (ys[(count - 1) // 2] + ys[count // 2])
+        if _near_any(tx, ty, yaw, poses, n_cand, _SAME_BIN[0], _SAME_BIN[1]):
+            continue   # a neighbouring bin of a pose already verified
+        found, x, y, yaw, pairs, score, rms, missing = _verify(
+            qc, yaw, complex(tx, ty), gate, gate, lights_c, vis_lights, padded, geo, ints)
+        if not found or _near_any(x, y, yaw, poses, n_cand, _SAME_POSE[0], _SAME_POSE[1]):
+            continue
+        poses[n_cand, 0], poses[n_cand, 1], poses[n_cand, 2] = x, y, yaw
+        poses[n_cand, 3], poses[n_cand, 4], poses[n_cand, 5] = score, rms, missing
+        k = pairs.shape[0]
+        all_pairs[offsets[n_cand]:offsets[n_cand] + k] = pairs
+        offsets[n_cand + 1] = offsets[n_cand] + k
+        n_cand += 1
+    return poses[:n_cand].copy(), all_pairs[:offsets[n_cand]].copy(), \
+        offsets[:n_cand + 1].copy()
+
+
+@njit
+def _near_any(x, y, yaw, poses, n, pos_m, max_yaw):  # pragma: no cover - compiled
+    """Whether ``(x, y, yaw)`` lies within ``pos_m`` and ``max_yaw`` of one of the first
+    ``n`` rows of ``poses`` (:func:`near_pose`)."""
+    for c in range(n):
+        d_yaw = (yaw - poses[c, 2] + math.pi) % (2.0 * math.pi) - math.pi
+        if math.hypot(x - poses[c, 0], y - poses[c, 1]) < pos_m and abs(d_yaw) < max_yaw:
+            return True
+    return False
+
+
+@warmer
+def _warm() -> None:
+    q = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.5]])
+    m = PatternMatcher(q, 0.1)        # (with a visibility table: the same types)
+    m.match(q)
+    m.verify(q, 0.0, np.zeros(2))
+    m.associate(q, 0.0, np.zeros(2), 0.1)
 
 
 __all__ = ["MISSING_PENALTY", "Candidate", "PatternMatcher", "near_pose"]

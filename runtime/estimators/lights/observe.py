@@ -28,7 +28,8 @@ from ceilkit.runtime.estimators.ignore import ignored_from
 from ceilkit.runtime.estimators.lights.rays import (
     GridTable,
     ceiling_points,
-    interp_grid,
+    ceiling_points_core,
+    grid_row,
     jacobian_grid,
     mount_arrays,
     project_lights,
@@ -36,6 +37,7 @@ from ceilkit.runtime.estimators.lights.rays import (
 from ceilkit.runtime.features.spots import SpotParams, Spots
 from ceilkit.runtime.features.windows import detect_spots_windowed
 from ceilkit.runtime.features.working import decimated_mask, detect_spots_working
+from ceilkit.runtime.jit import arr, njit, warmer
 
 JAC_STEP_PX = 8  # node spacing of the per-pixel spot table
 VIEW_MARGIN_PX = 12.0  # a light's centre this far inside the image border is reported
@@ -122,7 +124,7 @@ def polygon_centroids(p: np.ndarray) -> np.ndarray:
 def spot_table(rig: Rig, ceiling_height_m: float, light_radius_m: float) -> np.ndarray:
     """``(GH, GW, 10)`` per-node table (nodes every :data:`JAC_STEP_PX` px): the pixel
     Jacobian ``J`` (4, row-major), ``C⁻¹`` of the predicted spot moments (00, 01, 11),
-    the predicted area (see :meth:`SpotObserver.plausible`) and the disc's centroid
+    the predicted area (see :func:`plausible_spot`) and the disc's centroid
     offset (u, v; :func:`disc_offsets`); NaN where no ray rises."""
     J = jacobian_grid(rig, ceiling_height_m, JAC_STEP_PX)
     gh, gw = J.shape[:2]
@@ -174,6 +176,12 @@ class SpotObserver:
         self.valid_small = decimated_mask(valid_mask, factor)
         self.windowed = stage == "windowed" and factor == 1
         self.valid_half = decimated_mask(valid_mask, 2) if self.windowed else None
+        R_vc, t_vc = mount_arrays(rig.mount)
+        # what the compiled examination reads (examine_core), made once
+        self._consts = (arr(self.grid.coef, np.float64), arr(self.grid.limits, np.float64),
+                        *rig.camera.lens, arr(R_vc, np.float64), arr(t_vc, np.float64),
+                        float(ceiling_height_m - rig.mount.z_m), float(light_radius_m),
+                        rig.camera.width, rig.camera.height, RIM_REACH, RIM_MARGIN_PX)
 
     def observe(self, grey: np.ndarray) -> Observation:
         """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
@@ -210,68 +218,86 @@ class SpotObserver:
                                          self.nadir_px, budget, self.factor, self.valid_small)
         if len(spots) == 0:
             return spots, np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 8))
-        table = interp_grid(self.table, JAC_STEP_PX, spots.centroids_px)
-        q, ok = ceiling_points(self.rig, self.ceiling_height_m,
-                               self.centres(spots.centroids_px, table))
-        ok &= np.isfinite(table[:, 0])
-        if self.light_radius_m > 0 and np.any(ok):
-            ok &= self.plausible(spots, table, ok)
-            ok &= self.uncut(spots.centroids_px, table)
+        q, ok, table = examine_core(
+            arr(spots.centroids_px, np.float64), arr(spots.areas_px, np.float64),
+            arr(spots.cov_px, np.float64), *self._consts)
         return spots, q, ok, table
 
-    def uncut(self, centroids_px: np.ndarray, table: np.ndarray) -> np.ndarray:
-        """Spots whose light lies well inside the frame: a disc of :data:`RIM_REACH` x
-        its radius ``r``, through the local Jacobian ``J`` (reaching ``r |J_u|`` and
-        ``r |J_v|`` from the centre, ``J``'s rows' norms), inside by :data:`RIM_MARGIN_PX`.
-        Nearer the frame's edge a light's centroid is pulled inwards: cut by the edge,
-        or with its outer part below the local threshold (the frame's mirrored border
-        raises it), which the detector's own check (its region reaching the edge)
-        cannot see. On the tilted corridor rig a far light leaving the top of the frame
-        moved the pose by 2 cm in x."""
-        cam, r = self.rig.camera, RIM_REACH * self.light_radius_m
-        reach_u = r * np.hypot(table[:, 0], table[:, 1]) + RIM_MARGIN_PX
-        reach_v = r * np.hypot(table[:, 2], table[:, 3]) + RIM_MARGIN_PX
-        u, v = centroids_px[:, 0], centroids_px[:, 1]
-        return ((u - reach_u >= -0.5) & (u + reach_u <= cam.width - 0.5)
-                & (v - reach_v >= -0.5) & (v + reach_v <= cam.height - 0.5))
 
-    @staticmethod
-    def centres(centroids_px: np.ndarray, table: np.ndarray) -> np.ndarray:
-        """The images of the lights' centres: the spots' centroids minus their disc's
-        centroid offset (``table``: the spots' :func:`spot_table` rows)."""
-        off = table[:, 8:10]
-        return centroids_px - np.where(np.isfinite(off), off, 0.0)
+@njit
+def examine_core(centroids, areas, cov, coef, limits, lens_code, lens, R, t, dz, radius,
+                 width, height, rim_reach, rim_margin):  # pragma: no cover - compiled
+    """``(q (K, 2), ok (K,), table (K, C))`` of spots (centroids ``(K, 2)`` px, areas,
+    second moments ``cov (K, 2, 2)``): the spot table's row at each centroid
+    (:class:`~.rays.GridTable`, ``coef`` and ``limits``), the ceiling point in V of the
+    light's centre (the centroid minus its disc's centroid offset, the table's columns
+    8-9; :func:`~.rays.ceiling_points_core`, ``dz`` the ceiling above the camera) and
+    whether it is usable: its ray rises, the table is finite there and, for a light of
+    known ``radius`` (m; 0: no checks), its size and shape fit one
+    (:func:`plausible_spot`) and it lies well inside the frame (:func:`uncut_spot`,
+    ``rim_reach`` and ``rim_margin``: :data:`RIM_REACH`, :data:`RIM_MARGIN_PX`)."""
+    k = centroids.shape[0]
+    table = np.empty((k, coef.shape[2]))
+    centres = np.empty((k, 2))
+    for i in range(k):
+        grid_row(coef, limits, centroids[i, 0], centroids[i, 1], table[i])
+        for j in range(2):
+            off = table[i, 8 + j]
+            centres[i, j] = centroids[i, j] - (off if math.isfinite(off) else 0.0)
+    q = np.empty((k, 2))
+    ok = ceiling_points_core(centres, lens_code, lens, R, t, dz, q)
+    for i in range(k):
+        ok[i] = ok[i] and math.isfinite(table[i, 0])
+        if ok[i] and radius > 0:
+            ok[i] = (plausible_spot(areas[i], cov[i, 0, 0], cov[i, 0, 1], cov[i, 1, 1],
+                                    table[i])
+                     and uncut_spot(centroids[i, 0], centroids[i, 1], table[i],
+                                    rim_reach * radius, rim_margin, width, height))
+    return q, ok, table
 
-    @staticmethod
-    def plausible(spots: Spots, table: np.ndarray, ok: np.ndarray) -> np.ndarray:
-        """Spots whose size and shape fit a light of the table's radius at their place.
 
-        The predicted spot is the light's disc through the local Jacobian ``J`` of the
-        ceiling-to-pixel map: area ``pi r² |det J|``, second moments
-        ``C = r²/4 J Jᵀ + 0.8 I`` (+ blur). The observed moments ``S``, whitened by the
-        predicted ones (the eigenvalues of ``C⁻¹ S``), must be round (ratio >= 0.2) and
-        of a plausible size. ``table`` rows are the spots' :func:`spot_table` entries.
-        """
-        keep = ok.copy()
-        idx = ok.nonzero()[0] if not ok.all() else slice(None)
-        t = table[idx]
-        a_pred = t[:, 7]
-        a = spots.areas_px[idx]
-        good = (a >= 0.15 * a_pred - 3) & (a <= 5.0 * a_pred + 40)
-        S = spots.cov_px[idx]
-        c00, c01, c11 = t[:, 4], t[:, 5], t[:, 6]
-        m00 = c00 * S[:, 0, 0] + c01 * S[:, 1, 0]
-        m01 = c00 * S[:, 0, 1] + c01 * S[:, 1, 1]
-        m10 = c01 * S[:, 0, 0] + c11 * S[:, 1, 0]
-        m11 = c01 * S[:, 0, 1] + c11 * S[:, 1, 1]
-        tr = m00 + m11
-        det = m00 * m11 - m01 * m10
-        disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
-        lo, hi = tr / 2 - disc, tr / 2 + disc
-        root = np.sqrt(np.maximum(det, 0.0))
-        good &= (lo > 0) & (lo >= 0.2 * hi) & (root > 0.05) & (root < 6.0)
-        keep[idx] = good
-        return keep
+@njit
+def plausible_spot(area, s00, s01, s11, t):  # pragma: no cover - compiled
+    """Whether a spot of ``area`` (px) and second moments ``S = (s00, s01; s01, s11)``
+    (px²) fits a light of the spot table's row ``t`` at its place.
+
+    The predicted spot is the light's disc through the local Jacobian ``J`` of the
+    ceiling-to-pixel map: area ``pi r² |det J|`` (``t[7]``), second moments
+    ``C = r²/4 J Jᵀ + 0.8 I`` (+ blur; ``t[4:7]`` hold ``C⁻¹``'s 00, 01, 11). The
+    observed moments, whitened by the predicted ones (the eigenvalues of ``C⁻¹ S``),
+    must be round (ratio >= 0.2) and of a plausible size, and the area within
+    ``[0.15 a_pred - 3, 5 a_pred + 40]``."""
+    a_pred = t[7]
+    if not (area >= 0.15 * a_pred - 3 and area <= 5.0 * a_pred + 40):
+        return False
+    c00, c01, c11 = t[4], t[5], t[6]
+    m00 = c00 * s00 + c01 * s01
+    m01 = c00 * s01 + c01 * s11
+    m10 = c01 * s00 + c11 * s01
+    m11 = c01 * s01 + c11 * s11
+    tr = m00 + m11
+    det = m00 * m11 - m01 * m10
+    disc = math.sqrt(max(tr * tr / 4 - det, 0.0))
+    lo, hi = tr / 2 - disc, tr / 2 + disc
+    root = math.sqrt(max(det, 0.0))
+    return lo > 0 and lo >= 0.2 * hi and root > 0.05 and root < 6.0
+
+
+@njit
+def uncut_spot(u, v, t, r, margin, width, height):  # pragma: no cover - compiled
+    """Whether the light of a spot at ``(u, v)`` lies well inside a ``width x height``
+    frame: a disc of radius ``r`` (m; :data:`RIM_REACH` x the light's) through the
+    local Jacobian ``J`` (the spot table's row ``t``: reaching ``r |J_u|`` and
+    ``r |J_v|`` from the centre, ``J``'s rows' norms), inside by ``margin`` px
+    (:data:`RIM_MARGIN_PX`). Nearer the frame's
+    edge a light's centroid is pulled inwards: cut by the edge, or with its outer part
+    below the local threshold (the frame's mirrored border raises it), which the
+    detector's own check (its region reaching the edge) cannot see. On the tilted
+    corridor rig a far light leaving the top of the frame moved the pose by 2 cm in x."""
+    reach_u = r * math.hypot(t[0], t[1]) + margin
+    reach_v = r * math.hypot(t[2], t[3]) + margin
+    return (u - reach_u >= -0.5 and u + reach_u <= width - 0.5
+            and v - reach_v >= -0.5 and v + reach_v <= height - 0.5)
 
 
 class VisibilityTable:
@@ -290,6 +316,8 @@ class VisibilityTable:
         table: ``(NI, NJ)`` float32 distances from the nadir, px (``inf``: not seen).
         padded: the table with a border of ``inf`` cells, flat (``(NI + 2) (NJ + 2)``,
             row-major; read-only): what :meth:`locate`'s ``cell`` indexes.
+        arrays: ``(lights (M, 2), padded, (origin x, origin y, cell_m), (NI, NJ,
+            max_spots))``, read-only: what the compiled lookup reads (:func:`locate_core`).
     """
 
     def __init__(self, rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
@@ -297,7 +325,6 @@ class VisibilityTable:
                  light_radius_m: float = 0.0):
         cam = rig.camera
         self.max_spots = max_spots
-        self._lights_c = lights_w[:, 0] + 1j * lights_w[:, 1]     # x + iy
         uu, vv = np.meshgrid(np.arange(0, cam.width, 8.0), np.arange(0, cam.height, 8.0))
         grid_px = np.stack([uu.ravel(), vv.ravel()], 1)
         inside = valid_mask[grid_px[:, 1].astype(int), grid_px[:, 0].astype(int)] > 0
@@ -328,6 +355,10 @@ class VisibilityTable:
         # the same, with a border of inf cells: a clipped index off the table lands there
         self.padded = np.pad(self.table, 1, constant_values=np.inf).ravel()
         self.padded.setflags(write=False)
+        # what the compiled lookup reads (locate_core)
+        self.arrays = (arr(lights_w, np.float64), self.padded,
+                       arr([lo[0], lo[1], cell], np.float64),
+                       arr([n[0], n[1], max_spots], np.int64))
 
     def __call__(self, x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
         """``(M,)`` map lights the detector should report from a pose: inside the image
@@ -339,21 +370,9 @@ class VisibilityTable:
         """``(visible (M,), cell (M,), z (M,))``: what :meth:`__call__` answers, each
         light's cell as a flat index into the table padded by one cell of ``inf``
         (``(NI + 2) x (NJ + 2)``, row-major), and the lights in V as ``x + iy``."""
-        # the lights in V, x + iy: Rz(-yaw) (L - t)
-        z = (self._lights_c - complex(x_m, y_m)) * complex(math.cos(yaw_rad),
-                                                           -math.sin(yaw_rad))
-        ni, nj = self.table.shape
-        i = np.rint((z.real - self.origin_m[0]) / self.cell_m).astype(np.intp)
-        j = np.rint((z.imag - self.origin_m[1]) / self.cell_m).astype(np.intp)
-        # cells of the padded table (a border of inf): off the table is not visible
-        i = np.minimum(np.maximum(i, -1), ni) + 1
-        j = np.minimum(np.maximum(j, -1), nj) + 1
-        cell = i * (nj + 2) + j
-        d = self.padded[cell]
-        ok = np.isfinite(d)
-        if ok.sum() > self.max_spots:
-            ok[np.argsort(d, kind="stable")[self.max_spots:]] = False
-        return ok, cell, z
+        ok, cell, zr, zi = locate_core(float(x_m), float(y_m), float(yaw_rad),
+                                       *self.arrays)
+        return ok, cell, zr + 1j * zi
 
     def cell_centres(self) -> np.ndarray:
         """``((NI + 2) (NJ + 2), 2)`` the V coordinates (m) of the padded table's cell
@@ -362,5 +381,56 @@ class VisibilityTable:
         gi, gj = np.meshgrid(np.arange(-1, ni + 1), np.arange(-1, nj + 1), indexing="ij")
         return self.origin_m[None, :] + self.cell_m * np.stack([gi.ravel(), gj.ravel()], 1)
 
+@njit
+def locate_core(x, y, yaw, lights, padded, geo, ints):  # pragma: no cover - compiled
+    """:meth:`VisibilityTable.locate` in a compiled loop: ``(visible (M,), cell (M,),
+    x (M,), y (M,))`` of the map ``lights (M, 2)`` seen from ``(x, y, yaw)``, the
+    lights in V as two arrays (``padded``, ``geo``, ``ints``: the table's
+    :attr:`~VisibilityTable.arrays`; ``ints`` may go on past its three entries)."""
+    ni, nj, max_spots = ints[0], ints[1], ints[2]
+    ox, oy, cell_m = geo[0], geo[1], geo[2]
+    n = lights.shape[0]
+    c, s = math.cos(yaw), -math.sin(yaw)
+    zr = np.empty(n)
+    zi = np.empty(n)
+    cell = np.empty(n, np.int64)
+    d = np.empty(n, np.float32)
+    ok = np.zeros(n, np.bool_)
+    seen = 0
+    for k in range(n):
+        # the light in V, x + iy: (L - t) Rz(-yaw), as a complex product
+        a, b = lights[k, 0] - x, lights[k, 1] - y
+        zr[k] = a * c - b * s
+        zi[k] = a * s + b * c
+        # cells of the padded table (a border of inf): off the table is not visible
+        i = min(max(np.int64(np.rint((zr[k] - ox) / cell_m)), -1), ni) + 1
+        j = min(max(np.int64(np.rint((zi[k] - oy) / cell_m)), -1), nj) + 1
+        cell[k] = i * (nj + 2) + j
+        d[k] = padded[cell[k]]
+        if math.isfinite(d[k]):
+            ok[k] = True
+            seen += 1
+    if seen > max_spots:                 # the max_spots nearest the nadir (stable)
+        order = np.argsort(d, kind="mergesort")
+        for r in range(max_spots, n):
+            ok[order[r]] = False
+    return ok, cell, zr, zi
+
+
+@warmer
+def _warm() -> None:
+    from ceilkit.runtime.geometry.camera import CameraModel
+
+    cam = CameraModel.pinhole(16, 16, 10.0)
+    f = arr(np.zeros((1, 2)), np.float64)
+    examine_core(f, arr(np.ones(1), np.float64), arr(np.zeros((1, 2, 2)), np.float64),
+                 arr(np.zeros((1, 4, 10)), np.float64), arr(np.ones(6), np.float64),
+                 *cam.lens, arr(np.eye(3), np.float64), arr(np.zeros(3), np.float64), 1.0,
+                 0.1, 16, 16, 1.6, 1.5)
+    locate_core(0.0, 0.0, 0.0, f, arr(np.zeros(9), np.float32), arr(np.ones(3), np.float64),
+                arr(np.ones(3), np.int64))
+
+
 __all__ = ["JAC_STEP_PX", "RIM_MARGIN_PX", "RIM_REACH", "VIEW_MARGIN_PX", "Observation",
-           "SpotObserver", "VisibilityTable", "spot_table"]
+           "SpotObserver", "VisibilityTable", "examine_core", "locate_core", "plausible_spot",
+           "spot_table", "uncut_spot"]

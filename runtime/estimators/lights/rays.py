@@ -21,6 +21,8 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.geometry.camera import undistort_points
+from ceilkit.runtime.jit import njit
 
 
 @functools.lru_cache(maxsize=64)
@@ -142,7 +144,7 @@ class GridTable:
         coef: ``((GH - 1) (GW - 1), 4, C)`` the cells' coefficients (read-only).
         limits: ``(1 / step_px, GW - 1, GH - 1, GW - 2, GH - 2, GW - 1)``: the scale,
             the clamps of a node coordinate and of a cell index, the cells per row (for
-            a compiled reading: :func:`~.track._grid_row`).
+            a compiled reading: :func:`grid_row`).
     """
 
     def __init__(self, grid: np.ndarray, step_px: int) -> None:
@@ -173,6 +175,48 @@ class GridTable:
         w[:, 0, 1:3] = f
         w[:, 0, 3] = f[:, 0] * f[:, 1]
         return (w @ c).reshape((f.shape[0],) + self.tail)
+
+
+@njit
+def grid_row(coef, limits, u, v, out):  # pragma: no cover - compiled
+    """Into ``out (C,)``: :class:`GridTable`'s reading at pixel ``(u, v)`` (``coef``,
+    ``limits``: its :attr:`~GridTable.coef` and :attr:`~GridTable.limits`)."""
+    scale, hi_u, hi_v, cell_hi_u, cell_hi_v, cells_w = (limits[0], limits[1], limits[2],
+                                                        limits[3], limits[4], limits[5])
+    fu = min(max(u * scale, 0.0), hi_u)
+    fv = min(max(v * scale, 0.0), hi_v)
+    iu = min(np.int64(fu), np.int64(cell_hi_u))
+    iv = min(np.int64(fv), np.int64(cell_hi_v))
+    a, b = fu - iu, fv - iv
+    ab = a * b
+    c = coef[iv * np.int64(cells_w) + iu]
+    for j in range(out.size):
+        out[j] = c[0, j] + a * c[1, j] + b * c[2, j] + ab * c[3, j]
+
+
+@njit
+def ceiling_points_core(px, lens_code, lens, R, t, dz, q):  # pragma: no cover - compiled
+    """Into ``q (N, 2)``: :func:`ceiling_points` of pixels ``px (N, 2)`` in a compiled
+    loop (``lens_code, lens``: :attr:`~ceilkit.runtime.geometry.camera.CameraModel.lens`;
+    ``R, t``: :func:`mount_arrays`; ``dz``: the ceiling's height above the camera).
+    Returns ``ok (N,)``: False where the ray does not rise (NaN there)."""
+    n = px.shape[0]
+    xy = np.empty_like(px)
+    undistort_points(px, lens_code, lens, xy)
+    ok = np.zeros(n, np.bool_)
+    for i in range(n):
+        x, y = xy[i, 0], xy[i, 1]
+        rx = R[0, 0] * x + R[0, 1] * y + R[0, 2]
+        ry = R[1, 0] * x + R[1, 1] * y + R[1, 2]
+        rz = R[2, 0] * x + R[2, 1] * y + R[2, 2]
+        if not rz > 1e-6 * math.sqrt(rx * rx + ry * ry + rz * rz):
+            q[i, 0] = q[i, 1] = np.nan
+            continue
+        s = dz / rz
+        q[i, 0] = t[0] + s * rx
+        q[i, 1] = t[1] + s * ry
+        ok[i] = True
+    return ok
 
 
 def view_mask(rig: Rig, max_angle_rad: float) -> np.ndarray:
@@ -219,6 +263,6 @@ def max_pair_m(rig: Rig, ceiling_height_m: float, gate_m: float) -> float:
     return float(np.linalg.norm(q[:, None] - q[None], axis=2).max()) + 2 * gate_m
 
 
-__all__ = ["GridTable", "ceiling_points", "interp_grid", "jacobian_grid", "max_pair_m",
-           "mount_arrays", "nadir_px", "pixel_scale", "project_lights", "project_poses",
-           "view_mask"]
+__all__ = ["GridTable", "ceiling_points", "ceiling_points_core", "grid_row", "interp_grid",
+           "jacobian_grid", "max_pair_m", "mount_arrays", "nadir_px", "pixel_scale",
+           "project_lights", "project_poses", "view_mask"]

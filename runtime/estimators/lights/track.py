@@ -19,13 +19,13 @@ and a dozen 3x3 solves, which in numpy cost a hundred calls of a few microsecond
 Its stages (:func:`_predict`, :func:`_measure`, :func:`_fit`) are the same reading as
 the array functions they stand for (:meth:`~.observe.VisibilityTable.locate`,
 :func:`~ceilkit.runtime.features.windows.window_stats`,
-:class:`~.rays.GridTable`, :meth:`~.observe.SpotObserver.plausible`,
+:class:`~.rays.GridTable`, :func:`~.observe.plausible_spot`,
 :func:`~.rays.ceiling_points`, :func:`~.refine.refine_pose_ceiling`), and are tested
 against them.
 
 The window check: a light counts when its window has contrast, its bright part does
 not touch the window's border (not cut off, not a neighbour's), and its area and
-shape fit the light at that place (:meth:`~.observe.SpotObserver.plausible`); the
+shape fit the light at that place (:func:`~.observe.plausible_spot`); the
 frame is accepted when most predicted lights were found (the same share the global
 path asks of a trusted prior), at least three fit after refinement, their residual is
 small and the pose stayed within the prior gate. Anything else returns ``None`` and
@@ -48,8 +48,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
-from ceilkit.runtime.estimators.lights.observe import JAC_STEP_PX, SpotObserver, VisibilityTable
+from ceilkit.runtime.estimators.lights.observe import (
+    JAC_STEP_PX,
+    SpotObserver,
+    VisibilityTable,
+    locate_core,
+    plausible_spot,
+)
 from ceilkit.runtime.estimators.lights.rays import (
+    ceiling_points_core,
+    grid_row,
     interp_grid,
     mount_arrays,
     pixel_scale,
@@ -64,7 +72,6 @@ from ceilkit.runtime.features.spots import (
     FLAT_MIN_AREA_PX,
 )
 from ceilkit.runtime.features.windows import CORE, _read_windows
-from ceilkit.runtime.geometry.camera import undistort_points
 from ceilkit.runtime.jit import arr, njit, warmer
 
 MAX_HALF_PX = 40
@@ -248,7 +255,7 @@ def _track(grey, x, y, yaw, lights, cells, vis, vis_geo, ints, coef, limits, len
         pairs[f, 0], pairs[f, 1] = f, idx[i]
         f += 1
     q = np.empty((n_found, 2))
-    if not _ceiling_points(centres, lens_code, lens, R, t, params[_P_DZ], q):
+    if not ceiling_points_core(centres, lens_code, lens, R, t, params[_P_DZ], q).all():
         return _refused(NO_RAY, px, m)
     status, fx, fy, fyaw, cov, res, keep = _fit(q, jac, L, x, y, yaw, params)
     if status != FIX:
@@ -273,34 +280,12 @@ def _predict(x, y, yaw, lights, cells, vis, vis_geo, ints, window_px
     light's offset from the centre) and kept where that is finite. Status
     :data:`FEW_PREDICTED` below 3, :data:`WINDOW_TOO_BIG` when the windows (sized by
     the largest predicted spot) would not fit the frame."""
-    ni, nj, max_spots, w, h, max_half = ints[0], ints[1], ints[2], ints[3], ints[4], ints[5]
-    ox, oy, cell_m = vis_geo[0], vis_geo[1], vis_geo[2]
+    w, h, max_half = ints[3], ints[4], ints[5]
+    ok, cell, zr, zi = locate_core(x, y, yaw, lights, vis, vis_geo, ints)
     n = lights.shape[0]
-    c, s = math.cos(yaw), -math.sin(yaw)
-    zr = np.empty(n)
-    zi = np.empty(n)
-    cell = np.empty(n, np.int64)
-    d = np.empty(n, np.float32)
     seen = 0
     for k in range(n):
-        # the light in V, x + iy: (L - t) Rz(-yaw), as a complex product
-        a, b = lights[k, 0] - x, lights[k, 1] - y
-        zr[k] = a * c - b * s
-        zi[k] = a * s + b * c
-        i = min(max(np.int64(np.rint((zr[k] - ox) / cell_m)), -1), ni) + 1
-        j = min(max(np.int64(np.rint((zi[k] - oy) / cell_m)), -1), nj) + 1
-        cell[k] = i * (nj + 2) + j
-        d[k] = vis[cell[k]]
-        if math.isfinite(d[k]):
-            seen += 1
-    ok = np.empty(n, np.bool_)
-    for k in range(n):
-        ok[k] = math.isfinite(d[k])
-    if seen > max_spots:                 # the max_spots nearest the nadir (stable)
-        order = np.argsort(d, kind="mergesort")
-        for r in range(max_spots, n):
-            ok[order[r]] = False
-        seen = max_spots
+        seen += ok[k]
     m = seen
     idx = np.empty(m, np.int64)
     px = np.empty((m, 2))
@@ -348,7 +333,7 @@ def _measure(grey, corner, half, coef, limits, params):  # pragma: no cover - co
     c00, c01, c11, area)``; ``good`` where the window check passes (a spot clear of
     the window's border, contrast ``>= min_contrast``), the spot table is finite at the
     centroid and (a light of known radius) its size and shape fit
-    (:meth:`~.observe.SpotObserver.plausible`); the spot table's row at each good
+    (:func:`~.observe.plausible_spot`); the spot table's row at each good
     centroid (:class:`~.rays.GridTable`; NaN elsewhere)."""
     k = corner.shape[0]
     side = 2 * half + 1
@@ -377,68 +362,12 @@ def _measure(grey, corner, half, coef, limits, params):  # pragma: no cover - co
         rows[i, 7] = area
         if not (ok and peak - i_b >= params[_P_CONTRAST]):
             continue
-        _grid_row(coef, limits, rows[i, 0], rows[i, 1], tab[i])
+        grid_row(coef, limits, rows[i, 0], rows[i, 1], tab[i])
         if not math.isfinite(tab[i, 0]):
             continue
-        good[i] = not check_shape or _plausible(rows[i], tab[i])
+        good[i] = not check_shape or plausible_spot(rows[i, 7], rows[i, 4], rows[i, 5],
+                                                    rows[i, 6], tab[i])
     return rows, good, tab
-
-
-@njit
-def _grid_row(coef, limits, u, v, out):  # pragma: no cover - compiled
-    """Into ``out (C,)``: :class:`~.rays.GridTable`'s reading at pixel ``(u, v)``
-    (``limits``: :attr:`~.rays.GridTable.limits`)."""
-    scale, hi_u, hi_v, cell_hi_u, cell_hi_v, cells_w = (limits[0], limits[1], limits[2],
-                                                        limits[3], limits[4], limits[5])
-    fu = min(max(u * scale, 0.0), hi_u)
-    fv = min(max(v * scale, 0.0), hi_v)
-    iu = min(np.int64(fu), np.int64(cell_hi_u))
-    iv = min(np.int64(fv), np.int64(cell_hi_v))
-    a, b = fu - iu, fv - iv
-    ab = a * b
-    c = coef[iv * np.int64(cells_w) + iu]
-    for j in range(out.size):
-        out[j] = c[0, j] + a * c[1, j] + b * c[2, j] + ab * c[3, j]
-
-
-@njit
-def _plausible(row, t):  # pragma: no cover - compiled
-    """:meth:`~.observe.SpotObserver.plausible` of one spot ``row`` (window_stats' row)
-    against its spot-table row ``t``."""
-    a_pred, a = t[7], row[7]
-    if not (a >= 0.15 * a_pred - 3 and a <= 5.0 * a_pred + 40):
-        return False
-    s00, s01, s11 = row[4], row[5], row[6]
-    c00, c01, c11 = t[4], t[5], t[6]
-    m00 = c00 * s00 + c01 * s01
-    m01 = c00 * s01 + c01 * s11
-    m10 = c01 * s00 + c11 * s01
-    m11 = c01 * s01 + c11 * s11
-    tr = m00 + m11
-    det = m00 * m11 - m01 * m10
-    disc = math.sqrt(max(tr * tr / 4 - det, 0.0))
-    lo, hi = tr / 2 - disc, tr / 2 + disc
-    root = math.sqrt(max(det, 0.0))
-    return lo > 0 and lo >= 0.2 * hi and root > 0.05 and root < 6.0
-
-
-@njit
-def _ceiling_points(px, lens_code, lens, R, t, dz, q):  # pragma: no cover - compiled
-    """Into ``q (N, 2)``: :func:`~.rays.ceiling_points` of pixels ``px (N, 2)`` (``dz``:
-    the ceiling's height above the camera); False when a ray does not rise."""
-    xy = np.empty_like(px)
-    undistort_points(px, lens_code, lens, xy)
-    for i in range(px.shape[0]):
-        x, y = xy[i, 0], xy[i, 1]
-        rx = R[0, 0] * x + R[0, 1] * y + R[0, 2]
-        ry = R[1, 0] * x + R[1, 1] * y + R[1, 2]
-        rz = R[2, 0] * x + R[2, 1] * y + R[2, 2]
-        if not rz > 1e-6 * math.sqrt(rx * rx + ry * ry + rz * rz):
-            return False
-        s = dz / rz
-        q[i, 0] = t[0] + s * rx
-        q[i, 1] = t[1] + s * ry
-    return True
 
 
 @njit

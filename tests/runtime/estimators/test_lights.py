@@ -8,6 +8,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+from lights_reference import centres
 
 from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import Site
@@ -474,7 +475,6 @@ def test_disc_centroid_offset_gives_the_image_of_the_centre(tilted_rig):
     of the centre, on a tilted camera with distortion)."""
     from ceilkit.runtime.estimators.lights.observe import (
         JAC_STEP_PX,
-        SpotObserver,
         polygon_centroids,
         spot_table,
     )
@@ -489,7 +489,7 @@ def test_disc_centroid_offset_gives_the_image_of_the_centre(tilted_rig):
         centroid = polygon_centroids(img[None])
         centre = project_lights(tilted_rig, H, np.array([[cx, cy]]), 0.0, 0.0, 0.0)
         assert tilted_rig.camera.in_image(centre).all()
-        got = SpotObserver.centres(centroid, interp_grid(table, JAC_STEP_PX, centroid))
+        got = centres(centroid, interp_grid(table, JAC_STEP_PX, centroid))
         worst_raw = max(worst_raw, float(np.linalg.norm(centroid - centre)))
         worst = max(worst, float(np.linalg.norm(got - centre)))
     assert worst_raw > 0.03 and worst < 0.05 * worst_raw          # 0.063 -> 0.0007 px
@@ -533,7 +533,7 @@ def test_lights_near_the_frames_edge_do_not_bias_the_pose(monkeypatch, tmp_path)
     the frame (its outer part below the local threshold, or cut) had its centroid pulled
     inwards by 1-7 px, and the pose moved by 15-22 mm in x on one frame in nine of the
     mixed drive (bench_fusion, seed 13: these four frames among them). Such a light is
-    now dropped (``SpotObserver.uncut``, ``VisibilityTable``): each frame within 0.5 mm.
+    now dropped (``observe.uncut_spot``, ``VisibilityTable``): each frame within 0.5 mm.
     With only the centre checked (``RIM_REACH`` 0) all four are > 10 mm off; with the
     light's own rim (1), the first (its light's outer part lost to the threshold, not
     cut) still is."""
