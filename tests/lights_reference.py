@@ -18,6 +18,7 @@ from ceilkit.runtime.estimators.lights.matching import (
     _SAME_POSE,
     MISSING_PENALTY,
     Candidate,
+    PatternMatcher,
     near_pose,
 )
 from ceilkit.runtime.estimators.lights.observe import (
@@ -122,48 +123,19 @@ def locate(vis: VisibilityTable, x_m: float, y_m: float, yaw_rad: float
     return ok, cell, z
 
 
-class ArrayMatcher:
+class ArrayMatcher(PatternMatcher):
     """The array reading of :class:`~ceilkit.runtime.estimators.lights.matching.PatternMatcher`
-    (its compiled calls' oracle): rotation- and translation-invariant matching of ceiling
-    points to a light map.
-
-    Built once per map: every map pair shorter than ``max_pair_m`` with its length,
-    sorted (a pair-distance hash). ``match`` returns verified candidates, best first.
-
-    Args:
-        lights_w: ``(M, 2)`` map light centres in W.
-        gate_m: largest distance of an inlier from its map light (ceiling metres).
-        max_pair_m: longest pair that can be seen in one frame.
-        visible: optional ``f(x, y, yaw) -> (M,) bool``: map lights the camera should see
-            from a pose (used to penalize poses whose visible lights are not observed).
+    (its compiled calls' oracle), on the same pair-distance hash: rotation- and
+    translation-invariant matching of ceiling points to a light map. ``visible``: the
+    map's :class:`VisibilityTable` (called as ``f(x, y, yaw) -> (M,) bool``) or None.
     """
 
     def __init__(self, lights_w: np.ndarray, gate_m: float = 0.08, max_pair_m: float = 1e9,
-                 visible: Any = None, max_observed: int = 7, top_bins: int = 8,
-                 max_bins: int = 48,
-                 yaw_bin_rad: float = math.radians(4.0), pos_bin_m: float = 0.3):
-        self.lights_w = np.asarray(lights_w, float).reshape(-1, 2)
-        m = self.lights_w.shape[0]
-        self.gate_m = gate_m
-        self.visible = visible
-        self.max_observed = max_observed
-        self.top_bins = top_bins
-        self.max_bins = max(top_bins, max_bins)
-        self.yaw_bin_rad = yaw_bin_rad
-        self.pos_bin_m = pos_bin_m
-        i, j = np.triu_indices(m, 1)
-        d = np.linalg.norm(self.lights_w[i] - self.lights_w[j], axis=1)
-        keep = d <= max_pair_m
-        order = np.argsort(d[keep])
-        self.pair_i = i[keep][order]
-        self.pair_j = j[keep][order]
-        self.pair_d = d[keep][order]
-        # per-map structures of the vote, in complex form (x + iy): each pair's midpoint
-        # and unit direction i -> j
-        self._lights_c = self.lights_w[:, 0] + 1j * self.lights_w[:, 1]
-        vp = self._lights_c[self.pair_j] - self._lights_c[self.pair_i]
-        self._pair_mid = 0.5 * (self._lights_c[self.pair_i] + self._lights_c[self.pair_j])
-        self._pair_dir = vp / np.maximum(np.abs(vp), 1e-12)
+                 visible: Any = None) -> None:
+        super().__init__(lights_w, gate_m, max_pair_m, visible)
+        # the vote's per-map structures in complex form (x + iy): the lights, each
+        # pair's midpoint and unit direction i -> j
+        self._lights_c, _, self._pair_mid, self._pair_dir = self._map
         self._lights_row = self._lights_c[None, :]
 
     # -- association ------------------------------------------------------------------
