@@ -377,17 +377,48 @@ def _plateau(win, obj, tmp, contrast, erode, min_px, max_residual
 
 
 def _alone(boxes: np.ndarray) -> np.ndarray:
-    """``(N,)`` bool: no other box reaches box ``i`` grown as in :func:`_region_stats`."""
+    """``(N,)`` bool: no other box of ``(N, 4)`` ``(x0, y0, bw, bh)`` reaches box ``i``
+    grown as in :func:`_region_stats` (:func:`_lone`)."""
+    return _lone(arr(boxes, np.int64).reshape(-1, 4))
+
+
+@njit
+def _lone(boxes):  # pragma: no cover - compiled
+    """:func:`_alone` in a compiled loop (every box meets itself)."""
     n = boxes.shape[0]
+    alone = np.ones(n, np.bool_)
     if n < 2:
-        return np.ones(n, bool)
-    x0, y0 = boxes[:, 0], boxes[:, 1]
-    x1, y1 = x0 + boxes[:, 2], y0 + boxes[:, 3]
-    gx, gy = np.maximum(2, boxes[:, 2] // 2), np.maximum(2, boxes[:, 3] // 2)
-    # hit[i, j]: box j meets box i grown; every box meets itself
-    hit = ((x0 < (x1 + gx)[:, None]) & (x1 > (x0 - gx)[:, None])
-           & (y0 < (y1 + gy)[:, None]) & (y1 > (y0 - gy)[:, None]))
-    return hit.sum(axis=1) == 1
+        return alone
+    for i in range(n):
+        x0, y0, bw, bh = boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3]
+        gx, gy = max(2, bw // 2), max(2, bh // 2)
+        hits = 0
+        for j in range(n):
+            hits += (boxes[j, 0] < x0 + bw + gx and boxes[j, 0] + boxes[j, 2] > x0 - gx
+                     and boxes[j, 1] < y0 + bh + gy and boxes[j, 1] + boxes[j, 3] > y0 - gy)
+        alone[i] = hits == 1
+    return alone
+
+
+def _examination_order(boxes: np.ndarray, centre_px: tuple[float, float] | None) -> np.ndarray:
+    """Indices of the regions' bounding boxes ``(N, 4)``, nearest ``centre_px`` first
+    (stably; :func:`_order`)."""
+    b = arr(boxes, np.float64).reshape(-1, 4)
+    if centre_px is None:
+        return np.arange(b.shape[0])
+    return _order(b, float(centre_px[0]), float(centre_px[1]))
+
+
+@njit
+def _order(boxes, cu, cv):  # pragma: no cover - compiled
+    """:func:`_examination_order` in a compiled loop: by the squared distance of each
+    box's centre from ``(cu, cv)``, stably."""
+    d2 = np.empty(boxes.shape[0])
+    for i in range(boxes.shape[0]):
+        du = boxes[i, 0] + boxes[i, 2] / 2 - cu          # box centre - centre
+        dv = boxes[i, 1] + boxes[i, 3] / 2 - cv
+        d2[i] = du ** 2 + dv ** 2
+    return np.argsort(d2, kind="mergesort")
 
 
 # lone regions whose grown box fits this square are measured together
@@ -543,92 +574,156 @@ def regions_to_spots(grey: np.ndarray, mask: np.ndarray, params: SpotParams,
     rejected: dict[str, int] = {}
     rows = _measure_regions(grey, mask, contours, params, weighted, rethreshold, centre_px,
                             max_regions, rejected, drop_cut)
-    if not rows:
+    if not rows.shape[0]:
         return empty_spots(len(contours), rejected)
-    return _select_lights(np.array(rows, float).reshape(-1, 8), len(contours), params,
-                          relative, rejected)
+    return _select_lights(rows, len(contours), params, relative, rejected)
 
 
-def _examination_order(boxes: np.ndarray, centre_px: tuple[float, float] | None) -> np.ndarray:
-    """Indices of the regions' bounding boxes ``(N, 4)``, nearest ``centre_px`` first."""
-    if centre_px is None or not boxes.shape[0]:
-        return np.arange(boxes.shape[0])
-    du = boxes[:, 0] + boxes[:, 2] / 2 - centre_px[0]          # box centre - centre_px
-    dv = boxes[:, 1] + boxes[:, 3] / 2 - centre_px[1]
-    return (du ** 2 + dv ** 2).argsort(kind="stable")
+_REASONS = ("beyond_max_regions", "small", "cut", "large")   # _walk's counts, in order
 
 
 def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.ndarray],
                      params: SpotParams, weighted: bool, rethreshold: bool,
                      centre_px: tuple[float, float] | None, max_regions: int | None,
-                     rejected: dict[str, int], drop_cut: bool = True) -> list[list[float]]:
-    """One row ``(u, v, i_obj, i_bg, c_uu, c_uv, c_vv, area)`` per region of a plausible
-    size, in the order examined; the others are counted in ``rejected`` by reason."""
+                     rejected: dict[str, int], drop_cut: bool = True) -> np.ndarray:
+    """``(K, 8)`` rows ``(u, v, i_obj, i_bg, c_uu, c_uv, c_vv, area)``, one per region of
+    a plausible size, in the order examined; the others are counted in ``rejected`` by
+    reason.
 
-    def drop(reason: str) -> None:
-        rejected[reason] = rejected.get(reason, 0) + 1
-
-    b = np.array([cv2.boundingRect(c) for c in contours], np.int64).reshape(-1, 4)
-    order = _examination_order(b, centre_px)
-    box_area = b[:, 2] * b[:, 3]
-    alone = _alone(b)
+    The regions' boxes are classified, ordered and the lone ones of a plausible size
+    measured in one compiled call (:func:`_classify`); the walk in the order examined
+    is another (:func:`_walk`), which hands back the few regions it cannot measure: one
+    that another region reaches (measured inside its contour, :func:`_region_stats`) or
+    one too large for a light (a glare halo, :func:`_split_glare`)."""
     H, W = grey.shape
-    # a region reaching the frame's edge is a light cut by it: its centroid lies inside
-    # the light's, by up to its radius (on a tilted rig a far light leaving the top of
-    # the frame moved the pose by 2 cm)
-    cut = drop_cut & ((b[:, 0] <= 0) | (b[:, 1] <= 0) | (b[:, 0] + b[:, 2] >= W)
-                      | (b[:, 1] + b[:, 3] >= H))
-    # lone regions of a plausible size are measured together, in the order examined
-    # (a few more than can be examined: some are dropped); any other one by one
-    grown = b[:, 2:] + 2 * np.maximum(2, b[:, 2:] // 2)
-    batch = (alone & (box_area >= params.min_area_px) & (box_area <= 4 * params.max_area_px)
-             & (grown[:, 0] <= min(W, _BATCH_MAX_SIDE)) & (grown[:, 1] <= min(H, _BATCH_MAX_SIDE))
-             & ~cut)
-    todo = order[batch[order]]
-    if max_regions is not None:
-        todo = todo[:max_regions + 2]
-    row_of = [-1] * b.shape[0]
-    table: list[list[float]] = []
-    if todo.size:
-        stats, good = _lone_region_stats(grey, mask, b[todo], weighted)
-        for i, ci in enumerate(todo[good].tolist()):
-            row_of[ci] = i
-        table = stats[good].tolist()
-    rects, lone, cut_l = b.tolist(), alone.tolist(), cut.tolist()
-    rows: list[list[float]] = []
-    for ci in order.tolist():
-        if max_regions is not None and len(rows) >= max_regions:
-            drop("beyond_max_regions")
-            continue
-        x0, y0, bw, bh = rects[ci]
-        if bw * bh < params.min_area_px:
-            drop("small")
-            continue
-        if cut_l[ci]:
-            drop("cut")
-            continue
+    b = np.array([cv2.boundingRect(c) for c in contours], np.int64).reshape(-1, 4)
+    n = b.shape[0]
+    has_centre = centre_px is not None
+    order, alone, cut, row_of, stats = _classify(
+        arr(grey, np.uint8), arr(mask, np.uint8), arr(b, np.int64),
+        float(centre_px[0]) if has_centre else 0.0, float(centre_px[1]) if has_centre else 0.0,
+        has_centre, drop_cut, int(params.min_area_px), int(params.max_area_px),
+        -1 if max_regions is None else int(max_regions), bool(weighted), _BATCH_MAX_SIDE,
+        _CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX, _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL,
+        _FLAT_MIN_GAIN)
+    rows = np.empty((n, 8))
+    counts = np.zeros(len(_REASONS), np.int64)
+    small, large = _REASONS.index("small"), _REASONS.index("large")
+    pos = n_rows = 0
+    while True:
+        pos, n_rows = _walk(order, b, cut, row_of, stats, pos, n_rows, int(params.min_area_px),
+                            int(params.max_area_px), -1 if max_regions is None
+                            else int(max_regions), rows, counts)
+        if pos >= n:
+            break
+        ci = int(order[pos])
+        x0, y0, bw, bh = (int(v) for v in b[ci])
         if bw * bh > 4 * params.max_area_px:
-            area = params.max_area_px + 1
+            row, area = None, params.max_area_px + 1
         elif row_of[ci] >= 0:
-            row = table[row_of[ci]]
+            row = stats[row_of[ci]]
             area = row[7]
         else:
             u, v, i_o, i_b, cov, area = _region_stats(
-                grey, mask, None if lone[ci] else contours[ci], x0, y0, bw, bh, weighted)
+                grey, mask, None if alone[ci] else contours[ci], x0, y0, bw, bh, weighted)
             row = [u, v, i_o, i_b, cov[0, 0], cov[0, 1], cov[1, 1], float(area)]
         if area < params.min_area_px:
-            drop("small")
-            continue
-        if area > params.max_area_px:
+            counts[small] += 1
+        elif area > params.max_area_px:
             sub = _split_glare(grey, mask, contours[ci], x0, y0, bw, bh, params) \
                 if rethreshold else None
             if sub is None:
-                drop("large")
+                counts[large] += 1
             else:
-                rows.append(sub)
+                rows[n_rows] = sub
+                n_rows += 1
+        else:
+            rows[n_rows] = row
+            n_rows += 1
+        pos += 1
+    for reason, count in zip(_REASONS, counts.tolist(), strict=True):
+        if count:
+            rejected[reason] = rejected.get(reason, 0) + count
+    return rows[:n_rows]
+
+
+@njit
+def _classify(grey, mask, boxes, cu, cv, has_centre, drop_cut, min_area, max_area,
+              max_regions, weighted, batch_max_side, core, flat_min_area, erode, min_px,
+              max_residual, min_gain):  # pragma: no cover - compiled
+    """``(order, alone, cut, row_of, stats)`` of the regions' boxes ``(N, 4)`` ``(x0,
+    y0, bw, bh)``: the order they are examined in (nearest ``(cu, cv)`` first, stably,
+    with ``has_centre``); which are alone (no other box reaches the box grown as in
+    :func:`_region_stats`); which reach the frame's edge (a light cut by it, its
+    centroid biased inwards: dropped with ``drop_cut``; on a tilted rig a far light
+    leaving the top of the frame moved the pose by 2 cm); and the lone regions of a
+    plausible size measured together (:func:`_lone_stats`, rows ``stats``; ``row_of``
+    a region's row there, -1: none), in the order examined, a few more than can be
+    examined (``max_regions`` + 2; -1: no limit)."""
+    H, W = grey.shape
+    n = boxes.shape[0]
+    order = _order(boxes.astype(np.float64), cu, cv) if has_centre else np.arange(n)
+    alone = _lone(boxes)
+    cut = np.zeros(n, np.bool_)
+    batch = np.zeros(n, np.bool_)
+    for i in range(n):
+        x0, y0, bw, bh = boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3]
+        gx, gy = max(2, bw // 2), max(2, bh // 2)
+        cut[i] = drop_cut and (x0 <= 0 or y0 <= 0 or x0 + bw >= W or y0 + bh >= H)
+        area = bw * bh
+        batch[i] = (alone[i] and min_area <= area <= 4 * max_area and not cut[i]
+                    and bw + 2 * gx <= min(W, batch_max_side)
+                    and bh + 2 * gy <= min(H, batch_max_side))
+    todo = np.empty(n, np.int64)
+    k = 0
+    for i in order:
+        if batch[i] and (max_regions < 0 or k < max_regions + 2):
+            todo[k] = i
+            k += 1
+    stats = np.empty((k, 8))
+    good = _lone_stats(grey, mask, boxes[todo[:k]], weighted, core, flat_min_area, erode,
+                       min_px, max_residual, min_gain, stats)
+    row_of = np.full(n, -1, np.int64)
+    for r in range(k):
+        if good[r]:
+            row_of[todo[r]] = r
+    return order, alone, cut, row_of, stats
+
+
+@njit
+def _walk(order, boxes, cut, row_of, stats, start, n_rows, min_area, max_area, max_regions,
+          rows, counts):  # pragma: no cover - compiled
+    """The regions in the order examined from position ``start``, ``n_rows`` rows
+    found so far: each dropped (``counts`` by :data:`_REASONS`: past ``max_regions``
+    rows (-1: no limit), a box or a region below ``min_area``, cut by the frame's edge)
+    or its row of ``stats`` appended to ``rows``, until one the caller must measure (no
+    row: another region reaches it; a box beyond 4 ``max_area`` or a region beyond
+    ``max_area``: a glare halo). Returns ``(its position, or N when none is left,
+    n_rows)``."""
+    n = order.size
+    for pos in range(start, n):
+        ci = order[pos]
+        if max_regions >= 0 and n_rows >= max_regions:
+            counts[0] += 1
             continue
-        rows.append(row)
-    return rows
+        box_area = boxes[ci, 2] * boxes[ci, 3]
+        if box_area < min_area:
+            counts[1] += 1
+            continue
+        if cut[ci]:
+            counts[2] += 1
+            continue
+        r = row_of[ci]
+        if box_area > 4 * max_area or r < 0:
+            return pos, n_rows
+        if stats[r, 7] < min_area:
+            counts[1] += 1
+            continue
+        if stats[r, 7] > max_area:
+            return pos, n_rows
+        rows[n_rows] = stats[r]
+        n_rows += 1
+    return n, n_rows
 
 
 def rows_to_spots(rows: np.ndarray, n_candidates: int = 0,
@@ -741,6 +836,9 @@ def _warm() -> None:
     m = np.where(g > 100, 255, 0).astype(np.uint8)
     for weighted in (True, False):
         _lone_region_stats(g, m, np.array([[4, 4, 4, 4]]), weighted)
+        for centre in (None, (6.0, 6.0)):
+            regions_to_spots(g, m, SpotParams(), weighted, centre_px=centre, max_regions=4)
+    _examination_order(np.ones((2, 4)), (1.0, 1.0))
 
 
 __all__ = ["SpotParams", "Spots", "detect_spots", "empty_spots", "niblack_mask",
