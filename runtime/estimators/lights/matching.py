@@ -114,7 +114,7 @@ class PatternMatcher:
         vp = lights_c[self.pair_j] - lights_c[self.pair_i]
         pair_dir = vp / np.maximum(np.abs(vp), 1e-12)
         pair_mid = 0.5 * (lights_c[self.pair_i] + lights_c[self.pair_j])
-        if visible is None:   # a table that sees nothing: no light is ever missing
+        if visible is None:   # no table (its NI < 0 skips the lookup): nothing is missing
             vis = (arr(self.lights_w, np.float64), arr(np.full(1, np.inf), np.float32),
                    arr([0.0, 0.0, 1.0], np.float64), arr([-1, -1, 0], np.int64))
         else:
@@ -165,7 +165,7 @@ class PatternMatcher:
 
         The poses :meth:`hypotheses` votes for are binned (:attr:`yaw_bin_rad`,
         :attr:`pos_bin_m`); the bins are looked at by their votes, most first (ties in
-        the order of their first vote): a bin's pose is its votes' circular mean yaw and
+        the order of their cells, yaw first): a bin's pose is its votes' circular mean yaw and
         median position, verified (:meth:`verify`) unless a candidate already lies near
         it; a verified pose near an earlier one is dropped. Bins far below the best
         cannot hold a rival of similar support: the search stops at the first bin with
