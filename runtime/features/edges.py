@@ -3,9 +3,10 @@
 One implementation, used by the corridor method (:func:`.lines.refine_undistorted`,
 :func:`.lines.edge_polarity`) and by the mount calibration (``calib.mount.measure_lines``):
 
-1. **profiles**: the image is sampled (bilinear, ``cv2.remap``, to 1/32 px; the border
-   replicated) across a segment at signed offsets along its left normal, at places along
-   it (:func:`sample_profiles`, :func:`profiles_along`, :func:`profiles_at`);
+1. **profiles**: the image is sampled (bilinear, ``cv2.remap`` or its compiled
+   equal :func:`remap_linear`, to grey levels; the border replicated) across a
+   segment at signed offsets along its left normal, at places along it
+   (:func:`sample_profiles`, :func:`profiles_along`, :func:`profiles_at`);
 2. **kind** (:func:`classify`): a mean profile is a *step* (a lamp's side, a wall
    junction: polarity ``+1`` or ``-1``), a *thin line* (a seam, a painted stripe:
    ``0``) or unclear (NaN);
@@ -76,9 +77,50 @@ def profiles_at(gray: np.ndarray, base: np.ndarray, nrm: np.ndarray, offs: np.nd
 def profiles_along(gray: np.ndarray, segs_px: np.ndarray, d: np.ndarray, nrm: np.ndarray,
                    offs: np.ndarray, along: np.ndarray) -> np.ndarray:
     """:func:`profiles_at` ``(N, A, O)`` at ``p1 + a d`` for the fractions ``along (A,)``
-    of segments ``(N, 4)`` (``d, nrm`` from :func:`directions`)."""
+    of segments ``(N, 4)`` (``d, nrm`` from :func:`directions`); of a uint8 frame in one
+    compiled call (:func:`remap_along`, the same numbers)."""
+    if gray.dtype == np.uint8 and gray.ndim == 2:
+        f64 = np.float64
+        prof = np.empty((segs_px.shape[0], along.size, offs.size))
+        remap_along(arr(gray, np.uint8), arr(segs_px, f64), arr(d, f64), arr(nrm, f64),
+                    arr(offs, f64), arr(along, f64), prof)
+        return prof
     base = segs_px[:, :2].T[:, :, None] + along * d.T[:, :, None]              # (2, N, A)
     return profiles_at(gray, base, nrm.T[:, :, None], offs)
+
+
+@njit
+def remap_along(grey, s, d, nrm, offs, t, prof):  # pragma: no cover - compiled
+    """:func:`profiles_along` of a uint8 frame into ``prof (N, A, O)``: the maps as
+    :func:`profiles_at` makes them (in float64, then float32), each sample as
+    :func:`remap_linear`."""
+    for r in range(s.shape[0]):
+        for a in range(t.size):
+            bu, bv = s[r, 0] + t[a] * d[r, 0], s[r, 1] + t[a] * d[r, 1]
+            for o in range(offs.size):
+                prof[r, a, o] = remap_linear(grey, np.float32(bu + offs[o] * nrm[r, 0]),
+                                             np.float32(bv + offs[o] * nrm[r, 1]))
+
+
+@njit
+def remap_linear(grey, x, y):  # pragma: no cover - compiled
+    """``cv2.remap`` (``INTER_LINEAR``, ``BORDER_REPLICATE``) of a uint8 frame at the
+    float32 point ``(x, y)``, as OpenCV 5 computes it: float32 weights ``x - floor(x)``,
+    two fused multiply-adds along x and one along y (exact in float64 here: the
+    products of these few-bit numbers fit), the tap indices clamped to the frame, the
+    result rounded half to even. (Its fixed-point predecessor rounded the weights to
+    1/32; this is bit-equal to ``cv2.remap`` where OpenCV dispatches its FMA code.)"""
+    h, w = grey.shape
+    f32 = np.float32
+    x0, y0 = math.floor(x), math.floor(y)
+    a, b = np.float64(f32(x - f32(x0))), np.float64(f32(y - f32(y0)))
+    xa, xb = min(max(x0, 0), w - 1), min(max(x0 + 1, 0), w - 1)
+    ya, yb = min(max(y0, 0), h - 1), min(max(y0 + 1, 0), h - 1)
+    p00, p01 = np.float64(grey[ya, xa]), np.float64(grey[ya, xb])
+    p10, p11 = np.float64(grey[yb, xa]), np.float64(grey[yb, xb])
+    top = f32(a * (p01 - p00) + p00)
+    bot = f32(a * (p11 - p10) + p10)
+    return np.rint(f32(b * np.float64(f32(bot - top)) + np.float64(top)))
 
 
 def sample_profiles(gray: np.ndarray, segs_px: np.ndarray, offsets_px: np.ndarray,
@@ -456,6 +498,9 @@ def _warm() -> None:
     pol, _ = classify(prof.mean(axis=1), offs, 20.0, 8.0)
     locate(prof, pol, offs, inner)
     x = np.tile(np.arange(6.0), (2, 1))
+    segs = np.array([[1.0, 1.0, 4.0, 4.0]])
+    d, nrm = directions(segs)
+    profiles_along(np.zeros((6, 6), np.uint8), segs, d, nrm, offs, t)
     fit_lines(x, x, np.ones(x.shape, bool))
     fit_lines_robust(x, x, np.ones(x.shape, bool), 500.0)
 

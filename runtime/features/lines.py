@@ -33,20 +33,24 @@ from ceilkit.runtime.features.edges import (
     PROFILE_STEP_PX,
     classify,
     classify_rows,
-    directions,
     edge_grid,
     fit_robust_rows,
     locate_rows,
     part_indices,
     profile_offsets,
-    profiles_along,
     profiles_at,
+    remap_along,
     sample_profiles,
 )
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.quads import _bilinear
 from ceilkit.runtime.features.working import decimate, undecimate
-from ceilkit.runtime.geometry.camera import CameraModel, undistort_points
+from ceilkit.runtime.geometry.camera import (
+    CameraModel,
+    undistort_fixed_points,
+    undistort_points,
+    unproject_many,
+)
 from ceilkit.runtime.jit import arr, njit, warmer
 
 MIN_FIT_POINTS = 4   # located edge points a segment needs to be refitted
@@ -350,18 +354,15 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     if n == 0:
         return np.zeros((0, 4)), np.zeros(0), rms
     offs, t, inner = edge_grid(n_along, half_width_px)
-    d_all, nrm_all = directions(s)
-    prof = profiles_along(gray, s, d_all, nrm_all, offs, t)                    # (N, A, O)
     il, ir, ii = part_indices(offs)
     # each segment's kind from its mean profile, then its edge on every profile (steps
-    # and thin lines; a segment of unclear kind is not located) as pixels
-    pol, pts, good = _kind_and_points(arr(prof, np.float64), arr(s, np.float64), d_all,
-                                      nrm_all, arr(offs, np.float64), arr(t, np.float64),
-                                      arr(il, np.int64), arr(ir, np.int64), arr(ii, np.int64),
-                                      inner.start + 1, inner.stop + 1, float(min_step),
-                                      float(min_depth), PROFILE_STEP_PX)
+    # and thin lines; a segment of unclear kind is not located) as pixels, after the
+    # segments' endpoints
+    pol, px, good = _profile_points(arr(gray, np.uint8), arr(s, np.float64), offs, t, il, ir, ii,
+                                    inner.start + 1, inner.stop + 1, float(min_step),
+                                    float(min_depth), PROFILE_STEP_PX)
     # the endpoints and the located points through the lens in one call
-    xy = camera.unproject_fast(np.concatenate([s.reshape(-1, 2), pts[good]]))
+    xy = unproject_many(camera, px)
     ends = xy[:2 * n].reshape(n, 4)
     _fit_segments(arr(xy[2 * n:], np.float64), good, ends, rms, 0.5 * (camera.fx + camera.fy),
                   OUTLIER_FLOOR_PX, OUTLIER_SIGMAS, MIN_FIT_POINTS)
@@ -381,7 +382,7 @@ def refine_chords(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
     """:func:`refine_undistorted` of short chords predicted near their edges (no wider
     retry), in one compiled call (:func:`_refine_core`): the same stages, with the
     profiles sampled bilinear in float (the frame's edge replicated; not OpenCV's
-    remap, rounded to 1/32 px and to grey levels) and the lens inverted exactly
+    remap, rounded to grey levels) and the lens inverted exactly
     (:func:`~ceilkit.runtime.geometry.camera.undistort_points`). Returns
     ``(segs_n, polarity, rms_px)`` as :func:`refine_undistorted`."""
     s = arr(segs_px, np.float64).reshape(-1, 4)
@@ -425,20 +426,7 @@ def _refine_core(grey, chords, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
     pol, pts, good = _kind_and_points(prof, chords, d, nrm, offs, t, il, ir, ii,
                                       i0, i1, min_step, min_depth,
                                       PROFILE_STEP_PX)
-    n_good = 0
-    for r in range(n):
-        for a in range(n_a):
-            n_good += good[r, a]
-    px = np.empty((2 * n + n_good, 2))
-    for r in range(n):
-        px[2 * r, 0], px[2 * r, 1] = chords[r, 0], chords[r, 1]
-        px[2 * r + 1, 0], px[2 * r + 1, 1] = chords[r, 2], chords[r, 3]
-    k = 2 * n
-    for r in range(n):
-        for a in range(n_a):
-            if good[r, a]:
-                px[k, 0], px[k, 1] = pts[r, a, 0], pts[r, a, 1]
-                k += 1
+    px = _stack_points(chords, pts, good)
     xy = np.empty_like(px)
     undistort_points(px, lens_code, lens, xy)
     ends = xy[:2 * n].copy().reshape(n, 4)
@@ -446,6 +434,49 @@ def _refine_core(grey, chords, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
     _fit_segments(xy[2 * n:].copy(), good, ends, rms, f_px, OUTLIER_FLOOR_PX, OUTLIER_SIGMAS,
                   MIN_FIT_POINTS)
     return ends, pol, rms
+
+
+@njit
+def _profile_points(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth, step_px
+                    ):  # pragma: no cover - compiled
+    """:func:`refine_undistorted`'s profiles (:func:`~.edges.remap_along`, as
+    :func:`~.edges.profiles_along`) and located points (:func:`_kind_and_points`) of
+    segments ``s (N, 4)``: ``(polarity (N,), pixels (2N + K, 2): the endpoints, then the
+    K located points in the order of located (N, A))``."""
+    n = s.shape[0]
+    d = np.empty((n, 2))
+    nrm = np.empty((n, 2))
+    for r in range(n):
+        d[r, 0], d[r, 1] = s[r, 2] - s[r, 0], s[r, 3] - s[r, 1]
+        inv = 1.0 / max(math.hypot(d[r, 0], d[r, 1]), 1e-9)
+        nrm[r, 0], nrm[r, 1] = -d[r, 1] * inv, d[r, 0] * inv
+    prof = np.empty((n, t.size, offs.size))
+    remap_along(grey, s, d, nrm, offs, t, prof)
+    pol, pts, good = _kind_and_points(prof, s, d, nrm, offs, t, il, ir, ii, i0, i1, min_step,
+                                      min_depth, step_px)
+    return pol, _stack_points(s, pts, good), good
+
+
+@njit
+def _stack_points(s, pts, good):  # pragma: no cover - compiled
+    """``(2N + K, 2)``: the endpoints of segments ``s (N, 4)``, then the K points of
+    ``pts (N, A, 2)`` that are ``good (N, A)``."""
+    n, n_a = good.shape
+    n_good = 0
+    for r in range(n):
+        for a in range(n_a):
+            n_good += good[r, a]
+    px = np.empty((2 * n + n_good, 2))
+    for r in range(n):
+        px[2 * r, 0], px[2 * r, 1] = s[r, 0], s[r, 1]
+        px[2 * r + 1, 0], px[2 * r + 1, 1] = s[r, 2], s[r, 3]
+    k = 2 * n
+    for r in range(n):
+        for a in range(n_a):
+            if good[r, a]:
+                px[k, 0], px[k, 1] = pts[r, a, 0], pts[r, a, 1]
+                k += 1
+    return px
 
 
 @njit
@@ -585,3 +616,6 @@ def _warm() -> None:
     cam = CameraModel.pinhole(60, 40, 50.0)
     refine_undistorted(cam, g, np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]]))
     refine_chords(cam, g, np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]]))
+    px = arr(np.zeros((1, 2)), np.float64)
+    undistort_fixed_points(px, CameraModel.pinhole(60, 40, 50.0, dist=[0.1, 0, 0, 0, 0]).lens[1],
+                           10, np.empty((1, 2)))

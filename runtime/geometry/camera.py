@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.jit import njit, warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant")
 N_COEFFS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
@@ -414,6 +414,49 @@ def undistort_points(px, code, lens, out):  # pragma: no cover - compiled
             out[n, 0], out[n, 1] = _undistort_fisheye(u, v, fx, fy, cx, cy, k)
 
 
+def unproject_many(camera: CameraModel, points_px: np.ndarray) -> np.ndarray:
+    """:meth:`CameraModel.unproject_fast` ``(N, 2)`` of pixels ``(N, 2)``: where it takes
+    OpenCV's fixed iterations, in a compiled loop (:func:`undistort_fixed_points`, the
+    same numbers without OpenCV's call)."""
+    px = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+    if px.shape[0] == 0 or not _fast_unproject_ok(camera):
+        return camera.unproject_fast(px)
+    out = np.empty_like(px)
+    undistort_fixed_points(arr(px, np.float64), camera.lens[1], _FAST_ITERATIONS, out)
+    return out
+
+
+@njit
+def undistort_fixed_points(px, lens, iterations, out):  # pragma: no cover - compiled
+    """Into ``out (N, 2)``: ``cv2.undistortPoints`` of pixels ``px (N, 2)`` for a
+    polynomial lens (:attr:`CameraModel.lens`) with a count criterion of
+    ``iterations`` (no convergence test), ``K``'s skew taken off first: OpenCV's
+    arithmetic in its order (its terms of coefficients these lenses do not have
+    dropped: they add zero), the same numbers."""
+    fx, fy, cx, cy, skew = lens[0], lens[1], lens[2], lens[3], lens[4]
+    ifx, ify = 1.0 / fx, 1.0 / fy
+    k = lens[5:]
+    for n in range(px.shape[0]):
+        u, v = px[n, 0], px[n, 1]
+        if skew != 0.0:
+            u = u - skew * (v - cy) / fy
+        x = (u - cx) * ifx
+        y = (v - cy) * ify
+        x0, y0 = x, y
+        for _ in range(iterations):
+            r2 = x * x + y * y
+            icdist = ((1 + ((k[7] * r2 + k[6]) * r2 + k[5]) * r2)
+                      / (1 + ((k[4] * r2 + k[1]) * r2 + k[0]) * r2))
+            if icdist < 0:
+                x, y = x0, y0
+                break
+            dx = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+            dy = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+            x = (x0 - dx) * icdist
+            y = (y0 - dy) * icdist
+        out[n, 0], out[n, 1] = x, y
+
+
 @njit
 def distort_points(xy, code, lens, out):  # pragma: no cover - compiled
     """Into ``out (N, 2)``: :meth:`CameraModel.distort` of normalized points ``xy (N, 2)``
@@ -607,4 +650,4 @@ def subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
 
 __all__ = ["CameraModel", "DISTORTION_MODELS", "LENS_EQUIDISTANT", "LENS_LINEAR",
            "LENS_POLYNOMIAL", "distort_points", "magnification_points", "subpixel_rays",
-           "undistort_points"]
+           "undistort_fixed_points", "undistort_points", "unproject_many"]

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from ceilkit.runtime.jit import njit
+from ceilkit.runtime.jit import njit, warmer
 
 
 def _centred_sums(q: np.ndarray, p: np.ndarray, w: np.ndarray | None
@@ -115,6 +115,16 @@ def short_median(x: np.ndarray) -> float:
 
 
 @njit
+def median_of(x):  # pragma: no cover - compiled
+    """:func:`short_median` in a compiled loop (NaN of an empty array)."""
+    n = x.size
+    if n == 0:
+        return np.nan
+    s = np.sort(x)
+    return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
+
+
+@njit
 def scaled_inverse3(N, scale, out):  # pragma: no cover - compiled
     """``out = scale N⁻¹`` for a symmetric ``(3, 3)`` ``N`` by cofactors (``scale (C /
     det)``); False, ``out`` untouched, when ``N`` is singular or not finite."""
@@ -131,5 +141,10 @@ def scaled_inverse3(N, scale, out):  # pragma: no cover - compiled
     return True
 
 
-__all__ = ["fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d", "scaled_inverse3",
-           "short_median"]
+@warmer
+def _warm() -> None:
+    median_of(np.ones(2))
+
+
+__all__ = ["fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d", "median_of",
+           "scaled_inverse3", "short_median"]

@@ -24,6 +24,7 @@ import numpy as np
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.estimators.corridor.visibility import lines_in_view
 from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.jit import arr, njit, warmer
 
 AMBIGUITY_RATIO = 0.85
 """A runner-up shift scoring at least this share of the winner's leaves the frame
@@ -72,28 +73,6 @@ def gauss(z: np.ndarray) -> np.ndarray:
     return np.exp(np.maximum(-0.5 * z ** 2, -700.0))
 
 
-def _shift_candidates(o: np.ndarray, ys: np.ndarray, cw: np.ndarray | None,
-                      tol_m: float) -> np.ndarray:
-    """The shifts ``y_j - o_i`` of every allowed pairing, those closer than a quarter
-    of the gate merged (the first of each, in the order of their keys, as
-    ``np.unique(..., return_index=True)``); empty when nothing may pair."""
-    nj = ys.size
-    if cw is None:
-        ii, jj = np.divmod(np.arange(o.size * nj), max(nj, 1))
-    else:
-        ii, jj = np.nonzero(cw > 0)
-    if ii.size == 0:
-        return np.zeros(0)
-    cands = ys[jj] - o[ii]
-    key = np.round(cands * (4.0 / tol_m))
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    first = np.empty(ks.size, bool)
-    first[0] = True
-    np.not_equal(ks[1:], ks[:-1], out=first[1:])
-    return cands[order[first]]
-
-
 def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
                   tol_m: float, prior_shift_m: float | None = None,
                   anchors_m: np.ndarray | None = None,
@@ -110,83 +89,192 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
     agree with: they break the tie between hypotheses shifted by a line spacing.
     ``compat`` ``(N, J)`` in [0, 1] says how well offset i can be site line j (its
     edge kind: :func:`edge_compat`); 0 forbids the pairing, other values scale its
-    score. None: all 1. Returns None when nothing is matched.
+    score. None: all 1. Returns None when nothing is matched. One compiled call
+    (:func:`match_core`).
     """
-    o_all = np.asarray(offsets, dtype=float)
+    o = arr(offsets, np.float64).ravel()
+    ys = arr(site_y, np.float64).ravel()
+    cw = (np.ones((o.size, ys.size)) if compat is None
+          else np.asarray(compat, dtype=np.float64).reshape(-1, ys.size))
+    a = np.zeros(0) if anchors_m is None else np.asarray(anchors_m, dtype=np.float64)
+    assign = np.empty(o.size, np.int64)
+    found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift, score = match_core(
+        o, arr(weights, np.float64).ravel(), ys, float(tol_m), prior_shift_m is not None,
+        0.0 if prior_shift_m is None else float(prior_shift_m), arr(a, np.float64),
+        arr(cw, np.float64), assign)
+    if not found:
+        return None
+    return OffsetMatch(shift, assign, n_lines, weight,
+                       (r_score, r_weight, r_shift) if has_runner else None, score)
+
+
+@njit
+def pairwise_sum(a, n):  # pragma: no cover - compiled
+    """The sum of ``a[:n]`` in numpy's order (its pairwise summation: blocks of 8
+    accumulators up to 128 values, halves beyond), so that a loop's sum is the array
+    reading's to the bit."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    if n <= 128:
+        r = np.empty(8)
+        for j in range(8):
+            r[j] = a[j]
+        i = 8
+        while i < n - n % 8:
+            for j in range(8):
+                r[j] += a[i + j]
+            i += 8
+        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        while i < n:
+            res += a[i]
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return pairwise_sum(a, n2) + pairwise_sum(a[n2:], n - n2)
+
+
+@njit
+def _gauss(z):  # pragma: no cover - compiled
+    """:func:`gauss` of a number."""
+    return math.exp(max(-0.5 * (z * z), -700.0))
+
+
+@njit
+def _best_of(idx, soft, sw):  # pragma: no cover - compiled
+    """The index of ``idx`` with the highest ``soft``, then ``sw``; the first of ties
+    (``lexsort((-sw, -soft))[0]``)."""
+    b = idx[0]
+    for k in idx[1:]:
+        if soft[k] > soft[b] or (soft[k] == soft[b] and sw[k] > sw[b]):
+            b = k
+    return b
+
+
+@njit
+def match_core(o_all, w_all, ys, tol, has_prior, prior_shift, anchors, cw_all, assign
+               ):  # pragma: no cover - compiled
+    """:func:`match_offsets` with ``compat`` ``cw_all (N, J)`` (ones: none) and
+    ``anchors (A,)`` (empty: none), the site line of each offset written to ``assign
+    (N,)``: ``(found, shift, n_lines, weight, has_runner, runner score, runner weight,
+    runner shift, score)``: the hypotheses (:func:`_merged_shifts`) scored
+    (:func:`_scored`), the winner and the runner-up (the best more than ``tol`` from
+    it) as :func:`match_offsets` says."""
+    nothing = (False, 0.0, 0, 0.0, False, 0.0, 0.0, 0.0, 0.0)
+    assign[:] = -1
     ok = np.flatnonzero(np.isfinite(o_all))
-    if ok.size == 0:
-        return None
+    n = ok.size
+    if n == 0:
+        return nothing
     o = o_all[ok]
-    w = np.asarray(weights, dtype=float)[ok]
-    ys = np.asarray(site_y, dtype=float)
-    nj = ys.size
-    cw = None if compat is None else np.asarray(compat, dtype=float).reshape(-1, nj)[ok]
-    cands = _shift_candidates(o, ys, cw, tol_m)
+    w = w_all[ok]
+    cw = np.empty((n, ys.size))
+    for i in range(n):
+        cw[i] = cw_all[ok[i]]
+    cands = _merged_shifts(o, ys, cw, tol)
     if cands.size == 0:
-        return None
-    # each hypothesis: every offset to its nearest (allowed) site line; the shift is
-    # refined once by the weighted mean over the inliers, keeping that association
-    x = o[None, :] + cands[:, None]                                              # (K, N)
-    D = np.abs(x[:, :, None] - ys)                                              # (K, N, J)
-    if cw is not None:
-        D += np.where(cw > 0, 0.0, 1e9)
-    j = np.argmin(D, axis=2)
-    d = x - ys[j]                                                                # (K, N)
-    inl = np.abs(d) <= tol_m
-    if cw is not None:
-        cj = cw[np.arange(o.size), j]
-        inl &= cj > 0
-    wi = inl * w
-    shift = (wi * d).sum(axis=1) / np.maximum(wi.sum(axis=1), 1e-300)
-    c_ref = cands - shift
-    d -= shift[:, None]
-    inl &= np.abs(d) <= tol_m
-    wi = inl * w
-    sw = wi.sum(axis=1)
-    sig = tol_m / 3.0
-    g = gauss(d / sig) * inl                                                     # (K, N)
-    if cw is not None:
-        g *= cj
-    # per hypothesis and site line (bin 0: no line), the best inlier matched to it (the
-    # soft score; g >= 0) and how many are
-    jm = np.where(inl, j, -1)                                                    # (K, N)
-    nk = cands.size
-    bins = (np.arange(nk)[:, None] * (nj + 1) + (jm + 1)).ravel()
-    best = np.zeros(nk * (nj + 1))
-    np.maximum.at(best, bins, g.ravel())
-    soft = best.reshape(nk, nj + 1)[:, 1:].sum(axis=1)
-    n_hit = np.bincount(bins, minlength=nk * (nj + 1)).reshape(nk, nj + 1)[:, 1:]
-    n_lines = np.count_nonzero(n_hit, axis=1)
-    if anchors_m is not None and len(anchors_m):
-        a = np.asarray(anchors_m, dtype=float)
-        soft = soft + gauss((c_ref[:, None] - a[None, :]) / sig).sum(axis=1) / a.size
-    return _winner(c_ref, soft, sw, n_lines, jm, ok, o_all.size, tol_m, prior_shift_m)
-
-
-def _winner(c_ref: np.ndarray, soft: np.ndarray, sw: np.ndarray, n_lines: np.ndarray,
-            jm: np.ndarray, ok: np.ndarray, n_all: int, tol_m: float,
-            prior_shift_m: float | None) -> OffsetMatch | None:
-    """The best of the scored hypotheses (``(K,)`` shifts, soft scores, matched weights,
-    lines matched; ``jm (K, N)`` their site lines) and its runner-up: see
-    :func:`match_offsets`."""
+        return nothing
+    jm = np.full((cands.size, n), -1)
+    c_ref, soft, sw, n_lines = _scored(o, w, ys, cw, cands, tol, anchors, jm)
     idx = np.flatnonzero(n_lines)
     if idx.size == 0:
-        return None
-    if prior_shift_m is not None:
-        top = soft[idx].max()
-        pool = idx[soft[idx] >= top - 1.0]
-        win = int(pool[np.argmin(np.abs(c_ref[pool] - prior_shift_m))])
+        return nothing
+    if has_prior:
+        top = soft[idx[0]]
+        for k in idx:
+            top = max(top, soft[k])
+        win, near = -1, math.inf
+        for k in idx:
+            if soft[k] >= top - 1.0 and abs(c_ref[k] - prior_shift) < near:
+                win, near = k, abs(c_ref[k] - prior_shift)
     else:
-        win = int(idx[np.lexsort((-sw[idx], -soft[idx]))[0]])
-    others = idx[np.abs(c_ref[idx] - c_ref[win]) > tol_m]
-    runner = None
-    if others.size:
-        r = int(others[np.lexsort((-sw[others], -soft[others]))[0]])
-        runner = (float(soft[r]), float(sw[r]), float(c_ref[r]))
-    assign = np.full(n_all, -1)
-    assign[ok] = jm[win]
-    return OffsetMatch(float(c_ref[win]), assign, int(n_lines[win]), float(sw[win]), runner,
-                       float(soft[win]))
+        win = _best_of(idx, soft, sw)
+    others = idx[np.abs(c_ref[idx] - c_ref[win]) > tol]
+    has_runner = others.size > 0
+    r_score = r_weight = r_shift = 0.0
+    if has_runner:
+        r = _best_of(others, soft, sw)
+        r_score, r_weight, r_shift = soft[r], sw[r], c_ref[r]
+    for i in range(n):
+        assign[ok[i]] = jm[win, i]
+    return (True, c_ref[win], n_lines[win], sw[win], has_runner, r_score, r_weight, r_shift,
+            soft[win])
+
+
+@njit
+def _merged_shifts(o, ys, cw, tol):  # pragma: no cover - compiled
+    """The shifts ``y_j - o_i`` of every allowed pairing (``cw > 0``, in row order),
+    those closer than a quarter of the gate merged: the first of each, in the order of
+    their keys (as ``np.unique(..., return_index=True)``)."""
+    raw = np.empty(o.size * ys.size)
+    m = 0
+    for i in range(o.size):
+        for j in range(ys.size):
+            if cw[i, j] > 0:
+                raw[m] = ys[j] - o[i]
+                m += 1
+    key = np.rint(raw[:m] * (4.0 / tol))
+    order = np.argsort(key, kind="mergesort")
+    cands = np.empty(m)
+    nk = 0
+    for r in range(m):
+        if r == 0 or key[order[r]] != key[order[r - 1]]:
+            cands[nk] = raw[order[r]]
+            nk += 1
+    return cands[:nk]
+
+
+@njit
+def _scored(o, w, ys, cw, cands, tol, anchors, jm):  # pragma: no cover - compiled
+    """Each hypothesis of ``cands (K,)``: every offset to its nearest allowed site line,
+    the shift refined once by the weighted mean over the inliers, then scored (see
+    :class:`OffsetMatch`; the anchors add their mean agreement): ``(c_ref, soft, sw,
+    n_lines)`` ``(K,)``, the inliers' site lines in ``jm (K, N)``."""
+    n, nj, nk = o.size, ys.size, cands.size
+    sig = tol / 3.0
+    c_ref, soft, sw = np.empty(nk), np.empty(nk), np.empty(nk)
+    n_lines = np.empty(nk, np.int64)
+    d, buf, wbuf = np.empty(n), np.empty(n), np.empty(n)
+    jj = np.empty(n, np.int64)
+    inl = np.empty(n, np.bool_)
+    best = np.empty(nj + 1)
+    hit = np.empty(nj, np.bool_)
+    g = np.empty(anchors.size)
+    for k in range(nk):
+        for i in range(n):
+            x = o[i] + cands[k]
+            jb, db = 0, math.inf
+            for j in range(nj):
+                if cw[i, j] > 0 and abs(x - ys[j]) < db:
+                    jb, db = j, abs(x - ys[j])
+            jj[i] = jb
+            d[i] = x - ys[jb]
+            inl[i] = db <= tol
+            wbuf[i] = w[i] if inl[i] else 0.0
+            buf[i] = wbuf[i] * d[i]
+        shift = pairwise_sum(buf, n) / max(pairwise_sum(wbuf, n), 1e-300)
+        c_ref[k] = cands[k] - shift
+        best[:] = 0.0
+        hit[:] = False
+        for i in range(n):
+            d[i] -= shift
+            inl[i] = inl[i] and abs(d[i]) <= tol
+            wbuf[i] = w[i] if inl[i] else 0.0
+            if inl[i]:
+                jm[k, i] = jj[i]
+                hit[jj[i]] = True
+                best[jj[i] + 1] = max(best[jj[i] + 1], _gauss(d[i] / sig) * cw[i, jj[i]])
+        sw[k] = pairwise_sum(wbuf, n)
+        soft[k] = pairwise_sum(best[1:], nj)
+        n_lines[k] = np.count_nonzero(hit)
+        if anchors.size:
+            for a in range(anchors.size):
+                g[a] = _gauss((c_ref[k] - anchors[a]) / sig)
+            soft[k] = soft[k] + pairwise_sum(g, anchors.size) / anchors.size
+    return c_ref, soft, sw, n_lines
 
 
 def periodic_spread(offsets: np.ndarray, weights: np.ndarray, spacing_m: float,
@@ -211,12 +299,28 @@ def edge_compat(pol_w: np.ndarray, ceil_len_m: np.ndarray, setup: CorridorSetup
     (the ``compat`` of :func:`match_offsets`): ``pol_w (N,)`` their edge polarity in W
     (NaN: unknown), ``ceil_len_m (N,)`` their length on the ceiling. A lamp edge is a
     step with the lamp's side bright and no longer than a lamp; a seam is a thin line
-    (a step only at :data:`SEAM_STEP`)."""
-    sp = setup.edge_kind[None, :]
-    p = pol_w[:, None]
-    c = np.where(sp != 0, (p == sp).astype(float), np.where(p == 0, 1.0, SEAM_STEP))
-    c = np.where(np.isnan(p), 1.0, c)
-    return c * (ceil_len_m[:, None] <= setup.longest_m[None, :])
+    (a step only at :data:`SEAM_STEP`). (:func:`compat_core`.)"""
+    return compat_core(arr(pol_w, np.float64), arr(ceil_len_m, np.float64),
+                       arr(setup.edge_kind, np.float64), arr(setup.longest_m, np.float64))
+
+
+@njit
+def compat_core(pol_w, ceil_len, kind, longest):  # pragma: no cover - compiled
+    """:func:`edge_compat` ``(N, J)`` of polarities and ceiling lengths ``(N,)`` with the
+    site lines' kinds and longest stretches ``(J,)``."""
+    n, nj = pol_w.size, kind.size
+    out = np.empty((n, nj))
+    for i in range(n):
+        p = pol_w[i]
+        for j in range(nj):
+            if math.isnan(p):
+                c = 1.0
+            elif kind[j] != 0:
+                c = 1.0 if p == kind[j] else 0.0
+            else:
+                c = 1.0 if p == 0 else SEAM_STEP
+            out[i, j] = c if ceil_len[i] <= longest[j] else 0.0
+    return out
 
 
 def lamp_anchors(setup: CorridorSetup, lamp_end: np.ndarray, ceil_sx: np.ndarray,
@@ -224,15 +328,25 @@ def lamp_anchors(setup: CorridorSetup, lamp_end: np.ndarray, ceil_sx: np.ndarray
     """Camera y estimates (m) from the segments ``sel`` ``(N,)`` bool (the across family)
     as long on the ceiling as a lamp is wide (``lamp_end (L, N)``): the lamp's end,
     whose middle (``ceil_sx, ceil_sy`` ``(N,)``: twice the level-frame midpoint) lies on
-    the lamp row's y, for camera pan ``psi_rad``."""
-    if not setup.lamp_y_m.size or not sel.any():
-        return np.zeros(0)
-    c, s = math.cos(psi_rad), math.sin(psi_rad)
-    out = []
-    for row_y, ends in zip(setup.lamp_y_m, lamp_end, strict=True):
-        ok = ends & sel
-        out.append(row_y - 0.5 * (s * ceil_sx[ok] + c * ceil_sy[ok]))  # (Rz(psi) m)_y
-    return np.concatenate(out)
+    the lamp row's y, for camera pan ``psi_rad`` (:func:`anchors_core`)."""
+    return anchors_core(arr(setup.lamp_y_m, np.float64), arr(lamp_end, np.bool_),
+                        arr(ceil_sx, np.float64), arr(ceil_sy, np.float64),
+                        arr(sel, np.bool_), float(psi_rad))
+
+
+@njit
+def anchors_core(lamp_y, lamp_end, ceil_sx, ceil_sy, sel, psi
+                 ):  # pragma: no cover - compiled
+    """:func:`lamp_anchors`: row by row, the selected lamp ends' camera y."""
+    c, s = math.cos(psi), math.sin(psi)
+    out = np.empty(lamp_end.size)
+    k = 0
+    for r in range(lamp_y.size):
+        for i in range(sel.size):
+            if lamp_end[r, i] and sel[i]:
+                out[k] = lamp_y[r] - 0.5 * (s * ceil_sx[i] + c * ceil_sy[i])  # (Rz(psi) m)_y
+                k += 1
+    return out[:k]
 
 
 def settle_by_absence(m: OffsetMatch, offsets: np.ndarray, weights: np.ndarray,
@@ -260,3 +374,14 @@ def settle_by_absence(m: OffsetMatch, offsets: np.ndarray, weights: np.ndarray,
             return m, True
         m, s_w, s_r = alt, s_r, s_w
     return m, bool(s_r >= AMBIGUITY_RATIO * s_w)
+
+
+@warmer
+def _warm() -> None:
+    f = np.float64
+    one = arr(np.ones(2), f)
+    match_core(arr(np.array([0.0, np.nan]), f), one, arr(np.array([0.0, 1.0]), f), 0.1, True,
+               0.0, one, arr(np.ones((2, 2)), f), np.empty(2, np.int64))
+    compat_core(one, one, one, one)
+    anchors_core(one, arr(np.ones((2, 2), bool), np.bool_), one, one,
+                 arr(np.ones(2, bool), np.bool_), 0.0)

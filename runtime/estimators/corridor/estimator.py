@@ -45,6 +45,7 @@ from ceilkit.runtime.estimators.corridor.frame import (
     FrameLines,
     frame_lines,
     frame_segments,
+    labeled_counts,
     undistorted,
 )
 from ceilkit.runtime.estimators.corridor.geometry import vanishing_line_check
@@ -346,17 +347,14 @@ class CorridorEstimator(Estimator):
         rates = self._rates(prior)
         tau = self._segment_times(fr, rates)
 
-        def inputs(assign: np.ndarray) -> GNInputs:
-            return gn_inputs(fr, lab.along, lab.across, assign, self.setup, tau)
-
         def solve(gd: GNInputs, psi_rad: float, camera_y_m: float) -> PanOffsetFit:
             return self._solve(gd, psi_rad, camera_y_m, rates)
 
         if not self.options.consensus:
-            gd = inputs(lab.assign)
+            gd = gn_inputs(fr, lab.along, lab.across, lab.assign, self.setup, tau)
             return lab, gd, solve(gd, lab.psi_rad, lab.camera_y_m)
-        return consensus_fit(fr, lab, self.setup, self.options.inlier_px, inputs, solve,
-                             rates)
+        return consensus_fit(fr, lab, self.setup, self.options.inlier_px, solve,
+                             self.options.gn_iterations, rates, tau)
 
     def _segment_times(self, fr: FrameLines, rates: RowRates | None
                        ) -> np.ndarray | None:
@@ -399,23 +397,24 @@ class CorridorEstimator(Estimator):
                    / (1.0 + (fit.rms_px / 1.5) ** 2))
         if best.ambiguous:
             quality *= 0.5
-        pol_a = fr.pol[along]
+        n_along, n_across, n_steps, n_thin, fit_rms_px, span = labeled_counts(
+            fr, along, across, best.assign, fit_rms)
         diag = {
             "n_segments": fr.segs.shape[0],
-            "n_along": int(np.count_nonzero(along)),
-            "n_across": int(np.count_nonzero(across)),
+            "n_along": n_along,
+            "n_across": n_across,
             "n_lines_matched": int(best.n_lines),
             "n_off_ceiling": int(best.n_off_ceiling),
-            "n_steps": int(np.count_nonzero(np.abs(pol_a) == 1)),
-            "n_thin": int(np.count_nonzero(pol_a == 0)),
+            "n_steps": n_steps,
+            "n_thin": n_thin,
             "rms_px": fit.rms_px,
-            "segment_fit_rms_px": _median_finite(fit_rms),
+            "segment_fit_rms_px": fit_rms_px,
             "psi_deg": math.degrees(fit.psi_rad),
             "camera_y_m": fit.camera_y_m,
             "ambiguous": bool(best.ambiguous),
             "hypothesis": best.how,
             "heading_change_deg": math.degrees(wrap_pi(fit.psi_rad - best.psi_rad)),
-            "spread": self._spread(fr, along & (best.assign >= 0)),
+            "spread": span * self.setup.f_px / self.rig.camera.width,
             **vl, **mf.diagnostics(),
             # for overlays (references, no copies): the undistorted normalized segments,
             # the two families and the site line of each forward segment (-1: none)
@@ -429,15 +428,6 @@ class CorridorEstimator(Estimator):
             cov = cov * mf.inflation
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(np.clip(quality, 0, 1)),
                             y_m - self.setup.axis_y_m, cov, diag)
-
-    def _spread(self, fr: FrameLines, matched: np.ndarray) -> float:
-        """The matched forward endpoints' extent (bounding-box diagonal, undistorted) as a
-        share of the image width."""
-        if not matched.any():
-            return 0.0
-        ep = fr.segs[matched].reshape(-1, 2)
-        span = math.hypot(float(np.ptp(ep[:, 0])), float(np.ptp(ep[:, 1])))
-        return span * self.setup.f_px / self.rig.camera.width
 
     def _model_check(self, mf: Misfit, diag: dict[str, Any], y_m: float,
                      t_ns: int) -> Failure | None:
@@ -484,7 +474,7 @@ class CorridorEstimator(Estimator):
 
 def _median_finite(a: np.ndarray) -> float:
     """The median of the finite values of ``a`` (NaN if none); as ``np.median``, without
-    its overhead on a few values."""
+    its overhead on a few values (the reading of :func:`.frame.counts_core`'s)."""
     v = np.sort(a[np.isfinite(a)])
     m = v.size // 2
     if v.size == 0:

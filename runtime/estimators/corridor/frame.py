@@ -28,6 +28,7 @@ from ceilkit.runtime.features.lines import (
     undistort_segments,
 )
 from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.fits import median_of
 from ceilkit.runtime.jit import arr, njit, warmer
 
 MAX_CEILING_LENGTH_M = 10.0
@@ -82,7 +83,8 @@ def frame_segments(grey: np.ndarray, camera: CameraModel, detector: SegmentDetec
 @dataclass(frozen=True, eq=False)
 class FrameLines:
     """One frame's segments (undistorted normalized coordinates), computed once and
-    shared by every pan candidate and hypothesis.
+    shared by every pan candidate and hypothesis (the arrays read-only and float64, as
+    the compiled loops take them).
 
     Attributes:
         segs: ``(N, 4)`` endpoints. lines: ``(N, 3)`` their lines (``hypot(a, b) = 1``),
@@ -116,13 +118,17 @@ def frame_lines(segs: np.ndarray, pol: np.ndarray, setup: CorridorSetup,
     """The per-frame arrays of undistorted normalized segments ``segs (N, 4)`` with
     polarities ``pol (N,)``; the family gate is ``angle_tol_rad``, or ``2 inlier_px``
     over a segment's pixel length where that is tighter."""
-    lines_t, len_n, mx, my, q, ceil_len, ceil_sx, ceil_sy, lamp_end, tol = _frame_arrays(
-        arr(segs, np.float64).reshape(-1, 4), arr(setup.R_level_cam, np.float64),
+    segs = arr(segs, np.float64).reshape(-1, 4)
+    out = _frame_arrays(
+        segs, arr(setup.R_level_cam, np.float64),
         float(setup.ceiling_above_cam_m), arr(setup.lamp_width_m, np.float64),
         float(angle_tol_rad), float(inlier_px), float(setup.f_px))
+    for a in out:               # read-only, as the compiled loops take them
+        a.flags.writeable = False
+    lines_t, len_n, mx, my, q, ceil_len, ceil_sx, ceil_sy, lamp_end, tol = out
     return FrameLines(segs=segs, lines=lines_t.T, lines_t=lines_t, len_n=len_n, mx=mx, my=my,
-                      q=q, pol=pol, ceil_len=ceil_len, ceil_sx=ceil_sx, ceil_sy=ceil_sy,
-                      lamp_end=lamp_end, tol=tol)
+                      q=q, pol=arr(pol, np.float64), ceil_len=ceil_len, ceil_sx=ceil_sx,
+                      ceil_sy=ceil_sy, lamp_end=lamp_end, tol=tol)
 
 
 @njit
@@ -180,8 +186,44 @@ def _frame_arrays(segs, R, h, lamp_w, angle_tol, inlier_px, f_px
     return lines_t, len_n, mx, my, q, ceil_len, ceil_sx, ceil_sy, lamp_end, tol
 
 
+def labeled_counts(fr: FrameLines, along: np.ndarray, across: np.ndarray,
+                   assign: np.ndarray, fit_rms: np.ndarray) -> tuple[int, int, int, int,
+                                                                   float, float]:
+    """The diagnostics of a labeled frame in one compiled call (:func:`counts_core`):
+    ``(n_along, n_across, n_steps, n_thin, median finite fit_rms, span)``: the forward
+    segments that are steps and thin lines, the median of the finite ``fit_rms (N,)``
+    (NaN if none) and the extent of the matched forward endpoints (their bounding
+    box's diagonal, normalized; 0 if none)."""
+    return counts_core(fr.segs, fr.pol, arr(along, np.bool_), arr(across, np.bool_),
+                       arr(assign, np.int64), arr(fit_rms, np.float64))
+
+
+@njit
+def counts_core(segs, pol, along, across, assign, fit_rms):  # pragma: no cover - compiled
+    """:func:`labeled_counts`."""
+    n_a = n_b = n_steps = n_thin = 0
+    lo_x = lo_y = np.inf
+    hi_x = hi_y = -np.inf
+    for i in range(pol.size):
+        n_b += across[i]
+        if not along[i]:
+            continue
+        n_a += 1
+        n_steps += abs(pol[i]) == 1
+        n_thin += pol[i] == 0
+        if assign[i] >= 0:
+            for e in range(2):
+                lo_x, hi_x = min(lo_x, segs[i, 2 * e]), max(hi_x, segs[i, 2 * e])
+                lo_y, hi_y = min(lo_y, segs[i, 2 * e + 1]), max(hi_y, segs[i, 2 * e + 1])
+    span = math.hypot(hi_x - lo_x, hi_y - lo_y) if hi_x >= lo_x else 0.0
+    return n_a, n_b, n_steps, n_thin, median_of(fit_rms[np.isfinite(fit_rms)]), span
+
+
 @warmer
 def _warm() -> None:
     f = np.float64
-    _frame_arrays(arr(np.array([[0.0, 0.0, 0.1, 0.0]]), f), arr(np.eye(3), f), 2.0,
-                  arr(np.array([0.3]), f), 0.1, 2.0, 500.0)
+    seg = arr(np.array([[0.0, 0.0, 0.1, 0.0]]), f)
+    _frame_arrays(seg, arr(np.eye(3), f), 2.0, arr(np.array([0.3]), f), 0.1, 2.0, 500.0)
+    on = arr(np.ones(1, bool), np.bool_)
+    counts_core(seg, arr(np.ones(1), f), on, on, arr(np.zeros(1, np.int64), np.int64),
+                arr(np.ones(1), f))

@@ -139,42 +139,49 @@ def vanishing_line_check(lines: np.ndarray, len_n: np.ndarray, along: np.ndarray
     ``vp_along_elevation_deg``, ``implied_tilt_deg``, ``implied_swing_deg`` (NaN where
     a family has fewer than two segments)."""
     lines_t = np.ascontiguousarray(np.asarray(lines, np.float64).reshape(-1, 3).T)
-    resid, elev, n = _vanishing_line(arr(lines_t, np.float64), arr(len_n, np.float64),
-                                     arr(along, np.bool_), arr(across, np.bool_),
-                                     arr(R_level_cam, np.float64))
-    tilt = swing = float("nan")
-    if math.isfinite(n[0]):
-        tilt, swing = (math.degrees(a) for a in mount_from_vanishing_line(n))
+    resid, elev, tilt, swing = _vanishing_line(
+        arr(lines_t, np.float64), arr(len_n, np.float64), arr(along, np.bool_),
+        arr(across, np.bool_), arr(R_level_cam, np.float64))
     return {"vanishing_line_residual_deg": resid, "vp_along_elevation_deg": elev,
             "implied_tilt_deg": tilt, "implied_swing_deg": swing}
 
 
 @njit
 def _vanishing_line(lines_t, len_n, along, across, R):  # pragma: no cover - compiled
-    """:func:`vanishing_line_check`'s ``(residual deg, elevation deg, n (3,))`` from the
-    lines ``(3, N)``: each family's free vanishing point (:func:`free_vanishing_points`,
-    weights ``len²``) and the unit vanishing line ``n`` through both (NaN where a family
-    has fewer than two segments)."""
+    """:func:`vanishing_line_check`'s ``(residual deg, elevation deg, tilt deg, swing
+    deg)`` from the lines ``(3, N)``: each family's free vanishing point
+    (:func:`free_vanishing_points`, weights ``len²``), the unit vanishing line ``n``
+    through both and the mount that has it (:func:`_mount_of`); NaN where a family has
+    fewer than two segments."""
     nan = np.nan
-    no_line = np.full(3, np.nan)
     if np.count_nonzero(along) < 2:
-        return nan, nan, no_line
+        return nan, nan, nan, nan
     va = _family_point(lines_t, len_n, along)
     n_pred = R[2]
     elev = math.degrees(math.asin(min(1.0, abs(n_pred[0] * va[0] + n_pred[1] * va[1]
                                                 + n_pred[2] * va[2]))))
     if np.count_nonzero(across) < 2:
-        return nan, elev, no_line
+        return nan, elev, nan, nan
     vb = _family_point(lines_t, len_n, across)
     n = np.array([va[1] * vb[2] - va[2] * vb[1], va[2] * vb[0] - va[0] * vb[2],
                   va[0] * vb[1] - va[1] * vb[0]])
     nn = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
     if not nn > 1e-12:
-        return nan, elev, no_line
+        return nan, elev, nan, nan
     n /= nn
     resid = math.degrees(math.acos(min(1.0, abs(n[0] * n_pred[0] + n[1] * n_pred[1]
                                                  + n[2] * n_pred[2]))))
-    return resid, elev, n
+    tilt, swing = _mount_of(n)
+    return resid, elev, math.degrees(tilt), math.degrees(swing)
+
+
+@njit
+def _mount_of(n_cam):  # pragma: no cover - compiled
+    """:func:`mount_from_vanishing_line` of a unit-ish ``n_cam`` (3,)."""
+    n = n_cam / math.sqrt(n_cam[0] * n_cam[0] + n_cam[1] * n_cam[1] + n_cam[2] * n_cam[2])
+    if n[2] < 0:
+        n = -n
+    return math.asin(min(1.0, n[2])), math.atan2(-n[0], -n[1])
 
 
 @njit

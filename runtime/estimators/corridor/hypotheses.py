@@ -3,11 +3,11 @@ family gate, and the labelings ``psi + k 90 deg`` scored on the site.
 
 A frame's candidates (:func:`dominant_pans`) are the modes of its segments'
 horizontal directions mod 90 deg; :func:`label` takes one to the families about it,
-refines the pan (:func:`refine_pan`), picks the forward family (with a prior, the
-labeling nearest it; without, the yaw range, the ceiling lengths, the site, and the
-paper's ``|pan| <= 45 deg`` rule, in that order) and associates its lines with the
-site's (:mod:`.association`). It returns a :class:`Labeling` or an
-:class:`Unresolved` reason.
+refines the pan (one reweighted :func:`.geometry.fit_pan`: :func:`families_core`),
+picks the forward family (with a prior, the labeling nearest it; without, the yaw
+range, the ceiling lengths, the site, and the paper's ``|pan| <= 45 deg`` rule, in
+that order) and associates its lines with the site's (:mod:`.association`). It
+returns a :class:`Labeling` or an :class:`Unresolved` reason.
 
 Example::
 
@@ -17,6 +17,8 @@ Example::
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,23 +26,22 @@ import numpy as np
 from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate
 from ceilkit.runtime.estimators.corridor.association import (
     OffsetMatch,
-    edge_compat,
+    anchors_core,
+    compat_core,
     is_ambiguous,
-    lamp_anchors,
-    match_offsets,
+    match_core,
+    pairwise_sum,
     periodic_spread,
     settle_by_absence,
 )
 from ceilkit.runtime.estimators.corridor.frame import FrameLines
 from ceilkit.runtime.estimators.corridor.geometry import (
     across_offsets,
-    along_offsets,
-    fit_pan,
-    vanishing_angles,
 )
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.rotations import rot_z, wrap_pi
+from ceilkit.runtime.jit import arr, njit, warmer
 
 DECISIVE = 2.0
 """Forward / across ceiling length ratio that settles which family is forward."""
@@ -48,7 +49,7 @@ DECISIVE = 2.0
 PAN_BINS = 720
 """Bins of the histogram of horizontal directions mod 90 deg (0.125 deg each)."""
 
-_KERNEL = np.exp(-0.5 * (np.arange(-16, 17) / 4.0) ** 2)
+_KERNEL = arr(np.exp(-0.5 * (np.arange(-16, 17) / 4.0) ** 2), np.float64)
 
 
 @dataclass(frozen=True)
@@ -67,43 +68,78 @@ class LabelContext:
     match_tol_m: float
     min_length_px: float
 
-
-def _smooth_circular(hist: np.ndarray) -> np.ndarray:
-    """``hist (B,)`` convolved circularly with a Gaussian of 4 bins."""
-    return np.convolve(np.concatenate([hist[-16:], hist, hist[:16]]), _KERNEL, "valid")
+    @functools.cached_property
+    def kernel_setup(self) -> tuple:
+        """The setup as the compiled loops take it: ``(site_y, edge_kind, longest_m,
+        lamp_y_m, ceiling_above_cam_m, f_px, R_level_cam)``, the arrays read-only."""
+        st, f = self.setup, np.float64
+        return (arr(st.site_y, f), arr(st.edge_kind, f), arr(st.longest_m, f),
+                arr(st.lamp_y_m, f), float(st.ceiling_above_cam_m), float(st.f_px),
+                arr(st.R_level_cam, f))
 
 
 def dominant_pans(q: np.ndarray, w: np.ndarray, n_peaks: int = 3) -> list[float]:
     """Modes of the segments' horizontal directions (level normals ``q (N, 3)``,
     weights ``w (N,)``), mod 90 deg: candidate ``psi`` (rad), strongest first; a peak
-    below a fifth of the first is dropped."""
-    theta = np.arctan2(-q[:, 0], q[:, 1])
+    below a fifth of the first is dropped. One compiled call (:func:`pans_core`)."""
+    return [float(v) for v in pans_core(arr(q, np.float64), arr(w, np.float64), n_peaks,
+                                        _KERNEL)]
+
+
+@njit
+def pans_core(q, w, n_peaks, kernel):  # pragma: no cover - compiled
+    """:func:`dominant_pans` ``(P,)``: the directions ``atan2(-q_x, q_y)`` times 4 in a
+    circular histogram of :data:`PAN_BINS` (linear between bins), smoothed circularly
+    by ``kernel`` (a Gaussian of 4 bins), its peaks by parabola, each clearing
+    +-24 bins about it."""
     nbins = PAN_BINS
-    b = ((4 * theta) % (2 * np.pi)) / (2 * np.pi) * nbins
-    fl = np.floor(b)
-    i0 = fl.astype(int) % nbins
-    fr = b - fl
-    hist = np.bincount(i0, w * (1 - fr), nbins) + np.bincount((i0 + 1) % nbins, w * fr, nbins)
-    sm = _smooth_circular(hist)
-    peaks = []
+    lo_h = np.zeros(nbins)
+    hi_h = np.zeros(nbins)
+    for i in range(w.size):
+        theta = math.atan2(-q[i, 0], q[i, 1])
+        b = ((4 * theta) % (2 * np.pi)) / (2 * np.pi) * nbins
+        fl = math.floor(b)
+        i0 = int(fl) % nbins
+        fr = b - fl
+        lo_h[i0] += w[i] * (1 - fr)
+        hi_h[(i0 + 1) % nbins] += w[i] * fr
+    half = kernel.size // 2
+    ext = np.empty(nbins + 2 * half)
+    for k in range(ext.size):
+        b = (k - half) % nbins
+        ext[k] = lo_h[b] + hi_h[b]
+    # smoothed where a bin within the kernel holds weight (elsewhere a sum of zeros)
+    near = np.zeros(nbins, np.bool_)
+    for b in range(nbins):
+        if ext[b + half] != 0:
+            for k in range(b - half, b + half + 1):
+                near[k % nbins] = True
+    sm = np.zeros(nbins)
+    for p in range(nbins):
+        if near[p]:
+            acc = 0.0
+            for k in range(kernel.size):
+                acc += ext[p + k] * kernel[kernel.size - 1 - k]
+            sm[p] = acc
+    out = np.empty(n_peaks)
+    first = 0.0
+    n = 0
     work = sm.copy()
     for _ in range(n_peaks):
-        p = int(np.argmax(work))
-        top = float(work[p])
-        if top <= 0 or (peaks and top < 0.2 * peaks[0][1]):
+        p = np.argmax(work)
+        top = work[p]
+        if top <= 0 or (n and top < 0.2 * first):
             break
-        y0, y1, y2 = float(sm[(p - 1) % nbins]), float(sm[p]), float(sm[(p + 1) % nbins])
+        y0, y1, y2 = sm[(p - 1) % nbins], sm[p], sm[(p + 1) % nbins]
         den = y0 - 2 * y1 + y2
         off = 0.5 * (y0 - y2) / den if abs(den) > 1e-12 else 0.0
-        peaks.append((p, y1, (p + 0.5 + off) / nbins * 2 * np.pi / 4))
-        # clear +-24 bins about the peak (circularly)
-        lo, hi = p - 24, p + 25
-        work[max(lo, 0):min(hi, nbins)] = 0.0
-        if lo < 0:
-            work[lo:] = 0.0
-        if hi > nbins:
-            work[:hi - nbins] = 0.0
-    return [-th for _, _, th in peaks]
+        if n == 0:
+            first = y1
+        out[n] = -((p + 0.5 + off) / nbins * 2 * np.pi / 4)
+        n += 1
+        for k in range(p - 24, p + 25):          # clear +-24 bins about the peak
+            work[k % nbins] = 0.0
+    return out[:n]
 
 
 def families(ang: np.ndarray, tol: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
@@ -113,19 +149,6 @@ def families(ang: np.ndarray, tol: np.ndarray | float) -> tuple[np.ndarray, np.n
     along = (ang[0] <= ang[1]) & (ang[0] <= tol)
     across = (ang[1] < ang[0]) & (ang[1] <= tol)
     return along, across
-
-
-def refine_pan(psi_rad: float, fr: FrameLines, along: np.ndarray, across: np.ndarray,
-               ang: np.ndarray, den: np.ndarray, f_px: float) -> float:
-    """One reweighted :func:`.geometry.fit_pan` over both families from ``ang, den``
-    (:func:`.geometry.vanishing_angles` at ``psi_rad``): weights length^2 /
-    |v_xy - v_z m|^2, Huber at 1 px, 0 outside the families. Returns the pan on the
-    branch (mod pi) nearest ``psi_rad``."""
-    r = np.where(along, ang[0], ang[1]) * fr.len_n * f_px        # px
-    w = (fr.len_n / np.where(along, den[0], den[1])) ** 2 * np.minimum(
-        1.0, 1.0 / np.maximum(r, 1e-9))
-    new = fit_pan(fr.q, np.where(along, w, 0.0), np.where(across, w, 0.0))
-    return new + np.pi * round((psi_rad - new) / np.pi)
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,22 +190,57 @@ def hypothesis(k: int, psi_rad: float, along: np.ndarray, across: np.ndarray,
                fr: FrameLines, lens: tuple[float, float], prior: PoseEstimate | None,
                ctx: LabelContext) -> Hypothesis:
     """The labeling ``psi_rad + k 90 deg`` scored on the site; ``lens``: the along and
-    across families' summed ceiling lengths (m)."""
+    across families' summed ceiling lengths (m). One compiled call
+    (:func:`hypothesis_core`: the forward offsets, their edge compatibility, the lamp
+    anchors of the across family, :func:`.association.match_offsets`)."""
     setup = ctx.setup
     pk = wrap_pi(psi_rad + k * np.pi / 2)
     fa, fb = (along, across) if k % 2 == 0 else (across, along)
     len_a, len_b = lens if k % 2 == 0 else lens[::-1]
-    wa = fr.len_n[fa] * setup.f_px
     prior_shift = None
     if prior is not None and prior.y_m is not None:
         t_v = rot_z(wrap_pi(pk - setup.pan_rad)) @ setup.t_vc
         prior_shift = prior.y_m + float(t_v[1])
-    offs, n_y = along_offsets(fr.q[fa], pk, setup.ceiling_above_cam_m)
-    pol_w = fr.pol[fa] * np.sign(n_y)
-    compat = edge_compat(pol_w, fr.ceil_len[fa], setup)
-    anchors = lamp_anchors(setup, fr.lamp_end, fr.ceil_sx, fr.ceil_sy, fb, pk)
-    m = match_offsets(offs, wa, setup.site_y, ctx.match_tol_m, prior_shift, anchors, compat)
+    assign = np.empty(np.count_nonzero(fa), np.int64)
+    offs, wa, compat, (found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift,
+                       score) = hypothesis_core(
+        *ctx.kernel_setup[:-1], fr.q, fr.pol, fr.len_n, fr.ceil_len, fr.lamp_end, fr.ceil_sx,
+        fr.ceil_sy, arr(fa, np.bool_), arr(fb, np.bool_), pk, float(ctx.match_tol_m),
+        prior_shift is not None, 0.0 if prior_shift is None else float(prior_shift), assign)
+    m = (OffsetMatch(shift, assign, n_lines, weight,
+                     (r_score, r_weight, r_shift) if has_runner else None, score)
+         if found else None)
     return Hypothesis(k, pk, fa, fb, m, offs, wa, compat, len_a, len_b)
+
+
+@njit
+def hypothesis_core(site_y, kind, longest, lamp_y, h, f_px, q, pol, len_n, ceil_len,
+                    lamp_end, ceil_sx, ceil_sy, fa, fb, psi, tol, has_prior, prior_shift,
+                    assign):  # pragma: no cover - compiled
+    """:func:`hypothesis`' arrays and match: the forward segments' (``fa``) offsets
+    (:func:`.geometry.along_offsets`), weights (pixel length) and compatibility
+    (:func:`.association.compat_core` of their polarity in W), the across family's
+    (``fb``) lamp anchors and :func:`.association.match_core` of them into ``assign``:
+    ``(offsets, weights, compat, match tuple)``."""
+    c, s = math.cos(psi), math.sin(psi)
+    n_a = assign.size
+    offs = np.empty(n_a)
+    wa = np.empty(n_a)
+    pol_w = np.empty(n_a)
+    cl = np.empty(n_a)
+    k = 0
+    for i in range(fa.size):
+        if fa[i]:
+            n_y = s * q[i, 0] + c * q[i, 1]
+            offs[k] = -q[i, 2] * h / n_y if abs(n_y) > 1e-12 else np.nan
+            wa[k] = len_n[i] * f_px
+            pol_w[k] = pol[i] * np.sign(n_y)
+            cl[k] = ceil_len[i]
+            k += 1
+    compat = compat_core(pol_w, cl, kind, longest)
+    anchors = anchors_core(lamp_y, lamp_end, ceil_sx, ceil_sy, fb, psi)
+    match = match_core(offs, wa, site_y, tol, has_prior, prior_shift, anchors, compat, assign)
+    return offs, wa, compat, match
 
 
 def across_on_grid(h: Hypothesis, fr: FrameLines, ctx: LabelContext) -> int:
@@ -233,11 +291,12 @@ class Unresolved:
     detail: str
 
 
-def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray, fr: FrameLines,
-            prior: PoseEstimate | None, prior_psi: float | None,
-            ctx: LabelContext) -> tuple[Hypothesis, str]:
-    """The forward family's labeling about ``psi_rad`` and the rule that chose it."""
-    la, lb = float(fr.ceil_len[along].sum()), float(fr.ceil_len[across].sum())
+def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
+            lens: tuple[float, float], fr: FrameLines, prior: PoseEstimate | None,
+            prior_psi: float | None, ctx: LabelContext) -> tuple[Hypothesis, str]:
+    """The forward family's labeling about ``psi_rad`` and the rule that chose it
+    (``lens``: the families' summed ceiling lengths)."""
+    la, lb = lens
 
     def hyp(k: int) -> Hypothesis:
         return hypothesis(k, psi_rad, along, across, fr, (la, lb), prior, ctx)
@@ -274,16 +333,15 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
     """The families about pan candidate ``psi0_rad``, the forward one and the lateral
     shift; None when fewer than two segments belong to the families."""
     setup = ctx.setup
-    ang, den = vanishing_angles(psi0_rad, setup.R_rows, fr.lines_t, fr.mx, fr.my)
-    along, across = families(ang, ctx.angle_tol_rad)
-    if np.count_nonzero(along) + np.count_nonzero(across) < 2:
+    n = fr.len_n.size
+    along, across = np.empty(n, np.bool_), np.empty(n, np.bool_)
+    ok, psi, la, lb = families_core(float(psi0_rad), ctx.kernel_setup[-1], fr.lines_t, fr.mx,
+                                    fr.my, fr.len_n, fr.q, fr.tol, fr.ceil_len,
+                                    float(ctx.angle_tol_rad), float(setup.f_px), along,
+                                    across)
+    if not ok:
         return None
-    psi = refine_pan(psi0_rad, fr, along, across, ang, den, setup.f_px)
-    along, across = families(vanishing_angles(psi, setup.R_rows, fr.lines_t, fr.mx,
-                                              fr.my)[0], fr.tol)
-    if np.count_nonzero(along) + np.count_nonzero(across) < 2:
-        return None
-    chosen, how = _choose(psi, along, across, fr, prior, prior_psi, ctx)
+    chosen, how = _choose(psi, along, across, (la, lb), fr, prior, prior_psi, ctx)
     m = chosen.match
     if m is None or m.n_lines < 1 or np.count_nonzero(m.assign >= 0) < 2:
         return Unresolved((-1, 0.0), "no_association",
@@ -313,3 +371,93 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
     assign[np.flatnonzero(chosen.fa)] = m.assign
     return Labeling((m.n_lines, m.weight), chosen.psi_rad, m.shift_m, chosen.fa, chosen.fb,
                     assign, m.n_lines, ambiguous, how)
+
+
+@njit
+def families_core(psi0, R, lines_t, mx, my, len_n, q, tol, ceil_len, angle_tol, f_px, along,
+                  across):  # pragma: no cover - compiled
+    """:func:`label`'s families: :func:`families` about ``psi0`` within ``angle_tol``,
+    one reweighted :func:`.geometry.fit_pan` over both families (weights length^2 /
+    den^2, Huber at 1 px, on the branch mod pi nearest ``psi0``), :func:`families`
+    again within ``tol (N,)``, written to ``along``
+    and ``across (N,)``: ``(ok, psi, along length, across length)`` (ok False when
+    either pass leaves fewer than two segments in the families; the lengths are the
+    summed ``ceil_len``)."""
+    n = len_n.size
+    ang = np.empty((2, n))
+    den = np.empty((2, n))
+    angles_core(psi0, R, lines_t, mx, my, ang, den)
+    if _families(ang, np.full(n, angle_tol), along, across) < 2:
+        return False, psi0, 0.0, 0.0
+    w_a = np.zeros(n)
+    w_b = np.zeros(n)
+    for i in range(n):
+        r = 0 if along[i] else 1
+        ri = ang[r, i] * len_n[i] * f_px
+        x = len_n[i] / den[r, i]
+        wi = (x * x) * min(1.0, 1.0 / max(ri, 1e-9))
+        if along[i]:
+            w_a[i] = wi
+        if across[i]:
+            w_b[i] = wi
+    sxx = syy = sxy = 0.0
+    for i in range(n):
+        q00, q11, q01 = q[i, 0] * q[i, 0], q[i, 1] * q[i, 1], q[i, 0] * q[i, 1]
+        sxx += w_a[i] * q00 + w_b[i] * q11
+        syy += w_a[i] * q11 + w_b[i] * q00
+        sxy += (w_b[i] - w_a[i]) * q01
+    th = 0.5 * math.atan2(2.0 * sxy, sxx - syy) + 0.5 * math.pi
+    new = th if th < math.pi else th - 2 * math.pi
+    psi = new + np.pi * np.rint((psi0 - new) / np.pi)
+    angles_core(psi, R, lines_t, mx, my, ang, den)
+    if _families(ang, tol, along, across) < 2:
+        return False, psi, 0.0, 0.0
+    buf = np.empty(n)
+    lens = np.empty(2)
+    for f in range(2):
+        k = 0
+        for i in range(n):
+            if along[i] if f == 0 else across[i]:
+                buf[k] = ceil_len[i]
+                k += 1
+        lens[f] = pairwise_sum(buf, k)
+    return True, psi, lens[0], lens[1]
+
+
+@njit
+def angles_core(psi, R, lines_t, mx, my, ang, den):  # pragma: no cover - compiled
+    """:func:`.geometry.vanishing_angles` into ``ang, den (2, N)``."""
+    c, s = math.cos(psi), math.sin(psi)
+    for r in range(2):
+        v0 = c * R[0, 0] - s * R[1, 0] if r == 0 else s * R[0, 0] + c * R[1, 0]
+        v1 = c * R[0, 1] - s * R[1, 1] if r == 0 else s * R[0, 1] + c * R[1, 1]
+        v2 = c * R[0, 2] - s * R[1, 2] if r == 0 else s * R[0, 2] + c * R[1, 2]
+        for i in range(mx.size):
+            d = max(math.hypot(v0 - v2 * mx[i], v1 - v2 * my[i]), 1e-12)
+            den[r, i] = d
+            ang[r, i] = abs(v0 * lines_t[0, i] + v1 * lines_t[1, i] + v2 * lines_t[2, i]) / d
+
+
+@njit
+def _families(ang, tol, along, across):  # pragma: no cover - compiled
+    """:func:`families` into ``along, across``; how many segments they hold."""
+    n = 0
+    for i in range(tol.size):
+        along[i] = ang[0, i] <= ang[1, i] and ang[0, i] <= tol[i]
+        across[i] = ang[1, i] < ang[0, i] and ang[1, i] <= tol[i]
+        n += along[i] + across[i]
+    return n
+
+
+@warmer
+def _warm() -> None:
+    f, b = np.float64, np.bool_
+    one, on = arr(np.ones(2), f), arr(np.ones(2, bool), b)
+    q = arr(np.array([[0.0, 1.0, 0.1], [1.0, 0.0, 0.1]]), f)
+    pans_core(q, one, 3, _KERNEL)
+    along, across = np.empty(2, bool), np.empty(2, bool)
+    families_core(0.0, arr(np.eye(3), f), arr(np.ones((3, 2)), f), one, one, one, q, one, one,
+                  0.1, 400.0, along, across)
+    hypothesis_core(one, one, one, one, 2.0, 400.0, q, one, one, one,
+                    arr(np.ones((2, 2), bool), b), one, one, on, on, 0.0, 0.1, True, 0.0,
+                    np.empty(2, np.int64))

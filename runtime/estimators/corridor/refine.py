@@ -96,7 +96,7 @@ def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.
     endpoint's row time (s, :func:`~ceilkit.runtime.geometry.shutter.row_times_s`; an
     across segment takes its endpoints' mean), None for a global shutter."""
     f64 = np.float64
-    n_a, y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b = _gn_arrays(
+    n_a, y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b = gn_arrays(
         arr(fr.segs, f64).reshape(-1, 4), arr(fr.lines_t, f64), arr(fr.mx, f64),
         arr(fr.my, f64), arr(fr.len_n, f64), arr(along, np.bool_), arr(across, np.bool_),
         arr(assign, np.int64), arr(setup.site_y, f64), arr(setup.R_level_cam, f64),
@@ -110,8 +110,8 @@ def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.
 
 
 @njit
-def _gn_arrays(segs, lines_t, mx, my, len_n, along, across, assign, site_y, R, f_px
-               ):  # pragma: no cover - compiled
+def gn_arrays(segs, lines_t, mx, my, len_n, along, across, assign, site_y, R, f_px
+              ):  # pragma: no cover - compiled
     """:func:`gn_inputs`' arrays in one loop: ``(n_a, y, e0, e1, ez, p0, p1, mx_b, my_b,
     scale_b)``: the matched forward segments' endpoints ``p`` as ``R p`` (``e0, e1,
     ez``) with their site line's ``y`` (twice), the across segments' lines as ``R[0]
@@ -220,7 +220,7 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
     singular normal equations. The residuals and weights of the last step describe the
     solution (its step was below the threshold, the one after it far smaller)."""
     r = np.empty(gd.e0.size + gd.p0.size)
-    psi, cy, h00, h01, h10, h11, wrr = _huber_steps(
+    psi, cy, h00, h01, h10, h11, wrr = huber_steps(
         float(psi_rad), float(camera_y_m), *(arr(a, np.float64) for a in (
             gd.y, gd.e0, gd.e1, gd.ez, gd.p0, gd.p1, gd.mx_b, gd.my_b, gd.scale_b)),
         np.array(setup.R_rows, np.float64), float(setup.ceiling_above_cam_m), float(setup.f_px),
@@ -239,8 +239,8 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
 
 
 @njit
-def _huber_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, R, h, f, iterations,
-                 done_psi, done_cy, r):  # pragma: no cover - compiled
+def huber_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, R, h, f, iterations,
+                done_psi, done_cy, r):  # pragma: no cover - compiled
     """The steps of :func:`gauss_newton` (the residuals of :func:`residuals`, written
     out): ``(psi, c_y, h00, h01, h10, h11, Σ w r²)`` with the normal matrix and ``r``
     (the residuals, px) of the last step's start."""
@@ -248,36 +248,11 @@ def _huber_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, R, h, f, itera
     m2x, m2y = R[2, 0], R[2, 1]
     h00 = h01 = h10 = h11 = wrr = 0.0
     for _ in range(iterations):
-        c, s = math.cos(psi), math.sin(psi)
-        va0, va1, va2 = (c * R[0, 0] - s * R[1, 0], c * R[0, 1] - s * R[1, 1],
-                         c * R[0, 2] - s * R[1, 2])
-        vb0, vb1, vb2 = (s * R[0, 0] + c * R[1, 0], s * R[0, 1] + c * R[1, 1],
-                         s * R[0, 2] + c * R[1, 2])
+        c, s, va0, va1, va2, vb0, vb1, vb2 = directions_core(psi, R)
         h00 = h01 = h11 = g0 = g1 = wrr = 0.0
         for i in range(na + kb):
-            if i < na:
-                dy = y[i] - cy
-                l0 = h * vb0 - dy * m2x
-                l1 = h * vb1 - dy * m2y
-                q = 1.0 / math.hypot(l0, l1)
-                u = (h * (s * e0[i] + c * e1[i]) - dy * ez[i]) * q
-                dn_psi = h * (l0 * va0 + l1 * va1) * q
-                dn_cy = (l0 * m2x + l1 * m2y) * q
-                fq = f * q
-                j0 = (h * (c * e0[i] - s * e1[i]) - u * dn_psi) * fq
-                j1 = (ez[i] - u * dn_cy) * fq
-                ri = u * f
-            else:
-                b = i - na
-                bx = vb0 - vb2 * mx[b]
-                by = vb1 - vb2 * my[b]
-                den = math.hypot(bx, by)
-                dden = (bx * (va0 - va2 * mx[b]) + by * (va1 - va2 * my[b])) / den
-                num = s * p0[b] + c * p1[b]
-                scale = scale_b[b] / den
-                j0 = ((c * p0[b] - s * p1[b]) - num * dden / den) * scale
-                j1 = 0.0
-                ri = num * scale
+            j0, j1, ri = observation(i, na, c, s, va0, va1, va2, vb0, vb1, vb2, m2x, m2y, cy,
+                                     y, e0, e1, ez, p0, p1, mx, my, scale_b, h, f)
             r[i] = ri
             w = min(1.0, 1.0 / max(abs(ri), 1e-9))            # Huber, k = 1 px
             h00 += w * j0 * j0
@@ -298,6 +273,40 @@ def _huber_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, R, h, f, itera
     return psi, cy, h00, h01, h10, h11, wrr
 
 
+@njit
+def directions_core(psi, R):  # pragma: no cover - compiled
+    """``(c, s, va, vb)`` of :func:`.geometry.vanishing_directions`, flat."""
+    c, s = math.cos(psi), math.sin(psi)
+    return (c, s, c * R[0, 0] - s * R[1, 0], c * R[0, 1] - s * R[1, 1],
+            c * R[0, 2] - s * R[1, 2], s * R[0, 0] + c * R[1, 0], s * R[0, 1] + c * R[1, 1],
+            s * R[0, 2] + c * R[1, 2])
+
+
+@njit
+def observation(i, na, c, s, va0, va1, va2, vb0, vb1, vb2, m2x, m2y, cy, y, e0, e1, ez, p0,
+                 p1, mx, my, scale_b, h, f):  # pragma: no cover - compiled
+    """Row ``i`` of :func:`residuals` (an along endpoint below ``na``, else an across
+    segment): ``(d r/d psi, d r/d c_y, r)``."""
+    if i < na:
+        dy = y[i] - cy
+        l0 = h * vb0 - dy * m2x
+        l1 = h * vb1 - dy * m2y
+        q = 1.0 / math.hypot(l0, l1)
+        u = (h * (s * e0[i] + c * e1[i]) - dy * ez[i]) * q
+        dn_psi = h * (l0 * va0 + l1 * va1) * q
+        dn_cy = (l0 * m2x + l1 * m2y) * q
+        fq = f * q
+        return (h * (c * e0[i] - s * e1[i]) - u * dn_psi) * fq, (ez[i] - u * dn_cy) * fq, u * f
+    b = i - na
+    bx = vb0 - vb2 * mx[b]
+    by = vb1 - vb2 * my[b]
+    den = math.hypot(bx, by)
+    dden = (bx * (va0 - va2 * mx[b]) + by * (va1 - va2 * my[b])) / den
+    num = s * p0[b] + c * p1[b]
+    scale = scale_b[b] / den
+    return ((c * p0[b] - s * p1[b]) - num * dden / den) * scale, 0.0, num * scale
+
+
 def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
                       setup: CorridorSetup, iterations: int, rates: RowRates
                       ) -> PanOffsetFit:
@@ -306,45 +315,88 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
     rates ``w, v`` of ``rates`` held fixed (fitting them too lets the frame's own small
     systematic errors pull them: the pose gets worse). The rates' uncertainty is added
     to the covariance as a consider term, ``S diag(sigma_w^2, sigma_v^2) S^T`` with
-    ``S`` the solution's sensitivity to the rates."""
-    x = np.array([psi_rad, camera_y_m])
-    tau = np.concatenate([gd.tau, gd.tau_b])
-    r = np.zeros(0)
-    H = Jw = Jr = None
-    wrr = 0.0
-    for _ in range(max(1, iterations)):
-        A = residuals(float(x[0]), float(x[1]), gd, setup)
-        J = A[:, :2]
-        Jr = J * tau[:, None]                       # d r / d (w, v)
-        r = A[:, 2] + Jr @ np.array([rates.w_rps, rates.v_mps])
-        hw = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))    # Huber, k = 1 px
-        Jw = J * hw[:, None]
-        H = Jw.T @ J
-        wrr = float(r @ (hw * r))
-        try:
-            d = -np.linalg.solve(H, Jw.T @ r)
-        except np.linalg.LinAlgError:
-            H = None
-            break
-        x = x + d
-        if abs(d[0]) < STEP_DONE[0] and abs(d[1]) < STEP_DONE[1]:
-            break
-    C = None
-    if H is not None:
-        try:
-            Hi = np.linalg.inv(H)
-            S = -Hi @ (Jw.T @ Jr)                     # d (psi, c_y) / d (w, v)
-            sig = np.array([rates.sigma_w_rps, rates.sigma_v_mps])
-            C = max(wrr / max(1, r.size - 2), MIN_SIGMA2_PX2) * Hi + (S * sig ** 2) @ S.T
-        except np.linalg.LinAlgError:
-            C = None
-    if C is None or not np.all(np.isfinite(C)):
+    ``S`` the solution's sensitivity to the rates. One compiled call
+    (:func:`rows_steps`)."""
+    r = np.empty(gd.e0.size + gd.p0.size)
+    C = np.empty((2, 2))
+    tau = arr(np.concatenate([gd.tau, gd.tau_b]), np.float64)
+    psi, cy, ok = rows_steps(
+        float(psi_rad), float(camera_y_m), *(arr(a, np.float64) for a in (
+            gd.y, gd.e0, gd.e1, gd.ez, gd.p0, gd.p1, gd.mx_b, gd.my_b, gd.scale_b)), tau,
+        arr(setup.R_level_cam, np.float64), float(setup.ceiling_above_cam_m),
+        float(setup.f_px), max(1, iterations), STEP_DONE[0], STEP_DONE[1], float(rates.w_rps),
+        float(rates.v_mps), float(rates.sigma_w_rps), float(rates.sigma_v_mps), r, C)
+    if ok:
+        cov = ((float(C[0, 0]), float(C[0, 1])), (float(C[1, 0]), float(C[1, 1])))
+    else:
         nan = float("nan")
         cov = ((np.inf, nan), (nan, np.inf))
-    else:
-        cov = ((float(C[0, 0]), float(C[0, 1])), (float(C[1, 0]), float(C[1, 1])))
     rms_px = math.sqrt(float(r @ r) / r.size) if r.size else float("nan")
-    return PanOffsetFit(float(x[0]), float(x[1]), cov, rms_px, r)
+    return PanOffsetFit(psi, cy, cov, rms_px, r)
+
+
+@njit
+def rows_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, tau, R, h, f, iterations,
+               done_psi, done_cy, w_rps, v_mps, sigma_w, sigma_v, r, C
+               ):  # pragma: no cover - compiled
+    """The steps of :func:`gauss_newton_rows` (rows of :func:`residuals` with the rates'
+    first-order shift ``(J_psi w + J_cy v) tau``, Huber at 1 px): ``(psi, c_y, ok)``
+    with ``r`` the last step's residuals (px) and ``C (2, 2)`` the covariance (ok False:
+    the normal equations were singular, or the covariance is not finite)."""
+    na, n = e0.size, e0.size + p0.size
+    m2x, m2y = R[2, 0], R[2, 1]
+    J = np.empty((n, 2))
+    hw = np.empty(n)
+    h00 = h01 = h10 = h11 = wrr = 0.0
+    solved = False
+    for _ in range(iterations):
+        c, s, va0, va1, va2, vb0, vb1, vb2 = directions_core(psi, R)
+        h00 = h01 = h10 = h11 = g0 = g1 = wrr = 0.0
+        for i in range(n):
+            j0, j1, ri = observation(i, na, c, s, va0, va1, va2, vb0, vb1, vb2, m2x, m2y, cy,
+                                     y, e0, e1, ez, p0, p1, mx, my, scale_b, h, f)
+            J[i, 0], J[i, 1] = j0, j1
+            ri += (j0 * tau[i]) * w_rps + (j1 * tau[i]) * v_mps
+            r[i] = ri
+            hw[i] = min(1.0, 1.0 / max(abs(ri), 1e-9))
+            h00 += j0 * hw[i] * j0
+            h01 += j0 * hw[i] * j1
+            h11 += j1 * hw[i] * j1
+            g0 += j0 * hw[i] * ri
+            g1 += j1 * hw[i] * ri
+            wrr += ri * (hw[i] * ri)
+        h10 = h01
+        det = h00 * h11 - h01 * h10
+        solved = det != 0.0
+        if not solved:
+            break
+        d_psi = -(h11 * g0 - h01 * g1) / det
+        d_cy = -(h00 * g1 - h10 * g0) / det
+        psi, cy = psi + d_psi, cy + d_cy
+        if abs(d_psi) < done_psi and abs(d_cy) < done_cy:
+            break
+    if not solved:
+        return psi, cy, False
+    # S = -H^-1 (Jw^T Jr): the solution's sensitivity to (w, v)
+    det = h00 * h11 - h01 * h10
+    i00, i01, i10, i11 = h11 / det, -h01 / det, -h10 / det, h00 / det
+    m00 = m01 = m10 = m11 = 0.0
+    for i in range(n):
+        a0, a1 = J[i, 0] * hw[i], J[i, 1] * hw[i]
+        t0, t1 = J[i, 0] * tau[i], J[i, 1] * tau[i]
+        m00 += a0 * t0
+        m01 += a0 * t1
+        m10 += a1 * t0
+        m11 += a1 * t1
+    s00, s01 = -(i00 * m00 + i01 * m10), -(i00 * m01 + i01 * m11)
+    s10, s11 = -(i10 * m00 + i11 * m10), -(i10 * m01 + i11 * m11)
+    k = max(wrr / max(1, n - 2), MIN_SIGMA2_PX2)
+    vw, vv = sigma_w * sigma_w, sigma_v * sigma_v
+    C[0, 0] = k * i00 + (s00 * vw * s00 + s01 * vv * s01)
+    C[0, 1] = k * i01 + (s00 * vw * s10 + s01 * vv * s11)
+    C[1, 0] = k * i10 + (s10 * vw * s00 + s11 * vv * s01)
+    C[1, 1] = k * i11 + (s10 * vw * s10 + s11 * vv * s11)
+    return psi, cy, bool(np.all(np.isfinite(C)))
 
 
 def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup
@@ -372,11 +424,13 @@ def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup
 def _warm() -> None:
     one, none = arr(np.ones(2), np.float64), arr(np.zeros(0), np.float64)
     for a, b in ((one, none), (none, one)):          # along endpoints; across segments
-        _huber_steps(0.0, 0.0, a, a, a, a, b, b, b, b, b, np.eye(3), 2.0, 400.0, 1, 1e-5,
+        huber_steps(0.0, 0.0, a, a, a, a, b, b, b, b, b, np.eye(3), 2.0, 400.0, 1, 1e-5,
                      2e-4, np.empty(2))
+        rows_steps(0.0, 0.0, a, a, a, a, b, b, b, b, b, one, arr(np.eye(3), np.float64), 2.0,
+                   400.0, 1, 1e-5, 2e-4, 0.1, 0.1, 0.1, 0.1, np.empty(2), np.empty((2, 2)))
     f = np.float64
     seg = arr(np.array([[0.0, 0.0, 0.1, 0.0]]), f)
     on = arr(np.ones(1, bool), np.bool_)
-    _gn_arrays(seg, arr(np.ones((3, 1)), f), arr(np.zeros(1), f), arr(np.zeros(1), f),
+    gn_arrays(seg, arr(np.ones((3, 1)), f), arr(np.zeros(1), f), arr(np.zeros(1), f),
                arr(np.ones(1), f), on, on, arr(np.zeros(1, np.int64), np.int64),
                arr(np.zeros(1), f), arr(np.eye(3), f), 400.0)
