@@ -155,6 +155,12 @@ class LineTracker:
             return None
         return LineMeasurement(segs_n, chords, line, pol, rms, n)
 
+    def shift_px(self, d_psi_rad: float, d_cy_m: float) -> float:
+        """How far (px, at the image's scale) a change of the camera's pan and y moves
+        the predicted lines: the larger of its two parts."""
+        f = self.setup.f_px
+        return max(abs(d_psi_rad) * f, abs(d_cy_m) * f / self.setup.ceiling_above_cam_m)
+
     def reach(self) -> tuple[float, float]:
         """``(psi_rad, c_y m)``: how far from the prior a refined fit may move and still
         be what the searches saw (about ``search_px`` at the image's scale)."""
