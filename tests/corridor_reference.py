@@ -87,20 +87,8 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
                   tol_m: float, prior_shift_m: float | None = None,
                   anchors_m: np.ndarray | None = None,
                   compat: np.ndarray | None = None) -> OffsetMatch | None:
-    """Find the shift ``c`` placing the observed offsets on the site's lines.
-
-    Every pairing ``c = y_j - o_i`` is a hypothesis (refined once by a weighted
-    mean over its inliers); it scores by the number of distinct site lines matched
-    within ``tol_m``, then by the matched weight. With ``prior_shift_m`` the
-    hypothesis nearest the prior wins among those matching at least as many lines
-    as the best one less one. Missing, extra and shifted lines are tolerated.
-    ``anchors_m``, independent estimates of the shift (lamp ends:
-    :func:`lamp_anchors`), add up to one to the score of the hypotheses they
-    agree with: they break the tie between hypotheses shifted by a line spacing.
-    ``compat`` ``(N, J)`` in [0, 1] says how well offset i can be site line j (its
-    edge kind: :func:`edge_compat`); 0 forbids the pairing, other values scale its
-    score. None: all 1. Returns None when nothing is matched.
-    """
+    """:func:`~ceilkit.runtime.estimators.corridor.association.match_offsets`
+    in array code (its docstring is the reference)."""
     o_all = np.asarray(offsets, dtype=float)
     ok = np.flatnonzero(np.isfinite(o_all))
     if ok.size == 0:
@@ -310,16 +298,8 @@ def ceiling_consensus(psi_rad: float, candidates_m: np.ndarray, line_of: np.ndar
                       gd: GNInputs, setup: CorridorSetup, gate_px: float,
                       sigma_px: float = CONSENSUS_SIGMA_PX,
                       shift_px: np.ndarray | None = None) -> Consensus:
-    """The proposal of ``candidates_m`` ``(C,)`` (camera y, m; NaN ignored) that best
-    puts the site's lines on matched segments of ``gd`` (``line_of (N,)``: each
-    segment's site line index): the score is the sum over site lines of
-    ``exp(-d^2 / 2 sigma^2)`` for the segment on it whose farther endpoint is nearest,
-    at distance ``d`` (px): about the number of lines matched, each discounted by its
-    misfit, so that four lines missed by 1-2 px (a pipe taken for one of them pulls the
-    fit) score less than three lines hit to a fraction of a pixel. The inliers: the
-    segments with both endpoints within ``gate_px`` at the winner. ``shift_px``
-    ``(2N,)``: added to every proposal's distances (a rolling shutter's,
-    :func:`rate_shift`)."""
+    """:func:`~ceilkit.runtime.estimators.corridor.consensus.ceiling_consensus`
+    in array code (its docstring is the reference)."""
     cand = np.asarray(candidates_m, dtype=float)
     cand = cand[np.isfinite(cand)]
     n = gd.n_a
@@ -369,25 +349,10 @@ def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: f
                   solve: Callable[[GNInputs, float, float], PanOffsetFit],
                   rates: RowRates | None = None
                   ) -> tuple[Labeling, GNInputs, PanOffsetFit]:
-    """The joint fit of ``lab`` on the matched forward segments that lie on the site's
-    ceiling lines: a line at another height (a pipe, a cable tray) that the 1-D
-    association matched is left out. ``inputs(assign)``: the GN inputs of an
-    assignment; ``solve(gd, psi, c_y)``: the fit from a start; ``rates``: a rolling
-    shutter's (or None), for the distances.
-
-    The consensus (:func:`ceiling_consensus`, at the vanishing point's pan; its scale
-    :data:`CONSENSUS_SIGMA_PX`, or :data:`VP_SIGMAS` times the frame's
-    :func:`vanishing_scale` if larger) picks the core, which is fitted first; the
-    core's scatter about that fit sets the gate (:data:`GATE_SIGMAS` robust scales, at
-    least :data:`GATE_FLOOR_PX`, at most ``inlier_px`` or :data:`GATE_SIGMAS` times the
-    frame's scale if larger; a step on a seam's line, a doubtful kind, within
-    :data:`~.association.SEAM_STEP` of it), and the matched segments within the gate at
-    each fit are fitted again until they settle (at most :data:`CONSENSUS_ROUNDS`
-    fits). A core on
-    fewer than :data:`CORE_MIN_LINES` site lines says nothing of the scatter: then all
-    matched segments are fitted first, and the gate is its largest. Returns the
-    labeling with the segments left out unmatched (``n_lines`` recounted,
-    ``n_off_ceiling`` set), its GN inputs and the fit."""
+    """:func:`~ceilkit.runtime.estimators.corridor.consensus.consensus_fit` before its
+    rounds were compiled (``inputs(assign)``: the GN inputs of an assignment;
+    ``solve(gd, psi, c_y)``: the fit from a start; ``rates``: a rolling shutter's or
+    None); its docstring is the reference."""
     gd_all = inputs(lab.assign)
     ia = np.flatnonzero(lab.along & (lab.assign >= 0))
     line_of = lab.assign[ia]
@@ -431,12 +396,8 @@ def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: f
 def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
                       setup: CorridorSetup, iterations: int, rates: RowRates
                       ) -> PanOffsetFit:
-    """:func:`gauss_newton` for a rolling shutter (``gd`` with row times): each
-    observation predicted from ``(psi + w tau, c_y + v tau)`` (first order) with the
-    rates ``w, v`` of ``rates`` held fixed (fitting them too lets the frame's own small
-    systematic errors pull them: the pose gets worse). The rates' uncertainty is added
-    to the covariance as a consider term, ``S diag(sigma_w^2, sigma_v^2) S^T`` with
-    ``S`` the solution's sensitivity to the rates."""
+    """:func:`~ceilkit.runtime.estimators.corridor.refine.gauss_newton_rows`
+    in array code (its docstring is the reference)."""
     x = np.array([psi_rad, camera_y_m])
     tau = np.concatenate([gd.tau, gd.tau_b])
     r = np.zeros(0)
@@ -484,35 +445,8 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
                        n_along: int = 8, half_width_px: float = 4.0, min_step: float = 20.0,
                        min_depth: float = 8.0, retry_half_width_px: float | None = 6.0
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-pixel segments fitted in undistorted coordinates, with their edge kind.
-
-    A straight ceiling line is straight only after undistortion: a detector's segment
-    is a chord of the curved image, and a thin line (a seam) is found on one of its
-    two edges. Here each segment's kind comes from its mean cross profile
-    (:func:`edge_polarity`); at ``n_along`` points along it the edge is located on
-    the profile there (a step: the sub-pixel peak of the derivative with the
-    segment's sign; a thin line: the sub-pixel extremum), within
-    ``half_width_px - 1`` px of the segment; the points are undistorted and a
-    total-least-squares line is fitted to them (one pass dropping points over
-    3 sigma, at least 0.5 px). The endpoints are the undistorted detector endpoints
-    projected onto that line. A segment of unclear kind is looked at again over
-    ``retry_half_width_px`` (None: not): a detector's segment on one edge of a blurred
-    seam sits 1-2 px off the seam's middle, and the seam then reaches past one side of
-    the narrow profile, which is neither a step nor a thin line there. A segment still
-    unclear, or with fewer than 4 located points, keeps its undistorted endpoints.
-
-    Args:
-        camera: the intrinsics (``camera.unproject``).
-        gray: ``(H, W)`` uint8 image.
-        segs_px: ``(N, 4)`` detector segments, pixels.
-
-    Returns:
-        ``(segs_n, polarity, rms_px)``: ``(N, 4)`` segments in undistorted normalized
-        coordinates, ``(N,)`` polarity as :func:`edge_polarity` (the left normal of the
-        pixel segment; the line through ``segs_n`` keeps that side positive), ``(N,)``
-        RMS of the located points about the line in pixels of the focal length (NaN
-        where not refitted).
-    """
+    """:func:`~ceilkit.runtime.features.lines.refine_undistorted`
+    in array code (its docstring is the reference)."""
     s = np.asarray(segs_px, dtype=np.float64).reshape(-1, 4)
     n = s.shape[0]
     rms = np.full(n, np.nan)

@@ -835,7 +835,6 @@ def _warm() -> None:
     g[4:8, 4:8] = 200
     m = np.where(g > 100, 255, 0).astype(np.uint8)
     for weighted in (True, False):
-        _lone_region_stats(g, m, np.array([[4, 4, 4, 4]]), weighted)
         for centre in (None, (6.0, 6.0)):
             regions_to_spots(g, m, SpotParams(), weighted, centre_px=centre, max_regions=4)
     _examination_order(np.ones((2, 4)), (1.0, 1.0))
