@@ -19,7 +19,8 @@ Entries per recording:
 
 * **methods** without a prior (every frame on its own, the ``--no-track`` path), and
   ``lights`` with its other spot stage (``spot_stage=windowed``); with ``--detectors``
-  also the corridor's global path with each other line detector;
+  also the corridor's global path with each other line detector, and with its
+  full-resolution search alone (``coarse_search=false``);
 * **methods with a prior**: the estimator's ``track`` option on, the prior from the
   project's :class:`~ceilkit.runtime.tracking.Tracker` fed by that entry's own
   estimates (as ``ceilrun`` runs it), so a lost track falls back to the global path
@@ -27,10 +28,12 @@ Entries per recording:
 * **baselines** (``paper-corridor``, ``paper-lights``, ``paper-block``;
   ``paper-lights`` with both centroid readings when it has the option);
 * **reference kernels**: a full-frame memory pass (``cv2.mean``), the line
-  detectors alone (FastLineDetector as the corridor estimator configures it, LSD,
-  EdgeDrawing), one global threshold plus ``connectedComponentsWithStats``, the
-  spot stage's Niblack mask and the windowed stage's (on the frame decimated by 2),
-  and for blocks the quad search's decimation, threshold and ``findContours``.
+  detectors alone (FastLineDetector as the corridor estimator configures it, and on
+  the frame decimated by 2 as its coarse search runs it; FastLineDetector's defaults,
+  LSD, EdgeDrawing, all on the full frame), one global threshold plus
+  ``connectedComponentsWithStats``, the spot stage's Niblack mask and the windowed
+  stage's (on the frame decimated by 2), and for blocks the quad search's
+  decimation, threshold and ``findContours``.
 
 The recordings: a corridor drive, a lights drive, and a drive along configs/block's
 blocks and markers (a site with ``blocks`` or ``markers`` runs the ``block`` method,
@@ -187,7 +190,7 @@ def has_option(est_cls_options, name: str) -> bool:
 
 DETECTOR_VARIANTS = (("detector=lsd", {"detector": "lsd"}), ("detector=ed", {"detector": "ed"}),
                      ("detector=hough", {"detector": "hough"}),
-                     ("fld on the frame decimated by 2", {"working_mpx": 0.1}))
+                     ("full-resolution search only", {"coarse_search": False}))
 """``--detectors``: the corridor's global path with each other line detector."""
 
 
@@ -240,6 +243,11 @@ def entries(data: Data, detectors: bool = False) -> list[Entry]:
         det = est.detector
         out.append(Entry(f"kernel: {det.method} alone (as configured)", "kernel",
                          lambda k: det(g[k])))
+        coarse = getattr(est, "coarse_detector", None)
+        if coarse is not None:
+            out.append(Entry(f"kernel: {coarse.method} on the frame decimated by "
+                             f"{coarse.factor} (the coarse search)", "kernel",
+                             lambda k: coarse(g[k])))
         fld = cv2.ximgproc.createFastLineDetector()
         out.append(Entry("kernel: FastLineDetector default, full frame", "kernel",
                          lambda k: fld.detect(g[k])))
@@ -385,8 +393,8 @@ def main() -> None:
     ap.add_argument("--recording", type=Path, action="append", default=[],
                     help="also run on this SPEC recording (with truth.csv)")
     ap.add_argument("--detectors", action="store_true",
-                    help="also the corridor's global path with LSD, EDLines, Hough and FLD "
-                         "on the frame decimated by 2")
+                    help="also the corridor's global path with LSD, EDLines, Hough, and "
+                         "with its full-resolution search alone (coarse_search=false)")
     ap.add_argument("--cpu-time", action="store_true",
                     help="time each call by the thread's CPU time, not the wall clock (a "
                          "machine shared with other jobs)")

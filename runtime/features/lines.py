@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from types import MappingProxyType
@@ -47,6 +48,7 @@ from ceilkit.runtime.features.quads import _bilinear
 from ceilkit.runtime.features.working import decimate, undecimate
 from ceilkit.runtime.geometry.camera import (
     CameraModel,
+    fixed_iterations,
     undistort_fixed_points,
     undistort_points,
     unproject_many,
@@ -350,29 +352,96 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     """
     s = np.asarray(segs_px, dtype=np.float64).reshape(-1, 4)
     n = s.shape[0]
-    rms = np.full(n, np.nan)
     if n == 0:
-        return np.zeros((0, 4)), np.zeros(0), rms
-    offs, t, inner = edge_grid(n_along, half_width_px)
-    il, ir, ii = part_indices(offs)
+        return np.zeros((0, 4)), np.zeros(0), np.full(0, np.nan)
+    retry = retry_half_width_px is not None and retry_half_width_px > half_width_px
+    iterations = fixed_iterations(camera)
+    if iterations:
+        # the whole fit, retry included, in one compiled call (the same numbers)
+        g2 = _grid(n_along, retry_half_width_px if retry else half_width_px)
+        return _refine_fixed(arr(gray, np.uint8), arr(s, np.float64),
+                             *_grid(n_along, half_width_px), *g2, retry, float(min_step),
+                             float(min_depth), PROFILE_STEP_PX, camera.lens[1], iterations,
+                             0.5 * (camera.fx + camera.fy))
+    rms = np.full(n, np.nan)
+    offs, t, il, ir, ii, i0, i1 = _grid(n_along, half_width_px)
     # each segment's kind from its mean profile, then its edge on every profile (steps
     # and thin lines; a segment of unclear kind is not located) as pixels, after the
     # segments' endpoints
     pol, px, good = _profile_points(arr(gray, np.uint8), arr(s, np.float64), offs, t, il, ir, ii,
-                                    inner.start + 1, inner.stop + 1, float(min_step),
-                                    float(min_depth), PROFILE_STEP_PX)
+                                    i0, i1, float(min_step), float(min_depth), PROFILE_STEP_PX)
     # the endpoints and the located points through the lens in one call
     xy = unproject_many(camera, px)
     ends = xy[:2 * n].reshape(n, 4)
     _fit_segments(arr(xy[2 * n:], np.float64), good, ends, rms, 0.5 * (camera.fx + camera.fy),
                   OUTLIER_FLOOR_PX, OUTLIER_SIGMAS, MIN_FIT_POINTS)
     unclear = np.flatnonzero(np.isnan(pol))
-    if unclear.size and retry_half_width_px is not None \
-            and retry_half_width_px > half_width_px:
+    if unclear.size and retry:
         e2, p2, r2 = refine_undistorted(camera, gray, s[unclear], n_along,
                                         retry_half_width_px, min_step, min_depth, None)
         now = np.isfinite(p2)
         ends[unclear[now]], pol[unclear[now]], rms[unclear[now]] = e2[now], p2[now], r2[now]
+    return ends, pol, rms
+
+
+@functools.lru_cache(maxsize=16)
+def _grid(n_along: int, half_width_px: float) -> tuple:
+    """:func:`~.edges.edge_grid` and :func:`~.edges.part_indices` as the compiled loops
+    take them: ``(offs, t, il, ir, ii, i0, i1)``."""
+    offs, t, inner = edge_grid(n_along, half_width_px)
+    il, ir, ii = part_indices(offs)
+    return (arr(offs, np.float64), arr(t, np.float64), arr(il, np.int64), arr(ir, np.int64),
+            arr(ii, np.int64), inner.start + 1, inner.stop + 1)
+
+
+@njit
+def _refine_fixed(grey, s, offs, t, il, ir, ii, i0, i1, offs2, t2, il2, ir2, ii2, i0_2, i1_2,
+                  retry, min_step, min_depth, step_px, lens, iterations, f_px
+                  ):  # pragma: no cover - compiled
+    """:func:`refine_undistorted` for a lens :func:`unproject_many` inverts in its
+    compiled loop, in one call: ``(segs_n (N, 4), polarity (N,), rms (N,))``; the rows
+    of unclear kind measured again on the second grid when ``retry``."""
+    n = s.shape[0]
+    ends, pol, rms = _refine_pass(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
+                                  step_px, lens, iterations, f_px)
+    if not retry:
+        return ends, pol, rms
+    n_unclear = 0
+    for r in range(n):
+        n_unclear += math.isnan(pol[r])
+    if n_unclear == 0:
+        return ends, pol, rms
+    rows = np.empty(n_unclear, np.int64)
+    k = 0
+    for r in range(n):
+        if math.isnan(pol[r]):
+            rows[k] = r
+            k += 1
+    e2, p2, r2 = _refine_pass(grey, s[rows], offs2, t2, il2, ir2, ii2, i0_2, i1_2, min_step,
+                              min_depth, step_px, lens, iterations, f_px)
+    for k in range(n_unclear):
+        if math.isfinite(p2[k]):
+            r = rows[k]
+            ends[r, :] = e2[k, :]
+            pol[r], rms[r] = p2[k], r2[k]
+    return ends, pol, rms
+
+
+@njit
+def _refine_pass(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth, step_px, lens,
+                 iterations, f_px):  # pragma: no cover - compiled
+    """One pass of :func:`refine_undistorted` (no retry): the profiles and points
+    (:func:`_profile_points`), the lens (:func:`undistort_fixed_points`), the fit
+    (:func:`_fit_segments`)."""
+    n = s.shape[0]
+    pol, px, good = _profile_points(grey, s, offs, t, il, ir, ii, i0, i1, min_step,
+                                    min_depth, step_px)
+    xy = np.empty_like(px)
+    undistort_fixed_points(px, lens, iterations, xy)
+    ends = xy[:2 * n].copy().reshape(n, 4)
+    rms = np.full(n, np.nan)
+    _fit_segments(xy[2 * n:].copy(), good, ends, rms, f_px, OUTLIER_FLOOR_PX, OUTLIER_SIGMAS,
+                  MIN_FIT_POINTS)
     return ends, pol, rms
 
 
@@ -614,8 +683,10 @@ def _warm() -> None:
     g = np.full((40, 60), 50, np.uint8)
     g[:, 30:] = 200
     cam = CameraModel.pinhole(60, 40, 50.0)
-    refine_undistorted(cam, g, np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]]))
+    segs = np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]])
+    refine_undistorted(cam, g, segs)
+    lens = CameraModel.pinhole(60, 40, 50.0, dist=[0.1, 0, 0, 0, 0])
+    refine_undistorted(lens, g, segs)         # the one compiled call (_refine_fixed)
     refine_chords(cam, g, np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]]))
     px = arr(np.zeros((1, 2)), np.float64)
-    undistort_fixed_points(px, CameraModel.pinhole(60, 40, 50.0, dist=[0.1, 0, 0, 0, 0]).lens[1],
-                           10, np.empty((1, 2)))
+    undistort_fixed_points(px, lens.lens[1], 10, np.empty((1, 2)))

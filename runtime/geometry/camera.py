@@ -414,6 +414,14 @@ def undistort_points(px, code, lens, out):  # pragma: no cover - compiled
             out[n, 0], out[n, 1] = _undistort_fisheye(u, v, fx, fy, cx, cy, k)
 
 
+def fixed_iterations(camera: CameraModel) -> int:
+    """How many iterations :func:`undistort_fixed_points` takes for ``camera`` when
+    :func:`unproject_many` inverts its lens there (a distorted polynomial lens whose
+    border it reprojects to within tolerance); 0: it does not (a compiled caller then
+    goes through :func:`unproject_many`)."""
+    return _FAST_ITERATIONS if _fast_unproject_ok(camera) else 0
+
+
 def unproject_many(camera: CameraModel, points_px: np.ndarray) -> np.ndarray:
     """:meth:`CameraModel.unproject_fast` ``(N, 2)`` of pixels ``(N, 2)``: where it takes
     OpenCV's fixed iterations, in a compiled loop (:func:`undistort_fixed_points`, the
@@ -649,5 +657,5 @@ def subpixel_rays(camera: CameraModel, ss: int) -> np.ndarray:
 
 
 __all__ = ["CameraModel", "DISTORTION_MODELS", "LENS_EQUIDISTANT", "LENS_LINEAR",
-           "LENS_POLYNOMIAL", "distort_points", "magnification_points", "subpixel_rays",
-           "undistort_fixed_points", "undistort_points", "unproject_many"]
+           "LENS_POLYNOMIAL", "distort_points", "fixed_iterations", "magnification_points",
+           "subpixel_rays", "undistort_fixed_points", "undistort_points", "unproject_many"]

@@ -36,7 +36,6 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.base import (
     Estimate,
     Estimator,
-    Failure,
     PoseEstimate,
     elapsed_ms,
 )
@@ -53,8 +52,8 @@ from ceilkit.runtime.estimators.corridor.hypotheses import (
     LabelContext,
     Labeling,
     Unresolved,
+    best_labeling,
     dominant_pans,
-    label,
 )
 from ceilkit.runtime.estimators.corridor.refine import (
     GNInputs,
@@ -94,6 +93,21 @@ from ceilkit.runtime.geometry.shutter import row_times_s
 
 MIN_LENGTH_SHARE = 0.04
 """The default shortest segment, as a share of the image width."""
+
+COARSE_FACTOR = 2
+"""The coarse search's decimation (``coarse_search``)."""
+COARSE_MIN_MPX = 0.25
+"""The coarse search runs on frames of at least this many megapixels (640x480 is 0.31):
+a smaller frame decimated by 2 leaves seams and lamp ends too few pixels."""
+COARSE_HALF_WIDTH_PX = 4.0
+"""The edge fit's profile half-width (full-resolution px) after the coarse search: the
+full-resolution one (a segment found at half resolution lies within about a pixel of
+its edge; the wider :func:`~ceilkit.runtime.features.lines.edge_half_width_px` of 10
+reaches the pipe beside a lamp edge: on the clutter frames it published poses 0.7-0.9 m
+off where 4 px does not)."""
+COARSE_MIN_QUALITY = 0.5
+"""A coarse search's pose below this quality (or its failure) is searched again at full
+resolution: a published valid pose (``quality >= 0.5``) comes from either search."""
 
 REMEASURE_PX = 1.0
 """A tracked fit that moves the predicted lines further than this (px) is searched
@@ -153,6 +167,11 @@ class CorridorOptions(ShutterOptions):
             its prediction.
         track_full_every: a global search after this many tracked fixes (0: only when
             the check fails).
+        coarse_search: look for segments first on the frame decimated by 2 (a quarter of
+            the pixels), refit them on the full frame (the edge fit), and search the
+            full frame only when that gives no pose of quality >= 0.5. Only on
+            frames of 0.25 megapixels or more (640x480 and up) whose working resolution
+            is the full frame (``working_mpx``).
         working_mpx: a frame larger than this (megapixels) is searched for segments
             decimated by an integer factor (:mod:`~ceilkit.runtime.features.working`);
             the segments are refitted on the full frame with a profile half-width of
@@ -180,6 +199,7 @@ class CorridorOptions(ShutterOptions):
     track: bool = False
     track_search_px: float = 5.0
     track_full_every: int = 30
+    coarse_search: bool = True
     working_mpx: float = WORKING_MPX
     noise_px: float = 1.0
     misfit_alpha: float = DEFAULT_ALPHA
@@ -215,9 +235,14 @@ class CorridorEstimator(Estimator):
                             else float(o.match_tol_m))
         min_length_px = (MIN_LENGTH_SHARE * cam.width if o.min_length_px is None
                          else float(o.min_length_px))
+        factor = working_factor((cam.height, cam.width), o.working_mpx)
         self.detector = SegmentDetector(o.detector, min_length_px, rows=self.setup.rows,
-                                        merge=False, factor=working_factor(
-                                            (cam.height, cam.width), o.working_mpx))
+                                        merge=False, factor=factor)
+        self.coarse_detector = (
+            SegmentDetector(o.detector, min_length_px, rows=self.setup.rows, merge=False,
+                            factor=COARSE_FACTOR)
+            if o.coarse_search and factor == 1 and cam.width * cam.height >= COARSE_MIN_MPX * 1e6
+            else None)
         self.angle_tol_rad = math.radians(o.angle_tol_deg)
         check_options(o)
         self.extent = SiteExtent.from_site(site)
@@ -235,17 +260,32 @@ class CorridorEstimator(Estimator):
         line-shift hypotheses when the frame alone cannot. Failure reasons besides the
         frame check's: ``too_few_lines``, ``no_ceiling_lines``, ``no_association``,
         ``ambiguous``."""
-        o = self.options
         if self.lines_track is not None and prior is not None and prior.y_m is not None:
             fast = self._tracked(grey, t_ns, prior, t0)
             if fast is not None:
                 return fast
-        segs, len_px, pol, fit_rms = frame_segments(grey, self.rig.camera, self.detector,
-                                                    o.max_segments, o.refine, o.edge_fit)
+        if self.coarse_detector is not None:
+            out = self._global(grey, t_ns, prior, t0, "coarse")
+            if out and out.quality >= COARSE_MIN_QUALITY:
+                return out
+        return self._global(grey, t_ns, prior, t0, "full")
+
+    def _global(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None, t0: float,
+                search: str) -> Estimate:
+        """The global path: the frame's segments (``search`` ``coarse``: found on the
+        frame decimated by :data:`COARSE_FACTOR`, refitted over profiles
+        :data:`COARSE_HALF_WIDTH_PX` wide; ``full``: at the working resolution;
+        :func:`~.frame.frame_segments`), outside the ignore regions, to the estimate
+        (:meth:`_from_segments`)."""
+        o = self.options
+        coarse = search == "coarse"
+        segs, len_px, pol, fit_rms = frame_segments(
+            grey, self.rig.camera, self.coarse_detector if coarse else self.detector,
+            o.max_segments, o.refine, o.edge_fit, COARSE_HALF_WIDTH_PX if coarse else None)
         keep = None if self._ignore is None else self._ignore.keep_segments(segs, prior)
         if keep is not None:        # SPEC §2: nothing inside an ignore region is used
             segs, len_px, pol, fit_rms = segs[keep], len_px[keep], pol[keep], fit_rms[keep]
-        return self._from_segments(segs, len_px, t_ns, prior, fit_rms, pol, t0)
+        return self._from_segments(segs, len_px, t_ns, prior, fit_rms, pol, t0, search)
 
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
                  t0: float) -> Estimate | None:
@@ -267,7 +307,8 @@ class CorridorEstimator(Estimator):
         if found is not None and self.lines_track.shift_px(
                 found[4].psi_rad - psi, found[4].camera_y_m - cy) > REMEASURE_PX:
             found = self._window_fit(grey, found[4].psi_rad, found[4].camera_y_m, prior)
-        out = None if found is None else self._pose(t_ns, *found[1:], found[0].rms_px, t0)
+        out = (None if found is None
+               else self._pose(t_ns, *found[1:], found[0].rms_px, t0, "window"))
         if not out:                 # not found, or the model check failed: go global
             self._tracked_fixes = 0
             return None
@@ -308,13 +349,15 @@ class CorridorEstimator(Estimator):
         :func:`~ceilkit.runtime.features.lines.edge_polarity` (None: unknown)."""
         t0 = time.perf_counter() if t0 is None else t0
         segs, len_px, pol = undistorted(self.rig.camera, segs_px, polarity)
-        return self._from_segments(segs, len_px, int(t_ns), prior, fit_rms, pol, t0)
+        return self._from_segments(segs, len_px, int(t_ns), prior, fit_rms, pol, t0,
+                                   "segments")
 
     def _from_segments(self, segs: np.ndarray, len_px: np.ndarray, t_ns: int,
                        prior: PoseEstimate | None, fit_rms: np.ndarray | None,
-                       pol: np.ndarray, t0: float) -> Estimate:
+                       pol: np.ndarray, t0: float, search: str) -> Estimate:
         """The estimate from undistorted normalized segments ``(N, 4)``, their pixel
-        lengths ``(N,)`` and polarities ``(N,)``."""
+        lengths ``(N,)`` and polarities ``(N,)``; ``search`` names where the segments
+        came from (the ``search`` diagnostic: ``coarse``, ``full``, ``segments``)."""
         n_seg = segs.shape[0]
         fit_rms = np.zeros(n_seg) if fit_rms is None else fit_rms
         if n_seg < 2:
@@ -326,7 +369,7 @@ class CorridorEstimator(Estimator):
         if not pans:
             return self.fail(t_ns, "no_ceiling_lines", "no dominant ceiling direction",
                              n_segments=n_seg, segments_n=segs)
-        best = self._best_labeling(pans, fr, prior)
+        best = best_labeling(pans, fr, prior, self._ctx)
         if best is None:
             return self.fail(t_ns, "too_few_lines",
                              "fewer than two forward ceiling lines could be associated",
@@ -335,7 +378,7 @@ class CorridorEstimator(Estimator):
             return self.fail(t_ns, best.reason, best.detail, n_segments=n_seg,
                              segments_n=segs)
         best, gd, fit = self._fit_labeling(fr, best, prior)
-        return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0)
+        return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0, search)
 
     def _rates(self, prior: PoseEstimate | None) -> RowRates | None:
         """A rolling shutter's rates (:func:`~ceilkit.runtime.estimators.rows.row_motion`
@@ -385,28 +428,11 @@ class CorridorEstimator(Estimator):
         v_px = self.rig.camera.distort(fr.segs.reshape(-1, 2))[:, 1].reshape(-1, 2)
         return row_times_s(v_px, self.rig.camera.height, self.options.readout_ms / 1e3)
 
-    def _best_labeling(self, pans: list[float], fr: FrameLines, prior: PoseEstimate | None
-                       ) -> Labeling | Unresolved | None:
-        """The best-scoring labeling over the pan candidates ``pans`` (with a prior, the
-        one nearest it first, mod 90 deg); the first that matches two site lines wins."""
-        prior_psi = None if prior is None else prior.yaw_rad + self.setup.pan_rad
-        if prior_psi is not None:
-            pans = sorted(pans, key=lambda p: abs(math.remainder(p - prior_psi, np.pi / 2)))
-        best = None
-        for psi0 in pans:
-            cand = label(psi0, fr, prior, prior_psi, self._ctx)
-            if cand is None:
-                continue
-            if best is None or cand.score > best.score:
-                best = cand
-            if isinstance(best, Labeling) and best.n_lines >= 2:
-                break
-        return best
-
     def _pose(self, t_ns: int, fr: FrameLines, best: Labeling, gd: GNInputs,
-              fit: PanOffsetFit, fit_rms: np.ndarray, t0: float) -> Estimate:
+              fit: PanOffsetFit, fit_rms: np.ndarray, t0: float, search: str) -> Estimate:
         """The pose, its quality and diagnostics from the refined fit, or the Failure of
-        the first model check it does not pass (:meth:`_model_check`)."""
+        the first model check it does not pass (:func:`model_failure`); ``search``: the
+        ``search`` diagnostic (``window`` on the tracked path)."""
         yaw, y_m, cov = vehicle_pose(fit, self.setup)
         along, across = best.along, best.across
         vl = vanishing_line_check(fr.lines, fr.len_n, along, across, self.setup.R_level_cam)
@@ -433,6 +459,7 @@ class CorridorEstimator(Estimator):
             "camera_y_m": fit.camera_y_m,
             "ambiguous": bool(best.ambiguous),
             "hypothesis": best.how,
+            "search": search,
             "heading_change_deg": math.degrees(wrap_pi(fit.psi_rad - best.psi_rad)),
             "spread": span * self.setup.f_px / self.rig.camera.width,
             **vl, **mf.diagnostics(),
@@ -441,55 +468,49 @@ class CorridorEstimator(Estimator):
             "segments_n": fr.segs, "along": along, "across": across, "assign": best.assign,
             "ms": elapsed_ms(t0),
         }
-        failed = self._model_check(mf, diag, y_m, t_ns)
+        failed = model_failure(self.options, self.extent, mf, diag, y_m)
         if failed is not None:
-            return failed
+            return self.fail(t_ns, *failed, **diag)
         if mf.inflation != 1.0:
             cov = cov * mf.inflation
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(np.clip(quality, 0, 1)),
                             y_m - self.setup.axis_y_m, cov, diag)
 
-    def _model_check(self, mf: Misfit, diag: dict[str, Any], y_m: float,
-                     t_ns: int) -> Failure | None:
-        """Whether the model explains the frame (docs/methods/honesty.md): the Failure
-        of the first check that fails, in this order: ``misfit`` (chi-square of the
-        residuals against ``noise_px``), ``vanishing_line`` (the free vanishing points
-        against the calibrated mount), ``heading_disagrees`` (refined against
-        vanishing-point heading), ``weak_geometry`` (site lines matched, spread),
-        ``outside_site``; None when all pass."""
-        o = self.options
-        if not mf.passed:
-            return self.fail(t_ns, MISFIT, mf.detail(), **diag)
-        for key, what, most in (
-                ("vp_along_elevation_deg", "the forward vanishing point is",
-                 o.max_vp_elevation_deg),
-                ("vanishing_line_residual_deg", "the vanishing line is",
-                 o.max_vanishing_line_deg)):
-            v = diag[key]
-            if math.isfinite(v) and abs(v) > most:
-                return self.fail(t_ns, VANISHING_LINE,
-                                 f"{what} {abs(v):.1f} deg off the calibrated mount's "
-                                 f"vanishing line (at most {most:g}): the mount's tilt and "
-                                 f"swing are wrong, or the lines are not the site's", **diag)
-        change = abs(diag["heading_change_deg"])
-        if change > o.max_heading_change_deg:
-            return self.fail(t_ns, HEADING_DISAGREES,
-                             f"the refinement moved the heading {change:.1f} deg from the "
-                             f"vanishing point's (at most {o.max_heading_change_deg:g})",
-                             **diag)
-        if diag["n_lines_matched"] < o.min_lines or diag["spread"] < o.min_spread:
-            off = diag["n_off_ceiling"]
-            return self.fail(t_ns, WEAK_GEOMETRY,
-                             f"{diag['n_lines_matched']} site lines matched (at least "
-                             f"{o.min_lines}), spanning {diag['spread']:.2f} of the image "
-                             f"width (at least {o.min_spread:g})"
-                             + (f"; {off} forward segments off the site's ceiling lines "
-                                f"(pipes, trays: lines at another height?)" if off else ""),
-                             **diag)
-        out = outside_site(self.extent, None, y_m, o.site_margin_m)
-        if out is not None:
-            return self.fail(t_ns, OUTSIDE_SITE, out, **diag)
-        return None
+
+def model_failure(o: CorridorOptions, extent: SiteExtent, mf: Misfit,
+                  diag: Mapping[str, Any], y_m: float) -> tuple[str, str] | None:
+    """Whether the model explains the frame (docs/methods/honesty.md): ``(reason,
+    detail)`` of the first check that fails, in this order: ``misfit`` (chi-square of
+    the residuals against ``noise_px``), ``vanishing_line`` (the free vanishing points
+    against the calibrated mount), ``heading_disagrees`` (refined against
+    vanishing-point heading), ``weak_geometry`` (site lines matched, spread),
+    ``outside_site``; None when all pass."""
+    if not mf.passed:
+        return MISFIT, mf.detail()
+    for key, what, most in (
+            ("vp_along_elevation_deg", "the forward vanishing point is",
+             o.max_vp_elevation_deg),
+            ("vanishing_line_residual_deg", "the vanishing line is",
+             o.max_vanishing_line_deg)):
+        v = diag[key]
+        if math.isfinite(v) and abs(v) > most:
+            return VANISHING_LINE, (f"{what} {abs(v):.1f} deg off the calibrated mount's "
+                                    f"vanishing line (at most {most:g}): the mount's tilt "
+                                    f"and swing are wrong, or the lines are not the site's")
+    change = abs(diag["heading_change_deg"])
+    if change > o.max_heading_change_deg:
+        return HEADING_DISAGREES, (f"the refinement moved the heading {change:.1f} deg from "
+                                   f"the vanishing point's (at most "
+                                   f"{o.max_heading_change_deg:g})")
+    if diag["n_lines_matched"] < o.min_lines or diag["spread"] < o.min_spread:
+        off = diag["n_off_ceiling"]
+        return WEAK_GEOMETRY, (f"{diag['n_lines_matched']} site lines matched (at least "
+                               f"{o.min_lines}), spanning {diag['spread']:.2f} of the image "
+                               f"width (at least {o.min_spread:g})"
+                               + (f"; {off} forward segments off the site's ceiling lines "
+                                  f"(pipes, trays: lines at another height?)" if off else ""))
+    out = outside_site(extent, None, y_m, o.site_margin_m)
+    return None if out is None else (OUTSIDE_SITE, out)
 
 
 def _median_finite(a: np.ndarray) -> float:

@@ -63,17 +63,20 @@ def undistorted(camera: CameraModel, segs_px: np.ndarray, polarity: np.ndarray |
 
 
 def frame_segments(grey: np.ndarray, camera: CameraModel, detector: SegmentDetector,
-                   max_segments: int, refine: bool, edge_fit: bool
+                   max_segments: int, refine: bool, edge_fit: bool,
+                   half_width_px: float | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A frame's segments: ``(segs (N, 4) undistorted normalized, len_px (N,),
     polarity (N,), fit_rms (N,) px)``. With ``edge_fit`` each segment is refitted on
     its located edge points in undistorted coordinates and its kind measured
-    (:func:`~ceilkit.runtime.features.lines.refine_undistorted`); without, only the
-    endpoints are undistorted and the kind is unknown."""
+    (:func:`~ceilkit.runtime.features.lines.refine_undistorted`, over profiles
+    ``half_width_px`` wide each side; None: ``edge_half_width_px(detector.factor)``);
+    without, only the endpoints are undistorted and the kind is unknown."""
     segs_px, fit_rms = detect(grey, detector, max_segments, refine)
     if not edge_fit or segs_px.shape[0] < 2:
         return (*undistorted(camera, segs_px, None), fit_rms)
-    hw = edge_half_width_px(detector.factor)        # wider after a decimated search
+    # wider after a decimated search, unless told
+    hw = edge_half_width_px(detector.factor) if half_width_px is None else float(half_width_px)
     segs_n, pol, rms = refine_undistorted(camera, grey, segs_px, half_width_px=hw,
                                           retry_half_width_px=1.5 * hw)
     fit_rms = np.where(np.isfinite(rms), rms, fit_rms)

@@ -328,6 +328,26 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
     return chosen, how
 
 
+def best_labeling(pans: list[float], fr: FrameLines, prior: PoseEstimate | None,
+                  ctx: LabelContext) -> Labeling | Unresolved | None:
+    """The best-scoring labeling (:func:`label`) over the pan candidates ``pans``
+    (with a prior, the one nearest it first, mod 90 deg); the first that matches two
+    site lines wins."""
+    prior_psi = None if prior is None else prior.yaw_rad + ctx.setup.pan_rad
+    if prior_psi is not None:
+        pans = sorted(pans, key=lambda p: abs(math.remainder(p - prior_psi, np.pi / 2)))
+    best = None
+    for psi0 in pans:
+        cand = label(psi0, fr, prior, prior_psi, ctx)
+        if cand is None:
+            continue
+        if best is None or cand.score > best.score:
+            best = cand
+        if isinstance(best, Labeling) and best.n_lines >= 2:
+            break
+    return best
+
+
 def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
           prior_psi: float | None, ctx: LabelContext) -> Labeling | Unresolved | None:
     """The families about pan candidate ``psi0_rad``, the forward one and the lateral

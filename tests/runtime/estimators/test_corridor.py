@@ -470,6 +470,51 @@ def test_clutter_frames(rig, site):
         assert abs(math.degrees(wrap_pi(r.yaw_rad - yaw))) < 0.1 and abs(r.y_m - y) < 0.01
 
 
+def test_coarse_search_falls_back_to_full_resolution(rig, site):
+    """The first clutter frame (beside the wall, pipes along it): the coarse search
+    (segments found on the frame decimated by 2, refitted on the full frame) matches the
+    wrong lateral shift, 0.7 m off, at a quality below 0.5; the estimator then searches
+    the full frame and publishes the right pose. On the other clutter frames the coarse
+    search's pose is the one published."""
+    import time
+
+    from ceilkit.runtime.estimators.corridor.estimator import COARSE_MIN_QUALITY
+
+    rng = np.random.default_rng(6)
+    est = CorridorEstimator(rig, site)
+    assert est.coarse_detector is not None and est.coarse_detector.factor == 2
+    searches = []
+    for k, (x, y, yaw) in enumerate(((0.465, 0.731, 0.68), (2.188, -0.719, -0.639),
+                                     (0.9, 0.676, 0.617), (1.5, 0.0, 0.3))):
+        img = sim.render_frame(rig, site, x, y, yaw, sim.SimOptions(clutter=True), rng)
+        r = est.estimate(img, 0)
+        assert r and abs(r.y_m - y) < 0.01, r
+        searches.append(r.diagnostics["search"])
+        if k == 0:
+            coarse = est._global(img, 0, None, time.perf_counter(), "coarse")
+            assert not coarse or coarse.quality < COARSE_MIN_QUALITY
+            assert not coarse or abs(coarse.y_m - y) > 0.5     # what the fallback avoids
+    assert searches == ["full", "coarse", "coarse", "coarse"]
+
+
+def test_coarse_search_only_where_it_applies(rig, site):
+    """Off by option, on frames below 0.25 Mpx and where the working resolution is
+    already decimated; the full-resolution search then labels its poses ``full``."""
+    assert CorridorEstimator(rig, site, {"coarse_search": "false"}).coarse_detector is None
+    small = rig.__class__(rig.camera.scaled(320, 240), rig.mount)
+    assert CorridorEstimator(small, site).coarse_detector is None
+    big = rig.__class__(rig.camera.scaled(1920, 1440), rig.mount)
+    est = CorridorEstimator(big, site)
+    assert est.detector.factor == 2 and est.coarse_detector is None
+    x, y, yaw = 1.0, 0.1, 0.2
+    img = sim.render_frame(rig, site, x, y, yaw, rng=np.random.default_rng(1))
+    r = CorridorEstimator(rig, site, {"coarse_search": False}).estimate(img, 0)
+    assert r and r.diagnostics["search"] == "full"
+    r2 = CorridorEstimator(rig, site).estimate(img, 0)
+    assert r2 and r2.diagnostics["search"] == "coarse"
+    assert abs(r2.y_m - y) < 1e-3 and abs(r.y_m - y) < 1e-3
+
+
 def test_a_prior_the_frames_missing_lines_contradict_gives_ambiguous(rig, site):
     """Beside the wall, with its clutter, on a 960x720 frame: a prior 1 cm off picks
     the true lateral shift (two seams matched), the runner-up three seams over pairs

@@ -67,7 +67,7 @@ def seen():
         lambda cam, g, s, half_width_px, retry_half_width_px: (cam, g, s, half_width_px,
                                                                retry_half_width_px))
     spy(cest, "dominant_pans", "pans", lambda q, w: (q, w))
-    spy(cest, "label", "label", lambda *a: a)
+    spy(hypotheses, "label", "label", lambda *a: a)
     spy(cest, "consensus_fit", "fit",
         lambda fr, lab, st, inlier_px, solve, iterations, rates, tau:
         (fr, lab, st, inlier_px, iterations))
@@ -304,6 +304,27 @@ def test_refine_undistorted_equals_the_array_reading(seen):
         for g, wv in zip(got, want, strict=True):
             np.testing.assert_array_equal(np.isnan(g), np.isnan(wv))
             np.testing.assert_allclose(g, wv, rtol=0, atol=1e-12)
+
+
+def test_refine_undistorted_one_call_equals_its_stages(seen, monkeypatch):
+    """The edge fit in one compiled call (``_refine_fixed``, a lens inverted by fixed
+    iterations, the retry inside) gives the numbers of its stages called one by one
+    (the path of any other lens), bit for bit, on the frames' segments."""
+    from ceilkit.runtime.features import lines
+
+    out, _ = seen
+    cases = out["refine"]
+    assert lines.fixed_iterations(cases[0][0]) > 0
+    fused = [refine_undistorted(c, g, s, half_width_px=h, retry_half_width_px=r)
+             for c, g, s, h, r in cases]
+    monkeypatch.setattr(lines, "fixed_iterations", lambda camera: 0)
+    for (c, g, s, h, r), got in zip(cases, fused, strict=True):
+        want = refine_undistorted(c, g, s, half_width_px=h, retry_half_width_px=r)
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert any(np.isnan(refine_undistorted(c, g, s, half_width_px=h,
+                                           retry_half_width_px=None)[1]).any()
+               for c, g, s, h, r in cases)          # the retry had rows to look at
 
 
 @pytest.mark.skipif("*AVX2" not in cv2.getCPUFeaturesLine(),
