@@ -473,8 +473,9 @@ class CorridorEstimator(Estimator):
             return self.fail(t_ns, *failed, **diag)
         if mf.inflation != 1.0:
             cov = cov * mf.inflation
-        return PoseEstimate(int(t_ns), self.name, None, y_m, yaw, float(np.clip(quality, 0, 1)),
-                            y_m - self.setup.axis_y_m, cov, diag)
+        return PoseEstimate(int(t_ns), self.name, None, y_m, yaw,
+                            min(max(float(quality), 0.0), 1.0), y_m - self.setup.axis_y_m,
+                            cov, diag)
 
 
 def model_failure(o: CorridorOptions, extent: SiteExtent, mf: Misfit,
