@@ -11,7 +11,7 @@ from lights_reference import centres, locate, plausible
 
 from ceilkit.runtime.estimators.lights.rays import ceiling_points
 from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
-from ceilkit.runtime.estimators.lights.track import MAX_HALF_PX, WindowTracker
+from ceilkit.runtime.estimators.lights.track import MAX_HALF_PX, TRACK_CORE, WindowTracker
 from ceilkit.runtime.features.spots import rows_to_spots
 from ceilkit.runtime.features.windows import window_stats
 from ceilkit.runtime.geometry.fits import short_median
@@ -64,7 +64,7 @@ def predict(w: WindowTracker, x_m: float, y_m: float, yaw_rad: float):
 
 
 def measure(w: WindowTracker, grey: np.ndarray, corner: np.ndarray, half: int):
-    rows, good, contrast = window_stats(grey, corner, 2 * half + 1)
+    rows, good, contrast = window_stats(grey, corner, 2 * half + 1, core=TRACK_CORE)
     good &= contrast >= w.min_contrast
     spots = rows_to_spots(rows, corner.shape[0])
     tab = w.observer.grid(spots.centroids_px)

@@ -46,7 +46,7 @@ CORE = 0.4
 
 
 def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
-                 rect: np.ndarray | None = None
+                 rect: np.ndarray | None = None, core: float = CORE
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The spot of every window.
 
@@ -58,6 +58,7 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
         rect: ``(K, 4)`` int ``(x0, y0, x1, y1)`` (inclusive, window coordinates):
             the spot's pixels are looked for there only (its region's box; the rest of
             the window is background and neighbours); ``None``: the whole window.
+        core: the centroid weights count from ``I_b + core (I_o - I_b)``.
 
     Returns:
         ``(rows (K, 8), ok (K,), contrast (K,))``: rows ``(u, v, I_o, I_b, c00, c01,
@@ -73,7 +74,7 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
     k = corner.shape[0]
     r = (arr(rect, np.int64).reshape(-1, 4) if rect is not None
          else np.tile(np.array([0, 0, side - 1, side - 1], np.int64), (k, 1)))
-    out = _read_windows(grey, corner, side, r, CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX,
+    out = _read_windows(grey, corner, side, r, float(core), FLAT_MIN_AREA_PX, _FLAT_ERODE_PX,
                         _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN)
     i_b, peak, area, i_o = out[:, 0], out[:, 1], out[:, 2], out[:, 4]
     touches = out[:, 3] > 0
