@@ -191,7 +191,8 @@ def has_option(est_cls_options, name: str) -> bool:
 DETECTOR_VARIANTS = (("detector=lsd", {"detector": "lsd"}), ("detector=ed", {"detector": "ed"}),
                      ("detector=hough", {"detector": "hough"}),
                      ("full-resolution search only", {"coarse_search": False}))
-"""``--detectors``: the corridor's global path with each other line detector."""
+"""``--detectors``: the corridor's global path with each other line detector (the
+coarse search first, as by default), and with the full-frame search alone."""
 
 
 def entries(data: Data, detectors: bool = False) -> list[Entry]:

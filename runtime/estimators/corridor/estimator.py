@@ -103,8 +103,8 @@ COARSE_HALF_WIDTH_PX = 4.0
 """The edge fit's profile half-width (full-resolution px) after the coarse search: the
 full-resolution one (a segment found at half resolution lies within about a pixel of
 its edge; the wider :func:`~ceilkit.runtime.features.lines.edge_half_width_px` of 10
-reaches the pipe beside a lamp edge: on the clutter frames it published poses 0.7-0.9 m
-off where 4 px does not)."""
+reaches the pipe beside a lamp edge: on the first clutter frame it published a pose 0.7 m
+off, 0.9 m at 6 px, where 4 px does not)."""
 COARSE_MIN_QUALITY = 0.5
 """A coarse search's pose below this quality (or its failure) is searched again at full
 resolution: a published valid pose (``quality >= 0.5``) comes from either search."""
@@ -169,9 +169,11 @@ class CorridorOptions(ShutterOptions):
             the check fails).
         coarse_search: look for segments first on the frame decimated by 2 (a quarter of
             the pixels), refit them on the full frame (the edge fit), and search the
-            full frame only when that gives no pose of quality >= 0.5. Only on
-            frames of 0.25 megapixels or more (640x480 and up) whose working resolution
-            is the full frame (``working_mpx``).
+            full frame only when that gives no pose of quality >= 0.5. Only with
+            ``edge_fit`` (the refit is what makes the coarse segments exact), on frames
+            of 0.25 megapixels or more whose working resolution is the full frame
+            (``working_mpx`` > 0 and the frame below about 2.25 times it: 640x480 to
+            1920x1080 at the default).
         working_mpx: a frame larger than this (megapixels) is searched for segments
             decimated by an integer factor (:mod:`~ceilkit.runtime.features.working`);
             the segments are refitted on the full frame with a profile half-width of
@@ -241,7 +243,8 @@ class CorridorEstimator(Estimator):
         self.coarse_detector = (
             SegmentDetector(o.detector, min_length_px, rows=self.setup.rows, merge=False,
                             factor=COARSE_FACTOR)
-            if o.coarse_search and factor == 1 and cam.width * cam.height >= COARSE_MIN_MPX * 1e6
+            if (o.coarse_search and o.edge_fit and o.working_mpx > 0 and factor == 1
+                and cam.width * cam.height >= COARSE_MIN_MPX * 1e6)
             else None)
         self.angle_tol_rad = math.radians(o.angle_tol_deg)
         check_options(o)
@@ -268,15 +271,17 @@ class CorridorEstimator(Estimator):
             out = self._global(grey, t_ns, prior, t0, "coarse")
             if out and out.quality >= COARSE_MIN_QUALITY:
                 return out
+            return self._global(grey, t_ns, prior, t0, "fallback")
         return self._global(grey, t_ns, prior, t0, "full")
 
     def _global(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None, t0: float,
                 search: str) -> Estimate:
         """The global path: the frame's segments (``search`` ``coarse``: found on the
         frame decimated by :data:`COARSE_FACTOR`, refitted over profiles
-        :data:`COARSE_HALF_WIDTH_PX` wide; ``full``: at the working resolution;
-        :func:`~.frame.frame_segments`), outside the ignore regions, to the estimate
-        (:meth:`_from_segments`)."""
+        :data:`COARSE_HALF_WIDTH_PX` wide; ``full``: at the working resolution, and
+        ``fallback`` the same after a coarse search that gave no pose of quality
+        :data:`COARSE_MIN_QUALITY`; :func:`~.frame.frame_segments`), outside the
+        ignore regions, to the estimate (:meth:`_from_segments`)."""
         o = self.options
         coarse = search == "coarse"
         segs, len_px, pol, fit_rms = frame_segments(
@@ -357,26 +362,27 @@ class CorridorEstimator(Estimator):
                        pol: np.ndarray, t0: float, search: str) -> Estimate:
         """The estimate from undistorted normalized segments ``(N, 4)``, their pixel
         lengths ``(N,)`` and polarities ``(N,)``; ``search`` names where the segments
-        came from (the ``search`` diagnostic: ``coarse``, ``full``, ``segments``)."""
+        came from (the ``search`` diagnostic: ``coarse``, ``full``, ``fallback``,
+        ``segments``), on failures too."""
         n_seg = segs.shape[0]
         fit_rms = np.zeros(n_seg) if fit_rms is None else fit_rms
         if n_seg < 2:
             return self.fail(t_ns, "too_few_lines", f"{n_seg} line segments found",
-                             n_segments=n_seg)
+                             n_segments=n_seg, search=search)
         fr = frame_lines(segs, pol, self.setup, self.angle_tol_rad, self.options.inlier_px)
         qxy = np.hypot(fr.q[:, 0], fr.q[:, 1])
         pans = dominant_pans(fr.q, len_px * np.minimum(1.0, qxy / HORIZONTAL_NORMAL))
         if not pans:
             return self.fail(t_ns, "no_ceiling_lines", "no dominant ceiling direction",
-                             n_segments=n_seg, segments_n=segs)
+                             n_segments=n_seg, segments_n=segs, search=search)
         best = best_labeling(pans, fr, prior, self._ctx)
         if best is None:
             return self.fail(t_ns, "too_few_lines",
                              "fewer than two forward ceiling lines could be associated",
-                             n_segments=n_seg, segments_n=segs)
+                             n_segments=n_seg, segments_n=segs, search=search)
         if isinstance(best, Unresolved):
             return self.fail(t_ns, best.reason, best.detail, n_segments=n_seg,
-                             segments_n=segs)
+                             segments_n=segs, search=search)
         best, gd, fit = self._fit_labeling(fr, best, prior)
         return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0, search)
 

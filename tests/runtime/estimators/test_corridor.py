@@ -471,11 +471,13 @@ def test_clutter_frames(rig, site):
 
 
 def test_coarse_search_falls_back_to_full_resolution(rig, site):
-    """The first clutter frame (beside the wall, pipes along it): the coarse search
-    (segments found on the frame decimated by 2, refitted on the full frame) matches the
-    wrong lateral shift, 0.7 m off, at a quality below 0.5; the estimator then searches
-    the full frame and publishes the right pose. On the other clutter frames the coarse
-    search's pose is the one published."""
+    """The coarse search (segments found on the frame decimated by 2, refitted on the
+    full frame) and its fallback to the full frame. Clutter frames beside the wall: on
+    the first the coarse search fails and the full search's right pose stands (the
+    ``fallback``); on the others the coarse search's pose is published. Two more
+    frames beside the wall where the coarse search's pose has a quality below 0.5:
+    0.9 m off (the full search then fails its model check: nothing is published), and
+    right (the full search publishes it at a quality of 0.5 or more)."""
     import time
 
     from ceilkit.runtime.estimators.corridor.estimator import COARSE_MIN_QUALITY
@@ -484,23 +486,35 @@ def test_coarse_search_falls_back_to_full_resolution(rig, site):
     est = CorridorEstimator(rig, site)
     assert est.coarse_detector is not None and est.coarse_detector.factor == 2
     searches = []
-    for k, (x, y, yaw) in enumerate(((0.465, 0.731, 0.68), (2.188, -0.719, -0.639),
-                                     (0.9, 0.676, 0.617), (1.5, 0.0, 0.3))):
+    for x, y, yaw in ((0.465, 0.731, 0.68), (2.188, -0.719, -0.639), (0.9, 0.676, 0.617),
+                      (1.5, 0.0, 0.3)):
         img = sim.render_frame(rig, site, x, y, yaw, sim.SimOptions(clutter=True), rng)
         r = est.estimate(img, 0)
         assert r and abs(r.y_m - y) < 0.01, r
         searches.append(r.diagnostics["search"])
-        if k == 0:
-            coarse = est._global(img, 0, None, time.perf_counter(), "coarse")
-            assert not coarse or coarse.quality < COARSE_MIN_QUALITY
-            assert not coarse or abs(coarse.y_m - y) > 0.5     # what the fallback avoids
-    assert searches == ["full", "coarse", "coarse", "coarse"]
+    assert searches == ["fallback", "coarse", "coarse", "coarse"]
+    opts = sim.SimOptions(clutter=True, noise_sigma=2.0, blur_px=0.8)
+    for seed, (x, y, yaw), wrong in ((3, (1.292, 0.748, 0.687), True),
+                                     (57, (1.307, 0.656, 0.668), False)):
+        img = sim.render_frame(rig, site, x, y, yaw, opts, np.random.default_rng(seed))
+        coarse = est._global(img, 0, None, time.perf_counter(), "coarse")
+        assert coarse and coarse.quality < COARSE_MIN_QUALITY
+        assert (abs(coarse.y_m - y) > 0.5) == wrong
+        r = est.estimate(img, 0)
+        assert r.diagnostics["search"] == "fallback"
+        if wrong:
+            assert not r, r                     # not the coarse search's wrong pose
+        else:
+            assert r and r.quality >= COARSE_MIN_QUALITY and abs(r.y_m - y) < 0.002
 
 
 def test_coarse_search_only_where_it_applies(rig, site):
-    """Off by option, on frames below 0.25 Mpx and where the working resolution is
+    """Off by option, without the edge fit (nothing would refit the coarse segments),
+    with ``working_mpx=0``, on frames below 0.25 Mpx and where the working resolution is
     already decimated; the full-resolution search then labels its poses ``full``."""
     assert CorridorEstimator(rig, site, {"coarse_search": "false"}).coarse_detector is None
+    assert CorridorEstimator(rig, site, {"edge_fit": False}).coarse_detector is None
+    assert CorridorEstimator(rig, site, {"working_mpx": 0}).coarse_detector is None
     small = rig.__class__(rig.camera.scaled(320, 240), rig.mount)
     assert CorridorEstimator(small, site).coarse_detector is None
     big = rig.__class__(rig.camera.scaled(1920, 1440), rig.mount)

@@ -313,8 +313,10 @@ def test_refine_undistorted_one_call_equals_its_stages(seen, monkeypatch):
     from ceilkit.runtime.features import lines
 
     out, _ = seen
-    cases = out["refine"]
-    assert lines.fixed_iterations(cases[0][0]) > 0
+    cam, grey, segs = out["refine"][0][:3]
+    cases = out["refine"] + [(cam, grey, segs, 4.0, None), (cam, grey, segs, 4.0, 3.0),
+                             (cam, grey, segs[:1], 10.0, 15.0), (cam, grey, segs[:0], 4.0, 6.0)]
+    assert lines.fixed_iterations(cam) > 0
     fused = [refine_undistorted(c, g, s, half_width_px=h, retry_half_width_px=r)
              for c, g, s, h, r in cases]
     monkeypatch.setattr(lines, "fixed_iterations", lambda camera: 0)
