@@ -401,25 +401,14 @@ def _refine_fixed(grey, s, offs, t, il, ir, ii, i0, i1, offs2, t2, il2, ir2, ii2
     """:func:`refine_undistorted` for a lens :func:`unproject_many` inverts in its
     compiled loop, in one call: ``(segs_n (N, 4), polarity (N,), rms (N,))``; the rows
     of unclear kind measured again on the second grid when ``retry``."""
-    n = s.shape[0]
     ends, pol, rms = _refine_pass(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
                                   step_px, lens, iterations, f_px)
-    if not retry:
+    rows = np.flatnonzero(np.isnan(pol))
+    if not retry or rows.size == 0:
         return ends, pol, rms
-    n_unclear = 0
-    for r in range(n):
-        n_unclear += math.isnan(pol[r])
-    if n_unclear == 0:
-        return ends, pol, rms
-    rows = np.empty(n_unclear, np.int64)
-    k = 0
-    for r in range(n):
-        if math.isnan(pol[r]):
-            rows[k] = r
-            k += 1
     e2, p2, r2 = _refine_pass(grey, s[rows], offs2, t2, il2, ir2, ii2, i0_2, i1_2, min_step,
                               min_depth, step_px, lens, iterations, f_px)
-    for k in range(n_unclear):
+    for k in range(rows.size):
         if math.isfinite(p2[k]):
             r = rows[k]
             ends[r, :] = e2[k, :]
@@ -433,16 +422,26 @@ def _refine_pass(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth, step
     """One pass of :func:`refine_undistorted` (no retry): the profiles and points
     (:func:`_profile_points`), the lens (:func:`undistort_fixed_points`), the fit
     (:func:`_fit_segments`)."""
-    n = s.shape[0]
     pol, px, good = _profile_points(grey, s, offs, t, il, ir, ii, i0, i1, min_step,
                                     min_depth, step_px)
     xy = np.empty_like(px)
     undistort_fixed_points(px, lens, iterations, xy)
+    ends, rms = _ends_and_fit(xy, good, f_px)
+    return ends, pol, rms
+
+
+@njit
+def _ends_and_fit(xy, good, f_px):  # pragma: no cover - compiled
+    """``(ends (N, 4), rms (N,))`` of undistorted points ``xy (2N + K, 2)`` (the
+    segments' endpoints, then the K located points of ``good (N, A)``): the endpoints
+    projected on each segment's fitted line (:func:`_fit_segments`; NaN rms where not
+    refitted)."""
+    n = good.shape[0]
     ends = xy[:2 * n].copy().reshape(n, 4)
     rms = np.full(n, np.nan)
     _fit_segments(xy[2 * n:].copy(), good, ends, rms, f_px, OUTLIER_FLOOR_PX, OUTLIER_SIGMAS,
                   MIN_FIT_POINTS)
-    return ends, pol, rms
+    return ends, rms
 
 
 def refine_chords(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
@@ -455,12 +454,9 @@ def refine_chords(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
     (:func:`~ceilkit.runtime.geometry.camera.undistort_points`). Returns
     ``(segs_n, polarity, rms_px)`` as :func:`refine_undistorted`."""
     s = arr(segs_px, np.float64).reshape(-1, 4)
-    offs, t, inner = edge_grid(n_along, half_width_px)
-    il, ir, ii = part_indices(offs)
-    return _refine_core(arr(gray, np.uint8), s, arr(offs, np.float64), arr(t, np.float64),
-                        arr(il, np.int64), arr(ir, np.int64), arr(ii, np.int64),
-                        inner.start + 1, inner.stop + 1, float(min_step), float(min_depth),
-                        *camera.lens, 0.5 * (camera.fx + camera.fy))
+    return _refine_core(arr(gray, np.uint8), s, *_grid(n_along, half_width_px),
+                        float(min_step), float(min_depth), *camera.lens,
+                        0.5 * (camera.fx + camera.fy))
 
 
 @njit
@@ -498,10 +494,7 @@ def _refine_core(grey, chords, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
     px = _stack_points(chords, pts, good)
     xy = np.empty_like(px)
     undistort_points(px, lens_code, lens, xy)
-    ends = xy[:2 * n].copy().reshape(n, 4)
-    rms = np.full(n, np.nan)
-    _fit_segments(xy[2 * n:].copy(), good, ends, rms, f_px, OUTLIER_FLOOR_PX, OUTLIER_SIGMAS,
-                  MIN_FIT_POINTS)
+    ends, rms = _ends_and_fit(xy, good, f_px)
     return ends, pol, rms
 
 
@@ -687,6 +680,6 @@ def _warm() -> None:
     refine_undistorted(cam, g, segs)
     lens = CameraModel.pinhole(60, 40, 50.0, dist=[0.1, 0, 0, 0, 0])
     refine_undistorted(lens, g, segs)         # the one compiled call (_refine_fixed)
-    refine_chords(cam, g, np.array([[30.0, 5.0, 30.0, 35.0], [10.0, 5.0, 12.0, 35.0]]))
+    refine_chords(cam, g, segs)
     px = arr(np.zeros((1, 2)), np.float64)
     undistort_fixed_points(px, lens.lens[1], 10, np.empty((1, 2)))

@@ -77,15 +77,15 @@ from ceilkit.runtime.jit import arr, njit, warmer
 TRACK_CORE = 0.6
 """A window's centroid weights count from ``I_b + TRACK_CORE (I_o - I_b)``. A window's
 ``I_o`` is the mean above half way from its border to its peak, higher than the global
-detector's region mean, so the global detector's 0.4 (:data:`~ceilkit.runtime.features.
-windows.CORE`) took in more of the halo there: on bench_paired's lights drive (300
-frames, prior 1 cm / 0.1 deg off) the window fix's position median/p95 was 0.288/0.550
-mm with 0.4 against the global path's 0.256/0.478 (mean y error -0.169 against
--0.141); with 0.5 0.236/0.445, 0.6 0.211/0.437, 0.7 0.218/0.474, 0.8 0.259/0.536. On
-the 17 bench_realistic lights cases (tracked) 0.6 against 0.4 was better or equal in
-15 (fixtures 0.23 against 0.63 mm, flicker 0.21 against 0.35, windows 0.17 against
-0.28), worse in people (0.19 against 0.17) and in jpeg's yaw (0.0030 against 0.0028
-deg)."""
+detector's region mean, so the global detector's 0.4
+(:data:`~ceilkit.runtime.features.windows.CORE`) took in more of the halo there: on
+bench_paired's lights drive (300 frames, prior 1 cm / 0.1 deg off) the window fix's
+position median/p95 was 0.288/0.550 mm with 0.4 against the global path's 0.256/0.478
+(mean y error -0.169 against -0.141); with 0.5 0.236/0.445, 0.6 0.211/0.437, 0.7
+0.218/0.474, 0.8 0.259/0.536. On the 17 bench_realistic lights cases (tracked) 0.6
+against 0.4 was better or equal in 15 (fixtures 0.23 against 0.63 mm, flicker 0.21
+against 0.35, windows 0.17 against 0.28), worse in people (0.19 against 0.17) and in
+jpeg's yaw (0.0030 against 0.0028 deg)."""
 
 MAX_HALF_PX = 40
 """A window is at most ``2 MAX_HALF_PX + 1`` pixels wide (large spots near the nadir)."""
