@@ -24,7 +24,7 @@ result, or the one estimate), and wheel odometry rows at any time
   covariance (:func:`~ceilkit.runtime.geometry.ekf.prob_within_radius`);
 * ``method`` of a published pose: the method whose fix observed most in that frame
   (while coasting on the motion model, ``diagnostics["coasting"]``, the last such
-  method: ``auto`` before any), ``diagnostics["cues"]`` every method applied.
+  method: ``auto`` before any), ``diagnostics["applied"]`` every method applied.
 """
 
 from __future__ import annotations
@@ -40,11 +40,11 @@ from typing import Any
 import numpy as np
 
 from ceilkit.runtime.estimators.base import (
-    INCREMENT,
     Estimate,
     Failure,
     PlaneIncrement,
     PoseEstimate,
+    Provenance,
 )
 from ceilkit.runtime.geometry import ekf
 from ceilkit.runtime.geometry.rotations import wrap_pi
@@ -56,7 +56,6 @@ HOLD_MPS = 0.0005
 the next row's own noise covers the motion again (ekf's 0.002 over-covered x by ~11 mm
 over 30 s of odometry alone: mean NEES 1.94 -> 2.82, bench_fusion)."""
 UNKNOWN_X_VAR = 1e6      # m²: x of a track started by the corridor method alone
-UNAMBIGUOUS_MODES = ("global",)  # a lights fix found with no help from the prior
 YAW_PERIOD = "yaw_period_rad"
 """``diagnostics`` key of a heading-only cue whose heading is known modulo this period
 (heading from parallels: pi, or pi/2 on a square grid)."""
@@ -225,7 +224,7 @@ class _Fix:
 
     @property
     def unambiguous(self) -> bool:
-        return self.full and self.cue.diagnostics.get("mode", "global") in UNAMBIGUOUS_MODES
+        return self.full and self.cue.singled_out
 
 
 def measurement(cue: PoseEstimate, options: FusionOptions) -> _Fix | None:
@@ -352,7 +351,7 @@ class Fusion:
         if self._f is None or self._wheels(t_ns):
             return
         for c in cues:
-            inc = c.diagnostics.get(INCREMENT) if c.diagnostics else None
+            inc = c.increment
             if isinstance(inc, PlaneIncrement):
                 self._f.add(_Event(t_ns, "odo", ((inc.dx_m, inc.dy_m, inc.dyaw_rad),
                                                  np.asarray(inc.cov, float), False,
@@ -399,7 +398,7 @@ class Fusion:
         """Fuse one frame's estimate(s); returns what to publish."""
         t = int(est.t_ns)
         self._drain(t)
-        cues = est.diagnostics.get("cues", (est,))
+        cues = est.cues or (est,)
         self._plane_increments(t, cues)
         fixes = [m for c in cues if isinstance(c, PoseEstimate)
                  if (m := measurement(c, self.options)) is not None]
@@ -418,7 +417,7 @@ class Fusion:
             fix = self._candidates[-1]
             self._restart(t, fix)
             relocalized, used = True, [fix.cue.method]
-        diag: dict[str, Any] = {"cues": tuple(used), "pending": len(self._candidates)}
+        diag: dict[str, Any] = {"applied": tuple(used), "pending": len(self._candidates)}
         if used:
             self._method = used[0]
         diag["coasting"] = not used

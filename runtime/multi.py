@@ -4,7 +4,7 @@
 :func:`~ceilkit.runtime.estimators.registry.site_methods` with the same prior (the
 fusion's track when it is confident: the cheap tracked path; none when it is not: the
 lights/block global search) and returns the best-determined estimate with every
-method's result in ``diagnostics["cues"]``, which :class:`~ceilkit.runtime.fusion.Fusion`
+method's result in its ``cues``, which :class:`~ceilkit.runtime.fusion.Fusion`
 fuses.
 
 :func:`make_localizer` builds the estimator and its tracker for a ``--method``:
@@ -70,11 +70,10 @@ class AutoEstimator:
     def estimate(self, image: np.ndarray, t_ns: int,
                  prior: PoseEstimate | None = None) -> Estimate:
         """Each method's estimate; the one that observes most is returned, with all of
-        them as ``diagnostics["cues"]``."""
+        them as its ``cues``."""
         cues = tuple(e.estimate(image, t_ns, prior) for e in self.estimators)
         best = max(cues, key=_observes)
-        return dataclasses.replace(best, diagnostics=MappingProxyType(
-            {**best.diagnostics, "cues": cues}))
+        return dataclasses.replace(best, cues=cues)
 
 
 def _observes(est: Estimate) -> int:

@@ -24,6 +24,7 @@ Convention: the pose is the vehicle's in W (SPEC §1): ``x_m, y_m`` metres,
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 import time
 import types
@@ -47,83 +48,9 @@ def _empty() -> Mapping[str, Any]:
 
 
 @dataclass(frozen=True, eq=False)
-class PoseEstimate:
-    """A vehicle pose from one frame.
-
-    Attributes:
-        t_ns: capture time of the frame (integer nanoseconds).
-        method: the estimator's name (``corridor``, ``paper-corridor``, ``lights``, ...).
-        x_m, y_m: position in W, ``None`` where unobserved.
-        yaw_rad: heading in W.
-        lateral_m: signed offset left of the corridor's centre line, or ``None``.
-        quality: confidence in [0, 1].
-        cov: 3x3 covariance of ``(x, y, yaw)`` (m², rad²); unobserved terms are inf.
-        diagnostics: method-specific figures (residuals, counts), for logs and reports.
-        velocity: ``(vx m/s, vy m/s, yaw rate rad/s)`` in W, or ``None``: what a track's
-            prediction (the estimators' prior) knows of the motion; an estimator uses
-            it for the rows of a rolling-shutter frame (``readout_ms``,
-            :mod:`~ceilkit.runtime.geometry.shutter`). A velocity the track does not
-            observe (x on the corridor method alone) is 0.
-    """
-
-    t_ns: int
-    method: str
-    x_m: float | None
-    y_m: float | None
-    yaw_rad: float
-    quality: float
-    lateral_m: float | None = None
-    cov: np.ndarray | None = None
-    diagnostics: Mapping[str, Any] = field(default_factory=_empty)
-    velocity: tuple[float, float, float] | None = None
-
-    def __bool__(self) -> bool:
-        return True
-
-    @property
-    def ok(self) -> bool:
-        return True
-
-    @property
-    def yaw_deg(self) -> float:
-        return math.degrees(self.yaw_rad)
-
-
-@dataclass(frozen=True)
-class Failure:
-    """A frame the method could not estimate. Falsy.
-
-    Attributes:
-        reason: a short stable code (``too_few_lines``, ``blank_frame``, ``ambiguous``, ...).
-        detail: one human sentence.
-    """
-
-    t_ns: int
-    method: str
-    reason: str
-    detail: str = ""
-    diagnostics: Mapping[str, Any] = field(default_factory=_empty)
-
-    def __bool__(self) -> bool:
-        return False
-
-    @property
-    def ok(self) -> bool:
-        return False
-
-
-Estimate = PoseEstimate | Failure
-
-
-INCREMENT = "increment"
-"""``diagnostics`` key of an estimate carrying a ceiling-plane odometry increment: a
-:class:`PlaneIncrement` (any method's estimator may emit one; the fusion consumes it)."""
-
-
-@dataclass(frozen=True, eq=False)
 class PlaneIncrement:
     """The vehicle's motion measured by the camera between two frames (ceiling-plane
-    odometry), carried by an estimate (pose or Failure) as ``diagnostics["increment"]``.
+    odometry), carried by an estimate (pose or Failure) as its ``increment``.
 
     Attributes:
         t0_ns: the earlier frame's capture time (the estimate's ``t_ns`` is the later's).
@@ -136,6 +63,148 @@ class PlaneIncrement:
     dy_m: float
     dyaw_rad: float
     cov: np.ndarray
+
+
+class Provenance(enum.Enum):
+    """How an estimate's pose was singled out (typed: modules never read it from
+    ``diagnostics``).
+
+    * ``GLOBAL``: by this frame alone, with no help from a prior: the frame rules out
+      every other pose (relocalization evidence);
+    * ``PRIOR``: the frame supports several poses (``hypotheses``) and the prior chose
+      the one in its basin: right only if the prior is;
+    * ``WINDOW``: a local search about the prior (the tracked fast path);
+    * ``START``: a start pose given by the user (``--start-pose``, ``/initialpose``);
+    * ``TRACK``: a track's (tracker's or fusion's) output, from several frames.
+    """
+
+    GLOBAL = "global"
+    PRIOR = "prior"
+    WINDOW = "window"
+    START = "start"
+    TRACK = "track"
+
+
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    """One vehicle pose a frame supports (SPEC §1: metres, radians, W).
+
+    Attributes:
+        x_m, y_m: position, ``None`` where unobserved (the corridor method's x).
+        yaw_rad: heading.
+        cov: ``(3, 3)`` covariance of ``(x, y, yaw)``; unobserved terms inf; or None.
+        weight: the hypothesis' share of the frame's likelihood, in [0, 1]: the
+            hypotheses of one estimate sum to 1.
+        label: what makes it a twin of the others (``half_turn``, ``shift +0.60 m``,
+            ``quarter_turn``, ``cell (3.05, 0.00)``): for logs and the site check.
+    """
+
+    x_m: float | None
+    y_m: float | None
+    yaw_rad: float
+    cov: np.ndarray | None = None
+    weight: float = 1.0
+    label: str = ""
+
+    @property
+    def yaw_deg(self) -> float:
+        return math.degrees(self.yaw_rad)
+
+
+@dataclass(frozen=True, eq=False)
+class PoseEstimate:
+    """A vehicle pose from one frame.
+
+    Attributes:
+        t_ns: capture time of the frame (integer nanoseconds).
+        method: the estimator's name (``corridor``, ``paper-corridor``, ``lights``, ...).
+        x_m, y_m: position in W, ``None`` where unobserved.
+        yaw_rad: heading in W.
+        lateral_m: signed offset left of the corridor's centre line, or ``None``.
+        quality: confidence in [0, 1].
+        cov: 3x3 covariance of ``(x, y, yaw)`` (m², rad²); unobserved terms are inf.
+        diagnostics: method-specific figures (residuals, counts), for logs and reports
+            only: no module reads another module's keys (the typed fields below carry
+            what crosses a module boundary).
+        velocity: ``(vx m/s, vy m/s, yaw rate rad/s)`` in W, or ``None``: what a track's
+            prediction (the estimators' prior) knows of the motion; an estimator uses
+            it for the rows of a rolling-shutter frame (``readout_ms``,
+            :mod:`~ceilkit.runtime.geometry.shutter`). A velocity the track does not
+            observe (x on the corridor method alone) is 0.
+        provenance: how the pose was singled out (:class:`Provenance`).
+        hypotheses: every pose the frame supports, the published one first; empty
+            means the pose itself is the only one (an unambiguous fix). A pose with
+            ``PRIOR`` provenance carries the twins the prior ruled out.
+        cues: ``--method auto``: every method's estimate of the frame.
+        increment: ceiling-plane odometry since the previous frame, or None.
+    """
+
+    t_ns: int
+    method: str
+    x_m: float | None
+    y_m: float | None
+    yaw_rad: float
+    quality: float
+    lateral_m: float | None = None
+    cov: np.ndarray | None = None
+    diagnostics: Mapping[str, Any] = field(default_factory=_empty)
+    velocity: tuple[float, float, float] | None = None
+    provenance: Provenance = Provenance.GLOBAL
+    hypotheses: tuple[Hypothesis, ...] = ()
+    cues: tuple[Any, ...] = ()
+    increment: PlaneIncrement | None = None
+
+    def __bool__(self) -> bool:
+        return True
+
+    @property
+    def ok(self) -> bool:
+        return True
+
+    @property
+    def yaw_deg(self) -> float:
+        return math.degrees(self.yaw_rad)
+
+    @property
+    def singled_out(self) -> bool:
+        """Whether this frame alone ruled out every other pose (a global fix with no
+        twin): what may start or move a track with no other evidence."""
+        return self.provenance is Provenance.GLOBAL and len(self.hypotheses) <= 1
+
+    def as_hypothesis(self) -> Hypothesis:
+        return Hypothesis(self.x_m, self.y_m, self.yaw_rad, self.cov, 1.0)
+
+
+@dataclass(frozen=True)
+class Failure:
+    """A frame the method could not estimate. Falsy.
+
+    Attributes:
+        reason: a short stable code (``too_few_lines``, ``blank_frame``, ``ambiguous``, ...).
+        detail: one human sentence.
+        hypotheses: for ``ambiguous``, the poses the frame supports equally (each with
+            its covariance and weight): a multi-hypothesis fusion keeps them.
+        cues, increment: as :class:`PoseEstimate`'s.
+    """
+
+    t_ns: int
+    method: str
+    reason: str
+    detail: str = ""
+    diagnostics: Mapping[str, Any] = field(default_factory=_empty)
+    hypotheses: tuple[Hypothesis, ...] = ()
+    cues: tuple[Any, ...] = ()
+    increment: PlaneIncrement | None = None
+
+    def __bool__(self) -> bool:
+        return False
+
+    @property
+    def ok(self) -> bool:
+        return False
+
+
+Estimate = PoseEstimate | Failure
 
 
 # -- failure reasons: stable codes, counted by the runtime and sent on the link ----------
@@ -326,9 +395,11 @@ class Estimator(ABC):
         """The estimate from a checked ``(H, W)`` uint8 frame; ``t0`` is
         ``time.perf_counter()`` at entry (for the ``ms`` diagnostic)."""
 
-    def fail(self, t_ns: int, reason: str, detail: str, **diagnostics: Any) -> Failure:
-        """A :class:`Failure` of this method."""
-        return Failure(int(t_ns), self.name, reason, detail, MappingProxyType(diagnostics))
+    def fail(self, t_ns: int, reason: str, detail: str,
+             hypotheses: tuple[Hypothesis, ...] = (), **diagnostics: Any) -> Failure:
+        """A :class:`Failure` of this method (``hypotheses``: an ambiguous frame's)."""
+        return Failure(int(t_ns), self.name, reason, detail, MappingProxyType(diagnostics),
+                       tuple(hypotheses))
 
 
 def elapsed_ms(t0: float) -> float:

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from ceilkit.runtime.estimators.base import Failure, PoseEstimate
+from ceilkit.runtime.estimators.lights.estimator import PROVENANCE
 from ceilkit.runtime.fusion import Fusion, FusionOptions, measurement
 from ceilkit.runtime.geometry.ekf import chi2_quantile
 
@@ -14,7 +15,7 @@ COV = np.diag([1e-6, 1e-6, 1e-6])
 
 def _lights(k, x, y, yaw=0.0, mode="tracked", cov=COV):
     return PoseEstimate(k * DT, "lights", x, y, yaw, 0.8, None, cov,
-                        MappingProxyType({"mode": mode}))
+                        provenance=PROVENANCE[mode])
 
 
 def _corridor(k, y, yaw=0.0):
@@ -25,7 +26,7 @@ def _corridor(k, y, yaw=0.0):
 def _frame(*cues):
     first = cues[0]
     return PoseEstimate(first.t_ns, first.method, first.x_m, first.y_m, first.yaw_rad, 0.5,
-                        None, first.cov, MappingProxyType({"cues": cues}))
+                        None, first.cov, cues=cues)
 
 
 def test_measurement_rows_follow_what_the_cue_observes():
@@ -67,7 +68,7 @@ def test_corridor_and_lights_are_both_applied():
     fu = Fusion()
     for k in range(5):
         res = fu.update(_frame(_lights(k, 1.0, 0.1), _corridor(k, 0.1)))
-    assert res.estimate.diagnostics["cues"] == ("lights", "corridor")
+    assert res.estimate.diagnostics["applied"] == ("lights", "corridor")
     assert fu.contributions == {"lights": 5, "corridor": 5}
 
 
@@ -193,7 +194,7 @@ def test_set_start_pose_from_another_thread_resets_the_track_at_the_next_frame()
 
 
 def test_plane_increment_carries_the_pose_without_wheels():
-    from ceilkit.runtime.estimators.base import INCREMENT, PlaneIncrement
+    from ceilkit.runtime.estimators.base import PlaneIncrement
 
     fu = Fusion()
     fu.update(_lights(0, 0.0, 0.0))
@@ -201,7 +202,7 @@ def test_plane_increment_carries_the_pose_without_wheels():
     for k in range(1, 11):
         inc = PlaneIncrement((k - 1) * DT, 0.01, 0.0, 0.0, cov)
         res = fu.update(Failure(k * DT, "lights", "no_lights",
-                                diagnostics=MappingProxyType({INCREMENT: inc})))
+                                increment=inc))
     assert fu.plane_increments == 10
     assert res.estimate.x_m == pytest.approx(0.10, abs=2e-3)
 
@@ -209,14 +210,14 @@ def test_plane_increment_carries_the_pose_without_wheels():
 def test_plane_increment_replaces_the_motion_model_over_its_interval():
     """An increment measured from the previous frame is the whole motion since then:
     the constant-velocity model must not move the track over the same interval too."""
-    from ceilkit.runtime.estimators.base import INCREMENT, PlaneIncrement
+    from ceilkit.runtime.estimators.base import PlaneIncrement
 
     fu = Fusion()
     for k in range(5):                      # 0.03 m a frame: the track learns the speed
         fu.update(_lights(k, 0.03 * k, 0.0))
     inc = PlaneIncrement(4 * DT, 0.03, 0.0, 0.0, np.diag([1e-8, 1e-8, 1e-8]))
     res = fu.update(Failure(5 * DT, "block", "no_block",
-                            diagnostics=MappingProxyType({INCREMENT: inc})))
+                            increment=inc))
     assert res.estimate.x_m == pytest.approx(0.15, abs=2e-3)   # 0.18 when counted twice
 
 

@@ -37,7 +37,7 @@ from ceilkit.runtime.config.site import check_rig_site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import (
     AMBIGUOUS,
-    INCREMENT,
+    Provenance,
     Estimate,
     Estimator,
     EstimatorOptions,
@@ -229,8 +229,8 @@ class BlockEstimator(Estimator):
         inc = self._odo.increment(grey, t_ns, not fixed or gap, prior)
         if inc is None:
             return got
-        return dataclasses.replace(got, diagnostics={**got.diagnostics, INCREMENT: inc,
-                                                     "ms": elapsed_ms(t0)})
+        return dataclasses.replace(got, increment=inc,
+                                   diagnostics={**got.diagnostics, "ms": elapsed_ms(t0)})
 
     def _frame(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                t0: float) -> Estimate:
@@ -390,8 +390,11 @@ class BlockEstimator(Estimator):
         if best.resolved_by == "prior":
             quality = min(quality, 0.7)
         diag["ms"] = elapsed_ms(t0)
+        provenance = (Provenance.WINDOW if mode == WINDOW else Provenance.PRIOR
+                      if best.resolved_by == "prior" else Provenance.GLOBAL)
         return PoseEstimate(t_ns, self.name, float(pose[0]), float(pose[1]),
-                            wrap_pi(float(pose[2])), quality, cov=cov, diagnostics=diag)
+                            wrap_pi(float(pose[2])), quality, cov=cov, diagnostics=diag,
+                            provenance=provenance)
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
                resolved_by: str) -> _Fix | None:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
@@ -45,6 +46,7 @@ from ceilkit.runtime.estimators.base import (
     Estimator,
     EstimatorOptions,
     PoseEstimate,
+    Provenance,
     elapsed_ms,
 )
 from ceilkit.runtime.estimators.honesty import (
@@ -79,6 +81,15 @@ TRACK_MIN_SHARE = 0.6  # a prior is trusted when this share of the spots match n
 PRIOR_RESOLVE = (1.0, math.radians(20.0))  # (m, rad): a rival this near the prior wins
 SPOT_STAGES = ("windowed", "full")  # the spot stages (LightsOptions.spot_stage)
 OUTLIER_MEDIANS = 4.0  # a residual this many times the median (and > max_residual_px) is out
+
+
+PROVENANCE = MappingProxyType({
+    "global": Provenance.GLOBAL,          # the frame alone singled the pose out
+    "prior_resolved": Provenance.PRIOR,   # the prior chose among equally good poses
+    "tracked": Provenance.PRIOR,          # a local association about the prior
+    "window": Provenance.WINDOW,          # the window fix about the prior
+})
+"""The typed provenance of each of the method's ``mode`` diagnostics."""
 
 
 @dataclass(frozen=True)
@@ -298,7 +309,8 @@ class LightsEstimator(Estimator):
         out = outside_site(self.extent, x_m, y_m, o.site_margin_m)
         if out is not None:
             return self.fail(t_ns, OUTSIDE_SITE, out, **diag)
-        return PoseEstimate(t_ns, NAME, x_m, y_m, yaw_rad, quality, None, cov, diag)
+        return PoseEstimate(t_ns, NAME, x_m, y_m, yaw_rad, quality, None, cov, diag,
+                            provenance=PROVENANCE[diag.get("mode", "global")])
 
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
                  t0: float) -> PoseEstimate | None:

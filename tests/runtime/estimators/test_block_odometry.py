@@ -9,7 +9,7 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.base import INCREMENT, PlaneIncrement
+from ceilkit.runtime.estimators.base import PlaneIncrement
 from ceilkit.runtime.estimators.block.estimator import BlockEstimator
 from ceilkit.runtime.estimators.block.odometry import PlaneOdometry, corner_like, plane_motion
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
@@ -110,14 +110,14 @@ def test_block_estimator_carries_the_increment_without_a_fix_and_on_the_next_fix
     got = [est.estimate(render_frame(rig, s, x, 0.4, 0.0, opts), k * 33_000_000)
            for k, (s, x) in enumerate([(site, 0.6), (bare, 0.63), (bare, 0.66),
                                        (site, 0.69), (site, 0.72)])]
-    assert got[0].x_m is not None and INCREMENT not in got[0].diagnostics
-    inc = got[2].diagnostics[INCREMENT]
+    assert got[0].x_m is not None and got[0].increment is None
+    inc = got[2].increment
     assert isinstance(inc, PlaneIncrement) and inc.t0_ns == 33_000_000
     assert abs(inc.dx_m - 0.03) < 0.001 and abs(inc.dy_m) < 0.001
     assert got[3].x_m is not None and got[4].x_m is not None
-    inc = got[3].diagnostics[INCREMENT]
+    inc = got[3].increment
     assert inc.t0_ns == 66_000_000 and abs(inc.dx_m - 0.03) < 0.001
-    assert INCREMENT not in got[4].diagnostics
+    assert got[4].increment is None
 
 
 def test_tracks_spread_past_a_marker():
