@@ -30,6 +30,7 @@ result, or the one estimate), and wheel odometry rows at any time
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 from collections import Counter, deque
 from collections.abc import Mapping
@@ -75,7 +76,10 @@ class FusionOptions:
         odometry_timeout_s: odometry older than this no longer carries the motion.
         quality_radius_m: the radius of ``quality`` = P(position error < radius).
         unobserved_sigma_m: a coordinate whose 1σ exceeds this is published empty.
-        prior_sigma_m: the estimators get the track as a prior only below this 1σ.
+        prior_sigma_m: the estimators get the track's x and y as a prior only below this
+            1σ (each alone: a corridor-only track's y and heading without its x).
+        prior_sigma_rad: ... and its heading only below this 1σ (a prior chooses among
+            a frame's twins: a half turn, a quarter turn).
         fix_inflation: factor on an estimator's covariance (their fits are optimistic),
             for a method not in ``inflation``.
         inflation: the factor per method, measured (docs/fusion.md): the corridor's
@@ -102,6 +106,7 @@ class FusionOptions:
     quality_radius_m: float = 0.02
     unobserved_sigma_m: float = 1.0
     prior_sigma_m: float = 0.5
+    prior_sigma_rad: float = math.radians(20.0)
     fix_inflation: float = 2.0
     inflation: Mapping[str, float] = field(
         default_factory=lambda: MappingProxyType({"corridor": 1.0, "lights": 1.5}))
@@ -391,8 +396,15 @@ class Fusion:
         if self._lost(t_ns):
             return None
         pose = self._publish(self._f.node_at(t_ns), method, {}, velocity=True)
-        sig = max(np.sqrt(np.diag(np.asarray(pose.cov)[:2, :2])))
-        return pose if sig <= self.options.prior_sigma_m else None
+        sd = np.sqrt(np.diag(np.asarray(pose.cov)))
+        # a coordinate the track does not know (x of a corridor-only track) is left out
+        # of the prior rather than dropping the prior: its heading and y still choose
+        # between a frame's twins (a symmetric corridor's half turn)
+        x, y = (v if v is not None and s <= self.options.prior_sigma_m else None
+                for v, s in ((pose.x_m, sd[0]), (pose.y_m, sd[1])))
+        if y is None or sd[2] > self.options.prior_sigma_rad:
+            return None
+        return dataclasses.replace(pose, x_m=x, y_m=y, provenance=Provenance.TRACK)
 
     def update(self, est: Estimate) -> TrackResult:
         """Fuse one frame's estimate(s); returns what to publish."""
@@ -519,7 +531,8 @@ class Fusion:
                             float(n.s[2]), float(quality), None, cov,
                             MappingProxyType(diag),
                             tuple(float(v) for v in n.s[3:6])
-                            if velocity and self._velocity_known(n) else None)
+                            if velocity and self._velocity_known(n) else None,
+                            provenance=Provenance.TRACK)
 
     def _velocity_known(self, n: _Node) -> bool:
         """Whether the filter has measured its velocity: its 1-sigma well under the

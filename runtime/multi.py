@@ -100,7 +100,8 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
 
     Args:
         method: an estimator name, ``auto``, or ``None`` (the site's default method).
-        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (auto only).
+        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts: the track's
+            first prior, which chooses among the poses a frame supports alike.
         odometry: wheel odometry will be fed to the tracker (auto only).
         fusion: the fusion's options (default: :class:`FusionOptions` with the site's
             light spacing as ``cell_m``).
@@ -109,12 +110,10 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
     on the first frame.
 
     Raises:
-        ConfigError: a bad method, option, or a start pose with an explicit method.
+        ConfigError: a bad method or option.
     """
     if method != AUTO:
-        if start_pose is not None:
-            raise ConfigError(None, "start_pose", "a start pose needs --method auto")
-        out = _single(make_estimator(method, rig, site, options), site, fusion)
+        out = _single(make_estimator(method, rig, site, options), site, fusion, start_pose)
     else:
         auto = AutoEstimator(rig, site, options)
         if len(auto.estimators) == 1 and start_pose is None and not odometry:
@@ -126,13 +125,16 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
     return out
 
 
-def _single(est: Estimator, site: Site, fusion: FusionOptions | None
+def _single(est: Estimator, site: Site, fusion: FusionOptions | None,
+            start_pose: tuple[float, float, float] | None = None
             ) -> tuple[Estimator, Tracker | Fusion]:
     """One method and its tracker: the constant-velocity one, or the fusion for a
-    method emitting ceiling-plane odometry (it chains the increments between fixes)."""
+    method emitting ceiling-plane odometry (it chains the increments between fixes);
+    either starts from ``start_pose`` when given."""
     if not getattr(est.options, "plane_odometry", False):
-        return est, Tracker()
-    return est, Fusion(fusion or FusionOptions(cell_m=regular_spacing_m(site)))
+        return est, Tracker(start_pose=start_pose)
+    return est, Fusion(fusion or FusionOptions(cell_m=regular_spacing_m(site)),
+                       start_pose=start_pose)
 
 
 def parse_start_pose(text: str) -> tuple[float, float, float]:

@@ -59,11 +59,27 @@ class _State:
 class Tracker:
     """See the module docstring. ``predict`` gives the prior, ``update`` the verdict."""
 
-    def __init__(self, options: TrackerOptions | None = None):
+    def __init__(self, options: TrackerOptions | None = None,
+                 start_pose: tuple[float, float, float] | None = None):
         self.options = options or TrackerOptions()
         self._s: _State | None = None
         self._candidates: list[PoseEstimate] = []
         self.relocalizations = 0
+        self.start_poses = 0
+        self._start_pose = start_pose
+
+    def set_start_pose(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float,
+                       cov: object = None) -> None:
+        """(Re)start the track at ``(x_m, y_m, yaw_rad)`` in W as of ``t_ns`` (a
+        ``--start-pose`` or ROS ``/initialpose``): the estimators get it as their prior,
+        which chooses among the poses a frame supports alike (a symmetric corridor's
+        half turn, a light grid's cells). ``cov`` is accepted for the fusion's
+        interface; the tracker's gates are its own."""
+        if not all(math.isfinite(v) for v in (x_m, y_m, yaw_rad)):
+            raise ValueError("set_start_pose: the pose must be finite")
+        self._s = _State(int(t_ns), float(x_m), float(y_m), wrap_pi(float(yaw_rad)))
+        self._candidates = []
+        self.start_poses += 1
 
     @property
     def tracking(self) -> bool:
@@ -75,6 +91,9 @@ class Tracker:
 
     def predict(self, t_ns: int, method: str = "track") -> PoseEstimate | None:
         """The predicted vehicle pose at ``t_ns``, or ``None`` when not tracking."""
+        if self._start_pose is not None and self._s is None:
+            self.set_start_pose(t_ns, *self._start_pose)
+            self._start_pose = None
         s = self._s
         if s is None:
             return None
@@ -116,7 +135,6 @@ class Tracker:
         if pred is None:
             return self._start(est)
         s = self._s
-        assert s is not None
         dt = (est.t_ns - s.t_ns) * 1e-9
         if self._inside(est, pred, 0.0 if dt <= 0 else dt):
             self._candidates = []
@@ -134,7 +152,14 @@ class Tracker:
             s.x = est.x_m if est.x_m is not None else None
             s.y = est.y_m if est.y_m is not None else None
             return TrackResult(est)
-        # outside the gate: a glitch, or the vehicle really is elsewhere
+        # outside the gate: a glitch, or the vehicle really is elsewhere; only a pose the
+        # frame alone singled out may move the track (one a prior chose among twins
+        # proves nothing against the track)
+        if not est.singled_out:
+            return TrackResult(Failure(
+                est.t_ns, est.method, "gated",
+                f"pose away from the track ({_describe_jump(est, pred)}) and not singled "
+                "out by its frame", diagnostics={"rejected": est}))
         if self._candidates:
             last = self._candidates[-1]
             dtc = (est.t_ns - last.t_ns) * 1e-9

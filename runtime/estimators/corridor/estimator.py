@@ -36,7 +36,9 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.base import (
     Estimate,
     Estimator,
+    Hypothesis,
     PoseEstimate,
+    Provenance,
     elapsed_ms,
 )
 from ceilkit.runtime.estimators.corridor.consensus import consensus_fit
@@ -51,6 +53,7 @@ from ceilkit.runtime.estimators.corridor.geometry import vanishing_line_check
 from ceilkit.runtime.estimators.corridor.hypotheses import (
     LabelContext,
     Labeling,
+    Twin,
     Unresolved,
     best_labeling,
     dominant_pans,
@@ -185,6 +188,11 @@ class CorridorOptions(ShutterOptions):
             is predicted from the pose at its row's time, moved by the prior's yaw
             rate and lateral speed; their uncertainty is added to the covariance.
         min_contrast: (inherited) grey-level spread below which a frame is blank.
+        assume_heading_deg: what the user states of the vehicle's heading when the
+            frame cannot tell (a corridor symmetric about its centre line looks the
+            same driven either way): within 90 deg of this (degrees in W). A prior,
+            not evidence: a pose it chooses has ``Provenance.PRIOR``. None (the
+            default): such a frame is ``ambiguous`` unless a prior chooses.
     """
 
     detector: str = "fld"
@@ -211,6 +219,7 @@ class CorridorOptions(ShutterOptions):
     min_lines: int = 2
     min_spread: float = 0.1
     site_margin_m: float = 1.5
+    assume_heading_deg: float | None = None
 
 
 class CorridorEstimator(Estimator):
@@ -249,8 +258,11 @@ class CorridorEstimator(Estimator):
         self.angle_tol_rad = math.radians(o.angle_tol_deg)
         check_options(o)
         self.extent = SiteExtent.from_site(site)
-        self._ctx = LabelContext(self.setup, cam, self.angle_tol_rad, self.match_tol_m,
-                                 self.detector.min_length_px)
+        self._ctx = LabelContext(
+            self.setup, cam, self.angle_tol_rad, self.match_tol_m,
+            self.detector.min_length_px, across_seams=across_seams(site),
+            assume_heading_rad=(None if o.assume_heading_deg is None
+                                else math.radians(o.assume_heading_deg)))
         self.lines_track = (LineTracker(self.setup, cam, o.track_search_px) if o.track
                             else None)
         self._tracked_fixes = 0  # tracked fixes since the last global search
@@ -381,8 +393,9 @@ class CorridorEstimator(Estimator):
                              "fewer than two forward ceiling lines could be associated",
                              n_segments=n_seg, segments_n=segs, search=search)
         if isinstance(best, Unresolved):
-            return self.fail(t_ns, best.reason, best.detail, n_segments=n_seg,
-                             segments_n=segs, search=search)
+            return self.fail(t_ns, best.reason, best.detail,
+                             hypotheses=self._twin_hypotheses(best.twins, None),
+                             n_segments=n_seg, segments_n=segs, search=search)
         best, gd, fit = self._fit_labeling(fr, best, prior)
         return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0, search)
 
@@ -479,9 +492,51 @@ class CorridorEstimator(Estimator):
             return self.fail(t_ns, *failed, **diag)
         if mf.inflation != 1.0:
             cov = cov * mf.inflation
+        twins = self._twin_hypotheses(best.twins, cov)
+        provenance = (Provenance.WINDOW if search == "window" else
+                      Provenance.PRIOR if twins or best.ambiguous or "stated" in best.how
+                      else Provenance.GLOBAL)
+        if twins:
+            twins = (Hypothesis(None, y_m, yaw, cov, twins[0].weight, "chosen"),) + twins
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw,
                             min(max(float(quality), 0.0), 1.0), y_m - self.setup.axis_y_m,
-                            cov, diag)
+                            cov, diag, provenance=provenance, hypotheses=twins)
+
+    def _twin_hypotheses(self, twins: tuple[Twin, ...], cov: np.ndarray | None
+                         ) -> tuple[Hypothesis, ...]:
+        """The vehicle poses of labelings ``twins`` (camera pan and y in W), each with
+        ``cov`` (the chosen fit's; None: a labeling's 1-D gate as its sigma), weighted
+        alike (the frame supports them alike, the chosen one too)."""
+        if not twins:
+            return ()
+        st = self.setup
+        if cov is None:
+            cov = np.diag([np.inf, self.match_tol_m ** 2, math.radians(1.0) ** 2])
+        w = 1.0 / (len(twins) + (0 if twins[0].label == "chosen" else 1))
+        out = []
+        for t in twins:
+            yaw = wrap_pi(t.psi_rad - st.pan_rad)
+            y = t.camera_y_m - (math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1])
+            out.append(Hypothesis(None, float(y), float(yaw), cov, w, t.label))
+        return tuple(out)
+
+
+def across_seams(site: Site) -> bool:
+    """Whether the site's ``lines_across`` include seams (lines from wall to wall, as a
+    tile grid's), not only the ends of its lamps: then the families can swap under a
+    quarter turn with nothing in the frame's ceiling lengths to tell."""
+    across = site.corridor.lines_across
+    if across is None:
+        return False
+    s = across.spacing_m
+    for row in site.lamps:
+        # every grid line a lamp end: the lamps are one spacing long, one spacing apart
+        start = row.x_m - 0.5 * row.length_m
+        if (abs(math.remainder(start - across.first_m, s)) < 1e-6
+                and abs(row.length_m - s) < 1e-6
+                and (row.count == 1 or abs(row.pitch_m - row.length_m - s) < 1e-6)):
+            return False
+    return True
 
 
 def model_failure(o: CorridorOptions, extent: SiteExtent, mf: Misfit,

@@ -25,6 +25,7 @@ import numpy as np
 
 from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate
 from ceilkit.runtime.estimators.corridor.association import (
+    ABSENCE_PENALTY,
     OffsetMatch,
     anchors_core,
     compat_core,
@@ -39,6 +40,7 @@ from ceilkit.runtime.estimators.corridor.geometry import (
     across_offsets,
 )
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
+from ceilkit.runtime.estimators.corridor.visibility import lines_in_view
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.rotations import rot_z, wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -60,6 +62,11 @@ class LabelContext:
         setup: the rig on the site. camera: its camera model.
         angle_tol_rad: family gate about a vanishing point (first pass).
         match_tol_m: 1-D association gate. min_length_px: the detector's shortest.
+        across_seams: the site's ``lines_across`` are seams from wall to wall (a tile
+            grid), not only lamp ends: the families may swap (a quarter turn) without
+            the frame's ceiling lengths telling.
+        assume_heading_rad: a heading the user states the vehicle is within 90 deg of
+            (the ``assume_heading_deg`` option): a prior, never a frame's evidence.
     """
 
     setup: CorridorSetup
@@ -67,6 +74,8 @@ class LabelContext:
     angle_tol_rad: float
     match_tol_m: float
     min_length_px: float
+    across_seams: bool = False
+    assume_heading_rad: float | None = None
 
     @functools.cached_property
     def kernel_setup(self) -> tuple:
@@ -268,6 +277,8 @@ class Labeling:
             ``spacing``, ``paper_rule``, with ``+absence`` when absence settled).
         n_off_ceiling: forward segments the association matched that the pixel
             consensus left out (:mod:`.consensus`: at another height, or not the site's).
+        twins: the other labelings the frame supports as well (a half turn, a quarter
+            turn of a tile grid), ruled out by the prior or the stated heading.
     """
 
     score: tuple[int, float]
@@ -280,52 +291,141 @@ class Labeling:
     ambiguous: bool
     how: str
     n_off_ceiling: int = 0
+    twins: tuple[Twin, ...] = ()
+
+
+@dataclass(frozen=True)
+class Twin:
+    """A labeling the frame supports as well as the chosen one: the camera's pan and y
+    in W, and what makes it a twin (``half_turn``, ``quarter_turn``, ``shift``)."""
+
+    psi_rad: float
+    camera_y_m: float
+    label: str
 
 
 @dataclass(frozen=True)
 class Unresolved:
-    """A pan candidate whose labeling failed: a Failure reason and its detail."""
+    """A pan candidate whose labeling failed: a Failure reason and its detail (and,
+    for ``ambiguous``, every labeling the frame supports, the best first)."""
 
     score: tuple[int, float]
     reason: str
     detail: str
+    twins: tuple[Twin, ...] = ()
 
 
 def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
             lens: tuple[float, float], fr: FrameLines, prior: PoseEstimate | None,
-            prior_psi: float | None, ctx: LabelContext) -> tuple[Hypothesis, str]:
-    """The forward family's labeling about ``psi_rad`` and the rule that chose it
-    (``lens``: the families' summed ceiling lengths)."""
+            prior_psi: float | None, ctx: LabelContext
+            ) -> tuple[Hypothesis, str, list[tuple[Hypothesis, str]]]:
+    """The forward family's labeling about ``psi_rad``, the rule that chose it and its
+    rivals: the labelings the frame supports as well (``lens``: the families' summed
+    ceiling lengths). Nothing the frame cannot check decides between a labeling and
+    its rivals: the half turn is always examined (a corridor symmetric about its
+    centre line looks the same driven either way), the quarter turn where the site's
+    ``lines_across`` are seams (a tile grid); the prior, or the user's stated heading
+    (``assume_heading_rad``), then chooses."""
     la, lb = lens
+    cache: dict[int, Hypothesis] = {}
 
     def hyp(k: int) -> Hypothesis:
-        return hypothesis(k, psi_rad, along, across, fr, (la, lb), prior, ctx)
+        k %= 4
+        if k not in cache:
+            cache[k] = hypothesis(k, psi_rad, along, across, fr, (la, lb), prior, ctx)
+        return cache[k]
 
     if prior_psi is not None:
         k = min(range(4), key=lambda k: abs(wrap_pi(psi_rad + k * np.pi / 2 - prior_psi)))
-        return hyp(k), "prior"
-    # of psi + k 90 deg, two keep yaw in (-90, 90] (k and k + 2 are a half turn
-    # apart); the one whose forward family is longer on the ceiling first
-    pan = ctx.setup.pan_rad
-    ks = [k for k in range(4) if -np.pi / 2 < wrap_pi(psi_rad + k * np.pi / 2 - pan) <= np.pi / 2]
+        chosen = hyp(k)
+        return chosen, "prior", _rivals(chosen, hyp, fr, ctx)
+    # of psi + k 90 deg, two share a heading window of 180 deg (k and k + 2 are a half
+    # turn apart): the frame's evidence chooses the family (its ceiling length, the
+    # across grid), then the half turn is compared, never assumed
+    centre = ctx.setup.pan_rad + (ctx.assume_heading_rad or 0.0)
+    ks = [k for k in range(4)
+          if -np.pi / 2 < wrap_pi(psi_rad + k * np.pi / 2 - centre) <= np.pi / 2]
     ks.sort(key=lambda k: -(la if k % 2 == 0 else lb))
     first = hyp(ks[0])
     if len(ks) < 2 or first.len_a >= DECISIVE * first.len_b:
-        return first, "elongation"
-    cands = [first, hyp(ks[1])]
+        chosen, how = first, "elongation"
+    else:
+        cands = [first, hyp(ks[1])]
 
-    def frame_score(h: Hypothesis) -> tuple:
-        return (h.n_a + min(across_on_grid(h, fr, ctx), 2), h.elong)
+        def frame_score(h: Hypothesis) -> tuple:
+            return (h.n_a + min(across_on_grid(h, fr, ctx), 2), h.elong)
 
-    cands.sort(key=frame_score, reverse=True)
-    chosen, how = cands[0], "spacing"
-    if frame_score(cands[1])[0] == frame_score(chosen)[0]:
-        how = "elongation"
-        if abs(cands[1].elong - chosen.elong) < 1e-6:
-            # no evidence at all: the paper's rule, |pan| <= 45 deg
-            chosen = min(cands, key=lambda h: abs(h.psi_rad))
-            how = "paper_rule"
-    return chosen, how
+        cands.sort(key=frame_score, reverse=True)
+        chosen, how = cands[0], "spacing"
+        if frame_score(cands[1])[0] == frame_score(chosen)[0]:
+            how = "elongation"
+            if abs(cands[1].elong - chosen.elong) < 1e-6:
+                # no evidence between the families: a tile grid's quarter turn (a
+                # rival below where the site's across lines are seams)
+                chosen = min(cands, key=lambda h: abs(wrap_pi(h.psi_rad - centre)))
+                how = "nearest"
+    if ctx.assume_heading_rad is None:
+        twin = hyp(chosen.k + 2)
+        if _support(twin, fr, ctx) > _support(chosen, fr, ctx) / TWIN_RATIO:
+            chosen, how = twin, how + "+half_turn"    # the frame prefers the other way
+    rivals = _rivals(chosen, hyp, fr, ctx)
+    if ctx.assume_heading_rad is not None and rivals:
+        # the user's statement, not the frame, rules out the rivals beyond 90 deg of it
+        kept = [(h, lbl) for h, lbl in rivals
+                if abs(wrap_pi(h.psi_rad - centre)) < np.pi / 2 - 1e-9]
+        if len(kept) < len(rivals):
+            rivals, how = kept, how + "+stated"
+    return chosen, how, rivals
+
+
+TWIN_RATIO = 0.85
+"""A labeling whose support is at least this share of the chosen one's is its rival
+(the 1-D association's :data:`~.association.AMBIGUITY_RATIO`)."""
+
+
+def _support(h: Hypothesis, fr: FrameLines, ctx: LabelContext) -> float:
+    """How well labeling ``h`` explains the frame: its association's score (about the
+    site lines matched, discounted by misfit), less :data:`~.association.ABSENCE_PENALTY`
+    per site line it puts clearly in view that no forward segment lies on; where the
+    site's ``lines_across`` are seams, its across family off their grid counts against
+    it. 0 when it matches fewer than two segments."""
+    m = h.match
+    if m is None or m.n_lines < 1 or np.count_nonzero(m.assign >= 0) < 2:
+        return 0.0
+    score = m.score - ABSENCE_PENALTY * _missing(h, m.shift_m, ctx)
+    if ctx.across_seams and ctx.setup.across_spacing_m is not None:
+        score += 0.5 * min(across_on_grid(h, fr, ctx), 2)
+    return max(score, 0.0)
+
+
+def _missing(h: Hypothesis, shift_m: float, ctx: LabelContext) -> int:
+    """Site lines the labeling ``h`` at camera y ``shift_m`` puts clearly in view that
+    no forward segment of a fitting kind lies on."""
+    st = ctx.setup
+    view = lines_in_view(st, ctx.camera, ctx.min_length_px, h.psi_rad, (shift_m,))[0]
+    ok = np.isfinite(h.offsets_m)
+    seen = np.any((np.abs(h.offsets_m[ok][:, None] + shift_m - st.site_y[None, :])
+                   <= ctx.match_tol_m) & (h.compat[ok] > 0), axis=0)
+    return int(np.count_nonzero(view & ~seen))
+
+
+def _rivals(chosen: Hypothesis, hyp, fr: FrameLines, ctx: LabelContext
+            ) -> list[tuple[Hypothesis, str]]:
+    """The labelings that explain the frame as well as ``chosen`` (:func:`_support`
+    at least :data:`TWIN_RATIO` of its): its half turn, and its quarter turns where the
+    site's ``lines_across`` are seams."""
+    own = _support(chosen, fr, ctx)
+    if own <= 0.0:
+        return []
+    turns = [(2, "half_turn")]
+    if ctx.across_seams:
+        turns += [(1, "quarter_turn"), (3, "quarter_turn")]
+    out = []
+    for dk, lbl in turns:
+        h = hyp(chosen.k + dk)
+        if _support(h, fr, ctx) >= TWIN_RATIO * own:
+            out.append((h, lbl))
+    return out
 
 
 def best_labeling(pans: list[float], fr: FrameLines, prior: PoseEstimate | None,
@@ -361,7 +461,7 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
                                     across)
     if not ok:
         return None
-    chosen, how = _choose(psi, along, across, (la, lb), fr, prior, prior_psi, ctx)
+    chosen, how, rivals = _choose(psi, along, across, (la, lb), fr, prior, prior_psi, ctx)
     m = chosen.match
     if m is None or m.n_lines < 1 or np.count_nonzero(m.assign >= 0) < 2:
         return Unresolved((-1, 0.0), "no_association",
@@ -387,10 +487,19 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
                           f"{m.n_lines} forward lines fit two lateral positions "
                           f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose")
+    twins = tuple(Twin(h.psi_rad, h.match.shift_m, lbl) for h, lbl in rivals)
+    if ambiguous and m.runner_up is not None:
+        twins += (Twin(chosen.psi_rad, m.runner_up[2], "shift"),)
+    if rivals and (prior is None or prior.y_m is None) and how != "prior":
+        kinds = " and ".join(sorted({lbl.replace("_", " ") for _, lbl in rivals}))
+        return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
+                          f"the lines fit {len(rivals) + 1} headings equally well (a "
+                          f"{kinds}: the ceiling looks the same); no prior to choose",
+                          (Twin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
     assign = np.full(fr.q.shape[0], -1)
     assign[np.flatnonzero(chosen.fa)] = m.assign
     return Labeling((m.n_lines, m.weight), chosen.psi_rad, m.shift_m, chosen.fa, chosen.fb,
-                    assign, m.n_lines, ambiguous, how)
+                    assign, m.n_lines, ambiguous or bool(rivals), how, twins=twins)
 
 
 @njit

@@ -14,6 +14,12 @@ from ceilkit.runtime.sim.render import SimOptions, render_frame
 
 POSES = [(0.5, 0.1, 0.05), (1.7, -0.25, -0.12), (3.1, 0.3, 0.2)]
 
+HEADING = {"assume_heading_deg": 0.0}
+"""The packaged corridor is symmetric about its centre line: its accuracy tests state
+the heading, as a user may (a frame alone cannot tell it from the half turn)."""
+
+
+
 
 def frame(rig, site, x, y, yaw, seed):
     return render_frame(rig, site, x, y, yaw, rng=np.random.default_rng(seed),
@@ -31,7 +37,7 @@ def tracked(corridor_rig, corridor_site):
 
 
 def test_edge_searches_agree_with_the_global_path(corridor_rig, corridor_site, tracked):
-    glob = CorridorEstimator(corridor_rig, corridor_site)
+    glob = CorridorEstimator(corridor_rig, corridor_site, HEADING)
     for k, (x, y, yaw) in enumerate(POSES):
         img = frame(corridor_rig, corridor_site, x, y, yaw, k)
         g = glob.estimate(img, 0)
@@ -50,7 +56,7 @@ def test_a_prior_cm_off_does_not_pull_the_fix(corridor_rig, corridor_site, track
     part of the prior's error (bench_paired: lateral p95 7.5 mm against the global
     path's 0.27). A fit that moved the lines by more than REMEASURE_PX is searched again
     about itself: the fix is the global path's to a fraction of a millimetre."""
-    glob = CorridorEstimator(corridor_rig, corridor_site)
+    glob = CorridorEstimator(corridor_rig, corridor_site, HEADING)
     for k, (x, y, yaw) in enumerate(POSES):
         img = frame(corridor_rig, corridor_site, x, y, yaw, k)
         g = glob.estimate(img, 0)
@@ -60,7 +66,7 @@ def test_a_prior_cm_off_does_not_pull_the_fix(corridor_rig, corridor_site, track
 
 
 def test_noise_free_tracked_equals_global(corridor_rig, corridor_site, tracked):
-    glob = CorridorEstimator(corridor_rig, corridor_site)
+    glob = CorridorEstimator(corridor_rig, corridor_site, HEADING)
     clean = SimOptions(noise_sigma=0.0, blur_px=0.8)
     for k, (x, y, yaw) in enumerate(POSES):
         img = render_frame(corridor_rig, corridor_site, x, y, yaw,
@@ -83,7 +89,7 @@ def test_prediction_20_px_off_falls_back(corridor_rig, corridor_site, tracked, s
     cam_y = y + off_m + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
     assert tracked.lines_track.measure(img, yaw + st.pan_rad, cam_y) is None
     out = tracked.estimate(img, 0, prior(y + off_m, yaw))
-    g = CorridorEstimator(corridor_rig, corridor_site).estimate(img, 0, prior(y + off_m, yaw))
+    g = CorridorEstimator(corridor_rig, corridor_site, HEADING).estimate(img, 0, prior(y + off_m, yaw))
     assert out and out.diagnostics["hypothesis"] != "window"
     assert out.y_m == g.y_m and out.yaw_rad == g.yaw_rad
 
@@ -108,9 +114,9 @@ def test_blank_ceiling_finds_no_line(corridor_rig, corridor_site, tracked):
 def test_schedule_and_default_off(corridor_rig, corridor_site):
     x, y, yaw = POSES[2]
     img = frame(corridor_rig, corridor_site, x, y, yaw, 9)
-    est = CorridorEstimator(corridor_rig, corridor_site, {"track": True, "track_full_every": 2})
+    est = CorridorEstimator(corridor_rig, corridor_site, {**HEADING, "track": True, "track_full_every": 2})
     how = [est.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] for _ in range(6)]
     assert [h == "window" for h in how] == [True, True, False, True, True, False]
-    plain = CorridorEstimator(corridor_rig, corridor_site)
+    plain = CorridorEstimator(corridor_rig, corridor_site, HEADING)
     assert plain.lines_track is None
     assert plain.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] != "window"
