@@ -75,7 +75,10 @@ class FusionOptions:
         window_s: how far back a late measurement is applied at its time.
         odometry_timeout_s: odometry older than this no longer carries the motion.
         quality_radius_m: the radius of ``quality`` = P(position error < radius).
-        unobserved_sigma_m: a coordinate whose 1σ exceeds this is published empty.
+        unobserved_sigma_m: a coordinate whose 1σ exceeds this is published empty (a
+            corridor-only track's x, coasting from its start pose: 0.1 m, so that a
+            published coordinate is within about 2σ = 0.2 m; the prior the estimators
+            get uses ``prior_sigma_m`` instead).
         prior_sigma_m: the estimators get the track's x and y as a prior only below this
             1σ (each alone: a corridor-only track's y and heading without its x).
         prior_sigma_rad: ... and its heading only below this 1σ (a prior chooses among
@@ -104,7 +107,7 @@ class FusionOptions:
     window_s: float = 0.5
     odometry_timeout_s: float = 0.5
     quality_radius_m: float = 0.02
-    unobserved_sigma_m: float = 1.0
+    unobserved_sigma_m: float = 0.1
     prior_sigma_m: float = 0.5
     prior_sigma_rad: float = math.radians(20.0)
     fix_inflation: float = 2.0
@@ -395,7 +398,8 @@ class Fusion:
         self._drain(t_ns)
         if self._lost(t_ns):
             return None
-        pose = self._publish(self._f.node_at(t_ns), method, {}, velocity=True)
+        pose = self._publish(self._f.node_at(t_ns), method, {}, velocity=True,
+                             blank_above_m=math.inf)
         sd = np.sqrt(np.diag(np.asarray(pose.cov)))
         # a coordinate the track does not know (x of a corridor-only track) is left out
         # of the prior rather than dropping the prior: its heading and y still choose
@@ -507,13 +511,15 @@ class Fusion:
         self._candidates.append(fix)
 
     def _publish(self, n: _Node, method: str, diag: dict[str, Any],
-                 velocity: bool = False) -> PoseEstimate:
+                 velocity: bool = False, blank_above_m: float | None = None) -> PoseEstimate:
         """The pose of node ``n``; with ``velocity``, the state's velocity too (a
-        prior's, for the estimators' rolling-shutter rows)."""
+        prior's, for the estimators' rolling-shutter rows); a coordinate whose 1σ
+        exceeds ``blank_above_m`` (default ``unobserved_sigma_m``) is left empty."""
         o = self.options
+        blank = o.unobserved_sigma_m if blank_above_m is None else blank_above_m
         cov = np.array(n.P[:3, :3])
         sd = np.sqrt(np.diag(cov))
-        observed = [bool(sd[0] <= o.unobserved_sigma_m), bool(sd[1] <= o.unobserved_sigma_m)]
+        observed = [bool(sd[0] <= blank), bool(sd[1] <= blank)]
         for i in (0, 1):
             if not observed[i]:
                 cov[i, :] = cov[:, i] = np.inf

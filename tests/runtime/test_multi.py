@@ -23,8 +23,11 @@ def test_auto_on_a_one_method_site_is_that_method(lights_rig, lights_site):
     assert est.name == "lights" and isinstance(tracker, Tracker)
     est, tracker = make_localizer("auto", lights_rig, lights_site, start_pose=(0, 0, 0))
     assert isinstance(est, AutoEstimator) and isinstance(tracker, Fusion)
-    with pytest.raises(ConfigError, match="start_pose"):
-        make_localizer("lights", lights_rig, lights_site, start_pose=(0, 0, 0))
+    # every method takes a start pose: its tracker's first prior
+    est, tracker = make_localizer("lights", lights_rig, lights_site, start_pose=(1, 2, 0.5))
+    assert est.name == "lights" and isinstance(tracker, Tracker)
+    prior = tracker.predict(0)
+    assert (prior.x_m, prior.y_m, prior.yaw_rad) == (1, 2, 0.5) and tracker.start_poses == 1
     with pytest.raises(ConfigError, match="options.nope"):
         AutoEstimator(lights_rig, lights_site, {"nope": 1})
 
