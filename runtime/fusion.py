@@ -43,6 +43,7 @@ import numpy as np
 from ceilkit.runtime.estimators.base import (
     Estimate,
     Failure,
+    Hypothesis,
     PlaneIncrement,
     PoseEstimate,
     Provenance,
@@ -98,6 +99,9 @@ class FusionOptions:
         start_speed_mps, start_turn_rps: 1σ of the velocity when a track starts.
         odo_scale_sigma: 1σ of the wheel odometry's scale factor when a track starts
             (a state of the filter: a scale error is a bias, not white noise).
+        single_p, prune_p, max_modes: the modes an ambiguity leaves (:class:`ModeSet`):
+            a track starts from one whose weight reaches ``single_p``; one below
+            ``prune_p`` is dropped; at most ``max_modes`` are kept.
     """
 
     noise: ekf.MotionNoise = field(default_factory=lambda: ekf.MotionNoise(hold_mps=HOLD_MPS))
@@ -122,6 +126,9 @@ class FusionOptions:
     start_speed_mps: float = 2.5
     start_turn_rps: float = math.radians(90.0)
     odo_scale_sigma: float = 0.05
+    single_p: float = 0.999
+    prune_p: float = 1e-4
+    max_modes: int = 32
 
 
 @dataclass(frozen=True, eq=False)
@@ -284,6 +291,7 @@ class Fusion:
         self.plane_increments = 0
         self._t_plane_ns: int | None = None   # the last ceiling-plane increment
         self.start_poses = 0
+        self.modes = ModeSet(self.options, self.gates)   # the poses an ambiguity leaves
 
     @property
     def tracking(self) -> bool:
@@ -296,6 +304,7 @@ class Fusion:
     def reset(self) -> None:
         self._f = None
         self._candidates = []
+        self.modes.clear()
 
     # -- inputs ----------------------------------------------------------------------
     def start(self, t_ns: int, pose: tuple[float, float, float], cov: np.ndarray) -> None:
@@ -306,6 +315,7 @@ class Fusion:
         self._f = FilterBuffer(_Node(int(t_ns), s, P, t_odo), self.options)
         self._t_fix_ns = int(t_ns)
         self._candidates = []
+        self.modes.clear()
 
     def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float,
                      cov: np.ndarray | None = None) -> None:
@@ -346,6 +356,7 @@ class Fusion:
             self._t_wheel_ns = t_ns if self._t_wheel_ns is None else max(t_ns, self._t_wheel_ns)
             if self._f is not None:
                 self._f.add(_Event(t_ns, "odo", (d, c, True, None)))
+            self.modes.add(_Event(t_ns, "odo", (d, c, True, None)))
 
     def _wheels(self, t_ns: int) -> bool:
         """Wheel odometry rows are coming (the last within ``odometry_timeout_s``)."""
@@ -356,14 +367,16 @@ class Fusion:
         """Ceiling-plane odometry carried by the cues (:class:`PlaneIncrement`): the
         motion while no wheel odometry comes (with wheels, the camera's increment would
         count the same motion twice)."""
-        if self._f is None or self._wheels(t_ns):
+        if (self._f is None and not self.modes) or self._wheels(t_ns):
             return
         for c in cues:
             inc = c.increment
             if isinstance(inc, PlaneIncrement):
-                self._f.add(_Event(t_ns, "odo", ((inc.dx_m, inc.dy_m, inc.dyaw_rad),
-                                                 np.asarray(inc.cov, float), False,
-                                                 int(inc.t0_ns))))
+                ev = _Event(t_ns, "odo", ((inc.dx_m, inc.dy_m, inc.dyaw_rad),
+                                          np.asarray(inc.cov, float), False, int(inc.t0_ns)))
+                if self._f is not None:
+                    self._f.add(ev)
+                self.modes.add(ev)
                 self.plane_increments += 1
                 self._t_plane_ns = t_ns
                 return
@@ -423,11 +436,12 @@ class Fusion:
         if self._lost(t):
             start = self._starting_fix(fixes)
             if start is None:
-                self.reset()
-                return TrackResult(_failure(est, cues))
+                return self._ambiguity(t, est, cues)
             self._restart(t, start)
             relocalized, started = True, [start.cue.method]
             fixes = [f for f in fixes if f is not start]
+        else:
+            fixes += self._twins_near_the_track(t, cues)
         used = started + self._apply(t, fixes)
         if self._candidates and len(self._candidates) >= self.options.confirm:
             fix = self._candidates[-1]
@@ -447,6 +461,46 @@ class Fusion:
         return TrackResult(pose, relocalized)
 
     # -- internals -------------------------------------------------------------------
+    def _ambiguity(self, t_ns: int, est: Estimate, cues: tuple) -> TrackResult:
+        """No track and no fix to start one: the ambiguous cues' hypotheses are carried
+        as modes (:class:`ModeSet`); the track starts from one only when the drive's
+        evidence singles it out (its weight at least ``single_p``)."""
+        sets = [(c.method, c.hypotheses, c.hypotheses_complete) for c in cues
+                if isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses]
+        self.modes.update(t_ns, sets)
+        best = self.modes.singled_out()
+        if best is not None:
+            self._f, self._t_fix_ns, self._candidates = best.f, t_ns, []
+            self.modes.clear()
+            self.relocalizations += 1
+            self._method = best.method
+            diag = {"applied": (best.method,), "pending": 0, "coasting": False,
+                    "modes_resolved": True}
+            return TrackResult(self._publish(self._f.node_at(t_ns), best.method, diag), True)
+        self._f = None
+        self._candidates = []
+        if self.modes:
+            return TrackResult(self.modes.failure(t_ns))
+        return TrackResult(_failure(est, cues))
+
+    def _twins_near_the_track(self, t_ns: int, cues: tuple) -> list[_Fix]:
+        """The track decides an ambiguous cue: of its hypotheses, the one inside the
+        track's gate when it is the only one there, as a fix."""
+        out = []
+        n = self._f.node_at(t_ns)
+        for c in cues:
+            if not (isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses):
+                continue
+            inside = []
+            for h in c.hypotheses:
+                m = measurement(hypothesis_cue(t_ns, c.method, h), self.options)
+                y, S = ekf.innovation(n.s, n.P, m.z, m.rows, m.R)
+                if ekf.nis(y, S) <= self.gates[len(m.rows)]:
+                    inside.append(m)
+            if len(inside) == 1:
+                out.append(inside[0])
+        return out
+
     def _starting_fix(self, fixes: list[_Fix]) -> _Fix | None:
         """The fix a track starts from: a full fix that every other cue of the frame
         agrees with, else a fix with y (the corridor's: x stays unknown)."""
@@ -548,6 +602,149 @@ class Fusion:
         o = self.options
         return bool(sd[0] < 0.5 * o.start_speed_mps and sd[1] < 0.5 * o.start_speed_mps
                     and sd[2] < 0.5 * o.start_turn_rps)
+
+
+def hypothesis_cue(t_ns: int, method: str, h: Hypothesis) -> PoseEstimate:
+    """One hypothesis of an ambiguous cue as a pose (a measurement's input)."""
+    return PoseEstimate(int(t_ns), method, h.x_m, h.y_m, h.yaw_rad, 0.0, None, h.cov,
+                        provenance=Provenance.PRIOR)
+
+
+@dataclass(eq=False)
+class Mode:
+    """One pose the drive still supports: its filter, weight and the method that gave it."""
+
+    f: FilterBuffer
+    weight: float
+    method: str
+    label: str = ""
+
+
+class ModeSet:
+    """A Gaussian sum over the poses an ambiguity leaves: one EKF (:class:`FilterBuffer`)
+    per mode, born from an ambiguous frame's ``hypotheses``, each moved by the same
+    odometry and updated by the hypothesis of every later ambiguous cue that falls in
+    its gate. Weights follow Bayes' rule only from lists the method says are complete
+    (``hypotheses_complete``: every pose the frame supports is listed, so a mode none
+    of them is near is ruled out); an incomplete list updates the modes' filters but
+    moves no weight (a mode it leaves out may still be the truth). Modes that merge
+    (within a gate of each other) are kept once; a mode below ``prune_p`` is dropped.
+    :meth:`singled_out` is the mode whose weight reaches ``single_p`` after at least
+    two frames: only then does a track start from an ambiguity."""
+
+    def __init__(self, options: FusionOptions, gates: Mapping[int, float]):
+        self.options, self.gates = options, gates
+        self.modes: list[Mode] = []
+        self.frames = 0
+        self.resolved = 0
+
+    def __bool__(self) -> bool:
+        return bool(self.modes)
+
+    def __len__(self) -> int:
+        return len(self.modes)
+
+    def clear(self) -> None:
+        self.modes, self.frames = [], 0
+
+    def add(self, ev: _Event) -> None:
+        """An odometry event, applied to every mode."""
+        for m in self.modes:
+            m.f.add(ev)
+
+    def _birth(self, t_ns: int, method: str, hyps: tuple[Hypothesis, ...]) -> None:
+        o = self.options
+        for h in hyps[: o.max_modes]:
+            cov = np.diag([UNKNOWN_X_VAR, UNKNOWN_X_VAR, 1.0])
+            fix = measurement(hypothesis_cue(t_ns, method, h), o)
+            z = np.zeros(3)
+            cov[np.ix_(fix.rows, fix.rows)] = fix.R
+            z[list(fix.rows)] = fix.z
+            s, P = ekf.initial_state(tuple(float(v) for v in z), cov, o.start_speed_mps,
+                                     o.start_turn_rps, o.odo_scale_sigma)
+            self.modes.append(Mode(FilterBuffer(_Node(int(t_ns), s, P, None), o),
+                                   float(h.weight), method, h.label))
+        self._normalize()
+        self.frames = 1
+
+    def update(self, t_ns: int, sets: list[tuple[str, tuple[Hypothesis, ...], bool]]) -> None:
+        """One frame's ambiguous cues ``(method, hypotheses, complete)``."""
+        if not sets:
+            return
+        if not self.modes:
+            self._birth(t_ns, *sets[0][:2])
+            return
+        self.frames += 1
+        for method, hyps, complete in sets:
+            fixes = [measurement(hypothesis_cue(t_ns, method, h), self.options) for h in hyps]
+            for m in self.modes:
+                n = m.f.node_at(t_ns)
+                best, like = None, 0.0
+                for h, fx in zip(hyps, fixes, strict=True):
+                    y, S = ekf.innovation(n.s, n.P, fx.z, fx.rows, fx.R)
+                    d2 = ekf.nis(y, S)
+                    if d2 <= self.gates[len(fx.rows)]:
+                        p = h.weight * math.exp(-0.5 * d2) / math.sqrt(
+                            max(float(np.linalg.det(2 * math.pi * S)), 1e-300))
+                        if p > like or best is None:
+                            best, like = fx, p
+                if best is not None:
+                    m.f.add(_Event(t_ns, "fix", (best.z, best.rows, best.R)))
+                if complete:
+                    m.weight *= like
+        if sum(m.weight for m in self.modes) <= 0.0:
+            self.clear()          # the drive contradicts every mode: start again
+            self._birth(t_ns, *sets[0][:2])
+            return
+        self._normalize()
+        self._merge(t_ns)
+
+    def _normalize(self) -> None:
+        total = sum(m.weight for m in self.modes)
+        if total <= 0:
+            return
+        for m in self.modes:
+            m.weight /= total
+        self.modes = sorted((m for m in self.modes if m.weight >= self.options.prune_p),
+                            key=lambda m: -m.weight)[: self.options.max_modes]
+        total = sum(m.weight for m in self.modes)
+        for m in self.modes:
+            m.weight /= total
+
+    def _merge(self, t_ns: int) -> None:
+        kept: list[Mode] = []
+        for m in self.modes:
+            n = m.f.node_at(t_ns)
+            for k in kept:
+                nk = k.f.node_at(t_ns)
+                y = n.s[:3] - nk.s[:3]
+                y[2] = wrap_pi(float(y[2]))
+                if ekf.nis(y, n.P[:3, :3] + nk.P[:3, :3]) <= self.gates[3]:
+                    k.weight += m.weight
+                    break
+            else:
+                kept.append(m)
+        self.modes = kept
+
+    def singled_out(self) -> Mode | None:
+        """The mode the drive has singled out, or None."""
+        if self.frames >= 2 and self.modes and self.modes[0].weight >= self.options.single_p:
+            self.resolved += 1
+            return self.modes[0]
+        return None
+
+    def failure(self, t_ns: int) -> Failure:
+        """What to publish while several modes remain: ``ambiguous``, with them."""
+        hyps = []
+        for m in self.modes:
+            n = m.f.node_at(t_ns)
+            hyps.append(Hypothesis(float(n.s[0]), float(n.s[1]), float(n.s[2]),
+                                   np.array(n.P[:3, :3]), m.weight, m.label))
+        top = ", ".join(f"({h.x_m:.2f}, {h.y_m:.2f}, {h.yaw_deg:.0f} deg) {h.weight:.2f}"
+                        for h in hyps[:3])
+        return Failure(int(t_ns), self.modes[0].method, "ambiguous",
+                       f"{len(hyps)} poses fit the drive so far: {top}",
+                       hypotheses=tuple(hyps), hypotheses_complete=False)
 
 
 def nees(est: PoseEstimate, truth: tuple[float, float, float]) -> tuple[float, int] | None:

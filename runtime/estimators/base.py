@@ -137,6 +137,8 @@ class PoseEstimate:
             ``PRIOR`` provenance carries the twins the prior ruled out.
         cues: ``--method auto``: every method's estimate of the frame.
         increment: ceiling-plane odometry since the previous frame, or None.
+        hypotheses_complete: ``hypotheses`` are every pose the frame supports (the
+            method enumerated them all): a pose none of them is near is ruled out.
     """
 
     t_ns: int
@@ -153,6 +155,7 @@ class PoseEstimate:
     hypotheses: tuple[Hypothesis, ...] = ()
     cues: tuple[Any, ...] = ()
     increment: PlaneIncrement | None = None
+    hypotheses_complete: bool = False
 
     def __bool__(self) -> bool:
         return True
@@ -184,7 +187,7 @@ class Failure:
         detail: one human sentence.
         hypotheses: for ``ambiguous``, the poses the frame supports equally (each with
             its covariance and weight): a multi-hypothesis fusion keeps them.
-        cues, increment: as :class:`PoseEstimate`'s.
+        cues, increment, hypotheses_complete: as :class:`PoseEstimate`'s.
     """
 
     t_ns: int
@@ -195,6 +198,7 @@ class Failure:
     hypotheses: tuple[Hypothesis, ...] = ()
     cues: tuple[Any, ...] = ()
     increment: PlaneIncrement | None = None
+    hypotheses_complete: bool = False
 
     def __bool__(self) -> bool:
         return False
@@ -396,10 +400,12 @@ class Estimator(ABC):
         ``time.perf_counter()`` at entry (for the ``ms`` diagnostic)."""
 
     def fail(self, t_ns: int, reason: str, detail: str,
-             hypotheses: tuple[Hypothesis, ...] = (), **diagnostics: Any) -> Failure:
-        """A :class:`Failure` of this method (``hypotheses``: an ambiguous frame's)."""
+             hypotheses: tuple[Hypothesis, ...] = (), complete: bool = False,
+             **diagnostics: Any) -> Failure:
+        """A :class:`Failure` of this method (``hypotheses``: an ambiguous frame's;
+        ``complete``: they are every pose the frame supports)."""
         return Failure(int(t_ns), self.name, reason, detail, MappingProxyType(diagnostics),
-                       tuple(hypotheses))
+                       tuple(hypotheses), hypotheses_complete=complete)
 
 
 def elapsed_ms(t0: float) -> float:

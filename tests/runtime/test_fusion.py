@@ -262,3 +262,61 @@ def test_odometry_scale_prior_is_an_option():
     fu = Fusion(FusionOptions(odo_scale_sigma=0.02))
     fu.update(_lights(0, 1.0, 2.0))
     assert fu._f.latest.P[-1, -1] == pytest.approx(0.02 ** 2)
+
+
+# -- ambiguity: the modes a frame leaves, and the track deciding ---------------------------
+def _ambiguous(k, poses, complete=True):
+    from ceilkit.runtime.estimators.base import Hypothesis
+
+    hyps = tuple(Hypothesis(x, y, yaw, COV, 1.0 / len(poses), f"h{i}")
+                 for i, (x, y, yaw) in enumerate(poses))
+    return Failure(k * DT, "lights", "ambiguous", "a grid", hypotheses=hyps,
+                   hypotheses_complete=complete)
+
+
+def test_symmetric_twins_are_carried_and_never_published():
+    """Two poses the drive supports alike, frame after frame: no valid pose, ever; the
+    failure carries both, with equal weights."""
+    fu = Fusion()
+    for k in range(20):
+        res = fu.update(_ambiguous(k, [(1.0 + 0.01 * k, 2.0, 0.0),
+                                       (5.0 - 0.01 * k, 2.0, math.pi)]))
+        assert not res.estimate and res.estimate.reason == "ambiguous"
+    hyps = res.estimate.hypotheses
+    assert len(hyps) == 2 and [h.weight for h in hyps] == pytest.approx([0.5, 0.5])
+    assert sorted(round(h.x_m, 2) for h in hyps) == [1.19, 4.81]
+
+
+def test_a_complete_list_that_leaves_one_mode_starts_the_track_there():
+    """A light grid's cells: three poses fit, then the drive reaches the grid's edge and
+    only one cell still does: the track starts there, and not before."""
+    fu = Fusion()
+    cells = [(0.0, 0.0), (3.0, 0.0), (6.0, 0.0)]
+    for k in range(5):
+        res = fu.update(_ambiguous(k, [(x + 0.02 * k, y, 0.1) for x, y in cells]))
+        assert not res.estimate
+    res = fu.update(_ambiguous(5, [(3.1, 0.0, 0.1)]))
+    assert res.estimate and res.relocalized
+    assert res.estimate.x_m == pytest.approx(3.1, abs=0.01)
+
+
+def test_an_incomplete_list_moves_no_weight():
+    """A list the method does not call complete (the best lateral shifts of a tile
+    grid) never rules a mode out: no track starts from it."""
+    fu = Fusion()
+    for k in range(6):
+        poses = [(0.0, 0.0, 0.0), (0.6, 0.0, 0.0)] if k < 2 else [(0.6, 0.0, 0.0)]
+        res = fu.update(_ambiguous(k, poses, complete=False))
+        assert not res.estimate and res.estimate.reason == "ambiguous"
+    assert len(fu.modes) == 2
+
+
+def test_the_track_decides_an_ambiguous_cue():
+    """While tracking, of an ambiguous cue's twins the one inside the track's gate is a
+    fix (and the other, 180 deg away, is not)."""
+    fu = Fusion()
+    for k in range(5):
+        fu.update(_lights(k, 1.0, 2.0, mode="global"))
+    res = fu.update(_ambiguous(5, [(1.001, 2.0, 0.0), (3.0, -2.0, math.pi)]))
+    assert res.estimate and res.estimate.x_m == pytest.approx(1.001, abs=2e-3)
+    assert fu.contributions["lights"] == 6

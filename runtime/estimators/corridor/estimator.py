@@ -395,6 +395,7 @@ class CorridorEstimator(Estimator):
         if isinstance(best, Unresolved):
             return self.fail(t_ns, best.reason, best.detail,
                              hypotheses=self._twin_hypotheses(best.twins, None),
+                             complete=complete_twins(best.twins),
                              n_segments=n_seg, segments_n=segs, search=search)
         best, gd, fit = self._fit_labeling(fr, best, prior)
         return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0, search)
@@ -500,7 +501,8 @@ class CorridorEstimator(Estimator):
             twins = (Hypothesis(None, y_m, yaw, cov, twins[0].weight, "chosen"),) + twins
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw,
                             min(max(float(quality), 0.0), 1.0), y_m - self.setup.axis_y_m,
-                            cov, diag, provenance=provenance, hypotheses=twins)
+                            cov, diag, provenance=provenance, hypotheses=twins,
+                            hypotheses_complete=complete_twins(best.twins))
 
     def _twin_hypotheses(self, twins: tuple[Twin, ...], cov: np.ndarray | None
                          ) -> tuple[Hypothesis, ...]:
@@ -519,6 +521,13 @@ class CorridorEstimator(Estimator):
             y = t.camera_y_m - (math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1])
             out.append(Hypothesis(None, float(y), float(yaw), cov, w, t.label))
         return tuple(out)
+
+
+def complete_twins(twins: tuple[Twin, ...]) -> bool:
+    """Whether the labelings ``twins`` are every pose the frame supports: the half and
+    quarter turns are each examined; a lateral shift's runner-up is only the best of
+    the shifts (a tile grid has as many as it has seams)."""
+    return not any(t.label == "shift" for t in twins)
 
 
 def across_seams(site: Site) -> bool:

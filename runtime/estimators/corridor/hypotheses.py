@@ -483,13 +483,14 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         m = settled
         if not ambiguous and how != "prior":
             how += "+absence"
-    if ambiguous and (prior is None or prior.y_m is None):
-        return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
-                          f"{m.n_lines} forward lines fit two lateral positions "
-                          f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose")
     twins = tuple(Twin(h.psi_rad, h.match.shift_m, lbl) for h, lbl in rivals)
     if ambiguous and m.runner_up is not None:
         twins += (Twin(chosen.psi_rad, m.runner_up[2], "shift"),)
+    if ambiguous and (prior is None or prior.y_m is None):
+        return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
+                          f"{m.n_lines} forward lines fit two lateral positions "
+                          f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose",
+                          (Twin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
     if rivals and (prior is None or prior.y_m is None) and how != "prior":
         kinds = " and ".join(sorted({lbl.replace("_", " ") for _, lbl in rivals}))
         return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
