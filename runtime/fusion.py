@@ -292,6 +292,7 @@ class Fusion:
         self._t_plane_ns: int | None = None   # the last ceiling-plane increment
         self.start_poses = 0
         self.modes = ModeSet(self.options, self.gates)   # the poses an ambiguity leaves
+        self._lateral_only = False   # the track applied a fix with y and no x (corridor)
 
     @property
     def tracking(self) -> bool:
@@ -316,6 +317,7 @@ class Fusion:
         self._t_fix_ns = int(t_ns)
         self._candidates = []
         self.modes.clear()
+        self._lateral_only = False
 
     def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float,
                      cov: np.ndarray | None = None) -> None:
@@ -458,6 +460,12 @@ class Fusion:
                 f"track; {self.options.confirm - len(self._candidates)} more to confirm",
                 diagnostics={"rejected": pend}))
         pose = self._publish(self._f.node_at(t), self._method, diag)
+        if pose.x_m is None and pose.y_m is not None and not self._lateral_only:
+            # a track of full fixes whose x went out of reach before its y: a y with no
+            # x would read as a corridor's lateral, which this track never measured
+            return TrackResult(Failure(t, self._method, "coasting",
+                                       "the position is no longer known to "
+                                       f"{self.options.unobserved_sigma_m:g} m"))
         return TrackResult(pose, relocalized)
 
     # -- internals -------------------------------------------------------------------
@@ -471,6 +479,7 @@ class Fusion:
         best = self.modes.singled_out()
         if best is not None:
             self._f, self._t_fix_ns, self._candidates = best.f, t_ns, []
+            self._lateral_only = float(best.f.latest.P[0, 0]) >= UNKNOWN_X_VAR
             self.modes.clear()
             self.relocalizations += 1
             self._method = best.method
@@ -525,6 +534,7 @@ class Fusion:
         cov[np.ix_(fix.rows, fix.rows)] = fix.R
         z[list(fix.rows)] = fix.z
         self.start(t_ns, (float(z[0]), float(z[1]), float(z[2])), cov)
+        self._lateral_only = 1 in fix.rows and 0 not in fix.rows
         self.relocalizations += 1
         self.contributions[fix.cue.method] += 1
 
@@ -542,6 +552,7 @@ class Fusion:
             y, S = ekf.innovation(n.s, n.P, fix.z, fix.rows, fix.R)
             if ekf.nis(y, S) <= self.gates[len(fix.rows)]:
                 f.add(_Event(t_ns, "fix", (fix.z, fix.rows, fix.R)))
+                self._lateral_only |= 1 in fix.rows and 0 not in fix.rows
                 used.append(fix.cue.method)
                 self.contributions[fix.cue.method] += 1
                 if fix.full or 1 in fix.rows:

@@ -320,3 +320,20 @@ def test_the_track_decides_an_ambiguous_cue():
     res = fu.update(_ambiguous(5, [(1.001, 2.0, 0.0), (3.0, -2.0, math.pi)]))
     assert res.estimate and res.estimate.x_m == pytest.approx(1.001, abs=2e-3)
     assert fu.contributions["lights"] == 6
+
+
+def test_a_lights_track_never_publishes_a_lateral_without_x():
+    """A track of full fixes coasting out of reach: never a y with no x (that reads as a
+    corridor's lateral, which no cue of this track measured)."""
+    fu = Fusion()
+    for k in range(10):
+        fu.update(_lights(k, 0.5 * k * DT * 1e-9, 1.0, 0.0, mode="global",
+                          cov=np.diag([0.06 ** 2, 1e-6, 1e-6])))   # x the weaker
+    seen, reasons = [], set()
+    for k in range(10, 60):
+        res = fu.update(Failure(k * DT, "lights", "no_lights"))
+        e = res.estimate
+        seen.append(bool(e))
+        reasons.add(getattr(e, "reason", None))
+        assert not (e and e.x_m is None and e.y_m is not None), e
+    assert seen[0] and not seen[-1] and "coasting" in reasons

@@ -1,0 +1,199 @@
+"""Benchmark of the ambiguity issue (issue 36): no valid pose wrong where the ceiling
+repeats, on simulated drives written as SPEC recordings and run through ``replay`` (the
+library function of ``ceilrun replay``), as data from outside would be.
+
+Cases (noise 2 grey levels, blur 0.8 px, ``supersample=1`` to keep it short):
+
+* **corridor-reverse** / **corridor-forward**: the packaged corridor (lines and lamp row
+  symmetric about its centre line) driven towards -x (heading about 180 deg) and +x,
+  weaving: ``corridor`` without a start pose, with the right one, with one turned
+  180 deg (a wrong prior: the twin is all the data can say), ``auto`` with the right
+  one;
+* **tiles**: a plain 0.6 m drop-tile grid given as ``corridor`` lines along and across,
+  an upward wide-angle camera (configs/block's rig) driven round a loop: ``corridor``
+  without and with a start pose;
+* **tiles-markers**: configs/block (tiles, a hatch, a bright block, AprilTags):
+  ``auto`` without a start pose;
+* **light-grid**: a regular 1.5 m grid of spot lights (configs/lights' rig) on a loop:
+  ``lights`` and ``auto`` without and with a start pose.
+
+For every run: frames, valid poses, **wrong valid poses** (more than 10 cm or 2 deg
+off, over the coordinates published), median position error, and the mean NEES of
+the published poses against their 95% band. Saved to ``benchmarks/out/bench_ambiguity.csv``.
+
+    .venv/bin/python benchmarks/bench_ambiguity.py [--frames 60] [--only tiles ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ceilkit.calib.simulate import simulate_recording
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.geometry.ekf import chi2_quantile, mean_nees_band
+from ceilkit.runtime.replay import replay
+from ceilkit.runtime.sim.render import SimOptions, Trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+OUT = Path(__file__).resolve().parent / "out"
+SIM = SimOptions(noise_sigma=2.0, blur_px=0.8, supersample=1)
+
+
+def drive(n: int, fps: float, x0: float, y0: float, heading_deg: float, speed: float,
+          weave: float = 0.15) -> Trajectory:
+    """A weaving straight drive along ``heading_deg``."""
+    t = np.arange(n) / fps
+    s = speed * t
+    h = math.radians(heading_deg)
+    lat = weave * np.sin(2 * math.pi * s / 6.0)
+    x = x0 + s * math.cos(h) - lat * math.sin(h)
+    y = y0 + s * math.sin(h) + lat * math.cos(h)
+    yaw = h + np.arctan(weave * 2 * math.pi / 6.0 * np.cos(2 * math.pi * s / 6.0))
+    return Trajectory((t * 1e9).astype(np.int64), x, y, yaw)
+
+
+def loop(n: int, fps: float, cx: float, cy: float, r: float, speed: float) -> Trajectory:
+    """A circle of radius ``r`` about ``(cx, cy)``, counter-clockwise."""
+    t = np.arange(n) / fps
+    a = speed * t / r
+    return Trajectory((t * 1e9).astype(np.int64), cx + r * np.cos(a), cy + r * np.sin(a),
+                      a + math.pi / 2)
+
+
+def score(folder: Path, out: Path) -> dict[str, float]:
+    truth = {int(r["t_ns"]): r for r in csv.DictReader(open(folder / "truth.csv"))}
+    rows = list(csv.DictReader(open(out / "poses.csv")))
+    valid = wrong = 0
+    errs, nees_v, dofs = [], [], []
+    for r in rows:
+        if r["yaw_deg"] == "":
+            continue
+        valid += 1
+        t = truth[int(r["t_ns"])]
+        dyaw = math.remainder(math.radians(float(r["yaw_deg"]) - float(t["yaw_deg"])),
+                              2 * math.pi)
+        e, sig = [], []
+        for k in ("x", "y"):
+            if r[k] != "":
+                e.append(float(r[k]) - float(t[k]))
+                sig.append(float(r[f"sigma_{k}"]) if r[f"sigma_{k}"] else math.nan)
+        d = math.hypot(*e) if e else 0.0
+        errs.append(d)
+        wrong += d > 0.10 or abs(dyaw) > math.radians(2.0)
+        s_yaw = math.radians(float(r["sigma_yaw_deg"])) if r["sigma_yaw_deg"] else math.nan
+        z = [ei / si for ei, si in zip(e, sig, strict=True)] + [dyaw / s_yaw]
+        if all(math.isfinite(v) and v == v for v in z):
+            nees_v.append(sum(v * v for v in z))     # diagonal NEES (poses.csv has sigmas)
+            dofs.append(len(z))
+    out_d = {"frames": len(rows), "valid": valid, "wrong": wrong,
+             "median_m": float(np.median(errs)) if errs else math.nan}
+    if nees_v:
+        dof = round(float(np.mean(dofs)))
+        lo, hi = mean_nees_band(len(nees_v), dof)
+        out_d.update(nees=float(np.mean(nees_v)), nees_lo=lo, nees_hi=hi,
+                     inside95=float(np.mean([v <= chi2_quantile(0.95, d)
+                                             for v, d in zip(nees_v, dofs, strict=True)])))
+    return out_d
+
+
+def run(folder: Path, tag: str, method: str, start=None) -> dict[str, float]:
+    out = folder.parent / f"{folder.name}-{tag}"
+    t0 = time.perf_counter()
+    replay(folder, out, method=method, start_pose=start)
+    res = score(folder, out)
+    res["s"] = time.perf_counter() - t0
+    return res
+
+
+def tiles_site(tmp: Path) -> Path:
+    d = {"ceiling_height": 3.0,
+         "corridor": {"lines_along": [round(-3.0 + 0.6 * i, 2) for i in range(11)],
+                      "lines_across": {"first": 0.0, "spacing": 0.6}}}
+    p = tmp / "tiles.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return p
+
+
+def grid_site(tmp: Path) -> Path:
+    g = np.arange(-3.0, 4.51, 1.5)
+    p = tmp / "grid.yaml"
+    p.write_text("ceiling_height: 3.0\nlights:\n" + "".join(
+        f"  - [{a:.3f}, {b:.3f}]\n" for a in g for b in g))
+    return p
+
+
+def cases(tmp: Path, n: int) -> dict[str, tuple]:
+    crig, csite = Rig.load(CONFIGS / "corridor/rig.yaml"), Site.load(CONFIGS / "corridor/site.yaml")
+    brig = Rig.load(CONFIGS / "block/rig.yaml")
+    lrig = Rig.load(CONFIGS / "lights/rig.yaml")
+    rev = drive(n, 10.0, 20.0, 0.1, 180.0, 0.5)
+    fwd = drive(n, 10.0, 2.0, -0.1, 0.0, 0.5)
+
+    def start(tr: Trajectory, turn_deg: float = 0.0):
+        x, y, yaw = tr.pose(0)
+        return (x, y, yaw + math.radians(turn_deg))
+
+    return {
+        "corridor-reverse": (crig, csite, rev, [
+            ("corridor", None), ("corridor", start(rev)), ("corridor", start(rev, 180.0)),
+            ("auto", start(rev))]),
+        "corridor-forward": (crig, csite, fwd, [
+            ("corridor", None), ("corridor", start(fwd))]),
+        "tiles": (brig, Site.load(tiles_site(tmp)), loop(n, 10.0, 1.0, 0.0, 1.5, 0.4), [
+            ("corridor", None), ("corridor", start(loop(n, 10.0, 1.0, 0.0, 1.5, 0.4)))]),
+        "tiles-markers": (brig, Site.load(CONFIGS / "block/site.yaml"),
+                          drive(n, 10.0, 0.0, 0.0, 0.0, 0.8, 0.3), [("auto", None)]),
+        "light-grid": (lrig, Site.load(grid_site(tmp)), loop(n, 10.0, 0.0, 0.0, 2.0, 0.5), [
+            ("lights", None), ("auto", None),
+            ("lights", start(loop(n, 10.0, 0.0, 0.0, 2.0, 0.5))),
+            ("auto", start(loop(n, 10.0, 0.0, 0.0, 2.0, 0.5)))]),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--only", nargs="*")
+    a = ap.parse_args(argv)
+    OUT.mkdir(exist_ok=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        for name, (rig, site, traj, runs) in cases(tmp, a.frames).items():
+            if a.only and name not in a.only:
+                continue
+            folder = simulate_recording(rig, site, traj, tmp / name, SIM, seed=7)
+            for method, start in runs:
+                tag = f"{method}-{'start' if start else 'nostart'}"
+                if start is not None and abs(math.remainder(
+                        start[2] - traj.pose(0)[2], 2 * math.pi)) > 1.0:
+                    tag += "-turned"
+                res = run(folder, tag, method, start)
+                rows.append({"case": name, "run": tag, **res})
+                nees = (f"NEES {res['nees']:.2f} [{res['nees_lo']:.2f}, {res['nees_hi']:.2f}]"
+                        if "nees" in res else "")
+                print(f"{name:17s} {tag:26s} valid {res['valid']:3d}/{res['frames']:3d} "
+                      f"wrong {res['wrong']:3d}  median {1e3 * res['median_m']:7.2f} mm  "
+                      f"{nees}  ({res['s']:.0f} s)", flush=True)
+    keys = sorted({k for r in rows for k in r}, key=lambda k: (k not in ("case", "run"), k))
+    with open(OUT / "bench_ambiguity.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, keys)
+        w.writeheader()
+        w.writerows(rows)
+    print(f"saved {OUT / 'bench_ambiguity.csv'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
