@@ -833,12 +833,33 @@ def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Pat
         say("step 3/3: check: skipped (no check recording)")
         return CalibrateRun(cam_path, rig_path, None, tuple(lines))
     say("step 3/3: check replay")
-    res = replay(check, out / "check", rig=rig_path, site=site, report=plots is not None)
+    start = check_start_pose(check)
+    if start is not None:
+        say(f"  from the check drive's first truth row ({start[0]:.2f}, {start[1]:.2f}, "
+            f"{math.degrees(start[2]):.1f} deg): a symmetric ceiling's twins need a start")
+    # the check is this calibration's own output, made again from the files kept
+    res = replay(check, out / "check", rig=rig_path, site=site, report=plots is not None,
+                 start_pose=start, force=True)
     for line in res.telemetry.summary() + (res.accuracy.lines() if res.accuracy else []):
         say("  " + line)
     if res.report is not None:
         say(f"  wrote {res.report}")
     return CalibrateRun(cam_path, rig_path, res, tuple(lines))
+
+
+def check_start_pose(recording: Path) -> tuple[float, float, float] | None:
+    """The first row of a check recording's ``truth.csv`` as a start pose, or None: a
+    check drive under a symmetric ceiling (a corridor's half turn) is singled out by
+    where it starts, as a vehicle's first run is by its ``--start-pose``."""
+    from ceilkit.runtime.io.tables import load_truth
+
+    path = Path(recording) / "truth.csv"
+    if Path(recording).suffix == ".mcap" or not path.exists():
+        return None
+    truth = load_truth(path)
+    if truth is None or truth.t_ns.size == 0:
+        return None
+    return float(truth.x_m[0]), float(truth.y_m[0]), float(truth.yaw_rad[0])
 
 
 __all__ = ["CalibrateRun", "IntrinsicsRun", "LightmapRun", "MountRun", "SimulateRun",

@@ -132,7 +132,9 @@ def _start(tmp_path: Path, serial: str) -> subprocess.Popen:
     args = [sys.executable, "-c", DRIVER, str(tmp_path), str(REC),
             "--device", "/dev/video0", "--rig", str(REC / "rig.yaml"),
             "--site", str(REC / "site.yaml"), "--serial", serial,
-            "--record", str(tmp_path / "rec"), "--out", str(tmp_path / "run")]
+            "--record", str(tmp_path / "rec"), "--out", str(tmp_path / "run"),
+            # the fixture corridor is symmetric about its centre line: the heading is stated
+            "--option", "assume_heading_deg=0"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
