@@ -40,6 +40,10 @@ CORRIDOR_OFF = dict(noise_px=1e6, min_lines=0, min_spread=0.0, max_vp_elevation_
                     site_margin_m=1e9)
 LIGHTS_OFF = dict(noise_px=1e6, site_margin_m=1e9)
 
+HEADING = {"assume_heading_deg": 0.0}
+"""The packaged corridor is symmetric about its centre line: its tests state the
+heading, as a user may (a frame alone cannot tell it from the half turn)."""
+
 
 @pytest.fixture(scope="module")
 def crig() -> Rig:
@@ -184,7 +188,7 @@ def test_model_reasons_are_failure_reasons():
                                         ("site_margin_m", -1.0), ("min_spread", math.nan)])
 def test_bad_check_options(crig, csite, lrig, lsite, name, value):
     with pytest.raises(ConfigError, match=f"options.{name}"):
-        CorridorEstimator(crig, csite, {name: value})
+        CorridorEstimator(crig, csite, {**HEADING, name: value})
     if name in ("noise_px", "misfit_alpha", "site_margin_m"):
         with pytest.raises(ConfigError, match=f"options.{name}"):
             LightsEstimator(lrig, lsite, {name: value})
@@ -198,8 +202,8 @@ def test_clean_corridor_fit_passes_with_its_covariance_unchanged(crig, csite):
     for pose in ((0.5, 0.1, 0.2), (1.3, -0.3, -0.5), (2.0, 0.4, 0.6)):
         segs = project_segments(crig, csite.ceiling_height_m, corridor_lines_w(pose[0]),
                                 *pose, 0.3, rng)
-        on = CorridorEstimator(crig, csite).estimate_segments(segs, 0)
-        off = CorridorEstimator(crig, csite, CORRIDOR_OFF).estimate_segments(segs, 0)
+        on = CorridorEstimator(crig, csite, HEADING).estimate_segments(segs, 0)
+        off = CorridorEstimator(crig, csite, {**HEADING, **CORRIDOR_OFF}).estimate_segments(segs, 0)
         assert isinstance(on, PoseEstimate), on
         assert on.diagnostics["chi2_reduced"] <= 1.0
         assert on.diagnostics["cov_inflation"] == 1.0
@@ -216,22 +220,22 @@ def test_vent_grille_frame_is_not_published(crig, csite):
     segs_w = [((x - 20, 0.45), (x + 20, 0.45))]
     segs_w += [((1.8, 0.9 + 0.035 * k), (2.6, 1.0 + 0.035 * k)) for k in range(8)]
     segs = project_segments(crig, csite.ceiling_height_m, segs_w, x, y, yaw)
-    old = CorridorEstimator(crig, csite, {**CORRIDOR_OFF, "consensus": False}
+    old = CorridorEstimator(crig, csite, {**HEADING, **CORRIDOR_OFF, "consensus": False}
                             ).estimate_segments(segs, 0)
     assert isinstance(old, PoseEstimate)
     assert old.diagnostics["n_lines_matched"] == 1 and old.diagnostics["rms_px"] > 3
     err_yaw = abs(math.degrees(wrap_pi(old.yaw_rad - yaw)))
     assert err_yaw > 2.0 and err_yaw > 3 * math.degrees(math.sqrt(old.cov[2, 2]))
     assert encode_pose(old, 0).split(b",")[3] == b"A"       # what the link used to send
-    new = CorridorEstimator(crig, csite).estimate_segments(segs, 0)
+    new = CorridorEstimator(crig, csite, HEADING).estimate_segments(segs, 0)
     assert not new and new.reason == "weak_geometry", new
     assert "off the site's ceiling lines" in new.detail
     assert encode_pose(new, 0).split(b",")[3] == b"V"
     # fitting every matched segment, the misfit test refuses it
-    fitted = CorridorEstimator(crig, csite, {"consensus": False}).estimate_segments(segs, 0)
+    fitted = CorridorEstimator(crig, csite, {**HEADING, "consensus": False}).estimate_segments(segs, 0)
     assert not fitted and fitted.reason == "misfit", fitted
     # with the misfit test off as well, the one matched site line still refuses it
-    weak = CorridorEstimator(crig, csite, {"noise_px": 1e6, "consensus": False}
+    weak = CorridorEstimator(crig, csite, {**HEADING, "noise_px": 1e6, "consensus": False}
                              ).estimate_segments(segs, 0)
     assert not weak and weak.reason == "weak_geometry", weak
 
@@ -242,27 +246,27 @@ def test_vanishing_line_off_the_calibrated_mount(crig, csite):
     bad = with_mount(crig, tilt_rad=math.radians(68.5))
     segs = project_segments(crig, csite.ceiling_height_m, corridor_lines_w(1.0), 1.0, 0.1,
                             0.2)
-    old = CorridorEstimator(bad, csite, CORRIDOR_OFF).estimate_segments(segs, 0)
-    new = CorridorEstimator(bad, csite).estimate_segments(segs, 0)
+    old = CorridorEstimator(bad, csite, {**HEADING, **CORRIDOR_OFF}).estimate_segments(segs, 0)
+    new = CorridorEstimator(bad, csite, HEADING).estimate_segments(segs, 0)
     assert not new, new
     if old:   # a pose was published: the vanishing line said it could not be right
         d = old.diagnostics
         off = [abs(d[k]) for k in ("vanishing_line_residual_deg", "vp_along_elevation_deg")
                if math.isfinite(d[k])]
         assert off and max(off) > 10.0, d          # one across segment: the forward VP
-        only_vl = CorridorEstimator(bad, csite, {**CORRIDOR_OFF,
+        only_vl = CorridorEstimator(bad, csite, {**HEADING, **CORRIDOR_OFF,
                                                  "max_vanishing_line_deg": 10.0,
                                                  "max_vp_elevation_deg": 5.0})
         r = only_vl.estimate_segments(segs, 0)
         assert not r and r.reason == "vanishing_line" and f"{max(off):.1f} deg" in r.detail
     # a smaller mount error (tilt 60 deg in the rig): published before, refused now
     bad15 = with_mount(crig, tilt_rad=math.radians(60))
-    old = CorridorEstimator(bad15, csite, CORRIDOR_OFF).estimate_segments(segs, 0)
+    old = CorridorEstimator(bad15, csite, {**HEADING, **CORRIDOR_OFF}).estimate_segments(segs, 0)
     assert isinstance(old, PoseEstimate)
     assert old.diagnostics["vanishing_line_residual_deg"] == pytest.approx(15.0, abs=0.5)
-    r = CorridorEstimator(bad15, csite, {"noise_px": 1e6}).estimate_segments(segs, 0)
+    r = CorridorEstimator(bad15, csite, {**HEADING, "noise_px": 1e6}).estimate_segments(segs, 0)
     assert not r and r.reason == "vanishing_line", r
-    assert not CorridorEstimator(bad15, csite).estimate_segments(segs, 0)
+    assert not CorridorEstimator(bad15, csite, HEADING).estimate_segments(segs, 0)
 
 
 def test_pose_outside_the_site(crig, csite):
@@ -271,11 +275,11 @@ def test_pose_outside_the_site(crig, csite):
     bad = with_mount(crig, y_m=10.0)
     segs = project_segments(bad, csite.ceiling_height_m, corridor_lines_w(1.0), 1.0, -9.9,
                             0.0)
-    old = CorridorEstimator(bad, csite, CORRIDOR_OFF).estimate_segments(segs, 0)
+    old = CorridorEstimator(bad, csite, {**HEADING, **CORRIDOR_OFF}).estimate_segments(segs, 0)
     assert isinstance(old, PoseEstimate) and old.y_m == pytest.approx(-9.9, abs=1e-6)
-    new = CorridorEstimator(bad, csite).estimate_segments(segs, 0)
+    new = CorridorEstimator(bad, csite, HEADING).estimate_segments(segs, 0)
     assert not new and new.reason == "outside_site" and "9.45 m outside" in new.detail
-    wide = CorridorEstimator(bad, csite, {"site_margin_m": 12.0}).estimate_segments(segs, 0)
+    wide = CorridorEstimator(bad, csite, {**HEADING, "site_margin_m": 12.0}).estimate_segments(segs, 0)
     assert wide
 
 
@@ -283,18 +287,18 @@ def test_heading_check_compares_refined_and_vanishing_point_heading(crig, csite)
     rng = np.random.default_rng(2)
     segs = project_segments(crig, csite.ceiling_height_m, corridor_lines_w(1.0), 1.0, 0.1,
                             0.3, 1.0, rng)
-    r = CorridorEstimator(crig, csite).estimate_segments(segs, 0)
+    r = CorridorEstimator(crig, csite, HEADING).estimate_segments(segs, 0)
     assert r, r
     change = abs(r.diagnostics["heading_change_deg"])
     assert 0 < change < 2.0
-    tight = CorridorEstimator(crig, csite, {"max_heading_change_deg": 0.5 * change})
+    tight = CorridorEstimator(crig, csite, {**HEADING, "max_heading_change_deg": 0.5 * change})
     f = tight.estimate_segments(segs, 0)
     assert not f and f.reason == "heading_disagrees"
 
 
 def test_corridor_sim_frames_pass_every_check(crig, csite):
     rng = np.random.default_rng(7)
-    est = CorridorEstimator(crig, csite)
+    est = CorridorEstimator(crig, csite, HEADING)
     for x, y, yaw in ((3.0, 0.2, 0.3), (10.0, -0.5, -0.4)):
         r = est.estimate(render_frame(crig, csite, x, y, yaw, SimOptions(), rng), 0)
         assert isinstance(r, PoseEstimate), r
