@@ -373,7 +373,8 @@ def _stations(per_side: int, search_px: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
-                search_px: float = EDGE_SEARCH_PX) -> tuple[np.ndarray, np.ndarray]:
+                search_px: float = EDGE_SEARCH_PX, sign: int = 0
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel points of each side of a coarse quad ``(4, 2)`` (side k: corner k to k+1).
 
     Along each side, ``per_side`` stations (leaving :data:`EDGE_END_SKIP` of the side out
@@ -384,6 +385,13 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     compiled loop (:func:`_edge_points`); the samples are bilinear in float (the
     frame's edge replicated), not rounded to OpenCV's 1/32 px grid.
 
+    ``sign``: 0 takes the steepest step of either polarity; -1 only a step darker
+    towards the side's left normal (inside a quad of positive shoelace area: a dark
+    quad's edge), +1 only one brighter there. A signed search is what tells a small
+    marker's outer edge from the edges of its first inner cells and of its quiet ring
+    one cell either side (both of the other polarity), where an unsigned one within
+    ``search_px`` of about a cell may take either.
+
     Returns:
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
     """
@@ -393,16 +401,16 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
         return np.zeros((0, 2)), np.zeros(0, np.int64)
     pts, side, n = _edge_points(arr(grey, np.uint8), p0, arr(offs, np.float64),
                                 arr(t, np.float64),
-                                EDGE_STEP_PX)
+                                EDGE_STEP_PX, int(sign))
     return pts[:n], side[:n]
 
 
 @njit
-def _edge_points(grey, p0, offs, t, step):  # pragma: no cover - compiled
+def _edge_points(grey, p0, offs, t, step, sign=0):  # pragma: no cover - compiled
     """:func:`edge_points` on a ``(4, 2)`` quad of finite corners: ``(points (4 S, 2),
     side (4 S,), count)``, the first ``count`` kept. Samples are bilinear in float
     (the frame's edge replicated beyond it), at offsets ``offs (K,)`` across each side
-    at the fractions ``t (S,)`` along it."""
+    at the fractions ``t (S,)`` along it; ``sign`` as :func:`edge_points`'s."""
     h, w = grey.shape
     n_st, n_off = t.size, offs.size
     prof = np.empty(n_off)
@@ -421,7 +429,8 @@ def _edge_points(grey, p0, offs, t, step):  # pragma: no cover - compiled
                 prof[i] = _bilinear(grey, bx + offs[i] * nx, by + offs[i] * ny, w, h)
             k, best = 0, -1.0
             for i in range(n_off - 1):
-                g = abs(prof[i + 1] - prof[i])
+                d = prof[i + 1] - prof[i]
+                g = abs(d) if sign == 0 else sign * d
                 if g > best:
                     k, best = i, g
             # the step's middle: where the profile crosses half way between its two

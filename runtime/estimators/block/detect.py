@@ -10,6 +10,10 @@
   ``cv2.aruco``'s time; corners sub-pixel from the sides' edges.
 * :func:`measure_sides`: points on the four sides' edges, undistorted, a line fitted to
   each side and the corners as the lines' intersections (normalized coordinates).
+* :func:`aruco_markers`: the full-resolution fallback where the decimated search finds
+  no marker (markers down to ``cv2.aruco``'s own limit, about 3 px per cell, whose
+  one-cell black border a decimated, opened mask breaks): ``cv2.aruco``'s default
+  detector on the whole frame, with the site's dictionary (about 2-3 ms at 640x480).
 
 Everything returns arrays or frozen dataclasses; nothing raises per frame.
 """
@@ -31,6 +35,7 @@ from ceilkit.runtime.features.quads import (
     QUIET_CELLS,
     MarkerCodes,
     Quad,
+    marker_dictionary,
     _bilinear,
     _edge_points,
     _stations,
@@ -112,6 +117,29 @@ def find_quads(grey: np.ndarray, dark: bool, ratio: float,
     o = 0.5 * (f - 1)
     return [Quad(q.corners_px * f + o, q.area_px * f * f, q.at_border,
                  q.contour_px * f + o, f) for q in quads]
+
+
+@functools.lru_cache(maxsize=8)
+def _aruco_detector(dictionary: str) -> cv2.aruco.ArucoDetector:
+    """``cv2.aruco``'s detector for ``dictionary`` with its default parameters (its
+    thresholds at several scales: what it reads, the fallback reads)."""
+    return cv2.aruco.ArucoDetector(marker_dictionary(dictionary),
+                                   cv2.aruco.DetectorParameters())
+
+
+def aruco_markers(grey: np.ndarray, dictionary: str) -> list[tuple[int, np.ndarray]]:
+    """The markers ``cv2.aruco``'s default detector reads on the full frame:
+    ``(id, corners (4, 2) px)`` in aruco's corner order (the printed top-left, top-right,
+    bottom-right, bottom-left: SPEC §2's corner k), coarse (no sub-pixel refinement:
+    :func:`measure_sides` measures the sides). An id read twice is left out (which of
+    the two is the site's marker is not known)."""
+    corners, ids, _ = _aruco_detector(dictionary).detectMarkers(grey)
+    if ids is None or len(corners) == 0:
+        return []
+    got = [(int(i), np.asarray(c, np.float64).reshape(4, 2))
+           for i, c in zip(np.asarray(ids).ravel(), corners, strict=True)]
+    seen = [i for i, _ in got]
+    return [(i, c) for i, c in got if seen.count(i) == 1]
 
 
 def fit_side_lines(points: np.ndarray, side: np.ndarray) -> np.ndarray:
@@ -226,16 +254,17 @@ class Sides:
 
 
 def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
-                  per_side: int, passes: int = 2, search_px: float = EDGE_SEARCH_PX
-                  ) -> Sides | None:
+                  per_side: int, passes: int = 2, search_px: float = EDGE_SEARCH_PX,
+                  sign: int = 0) -> Sides | None:
     """The quad's sides measured on the frame (see the module docstring), ``passes``
     times: each pass about the corners the previous one found (a coarse contour's
     corners, a predicted quad's, may be a few pixels off); the first pass looks for
     the edges ``search_px`` across each side, the next ones :data:`EDGE_SEARCH_PX`.
     None when a side has fewer than :data:`MIN_SIDE_POINTS` points. The passes before
     the last fit the sides in pixels (no lens model: straight over a short run, and
-    only the next pass's stations depend on them). One compiled call
-    (:func:`measure_core`)."""
+    only the next pass's stations depend on them). ``sign``: the edges' polarity
+    (:func:`~ceilkit.runtime.features.quads.edge_points`'; 0: either). One compiled
+    call (:func:`measure_core`)."""
     p0 = arr(corners_px, np.float64).reshape(4, 2)
     if not np.isfinite(p0).all():
         return None
@@ -246,28 +275,31 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
     edge = np.empty((4 * per_side, 2))
     side = np.empty(4 * per_side, np.int64)
     n = measure_core(arr(grey, np.uint8), p0, passes, first, rest, t, EDGE_STEP_PX,
-                     code, lens, corners, edge, side)
+                     code, lens, corners, edge, side, int(sign))
     if n < 0:
         return None
     return Sides(corners, edge[:n], side[:n], 4 * per_side)
 
 
 @njit
-def measure_core(grey, p0, passes, first, rest, t, step, code, lens, corners, edge, side
-                 ):  # pragma: no cover - compiled
+def measure_core(grey, p0, passes, first, rest, t, step, code, lens, corners, edge, side,
+                 sign=0):  # pragma: no cover - compiled
     """:func:`measure_sides` of the quad ``p0 (4, 2)`` px (finite): the corners
     (normalized) into ``corners (4, 2)``, the edge points (normalized) and their sides
     into the first ``count`` rows of ``edge (4 S, 2)``, ``side (4 S,)``; returns
     ``count``, or -1 (no measurement). Offsets across a side: ``first (K,)`` on the
     first pass, ``rest`` after; stations ``t (S,)`` along it. A last pass that loses
-    a side keeps the previous pass's points (through the lens)."""
+    a side keeps the previous pass's points (through the lens). ``sign``: the edges'
+    polarity (:func:`~ceilkit.runtime.features.quads.edge_points`'). (numba keys this
+    loop's cache on this file's contents only: a change to ``quads._edge_points``,
+    compiled into it, is taken only once this file changes too.)"""
     cur = p0.copy()
     lines = np.empty((4, 3))
     prev_pts = np.empty((0, 2))
     prev_side = np.empty(0, np.int64)
     have_prev = False
     for k in range(passes):
-        pts, sd, n = _edge_points(grey, cur, first if k == 0 else rest, t, step)
+        pts, sd, n = _edge_points(grey, cur, first if k == 0 else rest, t, step, sign)
         if _too_few(sd, n):
             if k == passes - 1 and have_prev:
                 return _lens_sides(prev_pts, prev_side, code, lens, lines, corners, edge, side)
@@ -391,3 +423,4 @@ def _warm() -> None:
                 CameraModel.pinhole(40, 40, 20.0, dist=[0.1, 0, 0, 0, 0])):
         geo = PlanarGeometry(cam, np.eye(3), np.zeros(3), 3.0)
         measure_sides(g, sq, geo, 4, passes=2, search_px=4.0)
+        measure_sides(g, sq, geo, 4, passes=2, search_px=4.0, sign=-1)

@@ -7,10 +7,20 @@ its pose solved by planar PnP (:mod:`.pnp`: closed form, then Gauss-Newton in pi
 The best-determined fix (smallest position covariance) is published.
 
 * A marker is unambiguous: its id and its corner order fix the correspondence. An id the
-  site does not hold is ignored (``unknown_marker_ids`` in the diagnostics).
+  site does not hold is ignored (``unknown_marker_ids`` in the diagnostics). Where the
+  decimated search gives no marker fix (markers down to ``cv2.aruco``'s own limit, about
+  3 px per cell, whose one-cell border the decimated, opened mask breaks), ``cv2.aruco``'s
+  default detector reads the full frame (option ``marker_fallback``) and the markers it
+  reads are measured and solved the same way (``aruco_fallback``: how many it read).
 * A plain square block fits its corners in 4 ways, a rectangle in 2: with a prior, the
   fit nearest the prior is taken when it is clearly nearer than the next
-  (``resolved_by: prior``); without one the frame is ``ambiguous``. Never silently.
+  (``resolved_by: prior``, provenance ``PRIOR``, the twins the prior ruled out in
+  ``hypotheses`` after the published pose); without one the frame is ``ambiguous``,
+  its Failure carrying every fit as a :class:`~ceilkit.runtime.estimators.base.Hypothesis`
+  (equal weights), even with the heading cue on. Never silently.
+* The heading from the ceiling's parallels alone (a tile grid: known modulo 90°) is a
+  heading-only estimate (``x_m = y_m = None``) carrying each branch as a hypothesis:
+  never a full pose, never singled out.
 * A plain block partly out of the frame or occluded is not used: its outline is then not
   a quadrilateral of the block's shape; when nothing else is seen and such an outline
   (a quad at the frame's edge, or a region of ``PARTIAL_AREA_PX`` or more that is not a
@@ -19,7 +29,8 @@ The best-determined fix (smallest position covariance) is published.
 
 Diagnostics: ``ms``, ``source`` (``marker:ID`` or ``block:ID``), ``rms_px``, ``shape_m``
 (the corners' fit on the ceiling), ``n_edge``, ``fixes`` (how many blocks and markers
-gave a pose), ``unknown_marker_ids``, and the 6-DoF check ``pnp6_tilt_deg``,
+gave a pose), ``unknown_marker_ids``, ``aruco_fallback`` (markers the fallback read),
+and the 6-DoF check ``pnp6_tilt_deg``,
 ``pnp6_swing_deg``, ``pnp6_height_m`` (:func:`~.pnp.six_dof_check`).
 """
 
@@ -37,11 +48,12 @@ from ceilkit.runtime.config.site import check_rig_site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import (
     AMBIGUOUS,
-    Provenance,
     Estimate,
     Estimator,
     EstimatorOptions,
+    Hypothesis,
     PoseEstimate,
+    Provenance,
     elapsed_ms,
 )
 from ceilkit.runtime.estimators.block.detect import (
@@ -49,9 +61,9 @@ from ceilkit.runtime.estimators.block.detect import (
     decimate,
     find_quads,
     measure_sides,
-    read_marker,
     side_lengths_m,
 )
+from ceilkit.runtime.estimators.block.fallback import MarkerReader
 from ceilkit.runtime.estimators.block.heading import ParallelsStage
 from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
 from ceilkit.runtime.estimators.block.parallels import ParallelsHeading
@@ -64,6 +76,14 @@ from ceilkit.runtime.estimators.block.pnp import (
     solve,
 )
 from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides
+from ceilkit.runtime.estimators.block.twins import (
+    Twin,
+    fit_hypotheses,
+    heading_branches,
+    target_twins,
+    twin,
+    with_twins,
+)
 from ceilkit.runtime.estimators.block.window import (
     WINDOW,
     Target,
@@ -128,6 +148,11 @@ class BlockOptions(EstimatorOptions):
         track_window_px: how far (px) a side may lie from its predicted place.
         track_full_every: a global search after this many window fixes (0: only when
             the window check fails).
+        marker_fallback: where the decimated search gave no marker fix, run
+            ``cv2.aruco``'s default detector (the site's dictionary) on the full frame
+            and measure and solve the markers it reads (:meth:`BlockEstimator._aruco_fixes`):
+            markers down to about 3 px per cell, whose one-cell border the decimated
+            search loses (about 2-3 ms per frame at 640x480).
     """
 
     shape_tol: float = 0.08
@@ -145,6 +170,7 @@ class BlockOptions(EstimatorOptions):
     track: bool = False
     track_window_px: float = 4.0
     track_full_every: int = 30
+    marker_fallback: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,15 +181,25 @@ class _Fix:
     corners_norm: np.ndarray
     corners_w: np.ndarray
     resolved_by: str
+    twins: tuple[Twin, ...] = ()    # the correspondences the prior ruled out
+
+
+@dataclass(frozen=True, eq=False)
+class _Ambiguous:
+    """A symmetric block with no prior to pick its correspondence: every pose it fits."""
+
+    hypotheses: tuple[Hypothesis, ...]
 
 
 @dataclass
 class _Counts:
-    """A frame's quads that gave no fix: ambiguous, partly seen, not a block's size."""
+    """A frame's quads that gave no fix: ambiguous (with the first such block's
+    hypotheses), partly seen, not a block's size."""
 
     ambiguous: int = 0
     partial: int = 0
     skipped: int = 0
+    hypotheses: tuple[Hypothesis, ...] = ()
 
 
 class BlockEstimator(Estimator):
@@ -207,6 +243,9 @@ class BlockEstimator(Estimator):
         self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
         self._fixed = True      # the previous frame had a fix (no track to carry yet)
         self.windows = Windows(self.geo, targets, o, self._lined)
+        self._reader = (MarkerReader(self.geo, markers, self._codes, o.edge_points,
+                                     self._solve) if markers is not None else None)
+        self._fallback = self._reader if o.marker_fallback else None
         self._window_fixes = 0  # window fixes since the last global search
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
@@ -252,16 +291,20 @@ class BlockEstimator(Estimator):
             found += len(quads)
             self._fixes(grey, [(q, dark) for q in sorted(quads, key=lambda q: -q.area_px)],
                         prior, fixes, unknown, n, later)
+        fallback = 0      # cv2.aruco on the full frame where the decimated search gave no marker
+        if self._fallback is not None and len(fixes) < o.max_fixes and \
+                not any(f.source.startswith("marker:") for f in fixes):
+            fallback = self._fallback.aruco_fixes(grey, fixes, unknown, o.max_fixes)
         for q, is_dark in later if not fixes else ():
             if len(fixes) >= o.max_fixes:
                 break
             _count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior), fixes, n)
         diag = {"unknown_marker_ids": tuple(unknown), "quads": found,
-                "quads_skipped": n.skipped}
+                "quads_skipped": n.skipped, "aruco_fallback": fallback}
         if not fixes:
             got = self._fail(t_ns, n, unknown, others, diag, t0)
-            if not self.options.parallels:
-                return got
+            if not self.options.parallels or got.hypotheses:
+                return got    # a symmetric block's poses say more than the parallels' heading
             known = bool(prior) and prior.x_m is not None and prior.y_m is not None
             h = self._parallels(grey, prior.yaw_rad if prior else None,
                                 np.array([prior.x_m, prior.y_m, prior.yaw_rad])
@@ -273,8 +316,10 @@ class BlockEstimator(Estimator):
                         parallels_mode=self._heading.mode,
                         parallels_n=h.n_lines, parallels_sigma_rad=h.sigma_rad,
                         ms=elapsed_ms(t0))
+            # known modulo the period only: every branch a hypothesis, never singled out
             return PoseEstimate(t_ns, self.name, None, None, h.yaw_rad,
-                                HEADING_ONLY_QUALITY, cov=cov, diagnostics=diag)
+                                HEADING_ONLY_QUALITY, cov=cov, diagnostics=diag,
+                                hypotheses=heading_branches(h.yaw_rad, h.period_rad, cov))
         return self._publish(t_ns, fixes, diag, t0, grey)
 
     def _fixes(self, grey: np.ndarray, cands: list[tuple[Quad, bool]],
@@ -300,7 +345,7 @@ class BlockEstimator(Estimator):
                 continue
             if is_dark and self._is_marker_size(pv):
                 q = sharpen_quad(q)
-                got = self._marker_fix(grey, q)
+                got = self._reader.quad_fix(grey, q)
                 if isinstance(got, (_Fix, int)):
                     (fixes if isinstance(got, _Fix) else unknown).append(got)
                     continue
@@ -334,10 +379,13 @@ class BlockEstimator(Estimator):
         return self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
 
     def _window_fix(self, tgt: Target, got: WindowFix) -> _Fix:
-        """A fix that passed the window check (:meth:`.window.Windows.fix`), pooled."""
+        """A fix that passed the window check (:meth:`.window.Windows.fix`), pooled; a
+        symmetric target's turns that also fit its shape are its twins (the prior chose)."""
+        twins = target_twins(tgt.corners_w, self.options.shape_tol * tgt.min_side_m) \
+            if tgt.symmetric else ()
         return _Fix(tgt.source, self._pooled(tgt.source, got.refined), got.shape_m,
                     got.sides.corners_norm, tgt.corners_w,
-                    "prior" if tgt.symmetric else WINDOW)
+                    "prior" if tgt.symmetric else WINDOW, twins)
 
     def _fail(self, t_ns: int, n: _Counts, unknown: list[int],
               others: list[np.ndarray], diag: dict[str, Any], t0: float) -> Estimate:
@@ -345,7 +393,8 @@ class BlockEstimator(Estimator):
         ms = elapsed_ms(t0)
         if n.ambiguous:
             return self.fail(t_ns, AMBIGUOUS, "a symmetric block fits in several ways "
-                             "and no prior tells them apart", ms=ms, **diag)
+                             "and no prior tells them apart", hypotheses=n.hypotheses,
+                             ms=ms, **diag)
         if n.partial or any(cv2.contourArea(c) >= PARTIAL_AREA_PX for c in others):
             return self.fail(t_ns, PARTIAL_BLOCK, "a block is only partly in view",
                              ms=ms, **diag)
@@ -394,7 +443,7 @@ class BlockEstimator(Estimator):
                       if best.resolved_by == "prior" else Provenance.GLOBAL)
         return PoseEstimate(t_ns, self.name, float(pose[0]), float(pose[1]),
                             wrap_pi(float(pose[2])), quality, cov=cov, diagnostics=diag,
-                            provenance=provenance)
+                            provenance=provenance, hypotheses=with_twins(pose, cov, best.twins))
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
                resolved_by: str) -> _Fix | None:
@@ -412,29 +461,11 @@ class BlockEstimator(Estimator):
         return _Fix(source, self._pooled(source, ref), shape, sides.corners_norm, corners_w,
                     resolved_by)
 
-    def _marker_fix(self, grey: np.ndarray, quad: Quad) -> _Fix | int | None:
-        """A fix from a marker-sized dark quad, the id read when the site does not hold
-        it, or None (not a marker, or not measured)."""
-        sides = measure_sides(grey, quad.corners_px, self.geo, self.options.edge_points,
-                              passes=1)
-        if sides is None:
-            return None
-        read = read_marker(grey, sides.corners_norm, self.geo, self._codes)
-        if read is None:
-            return None
-        marker_id, s, _ = read
-        pose = self._markers.pose(marker_id)
-        if pose is None:
-            return marker_id
-        # corner s of the quad is the printed top-left: aruco's corner 0 (SPEC §2)
-        sides = Sides(sides.corners_norm[(np.arange(4) + s) % 4], sides.edge_norm,
-                      (sides.side - s) % 4, sides.stations)
-        return self._solve(sides, pose.corners_m(), f"marker:{marker_id}", "id")
-
     def _block_fix(self, grey: np.ndarray, quad: Quad, dark: bool,
-                   prior: PoseEstimate | None) -> _Fix | str | None:
-        """A fix from a plain quad, or the reason it gave none (``ambiguous``,
-        ``partial_block``) or None (not a block of the site)."""
+                   prior: PoseEstimate | None) -> _Fix | _Ambiguous | str | None:
+        """A fix from a plain quad, every pose it fits when no prior picks one
+        (:class:`_Ambiguous`), the reason it gave none (``partial_block``) or None (not
+        a block of the site)."""
         sides = measure_sides(grey, quad.corners_px, self.geo, self.options.edge_points,
                               passes=1)
         if sides is None:
@@ -450,10 +481,15 @@ class BlockEstimator(Estimator):
         fits = shape_fits(self.site.blocks, pv, dark, self.options.shape_tol)
         if not fits:
             return PARTIAL_BLOCK if quad.at_border else None
+        every = [b.corners_m[(np.arange(4) + k) % 4] for b, k, _, _ in fits]
+        twins: tuple[Twin, ...] = ()
         if len(fits) > 1:
             pick = _pick_by_prior(fits, prior)
-            if pick is None:
-                return AMBIGUOUS
+            if pick is None:     # every fit a hypothesis; None: the edges do not fit (as _solve)
+                hyps = fit_hypotheses(self.geo, sides, fits, every, self._lined(every[0]),
+                                      RMS_BAD_PX)
+                return _Ambiguous(hyps) if hyps else PARTIAL_BLOCK if quad.at_border else None
+            twins = tuple(twin(every[pick], c) for k, c in enumerate(every) if k != pick)
             blk, shift, _, _ = fits[pick]
             resolved = "prior"
         else:
@@ -461,6 +497,8 @@ class BlockEstimator(Estimator):
             resolved = "shape"
         corners_w = blk.corners_m[(np.arange(4) + shift) % 4]
         got = self._solve(sides, corners_w, f"block:{blk.id}", resolved)
+        if got is not None and twins:
+            got = dataclasses.replace(got, twins=twins)
         return PARTIAL_BLOCK if got is None and quad.at_border else got
 
 
@@ -474,11 +512,14 @@ def _may_be_block(perimeters: list[tuple[float, bool]], pv: np.ndarray, dark: bo
 
 
 def _count_block(got: Any, fixes: list[_Fix], counts: _Counts) -> None:
-    """A block's outcome: its fix kept, or counted (ambiguous, partial)."""
+    """A block's outcome: its fix kept, or counted (ambiguous, with the first such
+    block's hypotheses; partial)."""
     if isinstance(got, _Fix):
         fixes.append(got)
-    elif got == AMBIGUOUS:
+    elif isinstance(got, _Ambiguous):
         counts.ambiguous += 1
+        if not counts.hypotheses:
+            counts.hypotheses = got.hypotheses
     elif got == PARTIAL_BLOCK:
         counts.partial += 1
 

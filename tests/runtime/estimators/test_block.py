@@ -224,14 +224,22 @@ def test_rectangle_is_ambiguous_without_a_prior_and_resolved_with_one(rig):
     est = BlockEstimator(rig, site, {"heading_cue": False})
     none = est.estimate(img, 0)
     assert not none and none.reason == "ambiguous"
-    # with the heading cue (default) the rectangle's sides still give the heading
+    # with the heading cue (default) too: the frame is ambiguous and carries both poses
+    # (a half turn apart, equally weighted, the truth among them), which say more than
+    # the sides' heading alone
     cue = BlockEstimator(rig, site).estimate(img, 0)
-    assert cue and cue.x_m is None and cue.y_m is None
-    assert cue.diagnostics["no_fix"] == "ambiguous"
-    assert abs(math.remainder(cue.yaw_rad - yaw, cue.diagnostics["yaw_period_rad"])) \
-        < math.radians(0.05)
+    assert not cue and cue.reason == "ambiguous"
+    assert len(cue.hypotheses) == 2 and [h.weight for h in cue.hypotheses] == [0.5, 0.5]
+    near = min(cue.hypotheses, key=lambda h: math.hypot(h.x_m - x, h.y_m - y))
+    assert math.hypot(near.x_m - x, near.y_m - y) < 0.005
+    assert abs(math.remainder(near.yaw_rad - yaw, 2 * math.pi)) < math.radians(0.2)
+    turn = cue.hypotheses[1].yaw_rad - cue.hypotheses[0].yaw_rad
+    assert abs(math.remainder(turn - math.pi, 2 * math.pi)) < 1e-6
     got = est.estimate(img, 0, prior=prior_at(x + 0.1, y - 0.1, yaw + 0.2))
     assert got and got.diagnostics["resolved_by"] == "prior"
+    assert got.provenance.value == "prior" and not got.singled_out
+    assert len(got.hypotheses) == 2 and got.hypotheses[0].x_m == got.x_m
+    assert got.hypotheses[1].label == "half_turn"
     assert math.hypot(got.x_m - x, got.y_m - y) < 0.005
     assert abs(math.degrees(got.yaw_rad - yaw)) < 0.2
     assert got.quality < 0.8

@@ -79,3 +79,28 @@ def test_bit_count_without_numpy_2_agrees():
     assert np.array_equal(quads._BYTE_BITS[words.view(np.uint8).reshape(-1, 8)].sum(axis=1),
                           want)
     assert np.array_equal(quads._bit_count(words), want)
+
+
+def test_a_signed_edge_search_takes_a_small_markers_outer_edge():
+    """A marker of 3 px per cell: a black border one cell wide between its quiet ring
+    and its inner cells, both within the ±3 px search of its outer edge. Where the
+    inner cells' edge is the steeper (whiter cells than the ring), the unsigned search
+    takes it from a start a pixel inside the outer edge; the search for a step dark
+    inside (sign -1, corners clockwise as displayed) takes the outer edge."""
+    img = np.full((80, 80), 150, np.uint8)
+    img[17:63, 17:63] = 200                 # the quiet ring (one cell: 3 px)
+    img[20:60, 20:60] = 30                  # the black border ...
+    img[23:57, 23:57] = 250                 # ... one cell wide; white inner cells
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    for a, b in ((19.0, 60.0), (20.0, 59.0)):
+        coarse = np.array([[a, a], [b, a], [b, b], [a, b]])
+        for sign in (-1, 0):
+            pts, side = edge_points(img, coarse, 12, 3.0, sign=sign)
+            assert np.bincount(side, minlength=4).min() == 12
+            across = np.where(side % 2 == 0, pts[:, 1], pts[:, 0])
+            outer = np.minimum(abs(across - 19.5), abs(across - 59.5))
+            inner = np.minimum(abs(across - 22.5), abs(across - 56.5))
+            if sign:
+                assert outer.max() < 1.0
+            elif a == 20.0:
+                assert inner.max() < 1.0
