@@ -245,9 +245,8 @@ def track_before(fu, got, t: int, dt_ns: int) -> tuple[np.ndarray, np.ndarray]:
     fix: the previous frame's node carried by the fix frame's own increment when it has
     one (the fusion applies it before the fix), as the fusion's own predict_odometry
     does; else the node predicted to ``t`` by its motion model."""
-    from ceilkit.runtime.estimators.base import INCREMENT
     from ceilkit.runtime.geometry import ekf
-    inc = got.diagnostics.get(INCREMENT)
+    inc = got.increment
     if inc is None:
         node = fu._f.node_at(t)
         return node.s[:3], node.P[:3, :3]

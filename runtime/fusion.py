@@ -58,9 +58,6 @@ HOLD_MPS = 0.0005
 the next row's own noise covers the motion again (ekf's 0.002 over-covered x by ~11 mm
 over 30 s of odometry alone: mean NEES 1.94 -> 2.82, bench_fusion)."""
 UNKNOWN_X_VAR = 1e6      # m²: x of a track started by the corridor method alone
-YAW_PERIOD = "yaw_period_rad"
-"""``diagnostics`` key of a heading-only cue whose heading is known modulo this period
-(heading from parallels: pi, or pi/2 on a square grid)."""
 
 
 @dataclass(frozen=True)
@@ -262,7 +259,9 @@ def measurement(cue: PoseEstimate, options: FusionOptions) -> _Fix | None:
     else:
         R = options.inflation.get(cue.method, options.fix_inflation) * cov
     R = 0.5 * (R + R.T) + np.diag(floor ** 2)
-    period = cue.diagnostics.get(YAW_PERIOD) if rows == [ekf.YAW] else None
+    # a heading known modulo a period (the parallels'): its branches are its hypotheses
+    branches = len(cue.hypotheses) if rows == [ekf.YAW] else 0
+    period = 2 * math.pi / branches if branches > 1 else None
     return _Fix(cue, np.array(z), tuple(rows), R, None if period is None else float(period))
 
 
@@ -436,14 +435,14 @@ class Fusion:
         relocalized, started = self._jumped, []
         self._jumped = False
         if self._lost(t):
-            start = self._starting_fix(fixes)
+            start = starting_fix(fixes, self.gates)
             if start is None:
                 return self._ambiguity(t, est, cues)
             self._restart(t, start)
             relocalized, started = True, [start.cue.method]
             fixes = [f for f in fixes if f is not start]
         else:
-            fixes += self._twins_near_the_track(t, cues)
+            fixes += twins_near(self._f.node_at(t), cues, self.options, self.gates)
         used = started + self._apply(t, fixes)
         if self._candidates and len(self._candidates) >= self.options.confirm:
             fix = self._candidates[-1]
@@ -473,60 +472,16 @@ class Fusion:
         """No track and no fix to start one: the ambiguous cues' hypotheses are carried
         as modes (:class:`ModeSet`); the track starts from one only when the drive's
         evidence singles it out (its weight at least ``single_p``)."""
-        sets = [(c.method, c.hypotheses, c.hypotheses_complete) for c in cues
-                if isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses]
-        self.modes.update(t_ns, sets)
-        best = self.modes.singled_out()
+        best = self.modes.step(t_ns, cues)
         if best is not None:
-            self._f, self._t_fix_ns, self._candidates = best.f, t_ns, []
+            self._f, self._t_fix_ns, self._candidates, self._method = best.f, t_ns, [], \
+                best.method
             self._lateral_only = float(best.f.latest.P[0, 0]) >= UNKNOWN_X_VAR
-            self.modes.clear()
             self.relocalizations += 1
-            self._method = best.method
-            diag = {"applied": (best.method,), "pending": 0, "coasting": False,
-                    "modes_resolved": True}
+            diag = {"applied": (best.method,), "pending": 0, "coasting": False}
             return TrackResult(self._publish(self._f.node_at(t_ns), best.method, diag), True)
-        self._f = None
-        self._candidates = []
-        if self.modes:
-            return TrackResult(self.modes.failure(t_ns))
-        return TrackResult(_failure(est, cues))
-
-    def _twins_near_the_track(self, t_ns: int, cues: tuple) -> list[_Fix]:
-        """The track decides an ambiguous cue: of its hypotheses, the one inside the
-        track's gate when it is the only one there, as a fix."""
-        out = []
-        n = self._f.node_at(t_ns)
-        for c in cues:
-            if not (isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses):
-                continue
-            inside = []
-            for h in c.hypotheses:
-                m = measurement(hypothesis_cue(t_ns, c.method, h), self.options)
-                y, S = ekf.innovation(n.s, n.P, m.z, m.rows, m.R)
-                if ekf.nis(y, S) <= self.gates[len(m.rows)]:
-                    inside.append(m)
-            if len(inside) == 1:
-                out.append(inside[0])
-        return out
-
-    def _starting_fix(self, fixes: list[_Fix]) -> _Fix | None:
-        """The fix a track starts from: a full fix that every other cue of the frame
-        agrees with, else a fix with y (the corridor's: x stays unknown)."""
-        for f in fixes:
-            if f.full and all(self._agree(f, g) for g in fixes if g is not f):
-                return f
-        return next((f for f in fixes if 1 in f.rows and not f.full), None)
-
-    def _agree(self, a: _Fix, b: _Fix) -> bool:
-        """Whether two fixes of one frame agree on the coordinates they share."""
-        shared = [r for r in b.rows if r in a.rows]
-        ia, ib = [a.rows.index(r) for r in shared], [b.rows.index(r) for r in shared]
-        y = a.z[ia] - b.z[ib]
-        if shared[-1] == ekf.YAW:
-            y[-1] = wrap_pi(float(y[-1]))
-        S = a.R[np.ix_(ia, ia)] + b.R[np.ix_(ib, ib)]
-        return ekf.nis(y, S) <= self.gates[len(shared)]
+        self._f, self._candidates = None, []
+        return TrackResult(self.modes.failure(t_ns) if self.modes else _failure(est, cues))
 
     def _restart(self, t_ns: int, fix: _Fix) -> None:
         cov = np.diag([UNKNOWN_X_VAR, UNKNOWN_X_VAR, 1.0])
@@ -602,17 +557,55 @@ class Fusion:
                             float(n.s[2]), float(quality), None, cov,
                             MappingProxyType(diag),
                             tuple(float(v) for v in n.s[3:6])
-                            if velocity and self._velocity_known(n) else None,
+                            if velocity and velocity_known(n, self.options) else None,
                             provenance=Provenance.TRACK)
 
-    def _velocity_known(self, n: _Node) -> bool:
-        """Whether the filter has measured its velocity: its 1-sigma well under the
-        start's (a new track's velocity is its start guess, 0, not a measurement; as
-        with the light tracker, the estimators then assume it unknown)."""
-        sd = np.sqrt(np.maximum(np.diag(n.P)[3:6], 0.0))
-        o = self.options
-        return bool(sd[0] < 0.5 * o.start_speed_mps and sd[1] < 0.5 * o.start_speed_mps
-                    and sd[2] < 0.5 * o.start_turn_rps)
+def twins_near(n: _Node, cues: tuple, options: FusionOptions,
+               gates: Mapping[int, float]) -> list[_Fix]:
+    """The track (its node ``n``) decides an ambiguous cue: of its hypotheses, the one
+    inside the track's gate when it is the only one there, as a fix."""
+    out = []
+    for c in cues:
+        if not (isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses):
+            continue
+        inside = []
+        for h in c.hypotheses:
+            m = measurement(hypothesis_cue(n.t_ns, c.method, h), options)
+            y, S = ekf.innovation(n.s, n.P, m.z, m.rows, m.R)
+            if ekf.nis(y, S) <= gates[len(m.rows)]:
+                inside.append(m)
+        if len(inside) == 1:
+            out.append(inside[0])
+    return out
+
+
+def starting_fix(fixes: list[_Fix], gates: Mapping[int, float]) -> _Fix | None:
+    """The fix a track starts from: a full fix that every other cue of the frame
+    agrees with, else a fix with y (the corridor's: x stays unknown)."""
+    for f in fixes:
+        if f.full and all(agree(f, g, gates) for g in fixes if g is not f):
+            return f
+    return next((f for f in fixes if 1 in f.rows and not f.full), None)
+
+
+def agree(a: _Fix, b: _Fix, gates: Mapping[int, float]) -> bool:
+    """Whether two fixes of one frame agree on the coordinates they share."""
+    shared = [r for r in b.rows if r in a.rows]
+    ia, ib = [a.rows.index(r) for r in shared], [b.rows.index(r) for r in shared]
+    y = a.z[ia] - b.z[ib]
+    if shared[-1] == ekf.YAW:
+        y[-1] = wrap_pi(float(y[-1]))
+    S = a.R[np.ix_(ia, ia)] + b.R[np.ix_(ib, ib)]
+    return ekf.nis(y, S) <= gates[len(shared)]
+
+
+def velocity_known(n: _Node, o: FusionOptions) -> bool:
+    """Whether the filter has measured its velocity: its 1-sigma well under the
+    start's (a new track's velocity is its start guess, 0, not a measurement; as
+    with the light tracker, the estimators then assume it unknown)."""
+    sd = np.sqrt(np.maximum(np.diag(n.P)[3:6], 0.0))
+    return bool(sd[0] < 0.5 * o.start_speed_mps and sd[1] < 0.5 * o.start_speed_mps
+                and sd[2] < 0.5 * o.start_turn_rps)
 
 
 def hypothesis_cue(t_ns: int, method: str, h: Hypothesis) -> PoseEstimate:
@@ -737,6 +730,17 @@ class ModeSet:
                 kept.append(m)
         self.modes = kept
 
+    def step(self, t_ns: int, cues: tuple) -> Mode | None:
+        """One frame's cues with no track: their ambiguous hypotheses update the modes;
+        the mode singled out (cleared from the set), or None."""
+        self.update(t_ns, [(c.method, c.hypotheses, c.hypotheses_complete) for c in cues
+                           if isinstance(c, Failure) and c.reason == "ambiguous"
+                           and c.hypotheses])
+        best = self.singled_out()
+        if best is not None:
+            self.clear()
+        return best
+
     def singled_out(self) -> Mode | None:
         """The mode the drive has singled out, or None."""
         if self.frames >= 2 and self.modes and self.modes[0].weight >= self.options.single_p:
@@ -826,4 +830,4 @@ def _failure(est: Estimate, cues: tuple) -> Failure:
 
 
 __all__ = ["Fusion", "FusionOptions", "FusionReport", "FilterBuffer",
-           "measurement", "nees", "NAME", "YAW_PERIOD"]
+           "measurement", "nees", "NAME"]

@@ -222,13 +222,13 @@ def test_plane_increment_replaces_the_motion_model_over_its_interval():
 
 
 def test_heading_known_modulo_a_period_takes_the_branch_nearest_the_track():
-    from ceilkit.runtime.fusion import YAW_PERIOD
+    from ceilkit.runtime.estimators.block.twins import heading_branches
 
     fu = Fusion()
     fu.update(_lights(0, 0.0, 0.0, 0.30))
-    cue = PoseEstimate(DT, "parallels", None, None, 0.31 - math.pi, 1.0, None,
-                       np.diag([np.inf, np.inf, 1e-6]),
-                       MappingProxyType({YAW_PERIOD: math.pi}))
+    cov = np.diag([np.inf, np.inf, 1e-6])
+    cue = PoseEstimate(DT, "parallels", None, None, 0.31 - math.pi, 1.0, None, cov,
+                       hypotheses=heading_branches(0.31 - math.pi, math.pi, cov))
     res = fu.update(cue)
     assert res.estimate.yaw_rad == pytest.approx(0.31, abs=5e-3)
     assert fu.contributions["parallels"] == 1
