@@ -14,6 +14,9 @@ Cases (noise 2 grey levels, blur 0.8 px, ``supersample=1`` to keep it short):
   without and with a start pose;
 * **tiles-markers**: configs/block (tiles, a hatch, a bright block, AprilTags):
   ``auto`` without a start pose;
+* **tiles-small-markers**: the issue's tiles with a hatch and five 16 cm AprilTags at
+  about 3.2 px per cell (``bench_tiles_markers.py``'s rig and site) on a loop:
+  ``auto`` and ``block`` without a start pose;
 * **light-grid**: a regular 1.5 m grid of spot lights (configs/lights' rig) on a loop:
   ``lights`` and ``auto`` without and with a start pose.
 
@@ -133,6 +136,17 @@ def grid_site(tmp: Path) -> Path:
     return p
 
 
+def small_markers(n: int) -> tuple[Rig, Site, Trajectory]:
+    """The issue's tiles with a hatch and five 16 cm AprilTags at about 3.2 px per cell
+    (the rig, site and loop of ``bench_tiles_markers.py``), driven at 10 fps."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import bench_tiles_markers as tm
+
+    poses = np.array(tm.loop(n))
+    t = (np.arange(n) * 1e8).astype(np.int64)
+    return tm.rig(), tm.site(), Trajectory(t, poses[:, 0], poses[:, 1], np.unwrap(poses[:, 2]))
+
+
 def cases(tmp: Path, n: int) -> dict[str, tuple]:
     crig, csite = Rig.load(CONFIGS / "corridor/rig.yaml"), Site.load(CONFIGS / "corridor/site.yaml")
     brig = Rig.load(CONFIGS / "block/rig.yaml")
@@ -154,6 +168,7 @@ def cases(tmp: Path, n: int) -> dict[str, tuple]:
             ("corridor", None), ("corridor", start(loop(n, 10.0, 1.0, 0.0, 1.5, 0.4)))]),
         "tiles-markers": (brig, Site.load(CONFIGS / "block/site.yaml"),
                           drive(n, 10.0, 0.0, 0.0, 0.0, 0.8, 0.3), [("auto", None)]),
+        "tiles-small-markers": (*small_markers(n), [("auto", None), ("block", None)]),
         "light-grid": (lrig, Site.load(grid_site(tmp)), loop(n, 10.0, 0.0, 0.0, 2.0, 0.5), [
             ("lights", None), ("auto", None),
             ("lights", start(loop(n, 10.0, 0.0, 0.0, 2.0, 0.5))),

@@ -89,3 +89,24 @@ def test_plain_tile_grid_publishes_no_wrong_pose(tmp_path):
     replay(folder, tmp_path / "start", method="corridor", start_pose=traj.pose(0))
     valid, wrong = _score(folder, tmp_path / "start")
     assert wrong == 0 and valid >= N // 2
+
+
+def test_an_asymmetric_corridor_is_singled_out_either_way(tmp_path):
+    """One seam more on one side: the frame itself tells the heading from the half turn,
+    both ways, with no prior (Provenance.GLOBAL: relocalization evidence)."""
+    from ceilkit.runtime.estimators.base import Provenance
+    from ceilkit.runtime.estimators.corridor import CorridorEstimator
+    from ceilkit.runtime.sim.render import render_frame
+
+    rig = Rig.load(CONFIGS / "corridor" / "rig.yaml")
+    d = yaml.safe_load((CONFIGS / "corridor" / "site.yaml").read_text())
+    d["corridor"]["lines_along"] = [-0.45, -0.15, 0.15, 0.45, 0.9]
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(d))
+    site = Site.load(tmp_path / "site.yaml")
+    est = CorridorEstimator(rig, site)
+    rng = np.random.default_rng(2)
+    for x, y, yaw_deg in ((3.0, 0.2, 4.0), (9.0, 0.3, 184.0), (5.0, -0.1, 176.0)):
+        e = est.estimate(render_frame(rig, site, x, y, math.radians(yaw_deg), SIM, rng), 0)
+        assert e and e.provenance is Provenance.GLOBAL and not e.hypotheses, e
+        assert abs(e.y_m - y) < 0.005
+        assert abs(math.remainder(e.yaw_rad - math.radians(yaw_deg), 2 * math.pi)) < 1e-3
