@@ -549,34 +549,7 @@ def _adjust(obs_q: np.ndarray, obs_J: np.ndarray, obs_f: np.ndarray, obs_l: np.n
     F, N = poses.shape[0], lights.shape[0]
     fit_scale = centre_v is not None
     P = 3 * F + 2 * N + 1
-    # T: full increment = T @ reduced increment (the gauge removed)
-    cols: list[np.ndarray] = []
-    for f in range(F):
-        for a in range(3):
-            if a == 2 and f == fixed_yaw_frame and axis_light < 0:
-                continue
-            e = np.zeros(P)
-            e[3 * f + a] = 1.0
-            cols.append(e)
-    for n in range(N):
-        if n == fixed_light:
-            continue
-        if n == axis_light and fit_scale:
-            continue
-        if n == axis_light and axis_dir is not None:
-            e = np.zeros(P)
-            e[3 * F + 2 * n:3 * F + 2 * n + 2] = axis_dir
-            cols.append(e)
-            continue
-        for a in range(2):
-            e = np.zeros(P)
-            e[3 * F + 2 * n + a] = 1.0
-            cols.append(e)
-    if fit_scale:
-        e = np.zeros(P)
-        e[P - 1] = 1.0
-        cols.append(e)
-    T = np.array(cols).T
+    T = _gauge_basis(F, N, fixed_light, axis_light, axis_dir, fixed_yaw_frame, fit_scale)
     K = obs_q.shape[0]
     idx = np.concatenate([3 * obs_f[:, None] + np.arange(3)[None],
                           3 * F + 2 * obs_l[:, None] + np.arange(2)[None],
@@ -607,7 +580,67 @@ def _adjust(obs_q: np.ndarray, obs_J: np.ndarray, obs_f: np.ndarray, obs_l: np.n
         np.add.at(g, idx, np.einsum("kai,ka->ki", A, r))
         return T.T @ H @ T, T.T @ g
 
-    po, li, sc = poses.copy(), lights.copy(), float(scale)
+    po, li, sc, r, A, cost = _iterate(residuals, normal, T, poses.copy(), lights.copy(),
+                                      float(scale), iterations)
+    Hr, _ = normal(r, A)
+    dof = 2 * K - T.shape[1]
+    s2 = max(cost / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
+    try:
+        Cr = np.linalg.inv(Hr)
+    except np.linalg.LinAlgError:
+        raise CalibrationError("the light-map adjustment is singular: too little "
+                               "overlap between frames") from None
+    TL = T[3 * F:P - 1]
+    C = s2 * (TL @ Cr @ TL.T)
+    cov = np.stack([C[2 * n:2 * n + 2, 2 * n:2 * n + 2] for n in range(N)]) if N else \
+        np.zeros((0, 2, 2))
+    sc_sigma = float(math.sqrt(s2 * (T[P - 1] @ Cr @ T[P - 1]))) if fit_scale else 0.0
+    po[:, 2] = (po[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return (po, li, cov, math.sqrt(cost / max(K, 1)), np.linalg.norm(r, axis=1), sc,
+            sc_sigma)
+
+
+def _gauge_basis(F: int, N: int, fixed_light: int, axis_light: int,
+                 axis_dir: np.ndarray | None, fixed_yaw_frame: int, fit_scale: bool
+                 ) -> np.ndarray:
+    """``T`` ``(3F + 2N + 1, reduced)``: the full increment of :func:`_adjust`'s
+    parameters (poses, lights, scale) is ``T @`` the reduced one (the gauge removed)."""
+    P = 3 * F + 2 * N + 1
+    cols: list[np.ndarray] = []
+    for f in range(F):
+        for a in range(3):
+            if a == 2 and f == fixed_yaw_frame and axis_light < 0:
+                continue
+            e = np.zeros(P)
+            e[3 * f + a] = 1.0
+            cols.append(e)
+    for n in range(N):
+        if n == fixed_light:
+            continue
+        if n == axis_light and fit_scale:
+            continue
+        if n == axis_light and axis_dir is not None:
+            e = np.zeros(P)
+            e[3 * F + 2 * n:3 * F + 2 * n + 2] = axis_dir
+            cols.append(e)
+            continue
+        for a in range(2):
+            e = np.zeros(P)
+            e[3 * F + 2 * n + a] = 1.0
+            cols.append(e)
+    if fit_scale:
+        e = np.zeros(P)
+        e[P - 1] = 1.0
+        cols.append(e)
+    return np.array(cols).T
+
+
+def _iterate(residuals, normal, T: np.ndarray, po: np.ndarray, li: np.ndarray, sc: float,
+             iterations: int) -> tuple:
+    """:func:`_adjust`'s iterations from ``(po, li, sc)``, in the reduced parameters
+    ``T`` spans: ``(po, li, sc, residuals, their Jacobian, cost)`` at the end."""
+    F, N = po.shape[0], li.shape[0]
+    P = 3 * F + 2 * N + 1
     r, A = residuals(po, li, sc)
     cost = float((r * r).sum())
     lam = 1e-6
@@ -635,22 +668,7 @@ def _adjust(obs_q: np.ndarray, obs_J: np.ndarray, obs_f: np.ndarray, obs_l: np.n
             lam *= 10
             if lam > 1e6:
                 break
-    Hr, _ = normal(r, A)
-    dof = 2 * K - T.shape[1]
-    s2 = max(cost / dof if dof > 0 else 0.0, sigma_floor_px ** 2)
-    try:
-        Cr = np.linalg.inv(Hr)
-    except np.linalg.LinAlgError:
-        raise CalibrationError("the light-map adjustment is singular: too little "
-                               "overlap between frames") from None
-    TL = T[3 * F:P - 1]
-    C = s2 * (TL @ Cr @ TL.T)
-    cov = np.stack([C[2 * n:2 * n + 2, 2 * n:2 * n + 2] for n in range(N)]) if N else \
-        np.zeros((0, 2, 2))
-    sc_sigma = float(math.sqrt(s2 * (T[P - 1] @ Cr @ T[P - 1]))) if fit_scale else 0.0
-    po[:, 2] = (po[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    return (po, li, cov, math.sqrt(cost / max(K, 1)), np.linalg.norm(r, axis=1), sc,
-            sc_sigma)
+    return po, li, sc, r, A, cost
 
 
 def frame_points(recording: Recording, ceiling_height_m: float | None = None,
@@ -754,15 +772,45 @@ def chain_points(obs: list[tuple[int, np.ndarray, np.ndarray]], rig: Rig,
     if min_views < 2 or gate_m <= 0 or step_gate_m < gate_m:
         raise ConfigError(None, "min_views", "expected min_views >= 2 and "
                           "0 < gate_m <= step_gate_m")
-    height = ceiling_height_m
-    R_vc, t_vc = rig.mount.R_vehicle_cam, rig.mount.t_vehicle_cam
-    up = R_vc.T @ np.array([0.0, 0.0, 1.0])
-    nadir = rig.camera.project(up[None])[0] if up[2] > 1e-6 else \
-        np.array([rig.camera.cx, rig.camera.cy])
     if not any(o[0] == known.anchor_frame for o in obs):
         raise CalibrationError(f"{source}: the known light is never seen: frame "
                                f"{known.anchor_frame} (under the known light) shows no light")
-    # 2. chain: the map in the first placed frame's vehicle frame
+    chain = _chain(obs, gate_m, step_gate_m)                       # 2. chain
+    _check_chain(chain, obs, known, source)
+    anchor = _anchor(chain, rig, ceiling_height_m, known, min_views, source)   # 3. into W
+    adjusted = _adjust_robustly(chain, anchor, rig, min_views, max_residual_px,  # 4.
+                                source)
+    return _survey(chain, anchor, adjusted, rig, ceiling_height_m, min_views,    # 5.
+                   systematic_px)
+
+
+@dataclass(frozen=True, eq=False)
+class _Chain:
+    """The chained map in the first placed frame's vehicle frame (:func:`_chain`).
+
+    Attributes:
+        lights: ``(L, 2)`` the lights' places (running means). counts: ``(L,)`` their
+            sightings. frames: the placed frames' indices. poses: ``(F, 3)`` their
+            poses. unplaced: the frames that could not be placed.
+        obs_q, obs_J: ``(N, 2)``, ``(N, 2, 2)`` the kept observations and Jacobians;
+            obs_f, obs_l: ``(N,)`` the placed frame (0-based) and light of each.
+    """
+
+    lights: np.ndarray
+    counts: np.ndarray
+    frames: list[int]
+    poses: np.ndarray
+    unplaced: list[int]
+    obs_q: np.ndarray
+    obs_J: np.ndarray
+    obs_f: np.ndarray
+    obs_l: np.ndarray
+
+
+def _chain(obs: list[tuple[int, np.ndarray, np.ndarray]], gate_m: float,
+           step_gate_m: float) -> _Chain:
+    """Step 2: each frame placed by the lights it shares with the map so far (the first
+    frame at the origin), adding the lights it sees first."""
     lights: list[np.ndarray] = []
     counts: list[int] = []
     frames: list[int] = []
@@ -800,71 +848,146 @@ def chain_points(obs: list[tuple[int, np.ndarray, np.ndarray]], rig: Rig,
             o_J.append(J[i])
             o_f.append(f)
             o_l.append(li)
-    if known.anchor_frame not in frames:
+    return _Chain(np.array(lights), np.asarray(counts), frames, np.array(poses), unplaced,
+                  np.array(o_q), np.array(o_J), np.array(o_f), np.array(o_l))
+
+
+def _check_chain(chain: _Chain, obs: list, known: KnownLights, source: str) -> None:
+    """Raise the CalibrationError of a chain that misses the anchor frame or most frames."""
+    if known.anchor_frame not in chain.frames:
         raise CalibrationError(f"{source}: the known light is never placed: frame "
                                f"{known.anchor_frame} shares fewer than two lights with "
                                f"the frames before it")
     n_obs_frames = len(obs)
-    if len(unplaced) > 0.5 * n_obs_frames or len(frames) < 2:
+    unplaced = chain.unplaced
+    if len(unplaced) > 0.5 * n_obs_frames or len(chain.frames) < 2:
         first = unplaced[0] if unplaced else obs[0][0]
         raise CalibrationError(
             f"{source}: the frames do not overlap: {len(unplaced)} of "
             f"{n_obs_frames} frames share fewer than two lights with the map (first: frame "
             f"{first}); drive slower, or so that two lights stay in view from frame to frame")
-    L0 = np.array(lights)
-    P0 = np.array(poses)
-    obs_q, obs_J = np.array(o_q), np.array(o_J)
-    obs_f, obs_l = np.array(o_f), np.array(o_l)
-    # 3. light A: nearest the nadir in the anchor frame; the map moved into W
-    fa = frames.index(known.anchor_frame)
-    in_a = np.nonzero(obs_f == fa)[0]
-    q_nadir = ceiling_points(rig, height, nadir[None])[0][0]
-    if not np.all(np.isfinite(q_nadir)):
-        q_nadir = t_vc[:2]
-    ia = in_a[np.argmin(np.linalg.norm(obs_q[in_a] - q_nadir, axis=1))]
-    la = int(obs_l[ia])
-    yaw_a = P0[fa, 2]
+
+
+@dataclass(frozen=True, eq=False)
+class _Anchor:
+    """The chained map moved into W by the known lights (:func:`_anchor`).
+
+    Attributes:
+        L0, P0: the lights ``(L, 2)`` and frame poses ``(F, 3)`` in W.
+        la, lb: light A's and light B's index in the chain (``lb`` -1: no B).
+        fa: the anchor frame's place among the placed frames.
+        axis_dir: the unit vector from A to B in W, or ``None``.
+        fit_height: the ceiling points' scale is estimated (B held where it was taped).
+    """
+
+    L0: np.ndarray
+    P0: np.ndarray
+    la: int
+    lb: int
+    fa: int
+    axis_dir: np.ndarray | None
+    fit_height: bool
+
+
+def _anchor(chain: _Chain, rig: Rig, height: float, known: KnownLights, min_views: int,
+            source: str) -> _Anchor:
+    """Step 3: light A is the light nearest the nadir in the anchor frame; the rotation
+    into W from the first frame's yaw or from light B, found by its distance from A."""
+    fa = chain.frames.index(known.anchor_frame)
+    la = _light_a(chain, rig, height, fa)
+    L0, P0 = chain.lights, chain.poses
     A_w = np.asarray(known.first_m, float)
     lb, axis_dir = -1, None
     if known.yaw_deg is not None:
-        rot = math.radians(known.yaw_deg) - yaw_a
+        rot = math.radians(known.yaw_deg) - P0[fa, 2]
     else:
         rot = 0.0
     if known.second_m is not None:
         B_w = np.asarray(known.second_m, float)
-        d_ab = float(np.linalg.norm(B_w - A_w))
-        rel = L0 - L0[la]
-        dist = np.linalg.norm(rel, axis=1)
-        cand = np.nonzero((np.abs(dist - d_ab) < known.match_m)
-                          & (np.asarray(counts) >= min_views))[0]
-        if known.yaw_deg is not None and cand.size:
-            pred = (rel[cand] @ _rot(rot).T) + A_w
-            near = np.linalg.norm(pred - B_w, axis=1)
-            cand = cand[near < max(1.0, 0.1 * d_ab)]
-        if cand.size == 0:
-            raise CalibrationError(
-                f"{source}: the second known light is never seen: no surveyed "
-                f"light lies {d_ab:.2f} +- {known.match_m:.2f} m from the first")
-        if cand.size > 1:
-            raise CalibrationError(
-                f"{source}: the second known light is ambiguous: {cand.size} "
-                f"surveyed lights lie {d_ab:.2f} m from the first; give the first frame's "
-                f"yaw as well")
-        lb = int(cand[0])
-        v = rel[lb]
+        lb = _light_b(chain, known, la, rot, min_views, source)
+        v = L0[lb] - L0[la]
         rot = math.atan2(B_w[1] - A_w[1], B_w[0] - A_w[0]) - math.atan2(v[1], v[0])
-        axis_dir = (B_w - A_w) / d_ab
+        axis_dir = (B_w - A_w) / float(np.linalg.norm(B_w - A_w))
     Rw = _rot(rot)
     L0 = (L0 - L0[la]) @ Rw.T + A_w
-    P0 = np.column_stack([(P0[:, :2] - np.array(lights)[la]) @ Rw.T + A_w, P0[:, 2] + rot])
+    P0 = np.column_stack([(P0[:, :2] - chain.lights[la]) @ Rw.T + A_w, P0[:, 2] + rot])
     fit_height = lb >= 0 and known.fit_height
-    scale = 1.0
     if fit_height:   # B held where it was taped; the ceiling points' scale is estimated
         L0[lb] = B_w
     elif lb >= 0:    # B onto its bearing from A (its distance stays surveyed)
         L0[lb] = A_w + axis_dir * float(np.dot(L0[lb] - A_w, axis_dir))
-    # 4. adjustment, over lights seen often enough; outliers dropped and again
-    keep_l = np.asarray(counts) >= min_views
+    return _Anchor(L0, P0, la, lb, fa, axis_dir, fit_height)
+
+
+def _light_a(chain: _Chain, rig: Rig, height: float, fa: int) -> int:
+    """The light of the anchor frame nearest the camera's nadir (straight up)."""
+    R_vc, t_vc = rig.mount.R_vehicle_cam, rig.mount.t_vehicle_cam
+    up = R_vc.T @ np.array([0.0, 0.0, 1.0])
+    nadir = rig.camera.project(up[None])[0] if up[2] > 1e-6 else \
+        np.array([rig.camera.cx, rig.camera.cy])
+    in_a = np.nonzero(chain.obs_f == fa)[0]
+    q_nadir = ceiling_points(rig, height, nadir[None])[0][0]
+    if not np.all(np.isfinite(q_nadir)):
+        q_nadir = t_vc[:2]
+    ia = in_a[np.argmin(np.linalg.norm(chain.obs_q[in_a] - q_nadir, axis=1))]
+    return int(chain.obs_l[ia])
+
+
+def _light_b(chain: _Chain, known: KnownLights, la: int, rot: float, min_views: int,
+             source: str) -> int:
+    """The one chained light at the taped distance from light A (near its taped place
+    when the first frame's yaw is given too)."""
+    A_w = np.asarray(known.first_m, float)
+    B_w = np.asarray(known.second_m, float)
+    d_ab = float(np.linalg.norm(B_w - A_w))
+    rel = chain.lights - chain.lights[la]
+    dist = np.linalg.norm(rel, axis=1)
+    cand = np.nonzero((np.abs(dist - d_ab) < known.match_m)
+                      & (chain.counts >= min_views))[0]
+    if known.yaw_deg is not None and cand.size:
+        pred = (rel[cand] @ _rot(rot).T) + A_w
+        near = np.linalg.norm(pred - B_w, axis=1)
+        cand = cand[near < max(1.0, 0.1 * d_ab)]
+    if cand.size == 0:
+        raise CalibrationError(
+            f"{source}: the second known light is never seen: no surveyed "
+            f"light lies {d_ab:.2f} +- {known.match_m:.2f} m from the first")
+    if cand.size > 1:
+        raise CalibrationError(
+            f"{source}: the second known light is ambiguous: {cand.size} "
+            f"surveyed lights lie {d_ab:.2f} m from the first; give the first frame's "
+            f"yaw as well")
+    return int(cand[0])
+
+
+@dataclass(frozen=True, eq=False)
+class _Adjusted:
+    """The joint adjustment's outcome (:func:`_adjust_robustly`): the poses ``po``, the
+    kept lights ``li`` and their covariances ``cov``, the residual RMS, the scale and
+    its sigma; ``keep_l`` the lights kept, ``use`` the observations used, ``Lidx`` a
+    chain light's row in ``li``."""
+
+    po: np.ndarray
+    li: np.ndarray
+    cov: np.ndarray
+    rms: float
+    scale: float
+    scale_sigma: float
+    keep_l: np.ndarray
+    use: np.ndarray
+    Lidx: np.ndarray
+
+
+def _adjust_robustly(chain: _Chain, anchor: _Anchor, rig: Rig, min_views: int,
+                     max_residual_px: float, source: str) -> _Adjusted:
+    """Step 4: the adjustment over the lights seen in ``min_views`` frames or more (and
+    the known ones); observations with outlying residuals dropped, then again."""
+    obs_q, obs_J, obs_f, obs_l = chain.obs_q, chain.obs_J, chain.obs_f, chain.obs_l
+    la, lb = anchor.la, anchor.lb
+    P0, L0 = anchor.P0, anchor.L0
+    t_vc = rig.mount.t_vehicle_cam
+    scale = 1.0
+    keep_l = chain.counts >= min_views
     keep_l[la] = True
     if lb >= 0:
         keep_l[lb] = True
@@ -873,8 +996,8 @@ def chain_points(obs: list[tuple[int, np.ndarray, np.ndarray]], rig: Rig,
         Lidx = np.cumsum(keep_l) - 1
         po, li, cov, rms, res, scale, scale_sigma = _adjust(
             obs_q[use], obs_J[use], obs_f[use], Lidx[obs_l[use]], P0, L0[keep_l],
-            int(Lidx[la]), int(Lidx[lb]) if lb >= 0 else -1, axis_dir, fa,
-            t_vc[:2] if fit_height else None, scale)
+            int(Lidx[la]), int(Lidx[lb]) if lb >= 0 else -1, anchor.axis_dir, anchor.fa,
+            t_vc[:2] if anchor.fit_height else None, scale)
         bad = res > max(max_residual_px, 5.0 * float(np.median(res)))
         if not np.any(bad):
             break
@@ -888,9 +1011,19 @@ def chain_points(obs: list[tuple[int, np.ndarray, np.ndarray]], rig: Rig,
         if not (keep_l[la] and (lb < 0 or keep_l[lb])):
             raise CalibrationError(f"{source}: every sighting of a known light "
                                    f"was rejected as an outlier")
-    # 5. the result, lights with their views and scatter
-    lk = np.nonzero(keep_l)[0]
-    c_v = t_vc[:2] if fit_height else np.zeros(2)
+    return _Adjusted(po, li, cov, rms, scale, scale_sigma, keep_l, use, Lidx)
+
+
+def _survey(chain: _Chain, anchor: _Anchor, adj: _Adjusted, rig: Rig, height: float,
+            min_views: int, systematic_px: float) -> ChainSurvey:
+    """Step 5: the result, the lights with their views, scatter and covariance (with the
+    centroids' systematic error), in x then y order."""
+    t_vc = rig.mount.t_vehicle_cam
+    obs_q, obs_J, obs_f, obs_l = chain.obs_q, chain.obs_J, chain.obs_f, chain.obs_l
+    la, lb, use, Lidx = anchor.la, anchor.lb, adj.use, adj.Lidx
+    po, li, cov, scale = adj.po, adj.li, adj.cov, adj.scale
+    lk = np.nonzero(adj.keep_l)[0]
+    c_v = t_vc[:2] if anchor.fit_height else np.zeros(2)
     used_l = Lidx[obs_l[use]]
     of = obs_f[use]
     yaw = po[of, 2]
@@ -911,13 +1044,14 @@ def chain_points(obs: list[tuple[int, np.ndarray, np.ndarray]], rig: Rig,
     sigma = np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0))
     order = np.nonzero(ok)[0]
     order = order[np.lexsort((li[order, 1], li[order, 0]))]
-    lm = LightMap(li[order], sigma[order], spread[order], views[order], len(frames),
+    lm = LightMap(li[order], sigma[order], spread[order], views[order], len(chain.frames),
                   int(obs_q.shape[0]), int(obs_q.shape[0] - use.sum()))
     pos = {int(n): i for i, n in enumerate(order)}
     dz = height - float(t_vc[2])
-    return ChainSurvey(lm, cov[order], np.array(frames), po, rms, len(unplaced),
-                       pos[int(Lidx[la])], pos.get(int(Lidx[lb]), -1) if lb >= 0 else -1,
-                       float(t_vc[2]) + scale * dz, scale_sigma * dz, fit_height)
+    return ChainSurvey(lm, cov[order], np.array(chain.frames), po, adj.rms,
+                       len(chain.unplaced), pos[int(Lidx[la])],
+                       pos.get(int(Lidx[lb]), -1) if lb >= 0 else -1,
+                       float(t_vc[2]) + scale * dz, adj.scale_sigma * dz, anchor.fit_height)
 
 
 def lightmap_header_lines(lm: LightMap) -> list[str]:

@@ -658,6 +658,35 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
     if not measured:
         raise CalibrationError("no measured placement (each needs y and yaw)")
     f_px = 0.5 * (rig.camera.fx + rig.camera.fy)
+    vals, fixed_set, held, fit_height = _start_values(rig, site, placements, fixed, start,
+                                                      fit_height, f_px)
+    prob, theta, J, free = _fit_stages(placements, site, vals, fixed_set, fit_height, f_px)
+    n_in = sum(int(np.sum(a >= 0)) for a in prob.assoc)
+    n_along = sum(int(np.sum(a >= 1)) for a in prob.assoc)
+    if n_in < len(free) + 2 or n_along == 0 or J.shape[0] == 0:
+        raise CalibrationError(
+            f"too few ceiling lines matched the site ({n_in} segments, {n_along} along x): "
+            "check the images show the corridor's lines and the site's lines_along")
+    vals, _ = prob.unpack(theta)
+    s2, sigma = _fit_sigmas(prob, theta, J, free, rig, shift_px)
+    per_rms, outliers = _placement_outliers(prob, theta, site, vals, f_px, sigma)
+    noises = [p.noise_px for p in prob.pl if p.measured and p.noise_px]
+    chi2 = s2 / float(np.median(noises)) ** 2 if noises else math.nan
+    _check_fit(s2, chi2, noises, sigma, free)
+    z_m = site.ceiling_height_m - vals["h"]
+    mount = Mount(pan_rad=vals["pan"], tilt_rad=vals["tilt"], swing_rad=vals["swing"],
+                  x_m=vals["mx"], y_m=vals["my"], z_m=z_m)
+    total = sum(p.segments_n.shape[0] for p in placements)
+    return MountResult(mount, vals["h"], sigma, held, float(math.sqrt(s2)), per_rms, outliers,
+                       n_in, total, chi2)
+
+
+def _start_values(rig: Rig, site: Site, placements: Sequence[Placement],
+                  fixed: Sequence[str] | Mapping[str, str], start: Mount | None,
+                  fit_height: bool | None, f_px: float
+                  ) -> tuple[dict[str, float], set[str], dict[str, str], bool]:
+    """The starting values of :data:`PARAMS` (a coarse angle search without ``start``),
+    the parameters held with why, and whether ``h`` is fitted."""
     m0 = start or rig.mount
     h0 = site.ceiling_height_m - rig.mount.z_m
     held: dict[str, str] = {}
@@ -683,7 +712,15 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
     if not fit_height:
         fixed_set.add("h")
         held.setdefault("h", "from the site's ceiling height and the rig's z")
+    return vals, fixed_set, held, fit_height
 
+
+def _fit_stages(placements: Sequence[Placement], site: Site, vals: dict[str, float],
+                fixed_set: set[str], fit_height: bool, f_px: float
+                ) -> tuple[_Problem, np.ndarray, np.ndarray, list[str]]:
+    """The three stages of the fit: the angles from the lines' directions, the lateral
+    offset (and height) by a search, then every free parameter; the last problem, its
+    parameters, their Jacobian (no rows: never solved) and the free names."""
     # stage 1: directions only (angles)
     ang_free = [n for n in ("pan", "tilt", "swing") if n not in fixed_set]
     prob = _Problem(placements, site, vals, ang_free, f_px)
@@ -710,13 +747,13 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
         if prob.associate(theta, tol) < len(free) + 2:
             continue
         theta, J = _levenberg_marquardt(prob.residuals, theta)
-    n_in = sum(int(np.sum(a >= 0)) for a in prob.assoc)
-    n_along = sum(int(np.sum(a >= 1)) for a in prob.assoc)
-    if n_in < len(free) + 2 or n_along == 0 or J.shape[0] == 0:
-        raise CalibrationError(
-            f"too few ceiling lines matched the site ({n_in} segments, {n_along} along x): "
-            "check the images show the corridor's lines and the site's lines_along")
-    vals, _ = prob.unpack(theta)
+    return prob, theta, J, free
+
+
+def _fit_sigmas(prob: _Problem, theta: np.ndarray, J: np.ndarray, free: list[str],
+                rig: Rig, shift_px: float) -> tuple[float, dict[str, float]]:
+    """The residual variance per degree of freedom and each free parameter's 1 sigma
+    (the fit's noise, plus a common shift of ``shift_px``)."""
     r = prob.residuals(theta)
     dof = max(r.size - theta.size, 1)
     s2 = float(r @ r) / dof
@@ -728,14 +765,21 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
     except np.linalg.LinAlgError:
         cov = np.full((theta.size, theta.size), np.inf)
     sigma = {name: float(math.sqrt(max(cov[i, i], 0.0))) for i, name in enumerate(free)}
+    return s2, sigma
+
+
+def _placement_outliers(prob: _Problem, theta: np.ndarray, site: Site,
+                        vals: dict[str, float], f_px: float, sigma: dict[str, float]
+                        ) -> tuple[dict[str, float], list[tuple[str, float, str]]]:
+    """Each measured placement's residual RMS, and those that disagree: their own lines
+    put the vehicle elsewhere than measured (beyond 4 sigma of the fitted offset and
+    1 cm), or their residuals stand out."""
     per = prob.residuals(theta, per_placement=True)
     per_rms = {}
     for p, rr in zip(prob.pl, per, strict=True):
         if p.measured:
             per_rms[p.label or f"#{len(per_rms)}"] = \
                 float(np.sqrt(np.mean(rr * rr))) if rr.size else math.nan
-    # a placement disagrees when its own lines put the vehicle elsewhere than measured
-    # (beyond 4 sigma of the fitted offset and 1 cm), or when its residuals stand out
     finite = [v for v in per_rms.values() if math.isfinite(v)]
     med = float(np.median(finite)) if finite else math.nan
     tol_m = max(0.01, 4.0 * sigma.get("my", 0.0))
@@ -748,8 +792,13 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
                              "from the measured y"))
         elif math.isfinite(rms) and rms > max(3.0 * med, 1.0):
             outliers.append((label, rms, "residuals stand out"))
-    noises = [p.noise_px for p in prob.pl if p.measured and p.noise_px]
-    chi2 = s2 / float(np.median(noises)) ** 2 if noises else math.nan
+    return per_rms, outliers
+
+
+def _check_fit(s2: float, chi2: float, noises: list[float], sigma: dict[str, float],
+               free: list[str]) -> None:
+    """Refuse a fit whose residuals exceed the edge points' own scatter, one that leaves
+    a free parameter undetermined, or one whose residuals are large."""
     if math.sqrt(s2) <= MAX_RMS_PX and chi2 > MAX_CHI2_PER_DOF:
         raise CalibrationError(
             f"the fit's residuals ({math.sqrt(s2):.3f} px RMS) are "
@@ -772,12 +821,6 @@ def calibrate_mount(rig: Rig, site: Site, placements: Sequence[Placement],
             "do not lay on the site's lines_along at any offset; check that site.yaml lists "
             "every ceiling line along the corridor and that the seams are sharp in the "
             "images (focus, exposure)")
-    z_m = site.ceiling_height_m - vals["h"]
-    mount = Mount(pan_rad=vals["pan"], tilt_rad=vals["tilt"], swing_rad=vals["swing"],
-                  x_m=vals["mx"], y_m=vals["my"], z_m=z_m)
-    total = sum(p.segments_n.shape[0] for p in placements)
-    return MountResult(mount, vals["h"], sigma, held, float(math.sqrt(s2)), per_rms, outliers,
-                       n_in, total, chi2)
 
 
 def _associate_directions(prob: _Problem, theta: np.ndarray, tol_px: float) -> None:

@@ -17,21 +17,13 @@ import typer
 
 from ceilkit.runtime.errors import ConfigError, LinkError
 from ceilkit.runtime.estimators.registry import AUTO, METHOD_NAMES
-from ceilkit.runtime.io.link.transport import is_serial_path
-from ceilkit.runtime.io.mcap_rec import convert_recording, is_mcap, replay_folder
-from ceilkit.runtime.io.recording import (
-    LOG_DIR,
-    RECORDING_FILES,
-    Recording,
-    refuse_existing,
-    repair_recording,
-)
+from ceilkit.runtime.io.mcap_rec import convert_recording
+from ceilkit.runtime.io.recording import LOG_DIR, Recording, repair_recording
 from ceilkit.runtime.multi import parse_start_pose
 from ceilkit.runtime.replay import replay as run_replay
 from ceilkit.runtime.session import (
     LinkConfig,
     SessionConfig,
-    check_outputs,
     run_session,
     stop_on_signals,
 )
@@ -279,33 +271,16 @@ def replay(
             TERM_LINE.show(f"[{'#' * n}{'.' * (30 - n)}] {done}/{total}")
 
     _setup_logging()
-    _check_replay_outputs(recording, out, rig, site, serial, tum, force)
     res = run_replay(recording, out, rig, site, method, tum=tum, realtime=realtime,
                      track=not no_track, progress=bar, options=parse_options(option),
                      link=_link(serial, protocol, baud, missing_x=mavlink_missing_x),
                      overlays=overlays, overlays_only_failures=overlays_only_failures,
                      report=report, start_pose=_start_pose(start_pose), odometry=odometry,
-                     ros2=_ros2(ros2, ros2_namespace, ros2_odometry))
+                     ros2=_ros2(ros2, ros2_namespace, ros2_odometry), force=force)
     TERM_LINE.end()
     # the report goes to stderr when the poses themselves stream to stdout
     echo = _err if serial == "-" else typer.echo
     echo("\n".join(res.lines()))
-
-
-def _check_replay_outputs(recording: Path, out: Path | None, rig: Path | None,
-                          site: Path | None, serial: str | None, tum: bool,
-                          force: bool) -> None:
-    """Refuse a replay that would overwrite poses without ``--force``, or write over one
-    of its own inputs (``--serial REC/truth.csv``)."""
-    folder = out if out is not None else replay_folder(recording)
-    inputs = ([recording] if is_mcap(recording) else
-              [recording / name for name in RECORDING_FILES]) + [p for p in (rig, site) if p]
-    outputs = {"out": [folder / "poses.csv"] + ([folder / "poses.tum"] if tum else [])}
-    if serial is not None and serial != "-" and not is_serial_path(serial):
-        outputs["link"] = [Path(serial)]
-    check_outputs([p for p in inputs if p.exists()], outputs)
-    if (folder / "poses.csv").exists() and not force:
-        raise refuse_existing(folder / "poses.csv")
 
 
 @app.command()

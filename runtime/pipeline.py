@@ -4,10 +4,14 @@
 published. One estimator failing on a frame is a status, never an exit.
 Telemetry keeps per-stage timings, grab-to-output latency and failure counts in
 bounded memory.
+
+:func:`build_pipeline` assembles one for a live run and a replay alike (the same
+order of sinks, the same metering); :func:`open_ros2` opens the ROS 2 node of both.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import threading
@@ -15,7 +19,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -24,6 +28,7 @@ from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 from ceilkit.runtime.estimators.registry import Estimator
 from ceilkit.runtime.io.recording import PoseWriter, device_of
 from ceilkit.runtime.io.sources import Frame
+from ceilkit.runtime.metrics import AccuracyMeter, MeterSink
 from ceilkit.runtime.tracking import Tracker
 
 log = logging.getLogger("ceilkit.outputs")
@@ -282,3 +287,47 @@ class Pipeline:
         tel.output_ms.append((t4 - t3) / 1e6)
         tel.latency_ms.append((t4 - capture_ns) / 1e6)
         return est
+
+
+def build_pipeline(estimator: Estimator, tracker: Tracker | None = None, *,
+                   link: PoseSink | None = None, ros2: PoseSink | None = None,
+                   poses: PoseSink | None = None, more: Sequence[PoseSink] = (),
+                   meter: AccuracyMeter | None = None,
+                   watch: Callable[[Estimator, list[PoseSink]], Estimator] | None = None,
+                   clock: Callable[[], int] = time.monotonic_ns) -> Pipeline:
+    """The pipeline of a live run or a replay, its sinks in the one order both use.
+
+    The order: the serial ``link`` first (its bytes are the latency that matters), the
+    ``ros2`` node, the ``poses`` file, ``more`` (a recording's pose sink, a caller's
+    sinks), then the accuracy ``meter`` (a :class:`~ceilkit.runtime.metrics.MeterSink`);
+    ``watch(estimator, sinks)`` (the live view's) may wrap the estimator and append a
+    sink of its own, last.
+
+    Example::
+
+        pipeline = build_pipeline(estimator, tracker, link=link,
+                                  poses=PoseFileSink(writer), meter=meter)
+    """
+    sinks: list[PoseSink] = [s for s in (link, ros2, poses) if s is not None]
+    sinks += more
+    if meter is not None:
+        sinks.append(MeterSink(meter))
+    if watch is not None:
+        estimator = watch(estimator, sinks)
+    return Pipeline(estimator, sinks, tracker, clock)
+
+
+def open_ros2(config: Any, tracker: Any, stack: contextlib.ExitStack,
+              live: bool = False) -> Any:
+    """The ROS 2 node of ``config`` (a :class:`~ceilkit.runtime.io.ros2.Ros2Config`),
+    opened and closed by ``stack``, fed by and feeding ``tracker`` (``/initialpose``,
+    odometry) unless it is ``None``. ``live``: the frames carry a camera's monotonic
+    stamps, published as wall-clock time (a recording's are published as they are).
+    rclpy is imported only here."""
+    from ceilkit.runtime.io.ros2 import Ros2Node
+
+    offset = time.time_ns() - time.monotonic_ns() if live else 0
+    node = Ros2Node(config, clock_offset_ns=offset)
+    if tracker is not None:
+        node.attach(tracker)
+    return stack.enter_context(node)

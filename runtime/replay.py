@@ -10,6 +10,11 @@ With ``track=False`` (``ceilrun replay --no-track``) every frame is estimated wi
 prior and written as the estimator gave it, with no tracking, gating or fusion
 between frames: one row per frame, failures included.
 
+The pipeline is a live run's (:func:`~ceilkit.runtime.pipeline.build_pipeline`), its
+sinks in the same order: the link, the ROS 2 node, the poses file, the caller's sinks,
+the accuracy meter against ``truth.csv``. An existing ``poses.csv`` is never
+overwritten without ``force``.
+
 Example::
 
     res = replay("rec", "out", method="lights", track=False)
@@ -29,18 +34,28 @@ from typing import Any
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.fusion import Fusion, FusionReport
-from ceilkit.runtime.io.mcap_rec import open_recording, replay_folder
+from ceilkit.runtime.io.link.transport import is_serial_path
+from ceilkit.runtime.io.mcap_rec import is_mcap, open_recording, replay_folder
 from ceilkit.runtime.io.recording import (
+    RECORDING_FILES,
     Odometry,
     PoseWriter,
     Recording,
     load_odometry,
+    refuse_existing,
     write_truth_tum,
 )
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter
 from ceilkit.runtime.multi import make_localizer
-from ceilkit.runtime.pipeline import Pipeline, PoseFileSink, PoseSink, Telemetry
-from ceilkit.runtime.session import LinkConfig, link_lines, opened_link
+from ceilkit.runtime.pipeline import (
+    Pipeline,
+    PoseFileSink,
+    PoseSink,
+    Telemetry,
+    build_pipeline,
+    open_ros2,
+)
+from ceilkit.runtime.session import LinkConfig, check_outputs, link_lines, opened_link
 from ceilkit.runtime.viz.report import ReplayViews
 from ceilkit.runtime.viz.tap import EstimateTap
 
@@ -97,7 +112,8 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
            clock: Callable[[], int] = time.monotonic_ns,
            overlays: str | Path | None = None, overlays_only_failures: bool = False,
            report: bool = False, start_pose: tuple[float, float, float] | None = None,
-           odometry: str | Path | None = None, ros2: Any = None) -> ReplayResult:
+           odometry: str | Path | None = None, ros2: Any = None,
+           force: bool = False) -> ReplayResult:
     """Run the pipeline over a recording as fast as possible (or at recorded timing).
 
     Args:
@@ -109,10 +125,10 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
         tum: also write ``poses.tum``.
         realtime: wait between frames as recorded.
         track: ``False``: no tracker; each frame is estimated with no prior.
-        sinks: further pose sinks (after the poses file).
+        sinks: further pose sinks (after the link, the ROS 2 node and the poses file).
         progress: called as ``progress(done, total)`` after each frame.
         options: the estimator's options by name (values may be strings).
-        link: also stream the poses over this link (written after the poses file).
+        link: also stream the poses over this link (the first sink, as live).
         clock: the clock of latencies and of ``realtime``.
         overlays: write each frame's overlay (:mod:`~ceilkit.runtime.viz.overlay`) here
             as ``NNNNNN.png``; ``overlays_only_failures``: only failures and frames of
@@ -124,41 +140,44 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
             to the fusion (``auto``) at their stamps.
         ros2: a :class:`~ceilkit.runtime.io.ros2.Ros2Config`: also publish on ROS 2
             (stamps are the recording's) and take ``/initialpose`` and odometry in.
+        force: replace an existing ``OUT/poses.csv`` (refused otherwise, before
+            anything is read or written).
 
     ``recording`` may be an ``.mcap`` file (:mod:`~ceilkit.runtime.io.mcap_rec`); its
     default output folder is then ``NAME.replay/`` beside it.
 
     Raises:
-        ConfigError: a broken recording, rig or site; a bad method or option.
+        ConfigError: a broken recording, rig or site; a bad method or option; an
+            existing ``poses.csv`` without ``force``; an output that is an input.
         LinkError, OutputError: a link or output that cannot be opened or written.
     """
+    out = Path(out_dir) if out_dir is not None else replay_folder(recording)
+    check_replay_outputs(recording, out, rig, site, link, tum, force)
     rec = open_recording(recording, rig=rig, site=site)
     check_rig_site(rec.rig, rec.site)
     odo = load_odometry(odometry) if odometry is not None else rec.odometry
     estimator, tracker = make_localizer(method, rec.rig, rec.site, options, start_pose,
                                         (odo is not None or ros2 is not None) and track)
-    out = Path(out_dir) if out_dir is not None else replay_folder(recording)
+    tracker = tracker if track else None
     poses_path = out / "poses.csv"
-    tap = EstimateTap(estimator) if overlays is not None or report else None
-    views = None if tap is None else ReplayViews(
-        rec.rig, rec.site, Path(overlays) if overlays is not None else None,
-        overlays_only_failures, rec.truth)
+    tap, views = _views(estimator, rec, overlays, overlays_only_failures, report)
     if tum and rec.truth is not None:
         write_truth_tum(rec.truth, out / "truth.tum")
+    meter = AccuracyMeter(rec.truth) if rec.truth is not None else None
     with PoseWriter(poses_path, out / "poses.tum" if tum else None) as writer, \
             opened_link(link, rec.rig, rec.site) as the_link, \
             contextlib.ExitStack() as stack:
-        more = [*sinks, the_link] if the_link is not None else list(sinks)
-        if ros2 is not None:
-            more.append(_open_ros2(ros2, tracker if track else None, stack))
-        pipeline = Pipeline(tap or estimator, [PoseFileSink(writer, clock), *more],
-                            tracker if track else None, clock)
+        pipeline = build_pipeline(
+            tap or estimator, tracker, link=the_link,
+            ros2=None if ros2 is None else open_ros2(ros2, tracker, stack),
+            poses=PoseFileSink(writer, clock), more=sinks, meter=meter, clock=clock)
         res = _run(rec, pipeline, realtime, progress, clock,
                    None if tap is None else (tap, views), odo)
     result = ReplayResult(rec.folder, poses_path, estimator.name, pipeline.telemetry,
-                          res[0], res[1], track, tuple(link_lines(the_link)), None,
+                          meter.result() if meter is not None else None, res[0], track,
+                          tuple(link_lines(the_link)), None,
                           0 if views is None else views.written,
-                          tuple(res[2].lines()) if res[2] is not None else ())
+                          tuple(res[1].lines()) if res[1] is not None else ())
     if report:
         path = views.write_report(out / "report.html", f"replay of {rec.folder.name}",
                                   result.lines())
@@ -166,26 +185,47 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
     return result
 
 
-def _open_ros2(config: Any, tracker: Any, stack: contextlib.ExitStack) -> Any:
-    """The ROS 2 node (closed by ``stack``), feeding ``tracker`` (``/initialpose``,
-    odometry) unless it is ``None``; rclpy is imported only here."""
-    from ceilkit.runtime.io.ros2 import Ros2Node
+def _views(estimator: Any, rec: Recording, overlays: str | Path | None,
+           only_failures: bool, report: bool
+           ) -> tuple[EstimateTap | None, ReplayViews | None]:
+    """The tap on ``estimator`` and the views it feeds (overlays, the report's frames),
+    or ``(None, None)`` when neither is asked for."""
+    if overlays is None and not report:
+        return None, None
+    return EstimateTap(estimator), ReplayViews(
+        rec.rig, rec.site, Path(overlays) if overlays is not None else None,
+        only_failures, rec.truth)
 
-    node = Ros2Node(config)
-    if tracker is not None:
-        node.attach(tracker)
-    return stack.enter_context(node)
+
+def check_replay_outputs(recording: str | Path, out: Path, rig: Any, site: Any,
+                         link: LinkConfig | None, tum: bool, force: bool) -> None:
+    """Refuse, before anything is read or written, a replay that would overwrite
+    ``OUT/poses.csv`` without ``force``, or write over one of its own inputs (a link to
+    ``REC/truth.csv``).
+
+    Raises:
+        ConfigError: naming the existing ``poses.csv`` (and ``force=True``), or keyed by
+            the output's parameter (``out``, ``link``) and naming the input.
+    """
+    recording = Path(recording)
+    inputs = ([recording] if is_mcap(recording) else
+              [recording / name for name in RECORDING_FILES])
+    inputs += [Path(p) for p in (rig, site) if isinstance(p, str | Path)]
+    outputs = {"out": [out / "poses.csv"] + ([out / "poses.tum"] if tum else [])}
+    if link is not None and link.target != "-" and not is_serial_path(link.target):
+        outputs["link"] = [Path(link.target)]
+    check_outputs([p for p in inputs if p.exists()], outputs)
+    if (out / "poses.csv").exists() and not force:
+        raise refuse_existing(out / "poses.csv")
 
 
 def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
          progress: Callable[[int, int], None] | None,
          clock: Callable[[], int], viewed: tuple[EstimateTap, ReplayViews] | None = None,
-         odometry: Odometry | None = None
-         ) -> tuple[Accuracy | None, float, FusionReport | None]:
-    """Every frame of ``rec`` through ``pipeline``: the accuracy, the elapsed time and
-    the fusion's report (a fusion run); ``viewed``: each frame's raw estimate (from the
-    tap) handed to the views too; ``odometry``: rows fed to the fusion up to each frame."""
-    meter = AccuracyMeter(rec.truth) if rec.truth is not None else None
+         odometry: Odometry | None = None) -> tuple[float, FusionReport | None]:
+    """Every frame of ``rec`` through ``pipeline``: the elapsed time and the fusion's
+    report (a fusion run); ``viewed``: each frame's raw estimate (from the tap) handed to
+    the views too; ``odometry``: rows fed to the fusion up to each frame."""
     fusion = pipeline.tracker if isinstance(pipeline.tracker, Fusion) else None
     fused = FusionReport(fusion, rec.truth) if fusion is not None else None
     fed = 0
@@ -202,8 +242,6 @@ def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
             if wait > 0:
                 time.sleep(wait / 1e9)
         est = pipeline.process(frame, capture_ns=clock())
-        if meter is not None:
-            meter.add(est)
         if fused is not None:
             fused.add(est)
         if viewed is not None:
@@ -211,4 +249,4 @@ def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
             viewed[1].frame(k, image, raw, est, pipeline.telemetry.latency_ms[-1])
         if progress is not None:
             progress(k + 1, n)
-    return meter.result() if meter is not None else None, (clock() - start) / 1e9, fused
+    return (clock() - start) / 1e9, fused

@@ -48,14 +48,15 @@ from ceilkit.runtime.io.recording import (
     refuse_existing,
 )
 from ceilkit.runtime.live import AsyncRecorder, LiveResult, run_live
-from ceilkit.runtime.metrics import Accuracy, AccuracyMeter, MeterSink, source_truth
+from ceilkit.runtime.metrics import Accuracy, AccuracyMeter, source_truth
 from ceilkit.runtime.multi import make_localizer
 from ceilkit.runtime.pipeline import (
     OutputGuard,
-    Pipeline,
     PoseFileSink,
     PoseSink,
     Telemetry,
+    build_pipeline,
+    open_ros2,
 )
 from ceilkit.runtime.viz.web import open_view
 
@@ -449,22 +450,21 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
         if not stopped:  # every resource is open: now the outputs appear on disk
             view = open_view(config.view, config.view_token, rig, site, stack,
                              lambda: link_lines(link))
-            sinks: list[PoseSink] = [link] if link is not None else []
-            if config.ros2 is not None:
-                sinks.append(_open_ros2(config.ros2, tracker, source, stack))
+            ros2 = None if config.ros2 is None else open_ros2(
+                config.ros2, tracker, stack, live=getattr(source, "live", False))
+            poses = None
             if config.out is not None:
                 writer = stack.enter_context(PoseWriter(config.out / "poses.csv", disk=disk))
                 guards.append(OutputGuard("poses.csv", config.out, unit="row"))
-                sinks.append(PoseFileSink(writer, guard=guards[-1]))
-            recorder = None
+                poses = PoseFileSink(writer, guard=guards[-1])
+            recorder, more = None, []
             if record is not None:
                 guards.append(OutputGuard("recording", record))
                 recorder = _open_recorder(config, record, rig, site, truth, disk,
-                                          guards[-1], stack, sinks)
-            if meter is not None:
-                sinks.append(MeterSink(meter))
-            pipeline = Pipeline(view.watch(estimator, sinks) if view else estimator, sinks,
-                                tracker)
+                                          guards[-1], stack, more)
+            pipeline = build_pipeline(estimator, tracker, link=link, ros2=ros2, poses=poses,
+                                      more=more, meter=meter,
+                                      watch=view.watch if view is not None else None)
             if view is not None:
                 view.attach(pipeline.telemetry)
             result = run_live(source, pipeline, recorder, stop, config.frames,
@@ -505,17 +505,6 @@ def _open_recorder(config: SessionConfig, record: Path, rig: Any, site: Any, tru
         stack.enter_context(RecordingWriter(record, rig, site, truth_of=truth,
                                             force=config.force, disk=disk)),
         fsync_every_s=config.fsync_every_s, guard=guard)
-
-
-def _open_ros2(config: Any, tracker: Any, source: Any, stack: contextlib.ExitStack) -> Any:
-    """The ROS 2 node (opened, closed by ``stack``) fed by and feeding ``tracker``; a
-    camera's monotonic stamps are published as wall-clock time."""
-    from ceilkit.runtime.io.ros2 import Ros2Node
-
-    offset = time.time_ns() - time.monotonic_ns() if getattr(source, "live", False) else 0
-    node = Ros2Node(config, clock_offset_ns=offset)
-    node.attach(tracker)
-    return stack.enter_context(node)
 
 
 def _status(on_frame: Callable[[Telemetry], None] | None,

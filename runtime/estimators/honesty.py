@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry.ekf import chi2_quantile
 from ceilkit.runtime.jit import arr, njit, warmer
 
 MISFIT = "misfit"
@@ -71,21 +72,6 @@ MODEL_REASONS: Mapping[str, str] = MappingProxyType({
 
 DEFAULT_ALPHA = 1e-3
 """The chi-square test's false-alarm rate on a fit whose residuals are the assumed noise."""
-
-
-@lru_cache(maxsize=256)
-def chi2_quantile(p: float, dof: int) -> float:
-    """The ``p`` quantile of the chi-square distribution with ``dof`` degrees of freedom
-    (exact: ``scipy.stats.chi2.ppf``; inf for ``dof < 1``).
-
-    >>> round(chi2_quantile(0.999, 3), 3)
-    16.266
-    """
-    if dof < 1:
-        return math.inf
-    from scipy.stats import chi2  # (imported on first use: scipy.stats is slow to load)
-
-    return float(chi2.ppf(p, dof))
 
 
 @lru_cache(maxsize=1024)
@@ -235,6 +221,9 @@ def _sums(r, sigma, huber):  # pragma: no cover - compiled
 @warmer
 def _warm() -> None:
     _sums(arr(np.ones(2), np.float64), 1.0, math.inf)
+    # scipy.stats (seconds to import on a slow machine) now, not on the first frame
+    chi2_quantile(1.0 - DEFAULT_ALPHA, 1)
+    _f_quantile(0.5, 1, 1)
 
 
 def misfit_sum(sum_sq_px: float, n: int, sigma_px: float, n_params: int,

@@ -59,11 +59,11 @@ from ceilkit.runtime.io.recording import (
     RecordingWriter,
     StoredFrames,
     Truth,
-    _encode_png,
     check_frame_image,
     guarded_log,
     refuse_existing,
 )
+from ceilkit.runtime.io.recording_writer import encode_png
 from ceilkit.runtime.io.sources import Frame
 
 log = logging.getLogger("ceilkit.mcap")
@@ -210,8 +210,8 @@ class McapWriter:
         """
         img = frame.image
         if not isinstance(img, np.ndarray) or img.dtype != np.uint8:
-            img = None  # _encode_png refuses it (errno None), as the folder's writer does
-        png = _encode_png(img, self.path)
+            img = None  # encode_png refuses it (errno None), as the folder's writer does
+        png = encode_png(img, self.path)
         self.write_png(frame.index, frame.t_ns, png, _image_format(img))
 
     def write_pose(self, est: PoseEstimate) -> None:
@@ -516,7 +516,7 @@ def convert_recording(src: str | Path, dst: str | Path, force: bool = False) -> 
         with McapWriter(dst, force=force, attachments=files) as w:
             for k in range(len(rec)):
                 f = rec.frame(k)
-                w.write_png(int(rec.index[k]), f.t_ns, _encode_png(f.image, src),
+                w.write_png(int(rec.index[k]), f.t_ns, encode_png(f.image, src),
                             _image_format(f.image))
             _copy_truth(rec.truth, w)
             if rec.odometry is not None:

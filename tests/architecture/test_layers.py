@@ -42,9 +42,11 @@ def module_name(path: Path) -> str:
     return ".".join([PACKAGES[parts[0]], *parts[1:]])
 
 
-def imports(path: Path, module: str) -> list[tuple[int, str]]:
-    """``(line, imported module)`` of every import in ``path``, relative ones resolved."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+def imports(path: Path, module: str, source: str | None = None) -> list[tuple[int, str]]:
+    """``(line, imported module)`` of every import in ``path`` (or in ``source``, as if it
+    were ``path``'s text), relative ones resolved."""
+    text = path.read_text(encoding="utf-8") if source is None else source
+    tree = ast.parse(text, str(path))
     pkg = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
     out = []
     for node in ast.walk(tree):
@@ -70,27 +72,33 @@ def test_layers_are_known_folders():
     assert folders <= set(LAYERS[:9]), folders - set(LAYERS[:9])
 
 
-@pytest.mark.parametrize("path", sources(), ids=lambda p: str(p.relative_to(ROOT)))
-def test_imports_point_down(path):
+def upward(path: Path, source: str | None = None) -> list[str]:
+    """The imports of ``path`` (or of ``source`` placed at ``path``) that point up."""
     module = module_name(path)
     own = layer_of(module)
-    bad = [f"{path.relative_to(ROOT)}:{line} imports {name} ({LAYERS[layer_of(name)]})"
-           for line, name in imports(path, module)
-           if layer_of(name) is not None and layer_of(name) > own]
-    assert not bad, f"{LAYERS[own]} may not import a higher layer: " + "; ".join(bad)
+    return [f"{path.relative_to(ROOT)}:{line} imports {name} ({LAYERS[layer_of(name)]})"
+            for line, name in imports(path, module, source)
+            if layer_of(name) is not None and layer_of(name) > own]
 
 
-def test_the_check_catches_an_upward_import(tmp_path):
-    """The checker itself: an upward import (features -> io) is found."""
+@pytest.mark.parametrize("path", sources(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_imports_point_down(path):
+    bad = upward(path)
+    assert not bad, (f"{LAYERS[layer_of(module_name(path))]} may not import a higher "
+                     "layer: " + "; ".join(bad))
+
+
+def test_the_check_catches_an_upward_import():
+    """The checker itself, through the functions the test above calls: a real module
+    passes, and a probe in features/ importing io (absolute) and sim (relative) fails
+    on both lines; a downward relative import passes."""
     f = ROOT / "runtime" / "features" / "lines.py"
-    found = [n for _, n in imports(f, module_name(f))]
-    assert all(layer_of(n) is None or layer_of(n) <= LAYERS.index("features") for n in found)
-    fake = "from ceilkit.runtime.io.sources import Frame\nfrom ..sim import render\n"
+    assert upward(f) == [] and imports(f, module_name(f))
     probe = ROOT / "runtime" / "features" / "_probe_.py"
-    tree_imports = []
-    for node in ast.walk(ast.parse(fake)):
-        if isinstance(node, ast.ImportFrom):
-            pkg = module_name(probe).split(".")[:-1]
-            base = pkg[:len(pkg) - node.level + 1] if node.level else []
-            tree_imports.append(".".join(base + [node.module]))
-    assert [LAYERS[layer_of(n)] for n in tree_imports] == ["io", "sim"]
+    fake = ("from ceilkit.runtime.io.sources import Frame\nfrom ..sim import render\n"
+            "from ..geometry import camera\nimport numpy\n")
+    assert upward(probe, fake) == [
+        "runtime/features/_probe_.py:1 imports ceilkit.runtime.io.sources (io)",
+        "runtime/features/_probe_.py:2 imports ceilkit.runtime.sim (sim)",
+    ]
+    assert not probe.exists()

@@ -1,9 +1,10 @@
-"""Size limits on the per-frame path (issue #10): no class over 300 lines, no function
-over 80 lines.
+"""Size limits on the per-frame path (issue #10) and in calib/ (issue #35): no class
+over 300 lines, no function over 80 lines.
 
 The per-frame path is runtime/ minus runtime/sim/ (the renderer, never on the vehicle)
-and runtime/viz/ (figures). Sizes are AST spans: from the ``def``/``class`` line to the
-last line of the body, docstring and comments inside included, decorators not.
+and runtime/viz/ (figures); calib/ is checked whole. Sizes are AST spans: from the
+``def``/``class`` line to the last line of the body, docstring and comments inside
+included, decorators not.
 """
 
 from __future__ import annotations
@@ -13,12 +14,16 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 RUNTIME = ROOT / "runtime"
+CALIB = ROOT / "calib"
 OFF_PATH = ("sim", "viz")
 """runtime/ subfolders off the per-frame path."""
 MAX_CLASS_LINES = 300
 MAX_FUNCTION_LINES = 80
 
 EXEMPT: dict[str, str] = {
+    "calib/intrinsics.py::calibrate_intrinsics": "calib/ newly measured (issue 35): to split",
+    "calib/intrinsics.py::capture_views": "calib/ newly measured (issue 35): to split",
+    "calib/workflow.py::mount": "calib/ newly measured (issue 35): to split",
 }
 """``path::qualified name`` -> why it is over its limit for now. Keep this tiny."""
 
@@ -49,15 +54,19 @@ def per_frame_sources() -> list[Path]:
             if p.relative_to(RUNTIME).parts[0] not in OFF_PATH]
 
 
+def calib_sources() -> list[Path]:
+    return sorted(CALIB.rglob("*.py"))
+
+
 def measured() -> dict[str, int]:
     found: dict[str, int] = {}
-    for path in per_frame_sources():
+    for path in per_frame_sources() + calib_sources():
         rel = path.relative_to(ROOT).as_posix()
         found.update(oversized(path.read_text(encoding="utf-8"), rel))
     return found
 
 
-def test_no_class_or_function_over_its_limit_on_the_per_frame_path():
+def test_no_class_or_function_over_its_limit_on_the_per_frame_path_and_in_calib():
     over = {k: v for k, v in measured().items() if k not in EXEMPT}
     assert not over, "over the size limit (class 300, function 80 lines): " + ", ".join(
         f"{k} ({v} lines)" for k, v in sorted(over.items()))
@@ -80,3 +89,4 @@ def test_the_measure_sees_methods_nested_functions_and_classes():
     assert oversized(big, "y.py") == {"y.py::B": 301}
     assert per_frame_sources() and not any(
         p.relative_to(RUNTIME).parts[0] in OFF_PATH for p in per_frame_sources())
+    assert ROOT / "calib" / "lightmap.py" in calib_sources()

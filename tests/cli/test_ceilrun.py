@@ -275,13 +275,23 @@ def test_a_recording_with_odometry_replays(tmp_path):
 
     rec = tmp_path / "rec"
     shutil.copytree(FIXTURES / "corridor_rec", rec)
+    assert Recording(rec).odometry is None
+    plain = CliRunner().invoke(app, ["replay", str(rec), "--out", str(tmp_path / "plain")])
+    assert plain.exit_code == 0 and "odometry rows" not in plain.output, plain.output
     t_ns = Recording(rec).t_ns
     rows = "".join(f"{t},0.08,0.000,0.1\n" for t in t_ns)
     (rec / "odometry.csv").write_text("t_ns,dx,dy,dyaw_deg\n" + rows)
     assert len(Recording(rec).odometry) == t_ns.size
     res = CliRunner().invoke(app, ["replay", str(rec), "--out", str(tmp_path / "out")])
     assert res.exit_code == 0, res.output
-    assert load_poses(tmp_path / "out" / "poses.csv").t_ns.size == t_ns.size
+    # the rows went into the fusion, and its poses are not those of the run without them
+    assert f"odometry rows {t_ns.size}," in res.output, res.output
+    with_odo = load_poses(tmp_path / "out" / "poses.csv")
+    without = load_poses(tmp_path / "plain" / "poses.csv")
+    assert with_odo.t_ns.tolist() == without.t_ns.tolist() == t_ns.tolist()
+    assert not np.array_equal(np.c_[with_odo.x_m, with_odo.y_m, with_odo.yaw_rad],
+                              np.c_[without.x_m, without.y_m, without.yaw_rad],
+                              equal_nan=True)
     (rec / "odometry.csv").write_text("t_ns,dx,dy\n1,0,0\n")
     res = CliRunner().invoke(app, ["replay", str(rec)])
     assert res.exit_code == 1 and "odometry.csv: header: expected `t_ns,dx,dy,dyaw_deg`" \

@@ -6,9 +6,11 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from ceilkit.cli.ceilrun import app
+from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import Failure, PoseEstimate
 from ceilkit.runtime.io.capture import CameraSource, FakeCamera
 from ceilkit.runtime.io.link import MemoryLink, nmea
@@ -76,6 +78,28 @@ def test_existing_outputs_are_refused_naming_force(tmp_path):
     assert ok.exit_code == 0 and len(Recording(rec)) == 4
     _one_error_line(run(app, ["replay", str(rec), "--out", str(tmp_path / "run")]),
                     "--force")
+
+
+def test_the_library_replay_refuses_an_existing_poses_file(tmp_path):
+    """``replay()`` itself (not only the CLI) never truncates an existing poses.csv."""
+    from ceilkit.runtime.io.recording import load_poses
+    from ceilkit.runtime.replay import replay
+    from ceilkit.runtime.session import LinkConfig
+
+    rec = _record(tmp_path, 3)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "poses.csv").write_text("x")
+    with pytest.raises(ConfigError, match="already there.*force=True") as err:
+        replay(rec, out)
+    assert err.value.path == str(out / "poses.csv")
+    assert (out / "poses.csv").read_text() == "x"
+    assert not (out / "poses.tum").exists()
+    with pytest.raises(ConfigError, match="is an input of this run") as err:
+        replay(rec, tmp_path / "o", link=LinkConfig(str(rec / "truth.csv")))
+    assert err.value.key == "link" and not (tmp_path / "o").exists()
+    res = replay(rec, out, force=True)
+    assert res.telemetry.frames == 3 and load_poses(out / "poses.csv").t_ns.size == 3
 
 
 def test_numbered_recording_folders(tmp_path):

@@ -24,58 +24,55 @@ def test_a_missing_port_is_one_line_and_nothing_on_disk(tmp_path):
     assert sorted(os.listdir(tmp_path)) == []   # no skeleton blocks the restart
 
 
+class Backoff(threading.Event):
+    """A stop event whose ``wait`` (the back-off between attempts to open) returns at
+    once, recording the delay asked for and calling ``on_wait(n)`` with the number of
+    waits so far: the test plays the clock, nothing sleeps."""
+
+    def __init__(self, on_wait):
+        super().__init__()
+        self.on_wait = on_wait
+        self.delays: list[float] = []
+
+    def wait(self, timeout=None):
+        self.delays.append(timeout)
+        self.on_wait(len(self.delays))
+        return self.is_set()
+
+
 def test_a_port_appearing_later_is_waited_for_without_debris(tmp_path, log_lines):
     port = tmp_path / "ttyUSB0"
     seen_before: list[list[str]] = []
     pty: list[int] = []
 
-    def plug_in():  # ~1 s after the run began waiting (back-off retries in between)
-        import time
+    def plug_in(waits):  # after the third back-off (retries in between)
+        if waits == 3:
+            seen_before.append(sorted(os.listdir(tmp_path)))
+            master, slave = os.openpty()
+            pty.extend((master, slave))
+            os.symlink(os.ttyname(slave), port)
 
-        time.sleep(1.0)
-        seen_before.append(sorted(os.listdir(tmp_path)))
-        master, slave = os.openpty()
-        pty.extend((master, slave))
-        os.symlink(os.ttyname(slave), port)
-
-    waiting = threading.Event()
-    timer = threading.Thread(target=lambda: waiting.wait(30) and plug_in())
-    timer.start()
-    handler_lines = log_lines
+    stop = Backoff(plug_in)
     try:
         cfg = SessionConfig(device="sim:corridor", frames=5, record=tmp_path / "rec",
                             link=LinkConfig(str(port)), wait=True)
-        probe = threading.Thread(target=lambda: _signal_when_waiting(handler_lines, waiting))
-        probe.start()
-        res = run_session(cfg)
-        probe.join()
+        res = run_session(cfg, stop)
     finally:
-        timer.join()
         for fd in pty:
             os.close(fd)
+    assert stop.delays == [0.5, 1.0, 2.0]   # back-off, doubling up to WAIT_BACKOFF_S
     assert seen_before == [[]]   # nothing was created while waiting
     assert res.telemetry.frames == 5 and res.run.recorded == 5
     assert sum(ln.startswith("waiting for serial port") for ln in log_lines) == 1
 
 
-def _signal_when_waiting(lines: list[str], event: threading.Event) -> None:
-    import time
-
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and not event.is_set():
-        if any(ln.startswith("waiting for serial port") for ln in lines):
-            event.set()
-        time.sleep(0.01)
-
-
 def test_a_stop_while_waiting_ends_cleanly_with_nothing_on_disk(tmp_path):
-    stop = threading.Event()
-    threading.Timer(0.3, stop.set).start()
+    stop = Backoff(lambda waits: waits == 2 and stop.set())   # a signal while waiting
     res = run_session(SessionConfig(device="sim:corridor", frames=5,
                                     record=tmp_path / "rec", out=tmp_path / "run",
                                     link=LinkConfig(str(tmp_path / "ttyUSB3")), wait=True),
                       stop)
-    assert res.run.stopped and res.telemetry.frames == 0
+    assert res.run.stopped and res.telemetry.frames == 0 and stop.delays == [0.5, 1.0]
     assert os.listdir(tmp_path) == []
 
 

@@ -42,6 +42,69 @@ def test_pipeline_counts_and_publishes_every_frame():
     assert len(tel.summary()) == 3 and "odd_frame 3" in tel.summary()[1]
 
 
+class _Named:
+    """A sink that appends its name to a shared list when it is sent an estimate."""
+
+    def __init__(self, name, order):
+        self.name, self.order = name, order
+
+    def send(self, est, relocalized, capture_ns):
+        self.order.append(self.name)
+
+
+def test_build_pipeline_puts_the_link_first_and_the_meter_last():
+    from ceilkit.runtime.metrics import MeterSink
+    from ceilkit.runtime.pipeline import build_pipeline
+
+    order = []
+
+    class Meter:  # an AccuracyMeter's one method
+        def add(self, est):
+            order.append("meter")
+
+    def watch(estimator, sinks):
+        sinks.append(_Named("view", order))
+        return estimator
+
+    p = build_pipeline(FakeEstimator(), None, poses=_Named("poses", order),
+                       more=[_Named("more", order)], ros2=_Named("ros2", order),
+                       link=_Named("link", order), meter=Meter(), watch=watch)
+    p.process(_frames(1)[0], capture_ns=0)
+    assert order == ["link", "ros2", "poses", "more", "meter", "view"]
+    assert isinstance(p.sinks[4], MeterSink)
+    assert build_pipeline(FakeEstimator()).sinks == []
+
+
+def test_replay_and_live_build_their_pipelines_alike(monkeypatch, tmp_path):
+    """Both call the one builder: the link first, the meter last (no loop call)."""
+    from ceilkit.runtime import pipeline as pipeline_mod
+    from ceilkit.runtime import replay as replay_mod
+    from ceilkit.runtime import session as session_mod
+    from ceilkit.runtime.session import LinkConfig, SessionConfig, run_session
+
+    calls = []
+    real = pipeline_mod.build_pipeline
+
+    def spy(*args, **kw):
+        calls.append(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(replay_mod, "build_pipeline", spy)
+    monkeypatch.setattr(session_mod, "build_pipeline", spy)
+    run_session(SessionConfig(device="sim:corridor", frames=6, record=tmp_path / "rec",
+                              link=LinkConfig(str(tmp_path / "live.nmea")),
+                              out=tmp_path / "live"))
+    res = replay_mod.replay(tmp_path / "rec", tmp_path / "replay",
+                            link=LinkConfig(str(tmp_path / "replay.nmea")))
+    live, again = calls
+    for kw in (live, again):
+        assert kw["link"] is not None and kw["poses"] is not None
+        assert kw["meter"] is not None  # the source's truth: metered as a sink
+    assert res.accuracy.frames == 6 and res.accuracy.estimated == res.telemetry.estimated
+    for name in ("live.nmea", "replay.nmea"):
+        assert (tmp_path / name).read_bytes().count(b"$PCEIL") == 6
+
+
 def test_run_live_stops_at_max_frames_and_records(tmp_path, corridor_rig, corridor_site):
     from ceilkit.runtime.io.recording import Recording, RecordingWriter
 
@@ -106,8 +169,11 @@ def test_async_recorder_keeps_every_frame_and_reports_errors(tmp_path, corridor_
 def test_run_live_reports_a_lost_camera_and_records_every_frame(tmp_path, corridor_rig,
                                                                 corridor_site):
     """A camera unplugged mid-run: the link says camera_lost, the run goes on, and every
-    frame processed is in the recording."""
+    frame processed is in the recording. No timer: the unplug moves the run's clock on
+    by 10 s (the camera and the loop share it), and the camera is plugged back in when
+    the sinks hear camera_lost."""
     import threading
+    import time
 
     from ceilkit.runtime.io.capture import CameraSource, FakeCamera
     from ceilkit.runtime.io.link import MemoryLink, nmea
@@ -117,21 +183,37 @@ def test_run_live_reports_a_lost_camera_and_records_every_frame(tmp_path, corrid
     cam = FakeCamera(images, fps=100)
     events = []
     stop = threading.Event()
+    offset = [0]
+
+    def clock():
+        return time.monotonic_ns() + offset[0]
 
     def on_frame(tel):
         if tel.frames == 10:
             cam.unplug()
-            threading.Timer(0.8, cam.replug).start()
+            offset[0] += 10 * 10**9
         if tel.frames == 20:
             stop.set()
         events.append(tel.camera_losses)
 
-    with CameraSource("/dev/video5", open_capture=cam.open, max_backoff_s=0.05) as src, \
-            MemoryLink("nmea") as link:
-        p = Pipeline(FakeEstimator(), [link])
+    class Replug:
+        """Plugs the camera back in when told it is lost."""
+
+        def send(self, est, relocalized, capture_ns):
+            pass
+
+        def set_fault(self, reason):
+            events.append(reason)
+            if reason == "camera_lost":
+                cam.replug()
+
+    with CameraSource("/dev/video5", open_capture=cam.open, max_backoff_s=0.05,
+                      clock=clock) as src, MemoryLink("nmea") as link:
+        p = Pipeline(FakeEstimator(), [link, Replug()])
         res = run_live(src, p, RecordingWriter(tmp_path / "rec", corridor_rig, corridor_site),
-                       stop=stop, on_frame=on_frame, fault_after_s=0.2)
+                       stop=stop, on_frame=on_frame, clock=clock, fault_after_s=5.0)
     assert res.stopped and res.telemetry.frames == 20 and res.telemetry.camera_losses == 1
+    assert [e for e in events if not isinstance(e, int)] == ["camera_lost", None]
     assert res.recorded == 20 and len(Recording(tmp_path / "rec")) == 20
     lines = [nmea.decode(ln + b"\r\n") for ln in bytes(link.written).split(b"\r\n") if ln]
     faults = [d for d in lines if isinstance(d, nmea.NmeaStatus)]

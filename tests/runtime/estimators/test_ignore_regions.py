@@ -215,4 +215,7 @@ def test_a_site_with_two_lights_and_no_region_still_builds_paper_lights():
     rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
     site = Site.load(CONFIGS / "lights" / "site.yaml")
     two = dataclasses.replace(site, lights_m=np.asarray(site.lights_m)[:2])
-    make_estimator("paper-lights", rig, two, None)
+    est = make_estimator("paper-lights", rig, two, None)
+    assert est.name == "paper-lights"
+    np.testing.assert_array_equal(est.lights_w, two.lights_m)   # both used: no region
+    assert est.pair_i.tolist() == [0] and est.pair_j.tolist() == [1]

@@ -1,3 +1,4 @@
+import threading
 import time
 
 import cv2
@@ -20,11 +21,15 @@ class FakeCapture:
 
     def __init__(self, n, opened=True, period_s=0.002):
         self.n, self.opened, self.period_s, self.k = n, opened, period_s, 0
+        self.grabbed = threading.Event()   # set once ``wanted`` frames were handed over
+        self.wanted = n + 1
 
     def isOpened(self):
         return self.opened
 
     def read(self):
+        if self.k >= self.wanted:  # the grabber is back for more: frame k-1 is stored
+            self.grabbed.set()
         if self.k >= self.n:
             return False, None
         time.sleep(self.period_s)
@@ -54,10 +59,15 @@ def test_camera_reopens_after_unplug_and_keeps_going():
 
 
 def test_latest_frame_policy_counts_drops():
-    with CameraSource(0, open_capture=lambda d: FakeCapture(10_000, period_s=0.0005)) as cam:
+    """A slow estimator: while it works on one frame, the grabber replaces the newest
+    one three times; the next read gets the last, the two between are dropped."""
+    fake = FakeCapture(10_000, period_s=0.0005)
+    with CameraSource(0, open_capture=lambda d: fake) as cam:
         first = cam.read()
-        time.sleep(0.05)  # a slow estimator
+        fake.wanted = first.index + 4  # grabbed when frame first.index + 3 is stored
+        assert fake.grabbed.wait(30)
         second = cam.read()
+        assert second.index >= first.index + 3
         assert second.index > first.index + 1
         assert cam.dropped >= second.index - first.index - 1 - 1
         assert second.t_ns > first.t_ns

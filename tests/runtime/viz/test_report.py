@@ -5,7 +5,9 @@ from __future__ import annotations
 import base64
 import math
 import re
+import shutil
 
+import cv2
 import numpy as np
 import pytest
 
@@ -43,11 +45,19 @@ def test_report_and_overlays_of_the_lights_fixture(tmp_path):
 
 
 def test_overlays_only_failures(tmp_path):
-    res = replay(FIXTURES / "corridor_rec", tmp_path / "out", overlays=tmp_path / "ov",
+    """Two frames of the lights fixture made flat grey (no lights): their overlays, and only theirs, are written."""
+    rec = tmp_path / "rec"
+    shutil.copytree(FIXTURES / "lights_rec", rec)
+    shape = cv2.imread(str(rec / "frames" / "000002.png"), cv2.IMREAD_UNCHANGED).shape
+    for k in (2, 5):
+        cv2.imwrite(str(rec / "frames" / f"{k:06d}.png"), np.full(shape, 90, np.uint8))
+    res = replay(rec, tmp_path / "out", overlays=tmp_path / "ov",
                  overlays_only_failures=True)
-    assert res.telemetry.failures == {} or sum(res.telemetry.failures.values()) == res.overlays
+    assert res.telemetry.failures == {"no_lights": 2}
     assert res.report is None
-    assert res.overlays == len(list((tmp_path / "ov").glob("*.png")))
+    assert sorted(p.name for p in (tmp_path / "ov").glob("*.png")) == ["000002.png",
+                                                                     "000005.png"]
+    assert res.overlays == 2
 
 
 def test_no_views_no_change(tmp_path):
