@@ -292,6 +292,7 @@ class Fusion:
         self.start_poses = 0
         self.modes = ModeSet(self.options, self.gates)   # the poses an ambiguity leaves
         self._lateral_only = False   # the track applied a fix with y and no x (corridor)
+        self._disagree = 0           # frames in a row whose every fix was gated
 
     @property
     def tracking(self) -> bool:
@@ -458,6 +459,12 @@ class Fusion:
                 t, pend.method, "gated", f"{pend.method} puts the vehicle away from the "
                 f"track; {self.options.confirm - len(self._candidates)} more to confirm",
                 diagnostics={"rejected": pend}))
+        self._disagree = 0 if used or not fixes else self._disagree + 1
+        if self._disagree >= self.options.confirm:
+            # frame after frame the cues contradict the track (a wrong start pose, a
+            # slipped track): its pose is not what the frames show, so it is not sent
+            return TrackResult(Failure(t, self._method, "gated", f"{self._disagree} frames "
+                                       "in a row disagree with the track"))
         pose = self._publish(self._f.node_at(t), self._method, diag)
         if pose.x_m is None and pose.y_m is not None and not self._lateral_only:
             # a track of full fixes whose x went out of reach before its y: a y with no
@@ -517,18 +524,8 @@ class Fusion:
                 continue
             self.gated[fix.cue.method] += 1
             if fix.unambiguous:
-                self._candidate(fix)
+                self._candidates = chain_candidates(self._candidates, fix)
         return used
-
-    def _candidate(self, fix: _Fix) -> None:
-        if self._candidates:
-            last = self._candidates[-1]
-            dt = (fix.cue.t_ns - last.cue.t_ns) * 1e-9
-            d = float(np.hypot(*(fix.z[:2] - last.z[:2])))
-            dyaw = abs(wrap_pi(float(fix.z[2] - last.z[2])))
-            if d > 0.25 + 2.5 * dt or dyaw > math.radians(10.0) + math.radians(90.0) * dt:
-                self._candidates = []
-        self._candidates.append(fix)
 
     def _publish(self, n: _Node, method: str, diag: dict[str, Any],
                  velocity: bool = False, blank_above_m: float | None = None) -> PoseEstimate:
@@ -559,6 +556,19 @@ class Fusion:
                             tuple(float(v) for v in n.s[3:6])
                             if velocity and velocity_known(n, self.options) else None,
                             provenance=Provenance.TRACK)
+
+def chain_candidates(candidates: list[_Fix], fix: _Fix) -> list[_Fix]:
+    """The relocalization candidates after ``fix``: appended when it agrees with the
+    last (moved no farther than a vehicle could since), else starting anew."""
+    if candidates:
+        last = candidates[-1]
+        dt = (fix.cue.t_ns - last.cue.t_ns) * 1e-9
+        d = float(np.hypot(*(fix.z[:2] - last.z[:2])))
+        dyaw = abs(wrap_pi(float(fix.z[2] - last.z[2])))
+        if d > 0.25 + 2.5 * dt or dyaw > math.radians(10.0) + math.radians(90.0) * dt:
+            candidates = []
+    return candidates + [fix]
+
 
 def twins_near(n: _Node, cues: tuple, options: FusionOptions,
                gates: Mapping[int, float]) -> list[_Fix]:

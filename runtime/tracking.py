@@ -66,20 +66,19 @@ class Tracker:
         self._candidates: list[PoseEstimate] = []
         self.relocalizations = 0
         self.start_poses = 0
-        self._start_pose = start_pose
+        self._pending: tuple[float, float, float] | None = start_pose
 
     def set_start_pose(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float,
                        cov: object = None) -> None:
-        """(Re)start the track at ``(x_m, y_m, yaw_rad)`` in W as of ``t_ns`` (a
-        ``--start-pose`` or ROS ``/initialpose``): the estimators get it as their prior,
+        """(Re)start the track at ``(x_m, y_m, yaw_rad)`` in W (a ``--start-pose`` or
+        ROS ``/initialpose``): from the next frame the estimators get it as their prior,
         which chooses among the poses a frame supports alike (a symmetric corridor's
-        half turn, a light grid's cells). ``cov`` is accepted for the fusion's
-        interface; the tracker's gates are its own."""
+        half turn, a light grid's cells). Safe from any thread (it is taken at the next
+        :meth:`predict`). ``t_ns`` and ``cov`` are accepted for the fusion's interface;
+        the tracker's gates are its own."""
         if not all(math.isfinite(v) for v in (x_m, y_m, yaw_rad)):
             raise ValueError("set_start_pose: the pose must be finite")
-        self._s = _State(int(t_ns), float(x_m), float(y_m), wrap_pi(float(yaw_rad)))
-        self._candidates = []
-        self.start_poses += 1
+        self._pending = (float(x_m), float(y_m), float(yaw_rad))
 
     @property
     def tracking(self) -> bool:
@@ -91,9 +90,12 @@ class Tracker:
 
     def predict(self, t_ns: int, method: str = "track") -> PoseEstimate | None:
         """The predicted vehicle pose at ``t_ns``, or ``None`` when not tracking."""
-        if self._start_pose is not None and self._s is None:
-            self.set_start_pose(t_ns, *self._start_pose)
-            self._start_pose = None
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            x, y, yaw = pending
+            self._s = _State(int(t_ns), x, y, wrap_pi(yaw))
+            self._candidates = []
+            self.start_poses += 1
         s = self._s
         if s is None:
             return None

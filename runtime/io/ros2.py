@@ -196,10 +196,14 @@ class Ros2Node:
 
     # ------------------------------------------------------------------ life cycle
     def attach(self, tracker: Any) -> None:
-        """Hand start poses and odometry to ``tracker`` when it takes them (the fusion:
-        ``start``, ``add_odometry``); otherwise they are logged as ignored."""
-        if hasattr(tracker, "start") and hasattr(tracker, "add_odometry"):
-            self.on_initial_pose = tracker.start
+        """Hand start poses and odometry to ``tracker`` when it takes them (the fusion
+        and the tracker: ``set_start_pose``, thread-safe, taken at the next frame and
+        published as a reset; the fusion: ``add_odometry``); otherwise they are logged
+        as ignored."""
+        if hasattr(tracker, "set_start_pose"):
+            self.on_initial_pose = lambda t_ns, pose, cov: tracker.set_start_pose(
+                t_ns, *pose, cov)
+        if hasattr(tracker, "add_odometry"):
             self.on_odometry = tracker.add_odometry
 
     def open(self) -> Ros2Node:

@@ -272,7 +272,7 @@ class Labeling:
         psi_rad, camera_y_m: the camera's pan and y in W.
         along, across: ``(N,)`` bool, the forward and across families.
         assign: ``(N,)`` the site line of each forward segment, -1 for none.
-        n_lines: site lines matched. ambiguous: a tie left to the prior.
+        n_lines: site lines matched. ambiguous: a lateral shift's tie left to the prior.
         how: the rule that chose the forward family (``prior``, ``elongation``,
             ``spacing``, ``paper_rule``, with ``+absence`` when absence settled).
         n_off_ceiling: forward segments the association matched that the pixel
@@ -500,7 +500,7 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
     assign = np.full(fr.q.shape[0], -1)
     assign[np.flatnonzero(chosen.fa)] = m.assign
     return Labeling((m.n_lines, m.weight), chosen.psi_rad, m.shift_m, chosen.fa, chosen.fb,
-                    assign, m.n_lines, ambiguous or bool(rivals), how, twins=twins)
+                    assign, m.n_lines, ambiguous, how, twins=twins)
 
 
 @njit

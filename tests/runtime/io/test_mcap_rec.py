@@ -34,6 +34,9 @@ pytest.importorskip("mcap_ros2", reason="the mcap extra is not installed")
 RUN = ("from ceilkit.cli.ceilrun import main; import sys; "
        "sys.argv = ['ceilrun', *sys.argv[1:]]; main()")
 
+HEADING = {"assume_heading_deg": 0.0}
+"""The simulated corridor is symmetric about its centre line: its heading is stated."""
+
 
 def pose_rows(path: Path) -> list[dict[str, str]]:
     """poses.csv rows without the latency (the one column a run's timing decides)."""
@@ -47,7 +50,7 @@ def pose_rows(path: Path) -> list[dict[str, str]]:
 def test_live_mcap_recording_replays_to_the_live_poses(tmp_path):
     rec = tmp_path / "run.mcap"
     res = run_session(SessionConfig(device="sim:corridor", frames=12, record=rec,
-                                    out=tmp_path / "live"))
+                                    out=tmp_path / "live", options=HEADING))
     assert res.run.recorded == 12
     summary = mcap_summary(rec)
     assert summary["complete"]
@@ -56,7 +59,7 @@ def test_live_mcap_recording_replays_to_the_live_poses(tmp_path):
     assert counts[IMAGE_TOPIC] == 12 and counts["/ceilkit/truth"] == 12
     assert counts[POSE_TOPIC] == res.telemetry.estimated
     assert counts["/ceilkit/detections"] == 12 and counts["/diagnostics"] == 12
-    again = replay(rec)
+    again = replay(rec, options=HEADING)
     assert again.poses_path == tmp_path / "run.replay" / "poses.csv"
     assert again.telemetry.frames == 12
     assert pose_rows(again.poses_path) == pose_rows(tmp_path / "live" / "poses.csv")
@@ -68,7 +71,7 @@ def test_mcap_library_reads_the_ros2_messages(tmp_path):
     from mcap_ros2.decoder import DecoderFactory
 
     rec = tmp_path / "run.mcap"
-    run_session(SessionConfig(device="sim:corridor", frames=4, record=rec))
+    run_session(SessionConfig(device="sim:corridor", frames=4, record=rec, options=HEADING))
     with open(rec, "rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         topics = {c.topic: s.name for c, s in
@@ -97,7 +100,8 @@ def test_sigkilled_mcap_recording_reads_and_replays_every_finished_frame(tmp_pat
 
     rec, out = tmp_path / "run.mcap", tmp_path / "live"
     proc = subprocess.Popen([sys.executable, "-c", RUN, "--device", "sim:corridor",
-                             "--record", str(rec), "--out", str(out)],
+                             "--record", str(rec), "--out", str(out),
+                             "--option", "assume_heading_deg=0"],
                             stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
     deadline = time.monotonic() + 120  # a loaded machine starts slowly
     poses = out / "poses.csv"
