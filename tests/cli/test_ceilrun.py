@@ -18,6 +18,10 @@ from helpers import FIXTURES
 
 GOLDEN = FIXTURES / "golden"
 REGEN = os.environ.get("CEILKIT_REGEN_GOLDEN") == "1"  # the explicit switch
+# the fixture corridor is symmetric about its centre line: a replay says what singles its
+# heading out (without, every frame is `ambiguous`: test_symmetric_corridor_needs_a_start)
+STATED = {"corridor": ["--option", "assume_heading_deg=0"]}
+START = "0,0.244558,8.262851"      # corridor_rec's first truth row
 
 
 class PtyReader:
@@ -83,7 +87,7 @@ def _pose_transcript(protocol: str, data: bytes) -> bytes:
 
 def test_replay_writes_poses_and_reports_errors(tmp_path):
     res = CliRunner().invoke(app, ["replay", str(FIXTURES / "corridor_rec"), "--out",
-                                   str(tmp_path), "--tum"])
+                                   str(tmp_path), "--tum", "--start-pose", START])
     assert res.exit_code == 0, res.output
     assert "against truth.csv" in res.output and "heading" in res.output
     poses = load_poses(tmp_path / "poses.csv")
@@ -100,7 +104,7 @@ def test_golden_serial_transcripts(tmp_path, name, protocol):
     try:
         res = CliRunner().invoke(app, ["replay", str(FIXTURES / f"{name}_rec"), "--out",
                                        str(tmp_path), "--serial", pty.path, "--protocol",
-                                       protocol])
+                                       protocol, *STATED.get(name, [])])
         assert res.exit_code == 0, res.output
     finally:
         data = pty.close()
@@ -187,6 +191,18 @@ def test_serial_to_a_regular_file(tmp_path):
     assert len(poses) == 5 and "link " + str(out) in res.output
 
 
+def test_symmetric_corridor_needs_a_start(tmp_path):
+    """Without a start pose or a stated heading the symmetric fixture corridor is
+    `ambiguous` on every frame: status V on the link, no pose in poses.csv."""
+    out = tmp_path / "link.bin"
+    res = CliRunner().invoke(app, ["replay", str(FIXTURES / "corridor_rec"), "--out",
+                                   str(tmp_path / "r"), "--serial", str(out)])
+    assert res.exit_code == 0 and "ambiguous 8" in res.output, res.output
+    lines = out.read_bytes().splitlines()
+    assert len(lines) == 8 and all(line.split(b",")[3] == b"V" for line in lines)
+    assert np.isnan(load_poses(tmp_path / "r" / "poses.csv").y_m).all()
+
+
 def test_mavlink_missing_x_nan_sends_corridor_poses(tmp_path):
     """The corridor method has no x: skipped by default, x = NaN with --mavlink-missing-x nan
     (decoded by pymavlink), with the yaw and y of the pose."""
@@ -198,7 +214,8 @@ def test_mavlink_missing_x_nan_sends_corridor_poses(tmp_path):
         out = tmp_path / f"{policy}.bin"
         res = CliRunner().invoke(app, ["replay", str(FIXTURES / "corridor_rec"), "--out",
                                        str(tmp_path / policy), "--serial", str(out),
-                                       "--protocol", "mavlink", "--mavlink-missing-x", policy])
+                                       "--protocol", "mavlink", "--mavlink-missing-x", policy,
+                                       *STATED["corridor"]])
         assert res.exit_code == 0, res.output
         got[policy] = [m for m in mavlink2.MAVLink(None).parse_buffer(out.read_bytes()) or []
                        if m.get_type() == "VISION_POSITION_ESTIMATE"]
@@ -276,13 +293,15 @@ def test_a_recording_with_odometry_replays(tmp_path):
     rec = tmp_path / "rec"
     shutil.copytree(FIXTURES / "corridor_rec", rec)
     assert Recording(rec).odometry is None
-    plain = CliRunner().invoke(app, ["replay", str(rec), "--out", str(tmp_path / "plain")])
-    assert plain.exit_code == 0 and "odometry rows" not in plain.output, plain.output
+    plain = CliRunner().invoke(app, ["replay", str(rec), "--out", str(tmp_path / "plain"),
+                                     "--start-pose", START])
+    assert plain.exit_code == 0 and "odometry rows 0," in plain.output, plain.output
     t_ns = Recording(rec).t_ns
     rows = "".join(f"{t},0.08,0.000,0.1\n" for t in t_ns)
     (rec / "odometry.csv").write_text("t_ns,dx,dy,dyaw_deg\n" + rows)
     assert len(Recording(rec).odometry) == t_ns.size
-    res = CliRunner().invoke(app, ["replay", str(rec), "--out", str(tmp_path / "out")])
+    res = CliRunner().invoke(app, ["replay", str(rec), "--out", str(tmp_path / "out"),
+                                   "--start-pose", START])
     assert res.exit_code == 0, res.output
     # the rows went into the fusion, and its poses are not those of the run without them
     assert f"odometry rows {t_ns.size}," in res.output, res.output
