@@ -47,8 +47,9 @@ from .common import (
 METHOD_HELP = (f"Estimator: auto (every method the site supports, fused; on a site with one "
                f"method and no odometry or start pose, that method), or one of "
                f"{', '.join(METHOD_NAMES)}.")
-START_HELP = ("Where the vehicle starts: x, y in m, yaw in degrees (--method auto): a "
-              "regular light grid is then tracked from there.")
+START_HELP = ("Where the vehicle starts: x, y in m, yaw in degrees (any method): the "
+              "first prior, which chooses among the poses a frame supports alike (a "
+              "symmetric corridor's half turn, a light grid's cells).")
 
 
 def _start_pose(text: str | None) -> tuple[float, float, float] | None:

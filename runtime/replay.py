@@ -135,7 +135,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
             quality below 0.5.
         report: also write ``OUT/report.html`` (:mod:`~ceilkit.runtime.viz.report`);
             with ``tum`` and a ``truth.csv``, ``truth.tum`` is written beside ``poses.tum``.
-        start_pose: ``(x_m, y_m, yaw_rad)`` where the drive starts (``auto`` only).
+        start_pose: ``(x_m, y_m, yaw_rad)`` where the drive starts (any method: the first prior).
         odometry: an ``odometry.csv`` replacing the recording's own; the rows are fed
             to the fusion (``auto``) at their stamps.
         ros2: a :class:`~ceilkit.runtime.io.ros2.Ros2Config`: also publish on ROS 2

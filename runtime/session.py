@@ -151,7 +151,7 @@ class SessionConfig:
             default, else required.
         method: an estimator name, ``auto`` (fused, :mod:`~ceilkit.runtime.multi`), or
             ``None`` for the site's default.
-        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (``auto``).
+        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (any method: the first prior).
         link_odometry: read wheel odometry back from the link (``$PCEIO``, MAVLink
             ODOMETRY, WHEEL_DISTANCE with ``wheel_track_m``) into the fusion (``auto``).
         options: the estimator's options by name (values may be strings).

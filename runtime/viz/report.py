@@ -20,6 +20,7 @@ import base64
 import heapq
 import html
 import math
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,7 +30,13 @@ import numpy as np
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import OutputError
-from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
+from ceilkit.runtime.estimators.base import (
+    AMBIGUOUS,
+    Estimate,
+    Hypothesis,
+    PoseEstimate,
+    Provenance,
+)
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.io.recording import Truth
 from ceilkit.runtime.viz import plots
@@ -87,6 +94,7 @@ class ReplayViews:
         self.written = 0
         self._worst: list[tuple[float, int, np.ndarray, Estimate]] = []
         self._failed: dict[str, tuple[int, np.ndarray, Estimate]] = {}
+        self.ambiguity = AmbiguityLog()
         if overlays_dir is not None:
             try:
                 overlays_dir.mkdir(parents=True, exist_ok=True)
@@ -98,6 +106,7 @@ class ReplayViews:
         """Record frame ``k``: its overlay when asked, its outcome, and the frame itself
         if it is among the worst so far."""
         self.outcomes.append(_outcome(published, latency_ms))
+        self.ambiguity.add(k, raw, published)
         if self.overlays_dir is not None and (
                 not self.only_failures or not published or published.quality < LOW_QUALITY):
             path = self.overlays_dir / f"{k:06d}.png"
@@ -139,6 +148,7 @@ class ReplayViews:
         for err, k, image, raw in sorted(self._worst, reverse=True):
             sections.append(f"<h3>frame {k}: position error {err * 100:.1f} cm</h3>")
             sections.append(_img(self._overlay_png(image, raw), f"overlay of frame {k}"))
+        sections += self.ambiguity.html()
         if self._failed:
             sections.append("<h2>failed frames (first of each reason)</h2>")
         for reason, (k, image, raw) in self._failed.items():
@@ -195,6 +205,67 @@ class ReplayViews:
                                                    "latency, capture to pose out [ms]",
                                                    "latency per frame")))
         return out
+
+
+class AmbiguityLog:
+    """What the report says of ambiguity: the frames the evidence did not single out
+    (published ``ambiguous``, with their hypotheses), the frames whose pose the prior
+    chose among twins (``Provenance.PRIOR``), the kinds of twin met, and the stretches
+    of consecutive ambiguous frames (docs/methods/honesty.md)."""
+
+    def __init__(self) -> None:
+        self.ambiguous: list[tuple[int, tuple[Hypothesis, ...]]] = []
+        self.prior_chosen = 0
+        self.kinds: Counter = Counter()
+
+    def add(self, k: int, raw: Estimate, published: Estimate) -> None:
+        hyps = published.hypotheses or raw.hypotheses
+        if not published and published.reason == AMBIGUOUS:
+            self.ambiguous.append((k, hyps))
+        elif published and raw and raw.provenance is Provenance.PRIOR and raw.hypotheses:
+            self.prior_chosen += 1
+        else:
+            return
+        self.kinds.update({h.label.split(" ")[0] for h in hyps[1:] if h.label} or {"?"})
+
+    def stretches(self) -> list[tuple[int, int]]:
+        """``(first, last)`` frame of each run of consecutive ambiguous frames."""
+        out: list[tuple[int, int]] = []
+        for k, _ in self.ambiguous:
+            if out and out[-1][1] == k - 1:
+                out[-1] = (out[-1][0], k)
+            else:
+                out.append((k, k))
+        return out
+
+    def html(self) -> list[str]:
+        if not self.ambiguous and not self.prior_chosen:
+            return []
+        out = ["<h2>ambiguity</h2>",
+               f"<p>{len(self.ambiguous)} frames not singled out (published "
+               f"<code>ambiguous</code>: several poses explain them alike); "
+               f"{self.prior_chosen} poses chosen among twins by the prior (start pose, "
+               "track or stated heading). Twins met: "
+               + html.escape(", ".join(f"{n} {c}" for n, c in self.kinds.most_common()))
+               + ". Where on the site one frame alone is ambiguous, and which marker "
+               "would single it out: <code>ceilcal check-site</code>.</p>"]
+        first = dict(self.ambiguous)
+        rows = []
+        for a, b in self.stretches()[:MAX_STRETCHES]:
+            poses = "; ".join(
+                f"({'-' if h.x_m is None else f'{h.x_m:.2f}'}, "
+                f"{'-' if h.y_m is None else f'{h.y_m:.2f}'}, {h.yaw_deg:.0f} deg)"
+                for h in first[a][:4])
+            rows.append(f"<tr><td>{a}-{b}</td><td>{len(first[a])}</td>"
+                        f"<td>{html.escape(poses)}</td></tr>")
+        if rows:
+            out.append("<table><tr><th>frames</th><th>poses</th><th>the first frame's "
+                       "(x m, y m, yaw)</th></tr>" + "".join(rows) + "</table>")
+        return out
+
+
+MAX_STRETCHES = 12
+"""The report lists at most this many stretches of ambiguous frames."""
 
 
 def _errors(o: list[FrameOutcome], truth_rows: list) -> dict[str, np.ndarray]:

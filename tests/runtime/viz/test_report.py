@@ -98,3 +98,19 @@ def test_report_of_a_300_frame_recording_is_under_5_mb(tmp_path):
     assert res.telemetry.frames == n
     assert size < MAX_REPORT_BYTES
     assert len(_images(res.report.read_text())) >= 6
+
+
+def test_the_report_says_which_frames_were_ambiguous(tmp_path):
+    """The symmetric fixture corridor with no start pose: every frame ambiguous, the
+    report's ambiguity section lists them as one stretch with the half-turn twin; from
+    a start pose, the prior chose every pose among twins."""
+    from ceilkit.runtime.replay import replay
+
+    res = replay(FIXTURES / "corridor_rec", tmp_path / "a", method="corridor", report=True)
+    text = res.report.read_text()
+    assert "<h2>ambiguity</h2>" in text and "8 frames not singled out" in text
+    assert "half_turn" in text and "<td>0-7</td>" in text
+    res = replay(FIXTURES / "corridor_rec", tmp_path / "b", method="corridor", report=True,
+                 start_pose=(0.0, 0.244558, math.radians(8.262851)))
+    text = res.report.read_text()
+    assert "0 frames not singled out" in text and "8 poses chosen among twins" in text
