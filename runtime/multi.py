@@ -63,6 +63,11 @@ class AutoEstimator:
                               f"unknown option (expected one of {', '.join(sorted(known))})")
         self.rig, self.site = rig, site
 
+    def forget(self) -> None:
+        """Every method's :meth:`~ceilkit.runtime.estimators.base.Estimator.forget`."""
+        for e in self.estimators:
+            e.forget()
+
     @property
     def methods(self) -> tuple[str, ...]:
         return tuple(e.name for e in self.estimators)

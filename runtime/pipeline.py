@@ -263,7 +263,13 @@ class Pipeline:
         tracker = self.tracker
         clock = self.clock
         t0 = clock()
-        prior = tracker.predict(frame.t_ns) if tracker is not None else None
+        if tracker is not None:
+            prior = tracker.predict(frame.t_ns)
+        else:               # no tracker: each frame as if it were the first
+            prior = None
+            forget = getattr(self.estimator, "forget", None)
+            if forget is not None:
+                forget()
         t1 = clock()
         est = self.estimator.estimate(frame.image, frame.t_ns, prior)
         t2 = clock()

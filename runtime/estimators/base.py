@@ -393,6 +393,13 @@ class Estimator(ABC):
             return self.fail(t_ns, *bad)
         return self._estimate(grey, int(t_ns), prior, t0)
 
+    def forget(self) -> None:
+        """Drop what the estimator carries from frame to frame (window-search counters,
+        pooled side offsets, the previous image of the ceiling-plane odometry), so the
+        next frame is estimated as if it were the first: what a run with no tracker
+        does before every frame (``ceilrun replay --no-track``: its rows do not depend
+        on the frames' order). The base carries nothing."""
+
     @abstractmethod
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:

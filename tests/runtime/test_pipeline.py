@@ -220,3 +220,33 @@ def test_run_live_reports_a_lost_camera_and_records_every_frame(tmp_path, corrid
     assert faults and all(d.faulted and d.reason == "camera_lost" for d in faults)
     assert sum(isinstance(d, nmea.NmeaPose) for d in lines) == 20
     assert src.reopens == 1
+
+
+def test_no_track_rows_do_not_depend_on_the_frames_order():
+    """With no tracker every frame is estimated as if it were the first (the block
+    method pools side offsets across frames otherwise): shuffled frames give the same
+    row for each frame, to the bit."""
+    from ceilkit.runtime.config.rig import Rig
+    from ceilkit.runtime.config.site import Site
+    from ceilkit.runtime.estimators.registry import make_estimator
+    from ceilkit.runtime.io.sources import Frame
+    from ceilkit.runtime.pipeline import Pipeline
+    from ceilkit.runtime.sim.render import SimOptions, render_frame
+    from helpers import CONFIGS
+
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    frames = [Frame(k, k * 10**8, render_frame(rig, site, 0.5 + 0.4 * k, 0.05 * k - 0.1,
+                                                0.05 * k, SimOptions(supersample=1),
+                                                np.random.default_rng(k)))
+              for k in range(6)]
+
+    def rows(order):
+        pipe = Pipeline(make_estimator("block", rig, site), [])
+        out = {}
+        for k in order:
+            e = pipe.process(frames[k])
+            out[k] = (e.x_m, e.y_m, e.yaw_rad, e.cov.tobytes()) if e else e.reason
+        return out
+
+    assert rows(range(6)) == rows([3, 0, 5, 1, 4, 2])

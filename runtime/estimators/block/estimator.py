@@ -248,6 +248,15 @@ class BlockEstimator(Estimator):
         self._fallback = self._reader if o.marker_fallback else None
         self._window_fixes = 0  # window fixes since the last global search
 
+    def forget(self) -> None:
+        """See :meth:`Estimator.forget`: the pooled side offsets, the odometry's
+        previous image, the window counter."""
+        self._pooled = PooledSideOffsets()
+        if self._odo is not None:
+            self._odo.reset()
+        self._fixed = True
+        self._window_fixes = 0
+
     def _parallels(self, grey: np.ndarray, hint: float | None,
                    pose: np.ndarray | None = None, max_chords: int = MAX_CHORDS
                    ) -> ParallelsHeading | None:

@@ -268,6 +268,10 @@ class CorridorEstimator(Estimator):
         self._tracked_fixes = 0  # tracked fixes since the last global search
         self._ignore = IgnoreRegions.of(rig, site)
 
+    def forget(self) -> None:
+        """See :meth:`Estimator.forget`: the tracked-fix counter."""
+        self._tracked_fixes = 0
+
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
         """Estimate ``(y, yaw)`` of the vehicle from a checked frame (see
