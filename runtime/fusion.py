@@ -281,6 +281,7 @@ class Fusion:
         self.contributions: Counter = Counter()
         self.gated: Counter = Counter()
         self.odometry_rows = 0
+        self.odometry_refused = 0    # rows out of any vehicle's reach (1e308 from a peer)
         self._start_pose = start_pose
         self._method = NAME
         self._inbox: deque = deque()   # odometry rows, start poses: from any thread
@@ -327,7 +328,11 @@ class Fusion:
         (the link's receive hook): rows are applied at the next frame, each at its
         stamp."""
         c = None if cov is None else np.array(cov, float).reshape(3, 3)
-        self._inbox.append(("odo", int(t_ns), (float(dx_m), float(dy_m), float(dyaw_rad)), c))
+        d = (float(dx_m), float(dy_m), float(dyaw_rad))
+        if not plausible_increment(d, c):
+            self.odometry_refused += 1      # bounded before any arithmetic: never raises
+            return
+        self._inbox.append(("odo", int(t_ns), d, c))
 
     def set_start_pose(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float,
                        cov: np.ndarray | None = None) -> None:
@@ -556,6 +561,20 @@ class Fusion:
                             tuple(float(v) for v in n.s[3:6])
                             if velocity and velocity_known(n, self.options) else None,
                             provenance=Provenance.TRACK)
+
+MAX_ODOMETRY_STEP_M = 10.0
+"""An odometry row moving the vehicle farther than this (m) between two rows is refused:
+no vehicle does, and a peer's 1e308 must not reach the filter's arithmetic."""
+
+
+def plausible_increment(d: tuple[float, float, float], cov: np.ndarray | None) -> bool:
+    """Whether an odometry increment ``(dx_m, dy_m, dyaw_rad)`` (and its covariance)
+    is finite and within a vehicle's reach between two rows."""
+    dx, dy, dyaw = d
+    ok = all(math.isfinite(v) for v in d) and abs(dx) <= MAX_ODOMETRY_STEP_M \
+        and abs(dy) <= MAX_ODOMETRY_STEP_M and abs(dyaw) <= 2 * math.pi
+    return ok and (cov is None or bool(np.all(np.isfinite(cov)) and np.all(np.abs(cov) < 1e6)))
+
 
 def chain_candidates(candidates: list[_Fix], fix: _Fix) -> list[_Fix]:
     """The relocalization candidates after ``fix``: appended when it agrees with the
@@ -817,7 +836,10 @@ class FusionReport:
         out = [f"fusion: fixes applied {cues}; gated {gated}; resets "
                f"{fu.relocalizations + fu.start_poses} ({fu.relocalizations} "
                f"relocalizations, {fu.start_poses} start poses); odometry rows "
-               f"{fu.odometry_rows}, ceiling-plane increments {fu.plane_increments}; "
+               f"{fu.odometry_rows}"
+               + (f" ({fu.odometry_refused} refused: out of reach)" if fu.odometry_refused
+                  else "")
+               + f", ceiling-plane increments {fu.plane_increments}; "
                f"late rows re-filtered {fu.refiltered}"]
         if self.values:
             inside = [v <= ekf.chi2_quantile(0.95, d) for v, d in self.values]

@@ -337,3 +337,17 @@ def test_a_lights_track_never_publishes_a_lateral_without_x():
         reasons.add(getattr(e, "reason", None))
         assert not (e and e.x_m is None and e.y_m is not None), e
     assert seen[0] and not seen[-1] and "coasting" in reasons
+
+
+def test_an_odometry_row_out_of_reach_is_refused_never_raised():
+    """A peer's ``$PCEIO,t,1e308,-1e308,1e308`` (or such an odometry.csv row) ended a
+    live run with an OverflowError in the filter: it is refused and counted."""
+    fu = Fusion()
+    fu.update(_lights(0, 0.0, 0.0))
+    fu.add_odometry(DT // 2, 1e308, -1e308, 1e308)
+    fu.add_odometry(DT // 2 + 1, 0.01, 0.0, 0.0, cov=np.full((3, 3), np.inf))
+    res = fu.update(_lights(1, 0.0, 0.0))
+    assert res.estimate and fu.odometry_refused == 2 and fu.odometry_rows == 0
+    from ceilkit.runtime.fusion import FusionReport
+
+    assert "(2 refused: out of reach)" in FusionReport(fu).lines()[0]

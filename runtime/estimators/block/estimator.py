@@ -251,17 +251,9 @@ class BlockEstimator(Estimator):
     def forget(self) -> None:
         """See :meth:`Estimator.forget`: the pooled side offsets, the odometry's
         previous image, the window counter."""
-        self._pooled = PooledSideOffsets()
+        self._pooled, self._fixed, self._window_fixes = PooledSideOffsets(), True, 0
         if self._odo is not None:
             self._odo.reset()
-        self._fixed = True
-        self._window_fixes = 0
-
-    def _parallels(self, grey: np.ndarray, hint: float | None,
-                   pose: np.ndarray | None = None, max_chords: int = MAX_CHORDS
-                   ) -> ParallelsHeading | None:
-        """The heading from the frame's ceiling parallels (:class:`.heading.ParallelsStage`)."""
-        return self._heading(grey, hint, pose, max_chords)
 
     # -- per frame ---------------------------------------------------------------------
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
@@ -315,7 +307,7 @@ class BlockEstimator(Estimator):
             if not self.options.parallels or got.hypotheses:
                 return got    # a symmetric block's poses say more than the parallels' heading
             known = bool(prior) and prior.x_m is not None and prior.y_m is not None
-            h = self._parallels(grey, prior.yaw_rad if prior else None,
+            h = self._heading(grey, prior.yaw_rad if prior else None,
                                 np.array([prior.x_m, prior.y_m, prior.yaw_rad])
                                 if known else None)
             if h is None or not self.options.heading_cue:
@@ -427,7 +419,7 @@ class BlockEstimator(Estimator):
         best = min(fixes, key=lambda f: f.refined.cov[0, 0] + f.refined.cov[1, 1])
         r = best.refined
         pose, cov = np.array(r.pose, float), np.array(r.cov, float)
-        h = (self._parallels(grey, float(pose[2]), pose,
+        h = (self._heading(grey, float(pose[2]), pose,
                              max_chords=WINDOW_CHORDS if mode == WINDOW else MAX_CHORDS)
              if self.options.parallels else None)
         if h is not None:

@@ -397,8 +397,8 @@ class CorridorEstimator(Estimator):
                              "fewer than two forward ceiling lines could be associated",
                              n_segments=n_seg, segments_n=segs, search=search)
         if isinstance(best, Unresolved):
-            return self.fail(t_ns, best.reason, best.detail,
-                             hypotheses=self._twin_hypotheses(best.twins, None),
+            hyps = twin_hypotheses(self.setup, self.match_tol_m, best.twins, None)
+            return self.fail(t_ns, best.reason, best.detail, hypotheses=hyps,
                              complete=complete_twins(best.twins),
                              n_segments=n_seg, segments_n=segs, search=search)
         best, gd, fit = self._fit_labeling(fr, best, prior)
@@ -497,7 +497,7 @@ class CorridorEstimator(Estimator):
             return self.fail(t_ns, *failed, **diag)
         if mf.inflation != 1.0:
             cov = cov * mf.inflation
-        twins = self._twin_hypotheses(best.twins, cov)
+        twins = twin_hypotheses(self.setup, self.match_tol_m, best.twins, cov)
         provenance = (Provenance.WINDOW if search == "window" else
                       Provenance.PRIOR if twins or best.ambiguous or "stated" in best.how
                       else Provenance.GLOBAL)
@@ -508,23 +508,24 @@ class CorridorEstimator(Estimator):
                             cov, diag, provenance=provenance, hypotheses=twins,
                             hypotheses_complete=complete_twins(best.twins))
 
-    def _twin_hypotheses(self, twins: tuple[Twin, ...], cov: np.ndarray | None
-                         ) -> tuple[Hypothesis, ...]:
-        """The vehicle poses of labelings ``twins`` (camera pan and y in W), each with
-        ``cov`` (the chosen fit's; None: a labeling's 1-D gate as its sigma), weighted
-        alike (the frame supports them alike, the chosen one too)."""
-        if not twins:
-            return ()
-        st = self.setup
-        if cov is None:
-            cov = np.diag([np.inf, self.match_tol_m ** 2, math.radians(1.0) ** 2])
-        w = 1.0 / (len(twins) + (0 if twins[0].label == "chosen" else 1))
-        out = []
-        for t in twins:
-            yaw = wrap_pi(t.psi_rad - st.pan_rad)
-            y = t.camera_y_m - (math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1])
-            out.append(Hypothesis(None, float(y), float(yaw), cov, w, t.label))
-        return tuple(out)
+
+def twin_hypotheses(setup: CorridorSetup, match_tol_m: float, twins: tuple[Twin, ...],
+                    cov: np.ndarray | None) -> tuple[Hypothesis, ...]:
+    """The vehicle poses of labelings ``twins`` (camera pan and y in W), each with
+    ``cov`` (the chosen fit's; None: the 1-D gate ``match_tol_m`` as its sigma),
+    weighted alike (the frame supports them alike, the chosen one too)."""
+    if not twins:
+        return ()
+    st = setup
+    if cov is None:
+        cov = np.diag([np.inf, match_tol_m ** 2, math.radians(1.0) ** 2])
+    w = 1.0 / (len(twins) + (0 if twins[0].label == "chosen" else 1))
+    out = []
+    for t in twins:
+        yaw = wrap_pi(t.psi_rad - st.pan_rad)
+        y = t.camera_y_m - (math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1])
+        out.append(Hypothesis(None, float(y), float(yaw), cov, w, t.label))
+    return tuple(out)
 
 
 def complete_twins(twins: tuple[Twin, ...]) -> bool:
