@@ -21,12 +21,13 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ceilkit.runtime.config.yaml import Node, atomic_write_text, dump_yaml, load_yaml
 from ceilkit.runtime.errors import ConfigError
 
-SITE_KEYS = ("ceiling_height", "corridor", "lamps", "lights", "light_diameter", "ignore",
-             "blocks", "markers", "origin")
+SITE_KEYS = ("ceiling_height", "corridor", "lamps", "lights", "light_diameter", "light_size",
+             "light_yaw", "ignore", "blocks", "markers", "origin")
 LAMP_KEYS = ("x", "y", "length", "width", "pitch", "count", "z")
 BLOCK_KEYS = ("id", "corners", "appearance")
 BLOCK_APPEARANCES = ("dark", "bright")
@@ -223,6 +224,12 @@ class Site:
 
     ``ignore_m`` holds the regions no method should use, each an ``(N, 2)`` polygon
     in W (N >= 3), as :meth:`ignored` tests them.
+
+    ``light_size_m`` (SPEC §2 ``light_size``): ``(length, width)`` of lights that are
+    rectangles (panels, troffers), whose centres are ``lights_m``; ``light_yaw_rad``
+    the direction of their long side from W's +x (``light_yaw``, 0 when not given).
+    None (and 0) for round lights; ``light_size_m`` and ``light_diameter_m`` are never
+    both set.
     """
 
     ceiling_height_m: float
@@ -235,9 +242,31 @@ class Site:
     markers: Markers | None = None
     origin: SiteOrigin | None = None
     source: str | None = None
+    light_size_m: tuple[float, float] | None = None
+    light_yaw_rad: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ignore_m", tuple(_readonly(p) for p in self.ignore_m))
+        if self.light_size_m is not None:
+            object.__setattr__(self, "light_size_m",
+                               (float(self.light_size_m[0]), float(self.light_size_m[1])))
+
+    @property
+    def rectangular_lights(self) -> bool:
+        """Whether the lights are rectangles (``light_size`` given)."""
+        return self.light_size_m is not None
+
+    def light_rectangles(self) -> np.ndarray:
+        """``(N, 4, 2)`` every light's corners in W (``light_size`` and ``light_yaw``),
+        counter-clockwise from the (-long, -short) corner; ``(0, 4, 2)`` for round
+        lights."""
+        if self.light_size_m is None or not self.has_lights:
+            return np.zeros((0, 4, 2))
+        hl, hw = 0.5 * self.light_size_m[0], 0.5 * self.light_size_m[1]
+        c, s = math.cos(self.light_yaw_rad), math.sin(self.light_yaw_rad)
+        offs = np.array([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]]) @ np.array([[c, s],
+                                                                                   [-s, c]])
+        return self.lights_m[:, None, :] + offs[None]
 
     def has_section(self, name: str) -> bool:
         """Whether the site holds section ``name`` (``corridor``, ``lamps``, ``lights``,
@@ -312,6 +341,9 @@ class Site:
             d["lights"] = [[float(a), float(b)] for a, b in self.lights_m]
         if self.light_diameter_m is not None:
             d["light_diameter"] = float(self.light_diameter_m)
+        if self.light_size_m is not None:
+            d["light_size"] = [float(v) for v in self.light_size_m]
+            d["light_yaw"] = round(math.degrees(self.light_yaw_rad), 9)
         if self.ignore_m:
             d["ignore"] = [_points_list(p) for p in self.ignore_m]
         if self.blocks:
@@ -346,12 +378,13 @@ class Site:
         lights = _lights(node.get("lights")) if node.has("lights") else np.zeros((0, 2))
         diameter = (node.get("light_diameter").number(0.0, None, lo_open=True, what=" m")
                     if node.has("light_diameter") else None)
+        size, light_yaw = _light_size(node)
         ignore = _ignore(node.get("ignore")) if node.has("ignore") else ()
         blocks = _blocks(node.get("blocks")) if node.has("blocks") else ()
         markers = _markers(node.get("markers")) if node.has("markers") else None
         origin = _origin(node.get("origin")) if node.has("origin") else None
         return cls(height, corridor, lamps, lights, blocks, diameter, ignore, markers, origin,
-                   source or (str(node.path) if node.path else None))
+                   source or (str(node.path) if node.path else None), size, light_yaw)
 
 
 # -- polygons (pure) ------------------------------------------------------------------
@@ -441,13 +474,39 @@ def _lights(ln: Node) -> np.ndarray:
     lights = np.array([n.numbers(2) for n in ln.items()], dtype=float).reshape(-1, 2)
     if lights.shape[0] == 0:
         raise ln.error("expected at least one light (or leave the section out)")
-    d = np.linalg.norm(lights[:, None] - lights[None], axis=2)
-    d[np.diag_indices_from(d)] = np.inf
-    i, j = np.unravel_index(np.argmin(d), d.shape)
-    if d[i, j] < SAME_PLACE_M:
-        raise ConfigError(ln.path, f"{ln.key}[{max(i, j)}]",
-                          f"duplicate light: same place as {ln.key}[{min(i, j)}]")
+    if lights.shape[0] > 1:
+        # pairs closer than SAME_PLACE_M by a k-d tree (a map of thousands of lights
+        # would make an all-pairs matrix of millions of entries)
+        close = cKDTree(lights).query_pairs(SAME_PLACE_M, output_type="ndarray")
+        if close.shape[0]:
+            lo, hi = (int(v) for v in close[np.lexsort((close[:, 1], close[:, 0]))[0]])
+            raise ConfigError(ln.path, f"{ln.key}[{hi}]",
+                              f"duplicate light: same place as {ln.key}[{lo}]")
     return lights
+
+
+def _light_size(node: Node) -> tuple[tuple[float, float] | None, float]:
+    """``(light_size (length, width) or None, light_yaw in rad)`` of a site mapping:
+    ``light_size`` positive finite lengths (length >= width), never with
+    ``light_diameter``; ``light_yaw`` only with ``light_size``."""
+    if not node.has("light_size"):
+        if node.has("light_yaw"):
+            raise node.get("light_yaw").error(
+                "light_yaw needs light_size (the direction of a rectangle's long side)")
+        return None, 0.0
+    sn = node.get("light_size")
+    if node.has("light_diameter"):
+        raise sn.error("give light_size (rectangular lights) or light_diameter (round "
+                       "lights), not both")
+    if not isinstance(sn.value, list) or len(sn.value) != 2:
+        raise sn.expected("[length, width] of the lights' lit face, m")
+    length, width = (n.number(0.0, None, lo_open=True, what=" m") for n in sn.items())
+    if width > length:
+        raise sn.error(f"expected [length, width] with length >= width, found "
+                       f"[{length:g}, {width:g}] (light_yaw gives the long side's direction)")
+    yaw = (node.get("light_yaw").number(-YAW_LIMIT_DEG, YAW_LIMIT_DEG, what=" degrees")
+           if node.has("light_yaw") else 0.0)
+    return (length, width), math.radians(yaw)
 
 
 def _points(node: Node, what: str) -> np.ndarray:

@@ -58,6 +58,9 @@ FLAT_MIN_AREA_PX = 300
 noise does not shrink with the spot, the bias it removes does)."""
 _FLAT_MAX_RESIDUAL = 0.05  # a plateau the plane leaves this rough (x contrast) is a peak
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+SATURATED_THRESHOLD = 254.0
+"""The Niblack threshold never exceeds this: a saturated (255) pixel is always a
+candidate, so a pre-thresholded (0/255) frame gives its lit regions whole."""
 
 
 @dataclass(frozen=True)
@@ -146,7 +149,8 @@ def perception_level(i_object: np.ndarray, i_background: np.ndarray,
 def niblack_mask(grey: np.ndarray, window_px: int = 41, k: float = 0.8,
                  min_contrast: float = 10.0, min_contrast_rel: float = 0.0) -> np.ndarray:
     """Binary ``(H, W)`` uint8 mask (0/255) of
-    ``I > mean + max(k std, min_contrast, min_contrast_rel mean)``.
+    ``I > min(mean + max(k std, min_contrast, min_contrast_rel mean), 254)`` (a saturated
+    pixel is always a candidate: :data:`SATURATED_THRESHOLD`).
 
     Local statistics over a ``window_px`` square, from box filters on a 4x reduced
     (bilinearly sampled) image; the threshold is bilinearly enlarged back to full size.
@@ -163,8 +167,13 @@ def niblack_mask(grey: np.ndarray, window_px: int = 41, k: float = 0.8,
     std *= np.float32(k)
     thr = np.add(mean, np.maximum(std, floor, out=std), out=mean)
     # whole grey levels suffice: threshold, enlarge and compare in 8 bit (clipped to
-    # 0..255, the conversion truncates: the floor)
-    thr8 = np.minimum(np.maximum(thr, 0.0, out=thr), 255.0, out=thr).astype(np.uint8)
+    # 0..SATURATED_THRESHOLD, the conversion truncates: the floor). The cap keeps a
+    # saturated pixel a candidate: inside a light larger than the window (a panel near
+    # the camera, or any light of a frame thresholded to 0/255 before it was stored)
+    # the local mean is itself 255 and the threshold above it would hollow the light
+    # out into a ring of fragments
+    thr8 = np.minimum(np.maximum(thr, 0.0, out=thr), SATURATED_THRESHOLD,
+                      out=thr).astype(np.uint8)
     thr8 = cv2.resize(thr8, (w, h), interpolation=cv2.INTER_LINEAR)
     return cv2.compare(grey, thr8, cv2.CMP_GT)
 

@@ -586,12 +586,23 @@ def _lamp_features(site: Site, fr: _Frame, cxr: np.ndarray, cyr: np.ndarray,
 def _light_features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
                     cyr: np.ndarray, reach: np.ndarray,
                     emitters: Emitters | None) -> list[_Feature]:
-    """Spot lights: discs with a halo (per-light gains if given)."""
+    """Spot lights: discs with a halo (per-light gains if given); with the site's
+    ``light_size`` lit rectangles (``light_yaw``), with the same halo about their long
+    axis (:func:`_rect_distances`)."""
     if not site.has_lights:
         return []
-    rl = options.light_radius_m
+    rect = site.light_size_m
+    if rect is None:
+        rl = options.light_radius_m
+        seg = 0.0
+    else:
+        rl = 0.5 * rect[1]                      # the halo's radius unit: half the width
+        seg = 0.5 * (rect[0] - rect[1])         # half the long axis' core segment
+    ca, sa = math.cos(site.light_yaw_rad), math.sin(site.light_yaw_rad)
     halo = np.float32(options.halo)
     rh = HALO_FACTOR * rl if options.halo > 0 else rl
+    if rect is not None:                        # the reach of a lit rectangle or its halo
+        rh = max(rh + seg, 0.5 * math.hypot(*rect))
     lr = site.lights_m - np.array([fr.cx, fr.cy])
     gains = None if emitters is None else emitters.light_gain
     # coarse cull: lights within reach of any ceiling cell
@@ -616,19 +627,39 @@ def _light_features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray
             grey, hl = OFF_GREY + g * (LIGHT_GREY - OFF_GREY), np.float32(g * halo)
 
         def shade_light(xr, yr, inv_fp, val, em=None, lx=lx, ly=ly, grey=grey, hl=hl):
-            d = np.hypot(xr - lx, yr - ly)
+            if rect is None:
+                d = np.hypot(xr - lx, yr - ly)
+                inside = rl - d
+                d_halo, r_halo = d, rh
+            else:
+                inside, d_halo = _rect_distances(xr - lx, yr - ly, ca, sa, rect, seg)
+                r_halo = HALO_FACTOR * rl
             if hl > 0:
-                g = np.clip(1.0 - (d / rh) ** 2, 0.0, 1.0)
+                g = np.clip(1.0 - (d_halo / r_halo) ** 2, 0.0, 1.0)
                 val = val + hl * g * g
                 if em is not None:
                     em = em + hl * g * g
-            cov = _ramp(rl - d, inv_fp)
+            cov = _ramp(inside, inv_fp)
             if em is None:
                 return val + cov * (grey - val)
             return val + cov * (grey - val), em + cov * (grey - em)
 
         feats.append(_Feature(cells, shade_light, emitter=True))
     return feats
+
+
+def _rect_distances(dx: np.ndarray, dy: np.ndarray, ca: float, sa: float,
+                    size: tuple[float, float], seg: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(inside, d_halo)`` of ceiling samples ``(dx, dy)`` from a rectangular light's
+    centre (long side along ``(ca, sa)``, ``size`` its length and width): the signed
+    distance inside the rectangle (> 0 inside; what a disc's ``r - d`` is) and the
+    distance from the core segment of its long axis (half length ``seg``: length minus
+    width over 2), which the halo falls off with as a disc's from its centre (a disc is
+    the case of a segment of length 0)."""
+    a = np.abs(dx * ca + dy * sa)               # along the long side
+    b = np.abs(-dx * sa + dy * ca)              # across it
+    inside = np.minimum(0.5 * size[0] - a, 0.5 * size[1] - b)
+    return inside, np.hypot(np.maximum(a - seg, 0.0), b)
 
 
 # --------------------------------------------------------------------------- rendering

@@ -13,9 +13,11 @@ Stages per frame:
    against a light of the known diameter at their place, as ceiling points in V
    (:func:`~.rays.ceiling_points`) with their pixel Jacobians.
 2. ``matching`` (:class:`~.matching.PatternMatcher`): with a trusted prior, a local
-   association; otherwise pair-distance voting for poses, verified and ranked. When
-   the runner-up is a genuinely different pose with nearly the same support (a
-   regular grid), the frame is ``ambiguous``.
+   association; otherwise pair-distance voting for poses, verified and ranked, with
+   every twin of the best (the pose moved by each of the map's symmetries: a grid's
+   cells, its half turn). When another pose is explained nearly as well (a regular
+   grid), the frame is ``ambiguous`` and carries the poses as ``hypotheses``; a pose
+   the prior chose is ``Provenance.PRIOR`` and carries the twins it ruled out.
 3. ``refine`` (:func:`~.refine.refine_pose_ceiling`): Gauss-Newton on the pixel
    residuals, one outlier pass; the covariance is ``s² (JᵀJ)⁻¹``.
 4. quality (:func:`pose_quality`): lights, residuals, lights missed, the margin.
@@ -29,6 +31,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -45,6 +48,7 @@ from ceilkit.runtime.estimators.base import (
     Estimate,
     Estimator,
     EstimatorOptions,
+    Hypothesis,
     PoseEstimate,
     Provenance,
     elapsed_ms,
@@ -58,8 +62,17 @@ from ceilkit.runtime.estimators.honesty import (
     misfit_sum,
     outside_site,
 )
-from ceilkit.runtime.estimators.lights.matching import Candidate, PatternMatcher
+from ceilkit.runtime.estimators.lights.matching import (
+    MISSING_PENALTY,
+    Candidate,
+    PatternMatcher,
+    SYMMETRY_MAX_LIGHTS,
+    map_symmetries,
+    symmetry_table,
+    twin_poses,
+)
 from ceilkit.runtime.estimators.lights.observe import (
+    RECT_CUT_REACH,
     Observation,
     SpotObserver,
     VisibilityTable,
@@ -81,6 +94,10 @@ TRACK_MIN_SHARE = 0.6  # a prior is trusted when this share of the spots match n
 PRIOR_RESOLVE = (1.0, math.radians(20.0))  # (m, rad): a rival this near the prior wins
 SPOT_STAGES = ("windowed", "full")  # the spot stages (LightsOptions.spot_stage)
 OUTLIER_MEDIANS = 4.0  # a residual this many times the median (and > max_residual_px) is out
+MAX_TWIN_CHECKS = 1000  # at most this many of the map's symmetries are verified per frame
+MAX_HYPOTHESES = 32  # an ambiguous frame carries at most this many poses
+HYPOTHESIS_SHARPNESS = 2.0  # a hypothesis' weight goes as exp(this x its evidence score)
+RECT_MIN_AXIS_RATIO = 0.03  # the detector's shape bound with rectangular lights
 
 
 PROVENANCE = MappingProxyType({
@@ -139,6 +156,10 @@ class LightsOptions(ShutterOptions):
             statistics of the whole frame) or ``windowed`` (the mask and regions of the
             frame decimated by 2, each region's spot read at full resolution in a
             window around it: :func:`~ceilkit.runtime.features.windows.detect_spots_windowed`).
+        twins: without a prior, look for every placement of the best pose's spots on
+            the map's lights (other cells of a grid, quarter and half turns) and score
+            them alike (:meth:`LightsEstimator._candidate`); off: only the poses the
+            pair-length vote verifies (faster on a large irregular map).
     """
 
     min_contrast: float = 0.0
@@ -159,6 +180,7 @@ class LightsOptions(ShutterOptions):
     track_full_every: int = 30
     working_mpx: float = WORKING_MPX
     spot_stage: str = "full"
+    twins: bool = True
 
 
 def light_diameter_m(options: LightsOptions, site: Site) -> float:
@@ -225,18 +247,37 @@ class LightsEstimator(Estimator):
                              else max(o.gate_m, min(1.0, 0.4 * spacing_m)))
         self.valid_mask = view_mask(rig, math.radians(o.max_view_angle_deg))
         self.nadir_px = nadir_px(rig)
+        # rectangular lights (the site's light_size), unless the option asks for discs
+        self.light_size_m = (site.light_size_m if o.light_diameter_m is None else None)
+        rect = self.light_size_m
+        # a rectangle seen at a wide angle is a sliver: its shape is checked against
+        # the projected rectangle (observe), not against the detector's round-spot bound
+        spot_params = o.spot_params or (SpotParams() if rect is None
+                                        else SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO))
         self.observer = SpotObserver(rig, self.ceiling_height_m, 0.5 * diameter_m,
-                                     o.spot_params or SpotParams(), self.valid_mask,
+                                     spot_params, self.valid_mask,
                                      self.nadir_px, o.max_spots,
                                      working_factor((rig.camera.height, rig.camera.width),
-                                                    o.working_mpx), o.spot_stage)
-        self.visibility = VisibilityTable(rig, self.ceiling_height_m, self.lights_w,
-                                          self.valid_mask, self.nadir_px, o.max_spots,
-                                          0.5 * diameter_m)
+                                                    o.working_mpx), o.spot_stage,
+                                     light_size_m=rect)
+        self.visibility = VisibilityTable(
+            rig, self.ceiling_height_m, self.lights_w, self.valid_mask, self.nadir_px,
+            o.max_spots, 0.5 * diameter_m,
+            reach_m=None if rect is None else RECT_CUT_REACH * 0.5 * math.hypot(*rect))
+        # the map's rigid self-similarities (a grid's cells, its half turn): the
+        # twins every pose matched to it has (none on an irregular map)
+        sym = (map_symmetries(self.lights_w, o.gate_m, o.min_inliers)
+               if o.twins else np.zeros((0, 3)))
+        self.symmetries_searched = o.twins and self.lights_w.shape[0] <= SYMMETRY_MAX_LIGHTS
+        # nearest first: beyond MAX_TWIN_CHECKS that apply to a pose the far ones go
+        # unchecked, and no global fix is then singled out (_candidate)
+        self.symmetries = sym[np.argsort(np.hypot(sym[:, 1], sym[:, 2]), kind="stable")]
+        self.symmetry_lights = symmetry_table(self.lights_w, self.symmetries, o.gate_m)
         self.matcher = PatternMatcher(self.lights_w, o.gate_m,
                                       max_pair_m(rig, self.ceiling_height_m, o.gate_m),
                                       visible=self.visibility)
-        self.windows = None if not o.track else WindowTracker(
+        # the window tracker reads discs: rectangular lights take the global path
+        self.windows = None if not o.track or rect is not None else WindowTracker(
             rig, self.ceiling_height_m, self.lights_w, self.observer, self.visibility,
             o.track_window_px, (o.spot_params or SpotParams()).min_contrast,
             TRACK_MIN_SHARE, o.max_residual_px, OUTLIER_MEDIANS, self.prior_gate_m,
@@ -274,7 +315,7 @@ class LightsEstimator(Estimator):
         found = self._candidate(obs, prior, t_ns, diag)
         if not isinstance(found, tuple):
             return found
-        cand, runner, mode = found
+        cand, runner, mode, twins, complete = found
         pairs, (x, y, yaw, cov, res) = self._refine(obs, cand, prior)
         k = pairs.shape[0]
         min_k = 2 if mode == "tracked" else self.options.min_inliers
@@ -289,7 +330,15 @@ class LightsEstimator(Estimator):
                      "rms_px": rms, "mode": mode, "score": cand.score,
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": elapsed_ms(t0)})
-        return self.checked(t_ns, x, y, yaw, quality, cov, res, diag)
+        out = self.checked(t_ns, x, y, yaw, quality, cov, res, diag)
+        if twins and isinstance(out, PoseEstimate):
+            # a prior-resolved pose: the published one first, then the twins it ruled out
+            hyps = self._hypotheses(obs, [cand] + twins, prior, out.cov)
+            first = Hypothesis(out.x_m, out.y_m, out.yaw_rad, out.cov, hyps[0].weight,
+                               "published")
+            out = dataclasses.replace(out, hypotheses=(first,) + hyps[1:],
+                                      hypotheses_complete=complete)
+        return out
 
     def checked(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float, quality: float,
                 cov: np.ndarray, res_px: np.ndarray, diag: dict[str, Any]) -> Estimate:
@@ -347,10 +396,28 @@ class LightsEstimator(Estimator):
 
     def _candidate(self, obs: Observation, prior: PoseEstimate | None, t_ns: int,
                    diag: dict[str, Any]
-                   ) -> tuple[Candidate, Candidate | None, str] | Estimate:
-        """``(best, runner-up, mode)`` of a frame, or its Failure. ``mode``: ``tracked``
-        (a local association around a trusted prior), ``global`` or ``prior_resolved``
-        (the prior picked one of several equally good global poses)."""
+                   ) -> tuple[Candidate, Candidate | None, str, list[Candidate], bool] | Estimate:
+        """``(best, runner-up, mode, twins ruled out, whether they are every twin)`` of a
+        frame, or its Failure.
+        ``mode``: ``tracked`` (a local association around a trusted prior), ``global``
+        or ``prior_resolved`` (the prior picked one of several equally good poses,
+        ``twins`` the others).
+
+        Without a prior the best pose must be singled out: every twin of it (the pose
+        moved by each symmetry of the map: :meth:`_twins`, with the matcher's own
+        candidates; those outside the site dropped, ``outside_site`` when only from
+        outside is the frame explained best) is scored by the evidence
+        (:meth:`_evidence`: the spots it explains, a weak one at
+        :data:`~.observe.WEAK_WEIGHT`, less :data:`~.matching.MISSING_PENALTY` per
+        light it should show but that is not seen); one within ``ambiguity_margin`` of
+        the best makes the frame ``ambiguous``, with the poses as hypotheses, and so
+        do more twins than were checked. At least ``min_inliers`` of the best's spots
+        must be strong (not near the frame's or the lens's edge).
+
+        With a prior the association about it is checked against its pose's twins: a
+        twin the frame prefers by more than the margin contradicts the prior (the
+        global search decides); otherwise the twins within the margin are the ones the
+        prior ruled out."""
         n = len(obs.spots)
         if prior is not None and prior.x_m is not None and prior.y_m is not None:
             c = self.matcher.verify(obs.q_v, prior.yaw_rad,
@@ -360,22 +427,69 @@ class LightsEstimator(Estimator):
             # should see, match: a stale prior must not pull a local false match
             if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
                     and c.missing <= max(1, c.inliers // 2)):
-                return c, None, "tracked"
+                if not self.options.twins or c.inliers < self.options.min_inliers:
+                    return c, None, "tracked", [], False
+                # the twins the prior rules out (other cells of a grid: the frame alone
+                # cannot tell them), unless the frame itself prefers one of them: then
+                # the prior is contradicted and the global search decides
+                weights = obs.weights()
+                own = self._evidence(c, weights)
+                rivals, complete = self._rivals(obs, c)
+                twins = [t for t in rivals
+                         if self._evidence(t, weights) >= own - self.options.ambiguity_margin]
+                if all(self._evidence(t, weights) <= own + self.options.ambiguity_margin
+                       for t in twins):
+                    twins.sort(key=lambda t: -self._evidence(t, weights))
+                    return c, None, "tracked", twins, complete and len(twins) < MAX_HYPOTHESES
         min_inliers = self.options.min_inliers
         if n < min_inliers:
             return self.fail(t_ns, "too_few_lights",
                              f"{n} lights found, a global fix needs {min_inliers}", **diag)
         cands = [c for c in self.matcher.match(obs.q_v, obs.order) if c.inliers >= min_inliers]
-        diag["hypotheses"] = len(cands)
+        diag["verified"] = len(cands)
         if not cands:
             return self.fail(t_ns, "no_match", f"{n} lights match no place of the map", **diag)
+        weights = obs.weights()
+        complete = False
+        if self.options.twins:
+            # every placement of the best's spots on the map's lights, scored alike;
+            # a placement outside the site (its model check would refuse it) is none,
+            # unless only from outside is the frame explained best
+            twins, complete = self._twins(obs, cands[0])
+            every = [c for c in _distinct(cands + twins) if c.inliers >= min_inliers]
+            cands = [c for c in every if self._possible(c)]
+            out_e = max((self._evidence(c, weights) for c in every
+                         if not self._possible(c)), default=-math.inf)
+            in_e = max((self._evidence(c, weights) for c in cands), default=-math.inf)
+            if not cands or out_e > in_e + self.options.ambiguity_margin:
+                return self.fail(t_ns, OUTSIDE_SITE, f"{n} lights fit the map best from "
+                                 f"a pose outside the site", **diag)
+            cands.sort(key=lambda c: (-self._evidence(c, weights), -c.inliers, c.rms_m))
+        if obs.weak is not None:
+            strong = int(np.count_nonzero(weights[cands[0].pairs[:, 0]] >= 1.0))
+            if strong < min_inliers:
+                return self.fail(t_ns, "no_match",
+                                 f"the best pose fits {cands[0].inliers} lights, only "
+                                 f"{strong} of them well inside the view (a global fix "
+                                 f"needs {min_inliers})", **diag)
+        best_e = self._evidence(cands[0], weights)
         cand, mode = cands[0], "global"
-        rivals = [c for c in cands[1:] if c.score >= cand.score - self.options.ambiguity_margin]
+        margin = self.options.ambiguity_margin
+        rivals = [c for c in cands[1:] if self._evidence(c, weights) >= best_e - margin]
+        if not rivals and self.symmetries_searched and not complete and prior is None:
+            # more twins than were checked (a large grid): not singled out
+            return self.fail(t_ns, AMBIGUOUS,
+                             f"the map repeats about the best pose more often than the "
+                             f"{MAX_TWIN_CHECKS} twins checked",
+                             hypotheses=self._hypotheses(obs, cands[:MAX_HYPOTHESES],
+                                                         prior), **diag)
+        twins = []
         if rivals and prior is not None and prior.x_m is not None:
             at_prior = Candidate(float(prior.x_m), float(prior.y_m), prior.yaw_rad,
                                  np.zeros((0, 2), int), 0.0, 0.0)
             near = [c for c in [cand] + rivals if c.same_pose(at_prior, *PRIOR_RESOLVE)]
             if len(near) == 1:
+                twins = [c for c in [cand] + rivals if c is not near[0]]
                 cand, rivals, mode = near[0], [], "prior_resolved"
         if rivals:
             r = rivals[0]
@@ -383,8 +497,85 @@ class LightsEstimator(Estimator):
             return self.fail(t_ns, AMBIGUOUS,
                              f"{len(rivals) + 1} poses fit {cand.inliers} lights equally "
                              f"well (e.g. ({cand.x_m:.2f}, {cand.y_m:.2f}) and "
-                             f"({r.x_m:.2f}, {r.y_m:.2f})): a symmetric layout", **diag)
-        return cand, (cands[1] if len(cands) > 1 else None), mode
+                             f"({r.x_m:.2f}, {r.y_m:.2f})): a symmetric layout",
+                             hypotheses=self._hypotheses(obs, [cand] + rivals, prior),
+                             complete=complete and len(rivals) < MAX_HYPOTHESES, **diag)
+        return (cand, (cands[1] if len(cands) > 1 else None), mode, twins,
+                complete and len(twins) < MAX_HYPOTHESES)
+
+    def _possible(self, c: Candidate) -> bool:
+        """Whether a candidate may be the pose: ``min_inliers`` spots, inside the site
+        (by ``site_margin_m``: the model check refuses a pose outside)."""
+        e, m = self.extent, self.options.site_margin_m
+        return (c.inliers >= self.options.min_inliers
+                and e.x_lo - m <= c.x_m <= e.x_hi + m and e.y_lo - m <= c.y_m <= e.y_hi + m)
+
+    def _rivals(self, obs: Observation, c: Candidate) -> tuple[list[Candidate], bool]:
+        """The possible twins of ``c`` (:meth:`_twins`, :meth:`_possible`), ``c``'s own
+        pose left out, and whether every twin was checked."""
+        found, complete = self._twins(obs, c)
+        twins = _distinct([c] + found)
+        return [t for t in twins if self._possible(t)
+                and not t.same_pose(c, 0.3, math.radians(5.0))], complete
+
+    def _evidence(self, c: Candidate, weights: np.ndarray) -> float:
+        """A candidate's score with each spot at its weight (:meth:`Observation.weights`):
+        the weighted spots it explains less :data:`~.matching.MISSING_PENALTY` per map
+        light it should show that matched nothing."""
+        return float(weights[c.pairs[:, 0]].sum()) - MISSING_PENALTY * c.missing
+
+    def _twins(self, obs: Observation, best: Candidate) -> tuple[list[Candidate], bool]:
+        """The best pose moved by each of the map's symmetries (:attr:`symmetries`:
+        on a regular grid the other cells and the turned placements, which a vote over
+        pair lengths may leave unverified) that keeps at least ``min_inliers`` of its
+        matched lights on lights, verified (:meth:`PatternMatcher.twins`); and whether
+        they were all checked (the map was searched for symmetries, and at most
+        :data:`MAX_TWIN_CHECKS` of them apply)."""
+        if self.symmetries.shape[0] == 0:
+            return [], self.symmetries_searched
+        kept = self.symmetry_lights[:, best.pairs[:, 1]].sum(axis=1)
+        sym = self.symmetries[kept >= self.options.min_inliers]
+        complete = self.symmetries_searched and sym.shape[0] <= MAX_TWIN_CHECKS
+        if sym.shape[0] == 0:
+            return [], complete
+        starts = twin_poses(sym[:MAX_TWIN_CHECKS], best.x_m, best.y_m, best.yaw_rad)
+        return self.matcher.twins(obs.q_v, starts, 2.0 * self.options.gate_m,
+                                  self.options.min_inliers), complete
+
+    def _hypotheses(self, obs: Observation, cands: list[Candidate],
+                    prior: PoseEstimate | None, cov: np.ndarray | None = None
+                    ) -> tuple[Hypothesis, ...]:
+        """The poses of ``cands`` (the first the chosen or best one) as hypotheses, at
+        most :data:`MAX_HYPOTHESES`, weighted by ``exp(HYPOTHESIS_SHARPNESS x
+        evidence)`` normalized (:meth:`_evidence`: the frame's likelihood, the prior
+        left out). Each is its candidate's rigid fit; all share one covariance,
+        ``cov`` or the first's refinement (:meth:`_refine`): a twin is the same spots
+        moved rigidly, its fit as well determined."""
+        weights = obs.weights()
+        cands = cands[:MAX_HYPOTHESES]
+        ev = np.array([self._evidence(c, weights) for c in cands])
+        w = np.exp(HYPOTHESIS_SHARPNESS * (ev - ev.max()))
+        w /= w.sum()
+        if cov is None:
+            try:
+                cov = self._refine(obs, cands[0], prior)[1][3]
+            except (np.linalg.LinAlgError, ValueError):
+                cov = None
+        if cov is not None:
+            cov = np.array(cov, float)
+            if not np.all(np.isfinite(cov)):
+                cov = None
+            else:
+                cov.setflags(write=False)
+        out = []
+        for c, wk in zip(cands, w, strict=True):
+            dx, dy = c.x_m - cands[0].x_m, c.y_m - cands[0].y_m
+            turn = math.degrees(wrap_pi(c.yaw_rad - cands[0].yaw_rad))
+            label = (f"shift ({dx:+.2f}, {dy:+.2f}) m, turn {turn:+.0f} deg"
+                     if c is not cands[0] else "best")
+            out.append(Hypothesis(float(c.x_m), float(c.y_m), float(c.yaw_rad), cov,
+                                  float(wk), label))
+        return tuple(out)
 
     def _refine(self, obs: Observation, cand: Candidate, prior: PoseEstimate | None = None
                 ) -> tuple[np.ndarray, tuple[float, float, float, np.ndarray, np.ndarray]]:
@@ -459,6 +650,24 @@ def pose_quality(k: int, rms_px: float, best: Candidate, runner: Candidate | Non
         rival = runner.score if runner is not None else 2.0
         q_sep = 1.0 - math.exp(-max(best.score - rival, 0.0) / 1.5)
     return float(min(1.0, max(0.0, q_n * q_res * q_sep * q_vis)))
+
+
+def _distinct(cands: list[Candidate]) -> list[Candidate]:
+    """The candidates without those near an earlier one (0.3 m, 5 deg), the one with
+    more inliers kept."""
+    if not cands:
+        return []
+    order = sorted(range(len(cands)), key=lambda i: (-cands[i].pairs.shape[0],
+                                                     cands[i].rms_m))
+    p = np.array([(cands[i].x_m, cands[i].y_m, cands[i].yaw_rad) for i in order])
+    d_yaw = np.abs((p[:, None, 2] - p[None, :, 2] + math.pi) % (2 * math.pi) - math.pi)
+    near = ((np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1]) < 0.3)
+            & (d_yaw < math.radians(5.0)))
+    keep = np.ones(len(order), bool)
+    for i in range(len(order)):
+        if keep[i]:
+            keep[i + 1:] &= ~near[i, i + 1:]
+    return [cands[order[i]] for i in np.flatnonzero(keep)]
 
 
 def _min_spacing(lights_w: np.ndarray) -> float:

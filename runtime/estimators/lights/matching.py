@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ceilkit.runtime.estimators.lights.observe import locate_core
 from ceilkit.runtime.geometry.rotations import wrap_pi
@@ -30,6 +31,9 @@ from ceilkit.runtime.jit import arr, njit, warmer
 
 MISSING_PENALTY = 0.5
 """A candidate's score: its inliers minus this per map light it should show but does not."""
+SYMMETRY_MAX_LIGHTS = 300
+"""Maps of more lights are not searched for symmetries (:func:`map_symmetries`): the
+search is quadratic in the lights (a 20 x 15 grid: 1 s, 2 400 motions)."""
 _SAME_BIN = (0.5, math.radians(8.0))    # (m, rad): a vote bin next to a verified pose
 _SAME_POSE = (0.3, math.radians(5.0))   # (m, rad): a verified pose already found
 
@@ -146,6 +150,22 @@ class PatternMatcher:
         if not ok:
             return None
         return Candidate(x, y, yaw_v, pairs, score, rms, missing)
+
+    def twins(self, q_v: np.ndarray, starts: np.ndarray, gate_m: float,
+              min_inliers: int) -> list[Candidate]:
+        """The poses ``starts (K, 3)`` ``(x, y, yaw)`` verified (:meth:`verify`, first
+        association within ``gate_m``), those with at least ``min_inliers`` inliers, a
+        pose near one found before dropped (0.3 m, 5 deg). One compiled call
+        (:func:`_twins`)."""
+        starts = np.asarray(starts, float).reshape(-1, 3)
+        if starts.shape[0] == 0 or self.lights_w.shape[0] == 0:
+            return []
+        poses, pairs, offsets = _twins(_complex(q_v), arr(starts, np.float64),
+                                       float(gate_m), self.gate_m, int(min_inliers),
+                                       self._map[0], *self._vis)
+        return [Candidate(p[0], p[1], p[2], pairs[a:b], p[3], p[4], int(p[5]))
+                for p, a, b in zip(poses.tolist(), offsets[:-1].tolist(),
+                                   offsets[1:].tolist(), strict=True)]
 
     # -- global -------------------------------------------------------------------------
     def hypotheses(self, q_v: np.ndarray) -> np.ndarray:
@@ -385,6 +405,117 @@ def _match(qc, use, lights_c, pair_d, pair_mid, pair_dir, params, vis_lights, pa
 
 
 @njit
+def _twins(qc, starts, gate, gate_m, min_inliers, lights_c, vis_lights, padded, geo, ints
+           ):  # pragma: no cover - compiled
+    """:meth:`PatternMatcher.twins` in a compiled call: ``(poses (C, 6), pairs (P, 2),
+    offsets (C + 1,))`` as :func:`_match` gives them."""
+    cap = max(1, starts.shape[0])
+    poses = np.empty((cap, 6))
+    offsets = np.zeros(cap + 1, np.int64)
+    all_pairs = np.empty((cap * max(qc.size, 1), 2), np.int64)
+    n_cand = 0
+    for r in range(starts.shape[0]):
+        found, x, y, yaw_v, pairs, score, rms, missing = _verify(
+            qc, starts[r, 2], complex(starts[r, 0], starts[r, 1]), gate, gate_m, lights_c,
+            vis_lights, padded, geo, ints)
+        if not found or pairs.shape[0] < min_inliers:
+            continue
+        if _near_any(x, y, yaw_v, poses, n_cand, _SAME_POSE[0], _SAME_POSE[1]):
+            continue
+        poses[n_cand, 0], poses[n_cand, 1], poses[n_cand, 2] = x, y, yaw_v
+        poses[n_cand, 3], poses[n_cand, 4], poses[n_cand, 5] = score, rms, missing
+        k = pairs.shape[0]
+        all_pairs[offsets[n_cand]:offsets[n_cand] + k] = pairs
+        offsets[n_cand + 1] = offsets[n_cand] + k
+        n_cand += 1
+    return poses[:n_cand].copy(), all_pairs[:offsets[n_cand]].copy(), \
+        offsets[:n_cand + 1].copy()
+
+
+def map_symmetries(lights_w: np.ndarray, gate_m: float, min_lights: int,
+                   turns: int = 4, max_lights: int = SYMMETRY_MAX_LIGHTS) -> np.ndarray:
+    """``(K, 3)`` rows ``(turn, tx, ty)``: the rigid motions ``p -> Rz(turn) p + t``,
+    ``turn`` a multiple of a quarter turn (``k < turns``), that put at least
+    ``min_lights`` of the map's lights on lights of the map (within ``gate_m``), the
+    identity left out: a regular grid's cells and half (or quarter) turns, and the
+    chance coincidences of a few lights of an irregular map. A pose ``(x, y, yaw)``
+    matched to the map has a twin ``(Rz(turn) (x, y) + t, yaw + turn)`` for each
+    (:func:`twin_poses`).
+
+    Every light taken onto every light gives a translation per turn; the translations
+    are binned at ``2 gate_m`` on four grids half a bin apart (a cluster narrower than
+    ``gate_m`` lies whole in a bin of one of them), and a bin holding ``min_lights``
+    of them is one motion (their mean), a motion found twice kept once. Maps of more
+    than ``max_lights`` lights are not searched (``(0, 3)``: their twins are only the
+    ones the vote verifies).
+    """
+    L = np.asarray(lights_w, float).reshape(-1, 2)
+    m = L.shape[0]
+    if m < max(2, min_lights) or m > max_lights:
+        return np.zeros((0, 3))
+    size = 2.0 * gate_m
+    rows: list[np.ndarray] = []
+    for k in range(turns):
+        turn = 0.5 * math.pi * k
+        c, s = math.cos(turn), math.sin(turn)
+        RL = L @ np.array([[c, s], [-s, c]])
+        t = (L[None, :, :] - RL[:, None, :]).reshape(-1, 2)
+        means: list[np.ndarray] = []
+        for sx, sy in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+            kx = np.floor(t[:, 0] / size + sx).astype(np.int64)
+            ky = np.floor(t[:, 1] / size + sy).astype(np.int64)
+            key = (kx - kx.min()) * (int(ky.max() - ky.min()) + 1) + (ky - ky.min())
+            order = np.argsort(key, kind="stable")
+            ks = key[order]
+            starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+            counts = np.diff(np.r_[starts, ks.size])
+            sums = np.add.reduceat(t[order], starts, axis=0)
+            good = counts >= min_lights
+            means.append(sums[good] / counts[good, None])
+        tt = np.concatenate(means)
+        if k == 0:
+            tt = tt[np.hypot(tt[:, 0], tt[:, 1]) >= gate_m]        # the identity
+        if tt.shape[0] == 0:
+            continue
+        # one motion per cluster of means (the four grids find most twice or more)
+        keep = np.ones(tt.shape[0], bool)
+        for i, j in sorted(cKDTree(tt).query_pairs(gate_m)):
+            if keep[i]:
+                keep[j] = False
+        tt = tt[keep]
+        rows.append(np.column_stack([np.full(tt.shape[0], turn), tt]))
+    return np.concatenate(rows) if rows else np.zeros((0, 3))
+
+
+def symmetry_table(lights_w: np.ndarray, symmetries: np.ndarray, gate_m: float
+                   ) -> np.ndarray:
+    """``(K, M)`` bool: which map lights each symmetry (:func:`map_symmetries`) puts on
+    a light of the map (within ``gate_m``). A pose's twin under symmetry ``k`` can
+    explain the spots the pose matched to lights ``i`` only where ``table[k, i]``."""
+    L = np.asarray(lights_w, float).reshape(-1, 2)
+    out = np.zeros((symmetries.shape[0], L.shape[0]), bool)
+    if out.size == 0:
+        return out
+    tree = cKDTree(L)
+    for k, (turn, tx, ty) in enumerate(symmetries):
+        c, s = math.cos(turn), math.sin(turn)
+        d, _ = tree.query(L @ np.array([[c, s], [-s, c]]) + (tx, ty),
+                          distance_upper_bound=gate_m)
+        out[k] = np.isfinite(d)
+    return out
+
+
+def twin_poses(symmetries: np.ndarray, x_m: float, y_m: float, yaw_rad: float
+               ) -> np.ndarray:
+    """``(K, 3)`` the twins ``(x, y, yaw)`` of a pose under the map's symmetries
+    (:func:`map_symmetries`): ``(Rz(turn) (x, y) + t, yaw + turn)``."""
+    turn = symmetries[:, 0]
+    c, s = np.cos(turn), np.sin(turn)
+    return np.stack([c * x_m - s * y_m + symmetries[:, 1], s * x_m + c * y_m + symmetries[:, 2],
+                     yaw_rad + turn], axis=1)
+
+
+@njit
 def _near_any(x, y, yaw, poses, n, pos_m, max_yaw):  # pragma: no cover - compiled
     """Whether ``(x, y, yaw)`` lies within ``pos_m`` and ``max_yaw`` of one of the first
     ``n`` rows of ``poses`` (:func:`near_pose`)."""
@@ -401,7 +532,9 @@ def _warm() -> None:
     m = PatternMatcher(q, 0.1)        # (with a visibility table: the same types)
     m.match(q)
     m.verify(q, 0.0, np.zeros(2))
+    m.twins(q, np.zeros((1, 3)), 0.2, 3)
     m.associate(q, 0.0, np.zeros(2), 0.1)
 
 
-__all__ = ["MISSING_PENALTY", "Candidate", "PatternMatcher", "near_pose"]
+__all__ = ["MISSING_PENALTY", "Candidate", "PatternMatcher", "map_symmetries", "near_pose",
+           "symmetry_table", "twin_poses"]

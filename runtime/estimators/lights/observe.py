@@ -2,7 +2,10 @@
 lights a pose should show.
 
 :class:`SpotObserver` runs the detector, keeps the spots whose size and shape fit a
-light of the known diameter at their place in the image, and gives each its ceiling
+light of the known diameter at their place in the image (or, for rectangular lamps
+(``light_size``), the lamp's rectangle projected at the spot's own orientation, its
+centroid offset taken off, lamps cut by the frame or the lens's edge dropped and
+those near it marked weak: :meth:`SpotObserver._rectangles`), and gives each its ceiling
 point in V (:func:`~ceilkit.runtime.estimators.lights.rays.ceiling_points`) and its
 pixel Jacobian (from a table). :class:`VisibilityTable` answers, for a pose, which
 map lights the detector should report (a lookup, not a projection).
@@ -47,6 +50,16 @@ RIM_REACH = 1.6      # border its centroid is pulled inwards (a cut light, or on
 # corridor rig's 18 px lights within 10 px of the border, 0.1 px beyond (bench_fusion mixed)
 MAX_BUDGET_FACTOR = 4  # regions examined at most: this many times max_spots
 DISC_POINTS = 24  # a light's outline, for its image centroid
+WEAK_WEIGHT = 0.5
+"""A weak spot's weight as evidence (:meth:`Observation.weights`): a light near the
+frame's or the lens's edge may be a fragment, a reflection or a cut lamp."""
+RECT_SIDE_POINTS = 8  # points per side of a rectangular light's outline (a fisheye bends it)
+RECT_CUT_REACH = 1.15  # a rectangle this much larger must lie inside the frame and the view
+RECT_WEAK_REACH = 1.8  # ... and this much larger, else the spot is weak
+RECT_BLUR_PX2 = 0.8  # the optics' blur in the observed second moments, px²
+RECT_AREA = (0.4, 2.2)  # observed / predicted area of a rectangle's spot
+RECT_MOMENTS = (0.3, 3.0)  # eigenvalues of C_pred⁻¹ S_obs (whitened second moments)
+RECT_ITERATIONS = 2  # centroid-offset corrections of a rectangle's centre
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,6 +79,16 @@ class Observation:
     jac_px: np.ndarray
     candidates_px: np.ndarray | None = None  # every examined spot's centroid (overlays)
     kept: np.ndarray | None = None  # which of them passed the checks (None: all)
+    weak: np.ndarray | None = None  # (N,) bool: near the frame's or the lens's edge
+    axis_v: np.ndarray | None = None  # (N,) a rectangle's long side in V, rad (mod pi)
+
+    def weights(self) -> np.ndarray:
+        """``(N,)`` each spot's weight as evidence: 1, :data:`WEAK_WEIGHT` for a weak
+        one (a light near the frame's or the lens's edge)."""
+        w = np.ones(len(self.spots))
+        if self.weak is not None:
+            w[self.weak] = WEAK_WEIGHT
+        return w
 
     def outside(self, site, pose) -> Observation:
         """Without the spots whose ceiling point lies in one of the site's ``ignore``
@@ -82,7 +105,9 @@ class Observation:
             kept[np.flatnonzero(kept)[~keep]] = False
         return dataclasses.replace(self, spots=self.spots.select(keep), q_v=self.q_v[keep],
                                    order=new[self.order[keep[self.order]]],
-                                   jac_px=self.jac_px[keep], kept=kept)
+                                   jac_px=self.jac_px[keep], kept=kept,
+                                   weak=None if self.weak is None else self.weak[keep],
+                                   axis_v=None if self.axis_v is None else self.axis_v[keep])
 
 
 def disc_offsets(rig: Rig, ceiling_height_m: float, light_radius_m: float,
@@ -108,6 +133,53 @@ def disc_offsets(rig: Rig, ceiling_height_m: float, light_radius_m: float,
         out = polygon_centroids(img) - px
         out[~ok] = np.nan
     return out.reshape(vs.size, us.size, 2)
+
+
+def rectangle_outline(length_m: float, width_m: float,
+                      per_side: int = RECT_SIDE_POINTS) -> np.ndarray:
+    """``(4 per_side, 2)`` points around a ``length x width`` rectangle centred on 0,
+    its long side along x, counter-clockwise."""
+    t = np.arange(per_side) / per_side
+    hl, hw = 0.5 * length_m, 0.5 * width_m
+    sides = [np.stack([-hl + 2 * hl * t, np.full_like(t, -hw)], 1),
+             np.stack([np.full_like(t, hl), -hw + 2 * hw * t], 1),
+             np.stack([hl - 2 * hl * t, np.full_like(t, hw)], 1),
+             np.stack([np.full_like(t, -hl), hw - 2 * hw * t], 1)]
+    return np.concatenate(sides)
+
+
+def _project_rectangles(rig: Rig, ceiling_height_m: float, q_v: np.ndarray,
+                        theta: np.ndarray, outline: np.ndarray) -> np.ndarray:
+    """``(K, P, 2)`` pixels of ``K`` rectangles on the ceiling: ``outline (P, 2)``
+    turned by ``theta (K,)`` about ceiling points ``q_v (K, 2)`` in V."""
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    pts = np.stack([q_v[:, 0:1] + c * outline[None, :, 0] - s * outline[None, :, 1],
+                    q_v[:, 1:2] + s * outline[None, :, 0] + c * outline[None, :, 1]], -1)
+    k, p = pts.shape[:2]
+    if k == 0:
+        return np.zeros((0, p, 2))
+    return project_lights(rig, ceiling_height_m, pts.reshape(-1, 2), 0.0, 0.0,
+                          0.0).reshape(k, p, 2)
+
+
+def polygon_moments(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(area (N,), cov (N, 2, 2))`` of ``N`` closed polygons ``(N, K, 2)``: the area
+    (px²) and the central second moments per unit area (px²) of each (Green's theorem;
+    either orientation)."""
+    x, y = p[..., 0], p[..., 1]
+    xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cr = x * yn - xn * y
+    a = 0.5 * cr.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a_safe = np.where(np.abs(a) > 1e-12, a, np.nan)
+        mx = ((x + xn) * cr).sum(axis=1) / (6 * a_safe)
+        my = ((y + yn) * cr).sum(axis=1) / (6 * a_safe)
+        sxx = ((x * x + x * xn + xn * xn) * cr).sum(axis=1) / (12 * a_safe) - mx * mx
+        syy = ((y * y + y * yn + yn * yn) * cr).sum(axis=1) / (12 * a_safe) - my * my
+        sxy = ((x * yn + 2 * x * y + 2 * xn * yn + xn * y) * cr).sum(axis=1) \
+            / (24 * a_safe) - mx * my
+    cov = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
+    return np.abs(a), cov
 
 
 def polygon_centroids(p: np.ndarray) -> np.ndarray:
@@ -164,8 +236,13 @@ class SpotObserver:
     def __init__(self, rig: Rig, ceiling_height_m: float, light_radius_m: float,
                  spot_params: SpotParams, valid_mask: np.ndarray,
                  nadir_px: tuple[float, float], max_spots: int, factor: int = 1,
-                 stage: str = "full"):
+                 stage: str = "full", light_size_m: tuple[float, float] | None = None):
         self.rig, self.ceiling_height_m = rig, ceiling_height_m
+        # rectangular lights (light_size): the disc checks are off, the rectangle's
+        # (_rectangles) run in their place
+        self.light_size_m = light_size_m
+        if light_size_m is not None:
+            light_radius_m = 0.0
         self.light_radius_m = light_radius_m
         self.spot_params, self.valid_mask = spot_params, valid_mask
         self.nadir_px, self.max_spots = nadir_px, max_spots
@@ -195,16 +272,100 @@ class SpotObserver:
         spots, q, ok, table = self._examine(grey, MAX_BUDGET_FACTOR * self.max_spots)
         if len(spots) == 0:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
+        weak = axis = None
+        if self.light_size_m is not None:
+            q, ok, weak, axis = self._rectangles(spots, q, ok, table)
         if int(ok.sum()) > self.max_spots:             # the first max_spots examined
             ok &= np.cumsum(ok) <= self.max_spots
         J = table[:, :4].reshape(-1, 2, 2)
         candidates_px = spots.centroids_px
         if not ok.all():
             spots, q, J = spots.select(ok), q[ok], J[ok]
+        if weak is not None:
+            weak, axis = weak[ok], axis[ok]
         t_vc = self.t_vehicle_cam
         rng = np.hypot(q[:, 0] - t_vc[0], q[:, 1] - t_vc[1])
         return Observation(spots, q, rng.argsort(kind="stable"), J,
-                           candidates_px, ok)
+                           candidates_px, ok, weak, axis)
+
+    def _rectangles(self, spots: Spots, q: np.ndarray, ok: np.ndarray, table: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The checks of rectangular lights (``light_size``), for the spots ``ok`` so
+        far: ``(q, ok, weak, axis)``.
+
+        A rectangle's orientation in V is not known without the pose: the spot's own
+        second moments give it (modulo 180°; the long axis of ``J⁻¹ (S - blur) J⁻ᵀ``,
+        ``J`` the local ceiling-to-pixel Jacobian). The rectangle of the site's size at
+        that orientation, centred on the spot's ceiling point, is projected through the
+        camera model (its sides sampled, so a fisheye's bending is in it) and its area
+        centroid's offset from the image of its centre taken off the observed centroid
+        (:data:`RECT_ITERATIONS` times): a rectangle's centroid is its centre only on the
+        ceiling. The spot is kept when its area and whitened second moments fit that
+        projected rectangle (:data:`RECT_AREA`, :data:`RECT_MOMENTS`) and the rectangle,
+        :data:`RECT_CUT_REACH` times larger, lies inside the frame (by
+        :data:`RIM_MARGIN_PX`) and the view mask (the lens's edge): a lamp cut by
+        either gives a fragment's centroid. A kept spot is ``weak`` when the rectangle
+        :data:`RECT_WEAK_REACH` times larger does not.
+        """
+        n = q.shape[0]
+        weak = np.zeros(n, bool)
+        axis = np.zeros(n)
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            return q, ok, weak, axis
+        rig, h = self.rig, self.ceiling_height_m
+        length, width = self.light_size_m
+        c_obs = spots.centroids_px[idx]
+        S = spots.cov_px[idx]
+        J = table[idx, :4].reshape(-1, 2, 2)
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        good = np.isfinite(det) & (np.abs(det) > 1e-9)
+        Ji = np.linalg.inv(np.where(good[:, None, None], J, np.eye(2)))
+        lo = np.linalg.eigvalsh(S)[:, 0]
+        blur = np.minimum(RECT_BLUR_PX2, 0.5 * np.maximum(lo, 0.0))
+        M = Ji @ (S - blur[:, None, None] * np.eye(2)) @ np.swapaxes(Ji, 1, 2)
+        theta = 0.5 * np.arctan2(2 * M[:, 0, 1], M[:, 0, 0] - M[:, 1, 1])
+        outline = rectangle_outline(length, width)               # (P, 2), long side on x
+        qk = q[idx].copy()
+        for _ in range(RECT_ITERATIONS):
+            img = _project_rectangles(rig, h, qk, theta, outline)
+            centre = project_lights(rig, h, qk, 0.0, 0.0, 0.0)
+            off = polygon_centroids(img) - centre
+            bad = ~np.all(np.isfinite(off), axis=1)
+            qn, okn = ceiling_points(rig, h, c_obs - np.where(bad[:, None], 0.0, off))
+            good &= okn & ~bad
+            qk = np.where(good[:, None], qn, qk)
+        img = _project_rectangles(rig, h, qk, theta, outline)
+        area_p, cov_p = polygon_moments(img)
+        cov_p = cov_p + RECT_BLUR_PX2 * np.eye(2)
+        area_o = spots.areas_px[idx]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = area_o / area_p
+            ev = np.linalg.eigvals(np.linalg.solve(
+                np.where(good[:, None, None], cov_p, np.eye(2)), S)).real
+        good &= (ratio >= RECT_AREA[0]) & (ratio <= RECT_AREA[1])
+        good &= np.all((ev >= RECT_MOMENTS[0]) & (ev <= RECT_MOMENTS[1]), axis=1)
+        good &= self._inside(qk, theta, outline * RECT_CUT_REACH)
+        weak_k = ~self._inside(qk, theta, outline * RECT_WEAK_REACH)
+        q = q.copy()
+        q[idx] = qk
+        ok = ok.copy()
+        ok[idx] = good
+        weak[idx] = weak_k
+        axis[idx] = theta
+        return q, ok, weak, axis
+
+    def _inside(self, q_v: np.ndarray, theta: np.ndarray, outline: np.ndarray) -> np.ndarray:
+        """``(K,)`` whether rectangles (``outline`` about ``q_v`` turned by ``theta``)
+        project inside the frame by :data:`RIM_MARGIN_PX` and inside the view mask."""
+        img = _project_rectangles(self.rig, self.ceiling_height_m, q_v, theta, outline)
+        fin = np.all(np.isfinite(img), axis=(1, 2))
+        flat = np.nan_to_num(img.reshape(-1, 2), nan=-1e9)
+        cam = self.rig.camera
+        inside = cam.in_image(flat, margin_px=RIM_MARGIN_PX).reshape(img.shape[:2])
+        uv = np.clip(np.rint(flat), 0, [cam.width - 1, cam.height - 1]).astype(int)
+        in_mask = (self.valid_mask[uv[:, 1], uv[:, 0]] > 0).reshape(img.shape[:2])
+        return fin & np.all(inside & in_mask, axis=1)
 
     def _examine(self, grey: np.ndarray, budget: int
                  ) -> tuple[Spots, np.ndarray, np.ndarray, np.ndarray]:
@@ -322,7 +483,7 @@ class VisibilityTable:
 
     def __init__(self, rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
                  valid_mask: np.ndarray, nadir_px: tuple[float, float], max_spots: int,
-                 light_radius_m: float = 0.0):
+                 light_radius_m: float = 0.0, reach_m: float | None = None):
         cam = rig.camera
         self.max_spots = max_spots
         uu, vv = np.meshgrid(np.arange(0, cam.width, 8.0), np.arange(0, cam.height, 8.0))
@@ -340,16 +501,26 @@ class VisibilityTable:
         px = project_lights(rig, ceiling_height_m, g, 0.0, 0.0, 0.0)
         ok = np.isfinite(px[:, 0])
         ok[ok] = cam.in_image(px[ok], margin_px=VIEW_MARGIN_PX)
-        if light_radius_m > 0:      # the whole disc inside: the detector drops a cut light
+        reach = RIM_REACH * light_radius_m if reach_m is None else reach_m
+        if reach > 0:      # the whole disc inside: the detector drops a cut light
             for a in np.linspace(0.0, 2 * math.pi, DISC_POINTS, endpoint=False):
                 idx = np.nonzero(ok)[0]
-                rim = project_lights(rig, ceiling_height_m, g[idx] + RIM_REACH * light_radius_m
+                rim = project_lights(rig, ceiling_height_m, g[idx] + reach
                                      * np.array([math.cos(a), math.sin(a)]), 0.0, 0.0, 0.0)
                 ok[idx] = np.isfinite(rim[:, 0]) & cam.in_image(
                     np.nan_to_num(rim, nan=-1e9), margin_px=RIM_MARGIN_PX)
         idx = np.nonzero(ok)[0]
         uv = np.round(px[idx]).astype(int)
         ok[idx[valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
+        if reach_m is not None and reach > 0:
+            # a rectangle's reach: inside the view mask too (the lens's edge cuts it)
+            for a in np.linspace(0.0, 2 * math.pi, DISC_POINTS, endpoint=False):
+                idx = np.nonzero(ok)[0]
+                rim = project_lights(rig, ceiling_height_m, g[idx] + reach
+                                     * np.array([math.cos(a), math.sin(a)]), 0.0, 0.0, 0.0)
+                uv = np.clip(np.rint(np.nan_to_num(rim, nan=0.0)), 0,
+                             [cam.width - 1, cam.height - 1]).astype(int)
+                ok[idx[valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
         d = np.hypot(px[:, 0] - nadir_px[0], px[:, 1] - nadir_px[1])
         self.table = np.where(ok, d, np.inf).astype(np.float32).reshape(n[0], n[1])
         # the same, with a border of inf cells: a clipped index off the table lands there
@@ -431,6 +602,7 @@ def _warm() -> None:
                 arr(np.ones(3), np.int64))
 
 
-__all__ = ["JAC_STEP_PX", "RIM_MARGIN_PX", "RIM_REACH", "VIEW_MARGIN_PX", "Observation",
+__all__ = ["JAC_STEP_PX", "RIM_MARGIN_PX", "RIM_REACH", "VIEW_MARGIN_PX", "WEAK_WEIGHT",
+           "Observation", "polygon_moments", "rectangle_outline",
            "SpotObserver", "VisibilityTable", "examine_core", "locate_core", "plausible_spot",
            "spot_table", "uncut_spot"]

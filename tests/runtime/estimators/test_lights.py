@@ -30,19 +30,15 @@ from ceilkit.runtime.estimators.lights import (
 )
 from ceilkit.runtime.estimators.lights.rays import GridTable
 from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.sim.render import SimOptions, render_frame
 from helpers import CONFIGS
-
-try:  # the project's simulator, when present
-    from ceilkit.runtime.sim.render import SimOptions, render_frame
-except ImportError:  # pragma: no cover - until runtime/sim.py lands
-    render_frame = None
 
 
 def render(rig: Rig, site: Site, x: float, y: float, yaw: float, seed: int,
            lights: np.ndarray | None = None) -> np.ndarray:
     """A noisy, blurred frame of bright light discs (r = 8 cm) from a vehicle pose."""
     rng = np.random.default_rng(seed)
-    if render_frame is not None and lights is None:
+    if lights is None:  # the project's simulator; its own discs only for other lights
         return render_frame(rig, site, x, y, yaw,
                             options=SimOptions(noise_sigma=2.0, blur_px=0.8,
                                                light_radius_m=0.08), rng=rng)

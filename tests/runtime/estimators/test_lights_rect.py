@@ -1,0 +1,240 @@
+"""The lights method under rectangular lamps in a regular grid (SPEC §2 ``light_size``,
+``light_yaw``): the simulator draws them, the observer checks a spot against the lamp's
+projected rectangle (a 170° fisheye tilted 22° from vertical, frames thresholded to
+0/255), a prior holds the track through the grid without slipping a cell, and with no
+prior no valid pose is wrong (a grid's cells and half turns are ``ambiguous``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.config.yaml import Node
+from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate, Provenance
+from ceilkit.runtime.estimators.lights import LightsEstimator, project_lights
+from ceilkit.runtime.features.spots import SpotParams, detect_spots
+from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.sim.render import SimOptions, render_frame
+from ceilkit.runtime.tracking import Tracker
+
+PITCH = (3.05, 3.66)       # the grid's cells, m
+LAMP = (1.2, 0.47)         # length, width, m
+GRID = (6, 5)              # lamps along x, y
+OFF = ((2, 1), (4, 3))     # lamps of the map that are off in the frames
+CLUTTER = ((1.5, 1.8), (7.6, 9.1), (12.0, 4.0))   # lamps not in the map
+THRESHOLD = 200            # the frames are stored thresholded to 0/255 at this grey
+FPS = 30.0
+STEP = 5                   # every 5th frame of a 30 fps drive
+N_FRAMES = 24
+
+
+def fisheye_rig() -> Rig:
+    """640x480, a 170° equidistant fisheye tilted 22° from vertical (mount tilt 68°),
+    the lamps 2.5 m above the lens."""
+    cam = CameraModel.pinhole(640, 480, 205.0, dist=[0.02, -0.005, 0.0, 0.0],
+                              model="equidistant")
+    return Rig(cam, Mount(tilt_rad=math.radians(68.0), x_m=0.1, z_m=0.3))
+
+
+def grid_site(missing=(), extra=(), light_yaw_deg: float = 90.0) -> Site:
+    pts = [[i * PITCH[0], j * PITCH[1]] for i in range(GRID[0]) for j in range(GRID[1])
+           if (i, j) not in missing] + [list(p) for p in extra]
+    return Site.from_node(Node({"ceiling_height": 2.8, "lights": pts,
+                                "light_size": list(LAMP), "light_yaw": light_yaw_deg},
+                               None, ""))
+
+
+def thresholded(rig: Rig, site: Site, x: float, y: float, yaw: float, seed: int) -> np.ndarray:
+    img = render_frame(rig, site, x, y, yaw, SimOptions(noise_sigma=2.0, blur_px=0.8),
+                       np.random.default_rng(seed))
+    return np.where(img > THRESHOLD, 255, 0).astype(np.uint8)
+
+
+def drive_poses() -> list[tuple[float, float, float, float]]:
+    """``(t_s, x, y, yaw)`` of every STEP-th frame of a 30 fps drive at 0.8 m/s turning
+    at 0.35 rad/s: 3.2 m across a cell boundary of the grid."""
+    out, x, y, yaw = [], 2.0, 4.0, 0.3
+    for k in range(N_FRAMES * STEP):
+        if k % STEP == 0:
+            out.append((k / FPS, x, y, yaw))
+        yaw += 0.35 / FPS
+        x += 0.8 / FPS * math.cos(yaw)
+        y += 0.8 / FPS * math.sin(yaw)
+    return out
+
+
+def errors(est: PoseEstimate, x: float, y: float, yaw: float) -> tuple[float, float]:
+    return (math.hypot(est.x_m - x, est.y_m - y),
+            abs(math.degrees(math.remainder(est.yaw_rad - yaw, 2 * math.pi))))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rig = fisheye_rig()
+    shown = grid_site(missing=OFF, extra=CLUTTER)
+    poses = drive_poses()
+    frames = [thresholded(rig, shown, x, y, yaw, 10 + k)
+              for k, (_, x, y, yaw) in enumerate(poses)]
+    est = LightsEstimator(rig, grid_site())
+    return rig, est, poses, frames
+
+
+def check_tracked(results, poses):
+    posed = [(e, p) for e, p in zip(results, poses, strict=True) if isinstance(e, PoseEstimate)]
+    assert len(posed) >= math.ceil(0.95 * len(poses)), [getattr(e, "reason", "") for e in results]
+    errs = np.array([errors(e, *p[1:]) for e, p in posed])
+    assert np.median(errs[:, 0]) <= 0.05
+    assert errs[:, 0].max() <= 0.10 and errs[:, 1].max() <= 2.0, errs.max(axis=0)
+    for e, _ in posed:
+        assert e.provenance is Provenance.PRIOR
+        if e.hypotheses:   # the twins the prior ruled out, after the published pose
+            assert (e.hypotheses[0].x_m, e.hypotheses[0].y_m) == (e.x_m, e.y_m)
+            assert sum(h.weight for h in e.hypotheses) == pytest.approx(1.0)
+            assert all(math.hypot(h.x_m - e.x_m, h.y_m - e.y_m) > 1.0
+                       or abs(math.remainder(h.yaw_rad - e.yaw_rad, 2 * math.pi)) > 0.5
+                       for h in e.hypotheses[1:])
+    return errs
+
+
+def test_simulator_draws_a_lit_rectangle():
+    """Straight up, pinhole: the lit area is the lamp's projected rectangle, its long
+    side along light_yaw."""
+    cam = CameraModel.pinhole(320, 240, 200.0)
+    rig = Rig(cam, Mount(tilt_rad=math.pi / 2, z_m=0.5))
+    site = Site.from_node(Node({"ceiling_height": 3.0, "lights": [[0.0, 0.0]],
+                                "light_size": [1.0, 0.4], "light_yaw": 30.0}, None, ""))
+    img = render_frame(rig, site, 0.0, 0.0, 0.0,
+                       SimOptions(noise_sigma=0.0, blur_px=0.0, vignetting=0.0, halo=0.0))
+    lit = img > 200
+    corners = project_lights(rig, 3.0, site.light_rectangles()[0], 0.0, 0.0, 0.0)
+    assert lit.sum() == pytest.approx(cv2.contourArea(corners.astype(np.float32)), rel=0.05)
+    m = cv2.moments(lit.astype(np.uint8), True)
+    angle = 0.5 * math.degrees(math.atan2(2 * m["mu11"], m["mu20"] - m["mu02"]))
+    long_px = corners[1] - corners[0]
+    want = math.degrees(math.atan2(long_px[1], long_px[0]))
+    assert abs(math.remainder(angle - want, 180.0)) < 1.0
+    # the halo (the disc's logic about the long axis) brightens the ceiling beside it
+    glow = render_frame(rig, site, 0.0, 0.0, 0.0,
+                        SimOptions(noise_sigma=0.0, blur_px=0.0, vignetting=0.0))
+    assert glow[~lit].max() > img[~lit].max() + 10
+
+
+def test_a_binary_frame_gives_whole_regions():
+    """A lamp larger than the Niblack window in a 0/255 frame is one region, not a
+    ring of fragments (the threshold never exceeds 254)."""
+    img = np.zeros((240, 320), np.uint8)
+    img[100:140, 100:200] = 255
+    spots = detect_spots(img, SpotParams(min_axis_ratio=0.0))
+    assert len(spots) == 1
+    assert spots.areas_px[0] == 4000
+    np.testing.assert_allclose(spots.centroids_px[0], [149.5, 119.5], atol=1e-9)
+
+
+def test_observer_finds_the_lamps_centres(scene):
+    """Each kept spot's ceiling point is a lamp's centre (of the map, or one of the
+    extra lamps) seen from the true pose: the projected rectangle's centroid offset
+    taken off, lamps cut by the frame's or the lens's edge left out."""
+    rig, est, poses, frames = scene
+    for k in (0, 12):
+        _, x, y, yaw = poses[k]
+        obs = est.observer.observe(frames[k])
+        assert len(obs.spots) >= 6
+        c, s = math.cos(yaw), math.sin(yaw)
+        world = np.array([x, y]) + obs.q_v @ np.array([[c, s], [-s, c]])
+        lamps = np.vstack([est.lights_w, np.array(CLUTTER)])
+        d = np.linalg.norm(world[:, None] - lamps[None], axis=2).min(axis=1)
+        assert d.max() < 0.03, d
+        assert obs.weak is not None and obs.weak.shape == (len(obs.spots),)
+        assert obs.axis_v is not None
+
+
+def test_tracked_from_the_previous_pose_perturbed(scene):
+    """A prior 2 cm / 1° off the previous frame's true pose: every frame tracked."""
+    rig, est, poses, frames = scene
+    rng = np.random.default_rng(7)
+    results = []
+    for k, img in enumerate(frames):
+        _, x, y, yaw = poses[max(k - 1, 0)]
+        prior = PoseEstimate(0, "truth", x + rng.normal(0, 0.02), y + rng.normal(0, 0.02),
+                             yaw + math.radians(rng.normal(0, 1.0)), 1.0)
+        results.append(est.estimate(img, int(poses[k][0] * 1e9), prior))
+    check_tracked(results, poses)
+
+
+def test_tracked_behind_the_tracker_from_the_first_pose(scene):
+    rig, est, poses, frames = scene
+    tracker = Tracker()
+    tracker.set_start_pose(0, *poses[0][1:])
+    results = []
+    for (t, *_), img in zip(poses, frames, strict=True):
+        t_ns = int(t * 1e9)
+        e = est.estimate(img, t_ns, tracker.predict(t_ns))
+        assert not tracker.update(e).relocalized
+        results.append(e)
+    check_tracked(results, poses)
+
+
+def test_no_prior_no_wrong_valid_pose(scene):
+    """With no prior a grid frame is ambiguous (another cell, a half turn explains the
+    spots as well); whatever is published is right, and an ambiguous failure carries
+    its hypotheses (weights summing to 1)."""
+    rig, est, poses, frames = scene
+    ambiguous = 0
+    for (t, x, y, yaw), img in zip(poses, frames, strict=True):
+        e = est.estimate(img, int(t * 1e9), None)
+        if isinstance(e, PoseEstimate):
+            d, dyaw = errors(e, x, y, yaw)
+            assert d <= 0.10 and dyaw <= 2.0, (d, dyaw)
+            continue
+        if e.reason == AMBIGUOUS:
+            ambiguous += 1
+            assert len(e.hypotheses) >= 2
+            assert sum(h.weight for h in e.hypotheses) == pytest.approx(1.0)
+            assert all(h.cov is None or h.cov.shape == (3, 3) for h in e.hypotheses)
+    assert ambiguous >= len(poses) // 2
+
+
+def test_a_prior_one_cell_off_decides_only_as_a_prior(scene):
+    """A prior exactly one cell off puts every spot on a lamp too. Where the frame
+    prefers the true cell (lights the shifted pose should see are not there) the prior
+    is contradicted and not followed; where the frame cannot tell, the prior decides,
+    and says so: ``PRIOR`` provenance, the true pose among the twins it ruled out
+    (what a multi-hypothesis fusion needs to recover)."""
+    rig, est, poses, frames = scene
+    for k in (0, 8, 16):
+        t, x, y, yaw = poses[k]
+        for dx, dy in ((PITCH[0], 0.0), (0.0, -PITCH[1])):
+            e = est.estimate(frames[k], int(t * 1e9),
+                             PoseEstimate(0, "wrong", x + dx, y + dy, yaw, 1.0))
+            if not isinstance(e, PoseEstimate):
+                continue
+            d, dyaw = errors(e, x, y, yaw)
+            if d <= 0.10 and dyaw <= 2.0:
+                continue
+            assert e.provenance is Provenance.PRIOR and not e.singled_out
+            assert min(math.hypot(h.x_m - x, h.y_m - y) for h in e.hypotheses[1:]) < 0.10
+
+
+def test_edge_lamps_alone_are_no_fix(scene):
+    """Only lamps near the lens's edge in view (the others off): no valid pose
+    without a prior, however they match."""
+    rig, est, poses, frames = scene
+    _, x, y, yaw = poses[6]
+    site = grid_site()
+    px = project_lights(rig, site.ceiling_height_m, site.lights_m, x, y, yaw)
+    cam = rig.camera
+    r = np.hypot(px[:, 0] - cam.cx, px[:, 1] - cam.cy)
+    far = np.isfinite(r) & (r > 200)
+    assert far.sum() >= 3
+    edge = dataclasses.replace(site, lights_m=site.lights_m[far])
+    img = thresholded(rig, edge, x, y, yaw, 99)
+    e = est.estimate(img, 0, None)
+    if isinstance(e, PoseEstimate):
+        d, dyaw = errors(e, x, y, yaw)
+        assert d <= 0.10 and dyaw <= 2.0
