@@ -201,14 +201,14 @@ def test_the_block_parallels_take_no_detected_segment_inside_a_region():
     img = render_frame(rig, site, x, y, yaw, NOISY, np.random.default_rng(1))
     pose = np.array([x, y, yaw])
     plain = BlockEstimator(rig, site, {"plane_odometry": False})
-    assert plain._parallels(img, yaw, pose) is not None
+    assert plain._heading(img, yaw, pose) is not None
     marked = dataclasses.replace(site, ignore_m=(square(x, y, 30.0),), blocks=(), markers=None)
     with pytest.raises(ConfigError):          # nothing left for the block method at all
         BlockEstimator(rig, marked)
     over_view = dataclasses.replace(site, ignore_m=(square(x, y, 4.0),))   # marker 3 left
     est = BlockEstimator(rig, over_view, {"plane_odometry": False})
-    assert est._parallels(img, yaw, pose) is None
-    assert est._parallels(img, yaw, None) is not None          # no pose: nothing placed
+    assert est._heading(img, yaw, pose) is None
+    assert est._heading(img, yaw, None) is not None          # no pose: nothing placed
 
 
 def test_a_site_with_two_lights_and_no_region_still_builds_paper_lights():

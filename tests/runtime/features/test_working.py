@@ -78,7 +78,9 @@ def _estimate_doubled(cls, rig, site, x, y, yaw):
     rig = _scaled(rig, 2)
     img = render_frame(rig, site, x, y, yaw, SimOptions(supersample=1),
                        rng=np.random.default_rng(0))
-    est = cls(rig, site, {"working_mpx": 0.3})
+    # (the packaged corridor is symmetric about its centre line: its heading is stated)
+    opts = {"assume_heading_deg": 0.0} if cls.name == "corridor" else {}
+    est = cls(rig, site, {"working_mpx": 0.3, **opts})
     return est, est.estimate(img, 0)
 
 
