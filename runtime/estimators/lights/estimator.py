@@ -63,13 +63,8 @@ from ceilkit.runtime.estimators.honesty import (
     outside_site,
 )
 from ceilkit.runtime.estimators.lights.matching import (
-    MISSING_PENALTY,
     Candidate,
     PatternMatcher,
-    SYMMETRY_MAX_LIGHTS,
-    map_symmetries,
-    symmetry_table,
-    twin_poses,
 )
 from ceilkit.runtime.estimators.lights.observe import (
     RECT_CUT_REACH,
@@ -80,6 +75,11 @@ from ceilkit.runtime.estimators.lights.observe import (
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
 from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
 from ceilkit.runtime.estimators.lights.track import WindowTracker
+from ceilkit.runtime.estimators.lights.twins import (
+    MAX_HYPOTHESES,
+    MAX_TWIN_CHECKS,
+    TwinJudge,
+)
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.spots import SpotParams
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
@@ -94,9 +94,6 @@ TRACK_MIN_SHARE = 0.6  # a prior is trusted when this share of the spots match n
 PRIOR_RESOLVE = (1.0, math.radians(20.0))  # (m, rad): a rival this near the prior wins
 SPOT_STAGES = ("windowed", "full")  # the spot stages (LightsOptions.spot_stage)
 OUTLIER_MEDIANS = 4.0  # a residual this many times the median (and > max_residual_px) is out
-MAX_TWIN_CHECKS = 1000  # at most this many of the map's symmetries are verified per frame
-MAX_HYPOTHESES = 32  # an ambiguous frame carries at most this many poses
-HYPOTHESIS_SHARPNESS = 2.0  # a hypothesis' weight goes as exp(this x its evidence score)
 RECT_MIN_AXIS_RATIO = 0.03  # the detector's shape bound with rectangular lights
 
 
@@ -230,59 +227,31 @@ class LightsEstimator(Estimator):
                               f"expected one of {', '.join(SPOT_STAGES)}, found {o.spot_stage!r}")
         self.extent = SiteExtent.from_site(site)
         self.ceiling_height_m = site.ceiling_height_m
-        all_w = np.asarray(site.lights_m, float)
-        # lights in an ignore region (SPEC §2: no method uses them): not in the map the
-        # method matches, expects or refines against; ``site_ids`` maps back
-        keep = ~site.ignored(all_w)
-        if not keep.any():
-            raise ConfigError(site.source, "ignore", "every light of the map lies in an "
-                              "ignore region: the lights method has nothing to use")
-        self.site_ids = np.flatnonzero(keep)
-        self.lights_w = all_w[keep]
-        spacing_m = _min_spacing(self.lights_w)
-        if spacing_m < 1e-3:
-            raise ConfigError(site.source, "lights",
-                              "duplicate light: two lights at the same place")
+        self.site_ids, self.lights_w, spacing_m = map_lights(site)
         self.prior_gate_m = (o.prior_gate_m if o.prior_gate_m is not None
                              else max(o.gate_m, min(1.0, 0.4 * spacing_m)))
         self.valid_mask = view_mask(rig, math.radians(o.max_view_angle_deg))
         self.nadir_px = nadir_px(rig)
         # rectangular lights (the site's light_size), unless the option asks for discs
         self.light_size_m = (site.light_size_m if o.light_diameter_m is None else None)
-        rect = self.light_size_m
-        # a rectangle seen at a wide angle is a sliver: its shape is checked against
-        # the projected rectangle (observe), not against the detector's round-spot bound
-        spot_params = o.spot_params or (SpotParams() if rect is None
-                                        else SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO))
-        self.observer = SpotObserver(rig, self.ceiling_height_m, 0.5 * diameter_m,
-                                     spot_params, self.valid_mask,
-                                     self.nadir_px, o.max_spots,
-                                     working_factor((rig.camera.height, rig.camera.width),
-                                                    o.working_mpx), o.spot_stage,
-                                     light_size_m=rect)
-        self.visibility = VisibilityTable(
-            rig, self.ceiling_height_m, self.lights_w, self.valid_mask, self.nadir_px,
-            o.max_spots, 0.5 * diameter_m,
-            reach_m=None if rect is None else RECT_CUT_REACH * 0.5 * math.hypot(*rect))
-        # the map's rigid self-similarities (a grid's cells, its half turn): the
-        # twins every pose matched to it has (none on an irregular map)
-        sym = (map_symmetries(self.lights_w, o.gate_m, o.min_inliers)
-               if o.twins else np.zeros((0, 3)))
-        self.symmetries_searched = o.twins and self.lights_w.shape[0] <= SYMMETRY_MAX_LIGHTS
-        # nearest first: beyond MAX_TWIN_CHECKS that apply to a pose the far ones go
-        # unchecked, and no global fix is then singled out (_candidate)
-        self.symmetries = sym[np.argsort(np.hypot(sym[:, 1], sym[:, 2]), kind="stable")]
-        self.symmetry_lights = symmetry_table(self.lights_w, self.symmetries, o.gate_m)
+        self.observer, self.visibility = observe_stages(
+            rig, self.ceiling_height_m, self.lights_w, o, diameter_m, self.light_size_m,
+            self.valid_mask, self.nadir_px)
         self.matcher = PatternMatcher(self.lights_w, o.gate_m,
                                       max_pair_m(rig, self.ceiling_height_m, o.gate_m),
                                       visible=self.visibility)
+        # the map's rigid self-similarities (a grid's cells): every pose's twins
+        self.judge = TwinJudge(self.lights_w, self.matcher, self.extent, o)
         # the window tracker reads discs: rectangular lights take the global path
-        self.windows = None if not o.track or rect is not None else WindowTracker(
+        self.windows = None if not o.track or self.light_size_m else WindowTracker(
             rig, self.ceiling_height_m, self.lights_w, self.observer, self.visibility,
             o.track_window_px, (o.spot_params or SpotParams()).min_contrast,
             TRACK_MIN_SHARE, o.max_residual_px, OUTLIER_MEDIANS, self.prior_gate_m,
             PRIOR_RESOLVE[1])
         self._window_fixes = 0  # window fixes since the last global search
+
+    def forget(self) -> None:  # Estimator.forget: the window counter
+        self._window_fixes = 0
 
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
@@ -398,49 +367,22 @@ class LightsEstimator(Estimator):
                    diag: dict[str, Any]
                    ) -> tuple[Candidate, Candidate | None, str, list[Candidate], bool] | Estimate:
         """``(best, runner-up, mode, twins ruled out, whether they are every twin)`` of a
-        frame, or its Failure.
-        ``mode``: ``tracked`` (a local association around a trusted prior), ``global``
-        or ``prior_resolved`` (the prior picked one of several equally good poses,
-        ``twins`` the others).
+        frame, or its Failure. ``mode``: ``tracked`` (a local association around a
+        trusted prior: :meth:`_about_prior`), ``global`` or ``prior_resolved`` (the
+        prior picked one of several equally good poses, ``twins`` the others).
 
         Without a prior the best pose must be singled out: every twin of it (the pose
-        moved by each symmetry of the map: :meth:`_twins`, with the matcher's own
-        candidates; those outside the site dropped, ``outside_site`` when only from
-        outside is the frame explained best) is scored by the evidence
-        (:meth:`_evidence`: the spots it explains, a weak one at
-        :data:`~.observe.WEAK_WEIGHT`, less :data:`~.matching.MISSING_PENALTY` per
-        light it should show but that is not seen); one within ``ambiguity_margin`` of
-        the best makes the frame ``ambiguous``, with the poses as hypotheses, and so
-        do more twins than were checked. At least ``min_inliers`` of the best's spots
-        must be strong (not near the frame's or the lens's edge).
-
-        With a prior the association about it is checked against its pose's twins: a
-        twin the frame prefers by more than the margin contradicts the prior (the
-        global search decides); otherwise the twins within the margin are the ones the
-        prior ruled out."""
+        moved by each symmetry of the map, :class:`.twins.TwinJudge`, with the
+        matcher's own candidates; those outside the site dropped, ``outside_site`` when
+        only from outside is the frame explained best) is scored by the same evidence;
+        one within ``ambiguity_margin`` of the best makes the frame ``ambiguous``, with
+        the poses as hypotheses, and so do more twins than were checked. At least
+        ``min_inliers`` of the best's spots must be strong (not near an edge)."""
         n = len(obs.spots)
         if prior is not None and prior.x_m is not None and prior.y_m is not None:
-            c = self.matcher.verify(obs.q_v, prior.yaw_rad,
-                                    np.array([float(prior.x_m), float(prior.y_m)]),
-                                    self.prior_gate_m)
-            # the prior is trusted only when most spots, and most lights the pose
-            # should see, match: a stale prior must not pull a local false match
-            if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
-                    and c.missing <= max(1, c.inliers // 2)):
-                if not self.options.twins or c.inliers < self.options.min_inliers:
-                    return c, None, "tracked", [], False
-                # the twins the prior rules out (other cells of a grid: the frame alone
-                # cannot tell them), unless the frame itself prefers one of them: then
-                # the prior is contradicted and the global search decides
-                weights = obs.weights()
-                own = self._evidence(c, weights)
-                rivals, complete = self._rivals(obs, c)
-                twins = [t for t in rivals
-                         if self._evidence(t, weights) >= own - self.options.ambiguity_margin]
-                if all(self._evidence(t, weights) <= own + self.options.ambiguity_margin
-                       for t in twins):
-                    twins.sort(key=lambda t: -self._evidence(t, weights))
-                    return c, None, "tracked", twins, complete and len(twins) < MAX_HYPOTHESES
+            tracked = self._about_prior(obs, prior, n)
+            if tracked is not None:
+                return tracked
         min_inliers = self.options.min_inliers
         if n < min_inliers:
             return self.fail(t_ns, "too_few_lights",
@@ -452,19 +394,10 @@ class LightsEstimator(Estimator):
         weights = obs.weights()
         complete = False
         if self.options.twins:
-            # every placement of the best's spots on the map's lights, scored alike;
-            # a placement outside the site (its model check would refuse it) is none,
-            # unless only from outside is the frame explained best
-            twins, complete = self._twins(obs, cands[0])
-            every = [c for c in _distinct(cands + twins) if c.inliers >= min_inliers]
-            cands = [c for c in every if self._possible(c)]
-            out_e = max((self._evidence(c, weights) for c in every
-                         if not self._possible(c)), default=-math.inf)
-            in_e = max((self._evidence(c, weights) for c in cands), default=-math.inf)
-            if not cands or out_e > in_e + self.options.ambiguity_margin:
+            cands, complete = self.judge.ranked(obs, cands, weights)
+            if not cands:
                 return self.fail(t_ns, OUTSIDE_SITE, f"{n} lights fit the map best from "
                                  f"a pose outside the site", **diag)
-            cands.sort(key=lambda c: (-self._evidence(c, weights), -c.inliers, c.rms_m))
         if obs.weak is not None:
             strong = int(np.count_nonzero(weights[cands[0].pairs[:, 0]] >= 1.0))
             if strong < min_inliers:
@@ -472,11 +405,11 @@ class LightsEstimator(Estimator):
                                  f"the best pose fits {cands[0].inliers} lights, only "
                                  f"{strong} of them well inside the view (a global fix "
                                  f"needs {min_inliers})", **diag)
-        best_e = self._evidence(cands[0], weights)
+        best_e = self.judge.evidence(cands[0], weights)
         cand, mode = cands[0], "global"
         margin = self.options.ambiguity_margin
-        rivals = [c for c in cands[1:] if self._evidence(c, weights) >= best_e - margin]
-        if not rivals and self.symmetries_searched and not complete and prior is None:
+        rivals = [c for c in cands[1:] if self.judge.evidence(c, weights) >= best_e - margin]
+        if not rivals and self.judge.searched and not complete and prior is None:
             # more twins than were checked (a large grid): not singled out
             return self.fail(t_ns, AMBIGUOUS,
                              f"the map repeats about the best pose more often than the "
@@ -503,132 +436,147 @@ class LightsEstimator(Estimator):
         return (cand, (cands[1] if len(cands) > 1 else None), mode, twins,
                 complete and len(twins) < MAX_HYPOTHESES)
 
-    def _possible(self, c: Candidate) -> bool:
-        """Whether a candidate may be the pose: ``min_inliers`` spots, inside the site
-        (by ``site_margin_m``: the model check refuses a pose outside)."""
-        e, m = self.extent, self.options.site_margin_m
-        return (c.inliers >= self.options.min_inliers
-                and e.x_lo - m <= c.x_m <= e.x_hi + m and e.y_lo - m <= c.y_m <= e.y_hi + m)
-
-    def _rivals(self, obs: Observation, c: Candidate) -> tuple[list[Candidate], bool]:
-        """The possible twins of ``c`` (:meth:`_twins`, :meth:`_possible`), ``c``'s own
-        pose left out, and whether every twin was checked."""
-        found, complete = self._twins(obs, c)
-        twins = _distinct([c] + found)
-        return [t for t in twins if self._possible(t)
-                and not t.same_pose(c, 0.3, math.radians(5.0))], complete
-
-    def _evidence(self, c: Candidate, weights: np.ndarray) -> float:
-        """A candidate's score with each spot at its weight (:meth:`Observation.weights`):
-        the weighted spots it explains less :data:`~.matching.MISSING_PENALTY` per map
-        light it should show that matched nothing."""
-        return float(weights[c.pairs[:, 0]].sum()) - MISSING_PENALTY * c.missing
-
-    def _twins(self, obs: Observation, best: Candidate) -> tuple[list[Candidate], bool]:
-        """The best pose moved by each of the map's symmetries (:attr:`symmetries`:
-        on a regular grid the other cells and the turned placements, which a vote over
-        pair lengths may leave unverified) that keeps at least ``min_inliers`` of its
-        matched lights on lights, verified (:meth:`PatternMatcher.twins`); and whether
-        they were all checked (the map was searched for symmetries, and at most
-        :data:`MAX_TWIN_CHECKS` of them apply)."""
-        if self.symmetries.shape[0] == 0:
-            return [], self.symmetries_searched
-        kept = self.symmetry_lights[:, best.pairs[:, 1]].sum(axis=1)
-        sym = self.symmetries[kept >= self.options.min_inliers]
-        complete = self.symmetries_searched and sym.shape[0] <= MAX_TWIN_CHECKS
-        if sym.shape[0] == 0:
-            return [], complete
-        starts = twin_poses(sym[:MAX_TWIN_CHECKS], best.x_m, best.y_m, best.yaw_rad)
-        return self.matcher.twins(obs.q_v, starts, 2.0 * self.options.gate_m,
-                                  self.options.min_inliers), complete
+    def _about_prior(self, obs: Observation, prior: PoseEstimate, n: int
+                     ) -> tuple[Candidate, None, str, list[Candidate], bool] | None:
+        """The association about ``prior`` (:meth:`_candidate`'s ``tracked`` tuple), or
+        None: the prior is not trusted, or the frame prefers one of its twins."""
+        c = self.matcher.verify(obs.q_v, prior.yaw_rad,
+                                np.array([float(prior.x_m), float(prior.y_m)]),
+                                self.prior_gate_m)
+        # the prior is trusted only when most spots, and most lights the pose
+        # should see, match: a stale prior must not pull a local false match
+        if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
+                and c.missing <= max(1, c.inliers // 2)):
+            if not self.options.twins or c.inliers < self.options.min_inliers:
+                return c, None, "tracked", [], False
+            # the twins the prior rules out (other cells of a grid: the frame alone
+            # cannot tell them), unless the frame itself prefers one of them: then
+            # the prior is contradicted and the global search decides
+            weights = obs.weights()
+            own = self.judge.evidence(c, weights)
+            rivals, complete = self.judge.rivals(obs, c)
+            twins = [t for t in rivals
+                     if self.judge.evidence(t, weights) >= own - self.options.ambiguity_margin]
+            if all(self.judge.evidence(t, weights) <= own + self.options.ambiguity_margin
+                   for t in twins):
+                twins.sort(key=lambda t: -self.judge.evidence(t, weights))
+                return c, None, "tracked", twins, complete and len(twins) < MAX_HYPOTHESES
+        return None
 
     def _hypotheses(self, obs: Observation, cands: list[Candidate],
                     prior: PoseEstimate | None, cov: np.ndarray | None = None
                     ) -> tuple[Hypothesis, ...]:
-        """The poses of ``cands`` (the first the chosen or best one) as hypotheses, at
-        most :data:`MAX_HYPOTHESES`, weighted by ``exp(HYPOTHESIS_SHARPNESS x
-        evidence)`` normalized (:meth:`_evidence`: the frame's likelihood, the prior
-        left out). Each is its candidate's rigid fit; all share one covariance,
-        ``cov`` or the first's refinement (:meth:`_refine`): a twin is the same spots
-        moved rigidly, its fit as well determined."""
-        weights = obs.weights()
-        cands = cands[:MAX_HYPOTHESES]
-        ev = np.array([self._evidence(c, weights) for c in cands])
-        w = np.exp(HYPOTHESIS_SHARPNESS * (ev - ev.max()))
-        w /= w.sum()
+        """:meth:`.twins.TwinJudge.hypotheses` of ``cands``, sharing ``cov`` or the
+        first's refinement (:meth:`_refine`): a twin is the same spots moved rigidly."""
         if cov is None:
             try:
                 cov = self._refine(obs, cands[0], prior)[1][3]
             except (np.linalg.LinAlgError, ValueError):
                 cov = None
-        if cov is not None:
-            cov = np.array(cov, float)
-            if not np.all(np.isfinite(cov)):
-                cov = None
-            else:
-                cov.setflags(write=False)
-        out = []
-        for c, wk in zip(cands, w, strict=True):
-            dx, dy = c.x_m - cands[0].x_m, c.y_m - cands[0].y_m
-            turn = math.degrees(wrap_pi(c.yaw_rad - cands[0].yaw_rad))
-            label = (f"shift ({dx:+.2f}, {dy:+.2f}) m, turn {turn:+.0f} deg"
-                     if c is not cands[0] else "best")
-            out.append(Hypothesis(float(c.x_m), float(c.y_m), float(c.yaw_rad), cov,
-                                  float(wk), label))
-        return tuple(out)
+        return self.judge.hypotheses(obs, cands, cov)
 
     def _refine(self, obs: Observation, cand: Candidate, prior: PoseEstimate | None = None
                 ) -> tuple[np.ndarray, tuple[float, float, float, np.ndarray, np.ndarray]]:
-        """The inlier pairs and :func:`refine_pose_ceiling` of a candidate, after one
-        pass that drops residuals beyond ``max(max_residual_px, 4 x median)``; with a
-        rolling shutter (``readout_ms``) each light seen from its row's pose
-        (:meth:`_fit`)."""
-        motion = row_motion(self.options, prior)
-        pairs = cand.pairs
-        fit = self._fit(obs, pairs, (cand.x_m, cand.y_m, cand.yaw_rad), motion)
-        res = fit[4]
-        bad = res > max(self.options.max_residual_px, OUTLIER_MEDIANS * short_median(res))
-        if bad.any() and pairs.shape[0] - int(bad.sum()) >= 2:
-            pairs = pairs[~bad]
-            fit = self._fit(obs, pairs, fit[:3], motion)
-        return pairs, fit
+        """:func:`refine_candidate` with this estimator's map, options and camera."""
+        return refine_candidate(obs, cand, self.lights_w, self.options,
+                                self.rig.camera.height, prior)
 
-    def _fit(self, obs: Observation, pairs: np.ndarray, start: tuple[float, float, float],
+
+def map_lights(site: Site) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(site_ids, lights_w, spacing_m)``: the site's lights the method uses (those in
+    an ignore region, SPEC §2, are not in the map it matches, expects or refines
+    against; ``site_ids`` maps back), and their smallest spacing.
+
+    Raises:
+        ConfigError: every light ignored, or two at one place.
+    """
+    all_w = np.asarray(site.lights_m, float)
+    keep = ~site.ignored(all_w)
+    if not keep.any():
+        raise ConfigError(site.source, "ignore", "every light of the map lies in an "
+                          "ignore region: the lights method has nothing to use")
+    lights_w = all_w[keep]
+    spacing_m = _min_spacing(lights_w)
+    if spacing_m < 1e-3:
+        raise ConfigError(site.source, "lights", "duplicate light: two lights at the same place")
+    return np.flatnonzero(keep), lights_w, spacing_m
+
+
+def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
+                   o: LightsOptions, diameter_m: float,
+                   rect: tuple[float, float] | None, valid_mask: np.ndarray,
+                   nadir: np.ndarray) -> tuple[SpotObserver, VisibilityTable]:
+    """The spot observer and the visibility table of the lights ``lights_w`` (m, W):
+    discs of ``diameter_m``, or rectangles ``rect`` (length, width; m). A rectangle seen
+    at a wide angle is a sliver: its shape is checked against the projected rectangle
+    (:mod:`.observe`), not against the detector's round-spot bound; a lamp cut by the
+    view's edge is not counted missing within :data:`~.observe.RECT_CUT_REACH` of it."""
+    spot_params = o.spot_params or (SpotParams() if rect is None
+                                    else SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO))
+    observer = SpotObserver(rig, ceiling_height_m, 0.5 * diameter_m, spot_params,
+                            valid_mask, nadir, o.max_spots,
+                            working_factor((rig.camera.height, rig.camera.width),
+                                           o.working_mpx), o.spot_stage, light_size_m=rect)
+    visibility = VisibilityTable(
+        rig, ceiling_height_m, lights_w, valid_mask, nadir, o.max_spots, 0.5 * diameter_m,
+        reach_m=None if rect is None else RECT_CUT_REACH * 0.5 * math.hypot(*rect))
+    return observer, visibility
+
+
+def refine_candidate(obs: Observation, cand: Candidate, lights_w: np.ndarray,
+                     o: LightsOptions, height_px: int, prior: PoseEstimate | None = None
+                     ) -> tuple[np.ndarray, tuple[float, float, float, np.ndarray, np.ndarray]]:
+    """The inlier pairs and :func:`refine_pose_ceiling` of a candidate (its spots on the
+    map's ``lights_w``), after one pass that drops residuals beyond
+    ``max(max_residual_px, 4 x median)``; with a rolling shutter (``readout_ms``, rows
+    of a ``height_px`` frame) each light seen from its row's pose (:func:`fit_rows`)."""
+    motion = row_motion(o, prior)
+    pairs = cand.pairs
+    rows = (obs, lights_w, o.readout_ms, height_px)
+    fit = fit_rows(*rows, pairs, (cand.x_m, cand.y_m, cand.yaw_rad), motion)
+    res = fit[4]
+    bad = res > max(o.max_residual_px, OUTLIER_MEDIANS * short_median(res))
+    if bad.any() and pairs.shape[0] - int(bad.sum()) >= 2:
+        pairs = pairs[~bad]
+        fit = fit_rows(*rows, pairs, fit[:3], motion)
+    return pairs, fit
+
+
+def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_px: int,
+             pairs: np.ndarray, start: tuple[float, float, float],
              motion: tuple[tuple[float, float, float], tuple[float, float, float]] | None
              ) -> tuple[float, float, float, np.ndarray, np.ndarray]:
-        """:func:`refine_pose_ceiling` of ``pairs`` from ``start``. With ``motion``
-        (:func:`~ceilkit.runtime.estimators.rows.row_motion`) a spot at row time ``tau``
-        saw the lights from the pose moved by ``(dx, dy, dyaw) = velocity tau``: to first
-        order the light ``L`` seen from the stamp's pose ``t`` at
-        ``L - (dx, dy) - dyaw perp(L - t)``; each velocity component moved by its sigma
-        refits once, and the moves' outer products are added to the covariance (what
-        the velocity's uncertainty does to the pose)."""
-        q, jac = obs.q_v[pairs[:, 0]], obs.jac_px[pairs[:, 0]]
-        lights = self.lights_w[pairs[:, 1]]
-        if motion is None:
-            return refine_pose_ceiling(q, jac, lights, *start)
-        cam = self.rig.camera
-        tau = row_times_s(obs.spots.centroids_px[pairs[:, 0], 1], cam.height,
-                          self.options.readout_ms / 1e3)
-        velocity, sigma = motion
+    """:func:`refine_pose_ceiling` of ``pairs`` from ``start``. With ``motion``
+    (:func:`~ceilkit.runtime.estimators.rows.row_motion`) a spot at row time ``tau``
+    saw the lights from the pose moved by ``(dx, dy, dyaw) = velocity tau``: to first
+    order the light ``L`` seen from the stamp's pose ``t`` at
+    ``L - (dx, dy) - dyaw perp(L - t)``; each velocity component moved by its sigma
+    refits once, and the moves' outer products are added to the covariance (what
+    the velocity's uncertainty does to the pose)."""
+    q, jac = obs.q_v[pairs[:, 0]], obs.jac_px[pairs[:, 0]]
+    lights = lights_w[pairs[:, 1]]
+    if motion is None:
+        return refine_pose_ceiling(q, jac, lights, *start)
+    tau = row_times_s(obs.spots.centroids_px[pairs[:, 0], 1], height_px, readout_ms / 1e3)
+    velocity, sigma = motion
 
-        def refit(v: tuple[float, float, float], p0: tuple[float, float, float]
-                  ) -> tuple[float, float, float, np.ndarray, np.ndarray]:
-            rel = lights - np.array(p0[:2])
-            moved = (lights - tau[:, None] * np.array(v[:2])
-                     - (tau * v[2])[:, None] * np.stack([-rel[:, 1], rel[:, 0]], axis=1))
-            return refine_pose_ceiling(q, jac, moved, *p0)
+    def refit(v: tuple[float, float, float], p0: tuple[float, float, float]
+              ) -> tuple[float, float, float, np.ndarray, np.ndarray]:
+        rel = lights - np.array(p0[:2])
+        moved = (lights - tau[:, None] * np.array(v[:2])
+                 - (tau * v[2])[:, None] * np.stack([-rel[:, 1], rel[:, 0]], axis=1))
+        return refine_pose_ceiling(q, jac, moved, *p0)
 
-        fit = refit(velocity, start)
-        p = np.array(fit[:3])
-        cov = np.array(fit[3], float)
-        for j in range(3):
-            v = list(velocity)
-            v[j] += sigma[j]
-            d = np.array(refit(tuple(v), tuple(fit[:3]))[:3]) - p
-            d[2] = wrap_pi(d[2])
-            cov = cov + np.outer(d, d)
-        return fit[0], fit[1], fit[2], cov, fit[4]
+    fit = refit(velocity, start)
+    p = np.array(fit[:3])
+    cov = np.array(fit[3], float)
+    for j in range(3):
+        v = list(velocity)
+        v[j] += sigma[j]
+        d = np.array(refit(tuple(v), tuple(fit[:3]))[:3]) - p
+        d[2] = wrap_pi(d[2])
+        cov = cov + np.outer(d, d)
+    return fit[0], fit[1], fit[2], cov, fit[4]
 
 
 def pose_quality(k: int, rms_px: float, best: Candidate, runner: Candidate | None,
@@ -650,24 +598,6 @@ def pose_quality(k: int, rms_px: float, best: Candidate, runner: Candidate | Non
         rival = runner.score if runner is not None else 2.0
         q_sep = 1.0 - math.exp(-max(best.score - rival, 0.0) / 1.5)
     return float(min(1.0, max(0.0, q_n * q_res * q_sep * q_vis)))
-
-
-def _distinct(cands: list[Candidate]) -> list[Candidate]:
-    """The candidates without those near an earlier one (0.3 m, 5 deg), the one with
-    more inliers kept."""
-    if not cands:
-        return []
-    order = sorted(range(len(cands)), key=lambda i: (-cands[i].pairs.shape[0],
-                                                     cands[i].rms_m))
-    p = np.array([(cands[i].x_m, cands[i].y_m, cands[i].yaw_rad) for i in order])
-    d_yaw = np.abs((p[:, None, 2] - p[None, :, 2] + math.pi) % (2 * math.pi) - math.pi)
-    near = ((np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1]) < 0.3)
-            & (d_yaw < math.radians(5.0)))
-    keep = np.ones(len(order), bool)
-    for i in range(len(order)):
-        if keep[i]:
-            keep[i + 1:] &= ~near[i, i + 1:]
-    return [cands[order[i]] for i in np.flatnonzero(keep)]
 
 
 def _min_spacing(lights_w: np.ndarray) -> float:
