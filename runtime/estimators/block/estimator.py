@@ -202,6 +202,13 @@ class _Counts:
     hypotheses: tuple[Hypothesis, ...] = ()
 
 
+def is_marker_size(pv: np.ndarray, sizes_m: np.ndarray, tol: float) -> bool:
+    """A quad (coarse corners ``pv`` (4, 2) on the ceiling, V) of about the side of a
+    marker of ``sizes_m``, within the share ``tol``."""
+    side = float(np.mean(side_lengths_m(pv)))
+    return bool(np.any(np.abs(side / sizes_m - 1.0) < tol))
+
+
 class BlockEstimator(Estimator):
     """The vehicle pose from a reference block or a marker on the ceiling (see module)."""
 
@@ -248,12 +255,16 @@ class BlockEstimator(Estimator):
         self._fallback = self._reader if o.marker_fallback else None
         self._window_fixes = 0  # window fixes since the last global search
 
-    def forget(self) -> None:
-        """See :meth:`Estimator.forget`: the pooled side offsets, the odometry's
-        previous image, the window counter."""
+    def forget(self) -> None:  # Estimator.forget: pooled offsets, odometry image, counter
         self._pooled, self._fixed, self._window_fixes = PooledSideOffsets(), True, 0
         if self._odo is not None:
             self._odo.reset()
+
+    def _parallels(self, grey: np.ndarray, hint: float | None,
+                   pose: np.ndarray | None = None, max_chords: int = MAX_CHORDS
+                   ) -> ParallelsHeading | None:
+        """The heading from the frame's ceiling parallels (:class:`.heading.ParallelsStage`)."""
+        return self._heading(grey, hint, pose, max_chords)
 
     # -- per frame ---------------------------------------------------------------------
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
@@ -307,7 +318,7 @@ class BlockEstimator(Estimator):
             if not self.options.parallels or got.hypotheses:
                 return got    # a symmetric block's poses say more than the parallels' heading
             known = bool(prior) and prior.x_m is not None and prior.y_m is not None
-            h = self._heading(grey, prior.yaw_rad if prior else None,
+            h = self._parallels(grey, prior.yaw_rad if prior else None,
                                 np.array([prior.x_m, prior.y_m, prior.yaw_rad])
                                 if known else None)
             if h is None or not self.options.heading_cue:
@@ -344,7 +355,8 @@ class BlockEstimator(Estimator):
                 break
             if not np.isfinite(pv).all():
                 continue
-            if is_dark and self._is_marker_size(pv):
+            if is_dark and self._codes is not None and \
+                    is_marker_size(pv, self._sizes_m, self.options.marker_size_tol):
                 q = sharpen_quad(q)
                 got = self._reader.quad_fix(grey, q)
                 if isinstance(got, (_Fix, int)):
@@ -405,13 +417,6 @@ class BlockEstimator(Estimator):
         return self.fail(t_ns, NO_BLOCK, "no block or marker of the site in view",
                          ms=ms, **diag)
 
-    def _is_marker_size(self, pv: np.ndarray) -> bool:
-        """A quad (coarse corners on the ceiling, V) of about a marker's side."""
-        if self._codes is None:
-            return False
-        side = float(np.mean(side_lengths_m(pv)))
-        return bool(np.any(np.abs(side / self._sizes_m - 1.0) < self.options.marker_size_tol))
-
     def _publish(self, t_ns: int, fixes: list[_Fix], diag: dict[str, Any],
                  t0: float, grey: np.ndarray, mode: str = "global") -> PoseEstimate:
         """The published estimate of the best fix (``mode``: ``global`` or
@@ -419,7 +424,7 @@ class BlockEstimator(Estimator):
         best = min(fixes, key=lambda f: f.refined.cov[0, 0] + f.refined.cov[1, 1])
         r = best.refined
         pose, cov = np.array(r.pose, float), np.array(r.cov, float)
-        h = (self._heading(grey, float(pose[2]), pose,
+        h = (self._parallels(grey, float(pose[2]), pose,
                              max_chords=WINDOW_CHORDS if mode == WINDOW else MAX_CHORDS)
              if self.options.parallels else None)
         if h is not None:
