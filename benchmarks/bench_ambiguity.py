@@ -45,7 +45,7 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.geometry.ekf import chi2_quantile, mean_nees_band
 from ceilkit.runtime.replay import replay
-from ceilkit.runtime.sim.render import SimOptions, Trajectory
+from ceilkit.runtime.sim.render import SimOptions, Trajectory, straight_drive
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -55,15 +55,8 @@ SIM = SimOptions(noise_sigma=2.0, blur_px=0.8, supersample=1)
 
 def drive(n: int, fps: float, x0: float, y0: float, heading_deg: float, speed: float,
           weave: float = 0.15) -> Trajectory:
-    """A weaving straight drive along ``heading_deg``."""
-    t = np.arange(n) / fps
-    s = speed * t
-    h = math.radians(heading_deg)
-    lat = weave * np.sin(2 * math.pi * s / 6.0)
-    x = x0 + s * math.cos(h) - lat * math.sin(h)
-    y = y0 + s * math.sin(h) + lat * math.cos(h)
-    yaw = h + np.arctan(weave * 2 * math.pi / 6.0 * np.cos(2 * math.pi * s / 6.0))
-    return Trajectory((t * 1e9).astype(np.int64), x, y, yaw)
+    """A drive weaving about a straight line along ``heading_deg`` (a 6 m period)."""
+    return straight_drive(n, fps, speed, x0, y0, math.radians(heading_deg), weave)
 
 
 def loop(n: int, fps: float, cx: float, cy: float, r: float, speed: float) -> Trajectory:

@@ -393,7 +393,7 @@ class Estimator(ABC):
             return self.fail(t_ns, *bad)
         return self._estimate(grey, int(t_ns), prior, t0)
 
-    def forget(self) -> None:
+    def forget(self) -> None:  # noqa: B027 - a no-op by default, not abstract
         """Drop what the estimator carries from frame to frame (window-search counters,
         pooled side offsets, the previous image of the ceiling-plane odometry), so the
         next frame is estimated as if it were the first: what a run with no tracker

@@ -58,6 +58,20 @@ from ceilkit.runtime.io.frame_log import (
     read_frame_log,
     segment_name,
 )
+from ceilkit.runtime.io.recording_reader import (
+    RECORDING_FILES,
+    Recording,
+    StoredFrames,
+    check_frame_image,
+    frame_name,
+)
+from ceilkit.runtime.io.recording_writer import (
+    GuardedRecorder,
+    RecordingWriter,
+    clear_recording,
+    guarded_log,
+    repair_recording,
+)
 from ceilkit.runtime.io.tables import (
     FRAMES_HEADER,
     ODOMETRY_HEADER,
@@ -76,20 +90,6 @@ from ceilkit.runtime.io.tables import (
     tum_line,
     tum_seconds,
     write_truth_tum,
-)
-from ceilkit.runtime.io.recording_reader import (
-    RECORDING_FILES,
-    Recording,
-    StoredFrames,
-    check_frame_image,
-    frame_name,
-)
-from ceilkit.runtime.io.recording_writer import (
-    GuardedRecorder,
-    RecordingWriter,
-    clear_recording,
-    guarded_log,
-    repair_recording,
 )
 
 __all__ = ["AppendFile", "CsvFile", "Disk", "FORCE_HINT", "FRAMES_HEADER",

@@ -15,7 +15,7 @@ from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.replay import replay
-from ceilkit.runtime.sim.render import SimOptions, Trajectory
+from ceilkit.runtime.sim.render import SimOptions, straight_drive
 from helpers import CONFIGS
 
 SIM = SimOptions(noise_sigma=2.0, blur_px=0.8, supersample=1)
@@ -23,14 +23,9 @@ N = 8
 
 
 def _drive(x0, y0, heading_deg, n=N, fps=10.0, speed=0.5, weave=0.12):
-    t = np.arange(n) / fps
-    s = speed * t
-    h = math.radians(heading_deg)
-    lat = weave * np.sin(2 * math.pi * s / 3.0)
-    x = x0 + s * math.cos(h) - lat * math.sin(h)
-    y = y0 + s * math.sin(h) + lat * math.cos(h)
-    yaw = h + np.arctan(weave * 2 * math.pi / 3.0 * np.cos(2 * math.pi * s / 3.0))
-    return Trajectory((t * 1e9).astype(np.int64), x, y, yaw)
+    """A drive weaving about a straight line along ``heading_deg`` (a 3 m period)."""
+    return straight_drive(n, fps, speed, x0, y0, math.radians(heading_deg), weave,
+                          weave_period_m=3.0)
 
 
 def _score(folder, out):

@@ -1,5 +1,4 @@
 import math
-from types import MappingProxyType
 
 import numpy as np
 import pytest

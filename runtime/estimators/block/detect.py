@@ -35,12 +35,12 @@ from ceilkit.runtime.features.quads import (
     QUIET_CELLS,
     MarkerCodes,
     Quad,
-    marker_dictionary,
     _bilinear,
     _edge_points,
     _stations,
     edge_points,
     line_corners,
+    marker_dictionary,
     quads_of_mask,
 )
 from ceilkit.runtime.geometry.camera import CameraModel, undistort_points

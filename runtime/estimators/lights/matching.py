@@ -394,14 +394,23 @@ def _match(qc, use, lights_c, pair_d, pair_mid, pair_dir, params, vis_lights, pa
             qc, yaw, complex(tx, ty), gate, gate, lights_c, vis_lights, padded, geo, ints)
         if not found or _near_any(x, y, yaw, poses, n_cand, _SAME_POSE[0], _SAME_POSE[1]):
             continue
-        poses[n_cand, 0], poses[n_cand, 1], poses[n_cand, 2] = x, y, yaw
-        poses[n_cand, 3], poses[n_cand, 4], poses[n_cand, 5] = score, rms, missing
-        k = pairs.shape[0]
-        all_pairs[offsets[n_cand]:offsets[n_cand] + k] = pairs
-        offsets[n_cand + 1] = offsets[n_cand] + k
-        n_cand += 1
+        n_cand = _store(poses, all_pairs, offsets, n_cand, (x, y, yaw, score, rms, missing),
+                        pairs)
     return poses[:n_cand].copy(), all_pairs[:offsets[n_cand]].copy(), \
         offsets[:n_cand + 1].copy()
+
+
+@njit
+def _store(poses, all_pairs, offsets, n_cand, row, pairs):  # pragma: no cover - compiled
+    """Candidate ``n_cand`` written: its ``row`` ``(x, y, yaw, score, rms, missing)``
+    into ``poses``, its ``pairs`` ``(K, 2)`` after the previous ones in ``all_pairs``
+    (``offsets`` updated); returns ``n_cand + 1``."""
+    poses[n_cand, 0], poses[n_cand, 1], poses[n_cand, 2] = row[0], row[1], row[2]
+    poses[n_cand, 3], poses[n_cand, 4], poses[n_cand, 5] = row[3], row[4], row[5]
+    k = pairs.shape[0]
+    all_pairs[offsets[n_cand]:offsets[n_cand] + k] = pairs
+    offsets[n_cand + 1] = offsets[n_cand] + k
+    return n_cand + 1
 
 
 @njit
@@ -422,12 +431,8 @@ def _twins(qc, starts, gate, gate_m, min_inliers, lights_c, vis_lights, padded, 
             continue
         if _near_any(x, y, yaw_v, poses, n_cand, _SAME_POSE[0], _SAME_POSE[1]):
             continue
-        poses[n_cand, 0], poses[n_cand, 1], poses[n_cand, 2] = x, y, yaw_v
-        poses[n_cand, 3], poses[n_cand, 4], poses[n_cand, 5] = score, rms, missing
-        k = pairs.shape[0]
-        all_pairs[offsets[n_cand]:offsets[n_cand] + k] = pairs
-        offsets[n_cand + 1] = offsets[n_cand] + k
-        n_cand += 1
+        n_cand = _store(poses, all_pairs, offsets, n_cand,
+                        (x, y, yaw_v, score, rms, missing), pairs)
     return poses[:n_cand].copy(), all_pairs[:offsets[n_cand]].copy(), \
         offsets[:n_cand + 1].copy()
 

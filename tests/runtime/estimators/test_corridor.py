@@ -34,13 +34,13 @@ from ceilkit.runtime.estimators.corridor.geometry import (
 from ceilkit.runtime.estimators.corridor.hypotheses import families
 from ceilkit.runtime.estimators.corridor.refine import gn_inputs, residuals
 from ceilkit.runtime.estimators.registry import make_estimator
+from ceilkit.runtime.features.lines import fit_line, segment_lines
+from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z, wrap_pi
+from ceilkit.runtime.sim import render as sim
 
 HEADING = {"assume_heading_deg": 0.0}
 """The packaged corridor is symmetric about its centre line: a frame alone cannot tell
 its heading from the half turn. The accuracy tests state the heading, as a user may."""
-from ceilkit.runtime.features.lines import fit_line, segment_lines
-from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z, wrap_pi
-from ceilkit.runtime.sim import render as sim
 
 CONFIGS = Path(__file__).resolve().parents[3] / "configs" / "corridor"
 
@@ -347,7 +347,8 @@ def test_prior_resolves_the_half_turn(rig, site):
 def test_family_choice_beyond_45_degrees(rig, site):
     # the paper's |pan| <= 45 deg rule would pick the across lines here
     x, y, yaw = 0.9, -0.4, math.radians(55)
-    r = CorridorEstimator(rig, site, HEADING).estimate_segments(exact_segments(rig, site, x, y, yaw), 0)
+    segs = exact_segments(rig, site, x, y, yaw)
+    r = CorridorEstimator(rig, site, HEADING).estimate_segments(segs, 0)
     assert r and abs(wrap_pi(r.yaw_rad - yaw)) < 1e-6
 
 
@@ -526,7 +527,8 @@ def test_coarse_search_only_where_it_applies(rig, site):
     """Off by option, without the edge fit (nothing would refit the coarse segments),
     with ``working_mpx=0``, on frames below 0.25 Mpx and where the working resolution is
     already decimated; the full-resolution search then labels its poses ``full``."""
-    assert CorridorEstimator(rig, site, {**HEADING, "coarse_search": "false"}).coarse_detector is None
+    off = {**HEADING, "coarse_search": "false"}
+    assert CorridorEstimator(rig, site, off).coarse_detector is None
     assert CorridorEstimator(rig, site, {**HEADING, "edge_fit": False}).coarse_detector is None
     assert CorridorEstimator(rig, site, {**HEADING, "working_mpx": 0}).coarse_detector is None
     small = rig.__class__(rig.camera.scaled(320, 240), rig.mount)

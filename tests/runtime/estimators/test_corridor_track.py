@@ -89,7 +89,8 @@ def test_prediction_20_px_off_falls_back(corridor_rig, corridor_site, tracked, s
     cam_y = y + off_m + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
     assert tracked.lines_track.measure(img, yaw + st.pan_rad, cam_y) is None
     out = tracked.estimate(img, 0, prior(y + off_m, yaw))
-    g = CorridorEstimator(corridor_rig, corridor_site, HEADING).estimate(img, 0, prior(y + off_m, yaw))
+    g = CorridorEstimator(corridor_rig, corridor_site, HEADING).estimate(
+        img, 0, prior(y + off_m, yaw))
     assert out and out.diagnostics["hypothesis"] != "window"
     assert out.y_m == g.y_m and out.yaw_rad == g.yaw_rad
 
@@ -114,7 +115,8 @@ def test_blank_ceiling_finds_no_line(corridor_rig, corridor_site, tracked):
 def test_schedule_and_default_off(corridor_rig, corridor_site):
     x, y, yaw = POSES[2]
     img = frame(corridor_rig, corridor_site, x, y, yaw, 9)
-    est = CorridorEstimator(corridor_rig, corridor_site, {**HEADING, "track": True, "track_full_every": 2})
+    est = CorridorEstimator(corridor_rig, corridor_site,
+                            {**HEADING, "track": True, "track_full_every": 2})
     how = [est.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] for _ in range(6)]
     assert [h == "window" for h in how] == [True, True, False, True, True, False]
     plain = CorridorEstimator(corridor_rig, corridor_site, HEADING)

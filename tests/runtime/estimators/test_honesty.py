@@ -232,7 +232,8 @@ def test_vent_grille_frame_is_not_published(crig, csite):
     assert "off the site's ceiling lines" in new.detail
     assert encode_pose(new, 0).split(b",")[3] == b"V"
     # fitting every matched segment, the misfit test refuses it
-    fitted = CorridorEstimator(crig, csite, {**HEADING, "consensus": False}).estimate_segments(segs, 0)
+    fitted = CorridorEstimator(crig, csite, {**HEADING, "consensus": False}
+                               ).estimate_segments(segs, 0)
     assert not fitted and fitted.reason == "misfit", fitted
     # with the misfit test off as well, the one matched site line still refuses it
     weak = CorridorEstimator(crig, csite, {**HEADING, "noise_px": 1e6, "consensus": False}
@@ -279,7 +280,8 @@ def test_pose_outside_the_site(crig, csite):
     assert isinstance(old, PoseEstimate) and old.y_m == pytest.approx(-9.9, abs=1e-6)
     new = CorridorEstimator(bad, csite, HEADING).estimate_segments(segs, 0)
     assert not new and new.reason == "outside_site" and "9.45 m outside" in new.detail
-    wide = CorridorEstimator(bad, csite, {**HEADING, "site_margin_m": 12.0}).estimate_segments(segs, 0)
+    wide = CorridorEstimator(bad, csite, {**HEADING, "site_margin_m": 12.0}
+                             ).estimate_segments(segs, 0)
     assert wide
 
 

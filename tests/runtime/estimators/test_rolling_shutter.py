@@ -90,7 +90,8 @@ def test_without_a_velocity_the_covariance_covers_the_skew() -> None:
     """No prior (velocity unknown): the pose keeps the skew's bias, and its covariance
     grows to cover it (the unknown_* sigmas), so it is not published as confident."""
     rig, site, img, (_, y, yaw) = _frame("corridor")
-    e = make_estimator("corridor", rig, site, {**HEADING, "readout_ms": READOUT_MS}).estimate(img, 0)
+    e = make_estimator("corridor", rig, site, {**HEADING, "readout_ms": READOUT_MS}
+                       ).estimate(img, 0)
     g = make_estimator("corridor", rig, site, HEADING).estimate(img, 0)
     assert isinstance(e, PoseEstimate) and isinstance(g, PoseEstimate)
     assert abs(e.y_m - y) > 3 * math.sqrt(g.cov[1, 1])      # global shutter: too small

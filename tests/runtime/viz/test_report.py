@@ -45,7 +45,8 @@ def test_report_and_overlays_of_the_lights_fixture(tmp_path):
 
 
 def test_overlays_only_failures(tmp_path):
-    """Two frames of the lights fixture made flat grey (no lights): their overlays, and only theirs, are written."""
+    """Two frames of the lights fixture made flat grey (no lights): their overlays, and
+    only theirs, are written."""
     rec = tmp_path / "rec"
     shutil.copytree(FIXTURES / "lights_rec", rec)
     shape = cv2.imread(str(rec / "frames" / "000002.png"), cv2.IMREAD_UNCHANGED).shape
