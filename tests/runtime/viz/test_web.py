@@ -124,8 +124,9 @@ def test_live_view_of_a_sim_run_in_chromium(tmp_path):
     change; a request without the token is refused; a screenshot is kept."""
     port = _free_port()
     stop = threading.Event()
+    # (the simulated corridor is symmetric about its centre line: its heading is stated)
     config = SessionConfig(device="sim:corridor", frames=100_000, view=f"127.0.0.1:{port}",
-                           view_token="tok3n")
+                           view_token="tok3n", options={"assume_heading_deg": 0.0})
     result = {}
     run = threading.Thread(target=lambda: result.setdefault("r", run_session(config, stop)),
                            daemon=True)
