@@ -37,6 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_all import load, make_estimator  # noqa: E402
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.runtime.tracking import Tracker  # noqa: E402
 
@@ -76,7 +77,8 @@ def main() -> None:
             setattr(mod, name, old if before else new)
 
     opts = {"track": True} if args.track else None
-    ests = [make_estimator(args.method, data.rig, data.site, opts) for _ in range(2)]
+    ests = [make_estimator(args.method, data.rig, data.site, stated(args.method, opts))
+            for _ in range(2)]
     trackers = [Tracker(), Tracker()]
     times: list[list[float]] = [[], []]
     poses: list[list[object]] = [[], []]

@@ -72,6 +72,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from bench_block import in_view, targets
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
@@ -202,21 +203,21 @@ def entries(data: Data, detectors: bool = False) -> list[Entry]:
     is_block = site.has_section("blocks") or site.has_section("markers")
     is_corridor = site.corridor is not None and not is_block
     main = "block" if is_block else "corridor" if is_corridor else "lights"
-    est = make_estimator(main, rig, site, None)
+    est = make_estimator(main, rig, site, stated(main))
     out.append(method_entry(main, "method", est, data, False))
     if has_option(type(est.options), "track"):
-        out.append(method_entry(f"{main} +prior", "tracked",
-                                make_estimator(main, rig, site, {"track": True}), data, True))
+        tracked = make_estimator(main, rig, site, stated(main, {"track": True}))
+        out.append(method_entry(f"{main} +prior", "tracked", tracked, data, True))
     if has_option(type(est.options), "spot_stage"):      # the other spot stage
         out.append(method_entry(f"{main} spot_stage=windowed", "method",
                                 make_estimator(main, rig, site, {"spot_stage": "windowed"}),
                                 data, False))
     out.append(method_entry(f"{main} +prior (global)", "tracked-global",
-                            make_estimator(main, rig, site, None), data, True))
+                            make_estimator(main, rig, site, stated(main)), data, True))
     if is_corridor and detectors:
         for label, opts in DETECTOR_VARIANTS:
-            out.append(method_entry(f"{main} {label}", "method",
-                                    make_estimator(main, rig, site, opts), data, False))
+            variant = make_estimator(main, rig, site, stated(main, opts))
+            out.append(method_entry(f"{main} {label}", "method", variant, data, False))
     paper = make_estimator(f"paper-{main}", rig, site, None)
     out.append(method_entry(f"paper-{main}", "baseline", paper, data, False))
     if main == "lights" and has_option(type(paper.options), "weighted"):

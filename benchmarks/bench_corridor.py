@@ -44,6 +44,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
@@ -103,7 +104,7 @@ def run(est, frames, in_view: np.ndarray, repeat: int, detector=None) -> str:
 
 
 def report(rig: Rig, site: Site, frames, detectors: bool, title: str, repeat: int) -> None:
-    ours = CorridorEstimator(rig, site)
+    ours = CorridorEstimator(rig, site, stated("corridor"))
     min_len = ours.detector.min_length_px
     in_view = np.array([np.count_nonzero(visible_along_lines(rig, site, x, y, yaw, min_len))
                         >= 2 for x, y, yaw, _ in frames])
@@ -111,11 +112,11 @@ def report(rig: Rig, site: Site, frames, detectors: bool, title: str, repeat: in
           "lines in view", flush=True)
     ests = [("corridor", ours)]
     if detectors:
-        ests += [("fld+refine", CorridorEstimator(rig, site, {"refine": True})),
-                 ("no edge_fit", CorridorEstimator(rig, site, {"edge_fit": False})),
-                 ("lsd", CorridorEstimator(rig, site, {"detector": "lsd"})),
-                 ("hough", CorridorEstimator(rig, site, {"detector": "hough"})),
-                 ("ed", CorridorEstimator(rig, site, {"detector": "ed"}))]
+        variants = [("fld+refine", {"refine": True}), ("no edge_fit", {"edge_fit": False}),
+                    ("lsd", {"detector": "lsd"}), ("hough", {"detector": "hough"}),
+                    ("ed", {"detector": "ed"})]
+        ests += [(name, CorridorEstimator(rig, site, stated("corridor", opts)))
+                 for name, opts in variants]
     ests.append(("paper-corridor", PaperCorridorEstimator(rig, site)))
     for name, est in ests:
         print(f"{name:15s} {run(est, frames, in_view, repeat, ours.detector)}", flush=True)
@@ -144,8 +145,8 @@ def chord_sweep(folder: Path, chord_px: list[float]) -> None:
     frames = [rec.frame(k) for k in range(len(rec))]
     truth = [rec.truth.lookup(f.t_ns) for f in frames]
     grey = [to_grey(f.image) for f in frames]
-    ents = [(c, CorridorEstimator(rec.rig, rec.site, {"track": True}), Tracker())
-            for c in chord_px]
+    tracked = stated("corridor", {"track": True})
+    ents = [(c, CorridorEstimator(rec.rig, rec.site, tracked), Tracker()) for c in chord_px]
 
     def call(c: float, est: CorridorEstimator, tr: Tracker, k: int):
         track.CHORD_PX = c

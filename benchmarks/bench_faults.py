@@ -39,6 +39,7 @@ import tty
 from pathlib import Path
 
 import numpy as np
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.runtime.io.recording import FullDisk, Recording, repair_recording
 from ceilkit.runtime.replay import replay
@@ -138,7 +139,7 @@ def bench_kills(n: int, seed: int, startup_share: float = 0.2) -> dict:
                 continue
             try:
                 recording = Recording(rec)
-                res = replay(rec, tmp / "replay")
+                res = replay(rec, tmp / "replay", options=stated("corridor"))
                 out["replayed"] += 1
             except Exception as exc:  # noqa: BLE001 - counted and shown
                 out["failures"].append(f"kill {k} {moment}: {exc}")
@@ -191,7 +192,7 @@ def _session(tmp: Path, record: Path, disk, on_frame, frames: int):
 
     wire = tmp / f"wire-{record.name}.nmea"
     cfg = SessionConfig(device="sim:corridor", frames=frames, record=record,
-                        link=LinkConfig(str(wire)), force=True)
+                        link=LinkConfig(str(wire)), force=True, options=stated("corridor"))
     try:
         res = run_session(cfg, on_frame=frame, **({"disk": disk} if disk else {}))
     finally:

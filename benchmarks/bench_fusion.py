@@ -48,6 +48,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
@@ -160,7 +161,8 @@ def replay_poses(folder: Path, name: str, method: str, start_pose=None) -> list:
     pipeline hands it to its sinks (with the full covariance, which ``poses.csv``
     gives only as sigmas)."""
     sink = ListSink()
-    replay(folder, folder / name, method=method, start_pose=start_pose, sinks=[sink])
+    replay(folder, folder / name, method=method, start_pose=start_pose, sinks=[sink],
+           options=stated(method))
     return [e for e, _ in sink.items]
 
 

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.calib.boards import (
     WORKING_MPX,
@@ -161,7 +162,7 @@ def bench_ceilrun(method: str, scale: float, repeats: int) -> dict:
                  "render_s": time.perf_counter() - t0}
     for label, mpx in (("working", 1.0), ("full", 0.0)):
         t0 = time.perf_counter()
-        est = make_estimator(method, rig, site, {"working_mpx": mpx})
+        est = make_estimator(method, rig, site, stated(method, {"working_mpx": mpx}))
         build_ms = 1e3 * (time.perf_counter() - t0)
         est.estimate(img, 0)                                   # warm-up (imports, caches)
         times = []
@@ -170,7 +171,7 @@ def bench_ceilrun(method: str, scale: float, repeats: int) -> dict:
             res = est.estimate(img, i + 1)
             times.append(1e3 * (time.perf_counter() - t0))
         tracemalloc.start()
-        make_estimator(method, rig, site, {"working_mpx": mpx})
+        make_estimator(method, rig, site, stated(method, {"working_mpx": mpx}))
         build_peak = tracemalloc.get_traced_memory()[1] / 1e6
         tracemalloc.reset_peak()
         est.estimate(img, 99)

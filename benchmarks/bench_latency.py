@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 from bench_all import provenance
 from bench_pipeline import PtyPeer
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
@@ -90,7 +91,7 @@ def one_run(rig: Rig, site: Site, method: str, track: bool, images: list[np.ndar
     """One live run: the telemetry's per-frame lists and counters."""
     cam = FakeCamera(images, fps)
     peer = PtyPeer() if peer_thread else ProcessPeer()
-    est = make_estimator(method, rig, site, {"track": True} if track else None)
+    est = make_estimator(method, rig, site, stated(method, {"track": True} if track else None))
     try:
         with CameraSource("fake", open_capture=cam.open) as source, \
                 SerialLink(peer.path, 115200, "nmea") as link:

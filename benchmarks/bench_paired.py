@@ -41,6 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_all import OUT, load, make_recordings, provenance  # noqa: E402
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.runtime.estimators.base import PoseEstimate  # noqa: E402
 from ceilkit.runtime.estimators.registry import make_estimator  # noqa: E402
@@ -69,9 +70,9 @@ def paired(method: str, folder: Path, frames: int, sigma: tuple[float, float],
     paths localized with the tracked path's own fix."""
     rec = next(r for r in make_recordings(folder, frames, False) if r.name.startswith(method))
     data = load(rec)
-    glob = make_estimator(method, data.rig, data.site, {})
+    glob = make_estimator(method, data.rig, data.site, stated(method, {}))
     tracked = make_estimator(method, data.rig, data.site,
-                             {"track": True, "track_full_every": 0})
+                             stated(method, {"track": True, "track_full_every": 0}))
     key, value = TRACKED[method]
     rng = np.random.default_rng(seed)
     eg, et = [], []

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
@@ -112,7 +113,7 @@ def latency(seconds: float, rates: list[float], record: bool) -> None:
         tmp = Path(tempfile.mkdtemp(prefix="bench_pipeline_"))
         cam = FakeCamera(images, fps)
         peer = PtyPeer()
-        estimator = make_estimator("corridor", rig, site)
+        estimator = make_estimator("corridor", rig, site, stated("corridor"))
         n = int(round(seconds * fps))
         try:
             with CameraSource("fake", open_capture=cam.open) as source, \
@@ -179,7 +180,8 @@ def soak(frames: int, method: str | None, recording: Path) -> None:
 
         t = time.perf_counter()
         with FileLink(tmp / "out.nmea", "nmea", append=False) as link:
-            res = replay(rec, tmp / "out", method=method, sinks=[link], progress=progress)
+            res = replay(rec, tmp / "out", method=method, sinks=[link], progress=progress,
+                         options=stated(method))
         end = rss_mb()
         print()
         tel = res.telemetry

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.stats import chi2
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
@@ -63,7 +64,8 @@ def run_case(method: str, realism: Realism | None, frames: int, seed: int,
     rig = Rig.load(CONFIGS / method / "rig.yaml")
     site = Site.load(CONFIGS / method / "site.yaml")
     ro = realism.rolling_shutter_ms if realism is not None and readout else 0.0
-    est = make_estimator(method, rig, site, {"readout_ms": ro, **(options or {})})
+    est = make_estimator(method, rig, site,
+                         stated(method, {"readout_ms": ro, **(options or {})}))
     traj = straight_drive(frames, 30.0, rng=np.random.default_rng(seed), **DRIVES[method])
     src = SimSource(rig, site, traj, seed=seed, realism=realism)
     tracker = Tracker()

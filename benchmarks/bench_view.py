@@ -35,6 +35,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
@@ -107,11 +108,11 @@ def run(args: argparse.Namespace) -> dict:
     cv2.setNumThreads(1)
     rig, site = Rig.load(CONFIGS / "rig.yaml"), Site.load(CONFIGS / "site.yaml")
     frames = sim_frames(rig, site, args.frames)
-    plain = Pipeline(make_estimator("corridor", rig, site), [], Tracker())
+    plain = Pipeline(make_estimator("corridor", rig, site, stated("corridor")), [], Tracker())
     with LiveView(rig, site, port=0) as view:
         sinks: list = []
-        viewed = Pipeline(view.watch(make_estimator("corridor", rig, site), sinks), sinks,
-                          Tracker())
+        est = make_estimator("corridor", rig, site, stated("corridor"))
+        viewed = Pipeline(view.watch(est, sinks), sinks, Tracker())
         view.attach(viewed.telemetry)
         client = (ChromiumClient(view.url) if args.client == "chromium"
                   else PythonClient(view.url))
