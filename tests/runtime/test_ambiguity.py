@@ -105,3 +105,30 @@ def test_an_asymmetric_corridor_is_singled_out_either_way(tmp_path):
         assert e and e.provenance is Provenance.GLOBAL and not e.hypotheses, e
         assert abs(e.y_m - y) < 0.005
         assert abs(math.remainder(e.yaw_rad - math.radians(yaw_deg), 2 * math.pi)) < 1e-3
+
+
+def test_the_mirror_line_of_a_site(tmp_path):
+    """The packaged corridor is symmetric about y = 0 (lines, lamp edges and lamp row);
+    one seam more on one side, or a lamp row off the middle, and it is not."""
+    import math as _m
+
+    from ceilkit.runtime.estimators.corridor.setup import CorridorSetup, mirror_line
+
+    rig = Rig.load(CONFIGS / "corridor" / "rig.yaml")
+    d = yaml.safe_load((CONFIGS / "corridor" / "site.yaml").read_text())
+
+    def line(change):
+        dd = yaml.safe_load(yaml.safe_dump(d))
+        change(dd)
+        (tmp_path / "s.yaml").write_text(yaml.safe_dump(dd))
+        return mirror_line(CorridorSetup.build(rig, Site.load(tmp_path / "s.yaml"),
+                                               _m.radians(3.0)))
+
+    assert line(lambda dd: None) == 0.0
+    assert line(lambda dd: dd["corridor"].update(lines_along=[-0.45, -0.15, 0.15, 0.45,
+                                                              0.9])) is None
+
+    def shift(dd):                      # every line and the lamp row 1 m to the left
+        dd["corridor"]["lines_along"] = [v + 1.0 for v in dd["corridor"]["lines_along"]]
+        dd["lamps"][0]["y"] = 1.0
+    assert line(shift) == 1.0

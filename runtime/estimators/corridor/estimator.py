@@ -72,6 +72,7 @@ from ceilkit.runtime.estimators.corridor.setup import (
     CorridorSetup,
     check_setup,
     default_match_tol_m,
+    mirror_line,
 )
 from ceilkit.runtime.estimators.corridor.track import LineTracker, without_ignored
 from ceilkit.runtime.estimators.honesty import (
@@ -261,6 +262,7 @@ class CorridorEstimator(Estimator):
         self._ctx = LabelContext(
             self.setup, cam, self.angle_tol_rad, self.match_tol_m,
             self.detector.min_length_px, across_seams=across_seams(site),
+            mirror_y_m=mirror_line(self.setup),
             assume_heading_rad=(None if o.assume_heading_deg is None
                                 else math.radians(o.assume_heading_deg)))
         self.lines_track = (LineTracker(self.setup, cam, o.track_search_px) if o.track

@@ -67,6 +67,8 @@ class LabelContext:
             the frame's ceiling lengths telling.
         assume_heading_rad: a heading the user states the vehicle is within 90 deg of
             (the ``assume_heading_deg`` option): a prior, never a frame's evidence.
+        mirror_y_m: the y of the line the site's ``lines_along`` (their kinds, lengths
+            and lamp rows) are symmetric about, or None (:func:`.setup.mirror_line`).
     """
 
     setup: CorridorSetup
@@ -76,6 +78,7 @@ class LabelContext:
     min_length_px: float
     across_seams: bool = False
     assume_heading_rad: float | None = None
+    mirror_y_m: float | None = None
 
     @functools.cached_property
     def kernel_setup(self) -> tuple:
@@ -318,7 +321,7 @@ class Unresolved:
 def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
             lens: tuple[float, float], fr: FrameLines, prior: PoseEstimate | None,
             prior_psi: float | None, ctx: LabelContext
-            ) -> tuple[Hypothesis, str, list[tuple[Hypothesis, str]]]:
+            ) -> tuple[Hypothesis, str, list[Twin]]:
     """The forward family's labeling about ``psi_rad``, the rule that chose it and its
     rivals: the labelings the frame supports as well (``lens``: the families' summed
     ceiling lengths). Nothing the frame cannot check decides between a labeling and
@@ -338,7 +341,7 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
     if prior_psi is not None:
         k = min(range(4), key=lambda k: abs(wrap_pi(psi_rad + k * np.pi / 2 - prior_psi)))
         chosen = hyp(k)
-        return chosen, "prior", _rivals(chosen, hyp, fr, ctx)
+        return chosen, "prior", _rivals(chosen, hyp, fr, ctx, None)
     # of psi + k 90 deg, two share a heading window of 180 deg (k and k + 2 are a half
     # turn apart): the frame's evidence chooses the family (its ceiling length, the
     # across grid), then the half turn is compared, never assumed
@@ -364,18 +367,16 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
                 # rival below where the site's across lines are seams)
                 chosen = min(cands, key=lambda h: abs(wrap_pi(h.psi_rad - centre)))
                 how = "nearest"
-    if ctx.assume_heading_rad is None:
+    if ctx.assume_heading_rad is None and ctx.mirror_y_m is None:
+        # (on a site symmetric about a centre line the two explain the frame alike)
         twin = hyp(chosen.k + 2)
         if _support(twin, fr, ctx) > _support(chosen, fr, ctx) / TWIN_RATIO:
             chosen, how = twin, how + "+half_turn"    # the frame prefers the other way
-    rivals = _rivals(chosen, hyp, fr, ctx)
-    if ctx.assume_heading_rad is not None and rivals:
-        # the user's statement, not the frame, rules out the rivals beyond 90 deg of it
-        kept = [(h, lbl) for h, lbl in rivals
-                if abs(wrap_pi(h.psi_rad - centre)) < np.pi / 2 - 1e-9]
-        if len(kept) < len(rivals):
-            rivals, how = kept, how + "+stated"
-    return chosen, how, rivals
+    if ctx.assume_heading_rad is None:
+        return chosen, how, _rivals(chosen, hyp, fr, ctx, None)
+    # the user's statement, not the frame, rules out the turns beyond 90 deg of it:
+    # they are not examined
+    return chosen, how + "+stated", _rivals(chosen, hyp, fr, ctx, centre)
 
 
 TWIN_RATIO = 0.85
@@ -409,22 +410,37 @@ def _missing(h: Hypothesis, shift_m: float, ctx: LabelContext) -> int:
     return int(np.count_nonzero(view & ~seen))
 
 
-def _rivals(chosen: Hypothesis, hyp, fr: FrameLines, ctx: LabelContext
-            ) -> list[tuple[Hypothesis, str]]:
+def _rivals(chosen: Hypothesis, hyp, fr: FrameLines, ctx: LabelContext,
+            centre: float | None) -> list[Twin]:
     """The labelings that explain the frame as well as ``chosen`` (:func:`_support`
     at least :data:`TWIN_RATIO` of its): its half turn, and its quarter turns where the
-    site's ``lines_across`` are seams."""
-    own = _support(chosen, fr, ctx)
-    if own <= 0.0:
+    site's ``lines_across`` are seams; with a stated heading (camera pan ``centre``),
+    only those within 90 deg of it. On a site symmetric about a centre line
+    (``mirror_y_m``) the half turn is a twin by that symmetry, its camera y mirrored,
+    with nothing to compute; elsewhere a turn whose association alone scores below the
+    ratio is out without its absent lines counted."""
+    if chosen.match is None:
         return []
     turns = [(2, "half_turn")]
     if ctx.across_seams:
         turns += [(1, "quarter_turn"), (3, "quarter_turn")]
-    out = []
+    if centre is not None:
+        turns = [(dk, lbl) for dk, lbl in turns
+                 if abs(wrap_pi(chosen.psi_rad + dk * np.pi / 2 - centre)) < np.pi / 2 - 1e-9]
+    out, own = [], None
     for dk, lbl in turns:
+        if dk == 2 and ctx.mirror_y_m is not None:
+            out.append(Twin(wrap_pi(chosen.psi_rad + np.pi),
+                            2.0 * ctx.mirror_y_m - chosen.match.shift_m, lbl))
+            continue
         h = hyp(chosen.k + dk)
-        if _support(h, fr, ctx) >= TWIN_RATIO * own:
-            out.append((h, lbl))
+        if h.match is None:
+            continue
+        own = _support(chosen, fr, ctx) if own is None else own
+        bound = h.match.score + (1.0 if ctx.across_seams else 0.0)
+        if own > 0.0 and bound >= TWIN_RATIO * own and \
+                _support(h, fr, ctx) >= TWIN_RATIO * own:
+            out.append(Twin(h.psi_rad, h.match.shift_m, lbl))
     return out
 
 
@@ -483,7 +499,7 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         m = settled
         if not ambiguous and how != "prior":
             how += "+absence"
-    twins = tuple(Twin(h.psi_rad, h.match.shift_m, lbl) for h, lbl in rivals)
+    twins = tuple(rivals)
     if ambiguous and m.runner_up is not None:
         twins += (Twin(chosen.psi_rad, m.runner_up[2], "shift"),)
     if ambiguous and (prior is None or prior.y_m is None):
@@ -492,7 +508,7 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
                           f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose",
                           (Twin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
     if rivals and (prior is None or prior.y_m is None) and how != "prior":
-        kinds = " and ".join(sorted({lbl.replace("_", " ") for _, lbl in rivals}))
+        kinds = " and ".join(sorted({t.label.replace("_", " ") for t in rivals}))
         return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
                           f"the lines fit {len(rivals) + 1} headings equally well (a "
                           f"{kinds}: the ceiling looks the same); no prior to choose",

@@ -159,3 +159,29 @@ class CorridorSetup:
             field_radius=lens_field_radius(cam),
             rows=ceiling_rows(cam, R, min_elevation_rad),
             view_u_m=np.linspace(-30.0, 30.0, 601))
+
+
+def mirror_line(setup: CorridorSetup, tol_m: float = 1e-6) -> float | None:
+    """The y of the line the site is symmetric about as the corridor method sees it,
+    or None: every ``lines_along`` entry has a mirror image across it of the opposite
+    edge kind (a lamp's -y edge is the mirror of a +y edge), the same longest stretch
+    and lamp pitch, and every lamp row a mirror row of its width. A corridor so built
+    looks the same driven either way: the half turn of a pose is its twin, at the
+    mirrored camera y (:func:`.hypotheses.label`)."""
+    y = setup.site_y
+    if y.size == 0:
+        return None
+    c = 0.5 * (float(y.min()) + float(y.max()))
+    for j in range(y.size):
+        k = np.flatnonzero(np.abs(y - (2 * c - y[j])) <= tol_m)
+        if k.size != 1 or setup.edge_kind[k[0]] != -setup.edge_kind[j] or \
+                setup.longest_m[k[0]] != setup.longest_m[j] or \
+                setup.lamp_pitch_m[k[0]] != setup.lamp_pitch_m[j]:
+            return None
+    for r in range(setup.lamp_y_m.size):
+        k = np.flatnonzero((np.abs(setup.lamp_y_m - (2 * c - setup.lamp_y_m[r])) <= tol_m)
+                           & (np.abs(setup.lamp_width_m - setup.lamp_width_m[r]) <= tol_m))
+        if k.size == 0:
+            return None
+    return c
+
