@@ -214,6 +214,11 @@ class Telemetry:
         if self.failures:
             out.append("failures: " + ", ".join(f"{k} {v}" for k, v in
                                                self.failures.most_common()))
+        if self.failures.get("ambiguous", 0) and not self.estimated:
+            out.append("  (ambiguous: several poses explain every frame alike, a symmetric "
+                       "or repeating ceiling; a --start-pose singles one out, or for the "
+                       "corridor method --option assume_heading_deg=DEG: "
+                       "docs/methods/honesty.md)")
         if self.latency_ms:
             out.append(
                 f"estimate {self._pct(self.estimate_ms, 50):.2f} ms median "

@@ -250,3 +250,13 @@ def test_no_track_rows_do_not_depend_on_the_frames_order():
         return out
 
     assert rows(range(6)) == rows([3, 0, 5, 1, 4, 2])
+
+
+def test_a_run_of_only_ambiguous_frames_says_what_singles_them_out():
+    from ceilkit.runtime.pipeline import Telemetry
+
+    tel = Telemetry()
+    tel.frames, tel.failures["ambiguous"] = 3, 3
+    assert any("--start-pose" in line for line in tel.summary())
+    tel.estimated = 1
+    assert not any("--start-pose" in line for line in tel.summary())
