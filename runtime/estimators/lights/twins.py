@@ -94,7 +94,12 @@ class TwinJudge:
         if self.symmetries.shape[0] == 0:
             return [], self.searched
         kept = self.lights[:, best.pairs[:, 1]].sum(axis=1)
-        sym = self.symmetries[kept >= self.options.min_inliers]
+        # a twin explains at most the best's spots it keeps on lights and the spots the
+        # best leaves unexplained: one that cannot come within the margin of the best
+        # is no rival, and is not verified (most partial symmetries of an irregular map)
+        bound = kept + (len(obs.spots) - best.inliers)
+        reach = self.evidence(best, obs.weights()) - self.options.ambiguity_margin
+        sym = self.symmetries[(kept >= self.options.min_inliers) & (bound >= reach)]
         complete = self.searched and sym.shape[0] <= MAX_TWIN_CHECKS
         if sym.shape[0] == 0:
             return [], complete
@@ -111,14 +116,15 @@ class TwinJudge:
         ``ambiguity_margin``."""
         twins, complete = self.twins(obs, cands[0])
         every = [c for c in distinct(cands + twins) if c.inliers >= self.options.min_inliers]
-        inside = [c for c in every if self.possible(c)]
-        out_e = max((self.evidence(c, weights) for c in every if not self.possible(c)),
-                    default=-math.inf)
-        in_e = max((self.evidence(c, weights) for c in inside), default=-math.inf)
-        if not inside or out_e > in_e + self.options.ambiguity_margin:
+        ev = [self.evidence(c, weights) for c in every]          # each scored once
+        ok = [self.possible(c) for c in every]
+        out_e = max((e for e, o in zip(ev, ok, strict=True) if not o), default=-math.inf)
+        in_e = max((e for e, o in zip(ev, ok, strict=True) if o), default=-math.inf)
+        if not any(ok) or out_e > in_e + self.options.ambiguity_margin:
             return [], complete
-        inside.sort(key=lambda c: (-self.evidence(c, weights), -c.inliers, c.rms_m))
-        return inside, complete
+        order = sorted((i for i in range(len(every)) if ok[i]),
+                       key=lambda i: (-ev[i], -every[i].inliers, every[i].rms_m))
+        return [every[i] for i in order], complete
 
     def hypotheses(self, obs: Observation, cands: list[Candidate], cov: np.ndarray | None
                    ) -> tuple[Hypothesis, ...]:
