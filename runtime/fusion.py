@@ -439,7 +439,7 @@ class Fusion:
         fixes = [m for c in cues if isinstance(c, PoseEstimate)
                  if (m := measurement(c, self.options)) is not None]
         relocalized, started = self._jumped, []
-        self._jumped = False
+        from_start, self._jumped = self._jumped, False
         if self._lost(t):
             start = starting_fix(fixes, self.gates)
             if start is None:
@@ -477,6 +477,8 @@ class Fusion:
             return TrackResult(Failure(t, self._method, "coasting",
                                        "the position is no longer known to "
                                        f"{self.options.unobserved_sigma_m:g} m"))
+        if from_start and not used:      # the start pose itself, no cue applied yet
+            pose = dataclasses.replace(pose, provenance=Provenance.START)
         return TrackResult(pose, relocalized)
 
     # -- internals -------------------------------------------------------------------

@@ -350,3 +350,16 @@ def test_an_odometry_row_out_of_reach_is_refused_never_raised():
     from ceilkit.runtime.fusion import FusionReport
 
     assert "(2 refused: out of reach)" in FusionReport(fu).lines()[0]
+
+
+def test_the_start_pose_itself_is_published_as_such():
+    """A frame on which the start pose takes effect and no cue is applied publishes the
+    start pose with provenance START (a cue applied makes it the track's)."""
+    from ceilkit.runtime.estimators.base import Provenance
+
+    fu = Fusion()
+    fu.set_start_pose(0, 1.0, 2.0, 0.0)
+    res = fu.update(Failure(0, "lights", "no_lights"))
+    assert res.relocalized and res.estimate.provenance is Provenance.START
+    res = fu.update(_lights(1, 1.0, 2.0))
+    assert res.estimate.provenance is Provenance.TRACK
