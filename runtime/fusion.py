@@ -318,7 +318,7 @@ class Fusion:
         self._t_fix_ns = int(t_ns)
         self._candidates = []
         self.modes.clear()
-        self._lateral_only = False
+        self._lateral_only, self._disagree = False, 0
 
     def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float,
                      cov: np.ndarray | None = None) -> None:
