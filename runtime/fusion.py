@@ -307,6 +307,7 @@ class Fusion:
         self._f = None
         self._candidates = []
         self.modes.clear()
+        self._disagree = 0
 
     # -- inputs ----------------------------------------------------------------------
     def start(self, t_ns: int, pose: tuple[float, float, float], cov: np.ndarray) -> None:
@@ -490,7 +491,8 @@ class Fusion:
         if best is not None:
             self._f, self._t_fix_ns, self._candidates, self._method = best.f, t_ns, [], \
                 best.method
-            self._lateral_only = float(best.f.latest.P[0, 0]) >= UNKNOWN_X_VAR
+            self._lateral_only = float(best.f.latest.P[0, 0]) >= 0.5 * UNKNOWN_X_VAR
+            self._disagree = 0
             self.relocalizations += 1
             diag = {"applied": (best.method,), "pending": 0, "coasting": False}
             return TrackResult(self._publish(self._f.node_at(t_ns), best.method, diag), True)
@@ -672,6 +674,7 @@ class ModeSet:
         self.modes: list[Mode] = []
         self.frames = 0
         self.resolved = 0
+        self.weighed = False      # a complete list has moved the weights since birth
 
     def __bool__(self) -> bool:
         return bool(self.modes)
@@ -680,14 +683,17 @@ class ModeSet:
         return len(self.modes)
 
     def clear(self) -> None:
-        self.modes, self.frames = [], 0
+        self.modes, self.frames, self.weighed = [], 0, False
 
     def add(self, ev: _Event) -> None:
         """An odometry event, applied to every mode."""
         for m in self.modes:
             m.f.add(ev)
 
-    def _birth(self, t_ns: int, method: str, hyps: tuple[Hypothesis, ...]) -> None:
+    def _birth(self, t_ns: int, method: str, hyps: tuple[Hypothesis, ...],
+               complete: bool) -> None:
+        """Modes from ``hyps``, weighted as the method weighted them when the list is
+        complete, alike otherwise (a truncated list's weights single out nothing)."""
         o = self.options
         for h in hyps[: o.max_modes]:
             cov = np.diag([UNKNOWN_X_VAR, UNKNOWN_X_VAR, 1.0])
@@ -698,16 +704,16 @@ class ModeSet:
             s, P = ekf.initial_state(tuple(float(v) for v in z), cov, o.start_speed_mps,
                                      o.start_turn_rps, o.odo_scale_sigma)
             self.modes.append(Mode(FilterBuffer(_Node(int(t_ns), s, P, None), o),
-                                   float(h.weight), method, h.label))
+                                   float(h.weight) if complete else 1.0, method, h.label))
         self._normalize()
-        self.frames = 1
+        self.frames, self.weighed = 1, complete
 
     def update(self, t_ns: int, sets: list[tuple[str, tuple[Hypothesis, ...], bool]]) -> None:
         """One frame's ambiguous cues ``(method, hypotheses, complete)``."""
         if not sets:
             return
         if not self.modes:
-            self._birth(t_ns, *sets[0][:2])
+            self._birth(t_ns, *sets[0])
             return
         self.frames += 1
         for method, hyps, complete in sets:
@@ -727,9 +733,10 @@ class ModeSet:
                     m.f.add(_Event(t_ns, "fix", (best.z, best.rows, best.R)))
                 if complete:
                     m.weight *= like
+                    self.weighed = True
         if sum(m.weight for m in self.modes) <= 0.0:
             self.clear()          # the drive contradicts every mode: start again
-            self._birth(t_ns, *sets[0][:2])
+            self._birth(t_ns, *sets[0])
             return
         self._normalize()
         self._merge(t_ns)
@@ -774,7 +781,8 @@ class ModeSet:
 
     def singled_out(self) -> Mode | None:
         """The mode the drive has singled out, or None."""
-        if self.frames >= 2 and self.modes and self.modes[0].weight >= self.options.single_p:
+        if (self.frames >= 2 and self.weighed and self.modes
+                and self.modes[0].weight >= self.options.single_p):
             self.resolved += 1
             return self.modes[0]
         return None

@@ -67,6 +67,7 @@ class Tracker:
         self.relocalizations = 0
         self.start_poses = 0
         self._pending: tuple[float, float, float] | None = start_pose
+        self._jumped = False    # a start pose was taken: the next result is a reset
 
     def set_start_pose(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float,
                        cov: object = None) -> None:
@@ -96,6 +97,7 @@ class Tracker:
             self._s = _State(int(t_ns), x, y, wrap_pi(yaw))
             self._candidates = []
             self.start_poses += 1
+            self._jumped = True
         s = self._s
         if s is None:
             return None
@@ -127,7 +129,15 @@ class Tracker:
         return TrackResult(est, relocalized=True)
 
     def update(self, est: Estimate) -> TrackResult:
-        """Gate one measurement; returns what to publish."""
+        """Gate one measurement; returns what to publish (a reset, ``relocalized``, on
+        the first frame after a start pose was taken)."""
+        res = self._update(est)
+        if self._jumped:
+            self._jumped = False
+            return TrackResult(res.estimate, True)
+        return res
+
+    def _update(self, est: Estimate) -> TrackResult:
         if not isinstance(est, PoseEstimate):
             if self._s is not None and (est.t_ns - self._s.t_ns) * 1e-9 > \
                     self.options.lost_after_s:
@@ -157,6 +167,11 @@ class Tracker:
         # outside the gate: a glitch, or the vehicle really is elsewhere; only a pose the
         # frame alone singled out may move the track (one a prior chose among twins
         # proves nothing against the track)
+        if self._jumped and abs(wrap_pi(est.yaw_rad - pred.yaw_rad)) <= \
+                self.options.gate_rad + self.options.max_turn_rps * max(dt, 0.0):
+            # the first frame after a start pose: its heading chose among the frame's
+            # twins; where the vehicle is, the frame says (a start pose is rough)
+            return self._start(est)
         if not est.singled_out:
             return TrackResult(Failure(
                 est.t_ns, est.method, "gated",

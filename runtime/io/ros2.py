@@ -331,7 +331,7 @@ class Ros2Node:
             start, self._pending_start = self._pending_start, None
         if start is not None:
             if self.on_initial_pose is None:
-                log.warning("initial pose ignored: it needs --method auto (the fusion)")
+                log.warning("initial pose ignored: this run has no tracker to take it")
             else:
                 self.on_initial_pose(int(est.t_ns), start[0], start[1])
                 self._last_full = None

@@ -100,11 +100,18 @@ def test_an_asymmetric_corridor_is_singled_out_either_way(tmp_path):
     site = Site.load(tmp_path / "site.yaml")
     est = CorridorEstimator(rig, site)
     rng = np.random.default_rng(2)
+    from ceilkit.runtime.estimators.base import PoseEstimate
+
     for x, y, yaw_deg in ((3.0, 0.2, 4.0), (9.0, 0.3, 184.0), (5.0, -0.1, 176.0)):
-        e = est.estimate(render_frame(rig, site, x, y, math.radians(yaw_deg), SIM, rng), 0)
-        assert e and e.provenance is Provenance.GLOBAL and not e.hypotheses, e
-        assert abs(e.y_m - y) < 0.005
-        assert abs(math.remainder(e.yaw_rad - math.radians(yaw_deg), 2 * math.pi)) < 1e-3
+        img = render_frame(rig, site, x, y, math.radians(yaw_deg), SIM, rng)
+        # no prior, and a prior turned half way round (a flipped start pose): the frame
+        # itself says which way, and overrules the prior
+        flipped = PoseEstimate(0, "track", None, -y, math.radians(yaw_deg + 180.0), 0.0)
+        for prior in (None, flipped):
+            e = est.estimate(img, 0, prior)
+            assert e and e.provenance is Provenance.GLOBAL and not e.hypotheses, e
+            assert abs(e.y_m - y) < 0.005
+            assert abs(math.remainder(e.yaw_rad - math.radians(yaw_deg), 2 * math.pi)) < 1e-3
 
 
 def test_the_mirror_line_of_a_site(tmp_path):

@@ -308,6 +308,15 @@ def test_an_incomplete_list_moves_no_weight():
         res = fu.update(_ambiguous(k, poses, complete=False))
         assert not res.estimate and res.estimate.reason == "ambiguous"
     assert len(fu.modes) == 2
+    # nor do the weights a truncated list comes with (its best first, 0.9995)
+    from ceilkit.runtime.estimators.base import Hypothesis
+
+    fu = Fusion()
+    for k in range(4):
+        hyps = (Hypothesis(0.0, 0.0, 0.0, COV, 0.9995, "best"),
+                Hypothesis(0.6, 0.0, 0.0, COV, 0.0005, "shift"))
+        res = fu.update(Failure(k * DT, "lights", "ambiguous", hypotheses=hyps))
+        assert not res.estimate and res.estimate.reason == "ambiguous"
 
 
 def test_the_track_decides_an_ambiguous_cue():

@@ -50,3 +50,27 @@ def test_failures_pass_through():
     tr = Tracker()
     f = Failure(0, "corridor", "blank_frame")
     assert tr.update(f).estimate is f
+
+
+def test_a_start_pose_is_a_reset_and_the_frame_says_where():
+    """A start pose taken is published as a reset (the link bumps its counter); a rough
+    one (0.4 m off, the heading right) is not a gate the first pose it chose must pass:
+    the frame's position is taken."""
+    from ceilkit.runtime.estimators.base import PoseEstimate, Provenance
+    from ceilkit.runtime.tracking import Tracker
+
+    tr = Tracker(start_pose=(1.0, 0.4, 0.0))
+    tr.predict(0)
+    est = PoseEstimate(0, "corridor", None, 0.0, 0.01, 1.0, provenance=Provenance.PRIOR)
+    res = tr.update(est)
+    assert res.relocalized and res.estimate is est
+    nxt = PoseEstimate(33_000_000, "corridor", None, 0.001, 0.01, 1.0,
+                       provenance=Provenance.PRIOR)
+    tr.predict(nxt.t_ns)
+    res = tr.update(nxt)
+    assert not res.relocalized and res.estimate is nxt
+    # a start pose turned half way round is no such prior: the frame's pose is gated
+    tr = Tracker(start_pose=(1.0, 0.0, 3.1))
+    tr.predict(0)
+    res = tr.update(est)
+    assert res.relocalized and not res.estimate and res.estimate.reason == "gated"

@@ -33,6 +33,7 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import (
     Estimate,
     Estimator,
@@ -259,6 +260,10 @@ class CorridorEstimator(Estimator):
         self.angle_tol_rad = math.radians(o.angle_tol_deg)
         check_options(o)
         self.extent = SiteExtent.from_site(site)
+        if o.assume_heading_deg is not None and not math.isfinite(o.assume_heading_deg):
+            raise ConfigError(None, "options.assume_heading_deg",
+                              f"expected a finite heading in degrees, found "
+                              f"{o.assume_heading_deg!r}")
         self._ctx = LabelContext(
             self.setup, cam, self.angle_tol_rad, self.match_tol_m,
             self.detector.min_length_px, across_seams=across_seams(site),
@@ -534,7 +539,7 @@ def complete_twins(twins: tuple[Twin, ...]) -> bool:
     """Whether the labelings ``twins`` are every pose the frame supports: the half and
     quarter turns are each examined; a lateral shift's runner-up is only the best of
     the shifts (a tile grid has as many as it has seams)."""
-    return not any(t.label == "shift" for t in twins)
+    return all(t.exact for t in twins) and not any(t.label == "shift" for t in twins)
 
 
 def across_seams(site: Site) -> bool:

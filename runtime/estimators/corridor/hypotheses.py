@@ -305,6 +305,7 @@ class Twin:
     psi_rad: float
     camera_y_m: float
     label: str
+    exact: bool = True      # False: its own lateral shift is a tie (another shift fits)
 
 
 @dataclass(frozen=True)
@@ -338,10 +339,21 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
             cache[k] = hypothesis(k, psi_rad, along, across, fr, (la, lb), prior, ctx)
         return cache[k]
 
+    support: dict[int, float] = {}
+
+    def sup(h: Hypothesis) -> float:
+        if h.k not in support:
+            support[h.k] = _support(h, fr, ctx)
+        return support[h.k]
+
     if prior_psi is not None:
         k = min(range(4), key=lambda k: abs(wrap_pi(psi_rad + k * np.pi / 2 - prior_psi)))
         chosen = hyp(k)
-        return chosen, "prior", _rivals(chosen, hyp, fr, ctx, None)
+        rivals, better = _rivals(chosen, hyp, sup, ctx)
+        if better is None:
+            return chosen, "prior", rivals
+        # the frame prefers a turn of the prior's labeling (an asymmetric cue): the
+        # prior is contradicted, and the frame alone decides below
     # of psi + k 90 deg, two share a heading window of 180 deg (k and k + 2 are a half
     # turn apart): the frame's evidence chooses the family (its ceiling length, the
     # across grid), then the half turn is compared, never assumed
@@ -367,16 +379,16 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
                 # rival below where the site's across lines are seams)
                 chosen = min(cands, key=lambda h: abs(wrap_pi(h.psi_rad - centre)))
                 how = "nearest"
-    if ctx.assume_heading_rad is None and ctx.mirror_y_m is None:
-        # (on a site symmetric about a centre line the two explain the frame alike)
-        twin = hyp(chosen.k + 2)
-        if _support(twin, fr, ctx) > _support(chosen, fr, ctx) / TWIN_RATIO:
-            chosen, how = twin, how + "+half_turn"    # the frame prefers the other way
-    if ctx.assume_heading_rad is None:
-        return chosen, how, _rivals(chosen, hyp, fr, ctx, None)
-    # the user's statement, not the frame, rules out the turns beyond 90 deg of it:
-    # they are not examined
-    return chosen, how + "+stated", _rivals(chosen, hyp, fr, ctx, centre)
+    rivals, better = _rivals(chosen, hyp, sup, ctx)
+    if better is not None:      # the frame prefers a turn: it is taken, a statement or not
+        chosen, how = better, how + "+turn"
+        rivals, _ = _rivals(chosen, hyp, sup, ctx)
+    if ctx.assume_heading_rad is not None and rivals:
+        # the user's statement, not the frame, rules out the rivals beyond 90 deg of it
+        kept = [t for t in rivals if abs(wrap_pi(t.psi_rad - centre)) < np.pi / 2 - 1e-9]
+        if len(kept) < len(rivals):
+            rivals, how = kept, how + "+stated"
+    return chosen, how, rivals
 
 
 TWIN_RATIO = 0.85
@@ -410,38 +422,49 @@ def _missing(h: Hypothesis, shift_m: float, ctx: LabelContext) -> int:
     return int(np.count_nonzero(view & ~seen))
 
 
-def _rivals(chosen: Hypothesis, hyp, fr: FrameLines, ctx: LabelContext,
-            centre: float | None) -> list[Twin]:
-    """The labelings that explain the frame as well as ``chosen`` (:func:`_support`
-    at least :data:`TWIN_RATIO` of its): its half turn, and its quarter turns where the
-    site's ``lines_across`` are seams; with a stated heading (camera pan ``centre``),
-    only those within 90 deg of it. On a site symmetric about a centre line
-    (``mirror_y_m``) the half turn is a twin by that symmetry, its camera y mirrored,
+def _rivals(chosen: Hypothesis, hyp, sup, ctx: LabelContext
+            ) -> tuple[list[Twin], Hypothesis | None]:
+    """The labelings that explain the frame as well as ``chosen`` (support ``sup``,
+    :func:`_support`, at least :data:`TWIN_RATIO` of its): its half turn, and its quarter
+    turns where the site's ``lines_across`` are seams; and the one the frame prefers
+    (support above the chosen's over the ratio), or None. On a site symmetric about a
+    centre line (``mirror_y_m``) the half turn is a twin by that symmetry, its camera y
+    mirrored (:func:`label` mirrors the lateral shift it settles on), never preferred,
     with nothing to compute; elsewhere a turn whose association alone scores below the
-    ratio is out without its absent lines counted."""
+    ratio is out before its absent lines are counted."""
     if chosen.match is None:
-        return []
+        return [], None
     turns = [(2, "half_turn")]
     if ctx.across_seams:
         turns += [(1, "quarter_turn"), (3, "quarter_turn")]
-    if centre is not None:
-        turns = [(dk, lbl) for dk, lbl in turns
-                 if abs(wrap_pi(chosen.psi_rad + dk * np.pi / 2 - centre)) < np.pi / 2 - 1e-9]
-    out, own = [], None
+    out, better, own = [], None, None
     for dk, lbl in turns:
         if dk == 2 and ctx.mirror_y_m is not None:
             out.append(Twin(wrap_pi(chosen.psi_rad + np.pi),
-                            2.0 * ctx.mirror_y_m - chosen.match.shift_m, lbl))
+                            2.0 * ctx.mirror_y_m - chosen.match.shift_m, lbl, MIRRORED))
             continue
         h = hyp(chosen.k + dk)
-        if h.match is None:
+        if h.match is None or h.match.n_lines < 1:
             continue
-        own = _support(chosen, fr, ctx) if own is None else own
+        own = sup(chosen) if own is None else own
         bound = h.match.score + (1.0 if ctx.across_seams else 0.0)
-        if own > 0.0 and bound >= TWIN_RATIO * own and \
-                _support(h, fr, ctx) >= TWIN_RATIO * own:
-            out.append(Twin(h.psi_rad, h.match.shift_m, lbl))
-    return out
+        if own > 0.0 and bound < TWIN_RATIO * own:
+            continue
+        theirs = sup(h)
+        if own <= 0.0 and theirs <= 0.0:
+            continue
+        # only the half turn can be preferred: it labels the same segments, so its
+        # support is comparable; a quarter turn's counts another family's lines, more
+        # or fewer by the frame's aspect alone (a square grid): a rival at most
+        if dk == 2 and theirs > own / TWIN_RATIO:
+            better = h
+        elif theirs >= TWIN_RATIO * own or (dk != 2 and theirs > own):
+            out.append(Twin(h.psi_rad, h.match.shift_m, lbl, not is_ambiguous(h.match)))
+    return out, better
+
+
+MIRRORED = True
+"""A mirrored twin's shift is exact once :func:`label` mirrors the settled one."""
 
 
 def best_labeling(pans: list[float], fr: FrameLines, prior: PoseEstimate | None,
@@ -499,6 +522,9 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         m = settled
         if not ambiguous and how != "prior":
             how += "+absence"
+    if ctx.mirror_y_m is not None:     # mirror the lateral shift the frame settled on
+        rivals = [Twin(t.psi_rad, 2.0 * ctx.mirror_y_m - m.shift_m, t.label, t.exact)
+                  if t.label == "half_turn" else t for t in rivals]
     twins = tuple(rivals)
     if ambiguous and m.runner_up is not None:
         twins += (Twin(chosen.psi_rad, m.runner_up[2], "shift"),)
@@ -507,7 +533,7 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
                           f"{m.n_lines} forward lines fit two lateral positions "
                           f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose",
                           (Twin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
-    if rivals and (prior is None or prior.y_m is None) and how != "prior":
+    if rivals and how != "prior":
         kinds = " and ".join(sorted({t.label.replace("_", " ") for t in rivals}))
         return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
                           f"the lines fit {len(rivals) + 1} headings equally well (a "
