@@ -449,7 +449,7 @@ class Fusion:
             relocalized, started = True, [start.cue.method]
             fixes = [f for f in fixes if f is not start]
         else:
-            fixes += twins_near(self._f.node_at(t), cues, self.options, self.gates)
+            fixes += twins_near(self._f, t, cues, self.options, self.gates)
         used = started + self._apply(t, fixes)
         if self._candidates and len(self._candidates) >= self.options.confirm:
             fix = self._candidates[-1]
@@ -593,14 +593,22 @@ def chain_candidates(candidates: list[_Fix], fix: _Fix) -> list[_Fix]:
     return candidates + [fix]
 
 
-def twins_near(n: _Node, cues: tuple, options: FusionOptions,
+def ambiguous_cues(cues: tuple) -> list[Failure]:
+    """The cues that are ``ambiguous`` failures carrying their hypotheses."""
+    return [c for c in cues
+            if isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses]
+
+
+def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
                gates: Mapping[int, float]) -> list[_Fix]:
-    """The track (its node ``n``) decides an ambiguous cue: of its hypotheses, the one
-    inside the track's gate when it is the only one there, as a fix."""
+    """The track (its filter ``f`` at ``t_ns``) decides the frame's ambiguous cues
+    (:func:`ambiguous_cues`): of each one's hypotheses, the one inside the track's
+    gate when it is the only one there, as a fix. A frame with none costs no
+    prediction."""
+    ambiguous = ambiguous_cues(cues)
+    n = f.node_at(t_ns) if ambiguous else None
     out = []
-    for c in cues:
-        if not (isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses):
-            continue
+    for c in ambiguous:
         inside = []
         for h in c.hypotheses:
             m = measurement(hypothesis_cue(n.t_ns, c.method, h), options)
@@ -771,9 +779,8 @@ class ModeSet:
     def step(self, t_ns: int, cues: tuple) -> Mode | None:
         """One frame's cues with no track: their ambiguous hypotheses update the modes;
         the mode singled out (cleared from the set), or None."""
-        self.update(t_ns, [(c.method, c.hypotheses, c.hypotheses_complete) for c in cues
-                           if isinstance(c, Failure) and c.reason == "ambiguous"
-                           and c.hypotheses])
+        self.update(t_ns, [(c.method, c.hypotheses, c.hypotheses_complete)
+                           for c in ambiguous_cues(cues)])
         best = self.singled_out()
         if best is not None:
             self.clear()

@@ -25,3 +25,25 @@ def replay_errors(rec: Path, poses: Path) -> tuple[np.ndarray, np.ndarray]:
         dy.append(abs(y - ty))
     a, b = np.array(dh), np.array(dy)
     return a[np.isfinite(a)], b[np.isfinite(b)]
+
+
+def write_text(tmp_path: Path, text: str, name: str = "site.yaml") -> Path:
+    """``text`` written to ``tmp_path / name``; its path."""
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def assert_broken_field(load, path: Path, key: str, words: str) -> None:
+    """``load(path)`` raises one ConfigError line naming the file and the dotted key,
+    with ``words`` in it (a fixture broken one field at a time)."""
+    import pytest
+
+    from ceilkit.runtime.errors import ConfigError
+
+    with pytest.raises(ConfigError) as err:
+        load(path)
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"{path}: {key}: "), msg
+    assert words in msg, msg

@@ -383,6 +383,13 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
     if better is not None:      # the frame prefers a turn: it is taken, a statement or not
         chosen, how = better, how + "+turn"
         rivals, _ = _rivals(chosen, hyp, sup, ctx)
+    if how.startswith("nearest") and not ctx.across_seams:
+        # the families tie on everything the frame shows: the other one is a quarter
+        # turn the frame does not rule out (a tile grid's are among the rivals already)
+        other = hyp(chosen.k + 1) if hyp(chosen.k + 1) in cands else hyp(chosen.k + 3)
+        if other.match is not None and other.match.n_lines >= 1:
+            rivals.append(Twin(other.psi_rad, other.match.shift_m, "quarter_turn",
+                               not is_ambiguous(other.match)))
     if ctx.assume_heading_rad is not None and rivals:
         # the user's statement, not the frame, rules out the rivals beyond 90 deg of it
         kept = [t for t in rivals if abs(wrap_pi(t.psi_rad - centre)) < np.pi / 2 - 1e-9]

@@ -9,6 +9,7 @@ import pytest
 
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
+from helpers import assert_broken_field, write_text
 
 RECT = """\
 ceiling_height: 2.8
@@ -21,10 +22,7 @@ light_yaw: 90.0
 """
 
 
-def write(tmp_path, text, name="site.yaml"):
-    path = tmp_path / name
-    path.write_text(text)
-    return path
+write = write_text
 
 
 def test_light_size_and_yaw_parsed(tmp_path):
@@ -84,13 +82,7 @@ BREAKS = [
 @pytest.mark.parametrize("old,new,key,words", BREAKS)
 def test_light_size_broken_one_field_at_a_time(tmp_path, old, new, key, words):
     assert old in RECT
-    path = write(tmp_path, RECT.replace(old, new, 1))
-    with pytest.raises(ConfigError) as err:
-        Site.load(path)
-    msg = str(err.value)
-    assert "\n" not in msg
-    assert msg.startswith(f"{path}: {key}: "), msg
-    assert words in msg, msg
+    assert_broken_field(Site.load, write(tmp_path, RECT.replace(old, new, 1)), key, words)
 
 
 def test_duplicate_check_on_a_large_map(tmp_path):
