@@ -170,10 +170,9 @@ def polygon_moments(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
     cr = x * yn - xn * y
     a = 0.5 * cr.sum(axis=1)
+    mx, my = polygon_centroids(p).T
     with np.errstate(invalid="ignore", divide="ignore"):
         a_safe = np.where(np.abs(a) > 1e-12, a, np.nan)
-        mx = ((x + xn) * cr).sum(axis=1) / (6 * a_safe)
-        my = ((y + yn) * cr).sum(axis=1) / (6 * a_safe)
         sxx = ((x * x + x * xn + xn * xn) * cr).sum(axis=1) / (12 * a_safe) - mx * mx
         syy = ((y * y + y * yn + yn * yn) * cr).sum(axis=1) / (12 * a_safe) - my * my
         sxy = ((x * yn + 2 * x * y + 2 * xn * yn + xn * y) * cr).sum(axis=1) \
