@@ -76,7 +76,7 @@ def main() -> None:
         for mod, name, old, new in patches:
             setattr(mod, name, old if before else new)
 
-    opts = {"track": True} if args.track else None
+    opts = {"window_search": True} if args.track else None
     ests = [make_estimator(args.method, data.rig, data.site, stated(args.method, opts))
             for _ in range(2)]
     trackers = [Tracker(), Tracker()]

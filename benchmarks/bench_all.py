@@ -21,10 +21,10 @@ Entries per recording:
   ``lights`` with its other spot stage (``spot_stage=windowed``); with ``--detectors``
   also the corridor's global path with each other line detector, and with its
   full-resolution search alone (``coarse_search=false``);
-* **methods with a prior**: the estimator's ``track`` option on, the prior from the
-  project's :class:`~ceilkit.runtime.tracking.Tracker` fed by that entry's own
-  estimates (as ``ceilrun`` runs it), so a lost track falls back to the global path
-  and is counted in the timing;
+* **methods with a prior**: the estimator's ``window_search`` option on (the default),
+  the prior from the project's :class:`~ceilkit.runtime.tracking.Tracker` fed by that
+  entry's own estimates (as ``ceilrun`` runs it), so a lost track falls back to the
+  global path and is counted in the timing;
 * **baselines** (``paper-corridor``, ``paper-lights``, ``paper-block``;
   ``paper-lights`` with both centroid readings when it has the option);
 * **reference kernels**: a full-frame memory pass (``cv2.mean``), the line
@@ -205,8 +205,8 @@ def entries(data: Data, detectors: bool = False) -> list[Entry]:
     main = "block" if is_block else "corridor" if is_corridor else "lights"
     est = make_estimator(main, rig, site, stated(main))
     out.append(method_entry(main, "method", est, data, False))
-    if has_option(type(est.options), "track"):
-        tracked = make_estimator(main, rig, site, stated(main, {"track": True}))
+    if has_option(type(est.options), "window_search"):
+        tracked = make_estimator(main, rig, site, stated(main, {"window_search": True}))
         out.append(method_entry(f"{main} +prior", "tracked", tracked, data, True))
     if has_option(type(est.options), "spot_stage"):      # the other spot stage
         out.append(method_entry(f"{main} spot_stage=windowed", "method",

@@ -18,7 +18,12 @@ Cases (noise 2 grey levels, blur 0.8 px, ``supersample=1`` to keep it short):
   about 3.2 px per cell (``bench_tiles_markers.py``'s rig and site) on a loop:
   ``auto`` and ``block`` without a start pose;
 * **light-grid**: a regular 1.5 m grid of spot lights (configs/lights' rig) on a loop:
-  ``lights`` and ``auto`` without and with a start pose.
+  ``lights`` and ``auto`` without and with a start pose;
+* **...-wrong-prior**: the corridor, the tiles and the light grid from a start pose off
+  by a distance and an angle that make it no twin of the truth (the run's name says
+  how far): no valid pose may be wrong;
+* **...-kidnap**: the light grid, the corridor and the small markers with the vehicle
+  carried elsewhere between frames 29 and 30 (:func:`kidnap`; no odometry sees it).
 
 For every run: frames, valid poses, **wrong valid poses** (more than 10 cm or 2 deg
 off, over the coordinates published), median position error, and the mean NEES of
@@ -112,6 +117,13 @@ def run(folder: Path, tag: str, method: str, start=None) -> dict[str, float]:
     return res
 
 
+def kidnap(a: Trajectory, b: Trajectory, k: int) -> Trajectory:
+    """``a``'s first ``k`` poses, then ``b``'s from its ``k``-th: the vehicle carried
+    elsewhere between two frames (no odometry sees it)."""
+    return Trajectory(a.t_ns, np.r_[a.x_m[:k], b.x_m[k:]], np.r_[a.y_m[:k], b.y_m[k:]],
+                      np.r_[a.yaw_rad[:k], b.yaw_rad[k:]])
+
+
 def tiles_site(tmp: Path) -> Path:
     d = {"ceiling_height": 3.0,
          "corridor": {"lines_along": [round(-3.0 + 0.6 * i, 2) for i in range(11)],
@@ -140,6 +152,14 @@ def small_markers(n: int) -> tuple[Rig, Site, Trajectory]:
     return tm.rig(), tm.site(), Trajectory(t, poses[:, 0], poses[:, 1], np.unwrap(poses[:, 2]))
 
 
+def _kidnapped(rts: tuple[Rig, Site, Trajectory], n: int) -> tuple[Rig, Site, Trajectory]:
+    """The small-marker loop, the second half carried a quarter of the loop ahead."""
+    rig, site, tr = rts
+    sh = np.roll(np.arange(n), -n // 4)
+    other = Trajectory(tr.t_ns, tr.x_m[sh], tr.y_m[sh], tr.yaw_rad[sh])
+    return rig, site, kidnap(tr, other, n // 2)
+
+
 def cases(tmp: Path, n: int) -> dict[str, tuple]:
     crig, csite = Rig.load(CONFIGS / "corridor/rig.yaml"), Site.load(CONFIGS / "corridor/site.yaml")
     brig = Rig.load(CONFIGS / "block/rig.yaml")
@@ -147,9 +167,13 @@ def cases(tmp: Path, n: int) -> dict[str, tuple]:
     rev = drive(n, 10.0, 20.0, 0.1, 180.0, 0.5)
     fwd = drive(n, 10.0, 2.0, -0.1, 0.0, 0.5)
 
-    def start(tr: Trajectory, turn_deg: float = 0.0):
+    def start(tr: Trajectory, turn_deg: float = 0.0, dx: float = 0.0, dy: float = 0.0):
         x, y, yaw = tr.pose(0)
-        return (x, y, yaw + math.radians(turn_deg))
+        return (x + dx, y + dy, yaw + math.radians(turn_deg))
+
+    grid_loop = loop(n, 10.0, 0.0, 0.0, 2.0, 0.5)
+    grid_kidnap = kidnap(grid_loop, loop(n, 10.0, 0.6, -0.4, 1.5, -0.5), n // 2)
+    tiles_loop = loop(n, 10.0, 1.0, 0.0, 1.5, 0.4)
 
     return {
         "corridor-reverse": (crig, csite, rev, [
@@ -157,8 +181,13 @@ def cases(tmp: Path, n: int) -> dict[str, tuple]:
             ("auto", start(rev))]),
         "corridor-forward": (crig, csite, fwd, [
             ("corridor", None), ("corridor", start(fwd))]),
-        "tiles": (brig, Site.load(tiles_site(tmp)), loop(n, 10.0, 1.0, 0.0, 1.5, 0.4), [
-            ("corridor", None), ("corridor", start(loop(n, 10.0, 1.0, 0.0, 1.5, 0.4)))]),
+        "corridor-wrong-prior": (crig, csite, rev, [
+            ("corridor", start(rev, 25.0, 0.0, 0.3)), ("auto", start(rev, -30.0, 0.5, 0.2))]),
+        "tiles": (brig, Site.load(tiles_site(tmp)), tiles_loop, [
+            ("corridor", None), ("corridor", start(tiles_loop))]),
+        "tiles-wrong-prior": (brig, Site.load(tiles_site(tmp)), tiles_loop, [
+            ("corridor", start(tiles_loop, 45.0, 0.3, 0.3)),
+            ("corridor", start(tiles_loop, 10.0, 0.25, -0.2))]),
         "tiles-markers": (brig, Site.load(CONFIGS / "block/site.yaml"),
                           drive(n, 10.0, 0.0, 0.0, 0.0, 0.8, 0.3), [("auto", None)]),
         "tiles-small-markers": (*small_markers(n), [("auto", None), ("block", None)]),
@@ -166,6 +195,14 @@ def cases(tmp: Path, n: int) -> dict[str, tuple]:
             ("lights", None), ("auto", None),
             ("lights", start(loop(n, 10.0, 0.0, 0.0, 2.0, 0.5))),
             ("auto", start(loop(n, 10.0, 0.0, 0.0, 2.0, 0.5)))]),
+        "light-grid-wrong-prior": (lrig, Site.load(grid_site(tmp)), grid_loop, [
+            ("lights", start(grid_loop, 20.0, 0.7, -0.6)), ("auto", start(grid_loop, -10.0, 0.8))]),
+        "light-grid-kidnap": (lrig, Site.load(grid_site(tmp)), grid_kidnap, [
+            ("lights", start(grid_kidnap)), ("auto", start(grid_kidnap))]),
+        "corridor-kidnap": (crig, csite, kidnap(rev, drive(n, 10.0, 14.0, -0.3, 170.0, 0.5),
+                                                n // 2), [
+            ("corridor", start(rev)), ("auto", start(rev))]),
+        "small-markers-kidnap": (*_kidnapped(small_markers(n), n), [("auto", None)]),
     }
 
 
@@ -173,25 +210,31 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--only", nargs="*")
+    ap.add_argument("--keep", type=Path, help="write the recordings and runs here (kept)")
     a = ap.parse_args(argv)
     OUT.mkdir(exist_ok=True)
     rows = []
     with tempfile.TemporaryDirectory() as d:
-        tmp = Path(d)
+        tmp = a.keep or Path(d)
+        tmp.mkdir(parents=True, exist_ok=True)
         for name, (rig, site, traj, runs) in cases(tmp, a.frames).items():
             if a.only and name not in a.only:
                 continue
             folder = simulate_recording(rig, site, traj, tmp / name, SIM, seed=7)
             for method, start in runs:
                 tag = f"{method}-{'start' if start else 'nostart'}"
-                if start is not None and abs(math.remainder(
-                        start[2] - traj.pose(0)[2], 2 * math.pi)) > 1.0:
-                    tag += "-turned"
+                if start is not None:
+                    x0, y0, yaw0 = traj.pose(0)
+                    dyaw = abs(math.remainder(start[2] - yaw0, 2 * math.pi))
+                    off = math.hypot(start[0] - x0, start[1] - y0)
+                    tag += ("-turned" if dyaw > 3.0 else
+                            f"-off{off:.2f}m{math.degrees(dyaw):.0f}deg"
+                            if off > 0.1 or dyaw > math.radians(2.0) else "")
                 res = run(folder, tag, method, start)
                 rows.append({"case": name, "run": tag, **res})
                 nees = (f"NEES {res['nees']:.2f} [{res['nees_lo']:.2f}, {res['nees_hi']:.2f}]"
                         if "nees" in res else "")
-                print(f"{name:17s} {tag:26s} valid {res['valid']:3d}/{res['frames']:3d} "
+                print(f"{name:22s} {tag:30s} valid {res['valid']:3d}/{res['frames']:3d} "
                       f"wrong {res['wrong']:3d}  median {1e3 * res['median_m']:7.2f} mm  "
                       f"{nees}  ({res['s']:.0f} s)", flush=True)
     keys = sorted({k for r in rows for k in r}, key=lambda k: (k not in ("case", "run"), k))

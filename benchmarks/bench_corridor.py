@@ -24,11 +24,11 @@ back with ``ceilkit.runtime.io.recording.Recording``, as data from outside the p
 would be; ``--recording DIR`` runs on an existing recording (with ``truth.csv``)
 instead.
 
-``--chord-px 48,96,144 --recording DIR`` instead runs the tracked path (``track=true``,
-the prior from the project's ``Tracker`` fed by each entry's own estimates) with each
-chord length (``track.CHORD_PX``) on a recorded drive, the entries interleaved frame by
-frame, every call timed by the thread's CPU time: how the time and the accuracy move with
-the number of chords searched.
+``--chord-px 48,96,144 --recording DIR`` instead runs the window search
+(``window_search=true``, the prior from the project's ``Tracker`` fed by each entry's own
+estimates) with each chord length (``track.CHORD_PX``) on a recorded drive, the entries
+interleaved frame by frame, every call timed by the thread's CPU time: how the time and
+the accuracy move with the number of chords searched.
 
     .venv/bin/python benchmarks/bench_corridor.py [--frames 60] [--clutter] [--detectors]
         [--lateral 0.8] [--recording DIR] [--repeat 3] [--chord-px 48,96]
@@ -145,7 +145,7 @@ def chord_sweep(folder: Path, chord_px: list[float]) -> None:
     frames = [rec.frame(k) for k in range(len(rec))]
     truth = [rec.truth.lookup(f.t_ns) for f in frames]
     grey = [to_grey(f.image) for f in frames]
-    tracked = stated("corridor", {"track": True})
+    tracked = stated("corridor", {"window_search": True})
     ents = [(c, CorridorEstimator(rec.rig, rec.site, tracked), Tracker()) for c in chord_px]
 
     def call(c: float, est: CorridorEstimator, tr: Tracker, k: int):

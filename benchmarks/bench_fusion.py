@@ -162,7 +162,7 @@ def replay_poses(folder: Path, name: str, method: str, start_pose=None) -> list:
     gives only as sigmas)."""
     sink = ListSink()
     replay(folder, folder / name, method=method, start_pose=start_pose, sinks=[sink],
-           options=stated(method))
+           options=stated(method, None, Site.load(folder / "site.yaml")))
     return [e for e, _ in sink.items]
 
 

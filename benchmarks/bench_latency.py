@@ -3,7 +3,7 @@
 Simulated 640x480 frames (``configs/corridor`` and ``configs/lights``, a weaving drive,
 pre-rendered) are served by a fake camera device (``capture.FakeCamera``) through the
 real ``CameraSource`` (grabber thread, stamped with ``time.monotonic_ns`` at grab,
-latest-frame policy), the estimator (``track`` on or off), the
+latest-frame policy), the estimator (``window_search`` on or off), the
 :class:`~ceilkit.runtime.tracking.Tracker` and a ``SerialLink`` writing NMEA into a
 real pseudo-terminal, run by ``run_live`` as ``ceilrun`` runs it. The other end of the
 terminal is drained by another process, as a controller is (``--peer-thread``: by a thread
@@ -91,7 +91,7 @@ def one_run(rig: Rig, site: Site, method: str, track: bool, images: list[np.ndar
     """One live run: the telemetry's per-frame lists and counters."""
     cam = FakeCamera(images, fps)
     peer = PtyPeer() if peer_thread else ProcessPeer()
-    est = make_estimator(method, rig, site, stated(method, {"track": True} if track else None))
+    est = make_estimator(method, rig, site, stated(method, {"window_search": track}))
     try:
         with CameraSource("fake", open_capture=cam.open) as source, \
                 SerialLink(peer.path, 115200, "nmea") as link:

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ceilkit.calib.mount_upward import PoseTable, calibrate_mount_upward, observe
+from ceilkit.calib.mount_upward import StampedPoses, calibrate_mount_upward, observe
 from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.sim.render import SimOptions, render_frame, straight_drive
@@ -54,14 +54,14 @@ def run_seed(seed: int, frames: int, site: Site, base: Rig) -> dict:
         img = render_frame(rig, site, x, y, yaw, SimOptions(), np.random.default_rng([seed, i]))
         lf.append(observe(rig, img, int(dense.t_ns[k]), f"frame {i}"))
     start = base.with_mount(Mount(0.0, math.pi / 2, 0.0, 0.0, 0.0, 0.5))
-    exact = PoseTable(dense.t_ns[ks], dense.x_m[ks], dense.y_m[ks], dense.yaw_rad[ks])
+    exact = StampedPoses(dense.t_ns[ks], dense.x_m[ks], dense.y_m[ks], dense.yaw_rad[ks])
     t0 = time.perf_counter()
     res = calibrate_mount_upward(start, site, lf, exact)
     fit_s = time.perf_counter() - t0
     # mocap: row j stamped j/120 s on the mocap clock, which runs 7 ms ahead
     js = np.arange(OFFSET_SAMPLES, n_dense, MOCAP_EVERY)
     src = js - OFFSET_SAMPLES
-    mocap = PoseTable(dense.t_ns[js], dense.x_m[src], dense.y_m[src], dense.yaw_rad[src])
+    mocap = StampedPoses(dense.t_ns[js], dense.x_m[src], dense.y_m[src], dense.yaw_rad[src])
     mres = calibrate_mount_upward(start, site, lf, mocap, estimate_offset=True)
 
     def errs(r) -> dict:

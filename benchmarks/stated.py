@@ -16,10 +16,12 @@ from typing import Any
 STATED = {"assume_heading_deg": 0.0}
 
 
-def stated(method: str | None, options: Mapping[str, Any] | None = None
-           ) -> Mapping[str, Any] | None:
+def stated(method: str | None, options: Mapping[str, Any] | None = None,
+           site: Any = None) -> Mapping[str, Any] | None:
     """``options`` with the stated heading added for the corridor method (and ``auto``,
-    whose corridor cue takes it); other methods' options unchanged."""
-    if method not in ("corridor", "auto"):
+    whose corridor cue takes it, on a ``site`` with corridor lines when one is given);
+    other methods' options unchanged."""
+    if method not in ("corridor", "auto") or (
+            method == "auto" and site is not None and getattr(site, "corridor", None) is None):
         return options
     return {**STATED, **(options or {})}

@@ -3,6 +3,15 @@
 What ``ceilcal autopilot`` writes: the settings ArduPilot (EKF3, ``VISO_*``) or PX4
 (EKF2, ``EKF2_EV_*``) needs to fuse the ``mavlink-odometry`` stream (docs/integration.md).
 
+Parameter names follow the firmware (:data:`ARDUPILOT_FIRMWARES`): ArduPilot 4.6 moved
+the GPS parameters into per-instance groups, so the first GPS's type is ``GPS_TYPE`` up
+to 4.5 and ``GPS1_TYPE`` from 4.6 (ArduPilot's ``libraries/AP_GPS/AP_GPS_Params.cpp``;
+PR 27933 notes "renamed in 4.6" on the old names); a file for the wrong release sets a
+parameter that does not exist and leaves the GPS on. The other names written here
+(``VISO_*``, ``AHRS_EKF_TYPE``, ``EK3_SRC1_*``, ``COMPASS_USE*``) are the same in 4.5,
+4.6 and 4.7 (``libraries/AP_VisualOdom/AP_VisualOdom.cpp``; the wiki's "Parameter Name
+Changes" page lists no rename of them for 4.7).
+
 The sensor offset is the camera's optical centre (the rig's mount, SPEC §1, in V: x
 forward, y left, z up from the vehicle's reference point on the floor) relative to the
 autopilot (its IMU, ``autopilot_V_m`` in V), in the autopilots' body frame FRD (x
@@ -32,7 +41,12 @@ from ceilkit.runtime.config.yaml import atomic_write_text
 from ceilkit.runtime.errors import ConfigError
 
 TARGETS = ("ardupilot", "px4")
+ARDUPILOT_FIRMWARES = {"ardupilot-4.5": "GPS_TYPE", "ardupilot-4.6": "GPS1_TYPE",
+                       "ardupilot-4.7": "GPS1_TYPE"}
+"""``--firmware`` -> the name of the first GPS's type parameter in that release."""
 DEFAULT_DELAY_MS = 50.0
+DELAY_RANGE_MS = (0.0, 250.0)
+"""``VISO_DELAY_MS``'s range (ArduPilot); PX4's ``EKF2_EV_DELAY`` takes 0-300 ms."""
 POS_NOISE_FLOOR_M = 0.05     # VISO_POS_M_NSE / EKF2_EVP_NOISE: the message's sigma is floored
 YAW_NOISE_FLOOR_RAD = 0.05   # VISO_YAW_M_NSE / EKF2_EVA_NOISE
 MAV_PARAM_TYPE_INT32 = 6     # the type column of a QGroundControl .params file
@@ -58,13 +72,16 @@ def sensor_offset_frd(mount: Mount, autopilot_V_m: Sequence[float] = (0.0, 0.0, 
 
 
 def ardupilot_params(mount: Mount, *, autopilot_V_m: Sequence[float] = (0.0, 0.0, 0.0),
-                     corridor: bool = False, delay_ms: float = DEFAULT_DELAY_MS) -> list[Param]:
-    """ArduPilot 4.x (Rover, Copter) external navigation from ODOMETRY, EKF3.
+                     corridor: bool = False, delay_ms: float = DEFAULT_DELAY_MS,
+                     firmware: str = "ardupilot-4.6") -> list[Param]:
+    """ArduPilot (Rover, Copter) external navigation from ODOMETRY, EKF3, with the
+    parameter names of ``firmware`` (:data:`ARDUPILOT_FIRMWARES`).
 
     ``corridor``: the site gives no x (the corridor method): the position must not be
     fused (ArduPilot folds x, y, z into one error, so a huge x variance would also drown
     y): ``EK3_SRC1_POSXY`` = 0 and the heading is all ArduPilot takes.
     """
+    gps_type = ARDUPILOT_FIRMWARES[check_firmware(firmware)]
     x, y, z = sensor_offset_frd(mount, autopilot_V_m)
     return [
         Param("VISO_TYPE", 1, "MAVLink: accept ODOMETRY / VISION_POSITION_ESTIMATE (reboot)"),
@@ -86,7 +103,7 @@ def ardupilot_params(mount: Mount, *, autopilot_V_m: Sequence[float] = (0.0, 0.0
         Param("COMPASS_USE", 0, "the compass disagrees with the site frame indoors"),
         Param("COMPASS_USE2", 0, "second compass"),
         Param("COMPASS_USE3", 0, "third compass"),
-        Param("GPS_TYPE", 0, "no GPS indoors (GPS1_TYPE on 4.6 and later)"),
+        Param(gps_type, 0, f"no GPS indoors (the first GPS's type in {firmware})"),
     ]
 
 
@@ -116,13 +133,69 @@ def px4_params(mount: Mount, *, autopilot_V_m: Sequence[float] = (0.0, 0.0, 0.0)
     ]
 
 
-def autopilot_params(mount: Mount, target: str, **kw) -> list[Param]:
-    """The parameters for ``target`` (``ardupilot`` or ``px4``); see the two above."""
+def check_firmware(firmware: str) -> str:
+    """``firmware`` if it is one of :data:`ARDUPILOT_FIRMWARES` (else ``--firmware``)."""
+    if firmware not in ARDUPILOT_FIRMWARES:
+        raise ConfigError(None, "--firmware", f"expected one of "
+                          f"{', '.join(ARDUPILOT_FIRMWARES)}, found {firmware!r}")
+    return firmware
+
+
+def resolve_target(target: str | None, firmware: str | None) -> tuple[str, str | None]:
+    """``(target, firmware)`` from ``--for`` and ``--firmware``: a firmware implies its
+    autopilot; ArduPilot needs one (its parameter names changed in 4.6), PX4 takes none.
+
+    Raises:
+        ConfigError: keyed ``--for`` or ``--firmware``, naming what to give.
+    """
+    if target is not None and target not in TARGETS:
+        raise ConfigError(None, "--for", f"expected one of {', '.join(TARGETS)}, "
+                          f"found {target!r}")
+    if firmware is not None:
+        check_firmware(firmware)
+        if target == "px4":
+            raise ConfigError(None, "--firmware", f"{firmware} is ArduPilot firmware; "
+                              f"--for px4 takes no --firmware")
+        return "ardupilot", firmware
     if target == "ardupilot":
-        return ardupilot_params(mount, **kw)
-    if target == "px4":
-        return px4_params(mount, **kw)
-    raise ConfigError(None, "--for", f"expected one of {', '.join(TARGETS)}, found {target!r}")
+        raise ConfigError(None, "--firmware", "ArduPilot renamed GPS_TYPE to GPS1_TYPE "
+                          "in 4.6: give the release the autopilot runs (Mission Planner's "
+                          "title bar, MAVProxy's 'version'): "
+                          f"{' or '.join(ARDUPILOT_FIRMWARES)}")
+    if target is None:
+        raise ConfigError(None, "--for", f"expected one of {', '.join(TARGETS)} (or "
+                          f"--firmware {' or '.join(ARDUPILOT_FIRMWARES)})")
+    return target, None
+
+
+def check_delay_ms(delay_ms: float) -> float:
+    """The capture-to-arrival latency, ms, if in :data:`DELAY_RANGE_MS` (else
+    ``--delay-ms``)."""
+    lo, hi = DELAY_RANGE_MS
+    if not (math.isfinite(delay_ms) and lo <= delay_ms <= hi):
+        raise ConfigError(None, "--delay-ms", f"expected a latency of {lo:g} to {hi:g} ms "
+                          f"(poses.csv latency_ms), found {delay_ms!r}")
+    return float(delay_ms)
+
+
+def autopilot_params(mount: Mount, target: str, firmware: str | None = None,
+                     **kw) -> list[Param]:
+    """The parameters for ``target`` (``ardupilot`` with its ``firmware``, or ``px4``);
+    see the two above. ``delay_ms`` is checked (:func:`check_delay_ms`)."""
+    target, firmware = resolve_target(target, firmware)
+    if "delay_ms" in kw:
+        kw["delay_ms"] = check_delay_ms(kw["delay_ms"])
+    if target == "ardupilot":
+        return ardupilot_params(mount, firmware=firmware or "", **kw)
+    return px4_params(mount, **kw)
+
+
+def default_param_path(rig_path: str | Path, target: str, firmware: str | None) -> Path:
+    """Beside the rig, named by what it is for: ``rig.ardupilot-4.6.param`` (Mission
+    Planner / MAVProxy) or ``rig.px4.params`` (QGroundControl)."""
+    stem = Path(rig_path).with_suffix("")
+    return Path(f"{stem}.{firmware}.param") if target == "ardupilot" else \
+        Path(f"{stem}.px4.params")
 
 
 def _value_text(value: int | float) -> str:
@@ -144,6 +217,17 @@ ORIGIN_STEP = {
             "SET_GPS_GLOBAL_ORIGIN (the site's origin, or --ekf-origin) until PX4 reports "
             "GPS_GLOBAL_ORIGIN."],
 }
+
+
+def purpose_lines(target: str, firmware: str | None) -> list[str]:
+    """The file's first words: what it is for, and that it is the one to load."""
+    what = firmware if target == "ardupilot" else "PX4 v1.14 and later"
+    out = [f"ceilkit external navigation for {what}: the whole set; load this file"]
+    if target == "ardupilot":
+        out.append("(rig.viso.param, which ceilcal mount / calibrate write beside the rig, "
+                   "holds VISO_POS_X/Y/Z alone for an autopilot at V's origin: not needed "
+                   "with this one)")
+    return out
 
 
 def format_params(params: Sequence[Param], target: str, header: str = "") -> str:

@@ -32,14 +32,16 @@ import math
 import re
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.features.grey import to_grey
-from ceilkit.runtime.features.working import decimate, undecimate, working_factor
-from ceilkit.runtime.geometry.camera import CameraModel, subpixel_rays
+
+if TYPE_CHECKING:  # the renderer imports the camera (and numba) when it first draws
+    from ceilkit.runtime.geometry.camera import CameraModel
 
 ARUCO_DICTIONARIES = tuple(n[5:] for n in dir(cv2.aruco) if n.startswith("DICT_"))
 MIN_CHARUCO_CORNERS = 6
@@ -197,7 +199,7 @@ class ChessBoard(Board):
         if self.cols < 2 or self.rows < 2:
             raise ConfigError(None, "board", f"a chessboard needs at least 2x2 inner "
                               f"corners, found {self.cols}x{self.rows}")
-        if not self.square_m > 0:
+        if not (self.square_m > 0 and math.isfinite(self.square_m)):
             raise ConfigError(None, "square", f"expected a positive size in metres, "
                               f"found {self.square_m:g}")
         if self.detector not in ("auto", "sb", "classic"):
@@ -223,6 +225,7 @@ class ChessBoard(Board):
         return (-s, -s, self.cols * s, self.rows * s)
 
     def detect(self, image: np.ndarray, name: str = "") -> Detection | None:
+        decimate, undecimate, working_factor = _working()
         grey = to_grey(image)
         f = working_factor(grey.shape, self.working_mpx)
         corners = self._find(decimate(grey, f), self.subpix_half if f == 1 else None)
@@ -340,7 +343,7 @@ class CharucoBoard(Board):
         if self.squares_x < 2 or self.squares_y < 2:
             raise ConfigError(None, "board", f"a ChArUco board needs at least 2x2 squares, "
                               f"found {self.squares_x}x{self.squares_y}")
-        if not self.square_m > 0:
+        if not (self.square_m > 0 and math.isfinite(self.square_m)):
             raise ConfigError(None, "square", f"expected a positive size in metres, "
                               f"found {self.square_m:g}")
         if not 0 < self.marker_m < self.square_m:
@@ -383,6 +386,7 @@ class CharucoBoard(Board):
         return (0.0, 0.0, self.squares_x * self.square_m, self.squares_y * self.square_m)
 
     def detect(self, image: np.ndarray, name: str = "") -> Detection | None:
+        decimate, undecimate, working_factor = _working()
         grey = to_grey(image)
         h, w = grey.shape[:2]
         f = working_factor(grey.shape, self.working_mpx)
@@ -405,6 +409,7 @@ class CharucoBoard(Board):
     def markers_found(self, image: np.ndarray) -> int:
         """How many markers of this board's dictionary ``image`` shows."""
         detector = cv2.aruco.CharucoDetector(self.cv_board)
+        decimate, _, working_factor = _working()
         grey = to_grey(image)
         _, _, _, marker_ids = detector.detectBoard(
             decimate(grey, working_factor(grey.shape, self.working_mpx)))
@@ -443,6 +448,24 @@ class CharucoBoard(Board):
                 pass
         return out
 
+
+
+def _working():
+    """``(decimate, undecimate, working_factor)`` of :mod:`ceilkit.runtime.features.working`,
+    imported when a board is first searched for: that module loads the spot detector and
+    numba (about 130 MB), which printing a board does not need."""
+    from ceilkit.runtime.features import working
+
+    return working.decimate, working.undecimate, working.working_factor
+
+
+def __getattr__(name: str):
+    """``decimate``, ``undecimate`` and ``working_factor``, as this module has always
+    offered them (imported on first use: see :func:`_working`)."""
+    if name in ("decimate", "undecimate", "working_factor"):
+        return getattr(__import__("ceilkit.runtime.features.working",
+                                  fromlist=[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _check_working(working_mpx: float) -> None:
@@ -528,6 +551,8 @@ def _render_rows(board: Board, camera: CameraModel, R: np.ndarray, t: np.ndarray
     K = camera.K.copy()
     K[1, 2] -= v0                           # the strip is a camera with its centre moved
     strip = dataclasses.replace(camera, height=v1 - v0, K=K)
+    from ceilkit.runtime.geometry.camera import subpixel_rays
+
     rays = subpixel_rays(strip, supersample)
     n = R[:, 2]
     denom = rays @ n
@@ -650,40 +675,5 @@ def render_views(board: Board, camera: CameraModel, n_views: int, rng: np.random
 
 
 __all__ = ["ARUCO_DICTIONARIES", "SUBPIX_FRACTION", "WORKING_MPX", "Board", "CharucoBoard",
-           "ChessBoard", "Detection", "decimate", "look_at_pose", "parse_board",
-           "refine_corners", "render_board", "render_views", "undecimate", "working_factor"]
-
-
-# -- printing ---------------------------------------------------------------------------------
-
-
-def printable_board(board: Board, dpi: float, label: str = "") -> np.ndarray:
-    """The board as a grey image to print at ``dpi`` (pure black squares on white, the
-    board's white margin around them, ``label`` written below it).
-
-    Pixel ``(u, v)`` shows the board point at its centre, ``(u + 0.5, v + 0.5)`` pixel
-    pitches from the paper's corner: squares are ``square_m * dpi / 0.0254`` pixels,
-    every edge within half a pixel of its true place at 100% print scale.
-    """
-    if not (math.isfinite(dpi) and 50 <= dpi <= 2400):
-        raise ConfigError(None, "dpi", f"expected 50-2400 dots per inch, found {dpi!r}")
-    pitch = 0.0254 / float(dpi)
-    x0, y0, x1, y1 = board.extent_m
-    m = getattr(board, "margin_squares", 1.0) * board.square_m  # type: ignore[attr-defined]
-    w = int(math.ceil((x1 - x0 + 2 * m) / pitch))
-    h = int(math.ceil((y1 - y0 + 2 * m) / pitch))
-    text_h = int(math.ceil(0.012 / pitch)) if label else 0
-    uu, vv = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    xy = np.stack([x0 - m + uu * pitch, y0 - m + vv * pitch], axis=-1)
-    img = np.where(board.texture(xy) < 0.2, 0, 255).astype(np.uint8)   # black ink only
-    if label:
-        strip = np.full((text_h, w), 255, np.uint8)
-        scale = 0.6 * text_h / 30.0
-        (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-        if tw > w:
-            scale *= w / tw
-        cv2.putText(strip, label, (int(0.02 * w), int(0.7 * text_h)),
-                    cv2.FONT_HERSHEY_SIMPLEX, scale, 0, max(1, int(round(scale * 2))),
-                    cv2.LINE_AA)
-        img = np.vstack([img, strip])
-    return img
+           "ChessBoard", "Detection", "look_at_pose", "parse_board", "refine_corners",
+           "render_board", "render_views"]

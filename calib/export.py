@@ -130,6 +130,11 @@ def write_exports(mount: Mount, rig_path: str | Path, header: str) -> Exports:
                       + f"ros2 run tf2_ros static_transform_publisher {args}\n")
     x, y, z = viso_pos(mount)
     atomic_write_text(paths.ardupilot, header
+                      + "# VISO_POS_X/Y/Z alone, to update an autopilot already set up; for "
+                        "a first setup load instead the whole set that ceilcal autopilot "
+                        f"--rig {Path(rig_path).name} --firmware ardupilot-4.6 writes "
+                        f"({Path(rig_path).with_suffix('').name}"
+                        ".ardupilot-4.6.param; it holds these three too)\n"
                       + "# camera optical centre in the body frame FRD, m (autopilot at "
                         "V's origin: subtract its position otherwise)\n"
                       + "# for --protocol mavlink-odometry (ODOMETRY carries the camera's "

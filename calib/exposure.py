@@ -282,21 +282,26 @@ def assist(device: str, out: str | Path, method: str | None = None,
            gains: Sequence[float] = DEFAULT_GAINS, settle: int = 3, frames: int = 3,
            size: tuple[int, int, float, str] = (0, 0, 0.0, ""),
            progress: Callable[[Setting], None] | None = None,
-           command: str = "") -> ExposureRun:
+           command: str = "", force: bool = False) -> ExposureRun:
     """``ceilcal exposure``: sweep ``device`` (``/dev/videoN``, an index, or ``sim:NAME``
     whose camera follows the simulator's exposure model) and write the best setting.
 
     ``method`` defaults to the site's (:func:`method_for_site`; a ``sim:`` device
     defaults to its example's rig and site). ``size``: the capture's width, height,
     fps and fourcc (0, "": the driver's default), as ``ceilrun`` requests them.
+    ``force``: replace an existing ``out`` (refused otherwise, before the sweep).
 
     Raises:
-        ConfigError: a bad sweep or method, or no method and no site.
+        ConfigError: a bad sweep or method, or no method and no site; ``out`` exists
+            (without ``force``) or is an input.
         CaptureError: the camera cannot be opened.
         CalibrationError: no setting suits the method (nothing is written).
     """
     from ceilkit.runtime.devices import open_source, packaged_config
+    from ceilkit.runtime.io.outputs import claim_outputs
 
+    claim_outputs({"out": [Path(out)]}, force=force,
+                  inputs=[Path(p) for p in (rig, site) if p is not None])
     rig_obj = site_obj = None
     if device.startswith("sim"):
         example = packaged_config(device.partition(":")[2] or "corridor")

@@ -44,6 +44,7 @@ from ceilkit.runtime.errors import CalibrationError, CaptureError, ConfigError
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.camera import DISTORTION_MODELS, CameraModel
 from ceilkit.runtime.io.capture import IMAGE_SUFFIXES, list_images
+from ceilkit.runtime.io.images import read_image
 from ceilkit.runtime.io.sources import FrameSource
 from ceilkit.runtime.viz.plots import with_colour_scale
 
@@ -514,15 +515,9 @@ def image_files(folder: str | Path) -> list[Path]:
 
 def read_grey(path: str | Path) -> np.ndarray:
     """An image file as 8-bit grey; a ConfigError naming the file if it cannot be read."""
-    path = Path(path)
-    try:
-        data = np.fromfile(path, dtype=np.uint8)
-    except OSError as exc:
-        raise ConfigError(path, None, f"cannot read: {exc.strerror or exc}") from None
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    img, damage = read_image(path)  # a truncated JPEG is refused, not half grey
     if img is None:
-        raise ConfigError(path, None, "cannot be decoded as an image (corrupt or not an "
-                          "image file)")
+        raise ConfigError(None, None, damage)
     return to_grey(img)
 
 

@@ -53,7 +53,7 @@ from ceilkit.runtime.features.spots import SpotParams, detect_spots
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 from ceilkit.runtime.io.recording import Recording, Truth, load_poses, load_truth
 
-from .poses import PoseTable
+from .poses import StampedPoses
 
 
 @dataclass(frozen=True, eq=False)
@@ -247,7 +247,7 @@ class _Detections:
     frame: np.ndarray                # (K,) frame index
     frames_used: int
 
-    def world(self, table: PoseTable, offset_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def world(self, table: StampedPoses, offset_s: float) -> tuple[np.ndarray, np.ndarray]:
         """``(K', 2)`` points in W at ``offset_s`` and the mask of points with a pose."""
         pose = table.at(self.t_ns, offset_s * 1e9, MAX_GAP_S * 1e9)
         ok = np.all(np.isfinite(pose), axis=1)
@@ -258,7 +258,7 @@ class _Detections:
                         1), ok
 
 
-def _detections(recording: Recording, table: PoseTable, height: float,
+def _detections(recording: Recording, table: StampedPoses, height: float,
                 spot_params: SpotParams | None, valid: np.ndarray,
                 margin_s: float | None) -> _Detections:
     """Spots of every frame whose pose the table holds ``margin_s`` either side (None:
@@ -294,7 +294,7 @@ def _cat(parts: list[np.ndarray], empty_shape) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros(empty_shape)
 
 
-def _labels(det: _Detections, table: PoseTable, offset_s: float, cluster_m: float,
+def _labels(det: _Detections, table: StampedPoses, offset_s: float, cluster_m: float,
             min_views: int) -> np.ndarray:
     """``(K,)`` each point's light (nearest centre within ``cluster_m``), -1: none."""
     P, ok = det.world(table, offset_s)
@@ -307,7 +307,7 @@ def _labels(det: _Detections, table: PoseTable, offset_s: float, cluster_m: floa
     return lab
 
 
-def _scatter(det: _Detections, table: PoseTable, offset_s: float,
+def _scatter(det: _Detections, table: StampedPoses, offset_s: float,
              labels: np.ndarray) -> float:
     """Sum of squared distances of the points at ``offset_s`` from their light's mean,
     over the points ``labels`` assigns (the same points at every offset)."""
@@ -320,7 +320,7 @@ def _scatter(det: _Detections, table: PoseTable, offset_s: float,
     return J
 
 
-def estimate_offset(det: _Detections, table: PoseTable, cluster_m: float,
+def estimate_offset(det: _Detections, table: StampedPoses, cluster_m: float,
                     min_views: int) -> tuple[float, float]:
     """The pose table's time offset to the frames (s) and its 1 sigma: the offset at
     which every light's detections from all frames fall closest together (a wrong
@@ -346,7 +346,7 @@ def estimate_offset(det: _Detections, table: PoseTable, cluster_m: float,
     return tau, sigma
 
 
-def survey_lights(recording: Recording, poses: Truth | PoseTable | None = None, *,
+def survey_lights(recording: Recording, poses: Truth | StampedPoses | None = None, *,
                   ceiling_height_m: float | None = None, cluster_m: float = 0.15,
                   min_views: int = 3, spot_params: SpotParams | None = None,
                   max_view_angle_deg: float = 60.0,
@@ -379,7 +379,7 @@ def survey_lights(recording: Recording, poses: Truth | PoseTable | None = None, 
                           "the survey needs known poses: truth.csv or --poses FILE")
     if cluster_m <= 0 or min_views < 1:
         raise ConfigError(None, "cluster_m", "expected cluster_m > 0 and min_views >= 1")
-    table = truth if isinstance(truth, PoseTable) else PoseTable.from_truth(truth)
+    table = truth if isinstance(truth, StampedPoses) else StampedPoses.from_truth(truth)
     rig = recording.rig
     height = recording.site.ceiling_height_m if ceiling_height_m is None else ceiling_height_m
     check_rig_site(rig, replace(Site(height), source=recording.site.source))
@@ -717,9 +717,9 @@ def survey_chain(recording: Recording, known: KnownLights, *,
     """
     n_frames = len(recording)
     if known.anchor_frame >= n_frames:
-        raise ConfigError(recording.folder, "anchor_frame",
+        raise ConfigError(None, "anchor_frame",
                           f"frame {known.anchor_frame} is not in the recording "
-                          f"({n_frames} frames)")
+                          f"{recording.folder} ({n_frames} frames: 0..{n_frames - 1})")
     height = recording.site.ceiling_height_m if ceiling_height_m is None else ceiling_height_m
     check_spot_lights(recording, height, spot_params, max_view_angle_deg)
     obs = frame_points(recording, height, spot_params, max_view_angle_deg)
@@ -769,9 +769,11 @@ def chain_points(obs: list[tuple[int, np.ndarray, np.ndarray]], rig: Rig,
             found, or consecutive frames do not overlap (more than half the frames
             share fewer than two lights with the map).
     """
-    if min_views < 2 or gate_m <= 0 or step_gate_m < gate_m:
-        raise ConfigError(None, "min_views", "expected min_views >= 2 and "
-                          "0 < gate_m <= step_gate_m")
+    if min_views < 2:
+        raise ConfigError(None, "min_views", f"a chaining survey needs at least 2 views of "
+                          f"a light, found {min_views}")
+    if gate_m <= 0 or step_gate_m < gate_m:
+        raise ConfigError(None, "gate_m", "expected 0 < gate_m <= step_gate_m")
     if not any(o[0] == known.anchor_frame for o in obs):
         raise CalibrationError(f"{source}: the known light is never seen: frame "
                                f"{known.anchor_frame} (under the known light) shows no light")
@@ -1103,7 +1105,8 @@ def write_site(lm: LightMap, out: str | Path, base: Site | None, header: str = "
     from ``base`` (an existing site file, or the recording's); returns the site."""
     if base is None:
         if ceiling_height_m is None:
-            raise ConfigError(out, "ceiling_height", "no base site and no ceiling height")
+            raise ConfigError(None, "ceiling_height_m", f"no site to keep the ceiling height "
+                              f"of ({out} is new): give the ceiling height")
         base = Site(ceiling_height_m)
     site = replace(base, lights_m=np.round(lm.lights_m, 4), source=str(out))
     if ceiling_height_m is not None:

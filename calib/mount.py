@@ -39,7 +39,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ceilkit.runtime.config.rig import Mount, Rig
@@ -58,6 +57,7 @@ from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.lines import SegmentDetector, segment_lengths
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z
+from ceilkit.runtime.io.images import read_image
 
 PARAMS = ("pan", "tilt", "swing", "mx", "my", "h")
 _ANGLES = {"pan", "tilt", "swing"}
@@ -1033,9 +1033,9 @@ def load_placements(source: str | Path, camera: CameraModel, max_frames: int = 0
         img_path = Path(pn.get("image").string())
         if not img_path.is_absolute():
             img_path = source.parent / img_path
-        image = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
+        image, damage = read_image(img_path)  # a truncated JPEG is refused, not half grey
         if image is None:
-            raise pn.get("image").error(f"cannot read the image {img_path}")
+            raise pn.get("image").error(f"cannot read the image: {damage}")
         out.append(placement_from_image(
             camera, image, pn.get("y").number(-100, 100, what=" m"),
             math.radians(pn.get("yaw").number(-180, 180, what=" degrees")), img_path.name))

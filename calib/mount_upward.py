@@ -3,7 +3,7 @@
 The camera looks (nearly) straight up at spot lights whose centres the site map
 gives (``lights``, SPEC §2). The vehicle's poses come from ``truth.csv`` or any pose
 table (motion capture, a total station), at the frames' stamps or at their own
-stamps (then interpolated, with the time offset estimated, see :class:`PoseTable`).
+stamps (then interpolated, with the time offset estimated, see :class:`StampedPoses`).
 
 Model (SPEC §1). The rotation is parametrized without the singularity of SPEC's
 angles at tilt 90 deg: ``R_VC = Rz(heading) · Exp([ax, ay, 0]) · R_up`` with
@@ -41,7 +41,7 @@ from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.features.spots import detect_spots
 from ceilkit.runtime.geometry.rotations import R_vehicle_cam, rot_z
 
-from .poses import PoseTable, load_pose_csv
+from .poses import StampedPoses, load_pose_csv
 
 R_UP = R_vehicle_cam(0.0, math.pi / 2, 0.0)
 PARAMS_UP = ("heading", "ax", "ay", "mx", "my", "mz")
@@ -212,7 +212,7 @@ def observe(rig: Rig, image: np.ndarray, t_ns: int, label: str = "") -> LightFra
 
 
 def load_light_frames(source, rig: Rig, max_frames: int = 120
-                      ) -> tuple[list[LightFrame], PoseTable | None]:
+                      ) -> tuple[list[LightFrame], StampedPoses | None]:
     """Spot frames of a recording (at most ``max_frames``, spread evenly) and its
     ``truth.csv`` as a pose table (None when it has none)."""
     from pathlib import Path
@@ -231,12 +231,12 @@ def load_light_frames(source, rig: Rig, max_frames: int = 120
     for k in ks:
         f = rec.frame(k)
         frames.append(observe(rig, f.image, f.t_ns, f"frame {f.index}"))
-    table = PoseTable.from_truth(rec.truth) if rec.truth is not None else None
+    table = StampedPoses.from_truth(rec.truth) if rec.truth is not None else None
     return frames, table
 
 
 class _Fit:
-    def __init__(self, rig: Rig, site: Site, frames: Sequence[LightFrame], poses: PoseTable,
+    def __init__(self, rig: Rig, site: Site, frames: Sequence[LightFrame], poses: StampedPoses,
                  fit_offset: bool, radius_m: float):
         self.rig, self.H = rig, float(site.ceiling_height_m)
         self.lights = np.asarray(site.lights_m, float).reshape(-1, 2)
@@ -370,7 +370,7 @@ def refuse_undetermined(limits: Sequence[tuple[str, float, float, str]]) -> None
 
 
 def calibrate_mount_upward(rig: Rig, site: Site, frames: Sequence[LightFrame],
-                           poses: PoseTable, *, estimate_offset: bool | None = None,
+                           poses: StampedPoses, *, estimate_offset: bool | None = None,
                            light_diameter_m: float | None = None,
                            max_field_deg: float = MAX_FIELD_DEG) -> UpwardResult:
     """Fit the upward mount from spot frames and the vehicle's poses.
@@ -447,6 +447,6 @@ def calibrate_mount_upward(rig: Rig, site: Site, frames: Sequence[LightFrame],
                         float(theta[6]) if estimate_offset else None, lean, significant)
 
 
-__all__ = ["LightFrame", "PoseTable", "UpwardResult", "calibrate_mount_upward",
+__all__ = ["LightFrame", "StampedPoses", "UpwardResult", "calibrate_mount_upward",
            "load_light_frames", "load_pose_csv", "observe", "predict_px", "rotation",
            "to_mount"]

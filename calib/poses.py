@@ -15,12 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ceilkit.runtime.config.inputs import CSV_MAX_BYTES, read_input
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.io.recording import Truth
+from ceilkit.runtime.io.tables import TRUTH_LIMITS
 
 
 @dataclass(frozen=True, eq=False)
-class PoseTable:
+class StampedPoses:
     """Vehicle poses at their own stamps (``t_ns`` int64 increasing, x, y, yaw rad).
 
     :meth:`at` interpolates (SE(2): position linear, heading along the shorter arc)
@@ -62,13 +64,13 @@ class PoseTable:
         return bool(np.isin(t, self.t_ns).all())
 
     @classmethod
-    def from_truth(cls, truth: Truth) -> PoseTable:
+    def from_truth(cls, truth: Truth) -> StampedPoses:
         """The table of a recording's ``truth.csv`` (or any :class:`Truth`)."""
         return cls(np.asarray(truth.t_ns, np.int64), np.asarray(truth.x_m, float),
                    np.asarray(truth.y_m, float), np.asarray(truth.yaw_rad, float))
 
 
-def load_pose_csv(path) -> PoseTable:
+def load_pose_csv(path) -> StampedPoses:
     """A pose table from a ``t_ns,x,y,yaw_deg`` CSV (motion capture, a total station) at
     its own stamps; rows sorted by time.
 
@@ -77,9 +79,9 @@ def load_pose_csv(path) -> PoseTable:
     """
     path = Path(path)
     try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(path, None, f"cannot read: {exc.strerror}") from None
+        text = read_input(path, CSV_MAX_BYTES).decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise ConfigError(path, None, "not UTF-8 text (save the file as UTF-8)") from None
     rows = [r for r in text.splitlines() if r.strip() and not r.startswith("#")]
     if not rows or rows[0].replace(" ", "") != "t_ns,x,y,yaw_deg":
         raise ConfigError(path, "header", "expected the header t_ns,x,y,yaw_deg")
@@ -89,20 +91,25 @@ def load_pose_csv(path) -> PoseTable:
         if len(parts) != 4:
             raise ConfigError(path, f"row {i}", f"expected 4 values, found {len(parts)}")
         try:
-            vals.append((int(parts[0]), float(parts[1]), float(parts[2]), float(parts[3])))
+            v = (int(parts[0]), float(parts[1]), float(parts[2]), float(parts[3]))
         except ValueError:
-            raise ConfigError(path, f"row {i}", f"not a number: {r!r}") from None
+            raise ConfigError(path, f"row {i}", f"not a number: {r[:80]!r}") from None
+        if not (-(2**63) <= v[0] < 2**63 and all(abs(x) <= lim for x, lim
+                                                  in zip(v[1:], TRUTH_LIMITS, strict=True))):
+            raise ConfigError(path, f"row {i}", f"expected a 64-bit stamp in ns and |x|, |y| "
+                              f"(m), |yaw_deg| of at most {TRUTH_LIMITS[0]:g}, found {r[:80]!r}")
+        vals.append(v)
     if len(vals) < 2:
         raise ConfigError(path, None, "expected at least two poses")
     a = sorted(vals)
     t = np.array([v[0] for v in a], np.int64)
     if np.any(np.diff(t) <= 0):
         raise ConfigError(path, "t_ns", "two rows have the same stamp")
-    return PoseTable(t, np.array([v[1] for v in a]), np.array([v[2] for v in a]),
+    return StampedPoses(t, np.array([v[1] for v in a]), np.array([v[2] for v in a]),
                      np.unwrap(np.radians([v[3] for v in a])))
 
 
 # ------------------------------------------------------------------------------ fit
 
 
-__all__ = ["PoseTable", "load_pose_csv"]
+__all__ = ["StampedPoses", "load_pose_csv"]

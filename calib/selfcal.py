@@ -45,6 +45,7 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.ceiling import ceiling_rays
 
 INTRINSICS = ("f", "cx", "cy", "k1", "k2")
 N_SHARED = 7                      # f, cx, cy, k1, k2, lean a, lean b
@@ -55,6 +56,7 @@ MIN_POINTS = 150                  # seam pixels a frame needs to be used
 POINTS_PER_FRAME = 600
 GATES_PX = (5.0, 2.0, 1.0)        # association gates of the successive refits
 _PSI = np.radians(np.arange(0.0, 90.0, 0.5))
+MIN_RISE = 1e-6                   # a ray meets the ceiling when R (x, y, 1) rises this much
 
 _WHAT_TO_ADD = {
     "f": "drive under more of the tiled ceiling (more frames, seams across the image)",
@@ -192,8 +194,8 @@ def _rz(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _rays(px: np.ndarray, intr: np.ndarray) -> np.ndarray:
-    """Normalized rays ``(N, 3)`` (z = 1) of distorted pixels, intrinsics
+def _normalized(px: np.ndarray, intr: np.ndarray) -> np.ndarray:
+    """Normalized points ``(N, 2)`` (z = 1) of distorted pixels, intrinsics
     ``(f, cx, cy, k1, k2)``."""
     f, cx, cy, k1, k2 = intr
     K = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
@@ -201,16 +203,16 @@ def _rays(px: np.ndarray, intr: np.ndarray) -> np.ndarray:
     n = cv2.undistortPoints(px.reshape(-1, 1, 2), K, dist,
                             criteria=
                             (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10))
-    return np.column_stack([n.reshape(-1, 2), np.ones(len(px))])
+    return n.reshape(-1, 2)
 
 
-def _on_ceiling(rays: np.ndarray, R_wc: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
-    """Horizontal offsets ``(N, 2)`` from the camera of the rays' ceiling points, and
-    their depths along the optical axis (inf for rays that miss the ceiling)."""
-    r = rays @ R_wc.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(r[:, 2] > 1e-6, d / r[:, 2], np.inf)
-    return r[:, :2] * s[:, None], s
+def _on_ceiling(px: np.ndarray, intr: np.ndarray, R_wc: np.ndarray, d: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal offsets ``(N, 2)`` from the camera of the pixels' ceiling points, and
+    their depths along the optical axis (NaN for rays that miss the ceiling):
+    :func:`~ceilkit.runtime.geometry.ceiling.ceiling_rays`."""
+    q, s, _ = ceiling_rays(_normalized(px, intr), R_wc, d, min_rz=MIN_RISE)
+    return q, s
 
 
 def _wrap(v: np.ndarray, p: float) -> np.ndarray:
@@ -244,7 +246,7 @@ def _start_frame(px: np.ndarray, f: float, size: tuple[int, int], R0: np.ndarray
                  grid: TileGrid) -> tuple[float, np.ndarray]:
     """Best score and ``(psi, X, Y)`` of one frame for focal length ``f``."""
     intr = np.array([f, 0.5 * (size[0] - 1), 0.5 * (size[1] - 1), 0.0, 0.0])
-    q, s = _on_ceiling(_rays(px, intr), R0, grid.distance_m)
+    q, s = _on_ceiling(px, intr, R0, grid.distance_m)
     q = q[np.isfinite(s)]
     if len(q) < 20:
         return -np.inf, np.zeros(3)
@@ -287,7 +289,7 @@ def _frame_residuals(x: np.ndarray, k: int, prob: _Problem) -> np.ndarray:
     g = prob.grid
     psi, X, Y = x[N_SHARED + 3 * k: N_SHARED + 3 * k + 3]
     R = _rz(psi) @ _exp([x[5], x[6], 0.0]) @ prob.R0
-    q, s = _on_ceiling(_rays(prob.frames[k], x[:5]), R, g.distance_m)
+    q, s = _on_ceiling(prob.frames[k], x[:5], R, g.distance_m)
     fam = prob.families[k]
     v = np.where(fam == 0, _wrap(X + q[:, 0] - g.x0, g.pitch_x),
                  _wrap(Y + q[:, 1] - g.y0, g.pitch_y))
@@ -318,7 +320,7 @@ def _associate(x: np.ndarray, frames: Sequence[np.ndarray], R0: np.ndarray, grid
     for k, px in enumerate(frames):
         psi, X, Y = x[N_SHARED + 3 * k: N_SHARED + 3 * k + 3]
         R = _rz(psi) @ _exp([x[5], x[6], 0.0]) @ R0
-        q, s = _on_ceiling(_rays(px, x[:5]), R, grid.distance_m)
+        q, s = _on_ceiling(px, x[:5], R, grid.distance_m)
         dx = np.abs(_wrap(X + q[:, 0] - grid.x0, grid.pitch_x)) * x[0] / s
         dy = np.abs(_wrap(Y + q[:, 1] - grid.y0, grid.pitch_y)) * x[0] / s
         ok = np.isfinite(s) & (np.minimum(dx, dy) < gate_px)
@@ -430,21 +432,25 @@ def load_seam_frames(recording: Path, max_frames: int = 40
 
 
 def intrinsics_from_ceiling(recording: Path, out: Path, *, compare: Path | None = None,
-                            name: str = "camera", max_frames: int = 40) -> CeilingRun:
+                            name: str = "camera", max_frames: int = 40,
+                            force: bool = False) -> CeilingRun:
     """Solve the intrinsics from a drive under a tiled ceiling and write ``out``
     (camera.yaml, atomically, with a provenance header); nothing is written when the
     drive does not determine them. ``compare``: a board camera.yaml put beside each
-    value in the report.
+    value in the report. ``force``: replace an existing ``out`` (refused otherwise).
 
-    Raises ConfigError (a bad recording, site or ``compare`` file), CalibrationError
-    (the drive does not determine a parameter), OutputError (``out`` not writable).
+    Raises ConfigError (a bad recording, site or ``compare`` file; ``out`` exists without
+    ``force``, or lies in the recording), CalibrationError (the drive does not determine
+    a parameter), OutputError (``out`` not writable).
     """
     from ceilkit.runtime.config.camera import load_camera, save_camera
+    from ceilkit.runtime.io.outputs import recording_inputs
 
-    from .workflow import _check_writable, provenance_header
+    from .workflow import _check_writable, _claim, provenance_header
 
     out = Path(out)
     _check_writable(out)
+    _claim(out, force, [*recording_inputs(recording), compare])
     ref = load_camera(compare) if compare is not None else None
     frames, size, rig, site = load_seam_frames(Path(recording), max_frames)
     if ref is not None and (ref.width, ref.height) != size:

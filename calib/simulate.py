@@ -44,6 +44,7 @@ from ceilkit.runtime.sim.render import (
     random_poses,
     straight_drive,
 )
+from ceilkit.runtime.sim.scatter_file import SCENE_FILE, save_scene
 
 from .boards import Board, render_views
 
@@ -108,6 +109,9 @@ def simulate_recording(rig: Rig, site: Site, trajectory: Trajectory, out_dir: st
     """Render every pose of ``trajectory`` and write a recording with ``truth.csv``.
 
     ``realism``: the realism knobs (:mod:`ceilkit.runtime.sim.realism`), None: off.
+    With ``options.scatter`` the recording also holds ``scene.yaml``: every item of
+    the scatter rendered (:func:`~ceilkit.runtime.sim.scatter_file.save_scene`), the
+    truth a map surveyed from it is scored against.
 
     Frame k is stamped ``trajectory.t_ns[k]`` and its noise is drawn from
     ``np.random.default_rng([seed, k])`` (as :class:`SimSource`), so the same
@@ -125,6 +129,9 @@ def simulate_recording(rig: Rig, site: Site, trajectory: Trajectory, out_dir: st
             x, y, yaw = src.pose(frame.index)
             rec.write(frame)
             rec.write_truth(frame.t_ns, x, y, yaw)
+    if options.scatter is not None:
+        save_scene(options.scatter, out / SCENE_FILE,
+                   "# the simulator scene of this recording (truth; docs/simulator.md)\n")
     return out
 
 

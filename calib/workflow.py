@@ -41,15 +41,18 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.config.yaml import atomic_write_bytes
 from ceilkit.runtime.errors import CalibrationError, ConfigError, OutputError
 from ceilkit.runtime.io.capture import open_video
+from ceilkit.runtime.io.outputs import FolderLock, claim_outputs, recording_inputs
+from ceilkit.runtime.io.provenance import version_line
 from ceilkit.runtime.io.recording import Recording, Truth
 from ceilkit.runtime.replay import ReplayResult, replay
 from ceilkit.runtime.session import CaptureSettings
 from ceilkit.runtime.sim.realism import resolve as resolve_realism
 from ceilkit.runtime.sim.render import SimOptions, Trajectory
+from ceilkit.runtime.sim.scatter_file import SCENE_FILE, load_scene, scene_beside
 from ceilkit.runtime.viz import plots as viz_plots
 
 from .boards import Board
-from .export import write_exports
+from .export import export_paths, write_exports
 from .intrinsics import (
     DetectionCache,
     IntrinsicsResult,
@@ -93,11 +96,12 @@ Progress = Callable[[int, int, str, bool], None]
 
 
 def provenance_header(what: str, lines: Sequence[str] = (), command: str | None = None) -> str:
-    """YAML comment lines naming the time, the command line (``command``, default this
-    process's ``sys.argv``) and a report."""
+    """YAML comment lines naming the time, the version that wrote the file, the command
+    line (``command``, default this process's ``sys.argv``) and a report."""
     command = shlex.join(sys.argv) if command is None else command
     out = [f"# {what}",
-           f"# written {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
+           f"# written {datetime.now(timezone.utc).isoformat(timespec='seconds')} by "
+           f"{version_line()}",
            f"# command: {command}"]
     out += [f"# {line}" for line in lines]
     return "\n".join(out) + "\n"
@@ -111,6 +115,15 @@ def _check_writable(out: Path) -> None:
         raise OutputError(out, f"cannot write: folder {parent} does not exist")
     if not os.access(parent, os.W_OK):
         raise OutputError(out, f"cannot write: folder {parent} is not writable")
+
+
+def _claim(out: Path, force: bool, inputs: Sequence[str | Path | None] = (),
+           beside: Sequence[Path] = ()) -> None:
+    """Refuse ``out`` (and the files written ``beside`` it) when it is an input, lies in
+    one, or exists without ``force`` (:func:`~ceilkit.runtime.io.outputs.claim_outputs`:
+    one line naming the file; the command line says ``give --force``)."""
+    claim_outputs({"out": [Path(out), *beside]}, force=force,
+                  inputs=[Path(p) for p in inputs if p is not None])
 
 
 def _make_folder(folder: Path) -> None:
@@ -153,7 +166,8 @@ def intrinsics(board: Board, out: Path, *, folder: Path | None = None,
                fix_aspect_ratio: bool = False, min_views: int = 5, max_views: int = 40,
                every: int = 1, cache: bool = True, progress: Progress | None = None,
                meter: TextIO | None = None,
-               capture: CaptureSettings = CaptureSettings()) -> IntrinsicsRun:
+               capture: CaptureSettings = CaptureSettings(),
+               force: bool = False) -> IntrinsicsRun:
     """Calibrate a camera from ``board`` views and write ``out`` (camera.yaml).
 
     Exactly one source: ``folder`` (images; detections cached beside ``out`` unless
@@ -161,9 +175,11 @@ def intrinsics(board: Board, out: Path, *, folder: Path | None = None,
     the diverse views until coverage and accuracy suffice (``max_views`` at most,
     ``every`` N-th frame), drawing a coverage meter on ``meter``. ``capture``: the
     camera's format, exposure and gain for ``device`` (as ``ceilrun`` opens it).
+    ``force``: replace an existing ``out`` (refused otherwise, before any work).
 
     Raises:
-        ConfigError: ``source`` (not exactly one), ``model``, ``board`` (wrong size).
+        ConfigError: ``source`` (not exactly one), ``model``, ``board`` (wrong size);
+            ``out`` exists (without ``force``) or is an input.
         OutputError: ``out`` cannot be written.
         CalibrationError: no board found, too few views.
     """
@@ -173,6 +189,7 @@ def intrinsics(board: Board, out: Path, *, folder: Path | None = None,
                           f"{len(sources)}")
     check_model(model)
     _check_writable(out)
+    _claim(out, force, [video])  # beside the board images is fine: no image is replaced
     if folder is not None:
         files = image_files(folder)
         det_cache = DetectionCache(out.parent / f".{out.stem}.detections.npz") if cache \
@@ -288,7 +305,7 @@ def _start_rig(rig: str | Path | None, camera: str | Path | None) -> tuple[Rig, 
 def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = None,
           camera: Path | None = None, drive: Path | None = None,
           fix: Sequence[str] = (), max_frames: int = 8,
-          plots: Path | None = None, **upward) -> MountRun:
+          plots: Path | None = None, force: bool = False, **upward) -> MountRun:
     """Fit the mount and write ``out`` (rig.yaml), by the procedure the site calls for:
     a site with ``corridor`` lines, the corridor fit below; a site with ``lights`` only
     (an upward camera), :func:`mount_upward` (``upward`` holds its own arguments).
@@ -310,15 +327,21 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
             ``rig``), see :func:`parse_fix`; written in the provenance header.
         max_frames: at most this many placements from a recording.
         plots: write ``mount_residuals.png`` (residual RMS per placement, px) here.
+        force: replace an existing ``out`` and its exports (``rig.urdf.xml``,
+            ``rig.static_tf.sh``, ``rig.viso.param``); refused otherwise, before any work.
 
     Raises:
         ConfigError: ``camera`` (neither a rig nor a camera), ``fix`` (unknown name, or
-            no value without a rig), bad placements or site.
+            no value without a rig), bad placements or site; ``out`` or an export exists
+            (without ``force``), or ``out`` is an input (``--rig rig.yaml --out rig.yaml``).
         CalibrationError: a parameter that is not observable and not held; a fit that
             fails, leaves too large a residual, or whose data disagree.
     """
     if rig is None and camera is None:
         raise ConfigError(None, "camera", "give the camera (camera.yaml) or a rig")
+    _claim(out, force, [placements, site, rig, camera, drive,
+                        *(v for v in upward.values() if isinstance(v, str | Path))],
+           export_paths(out).paths())
     fixes = parse_fix(fix)
     for name, value in fixes.items():
         if value is None and rig is None:
@@ -441,42 +464,6 @@ def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, 
     return MountRun(Path(out), tuple(lines), exports=exports)
 
 
-# -- printable board -------------------------------------------------------------------
-def board(board: Board, out: Path, *, dpi: float = 300.0) -> Path:
-    """Write ``board`` as a printable PNG or PDF (by ``out``'s suffix) at ``dpi``, with
-    its exact ``--board``/``--square`` arguments printed below it
-    (:func:`~ceilkit.calib.boards.printable_board`). Print at 100% scale and measure a
-    square before calibrating.
-
-    Raises:
-        ConfigError: ``out`` (not .png or .pdf), ``dpi``.
-        OutputError: ``out`` cannot be written.
-    """
-    from .boards import printable_board
-
-    suffix = Path(out).suffix.lower()
-    if suffix not in (".png", ".pdf"):
-        raise ConfigError(None, "out", f"expected a .png or .pdf file, found {out}")
-    _check_writable(Path(out))
-    marker = getattr(board, "marker_m", None)
-    label = (f"--board {board.spec} --square {board.square_m:g}"
-             + (f" --marker {marker:g}" if marker is not None else "")
-             + f"  (square {1000 * board.square_m:g} mm at {dpi:g} dpi; print at 100%)")
-    img = printable_board(board, dpi, label)
-    from io import BytesIO
-
-    from PIL import Image
-
-    buf = BytesIO()
-    pil = Image.fromarray(img)
-    if suffix == ".png":
-        pil.save(buf, format="PNG", dpi=(dpi, dpi))
-    else:
-        pil.save(buf, format="PDF", resolution=float(dpi))
-    atomic_write_bytes(Path(out), buf.getvalue())
-    return Path(out)
-
-
 # -- light map -------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class LightmapRun:
@@ -580,8 +567,8 @@ def _save_held_fit(the_rig: Rig, res, out: Path, camera_ref, kind: str, source: 
 def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
              known: KnownLights | None = None, ceiling_height_m: float | None = None,
              cluster_m: float = 0.15, min_views: int = 3,
-             plots: Path | None = None, pose_offset_ms: float | None = None
-             ) -> LightmapRun:
+             plots: Path | None = None, pose_offset_ms: float | None = None,
+             force: bool = False) -> LightmapRun:
     """Survey the ceiling lights of ``recording`` and write them as the ``lights`` of
     ``out`` (site.yaml; its other sections kept when it exists, else the recording's).
 
@@ -590,12 +577,16 @@ def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
     the recording's truth.csv; poses at their own stamps are interpolated and their
     time offset estimated unless ``pose_offset_ms`` gives it. ``plots``: write
     ``lightmap.png`` there (each light's 1σ, the drive: the poses used, or the
-    recording's truth.csv).
+    recording's truth.csv). ``force``: write into an existing ``out`` (refused
+    otherwise, before any work; its other sections are kept).
 
     Raises:
-        ConfigError: ``poses`` with ``known``; bad inputs or options.
+        ConfigError: ``poses`` with ``known``; bad inputs or options; ``out`` exists
+            (without ``force``), is an input or lies in the recording
+            (``REC/site.yaml``).
         CalibrationError: a survey that cannot be tied or solved.
     """
+    _claim(out, force, [*recording_inputs(recording), poses])
     rec = Recording(recording)
     base = Site.load(out) if out.exists() else rec.site
     if known is None:
@@ -653,12 +644,16 @@ class SimulateRun:
     height: int
     seed: int
     ms_per_frame: float
+    scene: str = ""         # the scatter rendered (Scatter.describe()), "" for none
 
     def lines(self) -> list[str]:
         t = self.trajectory
-        return [f"wrote {len(t)} frames ({self.width}x{self.height}) to {self.folder}: "
-                f"x {t.x_m.min():.2f}..{t.x_m.max():.2f} m, y {t.y_m.min():.3f}.."
-                f"{t.y_m.max():.3f} m, seed {self.seed}, {self.ms_per_frame:.0f} ms/frame"]
+        out = [f"wrote {len(t)} frames ({self.width}x{self.height}) to {self.folder}: "
+               f"x {t.x_m.min():.2f}..{t.x_m.max():.2f} m, y {t.y_m.min():.3f}.."
+               f"{t.y_m.max():.3f} m, seed {self.seed}, {self.ms_per_frame:.0f} ms/frame"]
+        if self.scene:
+            out.append(f"scene {self.scene}, items in {self.folder / SCENE_FILE}")
+        return out
 
 
 def parse_placements(items: Sequence[str]) -> list[tuple[float, float]]:
@@ -728,8 +723,8 @@ def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
              speed_mps: float = 0.5, noise_sigma: float = 2.0, blur_px: float = 0.8,
              supersample: int = 3, clutter: bool = False, seed: int = 0,
              sim_preset: str | None = None, sim_faults: tuple[str, ...] = (),
-             placements: Sequence[tuple[float, float]] | None = None
-             ) -> SimulateRun | SimulatedFiles:
+             placements: Sequence[tuple[float, float]] | None = None,
+             scene: Path | None = None) -> SimulateRun | SimulatedFiles:
     """Render a simulated recording (frames, rig, site, truth.csv) into ``out`` (new).
 
     ``rig`` and ``site`` default to the packaged corridor example's; ``trajectory`` is
@@ -743,6 +738,11 @@ def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
     drive, the vehicle parked at each, with the placements file ``ceilcal mount`` reads
     (:func:`~ceilkit.calib.simulate.simulate_placements`).
 
+    ``scene``: a scene file (a scatter of panels, vents, sprinklers, ... on the site's
+    tile grid: :mod:`ceilkit.runtime.sim.scatter_file`); None: the ``scene.yaml``
+    beside the site, if there is one. A drive writes its items into the recording's
+    ``scene.yaml``.
+
     Raises:
         ConfigError: a bad value, keyed by the name of the field it sets
             (``options.noise_sigma``, ``y_m``, ...); bad rig, site or trajectory file.
@@ -751,8 +751,9 @@ def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
     site_file = site if site is not None else packaged_file("site.yaml")
     the_site = Site.load(site_file)
     realism = resolve_realism(site_file, sim_preset, tuple(sim_faults))
+    scatter = scene_beside(the_site) if scene is None else load_scene(scene, the_site)
     options = SimOptions(noise_sigma=noise_sigma, blur_px=blur_px, supersample=supersample,
-                         clutter=clutter)
+                         clutter=clutter, scatter=scatter)
     if placements is not None:
         if realism is not None and realism.active:
             raise ConfigError(None, "sim-preset", "applies to drives, not placements")
@@ -766,7 +767,8 @@ def simulate(out: Path, *, rig: Path | None = None, site: Path | None = None,
     t0 = time.perf_counter()
     folder = simulate_recording(the_rig, the_site, traj, out, options, seed, realism)
     ms = 1e3 * (time.perf_counter() - t0) / len(traj)
-    return SimulateRun(folder, traj, the_rig.camera.width, the_rig.camera.height, seed, ms)
+    return SimulateRun(folder, traj, the_rig.camera.width, the_rig.camera.height, seed, ms,
+                       "" if scatter is None else scatter.describe())
 
 
 # -- the guided whole ------------------------------------------------------------------
@@ -803,7 +805,16 @@ def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Pat
         if on_line is not None:
             on_line(line)
 
-    _make_folder(out)
+    with FolderLock(out):  # two calibrations cannot write one folder at once
+        return _calibrate_steps(boards, board, placements, site, out, model, drive, check,
+                                redo, say, lines, plots)
+
+
+def _calibrate_steps(boards: Path, board: Board, placements: Path, site: Path, out: Path,
+                     model: str, drive: Path | None, check: Path | None, redo: bool,
+                     say: Callable[[str], None], lines: list[str],
+                     plots: Path | None) -> CalibrateRun:
+    """The three steps of :func:`calibrate`, its folder ``out`` locked."""
     cam_path, rig_path = out / "camera.yaml", out / "rig.yaml"
     if redo or not cam_path.exists():
         say("step 1/3: intrinsics")
@@ -822,7 +833,8 @@ def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Pat
         say(f"step 1/3: intrinsics: kept {cam_path}")
     if redo or not rig_path.exists():
         say("step 2/3: mount")
-        run = mount(placements, site, rig_path, camera=cam_path, drive=drive, plots=plots)
+        run = mount(placements, site, rig_path, camera=cam_path, drive=drive, plots=plots,
+                    force=redo)
         for line in run.report:
             say("  " + line)
         for path in run.exports + run.plots:

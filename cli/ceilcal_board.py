@@ -1,6 +1,6 @@
-"""`ceilcal board`: a printable chessboard or ChArUco board (PNG or PDF).
+"""`ceilcal board`: a printable chessboard or ChArUco board, a vector PDF at true scale.
 
-Parses, calls :func:`ceilkit.calib.workflow.board`, prints what it wrote.
+Parses, calls :func:`ceilkit.calib.board_pdf.write_board_pdf`, prints what it wrote.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from ceilkit.calib import workflow
+from ceilkit.calib.board_pdf import DEFAULT_PAPER, PAPERS, write_board_pdf
 from ceilkit.calib.boards import parse_board
 from ceilkit.cli.common import BOARD_OPTION, MARKER_OPTION, SQUARE_OPTION
 
@@ -20,9 +20,14 @@ def register(app: typer.Typer) -> None:
         board: str = BOARD_OPTION,
         square: float = SQUARE_OPTION,
         marker: float = MARKER_OPTION,
-        dpi: float = typer.Option(300.0, "--dpi", help="Print resolution, dots per inch."),
-        out: Path = typer.Option(..., "--out", help="The .png or .pdf to write."),
+        paper: str = typer.Option(DEFAULT_PAPER, "--paper",
+                                  help=f"Paper size: {', '.join(PAPERS)}."),
+        out: Path = typer.Option(..., "--out", help="The .pdf to write."),
+        force: bool = typer.Option(False, "--force", help="Replace an existing --out."),
     ) -> None:
-        """Write a board to print at 100%, its --board/--square printed on it."""
-        path = workflow.board(parse_board(board, square, marker), out, dpi=dpi)
-        typer.echo(f"wrote {path}")
+        """Write a board as a PDF to print at 100%, its --board/--square printed on it."""
+        page = write_board_pdf(parse_board(board, square, marker), out, paper, force)
+        x0, y0, x1, y1 = page.squares_mm
+        typer.echo(f"wrote {out}: {page.paper}{' landscape' if page.landscape else ''}, "
+                   f"squares {x1 - x0:.1f} x {y1 - y0:.1f} mm, square "
+                   f"{1000 * square:g} mm at 100 % scale")

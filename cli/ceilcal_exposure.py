@@ -58,10 +58,12 @@ def register(app: typer.Typer) -> None:
         height: int = HEIGHT_OPTION,
         fps: float = FPS_OPTION,
         fourcc: str = FOURCC_OPTION,
+        force: bool = typer.Option(False, "--force", help="Replace an existing --out "
+                                   "(refused otherwise)."),
     ) -> None:
         """Sweep exposure and gain on a camera; write the best for the method."""
         run = assistant.assist(
             device, out, method, rig, site, _numbers(exposures, "exposures"),
             _numbers(gains, "gains"), settle, frames, (width, height, fps, fourcc),
-            _progress, command=" ".join(["ceilcal", *sys.argv[1:]]))
+            _progress, command=" ".join(["ceilcal", *sys.argv[1:]]), force=force)
         typer.echo("\n".join(run.lines()))

@@ -30,15 +30,34 @@ from ceilkit.cli.common import (
     HEIGHT_OPTION,
     MARKER_OPTION,
     SQUARE_OPTION,
+    TERM_LINE,
     WIDTH_OPTION,
     capture_settings,
 )
 
 
 def _progress(i: int, n: int, fname: str, found: bool) -> None:
-    typer.echo(f"\rdetecting {i + 1}/{n} {fname[:30]:30s}", err=True, nl=False)
+    # the one in-place line: an error printed meanwhile starts on a line of its own
+    TERM_LINE.show(f"detecting {i + 1}/{n} {fname[:30]:30s}")
     if i + 1 == n:
-        typer.echo("", err=True)
+        TERM_LINE.end()
+
+
+class _MeterLine:
+    """The coverage meter's stream (``\\r`` + a line, rewritten; ``\\n`` at the end) as the
+    one in-place line, so that an error while capturing starts on a line of its own."""
+
+    def write(self, text: str) -> None:
+        if text.startswith("\r"):
+            TERM_LINE.show(text[1:])
+        elif text == "\n":
+            TERM_LINE.end()
+        else:
+            TERM_LINE.end()
+            sys.stderr.write(text)
+
+    def flush(self) -> None:
+        sys.stderr.flush()
 
 
 def register(app: typer.Typer) -> None:
@@ -81,13 +100,16 @@ def register(app: typer.Typer) -> None:
         exposure: float = EXPOSURE_OPTION,
         gain: float = GAIN_OPTION,
         capture: Path = CAPTURE_OPTION,
+        force: bool = typer.Option(False, "--force", help="Replace an existing --out "
+                                   "(refused otherwise)."),
     ) -> None:
         """Calibrate the camera's intrinsics from views of a board (or the ceiling)."""
         if ceiling is not None:
             if folder is not None or video is not None or device is not None or board:
                 raise typer.BadParameter("--ceiling reads a drive: give no FOLDER, "
                                          "--video, --device or --board with it")
-            run = selfcal.intrinsics_from_ceiling(ceiling, out, compare=compare, name=name)
+            run = selfcal.intrinsics_from_ceiling(ceiling, out, compare=compare, name=name,
+                                                  force=force)
             typer.echo("\n".join(run.lines()))
             return
         if board is None or square is None:
@@ -97,8 +119,9 @@ def register(app: typer.Typer) -> None:
             parse_board(board, square, marker, legacy, detector), out, folder=folder,
             video=video, device=device, model=model, plots=plots, name=name,
             fix_aspect_ratio=fix_aspect_ratio, min_views=min_views, max_views=max_views,
-            every=every, cache=not no_cache, progress=_progress, meter=sys.stderr,
-            capture=capture_settings(capture, width, height, fps, fourcc, exposure, gain))
+            every=every, cache=not no_cache, progress=_progress, meter=_MeterLine(),
+            capture=capture_settings(capture, width, height, fps, fourcc, exposure, gain),
+            force=force)
         typer.echo("\n".join(run.lines()))
         for w in run.warnings:
             typer.echo(f"ceilcal: warning: {w}", err=True)

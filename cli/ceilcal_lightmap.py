@@ -37,9 +37,14 @@ def parse_xy(text: str | None, flag: str) -> tuple[float, float] | None:
         x, y = (float(p) for p in parts)
     except ValueError:
         raise ConfigError(None, flag, f"expected X,Y in metres, found {text!r}") from None
-    if not (math.isfinite(x) and math.isfinite(y)):
-        raise ConfigError(None, flag, f"expected finite X,Y, found {text!r}")
+    if not (math.isfinite(x) and math.isfinite(y)) or max(abs(x), abs(y)) > XY_LIMIT_M:
+        raise ConfigError(None, flag, f"expected finite X,Y in metres, each in "
+                          f"[-{XY_LIMIT_M:g}, {XY_LIMIT_M:g}], found {text!r}")
     return x, y
+
+
+XY_LIMIT_M = 1e6
+"""The largest |X| or |Y| of a measured light, m."""
 
 
 def _known(known_light: str | None, second_light: str | None, start_yaw: float | None,
@@ -97,11 +102,13 @@ def register(app: typer.Typer) -> None:
                                          "the second light for the direction only."),
         plots: Path = typer.Option(None, "--plots",
                                    help="Folder for PNG plots (lights, 1-sigma, drive)."),
+        force: bool = typer.Option(False, "--force", help="Write into an existing --out "
+                                   "(its other sections kept; refused otherwise)."),
     ) -> None:
         """Build the `lights` of a site map: from known poses, or by chaining frames."""
         run = workflow.lightmap(recording, out, poses=poses, pose_offset_ms=pose_offset_ms,
                                 known=_known(known_light, second_light, start_yaw,
                                              anchor_frame, keep_height),
                                 ceiling_height_m=ceiling_height, cluster_m=cluster,
-                                min_views=min_views, plots=plots)
+                                min_views=min_views, plots=plots, force=force)
         typer.echo("\n".join(run.lines()))

@@ -39,11 +39,14 @@ def register(app: typer.Typer) -> None:
         spin: bool = typer.Option(False, "--spin", help="Upward (lights) rig: the "
                                   "recording is a spin in place, no poses; needs --fix "
                                   "pan (a spin does not determine it)."),
+        force: bool = typer.Option(False, "--force", help="Replace an existing --out and "
+                                   "its exports beside it (refused otherwise)."),
     ) -> None:
         """Fit tilt, swing, pan and the offsets (and the height below the ceiling)."""
         upward = {"poses": poses} if poses is not None else {}
         if spin:
             upward["spin"] = True
         run = workflow.mount(placements, site, out, rig=rig, camera=camera, drive=drive,
-                             fix=fix or (), max_frames=max_frames, plots=plots, **upward)
+                             fix=fix or (), max_frames=max_frames, plots=plots,
+                             force=force, **upward)
         typer.echo("\n".join(run.lines()))

@@ -28,8 +28,8 @@ def register(app: typer.Typer) -> None:
         rig: Path = typer.Option(None, "--rig", help="rig.yaml (default: packaged corridor)."),
         site: Path = typer.Option(None, "--site",
                                   help="site.yaml (default: packaged corridor)."),
-        frames: int = typer.Option(300, "--frames", min=1, help="Number of frames."),
-        fps: float = typer.Option(30.0, "--fps", min=0.001, help="Frame rate, Hz."),
+        frames: int = typer.Option(300, "--frames", help="Number of frames."),
+        fps: float = typer.Option(30.0, "--fps", help="Frame rate, Hz."),
         trajectory: str = typer.Option("drive", "--trajectory",
                                        help="drive, random, or a truth.csv-layout file."),
         lateral: float = typer.Option(0.0, "--lateral", help="y of the drive, m."),
@@ -40,12 +40,15 @@ def register(app: typer.Typer) -> None:
         blur: float = typer.Option(0.8, "--blur", help="Optical blur sigma, px."),
         supersample: int = typer.Option(3, "--supersample", help="Anti-aliasing factor."),
         clutter: bool = typer.Option(False, "--clutter", help="Add distractor lines."),
-        seed: int = typer.Option(0, "--seed", min=0, help="Seed for noise and trajectory."),
+        seed: int = typer.Option(0, "--seed", help="Seed for noise and trajectory."),
         sim_preset: str = typer.Option(None, "--sim-preset", help="Realism preset from the "
                                        "presets.yaml beside the site (e.g. realistic)."),
         sim_fault: list[str] = typer.Option(None, "--sim-fault", metavar="KNOB=VALUE",
                                             help="A realism knob (repeatable), on top of "
                                             "--sim-preset; see docs/simulator.md."),
+        scene: Path = typer.Option(None, "--scene", help="Scene file: the ceiling's scatter "
+                                   "(panels, vents, sprinklers, ...; default: the "
+                                   "scene.yaml beside the site, if any)."),
         board: str = typer.Option(None, "--board", help="boards: chess:COLSxROWS or "
                                   "charuco:SXxSY[:DICT] (as ceilcal intrinsics)."),
         square: float = typer.Option(None, "--square", help="boards: square side, metres."),
@@ -77,5 +80,5 @@ def register(app: typer.Typer) -> None:
                                 seed=seed, sim_preset=sim_preset,
                                 sim_faults=tuple(sim_fault or ()),
                                 placements=None if kind == "drive" else
-                                workflow.parse_placements(placement or ()))
+                                workflow.parse_placements(placement or ()), scene=scene)
         typer.echo("\n".join(run.lines()))

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import sys
+import textwrap
+import time
 from enum import Enum
 from pathlib import Path
 
@@ -35,13 +37,16 @@ from .common import (
     FPS_OPTION,
     GAIN_OPTION,
     HEIGHT_OPTION,
+    HELP_FLAGS,
     TERM_LINE,
+    VERSION_OPTION,
     WIDTH_OPTION,
     capture_settings,
     echo_err,
     make_app,
     parse_options,
     quiet_opencv,
+    warm_up_progress,
 )
 
 METHOD_HELP = (f"Estimator: auto (every method the site supports, fused; on a site with one "
@@ -124,18 +129,65 @@ def _err(msg: str) -> None:
     echo_err(msg)
 
 
+STATUS_EVERY_S = 1.0
+"""With ``--serial -`` (poses on stdout), ``--status`` prints a whole line this often."""
+
+
+def _status_line(status: bool, own_lines: bool):
+    """``--status``: each frame's status line rewritten in place on stderr; with the
+    poses on stdout (``own_lines``: one terminal for both), a whole line on stderr every
+    :data:`STATUS_EVERY_S` instead, so that a status never cuts into a pose sentence."""
+    if not status:
+        return None
+    if not own_lines:
+        return lambda tel: TERM_LINE.show(tel.live_line())
+    last = [-STATUS_EVERY_S]
+
+    def line(tel) -> None:
+        now = time.monotonic()
+        if now - last[0] >= STATUS_EVERY_S:
+            last[0] = now
+            echo_err(f"ceilrun: {tel.live_line()}")
+
+    return line
+
+
 ROS2_HELP = ("Also run as a ROS 2 node: PoseWithCovarianceStamped on /ceilkit/pose (frame "
-             "map), Odometry on /ceilkit/odom, /diagnostics; /initialpose and --ros2-odometry "
-             "in (needs the ros2 extra).")
+             "map), Odometry on /ceilkit/odom, /tf, /tf_static, camera_info, an overlay "
+             "image, /diagnostics; /initialpose and --ros2-odometry in (needs the ros2 "
+             "extra). Arguments after --ros-args go to ROS (--params-file, -p, -r).")
+ROS2_PARAM_HELP = ("A ROS 2 node parameter NAME=VALUE (frame_id, child_frame_id, "
+                   "odom_frame_id, camera_frame_id, tf, the *_topic names, image_rate_hz, "
+                   "...; docs/integration.md); repeatable.")
+ROS_ARGS: list[str] = []
+"""What followed ``--ros-args`` on the command line (taken off before typer parses)."""
 
 
-def _ros2(enabled: bool, namespace: str, odometry: str):
+def _take_ros_args(args: list[str]) -> list[str]:
+    """``args`` without ``--ros-args ...`` (kept in :data:`ROS_ARGS` for the node), as a
+    launch file's ``Node(executable='ceilkit-ros2', parameters=[...])`` passes them."""
+    if "--ros-args" not in args:
+        return args
+    k = args.index("--ros-args")
+    ROS_ARGS[:] = args[k:]
+    return args[:k]
+
+
+def _ros2(enabled: bool, namespace: str, odometry: str, params: list[str] | None = None,
+          wait_s: float = 0.0):
     if not enabled:
         return None
-    from ceilkit.runtime.io.ros2 import Ros2Config
+    from ceilkit.runtime.io.ros2 import Ros2Config, ros2_config
 
-    return Ros2Config(namespace=namespace or "",
-                      odometry_topic=None if odometry in ("", "none") else odometry)
+    values: dict[str, str] = {}
+    for item in params or []:
+        name, eq, value = item.partition("=")
+        if not eq or not name.strip():
+            raise ConfigError(None, "--ros2-param", f"expected NAME=VALUE, found {item!r}")
+        values[name.strip()] = value.strip()
+    return ros2_config(Ros2Config(
+        namespace=namespace or "", wait_subscribers_s=wait_s, ros_args=tuple(ROS_ARGS),
+        odometry_topic=None if odometry in ("", "none") else odometry), values)
 
 
 @app.callback(invoke_without_command=True)
@@ -179,7 +231,12 @@ def live(
     exposure: float = EXPOSURE_OPTION,
     gain: float = GAIN_OPTION,
     capture: Path = CAPTURE_OPTION,
-    status: bool = typer.Option(False, "--status", help="Print a live status line."),
+    status: bool = typer.Option(False, "--status", help="Print a live status line on "
+                                "stderr (with --serial -: a line a second, whole lines "
+                                "between the poses)."),
+    realtime: bool = typer.Option(True, "--realtime/--no-realtime", help="sim: the "
+                                  "frames at their stamps' pace, as a camera's; "
+                                  "--no-realtime: as fast as they render."),
     force: bool = typer.Option(False, "--force", help="Replace an existing poses.csv or "
                                "recording (refused otherwise)."),
     wait: bool = typer.Option(False, "--wait", help="Wait for a camera or serial port "
@@ -197,6 +254,9 @@ def live(
     ros2_odometry: str = typer.Option("/odom", "--ros2-odometry", metavar="TOPIC",
                                       help="ROS 2 wheel odometry in (nav_msgs/Odometry) "
                                       "for the fusion; none: off."),
+    ros2_param: list[str] = typer.Option(None, "--ros2-param", metavar="NAME=VALUE",
+                                         help=ROS2_PARAM_HELP),
+    version: bool = VERSION_OPTION,
 ) -> None:
     """Run live: frames from --device, poses to --serial."""
     if ctx.invoked_subcommand is not None:
@@ -210,14 +270,10 @@ def live(
                                           gain),
         view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every,
         start_pose=_start_pose(start_pose), link_odometry=link_odometry,
-        wheel_track_m=wheel_track, ros2=_ros2(ros2, ros2_namespace, ros2_odometry))
-
-    def show(tel):
-        if status:
-            TERM_LINE.show(tel.live_line())
-
+        wheel_track_m=wheel_track,
+        ros2=_ros2(ros2, ros2_namespace, ros2_odometry, ros2_param), realtime=realtime)
     with stop_on_signals() as stop:
-        result = run_session(config, stop, show)
+        result = run_session(config, stop, _status_line(status, serial == "-"))
     _err("ceilrun: " + "\n".join(result.lines()))
 
 
@@ -262,6 +318,12 @@ def replay(
                                        help="ROS 2 namespace of the node."),
     ros2_odometry: str = typer.Option("/odom", "--ros2-odometry", metavar="TOPIC",
                                       help="ROS 2 wheel odometry in; none: off."),
+    ros2_param: list[str] = typer.Option(None, "--ros2-param", metavar="NAME=VALUE",
+                                         help=ROS2_PARAM_HELP),
+    ros2_wait: float = typer.Option(10.0, "--ros2-wait", metavar="S", help="Before the "
+                                    "first frame, wait up to S s for a subscriber to the "
+                                    "poses (DDS discovery: a replay would otherwise publish "
+                                    "its first frames to no one); 0: do not wait."),
 ) -> None:
     """Replay a recording through the pipeline; write poses.csv; print errors vs truth.csv."""
     show = sys.stderr.isatty() if progress is None else progress
@@ -277,7 +339,8 @@ def replay(
                      link=_link(serial, protocol, baud, missing_x=mavlink_missing_x),
                      overlays=overlays, overlays_only_failures=overlays_only_failures,
                      report=report, start_pose=_start_pose(start_pose), odometry=odometry,
-                     ros2=_ros2(ros2, ros2_namespace, ros2_odometry), force=force)
+                     ros2=_ros2(ros2, ros2_namespace, ros2_odometry, ros2_param, ros2_wait),
+                     force=force)
     TERM_LINE.end()
     # the report goes to stderr when the poses themselves stream to stdout
     echo = _err if serial == "-" else typer.echo
@@ -306,18 +369,64 @@ def convert(
     typer.echo(f"{src} -> {dst}: {n} frames")
 
 
+@app.command("warm-up")
+def warm_up_cmd() -> None:
+    """Compile every method's per-frame loops now, once for this machine (numba's cache
+    keeps them): for an installer or a Dockerfile, so that no later start compiles."""
+    from ceilkit.runtime.multi import warm_up_all
+
+    done = warm_up_all()   # its progress: main()'s warm_up_progress
+    typer.echo(f"{done.done} compiled loops ready ({done.compiled} compiled now, the "
+               f"rest from numba's cache) in {done.elapsed_s:.1f} s")
+
+
 def main() -> None:
     quiet_opencv()
-    app(prog_name="ceilrun")
+    with warm_up_progress("ceilrun"):
+        app(args=_take_ros_args(sys.argv[1:]), prog_name="ceilrun")
+
+
+ROS2_INTRO = ("ceilrun as a ROS 2 node: `ceilkit-ros2 [OPTIONS]` runs `ceilrun --ros2 "
+              "[OPTIONS]` (live), `ceilkit-ros2 replay RECORDING [OPTIONS]` runs `ceilrun "
+              "replay RECORDING --ros2 [OPTIONS]`; every other option is ceilrun's "
+              "(`ceilrun --help`, `ceilrun replay --help`). The node: ")
+
+
+def ros2_help() -> str:
+    """``ceilkit-ros2 --help``: what it is, and its ROS 2 options (live and replay)."""
+    group = typer.main.get_command(app)
+    rows: dict[str, tuple[str, str]] = {}
+    for where, cmd in (("", group), (" (replay)", group.commands["replay"])):
+        for p in cmd.params:
+            opts = [o for o in p.opts if o.startswith("--ros2-") or o == "--ros-args"]
+            if opts and opts[0] not in rows:
+                meta = "" if getattr(p, "is_flag", False) else f" {p.metavar or 'VALUE'}"
+                rows[opts[0]] = (f"{opts[0]}{meta}", f"{p.help or ''}{where}")
+    rows["-h"] = ("-h, --help", "Show this message and exit.")
+    rows["--version"] = ("--version", "Print the version and exit.")
+    width = max(len(name) for name, _ in rows.values()) + 4
+    intro = ROS2_INTRO + ROS2_HELP.removeprefix("Also run as a ROS 2 node: ")
+    out = ["Usage: ceilkit-ros2 [OPTIONS]", "       ceilkit-ros2 replay RECORDING [OPTIONS]",
+           "", *textwrap.wrap(intro, 88), "", "ROS 2 options:"]
+    for name, text in rows.values():
+        lines = textwrap.wrap(text, 88 - width) or [""]
+        out.append(f"  {name.ljust(width - 2)}{lines[0]}")
+        out += [" " * width + line for line in lines[1:]]
+    return "\n".join(out) + "\n"
 
 
 def ros2_main() -> None:
     """``ceilkit-ros2``: ``ceilrun --ros2`` (``ceilkit-ros2 replay REC``: ``ceilrun replay
-    REC --ros2``), every other option as ceilrun's."""
-    args = sys.argv[1:]
+    REC --ros2``), every other option as ceilrun's; ``-h``: its own help
+    (:func:`ros2_help`)."""
+    args = _take_ros_args(sys.argv[1:])
+    if set(HELP_FLAGS) & set(args):
+        typer.echo(ros2_help(), nl=False)
+        return
     args = ["replay", "--ros2", *args[1:]] if args[:1] == ["replay"] else ["--ros2", *args]
     quiet_opencv()
-    app(args=args, prog_name="ceilkit-ros2")
+    with warm_up_progress("ceilkit-ros2"):
+        app(args=args, prog_name="ceilkit-ros2")
 
 
 if __name__ == "__main__":

@@ -6,15 +6,19 @@ and keeps its traceback.
 
 The library names its parameters (``ConfigError(None, "method", ...)``); this is the
 one place that maps them to the flags a user typed (:data:`FLAGS`,
-:data:`COMMAND_FLAGS`; an estimator's ``options.NAME`` is ``--option NAME``), so the
-user reads ``ceilrun: error: --method: unknown method 'magic' (...)``.
+:data:`COMMAND_FLAGS`; an estimator's ``options.NAME`` is ``--option NAME``; any other
+name of one of the command's parameters is that parameter's flag), so the user reads
+``ceilrun: error: --method: unknown method 'magic' (...)``. Every value typed is
+checked before the command runs (ranges, finite numbers, no empty strings) and a
+usage error is one line too: :mod:`ceilkit.cli.values`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -26,6 +30,15 @@ from ceilkit.runtime.errors import CeilkitError, ConfigError
 from ceilkit.runtime.io.recording import FORCE_HINT
 from ceilkit.runtime.session import CaptureSettings
 
+from .values import (
+    CheckedTyper,
+    UsageError,
+    check_params,
+    flag_of,
+    is_help_request,
+    usage_line,
+)
+
 FLAGS: Mapping[str, str] = MappingProxyType({
     "method": "--method", "rig": "--rig", "site": "--site",
     "board": "--board", "square": "--square", "marker": "--marker",
@@ -33,6 +46,8 @@ FLAGS: Mapping[str, str] = MappingProxyType({
     "camera": "--camera", "fix": "--fix", "placements": "--placements",
     "frames": "--frames", "record": "--record", "out": "--out", "link": "--serial",
     "fsync_every_s": "--fsync-every", "force": "--force", "wait": "--wait",
+    "overlays": "--overlays",
+    "paper": "--paper", "link_odometry": "--link-odometry", "n": "--frames",
 })
 """A library parameter name -> the flag of every command that has it."""
 
@@ -48,6 +63,8 @@ COMMAND_FLAGS: Mapping[str, Mapping[str, str]] = MappingProxyType({
         "kind": "--kind",
     }),
     "intrinsics": MappingProxyType({"source": "FOLDER|--video|--device"}),
+    # ceilcal exposure: the simulator's camera names one setting of the sweep
+    "exposure": MappingProxyType({"exposure": "--exposures", "gain": "--gains"}),
     # ceilcal lightmap: KnownLights fields and the survey's arguments
     "lightmap": MappingProxyType({
         "first_m": "--known-light", "second_m": "--second-light", "yaw_deg": "--start-yaw",
@@ -63,14 +80,17 @@ ESTIMATOR_OPTIONS = "options."
 in a command that takes ``--option``."""
 
 
-def as_flags(exc: ConfigError, command: str, takes_option: bool = False) -> ConfigError:
+def as_flags(exc: ConfigError, command: str, takes_option: bool = False,
+             params: Iterable[Any] = ()) -> ConfigError:
     """``exc`` re-keyed by the flag of ``command`` when it names a library parameter
     (an error about a file keeps its key: it names the file's dotted key).
-    ``takes_option``: the command has ``--option KEY=VALUE`` (estimator options)."""
+    ``takes_option``: the command has ``--option KEY=VALUE`` (estimator options);
+    ``params``: its parameters (a key that names one is its flag,
+    :func:`~ceilkit.cli.values.flag_of`)."""
     if exc.path is not None or exc.key is None:
         return exc
     key = exc.key
-    flag = COMMAND_FLAGS.get(command, {}).get(key) or FLAGS.get(key)
+    flag = COMMAND_FLAGS.get(command, {}).get(key) or flag_of(key, params) or FLAGS.get(key)
     if flag is None and takes_option and key.startswith(ESTIMATOR_OPTIONS):
         flag = f"--option {key[len(ESTIMATOR_OPTIONS):]}"
     if flag is None:
@@ -94,6 +114,13 @@ class TermLine:
         sys.stderr.flush()
         self.open = True
 
+    def clear(self) -> None:
+        """Blank the line if one is showing (the cursor back at its start)."""
+        if self.open:
+            self.open = False
+            sys.stderr.write("\r\x1b[K")
+            sys.stderr.flush()
+
     def end(self) -> None:
         """Finish the line (a newline) if one is showing."""
         if self.open:
@@ -109,6 +136,39 @@ TERM_LINE = TermLine()
 """The one in-place line of a command's stderr."""
 
 
+KEEP_WARM_UP_S = 2.0
+"""A warm-up of the compiled loops that took this long (or compiled any) leaves its
+last progress line on stderr; a quicker one leaves nothing."""
+
+
+@contextlib.contextmanager
+def warm_up_progress(prog: str) -> Iterator[None]:
+    """While the block runs, the compiled loops' warm-up (:func:`ceilkit.runtime.jit.
+    warm_up`) shows its progress on stderr: rewritten in place on a terminal, else a
+    line once it is seen to compile or to take :data:`KEEP_WARM_UP_S`, and one when
+    done; its last line stays when it compiled or took that long (a first start on a
+    machine), else it is blanked."""
+    from ceilkit.runtime import jit
+
+    tty = sys.stderr.isatty()
+    said = []
+
+    def show(p: jit.WarmUpProgress) -> None:
+        text = f"{prog}: {p.line()}"
+        kept = p.compiled > 0 or p.elapsed_s >= KEEP_WARM_UP_S
+        if tty:
+            TERM_LINE.show(text.ljust(max([len(t) for t in said] + [0])))
+            said.append(text)
+            if not p.module:
+                TERM_LINE.end() if kept else TERM_LINE.clear()
+        elif kept and (not said or not p.module):
+            said.append(text)
+            echo_err(text)
+
+    with jit.reporting(show):
+        yield
+
+
 def echo_err(msg: str) -> None:
     """``msg`` on stderr, on a line of its own; nothing when the terminal is gone (an
     ssh session that dropped: the run's files are what matters then)."""
@@ -119,16 +179,51 @@ def echo_err(msg: str) -> None:
         pass
 
 
+def _flags_as_flags(params: list[Any]) -> list[Any]:
+    """``params`` with every flag (an option that takes no value: ``--tum``,
+    ``--help``) shown bare in ``--help``, not as ``--tum <bool>``."""
+    for p in params:
+        if getattr(p, "is_flag", False) and p.metavar is None:
+            p.metavar = ""
+    return params
+
+
 class _Group(typer.core.TyperGroup):
+    def get_params(self, ctx):  # type: ignore[override]
+        return _flags_as_flags(super().get_params(ctx))
+
+    def get_command(self, ctx, cmd_name):  # type: ignore[override]
+        cmd = super().get_command(ctx, cmd_name)
+        if cmd is not None:
+            _flags_as_flags(cmd.get_params(ctx))
+        return cmd
+
+    def make_context(self, info_name, args, parent=None, **extra):  # type: ignore[override]
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except UsageError as exc:   # the top's own options: one line, exit 2
+            if is_help_request(exc):
+                raise
+            echo_err(f"{info_name}: error: {usage_line(exc, '')}")
+            raise typer.Exit(2) from None
+
     def invoke(self, ctx):  # type: ignore[override]
         try:
+            check_params(ctx, "")
             return super().invoke(ctx)
+        except UsageError as exc:   # a subcommand's options: one line, exit 2
+            if is_help_request(exc):
+                raise
+            echo_err(f"{ctx.find_root().info_name}: error: "
+                     f"{usage_line(exc, ctx.invoked_subcommand or '')}")
+            ctx.exit(2)
         except CeilkitError as exc:
             if isinstance(exc, ConfigError):
                 name = ctx.invoked_subcommand
                 cmd = self.get_command(ctx, name) if name else self
-                takes = any("--option" in p.opts for p in getattr(cmd, "params", ()))
-                exc = as_flags(exc, name or "", takes)
+                params = getattr(cmd, "params", ())
+                takes = any("--option" in p.opts for p in params)
+                exc = as_flags(exc, name or "", takes, params)
             text = str(exc).replace(FORCE_HINT, FORCE_FLAG_HINT)
             echo_err(f"{ctx.find_root().info_name}: error: {text}")
             ctx.exit(1)
@@ -163,14 +258,32 @@ def make_app(name: str, help: str) -> typer.Typer:
     ``ceilrun`` runs live) registers its own ``@app.callback(...)``, which replaces
     this one.
     """
-    app = typer.Typer(name=name, help=help, cls=_Group, no_args_is_help=False,
-                      add_completion=False, pretty_exceptions_enable=False)
+    app = CheckedTyper(name=name, help=help, cls=_Group, no_args_is_help=False,
+                      add_completion=False, pretty_exceptions_enable=False,
+                      context_settings={"help_option_names": list(HELP_FLAGS)})
 
     @app.callback()
-    def _group() -> None:
+    def _group(version: bool = VERSION_OPTION) -> None:
         pass
 
     return app
+
+
+HELP_FLAGS = ("-h", "--help")
+"""The flags that print a command's help (every command and subcommand)."""
+
+
+def _print_version(ctx: typer.Context, value: bool) -> None:
+    if value:
+        from ceilkit.runtime.io.provenance import VERSION
+
+        typer.echo(f"{ctx.find_root().info_name} (ceilkit) {VERSION}")
+        raise typer.Exit()
+
+
+VERSION_OPTION = typer.Option(False, "--version", is_eager=True, callback=_print_version,
+                              help="Print the version and exit.")
+"""``--version``: a parameter of every command line's top (``ceilrun``, ``ceilcal``)."""
 
 
 def quiet_opencv() -> None:

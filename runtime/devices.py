@@ -7,18 +7,21 @@
   (:class:`~ceilkit.runtime.io.recording.Recording`); any other folder: its images in
   name order (:class:`~ceilkit.runtime.io.capture.ImageFolderSource`);
 * ``sim:`` or ``sim:NAME``: the simulator driving along a corridor (NAME is a packaged
-  example: ``corridor``, ``lights``, ``block``; default ``corridor``), with realism
-  knobs after a ``?``: ``sim:corridor?preset=realistic&motion_blur_ms=8`` (``preset``
-  names a preset of the ``presets.yaml`` beside the site, then each ``KNOB=VALUE``
-  sets one :class:`~ceilkit.runtime.sim.realism.Realism` field; ``&`` or ``,``
-  between them). ``exposure`` and ``gain`` act as on a camera (see
-  :func:`sim_camera_options`).
+  example: ``corridor``, ``lights``, ``block``, ``office``; default ``corridor``;
+  the ``scene.yaml`` beside the site, if any, adds its scatter:
+  :mod:`ceilkit.runtime.sim.scatter_file`), with realism knobs after a ``?``:
+  ``sim:corridor?preset=realistic&motion_blur_ms=8`` (``preset`` names a preset of
+  the ``presets.yaml`` beside the site, then each ``KNOB=VALUE`` sets one
+  :class:`~ceilkit.runtime.sim.realism.Realism` field; ``&`` or ``,`` between them).
+  ``exposure`` and ``gain`` act as on a camera (see :func:`sim_camera_options`).
 
 This sits above ``io`` and ``sim`` so that neither needs the other.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -47,10 +50,18 @@ def packaged_config(name: str) -> Path:
 
 def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
                 fps: float = 0, fourcc: str = "", exposure: float | None = None,
-                gain: float | None = None, frames: int = 300, seed: int = 0) -> FrameSource:
-    """Open a ``--device`` value (see the module docstring)."""
+                gain: float | None = None, frames: int = 300, seed: int = 0,
+                pace: Callable[[float], object] | None = None) -> FrameSource:
+    """Open a ``--device`` value (see the module docstring).
+
+    ``sim``: ``frames`` frames of a weaving drive at 0.8 m/s along +x from the origin,
+    shuttling back and forth (:func:`~ceilkit.runtime.sim.render.straight_drive`'s
+    ``length_m``) within the site's features, less :data:`SIM_END_MARGIN_M`, when a
+    straight drive would leave them; ``pace``: the frames come at their stamps' pace
+    (:class:`~ceilkit.runtime.sim.render.SimSource`), else as fast as they render."""
     if spec.startswith("sim:") or spec == "sim" or spec.startswith("sim?"):
         from ceilkit.runtime.sim.render import SimOptions, SimSource, straight_drive
+        from ceilkit.runtime.sim.scatter_file import scene_beside
 
         if rig is None or site is None:
             raise CaptureError("sim: needs a rig and a site")
@@ -58,10 +69,13 @@ def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
         options = SimOptions()
         if exposure is not None or gain is not None:
             options, realism = sim_camera_options(exposure, gain, realism)
+        scatter = scene_beside(site)
+        options = options.replace(scatter=scatter)
         traj = straight_drive(frames, fps=fps or 30.0, speed_mps=0.8, y_m=0.1,
                               weave_m=0.15, yaw_wobble_rad=np.radians(4.0),
-                              rng=np.random.default_rng(seed))
-        return SimSource(rig, site, traj, options, seed=seed, realism=realism)
+                              rng=np.random.default_rng(seed),
+                              length_m=sim_length_m(site, scatter))
+        return SimSource(rig, site, traj, options, seed=seed, realism=realism, pace=pace)
     if spec.isdigit():
         return CameraSource(int(spec), width, height, fps, fourcc, exposure, gain)
     if spec.startswith("/dev/"):
@@ -79,6 +93,23 @@ def open_source(spec: str, rig=None, site=None, width: int = 0, height: int = 0,
         raise CaptureError(f"{spec}: not a camera, video ({', '.join(VIDEO_SUFFIXES)}), "
                            "image folder or recording")
     raise CaptureError(f"{spec}: no such device or file")
+
+
+SIM_END_MARGIN_M = 1.0
+"""How far short of the site's last feature along +x a simulated drive turns back."""
+
+
+def sim_length_m(site, scatter=None) -> float | None:
+    """How far a simulated drive from x = 0 may go along +x and stay on ``site``'s
+    features (their extent less :data:`SIM_END_MARGIN_M`); where the site does not
+    bound x (a corridor of lines alone), on the ``scatter``'s items
+    (:class:`~ceilkit.runtime.sim.scatter.Scatter`, a scene file's), else ``None``."""
+    from ceilkit.runtime.estimators.honesty import SiteExtent
+
+    x_hi = SiteExtent.from_site(site).x_hi - SIM_END_MARGIN_M
+    if not math.isfinite(x_hi) and scatter is not None and scatter.x_range_m():
+        x_hi = scatter.x_range_m()[1] - SIM_END_MARGIN_M
+    return x_hi if math.isfinite(x_hi) and x_hi > SIM_END_MARGIN_M else None
 
 
 SIM_EXPOSURE_REF = 100.0

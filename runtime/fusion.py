@@ -48,6 +48,7 @@ from ceilkit.runtime.estimators.base import (
     PoseEstimate,
     Provenance,
 )
+from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA
 from ceilkit.runtime.geometry import ekf
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.tracking import TrackResult
@@ -77,6 +78,9 @@ class FusionOptions:
             corridor-only track's x, coasting from its start pose: 0.1 m, so that a
             published coordinate is within about 2σ = 0.2 m; the prior the estimators
             get uses ``prior_sigma_m`` instead).
+        unobserved_sigma_rad: a heading whose 1σ exceeds this is not published (the
+            frame is a ``coasting`` Failure): a track coasting on a turn rate it has not
+            measured.
         prior_sigma_m: the estimators get the track's x and y as a prior only below this
             1σ (each alone: a corridor-only track's y and heading without its x).
         prior_sigma_rad: ... and its heading only below this 1σ (a prior chooses among
@@ -109,6 +113,7 @@ class FusionOptions:
     odometry_timeout_s: float = 0.5
     quality_radius_m: float = 0.02
     unobserved_sigma_m: float = 0.1
+    unobserved_sigma_rad: float = math.radians(5.0)
     prior_sigma_m: float = 0.5
     prior_sigma_rad: float = math.radians(20.0)
     fix_inflation: float = 2.0
@@ -171,25 +176,32 @@ class FilterBuffer:
         dt = (t_ns - n.t_ns) * 1e-9
         if dt <= 0:
             return n
-        o = self.options
-        odo = n.t_odo_ns is not None and (t_ns - n.t_odo_ns) * 1e-9 <= o.odometry_timeout_s
-        step = ekf.predict_hold if odo else ekf.predict_cv
-        s, P = step(n.s, n.P, dt, o.noise)
+        # constant velocity, also between odometry rows: a row is the motion over its
+        # own interval (_apply), so a frame past the last row (the controller answers
+        # each pose after it) is crossed on the velocity the rows set, not held still
+        s, P = ekf.predict_cv(n.s, n.P, dt, self.options.noise)
         return _Node(t_ns, s, P, n.t_odo_ns)
 
     def _apply(self, n: _Node, ev: _Event) -> _Node:
         if ev.kind == "odo":
             d, cov, scaled, t0 = ev.data
-            # an increment measured from t0 (ceiling-plane odometry: the previous frame)
-            # is the motion over [t0, t]: the motion model must not carry it as well
-            n = self._propagate(n, ev.t_ns if t0 is None else min(t0, ev.t_ns))
-            since = n.t_odo_ns if t0 is None else t0
-            dt = 0.0 if since is None else (ev.t_ns - since) * 1e-9
+            # an increment is the motion over [t0, t] (ceiling-plane odometry: t0 the
+            # previous frame; a wheel row: the previous row, the first one the filter's
+            # previous event): the motion model must not carry it as well
+            if t0 is None:
+                t0 = n.t_odo_ns if n.t_odo_ns is not None and n.t_odo_ns < ev.t_ns else n.t_ns
+            n = self._propagate(n, min(t0, ev.t_ns))
+            dt = (ev.t_ns - t0) * 1e-9
+            if t0 < n.t_ns < ev.t_ns:
+                # a fix inside [t0, t] was predicted to its time on the velocity: only
+                # the increment's share after it is left (constant speed over the row)
+                share = (ev.t_ns - n.t_ns) / (ev.t_ns - t0)
+                d, dt = tuple(share * v for v in d), share * dt
+                cov = None if cov is None else share * cov
             s, P = ekf.predict_odometry(n.s, n.P, d, dt, self.options.noise, cov, scaled)
-            # wheel rows come between frames: the pose holds between them; a camera's
-            # increment comes with its frame: a frame without one is crossed on the
-            # velocity it set (holding would stop the track)
-            return _Node(max(n.t_ns, ev.t_ns), s, P, ev.t_ns if t0 is None else n.t_odo_ns)
+            # a wheel row's stamp is where the next row's interval begins; a camera's
+            # increment comes with its frame (it leaves the wheel rows' time alone)
+            return _Node(max(n.t_ns, ev.t_ns), s, P, ev.t_ns if scaled else n.t_odo_ns)
         n = self._propagate(n, ev.t_ns)
         z, rows, R = ev.data
         s, P, _ = ekf.update(n.s, n.P, z, rows, R)
@@ -271,7 +283,7 @@ class Fusion:
 
     def __init__(self, options: FusionOptions | None = None,
                  start_pose: tuple[float, float, float] | None = None,
-                 start_sigma: tuple[float, float] = (0.05, math.radians(2.0))):
+                 start_sigma: tuple[float, float] = DEFAULT_PRIOR_SIGMA):
         self.options = options or FusionOptions()
         self.gates = {k: ekf.chi2_quantile(self.options.gate_p, k) for k in (1, 2, 3)}
         self._f: FilterBuffer | None = None
@@ -294,6 +306,7 @@ class Fusion:
         self.modes = ModeSet(self.options, self.gates)   # the poses an ambiguity leaves
         self._lateral_only = False   # the track applied a fix with y and no x (corridor)
         self._disagree = 0           # frames in a row whose every fix was gated
+        self._confirmed = False      # a frame has confirmed the track since it started
 
     @property
     def tracking(self) -> bool:
@@ -320,20 +333,22 @@ class Fusion:
         self._candidates = []
         self.modes.clear()
         self._lateral_only, self._disagree = False, 0
+        self._confirmed = False    # no frame has confirmed the track yet (a start pose)
 
     def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float,
-                     cov: np.ndarray | None = None) -> None:
+                     cov: np.ndarray | None = None) -> bool:
         """One wheel odometry row: the increment in V since the previous row, scaled by
         the filter's odometry scale; ``cov`` its ``(3, 3)`` covariance (dx, dy, dyaw),
         ``None`` for the wheel model of ``FusionOptions.noise``. Safe from any thread
-        (the link's receive hook): rows are applied at the next frame, each at its
-        stamp."""
+        (the link's receive hook): rows are applied at the next frame, each over its
+        interval (from the previous row's stamp to its own). False: refused."""
         c = None if cov is None else np.array(cov, float).reshape(3, 3)
         d = (float(dx_m), float(dy_m), float(dyaw_rad))
         if not plausible_increment(d, c):
             self.odometry_refused += 1      # bounded before any arithmetic: never raises
-            return
+            return False
         self._inbox.append(("odo", int(t_ns), d, c))
+        return True
 
     def set_start_pose(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float,
                        cov: np.ndarray | None = None) -> None:
@@ -419,8 +434,8 @@ class Fusion:
         self._drain(t_ns)
         if self._lost(t_ns):
             return None
-        pose = self._publish(self._f.node_at(t_ns), method, {}, velocity=True,
-                             blank_above_m=math.inf)
+        pose = publish(self._f.node_at(t_ns), method, {}, self.options, self._t_fix_ns,
+                       bool(self._candidates), velocity=True, blank_above_m=math.inf)
         sd = np.sqrt(np.diag(np.asarray(pose.cov)))
         # a coordinate the track does not know (x of a corridor-only track) is left out
         # of the prior rather than dropping the prior: its heading and y still choose
@@ -439,8 +454,8 @@ class Fusion:
         self._plane_increments(t, cues)
         fixes = [m for c in cues if isinstance(c, PoseEstimate)
                  if (m := measurement(c, self.options)) is not None]
-        relocalized, started = self._jumped, []
-        from_start, self._jumped = self._jumped, False
+        relocalized, started, contradicted = self._jumped, [], False
+        self._jumped = False
         if self._lost(t):
             start = starting_fix(fixes, self.gates)
             if start is None:
@@ -449,7 +464,8 @@ class Fusion:
             relocalized, started = True, [start.cue.method]
             fixes = [f for f in fixes if f is not start]
         else:
-            fixes += twins_near(self._f, t, cues, self.options, self.gates)
+            near, contradicted = twins_near(self._f, t, cues, self.options, self.gates)
+            fixes += near
         used = started + self._apply(t, fixes)
         if self._candidates and len(self._candidates) >= self.options.confirm:
             fix = self._candidates[-1]
@@ -459,27 +475,36 @@ class Fusion:
         if used:
             self._method = used[0]
         diag["coasting"] = not used
-        if self._candidates and not used:
+        if self._candidates and (not used or self._candidates[-1].cue.t_ns == t):
+            # a fix this frame singles out puts the vehicle elsewhere: whatever else
+            # agrees with the track, the frame does not single the track's pose out
             pend = self._candidates[-1].cue
             return TrackResult(Failure(
                 t, pend.method, "gated", f"{pend.method} puts the vehicle away from the "
                 f"track; {self.options.confirm - len(self._candidates)} more to confirm",
-                diagnostics={"rejected": pend}))
-        self._disagree = 0 if used or not fixes else self._disagree + 1
-        if self._disagree >= self.options.confirm:
-            # frame after frame the cues contradict the track (a wrong start pose, a
-            # slipped track): its pose is not what the frames show, so it is not sent
-            return TrackResult(Failure(t, self._method, "gated", f"{self._disagree} frames "
-                                       "in a row disagree with the track"))
-        pose = self._publish(self._f.node_at(t), self._method, diag)
-        if pose.x_m is None and pose.y_m is not None and not self._lateral_only:
-            # a track of full fixes whose x went out of reach before its y: a y with no
-            # x would read as a corridor's lateral, which this track never measured
-            return TrackResult(Failure(t, self._method, "coasting",
-                                       "the position is no longer known to "
-                                       f"{self.options.unobserved_sigma_m:g} m"))
-        if from_start and not used:      # the start pose itself, no cue applied yet
-            pose = dataclasses.replace(pose, provenance=Provenance.START)
+                diagnostics={"rejected": pend}), relocalized)
+        if not used and (fixes or contradicted):
+            # the frame explains a pose, not the track's (a glitch, a kidnap, a wrong
+            # start pose): the track's pose is not what it shows, so it is not sent;
+            # ``confirm`` such frames in a row drop the track (the next frame starts
+            # anew, from what singles a pose out)
+            self._disagree += 1
+            if self._disagree >= self.options.confirm:
+                self._f, self._disagree = None, 0
+            who = "/".join(sorted({f.cue.method for f in fixes})) or "ambiguous cues"
+            return TrackResult(Failure(t, self._method, "gated", f"the frame's {who} "
+                                       "disagree with the track"), relocalized)
+        self._disagree = 0
+        self._confirmed |= bool(used)
+        if not self._confirmed:
+            # a start pose no frame has confirmed yet is what the user said, not what
+            # the frames show: the frame's own answer goes out (the reset still does)
+            return TrackResult(_failure(est, cues), relocalized)
+        pose = publish(self._f.node_at(t), self._method, diag, self.options,
+                       self._t_fix_ns, bool(self._candidates))
+        gone = unknown(pose, self.options, self._lateral_only)
+        if gone is not None:
+            return TrackResult(gone)
         return TrackResult(pose, relocalized)
 
     # -- internals -------------------------------------------------------------------
@@ -492,10 +517,11 @@ class Fusion:
             self._f, self._t_fix_ns, self._candidates, self._method = best.f, t_ns, [], \
                 best.method
             self._lateral_only = float(best.f.latest.P[0, 0]) >= 0.5 * UNKNOWN_X_VAR
-            self._disagree = 0
+            self._disagree, self._confirmed = 0, True
             self.relocalizations += 1
             diag = {"applied": (best.method,), "pending": 0, "coasting": False}
-            return TrackResult(self._publish(self._f.node_at(t_ns), best.method, diag), True)
+            return TrackResult(publish(self._f.node_at(t_ns), best.method, diag,
+                                       self.options, t_ns, False), True)
         self._f, self._candidates = None, []
         return TrackResult(self.modes.failure(t_ns) if self.modes else _failure(est, cues))
 
@@ -508,6 +534,14 @@ class Fusion:
         self._lateral_only = 1 in fix.rows and 0 not in fix.rows
         self.relocalizations += 1
         self.contributions[fix.cue.method] += 1
+
+    def _confirm_at(self, t_ns: int, fix: _Fix) -> FilterBuffer:
+        """Start the track at the first fix a start pose chose
+        (:func:`confirmed_start`): the difference is the start pose's error, not
+        motion, so no velocity is inferred from it."""
+        self.start(t_ns, *confirmed_start(self._f.node_at(t_ns), fix))
+        self._confirmed = True
+        return self._f
 
     def _apply(self, t_ns: int, fixes: list[_Fix]) -> list[str]:
         """Gate and apply each fix at ``t_ns``; keep disagreeing unambiguous ones as
@@ -522,7 +556,10 @@ class Fusion:
                 fix = _Fix(fix.cue, np.array([wrap_pi(z)]), fix.rows, fix.R, p)
             y, S = ekf.innovation(n.s, n.P, fix.z, fix.rows, fix.R)
             if ekf.nis(y, S) <= self.gates[len(fix.rows)]:
-                f.add(_Event(t_ns, "fix", (fix.z, fix.rows, fix.R)))
+                if self._confirmed:
+                    f.add(_Event(t_ns, "fix", (fix.z, fix.rows, fix.R)))
+                else:     # the start pose chose this fix: the track starts at it
+                    f = self._confirm_at(t_ns, fix)
                 self._lateral_only |= 1 in fix.rows and 0 not in fix.rows
                 used.append(fix.cue.method)
                 self.contributions[fix.cue.method] += 1
@@ -536,35 +573,65 @@ class Fusion:
                 self._candidates = chain_candidates(self._candidates, fix)
         return used
 
-    def _publish(self, n: _Node, method: str, diag: dict[str, Any],
-                 velocity: bool = False, blank_above_m: float | None = None) -> PoseEstimate:
-        """The pose of node ``n``; with ``velocity``, the state's velocity too (a
-        prior's, for the estimators' rolling-shutter rows); a coordinate whose 1σ
-        exceeds ``blank_above_m`` (default ``unobserved_sigma_m``) is left empty."""
-        o = self.options
-        blank = o.unobserved_sigma_m if blank_above_m is None else blank_above_m
-        cov = np.array(n.P[:3, :3])
-        sd = np.sqrt(np.diag(cov))
-        observed = [bool(sd[0] <= blank), bool(sd[1] <= blank)]
-        for i in (0, 1):
-            if not observed[i]:
-                cov[i, :] = cov[:, i] = np.inf
-        keep = [i for i in (0, 1) if observed[i]]
-        quality = 0.0 if not keep or self._candidates else \
-            ekf.prob_within_radius(cov[np.ix_(keep, keep)], o.quality_radius_m) * \
-            math.exp(-o.coast_hazard_per_s * max(0.0, (n.t_ns - self._t_fix_ns) * 1e-9))
-        if o.cell_m is not None and all(observed):
-            half = 0.5 * o.cell_m
-            diag["cell_p"] = math.erf(half / (sd[0] * math.sqrt(2))) * \
-                math.erf(half / (sd[1] * math.sqrt(2)))
-        return PoseEstimate(int(n.t_ns), method,
-                            float(n.s[0]) if observed[0] else None,
-                            float(n.s[1]) if observed[1] else None,
-                            float(n.s[2]), float(quality), None, cov,
-                            MappingProxyType(diag),
-                            tuple(float(v) for v in n.s[3:6])
-                            if velocity and velocity_known(n, self.options) else None,
-                            provenance=Provenance.TRACK)
+
+def publish(n: _Node, method: str, diag: dict[str, Any], o: FusionOptions,
+            t_fix_ns: int, pending: bool, velocity: bool = False,
+            blank_above_m: float | None = None) -> PoseEstimate:
+    """The pose of node ``n``; with ``velocity``, the state's velocity too (a
+    prior's, for the estimators' rolling-shutter rows); a coordinate whose 1σ
+    exceeds ``blank_above_m`` (default ``unobserved_sigma_m``) is left empty;
+    ``quality`` 0 while relocalization candidates are ``pending``, decaying since the
+    last absolute fix at ``t_fix_ns`` otherwise."""
+    blank = o.unobserved_sigma_m if blank_above_m is None else blank_above_m
+    cov = np.array(n.P[:3, :3])
+    sd = np.sqrt(np.diag(cov))
+    observed = [bool(sd[0] <= blank), bool(sd[1] <= blank)]
+    for i in (0, 1):
+        if not observed[i]:
+            cov[i, :] = cov[:, i] = np.inf
+    keep = [i for i in (0, 1) if observed[i]]
+    quality = 0.0 if not keep or pending else \
+        ekf.prob_within_radius(cov[np.ix_(keep, keep)], o.quality_radius_m) * \
+        math.exp(-o.coast_hazard_per_s * max(0.0, (n.t_ns - t_fix_ns) * 1e-9))
+    if o.cell_m is not None and all(observed):
+        half = 0.5 * o.cell_m
+        diag["cell_p"] = math.erf(half / (sd[0] * math.sqrt(2))) * \
+            math.erf(half / (sd[1] * math.sqrt(2)))
+    return PoseEstimate(int(n.t_ns), method,
+                        float(n.s[0]) if observed[0] else None,
+                        float(n.s[1]) if observed[1] else None,
+                        float(n.s[2]), float(quality), None, cov,
+                        MappingProxyType(diag),
+                        tuple(float(v) for v in n.s[3:6])
+                        if velocity and velocity_known(n, o) else None,
+                        provenance=Provenance.TRACK)
+
+
+def unknown(pose: PoseEstimate, o: FusionOptions, lateral_only: bool) -> Failure | None:
+    """The ``coasting`` Failure a track's pose is published as when it no longer knows
+    what it would publish: a heading whose 1σ exceeds ``unobserved_sigma_rad``; a y
+    without x on a track of full fixes (``lateral_only`` False: it would read as a
+    corridor's lateral, which this track never measured). None: publish it."""
+    if pose.cov[2, 2] > o.unobserved_sigma_rad ** 2:
+        return Failure(pose.t_ns, pose.method, "coasting", "the heading is no longer "
+                       f"known to {math.degrees(o.unobserved_sigma_rad):g} deg")
+    if pose.x_m is None and pose.y_m is not None and not lateral_only:
+        return Failure(pose.t_ns, pose.method, "coasting", "the position is no longer "
+                       f"known to {o.unobserved_sigma_m:g} m")
+    return None
+
+
+def confirmed_start(n: _Node, fix: _Fix) -> tuple[tuple[float, float, float], np.ndarray]:
+    """The pose and covariance a track starts from at the first fix a start pose chose
+    (the start pose's node ``n``): what the fix observes from it, the rest (a corridor
+    track's x) from the start pose."""
+    z, cov, r = np.array(n.s[:3]), np.array(n.P[:3, :3]), list(fix.rows)
+    cov[r, :] = 0.0
+    cov[:, r] = 0.0
+    cov[np.ix_(r, r)] = fix.R
+    z[r] = fix.z
+    return (float(z[0]), float(z[1]), float(z[2])), cov
+
 
 MAX_ODOMETRY_STEP_M = 10.0
 """An odometry row moving the vehicle farther than this (m) between two rows is refused:
@@ -600,14 +667,17 @@ def ambiguous_cues(cues: tuple) -> list[Failure]:
 
 
 def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
-               gates: Mapping[int, float]) -> list[_Fix]:
+               gates: Mapping[int, float]) -> tuple[list[_Fix], bool]:
     """The track (its filter ``f`` at ``t_ns``) decides the frame's ambiguous cues
     (:func:`ambiguous_cues`): of each one's hypotheses, the one inside the track's
-    gate when it is the only one there, as a fix. A frame with none costs no
-    prediction."""
+    gate when it is the only one there, as a fix. Also whether a cue contradicts the
+    track: none of its poses is inside (a method given the track's prior lists the
+    poses near it first, and finds the one there when the prior singles it out; a cue
+    that is ambiguous about a track's prior and lists no pose near it shows the vehicle
+    elsewhere). A frame with no ambiguous cue costs no prediction."""
     ambiguous = ambiguous_cues(cues)
     n = f.node_at(t_ns) if ambiguous else None
-    out = []
+    out, contradicted = [], False
     for c in ambiguous:
         inside = []
         for h in c.hypotheses:
@@ -617,7 +687,8 @@ def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
                 inside.append(m)
         if len(inside) == 1:
             out.append(inside[0])
-    return out
+        contradicted |= not inside
+    return out, contradicted
 
 
 def starting_fix(fixes: list[_Fix], gates: Mapping[int, float]) -> _Fix | None:

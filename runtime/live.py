@@ -50,6 +50,8 @@ FAILURE_STREAK_FRAMES = 30
 """Consecutive failures with one reason before it is reported while running."""
 REPORT_EVERY_S = 10.0
 """At most one report of a continuing fault per this many seconds."""
+DAMAGE_LINES = 10
+"""Damaged frames (a truncated JPEG) named one line each; later ones only counted."""
 
 
 class AsyncRecorder(GuardedRecorder):
@@ -185,6 +187,8 @@ class FaultWatch:
       size comes.
     * :data:`FAILURE_STREAK_FRAMES` consecutive failures with one reason: a line, then
       one every :data:`REPORT_EVERY_S` while it lasts, and one when poses come back.
+    * A damaged frame (its file cut short): a line naming the file, for the first
+      :data:`DAMAGE_LINES` of them (the summary counts them all as ``bad_frame``).
     """
 
     def __init__(self, pipeline: Pipeline, camera_size: tuple[int, int] | None = None,
@@ -197,9 +201,18 @@ class FaultWatch:
         self._streak = 0
         self._reported_at: float | None = None
         self.reports = 0
+        self.damaged = 0
 
     def frame(self, frame: Frame, number: int) -> None:
         """Check a frame before it is processed (``number``: its place in the run)."""
+        if frame.damage:
+            self.damaged += 1
+            if self.damaged <= DAMAGE_LINES:
+                self.reports += 1
+                log.warning("frame %d: %s: no pose from it (bad_frame)%s", number,
+                            frame.damage, "; further damaged frames are only counted"
+                            if self.damaged == DAMAGE_LINES else "")
+            return
         if self.camera_size is None:
             return
         shape = getattr(frame.image, "shape", (0, 0))

@@ -35,7 +35,7 @@ from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import Estimate, Estimator, PoseEstimate
 from ceilkit.runtime.estimators.registry import AUTO, make_estimator, site_methods
 from ceilkit.runtime.fusion import Fusion, FusionOptions
-from ceilkit.runtime.jit import warm_up
+from ceilkit.runtime.jit import WarmUpProgress, reporting, warm_up
 from ceilkit.runtime.tracking import Tracker
 
 
@@ -52,11 +52,12 @@ class AutoEstimator:
         self.estimators: list[Estimator] = []
         for n in names:
             est = make_estimator(n, rig, site)
-            fields = {f.name for f in dataclasses.fields(est.Options)}
+            fields = {f.name for f in dataclasses.fields(est.Options)} | set(est.Options.ALIASES)
             mine = {k: v for k, v in opts.items() if k in fields}
             self.estimators.append(make_estimator(n, rig, site, mine) if mine else est)
         known = {f.name for e in self.estimators for f in dataclasses.fields(e.Options)}
-        unknown = sorted(set(opts) - known)
+        unknown = sorted(set(opts) - known - {k for e in self.estimators
+                                              for k in e.Options.ALIASES})
         if unknown:
             raise ConfigError(None, f"options.{unknown[0]}",
                               f"unknown option (expected one of {', '.join(sorted(known))})")
@@ -110,8 +111,9 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
         fusion: the fusion's options (default: :class:`FusionOptions` with the site's
             light spacing as ``cell_m``).
 
-    The compiled loops the estimators use are loaded here (:func:`~.jit.warm_up`), not
-    on the first frame.
+    The compiled loops the chosen estimators and their tracker use are loaded here
+    (:func:`~.jit.warm_up` from their modules), not on the first frame; the other
+    methods' loops are not (``ceilrun warm-up`` makes every loop).
 
     Raises:
         ConfigError: a bad method or option.
@@ -125,8 +127,19 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
         else:
             fusion = fusion or FusionOptions(cell_m=regular_spacing_m(site))
             out = auto, Fusion(fusion, start_pose=start_pose)
-    warm_up()
+    chosen = out[0].estimators if isinstance(out[0], AutoEstimator) else [out[0]]
+    warm_up(roots=[type(o) for o in (*chosen, out[1])])
     return out
+
+
+def warm_up_all() -> WarmUpProgress:
+    """Make every method's compiled loops now (``ceilrun warm-up``: once per machine,
+    numba's cache keeps them, so that no later start compiles): how many, how many of
+    them were compiled (not in the cache), and the seconds it took."""
+    steps: list[WarmUpProgress] = []
+    with reporting(steps.append):
+        seconds = warm_up()   # every estimator's modules are imported (the registry)
+    return steps[-1] if steps else WarmUpProgress(0, 0, "", 0, seconds)
 
 
 def _single(est: Estimator, site: Site, fusion: FusionOptions | None,
@@ -145,7 +158,8 @@ def parse_start_pose(text: str) -> tuple[float, float, float]:
     """``X,Y,YAW`` (m, m, degrees) as ``(x_m, y_m, yaw_rad)``.
 
     Raises:
-        ConfigError: ``start_pose`` unless three finite numbers.
+        ConfigError: ``start_pose`` unless three finite numbers, |x|, |y| at most
+            :data:`START_POSE_LIMIT_M` and |yaw| at most 360 degrees.
     """
     try:
         x, y, yaw = (float(v) for v in text.split(","))
@@ -154,7 +168,15 @@ def parse_start_pose(text: str) -> tuple[float, float, float]:
                           f"expected X,Y,YAW (m, m, degrees), found {text!r}") from None
     if not all(np.isfinite((x, y, yaw))):
         raise ConfigError(None, "start_pose", f"expected finite numbers, found {text!r}")
+    if max(abs(x), abs(y)) > START_POSE_LIMIT_M or abs(yaw) > 360.0:
+        raise ConfigError(None, "start_pose", f"expected |x|, |y| <= {START_POSE_LIMIT_M:g} m "
+                          f"and |yaw| <= 360 degrees, found {text!r}")
     return x, y, float(np.radians(yaw))
 
 
-__all__ = ["AutoEstimator", "make_localizer", "parse_start_pose", "regular_spacing_m"]
+START_POSE_LIMIT_M = 1e6
+"""The largest |x| or |y| of a start pose, m (bounded before it reaches the filter)."""
+
+
+__all__ = ["AutoEstimator", "make_localizer", "parse_start_pose", "regular_spacing_m",
+           "warm_up_all"]

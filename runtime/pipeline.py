@@ -24,12 +24,13 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from ceilkit.runtime.errors import OutputError
-from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
+from ceilkit.runtime.estimators.base import BAD_FRAME, Estimate, Failure, PoseEstimate
 from ceilkit.runtime.estimators.registry import Estimator
 from ceilkit.runtime.io.recording import PoseWriter, device_of
 from ceilkit.runtime.io.sources import Frame
 from ceilkit.runtime.metrics import AccuracyMeter, MeterSink
 from ceilkit.runtime.tracking import Tracker
+from ceilkit.runtime.viz.tap import EstimateTap
 
 log = logging.getLogger("ceilkit.outputs")
 
@@ -262,7 +263,9 @@ class Pipeline:
 
     def process(self, frame: Frame, capture_ns: int | None = None) -> Estimate:
         """Run one frame. ``capture_ns`` is when it was grabbed, on ``clock``
-        (defaults to ``frame.t_ns``, right for live sources stamped at grab)."""
+        (defaults to ``frame.t_ns``, right for live sources stamped at grab). A damaged
+        frame (``frame.damage``: its file was cut short) is a ``bad_frame`` failure
+        whose detail names the file; the estimator never sees it."""
         capture_ns = frame.t_ns if capture_ns is None else capture_ns
         tel = self.telemetry
         tracker = self.tracker
@@ -276,7 +279,11 @@ class Pipeline:
             if forget is not None:
                 forget()
         t1 = clock()
-        est = self.estimator.estimate(frame.image, frame.t_ns, prior)
+        if frame.damage:    # a file that was no image: never handed on as one
+            est = Failure(int(frame.t_ns), getattr(self.estimator, "name", ""), BAD_FRAME,
+                          frame.damage)
+        else:
+            est = self.estimator.estimate(frame.image, frame.t_ns, prior)
         t2 = clock()
         relocalized = False
         if tracker is not None:
@@ -312,7 +319,8 @@ def build_pipeline(estimator: Estimator, tracker: Tracker | None = None, *,
     ``ros2`` node, the ``poses`` file, ``more`` (a recording's pose sink, a caller's
     sinks), then the accuracy ``meter`` (a :class:`~ceilkit.runtime.metrics.MeterSink`);
     ``watch(estimator, sinks)`` (the live view's) may wrap the estimator and append a
-    sink of its own, last.
+    sink of its own, last. A ``ros2`` node with a ``tap`` attribute gets an
+    :class:`~ceilkit.runtime.viz.tap.EstimateTap` of the estimator there (its overlay).
 
     Example::
 
@@ -320,6 +328,8 @@ def build_pipeline(estimator: Estimator, tracker: Tracker | None = None, *,
                                   poses=PoseFileSink(writer), meter=meter)
     """
     sinks: list[PoseSink] = [s for s in (link, ros2, poses) if s is not None]
+    if ros2 is not None and hasattr(ros2, "tap"):   # the ROS 2 overlay sees each frame
+        estimator = ros2.tap = EstimateTap(estimator)
     sinks += more
     if meter is not None:
         sinks.append(MeterSink(meter))
@@ -329,16 +339,21 @@ def build_pipeline(estimator: Estimator, tracker: Tracker | None = None, *,
 
 
 def open_ros2(config: Any, tracker: Any, stack: contextlib.ExitStack,
-              live: bool = False) -> Any:
+              live: bool = False, rig: Any = None, site: Any = None) -> Any:
     """The ROS 2 node of ``config`` (a :class:`~ceilkit.runtime.io.ros2.Ros2Config`),
     opened and closed by ``stack``, fed by and feeding ``tracker`` (``/initialpose``,
     odometry) unless it is ``None``. ``live``: the frames carry a camera's monotonic
-    stamps, published as wall-clock time (a recording's are published as they are).
-    rclpy is imported only here."""
+    stamps, published as wall-clock time (other stamps as they are, or from the wall
+    clock at the first frame when they are not wall-clock times: a simulator's, a
+    camera recording's). ``rig``/``site``: ``camera_info``, ``/tf_static`` and the
+    overlay image (:func:`build_pipeline` gives the node the frames). rclpy is imported
+    only here."""
     from ceilkit.runtime.io.ros2 import Ros2Node
+    from ceilkit.runtime.viz.overlay import draw_overlay
 
-    offset = time.time_ns() - time.monotonic_ns() if live else 0
-    node = Ros2Node(config, clock_offset_ns=offset)
+    offset = time.time_ns() - time.monotonic_ns() if live else None
+    draw = None if site is None else (lambda image, est: draw_overlay(image, est, rig, site))
+    node = Ros2Node(config, clock_offset_ns=offset, rig=rig, draw=draw)
     if tracker is not None:
         node.attach(tracker)
     return stack.enter_context(node)

@@ -12,8 +12,10 @@ between frames: one row per frame, failures included.
 
 The pipeline is a live run's (:func:`~ceilkit.runtime.pipeline.build_pipeline`), its
 sinks in the same order: the link, the ROS 2 node, the poses file, the caller's sinks,
-the accuracy meter against ``truth.csv``. An existing ``poses.csv`` is never
-overwritten without ``force``.
+the accuracy meter against ``truth.csv``. No existing output is overwritten without
+``force``, none may be an input or lie inside one, and ``OUT`` is locked while the
+replay writes there (:mod:`~ceilkit.runtime.io.outputs`). A frame whose file is damaged
+is a ``bad_frame`` failure naming the file (a failed row), never a pose.
 
 Example::
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -33,18 +36,20 @@ from typing import Any
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
+from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.fusion import Fusion, FusionReport
 from ceilkit.runtime.io.link.transport import is_serial_path
 from ceilkit.runtime.io.mcap_rec import is_mcap, open_recording, replay_folder
+from ceilkit.runtime.io.outputs import claim_outputs, recording_inputs
 from ceilkit.runtime.io.recording import (
-    RECORDING_FILES,
     Odometry,
     PoseWriter,
     Recording,
     load_odometry,
-    refuse_existing,
     write_truth_tum,
 )
+from ceilkit.runtime.io.ros2 import Ros2Node
+from ceilkit.runtime.live import DAMAGE_LINES
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter
 from ceilkit.runtime.multi import make_localizer
 from ceilkit.runtime.pipeline import (
@@ -55,9 +60,11 @@ from ceilkit.runtime.pipeline import (
     build_pipeline,
     open_ros2,
 )
-from ceilkit.runtime.session import LinkConfig, check_outputs, link_lines, opened_link
+from ceilkit.runtime.session import LinkConfig, link_lines, opened_link
 from ceilkit.runtime.viz.report import ReplayViews
 from ceilkit.runtime.viz.tap import EstimateTap
+
+log = logging.getLogger("ceilkit.replay")
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,49 +147,73 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
             to the fusion (``auto``) at their stamps.
         ros2: a :class:`~ceilkit.runtime.io.ros2.Ros2Config`: also publish on ROS 2
             (stamps are the recording's) and take ``/initialpose`` and odometry in.
-        force: replace an existing ``OUT/poses.csv`` (refused otherwise, before
-            anything is read or written).
 
     ``recording`` may be an ``.mcap`` file (:mod:`~ceilkit.runtime.io.mcap_rec`); its
     default output folder is then ``NAME.replay/`` beside it.
 
     Raises:
-        ConfigError: a broken recording, rig or site; a bad method or option; an
-            existing ``poses.csv`` without ``force``; an output that is an input.
-        LinkError, OutputError: a link or output that cannot be opened or written.
+        ConfigError: a broken recording, rig, site, method or option; an existing output
+            without ``force`` (which replaces it); one over an input or another output.
+        LinkError, OutputError: a link or output that cannot be opened or written (or
+            another run's lock on ``out_dir``).
     """
     out = Path(out_dir) if out_dir is not None else replay_folder(recording)
-    check_replay_outputs(recording, out, rig, site, link, tum, force)
-    rec = open_recording(recording, rig=rig, site=site)
-    check_rig_site(rec.rig, rec.site)
-    odo = load_odometry(odometry) if odometry is not None else rec.odometry
-    estimator, tracker = make_localizer(method, rec.rig, rec.site, options, start_pose,
-                                        (odo is not None or ros2 is not None) and track)
-    tracker = tracker if track else None
-    poses_path = out / "poses.csv"
-    tap, views = _views(estimator, rec, overlays, overlays_only_failures, report)
-    if tum and rec.truth is not None:
-        write_truth_tum(rec.truth, out / "truth.tum")
-    meter = AccuracyMeter(rec.truth) if rec.truth is not None else None
-    with PoseWriter(poses_path, out / "poses.tum" if tum else None) as writer, \
-            opened_link(link, rec.rig, rec.site) as the_link, \
-            contextlib.ExitStack() as stack:
-        pipeline = build_pipeline(
-            tap or estimator, tracker, link=the_link,
-            ros2=None if ros2 is None else open_ros2(ros2, tracker, stack),
-            poses=PoseFileSink(writer, clock), more=sinks, meter=meter, clock=clock)
-        res = _run(rec, pipeline, realtime, progress, clock,
-                   None if tap is None else (tap, views), odo)
-    result = ReplayResult(rec.folder, poses_path, estimator.name, pipeline.telemetry,
-                          meter.result() if meter is not None else None, res[0], track,
-                          tuple(link_lines(the_link)), None,
-                          0 if views is None else views.written,
-                          tuple(res[1].lines()) if res[1] is not None else ())
-    if report:
-        path = views.write_report(out / "report.html", f"replay of {rec.folder.name}",
-                                  result.lines())
-        result = dataclasses.replace(result, report=path)
-    return result
+    for given in (rig, site, odometry):  # a missing input is said before an existing output
+        if isinstance(given, str | Path) and not Path(given).exists():
+            raise ConfigError(Path(given), None, "file not found")
+    with contextlib.ExitStack() as locked:  # the output folders locked to the end
+        check_replay_outputs(recording, out, rig, site, link, tum, force, overlays,
+                             report, odometry, locked)
+        rec = open_recording(recording, rig=rig, site=site)
+        check_rig_site(rec.rig, rec.site)
+        odo = load_odometry(odometry) if odometry is not None else rec.odometry
+        estimator, tracker = make_localizer(method, rec.rig, rec.site, options, start_pose,
+                                            odo is not None and track)  # --ros2: the same
+        tracker = tracker if track else None
+        poses_path = out / "poses.csv"
+        tap, views = _views(estimator, rec, overlays, overlays_only_failures, report)
+        if tum and rec.truth is not None:
+            write_truth_tum(rec.truth, out / "truth.tum")
+        meter = AccuracyMeter(rec.truth) if rec.truth is not None else None
+        with PoseWriter(poses_path, out / "poses.tum" if tum else None) as writer, \
+                opened_link(link, rec.rig, rec.site) as the_link, \
+                contextlib.ExitStack() as stack:
+            pipeline = build_pipeline(
+                tap or estimator, tracker, link=the_link,
+                ros2=None if ros2 is None else _open_ros2(ros2, tracker, stack, rec, odo),
+                poses=PoseFileSink(writer, clock), more=sinks, meter=meter, clock=clock)
+            res = _run(rec, pipeline, realtime, progress, clock,
+                       None if tap is None else (tap, views), odo)
+        result = ReplayResult(rec.folder, poses_path, estimator.name, pipeline.telemetry,
+                              meter.result() if meter is not None else None, res[0], track,
+                              tuple(link_lines(the_link)) + _node_lines(pipeline), None,
+                              0 if views is None else views.written,
+                              tuple(res[1].lines()) if res[1] is not None else ())
+        return _with_report(result, views, out) if report else result
+
+
+def _with_report(result: ReplayResult, views: Any, out: Path) -> ReplayResult:
+    """``result`` once ``OUT/report.html`` is written from ``views``."""
+    path = views.write_report(out / "report.html", f"replay of {result.recording.name}",
+                              result.lines())
+    return dataclasses.replace(result, report=path)
+
+
+def _open_ros2(config: Any, tracker: Any, stack: contextlib.ExitStack, rec: Any,
+               odometry: Odometry | None) -> Any:
+    """The ROS 2 node of a replay; the recording's odometry, when the fusion takes it,
+    integrated into its ``odom`` frame (``map → odom → base_link``)."""
+    node = open_ros2(config, tracker, stack, rig=rec.rig, site=rec.site)
+    if odometry is not None and isinstance(tracker, Fusion):
+        for k in range(len(odometry)):
+            node.add_odometry(int(odometry.t_ns[k]), float(odometry.dx_m[k]),
+                              float(odometry.dy_m[k]), float(odometry.dyaw_rad[k]))
+    return node
+
+
+def _node_lines(pipeline: Pipeline) -> tuple[str, ...]:
+    """The report line of the pipeline's ROS 2 node, if it has one."""
+    return tuple(s.describe() for s in pipeline.sinks if isinstance(s, Ros2Node))
 
 
 def _views(estimator: Any, rec: Recording, overlays: str | Path | None,
@@ -198,25 +229,46 @@ def _views(estimator: Any, rec: Recording, overlays: str | Path | None,
 
 
 def check_replay_outputs(recording: str | Path, out: Path, rig: Any, site: Any,
-                         link: LinkConfig | None, tum: bool, force: bool) -> None:
-    """Refuse, before anything is read or written, a replay that would overwrite
-    ``OUT/poses.csv`` without ``force``, or write over one of its own inputs (a link to
-    ``REC/truth.csv``).
+                         link: LinkConfig | None, tum: bool, force: bool,
+                         overlays: str | Path | None = None, report: bool = False,
+                         odometry: str | Path | None = None,
+                         stack: contextlib.ExitStack | None = None) -> None:
+    """Refuse, before anything is read or written, a replay that would overwrite an
+    output without ``force`` (``OUT/poses.csv``, ``poses.tum``, ``truth.tum``,
+    ``report.html``, an overlay, a ``--serial`` file), write over or inside one of its
+    own inputs (a link to ``REC/truth.csv`` or ``REC/frames/000000.png``, overlays into
+    ``REC/frames``), or write two outputs into one file (a link to ``OUT/poses.csv``);
+    with ``stack``, lock ``OUT`` and the overlays' folder until it closes
+    (:func:`~ceilkit.runtime.io.outputs.claim_outputs`).
 
     Raises:
-        ConfigError: naming the existing ``poses.csv`` (and ``force=True``), or keyed by
-            the output's parameter (``out``, ``link``) and naming the input.
+        ConfigError: naming the existing file (and ``force=True``), or keyed by the
+            output's parameter (``out``, ``link``, ``overlays``) and naming the input.
+        OutputError: another run is writing into ``OUT`` or the overlays' folder.
     """
     recording = Path(recording)
-    inputs = ([recording] if is_mcap(recording) else
-              [recording / name for name in RECORDING_FILES])
-    inputs += [Path(p) for p in (rig, site) if isinstance(p, str | Path)]
-    outputs = {"out": [out / "poses.csv"] + ([out / "poses.tum"] if tum else [])}
+    if not recording.exists():      # before any output folder (or its lock) is made
+        raise ConfigError(recording, None, "not a recording folder (not found)")
+    inputs = recording_inputs(recording)
+    inputs += [Path(p) for p in (rig, site, odometry) if isinstance(p, str | Path)]
+    truth = is_mcap(recording) or (recording / "truth.csv").exists()
+    outputs = {"out": [out / "poses.csv"] + ([out / "poses.tum"] if tum else [])
+               + ([out / "truth.tum"] if tum and truth else [])
+               + ([out / "report.html"] if report else [])}
+    folders = {"out": [out]}
+    if overlays is not None:
+        folders["overlays"] = [Path(overlays)]
+        outputs["overlays"] = overlay_files(Path(overlays))
     if link is not None and link.target != "-" and not is_serial_path(link.target):
         outputs["link"] = [Path(link.target)]
-    check_outputs([p for p in inputs if p.exists()], outputs)
-    if (out / "poses.csv").exists() and not force:
-        raise refuse_existing(out / "poses.csv")
+    claim_outputs(outputs, folders=folders, inputs=inputs, force=force, stack=stack)
+
+
+def overlay_files(folder: Path) -> list[Path]:
+    """The overlays already in ``folder`` (``NNNNNN.png``): a replay's would replace them."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.glob("*.png") if len(p.stem) == 6 and p.stem.isdigit())
 
 
 def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
@@ -228,7 +280,7 @@ def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
     the views too; ``odometry``: rows fed to the fusion up to each frame."""
     fusion = pipeline.tracker if isinstance(pipeline.tracker, Fusion) else None
     fused = FusionReport(fusion, rec.truth) if fusion is not None else None
-    fed = 0
+    fed = damaged = 0
     n = len(rec)
     start = clock()
     t_first = int(rec.t_ns[0]) if n else 0
@@ -242,10 +294,12 @@ def _run(rec: Recording, pipeline: Pipeline, realtime: bool,
             if wait > 0:
                 time.sleep(wait / 1e9)
         est = pipeline.process(frame, capture_ns=clock())
+        if frame.damage and (damaged := damaged + 1) <= DAMAGE_LINES:
+            log.warning("frame %d: %s: no pose from it (bad_frame)", k, frame.damage)
         if fused is not None:
             fused.add(est)
-        if viewed is not None:
-            image, raw = viewed[0].latest
+        if viewed is not None:  # a damaged frame never reached the tap: no image
+            image, raw = (None, est) if frame.damage else viewed[0].latest
             viewed[1].frame(k, image, raw, est, pipeline.telemetry.latency_ms[-1])
         if progress is not None:
             progress(k + 1, n)

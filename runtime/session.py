@@ -25,7 +25,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,11 +33,17 @@ from typing import Any
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.devices import open_source, packaged_config
-from ceilkit.runtime.errors import CaptureError, ConfigError, LinkError
+from ceilkit.runtime.errors import CaptureError, ConfigError, LinkError, OutputError
 from ceilkit.runtime.fusion import Fusion
 from ceilkit.runtime.io.capture import CameraSource
 from ceilkit.runtime.io.mcap_rec import McapRecorder, McapSink, McapWriter, is_mcap
 from ceilkit.runtime.io.odometry_in import OdometryReceiver
+from ceilkit.runtime.io.outputs import (
+    FolderLock,
+    check_overlaps,
+    claim_outputs,
+    recording_inputs,
+)
 from ceilkit.runtime.io.recording import (
     LOG_DIR,
     OS_DISK,
@@ -121,7 +127,13 @@ def link_lines(link: Any) -> list[str]:
         return []
     c = link.counters
     out = [f"link {link.describe()}: sent {c.sent}, dropped {c.dropped}, skipped "
-           f"{c.skipped}, reconnects {c.reconnects}, received {c.received}"]
+           f"{c.skipped}, lost {c.lost}, reconnects {c.reconnects}, received {c.received}"
+           + (" (disconnected at the end)" if "disconnected" in (
+               link.state, getattr(link, "state_at_close", "")) else "")]
+    odo = link.on_receive
+    if isinstance(odo, OdometryReceiver):
+        out.append(f"link odometry: {odo.rows} rows received, {odo.refused} refused (out of "
+                   f"a vehicle's reach), {odo.bad} malformed")
     syncs = getattr(link.protocol, "timesyncs", 0)  # MAVLink only
     if syncs:
         out.append(f"answered {syncs} TIMESYNC requests")
@@ -138,6 +150,20 @@ class CaptureSettings:
     fourcc: str = ""
     exposure: float | None = None
     gain: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ConfigError(None, name, f"expected an integer >= 0 (0: the driver's), "
+                                  f"found {v!r}")
+        if not (isinstance(self.fps, (int, float)) and 0 <= self.fps < float("inf")):
+            raise ConfigError(None, "fps", f"expected a rate >= 0 (0: the driver's), "
+                              f"found {self.fps!r}")
+        if self.fourcc and not (len(self.fourcc) == 4 and self.fourcc.isascii()
+                                and self.fourcc.isprintable()):
+            raise ConfigError(None, "fourcc", f"expected 4 characters (MJPG, YUYV, ...) or "
+                              f"nothing (the driver's), found {self.fourcc!r}")
 
 
 @dataclass(frozen=True)
@@ -174,6 +200,8 @@ class SessionConfig:
             (poses, odometry, diagnostics out; ``/initialpose`` and odometry in), or
             ``None``. ``record`` ending in ``.mcap``: an MCAP recording
             (:mod:`~ceilkit.runtime.io.mcap_rec`) instead of a SPEC folder.
+        realtime: ``sim``: the frames come at their stamps' pace, as a camera's
+            would (``ceilrun``'s default); ``False``: as fast as they render.
     """
 
     device: str = "/dev/video0"
@@ -195,6 +223,7 @@ class SessionConfig:
     link_odometry: bool = False
     wheel_track_m: float | None = None
     ros2: Any = None
+    realtime: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -308,30 +337,14 @@ def session_inputs(config: SessionConfig, rig: Rig) -> list[Path]:
     out = [Path(p) for p in (config.rig, config.site, rig.camera_file)
            if isinstance(p, str | Path)]
     if not config.device.startswith("sim") and Path(config.device).exists():
-        out.append(Path(config.device))
+        device = Path(config.device)  # a recording: its files (outputs may go beside)
+        out += recording_inputs(device) if (device / "frames.csv").exists() else [device]
     return out
 
 
-def check_outputs(inputs: Sequence[Path], outputs: Mapping[str, Sequence[Path]]) -> None:
-    """Refuse outputs that are inputs of the same run.
-
-    Args:
-        inputs: the files and folders read.
-        outputs: by parameter name (``record``, ``out``, ``link``), the paths written;
-            an input inside a written folder is refused too.
-
-    Raises:
-        ConfigError: keyed by the output's parameter, naming the input.
-    """
-    read = {_resolved(p): Path(p) for p in inputs}
-    for key, paths in outputs.items():
-        for path in paths:
-            target = _resolved(path)
-            for r, shown in read.items():
-                if r == target or target in r.parents or (
-                        key == "record" and r.is_dir() and r in target.parents):
-                    raise ConfigError(None, key, f"{path} is an input of this run ({shown}): "
-                                      "choose another output")
+check_outputs = check_overlaps
+"""Refuse outputs that are inputs of the same run, lie inside an input folder, or are
+another output (:func:`~ceilkit.runtime.io.outputs.check_overlaps`)."""
 
 
 def _session_outputs(config: SessionConfig, record: Path | None) -> dict[str, list[Path]]:
@@ -357,6 +370,49 @@ def _check_config(config: SessionConfig) -> None:
     if not config.fsync_every_s >= 0:
         raise ConfigError(None, "fsync_every_s", f"expected seconds >= 0 (0: off), found "
                           f"{config.fsync_every_s}")
+    if config.link_odometry:
+        _check_link_odometry(config.link)
+
+
+def _check_link_odometry(link: LinkConfig | None) -> None:
+    """Odometry is read back from the pose link: it must be a serial port (stdout and
+    a regular file are only written)."""
+    from ceilkit.runtime.io.link.transport import is_serial_path
+
+    if link is None:
+        raise ConfigError(None, "link_odometry", "odometry is read back from the serial "
+                          "port the poses go to (--serial PORT), and there is none")
+    if link.target == "-" or not is_serial_path(link.target):
+        to = "stdout (-)" if link.target == "-" else f"the file {link.target}"
+        raise ConfigError(None, "link_odometry", "odometry is read back from a serial "
+                          f"port (--serial PORT); the poses go to {to}, which is only written")
+
+
+def hook_link_odometry(config: SessionConfig, link: Any, tracker: Any, method: str,
+                       recorder: Any = None) -> OdometryReceiver | None:
+    """With ``link_odometry``: the link's receive hook feeding the fusion (and the
+    recording's ``odometry.csv``, SPEC folders), or ``None`` with one line on the log
+    when the run's method has no fusion to use it."""
+    if not config.link_odometry or link is None:
+        return None
+    if not isinstance(tracker, Fusion):
+        log.warning("odometry from the link (--link-odometry) is not used: method %s runs "
+                    "without the fusion (--method auto fuses it); it is not read", method)
+        return None
+    writer = getattr(recorder, "writer", None)
+    write = getattr(writer, "write_odometry", None)
+
+    def sink(t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float) -> bool:
+        taken = tracker.add_odometry(t_ns, dx_m, dy_m, dyaw_rad)
+        if write is not None:
+            try:
+                write(t_ns, dx_m, dy_m, dyaw_rad)  # as received: the replay refuses alike
+            except OutputError as exc:   # the recording's guard says it for the frames
+                log.debug("odometry.csv: %s", exc)
+        return taken
+
+    link.on_receive = OdometryReceiver(sink, config.wheel_track_m)
+    return link.on_receive
 
 
 def _is_camera(device: str) -> bool:
@@ -424,7 +480,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     rig, site = load_rig_site(config.device, config.rig, config.site)
     estimator, tracker = make_localizer(config.method, rig, site, config.options,
                                         config.start_pose,
-                                        config.link_odometry or config.ros2 is not None)
+                                        config.link_odometry)  # --ros2: the same method
     record = record_folder(config.record) if config.record is not None else None
     _check_free(config, rig, record)
     cap = config.capture
@@ -432,7 +488,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     source = open_waiting(
         lambda: open_source(config.device, rig, site, cap.width, cap.height, cap.fps,
                             cap.fourcc, cap.exposure, cap.gain,
-                            frames=config.frames or SIM_FRAMES),
+                            frames=config.frames or SIM_FRAMES,
+                            pace=stop.wait if config.realtime else None),
         f"camera {config.device}", config.wait and _is_camera(config.device), stop)
     if source is None:  # stopped while waiting
         return SessionResult(config, estimator.name,
@@ -444,14 +501,13 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     with contextlib.ExitStack() as stack:
         stack.enter_context(source)
         link, stopped = _open_link(config.link, rig, site, config.wait, stop, stack)
-        if link is not None and isinstance(tracker, Fusion) and config.link_odometry:
-            link.on_receive = OdometryReceiver(tracker.add_odometry, config.wheel_track_m)
         result = None
         if not stopped:  # every resource is open: now the outputs appear on disk
+            claim_session_outputs(config, rig, record, stack)  # locked, checked again
             view = open_view(config.view, config.view_token, rig, site, stack,
                              lambda: link_lines(link))
             ros2 = None if config.ros2 is None else open_ros2(
-                config.ros2, tracker, stack, live=getattr(source, "live", False))
+                config.ros2, tracker, stack, getattr(source, "live", False), rig, site)
             poses = None
             if config.out is not None:
                 writer = stack.enter_context(PoseWriter(config.out / "poses.csv", disk=disk))
@@ -462,6 +518,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                 guards.append(OutputGuard("recording", record))
                 recorder = _open_recorder(config, record, rig, site, truth, disk,
                                           guards[-1], stack, more)
+            hook_link_odometry(config, link, tracker, estimator.name, recorder)
             pipeline = build_pipeline(estimator, tracker, link=link, ros2=ros2, poses=poses,
                                       more=more, meter=meter,
                                       watch=view.watch if view is not None else None)
@@ -481,14 +538,35 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
 def _check_free(config: SessionConfig, rig: Any, record: Path | None) -> None:
     """Refuse, before anything is opened, an output that is an input or that exists
     (without ``force``)."""
-    check_outputs(session_inputs(config, rig), _session_outputs(config, record))
-    if config.out is not None and (config.out / "poses.csv").exists() and not config.force:
-        raise refuse_existing(config.out / "poses.csv")
+    claim_session_outputs(config, rig, record)
     if record is not None and not config.force:
         if is_mcap(record) and record.exists():
             raise refuse_existing(record, "a recording is")
         if not is_mcap(record):
             RecordingWriter.check_free(record)
+
+
+def claim_session_outputs(config: SessionConfig, rig: Any, record: Path | None,
+                          stack: contextlib.ExitStack | None = None) -> None:
+    """:func:`~ceilkit.runtime.io.outputs.claim_outputs` of a session: ``poses.csv`` in
+    ``out`` (refused when it exists, without ``force``), the recording, a ``--serial``
+    file; with ``stack``, ``out`` and the recording's folder (an MCAP file's own lock
+    beside it) locked until it closes. Whether a recording is already there is checked
+    by :meth:`RecordingWriter.check_free` and :class:`McapWriter` (they name a recording
+    as one)."""
+    inputs = session_inputs(config, rig)
+    outputs = _session_outputs(config, record)
+    folders = {} if config.out is None else {"out": [config.out]}
+    check_overlaps(inputs, outputs)
+    if stack is not None:  # again under the locks: the link file is open (ours) by now
+        outputs.pop("link", None)
+    if record is not None:
+        outputs.pop("record")
+        if not is_mcap(record):
+            folders["record"] = [record]
+        elif stack is not None:
+            stack.enter_context(FolderLock(record.parent, f".{record.name}.lock"))
+    claim_outputs(outputs, folders=folders, inputs=inputs, force=config.force, stack=stack)
 
 
 def _open_recorder(config: SessionConfig, record: Path, rig: Any, site: Any, truth: Any,

@@ -23,7 +23,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
+from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 
@@ -36,6 +39,13 @@ class TrackerOptions:
     velocity_smoothing: float = 0.3  # 0..1: weight of a new velocity sample
     confirm: int = 3                 # agreeing out-of-gate frames that re-localize
     lost_after_s: float = 1.0
+    # the prediction's 1σ (the region in which its prior may choose among a frame's
+    # twins, estimators/prior.py): an accepted pose's, growing with the velocity's
+    # 1σ (a measured velocity; an unknown one: half the gate's speeds)
+    sigma_m: float = 0.01
+    sigma_rad: float = math.radians(1.0)
+    speed_sigma_mps: float = 0.3
+    turn_sigma_rps: float = math.radians(15.0)
 
 
 @dataclass(frozen=True)
@@ -54,6 +64,7 @@ class _State:
     vy: float = 0.0
     vyaw: float = 0.0
     moving: bool = False  # a velocity measured (before: at rest, assumed, not known)
+    sd: tuple[float, float] = (0.0, 0.0)  # 1σ (m, rad) of the pose at t_ns
 
 
 class Tracker:
@@ -94,7 +105,7 @@ class Tracker:
         pending, self._pending = self._pending, None
         if pending is not None:
             x, y, yaw = pending
-            self._s = _State(int(t_ns), x, y, wrap_pi(yaw))
+            self._s = _State(int(t_ns), x, y, wrap_pi(yaw), sd=DEFAULT_PRIOR_SIGMA)
             self._candidates = []
             self.start_poses += 1
             self._jumped = True
@@ -109,7 +120,17 @@ class Tracker:
             x_m=None if s.x is None else s.x + s.vx * dt,
             y_m=None if s.y is None else s.y + s.vy * dt,
             yaw_rad=wrap_pi(s.yaw + s.vyaw * dt), quality=0.0,
+            cov=self._cov(s, max(dt, 0.0)),
             velocity=(s.vx, s.vy, s.vyaw) if s.moving else None)
+
+    def _cov(self, s: _State, dt: float) -> np.ndarray:
+        """The prediction's covariance ``dt`` after the state (diagonal; x unknown: inf)."""
+        o = self.options
+        sv, sw = ((o.speed_sigma_mps, o.turn_sigma_rps) if s.moving
+                  else (0.5 * o.max_speed_mps, 0.5 * o.max_turn_rps))
+        sp, sr = s.sd[0] + sv * dt, s.sd[1] + sw * dt
+        return np.diag([sp * sp if s.x is not None else math.inf,
+                        sp * sp if s.y is not None else math.inf, sr * sr])
 
     def _inside(self, a: PoseEstimate, b: PoseEstimate, dt_s: float) -> bool:
         o = self.options
@@ -123,7 +144,8 @@ class Tracker:
         return True
 
     def _start(self, est: PoseEstimate) -> TrackResult:
-        self._s = _State(est.t_ns, est.x_m, est.y_m, est.yaw_rad)
+        self._s = _State(est.t_ns, est.x_m, est.y_m, est.yaw_rad,
+                         sd=(self.options.sigma_m, self.options.sigma_rad))
         self._candidates = []
         self.relocalizations += 1
         return TrackResult(est, relocalized=True)
@@ -161,6 +183,7 @@ class Tracker:
                     s.vy = (1 - a) * s.vy + a * (est.y_m - s.y) / dt
                 s.vyaw = (1 - a) * s.vyaw + a * wrap_pi(est.yaw_rad - s.yaw) / dt
             s.t_ns, s.yaw = est.t_ns, est.yaw_rad
+            s.sd = (self.options.sigma_m, self.options.sigma_rad)
             s.x = est.x_m if est.x_m is not None else None
             s.y = est.y_m if est.y_m is not None else None
             return TrackResult(est)

@@ -82,7 +82,7 @@ def camera_from_node(node: Node) -> CameraModel:
                        f"{width}x{height} image")
     dn = node.get("distortion_coefficients")
     want = N_COEFFS[model]
-    dist = _read_matrix(dn, 1, None)
+    dist = _read_matrix(dn, 1, None, DISTORTION_LIMIT)
     if dist.size != want:
         raise dn.error(f"{model} takes {want} coefficients, found {dist.size}")
     R = (_read_matrix(node.get("rectification_matrix"), 3, 3)
@@ -93,9 +93,19 @@ def camera_from_node(node: Node) -> CameraModel:
 
 
 
-def _read_matrix(node: Node, rows: int, cols: int | None) -> np.ndarray:
+MATRIX_LIMIT = 1e6
+"""The largest magnitude of a camera or projection matrix entry (px: focal lengths,
+principal points), bounded before any arithmetic."""
+
+DISTORTION_LIMIT = 1e3
+"""The largest magnitude of a distortion coefficient (real lenses: below 10; a fit's
+rational terms: below a few hundred)."""
+
+
+def _read_matrix(node: Node, rows: int, cols: int | None,
+                 limit: float = MATRIX_LIMIT) -> np.ndarray:
     node.mapping(("rows", "cols", "data"), required=("data",))
-    data = node.get("data").numbers()
+    data = node.get("data").numbers(lo=-limit, hi=limit)
     r = node.get("rows", rows).integer(1, 64)
     c = node.get("cols", cols if cols is not None else len(data)).integer(0, 64)
     if r != rows or (cols is not None and c != cols):

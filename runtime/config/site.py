@@ -23,7 +23,13 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ceilkit.runtime.config.yaml import Node, atomic_write_text, dump_yaml, load_yaml
+from ceilkit.runtime.config.yaml import (
+    NUMBER_LIMIT,
+    Node,
+    atomic_write_text,
+    dump_yaml,
+    load_yaml,
+)
 from ceilkit.runtime.errors import ConfigError
 
 SITE_KEYS = ("ceiling_height", "corridor", "lamps", "lights", "light_diameter", "light_size",
@@ -471,7 +477,9 @@ def _lamp(ln: Node, ceiling_height_m: float) -> LampRow:
 
 
 def _lights(ln: Node) -> np.ndarray:
-    lights = np.array([n.numbers(2) for n in ln.items()], dtype=float).reshape(-1, 2)
+    lights = _plain_lights(ln.value)
+    if lights is None:       # not a plain list of pairs of numbers: each item says why
+        lights = np.array([n.numbers(2) for n in ln.items()], dtype=float).reshape(-1, 2)
     if lights.shape[0] == 0:
         raise ln.error("expected at least one light (or leave the section out)")
     if lights.shape[0] > 1:
@@ -483,6 +491,22 @@ def _lights(ln: Node) -> np.ndarray:
             raise ConfigError(ln.path, f"{ln.key}[{hi}]",
                               f"duplicate light: same place as {ln.key}[{lo}]")
     return lights
+
+
+def _plain_lights(value: object) -> np.ndarray | None:
+    """``(N, 2)`` of a list of ``[x, y]`` finite numbers within ``NUMBER_LIMIT`` (what
+    ``Node.numbers(2)`` accepts, read at once: a site of 100 000 lights), or None
+    when any item is not (the items are then read one by one, for the message)."""
+    if not isinstance(value, list) or not all(
+            type(v) is list and len(v) == 2 and type(v[0]) in (int, float)
+            and type(v[1]) in (int, float) for v in value):
+        return None
+    try:
+        out = np.array(value, dtype=float).reshape(-1, 2)
+    except OverflowError:
+        return None
+    ok = np.isfinite(out).all() and (np.abs(out) <= NUMBER_LIMIT).all()
+    return out if ok else None
 
 
 def _light_size(node: Node) -> tuple[tuple[float, float] | None, float]:

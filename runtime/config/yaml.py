@@ -23,6 +23,7 @@ from typing import Any
 import yaml
 from yaml.reader import ReaderError
 
+from ceilkit.runtime.config.inputs import YAML_MAX_BYTES, read_input
 from ceilkit.runtime.errors import ConfigError
 
 _MISSING = object()
@@ -54,14 +55,15 @@ class StrictLoader(yaml.SafeLoader):
         seen.add(id(node))
         if isinstance(node, yaml.SequenceNode):
             for i, child in enumerate(node.value):
-                self._check_keys(child, f"{key}[{i}]", seen)
+                if not isinstance(child, yaml.ScalarNode):      # a scalar holds no key
+                    self._check_keys(child, f"{key}[{i}]", seen)
         elif isinstance(node, yaml.MappingNode):
             first_line: dict[Any, int] = {}
             for key_node, value_node in node.value:
                 if key_node.tag == "tag:yaml.org,2002:merge":
                     continue
                 name = self.construct_object(key_node, deep=True)
-                child = f"{key}.{name}" if key else str(name)
+                child = f"{key}.{key_text(name)}" if key else key_text(name)
                 line = key_node.start_mark.line + 1
                 try:
                     if name in first_line:
@@ -70,6 +72,97 @@ class StrictLoader(yaml.SafeLoader):
                 except TypeError:                 # unhashable key: the constructor says
                     pass
                 self._check_keys(value_node, child, seen)
+
+
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
+        _check_number_length(node)
+        return super().construct_yaml_int(node)
+
+    def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
+        _check_number_length(node)
+        return super().construct_yaml_float(node)
+
+
+MAX_NUMBER_CHARS = 64
+"""The longest number a YAML file may write, characters. Longer is an error: PyYAML
+builds ``1:2:3...`` (YAML 1.1's base 60) in quadratic time and Python refuses an
+integer of more than 4300 digits."""
+
+
+def _check_number_length(node: yaml.ScalarNode) -> None:
+    if len(node.value) > MAX_NUMBER_CHARS:
+        raise yaml.constructor.ConstructorError(
+            None, None, f"a number of {len(node.value)} characters (at most "
+            f"{MAX_NUMBER_CHARS})", node.start_mark)
+
+
+StrictLoader.add_constructor("tag:yaml.org,2002:int", StrictLoader.construct_yaml_int)
+StrictLoader.add_constructor("tag:yaml.org,2002:float", StrictLoader.construct_yaml_float)
+
+
+FAST_YAML_BYTES = 64 << 10
+"""A YAML input larger than this (a site of thousands of lights) is parsed by libyaml
+(:class:`_FastStrictLoader`, when PyYAML has it: some 20 times faster), with the same
+checks; any error is then reported by :class:`StrictLoader`, as for a small file."""
+
+
+class _FastStrictLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
+    """:class:`StrictLoader`'s checks (a key given twice, a number's length) on
+    libyaml's parser."""
+
+    _check_keys = StrictLoader._check_keys
+
+    def construct_document(self, node: yaml.Node) -> Any:
+        self._check_keys(node, "", set())
+        return super().construct_document(node)
+
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
+        _check_number_length(node)
+        return super().construct_yaml_int(node)
+
+    def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
+        _check_number_length(node)
+        return super().construct_yaml_float(node)
+
+
+_FastStrictLoader.add_constructor("tag:yaml.org,2002:int", _FastStrictLoader.construct_yaml_int)
+_FastStrictLoader.add_constructor("tag:yaml.org,2002:float",
+                                  _FastStrictLoader.construct_yaml_float)
+
+
+def _parse_fast(text: str) -> tuple[bool, Any]:
+    """``(True, value)`` of ``text`` by :class:`_FastStrictLoader`, or ``(False, error)``
+    when libyaml is not there (``None``) or the text is not a valid document (its
+    ``YAMLError``: for a file up to :data:`SLOW_YAML_BYTES` the caller's
+    :class:`StrictLoader` says why instead)."""
+    if not getattr(yaml, "__with_libyaml__", False):
+        return False, None
+    loader = None
+    try:
+        loader = _FastStrictLoader(text)
+        return True, loader.get_single_data()
+    except yaml.YAMLError as exc:
+        return False, exc
+    finally:
+        if loader is not None:
+            loader.dispose()
+
+
+SLOW_YAML_BYTES = 1 << 20
+"""A YAML input larger than this that libyaml refuses is not parsed again in pure Python
+to word the error (PyYAML's scanner is slower than linear on a long key: 8 MiB took 13 s):
+libyaml's own error is reported."""
+
+
+NUMBER_LIMIT = 1e9
+"""The largest magnitude of a number a YAML file gives where its key sets no range."""
+
+
+def key_text(name: Any, limit: int = 60) -> str:
+    """A key as an error message names it: cut to its first characters and its length
+    when longer than ``limit`` (a file with a 1 MB key gets a short line)."""
+    text = str(name)
+    return text if len(text) <= limit else f"{text[:40]}... ({len(text)} characters)"
 
 
 def parse_yaml(data: bytes, path: str | Path | None = None) -> Any:
@@ -90,6 +183,12 @@ def parse_yaml(data: bytes, path: str | Path | None = None) -> Any:
                                       f"UTF-8)") from None
     loader = None
     try:
+        if len(data) > FAST_YAML_BYTES:
+            ok, value = _parse_fast(text)
+            if ok:
+                return value
+            if value is not None and len(data) > SLOW_YAML_BYTES:
+                raise value
         loader = StrictLoader(text)             # checks the characters first
         return loader.get_single_data()
     except DuplicateKeyError as exc:
@@ -112,15 +211,11 @@ def parse_yaml(data: bytes, path: str | Path | None = None) -> Any:
 
 
 def load_yaml(path: str | Path) -> Node:
-    """Read ``path`` strictly (:func:`parse_yaml`) and return its root :class:`Node`."""
+    """Read ``path`` strictly (:func:`parse_yaml`) and return its root :class:`Node`:
+    a regular file of at most :data:`~ceilkit.runtime.config.inputs.YAML_MAX_BYTES`
+    (:func:`~ceilkit.runtime.config.inputs.read_input`)."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(path, None, "file not found") from None
-    except OSError as exc:
-        raise ConfigError(path, None, f"cannot read: {exc.strerror or exc}") from None
-    value = parse_yaml(data, path)
+    value = parse_yaml(read_input(path, YAML_MAX_BYTES), path)
     return Node({} if value is None else value, path, "")
 
 
@@ -165,7 +260,7 @@ class Node:
             raise self.expected("a mapping")
         for k in self.value:
             if k not in allowed:
-                key = self._child_key(str(k))
+                key = self._child_key(key_text(k))
                 raise ConfigError(
                     self.path, key, f"unknown key (allowed here: {', '.join(allowed)})"
                 )
@@ -198,6 +293,11 @@ class Node:
     # -- scalars --------------------------------------------------------------
     def number(self, lo: float | None = None, hi: float | None = None,
                lo_open: bool = False, what: str = "") -> float:
+        """A finite number in ``[lo, hi]`` (``(lo, hi]`` when ``lo_open``); an open end
+        (None) is :data:`NUMBER_LIMIT`: every number a file gives is bounded before
+        any arithmetic is done with it."""
+        lo = -NUMBER_LIMIT if lo is None else lo
+        hi = NUMBER_LIMIT if hi is None else hi
         v = self.value
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self.expected(f"a finite number{what}")
@@ -233,12 +333,14 @@ class Node:
             raise self.error(f"expected one of {', '.join(choices)}, found {v!r}")
         return v
 
-    def numbers(self, length: int | None = None) -> list[float]:
+    def numbers(self, length: int | None = None, lo: float | None = None,
+                hi: float | None = None) -> list[float]:
+        """A list of ``length`` (any when None) finite numbers, each in ``[lo, hi]``."""
         if not isinstance(self.value, list):
             raise self.expected(f"a list of {length} numbers" if length else "a list of numbers")
         if length is not None and len(self.value) != length:
             raise self.error(f"expected {length} numbers, found {len(self.value)}")
-        return [n.number() for n in self.items()]
+        return [n.number(lo, hi) for n in self.items()]
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

@@ -29,6 +29,7 @@ import math
 import time
 import types
 import typing
+import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -218,7 +219,8 @@ SATURATED_FRAME = "saturated_frame"
 AMBIGUOUS = "ambiguous"
 
 FAILURE_REASONS: Mapping[str, str] = MappingProxyType({
-    BAD_FRAME: "the frame's size or layout is not the camera's",
+    BAD_FRAME: "the frame's size or layout is not the camera's, or its file is damaged "
+               "(a truncated JPEG or PNG: the detail names the file)",
     BLANK_FRAME: "the frame has no contrast (lens cap, dark room)",
     SATURATED_FRAME: "the frame is saturated",
     AMBIGUOUS: "several poses explain the frame equally well (a symmetric layout)",
@@ -272,14 +274,20 @@ class EstimatorOptions:
 
     min_contrast: float = 8.0
 
+    ALIASES: ClassVar[Mapping[str, str]] = MappingProxyType({})
+    """Deprecated option names and the names that replaced them (``{old: new}``):
+    still accepted by :meth:`from_mapping`, with a notice naming the new key."""
+
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None = None) -> EstimatorOptions:
-        """Options from ``{name: value}`` (values may be strings, as typed on a CLI).
+        """Options from ``{name: value}`` (values may be strings, as typed on a CLI); a
+        deprecated name (:attr:`ALIASES`) is read as its new one.
 
         Raises:
-            ConfigError: ``options.NAME`` for an unknown name or a value of the wrong type.
+            ConfigError: ``options.NAME`` for an unknown name, a value of the wrong type,
+                or an option given both by its old and its new name.
         """
-        values = dict(values or {})
+        values = cls.renamed(values)
         hints = typing.get_type_hints(cls)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - known)
@@ -287,6 +295,32 @@ class EstimatorOptions:
             raise ConfigError(None, f"options.{unknown[0]}",
                               f"unknown option (expected one of {', '.join(sorted(known))})")
         return cls(**{k: _coerce(k, hints[k], v) for k, v in values.items()})
+
+    @classmethod
+    def renamed(cls, values: Mapping[str, Any] | None) -> dict[str, Any]:
+        """``values`` with each deprecated name (:attr:`ALIASES`) replaced by its new
+        one, the first use of each in a run noted once (a ``FutureWarning`` naming the
+        new key).
+
+        Raises:
+            ConfigError: ``options.NEW`` when both the old and the new name are given.
+        """
+        out = dict(values or {})
+        for old, new in cls.ALIASES.items():
+            if old not in out:
+                continue
+            if new in out:
+                raise ConfigError(None, f"options.{new}",
+                                  f"given twice: as {new} and as its old name {old}")
+            out[new] = out.pop(old)
+            if old not in _NOTED:
+                _NOTED.add(old)
+                warnings.warn(f"option {old!r} is deprecated: use {new!r}", FutureWarning,
+                              stacklevel=3)
+        return out
+
+
+_NOTED: set[str] = set()  # the deprecated option names already noted in this run
 
 
 # -- the contract ------------------------------------------------------------------------

@@ -15,12 +15,15 @@ Example::
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
+from ceilkit.runtime.geometry.ceiling import (
+    PlanarGeometry,
+    ceiling_points_vehicle,
+    vehicle_to_world,
+)
 
 
 def _pose(pose: Any) -> np.ndarray | None:
@@ -46,9 +49,7 @@ def ignored_from(site: Any, points_v: np.ndarray, pose: Any) -> np.ndarray | Non
     xyz = _pose(pose)
     if xyz is None:
         return None
-    q = np.asarray(points_v, float).reshape(-1, 2)
-    c, s = math.cos(xyz[2]), math.sin(xyz[2])
-    w = q @ np.array([[c, s], [-s, c]]) + xyz[:2]                             # V -> W
+    w = vehicle_to_world(points_v, xyz[0], xyz[1], xyz[2])
     ok = np.all(np.isfinite(w), axis=1)
     out = np.zeros(len(w), bool)
     out[ok] = site.ignored(w[ok])

@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import Sides
-from ceilkit.runtime.estimators.block.estimator import BlockEstimator, BlockOptions, _Fix
+from ceilkit.runtime.estimators.block.estimator import BlockEstimator, BlockOptions, TargetFix
 from ceilkit.runtime.estimators.block.pnp import Refined, project_norm
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
@@ -62,7 +62,7 @@ class PaperBlockEstimator(BlockEstimator):
     Options = BlockOptions
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
-               resolved_by: str) -> _Fix | None:
+               resolved_by: str) -> TargetFix | None:
         g = self.geo
         got = linear_pnp(sides.corners_norm, corners_w)
         if got is None:
@@ -84,7 +84,7 @@ class PaperBlockEstimator(BlockEstimator):
         span = float(np.max(np.linalg.norm(corners_w - corners_w.mean(0), axis=1)))
         cov = np.diag([sm ** 2, sm ** 2, (sm / max(span, 1e-3)) ** 2])
         ref = Refined(pose, cov, rms_px, len(corners_w))
-        return _Fix(source, ref, float("nan"), sides.corners_norm, corners_w, resolved_by)
+        return TargetFix(source, ref, float("nan"), sides.corners_norm, corners_w, resolved_by)
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
                    pose: np.ndarray | None = None, max_chords: int = 0):

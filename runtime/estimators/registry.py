@@ -76,7 +76,9 @@ def make_estimator(name: str | None, rig: Rig, site: Site,
     name = name or default_method(site)
     if name not in ESTIMATORS:
         raise ConfigError(None, "method",
-                          f"unknown method {name!r} (choose from {', '.join(ESTIMATORS)})")
+                          f"unknown method {name!r} (choose from "
+                          f"{', '.join((AUTO, *ESTIMATORS))}; {AUTO}: every method the "
+                          f"site supports, fused)")
     cls = ESTIMATORS[name]
     if issubclass(cls, Estimator):
         return cls(rig, site, cls.Options.from_mapping(options))

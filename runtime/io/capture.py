@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.errors import CaptureError
+from ceilkit.runtime.io.images import read_image
 from ceilkit.runtime.io.sources import Frame, SourceBase
 
 log = logging.getLogger("ceilkit.capture")
@@ -51,7 +52,9 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".mjpg", ".mjpeg")
 
 
 class ImageFolderSource(SourceBase):
-    """Images of a folder in name order, stamped ``index / fps`` seconds."""
+    """Images of a folder in name order, stamped ``index / fps`` seconds; a file that
+    is no whole image (a truncated JPEG) is a damaged frame naming it
+    (:meth:`Frame.damaged <ceilkit.runtime.io.sources.Frame.damaged>`), not an error."""
 
     live = False
     dropped = 0
@@ -69,10 +72,10 @@ class ImageFolderSource(SourceBase):
         if self._i >= len(self.files):
             return None
         path = self.files[self._i]
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise CaptureError(f"{path}: cannot decode the image")
-        f = Frame(image, int(round(self._i * 1e9 / self.fps)), self._i)
+        image, damage = read_image(path)
+        t_ns = int(round(self._i * 1e9 / self.fps))
+        f = Frame(image, t_ns, self._i) if image is not None else \
+            Frame.damaged(damage, t_ns, self._i)
         self._i += 1
         return f
 

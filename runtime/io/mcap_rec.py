@@ -14,7 +14,15 @@ Channels (``ros2msg`` schemas, CDR messages, log time = the frame's capture ``t_
 * ``/ceilkit/wheel_odometry``: ``nav_msgs/msg/Odometry``, wheel odometry integrated in
   ``odom`` (the row's increment in the twist fields);
 * ``/ceilkit/truth``: ``geometry_msgs/msg/PoseStamped``, ground truth (``truth.csv``);
-* ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray``, the localizer's state.
+* ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray``, the localizer's state;
+* ``/tf``: ``tf2_msgs/msg/TFMessage``, each published pose with x and y as ``map →
+  base_link`` (``map → odom`` and ``odom → base_link`` when wheel odometry is recorded),
+  as the ROS 2 node publishes it (:mod:`~ceilkit.runtime.io.ros2_views`);
+* ``/tf_static``: ``base_link → camera_optical_frame`` from the rig's mount, once,
+  before the first image;
+* ``/ceilkit/camera_info``: ``sensor_msgs/msg/CameraInfo`` from the rig's camera, with
+  each image (same stamp and ``frame_id``), so Foxglove's image and 3D panels place the
+  images without any layout work.
 
 ``rig.yaml`` and ``site.yaml`` (and a camera file beside them) are attachments, written
 first. Crash safety: the file is written unchunked and flushed after every message,
@@ -42,14 +50,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any
 
-import cv2
 import numpy as np
 
+from ceilkit.runtime.config.inputs import require_regular_file
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError, OutputError
 from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 from ceilkit.runtime.io import ros2_msgs as msgs
+from ceilkit.runtime.io.images import decode_image
+from ceilkit.runtime.io.provenance import version_line
 from ceilkit.runtime.io.recording import (
     ODOMETRY_HEADER,
     CsvFile,
@@ -64,6 +74,7 @@ from ceilkit.runtime.io.recording import (
     refuse_existing,
 )
 from ceilkit.runtime.io.recording_writer import encode_png
+from ceilkit.runtime.io.ros2_views import OdometryPose
 from ceilkit.runtime.io.sources import Frame
 
 log = logging.getLogger("ceilkit.mcap")
@@ -75,6 +86,9 @@ DETECTIONS_TOPIC = "/ceilkit/detections"
 WHEEL_ODOMETRY_TOPIC = "/ceilkit/wheel_odometry"
 TRUTH_TOPIC = "/ceilkit/truth"
 DIAGNOSTICS_TOPIC = "/diagnostics"
+TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
+CAMERA_INFO_TOPIC = "/ceilkit/camera_info"
 CHANNELS: Mapping[str, str] = {
     IMAGE_TOPIC: "sensor_msgs/msg/CompressedImage",
     POSE_TOPIC: "geometry_msgs/msg/PoseWithCovarianceStamped",
@@ -82,11 +96,14 @@ CHANNELS: Mapping[str, str] = {
     WHEEL_ODOMETRY_TOPIC: "nav_msgs/msg/Odometry",
     TRUTH_TOPIC: "geometry_msgs/msg/PoseStamped",
     DIAGNOSTICS_TOPIC: "diagnostic_msgs/msg/DiagnosticArray",
+    TF_TOPIC: "tf2_msgs/msg/TFMessage",
+    TF_STATIC_TOPIC: "tf2_msgs/msg/TFMessage",
+    CAMERA_INFO_TOPIC: "sensor_msgs/msg/CameraInfo",
 }
 """Topic -> ROS 2 message type of every channel."""
 PROFILE = "ros2"
-CAMERA_FRAME = "camera"
-"""``frame_id`` of the images."""
+CAMERA_FRAME = msgs.CAMERA_FRAME
+"""``frame_id`` of the images and of ``camera_info``."""
 
 
 def _import_mcap():
@@ -150,6 +167,9 @@ class McapWriter:
         self.count = 0
         self.messages = 0
         self._odo_pose = (0.0, 0.0, 0.0)
+        self._rig = rig
+        self._odom = OdometryPose()
+        self._static_written = False
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._fh: IO[bytes] = open(self.path, "wb")
@@ -165,7 +185,8 @@ class McapWriter:
                 schema = self._writer.register_schema(kind, "ros2msg", text.encode())
                 self._channels[topic] = self._writer.register_channel(topic, "cdr", schema)
                 self._encoders[topic] = serialize(kind, text)[kind]
-            self._writer.add_metadata("ceilkit", {"layout": "ceilkit-mcap", "version": "1"})
+            self._writer.add_metadata("ceilkit", {"layout": "ceilkit-mcap", "version": "1",
+                                                  "written_by": version_line()})
             files = dict(attachments or {})
             if not files and rig is not None and site is not None:
                 files = _config_files(rig, site, header)
@@ -194,7 +215,9 @@ class McapWriter:
 
     # -------------------------------------------------------------- what is recorded
     def write_png(self, index: int, t_ns: int, png: bytes, fmt: str) -> None:
-        """A frame already PNG-encoded (``fmt``: ``mono8; png compressed`` or ``bgr8; ...``)."""
+        """A frame already PNG-encoded (``fmt``: ``mono8; png compressed`` or ``bgr8;
+        ...``), after its ``camera_info`` (and, before the first, ``/tf_static``)."""
+        self._write_camera(int(t_ns))
         self._write(IMAGE_TOPIC, t_ns, {"header": msgs.header(t_ns, CAMERA_FRAME),
                                         "format": fmt, "data": png}, int(index))
         self.count += 1
@@ -214,8 +237,24 @@ class McapWriter:
         png = encode_png(img, self.path)
         self.write_png(frame.index, frame.t_ns, png, _image_format(img))
 
+    def _write_camera(self, t_ns: int) -> None:
+        if self._rig is None:
+            return
+        if not self._static_written:
+            self._static_written = True
+            m = self._rig.mount
+            self._write(TF_STATIC_TOPIC, t_ns, msgs.tf_msg(
+                [msgs.camera_transform(m.R_vehicle_cam, m.t_vehicle_cam, t_ns)]))
+        self._write(CAMERA_INFO_TOPIC, t_ns, msgs.camera_info_msg(self._rig.camera, t_ns))
+
     def write_pose(self, est: PoseEstimate) -> None:
+        """The pose, and its ``/tf`` when it has x and y."""
         self._write(POSE_TOPIC, est.t_ns, msgs.pose_msg(est))
+        odom = self._odom.at(int(est.t_ns))
+        transforms = msgs.pose_transforms(est, int(est.t_ns), odom_base=odom,
+                                          with_odom_base=odom is not None)
+        if transforms:
+            self._write(TF_TOPIC, est.t_ns, msgs.tf_msg(transforms))
 
     def write_detection(self, est: Estimate) -> None:
         self._write(DETECTIONS_TOPIC, est.t_ns, {"data": msgs.detection_json(est)})
@@ -237,6 +276,7 @@ class McapWriter:
             self._odo_pose = (x + c * dx_m - s * dy_m, y + s * dx_m + c * dy_m,
                               yaw + dyaw_rad)
             pose = self._odo_pose
+        self._odom.set(int(t_ns), pose, external=False)
         m = msgs.wheel_odometry_msg(t_ns, *pose)
         m["twist"]["twist"]["linear"].update(x=float(dx_m), y=float(dy_m))
         m["twist"]["twist"]["angular"]["z"] = float(dyaw_rad)
@@ -349,6 +389,7 @@ def read_mcap(path: str | Path) -> tuple[list[Any], dict[int, Any], dict[str, by
     from mcap.stream_reader import StreamReader
 
     path = Path(path)
+    require_regular_file(path)   # a FIFO would block, a device never end
     messages: list[Any] = []
     channels: dict[int, Any] = {}
     attachments: dict[str, bytes] = {}
@@ -468,11 +509,10 @@ class McapRecording(StoredFrames):
         return self._images[k][2]
 
     def frame(self, k: int) -> Frame:
-        data = np.frombuffer(self._images[k][2], np.uint8)
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         where = f"{self.path}:{IMAGE_TOPIC}[{k}]"
-        if image is None:
-            raise ConfigError(where, None, "cannot decode the image (corrupt or not a PNG)")
+        image, damage = decode_image(self._images[k][2], where)
+        if image is None:  # a damaged image is a bad_frame failure, not a stop
+            return Frame.damaged(damage, int(self.t_ns[k]), int(self.index[k]))
         check_frame_image(image, where, self.rig)
         return Frame(image, int(self.t_ns[k]), int(self.index[k]))
 
@@ -495,6 +535,15 @@ def _copy_truth(truth: Truth | None, writer: Any) -> None:
                            float(truth.yaw_rad[k]))
 
 
+def _whole(frame: Frame) -> Frame:
+    """``frame``, unless it is damaged: a conversion copies frames, it cannot copy one
+    that is no image (ConfigError: the damage, naming the file)."""
+    if frame.damage:
+        raise ConfigError(None, None, f"{frame.damage}: a damaged frame cannot be "
+                          "converted")
+    return frame
+
+
 def convert_recording(src: str | Path, dst: str | Path, force: bool = False) -> int:
     """A SPEC recording folder to an ``.mcap`` file, or an ``.mcap`` to a SPEC folder
     (by the suffixes); the number of frames converted. Frames are lossless PNGs both
@@ -513,9 +562,9 @@ def convert_recording(src: str | Path, dst: str | Path, force: bool = False) -> 
     if is_mcap(dst):
         rec = Recording(src)
         files = {p.name: p.read_bytes() for p in sorted(src.glob("*.yaml"))}
-        with McapWriter(dst, force=force, attachments=files) as w:
+        with McapWriter(dst, rig=rec.rig, force=force, attachments=files) as w:
             for k in range(len(rec)):
-                f = rec.frame(k)
+                f = _whole(rec.frame(k))
                 w.write_png(int(rec.index[k]), f.t_ns, encode_png(f.image, src),
                             _image_format(f.image))
             _copy_truth(rec.truth, w)
@@ -529,7 +578,7 @@ def convert_recording(src: str | Path, dst: str | Path, force: bool = False) -> 
     with RecordingWriter(dst, mrec.rig, mrec.site, truth=mrec.truth is not None,
                          force=force) as w:
         for k in range(len(mrec)):
-            f = mrec.frame(k)
+            f = _whole(mrec.frame(k))
             w.write(Frame(f.image, f.t_ns, k))
         _copy_truth(mrec.truth, w)
     if mrec.odometry is not None:

@@ -159,15 +159,17 @@ class DifferentialDrive:
 class OdometryReceiver:
     """The link's ``on_receive`` hook: odometry messages to ``sink(t_ns, dx, dy, dyaw)``.
 
-    Counts ``rows`` delivered and ``bad`` messages (a malformed ``$PCEIO``, a bad CRC);
-    other messages are ignored. ``track_m``: the wheel track for WHEEL_DISTANCE (None:
-    WHEEL_DISTANCE is ignored).
+    Counts ``rows`` delivered, ``refused`` ones (the sink returned ``False``: the
+    fusion's bound, ``fusion.plausible_increment``) and ``bad`` messages (a malformed
+    ``$PCEIO``, a bad CRC); other messages are ignored. ``track_m``: the wheel track
+    for WHEEL_DISTANCE (None: WHEEL_DISTANCE is ignored).
     """
 
-    def __init__(self, sink: Callable[[int, float, float, float], None],
+    def __init__(self, sink: Callable[[int, float, float, float], bool | None],
                  track_m: float | None = None):
         self.sink = sink
         self.rows = 0
+        self.refused = 0
         self.bad = 0
         self._poses = PoseDifferencer()
         self._wheels = DifferentialDrive(track_m) if track_m is not None else None
@@ -177,7 +179,8 @@ class OdometryReceiver:
         try:
             for inc in self._decode(raw):
                 self.rows += 1
-                self.sink(inc.t_ns, inc.dx_m, inc.dy_m, inc.dyaw_rad)
+                if self.sink(inc.t_ns, inc.dx_m, inc.dy_m, inc.dyaw_rad) is False:
+                    self.refused += 1
         except LinkError:
             self.bad += 1
 

@@ -8,13 +8,13 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.io.frame_log import LOG_DIR, load_logged, read_frame_log
+from ceilkit.runtime.io.images import read_image
 from ceilkit.runtime.io.sources import Frame, SourceBase
 from ceilkit.runtime.io.tables import (
     FRAMES_HEADER,
@@ -147,15 +147,17 @@ class Recording(StoredFrames):
         return int(self.index.size)
 
     def frame(self, k: int) -> Frame:
-        """The k-th frame listed in ``frames.csv`` (then in the write-ahead log)."""
+        """The k-th frame listed in ``frames.csv`` (then in the write-ahead log); a frame
+        file that is no whole image (cut short) is a damaged frame naming it
+        (:meth:`Frame.damaged <ceilkit.runtime.io.sources.Frame.damaged>`)."""
         i = int(self.index[k])
         entry = self._logged.get(i)
         if entry is not None:
             image, path = load_logged(entry), entry.path
         else:
             path = self.folder / "frames" / frame_name(i)
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if image is None:
-                raise ConfigError(path, None, "cannot decode the image (corrupt or not a PNG)")
+            image, damage = read_image(path)
+            if image is None:  # a damaged file is a bad_frame failure, not a stop
+                return Frame.damaged(damage, int(self.t_ns[k]), i)
         check_frame_image(image, path, self.rig)
         return Frame(image, int(self.t_ns[k]), i)

@@ -13,6 +13,7 @@ import logging
 import math
 import os
 import shutil
+import threading
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -43,9 +44,16 @@ from ceilkit.runtime.io.frame_log import (
     record_header,
     segment_name,
 )
+from ceilkit.runtime.io.provenance import version_line
 from ceilkit.runtime.io.recording_reader import RECORDING_FILES, Recording, frame_name
 from ceilkit.runtime.io.sources import Frame
-from ceilkit.runtime.io.tables import FRAMES_HEADER, TRUTH_HEADER, Truth, read_rows
+from ceilkit.runtime.io.tables import (
+    FRAMES_HEADER,
+    ODOMETRY_HEADER,
+    TRUTH_HEADER,
+    Truth,
+    read_rows,
+)
 
 log = logging.getLogger("ceilkit.recording")
 
@@ -119,6 +127,9 @@ class RecordingWriter:
         self._truth_of = truth_of
         self._truth = (CsvFile(self.folder / "truth.csv", TRUTH_HEADER, disk)
                        if truth or truth_of is not None else None)
+        self._odometry: CsvFile | None = None     # odometry.csv, by write_odometry
+        self._odometry_lock = threading.Lock()    # rows come from the link's thread
+        self._t_odometry_ns: int | None = None
         self.count = 0        # frames stored (logged or written)
         self.converted = 0    # frames that are PNGs with their row
         self.keep_images = keep_images
@@ -145,6 +156,7 @@ class RecordingWriter:
             if tmp.exists():
                 shutil.rmtree(tmp)
             (tmp / "frames").mkdir(parents=True)
+            header = f"# recorded by {version_line()}\n{header}"
             rig.save(tmp / "rig.yaml", header)
             site.save(tmp / "site.yaml", header)
             if clear:
@@ -299,6 +311,24 @@ class RecordingWriter:
         self._truth.row([int(t_ns), f"{x_m:.6f}", f"{y_m:.6f}",
                          f"{math.degrees(yaw_rad):.6f}"])
 
+    def write_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float) -> bool:
+        """One ``odometry.csv`` row (SPEC §2: the increment in V since the previous row,
+        ending at ``t_ns``), written whole, its numbers as received (``repr``: a replay
+        feeds the very same values). Safe from another thread (the link's receive hook).
+        A row not after the last one (the file's stamps increase) or one coming after
+        :meth:`close` is not written: ``False``."""
+        with self._odometry_lock:
+            if self.closed or (self._t_odometry_ns is not None
+                               and t_ns <= self._t_odometry_ns):
+                return False
+            if self._odometry is None:
+                self._odometry = CsvFile(self.folder / "odometry.csv", ODOMETRY_HEADER,
+                                         self.disk)
+            self._odometry.row([int(t_ns), repr(float(dx_m)), repr(float(dy_m)),
+                                repr(math.degrees(dyaw_rad))])
+            self._t_odometry_ns = int(t_ns)
+            return True
+
     def _truth_row(self, t_ns: int) -> None:
         pose = self._truth_of.lookup(t_ns) if self._truth_of is not None else None
         if pose is not None:
@@ -317,9 +347,10 @@ class RecordingWriter:
                         p.unlink()
                 with contextlib.suppress(OSError):
                     wal.rmdir()
-        for fh in (self._frames, self._truth):
-            if fh is not None:
-                fh.close()
+        with self._odometry_lock:
+            for fh in (self._frames, self._truth, self._odometry):
+                if fh is not None:
+                    fh.close()
 
     def __enter__(self) -> RecordingWriter:
         return self

@@ -15,6 +15,11 @@ W is ``map``, V is ``base_link``):
 * ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): the localizer's state (OK,
   WARN with the failure's reason, ERROR with a fault such as ``camera_lost``), on every
   change and at least every ``diagnostics_period_s``.
+* ``/tf``, ``/tf_static``, ``camera_info``, the overlay image and ``/clock``:
+  :mod:`~ceilkit.runtime.io.ros2_views`.
+
+Every name is a node parameter (:data:`PARAMETERS`: a params file, ``-p``, or
+``ceilrun --ros2-param``).
 
 It subscribes to:
 
@@ -28,7 +33,13 @@ It subscribes to:
 Stamps: a message's stamp is the estimate's ``t_ns`` plus ``clock_offset_ns`` (the
 session gives ``time_ns() - monotonic_ns()`` for a camera, whose frames are stamped on
 the monotonic clock, so ROS sees wall-clock stamps; a replay or a simulator publishes
-its own stamps, as ``ros2 bag play`` does); incoming odometry stamps are mapped back.
+its own stamps when they are wall-clock times, else (before 2001: a simulator's from
+0, a camera recording's monotonic ones) from the wall clock at the first frame, every
+spacing kept); incoming odometry stamps are mapped back.
+
+Delivery: with ``wait_subscribers_s`` the node waits for a subscriber to the poses
+before the first frame; on closing it waits up to ``flush_s`` until every subscriber
+has acknowledged every message (reliable QoS), so a replay to ROS loses nothing.
 
 rclpy is imported only by :meth:`Ros2Node.open` (the ``ros2`` extra); nothing else in
 ceilkit imports it. The node runs in its own rclpy context with a background executor
@@ -42,6 +53,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -57,6 +69,7 @@ from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.io import ros2_msgs as msgs
 from ceilkit.runtime.io.odometry_in import PoseDifferencer
+from ceilkit.runtime.io.ros2_views import Ros2Views, fill
 
 log = logging.getLogger("ceilkit.ros2")
 
@@ -81,6 +94,19 @@ class Ros2Config:
         wait_subscribers_s: on opening, wait up to this long for a subscriber to the
             poses (DDS discovery takes a moment: a replay would otherwise publish its
             first frames to no one); 0: do not wait.
+        odom_frame_id, camera_frame_id: the odometry's frame and the camera's (an
+            optical frame: x right, y down, z forward).
+        tf: ``auto`` (``map → base_link``; ``map → odom`` once odometry comes in),
+            ``map_base`` (always ``map → base_link``) or ``off``.
+        camera_info_topic, image_topic: the camera model and the overlay (JPEG), the
+            latter at most ``image_rate_hz`` (0: off) and of ``image_quality`` (1-100).
+        publish_clock: publish the frames' stamps on ``/clock`` (``use_sim_time``).
+        transient_local: the poses keep their last ``qos_depth`` messages for late
+            subscribers that ask for them (``/tf_static`` and ``camera_info`` always do).
+        flush_s: on closing, wait up to this long until every subscriber has
+            acknowledged every message (reliable delivery of a replay's last poses).
+        ros_args: rclpy's own arguments (``--ros-args --params-file F -r __ns:=/x``); node
+            parameters (:data:`PARAMETERS`) override the fields above.
     """
 
     node_name: str = "ceilkit"
@@ -96,6 +122,101 @@ class Ros2Config:
     max_velocity_dt_s: float = 0.5
     diagnostics_period_s: float = 1.0
     wait_subscribers_s: float = 0.0
+    odom_frame_id: str = msgs.ODOM_FRAME
+    camera_frame_id: str = msgs.CAMERA_FRAME
+    tf: str = "auto"
+    camera_info_topic: str = "/ceilkit/camera_info"
+    image_topic: str = "/ceilkit/overlay/compressed"
+    image_rate_hz: float = 2.0
+    image_quality: int = 80
+    publish_clock: bool = False
+    transient_local: bool = True
+    flush_s: float = 5.0
+    ros_args: tuple[str, ...] = ()
+
+
+TF_MODES = ("auto", "map_base", "off")
+PARAMETERS = ("frame_id", "child_frame_id", "odom_frame_id", "camera_frame_id", "tf",
+              "pose_topic", "odom_topic", "diagnostics_topic", "initialpose_topic",
+              "odometry_topic", "camera_info_topic", "image_topic", "image_rate_hz",
+              "image_quality", "publish_clock", "transient_local", "qos_depth",
+              "max_velocity_dt_s", "diagnostics_period_s", "wait_subscribers_s", "flush_s")
+"""The node's parameters (``ros2 param``, a ``--params-file``, ``--ros2-param``): the
+:class:`Ros2Config` fields of the same names; ``odometry_topic`` ``""`` is off."""
+
+
+def ros2_config(base: Ros2Config | None = None, values: dict[str, Any] | None = None,
+                where: str = "--ros2-param") -> Ros2Config:
+    """``base`` with ``values`` (parameter name -> value, strings parsed as the field's
+    type), checked.
+
+    Raises:
+        ConfigError: an unknown name or a value out of range, keyed ``where NAME``.
+    """
+    cfg = base or Ros2Config()
+    out: dict[str, Any] = {}
+    for name, value in (values or {}).items():
+        if name not in PARAMETERS:
+            raise ConfigError(None, where, f"unknown parameter {name!r}; expected one of "
+                              f"{', '.join(PARAMETERS)}")
+        out[name] = _parameter_value(name, getattr(cfg, name), value, where)
+    return _checked(dataclasses.replace(cfg, **out), where)
+
+
+def _parameter_value(name: str, default: Any, value: Any, where: str) -> Any:
+    key = f"{where} {name}"
+    try:
+        if isinstance(default, bool):
+            if isinstance(value, str):
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(value)
+                return value.lower() in ("true", "1")
+            return bool(value)
+        if isinstance(default, int):
+            return int(value)
+        if isinstance(default, float):
+            return float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(None, key, f"expected a {type(default).__name__}, found "
+                          f"{value!r}") from None
+    if name == "tf" and isinstance(value, bool):   # YAML 1.1 (ROS's -p, params files): off
+        return "auto" if value else "off"
+    text = "" if value is None else str(value)
+    return (text or None) if name == "odometry_topic" else text
+
+
+def _checked(cfg: Ros2Config, where: str) -> Ros2Config:
+    def bad(name: str, expected: str) -> ConfigError:
+        return ConfigError(None, f"{where} {name}", f"expected {expected}, found "
+                           f"{getattr(cfg, name)!r}")
+    if cfg.tf not in TF_MODES:
+        raise bad("tf", " or ".join(TF_MODES))
+    for name in ("frame_id", "child_frame_id", "odom_frame_id", "camera_frame_id"):
+        if not getattr(cfg, name) or getattr(cfg, name).startswith("/"):
+            raise bad(name, "a frame id (not empty, no leading /)")
+    for name in ("image_rate_hz", "max_velocity_dt_s", "diagnostics_period_s",
+                 "wait_subscribers_s", "flush_s"):
+        if not 0.0 <= getattr(cfg, name) < 1e6:
+            raise bad(name, "a number of at least 0")
+    if not 1 <= cfg.image_quality <= 100:
+        raise bad("image_quality", "1 to 100")
+    if not 1 <= cfg.qos_depth <= 100_000:
+        raise bad("qos_depth", "1 to 100000")
+    return cfg
+
+
+def declare_parameters(node: Any, cfg: Ros2Config) -> Ros2Config:
+    """Declare :data:`PARAMETERS` on ``node`` with ``cfg``'s values as defaults; the
+    config with the values the node was given (a params file, ``-p``) instead."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    values = {}
+    for name in PARAMETERS:
+        default = getattr(cfg, name)
+        default = "" if default is None else default
+        p = node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
+        values[name] = p.value
+    return ros2_config(cfg, values, where="ROS parameter")
 
 
 def velocity_between(a: PoseEstimate, b: PoseEstimate, max_dt_s: float
@@ -153,28 +274,32 @@ def _import_rclpy():
                    "diag": DiagnosticArray, "status": DiagnosticStatus, "kv": KeyValue}
 
 
-def _fill(msg: Any, values: dict[str, Any]) -> Any:
-    """Copy nested plain ``values`` (:mod:`ros2_msgs`) into an rclpy message."""
-    for key, v in values.items():
-        if isinstance(v, dict):
-            _fill(getattr(msg, key), v)
-        else:
-            setattr(msg, key, v)
-    return msg
-
-
 class Ros2Node:
     """See the module docstring. Counters: ``poses``, ``odometry_out``,
     ``diagnostics``, ``initial_poses`` (received), ``odometry_in`` (rows handed on).
 
     Args:
         config: names and topics.
-        clock_offset_ns: added to estimate stamps (ns) to give ROS stamps.
+        clock_offset_ns: added to estimate stamps (ns) to give ROS stamps; ``None``:
+            0, unless the first frame's stamp is not a wall-clock time (below
+            :data:`~ceilkit.runtime.io.ros2_msgs.WALL_CLOCK_MIN_NS`: a simulator's or a
+            camera's monotonic clock), when the first frame is placed at the wall clock
+            of its publication and the rest keep their spacing.
+        rig: the camera model and mount (``camera_info``, ``/tf_static``, the overlay).
+        draw: ``draw(image, estimate) -> BGR image``: the overlay (``None``: no image).
     """
 
-    def __init__(self, config: Ros2Config | None = None, clock_offset_ns: int = 0):
+    def __init__(self, config: Ros2Config | None = None, clock_offset_ns: int | None = 0,
+                 rig: Any = None, draw: Callable[[np.ndarray, Estimate], np.ndarray]
+                 | None = None):
         self.config = config or Ros2Config()
-        self.clock_offset_ns = int(clock_offset_ns)
+        self.clock_offset_ns = None if clock_offset_ns is None else int(clock_offset_ns)
+        self.rig, self._draw = rig, draw
+        self.views: Ros2Views | None = None
+        self.tap: Any = None
+        """An :class:`~ceilkit.runtime.viz.tap.EstimateTap` of the pipeline's estimator
+        (:func:`~ceilkit.runtime.pipeline.build_pipeline` sets it): its ``latest``
+        frame is what the overlay draws."""
         self.on_initial_pose: Callable[[int, tuple[float, float, float], np.ndarray],
                                        None] | None = None
         self.on_odometry: Callable[[int, float, float, float], None] | None = None
@@ -189,6 +314,7 @@ class Ros2Node:
         self._pending_start: tuple[tuple[float, float, float], np.ndarray] | None = None
         self._lock = threading.Lock()
         self._odo = PoseDifferencer()
+        self._told_unfused = False
         self._rclpy: Any = None
         self._node: Any = None
         self._thread: threading.Thread | None = None
@@ -215,17 +341,19 @@ class Ros2Node:
         """
         rclpy, self._types = _import_rclpy()
         from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
 
         cfg = self.config
         try:
             self._context = rclpy.Context()
-            rclpy.init(context=self._context)
+            rclpy.init(args=["ceilkit", *cfg.ros_args], context=self._context)
             self._node = rclpy.create_node(cfg.node_name, namespace=cfg.namespace or None,
                                            context=self._context)
-            qos = QoSProfile(depth=cfg.qos_depth, reliability=ReliabilityPolicy.RELIABLE)
+            self.config = cfg = declare_parameters(self._node, cfg)
+            self._fqn = self._node.get_fully_qualified_name()   # after -r __ns:=, __node:=
+            qos, latched = _qos(cfg)
             t = self._types
-            self._pub_pose = self._node.create_publisher(t["pose"], cfg.pose_topic, qos)
+            self._pub_pose = self._node.create_publisher(
+                t["pose"], cfg.pose_topic, latched if cfg.transient_local else qos)
             self._pub_odom = self._node.create_publisher(t["odom"], cfg.odom_topic, qos)
             self._pub_diag = self._node.create_publisher(t["diag"], cfg.diagnostics_topic,
                                                          qos)
@@ -234,8 +362,12 @@ class Ros2Node:
             if cfg.odometry_topic:
                 self._node.create_subscription(t["odom"], cfg.odometry_topic,
                                                self._on_odometry, qos)
+            self.views = Ros2Views(self._node, cfg, self.rig, self._draw, qos, latched)
             self._executor = SingleThreadedExecutor(context=self._context)
             self._executor.add_node(self._node)
+        except ConfigError:
+            self._shutdown()
+            raise
         except Exception as exc:  # noqa: BLE001 - rclpy's own errors: one line
             self._shutdown()
             raise LinkError(f"ROS 2 node {cfg.node_name!r} cannot start: {exc}") from None
@@ -280,8 +412,30 @@ class Ros2Node:
             except Exception:  # noqa: BLE001
                 pass
 
+    def flush(self) -> bool:
+        """Wait (at most ``flush_s`` in all) until every subscriber has acknowledged
+        every message; whether all did."""
+        if self._node is None or self.config.flush_s <= 0:
+            return True
+        from rclpy.duration import Duration
+
+        end = time.monotonic() + self.config.flush_s
+        pubs = [self._pub_pose, self._pub_odom, self._pub_diag]
+        pubs += self.views.publishers if self.views is not None else []
+        ok = True
+        for pub in pubs:
+            left = max(0.0, end - time.monotonic())
+            ok = pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and ok
+        return ok
+
     def close(self) -> None:
-        """Stop the executor thread, destroy the node, shut its context down."""
+        """Wait for the last messages' acknowledgements (:meth:`flush`), stop the
+        executor thread, destroy the node, shut its context down."""
+        if self._node is not None and self._thread is not None and not self.flush():
+            log.warning("ROS 2: not every subscriber acknowledged the last messages "
+                        "within %.1f s", self.config.flush_s)
+        if self.views is not None:
+            self.views.close()
         self._closing.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
@@ -301,31 +455,45 @@ class Ros2Node:
 
     def describe(self) -> str:
         c = self.config
-        return (f"ROS 2 node {c.namespace or ''}/{c.node_name}: {self.poses} poses on "
+        views = f", {self.views.describe()}" if self.views is not None else ""
+        offset = ("" if not self.clock_offset_ns else
+                  f"; ROS stamps = t_ns + {self.clock_offset_ns} ns")
+        name = getattr(self, "_fqn", f"{c.namespace or ''}/{c.node_name}")
+        return (f"ROS 2 node {name}: {self.poses} poses on "
                 f"{c.pose_topic}, {self.odometry_out} odometry on {c.odom_topic}, "
-                f"{self.diagnostics} diagnostics, {self.initial_poses} initial poses, "
-                f"{self.odometry_in} odometry rows in")
+                f"{self.diagnostics} diagnostics{views}, {self.initial_poses} initial "
+                f"poses, {self.odometry_in} odometry rows in{offset}")
+
+    def _stamp(self, t_ns: int) -> int:
+        if self.clock_offset_ns is None:
+            self.clock_offset_ns = (time.time_ns() - int(t_ns)
+                                    if int(t_ns) < msgs.WALL_CLOCK_MIN_NS else 0)
+        return int(t_ns) + self.clock_offset_ns
 
     # ------------------------------------------------------------------ the sink
     def send(self, est: Estimate, relocalized: bool, capture_ns: int) -> None:
         """Publish one frame's outcome, then hand on a start pose received meanwhile."""
         self.frames += 1
-        stamp = int(est.t_ns) + self.clock_offset_ns
+        stamp = self._stamp(est.t_ns)
         cfg = self.config
+        if self.frames == 1 and self.views is not None:
+            self.views.publish_static(stamp)
         if isinstance(est, PoseEstimate) and self._node is not None:
-            self._pub_pose.publish(_fill(self._types["pose"](),
+            self._pub_pose.publish(fill(self._types["pose"](),
                                          msgs.pose_msg(est, stamp, cfg.frame_id)))
             self.poses += 1
             if est.x_m is not None and est.y_m is not None:
                 prev, self._last_full = self._last_full, est
                 vel = velocity_between(prev, est, cfg.max_velocity_dt_s) if prev else None
                 if vel is not None:
-                    self._pub_odom.publish(_fill(self._types["odom"](), msgs.odometry_msg(
+                    self._pub_odom.publish(fill(self._types["odom"](), msgs.odometry_msg(
                         est, vel[0], vel[1], stamp, cfg.frame_id, cfg.child_frame_id)))
                     self.odometry_out += 1
             else:
                 self._last_full = None
         self._last = est
+        if self.views is not None:
+            self.views.frame(est, stamp, self.tap.latest if self.tap is not None else None)
         self._diagnose(stamp)
         with self._lock:
             start, self._pending_start = self._pending_start, None
@@ -339,7 +507,8 @@ class Ros2Node:
     def set_fault(self, reason: str | None) -> None:
         """The localizer is faulted (``camera_lost``, ...) or healthy again (``None``)."""
         self._fault = reason
-        stamp = (int(self._last.t_ns) if self._last is not None else 0) + self.clock_offset_ns
+        stamp = (int(self._last.t_ns) if self._last is not None else 0) + \
+            (self.clock_offset_ns or 0)
         self._diagnose(stamp, force=True)
 
     def _diagnose(self, stamp_ns: int, force: bool = False) -> None:
@@ -356,7 +525,7 @@ class Ros2Node:
             return
         self._last_level, self._last_diag_s = level, now
         t = self._types
-        msg = _fill(t["diag"](), {"header": values["header"]})
+        msg = fill(t["diag"](), {"header": values["header"]})
         msg.status = [_status(t, s) for s in values["status"]]
         self._pub_diag.publish(msg)
         self.diagnostics += 1
@@ -375,15 +544,38 @@ class Ros2Node:
         log.warning("initial pose from %s: x %.3f m, y %.3f m, yaw %.2f deg",
                     self.config.initialpose_topic, x, y, math.degrees(yaw))
 
+    def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float) -> None:
+        """A wheel odometry row fed to the fusion by another path (a recording's, the
+        link's): integrated into ``odom`` for ``map → odom → base_link``."""
+        if self.views is not None:
+            self.views.odometry.add(t_ns, dx_m, dy_m, dyaw_rad)
+
     def _on_odometry(self, msg: Any) -> None:
-        t_ns = msgs.join_stamp(msg.header.stamp) - self.clock_offset_ns
+        t_ns = msgs.join_stamp(msg.header.stamp) - (self.clock_offset_ns or 0)
         p = msg.pose.pose
-        inc = self._odo.add(t_ns, float(p.position.x), float(p.position.y),
-                            msgs.quaternion_yaw(p.orientation))
+        pose = (float(p.position.x), float(p.position.y), msgs.quaternion_yaw(p.orientation))
+        if self.views is not None:
+            self.views.odometry.set(t_ns, pose, external=True)
+        inc = self._odo.add(t_ns, *pose)
+        if inc is not None and self.on_odometry is None and not self._told_unfused:
+            self._told_unfused = True
+            log.warning("odometry on %s not fused: this run's method has no fusion "
+                        "(--method auto with --start-pose runs it)",
+                        self.config.odometry_topic)
         if inc is None or self.on_odometry is None:
             return
         self.on_odometry(inc.t_ns, inc.dx_m, inc.dy_m, inc.dyaw_rad)
         self.odometry_in += 1
+
+
+def _qos(cfg: Ros2Config) -> tuple[Any, Any]:
+    """The streams' QoS (reliable, volatile) and the latched one (transient-local)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    qos = QoSProfile(depth=cfg.qos_depth, reliability=ReliabilityPolicy.RELIABLE)
+    latched = QoSProfile(depth=cfg.qos_depth, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return qos, latched
 
 
 def _status(types: dict[str, Any], s: dict[str, Any]) -> Any:
@@ -394,4 +586,5 @@ def _status(types: dict[str, Any], s: dict[str, Any]) -> Any:
     return st
 
 
-__all__ = ["Ros2Config", "Ros2Node", "start_pose_of", "velocity_between"]
+__all__ = ["PARAMETERS", "Ros2Config", "Ros2Node", "declare_parameters", "ros2_config",
+           "start_pose_of", "velocity_between"]

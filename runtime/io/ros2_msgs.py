@@ -37,6 +37,12 @@ BASE_FRAME = "base_link"
 """ROS frame of the vehicle's V."""
 ODOM_FRAME = "odom"
 """ROS frame of wheel odometry (continuous, drifting)."""
+CAMERA_FRAME = "camera_optical_frame"
+"""ROS frame of the camera: SPEC §1's C, OpenCV's axes (x right, y down, z along the
+optical axis), which REP-103 calls an optical frame."""
+WALL_CLOCK_MIN_NS = 1_000_000_000_000_000_000
+"""Stamps below this (2001-09-09) are not wall-clock times: a simulator's (from 0) or a
+camera's monotonic clock (since boot)."""
 UNOBSERVED_VAR = 1.0e6
 """Variance (m², rad²) published for a coordinate the pose does not observe."""
 PLANAR_VAR = 1.0e6
@@ -239,6 +245,110 @@ def detection_json(est: Estimate) -> str:
     return json.dumps(out, separators=(",", ":"), allow_nan=False)
 
 
+# ------------------------------------------------------------------ tf, camera, clock
+def rotation_quaternion(R: np.ndarray) -> dict[str, float]:
+    """The unit quaternion (x, y, z, w; w >= 0) of a (3, 3) rotation matrix."""
+    R = np.asarray(R, float).reshape(3, 3)
+    w = 0.5 * math.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2]))
+    x = 0.5 * math.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2]))
+    y = 0.5 * math.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2]))
+    z = 0.5 * math.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2]))
+    x = math.copysign(x, R[2, 1] - R[1, 2])
+    y = math.copysign(y, R[0, 2] - R[2, 0])
+    z = math.copysign(z, R[1, 0] - R[0, 1])
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    return {"x": x / n, "y": y / n, "z": z / n, "w": w / n}
+
+
+def quaternion_matrix(q: Any) -> np.ndarray:
+    """The (3, 3) rotation of a unit quaternion (object or mapping with x, y, z, w)."""
+    get = (lambda k: float(q[k])) if isinstance(q, Mapping) else (lambda k: float(getattr(q, k)))
+    x, y, z, w = get("x"), get("y"), get("z"), get("w")
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def transform_msg(stamp_ns: int, parent: str, child: str, t_xyz: Sequence[float],
+                  rotation: Mapping[str, float]) -> dict[str, Any]:
+    """``geometry_msgs/TransformStamped`` ``T_parent_child``: ``X_parent = R X_child + t``."""
+    x, y, z = (float(v) for v in t_xyz)
+    return {"header": header(stamp_ns, parent), "child_frame_id": child,
+            "transform": {"translation": {"x": x, "y": y, "z": z},
+                          "rotation": dict(rotation)}}
+
+
+def planar_transform(stamp_ns: int, parent: str, child: str, x_m: float, y_m: float,
+                     yaw_rad: float) -> dict[str, Any]:
+    """A planar ``T_parent_child`` (on the floor: z 0, a rotation about z)."""
+    return transform_msg(stamp_ns, parent, child, (x_m, y_m, 0.0), yaw_quaternion(yaw_rad))
+
+
+def map_from_odom(map_base: tuple[float, float, float], odom_base: tuple[float, float, float]
+                  ) -> tuple[float, float, float]:
+    """``T_map_odom = T_map_base · T_odom_base⁻¹`` of planar poses ``(x, y, yaw)``: what a
+    localizer publishes beside an odometry source's ``odom → base_link`` (REP-105)."""
+    xm, ym, am = map_base
+    xo, yo, ao = odom_base
+    a = am - ao
+    c, s = math.cos(a), math.sin(a)
+    return xm - (c * xo - s * yo), ym - (s * xo + c * yo), math.atan2(math.sin(a), math.cos(a))
+
+
+def tf_msg(transforms: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """``tf2_msgs/TFMessage`` of ``transforms`` (``/tf`` and ``/tf_static``)."""
+    return {"transforms": [dict(t) for t in transforms]}
+
+
+def pose_transforms(est: PoseEstimate, stamp_ns: int, map_frame: str = MAP_FRAME,
+                    base_frame: str = BASE_FRAME, odom_frame: str = ODOM_FRAME,
+                    odom_base: tuple[float, float, float] | None = None,
+                    with_odom_base: bool = False) -> list[dict[str, Any]]:
+    """The ``/tf`` transforms of a pose: ``map → base_link``, or with ``odom_base`` (the
+    odometry's pose of the vehicle in ``odom`` at the frame's time) ``map → odom``, and
+    ``odom → base_link`` too when ``with_odom_base`` (no other node publishes it). A pose
+    without x or y (the corridor method's) has no transform: ``[]``."""
+    if est.x_m is None or est.y_m is None:
+        return []
+    pose = (float(est.x_m), float(est.y_m), float(est.yaw_rad))
+    if odom_base is None:
+        return [planar_transform(stamp_ns, map_frame, base_frame, *pose)]
+    out = [planar_transform(stamp_ns, map_frame, odom_frame, *map_from_odom(pose, odom_base))]
+    if with_odom_base:
+        out.append(planar_transform(stamp_ns, odom_frame, base_frame, *odom_base))
+    return out
+
+
+def camera_transform(R_vehicle_cam: np.ndarray, t_vehicle_cam: Sequence[float],
+                     stamp_ns: int = 0, base_frame: str = BASE_FRAME,
+                     camera_frame: str = CAMERA_FRAME) -> dict[str, Any]:
+    """``base_link → camera`` (``/tf_static``) of the rig's mount: ``X_V = R_VC X_C + t``
+    (SPEC §1), the camera frame an optical one (x right, y down, z forward)."""
+    return transform_msg(stamp_ns, base_frame, camera_frame, t_vehicle_cam,
+                         rotation_quaternion(R_vehicle_cam))
+
+
+def camera_info_msg(camera: Any, stamp_ns: int, frame_id: str = CAMERA_FRAME
+                    ) -> dict[str, Any]:
+    """``sensor_msgs/CameraInfo`` of a :class:`~ceilkit.runtime.geometry.camera.CameraModel`
+    (the rig's ``camera.yaml`` is in ROS's own layout: the same K, D, R, P)."""
+    return {"header": header(stamp_ns, frame_id), "height": int(camera.height),
+            "width": int(camera.width), "distortion_model": str(camera.model),
+            "d": [float(v) for v in np.asarray(camera.dist, float).ravel()],
+            "k": [float(v) for v in np.asarray(camera.K, float).ravel()],
+            "r": [float(v) for v in np.asarray(camera.R_rect, float).ravel()],
+            "p": [float(v) for v in np.asarray(camera.P, float).ravel()],
+            "binning_x": 0, "binning_y": 0,
+            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0,
+                    "do_rectify": False}}
+
+
+def compressed_image_msg(stamp_ns: int, data: bytes, fmt: str,
+                         frame_id: str = CAMERA_FRAME) -> dict[str, Any]:
+    """``sensor_msgs/CompressedImage`` (``fmt``: image_transport's, e.g. ``jpeg``)."""
+    return {"header": header(stamp_ns, frame_id), "format": fmt, "data": data}
+
+
 # ----------------------------------------------------------------- definitions (ros2msg)
 _TIME = "int32 sec\nuint32 nanosec\n"
 _HEADER = "builtin_interfaces/Time stamp\nstring frame_id\n"
@@ -252,6 +362,12 @@ _VECTOR3 = "float64 x\nfloat64 y\nfloat64 z\n"
 _DIAG_STATUS = ("byte OK=0\nbyte WARN=1\nbyte ERROR=2\nbyte STALE=3\nbyte level\n"
                 "string name\nstring message\nstring hardware_id\nKeyValue[] values\n")
 _KEY_VALUE = "string key\nstring value\n"
+_TRANSFORM_STAMPED = "std_msgs/Header header\nstring child_frame_id\nTransform transform\n"
+_TRANSFORM = "Vector3 translation\nQuaternion rotation\n"
+_CAMERA_INFO = ("std_msgs/Header header\nuint32 height\nuint32 width\n"
+                "string distortion_model\nfloat64[] d\nfloat64[9] k\nfloat64[9] r\n"
+                "float64[12] p\nuint32 binning_x\nuint32 binning_y\nRegionOfInterest roi\n")
+_ROI = "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify\n"
 
 
 def _definition(main: str, deps: Sequence[tuple[str, str]]) -> str:
@@ -282,5 +398,12 @@ DEFINITIONS: Mapping[str, str] = {
         [*_STD, ("diagnostic_msgs/DiagnosticStatus", _DIAG_STATUS),
          ("diagnostic_msgs/KeyValue", _KEY_VALUE)]),
     "std_msgs/msg/String": "string data\n",
+    "tf2_msgs/msg/TFMessage": _definition(
+        "geometry_msgs/TransformStamped[] transforms\n",
+        [("geometry_msgs/TransformStamped", _TRANSFORM_STAMPED), *_STD,
+         ("geometry_msgs/Transform", _TRANSFORM), ("geometry_msgs/Vector3", _VECTOR3),
+         ("geometry_msgs/Quaternion", _QUAT)]),
+    "sensor_msgs/msg/CameraInfo": _definition(
+        _CAMERA_INFO, [*_STD, ("sensor_msgs/RegionOfInterest", _ROI)]),
 }
 """ROS 2 message definitions (the ``ros2msg`` schema encoding MCAP uses), by type name."""

@@ -36,11 +36,21 @@ class Frame:
         image: ``(H, W)`` uint8 grey or ``(H, W, 3)`` uint8 BGR, as captured.
         t_ns: capture time, integer nanoseconds.
         index: the frame's number in its source (0-based).
+        damage: ``""`` for a frame read whole; otherwise one line naming the file and
+            why it is no image (a truncated JPEG or PNG, :mod:`~ceilkit.runtime.io.images`):
+            ``image`` is then empty (``(0, 0)``) and the pipeline publishes a
+            ``bad_frame`` failure for it (:meth:`damaged` makes one).
     """
 
     image: np.ndarray
     t_ns: int
     index: int
+    damage: str = ""
+
+    @classmethod
+    def damaged(cls, damage: str, t_ns: int, index: int) -> Frame:
+        """A frame whose file was no image (``damage``: the reason, naming the file)."""
+        return cls(np.zeros((0, 0), np.uint8), int(t_ns), int(index), damage)
 
     @property
     def grey(self) -> np.ndarray:

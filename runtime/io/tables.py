@@ -8,15 +8,21 @@ the line and the column).
 from __future__ import annotations
 
 import csv
+import io
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ceilkit.runtime.config.inputs import CSV_MAX_BYTES, read_input
 from ceilkit.runtime.errors import ConfigError, OutputError
 from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
-from ceilkit.runtime.io.files import OS_DISK, AppendFile, CsvFile, Disk
+from ceilkit.runtime.io.files import OS_DISK, AppendFile, CsvFile, Disk, output_error
+from ceilkit.runtime.io.provenance import RUN_METADATA, run_metadata, version_line
+
+log = logging.getLogger(__name__)
 
 FRAMES_HEADER = ["index", "t_ns"]
 TRUTH_HEADER = ["t_ns", "x", "y", "yaw_deg"]
@@ -64,16 +70,28 @@ class Odometry:
 
 
 def read_rows(path: Path, header: list[str]) -> list[list[str]]:
+    """The rows of the CSV file ``path`` after its ``header`` (exact), each of
+    ``len(header)`` stripped fields; blank lines skipped. The file is a regular file
+    of at most :data:`~ceilkit.runtime.config.inputs.CSV_MAX_BYTES`.
+
+    Raises:
+        ConfigError: naming the file (and the line): not readable, not UTF-8, another
+            header, a row of another length, a line CSV cannot parse.
+    """
+    data = read_input(path, CSV_MAX_BYTES)
     try:
         # utf-8-sig: a byte-order mark (spreadsheets write one) is not part of the header
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.reader(fh))
-    except FileNotFoundError:
-        raise ConfigError(path, None, "file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(path, None, f"cannot read: {exc}") from None
+        reader = csv.reader(io.StringIO(data.decode("utf-8-sig"), newline=""))
+        rows = list(reader)
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(path, f"line {line}", f"not UTF-8 text: byte "
+                          f"0x{data[exc.start]:02x} (save the file as UTF-8)") from None
+    except csv.Error as exc:
+        raise ConfigError(path, f"line {reader.line_num}", f"not CSV: {exc}") from None
     if not rows or [c.strip() for c in rows[0]] != header:
         found = ",".join(rows[0]) if rows else "an empty file"
+        found = found if len(found) <= 80 else f"{found[:60]}... ({len(found)} characters)"
         raise ConfigError(path, "header", f"expected `{','.join(header)}`, found `{found}`")
     out = []
     for n, row in enumerate(rows[1:], start=2):
@@ -86,21 +104,45 @@ def read_rows(path: Path, header: list[str]) -> list[list[str]]:
     return out
 
 
+FIELD_LIMIT = 1e9
+"""The largest magnitude of a number a table may hold unless its reader says less:
+numbers are bounded before any arithmetic (no overflow to infinity downstream)."""
+
+TRUTH_LIMITS = (1e6, 1e6, 1e6)
+"""``truth.csv``: |x|, |y| in m, |yaw_deg| (a yaw may be unwrapped)."""
+
+ODOMETRY_LIMITS = (1e3, 1e3, 3600.0)
+"""``odometry.csv``: the largest increment of a row, |dx|, |dy| in m and |dyaw_deg|."""
+
+
+def _shown(text: str) -> str:
+    return repr(text) if len(text) <= 40 else f"{text[:20]!r}... ({len(text)} characters)"
+
+
 def int_field(path: Path, line: int, col: str, text: str) -> int:
+    if len(text) > 40:   # Python refuses to convert more than 4300 digits; 20 is int64
+        raise ConfigError(path, f"line {line}: {col}",
+                          f"expected an integer, found {_shown(text)}")
     try:
         return int(text)
     except ValueError:
         raise ConfigError(path, f"line {line}: {col}",
-                          f"expected an integer, found {text!r}") from None
+                          f"expected an integer, found {_shown(text)}") from None
 
 
-def float_field(path: Path, line: int, col: str, text: str) -> float:
+def float_field(path: Path, line: int, col: str, text: str,
+                limit: float = FIELD_LIMIT) -> float:
+    """``text`` as a number of magnitude at most ``limit``."""
     try:
         v = float(text)
     except ValueError:
         v = math.nan
     if not math.isfinite(v):
-        raise ConfigError(path, f"line {line}: {col}", f"expected a number, found {text!r}")
+        raise ConfigError(path, f"line {line}: {col}", f"expected a number, found "
+                                                       f"{_shown(text)}")
+    if abs(v) > limit:
+        raise ConfigError(path, f"line {line}: {col}", f"expected a number in "
+                          f"[-{limit:g}, {limit:g}], found {_shown(text)}")
     return v
 
 
@@ -114,36 +156,51 @@ def stamp_column(path: Path, rows: list[list[str]]) -> np.ndarray:
     return np.array(t, dtype=np.int64)
 
 
-def stamped_rows(path: Path, header: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """A ``t_ns`` + three numbers table: ``(t_ns (N,) int64, values (N, 3))``."""
+def stamped_rows(path: Path, header: list[str],
+                 limits: tuple[float, float, float] = (FIELD_LIMIT,) * 3,
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A ``t_ns`` + three numbers table: ``(t_ns (N,) int64, values (N, 3))``, each
+    number of magnitude at most its column's ``limits``; stamps strictly increasing
+    (rows in time order).
+
+    Raises:
+        ConfigError: naming the file, the line and the column.
+    """
     rows = read_rows(path, header)
     t_ns = stamp_column(path, rows)
-    vals = np.array([[float_field(path, i + 2, c, r[k]) for k, c in enumerate(header[1:], 1)]
+    vals = np.array([[float_field(path, i + 2, c, r[k], limits[k - 1])
+                      for k, c in enumerate(header[1:], 1)]
                      for i, r in enumerate(rows)], dtype=float).reshape(-1, 3)
+    if t_ns.size > 1 and np.any(np.diff(t_ns) <= 0):
+        bad = int(np.argmax(np.diff(t_ns) <= 0)) + 3
+        raise ConfigError(path, f"line {bad}: t_ns", f"stamps must increase (rows in time "
+                          f"order), found {t_ns[bad - 2]} after {t_ns[bad - 3]}")
     return t_ns, vals
 
 
 def load_odometry(path: str | Path) -> Odometry:
     """Read ``odometry.csv`` (``t_ns,dx,dy,dyaw_deg``) strictly: the exact header, one
-    integer stamp and three finite numbers a row, stamps strictly increasing.
+    integer stamp and three finite numbers a row (within :data:`ODOMETRY_LIMITS`),
+    stamps strictly increasing.
 
     Raises:
         ConfigError: naming the file, the line and the column.
     """
     path = Path(path)
-    t, vals = stamped_rows(path, ODOMETRY_HEADER)
-    if t.size > 1 and np.any(np.diff(t) <= 0):
-        bad = int(np.argmax(np.diff(t) <= 0)) + 3
-        raise ConfigError(path, f"line {bad}: t_ns", "stamps must increase")
+    t, vals = stamped_rows(path, ODOMETRY_HEADER, ODOMETRY_LIMITS)
     return Odometry(t, vals[:, 0], vals[:, 1], np.radians(vals[:, 2]))
 
 
 def load_truth(path: str | Path) -> Truth:
-    """Read ``truth.csv`` (``t_ns,x,y,yaw_deg``), sorted by time."""
+    """Read ``truth.csv`` (``t_ns,x,y,yaw_deg``) strictly: rows in time order (a row out
+    of order is an error, never sorted silently), numbers within :data:`TRUTH_LIMITS`.
+
+    Raises:
+        ConfigError: naming the file, the line and the column.
+    """
     path = Path(path)
-    t, vals = stamped_rows(path, TRUTH_HEADER)
-    order = np.argsort(t, kind="stable")
-    return Truth(t[order], vals[order, 0], vals[order, 1], np.radians(vals[order, 2]))
+    t, vals = stamped_rows(path, TRUTH_HEADER, TRUTH_LIMITS)
+    return Truth(t, vals[:, 0], vals[:, 1], np.radians(vals[:, 2]))
 
 
 def _fmt(v: float | None, digits: int) -> str:
@@ -200,18 +257,27 @@ def write_truth_tum(truth: Truth, path: str | Path) -> Path:
             for t, x, y, a in zip(truth.t_ns, truth.x_m, truth.y_m, truth.yaw_rad, strict=True)]
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes(b"".join(rows))
+        path.write_bytes(TUM_HEADER + b"".join(rows))
     except OSError as exc:
         raise OutputError(path, f"cannot write: {exc.strerror}") from None
     return path
 
 
+TUM_HEADER = f"# t_s x y z qx qy qz qw; written by {version_line()}\n".encode()
+"""The first line of a TUM file ceilkit writes (a ``#`` comment: evo and the TUM tools
+skip it)."""
+
+
 class PoseWriter:
     """Writes ``poses.csv`` (SPEC §2), a row per frame, each row one whole write (never
     cut by a full disk); optionally a TUM trajectory (``t_s x y z qx qy qz qw``, z = 0,
-    the yaw as a quaternion about z) beside it. TUM has no empty field, so it holds only
+    the yaw as a quaternion about z; its first line the comment :data:`TUM_HEADER`)
+    beside it. TUM has no empty field, so it holds only
     the poses with both x and y: failures, and poses that leave a coordinate unobserved
     (the corridor method's, without x), are left out of it rather than given a made-up 0.
+    ``poses.csv``'s first line is its SPEC header, with no room for a comment: a
+    ``run.yaml`` beside it (:func:`~ceilkit.runtime.io.provenance.run_metadata`) names the
+    version that wrote the folder, the time and the command line.
 
     Args:
         path, tum_path: the files (created or truncated).
@@ -227,14 +293,21 @@ class PoseWriter:
             raise OutputError(self.path.parent, f"cannot create: {exc.strerror}") from None
         self._csv = CsvFile(self.path, POSES_HEADER, disk)
         self.rows = 0
+        self.tum_left_out = 0   # poses TUM cannot hold (no x): said in one line at close
         self.tum_path = None if tum_path is None else Path(tum_path)
         self._tum = None
-        if self.tum_path is not None:
-            try:
-                self._tum = AppendFile(self.tum_path, disk)
-            except OutputError:
-                self._csv.close()
-                raise
+        self.metadata_path = self.path.parent / RUN_METADATA
+        try:
+            if self.tum_path is not None:
+                self._tum = AppendFile(self.tum_path, disk, header=TUM_HEADER)
+            disk.replace_file(self.metadata_path, run_metadata(
+                f"{self.path.name}, written row by row").encode())
+        except OSError as exc:
+            self.close()
+            raise output_error(self.metadata_path, exc) from None
+        except OutputError:
+            self.close()
+            raise
 
     def write(self, est: Estimate, latency_ms: float | None = None) -> None:
         """One row, and a TUM line for a pose with x and y.
@@ -248,10 +321,18 @@ class PoseWriter:
         if self._tum is not None and isinstance(est, PoseEstimate) \
                 and est.x_m is not None and est.y_m is not None:
             self._tum.append([tum_line(est.t_ns, est.x_m, est.y_m, est.yaw_rad)])
+        elif self._tum is not None and isinstance(est, PoseEstimate):
+            self.tum_left_out += 1
 
     def close(self) -> None:
         self._csv.close()
-        if self._tum is not None:
+        if getattr(self, "tum_left_out", 0):
+            log.warning("%s: %d poses without x (the method observes y and the heading "
+                        "only) are not in it, TUM having no empty field; their lateral "
+                        "errors are in %s and the report", self.tum_path,
+                        self.tum_left_out, self.path.name)
+            self.tum_left_out = 0
+        if getattr(self, "_tum", None) is not None:
             self._tum.close()
 
     def __enter__(self) -> PoseWriter:

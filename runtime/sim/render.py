@@ -43,7 +43,9 @@ Example::
 from __future__ import annotations
 
 import math
+import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -59,6 +61,8 @@ from ceilkit.runtime.io.sources import Frame, SourceBase
 from ceilkit.runtime.sim.marks import BLOCK_GREY as BLOCK_GREY  # re-exported
 from ceilkit.runtime.sim.marks import mark_features
 from ceilkit.runtime.sim.marks import ramp as _ramp
+from ceilkit.runtime.sim.scatter import Scatter
+from ceilkit.runtime.sim.scatter_shade import scatter_features
 
 # Radiance of each surface, in grey levels at exposure 1 (before vignetting).
 CEILING_GREY = 150.0
@@ -103,6 +107,9 @@ class SimOptions:
         texture: amplitude of the ceiling texture, grey levels (standard deviation).
         halo: peak glow added around a spot light, grey levels, >= 0 (0: a bare disc);
             it falls off as ``(1 - (d / 3r)^2)^2`` out to three light radii.
+        scatter: what the ceiling holds besides the site's features (light panels,
+            vents, hatches, patched and stained tiles, sprinklers, detectors, cables:
+            :class:`~ceilkit.runtime.sim.scatter.Scatter`, a ``scene.yaml``), or None.
 
     Vignetting and the halo are what a real lens and lamp give, and both pull a spot's
     intensity-weighted centroid towards the image centre (see docs/simulator.md for the
@@ -120,6 +127,7 @@ class SimOptions:
     clutter: bool = False
     texture: float = 3.0
     halo: float = HALO_GREY
+    scatter: Scatter | None = None
 
     def __post_init__(self) -> None:
         def bad(name: str, want: str) -> ConfigError:
@@ -147,6 +155,8 @@ class SimOptions:
             raise bad("texture", "a number >= 0")
         if self.halo < 0:
             raise bad("halo", "a number >= 0")
+        if self.scatter is not None and not isinstance(self.scatter, Scatter):
+            raise bad("scatter", "None or a Scatter (a scene file's items)")
         s = self.supersample
         if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or not 1 <= s <= 8:
             raise bad("supersample", "an integer in 1..8")
@@ -441,11 +451,15 @@ class _Feature:
 
     ``emitter``: it is a lamp or a light (what flickers); :func:`render_radiance` can
     give the emitters' share of the radiance apart (``split=True``).
+    ``edges``: the cells an edge of it can cross (None: all its cells); the others are
+    shaded once per pixel when no other feature needs them per sub-pixel (the inside
+    of a large tile-filling item, a soft stain).
     """
 
     cells: np.ndarray            # (n_cells,) bool
     shade: Any                   # (xr, yr, inv_fp, value) -> value
     emitter: bool = False        # shade(..., em=share) -> (value, emitted share) too
+    edges: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -471,8 +485,9 @@ OFF_GREY = 172.0          # a lamp or light that is off: its diffuser, lit by th
 def _features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
               cyr: np.ndarray, reach: np.ndarray,
               emitters: Emitters | None = None) -> list[_Feature]:
-    """Every ceiling feature with the cells it can touch, in drawing order (seams
-    along, seams across, blocks and markers, lamps, lights).
+    """Every ceiling feature with the cells it can touch, in drawing order (the
+    scatter's tile fills, seams along, seams across, blocks and markers, the scatter's
+    fixtures, lamps, lights, the scatter's light panels).
 
     ``cxr, cyr``: cell centres relative to the camera; ``reach``: cell radius plus a
     footprint (nan for cells without ceiling samples, which never match). Lamp rows
@@ -480,12 +495,20 @@ def _features(site: Site, fr: _Frame, options: SimOptions, cxr: np.ndarray,
     height).
     """
     with np.errstate(invalid="ignore"):
-        feats = _along_features(site, fr, options, cyr, reach)
+        scat = None
+        if options.scatter is not None:
+            scat = scatter_features(options.scatter, fr.cx, fr.cy, cxr, cyr, reach)
+        feats = [] if scat is None else [_Feature(c, f, edges=e) for c, f, e in scat.fills]
+        feats += _along_features(site, fr, options, cyr, reach)
         feats += _across_features(site, fr, options, cxr, reach)
         feats += [_Feature(c, f) for c, f in mark_features(site, fr.cx, fr.cy, cxr, cyr,
                                                            reach)]
+        if scat is not None:
+            feats += [_Feature(c, f, edges=e) for c, f, e in scat.fixtures]
         feats += _lamp_features(site, fr, cxr, cyr, reach, emitters)
         feats += _light_features(site, fr, options, cxr, cyr, reach, emitters)
+        if scat is not None:
+            feats += [_Feature(c, f, True, e) for c, f, e in scat.panels]
     return feats
 
 
@@ -715,13 +738,45 @@ def render_radiance(rig: Rig, site: Site, x_m: float, y_m: float, yaw_rad: float
                 active |= edge & (g.has_other | (dy + reach > fr.w))
     feats = _features(site, fr, options, cxr, cyr, reach, emitters)
     for f in feats:
-        active |= f.cells
+        active |= f.cells if f.edges is None else f.edges
     emitted = np.zeros((hp, wp), np.float32) if split else None
+    _shade_inner(g, fr, feats, active, pxr, pyr, img, emitted)
     _shade_active(g, fr, options, feats, active, tex, img, emitted)
     img = np.ascontiguousarray(img[:g.height, :g.width])
     if split:
         return img, np.ascontiguousarray(emitted[:g.height, :g.width])
     return img
+
+
+def _shade_inner(g: _Grid, fr: _Frame, feats: list[_Feature], active: np.ndarray,
+                 pxr: np.ndarray, pyr: np.ndarray, img: np.ndarray,
+                 emitted: np.ndarray | None) -> None:
+    """Shade per pixel, in place, the cells of features with ``edges`` that no edge
+    crosses and no feature needs per sub-pixel (``active``): there every sample of a
+    pixel has the same value, or one varying smoothly (a stain)."""
+    wp = g.ncx * CELL_PX
+    k = np.arange(CELL_PX)
+    for f in feats:
+        if f.edges is None:
+            continue
+        idx = np.flatnonzero(f.cells & ~active)
+        if not idx.size:
+            continue
+        flat = (((idx // g.ncx) * CELL_PX)[:, None, None] + k[None, :, None]) * wp \
+            + ((idx % g.ncx) * CELL_PX)[:, None, None] + k[None, None, :]
+        flat = flat.ravel()
+        xr, yr = pxr.ravel()[flat], pyr.ravel()[flat]
+        inside = g.p_ceil.ravel()[flat]
+        if fr.walls:
+            inside &= np.abs(yr - fr.axis_r) < fr.w
+        inv_fp = np.repeat((1.0 / (fr.h * g.fq[idx])).astype(np.float32), CELL_PX ** 2)
+        old = img.ravel()[flat]
+        if f.emitter and emitted is not None:
+            new, e_new = f.shade(xr, yr, inv_fp, old, em=emitted.ravel()[flat])
+            emitted.ravel()[flat] = np.where(inside, e_new, emitted.ravel()[flat])
+        else:
+            new = f.shade(xr, yr, inv_fp, old)
+        img.ravel()[flat] = np.where(inside, new, old)
 
 
 def _shade_active(g: _Grid, fr: _Frame, options: SimOptions, feats: list[_Feature],
@@ -745,7 +800,7 @@ def _shade_active(g: _Grid, fr: _Frame, options: SimOptions, feats: list[_Featur
     inv_fp = np.where(inside, g.inv_fq[idx] * np.float32(1.0 / fr.h), 0.0
                       ).astype(np.float32)
     for f in feats:
-        pos = amap[np.flatnonzero(f.cells)]
+        pos = amap[np.flatnonzero(f.cells & active)]
         m = inside[pos]
         if not np.any(m):
             continue
@@ -886,9 +941,16 @@ class Trajectory:
                      for v in (self.x_m, self.y_m, self.yaw_rad))
 
 
+MAX_SIM_FRAMES = 1_000_000
+"""The most frames a simulated trajectory holds (its arrays are made whole: 10^6
+frames are some 40 MB; more is refused, not a MemoryError)."""
+
+
 def _stamps(n: int, fps: float) -> np.ndarray:
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ConfigError(None, "n", f"expected a frame count >= 1, found {n!r}")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not \
+            1 <= n <= MAX_SIM_FRAMES:
+        raise ConfigError(None, "n", f"expected a frame count in [1, {MAX_SIM_FRAMES}] (a "
+                          f"simulated drive), found {n!r}")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise ConfigError(None, "fps", f"expected a frame rate > 0, found {fps!r}")
     return np.rint(np.arange(n) * (1e9 / fps)).astype(np.int64)
@@ -897,13 +959,19 @@ def _stamps(n: int, fps: float) -> np.ndarray:
 def straight_drive(n: int, fps: float = 30.0, speed_mps: float = 0.5, x0_m: float = 0.0,
                    y_m: float = 0.0, yaw_rad: float = 0.0, weave_m: float = 0.0,
                    yaw_wobble_rad: float = 0.0, rng: np.random.Generator | None = None,
-                   weave_period_m: float = 6.0, wobble_period_s: float = 2.3) -> Trajectory:
+                   weave_period_m: float = 6.0, wobble_period_s: float = 2.3,
+                   length_m: float | None = None) -> Trajectory:
     """A drive along heading ``yaw_rad`` from ``(x0_m, y_m)`` at ``speed_mps``.
 
     ``weave_m``: amplitude of a sideways sine (period ``weave_period_m`` of travel),
     the heading following the path's tangent; ``yaw_wobble_rad``: amplitude of an extra
     heading sine (period ``wobble_period_s``) on top, as a vehicle that crabs. ``rng``
     draws the two phases (None: both 0). Frame k is at ``t = k / fps`` s.
+
+    ``length_m``: a drive that would go further than this shuttles instead, between its
+    start and ``length_m`` along its heading (the heading kept: it backs up), slowing to
+    a stop at each end (``length_m / 2 * (1 - cos(s / (length_m / 2)))`` along the
+    heading after ``s`` m of travel), so it stays on a map of that length.
     """
     t_ns = _stamps(n, fps)
     for name, v in (("speed_mps", speed_mps), ("x0_m", x0_m), ("y_m", y_m),
@@ -916,6 +984,8 @@ def straight_drive(n: int, fps: float = 30.0, speed_mps: float = 0.5, x0_m: floa
     ph1, ph2 = (0.0, 0.0) if rng is None else tuple(rng.uniform(0, 2 * math.pi, 2))
     t = t_ns / 1e9
     s = speed_mps * t
+    if length_m is not None and length_m > 0 and s[-1] > length_m:
+        s = 0.5 * length_m * (1.0 - np.cos(s / (0.5 * length_m)))
     k = 2 * math.pi / weave_period_m
     lat = weave_m * np.sin(k * s + ph1)
     slope = weave_m * k * np.cos(k * s + ph1)
@@ -964,13 +1034,20 @@ class SimSource(SourceBase):
 
     Frame k's noise comes from ``np.random.default_rng([seed, k])``, so a frame does
     not depend on which frames were read before it.
+
+    ``pace``: called as ``pace(seconds)`` to wait (``threading.Event.wait``: a stop
+    cuts it short) until a frame is due by its stamp on ``clock``, counted from the
+    first frame read: the frames come in real time, as a camera's would (never faster;
+    a frame that renders late comes late). ``None``: as fast as they render.
     """
 
     live = False  # stamped from the trajectory, not at grab
     dropped = 0
 
     def __init__(self, rig: Rig, site: Site, trajectory: Trajectory,
-                 options: SimOptions = SimOptions(), seed: int = 0, realism: Any = None):
+                 options: SimOptions = SimOptions(), seed: int = 0, realism: Any = None,
+                 pace: Callable[[float], object] | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         from ceilkit.runtime.sim.realism import Realism
 
         if realism is not None and not isinstance(realism, Realism):
@@ -983,6 +1060,8 @@ class SimSource(SourceBase):
         self.rig, self.site, self.trajectory = rig, site, trajectory
         self.options, self.seed = options, int(seed)
         self._k = 0
+        self.pace, self.clock = pace, clock
+        self._started: float | None = None
 
     def __len__(self) -> int:
         return len(self.trajectory)
@@ -1008,6 +1087,13 @@ class SimSource(SourceBase):
         if self._k >= len(self.trajectory):
             return None
         f = self.render(self._k)
+        if self.pace is not None:
+            if self._started is None:
+                self._started = self.clock()
+            due = self._started + (f.t_ns - int(self.trajectory.t_ns[0])) / 1e9
+            wait = due - self.clock()
+            if wait > 0:
+                self.pace(wait)
         self._k += 1
         return f
 

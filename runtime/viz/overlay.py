@@ -19,7 +19,8 @@ Drawn, by method:
 * always: a text box with the method, the pose, the quality, or the failure reason.
 
 Convention: pixels ``(u, v)`` (SPEC §1), a site point ``X_W`` seen at vehicle pose
-``(x, y, yaw)`` is ``X_C = R_world_camᵀ (X_W - c_W)``.
+``(x, y, yaw)`` is ``X_C = R_vehicle_camᵀ (Rz(-yaw) (X_W - (x, y, 0)) - t_vehicle_cam)``
+(:func:`~ceilkit.runtime.geometry.ceiling.project_px`, as the estimators project).
 
 Example::
 
@@ -39,6 +40,7 @@ import numpy as np
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
+from ceilkit.runtime.geometry.ceiling import project_px
 
 LINE_COLOURS = ((40, 40, 255), (40, 200, 40), (255, 120, 30), (0, 200, 255),
                 (200, 60, 200), (255, 255, 60), (60, 140, 255), (160, 255, 160))
@@ -53,6 +55,52 @@ MATCHED_BGR = (0, 255, 0)
 SITE_BGR = (255, 255, 0)
 TEXT_BGR = (255, 255, 255)
 FAIL_BGR = (60, 60, 255)
+
+LEGEND: tuple[tuple[str, tuple[int, int, int], str], ...] = (
+    ("line", OTHER_BGR, "corridor: a detected segment of neither family"),
+    ("line", UNMATCHED_BGR, "corridor: a forward segment matched to no site line"),
+    ("line", ACROSS_BGR, "corridor: an across segment"),
+    ("ring", REJECTED_BGR, "lights: a spot rejected by the size/shape checks"),
+    ("ring", SPOT_BGR, "lights: a spot used"),
+    ("ring", MATCHED_BGR, "lights: a spot matched to a site light (its index beside it); "
+     "block: its detected corners"),
+    ("cross", SITE_BGR, "the site's lights, lamps, blocks and markers reprojected at the "
+     "estimated pose"),
+    ("text", FAIL_BGR, "a failure's reason"),
+)
+"""What each colour of an overlay means, as ``(shape, BGR, meaning)``; the corridor's
+site lines add :data:`LINE_COLOURS` (``lines_along[k]`` and the segments matched to it,
+in its colour). The report and the live view draw their legends from these."""
+
+
+def legend_rows() -> list[tuple[str, str, str]]:
+    """:data:`LEGEND` and the site lines' colours as ``(shape, '#rrggbb', meaning)``
+    rows, for a legend in HTML."""
+    def css(bgr: tuple[int, int, int]) -> str:
+        return f"#{bgr[2]:02x}{bgr[1]:02x}{bgr[0]:02x}"
+
+    rows = [(shape, css(bgr), text) for shape, bgr, text in LEGEND]
+    rows += [("line", css(bgr), f"corridor: site line lines_along[{k}] reprojected, and the "
+              "segments matched to it" + (f" (and [{k + len(LINE_COLOURS)}], ...)" if k == 0
+                                          else ""))
+             for k, bgr in enumerate(LINE_COLOURS)]
+    return rows
+
+
+def legend_html() -> str:
+    """The overlays' colours (:func:`legend_rows`) as an HTML section: the replay report
+    and the live view show it beside the overlays."""
+    import html
+
+    marks = {"line": "&#9472;&#9472;", "ring": "&#9675;", "cross": "+", "text": "Aa"}
+    rows = "".join(
+        f"<tr><td style='background:#222;color:{colour};font-weight:bold;"
+        f"text-align:center;padding:0 6px'>{marks.get(shape, '&#9632;')}</td>"
+        f"<td>{html.escape(text)}</td></tr>" for shape, colour, text in legend_rows())
+    return ("<h2>overlay colours</h2><table class='legend'>" + rows + "</table>"
+            "<p>The text box: the method and the frame's time (s), the pose (m, deg) and its "
+            "quality, or the failure's reason.</p>")
+
 
 SITE_LINE_HALF_LENGTH_M = 30.0
 """Reprojected corridor lines run this far either side of the camera, along x."""
@@ -83,10 +131,9 @@ def world_to_px(rig: Rig, x_m: float, y_m: float, yaw_rad: float,
                 points_w: np.ndarray) -> np.ndarray:
     """Pixels ``(N, 2)`` of points ``(N, 3)`` in W seen from the vehicle pose; NaN
     behind the camera."""
-    R_wc = rig.mount.R_world_cam(yaw_rad)
-    c_w = rig.mount.camera_position(x_m, y_m, yaw_rad)
-    p_cam = (np.asarray(points_w, float).reshape(-1, 3) - c_w) @ R_wc
-    return rig.camera.project(p_cam)
+    m = rig.mount
+    return project_px(rig.camera, m.R_vehicle_cam, m.t_vehicle_cam, points_w,
+                      np.array([[x_m, y_m, yaw_rad]]))[0]
 
 
 def norm_to_px(rig: Rig, xy_norm: np.ndarray) -> np.ndarray:

@@ -154,17 +154,18 @@ def failures_png(t_s: np.ndarray, reasons: Sequence[str]) -> bytes:
     return figure_png(fig)
 
 
-def histogram_png(values: np.ndarray, xlabel: str, title: str) -> bytes:
-    """A histogram with the median and the 95th percentile marked."""
+def histogram_png(values: np.ndarray, xlabel: str, title: str, unit: str = "") -> bytes:
+    """A histogram with the median and the 95th percentile marked (their values in the
+    legend, with ``unit``)."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=SIZE_IN)
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
     if v.size:
         ax.hist(v, bins=40, color="steelblue")
-        for q, style in ((50, "-"), (95, "--")):
+        for q, name, style in ((50, "median", "-"), (95, "p95", "--")):
             p = float(np.percentile(v, q))
-            ax.axvline(p, color="k", ls=style, lw=1, label=f"p{q} {p:.3g}")
+            ax.axvline(p, color="k", ls=style, lw=1, label=f"{name} {p:.3g} {unit}".rstrip())
         ax.legend(fontsize=8)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("frames")

@@ -38,9 +38,10 @@ from ceilkit.runtime.estimators.base import (
     Provenance,
 )
 from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.io.provenance import version_line
 from ceilkit.runtime.io.recording import Truth
 from ceilkit.runtime.viz import plots
-from ceilkit.runtime.viz.overlay import draw_overlay, encode_png
+from ceilkit.runtime.viz.overlay import draw_overlay, encode_png, legend_html
 
 LOW_QUALITY = 0.5
 """``--overlays-only-failures`` also writes frames whose published quality is below this."""
@@ -92,7 +93,7 @@ class ReplayViews:
         self.only_failures = only_failures
         self.outcomes: list[FrameOutcome] = []
         self.written = 0
-        self._worst: list[tuple[float, int, np.ndarray, Estimate]] = []
+        self._worst: list[tuple[float, int, str, np.ndarray, Estimate]] = []
         self._failed: dict[str, tuple[int, np.ndarray, Estimate]] = {}
         self.ambiguity = AmbiguityLog()
         if overlays_dir is not None:
@@ -101,12 +102,15 @@ class ReplayViews:
             except OSError as exc:
                 raise OutputError(overlays_dir, f"cannot create: {exc.strerror}") from None
 
-    def frame(self, k: int, image: np.ndarray, raw: Estimate, published: Estimate,
+    def frame(self, k: int, image: np.ndarray | None, raw: Estimate, published: Estimate,
               latency_ms: float) -> None:
         """Record frame ``k``: its overlay when asked, its outcome, and the frame itself
-        if it is among the worst so far."""
+        if it is among the worst so far; ``image`` ``None`` (a damaged frame, no image):
+        its outcome only."""
         self.outcomes.append(_outcome(published, latency_ms))
         self.ambiguity.add(k, raw, published)
+        if image is None:
+            return
         if self.overlays_dir is not None and (
                 not self.only_failures or not published or published.quality < LOW_QUALITY):
             path = self.overlays_dir / f"{k:06d}.png"
@@ -119,21 +123,30 @@ class ReplayViews:
             if published.reason not in self._failed and len(self._failed) < FAILED_FRAMES:
                 self._failed[published.reason] = (k, image, raw)
             return
-        err = self._position_error(published)
-        if err is not None:
-            item = (err, k, image, raw)
+        scored = self._position_error(published)
+        if scored is not None:
+            err, words = scored
+            item = (err, k, words, image, raw)
             if len(self._worst) < WORST_FRAMES:
                 heapq.heappush(self._worst, item)
             elif err > self._worst[0][0]:
                 heapq.heapreplace(self._worst, item)
 
-    def _position_error(self, est: PoseEstimate) -> float | None:
+    def _position_error(self, est: PoseEstimate) -> tuple[float, str] | None:
+        """The position error (m; the lateral one when x is not estimated) against the
+        truth, and its caption in mm and degrees; None without a truth row."""
         row = self.truth.lookup(est.t_ns) if self.truth is not None else None
-        if row is None:
+        if row is None or est.y_m is None:
             return None
-        dx = 0.0 if est.x_m is None else est.x_m - row[0]
-        dy = 0.0 if est.y_m is None else est.y_m - row[1]
-        return math.hypot(dx, dy)
+        dy = est.y_m - row[1]
+        dyaw = math.degrees(wrap_pi(est.yaw_rad - row[2]))
+        if est.x_m is None:
+            return abs(dy), (f"lateral error {1e3 * abs(dy):.2f} mm (y {1e3 * dy:+.2f} mm; "
+                             f"x not estimated), yaw {dyaw:+.3f} deg")
+        dx = est.x_m - row[0]
+        err = math.hypot(dx, dy)
+        return err, (f"position error {1e3 * err:.2f} mm (x {1e3 * dx:+.2f} mm, "
+                     f"y {1e3 * dy:+.2f} mm), yaw {dyaw:+.3f} deg")
 
     def write_report(self, path: Path, title: str, summary: list[str]) -> Path:
         """Write the self-contained HTML report; returns its path.
@@ -143,10 +156,12 @@ class ReplayViews:
         """
         sections = [f"<h1>{html.escape(title)}</h1>",
                     "<pre>" + html.escape("\n".join(summary)) + "</pre>"]
+        sections += self._error_table() + self._tum_note()
         sections += [_img(png, alt) for alt, png in self._plots()]
+        sections.append(legend_html())
         sections.append("<h2>worst frames (largest position error)</h2>")
-        for err, k, image, raw in sorted(self._worst, reverse=True):
-            sections.append(f"<h3>frame {k}: position error {err * 100:.1f} cm</h3>")
+        for _, k, words, image, raw in sorted(self._worst, key=lambda w: (-w[0], w[1])):
+            sections.append(f"<h3>frame {k}: {html.escape(words)}</h3>")
             sections.append(_img(self._overlay_png(image, raw), f"overlay of frame {k}"))
         sections += self.ambiguity.html()
         if self._failed:
@@ -155,8 +170,11 @@ class ReplayViews:
             sections.append(f"<h3>frame {k}: {html.escape(reason)}</h3>")
             sections.append(_img(self._overlay_png(image, raw), f"overlay of frame {k}"))
         doc = ("<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
+               f"<meta name='generator' content='{version_line()}'>"
                f"<title>{html.escape(title)}</title><style>body{{font-family:sans-serif;"
-               "max-width:900px;margin:auto}img{max-width:100%}</style></head><body>\n"
+               "max-width:900px;margin:auto}img{max-width:100%}"
+               "table.errors td,table.errors th{padding:1px 8px;text-align:right}"
+               "</style></head><body>\n"
                + "\n".join(sections) + "\n</body></html>\n")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -164,6 +182,34 @@ class ReplayViews:
         except OSError as exc:
             raise OutputError(path, f"cannot write: {exc.strerror}") from None
         return path
+
+    def _error_table(self) -> list[str]:
+        """The errors against the truth: mean, RMSE, median, p95 and max, per quantity."""
+        if self.truth is None or not self.outcomes:
+            return []
+        rows = error_rows(_errors(self.outcomes, [self.truth.lookup(r.t_ns)
+                                                  for r in self.outcomes]))
+        if not rows:
+            return []
+        head = "".join(f"<th>{h}</th>" for h in ("error", "frames", "mean |e|", "RMSE",
+                                                   "median |e|", "p95 |e|", "max |e|"))
+        body = "".join(
+            f"<tr><td>{name} [{unit}]</td><td>{n}</td>"
+            + "".join(f"<td>{v:.{3 if unit == 'deg' else 2}f}</td>" for v in values)
+            + "</tr>" for name, unit, n, values in rows)
+        return ["<h2>errors against truth.csv</h2>",
+                f"<table class='errors'><tr>{head}</tr>{body}</table>"]
+
+    def _tum_note(self) -> list[str]:
+        """A note when poses have no x: a TUM file (``--tum``) cannot hold them."""
+        n = sum(1 for r in self.outcomes
+                if r.reason == "ok" and math.isnan(r.x_m) and math.isfinite(r.y_m))
+        if not n:
+            return []
+        return [f"<p class='note'>note: {n} poses have no x (the method observes y and "
+                "the heading only). TUM has no empty field, so <code>poses.tum</code> "
+                "(<code>--tum</code>) leaves them out and evo cannot compare them; their "
+                "lateral errors are in the table above.</p>"]
 
     def _overlay_png(self, image: np.ndarray, raw: Estimate) -> bytes:
         img = draw_overlay(image, raw, self.rig, self.site)
@@ -195,15 +241,15 @@ class ReplayViews:
         if any(row is not None for row in truth_rows):
             err = _errors(o, truth_rows)
             out.append(("errors", plots.errors_png(t_s, err)))
-            pos = np.hypot(np.nan_to_num(err["x error [cm]"]),
-                           np.nan_to_num(err["y error [cm]"]))
-            pos[~np.isfinite(err["y error [cm]"])] = np.nan
+            pos = np.hypot(np.nan_to_num(err[X_ERROR]), np.nan_to_num(err[Y_ERROR]))
+            pos[~np.isfinite(err[Y_ERROR])] = np.nan
             out.append(("quality against error",
-                        plots.quality_error_png(q, pos, "position error [cm]")))
+                        plots.quality_error_png(q, pos, "position error [mm] (lateral "
+                                                "where x is not estimated)")))
         out.append(("outcomes", plots.failures_png(t_s, [r.reason for r in o])))
         out.append(("latency", plots.histogram_png(np.array([r.latency_ms for r in o]),
                                                    "latency, capture to pose out [ms]",
-                                                   "latency per frame")))
+                                                   "latency per frame", "ms")))
         return out
 
 
@@ -268,14 +314,37 @@ MAX_STRETCHES = 12
 """The report lists at most this many stretches of ambiguous frames."""
 
 
+X_ERROR, Y_ERROR, YAW_ERROR = "x error [mm]", "y error [mm]", "yaw error [deg]"
+"""The error series' names, with their units: mm for positions (the summary's unit)."""
+
+
 def _errors(o: list[FrameOutcome], truth_rows: list) -> dict[str, np.ndarray]:
-    """Per-frame errors (cm, cm, degrees) against the truth rows (NaN where none)."""
+    """Per-frame errors (mm, mm, degrees) against the truth rows (NaN where none)."""
     e = np.full((len(o), 3), np.nan)
     for i, (r, row) in enumerate(zip(o, truth_rows, strict=True)):
         if row is not None and r.reason == "ok":
-            e[i] = ((r.x_m - row[0]) * 100, (r.y_m - row[1]) * 100,
+            e[i] = ((r.x_m - row[0]) * 1e3, (r.y_m - row[1]) * 1e3,
                     math.degrees(wrap_pi(r.yaw_rad - row[2])))
-    return {"x error [cm]": e[:, 0], "y error [cm]": e[:, 1], "yaw error [deg]": e[:, 2]}
+    return {X_ERROR: e[:, 0], Y_ERROR: e[:, 1], YAW_ERROR: e[:, 2]}
+
+
+def error_rows(errors: dict[str, np.ndarray]) -> list[tuple[str, str, int, list[float]]]:
+    """``(quantity, unit, n, [mean |e|, RMSE, median |e|, p95 |e|, max |e|])`` of the
+    heading, lateral, x and position errors (each where it was estimated): evo's
+    headline number is the RMSE, the summary's the median and p95."""
+    x, y, yaw = errors[X_ERROR], errors[Y_ERROR], errors[YAW_ERROR]
+    pos = np.hypot(x, y)
+    out = []
+    for name, unit, e in (("heading", "deg", yaw), ("lateral (y)", "mm", y), ("x", "mm", x),
+                          ("position", "mm", pos)):
+        a = np.abs(e[np.isfinite(e)])
+        if a.size:
+            out.append((name, unit, int(a.size), [float(a.mean()),
+                                                  float(np.sqrt(np.mean(a * a))),
+                                                  float(np.median(a)),
+                                                  float(np.percentile(a, 95)),
+                                                  float(a.max())]))
+    return out
 
 
 def _img(png: bytes, alt: str) -> str:

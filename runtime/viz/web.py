@@ -43,7 +43,7 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError, OutputError
 from ceilkit.runtime.estimators.base import Estimate, Estimator, PoseEstimate
-from ceilkit.runtime.viz.overlay import draw_overlay, encode_jpeg
+from ceilkit.runtime.viz.overlay import draw_overlay, encode_jpeg, legend_html
 from ceilkit.runtime.viz.tap import EstimateTap
 
 log = logging.getLogger(__name__)
@@ -82,9 +82,13 @@ def open_view(address: str | None, token: str | None, rig: Rig, site: Site,
     without an address (a session's ``view``, ``view_token``).
 
     Raises:
-        ConfigError: ``view`` is not ``[HOST:]PORT``.
+        ConfigError: ``view`` is not ``[HOST:]PORT``; ``view_token`` is empty (an unset
+            variable would otherwise serve the view to anyone).
         OutputError: the address cannot be served (in use, not an address of this host).
     """
+    if token is not None and not token.strip():
+        raise ConfigError(None, "view_token", "expected a token, found an empty one (give "
+                          "none to serve without a token)")
     if address is None:
         return None
     host, port = parse_view_address(address)
@@ -326,6 +330,9 @@ class _Handler(BaseHTTPRequestHandler):
     do_POST = do_PUT = do_DELETE = do_PATCH = _read_only  # noqa: N815
 
 
-PAGE = (Path(__file__).with_name("view.html")).read_text(encoding="utf-8")
-"""The page: the frame, a canvas with the map, pose and trail, the status lines; it
+PAGE = (Path(__file__).with_name("view.html")).read_text(encoding="utf-8").replace(
+    "<!--LEGEND-->", legend_html())
+"""The page: the frame (hidden until the first one arrives) with the overlays' legend,
+a canvas with the map at one scale (8 m across, a grid in metres and a scale bar), the
+pose and trail, the time, the quality (none beside a failure), the status lines; it
 counts the frames and poses it has shown (``#frames-loaded``, ``#poses-seen``)."""

@@ -9,7 +9,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-SHARED = {"chi2_quantile": "runtime/geometry/ekf.py"}
+SHARED = {"chi2_quantile": "runtime/geometry/ekf.py",
+          "ceiling_norm": "runtime/geometry/ceiling.py",
+          "ceiling_rays": "runtime/geometry/ceiling.py",
+          "meet_ceiling": "runtime/geometry/ceiling.py"}
 """A shared function -> the one module defining it."""
 
 

@@ -38,6 +38,8 @@ def test_parse_board_specs():
     ("chess:9", 0.025, None, "board"), ("chess:1x6", 0.025, None, "board"),
     ("chess:9x6", -1.0, None, "square"), ("charuco:5x7:NOPE", 0.04, 0.03, "board"),
     ("charuco:5x7", 0.04, 0.05, "marker"), ("charuco:30x30:4X4_50", 0.04, 0.03, "board"),
+    ("chess:9x6", float("inf"), None, "square"), ("chess:9x6", float("nan"), None, "square"),
+    ("charuco:5x7", float("inf"), 0.03, "square"),
 ])
 def test_parse_board_errors(spec, square, marker, key):
     with pytest.raises(ConfigError) as e:

@@ -17,7 +17,7 @@ from ceilkit.calib.lightmap import (
     survey_lights,
     write_site,
 )
-from ceilkit.calib.poses import PoseTable
+from ceilkit.calib.poses import StampedPoses
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.cli.ceilcal import app
 from ceilkit.runtime.config.site import Site
@@ -66,8 +66,8 @@ def test_cli_writes_site_keeping_other_sections(recording, tmp_path):
     target = tmp_path / "site.yaml"
     target.write_text("ceiling_height: 3.0\ncorridor:\n  lines_along: [-0.5, 0.5]\n"
                       "lights:\n  - [100.0, 100.0]\n")
-    res = CliRunner().invoke(app, ["lightmap", str(out), "--out", str(target)])
-    assert res.exit_code == 0, res.output
+    res = CliRunner().invoke(app, ["lightmap", str(out), "--out", str(target), "--force"])
+    assert res.exit_code == 0, res.output  # --force: into an existing site.yaml
     new = Site.load(target)
     assert new.corridor is not None and new.corridor.lines_along_m == (-0.5, 0.5)
     assert new.lights_m.shape[0] >= 12 and np.all(_match(new.lights_m, site.lights_m) < 0.01)
@@ -91,7 +91,7 @@ def test_cli_with_poses_file_and_errors(recording, tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("a,b\n1,2\n")
     res = CliRunner().invoke(app, ["lightmap", str(out), "--out", str(target),
-                                   "--poses", str(bad)])
+                                   "--poses", str(bad), "--force"])
     assert res.exit_code == 1 and "header" in res.output
 
 
@@ -289,7 +289,7 @@ def test_mocap_poses_at_120_hz_interpolated_and_their_offset_estimated(tmp_path)
                              tmp_path / "rec", OPTS, seed=0)
     lag = 8
     js = np.arange(lag, 8 * hz, hz // 120)
-    mocap = PoseTable(dense.t_ns[js], dense.x_m[js - lag], dense.y_m[js - lag],
+    mocap = StampedPoses(dense.t_ns[js], dense.x_m[js - lag], dense.y_m[js - lag],
                       dense.yaw_rad[js - lag])
     rec = Recording(out)
     exact = survey_lights(rec)

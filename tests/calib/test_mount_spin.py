@@ -71,7 +71,7 @@ def test_cli_writes_the_rig_with_the_pan_recorded_as_held(spin, tmp_path):
     assert got.x_m == pytest.approx(TRUE.x_m, abs=0.002)
     assert got.z_m == pytest.approx(TRUE.z_m, abs=0.002)
     assert "held: pan (--fix pan, typed" in out.read_text()
-    res = CliRunner().invoke(app, args + ["--fix", "pan=4.0", "--fix", "mx=0.2"])
+    res = CliRunner().invoke(app, args + ["--fix", "pan=4.0", "--fix", "mx=0.2", "--force"])
     assert res.exit_code == 1 and "only the pan" in res.output
 
 

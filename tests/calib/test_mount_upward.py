@@ -8,7 +8,7 @@ import pytest
 
 from ceilkit.calib import workflow
 from ceilkit.calib.mount_upward import (
-    PoseTable,
+    StampedPoses,
     calibrate_mount_upward,
     load_pose_csv,
     observe,
@@ -54,7 +54,7 @@ def drive():
 
 def test_pan_lever_arm_height_from_a_short_drive(drive):
     site, start, dense, ks, frames = drive
-    exact = PoseTable(dense.t_ns[ks], dense.x_m[ks], dense.y_m[ks], dense.yaw_rad[ks])
+    exact = StampedPoses(dense.t_ns[ks], dense.x_m[ks], dense.y_m[ks], dense.yaw_rad[ks])
     res = calibrate_mount_upward(start, site, frames, exact)
     m = res.mount
     errs = {"pan": math.degrees(res.heading_rad - TRUE.pan_rad), "mx": m.x_m - TRUE.x_m,
@@ -74,10 +74,10 @@ def test_mocap_poses_at_120_hz_with_a_7_ms_offset(drive):
     site, start, dense, ks, frames = drive
     exact = calibrate_mount_upward(
         start, site, frames,
-        PoseTable(dense.t_ns[ks], dense.x_m[ks], dense.y_m[ks], dense.yaw_rad[ks]))
+        StampedPoses(dense.t_ns[ks], dense.x_m[ks], dense.y_m[ks], dense.yaw_rad[ks]))
     lag = round(0.007 * HZ)           # 7 ms ahead: mocap stamp = frame time + 7 ms
     js = np.arange(lag, 20 * HZ, HZ // 120)
-    mocap = PoseTable(dense.t_ns[js], dense.x_m[js - lag], dense.y_m[js - lag],
+    mocap = StampedPoses(dense.t_ns[js], dense.x_m[js - lag], dense.y_m[js - lag],
                       dense.yaw_rad[js - lag])
     assert not mocap.exact(dense.t_ns[ks])
     res = calibrate_mount_upward(start, site, frames, mocap)
@@ -91,7 +91,7 @@ def test_mocap_poses_at_120_hz_with_a_7_ms_offset(drive):
 
 
 def test_pose_table_interpolates_heading_across_the_wrap():
-    t = PoseTable(np.array([0, 10], np.int64), np.array([0.0, 1.0]), np.array([0.0, 2.0]),
+    t = StampedPoses(np.array([0, 10], np.int64), np.array([0.0, 1.0]), np.array([0.0, 2.0]),
                   np.radians([179.0, -179.0]))
     p = t.at(np.array([5, 20]))
     assert p[0, :2] == pytest.approx([0.5, 1.0])
@@ -108,7 +108,7 @@ def test_to_mount_keeps_the_rotation_when_leaning():
 
 def test_too_few_frames_is_refused(drive):
     site, start, dense, ks, frames = drive
-    exact = PoseTable(dense.t_ns[ks], dense.x_m[ks], dense.y_m[ks], dense.yaw_rad[ks])
+    exact = StampedPoses(dense.t_ns[ks], dense.x_m[ks], dense.y_m[ks], dense.yaw_rad[ks])
     with pytest.raises(CalibrationError, match="frames .*Nothing written"):
         calibrate_mount_upward(start, site, frames[:3], exact)
 

@@ -5,13 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from ceilkit.calib.poses import PoseTable
+from ceilkit.calib.poses import StampedPoses
 from ceilkit.runtime.io.recording import Truth
 
 
 def _table():
     t = np.array([0, 10, 20, 1000], np.int64)
-    return PoseTable(t, np.array([0.0, 1.0, 2.0, 3.0]), np.zeros(4),
+    return StampedPoses(t, np.array([0.0, 1.0, 2.0, 3.0]), np.zeros(4),
                      np.radians([170.0, -170.0, -160.0, 0.0]))
 
 
@@ -38,6 +38,6 @@ def test_no_pose_invented_across_a_gap():
 
 def test_from_truth_and_exact():
     tr = Truth(np.array([5, 7], np.int64), np.array([1.0, 2.0]), np.zeros(2), np.zeros(2))
-    tab = PoseTable.from_truth(tr)
+    tab = StampedPoses.from_truth(tr)
     assert tab.exact(np.array([5, 7])) and not tab.exact(np.array([6]))
     assert tab.at(np.array([6]))[0, 0] == pytest.approx(1.5)

@@ -64,3 +64,27 @@ def test_simulate_boards_charuco_views_are_detected(tmp_path):
     views = detect_images(image_files(out), board)
     assert len(views) == 5
     assert load_camera(out / "camera_truth.yaml").fx == cam.fx
+
+
+def test_simulated_scatter_is_written_beside_the_recording(tmp_path):
+    """A drive under a scatter (the office example's scene.yaml, found beside its site)
+    writes every item into the recording's scene.yaml, which renders the same frames."""
+    from ceilkit.calib import workflow
+    from ceilkit.runtime.config.site import Site
+    from ceilkit.runtime.sim.scatter_file import load_scene, scene_beside
+    from helpers import CONFIGS
+
+    office = CONFIGS / "office"
+    full = Rig.load(office / "rig.yaml")
+    rig = Rig(full.camera.scaled(96, 72), full.mount)
+    rig.save(tmp_path / "rig.yaml")
+    run = workflow.simulate(tmp_path / "rec", rig=tmp_path / "rig.yaml",
+                            site=office / "site.yaml", frames=3, lateral_m=0.3, seed=2)
+    assert "scene office preset, seed 1" in "\n".join(run.lines())
+    site = Site.load(office / "site.yaml")
+    back = load_scene(tmp_path / "rec" / "scene.yaml", site)
+    assert back.items == scene_beside(site).items
+    rec = Recording(tmp_path / "rec")
+    src = SimSource(rig, site, run.trajectory, SimOptions(scatter=back), seed=2)
+    for k, frame in enumerate(rec):
+        np.testing.assert_array_equal(frame.image, src.render(k).image)

@@ -43,8 +43,8 @@ def test_chain_with_second_light_writes_site_and_height(rec, tmp_path):
     target.write_text("ceiling_height: 3.0\ncorridor:\n  lines_along: [-0.5, 0.5]\n")
     res = CliRunner().invoke(app, ["lightmap", str(out), "--out", str(target),
                                    "--known-light", f"{A[0]},{A[1]}",
-                                   "--second-light", f"{B[0]}, {B[1]}"])
-    assert res.exit_code == 0, res.output
+                                   "--second-light", f"{B[0]}, {B[1]}", "--force"])
+    assert res.exit_code == 0, res.output  # --force: into an existing site.yaml
     assert "chained frames" in res.output and "ceiling height" in res.output
     new = Site.load(target)
     assert new.corridor is not None                      # other sections kept

@@ -96,20 +96,26 @@ def test_replay_writes_poses_and_reports_errors(tmp_path):
 
 
 # corridor poses have no x: MAVLink sends no VISION_POSITION_ESTIMATE for them by
-# default (see docs/serial.md), so its MAVLink transcript is empty and not kept
-@pytest.mark.parametrize("name,protocol", [("corridor", "nmea"), ("lights", "nmea"),
-                                           ("lights", "mavlink")])
-def test_golden_serial_transcripts(tmp_path, name, protocol):
+# default (see docs/serial.md), so its MAVLink transcript is empty and not kept.
+# ``global``: the global path on every frame (``window_search=false``, the default
+# before issue 38: these transcripts predate it); ``window``: the default run, the
+# lights' window search with the global path every ``window_full_every`` fixes (issue
+# 38; the corridor's stays off by default: its default run is its global path).
+@pytest.mark.parametrize("name,protocol,path", [
+    ("corridor", "nmea", "global"), ("lights", "nmea", "global"),
+    ("lights", "mavlink", "global"), ("lights", "nmea", "window")])
+def test_golden_serial_transcripts(tmp_path, name, protocol, path):
     pty = PtyReader()
+    extra = ["--option", "window_search=false"] if path == "global" else []
     try:
         res = CliRunner().invoke(app, ["replay", str(FIXTURES / f"{name}_rec"), "--out",
                                        str(tmp_path), "--serial", pty.path, "--protocol",
-                                       protocol, *STATED.get(name, [])])
+                                       protocol, *STATED.get(name, []), *extra])
         assert res.exit_code == 0, res.output
     finally:
         data = pty.close()
     got = _pose_transcript(protocol, data)
-    golden = GOLDEN / f"{name}_{protocol}.bin"
+    golden = GOLDEN / f"{name}_{protocol}{'' if path == 'global' else '_window'}.bin"
     if REGEN:
         golden.write_bytes(got)
     assert got == golden.read_bytes()
@@ -276,6 +282,24 @@ def test_replay_no_track_publishes_every_frame_as_estimated(tmp_path, random_pos
     for k in estimated:  # each frame's own estimate, at its own random pose
         x, y, _ = rec.truth.lookup(int(got.t_ns[k]))
         assert math.hypot(got.x_m[k] - x, got.y_m[k] - y) < 0.01
+
+
+def test_the_old_track_option_is_read_with_a_notice(tmp_path, monkeypatch):
+    """``--option track=false`` (the window search's name before issue 35) is read as
+    ``window_search=false``, with a notice naming the new key: the same poses."""
+    from ceilkit.runtime.estimators import base
+
+    monkeypatch.setattr(base, "_NOTED", set())
+    rec = str(FIXTURES / "lights_rec")
+    with pytest.warns(FutureWarning, match="'track' is deprecated: use 'window_search'"):
+        old = CliRunner().invoke(app, ["replay", rec, "--out", str(tmp_path / "old"),
+                                       "--option", "track=false"])
+    new = CliRunner().invoke(app, ["replay", rec, "--out", str(tmp_path / "new"),
+                                   "--option", "window_search=false"])
+    assert old.exit_code == 0 and new.exit_code == 0, old.output + new.output
+    a, b = load_poses(tmp_path / "old" / "poses.csv"), load_poses(tmp_path / "new" / "poses.csv")
+    for col in ("t_ns", "x_m", "y_m", "yaw_rad", "quality"):
+        np.testing.assert_array_equal(getattr(a, col), getattr(b, col))
 
 
 def test_poses_header_is_exactly_the_specs(tmp_path):

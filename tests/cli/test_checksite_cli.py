@@ -49,4 +49,4 @@ def test_check_site_reports_on_stdout_and_names_a_bad_flag(tmp_path):
     assert res.exit_code == 0, res.output
     assert "ambiguous: 0.0% of poses" in res.output
     res = CliRunner().invoke(app, args[:-1] + ["0"])
-    assert res.exit_code == 1 and "--step: expected a number > 0" in res.output
+    assert res.exit_code == 1 and "--step: expected a number in (0, 100] m, found 0" in res.output

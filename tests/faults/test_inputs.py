@@ -123,8 +123,10 @@ def test_an_output_may_not_be_an_input(tmp_path):
 
 
 def test_an_error_after_the_progress_bar_starts_on_its_own_line(tmp_path):
+    import cv2  # a frame of the wrong size is an error (a damaged file is a bad_frame)
+
     rec = _record(tmp_path, 12)
-    (rec / "frames" / "000011.png").write_bytes(b"not a png")
+    cv2.imwrite(str(rec / "frames" / "000011.png"), np.zeros((2, 2), np.uint8))
     res = run(app, ["replay", str(rec), "--progress"])
     assert res.exit_code == 1
     assert "\nceilrun: error: " in res.stderr and "] 10/12\n" in res.stderr

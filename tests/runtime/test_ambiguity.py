@@ -15,7 +15,7 @@ from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.replay import replay
-from ceilkit.runtime.sim.render import SimOptions, straight_drive
+from ceilkit.runtime.sim.render import SimOptions, Trajectory, straight_drive
 from helpers import CONFIGS
 
 SIM = SimOptions(noise_sigma=2.0, blur_px=0.8, supersample=1)
@@ -139,3 +139,44 @@ def test_the_mirror_line_of_a_site(tmp_path):
         dd["corridor"]["lines_along"] = [v + 1.0 for v in dd["corridor"]["lines_along"]]
         dd["lamps"][0]["y"] = 1.0
     assert line(shift) == 1.0
+
+
+@pytest.fixture(scope="module")
+def grid_kidnap(tmp_path_factory):
+    """A regular 1.5 m light grid (every cell alike), the vehicle carried 0.6 m across
+    and turned 50 deg between frames 4 and 5 (no odometry sees it)."""
+    d = tmp_path_factory.mktemp("grid")
+    g = np.arange(-3.0, 4.51, 1.5)
+    (d / "grid.yaml").write_text("ceiling_height: 3.0\nlights:\n" + "".join(
+        f"  - [{a:.3f}, {b:.3f}]\n" for a in g for b in g))
+    rig = Rig.load(CONFIGS / "lights" / "rig.yaml")
+    a, b = _drive(0.2, 0.1, 30.0), _drive(0.8, -0.5, 80.0)
+    k = N // 2
+    traj = Trajectory(a.t_ns, np.r_[a.x_m[:k], b.x_m[k:]], np.r_[a.y_m[:k], b.y_m[k:]],
+                      np.r_[a.yaw_rad[:k], b.yaw_rad[k:]])
+    folder = simulate_recording(rig, Site.load(d / "grid.yaml"), traj, d / "rec", SIM,
+                                seed=9)
+    return folder, traj
+
+
+@pytest.mark.parametrize("method", ["lights", "auto"])
+def test_a_kidnap_on_a_light_grid_publishes_no_wrong_pose(grid_kidnap, method):
+    """From the right start pose the drive is tracked until the kidnap; after it the
+    twins nearest the old track lie outside the track's region, so no twin is chosen
+    by it (the frames are ``ambiguous``, the track dropped): no valid pose is wrong."""
+    folder, traj = grid_kidnap
+    out = folder.parent / f"{method}-kidnap"
+    replay(folder, out, method=method, start_pose=traj.pose(0))
+    valid, wrong = _score(folder, out)
+    assert wrong == 0 and valid >= N // 2 - 1
+
+
+@pytest.mark.parametrize("method", ["lights", "auto"])
+def test_a_wrong_start_pose_on_a_light_grid_chooses_no_twin(grid_kidnap, method):
+    """A start pose 0.7 m and 20 deg off (no cell's pose lies in its region): it
+    chooses nothing, and no valid pose is wrong."""
+    folder, traj = grid_kidnap
+    x, y, yaw = traj.pose(0)
+    out = folder.parent / f"{method}-wrong-start"
+    replay(folder, out, method=method, start_pose=(x + 0.7, y, yaw + math.radians(20.0)))
+    assert _score(folder, out)[1] == 0

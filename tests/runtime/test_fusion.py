@@ -12,7 +12,7 @@ DT = 33_000_000
 COV = np.diag([1e-6, 1e-6, 1e-6])
 
 
-def _lights(k, x, y, yaw=0.0, mode="tracked", cov=COV):
+def _lights(k, x, y, yaw=0.0, mode="about_prior", cov=COV):
     return PoseEstimate(k * DT, "lights", x, y, yaw, 0.8, None, cov,
                         provenance=PROVENANCE[mode])
 
@@ -72,11 +72,25 @@ def test_corridor_and_lights_are_both_applied():
 
 
 def test_outlier_is_gated_and_does_not_move_the_pose():
+    """A frame whose only fix disagrees with the track is not explained by the track's
+    pose: a ``gated`` Failure, and the track is not moved by it."""
     fu = Fusion()
     for k in range(10):
         fu.update(_lights(k, 1.0, 2.0))
-    res = fu.update(_lights(10, 1.5, 2.0, mode="tracked"))
-    assert res.estimate.x_m == pytest.approx(1.0, abs=1e-3) and fu.gated["lights"] == 1
+    res = fu.update(_lights(10, 1.5, 2.0, mode="about_prior"))
+    assert res.estimate.reason == "gated" and fu.gated["lights"] == 1
+    res = fu.update(_lights(11, 1.0, 2.0, mode="about_prior"))
+    assert res.estimate.x_m == pytest.approx(1.0, abs=1e-3)
+
+
+def test_a_track_every_frame_contradicts_is_dropped():
+    """``confirm`` frames in a row whose fixes (chosen by a prior, so no relocalization
+    candidates) disagree with the track drop it: the next frame starts anew."""
+    fu = Fusion()
+    for k in range(10):
+        fu.update(_lights(k, 1.0, 2.0))
+    out = [fu.update(_lights(k, 3.0, 2.0, mode="prior_resolved")) for k in range(10, 13)]
+    assert [r.estimate.reason for r in out] == ["gated"] * 3 and not fu.tracking
 
 
 def test_kidnapping_relocalizes_after_confirmation_with_quality_zero_between():
@@ -99,14 +113,21 @@ def test_lost_without_fixes_restarts_and_fails_with_the_cue_reason():
     assert fu.update(_lights(41, 5.0, 2.0, mode="global")).relocalized
 
 
-def test_coasting_publishes_a_growing_covariance():
+def test_coasting_publishes_a_growing_covariance_until_the_heading_is_unknown():
     fu = Fusion()
     for k in range(10):
         fu.update(_lights(k, 0.01 * k, 0.0))
-    blank = [fu.update(Failure(k * DT, "lights", "blank_frame")) for k in range(10, 25)]
-    q = [r.estimate.quality for r in blank]
-    assert all(isinstance(r.estimate, PoseEstimate) for r in blank)
-    assert q == sorted(q, reverse=True) and q[-1] < q[0]
+    blank = [fu.update(Failure(k * DT, "lights", "blank_frame")).estimate
+             for k in range(10, 25)]
+    published = [e for e in blank if isinstance(e, PoseEstimate)]
+    assert blank[: len(published)] == published and len(published) >= 5
+    sd = [math.sqrt(e.cov[2, 2]) for e in published]
+    q = [e.quality for e in published]
+    assert sd == sorted(sd) and q == sorted(q, reverse=True) and q[-1] < q[0]
+    # then the heading's 1σ passes unobserved_sigma_rad: no longer published
+    assert sd[-1] <= fu.options.unobserved_sigma_rad
+    assert all(e.reason == "coasting" for e in blank[len(published):]) and \
+        len(published) < len(blank)
 
 
 def test_start_pose_gives_a_prior_before_any_fix():
@@ -157,8 +178,9 @@ def test_nees_of_noisy_fixes_is_consistent():
 def test_a_full_fix_that_the_corridor_contradicts_does_not_start_the_track():
     fu = Fusion()
     res = fu.update(_frame(_lights(0, 40.0, 0.6, 0.3, mode="global"), _corridor(0, 0.0)))
-    assert res.relocalized and res.estimate.x_m is None      # started from the corridor
-    assert res.estimate.y_m == pytest.approx(0.0, abs=1e-3)
+    # started from the corridor, but a fix the frame singles out disagrees: not sent
+    assert res.relocalized and res.estimate.reason == "gated" and fu.tracking
+    assert fu.predict(0).y_m == pytest.approx(0.0, abs=1e-3)
     res = fu.update(_frame(_lights(1, 2.0, 0.0, 0.0, mode="global"), _corridor(1, 0.0)))
     assert res.estimate.x_m == pytest.approx(2.0, abs=1e-3)  # x from the first agreeing fix
 
@@ -184,8 +206,10 @@ def test_set_start_pose_from_another_thread_resets_the_track_at_the_next_frame()
                           args=(5 * DT, 4.0, 1.0, 0.5, np.diag([1e-4, 1e-4, 1e-4])))
     th.start()
     th.join()
+    assert fu.predict(5 * DT).x_m == pytest.approx(4.0, abs=1e-3)   # the prior is reset
     res = fu.update(Failure(5 * DT, "lights", "no_lights"))
-    assert res.relocalized and fu.start_poses == 1
+    assert res.relocalized and fu.start_poses == 1 and res.estimate.reason == "no_lights"
+    res = fu.update(_lights(6, 4.0, 1.0, 0.5))
     assert res.estimate.x_m == pytest.approx(4.0, abs=1e-3)
     assert res.estimate.yaw_rad == pytest.approx(0.5, abs=1e-3)
     with pytest.raises(ValueError):
@@ -361,14 +385,16 @@ def test_an_odometry_row_out_of_reach_is_refused_never_raised():
     assert "(2 refused: out of reach)" in FusionReport(fu).lines()[0]
 
 
-def test_the_start_pose_itself_is_published_as_such():
-    """A frame on which the start pose takes effect and no cue is applied publishes the
-    start pose with provenance START (a cue applied makes it the track's)."""
+def test_a_start_pose_no_frame_confirmed_is_not_published():
+    """A start pose is what the user said: until a cue is applied the frame's own answer
+    goes out (the reset still does); a cue applied makes the track's pose valid."""
     from ceilkit.runtime.estimators.base import Provenance
 
     fu = Fusion()
     fu.set_start_pose(0, 1.0, 2.0, 0.0)
     res = fu.update(Failure(0, "lights", "no_lights"))
-    assert res.relocalized and res.estimate.provenance is Provenance.START
-    res = fu.update(_lights(1, 1.0, 2.0))
+    assert res.relocalized and res.estimate.reason == "no_lights"
+    res = fu.update(Failure(DT, "lights", "no_lights"))
+    assert not res.relocalized and res.estimate.reason == "no_lights"
+    res = fu.update(_lights(2, 1.0, 2.0))
     assert res.estimate.provenance is Provenance.TRACK

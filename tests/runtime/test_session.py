@@ -105,7 +105,6 @@ def test_frames_below_zero_and_existing_outputs_are_config_errors(tmp_path):
 
 
 def test_numbered_record_folders_and_outputs_that_are_inputs(tmp_path):
-    from pathlib import Path
 
     from ceilkit.runtime.session import check_outputs, record_folder
 
@@ -120,4 +119,5 @@ def test_numbered_record_folders_and_outputs_that_are_inputs(tmp_path):
     with pytest.raises(ConfigError):  # recording into the recording being read
         check_outputs([tmp_path], {"record": [tmp_path / "frames.csv"]})
     check_outputs([rig], {"out": [tmp_path / "run" / "poses.csv"]})
-    check_outputs([Path(tmp_path)], {"out": [tmp_path / "poses.csv"]})  # poses beside: fine
+    check_outputs([tmp_path / "frames.csv", tmp_path / "frames"],  # a recording's parts:
+                  {"out": [tmp_path / "poses.csv"]})                 # poses beside: fine

@@ -43,6 +43,7 @@ from ceilkit.runtime.features.quads import (
     marker_dictionary,
     quads_of_mask,
 )
+from ceilkit.runtime.features.working import decimate
 from ceilkit.runtime.geometry.camera import CameraModel, undistort_points
 from ceilkit.runtime.geometry.fits import short_median
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -76,13 +77,6 @@ def background(grey: np.ndarray, dark: bool, shrink: int = BG_SHRINK,
                       interpolation=cv2.INTER_LINEAR)
 
 
-def decimate(grey: np.ndarray) -> np.ndarray:
-    """The frame at ``1/DECIMATE`` of its size (area average): where quads are searched."""
-    h, w = grey.shape
-    return cv2.resize(grey, (max(1, w // DECIMATE), max(1, h // DECIMATE)),
-                      interpolation=cv2.INTER_AREA)
-
-
 def find_quads(grey: np.ndarray, dark: bool, ratio: float,
                others: list[np.ndarray] | None = None,
                small: np.ndarray | None = None) -> list[Quad]:
@@ -91,14 +85,16 @@ def find_quads(grey: np.ndarray, dark: bool, ratio: float,
     polarity that are not convex quads (a block partly occluded, a lamp of another shape).
 
     The search runs on the frame decimated by :data:`DECIMATE` (``small``, from
-    :func:`decimate`, may be passed to share it between polarities); the corners come
-    back in full-resolution pixels, coarse (``approxPolyDP``'s vertices: pixels off;
+    :func:`~ceilkit.runtime.features.working.decimate`: whole boxes, so that the
+    factor is exact on both axes of an odd-sized frame; may be passed to share it
+    between polarities); the corners come back in full-resolution pixels, coarse
+    (``approxPolyDP``'s vertices: pixels off;
     :func:`~ceilkit.runtime.features.quads.sharpen_quad` puts them within a pixel,
     :func:`measure_sides` refines them on the full frame). A 3x3 opening (full
     resolution; a 2x2 one when decimated) removes thin seams before the contours are taken."""
     if small is None:
-        small = decimate(grey) if DECIMATE > 1 else grey
-    f = grey.shape[1] / small.shape[1]
+        small = decimate(grey, DECIMATE)
+    f = float(grey.shape[1] // small.shape[1])
     bg = background(small, dark, max(1, int(round(BG_SHRINK / f))), ratio)
     mask = cv2.compare(small.astype(np.float32), bg, cv2.CMP_LT if dark else cv2.CMP_GT)
     if f < 1.5:

@@ -38,8 +38,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from types import MappingProxyType
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -57,8 +59,8 @@ from ceilkit.runtime.estimators.base import (
     elapsed_ms,
 )
 from ceilkit.runtime.estimators.block.detect import (
+    DECIMATE,
     Sides,
-    decimate,
     find_quads,
     measure_sides,
     side_lengths_m,
@@ -86,21 +88,20 @@ from ceilkit.runtime.estimators.block.twins import (
 )
 from ceilkit.runtime.estimators.block.window import (
     WINDOW,
+    OutlineFix,
     Target,
-    WindowFix,
     Windows,
     shape_fits,
     targets_of,
 )
+from ceilkit.runtime.estimators.prior import prior_choice
 from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad, signed_area
+from ceilkit.runtime.features.working import decimate
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 NO_BLOCK = "no_block"
 PARTIAL_BLOCK = "partial_block"
 UNKNOWN_MARKER = "unknown_marker"
-PRIOR_MARGIN = 2.0          # the prior picks a symmetric fit only this many times nearer
-PRIOR_YAW_GATE_RAD = math.radians(30.0)
-PRIOR_POS_SCALE_M = 0.5     # metres that weigh as much as PRIOR_YAW_GATE_RAD
 PARTIAL_AREA_PX = 600.0     # a non-quad region this large may be a block cut short
 COARSE_TOL = 0.25          # a coarse quad's perimeter may differ this much from a block's
 RMS_BAD_PX = 1.0            # edge residual RMS at which quality reaches 0
@@ -141,13 +142,16 @@ class BlockOptions(EstimatorOptions):
             frames, carries the ceiling-plane odometry since the previous frame
             (:mod:`.odometry`) as ``diagnostics["increment"]`` for the fusion; other
             frames with a fix only keep the image (no KLT).
-        track: with a prior (a position), measure the blocks and markers the prior
-            puts fully in view on their predicted outlines (no search of the frame,
-            :meth:`BlockEstimator._tracked`); the global path runs when the window
-            check fails and every ``track_full_every``-th tracked frame. Off by default.
-        track_window_px: how far (px) a side may lie from its predicted place.
-        track_full_every: a global search after this many window fixes (0: only when
-            the window check fails).
+        window_search: with a prior (a position), measure the blocks and markers the
+            prior puts fully in view on their predicted outlines (no search of the
+            frame, :meth:`BlockEstimator._tracked`); the global path runs when the
+            window check fails and every ``window_full_every``-th window fix. Off by
+            default (issue 38: measurably less accurate than the global path on the
+            clean drive, docs/methods/block.md). (Formerly ``track``.)
+        window_px: how far (px) a side may lie from its predicted place. (Formerly
+            ``track_window_px``.)
+        window_full_every: a global search after this many window fixes (0: only when
+            the window check fails). (Formerly ``track_full_every``.)
         marker_fallback: where the decimated search gave no marker fix, run
             ``cv2.aruco``'s default detector (the site's dictionary) on the full frame
             and measure and solve the markers it reads (:meth:`BlockEstimator._aruco_fixes`):
@@ -167,14 +171,18 @@ class BlockOptions(EstimatorOptions):
     parallels_gate_deg: float = 1.0
     heading_cue: bool = True
     plane_odometry: bool = True
-    track: bool = False
-    track_window_px: float = 4.0
-    track_full_every: int = 30
+    window_search: bool = False
+    window_px: float = 4.0
+    window_full_every: int = 30
     marker_fallback: bool = True
+
+    ALIASES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "track": "window_search", "track_window_px": "window_px",
+        "track_full_every": "window_full_every"})
 
 
 @dataclass(frozen=True, eq=False)
-class _Fix:
+class TargetFix:
     source: str
     refined: Refined
     shape_m: float
@@ -270,7 +278,7 @@ class BlockEstimator(Estimator):
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
         known = prior is not None and prior.x_m is not None and prior.y_m is not None
-        got = self._tracked(grey, t_ns, prior, t0) if self.options.track and known else None
+        got = self._tracked(grey, t_ns, prior, t0) if self.options.window_search and known else None
         if got is None:
             got = self._frame(grey, t_ns, prior, t0)
         if self._odo is None:
@@ -287,8 +295,8 @@ class BlockEstimator(Estimator):
                t0: float) -> Estimate:
         o = self.options
         others: list[np.ndarray] = []
-        small = decimate(grey)
-        fixes: list[_Fix] = []
+        small = decimate(grey, DECIMATE)
+        fixes: list[TargetFix] = []
         unknown: list[int] = []
         n = _Counts()
         later: list[tuple[Quad, bool]] = []
@@ -335,7 +343,7 @@ class BlockEstimator(Estimator):
         return self._publish(t_ns, fixes, diag, t0, grey)
 
     def _fixes(self, grey: np.ndarray, cands: list[tuple[Quad, bool]],
-               prior: PoseEstimate | None, fixes: list[_Fix], unknown: list[int],
+               prior: PoseEstimate | None, fixes: list[TargetFix], unknown: list[int],
                counts: _Counts, later: list[tuple[Quad, bool]]) -> None:
         """The quads ``(quad, dark)`` in their order, up to ``max_fixes`` fixes: their
         fixes, the marker ids not in the site and the counts added to ``fixes``,
@@ -359,8 +367,8 @@ class BlockEstimator(Estimator):
                     is_marker_size(pv, self._sizes_m, self.options.marker_size_tol):
                 q = sharpen_quad(q)
                 got = self._reader.quad_fix(grey, q)
-                if isinstance(got, (_Fix, int)):
-                    (fixes if isinstance(got, _Fix) else unknown).append(got)
+                if isinstance(got, (TargetFix, int)):
+                    (fixes if isinstance(got, TargetFix) else unknown).append(got)
                     continue
             if not _may_be_block(self._perimeters, pv, is_dark):
                 counts.skipped += 1
@@ -372,14 +380,15 @@ class BlockEstimator(Estimator):
                 _count_block(self._block_fix(grey, sharpen_quad(q), is_dark, prior),
                              fixes, counts)
 
-    # -- the window path (option track) -------------------------------------------------
+    # -- the window path (option window_search) ----------------------------------------
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
                  t0: float) -> PoseEstimate | None:
         """The fix from the targets measured where the prior puts them, or None (the
         global path decides): nothing in view, every window check failed
-        (:meth:`.window.Windows.fix`), or a global search is due."""
+        (:meth:`.window.Windows.fix`), the fix lies outside the prior's region or a twin
+        of it inside (a kidnap), or a global search is due."""
         o = self.options
-        if o.track_full_every > 0 and self._window_fixes >= o.track_full_every:
+        if o.window_full_every > 0 and self._window_fixes >= o.window_full_every:
             self._window_fixes = 0
             return None
         fixes, tried = self.windows.fixes(
@@ -389,14 +398,16 @@ class BlockEstimator(Estimator):
         if not fixes:
             return None
         diag = {"unknown_marker_ids": (), "quads": tried, "quads_skipped": 0}
-        return self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
+        out = self._publish(t_ns, fixes, diag, t0, grey, WINDOW)
+        poses = [(h.x_m, h.y_m, h.yaw_rad, None) for h in out.hypotheses or (out,)]
+        return out if prior_choice(prior, poses) == 0 else None     # estimators/prior.py
 
-    def _window_fix(self, tgt: Target, got: WindowFix) -> _Fix:
+    def _window_fix(self, tgt: Target, got: OutlineFix) -> TargetFix:
         """A fix that passed the window check (:meth:`.window.Windows.fix`), pooled; a
         symmetric target's turns that also fit its shape are its twins (the prior chose)."""
         twins = target_twins(tgt.corners_w, self.options.shape_tol * tgt.min_side_m) \
             if tgt.symmetric else ()
-        return _Fix(tgt.source, self._pooled(tgt.source, got.refined), got.shape_m,
+        return TargetFix(tgt.source, self._pooled(tgt.source, got.refined), got.shape_m,
                     got.sides.corners_norm, tgt.corners_w,
                     "prior" if tgt.symmetric else WINDOW, twins)
 
@@ -417,7 +428,7 @@ class BlockEstimator(Estimator):
         return self.fail(t_ns, NO_BLOCK, "no block or marker of the site in view",
                          ms=ms, **diag)
 
-    def _publish(self, t_ns: int, fixes: list[_Fix], diag: dict[str, Any],
+    def _publish(self, t_ns: int, fixes: list[TargetFix], diag: dict[str, Any],
                  t0: float, grey: np.ndarray, mode: str = "global") -> PoseEstimate:
         """The published estimate of the best fix (``mode``: ``global`` or
         :data:`WINDOW`; the 6-DoF check of the mount runs on global fixes only)."""
@@ -452,7 +463,7 @@ class BlockEstimator(Estimator):
                             provenance=provenance, hypotheses=with_twins(pose, cov, best.twins))
 
     def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
-               resolved_by: str) -> _Fix | None:
+               resolved_by: str) -> TargetFix | None:
         """The fix of measured sides as the block ``corners_w`` (:func:`.pnp.solve`,
         the sides on a ceiling line left out), its covariance pooled per target; None
         when the edge residual RMS exceeds :data:`RMS_BAD_PX` (quality 0: a quad cut
@@ -464,11 +475,11 @@ class BlockEstimator(Estimator):
         shape, ref = got
         if not (np.all(np.isfinite(ref.pose)) and ref.rms_px <= RMS_BAD_PX):
             return None         # the block's outline does not explain its edges
-        return _Fix(source, self._pooled(source, ref), shape, sides.corners_norm, corners_w,
+        return TargetFix(source, self._pooled(source, ref), shape, sides.corners_norm, corners_w,
                     resolved_by)
 
     def _block_fix(self, grey: np.ndarray, quad: Quad, dark: bool,
-                   prior: PoseEstimate | None) -> _Fix | _Ambiguous | str | None:
+                   prior: PoseEstimate | None) -> TargetFix | _Ambiguous | str | None:
         """A fix from a plain quad, every pose it fits when no prior picks one
         (:class:`_Ambiguous`), the reason it gave none (``partial_block``) or None (not
         a block of the site)."""
@@ -517,10 +528,10 @@ def _may_be_block(perimeters: list[tuple[float, bool]], pv: np.ndarray, dark: bo
     return any(abs(per / p - 1.0) < COARSE_TOL for p, d in perimeters if d == dark)
 
 
-def _count_block(got: Any, fixes: list[_Fix], counts: _Counts) -> None:
+def _count_block(got: Any, fixes: list[TargetFix], counts: _Counts) -> None:
     """A block's outcome: its fix kept, or counted (ambiguous, with the first such
     block's hypotheses; partial)."""
-    if isinstance(got, _Fix):
+    if isinstance(got, TargetFix):
         fixes.append(got)
     elif isinstance(got, _Ambiguous):
         counts.ambiguous += 1
@@ -532,8 +543,8 @@ def _count_block(got: Any, fixes: list[_Fix], counts: _Counts) -> None:
 
 def _check_track_options(o: BlockOptions) -> None:
     """ConfigError naming ``options.KEY`` of the first impossible window-path option."""
-    for key, ok, want in (("track_window_px", o.track_window_px > 0, "a number > 0"),
-                          ("track_full_every", o.track_full_every >= 0, "an integer >= 0")):
+    for key, ok, want in (("window_px", o.window_px > 0, "a number > 0"),
+                          ("window_full_every", o.window_full_every >= 0, "an integer >= 0")):
         if not ok:
             raise ConfigError(None, f"options.{key}",
                               f"expected {want}, found {getattr(o, key)!r}")
@@ -577,19 +588,11 @@ def _usable(site: Any) -> Any:
 
 
 def _pick_by_prior(fits: list, prior: PoseEstimate | None) -> int | None:
-    """Index of the fit clearly nearest the prior, or None (no prior, or no clear one)."""
+    """Index of the only fit the prior allows (:func:`~..prior.prior_choice`), or None
+    (no prior, none allowed: the frame contradicts it, or several)."""
     if prior is None or not prior or prior.x_m is None or prior.y_m is None:
         return None
-    score = []
-    for _, _, _, (x, y, yaw) in fits:
-        dyaw = abs(wrap_pi(yaw - prior.yaw_rad)) / PRIOR_YAW_GATE_RAD
-        dpos = math.hypot(x - prior.x_m, y - prior.y_m) / PRIOR_POS_SCALE_M
-        score.append(dyaw + dpos)
-    order = np.argsort(score)
-    best, second = score[order[0]], score[order[1]]
-    if best > 1.0 or second < PRIOR_MARGIN * best:
-        return None
-    return int(order[0])
+    return prior_choice(prior, [(x, y, yaw, None) for _, _, _, (x, y, yaw) in fits])
 
 
 def _agrees(pose: np.ndarray, cov: np.ndarray, h: ParallelsHeading) -> bool:

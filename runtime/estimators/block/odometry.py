@@ -3,7 +3,8 @@ features tracked through the rig (an estimator-side stage any method can use).
 
 Corners (``cv2.goodFeaturesToTrack``) of the earlier frame are tracked into the later
 one by pyramidal KLT and checked back (forward-backward error); both sets are
-undistorted and met with the ceiling plane in V (:func:`.pnp.ceiling_points_vehicle`);
+undistorted and met with the ceiling plane in V
+(:func:`~ceilkit.runtime.geometry.ceiling.ceiling_points_vehicle`);
 a rigid 2-D fit ``q_prev ~ R(dyaw) p_now + (dx, dy)`` with one pass dropping pairs off
 by more than 3 MADs gives the motion in the earlier frame's V. The covariance is the
 fit's residual scatter, ``s² (JᵀJ)⁻¹``, scaled by :data:`VAR_FACTOR`: the ratio of
@@ -30,8 +31,8 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.estimators.base import PlaneIncrement
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
 from ceilkit.runtime.estimators.ignore import ignored_from
+from ceilkit.runtime.geometry.ceiling import PlanarGeometry, ceiling_points_vehicle
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 
 MAX_CORNERS = 150        # corners tracked per frame, at most

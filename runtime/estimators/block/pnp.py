@@ -4,8 +4,9 @@ With the mount's tilt, swing and height calibrated and the ceiling a plane at a 
 height, only the vehicle's planar pose is unknown (SPEC §1):
 
 1. closed form: each corner's viewing ray (lens undistorted) is turned into V by the
-   mount and met with the ceiling plane, giving the corners in V on the ceiling; a 2-D
-   rigid fit to the block's corners in W is the pose (``X_W = Rz(yaw) X_V + (x, y)``).
+   mount and met with the ceiling plane (``geometry/ceiling.py``), giving the corners
+   in V on the ceiling; a 2-D rigid fit to the block's corners in W is the pose
+   (``X_W = Rz(yaw) X_V + (x, y)``).
    A mirrored solution cannot fit (the rays fix which side of the plane the camera
    is on), so the planar flip of 6-DoF PnP does not arise.
 2. Gauss-Newton in pixels: the block's sides, projected for the pose, against points
@@ -29,12 +30,22 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 
 from ceilkit.runtime.geometry.camera import CameraModel, magnification_points
+from ceilkit.runtime.geometry.ceiling import (
+    MIN_RZ,
+    PlanarGeometry,
+    ceiling_norm,
+    ceiling_points_vehicle,
+    level_offset,
+    meet_ceiling,
+    on_ceiling,
+    seen_from,
+    to_camera,
+)
 from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex, scaled_inverse3
 from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -49,43 +60,6 @@ _JAC_STEPS = np.vstack([np.zeros(3), np.eye(3) * JAC_EPS])   # the pose and its 
 _JAC_STEPS.flags.writeable = False
 SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
-
-
-@dataclass(frozen=True, eq=False)
-class PlanarGeometry:
-    """What the rig and the site fix: the lens, the mount, the ceiling's height.
-
-    Attributes:
-        camera: the lens model.
-        R_vehicle_cam, t_vehicle_cam: the mount (``X_V = R X_C + t``).
-        ceiling_m: the ceiling's height above the floor (W's z of the ceiling plane).
-    """
-
-    camera: CameraModel
-    R_vehicle_cam: np.ndarray
-    t_vehicle_cam: np.ndarray
-    ceiling_m: float
-
-    @classmethod
-    def of(cls, rig: Any, site: Any) -> PlanarGeometry:
-        return cls(rig.camera, rig.mount.R_vehicle_cam, rig.mount.t_vehicle_cam,
-                   float(site.ceiling_height_m))
-
-    @property
-    def rise_m(self) -> float:
-        """The ceiling's height above the camera."""
-        return self.ceiling_m - float(self.t_vehicle_cam[2])
-
-
-def ceiling_points_vehicle(geo: PlanarGeometry, points_norm: np.ndarray) -> np.ndarray:
-    """``(N, 2)`` points of the ceiling in V (x, y) seen at normalized image points
-    ``(N, 2)``; NaN for rays that do not rise to the ceiling."""
-    xy = np.asarray(points_norm, float).reshape(-1, 2)
-    R = geo.R_vehicle_cam
-    d = xy @ R[:, :2].T + R[:, 2]                      # R (x, y, 1), row-wise
-    dz = d[:, 2]
-    s = np.divide(geo.rise_m, dz, out=np.full(dz.shape, np.nan), where=dz > 1e-9)
-    return geo.t_vehicle_cam[:2] + s[:, None] * d[:, :2]
 
 
 def closed_form(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray
@@ -119,26 +93,6 @@ def project_px(geo: PlanarGeometry, pose: np.ndarray, points_w: np.ndarray) -> n
     return geo.camera.distort(project_norm(geo, pose, points_w))
 
 
-@njit
-def ceiling_norm(R, t, ceiling_m, x, y, yaw, points_w, min_z):  # pragma: no cover - compiled
-    """Normalized image points ``(N, 2)`` of ceiling points ``points_w (N, 2)`` in W
-    (at height ``ceiling_m``) from the vehicle pose ``(x, y, yaw)`` and the mount ``(R,
-    t)`` (``X_V = R X_C + t``); NaN where a point is not in front of the camera
-    (``z_C <= min_z``). The camera coordinates are ``Rᵀ (Rz(-yaw) (p - (x, y)) - t)``."""
-    cz, sz = math.cos(yaw), math.sin(yaw)
-    out = np.empty((points_w.shape[0], 2))
-    for i in range(points_w.shape[0]):
-        dx, dy = points_w[i, 0] - x, points_w[i, 1] - y
-        q0, q1, q2 = dx * cz + dy * sz - t[0], dy * cz - dx * sz - t[1], ceiling_m - t[2]
-        p2 = q0 * R[0, 2] + q1 * R[1, 2] + q2 * R[2, 2]
-        if p2 > min_z:
-            out[i, 0] = (q0 * R[0, 0] + q1 * R[1, 0] + q2 * R[2, 0]) / p2
-            out[i, 1] = (q0 * R[0, 1] + q1 * R[1, 1] + q2 * R[2, 1]) / p2
-        else:
-            out[i, 0] = out[i, 1] = np.nan
-    return out
-
-
 def magnification(camera: CameraModel, points_norm: np.ndarray) -> np.ndarray:
     """``(N,)`` pixels per normalized unit at each point: ``sqrt |det J|`` of the lens."""
     J = camera.distort_jacobian(points_norm)
@@ -149,12 +103,7 @@ def _side_residuals(geo: PlanarGeometry, poses: np.ndarray, corners_w: np.ndarra
                     edge_norm: np.ndarray, side: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """``(P, M)`` residuals (px) of the edge points for each of ``poses`` ``(P, 3)`` at
     once (the pose and its finite-difference steps in one pass)."""
-    x, y, yaw = poses[:, 0, None], poses[:, 1, None], poses[:, 2, None]
-    cz, sz = np.cos(yaw), np.sin(yaw)
-    dx, dy = corners_w[None, :, 0] - x, corners_w[None, :, 1] - y         # (P, 4)
-    t = geo.t_vehicle_cam
-    q = np.stack([dx * cz + dy * sz - t[0], dy * cz - dx * sz - t[1],
-                  np.broadcast_to(geo.ceiling_m - t[2], dx.shape)], axis=2)   # in V
+    q = seen_from(on_ceiling(corners_w, geo.ceiling_m), poses, geo.t_vehicle_cam)  # in V
     pc = q @ geo.R_vehicle_cam                                           # (P, 4, 3)
     c = pc[..., :2] / pc[..., 2:3]
     n = c[:, [1, 2, 3, 0]]                                       # side k: corner k -> k+1
@@ -315,11 +264,8 @@ def _sides_at(R, t, ceiling_m, x, y, yaw, corners_w, edge_norm, side, scale, out
     cz, sz = math.cos(yaw), math.sin(yaw)
     c = np.empty((4, 2))
     for k in range(4):
-        dx, dy = corners_w[k, 0] - x, corners_w[k, 1] - y
-        q0, q1, q2 = dx * cz + dy * sz - t[0], dy * cz - dx * sz - t[1], ceiling_m - t[2]
-        p0 = q0 * R[0, 0] + q1 * R[1, 0] + q2 * R[2, 0]
-        p1 = q0 * R[0, 1] + q1 * R[1, 1] + q2 * R[2, 1]
-        p2 = q0 * R[0, 2] + q1 * R[1, 2] + q2 * R[2, 2]
+        vx, vy = level_offset(x, y, cz, sz, corners_w[k, 0], corners_w[k, 1])
+        p0, p1, p2 = to_camera(R, vx - t[0], vy - t[1], ceiling_m - t[2])
         c[k, 0], c[k, 1] = p0 / p2, p1 / p2
     ln = np.empty((4, 3))
     for k in range(4):
@@ -430,13 +376,12 @@ def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, 
     rise = ceiling_m - t[2]
     q = np.empty((4, 2))
     for i in range(4):
-        x, y = corners_norm[i, 0], corners_norm[i, 1]
-        dz = R[2, 0] * x + R[2, 1] * y + R[2, 2]
-        if not dz > 1e-9:
+        rises, ox, oy = meet_ceiling(R, corners_norm[i, 0], corners_norm[i, 1], rise,
+                                     MIN_RZ, 0.0)
+        if not rises:
             return NO_CLOSED_FORM, 0, np.nan, 0.0, False
-        s = rise / dz
-        q[i, 0] = t[0] + s * (R[0, 0] * x + R[0, 1] * y + R[0, 2])
-        q[i, 1] = t[1] + s * (R[1, 0] * x + R[1, 1] * y + R[1, 2])
+        q[i, 0] = t[0] + ox
+        q[i, 1] = t[1] + oy
         if not (math.isfinite(q[i, 0]) and math.isfinite(q[i, 1])):
             return NO_CLOSED_FORM, 0, np.nan, 0.0, False
     qx, qy = 0.25 * q[:, 0].sum(), 0.25 * q[:, 1].sum()

@@ -18,8 +18,8 @@ import math
 
 import numpy as np
 
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_norm
 from ceilkit.runtime.geometry.camera import distort_points
+from ceilkit.runtime.geometry.ceiling import PlanarGeometry, ceiling_norm
 from ceilkit.runtime.jit import arr, njit, warmer
 
 REACH_M = 3.5        # ceiling lines looked for this far from the camera's ceiling point

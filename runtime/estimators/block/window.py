@@ -1,9 +1,9 @@
-"""The block method's window path (option ``track``): with a prior, the site's blocks and
-markers are measured where the prior puts them, with no search of the frame.
+"""The block method's window path (option ``window_search``): with a prior, the site's
+blocks and markers are measured where the prior puts them, with no search of the frame.
 
 :class:`Windows` projects every block and marker of the site from the prior
 (:meth:`Windows.predicted`: those fully in view, the largest first) and measures one on
-its predicted outline (:meth:`Windows.fix`): a first edge pass ``track_window_px``
+its predicted outline (:meth:`Windows.fix`): a first edge pass ``window_px``
 across each side in pixels, then the undistorted pass about the corners it found
 (:func:`.detect.measure_sides`), solved by planar PnP (:func:`.pnp.solve`), all in one
 compiled call; the **window check** refuses a fix that does not look like the predicted
@@ -13,7 +13,7 @@ Example::
 
     win = Windows(geo, targets_of(site, site.markers, 0.08), options)
     for target, px in win.predicted((x, y, yaw)):
-        got = win.fix(grey, target, px)     # a WindowFix, or None: the check failed
+        got = win.fix(grey, target, px)     # a OutlineFix, or None: the check failed
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ from ceilkit.runtime.estimators.block.pnp import (
     SOLVED,
     PlanarGeometry,
     Refined,
-    ceiling_norm,
     solve_core,
 )
 from ceilkit.runtime.features.quads import BORDER_PX, EDGE_SEARCH_PX, EDGE_STEP_PX, _stations
 from ceilkit.runtime.geometry.camera import distort_points
+from ceilkit.runtime.geometry.ceiling import ceiling_norm
 from ceilkit.runtime.geometry.fits import rigid_fit_rms
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -100,7 +100,7 @@ def shape_fits(blocks: Any, pv: np.ndarray, dark: bool, shape_tol: float
 
 
 @dataclass(frozen=True, eq=False)
-class WindowFix:
+class OutlineFix:
     """A target measured on its predicted outline and solved: its ``sides`` (the
     corners and edge points, normalized), the closed form's ``shape_m`` and the
     ``refined`` pose (its covariance not yet pooled)."""
@@ -116,7 +116,7 @@ class Windows:
     Args:
         geo: the rig and ceiling.
         targets: :func:`targets_of` the site.
-        options: the block method's options (``track_window_px``, ``edge_points``,
+        options: the block method's options (``window_px``, ``edge_points``,
             ``dark_ratio``, ``bright_ratio``, ``shape_tol``).
         drop: ``drop(corners_w)``: ``(4,)`` bool, the sides the refinement leaves out
             (:class:`.seams.LinedSides`); none when not given.
@@ -147,11 +147,11 @@ class Windows:
         cam = self.geo.camera
         px, order = predict_core(*self._mount, *cam.lens, x, y, yaw, self._corners,
                                  self._bright, float(cam.width), float(cam.height),
-                                 BORDER_PX + self.options.track_window_px + 1.0)
+                                 BORDER_PX + self.options.window_px + 1.0)
         return [(self.targets[k], px[k]) for k in order]
 
     def fixes(self, grey: np.ndarray, pose: np.ndarray,
-              accept: Callable[[Target, WindowFix], Any], most: int
+              accept: Callable[[Target, OutlineFix], Any], most: int
               ) -> tuple[list[Any], int]:
         """Up to ``most`` fixes of the targets in view from ``pose``, in
         :meth:`predicted`'s order (each :meth:`fix` that passes the window check, given
@@ -169,18 +169,18 @@ class Windows:
                     break
         return out, tried
 
-    def fix(self, grey: np.ndarray, tgt: Target, px: np.ndarray) -> WindowFix | None:
+    def fix(self, grey: np.ndarray, tgt: Target, px: np.ndarray) -> OutlineFix | None:
         """The target measured on its predicted outline ``px`` ``(4, 2)`` and solved
         (:func:`.detect.measure_sides` in two passes, :func:`.pnp.solve`), or None when
         the window check fails: a side with fewer than :data:`TRACK_MIN_SHARE` of its
         stations on an edge, the wrong contrast across the outline
         (:func:`.detect.step_contrast` against ``dark_ratio`` / ``bright_ratio``), a
         shape off the block's by more than ``shape_tol``, an edge residual over
-        :data:`TRACK_MAX_RMS_PX`, or a refined outline more than ``track_window_px``
+        :data:`TRACK_MAX_RMS_PX`, or a refined outline more than ``window_px``
         from the predicted one. One compiled call (:func:`window_core`)."""
         o = self.options
         code, lens = self.geo.camera.lens
-        first, t = _stations(o.edge_points, float(o.track_window_px))
+        first, t = _stations(o.edge_points, float(o.window_px))
         rest, _ = _stations(o.edge_points, EDGE_SEARCH_PX)
         corners, edge = np.empty((4, 2)), np.empty((4 * o.edge_points, 2))
         side = np.empty(4 * o.edge_points, np.int64)
@@ -189,12 +189,12 @@ class Windows:
             arr(grey, np.uint8), arr(px, np.float64), first, rest, t, EDGE_STEP_PX,
             code, lens, *self._mount, arr(tgt.corners_w, np.float64), self._drop[tgt.source],
             TRACK_MIN_SHARE * o.edge_points, tgt.dark, o.dark_ratio, o.bright_ratio,
-            TRACK_MAX_RMS_PX, o.shape_tol * tgt.min_side_m, float(o.track_window_px),
+            TRACK_MAX_RMS_PX, o.shape_tol * tgt.min_side_m, float(o.window_px),
             corners, edge, side, pose, cov, unit)
         if not ok:
             return None
         sides = Sides(corners, edge[:n], side[:n], 4 * o.edge_points)
-        return WindowFix(sides, float(pose[3]), Refined(pose[:3].copy(), cov, rms, m, var_b,
+        return OutlineFix(sides, float(pose[3]), Refined(pose[:3].copy(), cov, rms, m, var_b,
                                                         unit if has_unit else None))
 
 
@@ -277,7 +277,7 @@ def _warm() -> None:
     from ceilkit.runtime.geometry.camera import CameraModel
     geo = PlanarGeometry(CameraModel.pinhole(64, 48, 40.0), np.eye(3), np.zeros(3), 3.0)
     square = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
-    options = SimpleNamespace(track_window_px=4.0, edge_points=4, dark_ratio=0.6,
+    options = SimpleNamespace(window_px=4.0, edge_points=4, dark_ratio=0.6,
                               bright_ratio=1.3, shape_tol=0.08)
     win = Windows(geo, [Target("block:warm", square, True, True, 1.0)], options)
     grey = np.full((48, 64), 200, np.uint8)

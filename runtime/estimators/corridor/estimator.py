@@ -27,7 +27,8 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from types import MappingProxyType
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -90,6 +91,7 @@ from ceilkit.runtime.estimators.honesty import (
     outside_site,
 )
 from ceilkit.runtime.estimators.ignore import IgnoreRegions
+from ceilkit.runtime.estimators.prior import allows
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.lines import SegmentDetector
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
@@ -164,14 +166,17 @@ class CorridorOptions(ShutterOptions):
         consensus: leave out the matched forward segments the ceiling does not explain
             (:mod:`~.consensus`: pipes, ducts, cable trays at another height); False
             fits every matched segment (the former behaviour, for comparisons).
-        track: with a prior, search for the site lines only across their predicted
-            image lines (:mod:`~.track`: 1-D edge searches, no line detector); the
-            global path runs when that check fails and every ``track_full_every``-th
-            tracked frame. Off by default.
-        track_search_px: half-width of the searches (px): how far a line may lie from
-            its prediction.
-        track_full_every: a global search after this many tracked fixes (0: only when
-            the check fails).
+        window_search: with a prior, search for the site lines only across their
+            predicted image lines (:mod:`~.track`: 1-D edge searches, no line
+            detector); the global path runs when that check fails and every
+            ``window_full_every``-th window fix. Off by default (issue 38: with a prior
+            turned half way round it confirms the twin an asymmetric corridor rules
+            out, where the global path does not; docs/methods/corridor.md). (Formerly
+            ``track``.)
+        window_px: half-width of the searches (px): how far a line may lie from its
+            prediction. (Formerly ``track_search_px``.)
+        window_full_every: a global search after this many window fixes (0: only when
+            the check fails). (Formerly ``track_full_every``.)
         coarse_search: look for segments first on the frame decimated by 2 (a quarter of
             the pixels), refit them on the full frame (the edge fit), and search the
             full frame only when that gives no pose of quality >= 0.5. Only with
@@ -208,9 +213,9 @@ class CorridorOptions(ShutterOptions):
     gn_iterations: int = 6
     min_elevation_deg: float = 3.0
     consensus: bool = True
-    track: bool = False
-    track_search_px: float = 5.0
-    track_full_every: int = 30
+    window_search: bool = False
+    window_px: float = 5.0
+    window_full_every: int = 30
     coarse_search: bool = True
     working_mpx: float = WORKING_MPX
     noise_px: float = 1.0
@@ -222,6 +227,10 @@ class CorridorOptions(ShutterOptions):
     min_spread: float = 0.1
     site_margin_m: float = 1.5
     assume_heading_deg: float | None = None
+
+    ALIASES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "track": "window_search", "track_search_px": "window_px",
+        "track_full_every": "window_full_every"})
 
 
 class CorridorEstimator(Estimator):
@@ -270,7 +279,7 @@ class CorridorEstimator(Estimator):
             mirror_y_m=mirror_line(self.setup),
             assume_heading_rad=(None if o.assume_heading_deg is None
                                 else math.radians(o.assume_heading_deg)))
-        self.lines_track = (LineTracker(self.setup, cam, o.track_search_px) if o.track
+        self.lines_track = (LineTracker(self.setup, cam, o.window_px) if o.window_search
                             else None)
         self._tracked_fixes = 0  # tracked fixes since the last global search
         self._ignore = IgnoreRegions.of(rig, site)
@@ -319,9 +328,10 @@ class CorridorEstimator(Estimator):
                  t0: float) -> Estimate | None:
         """The fix from edge searches across the lines predicted by ``prior``
         (:mod:`~.track`), refined and checked as the global path's (:meth:`_pose`), or
-        ``None``: the searches or the check failed, or a global search is due."""
+        ``None``: the searches or the check failed, the fix lies outside the prior's
+        region (a kidnap), or a global search is due."""
         o, st = self.options, self.setup
-        if o.track_full_every > 0 and self._tracked_fixes >= o.track_full_every:
+        if o.window_full_every > 0 and self._tracked_fixes >= o.window_full_every:
             self._tracked_fixes = 0
             return None
         yaw = prior.yaw_rad
@@ -337,6 +347,8 @@ class CorridorEstimator(Estimator):
             found = self._window_fit(grey, found[4].psi_rad, found[4].camera_y_m, prior)
         out = (None if found is None
                else self._pose(t_ns, *found[1:], found[0].rms_px, t0, "window"))
+        if out and not allows(prior, (None, out.y_m, out.yaw_rad, None)):
+            out = None              # outside the prior's region (estimators/prior.py)
         if not out:                 # not found, or the model check failed: go global
             self._tracked_fixes = 0
             return None

@@ -28,6 +28,7 @@ from ceilkit.runtime.features.lines import (
     undistort_segments,
 )
 from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.geometry.ceiling import meet_ceiling
 from ceilkit.runtime.geometry.fits import median_of
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -141,7 +142,8 @@ def _frame_arrays(segs, R, h, lamp_w, angle_tol, inlier_px, f_px
     len_n, mx, my, q (N, 3), ceil_len, ceil_sx, ceil_sy, lamp_end (L, N), tol)``.
     A segment's line ``(-dy, dx, x0 y1 - x1 y0) / len``; its level normal ``R l``; its
     endpoints on the ceiling ``h (R p)_xy / (R p)_z`` (NaN where ``(R p)_z <= 1e-6``,
-    above the horizon), their distance capped at
+    above the horizon: :func:`~ceilkit.runtime.geometry.ceiling.meet_ceiling`), their
+    distance capped at
     :data:`MAX_CEILING_LENGTH_M` (0 when NaN); as long as lamp row l is wide within
     :data:`LAMP_END_TOL`; the family gate ``min(angle_tol, 2 inlier_px / max(len
     f_px, 1))``."""
@@ -171,14 +173,7 @@ def _frame_arrays(segs, R, h, lamp_w, angle_tol, inlier_px, f_px
         for k in range(3):
             q[i, k] = a * R[k, 0] + b * R[k, 1] + c * R[k, 2]
         for e in range(2):
-            x, y = segs[i, 2 * e], segs[i, 2 * e + 1]
-            pz = x * R[2, 0] + y * R[2, 1] + R[2, 2]
-            if pz > 1e-6:
-                g = h / pz
-                cx[e] = (x * R[0, 0] + y * R[0, 1] + R[0, 2]) * g
-                cy[e] = (x * R[1, 0] + y * R[1, 1] + R[1, 2]) * g
-            else:
-                cx[e] = cy[e] = np.nan
+            _, cx[e], cy[e] = meet_ceiling(R, segs[i, 2 * e], segs[i, 2 * e + 1], h, 1e-6, 0.0)
         full = math.hypot(cx[1] - cx[0], cy[1] - cy[0])        # NaN above the horizon
         ceil_len[i] = min(full, MAX_CEILING_LENGTH_M) if full >= 0 else 0.0
         ceil_sx[i], ceil_sy[i] = cx[0] + cx[1], cy[0] + cy[1]

@@ -41,6 +41,7 @@ from ceilkit.runtime.estimators.corridor.geometry import (
 )
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.estimators.corridor.visibility import lines_in_view
+from ceilkit.runtime.estimators.prior import allows, prior_choice
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.geometry.rotations import rot_z, wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -350,10 +351,12 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
         k = min(range(4), key=lambda k: abs(wrap_pi(psi_rad + k * np.pi / 2 - prior_psi)))
         chosen = hyp(k)
         rivals, better = _rivals(chosen, hyp, sup, ctx)
-        if better is None:
+        # the prior chooses only a heading inside its region (estimators/prior.py);
+        # else (a kidnap, a wrong start pose; or the frame prefers a turn of the
+        # prior's labeling: an asymmetric cue) the frame alone decides below
+        yaw = wrap_pi(chosen.psi_rad - ctx.setup.pan_rad)
+        if better is None and allows(prior, (None, None, yaw, None)):
             return chosen, "prior", rivals
-        # the frame prefers a turn of the prior's labeling (an asymmetric cue): the
-        # prior is contradicted, and the frame alone decides below
     # of psi + k 90 deg, two share a heading window of 180 deg (k and k + 2 are a half
     # turn apart): the frame's evidence chooses the family (its ceiling length, the
     # across grid), then the half turn is compared, never assumed
@@ -517,6 +520,14 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         settled, ambiguous = settle_by_absence(m, chosen.offsets_m, chosen.weights,
                                                chosen.compat, chosen.psi_rad, setup,
                                                ctx.camera, ctx.min_length_px, ctx.match_tol_m)
+        if prior is not None and prior.y_m is not None and settled is m and ambiguous \
+                and not _prior_single_shift(m, chosen, prior, ctx):
+            return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
+                              f"{m.n_lines} forward lines fit two lateral positions "
+                              f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m) and the "
+                              "prior does not single one out",
+                              (Twin(chosen.psi_rad, m.shift_m, "chosen"),
+                               Twin(chosen.psi_rad, m.runner_up[2], "shift")))
         if settled is not m and prior is not None and prior.y_m is not None:
             # the prior chose m (the shift nearest it); the lines the frame misses
             # choose the runner-up: neither is trusted (a flip away from a good prior
@@ -550,6 +561,17 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
     assign[np.flatnonzero(chosen.fa)] = m.assign
     return Labeling((m.n_lines, m.weight), chosen.psi_rad, m.shift_m, chosen.fa, chosen.fb,
                     assign, m.n_lines, ambiguous, how, twins=twins)
+
+
+def _prior_single_shift(m: OffsetMatch, chosen: Hypothesis, prior: PoseEstimate,
+                       ctx: LabelContext) -> bool:
+    """Whether the prior allows the lateral shift it chose (``m``, the nearest it) and
+    not the runner-up (:func:`~ceilkit.runtime.estimators.prior.prior_choice` over the
+    vehicle's y of each)."""
+    yaw = wrap_pi(chosen.psi_rad - ctx.setup.pan_rad)
+    off = float((rot_z(yaw) @ ctx.setup.t_vc)[1])     # the shift is the camera's
+    ys = [m.shift_m - off, m.runner_up[2] - off]
+    return prior_choice(prior, [(None, y, yaw, None) for y in ys]) == 0
 
 
 @njit

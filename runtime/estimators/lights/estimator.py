@@ -39,6 +39,7 @@ from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site, check_rig_site
@@ -80,6 +81,7 @@ from ceilkit.runtime.estimators.lights.twins import (
     MAX_TWIN_CHECKS,
     TwinJudge,
 )
+from ceilkit.runtime.estimators.prior import allows, prior_choice, prior_distance
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.spots import SpotParams
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
@@ -100,7 +102,7 @@ RECT_MIN_AXIS_RATIO = 0.03  # the detector's shape bound with rectangular lights
 PROVENANCE = MappingProxyType({
     "global": Provenance.GLOBAL,          # the frame alone singled the pose out
     "prior_resolved": Provenance.PRIOR,   # the prior chose among equally good poses
-    "tracked": Provenance.PRIOR,          # a local association about the prior
+    "about_prior": Provenance.PRIOR,      # a local association about the prior
     "window": Provenance.WINDOW,          # the window fix about the prior
 })
 """The typed provenance of each of the method's ``mode`` diagnostics."""
@@ -132,12 +134,14 @@ class LightsOptions(ShutterOptions):
         misfit_alpha: the chi-square test's false-alarm rate on a fit that is noise.
         site_margin_m: the pose may lie at most this far outside the site's extent
             (the lights' bounding box; ``outside_site``).
-        track: with a prior, look for the lights only in windows around their predicted
-            pixels (:mod:`~.track`); the global path runs when the window check fails
-            and every ``track_full_every``-th tracked frame. Off by default.
-        track_window_px: how far (px) a light may lie from its predicted pixel.
-        track_full_every: a global search after this many window fixes (0: only when
-            the window check fails).
+        window_search: with a prior, look for the lights only in windows around their
+            predicted pixels (:mod:`~.track`); the global path runs when the window
+            check fails and every ``window_full_every``-th window fix. On by default
+            (issue 38: ``benchmarks/bench_paired.py``). (Formerly ``track``.)
+        window_px: how far (px) a light may lie from its predicted pixel. (Formerly
+            ``track_window_px``.)
+        window_full_every: a global search after this many window fixes (0: only when
+            the window check fails). (Formerly ``track_full_every``.)
         working_mpx: a frame larger than this (megapixels) is searched for spots
             decimated by an integer factor and its centroids refined at full resolution
             (:mod:`~ceilkit.runtime.features.working`; ``spot_params`` are then in
@@ -148,7 +152,7 @@ class LightsOptions(ShutterOptions):
             predicted from the pose at its spot's row time, moved by the prior's
             velocity; what the velocity's uncertainty does to the pose is added to the
             covariance (the global and prior-associated paths; the window tracker
-            does not model it, so with ``readout_ms`` > 0 ``track`` is not used).
+            does not model it, so with ``readout_ms`` > 0 ``window_search`` is not used).
         spot_stage: at working resolution, ``full`` (the Niblack mask and region
             statistics of the whole frame) or ``windowed`` (the mask and regions of the
             frame decimated by 2, each region's spot read at full resolution in a
@@ -172,12 +176,16 @@ class LightsOptions(ShutterOptions):
     noise_px: float = 1.0
     misfit_alpha: float = DEFAULT_ALPHA
     site_margin_m: float = 1.5
-    track: bool = False
-    track_window_px: float = 10.0
-    track_full_every: int = 30
+    window_search: bool = True
+    window_px: float = 10.0
+    window_full_every: int = 30
     working_mpx: float = WORKING_MPX
     spot_stage: str = "full"
     twins: bool = True
+
+    ALIASES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "track": "window_search", "track_window_px": "window_px",
+        "track_full_every": "window_full_every"})
 
 
 def light_diameter_m(options: LightsOptions, site: Site) -> float:
@@ -243,9 +251,9 @@ class LightsEstimator(Estimator):
         # the map's rigid self-similarities (a grid's cells): every pose's twins
         self.judge = TwinJudge(self.lights_w, self.matcher, self.extent, o)
         # the window tracker reads discs: rectangular lights take the global path
-        self.windows = None if not o.track or self.light_size_m else WindowTracker(
+        self.windows = None if not o.window_search or self.light_size_m else WindowTracker(
             rig, self.ceiling_height_m, self.lights_w, self.observer, self.visibility,
-            o.track_window_px, (o.spot_params or SpotParams()).min_contrast,
+            o.window_px, (o.spot_params or SpotParams()).min_contrast,
             TRACK_MIN_SHARE, o.max_residual_px, OUTLIER_MEDIANS, self.prior_gate_m,
             PRIOR_RESOLVE[1])
         self._window_fixes = 0  # window fixes since the last global search
@@ -287,7 +295,7 @@ class LightsEstimator(Estimator):
         cand, runner, mode, twins, complete = found
         pairs, (x, y, yaw, cov, res) = self._refine(obs, cand, prior)
         k = pairs.shape[0]
-        min_k = 2 if mode == "tracked" else self.options.min_inliers
+        min_k = 2 if mode == "about_prior" else self.options.min_inliers
         if k < min_k or not np.all(np.isfinite(cov)):
             return self.fail(t_ns, "no_match", f"only {k} lights fit after refinement",
                              **diag)
@@ -333,14 +341,15 @@ class LightsEstimator(Estimator):
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
                  t0: float) -> PoseEstimate | None:
         """The window fix around ``prior`` (:mod:`~.track`), or ``None``: the window
-        check or the model check (:meth:`checked`) failed, or a global search is due
-        (``track_full_every``)."""
-        every = self.options.track_full_every
+        check or the model check (:meth:`checked`) failed, the fix lies outside the
+        prior's region (a kidnap), or a global search is due
+        (``window_full_every``)."""
+        every = self.options.window_full_every
         if every > 0 and self._window_fixes >= every:
             self._window_fixes = 0
             return None
         fix = self.windows.observe(grey, float(prior.x_m), float(prior.y_m), prior.yaw_rad)
-        if fix is None:
+        if fix is None or not allows(prior, (fix.x_m, fix.y_m, fix.yaw_rad, None)):
             self._window_fixes = 0
             return None
         self._window_fixes += 1
@@ -348,7 +357,7 @@ class LightsEstimator(Estimator):
         rms = math.sqrt(float((fix.res_px * fix.res_px).sum()) / k)
         cand = Candidate(fix.x_m, fix.y_m, fix.yaw_rad, fix.pairs, float(k), 0.0,
                          fix.predicted - fix.found)
-        quality = pose_quality(k, rms, cand, None, "tracked")
+        quality = pose_quality(k, rms, cand, None, "about_prior")
         site_pairs = fix.pairs.copy()      # (spot index in spots_px, light index in the site)
         ids = site_pairs[:, 1] = self.site_ids[fix.pairs[:, 1]]
         diag = {"spots": fix.found, "candidates": fix.predicted,
@@ -367,7 +376,7 @@ class LightsEstimator(Estimator):
                    diag: dict[str, Any]
                    ) -> tuple[Candidate, Candidate | None, str, list[Candidate], bool] | Estimate:
         """``(best, runner-up, mode, twins ruled out, whether they are every twin)`` of a
-        frame, or its Failure. ``mode``: ``tracked`` (a local association around a
+        frame, or its Failure. ``mode``: ``about_prior`` (a local association around a
         trusted prior: :meth:`_about_prior`), ``global`` or ``prior_resolved`` (the
         prior picked one of several equally good poses, ``twins`` the others).
 
@@ -418,12 +427,12 @@ class LightsEstimator(Estimator):
                                                          prior), **diag)
         twins = []
         if rivals and prior is not None and prior.x_m is not None:
-            at_prior = Candidate(float(prior.x_m), float(prior.y_m), prior.yaw_rad,
-                                 np.zeros((0, 2), int), 0.0, 0.0)
-            near = [c for c in [cand] + rivals if c.same_pose(at_prior, *PRIOR_RESOLVE)]
-            if len(near) == 1:
-                twins = [c for c in [cand] + rivals if c is not near[0]]
-                cand, rivals, mode = near[0], [], "prior_resolved"
+            # the prior chooses only the one pose it allows (estimators/prior.py)
+            every = [cand] + rivals
+            k = prior_choice(prior, [(c.x_m, c.y_m, c.yaw_rad, None) for c in every])
+            if k is not None:
+                twins = [c for c in every if c is not every[k]]
+                cand, rivals, mode = every[k], [], "prior_resolved"
         if rivals:
             r = rivals[0]
             diag["runner_up"] = (r.x_m, r.y_m, math.degrees(r.yaw_rad), r.inliers)
@@ -438,36 +447,45 @@ class LightsEstimator(Estimator):
 
     def _about_prior(self, obs: Observation, prior: PoseEstimate, n: int
                      ) -> tuple[Candidate, None, str, list[Candidate], bool] | None:
-        """The association about ``prior`` (:meth:`_candidate`'s ``tracked`` tuple), or
-        None: the prior is not trusted, or the frame prefers one of its twins."""
+        """The association about ``prior`` (:meth:`_candidate`'s ``about_prior`` tuple), or
+        None: the prior is not trusted, the pose found about it lies outside the
+        region it allows (:func:`~ceilkit.runtime.estimators.prior.allows`: a kidnap, a
+        wrong start pose), or the frame prefers one of its twins."""
         c = self.matcher.verify(obs.q_v, prior.yaw_rad,
                                 np.array([float(prior.x_m), float(prior.y_m)]),
                                 self.prior_gate_m)
         # the prior is trusted only when most spots, and most lights the pose
         # should see, match: a stale prior must not pull a local false match
         if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
-                and c.missing <= max(1, c.inliers // 2)):
+                and c.missing <= max(1, c.inliers // 2)
+                and allows(prior, (c.x_m, c.y_m, c.yaw_rad, None))):
             if not self.options.twins or c.inliers < self.options.min_inliers:
-                return c, None, "tracked", [], False
+                return c, None, "about_prior", [], False
             # the twins the prior rules out (other cells of a grid: the frame alone
-            # cannot tell them), unless the frame itself prefers one of them: then
-            # the prior is contradicted and the global search decides
+            # cannot tell them; none inside its region), unless the frame itself
+            # prefers one of them: then the prior is contradicted and the global
+            # search decides
             weights = obs.weights()
             own = self.judge.evidence(c, weights)
             rivals, complete = self.judge.rivals(obs, c)
             twins = [t for t in rivals
                      if self.judge.evidence(t, weights) >= own - self.options.ambiguity_margin]
             if all(self.judge.evidence(t, weights) <= own + self.options.ambiguity_margin
-                   for t in twins):
+                   for t in twins) and prior_choice(
+                    prior, [(t.x_m, t.y_m, t.yaw_rad, None) for t in [c] + twins]) == 0:
                 twins.sort(key=lambda t: -self.judge.evidence(t, weights))
-                return c, None, "tracked", twins, complete and len(twins) < MAX_HYPOTHESES
+                return c, None, "about_prior", twins, complete and len(twins) < MAX_HYPOTHESES
         return None
 
     def _hypotheses(self, obs: Observation, cands: list[Candidate],
                     prior: PoseEstimate | None, cov: np.ndarray | None = None
                     ) -> tuple[Hypothesis, ...]:
         """:meth:`.twins.TwinJudge.hypotheses` of ``cands``, sharing ``cov`` or the
-        first's refinement (:meth:`_refine`): a twin is the same spots moved rigidly."""
+        first's refinement (:meth:`_refine`): a twin is the same spots moved rigidly.
+        With a prior, those nearest it first (a list cut at ``MAX_HYPOTHESES`` keeps them)."""
+        if prior is not None and len(cands) > 2:
+            cands = [cands[0]] + sorted(cands[1:], key=lambda c: prior_distance(
+                prior, (c.x_m, c.y_m, c.yaw_rad, None))[0])
         if cov is None:
             try:
                 cov = self._refine(obs, cands[0], prior)[1][3]
@@ -586,13 +604,14 @@ def pose_quality(k: int, rms_px: float, best: Candidate, runner: Candidate | Non
     Args:
         k: matched lights after refinement; ``rms_px``: their pixel residual.
         best, runner: the chosen candidate and the runner-up (``None``: none).
-        mode: ``tracked`` (the margin is not known: 0.9), ``global`` or ``prior_resolved``.
+        mode: ``about_prior`` (the margin is not known: 0.9), ``global`` or
+            ``prior_resolved``.
     """
     q_n = 1.0 - math.exp(-(k - 2) / 2.5)
     q_res = math.exp(-0.5 * (rms_px / 1.5) ** 2)
     # lights the pose says should be seen but were not (off, occluded, or a wrong pose)
     q_vis = (best.inliers / (best.inliers + best.missing)) ** 2
-    if mode == "tracked":
+    if mode == "about_prior":
         q_sep = 0.9
     else:
         rival = runner.score if runner is not None else 2.0
@@ -601,11 +620,13 @@ def pose_quality(k: int, rms_px: float, best: Candidate, runner: Candidate | Non
 
 
 def _min_spacing(lights_w: np.ndarray) -> float:
+    """The smallest distance between two lights (m; inf for fewer than two): each
+    light's nearest other by a k-d tree, ``O(M log M)`` (not all pairs)."""
     if lights_w.shape[0] < 2:
         return math.inf
-    d = np.linalg.norm(lights_w[:, None] - lights_w[None], axis=2)
-    d[np.diag_indices_from(d)] = np.inf
-    return float(d.min())
+    d, nb = cKDTree(lights_w).query(lights_w, 2)
+    i = int(np.argmin(d[:, 1]))
+    return float(np.linalg.norm(lights_w[i] - lights_w[nb[i, 1]]))
 
 
 __all__ = ["DEFAULT_LIGHT_DIAMETER_M", "LightsEstimator", "LightsOptions", "light_diameter_m",

@@ -5,7 +5,10 @@ put the most observed ceiling points on map lights: every observed pair votes, t
 the map pairs of the same length (a pair-distance hash), for a pose ``(yaw, x, y)``;
 the best-voted poses are verified by association and a rigid refit
 (:func:`~ceilkit.runtime.geometry.fits.fit_rigid_2d_complex`), and returned as
-:class:`Candidate` values, best first.
+:class:`Candidate` values, best first. A map of many lights (more than
+:data:`PAIR_VOTE_MAX_PAIRS` pairs a frame could see) votes through its constellations
+instead, and is verified against the lights about each pose alone
+(:mod:`~.index`): a frame's work does not grow with the map.
 
 Convention (SPEC §1): the candidate ``(x_m, y_m, yaw_rad)`` is the vehicle pose in W:
 ``X_W = Rz(yaw) X_V + (x, y, 0)``.
@@ -25,6 +28,12 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ceilkit.runtime.estimators.lights.index import (
+    ConstellationIndex,
+    LightGrid,
+    near_core,
+    quad_poses,
+)
 from ceilkit.runtime.estimators.lights.observe import locate_core
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -34,6 +43,18 @@ MISSING_PENALTY = 0.5
 SYMMETRY_MAX_LIGHTS = 300
 """Maps of more lights are not searched for symmetries (:func:`map_symmetries`): the
 search is quadratic in the lights (a 20 x 15 grid: 1 s, 2 400 motions)."""
+PAIR_VOTE_MAX_PAIRS = 20_000
+"""A map with more pairs shorter than the longest a frame sees votes through its
+constellations (:class:`~.index.ConstellationIndex`), not with every pair: the pair
+vote's work grows with the pairs (a dense field of 1 000 lights, 75 000 pairs: 5 ms)."""
+FIRST_ANCHORS = 2
+"""On a map voting through its constellations, the quads of this many points (the most
+reliable) vote first; the others' only when these do not settle the frame."""
+SETTLED_SHARE = 0.6
+"""... settled: the best pose verified explains this share of the points (and >= 4)."""
+LOCAL_FROM_LIGHTS = 256
+"""From this many lights a pose is verified against the lights about it alone
+(:class:`~.index.LightGrid`); below, against all of them (the same result)."""
 _SAME_BIN = (0.5, math.radians(8.0))    # (m, rad): a vote bin next to a verified pose
 _SAME_POSE = (0.3, math.radians(5.0))   # (m, rad): a verified pose already found
 
@@ -78,10 +99,15 @@ def near_pose(x_m: float, y_m: float, yaw_rad: float, other: Candidate, pos_m: f
 class PatternMatcher:
     """Rotation- and translation-invariant matching of ceiling points to a light map.
 
-    Built once per map: every map pair shorter than ``max_pair_m`` with its length,
-    sorted (a pair-distance hash). ``match`` returns verified candidates, best first.
-    The vote, its bins and the verification of each are one compiled call
-    (:func:`_match`); the array reading they stand for is kept with the tests.
+    Built once per map (a k-d tree, ``O(M log M)``): every map pair shorter than
+    ``max_pair_m`` with its length, sorted (a pair-distance hash), when there are at
+    most :data:`PAIR_VOTE_MAX_PAIRS`; else the map's constellations
+    (:class:`~.index.ConstellationIndex`), whose matches vote instead. From
+    ``index_from`` lights the lights are bucketed (:class:`~.index.LightGrid`) and a
+    pose is verified against those about it alone, so neither path's work per frame
+    grows with the map. ``match`` returns verified candidates, best first. The vote,
+    its bins and the verification of each are one compiled call (:func:`_match`,
+    :func:`_vote`); the array reading they stand for is kept with the tests.
 
     Args:
         lights_w: ``(M, 2)`` map light centres in W.
@@ -90,12 +116,14 @@ class PatternMatcher:
         visible: optional :class:`~.observe.VisibilityTable` of the same lights: the
             map lights the camera should see from a pose (poses whose visible lights
             are not observed are penalized).
+        index_from: bucket the lights from this many (:data:`LOCAL_FROM_LIGHTS`).
     """
 
     def __init__(self, lights_w: np.ndarray, gate_m: float = 0.08, max_pair_m: float = 1e9,
                  visible: Any = None, max_observed: int = 7, top_bins: int = 8,
                  max_bins: int = 48,
-                 yaw_bin_rad: float = math.radians(4.0), pos_bin_m: float = 0.3):
+                 yaw_bin_rad: float = math.radians(4.0), pos_bin_m: float = 0.3,
+                 index_from: int = LOCAL_FROM_LIGHTS):
         self.lights_w = np.asarray(lights_w, float).reshape(-1, 2)
         m = self.lights_w.shape[0]
         self.gate_m = gate_m
@@ -105,7 +133,21 @@ class PatternMatcher:
         self.max_bins = max(top_bins, max_bins)
         self.yaw_bin_rad = yaw_bin_rad
         self.pos_bin_m = pos_bin_m
-        i, j = np.triu_indices(m, 1)
+        tree = cKDTree(self.lights_w) if m else None
+        n_pairs = _pairs_within(self.lights_w, tree, max_pair_m)
+        # a map of few pairs votes with every pair (the pair-distance hash); a larger
+        # one through its constellations (index.py): its per-frame cost does not grow
+        i, j = np.zeros((2, 0), np.int64)
+        self.index = None
+        if n_pairs <= PAIR_VOTE_MAX_PAIRS:
+            # the pairs within max_pair_m, in np.triu_indices order (a k-d tree, not
+            # all pairs: the same table)
+            if m >= 2:
+                pp = tree.query_pairs(max_pair_m * (1 + 1e-9) + 1e-9, output_type="ndarray")
+                pp = pp[np.lexsort((pp[:, 1], pp[:, 0]))]
+                i, j = pp[:, 0].astype(np.int64), pp[:, 1].astype(np.int64)
+        else:
+            self.index = ConstellationIndex(self.lights_w, gate_m)
         d = np.linalg.norm(self.lights_w[i] - self.lights_w[j], axis=1)
         keep = d <= max_pair_m
         order = np.argsort(d[keep])
@@ -121,14 +163,20 @@ class PatternMatcher:
         if visible is None:   # no table (its NI < 0 skips the lookup): nothing is missing
             vis = (arr(self.lights_w, np.float64), arr(np.full(1, np.inf), np.float32),
                    arr([0.0, 0.0, 1.0], np.float64), arr([-1, -1, 0], np.int64))
+            reach = 0.0
         else:
             vis = visible.arrays
+            reach = view_reach_m(visible)
         # what the compiled calls read (read-only)
         self._map = (arr(lights_c, np.complex128), arr(self.pair_d, np.float64),
                      arr(pair_mid, np.complex128), arr(pair_dir, np.complex128))
         self._vis = vis
+        self._grid = _grid_arrays(self.lights_w, m >= index_from, reach, max_pair_m)
         self._params = arr([gate_m, self.yaw_bin_rad, self.pos_bin_m, self.top_bins,
-                            self.max_bins, self.max_observed], np.float64)
+                            self.max_bins, self.max_observed, 3, reach], np.float64)
+        # the constellations' votes: a quad is strong evidence, a bin of 2 is a rival
+        self._hash_params = arr([gate_m, self.yaw_bin_rad, self.pos_bin_m, self.top_bins,
+                                 self.max_bins, self.max_observed, 2, reach], np.float64)
 
     # -- association ------------------------------------------------------------------
     def associate(self, q_v: np.ndarray, yaw: float, t: np.ndarray, gate_m: float
@@ -143,9 +191,10 @@ class PatternMatcher:
         transform, re-associate within the matcher's gate; ``None`` with fewer than two
         inliers. Its score counts the map lights the pose should show but that matched
         nothing (``visible``)."""
-        out = _verify(_complex(q_v), float(yaw), complex(t[0], t[1]),
-                      self.gate_m if gate_m is None else float(gate_m), self.gate_m,
-                      self._map[0], *self._vis)
+        gates = (self.gate_m if gate_m is None else float(gate_m), self.gate_m,
+                 float(self._params[7]))
+        out = _verify(_complex(q_v), float(yaw), complex(t[0], t[1]), gates,
+                      self._map[0], self._vis, self._grid)
         ok, x, y, yaw_v, pairs, score, rms, missing = out
         if not ok:
             return None
@@ -160,9 +209,10 @@ class PatternMatcher:
         starts = np.asarray(starts, float).reshape(-1, 3)
         if starts.shape[0] == 0 or self.lights_w.shape[0] == 0:
             return []
-        poses, pairs, offsets = _twins(_complex(q_v), arr(starts, np.float64),
-                                       float(gate_m), self.gate_m, int(min_inliers),
-                                       self._map[0], *self._vis)
+        gates = (float(gate_m), self.gate_m, float(self._params[7]))
+        poses, pairs, offsets = _twins(_complex(q_v), arr(starts, np.float64), gates,
+                                       int(min_inliers), self._map[0], self._vis,
+                                       self._grid)
         return [Candidate(p[0], p[1], p[2], pairs[a:b], p[3], p[4], int(p[5]))
                 for p, a, b in zip(poses.tolist(), offsets[:-1].tolist(),
                                    offsets[1:].tolist(), strict=True)]
@@ -185,7 +235,10 @@ class PatternMatcher:
 
         The poses :meth:`hypotheses` votes for are binned (:attr:`yaw_bin_rad`,
         :attr:`pos_bin_m`); the bins are looked at by their votes, most first (ties in
-        the order of their cells, yaw first): a bin's pose is its votes' circular mean yaw and
+        the order of their cells, yaw first). On a map voting through its
+        constellations each matched quad is one vote (ties: the best-fitting quad
+        first), and a bin needs 2 votes, not 3, to be looked at once a candidate is
+        found. A bin's pose is its votes' circular mean yaw and
         median position, verified (:meth:`verify`) unless a candidate already lies near
         it; a verified pose near an earlier one is dropped. Bins far below the best
         cannot hold a rival of similar support: the search stops at the first bin with
@@ -197,13 +250,47 @@ class PatternMatcher:
         if n < 2 or self.lights_w.shape[0] < 2:
             return []
         use = np.arange(n) if order is None else np.asarray(order)
-        poses, pairs, offsets = _match(_complex(q_v), arr(use, np.int64), *self._map,
-                                       self._params, *self._vis)
-        cands = [Candidate(p[0], p[1], p[2], pairs[a:b], p[3], p[4], int(p[5]))
-                 for p, a, b in zip(poses.tolist(), offsets[:-1].tolist(),
-                                    offsets[1:].tolist(), strict=True)]
+        qc = _complex(q_v)
+        if self.index is not None:
+            return self._match_constellations(q_v, qc, use)
+        poses, pairs, offsets = _match(qc, arr(use, np.int64), self._map, self._params,
+                                       self._vis, self._grid)
+        cands = _candidates(poses, pairs, offsets)
         cands.sort(key=lambda c: (-c.score, -c.inliers, c.rms_m))
         return cands
+
+    def _match_constellations(self, q_v: np.ndarray, qc: np.ndarray, use: np.ndarray
+                              ) -> list[Candidate]:
+        """:meth:`match` on a map voting through its constellations: the quads of the
+        first :data:`FIRST_ANCHORS` points of ``use`` vote
+        (:meth:`~.index.ConstellationIndex.hits`, :func:`~.index.quad_poses`,
+        :func:`_vote`); when the best pose they verify does
+        not explain :data:`SETTLED_SHARE` of the points, the quads of the others up to
+        ``max_observed`` vote with them."""
+        settle = max(4, math.ceil(SETTLED_SHARE * qc.size))
+        hyp = np.zeros((0, 4))
+        cands: list[Candidate] = []
+        for lo, hi in ((0, FIRST_ANCHORS), (FIRST_ANCHORS, self.max_observed)):
+            if lo >= min(hi, use.size):
+                break
+            obs, maps = self.index.hits(q_v, use[lo:hi])
+            hyp = np.concatenate([hyp, quad_poses(qc, arr(obs, np.int64),
+                                                  arr(maps, np.int64), self._map[0])])
+            cands = _candidates(*_vote(qc, arr(hyp[:, :3], np.float64),
+                                       arr(hyp[:, 3], np.float64), self._map[0],
+                                       self._hash_params, self._vis, self._grid))
+            cands.sort(key=lambda c: (-c.score, -c.inliers, c.rms_m))
+            if cands and cands[0].inliers >= settle:
+                break
+        return cands
+
+
+def _candidates(poses: np.ndarray, pairs: np.ndarray, offsets: np.ndarray
+                ) -> list[Candidate]:
+    """The candidates of a compiled call's ``(poses, pairs, offsets)`` (:func:`_match`)."""
+    return [Candidate(p[0], p[1], p[2], pairs[a:b], p[3], p[4], int(p[5]))
+            for p, a, b in zip(poses.tolist(), offsets[:-1].tolist(), offsets[1:].tolist(),
+                               strict=True)]
 
 
 def _complex(q_v: np.ndarray) -> np.ndarray:
@@ -243,44 +330,99 @@ def _associate(qc, rot, t, lights_c, gate):  # pragma: no cover - compiled
     return out[:k].copy()
 
 
+def view_reach_m(visible: Any) -> float:
+    """How far (m, in V) from the vehicle a light the table ``visible``
+    (:class:`~.observe.VisibilityTable`) reports can lie: its farthest corner."""
+    ni, nj = visible.table.shape
+    lo = np.asarray(visible.origin_m, float) - visible.cell_m
+    hi = lo + visible.cell_m * np.array([ni + 1, nj + 1])
+    return float(max(math.hypot(x, y) for x in (lo[0], hi[0]) for y in (lo[1], hi[1])))
+
+
+def _pairs_within(lights_w: np.ndarray, tree: cKDTree | None, r_m: float) -> int:
+    """The pairs of lights at most ``r_m`` apart: counted for up to 2 000 lights, else
+    estimated from every ``M // 2000``-th light's neighbours (a k-d tree; an exact count
+    would cost as many steps as there are pairs, 25 million for 100 000 lights)."""
+    m = lights_w.shape[0]
+    if m < 2 or tree is None:
+        return 0
+    step = max(1, m // 2000)
+    n = tree.query_ball_point(lights_w[::step], r_m, return_length=True)
+    return int(((np.sum(n) - n.size) * (m / n.size)) // 2)
+
+
+def _grid_arrays(lights_w: np.ndarray, bucketed: bool, reach_m: float,
+                 max_pair_m: float) -> tuple:
+    """:attr:`~.index.LightGrid.arrays` of the lights in cells of half the view's
+    reach (at least 1 m), or, when not ``bucketed``, of no cell (:func:`_local`: every
+    light)."""
+    if bucketed:
+        scale = reach_m if reach_m > 0 else min(max_pair_m, 50.0)
+        return LightGrid(lights_w, max(1.0, 0.5 * scale)).arrays
+    return (arr(np.zeros(0), np.int64), arr(np.zeros(1), np.int64), arr(np.zeros(0), np.int64),
+            arr(np.zeros((0, 2)), np.float64), arr([0.0, 0.0, 1.0], np.float64),
+            arr([0, 0], np.int64))
+
+
 @njit
-def _verify(qc, yaw, t, gate, gate_m, lights_c, vis_lights, padded, geo, ints
-            ):  # pragma: no cover - compiled
+def _local(grid, m, t, r):  # pragma: no cover - compiled
+    """The sorted indices of the lights within ``r`` of ``t`` (x + iy) in ``grid``
+    (:func:`~.index.near_core`), or all ``m`` when the lights are not bucketed."""
+    if grid[0].size == 0:
+        return np.arange(m)
+    return near_core(grid, t.real, t.imag, r)
+
+
+@njit
+def _verify(qc, yaw, t, gates, lights_c, vis, grid):  # pragma: no cover - compiled
     """:meth:`PatternMatcher.verify` in a compiled call: ``(found, x, y, yaw, pairs (K,
     2), score, rms_m, missing)``; the rigid refit is
     :func:`~ceilkit.runtime.geometry.fits.fit_rigid_2d_complex`'s, the lights a pose
-    should show :func:`~.observe.locate_core`'s."""
+    should show :func:`~.observe.locate_core`'s. ``gates``: the first association's
+    gate, the second's, and the view's reach (m): each association and the count of
+    lights missed read only the lights within reach of the pose (:func:`_local`; the
+    same pairs and count as all of them, in the map's order)."""
+    gate, gate_m, reach = gates
+    vis_lights, padded, geo, ints = vis
     none = np.empty((0, 2), np.int64)
-    pairs = _associate(qc, complex(math.cos(yaw), math.sin(yaw)), t, lights_c, gate)
+    q_max = 0.0
+    for i in range(qc.size):
+        q_max = max(q_max, abs(qc[i]))
+    r = max(reach, q_max + max(gate, gate_m)) + 1e-6
+    local = _local(grid, lights_c.size, t, r)
+    pairs = _associate(qc, complex(math.cos(yaw), math.sin(yaw)), t, lights_c[local], gate)
     k = pairs.shape[0]
     if k < 2:
         return False, 0.0, 0.0, 0.0, none, 0.0, 0.0, 0
     qm, pm = 0j, 0j
-    for r in range(k):
-        qm += qc[pairs[r, 0]]
-        pm += lights_c[pairs[r, 1]]
+    for r_ in range(k):
+        qm += qc[pairs[r_, 0]]
+        pm += lights_c[local[pairs[r_, 1]]]
     qm, pm = qm / k, pm / k
     sc = 0j
-    for r in range(k):
-        sc += (qc[pairs[r, 0]] - qm).conjugate() * (lights_c[pairs[r, 1]] - pm)
+    for r_ in range(k):
+        sc += (qc[pairs[r_, 0]] - qm).conjugate() * (lights_c[local[pairs[r_, 1]]] - pm)
     rot = sc / abs(sc) if abs(sc) > 0 else 1.0 + 0j
     t = pm - rot * qm
-    pairs = _associate(qc, rot, t, lights_c, gate_m)
+    local = _local(grid, lights_c.size, t, r)
+    pairs = _associate(qc, rot, t, lights_c[local], gate_m)
     k = pairs.shape[0]
     if k < 2:
         return False, 0.0, 0.0, 0.0, none, 0.0, 0.0, 0
     ss = 0.0
-    for r in range(k):
-        e = abs(qc[pairs[r, 0]] * rot + t - lights_c[pairs[r, 1]])
+    for r_ in range(k):
+        e = abs(qc[pairs[r_, 0]] * rot + t - lights_c[local[pairs[r_, 1]]])
         ss += e * e
     yaw = math.atan2(rot.imag, rot.real)
     missing = 0
     if ints[0] >= 0:
-        vis = locate_core(t.real, t.imag, yaw, vis_lights, padded, geo, ints)[0]
-        for r in range(k):
-            vis[pairs[r, 1]] = False
-        for j in range(vis.size):
-            missing += vis[j]
+        seen = locate_core(t.real, t.imag, yaw, vis_lights[local], padded, geo, ints)[0]
+        for r_ in range(k):
+            seen[pairs[r_, 1]] = False
+        for j in range(seen.size):
+            missing += seen[j]
+    for r_ in range(k):
+        pairs[r_, 1] = local[pairs[r_, 1]]
     score = k - MISSING_PENALTY * missing
     return True, t.real, t.imag, yaw, pairs, score, math.sqrt(ss / k), missing
 
@@ -326,20 +468,32 @@ def _hypotheses(qc, pair_d, pair_mid, pair_dir, tol):  # pragma: no cover - comp
 
 
 @njit
-def _match(qc, use, lights_c, pair_d, pair_mid, pair_dir, params, vis_lights, padded, geo,
-           ints):  # pragma: no cover - compiled
+def _match(qc, use, maps, params, vis, grid):  # pragma: no cover - compiled
     """:meth:`PatternMatcher.match` before the candidates are made and sorted:
     ``(poses (C, 6), pairs (P, 2), offsets (C + 1,))``, a candidate's row ``(x, y,
     yaw, score, rms_m, missing)``, its pairs ``pairs[offsets[c]:offsets[c + 1]]``, in the
-    order found (``params``: gate, yaw bin, position bin, top_bins, max_bins,
-    max_observed)."""
-    gate, yaw_bin, pos_bin = params[0], params[1], params[2]
-    top_bins, max_bins, max_observed = np.int64(params[3]), np.int64(params[4]), \
-        np.int64(params[5])
+    order found: the pair vote (:func:`_hypotheses`) of the ``max_observed`` first
+    points of ``use``, binned and verified (:func:`_vote`). ``maps``: the matcher's
+    lights, pair lengths, midpoints and directions; ``params``: gate, yaw bin,
+    position bin, top_bins, max_bins, max_observed, the votes a bin needs once a
+    candidate is found (3), the view's reach."""
+    lights_c, pair_d, pair_mid, pair_dir = maps
+    hyp = _hypotheses(qc[use[:np.int64(params[5])]], pair_d, pair_mid, pair_dir,
+                      2.0 * params[0])
+    return _vote(qc, hyp, np.zeros(hyp.shape[0]), lights_c, params, vis, grid)
+
+
+@njit
+def _vote(qc, hyp, rank, lights_c, params, vis, grid):  # pragma: no cover - compiled
+    """The poses ``hyp (K, 3)`` ``(yaw, x, y)`` binned, and the bins verified by their
+    votes, most first (ties: the smallest ``rank (K,)`` of a bin's votes, then the order
+    of their cells), as :meth:`PatternMatcher.match` says: :func:`_match`'s output."""
+    yaw_bin, pos_bin = params[1], params[2]
+    top_bins, max_bins = np.int64(params[3]), np.int64(params[4])
+    min_votes, gates = params[6], (params[0], params[0], params[7])
     poses = np.empty((max_bins, 6))
     offsets = np.zeros(max_bins + 1, np.int64)
     all_pairs = np.empty((max_bins * qc.size, 2), np.int64)
-    hyp = _hypotheses(qc[use[:max_observed]], pair_d, pair_mid, pair_dir, 2.0 * gate)
     nk = hyp.shape[0]
     if nk == 0:
         return poses[:0], all_pairs[:0], offsets[:1]
@@ -366,14 +520,19 @@ def _match(qc, use, lights_c, pair_d, pair_mid, pair_dir, params, vis_lights, pa
         if r == 0 or key[srt[r]] != key[srt[r - 1]]:
             starts[nb] = r
             nb += 1
+    tie = np.empty(nb)
     for b in range(nb):
         counts[b] = (starts[b + 1] if b + 1 < nb else nk) - starts[b]
-    top = np.argsort(-counts[:nb], kind="mergesort")[:max_bins]
+        low_rank = np.inf
+        for r in range(starts[b], starts[b] + counts[b]):
+            low_rank = min(low_rank, rank[srt[r]])
+        tie[b] = low_rank / (1.0 + low_rank)        # in [0, 1): orders equal counts
+    top = np.argsort(tie - counts[:nb], kind="mergesort")[:max_bins]
     best = counts[top[0]]
     n_cand = 0
     for n_done in range(top.size):
         first, count = starts[top[n_done]], counts[top[n_done]]
-        if n_cand and count < max(3, 0.2 * best):
+        if n_cand and count < max(min_votes, 0.2 * best):
             break
         if n_done >= top_bins and count < 0.5 * best:
             break
@@ -391,7 +550,7 @@ def _match(qc, use, lights_c, pair_d, pair_mid, pair_dir, params, vis_lights, pa
         if _near_any(tx, ty, yaw, poses, n_cand, _SAME_BIN[0], _SAME_BIN[1]):
             continue   # a neighbouring bin of a pose already verified
         found, x, y, yaw, pairs, score, rms, missing = _verify(
-            qc, yaw, complex(tx, ty), gate, gate, lights_c, vis_lights, padded, geo, ints)
+            qc, yaw, complex(tx, ty), gates, lights_c, vis, grid)
         if not found or _near_any(x, y, yaw, poses, n_cand, _SAME_POSE[0], _SAME_POSE[1]):
             continue
         n_cand = _store(poses, all_pairs, offsets, n_cand, (x, y, yaw, score, rms, missing),
@@ -414,7 +573,7 @@ def _store(poses, all_pairs, offsets, n_cand, row, pairs):  # pragma: no cover -
 
 
 @njit
-def _twins(qc, starts, gate, gate_m, min_inliers, lights_c, vis_lights, padded, geo, ints
+def _twins(qc, starts, gates, min_inliers, lights_c, vis, grid
            ):  # pragma: no cover - compiled
     """:meth:`PatternMatcher.twins` in a compiled call: ``(poses (C, 6), pairs (P, 2),
     offsets (C + 1,))`` as :func:`_match` gives them."""
@@ -425,8 +584,8 @@ def _twins(qc, starts, gate, gate_m, min_inliers, lights_c, vis_lights, padded, 
     n_cand = 0
     for r in range(starts.shape[0]):
         found, x, y, yaw_v, pairs, score, rms, missing = _verify(
-            qc, starts[r, 2], complex(starts[r, 0], starts[r, 1]), gate, gate_m, lights_c,
-            vis_lights, padded, geo, ints)
+            qc, starts[r, 2], complex(starts[r, 0], starts[r, 1]), gates, lights_c, vis,
+            grid)
         if not found or pairs.shape[0] < min_inliers:
             continue
         if _near_any(x, y, yaw_v, poses, n_cand, _SAME_POSE[0], _SAME_POSE[1]):
@@ -539,7 +698,11 @@ def _warm() -> None:
     m.verify(q, 0.0, np.zeros(2))
     m.twins(q, np.zeros((1, 3)), 0.2, 3)
     m.associate(q, 0.0, np.zeros(2), 0.1)
+    # the constellations' vote takes its poses from Python (read-only arrays)
+    _vote(_complex(q), arr(np.zeros((1, 3)), np.float64), arr(np.zeros(1), np.float64),
+          m._map[0], m._hash_params, m._vis, m._grid)
 
 
-__all__ = ["MISSING_PENALTY", "Candidate", "PatternMatcher", "map_symmetries", "near_pose",
-           "symmetry_table", "twin_poses"]
+__all__ = ["FIRST_ANCHORS", "LOCAL_FROM_LIGHTS", "MISSING_PENALTY", "PAIR_VOTE_MAX_PAIRS",
+           "SETTLED_SHARE", "Candidate", "PatternMatcher", "map_symmetries", "near_pose",
+           "symmetry_table", "twin_poses", "view_reach_m"]

@@ -1,4 +1,5 @@
-"""Rays between the image and the ceiling plane, for the lights method.
+"""Rays between the image and the ceiling plane, for the lights method (through
+``geometry/ceiling.py``, the one implementation every method shares).
 
 Convention (SPEC §1): ``X_V = R_vehicle_cam X_C + t_vehicle_cam``; every light centre
 lies on the ceiling plane ``z = H`` (``ceiling_height_m``, W's z: the height above the
@@ -21,8 +22,12 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.config.rig import Mount, Rig
+from ceilkit.runtime.geometry import ceiling
 from ceilkit.runtime.geometry.camera import undistort_points
 from ceilkit.runtime.jit import njit
+
+RISE_SIN = 1e-6
+"""A pixel's ray rises to the ceiling when its elevation's sine is above this."""
 
 
 @functools.lru_cache(maxsize=64)
@@ -50,14 +55,10 @@ def ceiling_points(rig: Rig, ceiling_height_m: float, points_px: np.ndarray
     px = np.asarray(points_px, float).reshape(-1, 2)
     if px.shape[0] == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
-    xy = rig.camera.unproject(px)
     R_vc, t_vc = mount_arrays(rig.mount)
-    rays_v = xy @ R_vc[:, :2].T + R_vc[:, 2]             # R (x, y, 1) of every pixel
-    rz = rays_v[:, 2]
-    ok = rz > 1e-6 * np.sqrt(np.einsum("ij,ij->i", rays_v, rays_v))        # |ray|
-    s = np.divide(ceiling_height_m - rig.mount.z_m, rz, out=np.full_like(rz, np.nan),
-                  where=ok)
-    return t_vc[:2] + s[:, None] * rays_v[:, :2], ok
+    return ceiling.ceiling_points(rig.camera.unproject(px), R_vc, t_vc,
+                                  ceiling_height_m - rig.mount.z_m, min_rz=0.0,
+                                  min_sin=RISE_SIN)
 
 
 def project_lights(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray, x_m: float,
@@ -73,31 +74,16 @@ def project_lights(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray, x_m:
 def project_poses(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
                   poses: np.ndarray) -> np.ndarray:
     """``(P, N, 2)`` pixels of ``N`` lights from ``P`` poses ``(x, y, yaw)``, one call."""
-    L = np.asarray(lights_w, float).reshape(-1, 2)
-    n = L.shape[0]
-    poses = np.asarray(poses, float).reshape(-1, 3)
     R_vc, t_vc = mount_arrays(rig.mount)
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    # light minus camera centre, in the vehicle-level frame of each pose: Rz(-yaw) (P - c_w)
-    dx = L[None, :, 0] - poses[:, None, 0]
-    dy = L[None, :, 1] - poses[:, None, 1]
-    lx = c[:, None] * dx + s[:, None] * dy - t_vc[0]
-    ly = -s[:, None] * dx + c[:, None] * dy - t_vc[1]
-    lz = np.full_like(lx, ceiling_height_m - t_vc[2])
-    P_v = np.stack([lx, ly, lz], axis=-1).reshape(-1, 3)
-    return rig.camera.project(P_v @ R_vc).reshape(poses.shape[0], n, 2)
+    return ceiling.project_px(rig.camera, R_vc, t_vc,
+                              ceiling.on_ceiling(lights_w, ceiling_height_m), poses)
 
 
 def pixel_scale(rig: Rig, ceiling_height_m: float, q_v: np.ndarray) -> np.ndarray:
-    """``(N, 2, 2)`` Jacobians d(pixel)/d(ceiling point in V, metres) at points ``q_v``."""
-    q = np.asarray(q_v, float).reshape(-1, 2)
-    n = q.shape[0]
-    if n == 0:
-        return np.zeros((0, 2, 2))
-    eps = 1e-3
-    pts = np.concatenate([q, q + [eps, 0.0], q + [0.0, eps]])
-    px = project_lights(rig, ceiling_height_m, pts, 0.0, 0.0, 0.0)
-    return np.stack([(px[n:2 * n] - px[:n]) / eps, (px[2 * n:] - px[:n]) / eps], axis=2)
+    """``(N, 2, 2)`` Jacobians d(pixel)/d(ceiling point in V, metres) at points ``q_v``
+    (:func:`~ceilkit.runtime.geometry.ceiling.pixel_jacobian`)."""
+    R_vc, t_vc = mount_arrays(rig.mount)
+    return ceiling.pixel_jacobian(rig.camera, R_vc, t_vc, ceiling_height_m, q_v)
 
 
 def jacobian_grid(rig: Rig, ceiling_height_m: float, step_px: int = 16) -> np.ndarray:
@@ -205,17 +191,9 @@ def ceiling_points_core(px, lens_code, lens, R, t, dz, q):  # pragma: no cover -
     undistort_points(px, lens_code, lens, xy)
     ok = np.zeros(n, np.bool_)
     for i in range(n):
-        x, y = xy[i, 0], xy[i, 1]
-        rx = R[0, 0] * x + R[0, 1] * y + R[0, 2]
-        ry = R[1, 0] * x + R[1, 1] * y + R[1, 2]
-        rz = R[2, 0] * x + R[2, 1] * y + R[2, 2]
-        if not rz > 1e-6 * math.sqrt(rx * rx + ry * ry + rz * rz):
-            q[i, 0] = q[i, 1] = np.nan
-            continue
-        s = dz / rz
-        q[i, 0] = t[0] + s * rx
-        q[i, 1] = t[1] + s * ry
-        ok[i] = True
+        ok[i], ox, oy = ceiling.meet_ceiling(R, xy[i, 0], xy[i, 1], dz, 0.0, RISE_SIN)
+        q[i, 0] = t[0] + ox
+        q[i, 1] = t[1] + oy
     return ok
 
 

@@ -27,7 +27,7 @@ PROTOCOLS = ("nmea", "mavlink", "mavlink-odometry", "nmea-gps")
 """``nmea``: $PCEIL/$PCEIS; ``mavlink``: VISION_POSITION_ESTIMATE; ``mavlink-odometry``:
 ODOMETRY instead (needs the rig: it sends the camera's position); ``nmea-gps``: GGA, RMC,
 GST and HDT (needs the site's geodetic origin)."""
-MAX_FIX_AGE_NS = 10_000_000_000  # an estimate older than this is stamped with "now" (a replay)
+MAX_FIX_AGE_NS = 10_000_000_000  # an estimate older than this is not of the capture clock
 
 
 @dataclass(frozen=True)
@@ -125,7 +125,10 @@ class NmeaGpsProtocol(_NmeaLines):
         utc_ns: the UTC clock (ns) the sentences are stamped with.
         capture_clock_ns: the clock frames are stamped with; a fix is stamped
             ``utc_ns() - (capture_clock_ns() - est.t_ns)`` (its capture time in UTC) when that age
-            is within 10 s, else ``utc_ns()`` (a replay's stamps are not this clock).
+            is within 10 s. Otherwise its stamps are another clock's (a replay, the
+            simulator): a fix is stamped ``est.t_ns + offset``, the offset taken from
+            ``utc_ns()`` at the first such fix (and again whenever the stamps drift more
+            than 10 s from it), so the fixes are as far apart as their frames.
         satellites, hdop: the fixed numbers written in GGA (see :mod:`.nmea_gps`).
     """
 
@@ -145,6 +148,7 @@ class NmeaGpsProtocol(_NmeaLines):
         self.plane = plane
         self.utc_ns, self.capture_clock_ns = utc_ns, capture_clock_ns
         self.satellites, self.hdop = int(satellites), float(hdop)
+        self._offset_ns: int | None = None   # UTC minus the stamps of another clock
 
     def _encode(self, fix: nmea_gps.GpsFix, utc: int) -> bytes:
         return nmea_gps.encode_fix(fix, utc, satellites=self.satellites, hdop=self.hdop)
@@ -152,8 +156,12 @@ class NmeaGpsProtocol(_NmeaLines):
     def pose(self, est: Estimate) -> tuple[bytes | None, bool]:
         fix = nmea_gps.fix_of(est, self.plane)
         age = self.capture_clock_ns() - est.t_ns
-        utc = self.utc_ns() - (age if 0 <= age <= MAX_FIX_AGE_NS else 0)
-        return self._encode(fix, utc), fix.valid
+        now = self.utc_ns()
+        if 0 <= age <= MAX_FIX_AGE_NS:
+            return self._encode(fix, now - age), fix.valid
+        if self._offset_ns is None or abs(est.t_ns + self._offset_ns - now) > MAX_FIX_AGE_NS:
+            self._offset_ns = now - est.t_ns
+        return self._encode(fix, est.t_ns + self._offset_ns), fix.valid
 
     def periodic(self, health: Health) -> bytes | None:
         if health.valid_recently and not health.faulted:

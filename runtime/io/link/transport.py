@@ -23,7 +23,10 @@ Guarantees:
 * **Unplug is a state, not an error.** After a successful start, a write or read
   error closes the port, ``state`` becomes ``"disconnected"``, poses are dropped
   (counted) and the port is reopened with exponential back-off
-  (``backoff_s = (first, max)``); ``counters.reconnects`` counts successes.
+  (``backoff_s = (first, max)``), and at once when a port that was gone is there
+  again (a serial port's device node, a socat link: :meth:`LinkBase._reappeared`);
+  ``counters.lost`` and ``counters.reconnects`` count both, and each is one line on
+  the ``ceilkit.link`` log (``lost (why)``, ``back after 2.3 s``).
   Opening the port the user named fails with :class:`LinkError`, one line.
 * **Periodic messages.** ``poll()`` (called by ``send()``, by the pipeline, and by an
   optional service thread every ``service_interval_s``) sends the 1 Hz HEARTBEAT
@@ -92,6 +95,7 @@ class LinkCounters:
         reconnects: successful reopenings after an unplug.
         bytes_sent: bytes written.
         received: messages read back from the controller.
+        lost: times the port went away (an unplug, the peer gone).
     """
 
     sent: int = 0
@@ -100,6 +104,7 @@ class LinkCounters:
     reconnects: int = 0
     bytes_sent: int = 0
     received: int = 0
+    lost: int = 0
 
 
 class _Disconnected(Exception):
@@ -138,6 +143,7 @@ class LinkBase:
         self._state = "closed"
         self._attempts = 0
         self._next_attempt_ns = 0
+        self._lost_ns = 0                           # link clock when the port went away
         self._faulted = False
         self._fault_reason = ""
         self._last_valid_ns: int | None = None      # link clock when a valid pose arrived
@@ -147,6 +153,7 @@ class LinkBase:
         self._next_periodic_ns = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self.state_at_close = ""                     # "connected" / "disconnected"
 
     # ---------------------------------------------------------------- port hooks
 
@@ -164,6 +171,10 @@ class LinkBase:
         """Read what is there without blocking; raise _Disconnected."""
         return b""
 
+    def _reappeared(self) -> bool:
+        """The port, gone at the last attempt, is there again: reopen now (each poll)."""
+        return False
+
     # ---------------------------------------------------------------- lifecycle
 
     def open(self) -> LinkBase:
@@ -180,6 +191,7 @@ class LinkBase:
                     raise LinkError(f"cannot open receive log {self.rx_log_path}: "
                                     f"{exc.strerror}") from None
             self._state = "connected"
+            self.state_at_close = ""
             # the first periodic message is due one period after opening: startup is
             # not "no pose", and a replay's first pose is never preceded by a status
             self._next_periodic_ns = self.clock_ns() + PERIOD_NS
@@ -204,6 +216,7 @@ class LinkBase:
                     pass
             if self._state != "closed":
                 self._close_port()
+                self.state_at_close = self._state
             self._state = "closed"
             if self._rx_log is not None:
                 self._rx_log.close()
@@ -311,19 +324,6 @@ class LinkBase:
         c = self._counters
         self._counters = replace(c, **{k: getattr(c, k) + v for k, v in inc.items()})
 
-    def _health(self, now: int) -> Health:
-        valid_recently = (self._last_valid_ns is not None
-                          and now - self._last_valid_ns < PERIOD_NS)
-        age = None if self._last_valid_ns is None else (now - self._last_valid_ns) // 1_000_000
-        est = self._last_estimate
-        if est is None:
-            reason = "no_estimate"
-        elif isinstance(est, Failure):
-            reason = est.reason
-        else:
-            reason = "stale" if self._last_was_valid else "unsendable"
-        return Health(now, self._faulted, self._fault_reason, valid_recently, reason, age)
-
     def _enqueue(self, msg: bytes) -> None:
         if self._state != "connected":
             self._count(dropped=1)
@@ -331,11 +331,12 @@ class LinkBase:
         self._outbox.put(msg)
 
     def _poll_locked(self, now: int, read: bool = True) -> None:
-        if self._state == "disconnected" and now >= self._next_attempt_ns:
+        if self._state == "disconnected" and (now >= self._next_attempt_ns
+                                              or self._reappeared()):
             self._try_reopen(now)
         if self.periodic_enabled and now >= self._next_periodic_ns:
             self._next_periodic_ns = now + PERIOD_NS
-            msgs = self.protocol.periodic(self._health(now))
+            msgs = self.protocol.periodic(_health(self, now))
             for msg in [msgs] if isinstance(msgs, bytes) else (msgs or ()):
                 self._enqueue(msg)
         if self._state == "connected":
@@ -383,9 +384,12 @@ class LinkBase:
         except OSError:
             pass
         self._state = "disconnected"
+        self._count(lost=1)
         self._attempts = 0
+        self._lost_ns = now
         self._next_attempt_ns = now + int(self.backoff_s[0] * 1e9)
-        log.warning("link %s lost (%s); reopening with back-off", self.describe(), why)
+        log.warning("link %s lost (%s); poses are dropped until it is back", self.describe(),
+                    why)
 
     def _try_reopen(self, now: int) -> None:
         try:
@@ -398,10 +402,26 @@ class LinkBase:
             return
         self._state = "connected"
         self._count(reconnects=1)
-        log.warning("link %s back after %d failed attempts", self.describe(), self._attempts)
+        log.warning("link %s back after %.1f s (%d failed attempts to reopen); poses resume",
+                    self.describe(), (now - self._lost_ns) / 1e9, self._attempts)
 
     def describe(self) -> str:
         return f"{type(self).__name__}({self.protocol.name})"
+
+
+def _health(link: LinkBase, now: int) -> Health:
+    """What the periodic status tells of ``link``'s poses at ``now``."""
+    valid_recently = (link._last_valid_ns is not None
+                      and now - link._last_valid_ns < PERIOD_NS)
+    age = None if link._last_valid_ns is None else (now - link._last_valid_ns) // 1_000_000
+    est = link._last_estimate
+    if est is None:
+        reason = "no_estimate"
+    elif isinstance(est, Failure):
+        reason = est.reason
+    else:
+        reason = "stale" if link._last_was_valid else "unsendable"
+    return Health(now, link._faulted, link._fault_reason, valid_recently, reason, age)
 
 
 # ------------------------------------------------------------------------ serial
@@ -453,6 +473,7 @@ class SerialLink(LinkBase):
         self.baud = int(baud)
         self._serial = None
         self._fd = -1
+        self._absent = False    # the last attempt to open found no such port
 
     def describe(self) -> str:
         return f"{self.port}@{self.baud} ({self.protocol.name})"
@@ -464,10 +485,17 @@ class SerialLink(LinkBase):
             ser = serial.Serial(self.port, self.baud, timeout=0, write_timeout=0,
                                 exclusive=True)
         except (serial.SerialException, OSError, ValueError) as exc:
+            self._absent = not os.path.exists(self.port)
             raise _open_error(self.port, exc) from None
+        self._absent = False
         fd = ser.fileno()
         fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) | os.O_NONBLOCK)
         self._serial, self._fd = ser, fd
+
+    def _reappeared(self) -> bool:
+        # the device node (or the by-id / socat symlink's target) is back: a re-plug,
+        # the peer's socat restarted; a port that is there but fails waits the back-off
+        return self._absent and os.path.exists(self.port)
 
     def _close_port(self) -> None:
         ser, self._serial, self._fd = self._serial, None, -1

@@ -79,7 +79,7 @@ def test_rig_missing_camera_file(tmp_path):
     ("ceiling_height: 3\ncorridor: {lines_along: [0.1, 0.1]}\n", "corridor.lines_along",
      "same y"),
     ("ceiling_height: 3\ncorridor: {lines_along: [0], lines_across: {spacing: 0}}\n",
-     "corridor.lines_across.spacing", "(0, inf]"),
+     "corridor.lines_across.spacing", "(0, 1e+09]"),
     ("ceiling_height: 3\nlights: [[1, 2], [3]]\n", "lights[1]", "2 numbers"),
     ("ceiling_height: 3\nlights: [[1, 2], [3, 4], [1, 2]]\n", "lights[2]", "duplicate light"),
     ("ceiling_height: 3\nlights: []\n", "lights", "at least one light"),

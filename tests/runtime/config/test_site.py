@@ -194,8 +194,8 @@ BREAKS = [
     ("count: 3, z: 2.7", "count: 3, z: high", "lamps[0].z", "finite number"),
     ("count: 3, z: 2.7", "count: 3, zz: 2.7", "lamps[0].zz", "unknown key"),
     # light_diameter
-    ("light_diameter: 0.16", "light_diameter: 0", "light_diameter", "(0, inf]"),
-    ("light_diameter: 0.16", "light_diameter: -0.1", "light_diameter", "(0, inf]"),
+    ("light_diameter: 0.16", "light_diameter: 0", "light_diameter", "(0, 1e+09]"),
+    ("light_diameter: 0.16", "light_diameter: -0.1", "light_diameter", "(0, 1e+09]"),
     ("light_diameter: 0.16", "light_diameter: [0.16]", "light_diameter", "finite number"),
     ("light_diameter: 0.16", "light_diameters: 0.16", "light_diameters", "unknown key"),
     # ignore
@@ -227,10 +227,10 @@ BREAKS = [
      "markers.dictionary", "expected an OpenCV aruco dictionary"),
     ("dictionary: DICT_APRILTAG_36h11", "dictionary: 36", "markers.dictionary", "a string"),
     ("  dictionary: DICT_APRILTAG_36h11\n", "", "markers.dictionary", "missing required key"),
-    ("size: 0.2", "size: 0", "markers.size", "(0, inf]"),
+    ("size: 0.2", "size: 0", "markers.size", "(0, 1e+09]"),
     ("  size: 0.2\n", "", "markers.size", "missing required key"),
-    ("yaw: 90.0, size: 0.1", "yaw: 90.0, size: 0", "markers.poses[1].size", "(0, inf]"),
-    ("yaw: 90.0, size: 0.1", "yaw: 90.0, size: -1", "markers.poses[1].size", "(0, inf]"),
+    ("yaw: 90.0, size: 0.1", "yaw: 90.0, size: 0", "markers.poses[1].size", "(0, 1e+09]"),
+    ("yaw: 90.0, size: 0.1", "yaw: 90.0, size: -1", "markers.poses[1].size", "(0, 1e+09]"),
     ("{id: 586, x", "{id: 587, x", "markers.poses[1].id", "[0, 586]"),
     ("{id: 586, x", "{id: -1, x", "markers.poses[1].id", "[0, 586]"),
     ("{id: 586, x", "{id: 7, x", "markers.poses[1].id", "duplicate marker id 7"),
@@ -269,7 +269,7 @@ def test_block_and_marker_breaks_the_issue_names(tmp_path):
          "blocks[0].corners: expected a convex quadrilateral, corners in order around it: "
          "the outline crosses itself (corners not in order around the block)"),
         ("markers: {dictionary: DICT_4X4_50, size: 0, poses: [{id: 1, x: 0, y: 0, yaw: 0}]}\n",
-         "markers.size: expected a number in (0, inf] m, found 0"),
+         "markers.size: expected a number in (0, 1e+09] m, found 0"),
         ("markers: {dictionary: DICT_9X9_5, size: 0.1, poses: [{id: 1, x: 0, y: 0, yaw: 0}]}\n",
          "markers.dictionary: expected an OpenCV aruco dictionary ("),
     ]

@@ -221,7 +221,8 @@ def test_rectangle_is_ambiguous_without_a_prior_and_resolved_with_one(rig):
     site = Site(3.0, blocks=(Block("A", RECT, "dark"),))
     x, y, yaw = 2.2, 0.1, math.radians(12.0)
     img = render_frame(rig, site, x, y, yaw, NOISY)
-    est = BlockEstimator(rig, site, {"heading_cue": False})
+    # the global path (the window path is test_block_track.py's)
+    est = BlockEstimator(rig, site, {"heading_cue": False, "window_search": False})
     none = est.estimate(img, 0)
     assert not none and none.reason == "ambiguous"
     # with the heading cue (default) too: the frame is ambiguous and carries both poses
@@ -410,10 +411,37 @@ def test_a_block_cut_by_the_frame_gives_no_fix_and_the_marker_beside_it_does(rig
     x, y, yaw = 1.153333, -0.06511, 0.19550080468740974
     grey = render_frame(rig, site, x, y, yaw, SimOptions(noise_sigma=2.0, blur_px=0.8),
                         np.random.default_rng(32))
-    est = BlockEstimator(rig, site, {"plane_odometry": False})
+    est = BlockEstimator(rig, site, {"plane_odometry": False, "window_search": False})
     out = est.estimate(grey, 0, PoseEstimate(0, "prior", x + 4e-4, y + 3e-4, yaw + 1e-3, 1.0))
     assert out and out.diagnostics["quads"] >= 2            # block A's quad was found
     assert out.diagnostics["source"] == "marker:0"
     assert out.diagnostics["rms_px"] < RMS_BAD_PX and out.quality > 0.8
     assert math.hypot(out.x_m - x, out.y_m - y) < 0.002
     assert abs(math.degrees(math.remainder(out.yaw_rad - yaw, 2 * math.pi))) < 0.05
+
+
+def test_the_quad_search_decimates_as_the_working_resolution_does():
+    """One ``decimate`` (issue 35: block/detect.py had its own): the quad search's frame
+    is :func:`~ceilkit.runtime.features.working.decimate`'s. On an even frame that is
+    cv2's area resize of the whole frame, what the block method's own did (no change);
+    on an odd one it averages whole 2x2 boxes (the last row and column dropped), so the
+    factor back to full resolution is exactly 2 on both axes, where the former resize
+    of 641x481 to 320x240 scaled u by 2.003 and v by 2.004 and mapped both by u's."""
+    import cv2
+
+    from ceilkit.runtime.estimators.block import detect
+    from ceilkit.runtime.features.working import decimate
+
+    even = np.random.default_rng(0).integers(0, 256, (480, 640), dtype=np.uint8)
+    np.testing.assert_array_equal(decimate(even, detect.DECIMATE),
+                                  cv2.resize(even, (320, 240), interpolation=cv2.INTER_AREA))
+    odd = np.full((481, 641), 200, np.uint8)
+    odd[101:241, 301:461] = 40     # a dark block: pixel edges at u 300.5, 460.5, v 100.5, 240.5
+    small = decimate(odd, detect.DECIMATE)
+    boxes = odd[:480, :640].reshape(240, 2, 320, 2).astype(float).mean(axis=(1, 3))
+    assert small.shape == (240, 320) and np.abs(small - boxes).max() <= 0.5
+    quads = detect.find_quads(odd, True, 0.5)
+    assert len(quads) == 1
+    got = np.sort(quads[0].corners_px, axis=0)
+    want = np.array([[300.5, 100.5], [300.5, 100.5], [460.5, 240.5], [460.5, 240.5]])
+    assert np.abs(got - want).max() <= 2.0     # approxPolyDP's coarse vertices

@@ -41,7 +41,7 @@ def prior(x, y, yaw):
 
 
 def tracked(rig, site, **kw):
-    return BlockEstimator(rig, site, {"track": True, "track_full_every": 0,
+    return BlockEstimator(rig, site, {"window_search": True, "window_full_every": 0,
                                       "plane_odometry": False, **kw})
 
 
@@ -51,7 +51,7 @@ def errors(est, x, y, yaw):
 
 
 def test_window_fix_agrees_with_the_global_path(rig, site):
-    glob = BlockEstimator(rig, site, {"plane_odometry": False})
+    glob = BlockEstimator(rig, site, {"plane_odometry": False, "window_search": False})
     est = tracked(rig, site)
     for k, (x, y, yaw) in enumerate(POSES):
         img = frame(rig, site, x, y, yaw, k)
@@ -110,7 +110,7 @@ def test_the_wrong_contrast_fails_the_window_check(rig):
 def test_a_global_search_runs_on_schedule(rig, site):
     x, y, yaw = POSES[1]
     img = frame(rig, site, x, y, yaw, 5)
-    est = tracked(rig, site, track_full_every=2)
+    est = tracked(rig, site, window_full_every=2)
     modes = [est.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] for _ in range(6)]
     assert modes == [WINDOW, WINDOW, "global", WINDOW, WINDOW, "global"]
     # no prior: the global path
@@ -119,9 +119,22 @@ def test_a_global_search_runs_on_schedule(rig, site):
 
 def test_bad_track_options_are_one_line_errors(rig, site):
     # each names the key that is wrong (not the other one)
-    for bad in ({"track_window_px": 0.0}, {"track_window_px": float("nan")},
-                {"track_full_every": -1}):
+    for bad in ({"window_px": 0.0}, {"window_px": float("nan")},
+                {"window_full_every": -1}):
         (key, value), = bad.items()
         with pytest.raises(ConfigError, match=f"options.{key}") as err:
-            BlockEstimator(rig, site, {"track": True, **bad})
+            BlockEstimator(rig, site, {"window_search": True, **bad})
         assert "\n" not in str(err.value) and repr(value) in str(err.value)
+
+
+def test_the_window_path_is_off_by_default(rig, site):
+    """Issue 38 left the block method's window path off by default (docs/methods/
+    block.md): with a prior the global path runs unless ``window_search=true`` (or the
+    deprecated ``track=true``)."""
+    x, y, yaw = POSES[1]
+    img = frame(rig, site, x, y, yaw, 5)
+    est = BlockEstimator(rig, site, {"plane_odometry": False})
+    assert not est.options.window_search and est.options.window_full_every == 30
+    assert est.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == "global"
+    on = BlockEstimator(rig, site, {"window_search": True, "plane_odometry": False})
+    assert on.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == WINDOW

@@ -33,7 +33,7 @@ def prior(y, yaw):
 @pytest.fixture
 def tracked(corridor_rig, corridor_site):
     return CorridorEstimator(corridor_rig, corridor_site,
-                             {"track": True, "track_full_every": 0})
+                             {"window_search": True, "window_full_every": 0})
 
 
 def test_edge_searches_agree_with_the_global_path(corridor_rig, corridor_site, tracked):
@@ -116,9 +116,11 @@ def test_schedule_and_default_off(corridor_rig, corridor_site):
     x, y, yaw = POSES[2]
     img = frame(corridor_rig, corridor_site, x, y, yaw, 9)
     est = CorridorEstimator(corridor_rig, corridor_site,
-                            {**HEADING, "track": True, "track_full_every": 2})
+                            {**HEADING, "window_search": True, "window_full_every": 2})
     how = [est.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] for _ in range(6)]
     assert [h == "window" for h in how] == [True, True, False, True, True, False]
+    # off by default (issue 38: test_ambiguity.py's flipped prior on an asymmetric
+    # corridor, which the window search would confirm)
     plain = CorridorEstimator(corridor_rig, corridor_site, HEADING)
-    assert plain.lines_track is None
+    assert plain.lines_track is None and not plain.options.window_search
     assert plain.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] != "window"

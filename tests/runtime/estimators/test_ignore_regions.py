@@ -160,7 +160,7 @@ def test_corridor_lines_inside_an_ignore_region_are_not_used(track):
     site = Site.load(CONFIGS / "corridor" / "site.yaml")
     x, y, yaw = 6.0, 0.05, math.radians(3.0)
     img = render_frame(rig, site, x, y, yaw, NOISY, np.random.default_rng(3))
-    opts = {"track": track}
+    opts = {"window_search": track}
     prior = PoseEstimate(0, "prior", x, y, yaw, 1.0)
     plain = make_estimator("corridor", rig, site, opts).estimate(img, 0, prior)
     assert plain and abs(plain.y_m - y) < 0.002

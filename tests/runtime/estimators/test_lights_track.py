@@ -4,13 +4,16 @@ check and fallback to the global path, and its schedule."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import lights_track_reference as reference
 import numpy as np
 import pytest
 
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators import base
 from ceilkit.runtime.estimators.base import PoseEstimate
-from ceilkit.runtime.estimators.lights import LightsEstimator
+from ceilkit.runtime.estimators.lights import LightsEstimator, LightsOptions
 from ceilkit.runtime.estimators.lights.track import WindowTracker
 from ceilkit.runtime.sim.render import SimOptions, render_frame
 
@@ -33,7 +36,8 @@ def errors(est, x, y, yaw):
 
 @pytest.fixture
 def tracked(lights_rig, lights_site):
-    return LightsEstimator(lights_rig, lights_site, {"track": True, "track_full_every": 0})
+    return LightsEstimator(lights_rig, lights_site,
+                           {"window_search": True, "window_full_every": 0})
 
 
 def test_window_fix_agrees_with_global_path(lights_rig, lights_site, tracked):
@@ -68,7 +72,7 @@ def test_far_prior_falls_back_to_the_global_path(lights_rig, lights_site, tracke
 def test_missing_lights_fail_the_window_check(lights_rig, lights_site):
     x, y, yaw = POSES[0]
     img = frame(lights_rig, lights_site, x, y, yaw, 4)
-    est = LightsEstimator(lights_rig, lights_site, {"track": True})
+    est = LightsEstimator(lights_rig, lights_site, {"window_search": True})
     w: WindowTracker = est.windows
     assert w.observe(img, x, y, yaw) is not None
     # the lights switched off (the image flattened): the windows find nothing
@@ -83,7 +87,8 @@ def test_a_light_cut_by_its_window_border_is_not_found(lights_rig, lights_site):
     # border (cut off, or a neighbour's) does not count, one wholly inside does
     x, y, yaw = POSES[0]
     img = frame(lights_rig, lights_site, x, y, yaw, 5)
-    w: WindowTracker = LightsEstimator(lights_rig, lights_site, {"track": True}).windows
+    w: WindowTracker = LightsEstimator(lights_rig, lights_site,
+                                       {"window_search": True}).windows
     idx, px, m, corner, half = w._predict(x, y, yaw)
     _, good, _ = w._measure(img, corner, half, m)
     assert good.all()
@@ -99,7 +104,7 @@ def test_prediction_table_agrees_with_projection(lights_rig, lights_site):
     table reports."""
     from ceilkit.runtime.estimators.lights.rays import project_lights
 
-    est = LightsEstimator(lights_rig, lights_site, {"track": True})
+    est = LightsEstimator(lights_rig, lights_site, {"window_search": True})
     w: WindowTracker = est.windows
     rng = np.random.default_rng(7)
     worst, n = 0.0, 0
@@ -118,30 +123,56 @@ def test_prediction_table_agrees_with_projection(lights_rig, lights_site):
 
 
 def test_schedule_runs_a_global_search(lights_rig, lights_site):
-    est = LightsEstimator(lights_rig, lights_site, {"track": True, "track_full_every": 2})
+    est = LightsEstimator(lights_rig, lights_site,
+                          {"window_search": True, "window_full_every": 2})
     x, y, yaw = POSES[2]
     img = frame(lights_rig, lights_site, x, y, yaw, 5)
     modes = [est.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] for _ in range(6)]
-    assert modes == ["window", "window", "tracked", "window", "window", "tracked"]
+    assert modes == ["window", "window", "about_prior", "window", "window", "about_prior"]
 
 
-def test_off_by_default_and_without_prior(lights_rig, lights_site, tracked):
+def test_on_by_default_and_not_without_prior(lights_rig, lights_site, tracked):
     x, y, yaw = POSES[3]
     img = frame(lights_rig, lights_site, x, y, yaw, 6)
-    plain = LightsEstimator(lights_rig, lights_site)
+    default = LightsEstimator(lights_rig, lights_site)   # issue 38: the window search on
+    assert default.windows is not None and default.options.window_full_every == 30
+    assert default.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == "window"
+    plain = LightsEstimator(lights_rig, lights_site, {"window_search": False})
     assert plain.windows is None
-    assert plain.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == "tracked"
+    assert plain.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == "about_prior"
     assert tracked.estimate(img, 0).diagnostics["mode"] == "global"
     # a prior without x (a corridor's) is not a full prior: the global path runs
     out = tracked.estimate(img, 0, PoseEstimate(0, "track", None, y, yaw, 0.0))
     assert out.diagnostics["mode"] != "window"
 
 
-def test_track_options_from_cli_strings(lights_rig, lights_site):
+def test_window_options_from_cli_strings(lights_rig, lights_site):
     est = LightsEstimator(lights_rig, lights_site,
-                          {"track": "true", "track_window_px": "6", "track_full_every": "10"})
-    assert est.options.track and est.options.track_window_px == 6.0
+                          {"window_search": "true", "window_px": "6", "window_full_every": "10"})
+    assert est.options.window_search and est.options.window_px == 6.0
+    assert est.options.window_full_every == 10
     assert est.windows is not None and est.windows.window_px == 6.0
+
+
+def test_the_old_track_names_are_deprecated_aliases(lights_rig, lights_site, monkeypatch):
+    """``track``, ``track_window_px``, ``track_full_every`` (issue 35: "track" also names
+    the tracker) are read as the window-search options, each noted once per run with
+    its new key; an option given by both names is an error naming the new one."""
+    monkeypatch.setattr(base, "_NOTED", set())
+    old = {"track": "false", "track_window_px": "6", "track_full_every": "10"}
+    with pytest.warns(FutureWarning) as notes:
+        est = LightsEstimator(lights_rig, lights_site, old)
+    assert sorted(str(n.message) for n in notes) == [
+        "option 'track' is deprecated: use 'window_search'",
+        "option 'track_full_every' is deprecated: use 'window_full_every'",
+        "option 'track_window_px' is deprecated: use 'window_px'"]
+    assert est.options == LightsOptions.from_mapping(
+        {"window_search": "false", "window_px": "6", "window_full_every": "10"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")       # once per run: not noted again
+        assert LightsEstimator(lights_rig, lights_site, old).options == est.options
+    with pytest.raises(ConfigError, match="options.window_search"):
+        LightsOptions.from_mapping({"track": "true", "window_search": "false"})
 
 
 def test_compiled_window_fix_equals_the_array_reading(lights_rig, lights_site):
@@ -149,7 +180,7 @@ def test_compiled_window_fix_equals_the_array_reading(lights_rig, lights_site):
     array functions it stands for (tests/lights_track_reference.py)
     and gives their numbers: priors near and far, lights cut by the frame's border,
     a window moved off its light."""
-    est = LightsEstimator(lights_rig, lights_site, {"track": True})
+    est = LightsEstimator(lights_rig, lights_site, {"window_search": True})
     w: WindowTracker = est.windows
     rng = np.random.default_rng(11)
     fixes = refused = 0

@@ -194,12 +194,12 @@ def test_a_drive_with_the_tracker_is_corrected_and_covered() -> None:
 
 def test_lights_window_tracker_is_not_used_with_a_readout_time() -> None:
     """The window tracker does not model the rows: with readout_ms the global path (which
-    does) estimates the frame, so the skew is taken back with track=true too."""
+    does) estimates the frame, so the skew is taken back with window_search=true too."""
     rig, site, img, (x, y, yaw) = _frame("lights")
     prior = PoseEstimate(0, "track", x, y, yaw, 0.0, velocity=VELOCITY["lights"])
     modes = {}
     for ro in (0.0, READOUT_MS):
-        e = make_estimator("lights", rig, site, {"readout_ms": ro, "track": True}
+        e = make_estimator("lights", rig, site, {"readout_ms": ro, "window_search": True}
                            ).estimate(img, 0, prior)
         assert isinstance(e, PoseEstimate), e
         modes[ro] = (e.diagnostics["mode"], math.hypot(e.x_m - x, e.y_m - y))
@@ -208,15 +208,16 @@ def test_lights_window_tracker_is_not_used_with_a_readout_time() -> None:
 
 
 def test_corridor_edge_searches_take_the_skew_back_too() -> None:
-    """The corridor's tracked path (track=true) times each located edge point by its row:
+    """The corridor's window path (window_search=true) times each located edge point by its row:
     on the skewed render it is a window fix as close to the stamp's pose as the global
     path with the readout time, and the global shutter's bias is gone."""
     rig, site, img, (x, y, yaw) = _frame("corridor")
     prior = PoseEstimate(0, "track", None, y, yaw, 0.0, velocity=VELOCITY["corridor"])
     out = {}
     for ro in (0.0, READOUT_MS):
-        e = make_estimator("corridor", rig, site, {**HEADING, "readout_ms": ro, "track": True,
-                                                   "track_full_every": 0}).estimate(img, 0, prior)
+        e = make_estimator("corridor", rig, site,
+                           {**HEADING, "readout_ms": ro, "window_search": True,
+                            "window_full_every": 0}).estimate(img, 0, prior)
         assert isinstance(e, PoseEstimate) and e.diagnostics["hypothesis"] == "window", e
         out[ro] = (abs(e.y_m - y), abs(math.degrees(wrap_pi(e.yaw_rad - yaw))))
     assert out[0.0][0] > 3e-3 and out[0.0][1] > 0.04

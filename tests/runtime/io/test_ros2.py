@@ -127,9 +127,13 @@ def test_replay_publishes_one_pose_per_estimated_frame(tmp_path, ros_env):
     est = [r for r in rows(res.poses_path) if r["y"] != ""]
     assert len(est) >= 5
     assert len(got["poses"]) == len(est)
+    # the fixture's stamps start at 0 (a simulator's): ROS sees them from the wall clock
+    # of the replay's first frame on, every spacing kept to the nanosecond
+    offset = got["poses"][0]["t"] - int(est[0]["t_ns"])
+    assert offset >= msgs.WALL_CLOCK_MIN_NS
     for msg, row in zip(got["poses"], est, strict=True):
         assert msg["frame"] == "map"
-        assert msg["t"] == int(row["t_ns"])                  # capture time, exactly
+        assert msg["t"] == int(row["t_ns"]) + offset         # capture time, shifted
         assert msg["y"] == pytest.approx(float(row["y"]), abs=1e-6)
         cov = msg["cov"]
         assert min(cov[0], cov[7], cov[14], cov[21], cov[28], cov[35]) > 0
@@ -141,7 +145,7 @@ def test_replay_publishes_one_pose_per_estimated_frame(tmp_path, ros_env):
     assert got["diag"] and all(s[0][1] == msgs.DIAG_NAME for s in got["diag"])
     for o in got["odom"]:
         assert o["frame"] == "map" and o["child"] == "base_link"
-        assert o["t"] in {int(r["t_ns"]) for r in est}
+        assert o["t"] - offset in {int(r["t_ns"]) for r in est}
 
 
 def test_initialpose_from_another_process_changes_the_track(tmp_path, ros_env):

@@ -43,7 +43,7 @@ def scene():
 def _outlines(scene):
     """``(frame, target, px)`` of every target fully in view, from the truth."""
     rig, site, geo, poses, frames = scene
-    est = BlockEstimator(rig, site, {"track": True})
+    est = BlockEstimator(rig, site, {"window_search": True})
     for pose, grey in zip(poses, frames, strict=True):
         for tgt, px in est.windows.predicted(pose):
             yield grey, tgt, px
@@ -178,9 +178,9 @@ def test_predicted_chords_equal_the_array_reading(scene):
 
 def test_predicted_outlines_equal_the_array_reading(scene):
     rig, site, geo, poses, _ = scene
-    est = BlockEstimator(rig, site, {"track": True})
+    est = BlockEstimator(rig, site, {"window_search": True})
     w = est.windows
-    margin = 2.0 + est.options.track_window_px + 1.0
+    margin = 2.0 + est.options.window_px + 1.0
     rng = np.random.default_rng(4)
     seen = 0
     for pose in poses:
@@ -196,10 +196,10 @@ def test_predicted_outlines_equal_the_array_reading(scene):
 
 def test_the_window_check_refuses_the_wrong_polarity_and_a_far_outline(scene):
     """The compiled window fix passes the truth's outline and refuses: a dark target
-    read as bright, an outline displaced beyond track_window_px, a frame with no
+    read as bright, an outline displaced beyond window_px, a frame with no
     block where the prior puts one."""
     rig, site, geo, poses, frames = scene
-    est = BlockEstimator(rig, site, {"track": True})
+    est = BlockEstimator(rig, site, {"window_search": True})
     w = est.windows
     fixed = 0
     for pose, grey in zip(poses, frames, strict=True):

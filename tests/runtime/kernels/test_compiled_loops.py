@@ -413,7 +413,7 @@ def test_warm_up_makes_every_loop_before_the_first_frame():
                  if method == "block" else (3.0, 0.0))
         # (the packaged corridor is symmetric: its heading is stated)
         stated = {"assume_heading_deg": 0.0} if method == "corridor" else {}
-        for opts in ({"track": True, **stated}, stated or None):
+        for opts in ({"window_search": True, **stated}, {"window_search": False, **stated}):
             est, tracker = make_localizer(method, rig, site, opts)
             for k in range(4):
                 img = render_frame(rig, site, start[0] + 0.02 * k, start[1], 0.01 * k,

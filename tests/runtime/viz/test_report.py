@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import html
 import math
 import re
 import shutil
@@ -70,7 +71,9 @@ def test_no_views_no_change(tmp_path):
 def test_truth_tum_round_trip(tmp_path):
     rec = Recording(FIXTURES / "corridor_rec")
     path = write_truth_tum(rec.truth, tmp_path / "truth.tum")
-    rows = [line.split() for line in path.read_text().splitlines()]
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("# t_s x y z qx qy qz qw; written by ceilkit ")
+    rows = [line.split() for line in lines[1:]]
     assert len(rows) == rec.truth.t_ns.size
     for row, t, x, y, a in zip(rows, rec.truth.t_ns, rec.truth.x_m, rec.truth.y_m,
                                rec.truth.yaw_rad, strict=True):
@@ -115,3 +118,50 @@ def test_the_report_says_which_frames_were_ambiguous(tmp_path):
                  start_pose=(0.0, 0.244558, math.radians(8.262851)))
     text = res.report.read_text()
     assert "0 frames not singled out" in text and "8 poses chosen among twins" in text
+
+
+def test_the_report_explains_itself_in_mm_with_rmse_and_real_captions(tmp_path):
+    """Positions in mm everywhere; mean, RMSE, median, p95 and max per quantity, equal
+    to the errors of poses.csv against truth.csv; each worst frame captioned with its
+    own errors; a legend for every overlay colour; latency with its unit."""
+    from ceilkit.runtime.io.recording import load_poses
+    from ceilkit.runtime.viz.overlay import legend_rows
+
+    res = replay(FIXTURES / "lights_rec", tmp_path / "out", report=True)
+    text = res.report.read_text()
+    assert " cm" not in text and "[cm]" not in text
+    truth, got = Recording(FIXTURES / "lights_rec").truth, load_poses(res.poses_path)
+    err = []
+    for t, x, y in zip(got.t_ns, got.x_m, got.y_m, strict=True):
+        tx, ty, _ = truth.lookup(int(t))
+        err.append(1e3 * math.hypot(x - tx, y - ty))
+    e = np.array(err)
+    row = re.search(r"<tr><td>position \[mm\]</td><td>(\d+)</td>((?:<td>[\d.]+</td>){5})",
+                    text)
+    values = [float(v) for v in re.findall(r"<td>([\d.]+)</td>", row.group(2))]
+    assert int(row.group(1)) == e.size
+    np.testing.assert_allclose(values, [e.mean(), np.sqrt(np.mean(e * e)), np.median(e),
+                                        np.percentile(e, 95), e.max()], atol=0.006)
+    captions = re.findall(r"<h3>frame (\d+): position error ([\d.]+) mm \(x ([-+\d.]+) mm, "
+                          r"y ([-+\d.]+) mm\), yaw ([-+\d.]+) deg</h3>", text)
+    assert captions and float(captions[0][1]) == pytest.approx(e.max(), abs=0.006)
+    for k, pos, dx, dy, _ in captions:
+        assert float(pos) == pytest.approx(err[int(k)], abs=0.006)
+        assert float(pos) == pytest.approx(math.hypot(float(dx), float(dy)), abs=0.01)
+    assert "<h2>overlay colours</h2>" in text
+    for _, colour, meaning in legend_rows():
+        assert f"color:{colour};" in text and html.escape(meaning) in text
+
+
+def test_a_corridor_replay_says_why_poses_tum_is_empty(tmp_path, caplog):
+    res = replay(FIXTURES / "corridor_rec", tmp_path / "out", method="corridor", tum=True,
+                 report=True, start_pose=(0.0, 0.244558, math.radians(8.262851)))
+    tum = [ln for ln in (tmp_path / "out" / "poses.tum").read_text().splitlines()
+           if not ln.startswith("#")]
+    assert tum == [] and res.telemetry.frames == 8
+    said = [r.getMessage() for r in caplog.records if "poses.tum" in r.getMessage()]
+    assert len(said) == 1 and "8 poses without x" in said[0] and "\n" not in said[0]
+    text = res.report.read_text()
+    assert "note: 8 poses have no x" in text and "lateral error" in text
+    assert "<tr><td>lateral (y) [mm]</td><td>8</td>" in text
+    assert "<tr><td>x [mm]</td>" not in text

@@ -170,3 +170,55 @@ def test_live_view_of_a_sim_run_in_chromium(tmp_path):
         stop.set()
         run.join(timeout=30)
     assert result["r"].telemetry.frames > 0
+
+
+def _wait_for(browser: Browser, expression: str, timeout_s: float = 20.0) -> dict:
+    """The page's state (as :func:`_page_state` and more) once ``expression`` holds."""
+    probe = ("JSON.stringify({ok: !!(" + expression + "),"
+             " display: getComputedStyle(document.getElementById('frame')).display,"
+             " waiting: getComputedStyle(document.getElementById('waiting')).display,"
+             " pose: document.getElementById('pose').textContent,"
+             " time: document.getElementById('time').textContent,"
+             " quality: document.getElementById('quality').textContent,"
+             " legend: document.querySelectorAll('table.legend tr').length})")
+    deadline = time.monotonic() + timeout_s
+    state = {}
+    while time.monotonic() < deadline:
+        state = json.loads(browser.evaluate(probe) or "{}")
+        if state.get("ok"):
+            return state
+        time.sleep(0.1)
+    raise AssertionError(f"the page never showed {expression}: {state}")
+
+
+@pytest.mark.skipif(shutil.which(CHROMIUM) is None,
+                    reason="Debian's chromium is not installed (.ci/run installs it)")
+def test_the_page_before_the_first_frame_and_after_a_failure(tmp_path):
+    """Nothing broken before the first frame (no image shown, a waiting line); a pose's
+    time in seconds, not nanoseconds; a failure with no quality beside it; the
+    overlays' legend on the page."""
+    from ceilkit.runtime.viz.overlay import legend_rows
+
+    rig, site = _lights()
+    image = np.full((480, 640), 60, np.uint8)
+    t0 = 1_780_000_000_123_456_789                      # a wall-clock stamp (2026)
+    with LiveView(rig, site, port=0, period_s=60.0) as view, \
+            Browser(tmp_path / "chromium") as browser:
+        browser.open(f"http://127.0.0.1:{view.port}/")
+        state = _wait_for(browser, "document.readyState === 'complete'")
+        assert state["display"] == "none" and state["waiting"] != "none"
+        assert state["legend"] == len(legend_rows())
+        pose = PoseEstimate(t0, "lights", 1.0, 2.0, 0.0, 0.82)
+        view.publish(image, pose, pose)
+        state = _wait_for(browser, "document.getElementById('quality').textContent === '0.82'")
+        state = _wait_for(browser, "getComputedStyle(document.getElementById('frame'))"
+                                   ".display === 'block'")
+        assert state["waiting"] == "none"
+        assert state["time"].startswith("0.000 s") and "2026-05-28" in state["time"]
+        assert str(t0) not in state["time"] + state["pose"]
+        failed = Failure(t0 + 500_000_000, "lights", "no_lights")
+        view.publish(image, failed, failed)
+        state = _wait_for(browser, "document.getElementById('pose').textContent"
+                                   ".includes('FAILED')")
+        assert state["quality"] == "-" and "no_lights" in state["pose"]
+        assert state["time"].startswith("0.500 s")

@@ -173,6 +173,25 @@ def test_protocol_stamps_capture_time_in_utc_and_reports_validity():
     assert proto.pose(Failure(0, "lights", "no_lights"))[1] is False
 
 
+def test_stamps_of_another_clock_keep_their_spacing():
+    """Frames of a replay or the simulator (stamps not of the capture clock) are stamped
+    as far apart as their frames, whenever the fixes are sent: 33 ms frames sent 20 ms
+    apart (an unpaced run) are 33 ms apart in RMC (centiseconds, truncated)."""
+    now = [UTC0_NS]
+    proto = make_protocol("nmea-gps", plane=PLANE, utc_ns=lambda: now[0],
+                          capture_clock_ns=lambda: 10**18)
+    stamps = []
+    for k in range(4):
+        now[0] = UTC0_NS + k * 20_000_000
+        rmc = parse_all(proto.pose(pose(t_ns=k * 33_333_333))[0])[0]
+        stamps.append(rmc.timestamp.isoformat())
+    assert stamps == ["22:13:20+00:00", "22:13:20.030000+00:00", "22:13:20.060000+00:00",
+                      "22:13:20.090000+00:00"]
+    now[0] += 60 * 10**9      # a minute's pause: anchored again, at now
+    rmc = parse_all(proto.pose(pose(t_ns=4 * 33_333_333))[0])[0]
+    assert rmc.timestamp.isoformat() == "22:14:20.060000+00:00"
+
+
 def test_link_sends_invalid_groups_once_a_second_without_a_pose():
     clock = [0]
     link = MemoryLink("nmea-gps", plane=PLANE, clock_ns=lambda: clock[0],
@@ -293,20 +312,20 @@ def test_gpsd_reads_the_stream_through_a_pty_and_maps_back_to_the_poses():
     poses = {}
     for k in range(24):
         if k == 10:
-            est = Failure(t_ns=k, method="lights", reason="no_lights")
+            est = Failure(t_ns=k * STEP_NS, method="lights", reason="no_lights")
         elif k == 11:
-            est = pose(t_ns=k, method="corridor", x_m=None, y_m=0.2, yaw_rad=1.0)
+            est = pose(t_ns=k * STEP_NS, method="corridor", x_m=None, y_m=0.2, yaw_rad=1.0)
         else:
             a = rng.normal(size=(2, 2)) * 0.02
             cov = np.eye(3) * 1e-5
             cov[:2, :2] = a @ a.T + np.eye(2) * 1e-6
-            est = pose(t_ns=k, x_m=float(rng.uniform(-150, 150)),
+            est = pose(t_ns=k * STEP_NS, x_m=float(rng.uniform(-150, 150)),
                        y_m=float(rng.uniform(-150, 150)),
                        yaw_rad=float(rng.uniform(-math.pi, math.pi)), cov=cov)
         poses[UTC0_NS + k * STEP_NS] = est
     stamps = iter(poses)
     link = MemoryLink("nmea-gps", plane=PLANE, utc_ns=lambda: next(stamps),
-                      capture_clock_ns=lambda: 10**18)  # stamps are "now"
+                      capture_clock_ns=lambda: 10**18)  # stamps of another clock
     link.periodic_enabled = False  # one group per pose: every stamp is a pose's
     with _gpsd_on_pty() as (master, client), link:
         _read_until(client, lambda d: b'"class":"WATCH"' in d, 5.0)

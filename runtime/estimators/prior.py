@@ -1,0 +1,90 @@
+"""When a prior may choose among the poses a frame supports: the one rule (issue 36).
+
+A frame of a repeating ceiling supports several poses alike (its ``hypotheses``). A
+prior (the track's prediction, a ``--start-pose``, a stated heading) may choose one of
+them only when it is the **only** one the prior allows: inside the prior's
+``PRIOR_P`` region, with the prior's covariance and the pose's own added. None
+inside: the frame contradicts the prior (a kidnap, a wrong start pose), and the
+prior chooses nothing. Several inside: the prior is too vague to tell them. In both
+cases the frame stays ``ambiguous``; a prior never picks "the nearest" twin.
+
+A prior without a covariance (a start pose, the constant-velocity tracker's first
+frames) is given :data:`DEFAULT_PRIOR_SIGMA`. A coordinate the prior does not give
+(``None``, or an infinite variance: x of a corridor track) is not compared.
+
+Example::
+
+    k = prior_choice(prior, [(h.x_m, h.y_m, h.yaw_rad, h.cov) for h in hyps])
+    if k is None:
+        ...   # ambiguous: the prior does not single one out
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.geometry.ekf import chi2_quantile
+from ceilkit.runtime.geometry.rotations import wrap_pi
+
+PRIOR_P = 0.999
+"""The probability of the region a prior allows (chi-square quantile of its
+Mahalanobis distance)."""
+DEFAULT_PRIOR_SIGMA = (0.1, math.radians(5.0))
+"""1σ (m, rad) of a prior that carries no covariance: a start pose's default."""
+
+Pose = tuple[float | None, float | None, float, "np.ndarray | None"]
+
+
+def prior_cov(prior: PoseEstimate) -> np.ndarray:
+    """The prior's ``(3, 3)`` covariance, :data:`DEFAULT_PRIOR_SIGMA` where it has none."""
+    if prior.cov is not None:
+        c = np.array(prior.cov, float)
+        if c.shape == (3, 3):
+            return c
+    sp, sr = DEFAULT_PRIOR_SIGMA
+    return np.diag([sp * sp, sp * sp, sr * sr])
+
+
+def prior_distance(prior: PoseEstimate, pose: Pose) -> tuple[float, int]:
+    """``(d2, dof)``: the squared Mahalanobis distance of ``pose`` ``(x, y, yaw, cov)``
+    from ``prior`` over the coordinates both give (yaw always), with both covariances."""
+    x, y, yaw, cov = pose
+    P = prior_cov(prior)
+    rows, e = [], []
+    for i, (a, b) in enumerate(((x, prior.x_m), (y, prior.y_m))):
+        if a is not None and b is not None and math.isfinite(P[i, i]):
+            rows.append(i)
+            e.append(float(a) - float(b))
+    rows.append(2)
+    e.append(wrap_pi(float(yaw) - float(prior.yaw_rad)))
+    S = P[np.ix_(rows, rows)]
+    if cov is not None:
+        C = np.asarray(cov, float)[np.ix_(rows, rows)]
+        if np.all(np.isfinite(C)):
+            S = S + C
+    v = np.array(e)
+    try:
+        return float(v @ np.linalg.solve(S, v)), len(rows)
+    except np.linalg.LinAlgError:
+        return math.inf, len(rows)
+
+
+def allows(prior: PoseEstimate, pose: Pose, p: float = PRIOR_P) -> bool:
+    """Whether ``pose`` lies inside the prior's ``p`` region."""
+    d2, dof = prior_distance(prior, pose)
+    return d2 <= chi2_quantile(p, dof)
+
+
+def prior_choice(prior: PoseEstimate | None, poses: Sequence[Pose],
+                 p: float = PRIOR_P) -> int | None:
+    """The index of the only one of ``poses`` the prior allows (:func:`allows`), or
+    None: no prior, none allowed (the frame contradicts it) or several (it cannot
+    tell them apart)."""
+    if prior is None:
+        return None
+    inside = [k for k, q in enumerate(poses) if allows(prior, q, p)]
+    return inside[0] if len(inside) == 1 else None

@@ -1,0 +1,178 @@
+"""Nothing a user made is overwritten (issue 40, item 1): every output kind refuses an
+existing file in one line naming it and ``--force``; no output may be an input, lie
+inside an input recording, or be another output of the run; two runs cannot write one
+folder at once (the lock). Table-driven: one row per output kind, one per overlap."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from ceilkit.cli.ceilcal import app as ceilcal
+from ceilkit.cli.ceilrun import app as ceilrun
+from ceilkit.runtime.errors import OutputError
+from ceilkit.runtime.io.outputs import LOCK_NAME, FolderLock
+from ceilkit.runtime.replay import replay
+from helpers import CONFIGS, FIXTURES
+
+run = CliRunner().invoke
+REC = FIXTURES / "corridor_rec"
+MARK = b"what the user made\n"
+
+
+@pytest.fixture
+def rec(tmp_path):
+    """A copy of the 8-frame corridor recording."""
+    return shutil.copytree(REC, tmp_path / "rec")
+
+
+def _refused(res, tool: str, *words: str) -> str:
+    """The run failed with exit 1 and exactly one stderr line holding ``words``."""
+    assert res.exit_code == 1, (res.output, res.exception)
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{tool}: error: "), res.stderr
+    assert all(w in lines[0] for w in words), lines[0]
+    return lines[0]
+
+
+# -- one row per output kind: (tool, file made by the user, arguments) ---------------------
+KINDS = [
+    ("ceilrun", "o/poses.csv", ["replay", "{rec}", "--out", "{t}/o", "--method", "corridor"]),
+    ("ceilrun", "o/poses.tum", ["replay", "{rec}", "--out", "{t}/o", "--tum"]),
+    ("ceilrun", "o/truth.tum", ["replay", "{rec}", "--out", "{t}/o", "--tum"]),
+    ("ceilrun", "o/report.html", ["replay", "{rec}", "--out", "{t}/o", "--report"]),
+    ("ceilrun", "ov/000003.png", ["replay", "{rec}", "--out", "{t}/o", "--overlays",
+                                  "{t}/ov"]),
+    ("ceilrun", "link.nmea", ["replay", "{rec}", "--out", "{t}/o", "--serial",
+                              "{t}/link.nmea"]),
+    ("ceilrun", "o/poses.csv", ["--device", "sim:corridor", "--frames", "2", "--out",
+                                "{t}/o"]),
+    ("ceilrun", "link.nmea", ["--device", "sim:corridor", "--frames", "2", "--serial",
+                              "{t}/link.nmea"]),
+    ("ceilcal", "cam.yaml", ["intrinsics", "{t}", "--board", "chess:9x6", "--square",
+                             "0.025", "--out", "{t}/cam.yaml"]),
+    ("ceilcal", "cam.yaml", ["intrinsics", "--ceiling", "{rec}", "--out", "{t}/cam.yaml"]),
+    ("ceilcal", "rig.yaml", ["mount", "{t}/p.yaml", "--site", "{rec}/site.yaml",
+                             "--camera", "{t}/c.yaml", "--out", "{t}/rig.yaml"]),
+    ("ceilcal", "rig.urdf.xml", ["mount", "{t}/p.yaml", "--site", "{rec}/site.yaml",
+                                 "--camera", "{t}/c.yaml", "--out", "{t}/rig.yaml"]),
+    ("ceilcal", "site.yaml", ["lightmap", "{rec}", "--out", "{t}/site.yaml"]),
+    ("ceilcal", "capture.yaml", ["exposure", "--device", "sim:lights", "--out",
+                                 "{t}/capture.yaml"]),
+]
+
+
+@pytest.mark.parametrize(("tool", "made", "args"), KINDS,
+                         ids=[f"{t}-{' '.join(a[:1])}-{m}" for t, m, a in KINDS])
+def test_an_existing_output_is_refused_naming_it_and_force(tmp_path, rec, tool, made, args):
+    target = tmp_path / made
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_bytes(MARK)
+    argv = [a.format(rec=rec, t=tmp_path) for a in args]
+    line = _refused(run(ceilrun if tool == "ceilrun" else ceilcal, argv), tool,
+                    str(target), "already there", "--force")
+    assert "force=True" not in line
+    assert target.read_bytes() == MARK
+
+
+# -- one row per overlap of an output with an input or another output --------------------
+OVERLAPS = [
+    (["--serial", "{rec}/frames/000000.png"], "--serial", "lies inside an input",
+     "frames/000000.png"),
+    (["--overlays", "{rec}/frames"], "--overlays", "is an input", "frames/000000.png"),
+    (["--overlays", "{rec}/frames/sub"], "--overlays", "lies inside an input",
+     "frames/000000.png"),
+    (["--serial", "{t}/o/poses.csv"], "--serial", "already an output", None),
+    (["--serial", "{rec}/truth.csv"], "--serial", "is an input", "truth.csv"),
+    (["--odometry", "{t}/odo.csv", "--serial", "{t}/odo.csv"], "--serial", "is an input",
+     "../odo.csv"),
+]
+
+
+@pytest.mark.parametrize(("extra", "flag", "what", "kept"), OVERLAPS,
+                         ids=[" ".join(o[0][:2]) for o in OVERLAPS])
+def test_an_output_over_an_input_is_one_refusing_line(tmp_path, rec, extra, flag, what,
+                                                      kept):
+    (tmp_path / "odo.csv").write_text("t_ns,dx,dy,dyaw_deg\n")
+    before = (rec / kept).read_bytes() if kept else None
+    argv = ["replay", str(rec), "--out", str(tmp_path / "o")]
+    argv += [a.format(rec=rec, t=tmp_path) for a in extra]
+    _refused(run(ceilrun, argv), "ceilrun", flag, what)
+    if kept:
+        assert (rec / kept).read_bytes() == before
+    assert not (tmp_path / "o").exists()  # nothing was written
+
+
+def test_calibration_outputs_may_not_be_inputs(tmp_path, rec):
+    site = (rec / "site.yaml").read_bytes()
+    _refused(run(ceilcal, ["lightmap", str(rec), "--out", str(rec / "site.yaml"),
+                           "--force"]), "ceilcal", "--out", "is an input")
+    assert (rec / "site.yaml").read_bytes() == site
+    rig = rec / "rig.yaml"
+    before = rig.read_bytes()
+    _refused(run(ceilcal, ["mount", str(tmp_path / "p.yaml"), "--site",
+                           str(rec / "site.yaml"), "--rig", str(rig), "--out", str(rig),
+                           "--force"]), "ceilcal", "--out", "is an input")
+    assert rig.read_bytes() == before
+
+
+# -- the lock -------------------------------------------------------------------------------
+def test_a_folder_being_written_is_refused_and_released(tmp_path, rec):
+    out = tmp_path / "o"
+    with FolderLock(out):  # another run (another open of the lock) holds it
+        line = _refused(run(ceilrun, ["replay", str(rec), "--out", str(out)]), "ceilrun",
+                        str(out), "another run", "is writing here", LOCK_NAME)
+        assert "nothing was written" in line and not (out / "poses.csv").exists()
+        _refused(run(ceilrun, ["--device", "sim:corridor", "--frames", "2", "--record",
+                               str(out)]), "ceilrun", "another run")
+        assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]
+    assert not out.exists()  # the lock made the folder and took it away again
+    res = replay(rec, out, method="corridor", track=False)
+    assert res.telemetry.frames == 8
+    assert len((out / "poses.csv").read_text().splitlines()) == 9  # 8 rows, no more
+    assert not (out / LOCK_NAME).exists()
+
+
+def test_a_lock_held_by_another_process_names_its_pid(tmp_path, rec):
+    out = tmp_path / "o"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys\nfrom ceilkit.runtime.io.outputs import "
+         "FolderLock\nwith FolderLock(sys.argv[1]):\n    print('held', flush=True)\n"
+         "    sys.stdin.read()\n", str(out)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(OutputError, match=f"another run \\(pid {holder.pid}\\)"):
+            replay(rec, out)
+        assert not (out / "poses.csv").exists()
+    finally:
+        holder.stdin.close()
+        holder.wait()
+    assert replay(rec, out, method="corridor", track=False).telemetry.frames == 8
+
+
+def test_a_stale_lock_is_taken_over_with_a_line(tmp_path, rec, log_lines):
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # its pid is dead
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / LOCK_NAME).write_text(f"{gone.pid}\n")
+    res = replay(rec, out, method="corridor", track=False)
+    assert res.telemetry.frames == 8
+    assert any(f"took over the stale lock of pid {gone.pid}" in ln for ln in log_lines)
+    assert not (out / LOCK_NAME).exists()
+
+
+def test_a_numbered_recording_keeps_what_exists(tmp_path):
+    (tmp_path / "r-1").mkdir()
+    (tmp_path / "r-1" / "frames.csv").write_bytes(MARK)
+    res = run(ceilrun, ["--device", "sim:corridor", "--frames", "2", "--record",
+                        str(tmp_path / "r-{n}"), "--rig",
+                        str(CONFIGS / "corridor" / "rig.yaml")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "r-1" / "frames.csv").read_bytes() == MARK
+    assert len((tmp_path / "r-2" / "frames.csv").read_text().splitlines()) == 3
