@@ -74,15 +74,6 @@ class StrictLoader(yaml.SafeLoader):
                 self._check_keys(value_node, child, seen)
 
 
-    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
-        _check_number_length(node)
-        return super().construct_yaml_int(node)
-
-    def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
-        _check_number_length(node)
-        return super().construct_yaml_float(node)
-
-
 MAX_NUMBER_CHARS = 64
 """The longest number a YAML file may write, characters. Longer is an error: PyYAML
 builds ``1:2:3...`` (YAML 1.1's base 60) in quadratic time and Python refuses an
@@ -96,8 +87,22 @@ def _check_number_length(node: yaml.ScalarNode) -> None:
             f"{MAX_NUMBER_CHARS})", node.start_mark)
 
 
-StrictLoader.add_constructor("tag:yaml.org,2002:int", StrictLoader.construct_yaml_int)
-StrictLoader.add_constructor("tag:yaml.org,2002:float", StrictLoader.construct_yaml_float)
+def _checked_number(construct: Any) -> Any:
+    """``construct`` (a loader's int or float constructor) after the length check."""
+    def checked(loader: yaml.BaseLoader, node: yaml.ScalarNode) -> Any:
+        _check_number_length(node)
+        return construct(loader, node)
+    return checked
+
+
+def _check_numbers(loader: type) -> None:
+    """Give ``loader`` the number-length check on its int and float constructors."""
+    for tag, construct in (("int", loader.construct_yaml_int),
+                           ("float", loader.construct_yaml_float)):
+        loader.add_constructor(f"tag:yaml.org,2002:{tag}", _checked_number(construct))
+
+
+_check_numbers(StrictLoader)
 
 
 FAST_YAML_BYTES = 64 << 10
@@ -116,18 +121,8 @@ class _FastStrictLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type:
         self._check_keys(node, "", set())
         return super().construct_document(node)
 
-    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
-        _check_number_length(node)
-        return super().construct_yaml_int(node)
 
-    def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
-        _check_number_length(node)
-        return super().construct_yaml_float(node)
-
-
-_FastStrictLoader.add_constructor("tag:yaml.org,2002:int", _FastStrictLoader.construct_yaml_int)
-_FastStrictLoader.add_constructor("tag:yaml.org,2002:float",
-                                  _FastStrictLoader.construct_yaml_float)
+_check_numbers(_FastStrictLoader)
 
 
 def _parse_fast(text: str) -> tuple[bool, Any]:
