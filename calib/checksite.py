@@ -1079,42 +1079,39 @@ def map_png(check: SiteCheck, site: Site) -> bytes:
 
 
 def check_site_files(rig_path: str | Path, site_path: str | Path, out: str | Path | None = None,
-                     options: CheckOptions = CheckOptions()) -> SiteCheck:
+                     options: CheckOptions = CheckOptions(), force: bool = False) -> SiteCheck:
     """Load the rig and the site, check, and with ``out`` write ``check-site.png`` and
-    ``check-site.yaml`` there (the folder made if missing).
+    ``check-site.yaml`` there (the folder made if missing, locked while written:
+    :func:`~ceilkit.runtime.io.outputs.claim_outputs`).
 
     Raises:
-        ConfigError: a bad file or option; an output file that exists (nothing is
-            overwritten).
-        OutputError: an output that cannot be written.
+        ConfigError: a bad file or option; an output file that exists without
+            ``force`` (nothing is overwritten), or that is the rig or the site.
+        OutputError: an output that cannot be written; another run writing ``out``.
     """
+    import contextlib
+
     from ceilkit.runtime.config.yaml import atomic_write_bytes, atomic_write_text, dump_yaml
     from ceilkit.runtime.errors import OutputError
-    from ceilkit.runtime.io.recording import output_error
+    from ceilkit.runtime.io.outputs import claim_outputs
 
-    paths = []
-    if out is not None:
-        folder = Path(out)
-        if folder.exists() and not folder.is_dir():
-            raise OutputError(folder, "is a file; expected a folder")
-        paths = [folder / n for n in OUTPUT_FILES]
-        for p in paths:
-            if p.exists():
-                raise ConfigError(p, None, "already there; nothing was overwritten (remove "
-                                  "it or give another --out)")
     rig, site = Rig.load(rig_path), Site.load(site_path)
-    check = check_site(rig, site, options)
     if out is None:
-        return check
-    try:
-        Path(out).mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise output_error(out, exc) from None
-    from ceilkit.calib.workflow import provenance_header
+        return check_site(rig, site, options)
+    folder = Path(out)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(folder, "is a file; expected a folder")
+    paths = [folder / n for n in OUTPUT_FILES]
+    with contextlib.ExitStack() as locked:
+        claim_outputs({"out": paths}, folders={"out": [folder]},
+                      inputs=[rig_path, site_path], force=force, stack=locked)
+        check = check_site(rig, site, options)
+        from ceilkit.calib.workflow import provenance_header
 
-    header = provenance_header("ceilcal check-site", [f"rig: {rig_path}", f"site: {site_path}"])
-    atomic_write_bytes(paths[0], map_png(check, site))
-    atomic_write_text(paths[1], dump_yaml(check.to_dict(), header))
+        header = provenance_header("ceilcal check-site",
+                                   [f"rig: {rig_path}", f"site: {site_path}"])
+        atomic_write_bytes(paths[0], map_png(check, site))
+        atomic_write_text(paths[1], dump_yaml(check.to_dict(), header))
     return check
 
 

@@ -143,10 +143,12 @@ the forward offset observable, docs/calibration.md)."""
 
 
 def _new_folder(out: Path) -> None:
-    """``out`` created; refused when it already holds images or a placements file."""
+    """``out`` created; refused when it already holds images, a placements file or a
+    recording (``frames.csv``)."""
     if out.exists() and (not out.is_dir() or list_images(out)
-                         or (out / PLACEMENTS_FILE).exists()):
-        raise ConfigError(out, None, "already holds images or is a file; give a new folder")
+                         or (out / PLACEMENTS_FILE).exists() or (out / "frames.csv").exists()):
+        raise ConfigError(out, None, "already holds images, a placements file or a "
+                          "recording, or is a file; give a new folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

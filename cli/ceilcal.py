@@ -41,7 +41,7 @@ def check_site(
     site: Path = typer.Option(..., help="The site.yaml to check."),
     out: Path = typer.Option(None, help="Folder for check-site.png (the map) and "
                              "check-site.yaml (the figures); existing files are not "
-                             "overwritten."),
+                             "overwritten without --force."),
     step: float = typer.Option(0.5, help="Spacing of the checked positions, m."),
     heading_step: float = typer.Option(90.0, help="Spacing of the checked headings, "
                                        "degrees."),
@@ -49,6 +49,8 @@ def check_site(
                                  "pixels."),
     search: float = typer.Option(6.0, help="Look for twins this far, m."),
     margin: float = typer.Option(0.0, help="Check this far beyond the features' box, m."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing check-site.png "
+                               "and check-site.yaml in --out (refused otherwise)."),
 ) -> None:
     """Where on the site one frame is ambiguous, with which twins, and what would
     single it out."""
@@ -60,7 +62,7 @@ def check_site(
     except ConfigError as exc:        # the options' names -> this command's flags
         raise ConfigError(None, CHECK_SITE_FLAGS.get(exc.key or "", exc.key),
                           exc.detail) from None
-    result = check_site_files(rig, site, out, options)
+    result = check_site_files(rig, site, out, options, force)
     typer.echo("\n".join(result.lines()))
     if out is not None:
         typer.echo(f"wrote {out / 'check-site.png'}, {out / 'check-site.yaml'}")

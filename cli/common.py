@@ -100,6 +100,9 @@ def as_flags(exc: ConfigError, command: str, takes_option: bool = False,
 
 FORCE_FLAG_HINT = "give --force to replace it"
 """:data:`~ceilkit.runtime.io.recording.FORCE_HINT` as a command line says it."""
+NO_FORCE_HINT = "choose another output: this command never replaces one"
+""":data:`~ceilkit.runtime.io.recording.FORCE_HINT` as a command without ``--force``
+says it."""
 
 
 class TermLine:
@@ -218,13 +221,14 @@ class _Group(typer.core.TyperGroup):
                      f"{usage_line(exc, ctx.invoked_subcommand or '')}")
             ctx.exit(2)
         except CeilkitError as exc:
+            name = ctx.invoked_subcommand
+            cmd = self.get_command(ctx, name) if name else self
+            params = getattr(cmd, "params", ())
             if isinstance(exc, ConfigError):
-                name = ctx.invoked_subcommand
-                cmd = self.get_command(ctx, name) if name else self
-                params = getattr(cmd, "params", ())
                 takes = any("--option" in p.opts for p in params)
                 exc = as_flags(exc, name or "", takes, params)
-            text = str(exc).replace(FORCE_HINT, FORCE_FLAG_HINT)
+            forced = any("--force" in getattr(p, "opts", ()) for p in params)
+            text = str(exc).replace(FORCE_HINT, FORCE_FLAG_HINT if forced else NO_FORCE_HINT)
             echo_err(f"{ctx.find_root().info_name}: error: {text}")
             ctx.exit(1)
 

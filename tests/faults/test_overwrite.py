@@ -63,6 +63,8 @@ KINDS = [
     ("ceilcal", "site.yaml", ["lightmap", "{rec}", "--out", "{t}/site.yaml"]),
     ("ceilcal", "capture.yaml", ["exposure", "--device", "sim:lights", "--out",
                                  "{t}/capture.yaml"]),
+    ("ceilcal", "chk/check-site.yaml", ["check-site", "--rig", "{rec}/rig.yaml", "--site",
+                                        "{rec}/site.yaml", "--out", "{t}/chk"]),
 ]
 
 
@@ -176,3 +178,17 @@ def test_a_numbered_recording_keeps_what_exists(tmp_path):
     assert res.exit_code == 0, res.output
     assert (tmp_path / "r-1" / "frames.csv").read_bytes() == MARK
     assert len((tmp_path / "r-2" / "frames.csv").read_text().splitlines()) == 3
+
+
+def test_a_command_without_force_never_names_it(tmp_path):
+    """``ceilcal simulate`` replaces nothing: its refusal says to choose another output
+    (it has no ``--force``), and placements never go into an existing recording."""
+    out = tmp_path / "sim"
+    assert run(ceilcal, ["simulate", "--out", str(out), "--frames", "2"]).exit_code == 0
+    before = sorted(p.name for p in out.iterdir())
+    line = _refused(run(ceilcal, ["simulate", "--out", str(out), "--frames", "2"]),
+                    "ceilcal", str(out), "choose another output")
+    assert "--force" not in line
+    _refused(run(ceilcal, ["simulate", "--out", str(out), "--kind", "placements"]),
+             "ceilcal", str(out), "a recording")
+    assert sorted(p.name for p in out.iterdir()) == before
