@@ -52,12 +52,14 @@ from .common import (
 METHOD_HELP = (f"Estimator: auto (every method the site supports, fused; on a site with one "
                f"method and no odometry or start pose, that method), or one of "
                f"{', '.join(METHOD_NAMES)}.")
-START_HELP = ("Where the vehicle starts: x, y in m, yaw in degrees (any method): the "
-              "first prior, which chooses among the poses a frame supports alike (a "
-              "symmetric corridor's half turn, a light grid's cells).")
+START_HELP = ("Where the vehicle starts: x, y in m, yaw in degrees (any method), and "
+              "optionally how far it may be off, 1 sigma in m and degrees (default "
+              "0.1,5): the first prior, which chooses among the poses a frame supports "
+              "alike (a symmetric corridor's half turn, a light grid's cells) only "
+              "within 4 sigma.")
 
 
-def _start_pose(text: str | None) -> tuple[float, float, float] | None:
+def _start_pose(text: str | None) -> tuple[float, ...] | None:
     return None if text is None else parse_start_pose(text)
 
 app = make_app("ceilrun", "Run the localizer on the vehicle, or replay a recording.\n\n"
@@ -211,7 +213,8 @@ def live(
     rig: Path = typer.Option(None, help="rig.yaml (default for sim: the example's)."),
     site: Path = typer.Option(None, help="site.yaml (default for sim: the example's)."),
     method: str = typer.Option(AUTO, help=METHOD_HELP),
-    start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW", help=START_HELP),
+    start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW[,SM,SDEG]",
+                                  help=START_HELP),
     link_odometry: bool = typer.Option(False, "--link-odometry", help="Read wheel odometry "
                                        "back from --serial ($PCEIO, MAVLink ODOMETRY or "
                                        "WHEEL_DISTANCE) into the fusion (--method auto)."),
@@ -285,7 +288,8 @@ def replay(
     rig: Path = typer.Option(None, help="Use this rig.yaml instead of the recording's."),
     site: Path = typer.Option(None, help="Use this site.yaml instead of the recording's."),
     method: str = typer.Option(AUTO, help=METHOD_HELP),
-    start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW", help=START_HELP),
+    start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW[,SM,SDEG]",
+                                  help=START_HELP),
     odometry: Path = typer.Option(None, "--odometry", metavar="FILE", help="Wheel odometry "
                                   "(odometry.csv layout) instead of the recording's own; "
                                   "fed to the fusion (--method auto)."),

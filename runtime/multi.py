@@ -33,6 +33,7 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import Estimate, Estimator, PoseEstimate
+from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA
 from ceilkit.runtime.estimators.registry import AUTO, make_estimator, site_methods
 from ceilkit.runtime.fusion import Fusion, FusionOptions
 from ceilkit.runtime.jit import WarmUpProgress, reporting, warm_up
@@ -105,8 +106,10 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
 
     Args:
         method: an estimator name, ``auto``, or ``None`` (the site's default method).
-        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts: the track's
-            first prior, which chooses among the poses a frame supports alike.
+        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (and, as two more
+            numbers, its 1σ in m and rad): the track's first prior, which chooses among
+            the poses a frame supports alike only inside its region
+            (:mod:`~ceilkit.runtime.estimators.prior`).
         odometry: wheel odometry will be fed to the tracker (auto only).
         fusion: the fusion's options (default: :class:`FusionOptions` with the site's
             light spacing as ``cell_m``).
@@ -126,7 +129,8 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
             out = _single(auto.estimators[0], site, fusion)
         else:
             fusion = fusion or FusionOptions(cell_m=regular_spacing_m(site))
-            out = auto, Fusion(fusion, start_pose=start_pose)
+            pose, sigma = split_start_pose(start_pose)
+            out = auto, Fusion(fusion, start_pose=pose, start_sigma=sigma)
     chosen = out[0].estimators if isinstance(out[0], AutoEstimator) else [out[0]]
     warm_up(roots=[type(o) for o in (*chosen, out[1])])
     return out
@@ -148,30 +152,52 @@ def _single(est: Estimator, site: Site, fusion: FusionOptions | None,
     """One method and its tracker: the constant-velocity one, or the fusion for a
     method emitting ceiling-plane odometry (it chains the increments between fixes);
     either starts from ``start_pose`` when given."""
+    pose, sigma = split_start_pose(start_pose)
     if not getattr(est.options, "plane_odometry", False):
-        return est, Tracker(start_pose=start_pose)
+        return est, Tracker(start_pose=pose, start_sigma=sigma)
     return est, Fusion(fusion or FusionOptions(cell_m=regular_spacing_m(site)),
-                       start_pose=start_pose)
+                       start_pose=pose, start_sigma=sigma)
 
 
-def parse_start_pose(text: str) -> tuple[float, float, float]:
-    """``X,Y,YAW`` (m, m, degrees) as ``(x_m, y_m, yaw_rad)``.
+def split_start_pose(start_pose: tuple[float, ...] | None
+                     ) -> tuple[tuple[float, float, float] | None, tuple[float, float]]:
+    """``(pose, sigma)`` of a start pose of 3 or 5 numbers (:func:`parse_start_pose`):
+    the 1σ :data:`~ceilkit.runtime.estimators.prior.DEFAULT_PRIOR_SIGMA` when not given."""
+    if start_pose is None:
+        return None, DEFAULT_PRIOR_SIGMA
+    v = tuple(float(t) for t in start_pose)
+    return (v[0], v[1], v[2]), ((v[3], v[4]) if len(v) == 5 else DEFAULT_PRIOR_SIGMA)
+
+
+def parse_start_pose(text: str) -> tuple[float, ...]:
+    """``X,Y,YAW`` (m, m, degrees) as ``(x_m, y_m, yaw_rad)``, or ``X,Y,YAW,SIGMA_M,
+    SIGMA_DEG`` (the start pose's 1σ: how far it may be off; default
+    :data:`~ceilkit.runtime.estimators.prior.DEFAULT_PRIOR_SIGMA`) as
+    ``(x_m, y_m, yaw_rad, sigma_m, sigma_rad)``.
 
     Raises:
-        ConfigError: ``start_pose`` unless three finite numbers, |x|, |y| at most
-            :data:`START_POSE_LIMIT_M` and |yaw| at most 360 degrees.
+        ConfigError: ``start_pose`` unless three (or five) finite numbers, |x|, |y| at
+            most :data:`START_POSE_LIMIT_M`, |yaw| at most 360 degrees, the sigmas in
+            (0, 100] m and (0, 180] degrees.
     """
     try:
-        x, y, yaw = (float(v) for v in text.split(","))
+        v = [float(t) for t in text.split(",")]
     except ValueError:
-        raise ConfigError(None, "start_pose",
-                          f"expected X,Y,YAW (m, m, degrees), found {text!r}") from None
-    if not all(np.isfinite((x, y, yaw))):
+        v = []
+    if len(v) not in (3, 5):
+        raise ConfigError(None, "start_pose", "expected X,Y,YAW (m, m, degrees) or "
+                          f"X,Y,YAW,SIGMA_M,SIGMA_DEG, found {text!r}")
+    if not all(np.isfinite(v)):
         raise ConfigError(None, "start_pose", f"expected finite numbers, found {text!r}")
+    x, y, yaw = v[:3]
     if max(abs(x), abs(y)) > START_POSE_LIMIT_M or abs(yaw) > 360.0:
         raise ConfigError(None, "start_pose", f"expected |x|, |y| <= {START_POSE_LIMIT_M:g} m "
                           f"and |yaw| <= 360 degrees, found {text!r}")
-    return x, y, float(np.radians(yaw))
+    if len(v) == 5 and not (0 < v[3] <= 100.0 and 0 < v[4] <= 180.0):
+        raise ConfigError(None, "start_pose", "expected SIGMA_M in (0, 100] m and SIGMA_DEG "
+                          f"in (0, 180] degrees, found {text!r}")
+    return (x, y, float(np.radians(yaw))) + (
+        (v[3], float(np.radians(v[4]))) if len(v) == 5 else ())
 
 
 START_POSE_LIMIT_M = 1e6
@@ -179,4 +205,5 @@ START_POSE_LIMIT_M = 1e6
 
 
 __all__ = ["AutoEstimator", "make_localizer", "parse_start_pose", "regular_spacing_m",
+           "split_start_pose",
            "warm_up_all"]

@@ -118,7 +118,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
            options: Mapping[str, Any] | None = None, link: LinkConfig | None = None,
            clock: Callable[[], int] = time.monotonic_ns,
            overlays: str | Path | None = None, overlays_only_failures: bool = False,
-           report: bool = False, start_pose: tuple[float, float, float] | None = None,
+           report: bool = False, start_pose: tuple[float, ...] | None = None,
            odometry: str | Path | None = None, ros2: Any = None,
            force: bool = False) -> ReplayResult:
     """Run the pipeline over a recording as fast as possible (or at recorded timing).
@@ -142,7 +142,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
             quality below 0.5.
         report: also write ``OUT/report.html`` (:mod:`~ceilkit.runtime.viz.report`);
             with ``tum`` and a ``truth.csv``, ``truth.tum`` is written beside ``poses.tum``.
-        start_pose: ``(x_m, y_m, yaw_rad)`` where the drive starts (any method: the first prior).
+        start_pose: ``(x_m, y_m, yaw_rad[, sigma_m, sigma_rad])``: the first prior.
         odometry: an ``odometry.csv`` replacing the recording's own; the rows are fed
             to the fusion (``auto``) at their stamps.
         ros2: a :class:`~ceilkit.runtime.io.ros2.Ros2Config`: also publish on ROS 2

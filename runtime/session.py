@@ -177,7 +177,8 @@ class SessionConfig:
             default, else required.
         method: an estimator name, ``auto`` (fused, :mod:`~ceilkit.runtime.multi`), or
             ``None`` for the site's default.
-        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (any method: the first prior).
+        start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (any method: the first prior;
+            two more numbers: its 1σ, m and rad).
         link_odometry: read wheel odometry back from the link (``$PCEIO``, MAVLink
             ODOMETRY, WHEEL_DISTANCE with ``wheel_track_m``) into the fusion (``auto``).
         options: the estimator's options by name (values may be strings).
@@ -219,7 +220,7 @@ class SessionConfig:
     fsync_every_s: float = 1.0
     view: str | None = None
     view_token: str | None = None
-    start_pose: tuple[float, float, float] | None = None
+    start_pose: tuple[float, ...] | None = None
     link_odometry: bool = False
     wheel_track_m: float | None = None
     ros2: Any = None

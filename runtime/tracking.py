@@ -71,8 +71,10 @@ class Tracker:
     """See the module docstring. ``predict`` gives the prior, ``update`` the verdict."""
 
     def __init__(self, options: TrackerOptions | None = None,
-                 start_pose: tuple[float, float, float] | None = None):
+                 start_pose: tuple[float, float, float] | None = None,
+                 start_sigma: tuple[float, float] = DEFAULT_PRIOR_SIGMA):
         self.options = options or TrackerOptions()
+        self._start_sd = (float(start_sigma[0]), float(start_sigma[1]))
         self._s: _State | None = None
         self._candidates: list[PoseEstimate] = []
         self.relocalizations = 0
@@ -86,10 +88,15 @@ class Tracker:
         ROS ``/initialpose``): from the next frame the estimators get it as their prior,
         which chooses among the poses a frame supports alike (a symmetric corridor's
         half turn, a light grid's cells). Safe from any thread (it is taken at the next
-        :meth:`predict`). ``t_ns`` and ``cov`` are accepted for the fusion's interface;
-        the tracker's gates are its own."""
+        :meth:`predict`). ``t_ns`` is accepted for the fusion's interface; ``cov``'s
+        diagonal, when given, is the start pose's region (the prior's, which chooses
+        among twins: estimators/prior.py); else the tracker's ``start_sigma``."""
         if not all(math.isfinite(v) for v in (x_m, y_m, yaw_rad)):
             raise ValueError("set_start_pose: the pose must be finite")
+        if cov is not None:
+            d = np.sqrt(np.abs(np.diag(np.asarray(cov, float).reshape(3, 3))))
+            if np.all(np.isfinite(d)) and np.all(d > 0):
+                self._start_sd = (float(max(d[0], d[1])), float(d[2]))
         self._pending = (float(x_m), float(y_m), float(yaw_rad))
 
     @property
@@ -105,7 +112,7 @@ class Tracker:
         pending, self._pending = self._pending, None
         if pending is not None:
             x, y, yaw = pending
-            self._s = _State(int(t_ns), x, y, wrap_pi(yaw), sd=DEFAULT_PRIOR_SIGMA)
+            self._s = _State(int(t_ns), x, y, wrap_pi(yaw), sd=self._start_sd)
             self._candidates = []
             self.start_poses += 1
             self._jumped = True

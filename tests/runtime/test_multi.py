@@ -13,9 +13,27 @@ from ceilkit.runtime.tracking import Tracker
 
 def test_start_pose_parses_degrees():
     assert parse_start_pose("1,2,90") == pytest.approx((1.0, 2.0, math.pi / 2))
-    for bad in ("1,2", "a,b,c", "1,2,inf"):
+    assert parse_start_pose("1,2,90,0.3,10") == pytest.approx(
+        (1.0, 2.0, math.pi / 2, 0.3, math.radians(10.0)))
+    for bad in ("1,2", "a,b,c", "1,2,inf", "1,2,3,4", "1,2,3,0,5", "1,2,3,0.1,-5",
+                "1,2,3,0.1,181"):
         with pytest.raises(ConfigError, match="start_pose"):
             parse_start_pose(bad)
+
+
+def test_a_start_pose_s_sigma_is_its_prior_s_region(lights_rig, lights_site):
+    """The start pose's 1σ (two more numbers) is the first prior's covariance, for the
+    tracker and the fusion alike; without it, the default region."""
+    from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA
+
+    for method in ("lights", "auto"):
+        _, tracker = make_localizer(method, lights_rig, lights_site,
+                                    start_pose=(1.0, 2.0, 0.5, 0.3, math.radians(10.0)))
+        sd = np.sqrt(np.diag(tracker.predict(0).cov))
+        assert sd == pytest.approx([0.3, 0.3, math.radians(10.0)], rel=1e-6), method
+        _, tracker = make_localizer(method, lights_rig, lights_site, start_pose=(1.0, 2.0, 0.5))
+        sd = np.sqrt(np.diag(tracker.predict(0).cov))
+        assert sd[0] == pytest.approx(DEFAULT_PRIOR_SIGMA[0], rel=1e-6), method
 
 
 def test_auto_on_a_one_method_site_is_that_method(lights_rig, lights_site):
