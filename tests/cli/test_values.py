@@ -135,7 +135,8 @@ def test_an_empty_value_that_means_something_is_taken():
 
 @pytest.mark.parametrize("args,line", [
     (["--device", "sim:corridor", "--frames", "1", "--start-pose", "1,2"],
-     "ceilrun: error: --start-pose: expected X,Y,YAW (m, m, degrees), found '1,2'"),
+     "ceilrun: error: --start-pose: expected X,Y,YAW (m, m, degrees) or "
+     "X,Y,YAW,SIGMA_M,SIGMA_DEG, found '1,2'"),
     (["--device", "sim:corridor", "--frames", "1", "--view", "abc"],
      "ceilrun: error: --view: expected [HOST:]PORT, found 'abc'"),
 ])
