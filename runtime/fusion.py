@@ -532,6 +532,7 @@ class Fusion:
         z[list(fix.rows)] = fix.z
         self.start(t_ns, (float(z[0]), float(z[1]), float(z[2])), cov)
         self._lateral_only = 1 in fix.rows and 0 not in fix.rows
+        self._confirmed = True      # started from a fix, not a start pose
         self.relocalizations += 1
         self.contributions[fix.cue.method] += 1
 

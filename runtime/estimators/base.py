@@ -73,16 +73,15 @@ class Provenance(enum.Enum):
     * ``GLOBAL``: by this frame alone, with no help from a prior: the frame rules out
       every other pose (relocalization evidence);
     * ``PRIOR``: the frame supports several poses (``hypotheses``) and the prior chose
-      the one in its basin: right only if the prior is;
+      the only one inside its region (:mod:`~ceilkit.runtime.estimators.prior`): right
+      only if the prior is;
     * ``WINDOW``: a local search about the prior (the tracked fast path);
-    * ``START``: a start pose given by the user (``--start-pose``, ``/initialpose``);
     * ``TRACK``: a track's (tracker's or fusion's) output, from several frames.
     """
 
     GLOBAL = "global"
     PRIOR = "prior"
     WINDOW = "window"
-    START = "start"
     TRACK = "track"
 
 

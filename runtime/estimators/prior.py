@@ -79,6 +79,22 @@ def allows(prior: PoseEstimate, pose: Pose, p: float = PRIOR_P) -> bool:
     return d2 <= chi2_quantile(p, dof)
 
 
+TWIN_ANGLE_RAD = math.pi / 3
+"""The smallest turn a map's twins are assumed apart by (a hexagonal layout's; a grid's
+are a quarter turn) in :func:`narrower_than`."""
+
+
+def narrower_than(prior: PoseEstimate, distance_m: float,
+                  angle_rad: float = TWIN_ANGLE_RAD, p: float = PRIOR_P) -> bool:
+    """Whether the prior's region is too narrow to hold a pose ``distance_m`` away in any
+    direction or ``angle_rad`` turned: then a search about the prior alone (a window
+    search, which enumerates no twins) cannot take a twin for the pose it finds."""
+    P = prior_cov(prior)
+    q = chi2_quantile(p, 3)
+    pos = np.linalg.eigvalsh(P[:2, :2])[-1] if np.all(np.isfinite(P[:2, :2])) else math.inf
+    return distance_m * distance_m > q * pos and angle_rad * angle_rad > q * P[2, 2]
+
+
 def prior_choice(prior: PoseEstimate | None, poses: Sequence[Pose],
                  p: float = PRIOR_P) -> int | None:
     """The index of the only one of ``poses`` the prior allows (:func:`allows`), or

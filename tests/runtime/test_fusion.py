@@ -398,3 +398,14 @@ def test_a_start_pose_no_frame_confirmed_is_not_published():
     assert not res.relocalized and res.estimate.reason == "no_lights"
     res = fu.update(_lights(2, 1.0, 2.0))
     assert res.estimate.provenance is Provenance.TRACK
+
+
+def test_a_track_started_from_a_fix_fuses_the_frame_s_other_cues():
+    """A track started from one cue's fix is confirmed: the frame's other cues are fused
+    into it (the corridor's y weighs in), not started over from."""
+    fu = Fusion()
+    lights = _lights(0, 1.0, 0.10, cov=np.diag([1e-6, 1e-6, 1e-6]))
+    res = fu.update(_frame(lights, _corridor(0, 0.102)))
+    assert res.relocalized and res.estimate.diagnostics["applied"] == ("lights", "corridor")
+    assert res.estimate.x_m == pytest.approx(1.0, abs=1e-3)
+    assert 0.1005 < res.estimate.y_m < 0.1015          # both weighed, not the corridor's alone

@@ -81,7 +81,12 @@ from ceilkit.runtime.estimators.lights.twins import (
     MAX_TWIN_CHECKS,
     TwinJudge,
 )
-from ceilkit.runtime.estimators.prior import allows, prior_choice, prior_distance
+from ceilkit.runtime.estimators.prior import (
+    allows,
+    narrower_than,
+    prior_choice,
+    prior_distance,
+)
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.spots import SpotParams
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
@@ -235,9 +240,9 @@ class LightsEstimator(Estimator):
                               f"expected one of {', '.join(SPOT_STAGES)}, found {o.spot_stage!r}")
         self.extent = SiteExtent.from_site(site)
         self.ceiling_height_m = site.ceiling_height_m
-        self.site_ids, self.lights_w, spacing_m = map_lights(site)
+        self.site_ids, self.lights_w, self.spacing_m = map_lights(site)
         self.prior_gate_m = (o.prior_gate_m if o.prior_gate_m is not None
-                             else max(o.gate_m, min(1.0, 0.4 * spacing_m)))
+                             else max(o.gate_m, min(1.0, 0.4 * self.spacing_m)))
         self.valid_mask = view_mask(rig, math.radians(o.max_view_angle_deg))
         self.nadir_px = nadir_px(rig)
         # rectangular lights (the site's light_size), unless the option asks for discs
@@ -272,8 +277,10 @@ class LightsEstimator(Estimator):
         """
         # the window tracker does not model a rolling shutter: with readout_ms the
         # global path (which does) decides every frame
+        # ... nor a prior wide enough to hold another cell's pose (it finds no twins)
         if self.windows is not None and prior is not None and prior.x_m is not None \
-                and prior.y_m is not None and self.options.readout_ms <= 0:
+                and prior.y_m is not None and self.options.readout_ms <= 0 \
+                and narrower_than(prior, self.spacing_m):
             fast = self._tracked(grey, t_ns, prior, t0)
             if fast is not None:
                 return fast

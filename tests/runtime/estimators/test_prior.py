@@ -49,3 +49,13 @@ def test_a_coordinate_the_prior_does_not_know_is_not_compared():
     assert prior_distance(corridor_track, (7.0, 0.1, math.pi, None))[1] == 2
     assert allows(corridor_track, (99.0, 0.1, math.pi, None))
     assert not allows(corridor_track, (0.0, 0.1, 0.0, None))     # the half turn
+
+
+def test_a_search_about_the_prior_alone_needs_a_prior_narrower_than_the_twins():
+    """The window search finds no twins: it may run only when the prior's region cannot
+    hold another cell's pose (1.5 m away) or a turn of 60 deg."""
+    from ceilkit.runtime.estimators.prior import narrower_than
+
+    assert narrower_than(_prior(), 1.5)                        # the default 0.1 m, 5 deg
+    assert not narrower_than(_prior(cov=np.diag([0.5 ** 2, 0.01, 1e-4])), 1.5)  # wide in x
+    assert not narrower_than(_prior(cov=np.diag([1e-4, 1e-4, 0.3 ** 2])), 1.5)  # in yaw
