@@ -275,9 +275,8 @@ class LightsEstimator(Estimator):
             ``no_lights``, ``too_few_lights``, ``no_match``, ``ambiguous``, or a model
             check's (:meth:`checked`): ``misfit``, ``outside_site``.
         """
-        # the window tracker does not model a rolling shutter: with readout_ms the
-        # global path (which does) decides every frame
-        # ... nor a prior wide enough to hold another cell's pose (it finds no twins)
+        # the window tracker models no rolling shutter (with readout_ms the global path
+        # decides) and finds no twins (a prior that could hold one goes global too)
         if self.windows is not None and prior is not None and prior.x_m is not None \
                 and prior.y_m is not None and self.options.readout_ms <= 0 \
                 and narrower_than(prior, self.spacing_m):
@@ -468,10 +467,8 @@ class LightsEstimator(Estimator):
                 and allows(prior, (c.x_m, c.y_m, c.yaw_rad, None))):
             if not self.options.twins or c.inliers < self.options.min_inliers:
                 return c, None, "about_prior", [], False
-            # the twins the prior rules out (other cells of a grid: the frame alone
-            # cannot tell them; none inside its region), unless the frame itself
-            # prefers one of them: then the prior is contradicted and the global
-            # search decides
+            # the twins the prior rules out (other cells: none inside its region),
+            # unless the frame itself prefers one: then the global search decides
             weights = obs.weights()
             own = self.judge.evidence(c, weights)
             rivals, complete = self.judge.rivals(obs, c)
