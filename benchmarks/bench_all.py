@@ -212,8 +212,9 @@ def entries(data: Data, detectors: bool = False) -> list[Entry]:
         out.append(method_entry(f"{main} spot_stage=windowed", "method",
                                 make_estimator(main, rig, site, {"spot_stage": "windowed"}),
                                 data, False))
+    glob = {"window_search": False} if has_option(type(est.options), "window_search") else {}
     out.append(method_entry(f"{main} +prior (global)", "tracked-global",
-                            make_estimator(main, rig, site, stated(main)), data, True))
+                            make_estimator(main, rig, site, stated(main, glob)), data, True))
     if is_corridor and detectors:
         for label, opts in DETECTOR_VARIANTS:
             variant = make_estimator(main, rig, site, stated(main, opts))
