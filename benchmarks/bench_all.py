@@ -35,9 +35,14 @@ Entries per recording:
   stage's (on the frame decimated by 2), and for blocks the quad search's
   decimation, threshold and ``findContours``.
 
-The recordings: a corridor drive, a lights drive, and a drive along configs/block's
+The recordings: a corridor drive, a lights drive, a drive along configs/block's
 blocks and markers (a site with ``blocks`` or ``markers`` runs the ``block`` method,
-its ``block +prior`` entry the window path of docs/methods/block.md).
+its ``block +prior`` entry the window path of docs/methods/block.md), and two
+tiled-ceiling drives at 640x480 (issue 38, :func:`tiled_recordings`): ``tiles``, a plain
+0.6 m tile grid under configs/block's upward camera (the corridor method; every frame
+is ``ambiguous`` without a prior, so its entries with a prior start from the drive's
+first true pose, as ``--start-pose`` does), and ``tiles_markers``, the issue's
+wide-angle view of tiles with a hatch and 16 cm AprilTags (the block method).
 
 Accuracy per method entry: yaw error and lateral (corridor) or position (lights,
 block) error against ``truth.csv``, median and p95 over the frames estimated (a
@@ -71,6 +76,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from bench_ambiguity import loop, small_markers, tiles_site
 from bench_block import in_view, targets
 from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
@@ -107,11 +113,7 @@ def make_recordings(folder: Path, frames: int, fresh: bool) -> list[Path]:
         ("block", dict(speed_mps=0.8, x0_m=0.3, y_m=0.0, weave_m=0.2)),
     ]
     for name, kw in specs:
-        rec = folder / f"{name}_{frames}"
-        if rec.exists() and fresh:
-            for p in sorted(rec.rglob("*"), reverse=True):
-                p.unlink() if p.is_file() else p.rmdir()
-            rec.rmdir()
+        rec = _fresh(folder / f"{name}_{frames}", fresh)
         if not rec.exists():
             rig = Rig.load(CONFIGS / name / "rig.yaml")
             site = Site.load(CONFIGS / name / "site.yaml")
@@ -119,6 +121,41 @@ def make_recordings(folder: Path, frames: int, fresh: bool) -> list[Path]:
             simulate_recording(rig, site, traj, rec,
                                SimOptions(noise_sigma=2.0, blur_px=0.8), seed=7)
         out.append(rec)
+    return out + tiled_recordings(folder, frames, fresh)
+
+
+def _fresh(rec: Path, fresh: bool) -> Path:
+    """``rec``, deleted first when ``fresh``."""
+    if rec.exists() and fresh:
+        for p in sorted(rec.rglob("*"), reverse=True):
+            p.unlink() if p.is_file() else p.rmdir()
+        rec.rmdir()
+    return rec
+
+
+def tiled_recordings(folder: Path, frames: int, fresh: bool) -> list[Path]:
+    """The tiled-ceiling drives (issue 38), 640x480, noise 2, blur 0.8: ``tiles``, a
+    plain 0.6 m drop-tile grid (``corridor`` lines along and across every 0.6 m) under
+    configs/block's upward camera, driven round a loop at 10 fps (the corridor method:
+    bench_ambiguity's ``tiles`` case, every frame ``ambiguous`` without a prior); and
+    ``tiles_markers``, the issue's wide-angle view (f = 310 px) of tiles with a hatch and
+    five 16 cm AprilTags at about 3.2 px a cell (the block method:
+    ``bench_tiles_markers.py``'s rig, site and loop)."""
+    out = []
+    rec = _fresh(folder / f"tiles_{frames}", fresh)
+    if not rec.exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        site = Site.load(tiles_site(folder))          # folder/tiles.yaml
+        simulate_recording(Rig.load(CONFIGS / "block" / "rig.yaml"), site,
+                           loop(frames, 10.0, 1.0, 0.0, 1.5, 0.4), rec,
+                           SimOptions(noise_sigma=2.0, blur_px=0.8), seed=7)
+    out.append(rec)
+    rec = _fresh(folder / f"tiles_markers_{frames}", fresh)
+    if not rec.exists():
+        rig, site, traj = small_markers(frames)
+        simulate_recording(rig, site, traj, rec, SimOptions(noise_sigma=2.0, blur_px=0.8),
+                           seed=7)
+    out.append(rec)
     return out
 
 
@@ -133,6 +170,7 @@ class Data:
     t_ns: list[int]
     truth: np.ndarray            # (N, 3) x, y, yaw_rad
     in_view: np.ndarray | None = None   # (N,) an asymmetric target fully in view (blocks)
+    start: bool = False          # the tracked entries start from the first true pose
 
 
 def load(folder: Path) -> Data:
@@ -154,7 +192,10 @@ def load(folder: Path) -> Data:
         geo, tg = PlanarGeometry.of(rec.rig, rec.site), targets(rec.site)
         seen = np.array([any(not sym for _, sym in in_view(rec.rig, geo, tg, pose))
                          for pose in truth_a])
-    return Data(folder.name, rec.rig, rec.site, grey, stamps, truth_a, seen)
+    # a plain tile grid is ambiguous without a prior (issue 36): the entries with a
+    # prior start from the drive's first pose, as ``--start-pose`` does
+    start = folder.name.startswith("tiles_") and seen is None
+    return Data(folder.name, rec.rig, rec.site, grey, stamps, truth_a, seen, start)
 
 
 # ----------------------------------------------------------------------------- entries
@@ -181,8 +222,12 @@ def method_entry(name: str, kind: str, est, data: Data, track: bool) -> Entry:
             tracker.update(out)
         return out
 
-    return Entry(name, kind, call, keep=True,
-                 reset=None if tracker is None else tracker.reset)
+    def reset() -> None:
+        tracker.reset()
+        if data.start:
+            tracker.set_start_pose(data.t_ns[0], *data.truth[0])
+
+    return Entry(name, kind, call, keep=True, reset=None if tracker is None else reset)
 
 
 def has_option(est_cls_options, name: str) -> bool:

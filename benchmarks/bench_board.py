@@ -31,10 +31,10 @@ atexit.register(hwm)
 {body}
 """
 CLI = """
-from ceilkit.cli.ceilcal import app
+from ceilkit.cli.ceilcal import main
 sys.argv = ["ceilcal"] + {args!r}
 try:
-    app(prog_name="ceilcal")
+    main()   # the console script: builds the board command alone
 except SystemExit:
     pass
 """

@@ -34,7 +34,7 @@ import numpy as np
 
 from ceilkit.runtime.config.yaml import atomic_write_bytes
 from ceilkit.runtime.errors import ConfigError, OutputError
-from ceilkit.runtime.io.files import refuse_existing
+from ceilkit.runtime.io.outputs import claimed
 
 from .boards import Board, CharucoBoard, ChessBoard
 
@@ -292,13 +292,12 @@ def write_board_pdf(board: Board, out: Path, paper: str = DEFAULT_PAPER,
     page = layout(board, paper)
     if out.is_dir():
         raise OutputError(out, "is a folder; expected a file path")
-    if out.exists() and not force:
-        raise refuse_existing(out)
-    data = board_pdf(board, paper)
-    try:
-        atomic_write_bytes(out, data)
-    except ConfigError as exc:
-        raise OutputError(out, exc.detail) from None
+    with claimed({"out": [out]}, force=force):  # refused when there; locked while written
+        data = board_pdf(board, paper)
+        try:
+            atomic_write_bytes(out, data)
+        except ConfigError as exc:
+            raise OutputError(out, exc.detail) from None
     return page
 
 

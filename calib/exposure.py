@@ -298,35 +298,35 @@ def assist(device: str, out: str | Path, method: str | None = None,
         CalibrationError: no setting suits the method (nothing is written).
     """
     from ceilkit.runtime.devices import open_source, packaged_config
-    from ceilkit.runtime.io.outputs import claim_outputs
+    from ceilkit.runtime.io.outputs import claimed
 
-    claim_outputs({"out": [Path(out)]}, force=force,
-                  inputs=[Path(p) for p in (rig, site) if p is not None])
-    rig_obj = site_obj = None
-    if device.startswith("sim"):
-        example = packaged_config(device.partition(":")[2] or "corridor")
-        rig_obj = Rig.load(rig or example / "rig.yaml")
-        site_obj = Site.load(site or example / "site.yaml")
-    elif site is not None:
-        site_obj = Site.load(site)
-    if method is None:
-        if site_obj is None:
-            raise ConfigError(None, "method", "give --method (lights, corridor or block) or "
-                              "--site")
-        method = method_for_site(site_obj)
-    check_sweep(method, exposures, gains)
-    if settle < 0 or frames < 1:
-        raise ConfigError(None, "frames", f"expected settle >= 0 and frames >= 1, found "
-                          f"{settle} and {frames}")
-    width, height, fps, fourcc = size
+    with claimed({"out": [Path(out)]}, force=force,  # locked until written
+                 inputs=[Path(p) for p in (rig, site) if p is not None]):
+        rig_obj = site_obj = None
+        if device.startswith("sim"):
+            example = packaged_config(device.partition(":")[2] or "corridor")
+            rig_obj = Rig.load(rig or example / "rig.yaml")
+            site_obj = Site.load(site or example / "site.yaml")
+        elif site is not None:
+            site_obj = Site.load(site)
+        if method is None:
+            if site_obj is None:
+                raise ConfigError(None, "method", "give --method (lights, corridor or block) or "
+                                  "--site")
+            method = method_for_site(site_obj)
+        check_sweep(method, exposures, gains)
+        if settle < 0 or frames < 1:
+            raise ConfigError(None, "frames", f"expected settle >= 0 and frames >= 1, found "
+                              f"{settle} and {frames}")
+        width, height, fps, fourcc = size
 
-    def open_at(e: float, g: float) -> FrameSource:
-        return open_source(device, rig_obj, site_obj, width, height, fps, fourcc,
-                           exposure=e, gain=g, frames=settle + frames)
+        def open_at(e: float, g: float) -> FrameSource:
+            return open_source(device, rig_obj, site_obj, width, height, fps, fourcc,
+                               exposure=e, gain=g, frames=settle + frames)
 
-    result = sweep(open_at, method, exposures, gains, settle, frames, progress)
-    path = write_capture(result, out, command)
-    return ExposureRun(result, result.best, path)  # type: ignore[arg-type]
+        result = sweep(open_at, method, exposures, gains, settle, frames, progress)
+        path = write_capture(result, out, command)
+        return ExposureRun(result, result.best, path)  # type: ignore[arg-type]
 
 
 __all__ = ["DEFAULT_EXPOSURES", "DEFAULT_GAINS", "METHODS", "SCORERS", "ExposureResult",

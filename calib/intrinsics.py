@@ -1057,9 +1057,13 @@ def plot_distortion(result: IntrinsicsResult, step_px: int = 40) -> np.ndarray:
     return with_colour_scale(img, lut[:, 0, :], 0.0, dmax, "distortion [px]")
 
 
+PLOT_NAMES = ("views.png", "coverage.png", "distortion.png")
+"""The files :func:`write_plots` writes (claimed before a calibration starts)."""
+
+
 def write_plots(result: IntrinsicsResult, folder: str | Path) -> list[Path]:
-    """Write ``views.png``, ``coverage.png`` and ``distortion.png`` into ``folder``
-    (created if missing), each atomically; returns their paths."""
+    """Write :data:`PLOT_NAMES` (``views.png``, ``coverage.png``, ``distortion.png``)
+    into ``folder`` (created if missing), each atomically; returns their paths."""
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -1067,15 +1071,15 @@ def write_plots(result: IntrinsicsResult, folder: str | Path) -> list[Path]:
         raise ConfigError(folder, None, f"cannot create the plot folder: "
                           f"{exc.strerror or exc}") from None
     out = []
-    for name, fn in (("views.png", plot_view_errors), ("coverage.png", plot_coverage),
-                     ("distortion.png", plot_distortion)):
+    for name, fn in zip(PLOT_NAMES, (plot_view_errors, plot_coverage, plot_distortion),
+                        strict=True):
         p = folder / name
         _png(p, fn(result))
         out.append(p)
     return out
 
 
-__all__ = ["COVERAGE_GRID", "RMS_CONVENTION", "CoverageMeter", "DetectionCache",
+__all__ = ["COVERAGE_GRID", "PLOT_NAMES", "RMS_CONVENTION", "CoverageMeter", "DetectionCache",
            "IntrinsicsReport", "IntrinsicsResult", "StopRule", "ViewShape",
            "calibrate_intrinsics", "capture_views", "check_model", "detect_images",
            "image_files", "plot_coverage", "plot_distortion", "plot_view_errors", "read_grey",

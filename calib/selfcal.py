@@ -450,18 +450,18 @@ def intrinsics_from_ceiling(recording: Path, out: Path, *, compare: Path | None 
 
     out = Path(out)
     _check_writable(out)
-    _claim(out, force, [*recording_inputs(recording), compare])
-    ref = load_camera(compare) if compare is not None else None
-    frames, size, rig, site = load_seam_frames(Path(recording), max_frames)
-    if ref is not None and (ref.width, ref.height) != size:
-        raise ConfigError(compare, "image_width", f"expected {size[0]}x{size[1]} like the "
-                          f"recording, found {ref.width}x{ref.height}")
-    res = calibrate_from_ceiling(frames, size, rig, tile_grid(site, rig), name)
-    report = tuple(res.lines(ref))
-    save_camera(res.camera, out, provenance_header(
-        "camera intrinsics from the ceiling by ceilcal intrinsics --ceiling",
-        [f"recording: {recording}", *report]))
-    return CeilingRun(res, out, report)
+    with _claim(out, force, [*recording_inputs(recording), compare]):  # locked till written
+        ref = load_camera(compare) if compare is not None else None
+        frames, size, rig, site = load_seam_frames(Path(recording), max_frames)
+        if ref is not None and (ref.width, ref.height) != size:
+            raise ConfigError(compare, "image_width", f"expected {size[0]}x{size[1]} like the "
+                              f"recording, found {ref.width}x{ref.height}")
+        res = calibrate_from_ceiling(frames, size, rig, tile_grid(site, rig), name)
+        report = tuple(res.lines(ref))
+        save_camera(res.camera, out, provenance_header(
+            "camera intrinsics from the ceiling by ceilcal intrinsics --ceiling",
+            [f"recording: {recording}", *report]))
+        return CeilingRun(res, out, report)
 
 
 __all__ = ["CeilingRun", "SelfCalResult", "TileGrid", "calibrate_from_ceiling",

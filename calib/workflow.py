@@ -22,6 +22,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shlex
@@ -41,7 +42,7 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.config.yaml import atomic_write_bytes
 from ceilkit.runtime.errors import CalibrationError, ConfigError, OutputError
 from ceilkit.runtime.io.capture import open_video
-from ceilkit.runtime.io.outputs import FolderLock, claim_outputs, recording_inputs
+from ceilkit.runtime.io.outputs import FolderLock, claimed, recording_inputs
 from ceilkit.runtime.io.provenance import version_line
 from ceilkit.runtime.io.recording import Recording, Truth
 from ceilkit.runtime.replay import ReplayResult, replay
@@ -54,6 +55,7 @@ from ceilkit.runtime.viz import plots as viz_plots
 from .boards import Board
 from .export import export_paths, write_exports
 from .intrinsics import (
+    PLOT_NAMES,
     DetectionCache,
     IntrinsicsResult,
     StopRule,
@@ -117,13 +119,26 @@ def _check_writable(out: Path) -> None:
         raise OutputError(out, f"cannot write: folder {parent} is not writable")
 
 
+MOUNT_PLOT = "mount_residuals.png"
+LIGHTMAP_PLOT = "lightmap.png"
+
+
 def _claim(out: Path, force: bool, inputs: Sequence[str | Path | None] = (),
-           beside: Sequence[Path] = ()) -> None:
-    """Refuse ``out`` (and the files written ``beside`` it) when it is an input, lies in
-    one, or exists without ``force`` (:func:`~ceilkit.runtime.io.outputs.claim_outputs`:
-    one line naming the file; the command line says ``give --force``)."""
-    claim_outputs({"out": [Path(out), *beside]}, force=force,
-                  inputs=[Path(p) for p in inputs if p is not None])
+           beside: Sequence[Path] = (), plots: Path | None = None,
+           plot_names: Sequence[str] = ()) -> contextlib.AbstractContextManager[None]:
+    """Claim ``out``, the files written ``beside`` it and ``plot_names`` in the ``plots``
+    folder for a ``with`` block (:func:`~ceilkit.runtime.io.outputs.claimed`): refused
+    when one is an input, lies in one, or exists without ``force`` (one line naming the
+    file; the command line says ``give --force``); locked until the block ends (``out``
+    by ``.NAME.ceilkit.lock`` beside it, ``plots`` by its folder's lock), so that a second
+    run is refused at once rather than writing over the first one's file."""
+    outputs = {"out": [Path(out), *beside]}
+    folders = {}
+    if plots is not None:
+        outputs["plots"] = [Path(plots) / name for name in plot_names]
+        folders["plots"] = [Path(plots)]
+    return claimed(outputs, folders=folders, force=force,
+                   inputs=[Path(p) for p in inputs if p is not None])
 
 
 def _make_folder(folder: Path) -> None:
@@ -189,29 +204,30 @@ def intrinsics(board: Board, out: Path, *, folder: Path | None = None,
                           f"{len(sources)}")
     check_model(model)
     _check_writable(out)
-    _claim(out, force, [video])  # beside the board images is fine: no image is replaced
-    if folder is not None:
-        files = image_files(folder)
-        det_cache = DetectionCache(out.parent / f".{out.stem}.detections.npz") if cache \
-            else None
-        views = detect_images(files, board, det_cache, progress)
-        inputs = f"{folder} ({len(files)} images, {len(views)} with the board)"
-    else:
-        src = open_video(str(video) if video is not None else str(device),
-                         capture.width, capture.height, capture.fps, capture.fourcc,
-                         capture.exposure, capture.gain)
-        stop = StopRule(max_views=max_views, min_views=max(12, min_views))
-        views = capture_views(src, board, model, stop, every=every, meter=meter)
-        inputs = f"{video if video is not None else f'device {device}'} ({len(views)} views)"
-    result = calibrate_intrinsics(views, model, fix_aspect_ratio=fix_aspect_ratio,
-                                  min_views=min_views, name=name)
-    square = f", square {board.square_m:g} m"
-    header = provenance_header("camera intrinsics by ceilcal intrinsics",
-                               [f"inputs: {inputs}", f"board: {board.spec}{square}"]
-                               + result.report.summary_lines())
-    save_camera(result.camera, out, header)
-    written = tuple(write_plots(result, plots)) if plots is not None else ()
-    return IntrinsicsRun(result, out, inputs, written)
+    # beside the board images is fine: no image is replaced
+    with _claim(out, force, [video], plots=plots, plot_names=PLOT_NAMES):
+        if folder is not None:
+            files = image_files(folder)
+            det_cache = DetectionCache(out.parent / f".{out.stem}.detections.npz") if cache \
+                else None
+            views = detect_images(files, board, det_cache, progress)
+            inputs = f"{folder} ({len(files)} images, {len(views)} with the board)"
+        else:
+            src = open_video(str(video) if video is not None else str(device),
+                             capture.width, capture.height, capture.fps, capture.fourcc,
+                             capture.exposure, capture.gain)
+            stop = StopRule(max_views=max_views, min_views=max(12, min_views))
+            views = capture_views(src, board, model, stop, every=every, meter=meter)
+            inputs = f"{video if video is not None else f'device {device}'} ({len(views)} views)"
+        result = calibrate_intrinsics(views, model, fix_aspect_ratio=fix_aspect_ratio,
+                                      min_views=min_views, name=name)
+        square = f", square {board.square_m:g} m"
+        header = provenance_header("camera intrinsics by ceilcal intrinsics",
+                                   [f"inputs: {inputs}", f"board: {board.spec}{square}"]
+                                   + result.report.summary_lines())
+        save_camera(result.camera, out, header)
+        written = tuple(write_plots(result, plots)) if plots is not None else ()
+        return IntrinsicsRun(result, out, inputs, written)
 
 
 # -- mount -----------------------------------------------------------------------------
@@ -339,68 +355,68 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
     """
     if rig is None and camera is None:
         raise ConfigError(None, "camera", "give the camera (camera.yaml) or a rig")
-    _claim(out, force, [placements, site, rig, camera, drive,
-                        *(v for v in upward.values() if isinstance(v, str | Path))],
-           export_paths(out).paths())
-    fixes = parse_fix(fix)
-    for name, value in fixes.items():
-        if value is None and rig is None:
-            raise ConfigError(None, "fix", f"--fix {name} holds the rig's value, but there "
-                              f"is no --rig: give the measured value, {name}=VALUE")
-    the_site = Site.load(site)
-    if the_site.corridor is None and the_site.has_lights:
-        return mount_upward(placements, the_site, site, out, rig=rig, camera=camera,
-                            fix=fixes, **upward)
-    if upward:
-        raise ConfigError(None, next(iter(upward)), "applies to an upward (lights) rig; "
-                          "this site has corridor lines")
-    if placements is None:
-        raise ConfigError(None, "placements", "the corridor fit needs measured placements "
-                          "(a placements file or a recording with truth.csv)")
-    the_rig, camera_ref = _start_rig(rig, camera)
-    the_rig = the_rig.with_mount(_fixed_mount(the_rig.mount, fixes,
-                                              the_site.ceiling_height_m))
-    reasons = {n: (f"--fix {n} (the rig's value)" if v is None else f"--fix {n} (typed)")
-               for n, v in fixes.items()}
-    pls = load_placements(placements, the_rig.camera, max_frames)
-    missing = {n: why for n, why in unobservable(pls, set(fixes)).items()}
-    if drive is not None:
-        missing.pop("tilt", None)
-        missing.pop("swing", None)
-    if missing:
-        name, why = next(iter(missing.items()))
-        raise CalibrationError(
-            f"{name} is not observable from these placements: {why}; or measure it and "
-            f"give --fix {name}=VALUE. Nothing written")
-    start = None
-    lines: list[str] = []
-    if drive is not None:
-        tilt, swing, rep = calibrate_tilt_swing(the_rig, load_drive(drive, the_rig.camera))
-        lines.append(f"drive ({rep['frames']} frames): tilt {math.degrees(tilt):.4f} "
-                     f"+- {math.degrees(rep['sigma_tilt']):.4f} deg, swing "
-                     f"{math.degrees(swing):.4f} +- {math.degrees(rep['sigma_swing']):.4f} "
-                     f"deg, RMS {rep['rms_px']:.3f} px")
-        m = the_rig.mount
-        start = Mount(m.pan_rad if "pan" in fixes else 0.0, tilt, swing, m.x_m,
-                      m.y_m if "my" in fixes else 0.0, m.z_m)
-        reasons.update(tilt="from the drive", swing="from the drive")
-    res = calibrate_mount(the_rig, the_site, pls, fixed=reasons, start=start,
-                          fit_height=None if "h" not in reasons else False)
-    if res.outliers:
-        label, rms, why = res.outliers[0]
-        raise CalibrationError(
-            f"placement {label} disagrees with the others: {why} (RMS {rms:.2f} px); "
-            "re-measure it or leave it out. Nothing written")
-    lines += res.lines() + _fix_lines(fixes, rig)
-    header = provenance_header(
-        "rig.yaml written by ceilcal mount",
-        [f"placements: {placements} ({len(pls)})", f"site: {site}"]
-        + ([f"drive: {drive}"] if drive else []) + lines)
-    exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
-    written = () if plots is None else (_write_plot(plots, "mount_residuals.png",
-        viz_plots.mount_png(res.per_placement_rms_px, res.rms_px,
-                            [o[0] for o in res.outliers])),)
-    return MountRun(Path(out), tuple(lines), written, exports)
+    with _claim(out, force, [placements, site, rig, camera, drive,
+                             *(v for v in upward.values() if isinstance(v, str | Path))],
+                export_paths(out).paths(), plots=plots, plot_names=(MOUNT_PLOT,)):
+        fixes = parse_fix(fix)
+        for name, value in fixes.items():
+            if value is None and rig is None:
+                raise ConfigError(None, "fix", f"--fix {name} holds the rig's value, but there "
+                                  f"is no --rig: give the measured value, {name}=VALUE")
+        the_site = Site.load(site)
+        if the_site.corridor is None and the_site.has_lights:
+            return mount_upward(placements, the_site, site, out, rig=rig, camera=camera,
+                                fix=fixes, **upward)
+        if upward:
+            raise ConfigError(None, next(iter(upward)), "applies to an upward (lights) rig; "
+                              "this site has corridor lines")
+        if placements is None:
+            raise ConfigError(None, "placements", "the corridor fit needs measured placements "
+                              "(a placements file or a recording with truth.csv)")
+        the_rig, camera_ref = _start_rig(rig, camera)
+        the_rig = the_rig.with_mount(_fixed_mount(the_rig.mount, fixes,
+                                                  the_site.ceiling_height_m))
+        reasons = {n: (f"--fix {n} (the rig's value)" if v is None else f"--fix {n} (typed)")
+                   for n, v in fixes.items()}
+        pls = load_placements(placements, the_rig.camera, max_frames)
+        missing = {n: why for n, why in unobservable(pls, set(fixes)).items()}
+        if drive is not None:
+            missing.pop("tilt", None)
+            missing.pop("swing", None)
+        if missing:
+            name, why = next(iter(missing.items()))
+            raise CalibrationError(
+                f"{name} is not observable from these placements: {why}; or measure it and "
+                f"give --fix {name}=VALUE. Nothing written")
+        start = None
+        lines: list[str] = []
+        if drive is not None:
+            tilt, swing, rep = calibrate_tilt_swing(the_rig, load_drive(drive, the_rig.camera))
+            lines.append(f"drive ({rep['frames']} frames): tilt {math.degrees(tilt):.4f} "
+                         f"+- {math.degrees(rep['sigma_tilt']):.4f} deg, swing "
+                         f"{math.degrees(swing):.4f} +- {math.degrees(rep['sigma_swing']):.4f} "
+                         f"deg, RMS {rep['rms_px']:.3f} px")
+            m = the_rig.mount
+            start = Mount(m.pan_rad if "pan" in fixes else 0.0, tilt, swing, m.x_m,
+                          m.y_m if "my" in fixes else 0.0, m.z_m)
+            reasons.update(tilt="from the drive", swing="from the drive")
+        res = calibrate_mount(the_rig, the_site, pls, fixed=reasons, start=start,
+                              fit_height=None if "h" not in reasons else False)
+        if res.outliers:
+            label, rms, why = res.outliers[0]
+            raise CalibrationError(
+                f"placement {label} disagrees with the others: {why} (RMS {rms:.2f} px); "
+                "re-measure it or leave it out. Nothing written")
+        lines += res.lines() + _fix_lines(fixes, rig)
+        header = provenance_header(
+            "rig.yaml written by ceilcal mount",
+            [f"placements: {placements} ({len(pls)})", f"site: {site}"]
+            + ([f"drive: {drive}"] if drive else []) + lines)
+        exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
+        written = () if plots is None else (_write_plot(plots, MOUNT_PLOT,
+            viz_plots.mount_png(res.per_placement_rms_px, res.rms_px,
+                                [o[0] for o in res.outliers])),)
+        return MountRun(Path(out), tuple(lines), written, exports)
 
 
 def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, *,
@@ -586,35 +602,36 @@ def lightmap(recording: Path, out: Path, *, poses: Path | None = None,
             (``REC/site.yaml``).
         CalibrationError: a survey that cannot be tied or solved.
     """
-    _claim(out, force, [*recording_inputs(recording), poses])
-    rec = Recording(recording)
-    base = Site.load(out) if out.exists() else rec.site
-    if known is None:
-        table = load_pose_table(poses) if poses is not None else None
-        lm = survey_lights(rec, table, ceiling_height_m=ceiling_height_m,
-                           cluster_m=cluster_m, min_views=min_views,
-                           offset_s=None if pose_offset_ms is None else pose_offset_ms / 1e3)
-        header = provenance_header("ceilcal lightmap: site map with surveyed lights",
-                                   lightmap_header_lines(lm))
-        write_site(lm, out, base, header, ceiling_height_m)
-        drive = table if table is not None else rec.truth
-        return LightmapRun(lm, out, f"{lm.frames_used} frames",
-                           _lightmap_plot(plots, lm, drive, base))
-    if poses is not None or pose_offset_ms is not None:
-        raise ConfigError(None, "poses", "a chaining survey (known lights) uses no poses")
-    res = survey_chain(rec, known, ceiling_height_m=ceiling_height_m, min_views=min_views)
-    lm = res.lightmap
-    header = provenance_header(
-        "ceilcal lightmap: site map with lights surveyed by chaining frames",
-        chain_header_lines(res))
-    write_site(lm, out, base, header,
-               res.ceiling_height_m if res.height_fitted else ceiling_height_m)
-    how = (f"{lm.frames_used} chained frames ({res.unplaced} not placed), "
-           f"residual {res.rms_px:.2f} px")
-    if res.height_fitted:
-        how += (f"; ceiling height {res.ceiling_height_m:.4f} +- "
-                f"{res.height_sigma_m:.4f} m from the two known lights")
-    return LightmapRun(lm, out, how, _lightmap_plot(plots, lm, rec.truth, base))
+    with _claim(out, force, [*recording_inputs(recording), poses], plots=plots,
+                plot_names=(LIGHTMAP_PLOT,)):
+        rec = Recording(recording)
+        base = Site.load(out) if out.exists() else rec.site
+        if known is None:
+            table = load_pose_table(poses) if poses is not None else None
+            lm = survey_lights(rec, table, ceiling_height_m=ceiling_height_m,
+                               cluster_m=cluster_m, min_views=min_views,
+                               offset_s=None if pose_offset_ms is None else pose_offset_ms / 1e3)
+            header = provenance_header("ceilcal lightmap: site map with surveyed lights",
+                                       lightmap_header_lines(lm))
+            write_site(lm, out, base, header, ceiling_height_m)
+            drive = table if table is not None else rec.truth
+            return LightmapRun(lm, out, f"{lm.frames_used} frames",
+                               _lightmap_plot(plots, lm, drive, base))
+        if poses is not None or pose_offset_ms is not None:
+            raise ConfigError(None, "poses", "a chaining survey (known lights) uses no poses")
+        res = survey_chain(rec, known, ceiling_height_m=ceiling_height_m, min_views=min_views)
+        lm = res.lightmap
+        header = provenance_header(
+            "ceilcal lightmap: site map with lights surveyed by chaining frames",
+            chain_header_lines(res))
+        write_site(lm, out, base, header,
+                   res.ceiling_height_m if res.height_fitted else ceiling_height_m)
+        how = (f"{lm.frames_used} chained frames ({res.unplaced} not placed), "
+               f"residual {res.rms_px:.2f} px")
+        if res.height_fitted:
+            how += (f"; ceiling height {res.ceiling_height_m:.4f} +- "
+                    f"{res.height_sigma_m:.4f} m from the two known lights")
+        return LightmapRun(lm, out, how, _lightmap_plot(plots, lm, rec.truth, base))
 
 
 def _lightmap_plot(plots: Path | None, lm: LightMap, drive: Truth | None,
@@ -622,7 +639,7 @@ def _lightmap_plot(plots: Path | None, lm: LightMap, drive: Truth | None,
     if plots is None:
         return ()
     xy = None if drive is None else np.stack([drive.x_m, drive.y_m], axis=1)
-    return (_write_plot(plots, "lightmap.png",
+    return (_write_plot(plots, LIGHTMAP_PLOT,
                         viz_plots.lightmap_png(lm.lights_m, lm.sigma_m, lm.views, xy, site)),)
 
 
@@ -805,9 +822,24 @@ def calibrate(boards: Path, board: Board, placements: Path, site: Path, out: Pat
         if on_line is not None:
             on_line(line)
 
-    with FolderLock(out):  # two calibrations cannot write one folder at once
+    with FolderLock(out), _claim_step_plots(out, plots, redo,
+                                            [boards, placements, site, drive, check]):
         return _calibrate_steps(boards, board, placements, site, out, model, drive, check,
                                 redo, say, lines, plots)
+
+
+def _claim_step_plots(out: Path, plots: Path | None, redo: bool,
+                      inputs: Sequence[Path | None]) -> contextlib.AbstractContextManager:
+    """The plots of the steps of :func:`calibrate` that will run (their file is missing,
+    or ``redo``), claimed in ``plots`` (locked; refused there without ``redo``); the
+    plots of a step kept are left as they are."""
+    if plots is None:
+        return contextlib.nullcontext()
+    names = [*(PLOT_NAMES if redo or not (out / "camera.yaml").exists() else ()),
+             *((MOUNT_PLOT,) if redo or not (out / "rig.yaml").exists() else ())]
+    return claimed({"plots": [Path(plots) / n for n in names]},
+                   folders={"plots": [Path(plots)]}, force=redo,
+                   inputs=[Path(p) for p in inputs if p is not None])
 
 
 def _calibrate_steps(boards: Path, board: Board, placements: Path, site: Path, out: Path,

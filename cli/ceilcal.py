@@ -1,41 +1,50 @@
-"""``ceilcal``: calibrate a rig, survey a site, simulate recordings."""
+"""``ceilcal``: calibrate a rig, survey a site, simulate recordings.
+
+A command's process imports only that command's module (:func:`build_app`): the board
+needs neither numba nor scipy, so ``ceilcal board`` starts in a quarter of the memory
+of the whole program. ``app`` (for tests and ``CliRunner``) holds every command.
+"""
 
 from __future__ import annotations
 
+import importlib
+import sys
 from pathlib import Path
 
 import typer
 
 from ceilkit.runtime.errors import ConfigError
 
-from . import (
-    ceilcal_board,
-    ceilcal_calibrate,
-    ceilcal_exposure,
-    ceilcal_intrinsics,
-    ceilcal_lightmap,
-    ceilcal_mount,
-    ceilcal_simulate,
-)
 from .common import make_app, quiet_opencv
 
-app = make_app("ceilcal", "Calibrate a ceiling-vision rig: intrinsics, mount, light map; "
-               "simulate recordings.")
+HELP = "Calibrate a ceiling-vision rig: intrinsics, mount, light map; simulate recordings."
+COMMANDS = {"simulate": "ceilcal_simulate", "intrinsics": "ceilcal_intrinsics",
+            "mount": "ceilcal_mount", "lightmap": "ceilcal_lightmap",
+            "calibrate": "ceilcal_calibrate", "board": "ceilcal_board",
+            "exposure": "ceilcal_exposure", "autopilot": "ceilcal_autopilot",
+            "survey": "ceilcal_survey", "check-site": None}
+"""Each command and the module under ``ceilkit.cli`` that registers it, in the order
+``--help`` lists them (``None``: defined here)."""
 
-for _module in (ceilcal_simulate, ceilcal_intrinsics, ceilcal_mount, ceilcal_lightmap,
-                ceilcal_calibrate, ceilcal_board, ceilcal_exposure):
-    _module.register(app)
 
-from . import ceilcal_autopilot  # noqa: E402 - registered after the calibration commands
-
-ceilcal_autopilot.register(app)
+def build_app(command: str | None = None) -> typer.Typer:
+    """The ``ceilcal`` program with every command, or with ``command`` alone (one of
+    :data:`COMMANDS`: only its module is imported)."""
+    app = make_app("ceilcal", HELP)
+    for name, module in COMMANDS.items():
+        if command is not None and name != command:
+            continue
+        if module is None:
+            app.command(name)(check_site)
+        else:
+            importlib.import_module(f"{__package__}.{module}").register(app)
+    return app
 
 
 CHECK_SITE_FLAGS = {"step_m": "--step", "heading_step_deg": "--heading-step",
                     "tol_px": "--tol-px", "search_m": "--search", "margin_m": "--margin"}
 
 
-@app.command("check-site")
 def check_site(
     rig: Path = typer.Option(..., help="The rig.yaml (camera and mount)."),
     site: Path = typer.Option(..., help="The site.yaml to check."),
@@ -68,9 +77,25 @@ def check_site(
         typer.echo(f"wrote {out / 'check-site.png'}, {out / 'check-site.yaml'}")
 
 
+_APP: list[typer.Typer] = []
+
+
+def __getattr__(name: str) -> typer.Typer:
+    """``app``: the program with every command, built on first use."""
+    if name != "app":
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    if not _APP:
+        _APP.append(build_app())
+    return _APP[0]
+
+
 def main() -> None:
+    """The ``ceilcal`` entry point: builds only the command the arguments name (every
+    command for ``--help``, ``--version`` or a name it does not know)."""
     quiet_opencv()
-    app(prog_name="ceilcal")
+    words = [a for a in sys.argv[1:] if not a.startswith("-")][:1]
+    command = words[0] if words and words[0] in COMMANDS else None
+    build_app(command)(prog_name="ceilcal")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from ceilkit.calib.autopilot import (
     write_params,
 )
 from ceilkit.runtime.config.rig import Rig
-from ceilkit.runtime.io.files import refuse_existing
+from ceilkit.runtime.io.outputs import claimed
 
 from .common import provenance_header
 
@@ -36,14 +36,13 @@ def run_autopilot(rig_path: Path, target: str | None, out: Path | None,
     params = autopilot_params(rig.mount, target, firmware, autopilot_V_m=at,
                               corridor=corridor, delay_ms=delay_ms)
     out = default_param_path(rig_path, target, firmware) if out is None else out
-    if out.exists() and not force:
-        raise refuse_existing(out)
     lines = [f"rig: {rig_path} (mount x {rig.mount.x_m:.4f}, y {rig.mount.y_m:.4f}, "
              f"z {rig.mount.z_m:.4f} m)",
              f"autopilot at {at[0]:.4f}, {at[1]:.4f}, {at[2]:.4f} m in V"
              + ("; corridor site (no x)" if corridor else "")]
     what, *more = purpose_lines(target, firmware)
-    write_params(out, params, target, provenance_header(what, more + lines))
+    with claimed({"out": [out]}, inputs=[rig_path], force=force):  # locked while written
+        write_params(out, params, target, provenance_header(what, more + lines))
     return out, lines + [f"{len(params)} parameters for {firmware or target}"]
 
 

@@ -21,14 +21,16 @@ import sys
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 import typer.core
 
 from ceilkit.runtime.errors import CeilkitError, ConfigError
-from ceilkit.runtime.io.recording import FORCE_HINT
-from ceilkit.runtime.session import CaptureSettings
+from ceilkit.runtime.io.files import FORCE_HINT
+
+if TYPE_CHECKING:   # the session (numba, scipy) is imported by the commands that capture
+    from ceilkit.runtime.session import CaptureSettings
 
 from .values import (
     CheckedTyper,
@@ -36,6 +38,7 @@ from .values import (
     check_params,
     flag_of,
     is_help_request,
+    note_empty,
     usage_line,
 )
 
@@ -48,6 +51,7 @@ FLAGS: Mapping[str, str] = MappingProxyType({
     "fsync_every_s": "--fsync-every", "force": "--force", "wait": "--wait",
     "overlays": "--overlays",
     "paper": "--paper", "link_odometry": "--link-odometry", "n": "--frames",
+    "plots": "--plots",
 })
 """A library parameter name -> the flag of every command that has it."""
 
@@ -103,6 +107,16 @@ FORCE_FLAG_HINT = "give --force to replace it"
 NO_FORCE_HINT = "choose another output: this command never replaces one"
 """:data:`~ceilkit.runtime.io.recording.FORCE_HINT` as a command without ``--force``
 says it."""
+
+
+def force_hint(params: Iterable[Any]) -> str:
+    """How a command with these parameters replaces an existing output: ``--force``
+    (:data:`FORCE_FLAG_HINT`), ``--redo`` (``ceilcal calibrate``: its steps made again),
+    or never (:data:`NO_FORCE_HINT`)."""
+    opts = {o for p in params for o in getattr(p, "opts", ())}
+    if "--force" in opts:
+        return FORCE_FLAG_HINT
+    return "give --redo to make it again" if "--redo" in opts else NO_FORCE_HINT
 
 
 class TermLine:
@@ -201,6 +215,10 @@ class _Group(typer.core.TyperGroup):
             _flags_as_flags(cmd.get_params(ctx))
         return cmd
 
+    def parse_args(self, ctx, args):  # type: ignore[override]
+        note_empty(self, ctx, args)
+        return super().parse_args(ctx, args)
+
     def make_context(self, info_name, args, parent=None, **extra):  # type: ignore[override]
         try:
             return super().make_context(info_name, args, parent=parent, **extra)
@@ -227,8 +245,7 @@ class _Group(typer.core.TyperGroup):
             if isinstance(exc, ConfigError):
                 takes = any("--option" in p.opts for p in params)
                 exc = as_flags(exc, name or "", takes, params)
-            forced = any("--force" in getattr(p, "opts", ()) for p in params)
-            text = str(exc).replace(FORCE_HINT, FORCE_FLAG_HINT if forced else NO_FORCE_HINT)
+            text = str(exc).replace(FORCE_HINT, force_hint(params))
             echo_err(f"{ctx.find_root().info_name}: error: {text}")
             ctx.exit(1)
 
@@ -336,6 +353,8 @@ def capture_settings(path: Path | None, width: int, height: int, fps: float, fou
                      exposure: float | None, gain: float | None) -> CaptureSettings:
     """The camera settings of the options above, with the capture file's (``path``,
     written by ``ceilcal exposure``) exposure and gain where not given."""
+    from ceilkit.runtime.session import CaptureSettings
+
     settings = CaptureSettings(width, height, fps, fourcc, exposure, gain)
     if path is None:
         return settings

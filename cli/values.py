@@ -171,6 +171,23 @@ def numeric_kind(param: Any) -> type | None:
     return kind if kind in (int, float) else None
 
 
+EMPTY_GIVEN = "ceilkit.empty_given"
+"""``ctx.meta`` key: the parameters given an empty text on the command line."""
+
+
+def note_empty(command: Any, ctx: Any, args: list[str]) -> None:
+    """Note in ``ctx.meta`` which parameters ``args`` gives an empty (or blank) text: a
+    path's ``''`` is ``Path('.')`` once converted (``--rig ''`` would read the current
+    folder), so only the raw text tells. A command line that does not parse is left to
+    the real parse to name."""
+    try:
+        opts, _, _ = command.make_parser(ctx).parse_args(args=list(args))
+    except Exception:  # noqa: BLE001 (the real parse reports it, in one line)
+        return
+    ctx.meta[EMPTY_GIVEN] = frozenset(
+        name for name, v in opts.items() if isinstance(v, str) and not v.strip())
+
+
 def check_params(ctx: Any, command: str) -> None:
     """Refuse a value of ``ctx``'s parsed parameters that is out of its range, not a
     finite number, or an empty string given on the command line.
@@ -178,13 +195,16 @@ def check_params(ctx: Any, command: str) -> None:
     Raises:
         ConfigError: keyed by the flag as typed (``--baud``), with the range expected.
     """
+    empty_given = ctx.meta.get(EMPTY_GIVEN, frozenset())
     for param in ctx.command.params:
         value = ctx.params.get(param.name)
         flag = flag_name(param)
-        if isinstance(value, str) and not value.strip() and flag not in EMPTY_OK \
+        empty = param.name in empty_given or (isinstance(value, str) and not value.strip())
+        if empty and flag not in EMPTY_OK \
                 and getattr(ctx.get_parameter_source(param.name), "name", "") == "COMMANDLINE":
             raise ConfigError(None, flag, "expected a value, found "
-                              + (repr(value) if value else "an empty string"))
+                              + (repr(value) if isinstance(value, str) and value
+                                 else "an empty string"))
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             continue
         span = range_of(command, flag)
@@ -251,6 +271,10 @@ def is_help_request(exc: Exception) -> bool:
 
 class CheckedCommand(typer.core.TyperCommand):
     """A subcommand whose parameters pass :func:`check_params` before it runs."""
+
+    def parse_args(self, ctx, args):  # type: ignore[override]
+        note_empty(self, ctx, args)
+        return super().parse_args(ctx, args)
 
     def invoke(self, ctx):  # type: ignore[override]
         check_params(ctx, ctx.info_name or "")

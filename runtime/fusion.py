@@ -85,11 +85,13 @@ class FusionOptions:
             1σ (each alone: a corridor-only track's y and heading without its x).
         prior_sigma_rad: ... and its heading only below this 1σ (a prior chooses among
             a frame's twins: a half turn, a quarter turn).
-        fix_inflation: factor on an estimator's covariance (their fits are optimistic),
+        fix_inflation: factor on an estimator's covariance (1: measured consistent),
             for a method not in ``inflation``.
-        inflation: the factor per method, measured (docs/fusion.md): the corridor's
-            covariance already covers its error; the lights' errors are correlated from
-            frame to frame, which a per-frame filter would count again and again.
+        inflation: the factor per method (docs/fusion.md): 1, the estimators'
+            covariances being their residuals' (measured consistent, a little over);
+            raise a method's where a real site's consistency line shows its NEES above
+            the band (errors correlated from frame to frame, which a per-frame filter
+            counts again and again).
         fix_floor_m, fix_floor_rad: 1σ floors of a fix (unmodelled biases).
         coast_hazard_per_s: the rate at which something no model of the filter holds
             (the vehicle carried while the camera is covered, wheels slipping) happens
@@ -116,11 +118,11 @@ class FusionOptions:
     unobserved_sigma_rad: float = math.radians(5.0)
     prior_sigma_m: float = 0.5
     prior_sigma_rad: float = math.radians(20.0)
-    fix_inflation: float = 2.0
+    fix_inflation: float = 1.0
     inflation: Mapping[str, float] = field(
-        default_factory=lambda: MappingProxyType({"corridor": 1.0, "lights": 1.5}))
-    fix_floor_m: float = 0.00005
-    fix_floor_rad: float = math.radians(0.003)
+        default_factory=lambda: MappingProxyType({}))
+    fix_floor_m: float = 0.00001
+    fix_floor_rad: float = math.radians(0.001)
     coast_hazard_per_s: float = 0.5
     default_sigma_m: float = 0.05
     default_sigma_rad: float = math.radians(2.0)

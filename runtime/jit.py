@@ -11,6 +11,16 @@ or in numba's user cache when that is not writable, so only the first run on a m
 compiles), ``nogil=True`` (a capture thread runs beside the estimator), no fast-math
 (the results are IEEE like numpy's, reassociation aside).
 
+One machine code per loop where numba would make two: a loop called from another
+loop gets the arrays its caller made, which are writable, where a call from Python
+passes read-only ones (:func:`arr`); numba compiles each kind apart (the corridor
+method's 65 loops were 95 compiles, and 40 % of its compile time went to such twins
+and their callees' twins). :class:`SharedDispatcher` gives the
+inner call the compiled version it already has when only that differs (a writable
+array is passed as a read-only one, a literal integer as an integer: the same code,
+the same arithmetic), and compiles an inner call for read-only arrays where the loop
+never writes them (:func:`unwritten`), so that the call from Python finds it made.
+
 A loop is made on its first call: about 0.7 s for the first of a process (numba's
 start), then milliseconds each from the cache (seconds each to compile, once per
 machine: minutes for all of them on a slow 2-core VM). :func:`warm_up` does that
@@ -22,6 +32,9 @@ code names; a loop outside them is made on its first call, should a frame ever n
 it); ``ceilrun warm-up`` warms every registered module, once, for an
 installer or a Dockerfile. :func:`reporting` hands each step's
 :class:`WarmUpProgress` to a callback (the command line's progress line) meanwhile.
+A warm-up that finds loops missing from the cache shares the compiling with helper
+processes, one per further CPU (:class:`CompileHelpers`, :func:`helper_count`): each
+module's loops are compiled in one of them, the others load them from the cache.
 
 Example::
 
@@ -31,8 +44,15 @@ Example::
 
 from __future__ import annotations
 
+import ast
 import contextlib
+import importlib
+import inspect
+import os
+import subprocess
 import sys
+import textwrap
+import threading
 import time
 import types
 from collections.abc import Callable, Iterable, Iterator
@@ -42,6 +62,12 @@ from typing import Any, TypeVar
 
 import numba
 import numpy as np
+from numba.core import types as nb_types
+from numba.core import typing
+from numba.core.errors import TypingError
+from numba.core.registry import CPUDispatcher
+
+from ceilkit.runtime.errors import ConfigError
 
 F = TypeVar("F", bound=Callable[..., Any])
 _PENDING: list[Callable[[], object]] = []   # warmers not yet run
@@ -50,9 +76,122 @@ ROOT = "ceilkit.runtime"
 """The package whose modules :func:`warm_up` follows from its roots."""
 
 
+OPTIONS = {"nopython": True, "nogil": True, "error_model": "numpy", "boundscheck": None}
+"""numba's target options of every loop (``numba.njit(nogil=True, error_model="numpy")``)."""
+
+
 def njit(fn: F) -> F:
-    """``numba.njit`` with the project's settings (see module)."""
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    """``numba.njit(cache=True, nogil=True, error_model="numpy")`` as a
+    :class:`SharedDispatcher` (see module)."""
+    disp = SharedDispatcher(py_func=fn, locals={}, targetoptions=dict(OPTIONS))
+    disp.enable_caching()
+    return disp  # type: ignore[return-value]
+
+
+class SharedDispatcher(CPUDispatcher):
+    """numba's CPU dispatcher whose calls from other compiled loops reuse a version
+    compiled for read-only arrays (and plain integers) rather than compile a twin.
+
+    Calls from Python are numba's own (an exact match, else a compile), so that their
+    fast path stays exact; only the typing of a call inside another loop (what numba
+    compiles it for) changes. Nothing changes what a loop computes: a writable array
+    passed where a read-only one is typed is the same pointer, strides and data.
+    """
+
+    def get_call_template(self, args: Any, kws: Any) -> Any:
+        pysig, args = self._compiler.fold_argument_types(args, kws)
+        if self._can_compile:
+            self._compile_inner(tuple(args))
+        name = self.py_func.__name__
+        template = typing.make_concrete_template(
+            f"CallTemplate({name})", key=name, signatures=self.nopython_signatures)
+        return template, pysig, args, {}
+
+    def _compile_inner(self, args: tuple[Any, ...]) -> None:
+        """Make sure a version that takes ``args`` exists: the exact one, one that
+        differs only by read-only arrays or plain integers, else one compiled for
+        read-only arrays where the loop never writes them, else the exact one."""
+        if args in self.overloads or any(_accepts(sig, args) for sig in self.overloads):
+            return
+        shared = _shared_args(args, unwritten(self.py_func))
+        if shared != args:
+            try:
+                self.compile(shared)
+                return
+            except TypingError:   # an array it does write after all (through a view)
+                pass
+        self.compile(args)
+
+
+def _accepts(sig: tuple[Any, ...], args: tuple[Any, ...]) -> bool:
+    """Whether the version compiled for ``sig`` takes ``args`` unchanged: each the same
+    type, a writable array where ``sig`` has the read-only one, or a literal integer
+    where ``sig`` has its integer type."""
+    if len(sig) != len(args):
+        return False
+    return all(a == s or _readonly(a) == s or nb_types.unliteral(a) == s
+               for s, a in zip(sig, args, strict=True))
+
+
+def _readonly(t: Any) -> Any:
+    if isinstance(t, nb_types.Array) and type(t) is nb_types.Array and t.mutable:
+        return t.copy(readonly=True)
+    return t
+
+
+def _shared_args(args: tuple[Any, ...], unwritten_at: frozenset[int]) -> tuple[Any, ...]:
+    """``args`` with the arrays at ``unwritten_at`` read-only and literals plain."""
+    return tuple(nb_types.unliteral(_readonly(a) if i in unwritten_at else a)
+                 for i, a in enumerate(args))
+
+
+_UNWRITTEN: dict[Any, frozenset[int]] = {}
+_SAFE_ATTRS = frozenset({"shape", "size", "ndim", "dtype"})
+
+
+def unwritten(fn: Callable[..., Any]) -> frozenset[int]:
+    """The positions of ``fn``'s parameters its code only reads: every use of the name
+    an element or slice read (``p[i]``, ``p[a:b]`` as a value), ``len(p)``, one of
+    ``p.shape/size/ndim/dtype``, an operand of arithmetic or a comparison, or the
+    iterable of a ``for``. Anything else (an item assigned, a call's argument, a method,
+    a name bound to it) counts as written. Found from the source; empty when there is
+    none."""
+    if fn in _UNWRITTEN:
+        return _UNWRITTEN[fn]
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(fn)))
+    except (OSError, TypeError, SyntaxError):
+        tree = None
+    node = tree.body[0] if tree is not None and tree.body else None
+    out: frozenset[int] = frozenset()
+    if isinstance(node, ast.FunctionDef):
+        params = [a.arg for a in node.args.posonlyargs + node.args.args]
+        parents = {id(c): p for p in ast.walk(node) for c in ast.iter_child_nodes(p)}
+        written = {n.id for n in ast.walk(node) if isinstance(n, ast.Name)
+                   and n.id in params and not _only_read(n, parents)}
+        out = frozenset(i for i, p in enumerate(params) if p not in written)
+    _UNWRITTEN[fn] = out
+    return out
+
+
+def _only_read(name: ast.Name, parents: dict[int, ast.AST]) -> bool:
+    """Whether this use of a name only reads the array it names (see :func:`unwritten`)."""
+    if not isinstance(name.ctx, ast.Load):
+        return False
+    up = parents.get(id(name))
+    if isinstance(up, ast.Subscript):   # an item read, not a view kept or handed on
+        above = parents.get(id(up))
+        return up.value is name and isinstance(up.ctx, ast.Load) and not isinstance(
+            above, ast.Assign | ast.AnnAssign | ast.NamedExpr | ast.Return | ast.Tuple
+            | ast.Call | ast.Attribute | ast.withitem | ast.Subscript | ast.keyword)
+    if isinstance(up, ast.Attribute):
+        return up.attr in _SAFE_ATTRS
+    if isinstance(up, ast.Call):
+        return (isinstance(up.func, ast.Name) and up.func.id == "len"
+                and up.args == [name])
+    if isinstance(up, ast.For):
+        return up.iter is name
+    return isinstance(up, ast.BinOp | ast.Compare | ast.UnaryOp)
 
 
 def arr(a: Any, dtype: Any) -> Any:
@@ -90,6 +229,7 @@ class WarmUpProgress:
         module: the module whose loops are being made now (``""`` once finished).
         compiled: loops of ``done`` that were compiled (not found in numba's cache).
         elapsed_s: seconds since the warm-up started.
+        helpers: helper processes compiling beside this one (:class:`CompileHelpers`).
     """
 
     done: int
@@ -97,12 +237,16 @@ class WarmUpProgress:
     module: str
     compiled: int
     elapsed_s: float
+    helpers: int = 0
 
     def line(self) -> str:
         """One line for a person watching, e.g. ``compiling the per-frame loops (first
-        start on this machine; numba's cache keeps them): 37/119, features.lines, 23 s``."""
-        verb = ("compiling the per-frame loops (first start on this machine; numba's "
-                "cache keeps them)" if self.compiled else "loading the per-frame loops")
+        start on this machine; numba's cache keeps them): 37/119, features.lines, 23 s``
+        (``first start on this machine, 2 processes; ...`` with a helper)."""
+        procs = f", {1 + self.helpers} processes" if self.helpers else ""
+        verb = (f"compiling the per-frame loops (first start on this machine{procs}; "
+                "numba's cache keeps them)" if self.compiled else
+                "loading the per-frame loops")
         where = f", {self.module.removeprefix(ROOT + '.')}" if self.module else ""
         return f"{verb}: {self.done}/{self.total}{where}, {self.elapsed_s:.1f} s"
 
@@ -197,7 +341,7 @@ def _all_names(code: types.CodeType) -> set[str]:
     return names
 
 
-def warm_up(roots: Iterable[Any] | None = None) -> float:
+def warm_up(roots: Iterable[Any] | None = None, helpers: int | None = None) -> float:
     """Load (the first time on a machine: compile) the loops registered since the last
     call, now rather than on a frame; the seconds it took.
 
@@ -206,24 +350,177 @@ def warm_up(roots: Iterable[Any] | None = None) -> float:
             their code reaches (:func:`reachable`) run, the others stay registered for
             a later call (or their loops are made on first use); ``None``: every
             registered warmer.
+        helpers: helper processes that compile beside this one when some of the
+            loops are not in numba's cache yet (:class:`CompileHelpers`); ``None``:
+            :func:`helper_count`. Loops found in the cache are loaded here alone.
     """
     t0 = time.perf_counter()
     wanted = None if roots is None else reachable(roots)
     todo = [w for w in _PENDING if wanted is None or w.__module__ in wanted]
-    total = sum(len(_loops(w.__module__)) for w in todo)
-    done = compiled = 0
+    by_module: dict[str, list[Callable[[], object]]] = {}
     for w in todo:
-        _report(WarmUpProgress(done, total, w.__module__, compiled,
-                               time.perf_counter() - t0))
-        _PENDING.remove(w)
-        w()
-        loops = _loops(w.__module__)
-        done += len(loops)
-        compiled += sum(1 for d in loops if sum(d.stats.cache_misses.values()))
+        by_module.setdefault(w.__module__, []).append(w)
+    order = callee_first(list(by_module))
+    total = sum(len(_loops(m)) for m in order)
+    n_helpers = helper_count() if helpers is None else helpers
+    pool = (CompileHelpers(order, n_helpers)
+            if n_helpers > 0 and len(order) > 1 and not cached(order) else None)
+    n_pool = n_helpers if pool is not None else 0
+    done = compiled = 0
+
+    def run(module: str) -> tuple[int, int]:
+        for w in by_module[module]:
+            _PENDING.remove(w)
+            w()
+        loops = _loops(module)
+        return len(loops), sum(1 for d in loops if sum(d.stats.cache_misses.values()))
+
+    queue = pool.take if pool is not None else iter([*order, None]).__next__
+    for last in (False, True):      # last: what a failed helper handed back
+        while (module := queue()) is not None:
+            extra = pool.progress() if pool is not None else (0, 0)
+            _report(WarmUpProgress(done + extra[0], total, module, compiled + extra[1],
+                                   time.perf_counter() - t0, n_pool))
+            n, c = run(module)
+            done, compiled = done + n, compiled + c
+        if pool is None or last:
+            break
+        made = pool.join()
+    if pool is not None:            # their loads: from the cache the helpers filled
+        for module, c in made.items():
+            done, compiled = done + run(module)[0], compiled + c
     elapsed = time.perf_counter() - t0
     if todo:
-        _report(WarmUpProgress(done, total, "", compiled, elapsed))
+        _report(WarmUpProgress(done, total, "", compiled, elapsed, n_pool))
     return elapsed
+
+
+HELPERS_ENV = "CEILKIT_COMPILE_HELPERS"
+"""The environment variable that sets :func:`helper_count` (``0``: compile alone)."""
+
+
+def helper_count() -> int:
+    """How many helper processes a warm-up that compiles starts: ``$CEILKIT_COMPILE_HELPERS``,
+    else one fewer than the CPUs this process may run on, at most 3."""
+    value = os.environ.get(HELPERS_ENV, "").strip()
+    if not value:
+        return max(0, min(3, len(os.sched_getaffinity(0)) - 1))
+    if not value.isdigit():
+        raise ConfigError(None, HELPERS_ENV, f"expected a whole number >= 0, found {value!r}")
+    return int(value)
+
+
+def cached(modules: Iterable[str]) -> bool:
+    """Whether numba's cache holds machine code of the current source for every loop of
+    ``modules`` (a later start: loading them takes milliseconds each, and helpers would
+    only cost their start); ``False`` after an upgrade changed a source."""
+    for d in loops_of(modules):
+        index = getattr(d._cache, "_cache_file", None)
+        if index is None or not os.path.exists(index._index_path) or not index._load_index():
+            return False
+    return True
+
+
+def callee_first(modules: list[str]) -> list[str]:
+    """``modules`` ordered so that a module comes after those whose loops its loops
+    call (when no cycle prevents it), otherwise as given: a helper then finds a
+    callee in the cache rather than compiling it a second time."""
+    inside = set(modules)
+    needs = {m: {v.py_func.__module__ for d in _loops(m)
+                 for v in _named(d.py_func.__code__, d.py_func.__globals__)
+                 if isinstance(v, numba.core.dispatcher.Dispatcher)} & inside - {m}
+             for m in modules}
+    out: list[str] = []
+    left = list(modules)
+    while left:
+        ready = next((m for m in left if needs[m] <= set(out)), left[0])
+        out.append(ready)
+        left.remove(ready)
+    return out
+
+
+class CompileHelpers:
+    """Processes that compile loops into numba's cache beside this one (a first start
+    on a machine with more than one CPU: each loop compiles in one process, so the
+    compile takes about 1/(n+1) of the time).
+
+    Each helper is ``python -c 'ceilkit.runtime.jit.serve()'``: it reads module names on
+    its stdin, imports each and runs its warmers (numba writes the machine code to its
+    cache, as any first call does), and answers ``done MODULE COMPILED``. This process
+    and the helpers take modules from one queue (:meth:`take`); this process then loads
+    the helpers' modules from the cache (:meth:`join`). A helper that fails or cannot
+    start hands its module back: this process makes it itself (and reports any error).
+    Nothing a loop computes depends on which process compiled it.
+    """
+
+    def __init__(self, modules: list[str], n: int):
+        self._queue = list(modules)
+        self._lock = threading.Lock()
+        self._done: dict[str, int] = {}
+        self._loops: dict[str, int] = {}
+        self._threads = [threading.Thread(target=self._feed, daemon=True,
+                                          name=f"compile-helper-{k}") for k in range(n)]
+        for t in self._threads:
+            t.start()
+
+    def take(self) -> str | None:
+        """The next module to make (``None``: none left)."""
+        with self._lock:
+            return self._queue.pop(0) if self._queue else None
+
+    def progress(self) -> tuple[int, int]:
+        """Loops the helpers made so far, and of them compiled."""
+        with self._lock:
+            return sum(self._loops.values()), sum(self._done.values())
+
+    def join(self) -> dict[str, int]:
+        """Wait for the helpers; the modules they made, each with its loops compiled."""
+        for t in self._threads:
+            t.join()
+        return dict(self._done)
+
+    def _feed(self) -> None:
+        code = "from ceilkit.runtime.jit import serve; serve()"
+        try:
+            proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                    text=True)
+        except OSError:
+            return
+        with proc:
+            while (module := self.take()) is not None:
+                try:
+                    proc.stdin.write(module + "\n")
+                    proc.stdin.flush()
+                    answer = proc.stdout.readline().split()
+                except OSError:
+                    answer = []
+                if answer[:2] != ["done", module] or len(answer) != 4:
+                    with self._lock:               # this process makes it
+                        self._queue.insert(0, module)
+                    break
+                with self._lock:
+                    self._done[module], self._loops[module] = int(answer[2]), int(answer[3])
+            with contextlib.suppress(OSError):
+                proc.stdin.close()
+
+
+def serve() -> None:
+    """A :class:`CompileHelpers` process: for each module name read on stdin, import it,
+    run its warmers, and answer ``done MODULE COMPILED LOOPS`` (or ``failed MODULE``)."""
+    for line in sys.stdin:
+        module = line.strip()
+        try:
+            importlib.import_module(module)
+            for w in [w for w in _PENDING if w.__module__ == module]:
+                _PENDING.remove(w)
+                w()
+            loops = _loops(module)
+            compiled = sum(1 for d in loops if sum(d.stats.cache_misses.values()))
+        except Exception:   # noqa: BLE001 - the parent makes it again and reports it
+            print(f"failed {module}", flush=True)
+            continue
+        print(f"done {module} {compiled} {len(loops)}", flush=True)
 
 
 def _report(progress: WarmUpProgress) -> None:
@@ -231,5 +528,6 @@ def _report(progress: WarmUpProgress) -> None:
         callback(progress)
 
 
-__all__ = ["ROOT", "WarmUpProgress", "arr", "loops_of", "njit", "reachable", "reporting",
-           "warm_up", "warmer"]
+__all__ = ["HELPERS_ENV", "ROOT", "CompileHelpers", "SharedDispatcher", "WarmUpProgress",
+           "arr", "cached", "callee_first", "helper_count", "loops_of", "njit",
+           "reachable", "reporting", "serve", "unwritten", "warm_up", "warmer"]

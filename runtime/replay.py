@@ -41,6 +41,7 @@ from ceilkit.runtime.fusion import Fusion, FusionReport
 from ceilkit.runtime.io.link.transport import is_serial_path
 from ceilkit.runtime.io.mcap_rec import is_mcap, open_recording, replay_folder
 from ceilkit.runtime.io.outputs import claim_outputs, recording_inputs
+from ceilkit.runtime.io.provenance import RUN_METADATA
 from ceilkit.runtime.io.recording import (
     Odometry,
     PoseWriter,
@@ -234,11 +235,12 @@ def check_replay_outputs(recording: str | Path, out: Path, rig: Any, site: Any,
                          odometry: str | Path | None = None,
                          stack: contextlib.ExitStack | None = None) -> None:
     """Refuse, before anything is read or written, a replay that would overwrite an
-    output without ``force`` (``OUT/poses.csv``, ``poses.tum``, ``truth.tum``,
-    ``report.html``, an overlay, a ``--serial`` file), write over or inside one of its
-    own inputs (a link to ``REC/truth.csv`` or ``REC/frames/000000.png``, overlays into
-    ``REC/frames``), or write two outputs into one file (a link to ``OUT/poses.csv``);
-    with ``stack``, lock ``OUT`` and the overlays' folder until it closes
+    output without ``force`` (``OUT/poses.csv``, ``run.yaml``, ``poses.tum``,
+    ``truth.tum``, ``report.html``, an overlay, a ``--serial`` file), write over or
+    inside one of its own inputs (a link to ``REC/truth.csv`` or
+    ``REC/frames/000000.png``, overlays into ``REC/frames``), or write two outputs into
+    one file (a link to ``OUT/poses.csv``); with ``stack``, lock ``OUT``, the overlays'
+    folder and a ``--serial`` file until it closes
     (:func:`~ceilkit.runtime.io.outputs.claim_outputs`).
 
     Raises:
@@ -252,7 +254,8 @@ def check_replay_outputs(recording: str | Path, out: Path, rig: Any, site: Any,
     inputs = recording_inputs(recording)
     inputs += [Path(p) for p in (rig, site, odometry) if isinstance(p, str | Path)]
     truth = is_mcap(recording) or (recording / "truth.csv").exists()
-    outputs = {"out": [out / "poses.csv"] + ([out / "poses.tum"] if tum else [])
+    outputs = {"out": [out / "poses.csv", out / RUN_METADATA]
+               + ([out / "poses.tum"] if tum else [])
                + ([out / "truth.tum"] if tum and truth else [])
                + ([out / "report.html"] if report else [])}
     folders = {"out": [out]}

@@ -44,6 +44,7 @@ from ceilkit.runtime.io.outputs import (
     claim_outputs,
     recording_inputs,
 )
+from ceilkit.runtime.io.provenance import RUN_METADATA
 from ceilkit.runtime.io.recording import (
     LOG_DIR,
     OS_DISK,
@@ -354,7 +355,7 @@ def _session_outputs(config: SessionConfig, record: Path | None) -> dict[str, li
         out["record"] = [record] if is_mcap(record) else [record / name
                                                           for name in RECORDING_FILES]
     if config.out is not None:
-        out["out"] = [config.out / "poses.csv"]
+        out["out"] = [config.out / "poses.csv", config.out / RUN_METADATA]
     link = config.link
     if link is not None and link.target != "-":
         from ceilkit.runtime.io.link.transport import is_serial_path
@@ -479,11 +480,11 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     _check_config(config)
     stop = stop or threading.Event()
     rig, site = load_rig_site(config.device, config.rig, config.site)
+    record = record_folder(config.record) if config.record is not None else None
+    _check_free(config, rig, record)  # before the method's loops load (seconds)
     estimator, tracker = make_localizer(config.method, rig, site, config.options,
                                         config.start_pose,
                                         config.link_odometry)  # --ros2: the same method
-    record = record_folder(config.record) if config.record is not None else None
-    _check_free(config, rig, record)
     cap = config.capture
     start = time.monotonic()
     source = open_waiting(

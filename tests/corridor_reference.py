@@ -54,7 +54,13 @@ from ceilkit.runtime.features.edges import (
     part_indices,
     profiles_at,
 )
-from ceilkit.runtime.features.lines import MIN_FIT_POINTS, _fit_segments, _kind_and_points
+from ceilkit.runtime.features.lines import (
+    MIN_FIT_POINTS,
+    ProfileGrid,
+    ProfileKind,
+    _fit_segments,
+    _kind_and_points,
+)
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.jit import arr
 
@@ -459,11 +465,12 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     il, ir, ii = part_indices(offs)
     # each segment's kind from its mean profile, then its edge on every profile (steps
     # and thin lines; a segment of unclear kind is not located) as pixels
+    grid = ProfileGrid(arr(offs, np.float64), arr(t, np.float64), arr(il, np.int64),
+                       arr(ir, np.int64), arr(ii, np.int64), inner.start + 1, inner.stop + 1)
     pol, pts, good = _kind_and_points(arr(prof, np.float64), arr(s, np.float64), d_all,
-                                      nrm_all, arr(offs, np.float64), arr(t, np.float64),
-                                      arr(il, np.int64), arr(ir, np.int64), arr(ii, np.int64),
-                                      inner.start + 1, inner.stop + 1, float(min_step),
-                                      float(min_depth), PROFILE_STEP_PX)
+                                      nrm_all, grid,
+                                      ProfileKind(float(min_step), float(min_depth),
+                                                  PROFILE_STEP_PX))
     # the endpoints and the located points through the lens in one call
     xy = camera.unproject_fast(np.concatenate([s.reshape(-1, 2), pts[good]]))
     ends = xy[:2 * n].reshape(n, 4)

@@ -33,7 +33,7 @@ from ceilkit.runtime.config.yaml import (
 from ceilkit.runtime.errors import ConfigError
 
 SITE_KEYS = ("ceiling_height", "corridor", "lamps", "lights", "light_diameter", "light_size",
-             "light_yaw", "ignore", "blocks", "markers", "origin")
+             "light_yaw", "ignore", "blocks", "markers", "origin", "ceiling_map")
 LAMP_KEYS = ("x", "y", "length", "width", "pitch", "count", "z")
 BLOCK_KEYS = ("id", "corners", "appearance")
 BLOCK_APPEARANCES = ("dark", "bright")
@@ -236,6 +236,10 @@ class Site:
     the direction of their long side from W's +x (``light_yaw``, 0 when not given).
     None (and 0) for round lights; ``light_size_m`` and ``light_diameter_m`` are never
     both set.
+
+    ``ceiling_map`` (ceilkit's extension of SPEC §2, ``ceiling_map: FILE``): the path of
+    the site's ceiling map (the ``texture`` method's; relative paths in the file are
+    resolved against the site file's folder), or None.
     """
 
     ceiling_height_m: float
@@ -250,6 +254,7 @@ class Site:
     source: str | None = None
     light_size_m: tuple[float, float] | None = None
     light_yaw_rad: float = 0.0
+    ceiling_map: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ignore_m", tuple(_readonly(p) for p in self.ignore_m))
@@ -281,7 +286,8 @@ class Site:
         present = {"corridor": self.corridor is not None, "lamps": bool(self.lamps),
                    "lights": self.has_lights, "blocks": bool(self.blocks),
                    "markers": self.markers is not None and bool(self.markers.poses),
-                   "ignore": bool(self.ignore_m), "origin": self.origin is not None}
+                   "ignore": bool(self.ignore_m), "origin": self.origin is not None,
+                   "ceiling_map": self.ceiling_map is not None}
         return present.get(name, False)
 
     @property
@@ -356,6 +362,8 @@ class Site:
             d["blocks"] = [_block_dict(b) for b in self.blocks]
         if self.markers is not None:
             d["markers"] = _markers_dict(self.markers)
+        if self.ceiling_map is not None:
+            d["ceiling_map"] = str(self.ceiling_map)
         if self.origin is not None:
             o = self.origin
             d["origin"] = {"lat": float(o.lat_deg), "lon": float(o.lon_deg),
@@ -389,8 +397,10 @@ class Site:
         blocks = _blocks(node.get("blocks")) if node.has("blocks") else ()
         markers = _markers(node.get("markers")) if node.has("markers") else None
         origin = _origin(node.get("origin")) if node.has("origin") else None
+        source = source or (str(node.path) if node.path else None)
+        cmap = _ceiling_map(node.get("ceiling_map"), source) if node.has("ceiling_map") else None
         return cls(height, corridor, lamps, lights, blocks, diameter, ignore, markers, origin,
-                   source or (str(node.path) if node.path else None), size, light_yaw)
+                   source, size, light_yaw, cmap)
 
 
 # -- polygons (pure) ------------------------------------------------------------------
@@ -444,6 +454,18 @@ def _segments_cross(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) 
 
 
 # -- sections: file -> dataclasses ----------------------------------------------------
+
+def _ceiling_map(node: Node, source: str | None) -> str:
+    """``ceiling_map: FILE``: the map's path, resolved against the site file's folder;
+    the file must exist (its contents are read by the ``texture`` method)."""
+    text = node.string()
+    path = Path(text)
+    if not path.is_absolute() and source is not None:
+        path = Path(source).parent / path
+    if not path.is_file():
+        raise node.error(f"no such file {str(path)!r}")
+    return str(path)
+
 
 def _corridor(node: Node) -> Corridor:
     cn = node.mapping(("lines_along", "lines_across"), required=("lines_along",))

@@ -189,6 +189,9 @@ def parse_yaml(data: bytes, path: str | Path | None = None) -> Any:
     except DuplicateKeyError as exc:
         raise ConfigError(path, exc.key, f"duplicate key at line {exc.line} (first given "
                                          f"at line {exc.first_line})") from None
+    except RecursionError:  # ``[[[[...``: the parser recurses once per level
+        raise ConfigError(path, None, "invalid YAML: nested too deeply (thousands of "
+                                      "levels; a config file has a few)") from None
     except ReaderError as exc:
         line = text.count("\n", 0, exc.position) + 1
         column = exc.position - (text.rfind("\n", 0, exc.position) + 1) + 1

@@ -232,6 +232,8 @@ FAILURE_REASONS: Mapping[str, str] = MappingProxyType({
     "no_block": "no block or marker of the site in view",
     "partial_block": "a block is only partly in view (cut by the frame's edge or occluded)",
     "unknown_marker": "the only markers in view are not in the site",
+    "too_few_features": "fewer ceiling features than a pose needs (texture)",
+    "no_map_match": "the ceiling features match no place of the ceiling map (texture)",
     **MODEL_REASONS,   # the model checks (estimators/honesty.py, docs/methods/honesty.md)
 })
 """Every reason an estimator may give, with its meaning (docs/methods list them too)."""

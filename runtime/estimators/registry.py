@@ -24,11 +24,12 @@ from ceilkit.runtime.estimators.lights.estimator import LightsEstimator
 from ceilkit.runtime.estimators.paper_block import PaperBlockEstimator
 from ceilkit.runtime.estimators.paper_corridor import PaperCorridorEstimator
 from ceilkit.runtime.estimators.paper_lights import PaperLightsEstimator
+from ceilkit.runtime.estimators.texture.estimator import TextureEstimator
 
 ESTIMATORS: Mapping[str, type[Estimator]] = {
     cls.name: cls for cls in (CorridorEstimator, PaperCorridorEstimator,
                               LightsEstimator, PaperLightsEstimator, BlockEstimator,
-                              PaperBlockEstimator)
+                              PaperBlockEstimator, TextureEstimator)
 }
 """Every estimator by its name (the ``--method`` values)."""
 
@@ -41,7 +42,7 @@ DEFAULT_ORDER = ("lights", "corridor")
 AUTO = "auto"
 """``--method auto``: every method the site supports, fused (``runtime/multi.py``)."""
 
-FUSED_METHODS = ("lights", "block", "corridor")
+FUSED_METHODS = ("lights", "block", "texture", "corridor")
 """The methods ``auto`` runs where the site supports them (the paper baselines are not)."""
 
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -418,9 +419,20 @@ def fit_lines(x: np.ndarray, y: np.ndarray, w: np.ndarray
     return line, res, n, ssr
 
 
-def _empty_fits(shape: tuple[int, int]
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    return np.empty((shape[0], 3)), np.empty(shape), np.empty(shape[0]), np.empty(shape[0])
+class RowFits(NamedTuple):
+    """The arrays a row-by-row line fit writes (:func:`fit_robust_rows`): the lines
+    ``line (N, 3)``, the residuals ``res (N, A)``, the points' count ``cnt (N,)``
+    (float) and the sum of their squared residuals ``ssr (N,)``."""
+
+    line: np.ndarray
+    res: np.ndarray
+    cnt: np.ndarray
+    ssr: np.ndarray
+
+
+def _empty_fits(shape: tuple[int, int]) -> RowFits:
+    return RowFits(np.empty((shape[0], 3)), np.empty(shape), np.empty(shape[0]),
+                   np.empty(shape[0]))
 
 
 @njit
@@ -463,9 +475,11 @@ def _fit_rows(x, y, w, line, res, cnt, ssr):  # pragma: no cover - compiled
 
 
 @njit
-def fit_robust_rows(x, y, good, floor, sigmas, line, res, cnt, ssr
-                ):  # pragma: no cover - compiled
-    """:func:`fit_lines_robust` row by row; ``good`` becomes the points kept."""
+def fit_robust_rows(x, y, good, floor, sigmas, fits):  # pragma: no cover - compiled
+    """:func:`fit_lines_robust` row by row into ``fits`` (a :class:`RowFits`), the
+    points beyond ``sigmas`` sigma and ``floor`` (normalized units) dropped once;
+    ``good`` becomes the points kept."""
+    line, res, cnt, ssr = fits
     for r in range(x.shape[0]):
         _fit_row(x[r], y[r], good[r], line[r], res[r], cnt, ssr, r)
         lim = max(sigmas * math.sqrt(ssr[r] / max(cnt[r], 1.0)), floor)
@@ -486,9 +500,9 @@ def fit_lines_robust(x: np.ndarray, y: np.ndarray, good: np.ndarray, f_px: float
     res, n, ssr, kept)`` (``kept (N, A)``: the points of the final fit)."""
     x, y = arr(x, np.float64), arr(y, np.float64)
     good = np.array(good, np.bool_, order="C")
-    line, res, cnt, ssr = _empty_fits(x.shape)
-    fit_robust_rows(x, y, good, OUTLIER_FLOOR_PX / f_px, OUTLIER_SIGMAS, line, res, cnt, ssr)
-    return line, res, cnt, ssr, good
+    fits = _empty_fits(x.shape)
+    fit_robust_rows(x, y, good, OUTLIER_FLOOR_PX / f_px, OUTLIER_SIGMAS, fits)
+    return (*fits, good)
 
 
 @warmer
@@ -505,7 +519,7 @@ def _warm() -> None:
     fit_lines_robust(x, x, np.ones(x.shape, bool), 500.0)
 
 
-__all__ = ["classify", "classify_rows", "directions", "edge_grid", "fit_lines",
+__all__ = ["RowFits", "classify", "classify_rows", "directions", "edge_grid", "fit_lines",
            "fit_lines_robust", "fit_robust_rows", "locate", "locate_rows", "part_indices",
            "locate_steps", "locate_thin", "profile_offsets", "profile_parts", "profiles_along",
            "profiles_at", "sample_profiles", "thin_sign", "vertex"]

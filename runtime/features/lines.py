@@ -23,6 +23,7 @@ import functools
 import math
 from collections.abc import Mapping
 from types import MappingProxyType
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -32,6 +33,7 @@ from ceilkit.runtime.features.edges import (
     OUTLIER_FLOOR_PX,
     OUTLIER_SIGMAS,
     PROFILE_STEP_PX,
+    RowFits,
     classify,
     classify_rows,
     edge_grid,
@@ -356,20 +358,19 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
         return np.zeros((0, 4)), np.zeros(0), np.full(0, np.nan)
     retry = retry_half_width_px is not None and retry_half_width_px > half_width_px
     iterations = fixed_iterations(camera)
+    kind = ProfileKind(float(min_step), float(min_depth), PROFILE_STEP_PX)
     if iterations:
         # the whole fit, retry included, in one compiled call (the same numbers)
         g2 = _grid(n_along, retry_half_width_px if retry else half_width_px)
+        lens = FixedLens(camera.lens[1], iterations, 0.5 * (camera.fx + camera.fy))
         return _refine_fixed(arr(gray, np.uint8), arr(s, np.float64),
-                             *_grid(n_along, half_width_px), *g2, retry, float(min_step),
-                             float(min_depth), PROFILE_STEP_PX, camera.lens[1], iterations,
-                             0.5 * (camera.fx + camera.fy))
+                             _grid(n_along, half_width_px), g2, retry, kind, lens)
     rms = np.full(n, np.nan)
-    offs, t, il, ir, ii, i0, i1 = _grid(n_along, half_width_px)
     # each segment's kind from its mean profile, then its edge on every profile (steps
     # and thin lines; a segment of unclear kind is not located) as pixels, after the
     # segments' endpoints
-    pol, px, good = _profile_points(arr(gray, np.uint8), arr(s, np.float64), offs, t, il, ir, ii,
-                                    i0, i1, float(min_step), float(min_depth), PROFILE_STEP_PX)
+    pol, px, good = _profile_points(arr(gray, np.uint8), arr(s, np.float64),
+                                    _grid(n_along, half_width_px), kind)
     # the endpoints and the located points through the lens in one call
     xy = unproject_many(camera, px)
     ends = xy[:2 * n].reshape(n, 4)
@@ -384,30 +385,63 @@ def refine_undistorted(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarra
     return ends, pol, rms
 
 
-@functools.lru_cache(maxsize=16)
-def _grid(n_along: int, half_width_px: float) -> tuple:
+class ProfileGrid(NamedTuple):
     """:func:`~.edges.edge_grid` and :func:`~.edges.part_indices` as the compiled loops
-    take them: ``(offs, t, il, ir, ii, i0, i1)``."""
+    take them: the offsets across a segment ``offs (O,)`` px, the places along it
+    ``t (A,)``, the left, right and inner parts' indices ``il, ir, ii`` and the inner
+    part's first and last index plus one ``i0, i1``."""
+
+    offs: np.ndarray
+    t: np.ndarray
+    il: np.ndarray
+    ir: np.ndarray
+    ii: np.ndarray
+    i0: int
+    i1: int
+
+
+class ProfileKind(NamedTuple):
+    """What a profile needs to be of a kind (:func:`~.edges.classify`): its step
+    ``min_step`` and thin line's depth ``min_depth`` (grey levels), the profile's
+    sampling ``step_px`` (px)."""
+
+    min_step: float
+    min_depth: float
+    step_px: float
+
+
+class FixedLens(NamedTuple):
+    """A lens :func:`undistort_fixed_points` inverts: its ``params (13,)``
+    (:attr:`~ceilkit.runtime.geometry.camera.CameraModel.lens`), the fixed-point
+    ``iterations`` and the focal length ``f_px`` (px) the residuals are scaled by."""
+
+    params: np.ndarray
+    iterations: int
+    f_px: float
+
+
+@functools.lru_cache(maxsize=16)
+def _grid(n_along: int, half_width_px: float) -> ProfileGrid:
+    """:func:`~.edges.edge_grid` and :func:`~.edges.part_indices` as the compiled loops
+    take them (a :class:`ProfileGrid`)."""
     offs, t, inner = edge_grid(n_along, half_width_px)
     il, ir, ii = part_indices(offs)
-    return (arr(offs, np.float64), arr(t, np.float64), arr(il, np.int64), arr(ir, np.int64),
-            arr(ii, np.int64), inner.start + 1, inner.stop + 1)
+    return ProfileGrid(arr(offs, np.float64), arr(t, np.float64), arr(il, np.int64),
+                       arr(ir, np.int64), arr(ii, np.int64), inner.start + 1, inner.stop + 1)
 
 
 @njit
-def _refine_fixed(grey, s, offs, t, il, ir, ii, i0, i1, offs2, t2, il2, ir2, ii2, i0_2, i1_2,
-                  retry, min_step, min_depth, step_px, lens, iterations, f_px
-                  ):  # pragma: no cover - compiled
+def _refine_fixed(grey, s, grid, grid2, retry, kind, lens):  # pragma: no cover - compiled
     """:func:`refine_undistorted` for a lens :func:`unproject_many` inverts in its
-    compiled loop, in one call: ``(segs_n (N, 4), polarity (N,), rms (N,))``; the rows
-    of unclear kind measured again on the second grid when ``retry``."""
-    ends, pol, rms = _refine_pass(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
-                                  step_px, lens, iterations, f_px)
+    compiled loop (``lens``: a :class:`FixedLens`), in one call: ``(segs_n (N, 4),
+    polarity (N,), rms (N,))``; the profiles read on ``grid`` (a :class:`ProfileGrid`)
+    as ``kind`` (a :class:`ProfileKind`) says, the rows of unclear kind measured again
+    on ``grid2`` when ``retry``."""
+    ends, pol, rms = _refine_pass(grey, s, grid, kind, lens)
     rows = np.flatnonzero(np.isnan(pol))
     if not retry or rows.size == 0:
         return ends, pol, rms
-    e2, p2, r2 = _refine_pass(grey, s[rows], offs2, t2, il2, ir2, ii2, i0_2, i1_2, min_step,
-                              min_depth, step_px, lens, iterations, f_px)
+    e2, p2, r2 = _refine_pass(grey, s[rows], grid2, kind, lens)
     for k in range(rows.size):
         if math.isfinite(p2[k]):
             r = rows[k]
@@ -417,16 +451,14 @@ def _refine_fixed(grey, s, offs, t, il, ir, ii, i0, i1, offs2, t2, il2, ir2, ii2
 
 
 @njit
-def _refine_pass(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth, step_px, lens,
-                 iterations, f_px):  # pragma: no cover - compiled
+def _refine_pass(grey, s, grid, kind, lens):  # pragma: no cover - compiled
     """One pass of :func:`refine_undistorted` (no retry): the profiles and points
     (:func:`_profile_points`), the lens (:func:`undistort_fixed_points`), the fit
     (:func:`_fit_segments`)."""
-    pol, px, good = _profile_points(grey, s, offs, t, il, ir, ii, i0, i1, min_step,
-                                    min_depth, step_px)
+    pol, px, good = _profile_points(grey, s, grid, kind)
     xy = np.empty_like(px)
-    undistort_fixed_points(px, lens, iterations, xy)
-    ends, rms = _ends_and_fit(xy, good, f_px)
+    undistort_fixed_points(px, lens.params, lens.iterations, xy)
+    ends, rms = _ends_and_fit(xy, good, lens.f_px)
     return ends, pol, rms
 
 
@@ -454,15 +486,18 @@ def refine_chords(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
     (:func:`~ceilkit.runtime.geometry.camera.undistort_points`). Returns
     ``(segs_n, polarity, rms_px)`` as :func:`refine_undistorted`."""
     s = arr(segs_px, np.float64).reshape(-1, 4)
-    return _refine_core(arr(gray, np.uint8), s, *_grid(n_along, half_width_px),
-                        float(min_step), float(min_depth), *camera.lens,
-                        0.5 * (camera.fx + camera.fy))
+    kind = ProfileKind(float(min_step), float(min_depth), PROFILE_STEP_PX)
+    return _refine_core(arr(gray, np.uint8), s, _grid(n_along, half_width_px), kind,
+                        *camera.lens, 0.5 * (camera.fx + camera.fy))
 
 
 @njit
-def _refine_core(grey, chords, offs, t, il, ir, ii, i0, i1, min_step, min_depth, lens_code,
-                 lens, f_px):  # pragma: no cover - compiled
-    """:func:`refine_chords`: ``(segs_n (N, 4), polarity (N,), rms (N,))``."""
+def _refine_core(grey, chords, grid, kind, lens_code, lens, f_px):  # pragma: no cover
+    """:func:`refine_chords`: ``(segs_n (N, 4), polarity (N,), rms (N,))``, the profiles
+    read on ``grid`` (a :class:`ProfileGrid`) as ``kind`` (a :class:`ProfileKind`) says,
+    through the lens ``lens_code, lens``; ``f_px``: the focal length the residuals are
+    scaled by."""
+    offs, t = grid.offs, grid.t
     n = chords.shape[0]
     n_a, n_o = t.size, offs.size
     hh, w = grey.shape
@@ -488,9 +523,7 @@ def _refine_core(grey, chords, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
                     prof[r, a, o] = _bilinear_inside(grey, su, sv)
                 else:
                     prof[r, a, o] = _bilinear(grey, su, sv, w, hh)
-    pol, pts, good = _kind_and_points(prof, chords, d, nrm, offs, t, il, ir, ii,
-                                      i0, i1, min_step, min_depth,
-                                      PROFILE_STEP_PX)
+    pol, pts, good = _kind_and_points(prof, chords, d, nrm, grid, kind)
     px = _stack_points(chords, pts, good)
     xy = np.empty_like(px)
     undistort_points(px, lens_code, lens, xy)
@@ -499,12 +532,13 @@ def _refine_core(grey, chords, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
 
 
 @njit
-def _profile_points(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth, step_px
-                    ):  # pragma: no cover - compiled
+def _profile_points(grey, s, grid, kind):  # pragma: no cover - compiled
     """:func:`refine_undistorted`'s profiles (:func:`~.edges.remap_along`, as
     :func:`~.edges.profiles_along`) and located points (:func:`_kind_and_points`) of
-    segments ``s (N, 4)``: ``(polarity (N,), pixels (2N + K, 2): the endpoints, then the
-    K located points in the order of located (N, A))``."""
+    segments ``s (N, 4)`` on ``grid`` (a :class:`ProfileGrid`) as ``kind`` (a
+    :class:`ProfileKind`) says: ``(polarity (N,), pixels (2N + K, 2): the endpoints,
+    then the K located points in the order of located (N, A))``."""
+    offs, t = grid.offs, grid.t
     n = s.shape[0]
     d = np.empty((n, 2))
     nrm = np.empty((n, 2))
@@ -514,8 +548,7 @@ def _profile_points(grey, s, offs, t, il, ir, ii, i0, i1, min_step, min_depth, s
         nrm[r, 0], nrm[r, 1] = -d[r, 1] * inv, d[r, 0] * inv
     prof = np.empty((n, t.size, offs.size))
     remap_along(grey, s, d, nrm, offs, t, prof)
-    pol, pts, good = _kind_and_points(prof, s, d, nrm, offs, t, il, ir, ii, i0, i1, min_step,
-                                      min_depth, step_px)
+    pol, pts, good = _kind_and_points(prof, s, d, nrm, grid, kind)
     return pol, _stack_points(s, pts, good), good
 
 
@@ -556,12 +589,13 @@ def _bilinear_inside(grey, x, y):  # pragma: no cover - compiled
 
 
 @njit
-def _kind_and_points(prof, s, d, nrm, offs, t, il, ir, ii, i0, i1, min_step, min_depth,
-                     step_px):  # pragma: no cover - compiled
+def _kind_and_points(prof, s, d, nrm, grid, kind):  # pragma: no cover - compiled
     """``(polarity (N,), points (N, A, 2) px, located (N, A))``: each segment's kind
-    from its mean profile (:func:`~.edges.classify`) and, for a step or a thin line, its
-    edge on the profile at each place ``t`` along it (:func:`~.edges.locate`) as a
-    pixel ``p1 + t d + offset nrm``."""
+    from its mean profile (:func:`~.edges.classify`, as ``kind``, a
+    :class:`ProfileKind`, says) and, for a step or a thin line, its edge on the profile
+    at each place ``t`` along it (:func:`~.edges.locate`; ``grid``, a
+    :class:`ProfileGrid`) as a pixel ``p1 + t d + offset nrm``."""
+    offs, t, step_px = grid.offs, grid.t, kind.step_px
     n, n_a, n_o = prof.shape
     mean = np.zeros((n, n_o))
     for r in range(n):
@@ -570,9 +604,10 @@ def _kind_and_points(prof, s, d, nrm, offs, t, il, ir, ii, i0, i1, min_step, min
                 mean[r, o] += prof[r, a, o]
         for o in range(n_o):
             mean[r, o] *= 1.0 / n_a
-    pol, _ = classify_rows(mean, offs, il, ir, ii, min_step, min_depth, step_px)
+    pol, _ = classify_rows(mean, offs, grid.il, grid.ir, grid.ii, kind.min_step,
+                           kind.min_depth, step_px)
     loc = np.full((n, n_a), np.nan)
-    locate_rows(prof, pol, offs, i0, i1, step_px, loc)
+    locate_rows(prof, pol, offs, grid.i0, grid.i1, step_px, loc)
     pts = np.zeros((n, n_a, 2))
     good = np.zeros((n, n_a), np.bool_)
     for r in range(n):
@@ -606,7 +641,7 @@ def _fit_segments(xy, good, ends, rms, f_px, floor_px, sigmas, min_points
     res = np.empty((n, n_a))
     cnt = np.empty(n)
     ssr = np.empty(n)
-    fit_robust_rows(x, y, kept, floor_px / f_px, sigmas, line, res, cnt, ssr)
+    fit_robust_rows(x, y, kept, floor_px / f_px, sigmas, RowFits(line, res, cnt, ssr))
     for r in range(n):
         if cnt[r] < min_points:
             continue

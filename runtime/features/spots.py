@@ -39,8 +39,10 @@ Example::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -238,7 +240,7 @@ def _region_stats(grey: np.ndarray, mask: np.ndarray, contour: np.ndarray | None
     if weighted:
         base = i_b + _CORE * (i_o - i_b)
         win = roi[cy0:cy1, cx0:cx1]
-        flat = flattened(win, osub, i_o - i_b) if area >= FLAT_MIN_AREA_PX else None
+        flat = flattened(win, osub, i_o - i_b) if area >= FLAT.min_area_px else None
         wts = cv2.max(cv2.subtract(win if flat is None else flat, base, dtype=cv2.CV_32F), 0.0)
         if contour is not None:
             others = cv2.countNonZero(cand[cy0:cy1, cx0:cx1]) - cv2.countNonZero(osub)
@@ -435,6 +437,52 @@ def _order(boxes, cu, cv):  # pragma: no cover - compiled
 _BATCH_MAX_SIDE = 64
 
 
+class Flattening(NamedTuple):
+    """The plateau correction as the compiled loops read it (:func:`flattened`): a
+    spot of ``min_area_px`` pixels or more has its plateau's gain fitted
+    ``erode_px`` inside it, on at least ``min_px`` pixels, unless the plane leaves it
+    rougher than ``max_residual`` of the contrast; the gain is floored at
+    ``min_gain``."""
+
+    min_area_px: int
+    erode_px: int
+    min_px: int
+    max_residual: float
+    min_gain: float
+
+
+FLAT = Flattening(FLAT_MIN_AREA_PX, _FLAT_ERODE_PX, _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL,
+                  _FLAT_MIN_GAIN)
+"""The detector's :class:`Flattening` (its module constants)."""
+
+
+class RegionWalk(NamedTuple):
+    """How :func:`_classify` and :func:`_walk` examine the regions: nearest the pixel
+    ``(centre_u, centre_v)`` first when ``has_centre``, a region reaching the frame's
+    edge dropped when ``drop_cut``, the plausible areas ``min_area_px`` to
+    ``max_area_px``, at most ``max_regions`` rows (-1: no limit)."""
+
+    has_centre: bool
+    centre_u: float
+    centre_v: float
+    drop_cut: bool
+    min_area_px: int
+    max_area_px: int
+    max_regions: int
+
+
+class Classified(NamedTuple):
+    """What :func:`_classify` returns: the ``order`` the regions are examined in,
+    which are ``alone``, which are ``cut`` by the frame's edge, each region's row of
+    ``stats`` ``row_of`` (-1: none) and the lone regions' ``stats (K, 8)``."""
+
+    order: np.ndarray
+    alone: np.ndarray
+    cut: np.ndarray
+    row_of: np.ndarray
+    stats: np.ndarray
+
+
 def _lone_region_stats(grey: np.ndarray, mask: np.ndarray, boxes: np.ndarray,
                        weighted: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_region_stats` of many lone regions at once (``contour=None``: no other
@@ -461,16 +509,16 @@ def _lone_region_stats(grey: np.ndarray, mask: np.ndarray, boxes: np.ndarray,
     """
     b = arr(boxes, np.int64).reshape(-1, 4)
     out = np.empty((b.shape[0], 8))
-    ok = _lone_stats(arr(grey, np.uint8), arr(mask, np.uint8),
-                     b, bool(weighted), _CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX, _FLAT_MIN_PX,
-                     _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN, out)
+    ok = _lone_stats(arr(grey, np.uint8), arr(mask, np.uint8), b, bool(weighted), _CORE,
+                     FLAT, out)
     return out, ok
 
 
 @njit
-def _lone_stats(grey, mask, boxes, weighted, core, flat_min_area, erode, min_px,
-                max_residual, min_gain, out):  # pragma: no cover - compiled
-    """:func:`_lone_region_stats` into ``out (K, 8)``; returns ``ok (K,)``. The weights
+def _lone_stats(grey, mask, boxes, weighted, core, flat, out):  # pragma: no cover - compiled
+    """:func:`_lone_region_stats` into ``out (K, 8)``, the centroid weights counting
+    from ``I_b + core (I_o - I_b)`` when ``weighted``, a plateau flattened as ``flat``
+    (a :class:`Flattening`) says; returns ``ok (K,)``. The weights
     are float32 as ``cv2.subtract(..., dtype=CV_32F)`` gives them (a flattened
     plateau's gain too, as :func:`flattened` computes it), their moments summed in
     float64 (exact for these windows, as ``cv2.moments``)."""
@@ -506,10 +554,11 @@ def _lone_stats(grey, mask, boxes, weighted, core, flat_min_area, erode, min_px,
         if weighted:
             base = np.float32(i_b + core * (i_o - i_b))
             plane = (False, 1.0, 0.0, 0.0, 0.0, 0.0)
-            if good and area >= flat_min_area:
+            if good and area >= flat.min_area_px:
                 tmp = np.empty_like(obj)
-                plane = _plateau(win, obj.copy(), tmp, i_o - i_b, erode, min_px, max_residual)
-            _float32_moments(win, base, plane, min_gain, m)
+                plane = _plateau(win, obj.copy(), tmp, i_o - i_b, flat.erode_px,
+                                 flat.min_px, flat.max_residual)
+            _float32_moments(win, base, plane, flat.min_gain, m)
         else:
             for i in range(cy1 - cy0):
                 for j in range(cx1 - cx0):
@@ -607,22 +656,22 @@ def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.n
     H, W = grey.shape
     b = np.array([cv2.boundingRect(c) for c in contours], np.int64).reshape(-1, 4)
     n = b.shape[0]
-    has_centre = centre_px is not None
-    order, alone, cut, row_of, stats = _classify(
-        arr(grey, np.uint8), arr(mask, np.uint8), arr(b, np.int64),
-        float(centre_px[0]) if has_centre else 0.0, float(centre_px[1]) if has_centre else 0.0,
-        has_centre, drop_cut, int(params.min_area_px), int(params.max_area_px),
-        -1 if max_regions is None else int(max_regions), bool(weighted), _BATCH_MAX_SIDE,
-        _CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX, _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL,
-        _FLAT_MIN_GAIN)
+    cu, cv = (float(centre_px[0]), float(centre_px[1])) if centre_px is not None \
+        else (math.nan, math.nan)
+    walk = RegionWalk(has_centre=centre_px is not None, centre_u=cu, centre_v=cv,
+                      drop_cut=bool(drop_cut), min_area_px=int(params.min_area_px),
+                      max_area_px=int(params.max_area_px),
+                      max_regions=-1 if max_regions is None else int(max_regions))
+    classified = _classify(arr(grey, np.uint8), arr(mask, np.uint8), arr(b, np.int64), walk,
+                           bool(weighted), _CORE, FLAT)
+    order, alone, row_of, stats = (classified.order, classified.alone, classified.row_of,
+                                   classified.stats)
     rows = np.empty((n, 8))
     counts = np.zeros(len(_REASONS), np.int64)
     small, large = _REASONS.index("small"), _REASONS.index("large")
     pos = n_rows = 0
     while True:
-        pos, n_rows = _walk(order, b, cut, row_of, stats, pos, n_rows, int(params.min_area_px),
-                            int(params.max_area_px), -1 if max_regions is None
-                            else int(max_regions), rows, counts)
+        pos, n_rows = _walk(classified, b, walk, pos, n_rows, rows, counts)
         if pos >= n:
             break
         ci = int(order[pos])
@@ -657,21 +706,24 @@ def _measure_regions(grey: np.ndarray, mask: np.ndarray, contours: Sequence[np.n
 
 
 @njit
-def _classify(grey, mask, boxes, cu, cv, has_centre, drop_cut, min_area, max_area,
-              max_regions, weighted, batch_max_side, core, flat_min_area, erode, min_px,
-              max_residual, min_gain):  # pragma: no cover - compiled
-    """``(order, alone, cut, row_of, stats)`` of the regions' boxes ``(N, 4)`` ``(x0,
-    y0, bw, bh)``: the order they are examined in (nearest ``(cu, cv)`` first, stably,
-    with ``has_centre``); which are alone (no other box reaches the box grown as in
-    :func:`_region_stats`); which reach the frame's edge (a light cut by it, its
-    centroid biased inwards: dropped with ``drop_cut``; on a tilted rig a far light
-    leaving the top of the frame moved the pose by 2 cm); and the lone regions of a
-    plausible size measured together (:func:`_lone_stats`, rows ``stats``; ``row_of``
-    a region's row there, -1: none), in the order examined, a few more than can be
-    examined (``max_regions`` + 2; -1: no limit)."""
+def _classify(grey, mask, boxes, walk, weighted, core, flat):  # pragma: no cover - compiled
+    """The :class:`Classified` regions' boxes ``(N, 4)`` ``(x0, y0, bw, bh)``, as
+    ``walk`` (a :class:`RegionWalk`) says: the order they are examined in (nearest
+    its centre first, stably, with ``has_centre``); which are alone (no other box
+    reaches the box grown as in :func:`_region_stats`); which reach the frame's edge (a
+    light cut by it, its centroid biased inwards: dropped with ``drop_cut``; on a
+    tilted rig a far light leaving the top of the frame moved the pose by 2 cm); and
+    the lone regions of a plausible size whose grown box fits
+    :data:`_BATCH_MAX_SIDE` measured together (:func:`_lone_stats` with ``weighted``,
+    ``core``, ``flat``; rows ``stats``; ``row_of`` a region's row there, -1: none), in
+    the order examined, a few more than can be examined (``max_regions`` + 2; -1: no
+    limit)."""
     H, W = grey.shape
     n = boxes.shape[0]
-    order = _order(boxes.astype(np.float64), cu, cv) if has_centre else np.arange(n)
+    drop_cut, min_area, max_area = walk.drop_cut, walk.min_area_px, walk.max_area_px
+    max_regions, batch_max_side = walk.max_regions, _BATCH_MAX_SIDE
+    order = _order(boxes.astype(np.float64), walk.centre_u, walk.centre_v) \
+        if walk.has_centre else np.arange(n)
     alone = _lone(boxes)
     cut = np.zeros(n, np.bool_)
     batch = np.zeros(n, np.bool_)
@@ -690,25 +742,27 @@ def _classify(grey, mask, boxes, cu, cv, has_centre, drop_cut, min_area, max_are
             todo[k] = i
             k += 1
     stats = np.empty((k, 8))
-    good = _lone_stats(grey, mask, boxes[todo[:k]], weighted, core, flat_min_area, erode,
-                       min_px, max_residual, min_gain, stats)
+    good = _lone_stats(grey, mask, boxes[todo[:k]], weighted, core, flat, stats)
     row_of = np.full(n, -1, np.int64)
     for r in range(k):
         if good[r]:
             row_of[todo[r]] = r
-    return order, alone, cut, row_of, stats
+    return Classified(order, alone, cut, row_of, stats)
 
 
 @njit
-def _walk(order, boxes, cut, row_of, stats, start, n_rows, min_area, max_area, max_regions,
-          rows, counts):  # pragma: no cover - compiled
-    """The regions in the order examined from position ``start``, ``n_rows`` rows
-    found so far: each dropped (``counts`` by :data:`_REASONS`: past ``max_regions``
-    rows (-1: no limit), a box or a region below ``min_area``, cut by the frame's edge)
-    or its row of ``stats`` appended to ``rows``, until one the caller must measure (no
-    row: another region reaches it; a box beyond 4 ``max_area`` or a region beyond
-    ``max_area``: a glare halo). Returns ``(its position, or N when none is left,
-    n_rows)``."""
+def _walk(classified, boxes, walk, start, n_rows, rows, counts):  # pragma: no cover
+    """The regions of ``classified`` (:func:`_classify`'s) in the order examined from
+    position ``start``, ``n_rows`` rows found so far, as ``walk`` (a
+    :class:`RegionWalk`) says: each dropped (``counts`` by :data:`_REASONS`: past
+    ``max_regions`` rows (-1: no limit), a box or a region below ``min_area_px``, cut
+    by the frame's edge) or its row of ``stats`` appended to ``rows``, until one the
+    caller must measure (no row: another region reaches it; a box beyond 4
+    ``max_area_px`` or a region beyond ``max_area_px``: a glare halo). Returns ``(its
+    position, or N when none is left, n_rows)``."""
+    order, cut, row_of, stats = (classified.order, classified.cut, classified.row_of,
+                                 classified.stats)
+    min_area, max_area, max_regions = walk.min_area_px, walk.max_area_px, walk.max_regions
     n = order.size
     for pos in range(start, n):
         ci = order[pos]

@@ -26,11 +26,7 @@ import numpy as np
 from ceilkit.runtime.jit import arr, njit, warmer
 
 from .spots import (
-    _FLAT_ERODE_PX,
-    _FLAT_MAX_RESIDUAL,
-    _FLAT_MIN_GAIN,
-    _FLAT_MIN_PX,
-    FLAT_MIN_AREA_PX,
+    FLAT,
     SpotParams,
     Spots,
     _examination_order,
@@ -74,8 +70,7 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
     k = corner.shape[0]
     r = (arr(rect, np.int64).reshape(-1, 4) if rect is not None
          else np.tile(np.array([0, 0, side - 1, side - 1], np.int64), (k, 1)))
-    out = _read_windows(grey, corner, side, r, float(core), FLAT_MIN_AREA_PX, _FLAT_ERODE_PX,
-                        _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN)
+    out = _read_windows(grey, corner, side, r, float(core), FLAT)
     i_b, peak, area, i_o = out[:, 0], out[:, 1], out[:, 2], out[:, 4]
     touches = out[:, 3] > 0
     mom = out[:, 5:]                              # m00 m10 m20 m01 m02 m11
@@ -97,16 +92,16 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
 
 
 @njit
-def _read_windows(grey, corner, side, rect, core, flat_min_area, erode, min_px,
-                  max_residual, min_gain):  # pragma: no cover - compiled
+def _read_windows(grey, corner, side, rect, core, flat):  # pragma: no cover - compiled
     """Per window ``(I_b, peak, area, on_border, I_o, m00, m10, m20, m01, m02, m11)``
     (K, 11) float64: the border's mean; the peak inside ``rect`` (0 when it holds no
     pixel); the pixels inside above half way from ``I_b`` to the peak (their count,
     whether one lies on the window's border, their mean); the raw moments, ``(x, y)``
     from the window's centre, of ``max(I - I_b - core (I_o - I_b), 0)`` inside
     ``rect``, where ``I`` is the window divided by its plateau's gain when the spot
-    has ``flat_min_area`` pixels or more and the plane explains the plateau
-    (:func:`_plateau`, the reading of :func:`~.spots.flattened`)."""
+    has ``flat.min_area_px`` pixels or more and the plane explains the plateau
+    (``flat``: a :class:`~.spots.Flattening`; :func:`_plateau`, the reading of
+    :func:`~.spots.flattened`)."""
     k = corner.shape[0]
     out = np.zeros((k, 11))
     last = side - 1
@@ -121,16 +116,17 @@ def _read_windows(grey, corner, side, rect, core, flat_min_area, erode, min_px,
         i_b, peak, area, edge, i_o, above = _levels(win, box, row_peak)
         base = i_b + core * (i_o - i_b)
         plane = (False, 1.0, 0.0, 0.0, 0.0, 0.0)
-        if area >= flat_min_area:
+        if area >= flat.min_area_px:
             _mark(win, box, above, obj)
-            plane = _plateau(win, obj, tmp, i_o - i_b, erode, min_px, max_residual)
+            plane = _plateau(win, obj, tmp, i_o - i_b, flat.erode_px, flat.min_px,
+                             flat.max_residual)
         out[n, 0] = i_b
         out[n, 1] = peak
         out[n, 2] = area
         out[n, 3] = edge
         out[n, 4] = i_o
         if plane[0]:
-            _weighted_moments(win, box, base, plane, min_gain, out[n, 5:])
+            _weighted_moments(win, box, base, plane, flat.min_gain, out[n, 5:])
         else:
             _plain_moments(win, box, base, row_peak, out[n, 5:])
     return out

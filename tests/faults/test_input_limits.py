@@ -114,6 +114,9 @@ YAMLS = {   # a rig.yaml that once hung, raised or printed megabytes -> its one 
         "invalid YAML at line 3, column 64: a number of 89999 characters (at most 64)"),
     "a number past a float": (RIG.replace("z: 0.80}", "z: 1.0e+400}"),
                               "mount.z: expected a finite number m, found inf"),
+    "100 000 nested lists": (RIG + "x: " + "[" * 100_000 + "\n",  # a RecursionError once
+                             "invalid YAML: nested too deeply (thousands of levels; a "
+                             "config file has a few)"),
 }
 
 
@@ -257,3 +260,21 @@ def test_the_library_refuses_a_bad_value_naming_its_parameter(call, key):
     with pytest.raises(ConfigError) as err:
         call()
     assert err.value.key == key and err.value.path is None
+
+
+EMPTY_PATHS = [  # an empty path flag (an unset shell variable) is read as '.' once converted
+    ["--device", "sim:corridor", "--rig", ""],
+    ["--device", "sim:corridor", "--out", ""],
+    ["--device", "sim:corridor", "--capture", ""],
+    ["replay", "x", "--overlays", ""],
+    ["replay", ""],
+]
+
+
+@pytest.mark.parametrize("argv", EMPTY_PATHS, ids=[" ".join(a[-2:]) for a in EMPTY_PATHS])
+def test_an_empty_path_flag_is_refused_naming_it(argv):
+    res = CliRunner().invoke(app, argv)
+    flag = argv[-2] if argv[-2].startswith("--") else "RECORDING"
+    assert res.exit_code == 1, res.output
+    assert res.stderr.strip() == f"ceilrun: error: {flag}: expected a value, found an " \
+                                 "empty string"

@@ -5,9 +5,11 @@ folder at once (the lock). Table-driven: one row per output kind, one per overla
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import subprocess
 import sys
+import threading
 
 import pytest
 from typer.testing import CliRunner
@@ -15,7 +17,7 @@ from typer.testing import CliRunner
 from ceilkit.cli.ceilcal import app as ceilcal
 from ceilkit.cli.ceilrun import app as ceilrun
 from ceilkit.runtime.errors import OutputError
-from ceilkit.runtime.io.outputs import LOCK_NAME, FolderLock
+from ceilkit.runtime.io.outputs import LOCK_NAME, FolderLock, file_lock
 from ceilkit.runtime.replay import replay
 from helpers import CONFIGS, FIXTURES
 
@@ -37,6 +39,27 @@ def _refused(res, tool: str, *words: str) -> str:
     assert len(lines) == 1 and lines[0].startswith(f"{tool}: error: "), res.stderr
     assert all(w in lines[0] for w in words), lines[0]
     return lines[0]
+
+
+@contextlib.contextmanager
+def held_elsewhere(lock):
+    """``lock`` (a :class:`FolderLock`) held by another thread, as by another run: a lock
+    the same thread holds is taken again (a run's own nested step)."""
+    taken, release = threading.Event(), threading.Event()
+
+    def hold():
+        with lock:
+            taken.set()
+            release.wait(30)
+
+    thread = threading.Thread(target=hold, daemon=True)
+    thread.start()
+    assert taken.wait(10)
+    try:
+        yield lock
+    finally:
+        release.set()
+        thread.join(10)
 
 
 # -- one row per output kind: (tool, file made by the user, arguments) ---------------------
@@ -65,6 +88,21 @@ KINDS = [
                                  "{t}/capture.yaml"]),
     ("ceilcal", "chk/check-site.yaml", ["check-site", "--rig", "{rec}/rig.yaml", "--site",
                                         "{rec}/site.yaml", "--out", "{t}/chk"]),
+    # every file of an --out folder, the --plots of each command, the single files
+    ("ceilrun", "o/run.yaml", ["replay", "{rec}", "--out", "{t}/o", "--method", "corridor"]),
+    ("ceilrun", "o/run.yaml", ["--device", "sim:corridor", "--frames", "2", "--out",
+                               "{t}/o"]),
+    ("ceilcal", "pl/views.png", ["intrinsics", "{t}", "--board", "chess:9x6", "--square",
+                                 "0.025", "--out", "{t}/cam.yaml", "--plots", "{t}/pl"]),
+    ("ceilcal", "pl/mount_residuals.png", ["mount", "{t}/p.yaml", "--site",
+                                           "{rec}/site.yaml", "--camera", "{t}/c.yaml",
+                                           "--out", "{t}/rig.yaml", "--plots", "{t}/pl"]),
+    ("ceilcal", "pl/lightmap.png", ["lightmap", "{rec}", "--out", "{t}/site.yaml", "--plots",
+                                    "{t}/pl"]),
+    ("ceilcal", "b.pdf", ["board", "--board", "chess:9x6", "--square", "0.025", "--out",
+                          "{t}/b.pdf"]),
+    ("ceilcal", "ap.param", ["autopilot", "--rig", "{rec}/rig.yaml", "--firmware",
+                             "ardupilot-4.6", "--out", "{t}/ap.param"]),
 ]
 
 
@@ -79,6 +117,47 @@ def test_an_existing_output_is_refused_naming_it_and_force(tmp_path, rec, tool, 
                     str(target), "already there", "--force")
     assert "force=True" not in line
     assert target.read_bytes() == MARK
+
+
+# -- one row per calibration file: not replaced while another run writes it ---------------
+LONE = [k for k in KINDS if k[0] == "ceilcal" and "/" not in k[1] and k[1] != "rig.urdf.xml"]
+
+
+@pytest.mark.parametrize(("tool", "made", "args"), LONE, ids=[f"{a[0]}-{m}" for _, m, a in LONE])
+def test_a_calibration_file_being_written_is_refused_even_with_force(tmp_path, rec, tool,
+                                                                     made, args):
+    target = tmp_path / made
+    target.write_bytes(MARK)
+    argv = [a.format(rec=rec, t=tmp_path) for a in args] + ["--force"]
+    with held_elsewhere(file_lock(target)):  # another run is writing it
+        _refused(run(ceilcal, argv), tool, f"{target}: another run", "is writing it",
+                 f".{made}{LOCK_NAME}", "nothing was written")
+    assert target.read_bytes() == MARK
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == [made]
+
+
+def test_a_plots_folder_is_locked_and_never_an_input(tmp_path, rec):
+    argv = ["lightmap", str(rec), "--out", str(tmp_path / "site.yaml"), "--plots"]
+    with held_elsewhere(FolderLock(tmp_path / "pl")):
+        _refused(run(ceilcal, [*argv, str(tmp_path / "pl")]), "ceilcal", "another run")
+    frames = sorted(p.name for p in (rec / "frames").iterdir())
+    _refused(run(ceilcal, [*argv, str(rec / "frames")]), "ceilcal", "--plots",
+             "is an input of this run")
+    assert sorted(p.name for p in (rec / "frames").iterdir()) == frames
+    assert not (tmp_path / "site.yaml").exists()
+
+
+def test_the_guided_calibration_refuses_plots_it_would_replace_naming_redo(tmp_path, rec):
+    (tmp_path / "pl").mkdir()
+    (tmp_path / "pl" / "views.png").write_bytes(MARK)
+    line = _refused(run(ceilcal, [
+        "calibrate", "--boards", str(tmp_path / "b"), "--board", "chess:9x6", "--square",
+        "0.025", "--placements", str(tmp_path / "p.yaml"), "--site", str(rec / "site.yaml"),
+        "--out", str(tmp_path / "cal"), "--plots", str(tmp_path / "pl")]),
+        "ceilcal", str(tmp_path / "pl" / "views.png"), "already there", "--redo")
+    assert "--force" not in line
+    assert (tmp_path / "pl" / "views.png").read_bytes() == MARK
+    assert not (tmp_path / "cal").exists()  # its lock made it and took it away
 
 
 # -- one row per overlap of an output with an input or another output --------------------
@@ -125,7 +204,7 @@ def test_calibration_outputs_may_not_be_inputs(tmp_path, rec):
 # -- the lock -------------------------------------------------------------------------------
 def test_a_folder_being_written_is_refused_and_released(tmp_path, rec):
     out = tmp_path / "o"
-    with FolderLock(out):  # another run (another open of the lock) holds it
+    with held_elsewhere(FolderLock(out)):  # another run holds it
         line = _refused(run(ceilrun, ["replay", str(rec), "--out", str(out)]), "ceilrun",
                         str(out), "another run", "is writing here", LOCK_NAME)
         assert "nothing was written" in line and not (out / "poses.csv").exists()

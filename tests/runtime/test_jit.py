@@ -1,14 +1,22 @@
 """runtime/jit.py: the warm-up makes the chosen methods' loops only, says how far it is,
-and every loop a method's frames call is among the ones it made."""
+and every loop a method's frames call is among the ones it made; a loop called from
+another reuses its read-only version; a first start shares the compiling with helper
+processes."""
 
 from __future__ import annotations
 
+import importlib
+import os
+import sys
+
 import numba
+import numpy as np
 import pytest
 
 from ceilkit.runtime import jit
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.corridor.estimator import CorridorEstimator
 from ceilkit.runtime.estimators.lights.estimator import LightsEstimator
 from ceilkit.runtime.multi import make_localizer
@@ -107,3 +115,127 @@ class _Recorder:
 
     def __getattr__(self, name):
         return getattr(self.dispatcher, name)
+
+
+INNER = '''
+import numpy as np
+from ceilkit.runtime.jit import arr, njit, warmer
+
+
+@njit
+def twice(a, out):
+    for i in range(a.shape[0]):
+        out[i] = 2.0 * a[i]
+    return out
+
+
+@warmer
+def _warm():
+    twice(arr(np.ones(2), np.float64), np.empty(2))
+'''
+
+OUTER = '''
+import numpy as np
+from ceilkit.runtime.jit import arr, njit, warmer
+from {inner} import twice
+
+
+@njit
+def total(a, k):
+    b = a * 1.0                        # writable: numba alone would compile a twin
+    return twice(b, np.empty(b.shape[0])).sum() + twice(b, np.empty(3))[k]
+
+
+@warmer
+def _warm():
+    total(arr(np.ones(3), np.float64), 0)
+'''
+
+
+@pytest.fixture
+def loop_modules(tmp_path, monkeypatch, request):
+    """Two fresh modules of compiled loops (the outer one calls the inner one), with
+    their numba cache beside them in ``tmp_path`` (empty: a first start)."""
+    tag = request.node.name.replace("[", "_").replace("]", "").replace("-", "_")
+    inner, outer = f"jit_inner_{tag}", f"jit_outer_{tag}"
+    (tmp_path / f"{inner}.py").write_text(INNER)
+    (tmp_path / f"{outer}.py").write_text(OUTER.format(inner=inner))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(
+        [str(tmp_path), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    monkeypatch.setattr(jit, "_PENDING", [])
+    mods = importlib.import_module(inner), importlib.import_module(outer)
+    yield mods
+    for m in (inner, outer):
+        sys.modules.pop(m, None)
+
+
+def test_an_inner_call_reuses_the_read_only_version(loop_modules):
+    inner, outer = loop_modules
+    x = jit.arr(np.arange(3.0), np.float64)
+    assert outer.total(x, 2) == 10.0
+    # one machine code for the call from Python (read-only input) and from the loop
+    # (writable input, literal index): numba alone makes two of each
+    assert inner.twice.signatures == [(numba.float64[::1].copy(readonly=True),
+                                       numba.float64[::1])]
+    assert len(outer.total.signatures) == 1
+    np.testing.assert_array_equal(inner.twice(x, np.empty(3)), [0.0, 2.0, 4.0])
+    # a call from Python with a writable input still gets its own exact version
+    assert outer.total.py_func(x, 2) == 10.0          # calls `twice` from Python
+    assert len(inner.twice.signatures) == 2
+
+
+def test_unwritten_finds_the_arrays_a_loop_only_reads():
+    def f(a, b, c, d, e, g, h, k):
+        c[0] = a[1] + len(b) * e.shape[0]
+        v = d[1:]               # a view kept: may be written through
+        for x in g:
+            h(x)                # handed to a call: may be written
+        c[1:2] += k * 2.0
+        return v
+
+    assert jit.unwritten(f) == frozenset({0, 1, 4, 5, 7})
+    assert jit.unwritten(len) == frozenset()          # no source
+
+
+def test_a_cold_warm_up_shares_the_compiling_with_a_helper(loop_modules, monkeypatch):
+    inner, outer = loop_modules
+    names = [inner.__name__, outer.__name__]
+    assert jit.callee_first(names[::-1]) == names
+    assert not jit.cached(names)
+    steps: list[jit.WarmUpProgress] = []
+    with jit.reporting(steps.append):
+        jit.warm_up(roots=names, helpers=1)
+    assert jit._PENDING == []
+    assert jit.cached(names)
+    # this process made the inner module, the helper the outer one, which is then
+    # loaded here from the cache
+    assert sum(outer.total.stats.cache_hits.values()) == 1
+    assert sum(inner.twice.stats.cache_misses.values()) == 1
+    assert [(s.done, s.total, s.module, s.compiled) for s in steps] == [
+        (0, 2, names[0], 0), (2, 2, "", 2)]
+    assert steps[-1].line().startswith("compiling the per-frame loops (first start on this "
+                                       "machine, 2 processes; ")
+    assert outer.total(jit.arr(np.arange(3.0), np.float64), 2) == 10.0
+
+
+def test_a_helper_that_cannot_make_a_module_hands_it_back(loop_modules, monkeypatch):
+    inner, outer = loop_modules
+    monkeypatch.delenv("PYTHONPATH")            # the helper cannot import them
+    names = [inner.__name__, outer.__name__]
+    with jit.reporting(lambda p: None):
+        jit.warm_up(roots=names, helpers=1)
+    assert jit._PENDING == [] and jit.cached(names)
+    assert sum(outer.total.stats.cache_misses.values()) == 1   # made here after all
+
+
+def test_helper_count_reads_the_environment(monkeypatch):
+    monkeypatch.setenv(jit.HELPERS_ENV, "0")
+    assert jit.helper_count() == 0
+    monkeypatch.setenv(jit.HELPERS_ENV, "2")
+    assert jit.helper_count() == 2
+    monkeypatch.delenv(jit.HELPERS_ENV)
+    assert jit.helper_count() == max(0, min(3, len(os.sched_getaffinity(0)) - 1))
+    monkeypatch.setenv(jit.HELPERS_ENV, "two")
+    with pytest.raises(ConfigError, match="CEILKIT_COMPILE_HELPERS: expected a whole"):
+        jit.helper_count()

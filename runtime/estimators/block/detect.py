@@ -23,6 +23,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -249,6 +250,42 @@ class Sides:
     stations: int
 
 
+class EdgeSearch(NamedTuple):
+    """The edge passes of :func:`measure_core` as it reads them: offsets across a side
+    ``first (K,)`` px on the first pass and ``rest`` after, stations along it ``t (S,)``
+    (fractions of the side, :func:`~ceilkit.runtime.features.quads._stations`), the
+    profile's sampling ``step_px`` and the edges' polarity ``sign`` (-1, 0, +1)."""
+
+    first: np.ndarray
+    rest: np.ndarray
+    t: np.ndarray
+    step_px: float
+    sign: int
+
+
+class SidesOut(NamedTuple):
+    """The arrays :func:`measure_core` writes: ``corners (4, 2)``, ``edge (4 S, 2)``
+    (normalized) and ``side (4 S,)`` int64."""
+
+    corners: np.ndarray
+    edge: np.ndarray
+    side: np.ndarray
+
+    @staticmethod
+    def empty(per_side: int) -> SidesOut:
+        """Fresh arrays for ``per_side`` stations a side."""
+        return SidesOut(np.empty((4, 2)), np.empty((4 * per_side, 2)),
+                        np.empty(4 * per_side, np.int64))
+
+
+def edge_search(per_side: int, search_px: float, sign: int = 0) -> EdgeSearch:
+    """The :class:`EdgeSearch` of ``per_side`` stations a side, the first pass
+    ``search_px`` across each side, the next ones :data:`EDGE_SEARCH_PX`."""
+    first, t = _stations(per_side, float(search_px))
+    rest, _ = _stations(per_side, EDGE_SEARCH_PX)
+    return EdgeSearch(first, rest, t, float(EDGE_STEP_PX), int(sign))
+
+
 def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
                   per_side: int, passes: int = 2, search_px: float = EDGE_SEARCH_PX,
                   sign: int = 0) -> Sides | None:
@@ -265,37 +302,34 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
     if not np.isfinite(p0).all():
         return None
     code, lens = geo.camera.lens
-    first, t = _stations(per_side, float(search_px))
-    rest, _ = _stations(per_side, EDGE_SEARCH_PX)
-    corners = np.empty((4, 2))
-    edge = np.empty((4 * per_side, 2))
-    side = np.empty(4 * per_side, np.int64)
-    n = measure_core(arr(grey, np.uint8), p0, passes, first, rest, t, EDGE_STEP_PX,
-                     code, lens, corners, edge, side, int(sign))
+    out = SidesOut.empty(per_side)
+    n = measure_core(arr(grey, np.uint8), p0, passes, edge_search(per_side, search_px, sign),
+                     code, lens, out)
     if n < 0:
         return None
-    return Sides(corners, edge[:n], side[:n], 4 * per_side)
+    return Sides(out.corners, out.edge[:n], out.side[:n], 4 * per_side)
 
 
 @njit
-def measure_core(grey, p0, passes, first, rest, t, step, code, lens, corners, edge, side,
-                 sign=0):  # pragma: no cover - compiled
-    """:func:`measure_sides` of the quad ``p0 (4, 2)`` px (finite): the corners
-    (normalized) into ``corners (4, 2)``, the edge points (normalized) and their sides
-    into the first ``count`` rows of ``edge (4 S, 2)``, ``side (4 S,)``; returns
-    ``count``, or -1 (no measurement). Offsets across a side: ``first (K,)`` on the
-    first pass, ``rest`` after; stations ``t (S,)`` along it. A last pass that loses
-    a side keeps the previous pass's points (through the lens). ``sign``: the edges'
-    polarity (:func:`~ceilkit.runtime.features.quads.edge_points`'). (numba keys this
-    loop's cache on this file's contents only: a change to ``quads._edge_points``,
-    compiled into it, is taken only once this file changes too.)"""
+def measure_core(grey, p0, passes, search, code, lens, out):  # pragma: no cover
+    """:func:`measure_sides` of the quad ``p0 (4, 2)`` px (finite), ``passes`` edge
+    passes as ``search`` (an :class:`EdgeSearch`) says, through the lens ``code, lens``
+    (:attr:`.CameraModel.lens`): the corners (normalized) into ``out.corners (4, 2)``,
+    the edge points (normalized) and their sides into the first ``count`` rows of
+    ``out.edge (4 S, 2)``, ``out.side (4 S,)`` (a :class:`SidesOut`); returns
+    ``count``, or -1 (no measurement). A last pass that loses a side keeps the
+    previous pass's points (through the lens). (numba keys this loop's cache on this
+    file's contents only: a change to ``quads._edge_points``, compiled into it, is
+    taken only once this file changes too.)"""
+    corners, edge, side = out.corners, out.edge, out.side
     cur = p0.copy()
     lines = np.empty((4, 3))
     prev_pts = np.empty((0, 2))
     prev_side = np.empty(0, np.int64)
     have_prev = False
     for k in range(passes):
-        pts, sd, n = _edge_points(grey, cur, first if k == 0 else rest, t, step, sign)
+        pts, sd, n = _edge_points(grey, cur, search.first if k == 0 else search.rest,
+                                  search.t, search.step_px, search.sign)
         if _too_few(sd, n):
             if k == passes - 1 and have_prev:
                 return _lens_sides(prev_pts, prev_side, code, lens, lines, corners, edge, side)

@@ -58,7 +58,9 @@ GN_LINEAR_EPS = 1e-4        # a step (m, rad) below this ends the fit: the close
 JAC_EPS = 1e-6              # finite-difference step, m and rad
 _JAC_STEPS = np.vstack([np.zeros(3), np.eye(3) * JAC_EPS])   # the pose and its steps
 _JAC_STEPS.flags.writeable = False
-SIGMA_FLOOR_PX = 0.05       # the residual RMS used for the covariance is at least this
+SIGMA_FLOOR_PX = 0.02       # the residual RMS used for the covariance is at least this
+                            # (a guard: the residuals and the side offsets set it; 0.05
+                            # over-covered a marker drive's error 3x in variance)
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
 
 

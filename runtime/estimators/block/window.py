@@ -21,13 +21,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import (
     Sides,
+    SidesOut,
     contrast_core,
+    edge_search,
     measure_core,
     side_lengths_m,
 )
@@ -37,7 +39,7 @@ from ceilkit.runtime.estimators.block.pnp import (
     Refined,
     solve_core,
 )
-from ceilkit.runtime.features.quads import BORDER_PX, EDGE_SEARCH_PX, EDGE_STEP_PX, _stations
+from ceilkit.runtime.features.quads import BORDER_PX
 from ceilkit.runtime.geometry.camera import distort_points
 from ceilkit.runtime.geometry.ceiling import ceiling_norm
 from ceilkit.runtime.geometry.fits import rigid_fit_rms
@@ -99,6 +101,58 @@ def shape_fits(blocks: Any, pv: np.ndarray, dark: bool, shape_tol: float
     return out
 
 
+class Mount(NamedTuple):
+    """The rig as the compiled loops take it: ``R (3, 3)``, ``t (3,)`` the camera in
+    the vehicle frame (read-only float64), the ceiling's height ``ceiling_m`` above the
+    camera's origin, and the lens ``code``, ``lens (13,)``
+    (:attr:`~ceilkit.runtime.geometry.camera.CameraModel.lens`)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    ceiling_m: float
+    code: int
+    lens: np.ndarray
+
+
+class WindowCheck(NamedTuple):
+    """The window check of one target as :func:`window_core` applies it: the edge
+    points each side needs ``min_count``, the target's polarity ``dark`` and the
+    contrast it needs across its outline (``dark_ratio`` below, ``bright_ratio``
+    above), the largest edge residual ``max_rms_px``, shape misfit ``max_shape_m`` and
+    move of the refined outline from the predicted one ``window_px``."""
+
+    min_count: float
+    dark: bool
+    dark_ratio: float
+    bright_ratio: float
+    max_rms_px: float
+    max_shape_m: float
+    window_px: float
+
+
+class SolvedOut(NamedTuple):
+    """The arrays :func:`window_core` writes besides the sides: ``pose (4,)`` (x, y,
+    yaw, shape_m), ``cov (3, 3)`` and ``unit (3, 3)`` as :func:`.pnp.solve_core`
+    writes them."""
+
+    pose: np.ndarray
+    cov: np.ndarray
+    unit: np.ndarray
+
+
+class WindowResult(NamedTuple):
+    """What :func:`window_core` returns: whether the check passed ``ok``, the edge
+    points measured ``n`` and used ``m``, the edge residual ``rms_px``, the variance
+    scale ``var_b`` and whether ``unit`` was written ``has_unit``."""
+
+    ok: bool
+    n: int
+    m: int
+    rms_px: float
+    var_b: float
+    has_unit: bool
+
+
 @dataclass(frozen=True, eq=False)
 class OutlineFix:
     """A target measured on its predicted outline and solved: its ``sides`` (the
@@ -133,8 +187,10 @@ class Windows:
         none = arr(np.zeros(4, bool), np.bool_)
         self._drop = {t.source: none if drop is None else arr(drop(t.corners_w), np.bool_)
                       for t in targets}
-        self._mount = (arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
-                       float(geo.ceiling_m))
+        code, lens = geo.camera.lens
+        self._mount = Mount(arr(geo.R_vehicle_cam, np.float64),
+                            arr(geo.t_vehicle_cam, np.float64), float(geo.ceiling_m),
+                            code, lens)
 
     def predicted(self, pose: np.ndarray) -> list[tuple[Target, np.ndarray]]:
         """``(target, corners px (4, 2))`` of the targets fully in view from ``pose``
@@ -145,8 +201,8 @@ class Windows:
             return []
         x, y, yaw = (float(v) for v in pose)
         cam = self.geo.camera
-        px, order = predict_core(*self._mount, *cam.lens, x, y, yaw, self._corners,
-                                 self._bright, float(cam.width), float(cam.height),
+        px, order = predict_core(self._mount, (x, y, yaw), self._corners, self._bright,
+                                 (float(cam.width), float(cam.height)),
                                  BORDER_PX + self.options.window_px + 1.0)
         return [(self.targets[k], px[k]) for k in order]
 
@@ -179,35 +235,36 @@ class Windows:
         :data:`TRACK_MAX_RMS_PX`, or a refined outline more than ``window_px``
         from the predicted one. One compiled call (:func:`window_core`)."""
         o = self.options
-        code, lens = self.geo.camera.lens
-        first, t = _stations(o.edge_points, float(o.window_px))
-        rest, _ = _stations(o.edge_points, EDGE_SEARCH_PX)
-        corners, edge = np.empty((4, 2)), np.empty((4 * o.edge_points, 2))
-        side = np.empty(4 * o.edge_points, np.int64)
-        pose, cov, unit = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
-        ok, n, m, rms, var_b, has_unit = window_core(
-            arr(grey, np.uint8), arr(px, np.float64), first, rest, t, EDGE_STEP_PX,
-            code, lens, *self._mount, arr(tgt.corners_w, np.float64), self._drop[tgt.source],
-            TRACK_MIN_SHARE * o.edge_points, tgt.dark, o.dark_ratio, o.bright_ratio,
-            TRACK_MAX_RMS_PX, o.shape_tol * tgt.min_side_m, float(o.window_px),
-            corners, edge, side, pose, cov, unit)
-        if not ok:
+        check = WindowCheck(float(TRACK_MIN_SHARE * o.edge_points), bool(tgt.dark),
+                            float(o.dark_ratio), float(o.bright_ratio), TRACK_MAX_RMS_PX,
+                            float(o.shape_tol * tgt.min_side_m), float(o.window_px))
+        out = SidesOut.empty(o.edge_points)
+        got = SolvedOut(np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
+        r = window_core(arr(grey, np.uint8), arr(px, np.float64),
+                        edge_search(o.edge_points, float(o.window_px)), self._mount,
+                        (arr(tgt.corners_w, np.float64), self._drop[tgt.source]), check,
+                        out, got)
+        if not r.ok:
             return None
-        sides = Sides(corners, edge[:n], side[:n], 4 * o.edge_points)
-        return OutlineFix(sides, float(pose[3]), Refined(pose[:3].copy(), cov, rms, m, var_b,
-                                                        unit if has_unit else None))
+        sides = Sides(out.corners, out.edge[:r.n], out.side[:r.n], 4 * o.edge_points)
+        return OutlineFix(sides, float(got.pose[3]),
+                          Refined(got.pose[:3].copy(), got.cov, r.rms_px, r.m, r.var_b,
+                                  got.unit if r.has_unit else None))
 
 
 @njit
-def predict_core(R, t, ceiling_m, code, lens, x, y, yaw, corners_w, bright, width, height,
-                 margin):  # pragma: no cover - compiled
-    """:meth:`Windows.predicted`: ``(px (T, 4, 2), order)``, the targets (corners
-    ``corners_w (4 T, 2)``) fully inside the frame by ``margin``, dark first, each
-    polarity by decreasing area in the image."""
+def predict_core(mount, pose, corners_w, bright, size, margin):  # pragma: no cover
+    """:meth:`Windows.predicted` from ``pose (x, y, yaw)`` through the rig ``mount`` (a
+    :class:`Mount`): ``(px (T, 4, 2), order)``, the targets (corners
+    ``corners_w (4 T, 2)``, ``bright (T,)``) fully inside the frame ``size (width,
+    height)`` px by ``margin`` px, dark first, each polarity by decreasing area in the
+    image."""
     n = bright.size
-    norm = ceiling_norm(R, t, ceiling_m, x, y, yaw, corners_w, 1e-9)
+    x, y, yaw = pose
+    width, height = size
+    norm = ceiling_norm(mount.R, mount.t, mount.ceiling_m, x, y, yaw, corners_w, 1e-9)
     flat = np.empty_like(norm)
-    distort_points(norm, code, lens, flat)
+    distort_points(norm, mount.code, mount.lens, flat)
     px = flat.reshape(n, 4, 2)
     key = np.empty(n)
     inside = np.zeros(n, np.bool_)
@@ -234,40 +291,47 @@ def predict_core(R, t, ceiling_m, code, lens, x, y, yaw, corners_w, bright, widt
 
 
 @njit
-def window_core(grey, px, first, rest, t, step, code, lens, R, tv, ceiling_m, corners_w,
-                drop, min_count, dark, dark_ratio, bright_ratio, max_rms, max_shape,
-                window_px, corners, edge, side, out, cov, unit):  # pragma: no cover
-    """:meth:`Windows.fix` in one call: ``(ok, edge points, points used, rms_px, σ_b²,
-    has unit)``, the sides into ``corners``, ``edge``, ``side`` and the pose, shape,
-    covariance as :func:`.pnp.solve_core` writes them."""
-    fail = (False, 0, 0, np.nan, 0.0, False)
-    n = measure_core(grey, px, 2, first, rest, t, step, code, lens, corners, edge, side)
+def window_core(grey, px, search, mount, target, check, sides, solved):  # pragma: no cover
+    """:meth:`Windows.fix` in one call: the target ``target (corners_w (4, 2), drop
+    (4,))`` measured about ``px (4, 2)`` (two edge passes as ``search``, a
+    :class:`.detect.EdgeSearch`, says), solved through ``mount`` (a :class:`Mount`) and
+    checked by ``check`` (a :class:`WindowCheck`): a :class:`WindowResult`; the sides
+    into ``sides`` (a :class:`.detect.SidesOut`), the pose, shape and covariance into
+    ``solved`` (a :class:`SolvedOut`) as :func:`.pnp.solve_core` writes them."""
+    corners_w, drop = target
+    corners, edge, side = sides.corners, sides.edge, sides.side
+    out, code, lens = solved.pose, mount.code, mount.lens
+    fail = WindowResult(False, 0, 0, np.nan, 0.0, False)
+    n = measure_core(grey, px, 2, search, code, lens, sides)
     if n < 0:
         return fail
     counts = np.zeros(4)
     for i in range(n):
         counts[side[i]] += 1.0
-    if counts.min() < min_count:
+    if counts.min() < check.min_count:
         return fail
     cpx = np.empty((4, 2))
     distort_points(corners, code, lens, cpx)
     ratio = contrast_core(grey, cpx)
-    if not (ratio < dark_ratio if dark else ratio > bright_ratio):
+    if not (ratio < check.dark_ratio if check.dark else ratio > check.bright_ratio):
         return fail
-    status, m, rms, var_b, has_unit = solve_core(R, tv, ceiling_m, code, lens, corners,
-                                                 corners_w, edge[:n], side[:n], drop, out,
-                                                 cov, unit)
-    if status != SOLVED or rms > max_rms or out[3] > max_shape:
+    status, m, rms, var_b, has_unit = solve_core(mount.R, mount.t, mount.ceiling_m, code,
+                                                 lens, corners, corners_w, edge[:n],
+                                                 side[:n], drop, out, solved.cov,
+                                                 solved.unit)
+    if status != SOLVED or rms > check.max_rms_px or out[3] > check.max_shape_m:
         return fail
     if not (math.isfinite(out[0]) and math.isfinite(out[1]) and math.isfinite(out[2])):
         return fail
-    norm = ceiling_norm(R, tv, ceiling_m, out[0], out[1], out[2], corners_w, 1e-9)
+    norm = ceiling_norm(mount.R, mount.t, mount.ceiling_m, out[0], out[1], out[2],
+                        corners_w, 1e-9)
     moved = np.empty((4, 2))
     distort_points(norm, code, lens, moved)
     for c in range(4):
-        if not math.hypot(moved[c, 0] - px[c, 0], moved[c, 1] - px[c, 1]) <= window_px:
+        if not math.hypot(moved[c, 0] - px[c, 0],
+                          moved[c, 1] - px[c, 1]) <= check.window_px:
             return fail
-    return True, n, m, rms, var_b, has_unit
+    return WindowResult(True, n, m, rms, var_b, has_unit)
 
 
 @warmer

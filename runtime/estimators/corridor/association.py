@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -61,6 +62,15 @@ class OffsetMatch:
     score: float = 0.0
 
 
+class MatchQuery(NamedTuple):
+    """What :func:`match_core` is asked besides the offsets: the gate ``tol_m`` (m),
+    whether there is a prior ``has_prior`` and its camera y ``prior_shift_m`` (m)."""
+
+    tol_m: float
+    has_prior: bool
+    prior_shift_m: float
+
+
 def is_ambiguous(m: OffsetMatch) -> bool:
     """Whether the runner-up of ``m`` scores within :data:`AMBIGUITY_RATIO` of it."""
     return m.runner_up is not None and m.runner_up[0] >= AMBIGUITY_RATIO * m.score
@@ -98,9 +108,10 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
           else np.asarray(compat, dtype=np.float64).reshape(-1, ys.size))
     a = np.zeros(0) if anchors_m is None else np.asarray(anchors_m, dtype=np.float64)
     assign = np.empty(o.size, np.int64)
+    query = MatchQuery(float(tol_m), prior_shift_m is not None,
+                       0.0 if prior_shift_m is None else float(prior_shift_m))
     found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift, score = match_core(
-        o, arr(weights, np.float64).ravel(), ys, float(tol_m), prior_shift_m is not None,
-        0.0 if prior_shift_m is None else float(prior_shift_m), arr(a, np.float64),
+        o, arr(weights, np.float64).ravel(), ys, query, arr(a, np.float64),
         arr(cw, np.float64), assign)
     if not found:
         return None
@@ -155,14 +166,16 @@ def _best_of(idx, soft, sw):  # pragma: no cover - compiled
 
 
 @njit
-def match_core(o_all, w_all, ys, tol, has_prior, prior_shift, anchors, cw_all, assign
+def match_core(o_all, w_all, ys, query, anchors, cw_all, assign
                ):  # pragma: no cover - compiled
-    """:func:`match_offsets` with ``compat`` ``cw_all (N, J)`` (ones: none) and
-    ``anchors (A,)`` (empty: none), the site line of each offset written to ``assign
-    (N,)``: ``(found, shift, n_lines, weight, has_runner, runner score, runner weight,
-    runner shift, score)``: the hypotheses (:func:`_merged_shifts`) scored
-    (:func:`_scored`), the winner and the runner-up (the best more than ``tol`` from
-    it) as :func:`match_offsets` says."""
+    """:func:`match_offsets` of offsets ``o_all (N,)`` with weights ``w_all (N,)`` on
+    the site lines ``ys (J,)`` (``query``: a :class:`MatchQuery`), with ``compat``
+    ``cw_all (N, J)`` (ones: none) and ``anchors (A,)`` (empty: none), the site line of
+    each offset written to ``assign (N,)``: ``(found, shift, n_lines, weight,
+    has_runner, runner score, runner weight, runner shift, score)``: the hypotheses
+    (:func:`_merged_shifts`) scored (:func:`_scored`), the winner and the runner-up
+    (the best more than ``tol`` from it) as :func:`match_offsets` says."""
+    tol, has_prior, prior_shift = query
     nothing = (False, 0.0, 0, 0.0, False, 0.0, 0.0, 0.0, 0.0)
     assign[:] = -1
     ok = np.flatnonzero(np.isfinite(o_all))
@@ -293,6 +306,55 @@ def periodic_spread(offsets: np.ndarray, weights: np.ndarray, spacing_m: float,
     return int(np.count_nonzero(inl)), float(np.sum(weights[ok][inl]))
 
 
+@njit
+def spread_core(q, sel, weights, psi, h, spacing, tol):  # pragma: no cover - compiled
+    """:func:`periodic_spread`'s inliers of the across offsets
+    (:func:`.geometry.across_offsets` at pan ``psi``, height ``h``) of the segments
+    ``sel (N,)`` with level normals ``q (N, 3)`` and ``weights (N,)``, in one loop."""
+    c, s = math.cos(psi), math.sin(psi)
+    n = sel.size
+    ph = np.empty(n)
+    ws = np.empty(n)
+    wc = np.empty(n)
+    k = 0
+    for i in range(n):
+        if not sel[i]:
+            continue
+        nx = c * q[i, 0] - s * q[i, 1]
+        if abs(nx) > 1e-12:
+            ph[k] = 2 * np.pi * (-q[i, 2] * h / nx) / spacing
+            ws[k] = weights[i] * math.sin(ph[k])
+            wc[k] = weights[i] * math.cos(ph[k])
+            k += 1
+    if k == 0:
+        return 0
+    m = math.atan2(pairwise_sum(ws, k), pairwise_sum(wc, k))
+    n_in = 0
+    for t in range(k):
+        r = abs(((ph[t] - m + np.pi) % (2 * np.pi)) - np.pi) * spacing / (2 * np.pi)
+        n_in += r <= tol
+    return n_in
+
+
+@njit
+def unseen_core(offsets, compat, site_y, shift, tol, view):  # pragma: no cover - compiled
+    """How many site lines ``view (J,)`` puts clearly in view that no forward segment
+    (``offsets (N,)``, NaN ignored, ``compat (N, J)``) lies on at camera y ``shift``
+    (within ``tol``, of a fitting kind: ``compat > 0``)."""
+    n_out = 0
+    for j in range(site_y.size):
+        if not view[j]:
+            continue
+        seen = False
+        for i in range(offsets.size):
+            if (math.isfinite(offsets[i]) and abs(offsets[i] + shift - site_y[j]) <= tol
+                    and compat[i, j] > 0):
+                seen = True
+                break
+        n_out += not seen
+    return n_out
+
+
 def edge_compat(pol_w: np.ndarray, ceil_len_m: np.ndarray, setup: CorridorSetup
                 ) -> np.ndarray:
     """``(N, J)`` compatibility of observed forward segments with the site lines' kinds
@@ -358,14 +420,11 @@ def settle_by_absence(m: OffsetMatch, offsets: np.ndarray, weights: np.ndarray,
     forward segment of a fitting kind lies on (``offsets``, ``weights`` ``(N,)`` and
     ``compat (N, J)`` of the forward family); :data:`ABSENCE_PENALTY` each. Returns the
     match kept and whether the two are still within :data:`AMBIGUITY_RATIO`."""
-    ok = np.isfinite(offsets)
     c_w, c_r = m.shift_m, m.runner_up[2]
     in_view = lines_in_view(setup, camera, min_length_px, psi_rad, (c_w, c_r))
-    adj = []
-    for c, view in zip((c_w, c_r), in_view, strict=True):
-        seen = np.any((np.abs(offsets[ok][:, None] + c - setup.site_y[None, :])
-                       <= tol_m) & (compat[ok] > 0), axis=0)
-        adj.append(np.count_nonzero(view & ~seen))
+    o, cw, ys = arr(offsets, np.float64), arr(compat, np.float64), arr(setup.site_y, np.float64)
+    adj = [unseen_core(o, cw, ys, float(c), float(tol_m), in_view[r])
+           for r, c in enumerate((c_w, c_r))]
     s_w = m.score - ABSENCE_PENALTY * adj[0]
     s_r = m.runner_up[0] - ABSENCE_PENALTY * adj[1]
     if s_r > s_w:
@@ -380,8 +439,11 @@ def settle_by_absence(m: OffsetMatch, offsets: np.ndarray, weights: np.ndarray,
 def _warm() -> None:
     f = np.float64
     one = arr(np.ones(2), f)
-    match_core(arr(np.array([0.0, np.nan]), f), one, arr(np.array([0.0, 1.0]), f), 0.1, True,
-               0.0, one, arr(np.ones((2, 2)), f), np.empty(2, np.int64))
+    match_core(arr(np.array([0.0, np.nan]), f), one, arr(np.array([0.0, 1.0]), f),
+               MatchQuery(0.1, True, 0.0), one, arr(np.ones((2, 2)), f), np.empty(2, np.int64))
     compat_core(one, one, one, one)
     anchors_core(one, arr(np.ones((2, 2), bool), np.bool_), one, one,
                  arr(np.ones(2, bool), np.bool_), 0.0)
+    q = arr(np.array([[1.0, 0.0, 0.1], [1.0, 0.0, 0.7]]), f)
+    spread_core(q, arr(np.ones(2, bool), np.bool_), one, 0.0, 2.0, 0.6, 0.05)
+    unseen_core(one, arr(np.ones((2, 2)), f), one, 0.0, 0.1, np.ones(2, np.bool_))

@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -37,13 +38,15 @@ from ceilkit.runtime.estimators.corridor.geometry import (
 )
 from ceilkit.runtime.estimators.corridor.hypotheses import Labeling, angles_core
 from ceilkit.runtime.estimators.corridor.refine import (
-    STEP_DONE,
+    FrameArrays,
     GNInputs,
+    LevelCamera,
     PanOffsetFit,
     RowRates,
     directions_core,
     gn_arrays,
     huber_steps,
+    level_camera,
     observation,
     rows_steps,
 )
@@ -193,41 +196,119 @@ def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: f
     start; that fit is made again here (``solve``) for its residuals and covariance."""
     f64 = np.float64
     rows = rates is not None and tau_s is not None
-    w_rps, v_mps = (rates.w_rps, rates.v_mps) if rows else (0.0, 0.0)
     assign = np.empty(lab.assign.size, np.int64)
+    lines = FrameArrays(fr.segs, fr.lines_t, fr.mx, fr.my, fr.len_n)
+    labeled = Labeled(fr.q, fr.pol, arr(lab.along, np.bool_), arr(lab.across, np.bool_),
+                      arr(lab.assign, np.int64))
+    # the rounds need the rates only (their sigmas make the covariance, solve()'s)
+    shutter = Shutter(rows, RowRates(w_rps=float(rates.w_rps) if rows else 0.0,
+                                     v_mps=float(rates.v_mps) if rows else 0.0,
+                                     sigma_w_rps=0.0, sigma_v_mps=0.0),
+                      arr(tau_s if rows else np.zeros((0, 2)), f64))
+    start = FitStart(float(lab.psi_rad), float(lab.camera_y_m), float(inlier_px),
+                     max(1, iterations))
     psi, cy, n_lines, n_off, arrays, (tau, tau_b) = consensus_core(
-        fr.segs, fr.lines_t, fr.mx, fr.my, fr.len_n, fr.q, fr.pol, arr(lab.along, np.bool_),
-        arr(lab.across, np.bool_), arr(lab.assign, np.int64),
-        arr(tau_s if rows else np.zeros((0, 2)), f64), arr(st.site_y, f64),
-        arr(st.edge_kind, f64), arr(st.R_level_cam, f64), float(st.ceiling_above_cam_m),
-        float(st.f_px), float(lab.psi_rad), float(lab.camera_y_m), float(inlier_px),
-        max(1, iterations), rows, float(w_rps), float(v_mps), assign)
+        lines, labeled, SiteLines(arr(st.site_y, f64), arr(st.edge_kind, f64)),
+        level_camera(st, st.R_level_cam), start, shutter, assign)
     gd = GNInputs(*arrays, tau=tau if rows else None, tau_b=tau_b if rows else None)
     return (replace(lab, assign=assign, n_lines=n_lines, n_off_ceiling=n_off), gd,
             solve(gd, psi, cy))
 
 
+class Labeled(NamedTuple):
+    """A labeled frame as :func:`consensus_core` takes it: the level normals ``q (N, 3)``
+    and polarities ``pol (N,)`` (:class:`~.frame.FrameLines`'), the families ``along,
+    across (N,)`` bool and the site line of each forward segment ``assign (N,)`` (-1:
+    none)."""
+
+    q: np.ndarray
+    pol: np.ndarray
+    along: np.ndarray
+    across: np.ndarray
+    assign: np.ndarray
+
+
+class SiteLines(NamedTuple):
+    """The site's ``lines_along`` as :func:`consensus_core` takes them: ``site_y (J,)``
+    (m) and ``edge_kind (J,)`` (:class:`~.setup.CorridorSetup`'s)."""
+
+    site_y: np.ndarray
+    edge_kind: np.ndarray
+
+
+class FitStart(NamedTuple):
+    """Where the consensus starts: the labeling's camera pan ``psi_rad`` and y
+    ``camera_y_m``, the fit's endpoint gate ``inlier_px`` and its most Gauss-Newton
+    steps ``iterations``."""
+
+    psi_rad: float
+    camera_y_m: float
+    inlier_px: float
+    iterations: int
+
+
+class Shutter(NamedTuple):
+    """A rolling shutter as :func:`consensus_core` takes it: whether there is one
+    (``rows``), its ``rates`` (:class:`~.refine.RowRates`) and the segments' endpoints'
+    row times ``tau_s (N, 2)`` (s; empty without)."""
+
+    rows: bool
+    rates: RowRates
+    tau_s: np.ndarray
+
+
+class Motion(NamedTuple):
+    """What a rolling shutter adds to :func:`_distances`: whether there is one
+    (``rows``), its rates ``w_rps``, ``v_mps`` and the forward endpoints' row times
+    ``tau (2K,)`` (s)."""
+
+    rows: bool
+    w_rps: float
+    v_mps: float
+    tau: np.ndarray
+
+
+class Matched(NamedTuple):
+    """The matched forward segments as :func:`_proposed` takes them: the frame's level
+    normals ``q (N, 3)``, the segments' indices ``ia (M,)`` and their site lines
+    ``line_of (M,)``."""
+
+    q: np.ndarray
+    ia: np.ndarray
+    line_of: np.ndarray
+
+
 @njit
-def consensus_core(segs, lines_t, mx, my, len_n, q, pol, along, across, assign0, tau_s,
-                   site_y, kind, R, h, f_px, psi0, cy0, inlier_px, iterations, rows, w_rps,
-                   v_mps, assign):  # pragma: no cover - compiled
-    """:func:`consensus_fit`'s rounds, the fits by :func:`.refine.huber_steps` (or with
-    ``rows``, :func:`.refine.rows_steps` with the rates ``w_rps, v_mps`` and row times
-    ``tau_s (N, 2)``): the last fit's assignment into ``assign (N,)`` and ``(psi, c_y)``
-    its start, the site lines it matches, the matched segments it left out, its GN
-    inputs' arrays (:func:`.refine.gn_arrays`) and row times (empty without ``rows``)."""
-    gd_all = gn_arrays(segs, lines_t, mx, my, len_n, along, across, assign0, site_y, R, f_px)
+def consensus_core(lines, labeled, site, cam, start, shutter, assign
+                   ):  # pragma: no cover - compiled
+    """:func:`consensus_fit`'s rounds on the frame's segments ``lines`` (a
+    :class:`~.refine.FrameArrays`) labeled as ``labeled`` (:class:`Labeled`), the site's
+    lines ``site`` (:class:`SiteLines`) and the camera ``cam``
+    (:class:`~.refine.LevelCamera`), from ``start`` (:class:`FitStart`); the fits by
+    :func:`.refine.huber_steps` (or with ``shutter.rows``, :func:`.refine.rows_steps`
+    with its rates and row times: :class:`Shutter`): the last fit's assignment into
+    ``assign (N,)`` and ``(psi, c_y)`` its start, the site lines it matches, the
+    matched segments it left out, its GN inputs' arrays (:func:`.refine.gn_arrays`)
+    and row times (empty without ``rows``)."""
+    q, pol, along, across, assign0 = labeled
+    site_y, kind = site
+    psi0, cy0, inlier_px, iterations = start
+    rows, tau_s = shutter.rows, shutter.tau_s
+    R, f_px = cam.R, cam.f_px
+    gd_all = gn_arrays(lines, along, across, assign0, site_y, cam)
     ia = np.flatnonzero(along & (assign0 >= 0))
     m = ia.size
     line_of = assign0[ia]
     tau_all = (_row_times(tau_s, along & (assign0 >= 0), across) if rows
                else (np.zeros(0), np.zeros(0)))
-    noise = vanishing_scale(psi0, R, lines_t, mx, my, len_n, along, f_px)
+    noise = vanishing_scale(psi0, R, lines.lines_t, lines.mx, lines.my, lines.len_n, along,
+                            f_px)
     sigma = max(CONSENSUS_SIGMA_PX, VP_SIGMAS * noise)
     most = max(inlier_px, GATE_SIGMAS * noise)
     inl = np.zeros(m, np.bool_)
-    n_core, cy = _proposed(q, ia, line_of, site_y, h, psi0, cy0, gd_all, R, f_px, rows, w_rps,
-                           v_mps, tau_all[0], sigma, inl)
+    motion = Motion(rows, shutter.rates.w_rps, shutter.rates.v_mps, tau_all[0])
+    n_core, cy = _proposed(Matched(q, ia, line_of), site_y, cam, (psi0, cy0), gd_all, motion,
+                           sigma, inl)
     kind_gate = np.empty(m)
     for t in range(m):
         seam_step = kind[line_of[t]] == 0 and abs(pol[ia[t]]) == 1
@@ -245,17 +326,15 @@ def consensus_core(segs, lines_t, mx, my, len_n, q, pol, along, across, assign0,
             if not inl[t]:
                 assign[ia[t]] = -1
         psi_s, cy_s = psi, cy
-        gd = gn_arrays(segs, lines_t, mx, my, len_n, along, across, assign, site_y, R, f_px)
+        gd = gn_arrays(lines, along, across, assign, site_y, cam)
         r = np.empty(gd[1].size + gd[5].size)
         if rows:
             tau = _row_times(tau_s, along & (assign >= 0), across)
-            psi, cy, _ = rows_steps(psi, cy, *gd[1:], np.concatenate(tau), R, h, f_px,
-                                    iterations, STEP_DONE[0], STEP_DONE[1], w_rps, v_mps, 0.0,
-                                    0.0, r, C)
+            psi, cy, _ = rows_steps((psi, cy), gd, np.concatenate(tau), cam, iterations,
+                                    shutter.rates, r, C)
         else:
-            psi, cy = huber_steps(psi, cy, *gd[1:], R, h, f_px, iterations, STEP_DONE[0],
-                                  STEP_DONE[1], r)[:2]
-        _distances(psi, cy, gd_all, R, h, f_px, rows, w_rps, v_mps, psi, cy, tau_all[0], dist)
+            psi, cy = huber_steps((psi, cy), gd, cam, iterations, r)[:2]
+        _distances((psi, cy), gd_all, cam, motion, (psi, cy), dist)
         for t in range(2 * m):
             dist[t] = abs(dist[t])
         if gate < 0:                # the core's scatter about its own fit
@@ -278,13 +357,17 @@ def consensus_core(segs, lines_t, mx, my, len_n, q, pol, along, across, assign0,
 
 
 @njit
-def _proposed(q, ia, line_of, site_y, h, psi0, cy0, gd_all, R, f_px, rows, w_rps, v_mps, tau,
-              sigma, inl):  # pragma: no cover - compiled
-    """The consensus at pan ``psi0``: the proposals (each matched segment ``ia`` on its
-    site line, by :func:`.geometry.along_offsets`, then the labeling's ``cy0``; NaN
-    left out) scored by :func:`score_core` (scale ``sigma``, gate ``2 sigma``): the
-    site lines of the winner's inliers (written to ``inl``) and its camera y (``cy0``
-    when nothing was proposed)."""
+def _proposed(matched, site_y, cam, start, gd_all, motion, sigma, inl
+              ):  # pragma: no cover - compiled
+    """The consensus at the labeling's ``start = (psi0, cy0)``: the proposals (each
+    matched segment, :class:`Matched`, on its site line of ``site_y``, by
+    :func:`.geometry.along_offsets`, then ``cy0``; NaN left out) scored by
+    :func:`score_core` (scale ``sigma``, gate ``2 sigma``; the distances
+    :func:`_distances` with ``motion``): the site lines of the winner's inliers
+    (written to ``inl``) and its camera y (``cy0`` when nothing was proposed)."""
+    q, ia, line_of = matched
+    psi0, cy0 = start
+    h = cam.h_m
     m = ia.size
     c, s = math.cos(psi0), math.sin(psi0)
     cands = np.empty(m + 1)
@@ -303,8 +386,7 @@ def _proposed(q, ia, line_of, site_y, h, psi0, cy0, gd_all, R, f_px, rows, w_rps
         return 0, cy0
     d = np.empty((k, 2 * m))
     for r in range(k):
-        _distances(psi0, cands[r], gd_all, R, h, f_px, rows, w_rps, v_mps, psi0, cy0, tau,
-                   d[r])
+        _distances((psi0, cands[r]), gd_all, cam, motion, start, d[r])
     best, n_lines = score_core(d, line_of, sigma, 2.0 * sigma, inl)
     return n_lines, cands[best]
 
@@ -326,14 +408,15 @@ def _core_gate(dist, inl, most):  # pragma: no cover - compiled
 
 
 @njit
-def _distances(psi, cy, gd, R, h, f_px, rows, w_rps, v_mps, psi_r, cy_r, tau, out
-               ):  # pragma: no cover - compiled
-    """:func:`endpoint_distances` at ``(psi, c_y)`` of the along endpoints of ``gd`` (the
-    arrays of :func:`.refine.gn_arrays`) into ``out``, plus with ``rows`` what a
-    rolling shutter adds to them at ``(psi_r, c_y_r)``: first order in the rates
-    (:func:`.refine.gauss_newton_rows`), ``(J_psi w + J_cy v) tau`` (row times
-    ``tau``)."""
-    _, y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b = gd
+def _distances(at, gd, cam, motion, ref, out):  # pragma: no cover - compiled
+    """:func:`endpoint_distances` at ``at = (psi, c_y)`` of the along endpoints of ``gd``
+    (the arrays of :func:`.refine.gn_arrays`; ``cam``: the
+    :class:`~.refine.LevelCamera`) into ``out``, plus with ``motion.rows`` what a
+    rolling shutter adds to them at ``ref = (psi_r, c_y_r)``: first order in the rates
+    (:func:`.refine.gauss_newton_rows`), ``(J_psi w + J_cy v) tau`` (:class:`Motion`)."""
+    psi, cy = at
+    R, h, f_px = cam.R, cam.h_m, cam.f_px
+    y, e0, e1, ez = gd.y, gd.e0, gd.e1, gd.ez
     k = y.size
     m2x, m2y = R[2, 0], R[2, 1]
     c, s, _, _, _, vb0, vb1, _ = directions_core(psi, R)
@@ -341,12 +424,11 @@ def _distances(psi, cy, gd, R, h, f_px, rows, w_rps, v_mps, psi_r, cy_r, tau, ou
         dy = y[i] - cy
         num = h * (s * e0[i] + c * e1[i]) - dy * ez[i]
         out[i] = num * f_px / math.hypot(h * vb0 - dy * m2x, h * vb1 - dy * m2y)
-    if rows:
-        c, s, va0, va1, va2, vb0, vb1, vb2 = directions_core(psi_r, R)
+    if motion.rows:
+        dirs = directions_core(ref[0], R)
         for i in range(k):
-            j0, j1, _ = observation(i, k, c, s, va0, va1, va2, vb0, vb1, vb2, m2x, m2y, cy_r,
-                                    y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b, h, f_px)
-            out[i] += (j0 * w_rps + j1 * v_mps) * tau[i]
+            j0, j1, _ = observation(i, k, dirs, ref[1], gd, cam)
+            out[i] += (j0 * motion.w_rps + j1 * motion.v_mps) * motion.tau[i]
 
 
 @njit
@@ -397,9 +479,12 @@ def _warm() -> None:
     lines_t = arr(np.array([[0.0, 0.0], [1.0, 1.0], [-0.1, 0.1]]), f)
     q = arr(np.array([[0.0, 1.0, -0.1], [0.0, 1.0, 0.1]]), f)
     assign0 = arr(np.array([0, 1]), np.int64)
+    lines = FrameArrays(segs, lines_t, one, one, one)
+    labeled = Labeled(q, one, on, arr(~on, b), assign0)
+    site = SiteLines(arr(np.array([-0.2, 0.2]), f), one)
+    cam = LevelCamera(arr(np.eye(3), f), 2.0, 400.0)
     for rows in (False, True):
-        consensus_core(segs, lines_t, one, one, one, q, one, on, arr(~on, b), assign0,
-                       arr(np.zeros((2, 2)), f), arr(np.array([-0.2, 0.2]), f), one,
-                       arr(np.eye(3), f), 2.0, 400.0, 0.0, 0.0, 2.5, 6, rows, 0.1, 0.1,
+        shutter = Shutter(rows, RowRates(0.1, 0.1, 0.0, 0.0), arr(np.zeros((2, 2)), f))
+        consensus_core(lines, labeled, site, cam, FitStart(0.0, 0.0, 2.5, 6), shutter,
                        np.empty(2, np.int64))
     score_core(arr(np.zeros((1, 4)), f), assign0, 0.5, 1.0, np.empty(2, b))

@@ -13,8 +13,10 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -108,6 +110,33 @@ class FrameLines:
     len_n: np.ndarray
     mx: np.ndarray
     my: np.ndarray
+    q: np.ndarray
+    pol: np.ndarray
+    ceil_len: np.ndarray
+    ceil_sx: np.ndarray
+    ceil_sy: np.ndarray
+    lamp_end: np.ndarray
+    tol: np.ndarray
+
+
+    @functools.cached_property
+    def arrays(self) -> LineArrays:
+        """The arrays the labeling's compiled loops read, as one :class:`LineArrays`."""
+        return LineArrays(self.lines_t, self.mx, self.my, self.len_n, self.q, self.pol,
+                          self.ceil_len, self.ceil_sx, self.ceil_sy, self.lamp_end, self.tol)
+
+
+class LineArrays(NamedTuple):
+    """A frame's arrays as the labeling's compiled loops take them
+    (:class:`FrameLines`', read-only, float64 but ``lamp_end``): ``lines_t (3, N)``,
+    midpoints ``mx, my (N,)``, lengths ``len_n (N,)``, level normals ``q (N, 3)``,
+    polarities ``pol (N,)``, ceiling lengths and endpoint sums ``ceil_len, ceil_sx,
+    ceil_sy (N,)``, ``lamp_end (L, N)`` bool and the family gate ``tol (N,)``."""
+
+    lines_t: np.ndarray
+    mx: np.ndarray
+    my: np.ndarray
+    len_n: np.ndarray
     q: np.ndarray
     pol: np.ndarray
     ceil_len: np.ndarray

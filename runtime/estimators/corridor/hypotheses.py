@@ -19,26 +19,27 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate
 from ceilkit.runtime.estimators.corridor.association import (
     ABSENCE_PENALTY,
+    MatchQuery,
     OffsetMatch,
     anchors_core,
     compat_core,
     is_ambiguous,
     match_core,
     pairwise_sum,
-    periodic_spread,
     settle_by_absence,
+    spread_core,
+    unseen_core,
 )
-from ceilkit.runtime.estimators.corridor.frame import FrameLines
-from ceilkit.runtime.estimators.corridor.geometry import (
-    across_offsets,
-)
+from ceilkit.runtime.estimators.corridor.frame import FrameLines, LineArrays
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.estimators.corridor.visibility import lines_in_view
 from ceilkit.runtime.estimators.prior import allows, prior_choice
@@ -53,6 +54,21 @@ PAN_BINS = 720
 """Bins of the histogram of horizontal directions mod 90 deg (0.125 deg each)."""
 
 _KERNEL = arr(np.exp(-0.5 * (np.arange(-16, 17) / 4.0) ** 2), np.float64)
+
+
+class SiteKernel(NamedTuple):
+    """The setup as the labeling's compiled loops take it (read-only float64 arrays):
+    the site's ``site_y``, ``edge_kind``, ``longest_m`` ``(J,)`` and ``lamp_y_m (L,)``,
+    the ceiling's height above the camera ``h_m``, the focal length ``f_px`` and the
+    mount's ``R_level_cam (3, 3)`` (:class:`~.setup.CorridorSetup` names them)."""
+
+    site_y: np.ndarray
+    edge_kind: np.ndarray
+    longest_m: np.ndarray
+    lamp_y_m: np.ndarray
+    h_m: float
+    f_px: float
+    R_level_cam: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -82,13 +98,12 @@ class LabelContext:
     mirror_y_m: float | None = None
 
     @functools.cached_property
-    def kernel_setup(self) -> tuple:
-        """The setup as the compiled loops take it: ``(site_y, edge_kind, longest_m,
-        lamp_y_m, ceiling_above_cam_m, f_px, R_level_cam)``, the arrays read-only."""
+    def kernel_setup(self) -> SiteKernel:
+        """The setup as the compiled loops take it (:class:`SiteKernel`)."""
         st, f = self.setup, np.float64
-        return (arr(st.site_y, f), arr(st.edge_kind, f), arr(st.longest_m, f),
-                arr(st.lamp_y_m, f), float(st.ceiling_above_cam_m), float(st.f_px),
-                arr(st.R_level_cam, f))
+        return SiteKernel(arr(st.site_y, f), arr(st.edge_kind, f), arr(st.longest_m, f),
+                          arr(st.lamp_y_m, f), float(st.ceiling_above_cam_m),
+                          float(st.f_px), arr(st.R_level_cam, f))
 
 
 def dominant_pans(q: np.ndarray, w: np.ndarray, n_peaks: int = 3) -> list[float]:
@@ -215,11 +230,11 @@ def hypothesis(k: int, psi_rad: float, along: np.ndarray, across: np.ndarray,
         t_v = rot_z(wrap_pi(pk - setup.pan_rad)) @ setup.t_vc
         prior_shift = prior.y_m + float(t_v[1])
     assign = np.empty(np.count_nonzero(fa), np.int64)
+    query = MatchQuery(float(ctx.match_tol_m), prior_shift is not None,
+                       0.0 if prior_shift is None else float(prior_shift))
     offs, wa, compat, (found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift,
-                       score) = hypothesis_core(
-        *ctx.kernel_setup[:-1], fr.q, fr.pol, fr.len_n, fr.ceil_len, fr.lamp_end, fr.ceil_sx,
-        fr.ceil_sy, arr(fa, np.bool_), arr(fb, np.bool_), pk, float(ctx.match_tol_m),
-        prior_shift is not None, 0.0 if prior_shift is None else float(prior_shift), assign)
+                       score) = hypothesis_core(ctx.kernel_setup, fr.arrays, arr(fa, np.bool_),
+                                                arr(fb, np.bool_), pk, query, assign)
     m = (OffsetMatch(shift, assign, n_lines, weight,
                      (r_score, r_weight, r_shift) if has_runner else None, score)
          if found else None)
@@ -227,14 +242,16 @@ def hypothesis(k: int, psi_rad: float, along: np.ndarray, across: np.ndarray,
 
 
 @njit
-def hypothesis_core(site_y, kind, longest, lamp_y, h, f_px, q, pol, len_n, ceil_len,
-                    lamp_end, ceil_sx, ceil_sy, fa, fb, psi, tol, has_prior, prior_shift,
-                    assign):  # pragma: no cover - compiled
-    """:func:`hypothesis`' arrays and match: the forward segments' (``fa``) offsets
-    (:func:`.geometry.along_offsets`), weights (pixel length) and compatibility
-    (:func:`.association.compat_core` of their polarity in W), the across family's
-    (``fb``) lamp anchors and :func:`.association.match_core` of them into ``assign``:
-    ``(offsets, weights, compat, match tuple)``."""
+def hypothesis_core(ks, la, fa, fb, psi, query, assign):  # pragma: no cover - compiled
+    """:func:`hypothesis`' arrays and match at camera pan ``psi`` (``ks``: a
+    :class:`SiteKernel`, ``la``: the frame's :class:`~.frame.LineArrays`): the forward
+    segments' (``fa``) offsets (:func:`.geometry.along_offsets`), weights (pixel length)
+    and compatibility (:func:`.association.compat_core` of their polarity in W), the
+    across family's (``fb``) lamp anchors and :func:`.association.match_core` of them
+    (``query``: a :class:`~.association.MatchQuery`) into ``assign``: ``(offsets,
+    weights, compat, match tuple)``."""
+    q, pol, len_n, ceil_len = la.q, la.pol, la.len_n, la.ceil_len
+    h, f_px = ks.h_m, ks.f_px
     c, s = math.cos(psi), math.sin(psi)
     n_a = assign.size
     offs = np.empty(n_a)
@@ -250,9 +267,9 @@ def hypothesis_core(site_y, kind, longest, lamp_y, h, f_px, q, pol, len_n, ceil_
             pol_w[k] = pol[i] * np.sign(n_y)
             cl[k] = ceil_len[i]
             k += 1
-    compat = compat_core(pol_w, cl, kind, longest)
-    anchors = anchors_core(lamp_y, lamp_end, ceil_sx, ceil_sy, fb, psi)
-    match = match_core(offs, wa, site_y, tol, has_prior, prior_shift, anchors, compat, assign)
+    compat = compat_core(pol_w, cl, ks.edge_kind, ks.longest_m)
+    anchors = anchors_core(ks.lamp_y_m, la.lamp_end, la.ceil_sx, la.ceil_sy, fb, psi)
+    match = match_core(offs, wa, ks.site_y, query, anchors, compat, assign)
     return offs, wa, compat, match
 
 
@@ -262,8 +279,10 @@ def across_on_grid(h: Hypothesis, fr: FrameLines, ctx: LabelContext) -> int:
     spacing = ctx.setup.across_spacing_m
     if spacing is None or np.count_nonzero(h.fb) < 2:
         return 0
-    offs = across_offsets(fr.q[h.fb], h.psi_rad, ctx.setup.ceiling_above_cam_m)
-    n_b, _ = periodic_spread(offs, fr.len_n[h.fb], spacing, ctx.match_tol_m)
+    # across_offsets, then periodic_spread of them, in one loop
+    n_b = spread_core(fr.q, arr(h.fb, np.bool_), fr.len_n, float(h.psi_rad),
+                      float(ctx.setup.ceiling_above_cam_m), float(spacing),
+                      float(ctx.match_tol_m))
     return n_b if n_b >= 2 else 0
 
 
@@ -340,12 +359,8 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
             cache[k] = hypothesis(k, psi_rad, along, across, fr, (la, lb), prior, ctx)
         return cache[k]
 
-    support: dict[int, float] = {}
-
-    def sup(h: Hypothesis) -> float:
-        if h.k not in support:
-            support[h.k] = _support(h, fr, ctx)
-        return support[h.k]
+    grid = _per_labeling(lambda h: across_on_grid(h, fr, ctx))
+    sup = _per_labeling(lambda h: _support(h, grid, ctx))
 
     if prior_psi is not None:
         k = min(range(4), key=lambda k: abs(wrap_pi(psi_rad + k * np.pi / 2 - prior_psi)))
@@ -371,7 +386,7 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
         cands = [first, hyp(ks[1])]
 
         def frame_score(h: Hypothesis) -> tuple:
-            return (h.n_a + min(across_on_grid(h, fr, ctx), 2), h.elong)
+            return (h.n_a + min(grid(h), 2), h.elong)
 
         cands.sort(key=frame_score, reverse=True)
         chosen, how = cands[0], "spacing"
@@ -401,23 +416,36 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
     return chosen, how, rivals
 
 
+def _per_labeling(fn: Callable[[Hypothesis], float]) -> Callable[[Hypothesis], float]:
+    """``fn`` computed once per labeling (its quarter turns ``k``) of one pan candidate."""
+    memo: dict[int, float] = {}
+
+    def get(h: Hypothesis) -> float:
+        if h.k not in memo:
+            memo[h.k] = fn(h)
+        return memo[h.k]
+
+    return get
+
+
 TWIN_RATIO = 0.85
 """A labeling whose support is at least this share of the chosen one's is its rival
 (the 1-D association's :data:`~.association.AMBIGUITY_RATIO`)."""
 
 
-def _support(h: Hypothesis, fr: FrameLines, ctx: LabelContext) -> float:
+def _support(h: Hypothesis, grid, ctx: LabelContext) -> float:
     """How well labeling ``h`` explains the frame: its association's score (about the
     site lines matched, discounted by misfit), less :data:`~.association.ABSENCE_PENALTY`
     per site line it puts clearly in view that no forward segment lies on; where the
     site's ``lines_across`` are seams, its across family off their grid counts against
-    it. 0 when it matches fewer than two segments."""
+    it (``grid(h)``: :func:`across_on_grid` of ``h``, computed once per labeling). 0
+    when it matches fewer than two segments."""
     m = h.match
     if m is None or m.n_lines < 1 or np.count_nonzero(m.assign >= 0) < 2:
         return 0.0
     score = m.score - ABSENCE_PENALTY * _missing(h, m.shift_m, ctx)
     if ctx.across_seams and ctx.setup.across_spacing_m is not None:
-        score += 0.5 * min(across_on_grid(h, fr, ctx), 2)
+        score += 0.5 * min(grid(h), 2)
     return max(score, 0.0)
 
 
@@ -426,10 +454,9 @@ def _missing(h: Hypothesis, shift_m: float, ctx: LabelContext) -> int:
     no forward segment of a fitting kind lies on."""
     st = ctx.setup
     view = lines_in_view(st, ctx.camera, ctx.min_length_px, h.psi_rad, (shift_m,))[0]
-    ok = np.isfinite(h.offsets_m)
-    seen = np.any((np.abs(h.offsets_m[ok][:, None] + shift_m - st.site_y[None, :])
-                   <= ctx.match_tol_m) & (h.compat[ok] > 0), axis=0)
-    return int(np.count_nonzero(view & ~seen))
+    return int(unseen_core(arr(h.offsets_m, np.float64), arr(h.compat, np.float64),
+                           ctx.kernel_setup.site_y, float(shift_m), float(ctx.match_tol_m),
+                           view))
 
 
 def _rivals(chosen: Hypothesis, hyp, sup, ctx: LabelContext
@@ -504,10 +531,8 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
     setup = ctx.setup
     n = fr.len_n.size
     along, across = np.empty(n, np.bool_), np.empty(n, np.bool_)
-    ok, psi, la, lb = families_core(float(psi0_rad), ctx.kernel_setup[-1], fr.lines_t, fr.mx,
-                                    fr.my, fr.len_n, fr.q, fr.tol, fr.ceil_len,
-                                    float(ctx.angle_tol_rad), float(setup.f_px), along,
-                                    across)
+    ok, psi, la, lb = families_core(fr.arrays, ctx.kernel_setup, float(psi0_rad),
+                                    float(ctx.angle_tol_rad), along, across)
     if not ok:
         return None
     chosen, how, rivals = _choose(psi, along, across, (la, lb), fr, prior, prior_psi, ctx)
@@ -575,15 +600,18 @@ def _prior_single_shift(m: OffsetMatch, chosen: Hypothesis, prior: PoseEstimate,
 
 
 @njit
-def families_core(psi0, R, lines_t, mx, my, len_n, q, tol, ceil_len, angle_tol, f_px, along,
-                  across):  # pragma: no cover - compiled
-    """:func:`label`'s families: :func:`families` about ``psi0`` within ``angle_tol``,
+def families_core(la, ks, psi0, angle_tol, along, across):  # pragma: no cover - compiled
+    """:func:`label`'s families of the frame's :class:`~.frame.LineArrays` ``la`` (``ks``:
+    the :class:`SiteKernel`): :func:`families` about ``psi0`` within ``angle_tol``,
     one reweighted :func:`.geometry.fit_pan` over both families (weights length^2 /
     den^2, Huber at 1 px, on the branch mod pi nearest ``psi0``), :func:`families`
     again within ``tol (N,)``, written to ``along``
     and ``across (N,)``: ``(ok, psi, along length, across length)`` (ok False when
     either pass leaves fewer than two segments in the families; the lengths are the
     summed ``ceil_len``)."""
+    R, f_px = ks.R_level_cam, ks.f_px
+    lines_t, mx, my, len_n, q, tol, ceil_len = la.lines_t, la.mx, la.my, la.len_n, la.q, \
+        la.tol, la.ceil_len
     n = len_n.size
     ang = np.empty((2, n))
     den = np.empty((2, n))
@@ -657,8 +685,8 @@ def _warm() -> None:
     q = arr(np.array([[0.0, 1.0, 0.1], [1.0, 0.0, 0.1]]), f)
     pans_core(q, one, 3, _KERNEL)
     along, across = np.empty(2, bool), np.empty(2, bool)
-    families_core(0.0, arr(np.eye(3), f), arr(np.ones((3, 2)), f), one, one, one, q, one, one,
-                  0.1, 400.0, along, across)
-    hypothesis_core(one, one, one, one, 2.0, 400.0, q, one, one, one,
-                    arr(np.ones((2, 2), bool), b), one, one, on, on, 0.0, 0.1, True, 0.0,
-                    np.empty(2, np.int64))
+    la = LineArrays(arr(np.ones((3, 2)), f), one, one, one, q, one, one, one, one,
+                    arr(np.ones((2, 2), bool), b), one)
+    ks = SiteKernel(one, one, one, one, 2.0, 400.0, arr(np.eye(3), f))
+    families_core(la, ks, 0.0, 0.1, along, across)
+    hypothesis_core(ks, la, on, on, 0.0, MatchQuery(0.1, True, 0.0), np.empty(2, np.int64))

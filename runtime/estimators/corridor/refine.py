@@ -4,7 +4,7 @@ pan and y in W, over pixel residuals, and the vehicle pose it implies.
 Residuals (px): each matched forward segment's two endpoints to their site line's
 predicted image line, and each across segment's endpoint offset from the line
 joining its midpoint to the across vanishing point. Huber weights (k = 1 px); the
-covariance is ``max(sigma^2, 0.01) (J^T W J)^-1``.
+covariance is ``max(sigma^2, 0.0025) (J^T W J)^-1`` (:data:`MIN_SIGMA2_PX2`).
 
 A rolling shutter (:class:`RowRates`): each observation is seen from the pose at its
 row's time ``tau`` (:func:`~ceilkit.runtime.geometry.shutter.row_times_s`), to first
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -35,8 +36,11 @@ from ceilkit.runtime.jit import arr, njit, warmer
 STEP_DONE = (1e-5, 2e-4)
 """A step below this in ``(psi rad, c_y m)`` converges: the next is far smaller."""
 
-MIN_SIGMA2_PX2 = 0.01
-"""Floor of the residual variance (px^2) in the covariance."""
+MIN_SIGMA2_PX2 = 0.0025
+"""Floor of the residual variance (px^2) in the covariance: 0.05 px. It was 0.1 px,
+which over-covered the simulated drives' error about 4x in variance (mean NEES 0.56 of
+2 dof on the reversed corridor, ``benchmarks/bench_ambiguity.py``); at 0.05 px the
+residuals set it there (1.56; 0.04 and 0.02 px give the same)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,9 +69,9 @@ class GNInputs:
     tau_b: np.ndarray | None = None
 
 
-@dataclass(frozen=True)
-class RowRates:
-    """A rolling shutter's motion prior for :func:`gauss_newton`.
+class RowRates(NamedTuple):
+    """A rolling shutter's motion prior for :func:`gauss_newton_rows` (a named tuple:
+    the compiled loops take it as it is).
 
     Attributes:
         w_rps, v_mps: the camera's yaw rate (rad/s) and y speed in W (m/s) expected
@@ -79,6 +83,65 @@ class RowRates:
     v_mps: float
     sigma_w_rps: float
     sigma_v_mps: float
+
+
+class LevelCamera(NamedTuple):
+    """The camera as the compiled loops of the fit take it: ``R (3, 3)``
+    (``R_level_cam``, float64), the ceiling's height above the camera ``h_m`` (m) and
+    the focal length ``f_px`` (px)."""
+
+    R: np.ndarray
+    h_m: float
+    f_px: float
+
+
+class FrameArrays(NamedTuple):
+    """A frame's segments as :func:`gn_arrays` reads them (:class:`.frame.FrameLines`'
+    arrays, read-only): endpoints ``segs (N, 4)`` and lines ``lines_t (3, N)``
+    (normalized), midpoints ``mx, my (N,)`` and lengths ``len_n (N,)``."""
+
+    segs: np.ndarray
+    lines_t: np.ndarray
+    mx: np.ndarray
+    my: np.ndarray
+    len_n: np.ndarray
+
+
+_GN_ARRAYS = ("y", "e0", "e1", "ez", "p0", "p1", "mx_b", "my_b", "scale_b")
+"""The fields of :class:`GNInputs` the compiled loops read, in their order."""
+
+GNArrays = NamedTuple("GNArrays", [("n_a", int), *((k, np.ndarray) for k in _GN_ARRAYS)])
+GNArrays.__doc__ = """:class:`GNInputs`' arrays as the compiled loops take them
+(:func:`gn_arrays`): the count of matched forward segments ``n_a``, then the fields
+:data:`_GN_ARRAYS` (``y, e0, e1, ez (K,)``, ``p0, p1, mx_b, my_b, scale_b (B,)``) as
+:class:`GNInputs` names them."""
+
+
+class Directions(NamedTuple):
+    """``cos psi, sin psi`` and the vanishing directions ``va, vb`` of
+    :func:`.geometry.vanishing_directions`, flat (:func:`directions_core`)."""
+
+    c: float
+    s: float
+    va0: float
+    va1: float
+    va2: float
+    vb0: float
+    vb1: float
+    vb2: float
+
+
+class HuberFit(NamedTuple):
+    """What :func:`huber_steps` returns: the solution ``psi, cy`` (rad, m), the normal
+    matrix ``h00, h01, h10, h11`` of the last step and its ``Σ w r²`` ``wrr``."""
+
+    psi: float
+    cy: float
+    h00: float
+    h01: float
+    h10: float
+    h11: float
+    wrr: float
 
 
 def camera_y_speed(yaw_rad: float, vy_mps: float, w_rps: float,
@@ -96,11 +159,11 @@ def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.
     endpoint's row time (s, :func:`~ceilkit.runtime.geometry.shutter.row_times_s`; an
     across segment takes its endpoints' mean), None for a global shutter."""
     f64 = np.float64
+    lines = FrameArrays(arr(fr.segs, f64).reshape(-1, 4), arr(fr.lines_t, f64),
+                        arr(fr.mx, f64), arr(fr.my, f64), arr(fr.len_n, f64))
     n_a, y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b = gn_arrays(
-        arr(fr.segs, f64).reshape(-1, 4), arr(fr.lines_t, f64), arr(fr.mx, f64),
-        arr(fr.my, f64), arr(fr.len_n, f64), arr(along, np.bool_), arr(across, np.bool_),
-        arr(assign, np.int64), arr(setup.site_y, f64), arr(setup.R_level_cam, f64),
-        float(setup.f_px))
+        lines, arr(along, np.bool_), arr(across, np.bool_), arr(assign, np.int64),
+        arr(setup.site_y, f64), level_camera(setup, setup.R_level_cam))
     tau = tau_b = None
     if tau_s is not None:
         tau = tau_s[np.flatnonzero(along & (assign >= 0))].ravel()
@@ -109,13 +172,22 @@ def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.
                     scale_b=scale_b, tau=tau, tau_b=tau_b)
 
 
+def level_camera(setup: CorridorSetup, R: np.ndarray) -> LevelCamera:
+    """The :class:`LevelCamera` of ``setup`` with the rotation ``R`` (its
+    ``R_level_cam`` or its rows, as the caller passes them)."""
+    return LevelCamera(arr(R, np.float64), float(setup.ceiling_above_cam_m),
+                       float(setup.f_px))
+
+
 @njit
-def gn_arrays(segs, lines_t, mx, my, len_n, along, across, assign, site_y, R, f_px
-              ):  # pragma: no cover - compiled
-    """:func:`gn_inputs`' arrays in one loop: ``(n_a, y, e0, e1, ez, p0, p1, mx_b, my_b,
-    scale_b)``: the matched forward segments' endpoints ``p`` as ``R p`` (``e0, e1,
-    ez``) with their site line's ``y`` (twice), the across segments' lines as ``R[0]
-    l``, ``R[1] l`` with their midpoints and ``len f_px / sqrt 2``."""
+def gn_arrays(lines, along, across, assign, site_y, cam):  # pragma: no cover - compiled
+    """:func:`gn_inputs`' arrays in one loop from the frame's segments ``lines`` (a
+    :class:`FrameArrays`), the camera ``cam`` (a :class:`LevelCamera`): a
+    :class:`GNArrays`, the matched forward segments' endpoints ``p`` as ``R p``
+    (``e0, e1, ez``) with their site line's ``y`` (twice), the across segments' lines
+    as ``R[0] l``, ``R[1] l`` with their midpoints and ``len f_px / sqrt 2``."""
+    segs, lines_t, mx, my, len_n = lines
+    R, f_px = cam.R, cam.f_px
     n = segs.shape[0]
     n_a = n_b = 0
     for i in range(n):
@@ -147,7 +219,7 @@ def gn_arrays(segs, lines_t, mx, my, len_n, along, across, assign, site_y, R, f_
             mx_b[b], my_b[b] = mx[i], my[i]
             scale_b[b] = len_n[i] * (f_px / math.sqrt(2.0))
             b += 1
-    return n_a, y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b
+    return GNArrays(n_a, y, e0, e1, ez, p0, p1, mx_b, my_b, scale_b)
 
 
 def residuals(psi_rad: float, camera_y_m: float, gd: GNInputs,
@@ -221,10 +293,8 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
     solution (its step was below the threshold, the one after it far smaller)."""
     r = np.empty(gd.e0.size + gd.p0.size)
     psi, cy, h00, h01, h10, h11, wrr = huber_steps(
-        float(psi_rad), float(camera_y_m), *(arr(a, np.float64) for a in (
-            gd.y, gd.e0, gd.e1, gd.ez, gd.p0, gd.p1, gd.mx_b, gd.my_b, gd.scale_b)),
-        np.array(setup.R_rows, np.float64), float(setup.ceiling_above_cam_m), float(setup.f_px),
-        max(1, iterations), STEP_DONE[0], STEP_DONE[1], r)
+        (float(psi_rad), float(camera_y_m)), _arrays(gd),
+        level_camera(setup, setup.R_rows), max(1, iterations), r)
     dof = max(1, r.size - 2)
     sigma2 = wrr / dof
     det = h00 * h11 - h01 * h10
@@ -238,21 +308,27 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
     return PanOffsetFit(psi, cy, cov, rms_px, r)
 
 
+def _arrays(gd: GNInputs) -> GNArrays:
+    """``gd``'s arrays as the compiled loops take them (read-only float64)."""
+    return GNArrays(int(gd.e0.size), *(arr(getattr(gd, k), np.float64) for k in _GN_ARRAYS))
+
+
 @njit
-def huber_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, R, h, f, iterations,
-                done_psi, done_cy, r):  # pragma: no cover - compiled
-    """The steps of :func:`gauss_newton` (the residuals of :func:`residuals`, written
-    out): ``(psi, c_y, h00, h01, h10, h11, Σ w r²)`` with the normal matrix and ``r``
-    (the residuals, px) of the last step's start."""
-    na, kb = e0.size, p0.size
-    m2x, m2y = R[2, 0], R[2, 1]
+def huber_steps(start, gd, cam, iterations, r):  # pragma: no cover - compiled
+    """The steps of :func:`gauss_newton` from ``start (psi, c_y)`` on the arrays ``gd``
+    (a :class:`GNArrays`) through ``cam`` (a :class:`LevelCamera`), at most
+    ``iterations``, stopping on a step below :data:`STEP_DONE` (the residuals of
+    :func:`residuals`, written out): a :class:`HuberFit` with the normal matrix and
+    ``r`` (the residuals, px) of the last step's start."""
+    psi, cy = start
+    na, kb = gd.e0.size, gd.p0.size
+    R = cam.R
     h00 = h01 = h10 = h11 = wrr = 0.0
     for _ in range(iterations):
-        c, s, va0, va1, va2, vb0, vb1, vb2 = directions_core(psi, R)
+        dirs = directions_core(psi, R)
         h00 = h01 = h11 = g0 = g1 = wrr = 0.0
         for i in range(na + kb):
-            j0, j1, ri = observation(i, na, c, s, va0, va1, va2, vb0, vb1, vb2, m2x, m2y, cy,
-                                     y, e0, e1, ez, p0, p1, mx, my, scale_b, h, f)
+            j0, j1, ri = observation(i, na, dirs, cy, gd, cam)
             r[i] = ri
             w = min(1.0, 1.0 / max(abs(ri), 1e-9))            # Huber, k = 1 px
             h00 += w * j0 * j0
@@ -268,25 +344,31 @@ def huber_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, R, h, f, iterat
         d_psi = -(h11 * g0 - h01 * g1) / det
         d_cy = -(h00 * g1 - h10 * g0) / det
         psi, cy = psi + d_psi, cy + d_cy
-        if abs(d_psi) < done_psi and abs(d_cy) < done_cy:
+        if abs(d_psi) < STEP_DONE[0] and abs(d_cy) < STEP_DONE[1]:
             break
-    return psi, cy, h00, h01, h10, h11, wrr
+    return HuberFit(psi, cy, h00, h01, h10, h11, wrr)
 
 
 @njit
 def directions_core(psi, R):  # pragma: no cover - compiled
-    """``(c, s, va, vb)`` of :func:`.geometry.vanishing_directions`, flat."""
+    """The :class:`Directions` of :func:`.geometry.vanishing_directions` at ``psi``."""
     c, s = math.cos(psi), math.sin(psi)
-    return (c, s, c * R[0, 0] - s * R[1, 0], c * R[0, 1] - s * R[1, 1],
-            c * R[0, 2] - s * R[1, 2], s * R[0, 0] + c * R[1, 0], s * R[0, 1] + c * R[1, 1],
-            s * R[0, 2] + c * R[1, 2])
+    return Directions(c, s, c * R[0, 0] - s * R[1, 0], c * R[0, 1] - s * R[1, 1],
+                      c * R[0, 2] - s * R[1, 2], s * R[0, 0] + c * R[1, 0],
+                      s * R[0, 1] + c * R[1, 1], s * R[0, 2] + c * R[1, 2])
 
 
 @njit
-def observation(i, na, c, s, va0, va1, va2, vb0, vb1, vb2, m2x, m2y, cy, y, e0, e1, ez, p0,
-                 p1, mx, my, scale_b, h, f):  # pragma: no cover - compiled
+def observation(i, na, dirs, cy, gd, cam):  # pragma: no cover - compiled
     """Row ``i`` of :func:`residuals` (an along endpoint below ``na``, else an across
-    segment): ``(d r/d psi, d r/d c_y, r)``."""
+    segment) at ``c_y`` ``cy`` and the :class:`Directions` ``dirs`` of ``psi``, on the
+    arrays ``gd`` (a :class:`GNArrays`) through ``cam`` (a :class:`LevelCamera`):
+    ``(d r/d psi, d r/d c_y, r)``."""
+    c, s, va0, va1, va2, vb0, vb1, vb2 = dirs
+    m2x, m2y = cam.R[2, 0], cam.R[2, 1]
+    h, f = cam.h_m, cam.f_px
+    y, e0, e1, ez, p0, p1 = gd.y, gd.e0, gd.e1, gd.ez, gd.p0, gd.p1
+    mx, my, scale_b = gd.mx_b, gd.my_b, gd.scale_b
     if i < na:
         dy = y[i] - cy
         l0 = h * vb0 - dy * m2x
@@ -321,11 +403,9 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
     C = np.empty((2, 2))
     tau = arr(np.concatenate([gd.tau, gd.tau_b]), np.float64)
     psi, cy, ok = rows_steps(
-        float(psi_rad), float(camera_y_m), *(arr(a, np.float64) for a in (
-            gd.y, gd.e0, gd.e1, gd.ez, gd.p0, gd.p1, gd.mx_b, gd.my_b, gd.scale_b)), tau,
-        arr(setup.R_level_cam, np.float64), float(setup.ceiling_above_cam_m),
-        float(setup.f_px), max(1, iterations), STEP_DONE[0], STEP_DONE[1], float(rates.w_rps),
-        float(rates.v_mps), float(rates.sigma_w_rps), float(rates.sigma_v_mps), r, C)
+        (float(psi_rad), float(camera_y_m)), _arrays(gd), tau,
+        level_camera(setup, setup.R_level_cam), max(1, iterations),
+        RowRates(*(float(v) for v in rates)), r, C)
     if ok:
         cov = ((float(C[0, 0]), float(C[0, 1])), (float(C[1, 0]), float(C[1, 1])))
     else:
@@ -336,25 +416,28 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
 
 
 @njit
-def rows_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, tau, R, h, f, iterations,
-               done_psi, done_cy, w_rps, v_mps, sigma_w, sigma_v, r, C
-               ):  # pragma: no cover - compiled
-    """The steps of :func:`gauss_newton_rows` (rows of :func:`residuals` with the rates'
-    first-order shift ``(J_psi w + J_cy v) tau``, Huber at 1 px): ``(psi, c_y, ok)``
-    with ``r`` the last step's residuals (px) and ``C (2, 2)`` the covariance (ok False:
-    the normal equations were singular, or the covariance is not finite)."""
-    na, n = e0.size, e0.size + p0.size
-    m2x, m2y = R[2, 0], R[2, 1]
+def rows_steps(start, gd, tau, cam, iterations, rates, r, C):  # pragma: no cover - compiled
+    """The steps of :func:`gauss_newton_rows` from ``start (psi, c_y)`` on the arrays
+    ``gd`` (a :class:`GNArrays`) with row times ``tau (K + B,)`` s through ``cam`` (a
+    :class:`LevelCamera`), at most ``iterations`` (stopping as :func:`huber_steps`
+    does), with the :class:`RowRates` ``rates`` (rows of :func:`residuals` with the
+    rates' first-order shift ``(J_psi w + J_cy v) tau``, Huber at 1 px):
+    ``(psi, c_y, ok)`` with ``r`` the last step's residuals (px) and ``C (2, 2)`` the
+    covariance (ok False: the normal equations were singular, or the covariance is not
+    finite)."""
+    psi, cy = start
+    w_rps, v_mps, sigma_w, sigma_v = rates
+    R = cam.R
+    na, n = gd.e0.size, gd.e0.size + gd.p0.size
     J = np.empty((n, 2))
     hw = np.empty(n)
     h00 = h01 = h10 = h11 = wrr = 0.0
     solved = False
     for _ in range(iterations):
-        c, s, va0, va1, va2, vb0, vb1, vb2 = directions_core(psi, R)
+        dirs = directions_core(psi, R)
         h00 = h01 = h10 = h11 = g0 = g1 = wrr = 0.0
         for i in range(n):
-            j0, j1, ri = observation(i, na, c, s, va0, va1, va2, vb0, vb1, vb2, m2x, m2y, cy,
-                                     y, e0, e1, ez, p0, p1, mx, my, scale_b, h, f)
+            j0, j1, ri = observation(i, na, dirs, cy, gd, cam)
             J[i, 0], J[i, 1] = j0, j1
             ri += (j0 * tau[i]) * w_rps + (j1 * tau[i]) * v_mps
             r[i] = ri
@@ -373,7 +456,7 @@ def rows_steps(psi, cy, y, e0, e1, ez, p0, p1, mx, my, scale_b, tau, R, h, f, it
         d_psi = -(h11 * g0 - h01 * g1) / det
         d_cy = -(h00 * g1 - h10 * g0) / det
         psi, cy = psi + d_psi, cy + d_cy
-        if abs(d_psi) < done_psi and abs(d_cy) < done_cy:
+        if abs(d_psi) < STEP_DONE[0] and abs(d_cy) < STEP_DONE[1]:
             break
     if not solved:
         return psi, cy, False
@@ -423,14 +506,16 @@ def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup
 @warmer
 def _warm() -> None:
     one, none = arr(np.ones(2), np.float64), arr(np.zeros(0), np.float64)
+    rates = RowRates(0.1, 0.1, 0.1, 0.1)
     for a, b in ((one, none), (none, one)):          # along endpoints; across segments
-        huber_steps(0.0, 0.0, a, a, a, a, b, b, b, b, b, np.eye(3), 2.0, 400.0, 1, 1e-5,
-                     2e-4, np.empty(2))
-        rows_steps(0.0, 0.0, a, a, a, a, b, b, b, b, b, one, arr(np.eye(3), np.float64), 2.0,
-                   400.0, 1, 1e-5, 2e-4, 0.1, 0.1, 0.1, 0.1, np.empty(2), np.empty((2, 2)))
+        gd = GNArrays(a.size, a, a, a, a, b, b, b, b, b)
+        cam = LevelCamera(arr(np.eye(3), np.float64), 2.0, 400.0)
+        huber_steps((0.0, 0.0), gd, cam, 1, np.empty(2))
+        rows_steps((0.0, 0.0), gd, one, cam, 1, rates, np.empty(2), np.empty((2, 2)))
     f = np.float64
     seg = arr(np.array([[0.0, 0.0, 0.1, 0.0]]), f)
     on = arr(np.ones(1, bool), np.bool_)
-    gn_arrays(seg, arr(np.ones((3, 1)), f), arr(np.zeros(1), f), arr(np.zeros(1), f),
-               arr(np.ones(1), f), on, on, arr(np.zeros(1, np.int64), np.int64),
-               arr(np.zeros(1), f), arr(np.eye(3), f), 400.0)
+    lines = FrameArrays(seg, arr(np.ones((3, 1)), f), arr(np.zeros(1), f),
+                        arr(np.zeros(1), f), arr(np.ones(1), f))
+    gn_arrays(lines, on, on, arr(np.zeros(1, np.int64), np.int64), arr(np.zeros(1), f),
+              LevelCamera(arr(np.eye(3), f), 2.0, 400.0))

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
-from ceilkit.runtime.features.edges import edge_grid, part_indices
-from ceilkit.runtime.features.lines import _refine_core
+from ceilkit.runtime.features.edges import PROFILE_STEP_PX, edge_grid, part_indices
+from ceilkit.runtime.features.lines import ProfileGrid, ProfileKind, _refine_core
 from ceilkit.runtime.geometry.camera import CameraModel, distort_points
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -227,8 +227,9 @@ def _measure(grey, psi, cam_y, R_lc, site_y, u, edge_kind, offs, t, il, ir, ii,
              np.empty(0), np.empty(0), n)
     if _distinct(line) < 2:
         return empty
-    ends, pol, rms = _refine_core(grey, chords, offs, t, il, ir, ii, np.int64(p[8]),
-                                  np.int64(p[9]), MIN_STEP, MIN_DEPTH, lens_code, lens, p[7])
+    grid = ProfileGrid(offs, t, il, ir, ii, np.int64(p[8]), np.int64(p[9]))
+    kind = ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX)
+    ends, pol, rms = _refine_core(grey, chords, grid, kind, lens_code, lens, p[7])
     ok = np.zeros(n, np.bool_)
     for r in range(n):
         kind_ok = abs(pol[r]) == 1.0 if edge_kind[line[r]] != 0 else pol[r] == 0.0

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -57,6 +57,47 @@ LOCAL_FROM_LIGHTS = 256
 (:class:`~.index.LightGrid`); below, against all of them (the same result)."""
 _SAME_BIN = (0.5, math.radians(8.0))    # (m, rad): a vote bin next to a verified pose
 _SAME_POSE = (0.3, math.radians(5.0))   # (m, rad): a verified pose already found
+
+
+class Gates(NamedTuple):
+    """The gates of :func:`_verify` (m): the first association's ``first_m``, the
+    second's ``second_m`` (after the rigid refit), and the view's reach ``reach_m`` (the
+    lights within it of the pose are the ones read)."""
+
+    first_m: float
+    second_m: float
+    reach_m: float
+
+
+class VoteSettings(NamedTuple):
+    """The pair vote's settings as :func:`_match` and :func:`_vote` read them (the
+    :class:`PatternMatcher`'s): the association gate ``gate_m``, the bins ``yaw_bin_rad``
+    and ``pos_bin_m``, ``top_bins``, ``max_bins``, ``max_observed``, the votes a bin
+    needs once a candidate is found ``min_votes`` and the view's reach ``reach_m``."""
+
+    gate_m: float
+    yaw_bin_rad: float
+    pos_bin_m: float
+    top_bins: int
+    max_bins: int
+    max_observed: int
+    min_votes: float
+    reach_m: float
+
+
+class Verified(NamedTuple):
+    """What :func:`_verify` returns: ``found``, the refitted pose ``x, y, yaw``, the
+    ``pairs (K, 2)`` (observed, map), the ``score``, ``rms_m`` and the lights
+    ``missing``."""
+
+    found: bool
+    x: float
+    y: float
+    yaw: float
+    pairs: np.ndarray
+    score: float
+    rms_m: float
+    missing: int
 
 
 @dataclass(frozen=True)
@@ -172,11 +213,12 @@ class PatternMatcher:
                      arr(pair_mid, np.complex128), arr(pair_dir, np.complex128))
         self._vis = vis
         self._grid = _grid_arrays(self.lights_w, m >= index_from, reach, max_pair_m)
-        self._params = arr([gate_m, self.yaw_bin_rad, self.pos_bin_m, self.top_bins,
-                            self.max_bins, self.max_observed, 3, reach], np.float64)
+        self._params = VoteSettings(float(gate_m), float(self.yaw_bin_rad),
+                                    float(self.pos_bin_m), int(self.top_bins),
+                                    int(self.max_bins), int(self.max_observed), 3.0,
+                                    float(reach))
         # the constellations' votes: a quad is strong evidence, a bin of 2 is a rival
-        self._hash_params = arr([gate_m, self.yaw_bin_rad, self.pos_bin_m, self.top_bins,
-                                 self.max_bins, self.max_observed, 2, reach], np.float64)
+        self._hash_params = self._params._replace(min_votes=2.0)
 
     # -- association ------------------------------------------------------------------
     def associate(self, q_v: np.ndarray, yaw: float, t: np.ndarray, gate_m: float
@@ -191,14 +233,14 @@ class PatternMatcher:
         transform, re-associate within the matcher's gate; ``None`` with fewer than two
         inliers. Its score counts the map lights the pose should show but that matched
         nothing (``visible``)."""
-        gates = (self.gate_m if gate_m is None else float(gate_m), self.gate_m,
-                 float(self._params[7]))
+        gates = Gates(float(self.gate_m if gate_m is None else gate_m), float(self.gate_m),
+                      self._params.reach_m)
         out = _verify(_complex(q_v), float(yaw), complex(t[0], t[1]), gates,
                       self._map[0], self._vis, self._grid)
-        ok, x, y, yaw_v, pairs, score, rms, missing = out
-        if not ok:
+        if not out.found:
             return None
-        return Candidate(x, y, yaw_v, pairs, score, rms, missing)
+        return Candidate(out.x, out.y, out.yaw, out.pairs, out.score, out.rms_m,
+                         out.missing)
 
     def twins(self, q_v: np.ndarray, starts: np.ndarray, gate_m: float,
               min_inliers: int) -> list[Candidate]:
@@ -209,7 +251,7 @@ class PatternMatcher:
         starts = np.asarray(starts, float).reshape(-1, 3)
         if starts.shape[0] == 0 or self.lights_w.shape[0] == 0:
             return []
-        gates = (float(gate_m), self.gate_m, float(self._params[7]))
+        gates = Gates(float(gate_m), float(self.gate_m), self._params.reach_m)
         poses, pairs, offsets = _twins(_complex(q_v), arr(starts, np.float64), gates,
                                        int(min_inliers), self._map[0], self._vis,
                                        self._grid)
@@ -378,10 +420,11 @@ def _verify(qc, yaw, t, gates, lights_c, vis, grid):  # pragma: no cover - compi
     """:meth:`PatternMatcher.verify` in a compiled call: ``(found, x, y, yaw, pairs (K,
     2), score, rms_m, missing)``; the rigid refit is
     :func:`~ceilkit.runtime.geometry.fits.fit_rigid_2d_complex`'s, the lights a pose
-    should show :func:`~.observe.locate_core`'s. ``gates``: the first association's
-    gate, the second's, and the view's reach (m): each association and the count of
-    lights missed read only the lights within reach of the pose (:func:`_local`; the
-    same pairs and count as all of them, in the map's order)."""
+    should show :func:`~.observe.locate_core`'s. ``gates`` (:class:`Gates`): the first
+    association's gate, the second's, and the view's reach (m): each association and
+    the count of lights missed read only the lights within reach of the pose
+    (:func:`_local`; the same pairs and count as all of them, in the map's order).
+    Returns a :class:`Verified`."""
     gate, gate_m, reach = gates
     vis_lights, padded, geo, ints = vis
     none = np.empty((0, 2), np.int64)
@@ -393,7 +436,7 @@ def _verify(qc, yaw, t, gates, lights_c, vis, grid):  # pragma: no cover - compi
     pairs = _associate(qc, complex(math.cos(yaw), math.sin(yaw)), t, lights_c[local], gate)
     k = pairs.shape[0]
     if k < 2:
-        return False, 0.0, 0.0, 0.0, none, 0.0, 0.0, 0
+        return Verified(False, 0.0, 0.0, 0.0, none, 0.0, 0.0, 0)
     qm, pm = 0j, 0j
     for r_ in range(k):
         qm += qc[pairs[r_, 0]]
@@ -408,7 +451,7 @@ def _verify(qc, yaw, t, gates, lights_c, vis, grid):  # pragma: no cover - compi
     pairs = _associate(qc, rot, t, lights_c[local], gate_m)
     k = pairs.shape[0]
     if k < 2:
-        return False, 0.0, 0.0, 0.0, none, 0.0, 0.0, 0
+        return Verified(False, 0.0, 0.0, 0.0, none, 0.0, 0.0, 0)
     ss = 0.0
     for r_ in range(k):
         e = abs(qc[pairs[r_, 0]] * rot + t - lights_c[local[pairs[r_, 1]]])
@@ -424,7 +467,7 @@ def _verify(qc, yaw, t, gates, lights_c, vis, grid):  # pragma: no cover - compi
     for r_ in range(k):
         pairs[r_, 1] = local[pairs[r_, 1]]
     score = k - MISSING_PENALTY * missing
-    return True, t.real, t.imag, yaw, pairs, score, math.sqrt(ss / k), missing
+    return Verified(True, t.real, t.imag, yaw, pairs, score, math.sqrt(ss / k), missing)
 
 
 @njit
@@ -474,12 +517,11 @@ def _match(qc, use, maps, params, vis, grid):  # pragma: no cover - compiled
     yaw, score, rms_m, missing)``, its pairs ``pairs[offsets[c]:offsets[c + 1]]``, in the
     order found: the pair vote (:func:`_hypotheses`) of the ``max_observed`` first
     points of ``use``, binned and verified (:func:`_vote`). ``maps``: the matcher's
-    lights, pair lengths, midpoints and directions; ``params``: gate, yaw bin,
-    position bin, top_bins, max_bins, max_observed, the votes a bin needs once a
-    candidate is found (3), the view's reach."""
+    lights, pair lengths, midpoints and directions; ``params``: its
+    :class:`VoteSettings`."""
     lights_c, pair_d, pair_mid, pair_dir = maps
-    hyp = _hypotheses(qc[use[:np.int64(params[5])]], pair_d, pair_mid, pair_dir,
-                      2.0 * params[0])
+    hyp = _hypotheses(qc[use[:params.max_observed]], pair_d, pair_mid, pair_dir,
+                      2.0 * params.gate_m)
     return _vote(qc, hyp, np.zeros(hyp.shape[0]), lights_c, params, vis, grid)
 
 
@@ -487,10 +529,12 @@ def _match(qc, use, maps, params, vis, grid):  # pragma: no cover - compiled
 def _vote(qc, hyp, rank, lights_c, params, vis, grid):  # pragma: no cover - compiled
     """The poses ``hyp (K, 3)`` ``(yaw, x, y)`` binned, and the bins verified by their
     votes, most first (ties: the smallest ``rank (K,)`` of a bin's votes, then the order
-    of their cells), as :meth:`PatternMatcher.match` says: :func:`_match`'s output."""
-    yaw_bin, pos_bin = params[1], params[2]
-    top_bins, max_bins = np.int64(params[3]), np.int64(params[4])
-    min_votes, gates = params[6], (params[0], params[0], params[7])
+    of their cells), as :meth:`PatternMatcher.match` says (``params``: the
+    :class:`VoteSettings`): :func:`_match`'s output."""
+    yaw_bin, pos_bin = params.yaw_bin_rad, params.pos_bin_m
+    top_bins, max_bins = params.top_bins, params.max_bins
+    min_votes = params.min_votes
+    gates = Gates(params.gate_m, params.gate_m, params.reach_m)
     poses = np.empty((max_bins, 6))
     offsets = np.zeros(max_bins + 1, np.int64)
     all_pairs = np.empty((max_bins * qc.size, 2), np.int64)

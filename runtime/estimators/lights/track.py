@@ -63,14 +63,8 @@ from ceilkit.runtime.estimators.lights.rays import (
     pixel_scale,
     project_lights,
 )
-from ceilkit.runtime.estimators.lights.refine import _refine
-from ceilkit.runtime.features.spots import (
-    _FLAT_ERODE_PX,
-    _FLAT_MAX_RESIDUAL,
-    _FLAT_MIN_GAIN,
-    _FLAT_MIN_PX,
-    FLAT_MIN_AREA_PX,
-)
+from ceilkit.runtime.estimators.lights.refine import SIGMA_FLOOR_PX, _refine
+from ceilkit.runtime.features.spots import FLAT
 from ceilkit.runtime.features.windows import _read_windows
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -353,8 +347,7 @@ def _measure(grey, corner, half, coef, limits, params):  # pragma: no cover - co
     rect = np.empty((k, 4), np.int64)
     for i in range(k):
         rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3] = 0, 0, side - 1, side - 1
-    out = _read_windows(grey, corner, side, rect, TRACK_CORE, FLAT_MIN_AREA_PX, _FLAT_ERODE_PX,
-                        _FLAT_MIN_PX, _FLAT_MAX_RESIDUAL, _FLAT_MIN_GAIN)
+    out = _read_windows(grey, corner, side, rect, TRACK_CORE, FLAT)
     rows = np.empty((k, 8))
     good = np.zeros(k, np.bool_)
     tab = np.full((k, coef.shape[2]), np.nan)
@@ -392,7 +385,7 @@ def _fit(q, jac, L, x, y, yaw, params):  # pragma: no cover - compiled
     or :data:`CHECK` when they fail."""
     k = q.shape[0]
     keep = np.ones(k, np.bool_)
-    fx, fy, fyaw, cov, res = _refine(q, jac, L, x, y, yaw, 3, 0.1)
+    fx, fy, fyaw, cov, res = _refine(q, jac, L, x, y, yaw, 3, SIGMA_FLOOR_PX)
     limit = max(params[_P_RESIDUAL], params[_P_MEDIANS] * _median(res))
     n_bad = 0
     for i in range(k):
@@ -402,7 +395,8 @@ def _fit(q, jac, L, x, y, yaw, params):  # pragma: no cover - compiled
     if n_bad:
         if k - n_bad < 3:
             return FEW_KEPT, 0.0, 0.0, 0.0, cov, res, keep
-        fx, fy, fyaw, cov, res = _refine(q[keep], jac[keep], L[keep], fx, fy, fyaw, 3, 0.1)
+        fx, fy, fyaw, cov, res = _refine(q[keep], jac[keep], L[keep], fx, fy, fyaw, 3,
+                                         SIGMA_FLOOR_PX)
     ss = 0.0
     for i in range(res.size):
         ss += res[i] * res[i]

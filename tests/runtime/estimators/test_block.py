@@ -388,15 +388,15 @@ def test_a_side_lost_on_the_last_edge_pass_keeps_the_previous_pass(rig):
     assert one is not None
     first, t = _stations(n, 4.0)
     blind = np.array([-0.5, 0.5])                    # no interval inside: no edge found
-    out = (np.empty((4, 2)), np.empty((4 * n, 2)), np.empty(4 * n, np.int64))
-    got = detect.measure_core(grey, corners, 2, first, blind, t, EDGE_STEP_PX,
-                              *rig.camera.lens, *out)
+    out = detect.SidesOut.empty(n)
+    search = detect.EdgeSearch(first, blind, t, EDGE_STEP_PX, 0)
+    got = detect.measure_core(grey, corners, 2, search, *rig.camera.lens, out)
     assert got == len(one.side)
-    np.testing.assert_array_equal(out[0], one.corners_norm)
-    np.testing.assert_array_equal(out[2][:got], one.side)
+    np.testing.assert_array_equal(out.corners, one.corners_norm)
+    np.testing.assert_array_equal(out.side[:got], one.side)
     # with nothing before it to fall back on, a blind pass measures nothing
-    assert detect.measure_core(grey, corners, 1, blind, blind, t, EDGE_STEP_PX,
-                               *rig.camera.lens, *out) == -1
+    assert detect.measure_core(grey, corners, 1, search._replace(first=blind),
+                               *rig.camera.lens, out) == -1
 
 
 def test_a_block_cut_by_the_frame_gives_no_fix_and_the_marker_beside_it_does(rig):

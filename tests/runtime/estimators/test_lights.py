@@ -519,7 +519,8 @@ def test_vignetting_does_not_bias_the_tilted_corridor_rigs_x(monkeypatch):
         return [1e3 * (o.x_m - p[0]) for o, p in zip(out, poses, strict=True)]
 
     assert max(abs(e) for e in x_errors_mm()) < 0.2
-    monkeypatch.setattr(spots_mod, "FLAT_MIN_AREA_PX", 10 ** 9)     # the detector before
+    # the detector before
+    monkeypatch.setattr(spots_mod, "FLAT", spots_mod.FLAT._replace(min_area_px=10 ** 9))
     assert sorted(x_errors_mm())[1] < -0.8
 
 

@@ -215,7 +215,8 @@ def test_vignetted_plateau_centroid_is_the_disc_centre(monkeypatch):
         return np.linalg.norm(c[0] - c[1], axis=1)
 
     assert shift().max() < 0.01
-    monkeypatch.setattr(spots_mod, "FLAT_MIN_AREA_PX", 10 ** 9)     # flattening off
+    # flattening off
+    monkeypatch.setattr(spots_mod, "FLAT", spots_mod.FLAT._replace(min_area_px=10 ** 9))
     assert shift().min() > 0.05
 
 
@@ -260,5 +261,6 @@ def test_window_stats_flatten_the_plateau_too(monkeypatch):
         return np.linalg.norm(c[0] - c[1], axis=1)
 
     assert shift().max() < 0.01
-    monkeypatch.setattr(windows_mod, "FLAT_MIN_AREA_PX", 10 ** 9)  # flattening off
+    # flattening off
+    monkeypatch.setattr(windows_mod, "FLAT", windows_mod.FLAT._replace(min_area_px=10 ** 9))
     assert shift().min() > 0.05

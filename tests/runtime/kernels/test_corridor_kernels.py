@@ -173,9 +173,8 @@ def test_families_and_hypotheses_equal_the_array_reading(seen):
         for dpsi in (0.0, *rng.normal(0, 0.03, 3)):
             n = fr.len_n.size
             along, across = np.empty(n, bool), np.empty(n, bool)
-            got = hypotheses.families_core(psi0 + dpsi, ctx.kernel_setup[-1], fr.lines_t, fr.mx,
-                                           fr.my, fr.len_n, fr.q, fr.tol, fr.ceil_len,
-                                           ctx.angle_tol_rad, st.f_px, along, across)
+            got = hypotheses.families_core(fr.arrays, ctx.kernel_setup, psi0 + dpsi,
+                                           ctx.angle_tol_rad, along, across)
             want = ref.label_families(psi0 + dpsi, fr, ctx.angle_tol_rad, st)
             assert got[0] == want[0]
             if not got[0]:

@@ -1,0 +1,157 @@
+"""Benchmark: ``ceilcal survey`` on a ~60 m office drive with no external poses
+(issue 39, item 1): how far the map's features and the poses land from the truth with
+the chain alone and after loop closure, time and memory.
+
+The drive (rendered once into ``--rec`` when that folder does not hold it): the packaged
+office (configs/office, its scatter scene), a 12.8 x 2.4 m rounded loop centred on
+x = 6 m driven 2.05 laps (60.2 m) at 0.5 m/s, a frame every 5 cm (10 fps), noise 2 and
+blur 0.8 grey levels / px, supersample 3, seed 1. It is surveyed anchored by the truth
+of its first frame (the start pose a user would measure).
+
+Figures:
+
+* **features**: every keyframe's ceiling features (its ORB keypoints on the ceiling
+  plane, :func:`~ceilkit.calib.survey_places.place_of`) placed by the surveyed pose
+  against by the true pose: RMS and max of the distance, for the chain (the poses
+  before the solve) and the solved graph;
+* **map**: the ceiling map built from the surveyed poses against one built from the
+  true poses (the same keyframes): features matched within 2 cm and 40 bits, RMS;
+* **poses**: position RMS, max and at the end; heading max;
+* the time of each stage (process CPU and wall), the graph's solve by Gauss-Newton and
+  by ``scipy.optimize.least_squares`` on the same graph, the peak RSS after the survey
+  and after building the two maps (``build_map``'s feature merge dominates it).
+
+    .venv/bin/python benchmarks/bench_survey.py [--rec benchmarks/out/survey_office60]
+        [--out benchmarks/out/bench_survey.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+import ceilkit.calib.survey as survey_mod
+from ceilkit.calib.simulate import simulate_recording
+from ceilkit.calib.survey import survey_drives, survey_map
+from ceilkit.calib.survey_graph import solve_graph
+from ceilkit.calib.survey_loop import loop_trajectory
+from ceilkit.calib.survey_places import place_of
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.texture.ceilmap import build_map
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.geometry.ceiling import vehicle_to_world
+from ceilkit.runtime.io.recording import Recording
+from ceilkit.runtime.sim.render import SimOptions
+from ceilkit.runtime.sim.scatter_file import scene_beside
+
+ROOT = Path(__file__).resolve().parents[1]
+OFFICE = ROOT / "configs" / "office"
+
+
+def render(folder: Path) -> None:
+    rig = Rig.load(OFFICE / "rig.yaml")
+    site = Site.load(OFFICE / "site.yaml")
+    traj = loop_trajectory(12.8, 2.4, laps=2.05, fps=10.0, speed_mps=0.5,
+                           centre_m=(6.0, 0.0))
+    simulate_recording(rig, site, traj, folder, SimOptions(
+        noise_sigma=2.0, blur_px=0.8, supersample=3, scatter=scene_beside(site)), seed=1)
+
+
+def feature_errors(rec: Recording, res, truth: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    out = []
+    for n in res.keys:
+        k = int(res.frame[n])
+        q = place_of(to_grey(rec.frame(k).image), rec.rig, res.ceiling_height_m).points_v
+        out.append(np.hypot(*(vehicle_to_world(q, *poses[n])
+                              - vehicle_to_world(q, *truth[k])).T))
+    return np.concatenate(out)
+
+
+def map_errors(rec: Recording, res, truth: np.ndarray) -> dict:
+    cmap = survey_map(res, [rec], rec.rig)
+    frames = (to_grey(rec.frame(int(res.frame[n])).image) for n in res.keys)
+    ref = build_map(frames, [tuple(truth[int(res.frame[n])]) for n in res.keys], rec.rig,
+                    res.ceiling_height_m)
+    d, j = cKDTree(ref.points_xy).query(cmap.points_xy, distance_upper_bound=0.02)
+    ok = np.isfinite(d)
+    bits = np.unpackbits(cmap.descriptors[ok] ^ ref.descriptors[j[ok]], axis=1).sum(1)
+    good = d[ok][bits <= 40]
+    return {"features": int(len(cmap.points_xy)), "matched": int(len(good)),
+            "rms_mm": 1e3 * float(np.sqrt(np.mean(good ** 2))) if len(good) else None,
+            "sigma_median_mm": 1e3 * float(np.median(cmap.sigma_m))}
+
+
+def _stats(err: np.ndarray) -> dict:
+    return {"rms_mm": 1e3 * float(np.sqrt(np.mean(err ** 2))),
+            "max_mm": 1e3 * float(err.max())}
+
+
+def _solvers(captured: dict, t_true: np.ndarray) -> dict:
+    """Both solvers on the survey's graph: CPU, iterations, position RMS vs truth."""
+    out = {}
+    for solver in ("gauss-newton", "least_squares"):
+        t0 = time.process_time()
+        sol = solve_graph(captured["poses0"], captured["edges"], solver=solver,
+                          sigma_nodes=[])
+        err = np.hypot(*(sol.poses[:, :2] - t_true[:, :2]).T)
+        out[solver] = {"cpu_s": time.process_time() - t0, "iterations": sol.iterations,
+                       "rms_mm": 1e3 * float(np.sqrt(np.mean(err ** 2)))}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rec", type=Path, default=ROOT / "benchmarks/out/survey_office60")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/out/bench_survey.json")
+    args = ap.parse_args()
+    if not (args.rec / "frames.csv").exists():
+        render(args.rec)
+    rec = Recording(args.rec)
+    truth = np.c_[rec.truth.x_m, rec.truth.y_m, rec.truth.yaw_rad]
+    captured: dict = {}
+    real_solve = survey_mod.solve_graph
+
+    def spy(poses0, edges, **kw):
+        captured.update(poses0=poses0, edges=edges)
+        return real_solve(poses0, edges, **kw)
+
+    survey_mod.solve_graph = spy
+    t0, w0 = time.process_time(), time.perf_counter()
+    res = survey_drives([rec], rec.rig, rec.site.ceiling_height_m, tuple(truth[0]))
+    cpu, wall = time.process_time() - t0, time.perf_counter() - w0
+    survey_mod.solve_graph = real_solve
+    rss_survey = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t_true = truth[res.frame]
+    yaw = lambda p: math.degrees(float(np.max(np.abs(  # noqa: E731
+        (p[:, 2] - t_true[:, 2] + math.pi) % (2 * math.pi) - math.pi))))
+    out = {"frames": len(rec), "driven_m": float(np.sum(np.hypot(
+        np.diff(truth[:, 0]), np.diff(truth[:, 1])))), "keyframes": int(len(res.keys)),
+        "closures": sum(lk.kind == "loop" for lk in res.links),
+        "links": sum(lk.kind == "link" for lk in res.links), "refused": res.refused,
+        "survey_cpu_s": cpu, "survey_wall_s": wall, "solve_wall_s": res.solve_s,
+        "solve_iterations": res.iterations, "solvers": _solvers(captured, t_true)}
+    for name, P in (("chain", res.chain), ("solved", res.poses)):
+        pos = np.hypot(*(P[:, :2] - t_true[:, :2]).T)
+        out[name] = {"features": _stats(feature_errors(rec, res, truth, P)),
+                     "poses": {**_stats(pos), "end_mm": 1e3 * float(pos[-1]),
+                               "yaw_max_deg": yaw(P)}}
+    t0 = time.process_time()
+    out["map"] = map_errors(rec, res, truth)
+    out["map"]["cpu_s_both_maps"] = time.process_time() - t0
+    out["peak_rss_mb_after_survey"] = rss_survey
+    out["peak_rss_mb_after_maps"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1) + "\n")
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

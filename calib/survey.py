@@ -1,0 +1,350 @@
+"""``ceilcal survey``: a site's map from drives with no external poses (issue 39).
+
+Every frame's ceiling features are put on the ceiling plane through the rig (metric:
+the ceiling is the plane ``z = H``); consecutive frames are chained by the ceiling-plane
+odometry, the wheel odometry when the recording has it, or a place match
+(:mod:`~ceilkit.calib.survey_chain`). *Keyframes* (every :attr:`SurveyOptions.key_step_m`
+of travel) are matched as places (:mod:`~ceilkit.calib.survey_places`): each with
+the next few (*links*), with those the chain brings back near it after a detour
+(*loop closures*), and, between drives or pieces of a drive that nothing chains, with
+the keyframes whose descriptors it shares most (*drive closures*). A match counts only
+when it is singled out (no runner-up motion half as strong: the tile grid's repeats
+are refused, not guessed). All of it is one 2-D pose graph solved by scipy's sparse
+least squares with a robust loss (:mod:`~ceilkit.calib.survey_graph`), anchored by
+the start pose (the first drive's first frame; default the origin, yaw 0).
+
+Example::
+
+    res = survey_drives([Recording("run1")], rig, 2.7)
+    res.poses, res.sigma, res.links              # (N, 3) in W, their 1σ, the matches
+    cmap = survey_map(res, [Recording("run1")], rig)
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.config.rig import Rig
+from ceilkit.runtime.errors import CalibrationError, ConfigError
+from ceilkit.runtime.estimators.texture.ceilmap import (
+    DEFAULT_RESOLUTION_M,
+    CeilingMap,
+    build_map,
+)
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.io.recording import Recording
+
+from .survey_chain import Segment, chain_drive, keyframes, path_length, wheel_edges
+from .survey_graph import Edge, compose, relative, solve_graph
+from .survey_places import Place, match_places, place_of
+
+
+@dataclass(frozen=True)
+class SurveyOptions:
+    """How the survey looks for places.
+
+    Attributes:
+        key_step_m, key_turn_deg: a keyframe every this much travel or turn.
+        links: each keyframe is matched with this many next keyframes.
+        loop_min_path_m: a loop closure joins keyframes at least this far apart along
+            the drive (nearer ones are links).
+        gate_m, drift_share: a loop closure is looked for between keyframes the chain
+            puts within ``gate_m + drift_share * (distance driven between them)``.
+        closures_per_key: at most this many loop candidates per keyframe (nearest first).
+        drive_candidates: keyframes of other drives verified per keyframe (most shared
+            descriptors first).
+        seed: the place matcher's RANSAC seed.
+    """
+
+    key_step_m: float = 0.2
+    key_turn_deg: float = 10.0
+    links: int = 2
+    loop_min_path_m: float = 2.0
+    gate_m: float = 0.8
+    drift_share: float = 0.05
+    closures_per_key: int = 2
+    drive_candidates: int = 2
+    seed: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Link:
+    """An accepted place match between graph nodes ``a`` and ``b`` (b's pose in V_a:
+    ``z``, its covariance ``cov``); ``kind``: ``link``, ``loop`` or ``drives``;
+    ``inliers`` and ``runner_up`` the match's support; ``whitened``: its residual after
+    the solve, sigmas."""
+
+    a: int
+    b: int
+    z: np.ndarray
+    cov: np.ndarray
+    kind: str
+    inliers: int
+    runner_up: int
+    whitened: float = float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class SurveyResult:
+    """A solved survey.
+
+    Attributes:
+        drives: the recordings' folders, in the order given.
+        drive, frame: ``(N,)`` each placed frame's recording and position in it.
+        t_ns: ``(N,)`` its stamp.
+        poses, sigma: ``(N, 3)`` its pose in W (m, m, rad) and the pose's 1σ (relative
+            to the anchor; computed at the keyframes, NaN elsewhere).
+        chain: ``(N, 3)`` its pose before the solve (the chain, placed by the first
+            closures: what the survey would be without loop closure).
+        keys: ``(K,)`` the keyframes' nodes.
+        links: the accepted place matches; ``refused``: the refused ones, by reason.
+        odometry_whitened: ``(E,)`` the consecutive-frame edges' residuals, sigmas.
+        unplaced: frames of segments no closure tied to the anchor's.
+        ceiling_height_m, anchor, solve_s, iterations, edge_kinds: as named.
+    """
+
+    drives: tuple[str, ...]
+    drive: np.ndarray
+    frame: np.ndarray
+    t_ns: np.ndarray
+    poses: np.ndarray
+    sigma: np.ndarray
+    chain: np.ndarray
+    keys: np.ndarray
+    links: tuple[Link, ...]
+    refused: dict[str, int]
+    odometry_whitened: np.ndarray
+    unplaced: int
+    ceiling_height_m: float
+    anchor: str
+    solve_s: float
+    iterations: int
+    edge_kinds: dict[str, int]
+
+
+@dataclass(eq=False)
+class _Nodes:
+    """Every frame of every segment as a graph node."""
+
+    segments: list[Segment]
+    offset: np.ndarray                  # first node of each segment
+    seg_of: np.ndarray                  # (N,) segment of each node
+
+    @classmethod
+    def of(cls, segments: list[Segment]) -> _Nodes:
+        sizes = np.array([len(s.frames) for s in segments], int)
+        offset = np.r_[0, np.cumsum(sizes)[:-1]]
+        return cls(segments, offset, np.repeat(np.arange(len(segments)), sizes))
+
+
+def _places(recs: Sequence[Recording], nodes: _Nodes, keys: np.ndarray, rig: Rig,
+            height_m: float, cache: dict[tuple[int, int], Place]) -> dict[int, Place]:
+    """The place of every keyframe node."""
+    out = {}
+    for n in keys:
+        seg = nodes.segments[nodes.seg_of[n]]
+        k = int(seg.frames[n - nodes.offset[nodes.seg_of[n]]])
+        if (seg.drive, k) not in cache:
+            cache[(seg.drive, k)] = place_of(to_grey(recs[seg.drive].frame(k).image), rig,
+                                             height_m)
+        out[int(n)] = cache[(seg.drive, k)]
+    return out
+
+
+def _segment_pairs(nodes: _Nodes, keys_of: list[np.ndarray], opts: SurveyOptions
+                   ) -> list[tuple[int, int, str]]:
+    """Candidate pairs within each segment: links and chain-gated loop closures."""
+    pairs = []
+    for s, seg in enumerate(nodes.segments):
+        ks = keys_of[s]
+        off = int(nodes.offset[s])
+        for i, a in enumerate(ks):
+            for b in ks[i + 1:i + 1 + opts.links]:
+                pairs.append((off + int(a), off + int(b), "link"))
+        dist = path_length(seg.chain)
+        for i, a in enumerate(ks):
+            later = ks[i + 1:]
+            driven = dist[later] - dist[a]
+            near = np.hypot(*(seg.chain[later, :2] - seg.chain[a, :2]).T)
+            ok = (driven >= opts.loop_min_path_m) & \
+                (near <= opts.gate_m + opts.drift_share * driven)
+            for b in later[ok][np.argsort(near[ok])][:opts.closures_per_key]:
+                pairs.append((off + int(a), off + int(b), "loop"))
+    return pairs
+
+
+def _drive_pairs(nodes: _Nodes, places: dict[int, Place], opts: SurveyOptions
+                 ) -> list[tuple[int, int, str]]:
+    """Candidate pairs between segments: for each keyframe, the keyframes of the other
+    segments that hold most of its descriptors' nearest neighbours (ratio test 0.8)."""
+    if len(nodes.segments) < 2:
+        return []
+    keys = np.array(sorted(places), int)
+    pairs = []
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    for s in range(len(nodes.segments)):
+        mine = keys[nodes.seg_of[keys] == s]
+        other = keys[nodes.seg_of[keys] != s]
+        if not len(mine) or not len(other):
+            continue
+        desc = [places[int(n)].descriptors for n in other]
+        owner = np.repeat(other, [len(d) for d in desc])
+        train = np.concatenate(desc)
+        if len(train) < 2:
+            continue
+        for a in mine:
+            q = places[int(a)].descriptors
+            if len(q) < 2:
+                continue
+            votes = Counter(int(owner[m[0].trainIdx]) for m in matcher.knnMatch(q, train, k=2)
+                            if len(m) == 2 and m[0].distance < 0.8 * m[1].distance)
+            for b, v in votes.most_common(opts.drive_candidates):
+                if v >= 8 and int(a) < b:
+                    pairs.append((int(a), b, "drives"))
+                elif v >= 8:
+                    pairs.append((b, int(a), "drives"))
+    return sorted(set(pairs))
+
+
+def _match(pairs: list[tuple[int, int, str]], places: dict[int, Place],
+           rng: np.random.Generator) -> tuple[list[Link], dict[str, int]]:
+    links, refused = [], Counter()
+    for a, b, kind in pairs:
+        m = match_places(places[a], places[b], rng)
+        if m:
+            links.append(Link(a, b, m.z, m.cov, kind, m.inliers, m.runner_up))
+        else:
+            refused[f"{kind}: {m.reason}"] += 1
+    return links, dict(refused)
+
+
+def _initial(nodes: _Nodes, links: list[Link], start: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """``(poses (N, 3), placed (S,) bool)``: segment 0 from ``start`` along its chain,
+    each other segment placed through the first closure that reaches it."""
+    n = int(nodes.offset[-1] + len(nodes.segments[-1].frames))
+    poses = np.full((n, 3), np.nan)
+    placed = np.zeros(len(nodes.segments), bool)
+
+    def put(s: int, node: int, pose: np.ndarray) -> None:
+        seg, off = nodes.segments[s], int(nodes.offset[s])
+        origin = compose(pose, relative(seg.chain[node - off], np.zeros(3)))
+        for k in range(len(seg.frames)):
+            poses[off + k] = compose(origin, seg.chain[k])
+        placed[s] = True
+
+    put(0, 0, start)
+    grew = True
+    while grew:
+        grew = False
+        for lk in links:
+            sa, sb = nodes.seg_of[lk.a], nodes.seg_of[lk.b]
+            if placed[sa] != placed[sb]:
+                if placed[sa]:
+                    put(int(sb), lk.b, compose(poses[lk.a], lk.z))
+                else:
+                    put(int(sa), lk.a, compose(poses[lk.b], relative(lk.z, np.zeros(3))))
+                grew = True
+    return poses, placed
+
+
+def _graph_edges(recs: Sequence[Recording], nodes: _Nodes) -> list[Edge]:
+    """The consecutive-frame edges (camera and wheel) with node numbers."""
+    edges = []
+    for s, seg in enumerate(nodes.segments):
+        off = int(nodes.offset[s])
+        edges += [Edge(off + e.i, off + e.j, e.z, e.cov, e.kind) for e in seg.steps]
+        edges += wheel_edges(recs[seg.drive], seg, off)
+    return edges
+
+
+def _keys(nodes: _Nodes, opts: SurveyOptions) -> list[np.ndarray]:
+    """Each segment's keyframes (positions in the segment), the bridged frames too."""
+    out = []
+    for seg in nodes.segments:
+        ks = set(keyframes(seg.chain, opts.key_step_m, math.radians(opts.key_turn_deg)))
+        ks |= {e.i for e in seg.steps if e.kind != "odometry"}
+        ks |= {e.j for e in seg.steps if e.kind != "odometry"}
+        out.append(np.array(sorted(ks), int))
+    return out
+
+
+def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: float,
+                  start_pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                  options: SurveyOptions = SurveyOptions()) -> SurveyResult:
+    """Chain, match places and solve the pose graph of one or more drives (module
+    docstring). ``start_pose``: the first drive's first frame in W (m, m, rad).
+
+    Raises:
+        ConfigError: no recordings, or a recording with no frame.
+        CalibrationError: nothing chained (every frame alone).
+    """
+    if not recordings:
+        raise ConfigError(None, "recordings", "give at least one recording")
+    rng = np.random.default_rng(options.seed)
+    segments: list[Segment] = []
+    cache: dict[tuple[int, int], Place] = {}
+    for d, rec in enumerate(recordings):
+        if len(rec) == 0:
+            raise ConfigError(rec.folder / "frames.csv", None, "the recording has no frame")
+        segs, bridged = chain_drive(rec, d, rig, ceiling_height_m, rng)
+        segments += segs
+        cache.update({(d, k): p for k, p in bridged.items()})
+    nodes = _Nodes.of(segments)
+    keys_of = _keys(nodes, options)
+    keys = np.concatenate([nodes.offset[s] + k for s, k in enumerate(keys_of)])
+    places = _places(recordings, nodes, keys, rig, ceiling_height_m, cache)
+    links, refused = _match(_segment_pairs(nodes, keys_of, options), places, rng)
+    more, refused2 = _match(_drive_pairs(nodes, places, options), places, rng)
+    links += more
+    refused.update({k: refused.get(k, 0) + v for k, v in refused2.items()})
+    chain, placed = _initial(nodes, links, np.asarray(start_pose, float))
+    return _solve(recordings, nodes, keys, links, refused, chain, placed, ceiling_height_m)
+
+
+def _solve(recs: Sequence[Recording], nodes: _Nodes, keys: np.ndarray, links: list[Link],
+           refused: dict[str, int], chain: np.ndarray, placed: np.ndarray,
+           height_m: float) -> SurveyResult:
+    """The graph of the placed segments solved; the result in the placed nodes' order."""
+    keep = placed[nodes.seg_of]
+    if np.count_nonzero(keep) < 2:
+        raise CalibrationError("nothing to survey: no two consecutive frames were chained "
+                               "(is the ceiling in view and textured?)")
+    new = np.cumsum(keep) - 1
+    edges = [Edge(int(new[e.i]), int(new[e.j]), e.z, e.cov, e.kind)
+             for e in _graph_edges(recs, nodes) if keep[e.i] and keep[e.j]]
+    used = [lk for lk in links if keep[lk.a] and keep[lk.b]]
+    edges += [Edge(int(new[lk.a]), int(new[lk.b]), lk.z, lk.cov, "closure") for lk in used]
+    t0 = time.perf_counter()
+    sol = solve_graph(chain[keep], edges, anchor=0, sigma_nodes=new[keys[keep[keys]]])
+    solve_s = time.perf_counter() - t0
+    n_odo = len(edges) - len(used)
+    out_links = tuple(Link(int(new[lk.a]), int(new[lk.b]), lk.z, lk.cov, lk.kind,
+                           lk.inliers, lk.runner_up, float(w))
+                      for lk, w in zip(used, sol.whitened[n_odo:], strict=True))
+    drive = np.concatenate([np.full(len(s.frames), s.drive) for s in nodes.segments])[keep]
+    frame = np.concatenate([s.frames for s in nodes.segments])[keep]
+    t_ns = np.array([recs[d].t_ns[k] for d, k in zip(drive, frame, strict=True)], np.int64)
+    return SurveyResult(
+        tuple(str(r.folder) for r in recs), drive, frame, t_ns, sol.poses, sol.sigma,
+        chain[keep], new[keys[keep[keys]]], out_links, refused, sol.whitened[:n_odo],
+        int(np.count_nonzero(~keep)), float(height_m), "start pose", solve_s,
+        sol.iterations, dict(Counter(e.kind for e in edges)))
+
+
+def survey_map(result: SurveyResult, recordings: Sequence[Recording], rig: Rig,
+               resolution_m: float = DEFAULT_RESOLUTION_M) -> CeilingMap:
+    """The ceiling map (:func:`~ceilkit.runtime.estimators.texture.ceilmap.build_map`)
+    from the keyframes at their solved poses."""
+    frames = (to_grey(recordings[result.drive[n]].frame(int(result.frame[n])).image)
+              for n in result.keys)
+    poses = [tuple(result.poses[n]) for n in result.keys]
+    return build_map(frames, poses, rig, result.ceiling_height_m, resolution_m,
+                     anchor=result.anchor.split(";")[0])

@@ -1,0 +1,202 @@
+"""Places: two frames' ceiling features matched by a rigid 2-D fit, accepted only when
+the fit is singled out (the survey's loop closures and keyframe links).
+
+A frame's *place* (:func:`place_of`) is its features on the ceiling plane in its vehicle
+frame V (the texture method's :func:`~ceilkit.runtime.estimators.texture.ceilmap.rectify`
+and :func:`~ceilkit.runtime.estimators.texture.ceilmap.features`: ORB on the rectified
+patch, metres in V). :func:`match_places` finds the motion ``z = (dx, dy, dyaw)`` of
+place b in V_a (``q_a ~ Rz(dyaw) p_b + (dx, dy)``, the convention of the ceiling-plane
+odometry) from descriptor matches, each point's two nearest descriptors (so that the
+tile grid's repeats are all candidates, not hidden by a ratio test), by RANSAC over
+two-point rigid fits, then a least-squares fit on the inliers.
+
+The match is accepted only when the evidence singles it out: at least
+:data:`MIN_INLIERS` points agree within :data:`INLIER_M`, and the best *other* motion
+(RANSAC again over the matches the winner did not explain, a motion at least
+:data:`DISTINCT_M` or :data:`DISTINCT_RAD` from the winner: a tile period away, a
+half turn) gathers fewer than :data:`RUNNER_UP_SHARE` of the winner's inliers. A
+ceiling whose features repeat with the tile grid gives a runner-up as strong as the
+winner: that pair is ``ambiguous`` and no edge is made, whatever the drive's chain
+suggests (the chain is what the closure is to correct).
+
+Example::
+
+    a, b = place_of(grey_a, rig, 2.7), place_of(grey_b, rig, 2.7)
+    m = match_places(a, b, np.random.default_rng(0))
+    if m.ok: m.z, m.cov, m.inliers, m.runner_up
+    else: m.reason                       # "too few matches", "ambiguous", ...
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.estimators.texture.ceilmap import features, rectify
+from ceilkit.runtime.geometry.fits import fit_rigid_2d
+
+RESOLUTION_M = 0.005
+"""Metres per rectified pixel of a place: the office rig's ground pixel at the image
+centre (2.2 m / 450 px), so that a keypoint's pixel is a few millimetres."""
+HALF_EXTENT_M = 1.2
+"""Half the side of a place's patch, m (the office rig sees 1.55 x 1.17 m each side)."""
+INLIER_M = 0.015          # a match agrees with a motion within this, m
+MIN_INLIERS = 20          # fewest agreeing points of an accepted match
+RUNNER_UP_SHARE = 0.5     # the runner-up's inliers, at most this share of the winner's
+DISTINCT_M = 0.05         # a runner-up differs from the winner by this much ...
+DISTINCT_RAD = math.radians(3.0)   # ... or by this turn
+RANSAC_SAMPLES = 600
+VAR_FLOOR_M = 0.002       # the least 1σ of one point's fit residual, m
+
+
+@dataclass(frozen=True, eq=False)
+class Place:
+    """A frame's features on the ceiling plane: ``points_v`` ``(N, 2)`` in V (m),
+    ``descriptors`` ``(N, 32)`` uint8 (ORB)."""
+
+    points_v: np.ndarray
+    descriptors: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class PlaceMatch:
+    """The result of :func:`match_places`; falsy when not accepted (``reason`` says
+    why). ``z``: place b's pose in V_a (m, m, rad), ``cov`` its ``(3, 3)``
+    covariance; ``inliers``: the winner's agreeing points; ``runner_up``: the best
+    other motion's (0 when none); ``rms_m``: the winner's residual RMS."""
+
+    ok: bool
+    reason: str
+    z: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    inliers: int = 0
+    runner_up: int = 0
+    rms_m: float = float("nan")
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+
+def place_of(grey: np.ndarray, rig, ceiling_height_m: float,
+             resolution_m: float = RESOLUTION_M, half_extent_m: float = HALF_EXTENT_M
+             ) -> Place:
+    """The place of a grey frame (see the module docstring)."""
+    patch, valid = rectify(grey, rig, ceiling_height_m, resolution_m, half_extent_m)
+    q, d = features(patch, valid, resolution_m)
+    return Place(np.asarray(q, float), np.asarray(d, np.uint8))
+
+
+def _candidates(a: Place, b: Place) -> tuple[np.ndarray, np.ndarray]:
+    """``(q_a (M, 2), p_b (M, 2))``: for every point of b its two nearest descriptors in
+    a (Hamming)."""
+    if len(a.descriptors) < 2 or len(b.descriptors) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(b.descriptors, a.descriptors, k=2)
+    pairs = [(m.trainIdx, m.queryIdx) for ms in knn for m in ms if m.distance <= 80]
+    if not pairs:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    ia, ib = np.array(pairs).T
+    return a.points_v[ia], b.points_v[ib]
+
+
+def _hypotheses(q: np.ndarray, p: np.ndarray, rng: np.random.Generator
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Two-point rigid motions ``(K,)`` yaw and ``(K, 2)`` t from random pairs of
+    matches whose lengths agree."""
+    m = len(q)
+    i = rng.integers(0, m, RANSAC_SAMPLES)
+    j = rng.integers(0, m, RANSAC_SAMPLES)
+    dq, dp = q[j] - q[i], p[j] - p[i]
+    lq, lp = np.hypot(*dq.T), np.hypot(*dp.T)
+    ok = (i != j) & (lp > 0.1) & (np.abs(lq - lp) < 2 * INLIER_M)
+    yaw = np.arctan2(dq[ok, 1], dq[ok, 0]) - np.arctan2(dp[ok, 1], dp[ok, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    pi = p[i[ok]]
+    t = q[i[ok]] - np.stack([c * pi[:, 0] - s * pi[:, 1], s * pi[:, 0] + c * pi[:, 1]], 1)
+    return yaw, t
+
+
+def _inliers(q: np.ndarray, p: np.ndarray, yaw: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(K, M)`` bool: which matches each motion explains within :data:`INLIER_M`."""
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    rx = c * p[None, :, 0] - s * p[None, :, 1] + t[:, None, 0] - q[None, :, 0]
+    ry = s * p[None, :, 0] + c * p[None, :, 1] + t[:, None, 1] - q[None, :, 1]
+    return rx * rx + ry * ry <= INLIER_M ** 2
+
+
+def _count(mask: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Inliers counted once per point of b (its two candidates explain it once)."""
+    key = np.round(p[:, 0] * 1e5) * 1e6 + np.round(p[:, 1] * 1e5)
+    _, first = np.unique(key, return_index=True)
+    unique = np.zeros(len(p), bool)
+    unique[first] = True
+    return np.count_nonzero(mask & unique[None, :], axis=1)
+
+
+def _best(q: np.ndarray, p: np.ndarray, rng: np.random.Generator
+          ) -> tuple[float, np.ndarray, np.ndarray, int] | None:
+    """The RANSAC winner: ``(yaw, t, inlier mask, count)``, or None."""
+    if len(q) < 2:
+        return None
+    yaw, t = _hypotheses(q, p, rng)
+    if yaw.size == 0:
+        return None
+    mask = _inliers(q, p, yaw, t)
+    n = _count(mask, p)
+    k = int(np.argmax(n))
+    return float(yaw[k]), t[k], mask[k], int(n[k])
+
+
+def _refine(q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray
+            ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least squares on the inliers, twice: ``(yaw, t, inlier mask)``."""
+    keep = _inliers(q, p, np.array([yaw]), t[None])[0]
+    for _ in range(2):
+        if np.count_nonzero(keep) < 3:
+            break
+        yaw, t = fit_rigid_2d(p[keep], q[keep])
+        keep = _inliers(q, p, np.array([yaw]), np.asarray(t)[None])[0]
+    return float(yaw), np.asarray(t, float), keep
+
+
+def _covariance(q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray
+                ) -> tuple[np.ndarray, float]:
+    """The fit's covariance ``s² (JᵀJ)⁻¹`` (as the odometry's, s floored at
+    :data:`VAR_FLOOR_M`) and its residual RMS, m."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    rp = p @ np.array([[c, s], [-s, c]])
+    r = q - (rp + t)
+    n = len(q)
+    s2 = max(float(np.sum(r * r)) / max(2 * n - 3, 1), VAR_FLOOR_M ** 2)
+    J = np.zeros((2 * n, 3))
+    J[0::2, 0] = 1.0
+    J[1::2, 1] = 1.0
+    J[0::2, 2] = -rp[:, 1]
+    J[1::2, 2] = rp[:, 0]
+    return s2 * np.linalg.inv(J.T @ J), float(np.sqrt(np.mean(np.sum(r * r, 1))))
+
+
+def match_places(a: Place, b: Place, rng: np.random.Generator) -> PlaceMatch:
+    """Place b's pose in V_a, accepted only when singled out (module docstring)."""
+    q, p = _candidates(a, b)
+    win = _best(q, p, rng)
+    if win is None or win[3] < MIN_INLIERS:
+        return PlaceMatch(False, "too few matches", inliers=0 if win is None else win[3])
+    yaw, t, keep = _refine(q, p, win[0], win[1])
+    n = int(_count(keep[None], p)[0])
+    if n < MIN_INLIERS:
+        return PlaceMatch(False, "too few matches", inliers=n)
+    rest = ~keep
+    other = _best(q[rest], p[rest], rng)
+    runner = 0
+    if other is not None:
+        dyaw = abs((other[0] - yaw + math.pi) % (2 * math.pi) - math.pi)
+        if dyaw > DISTINCT_RAD or np.hypot(*(other[1] - t)) > DISTINCT_M:
+            runner = other[3]
+    if runner >= RUNNER_UP_SHARE * n:
+        return PlaceMatch(False, "ambiguous", inliers=n, runner_up=runner)
+    cov, rms = _covariance(q[keep], p[keep], yaw, t)
+    return PlaceMatch(True, "", np.array([t[0], t[1], yaw]), cov, n, runner, rms)

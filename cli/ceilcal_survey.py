@@ -1,0 +1,44 @@
+"""`ceilcal survey RIG RECORDING... --out SITE_DIR`: a site's map from drives with no
+external poses.
+
+Parses, calls :func:`ceilkit.calib.survey_files.survey_site`, prints what it wrote
+(docs/survey.md). The library is imported when the command runs, not when the program
+is built (``ceilcal survey --help`` loads neither numba nor scipy).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``survey`` to ``app``."""
+    @app.command("survey")
+    def survey(
+        rig: Path = typer.Argument(..., help="The rig.yaml (camera and mount)."),
+        recordings: list[Path] = typer.Argument(..., help="Recording folders (SPEC §2) of "
+                                                "drives under the site; several merge "
+                                                "into one map."),
+        out: Path = typer.Option(..., "--out", help="Folder to write: site.yaml, "
+                                 "ceiling_map.npz, poses.csv, survey.md, survey.png."),
+        site: Path = typer.Option(None, "--site", help="A site.yaml of what is known "
+                                  "(its sections are kept, its ceiling height used)."),
+        start_pose: str = typer.Option(None, "--start-pose", help="X,Y,YAW (m, m, "
+                                       "degrees): the first drive's first frame in W "
+                                       "(default 0,0,0)."),
+        ceiling_height: float = typer.Option(None, "--ceiling-height", help="Ceiling "
+                                             "height, m (default: --site's, else the "
+                                             "first recording's site.yaml)."),
+        force: bool = typer.Option(False, "--force", help="Replace existing outputs in "
+                                   "--out (refused otherwise)."),
+    ) -> None:
+        """Survey a site from drives with no external poses: chained frames, loop
+        closures, a pose graph; writes the site file and its ceiling map."""
+        from ceilkit.calib.survey_files import parse_start_pose, survey_site
+
+        run = survey_site(rig, recordings, out, site=site,
+                          start_pose=parse_start_pose(start_pose),
+                          ceiling_height_m=ceiling_height, force=force)
+        typer.echo("\n".join(run.lines()))

@@ -1,0 +1,560 @@
+"""The ceiling map: a rectified mosaic of the ceiling and an index of its natural
+features, in W, and how a frame is put on the ceiling plane to be compared with it.
+
+Convention (SPEC §1): the ceiling is the plane ``z = H`` of W. A *rectified* image of
+the ceiling is sampled on a square grid of the plane, ``resolution_m`` metres a pixel,
+seen from below: its column index grows with +x, its row index with +y (of V for a
+frame's patch, of W for the map's mosaic). A patch of ``n x n`` pixels is centred on
+the vehicle's origin: pixel ``(row r, col c)`` is the ceiling point
+``((c - (n - 1) / 2) res, (r - (n - 1) / 2) res)`` of V. The mosaic's pixel ``(0, 0)``
+is the point ``origin_xy`` of W: pixel ``(r, c)`` is ``origin_xy + (c res, r res)``.
+Since both grids keep the handedness, a patch maps onto the mosaic by a rotation and a
+translation (the vehicle pose), never a reflection.
+
+File (``CeilingMap.save``): one ``.npz`` (numpy's zip of arrays, read without pickle)
+holding ``header`` (a JSON string: ``format``, ``version``, the scalars) and the arrays
+``mosaic``, ``coverage``, ``points_xy``, ``descriptors``, ``sigma_m``
+(docs/conventions.md, "Ceiling map").
+
+Example::
+
+    cmap = build_map(frames, poses, rig, 2.7, anchor="truth")
+    cmap.save("site/ceiling_map.npz")
+    patch, valid = rectify(grey, rig, 2.7, cmap.resolution_m, 1.5)
+    q_v, desc = features(patch, valid, cmap.resolution_m)      # (N, 2) in V, (N, 32)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import zipfile
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.geometry.ceiling import (
+    ceiling_points,
+    on_ceiling,
+    project_px,
+    vehicle_to_world,
+)
+
+MAP_FORMAT = "ceilkit-ceiling-map"
+MAP_VERSION = 1
+"""The file format's version: :meth:`CeilingMap.load` refuses any other."""
+DEFAULT_RESOLUTION_M = 0.01
+"""Metres per rectified pixel: about twice the office rig's ground pixel at the
+image centre (2.2 m / 450 px), so a patch is sampled, not invented."""
+ORB_FEATURES = 400       # keypoints per patch, at most
+ORB_PATCH = 31           # ORB's descriptor patch, px (its edge threshold too)
+ORB_LEVELS = 1           # pyramid levels: the plane is metric, the scale does not change
+ORB_FAST = 8             # FAST threshold, grey levels
+MERGE_RADIUS_PX = 2.0    # build_map: observations of one feature lie this close ...
+MERGE_HAMMING = 64       # ... and their descriptors differ by at most this many bits
+MIN_VIEWS = 2            # build_map: a feature seen in fewer frames is not indexed
+MIN_SIGMA_PX = 0.25      # the least 1σ of a feature's position, in rectified pixels
+_ARRAYS = ("mosaic", "coverage", "points_xy", "descriptors", "sigma_m")
+
+
+@dataclass(frozen=True, eq=False)
+class CeilingMap:
+    """A ceiling map in W (see the module docstring for the grids).
+
+    Attributes:
+        resolution_m: metres per mosaic pixel.
+        origin_xy: ``(x, y)`` of W at mosaic pixel (0, 0)'s centre, m.
+        mosaic: ``(H, W)`` uint8 grey: the ceiling seen from below, rectified.
+        coverage: ``(H, W)`` bool: where the mosaic holds data.
+        points_xy: ``(N, 2)`` float64: the indexed features in W, m.
+        descriptors: ``(N, D)`` uint8: their descriptors (ORB: D = 32).
+        sigma_m: ``(N,)`` float64: each feature's 1σ position, m (per axis).
+        ceiling_height: the ceiling plane's height above the floor, m.
+        feature: the descriptor type (``orb``).
+        anchor: what fixed the map to W (``truth``, ``start pose``, ``marker 7``).
+        version: the file format's version (:data:`MAP_VERSION`).
+    """
+
+    resolution_m: float
+    origin_xy: tuple[float, float]
+    mosaic: np.ndarray
+    coverage: np.ndarray
+    points_xy: np.ndarray
+    descriptors: np.ndarray
+    sigma_m: np.ndarray
+    ceiling_height: float
+    feature: str = "orb"
+    anchor: str = ""
+    version: int = MAP_VERSION
+
+    @property
+    def extent_xy(self) -> tuple[float, float, float, float]:
+        """``(x0, y0, x1, y1)``: the mosaic's outer edges in W, m."""
+        h, w = self.mosaic.shape
+        r = self.resolution_m
+        x0, y0 = self.origin_xy[0] - r / 2, self.origin_xy[1] - r / 2
+        return x0, y0, x0 + w * r, y0 + h * r
+
+    def pixel_of(self, points_xy: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` mosaic pixel ``(col, row)`` (float) of points of W ``(N, 2)``."""
+        return (np.asarray(points_xy, float).reshape(-1, 2) - self.origin_xy) / self.resolution_m
+
+    def save(self, path: str | Path) -> Path:
+        """Write the map to ``path`` (``.npz``, see the module docstring)."""
+        path = Path(path)
+        header = {"format": MAP_FORMAT, "version": self.version,
+                  "resolution_m": self.resolution_m, "origin_xy": list(self.origin_xy),
+                  "ceiling_height": self.ceiling_height, "feature": self.feature,
+                  "anchor": self.anchor, "features": int(len(self.points_xy))}
+        with path.open("wb") as f:
+            np.savez_compressed(f, header=np.array(json.dumps(header)),
+                                **{k: getattr(self, k) for k in _ARRAYS})
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> CeilingMap:
+        """Read a map written by :meth:`save`.
+
+        Raises:
+            ConfigError: naming the file and the key, for a file that is missing, not a
+                ceiling map, of another version, or whose arrays disagree.
+        """
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except FileNotFoundError:
+            raise ConfigError(path, None, "no such ceiling map") from None
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+            raise ConfigError(path, None, f"not a ceiling map (.npz): {e}") from None
+        return cls._from_arrays(path, data)
+
+    @classmethod
+    def _from_arrays(cls, path: str | Path, data: dict[str, np.ndarray]) -> CeilingMap:
+        if "header" not in data:
+            raise ConfigError(path, "header", "not a ceiling map: no header")
+        try:
+            head = json.loads(str(data["header"]))
+        except (TypeError, ValueError):
+            raise ConfigError(path, "header", "not JSON") from None
+        if not isinstance(head, dict) or head.get("format") != MAP_FORMAT:
+            raise ConfigError(path, "header.format", f"expected {MAP_FORMAT!r}, found "
+                              f"{head.get('format') if isinstance(head, dict) else head!r}")
+        if head.get("version") != MAP_VERSION:
+            raise ConfigError(path, "header.version", f"this ceilkit reads version "
+                              f"{MAP_VERSION}, found {head.get('version')!r}")
+        for key in _ARRAYS:
+            if key not in data:
+                raise ConfigError(path, key, "missing array")
+        try:
+            res, h = float(head["resolution_m"]), float(head["ceiling_height"])
+            ox, oy = (float(v) for v in head["origin_xy"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise ConfigError(path, "header", f"bad or missing scalar: {e}") from None
+        if not (math.isfinite(res) and res > 0 and math.isfinite(h)):
+            raise ConfigError(path, "header.resolution_m", f"expected a resolution > 0, "
+                              f"found {res!r}")
+        cmap = cls(res, (ox, oy), data["mosaic"], data["coverage"], data["points_xy"],
+                   data["descriptors"], data["sigma_m"], h, str(head.get("feature", "orb")),
+                   str(head.get("anchor", "")), MAP_VERSION)
+        bad = cmap.shape_problem()
+        if bad is not None:
+            raise ConfigError(path, *bad)
+        return cmap
+
+    def shape_problem(self) -> tuple[str, str] | None:
+        """``(key, message)`` of the first array whose type or shape disagrees, or None."""
+        m, c = self.mosaic, self.coverage
+        if m.ndim != 2 or m.dtype != np.uint8:
+            return "mosaic", f"expected (H, W) uint8, found {m.shape} {m.dtype}"
+        if c.shape != m.shape or c.dtype != bool:
+            return "coverage", f"expected {m.shape} bool, found {c.shape} {c.dtype}"
+        p = self.points_xy
+        if p.ndim != 2 or p.shape[1] != 2 or p.dtype != np.float64:
+            return "points_xy", f"expected (N, 2) float64, found {p.shape} {p.dtype}"
+        d = self.descriptors
+        if d.ndim != 2 or d.shape[0] != p.shape[0] or d.dtype != np.uint8:
+            return "descriptors", f"expected ({p.shape[0]}, D) uint8, found {d.shape} {d.dtype}"
+        s = self.sigma_m
+        if s.shape != (p.shape[0],) or not np.all(np.isfinite(s)):
+            return "sigma_m", f"expected ({p.shape[0]},) finite, found {s.shape}"
+        return None
+
+
+def predicted_patch(cmap: CeilingMap, pose: tuple[float, float, float], n: int,
+                    stride: int = 1, cover: bool = True
+                    ) -> tuple[np.ndarray, np.ndarray | None]:
+    """What a patch of side ``n`` (at the map's resolution) shows of the map from the
+    vehicle pose ``(x, y, yaw)``: ``(patch, covered bool)``, the mosaic resampled
+    (bilinear) and where it has data (None with ``cover=False``: not computed); with
+    ``stride`` s, only every s-th row and column of the patch (``patch[::s, ::s]``'s
+    pixels: ``ceil(n / s)`` a side)."""
+    res = cmap.resolution_m
+    col, row = cmap.pixel_of(np.array([pose[:2]]))[0]
+    A = _patch_to_mosaic(n, res, col, row, pose[2])
+    A[:, :2] *= stride
+    m = -(-n // stride)
+    flags = cv2.WARP_INVERSE_MAP
+    patch = cv2.warpAffine(cmap.mosaic, A, (m, m), flags=flags | cv2.INTER_LINEAR)
+    if not cover:
+        return patch, None
+    covered = cv2.warpAffine(cmap.coverage.view(np.uint8), A, (m, m),
+                             flags=flags | cv2.INTER_NEAREST)
+    return patch, covered.astype(bool)
+
+
+def coarser(cmap: CeilingMap, levels: int = 1) -> CeilingMap:
+    """The map with its mosaic ``levels`` times ``cv2.pyrDown``-ed (each halves the
+    resolution; mosaic pixel ``(0, 0)`` stays at ``origin_xy``) and its coverage
+    subsampled alike; the features unchanged. For comparing with a frame rectified
+    at the coarser resolution."""
+    mosaic, cover = cmap.mosaic, cmap.coverage
+    for _ in range(levels):
+        mosaic = cv2.pyrDown(mosaic)
+        cover = cover[::2, ::2]
+    return dataclasses.replace(cmap, resolution_m=cmap.resolution_m * 2 ** levels,
+                               mosaic=mosaic, coverage=np.ascontiguousarray(cover))
+
+
+MIN_NCC_SHARE = 0.3      # appearance_ncc: the share of the patch both must cover
+
+
+def appearance_ncc(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
+                   pose: tuple[float, float, float], stride: int = 1) -> float:
+    """How well the map's mosaic at ``pose`` explains a rectified patch: the normalized
+    cross-correlation of the two where both hold data, in [-1, 1]; NaN where they
+    share less than :data:`MIN_NCC_SHARE` of the patch's valid pixels (off the map).
+    With ``stride`` s, over every s-th row and column only (s² times cheaper; the
+    patch and the mosaic are compared at the same ceiling points, no smoothing)."""
+    pred, cover = predicted_patch(cmap, pose, patch.shape[0], stride)
+    patch, valid = patch[::stride, ::stride], valid[::stride, ::stride]
+    both = valid & cover  # type: ignore[operator]
+    m = int(np.count_nonzero(both))
+    if m < MIN_NCC_SHARE * max(int(np.count_nonzero(valid)), 1):
+        return math.nan
+    a = patch[both].astype(np.float32)
+    b = pred[both].astype(np.float32)
+    a -= a.mean()
+    b -= b.mean()
+    den = math.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b) / den if den > 0 else math.nan
+
+
+# -- a frame on the ceiling plane --------------------------------------------------------
+def patch_size(resolution_m: float, half_extent_m: float) -> int:
+    """The side ``n`` of a patch, pixels: ``2 round(half / res) + 1`` (odd: the vehicle's
+    origin is the centre pixel)."""
+    return 2 * int(round(half_extent_m / resolution_m)) + 1
+
+
+def patch_points_v(resolution_m: float, n: int) -> np.ndarray:
+    """``(n * n, 2)`` ceiling points of V at a patch's pixel centres, row-major."""
+    c = (np.arange(n) - (n - 1) / 2) * resolution_m
+    xx, yy = np.meshgrid(c, c)
+    return np.column_stack([xx.ravel(), yy.ravel()])
+
+
+MAX_LEVEL = 3            # rectify: the coarsest pyramid level it samples from
+
+
+@functools.lru_cache(maxsize=8)
+def _remap_tables(key: tuple, camera: Any, R: bytes, t: bytes, ceiling_m: float,
+                  resolution_m: float, n: int, level: int | None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """``(map1, map2, valid, level)``: the fixed-point remap tables from the frame's
+    pyramid level ``level`` (None: :func:`pyramid_level`) to a patch, and where the
+    patch's ceiling points fall inside the frame."""
+    R_vc = np.frombuffer(R).reshape(3, 3)
+    t_vc = np.frombuffer(t).reshape(3)
+    q = patch_points_v(resolution_m, n)
+    px = project_px(camera, R_vc, t_vc, on_ceiling(q, ceiling_m), np.zeros((1, 3)))[0]
+    ok = np.all(np.isfinite(px), axis=1)
+    ok &= (px[:, 0] >= 0) & (px[:, 0] <= camera.width - 1)
+    ok &= (px[:, 1] >= 0) & (px[:, 1] <= camera.height - 1)
+    if level is None:
+        level = pyramid_level(px.reshape(n, n, 2), ok.reshape(n, n))
+    px = px / 2 ** level                 # pyrDown: pixel u of level 0 is u / 2 there
+    px[~ok] = -10.0
+    m1, m2 = cv2.convertMaps(px[:, 0].reshape(n, n).astype(np.float32),
+                             px[:, 1].reshape(n, n).astype(np.float32), cv2.CV_16SC2)
+    valid = ok.reshape(n, n)
+    valid.setflags(write=False)
+    return m1, m2, valid, level
+
+
+def pyramid_level(px: np.ndarray, ok: np.ndarray) -> int:
+    """The frame's pyramid level (``cv2.pyrDown`` ``L`` times) whose pixel is nearest
+    (in log scale) a patch pixel: ``round(log2 s)`` of the median frame pixels ``s`` a
+    patch pixel spans, from ``(n, n, 2)`` frame pixels of the patch's points and
+    ``(n, n)`` where they are in the frame; between 0 and :data:`MAX_LEVEL`. Sampling
+    a level whose pixel is about the patch's is the anti-aliasing the patch needs
+    (bilinear sampling of a finer level aliases a seam into a staircase of false
+    corners) and costs a quarter of the next finer level's."""
+    dx = np.linalg.norm(np.diff(px, axis=1)[:-1], axis=2)
+    dy = np.linalg.norm(np.diff(px, axis=0)[:, :-1], axis=2)
+    both = ok[:-1, :-1] & ok[1:, :-1] & ok[:-1, 1:]
+    s = np.sqrt(dx * dy)[both]
+    if len(s) == 0:
+        return 0
+    return int(min(MAX_LEVEL, max(0, round(math.log2(max(float(np.median(s)), 1e-9))))))
+
+
+def rectify(grey: np.ndarray, rig: Any, ceiling_height: float, resolution_m: float,
+            half_extent_m: float, *, level: int | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The frame resampled onto the ceiling plane, in V: ``(patch, valid)``.
+
+    Each patch pixel (module docstring: column +x, row +y of V, the vehicle's origin at
+    the centre) is the ceiling point it stands for, projected through the rig's mount
+    and lens (:func:`~ceilkit.runtime.geometry.ceiling.project_px`: every distortion
+    model) and sampled bilinearly from the frame's pyramid level ``level``
+    (``cv2.pyrDown``; default :func:`pyramid_level`, the level whose pixel is about
+    the patch's: 1 for the office rig's 4.9 mm ground pixel and a 1 cm patch). The
+    lookup table is made once per rig, height, resolution, extent and level.
+
+    Args:
+        grey: ``(h, w)`` uint8 frame of ``rig.camera``.
+        rig: the rig (``camera``, ``mount``).
+        ceiling_height: the ceiling's height above the floor, m.
+        resolution_m: metres per patch pixel.
+        half_extent_m: half the patch's side, m.
+        level: the pyramid level sampled (0: the frame itself), or None (automatic).
+
+    Returns:
+        ``(patch (n, n) uint8, valid (n, n) bool)``: ``valid`` where the ceiling point is
+        in the frame (0 grey elsewhere); ``n`` is :func:`patch_size`.
+    """
+    cam = rig.camera
+    R = np.ascontiguousarray(rig.mount.R_vehicle_cam, float)
+    t = np.ascontiguousarray(rig.mount.t_vehicle_cam, float)
+    n = patch_size(resolution_m, half_extent_m)
+    m1, m2, valid, lv = _remap_tables(cam._key, cam, R.tobytes(), t.tobytes(),
+                                      float(ceiling_height), float(resolution_m), n, level)
+    for _ in range(lv):
+        grey = cv2.pyrDown(grey)
+    patch = cv2.remap(grey, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return patch, valid
+
+
+@functools.lru_cache(maxsize=4)
+def _orb(n_features: int, levels: int, fast: int) -> Any:
+    return cv2.ORB_create(n_features, 1.2, levels, ORB_PATCH, 0, 2, cv2.ORB_HARRIS_SCORE,
+                          ORB_PATCH, fast)
+
+
+@functools.lru_cache(maxsize=4)
+def _eroded(valid_bytes: bytes, shape: tuple[int, int], margin: int) -> np.ndarray:
+    v = np.frombuffer(valid_bytes, np.uint8).reshape(shape)
+    k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * margin + 1, 2 * margin + 1))
+    return cv2.erode(v, k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def features(patch: np.ndarray, valid: np.ndarray, resolution_m: float, *,
+             n_features: int = ORB_FEATURES, levels: int = ORB_LEVELS,
+             fast_threshold: int = ORB_FAST) -> tuple[np.ndarray, np.ndarray]:
+    """Detect and describe (ORB) on a rectified patch, away from where it has no data.
+
+    Args:
+        patch, valid: ``(n, n)`` from :func:`rectify`.
+        resolution_m: its metres per pixel.
+        n_features, levels, fast_threshold: ORB's keypoint budget, pyramid levels and
+            FAST threshold (grey levels).
+
+    Returns:
+        ``(points_v_xy (N, 2) float64 in V, m; descriptors (N, 32) uint8)``.
+    """
+    n = patch.shape[0]
+    margin = ORB_PATCH // 2 + 2 ** (levels - 1) * 2
+    mask = _eroded(np.ascontiguousarray(valid, np.uint8).tobytes(), valid.shape, margin)
+    kps, desc = _orb(n_features, levels, fast_threshold).detectAndCompute(patch, mask)
+    if desc is None or not kps:
+        return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
+    uv = np.array([kp.pt for kp in kps], float)
+    return (uv - (n - 1) / 2) * resolution_m, desc
+
+
+# -- building a map from frames with known poses --------------------------------------
+def build_map(frames: Iterable[np.ndarray], poses: Iterable[tuple[float, float, float]],
+              rig: Any, ceiling_height: float, resolution_m: float = DEFAULT_RESOLUTION_M,
+              anchor: str = "truth", half_extent_m: float | None = None,
+              min_views: int = MIN_VIEWS) -> CeilingMap:
+    """A ceiling map from grey frames with known vehicle poses ``(x, y, yaw rad)`` in W.
+
+    Every frame is rectified (:func:`rectify`) and pasted into the mosaic at its pose
+    (the mean of the frames covering a pixel); its features (:func:`features`) are put
+    in W. Observations of one feature in several frames (within
+    :data:`MERGE_RADIUS_PX` pixels, descriptors within :data:`MERGE_HAMMING` bits) are
+    merged: the feature is their mean, its descriptor their medoid, its ``sigma_m``
+    their scatter's standard error (a per-observation scatter pooled over all merged
+    features where a feature has too few views to give its own, never below
+    :data:`MIN_SIGMA_PX` pixels). Features seen in fewer than ``min_views`` frames are
+    left out (noise, or at the edge of the drive).
+
+    Args:
+        half_extent_m: the patch's half side (default: the frame's ceiling footprint,
+            :func:`footprint_half_extent`).
+
+    Raises:
+        ConfigError: ``frames`` for no frames, or frames and poses of different counts.
+    """
+    half = footprint_half_extent(rig, ceiling_height) if half_extent_m is None else half_extent_m
+    poses = [tuple(float(v) for v in p) for p in poses]
+    pts, descs, views = [], [], []
+    acc = _Mosaic(resolution_m)
+    k = -1
+    for k, grey in enumerate(frames):
+        if k >= len(poses):
+            raise ConfigError(None, "frames", f"more frames than the {len(poses)} poses")
+        patch, valid = rectify(grey, rig, ceiling_height, resolution_m, half)
+        acc.add(patch, valid, poses[k])
+        q, d = features(patch, valid, resolution_m)
+        pts.append(vehicle_to_world(q, *poses[k]))
+        descs.append(d)
+        views.append(np.full(len(q), k))
+    if k < 0 or k + 1 != len(poses):
+        raise ConfigError(None, "frames", f"expected {len(poses)} frames (one per pose), "
+                          f"found {k + 1}")
+    mosaic, coverage, origin = acc.result()
+    p, d, s = merge_features(np.concatenate(pts), np.concatenate(descs),
+                             np.concatenate(views), resolution_m, min_views)
+    return CeilingMap(float(resolution_m), origin, mosaic, coverage, p, d, s,
+                      float(ceiling_height), "orb", anchor)
+
+
+def footprint_half_extent(rig: Any, ceiling_height: float, cap_m: float = 4.0) -> float:
+    """The half side (m) of the square about V's origin holding every ceiling point the
+    frame's border sees (at most ``cap_m``: a wide lens near the horizon)."""
+    cam = rig.camera
+    w, h = cam.width - 1, cam.height - 1
+    s = np.linspace(0.0, 1.0, 33)
+    px = np.concatenate([np.c_[s * w, 0 * s], np.c_[s * w, h + 0 * s],
+                         np.c_[0 * s, s * h], np.c_[w + 0 * s, s * h]])
+    t = rig.mount.t_vehicle_cam
+    q, ok = ceiling_points(cam.unproject(px), rig.mount.R_vehicle_cam, t,
+                           float(ceiling_height) - float(t[2]))
+    if not np.any(ok):
+        return cap_m
+    return float(min(cap_m, np.max(np.abs(q[ok]))))
+
+
+class _Mosaic:
+    """Running sums of patches pasted into W's grid (grown as frames come)."""
+
+    def __init__(self, resolution_m: float) -> None:
+        self.res = float(resolution_m)
+        self.items: list[tuple[np.ndarray, np.ndarray, tuple[float, float, float]]] = []
+
+    def add(self, patch: np.ndarray, valid: np.ndarray,
+            pose: tuple[float, float, float]) -> None:
+        self.items.append((patch, valid, pose))
+
+    def result(self) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+        """``(mosaic uint8, coverage bool, origin_xy)``."""
+        res = self.res
+        corners = []
+        for patch, _, (x, y, yaw) in self.items:
+            half = (patch.shape[0] - 1) / 2 * res
+            sq = np.array([[-half, -half], [half, -half], [half, half], [-half, half]])
+            corners.append(vehicle_to_world(sq, x, y, yaw))
+        allc = np.concatenate(corners)
+        lo = np.floor(allc.min(0) / res) * res
+        hi = np.ceil(allc.max(0) / res) * res
+        w, h = (int(round(v)) + 1 for v in (hi - lo) / res)
+        total = np.zeros((h, w), np.float32)
+        count = np.zeros((h, w), np.float32)
+        for (patch, valid, (x, y, yaw)), cw in zip(self.items, corners, strict=True):
+            # the frame's own window of the mosaic: (col, row) from c0, r0
+            c0, r0 = (int(v) for v in np.floor((cw.min(0) - lo) / res))
+            c1, r1 = (int(v) + 2 for v in np.ceil((cw.max(0) - lo) / res))
+            c1, r1 = min(c1, w), min(r1, h)
+            A = _patch_to_mosaic(patch.shape[0], res, (x - lo[0]) / res - c0,
+                                 (y - lo[1]) / res - r0, yaw)
+            size = (c1 - c0, r1 - r0)
+            vw = cv2.warpAffine(valid.astype(np.float32), A, size, flags=cv2.INTER_NEAREST)
+            pw = cv2.warpAffine(patch.astype(np.float32), A, size, flags=cv2.INTER_LINEAR)
+            total[r0:r1, c0:c1] += pw * vw
+            count[r0:r1, c0:c1] += vw
+        cover = count > 0
+        mosaic = np.zeros((h, w), np.uint8)
+        mosaic[cover] = np.clip(np.rint(total[cover] / count[cover]), 0, 255)
+        return mosaic, cover, (float(lo[0]), float(lo[1]))
+
+
+def _patch_to_mosaic(n: int, res: float, col: float, row: float, yaw: float) -> np.ndarray:
+    """``(2, 3)`` affine from a patch's ``(col, row)`` to a window's of the mosaic, the
+    vehicle's origin at the window's ``(col, row)`` (both grids ``res`` m a pixel)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    h = (n - 1) / 2
+    return np.array([[c, -s, col - (c * h - s * h)], [s, c, row - (s * h + c * h)]])
+
+
+def merge_features(points_xy: np.ndarray, descriptors: np.ndarray, views: np.ndarray,
+                   resolution_m: float, min_views: int = MIN_VIEWS
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge observations ``(N, 2)`` in W (with their descriptors and frame indices)
+    of the same feature: ``(points (M, 2), descriptors (M, D), sigma_m (M,))`` (see
+    :func:`build_map`)."""
+    n = len(points_xy)
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0)
+    parent = np.arange(n)
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    pairs = cKDTree(points_xy).query_pairs(MERGE_RADIUS_PX * resolution_m, output_type="ndarray")
+    if len(pairs):
+        ham = np.unpackbits(descriptors[pairs[:, 0]] ^ descriptors[pairs[:, 1]], axis=1).sum(1)
+        for a, b in pairs[(ham <= MERGE_HAMMING) & (views[pairs[:, 0]] != views[pairs[:, 1]])]:
+            ra, rb = root(a), root(b)
+            if ra != rb:
+                parent[rb] = ra
+    roots = np.array([root(i) for i in range(n)])
+    _, label = np.unique(roots, return_inverse=True)
+    return _clusters(points_xy, descriptors, views, label, resolution_m, min_views)
+
+
+def _clusters(points_xy: np.ndarray, descriptors: np.ndarray, views: np.ndarray,
+              label: np.ndarray, resolution_m: float, min_views: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    order = np.argsort(label, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(label[order]) != 0])
+    groups = np.split(order, starts[1:])
+    keep = [g for g in groups if len(np.unique(views[g])) >= min_views]
+    if not keep:
+        return np.zeros((0, 2)), np.zeros((0, descriptors.shape[1]), np.uint8), np.zeros(0)
+    means = np.array([points_xy[g].mean(0) for g in keep])
+    sq = np.array([((points_xy[g] - m) ** 2).sum() for g, m in zip(keep, means, strict=True)])
+    counts = np.array([len(g) for g in keep], float)
+    multi = counts >= 3
+    # the per-observation 1σ (per axis), pooled over the features seen 3 times or more
+    pooled = math.sqrt(sq[multi].sum() / max(2.0 * (counts[multi] - 1).sum(), 1.0)) \
+        if np.any(multi) else resolution_m
+    own = np.sqrt(sq / np.maximum(2.0 * (counts - 1), 1.0))
+    per_obs = np.where(multi, own, pooled)
+    sigma = np.maximum(per_obs / np.sqrt(counts), MIN_SIGMA_PX * resolution_m)
+    desc = np.array([descriptors[g[_medoid(descriptors[g])]] if len(g) > 1
+                     else descriptors[g[0]] for g in keep], np.uint8)
+    return means, desc, sigma
+
+
+def _medoid(desc: np.ndarray) -> int:
+    bits = np.unpackbits(desc, axis=1).astype(np.int16)
+    ham = (bits[:, None, :] != bits[None, :, :]).sum(2)
+    return int(np.argmin(ham.sum(1)))
+
+
+__all__ = ["DEFAULT_RESOLUTION_M", "MAP_FORMAT", "MAP_VERSION", "CeilingMap",
+           "appearance_ncc", "build_map", "coarser", "features", "footprint_half_extent",
+           "merge_features", "patch_points_v", "patch_size", "predicted_patch", "pyramid_level",
+           "rectify"]

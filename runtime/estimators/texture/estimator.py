@@ -1,0 +1,361 @@
+"""The ``texture`` method: a global pose from one frame by matching the ceiling's
+natural features (vents, sprinklers, panels, stains, seams), rectified onto the
+ceiling plane, against the site's ceiling map (docs/methods/texture.md).
+
+Per frame: rectify (:func:`.ceilmap.rectify`), detect and describe (ORB,
+:func:`.ceilmap.features`), match to the map (an LSH index over its descriptors, or,
+with a prior, the map features near it only), two-point RANSAC for the rigid 2-D pose,
+least squares on its inliers. With a tight prior (its region cannot hold a twin
+``window_twin_m`` away) the fast path of :mod:`.track` runs first: the map's features
+followed from the prior into the frame, no detection. A pose whose inliers hold too
+few distinctive matches (:func:`.match.distinctive`) is not singled out. The same
+search run again without the best pose's inliers and outside its basin gives the
+runner-up: when the mosaic explains the frame nearly as well there (``twin_ncc``),
+the frame supports two poses and the estimate is an ``ambiguous`` Failure carrying
+both (a prior may choose one, by :mod:`~ceilkit.runtime.estimators.prior`'s rule).
+Between fixes the ceiling-plane odometry
+(:mod:`~ceilkit.runtime.estimators.block.odometry`) gives the increment.
+
+Example::
+
+    est = TextureEstimator(rig, site)                 # site.yaml: ceiling_map: map.npz
+    pose = est.estimate(grey, t_ns)                   # PoseEstimate | Failure
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.estimators.base import (
+    AMBIGUOUS,
+    Estimate,
+    Estimator,
+    EstimatorOptions,
+    Hypothesis,
+    PoseEstimate,
+    Provenance,
+    elapsed_ms,
+)
+from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
+from ceilkit.runtime.estimators.honesty import MISFIT
+from ceilkit.runtime.estimators.prior import (
+    allows,
+    narrower_than,
+    prior_choice,
+    prior_cov,
+)
+from ceilkit.runtime.estimators.texture.ceilmap import (
+    CeilingMap,
+    appearance_ncc,
+    coarser,
+    features,
+    footprint_half_extent,
+    rectify,
+)
+from ceilkit.runtime.estimators.texture.match import (
+    DescriptorIndex,
+    Refined,
+    ransac_rigid,
+    refine,
+)
+from ceilkit.runtime.estimators.texture.track import FeatureGrid, track_map
+from ceilkit.runtime.geometry.ceiling import PlanarGeometry
+
+TOO_FEW_FEATURES = "too_few_features"
+NO_MAP_MATCH = "no_map_match"
+MAX_WINDOW_M = 3.0       # a prior vaguer than this (3σ, m) is searched globally
+NCC_STRIDE = 3           # appearance_ncc over every 3rd row and column of the patch
+TRACK_LEVELS = 1         # the fast path's patch and mosaic: 2^L times coarser than the map
+TRACK_MIN_SHARE = 0.5    # ... its pose fits at least this share of the features followed
+TRACK_VAR_FACTOR = 4.0
+"""The fast path's measured / fitted variance: its fit's ``s² (JᵀJ)⁻¹`` scaled by it.
+On the 60-frame office drive of bench_texture (supersample 1, a prior 1 cm and 0.5°
+off) its position errors scattered 1.8 mm (sd per axis, no mean beyond 0.7 mm) where
+the fit said 0.9 mm: NEES (2 dof) median 4.7, 12 % beyond the 99.9 % region; the
+global path's median was 1.45 (honest), so only the fast path is scaled."""
+
+
+@dataclass(frozen=True)
+class TextureOptions(EstimatorOptions):
+    """What a user may set (``--option KEY=VALUE``).
+
+    Attributes:
+        half_extent_m: half the rectified patch's side, m (0: the frame's footprint).
+        n_features: ORB keypoints per frame, at most.
+        knn: map candidates per frame feature (a repeated feature has many twins).
+        max_hamming: a candidate's largest descriptor distance, bits (of 256).
+        tol_px: a correspondence is an inlier within this many map pixels.
+        iterations: RANSAC two-point samples per search.
+        min_inliers: distinct frame features a pose needs.
+        min_inlier_share: inliers / frame features a pose needs.
+        min_unique: inliers a pose needs whose match is distinctive (one place of the
+            map, :func:`.match.distinctive`): fewer, and the pose rests on features
+            that match their twins alike (a tile grid's seam crossings): ``ambiguous``.
+        max_rms_px: the inliers' RMS residual a pose may have, map pixels.
+        min_ncc: the least normalized cross-correlation of the rectified frame with the
+            map's mosaic at the pose (the model explains the whole frame).
+        twin_ncc: a runner-up pose with ``min_inliers`` whose mosaic correlates with the
+            frame within this of the best's (or cannot be checked: off the mosaic)
+            makes the frame ``ambiguous``.
+        window_m: with a prior, the map is searched within the frame's footprint plus
+            this plus the prior's 3σ of its position.
+        window_twin_m: the tracked fast path (:mod:`.track`: the map's features followed
+            from the prior, no detection) is taken only when the prior's region is too
+            narrow to hold a pose this far away (m; a twin of the pose must lie at
+            least this far: half the 0.6 m tile of a drop ceiling).
+        plane_odometry: carry the ceiling-plane odometry between fixes.
+        seed: the RANSAC's random seed (with the frame's stamp).
+    """
+
+    half_extent_m: float = 0.0
+    n_features: int = 400
+    knn: int = 2
+    max_hamming: int = 64
+    tol_px: float = 3.0
+    iterations: int = 200
+    min_inliers: int = 12
+    min_inlier_share: float = 0.05
+    min_unique: int = 6
+    max_rms_px: float = 1.5
+    min_ncc: float = 0.5
+    twin_ncc: float = 0.2
+    window_m: float = 0.3
+    window_twin_m: float = 0.3
+    plane_odometry: bool = True
+    seed: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """The best pose and its runner-up among one set of correspondences."""
+
+    best: Refined | None
+    count: int
+    runner: Refined | None
+    runner_count: int
+    ncc: float
+    runner_ncc: float
+    unique: int = 0
+
+
+class TextureEstimator(Estimator):
+    """Global localization on the site's ceiling map (see the module docstring)."""
+
+    name = "texture"
+    Options = TextureOptions
+    site_sections = ("ceiling_map",)
+
+    def __init__(self, rig: Any, site: Any,
+                 options: TextureOptions | dict[str, Any] | None = None) -> None:
+        super().__init__(rig, site, options)
+        o: TextureOptions = self.options  # type: ignore[assignment]
+        self.map = CeilingMap.load(site.ceiling_map)
+        if abs(self.map.ceiling_height - site.ceiling_height_m) > 1e-6:
+            raise ConfigError(site.ceiling_map, "header.ceiling_height",
+                              f"the map was made at {self.map.ceiling_height:g} m, the site's "
+                              f"ceiling is at {site.ceiling_height_m:g} m")
+        self.index = DescriptorIndex(self.map.points_xy, self.map.descriptors)
+        self._coarse = coarser(self.map, TRACK_LEVELS)
+        self._grid = FeatureGrid(self.map.points_xy) if len(self.map.points_xy) else None
+        self.half_m = o.half_extent_m or footprint_half_extent(rig, site.ceiling_height_m)
+        self.sigma_floor_m = float(np.median(self.map.sigma_m)) if len(self.map.sigma_m) \
+            else self.map.resolution_m
+        self._odo = PlaneOdometry(PlanarGeometry.of(rig, site), site) if o.plane_odometry \
+            else None
+        self._fixed = True
+
+    def forget(self) -> None:
+        self._fixed = True
+        if self._odo is not None:
+            self._odo.reset()
+
+    # -- per frame ---------------------------------------------------------------------
+    def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
+                  t0: float) -> Estimate:
+        got = self._frame(grey, t_ns, prior, t0)
+        if self._odo is None:
+            return got
+        fixed, gap = bool(got), not self._fixed
+        self._fixed = fixed
+        inc = self._odo.increment(grey, t_ns, not fixed or gap, prior)
+        if inc is None:
+            return got
+        return dataclasses.replace(got, increment=inc,
+                                   diagnostics={**got.diagnostics, "ms": elapsed_ms(t0)})
+
+    def _frame(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
+               t0: float) -> Estimate:
+        o: TextureOptions = self.options  # type: ignore[assignment]
+        res = self.map.resolution_m
+        near = prior is not None and prior.x_m is not None and prior.y_m is not None
+        if near and narrower_than(prior, o.window_twin_m):  # type: ignore[arg-type]
+            fast = self._tracked(grey, prior, t_ns, t0)  # type: ignore[arg-type]
+            if fast is not None:
+                return fast
+        patch, valid = rectify(grey, self.rig, self.site.ceiling_height_m, res, self.half_m)
+        q, desc = features(patch, valid, res, n_features=o.n_features)
+        if len(q) < o.min_inliers:
+            return self.fail(t_ns, TOO_FEW_FEATURES, f"{len(q)} ceiling features, a pose "
+                             f"needs {o.min_inliers}", features=len(q), ms=elapsed_ms(t0))
+        rng = np.random.default_rng([o.seed, t_ns & 0x7FFFFFFFFFFFFFFF])
+        if near:
+            radius = self._window_radius(prior)  # type: ignore[arg-type]
+            if radius is not None:
+                qi, mj, uq = self.index.near(desc, (prior.x_m, prior.y_m),  # type: ignore
+                                             radius, o.knn, o.max_hamming)
+                got = self._decide(q, qi, self._search(q, qi, mj, uq, rng, patch, valid),
+                                   prior, t_ns, t0, local=True)
+                if got is not None:
+                    return got
+        qi, mj, uq = self.index.match(desc, o.knn, o.max_hamming)
+        return self._decide(q, qi, self._search(q, qi, mj, uq, rng, patch, valid), prior,
+                            t_ns, t0, local=False)
+
+    def _tracked(self, grey: np.ndarray, prior: PoseEstimate, t_ns: int, t0: float
+                 ) -> PoseEstimate | None:
+        """The fast path (:mod:`.track`): the map's features followed from the prior into
+        the frame rectified at :data:`TRACK_LEVELS` coarser than the map (the mosaic
+        alike); its pose when it explains the frame (as the global path's checks, the
+        same tolerances in metres) and the prior's region holds it, else None (the
+        searches follow)."""
+        o: TextureOptions = self.options  # type: ignore[assignment]
+        res = self.map.resolution_m
+        if self._grid is None:
+            return None
+        cmap = self._coarse
+        patch, valid = rectify(grey, self.rig, self.site.ceiling_height_m, cmap.resolution_m,
+                               self.half_m)
+        got = track_map(cmap, self._grid, patch, valid,
+                        (float(prior.x_m), float(prior.y_m), float(prior.yaw_rad)),
+                        o.tol_px * res, self.sigma_floor_m, o.min_inliers)
+        if got is None:
+            return None
+        fit = dataclasses.replace(got.refined, cov=got.refined.cov * TRACK_VAR_FACTOR)
+        ncc = appearance_ncc(cmap, patch, valid, fit.pose, NCC_STRIDE)
+        if fit.rms_m > o.max_rms_px * res or not ncc >= o.min_ncc or \
+                len(fit.used) < TRACK_MIN_SHARE * got.followed or \
+                not allows(prior, (*fit.pose, fit.cov)):
+            return None
+        diag = {"features": got.predicted, "matches": got.followed, "inliers": len(fit.used),
+                "runner_up": 0, "search": "tracked", "rms_px": fit.rms_m / res, "ncc": ncc,
+                "runner_up_ncc": math.nan}
+        return self._pose(t_ns, _Search(fit, len(fit.used), None, 0, ncc, math.nan),
+                          Provenance.WINDOW, (), diag, t0)
+
+    def _window_radius(self, prior: PoseEstimate) -> float | None:
+        """The radius about the prior's position the map is searched within, or None
+        when the prior is too vague for a local search (:data:`MAX_WINDOW_M`)."""
+        P = prior_cov(prior)
+        spread = 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(P[:2, :2])[-1]), 0.0)) \
+            if np.all(np.isfinite(P[:2, :2])) else math.inf
+        if not spread <= MAX_WINDOW_M:
+            return None
+        return math.sqrt(2.0) * self.half_m + self.options.window_m + spread  # type: ignore
+
+    def _search(self, q: np.ndarray, qi: np.ndarray, mj: np.ndarray, unique: np.ndarray,
+                rng: np.random.Generator, patch: np.ndarray, valid: np.ndarray) -> _Search:
+        """The best pose among the correspondences and the runner-up (the same search
+        without the best's inliers, outside its basin), each with how well the mosaic
+        at it explains the frame (:func:`.ceilmap.appearance_ncc`)."""
+        o: TextureOptions = self.options  # type: ignore[assignment]
+        tol = o.tol_px * self.map.resolution_m
+        qq, pp = q[qi], self.map.points_xy[mj]
+        first = ransac_rigid(qq, pp, qi, tol, o.iterations, rng)
+        best = None if first is None else refine(qq, pp, qi, first.pose, tol,
+                                                 self.sigma_floor_m)
+        if best is None:
+            return _Search(None, 0, None, 0, math.nan, math.nan)
+        rest = np.ones(len(qi), bool)
+        rest[best.used] = False
+        second = ransac_rigid(qq[rest], pp[rest], qi[rest], tol, o.iterations, rng,
+                              avoid=best.pose)
+        # a runner-up RANSAC found with under half of min_inliers is no twin (refining
+        # it, about its pose again, does not double it): its least squares is skipped
+        runner = None if second is None or 2 * second.count < o.min_inliers else \
+            refine(qq[rest], pp[rest], qi[rest], second.pose, tol, self.sigma_floor_m)
+        ncc = appearance_ncc(self.map, patch, valid, best.pose, NCC_STRIDE)
+        ncc2 = math.nan if runner is None or len(runner.used) < o.min_inliers else \
+            appearance_ncc(self.map, patch, valid, runner.pose, NCC_STRIDE)
+        return _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
+                       ncc, ncc2, int(np.count_nonzero(unique[best.used])))
+
+    def _decide(self, q: np.ndarray, qi: np.ndarray, s: _Search,
+                prior: PoseEstimate | None, t_ns: int, t0: float, local: bool
+                ) -> Estimate | None:
+        """The estimate a search gives (None: a local search that found nothing the
+        prior allows; the global search follows)."""
+        o: TextureOptions = self.options  # type: ignore[assignment]
+        res = self.map.resolution_m
+        diag = {"features": len(q), "matches": len(qi), "inliers": s.count,
+                "runner_up": s.runner_count, "search": "local" if local else "global"}
+        if s.best is None or s.count < o.min_inliers:
+            return None if local else self.fail(
+                t_ns, NO_MAP_MATCH, f"{s.count} features agree on a pose, it needs "
+                f"{o.min_inliers}", **diag, ms=elapsed_ms(t0))
+        diag.update(rms_px=s.best.rms_m / res, ncc=s.ncc, runner_up_ncc=s.runner_ncc)
+        if s.count < o.min_inlier_share * len(q) or s.best.rms_m > o.max_rms_px * res \
+                or not s.ncc >= o.min_ncc:
+            return None if local else self.fail(
+                t_ns, MISFIT, f"{s.count} of {len(q)} features fit, RMS "
+                f"{s.best.rms_m / res:.2f} px, the mosaic correlates {s.ncc:.2f}", **diag,
+                ms=elapsed_ms(t0))
+        diag["unique"] = s.unique
+        twin = s.runner is not None and s.runner_count >= o.min_inliers and \
+            not s.runner_ncc < s.ncc - o.twin_ncc
+        if not twin and s.unique < o.min_unique:
+            return None if local else self.fail(
+                t_ns, AMBIGUOUS, f"{s.count} features fit, {s.unique} of them match one "
+                f"place of the map (it needs {o.min_unique}): the rest match their twins "
+                f"alike, which the search did not enumerate", _hypotheses(s), **diag,
+                ms=elapsed_ms(t0))
+        if not twin:
+            if local and not allows(prior, (*s.best.pose, s.best.cov)):
+                return None
+            return self._pose(t_ns, s, Provenance.WINDOW if local else Provenance.GLOBAL,
+                              (), diag, t0)
+        hyps = _hypotheses(s)
+        k = prior_choice(prior, [(h.x_m, h.y_m, h.yaw_rad, h.cov) for h in hyps])
+        if k is not None:
+            chosen = dataclasses.replace(s, best=s.runner, runner=s.best) if k == 1 else s
+            return self._pose(t_ns, chosen, Provenance.PRIOR,
+                              (hyps[k], *(h for i, h in enumerate(hyps) if i != k)), diag, t0)
+        if local:
+            return None
+        return self.fail(t_ns, AMBIGUOUS, f"two poses fit {s.count} and {s.runner_count} "
+                         f"features, the mosaic correlates {s.ncc:.2f} and "
+                         f"{s.runner_ncc:.2f}", hyps, **diag, ms=elapsed_ms(t0))
+
+    def _pose(self, t_ns: int, s: _Search, provenance: Provenance,
+              hyps: tuple[Hypothesis, ...], diag: dict[str, Any], t0: float) -> PoseEstimate:
+        best = s.best
+        assert best is not None
+        x, y, yaw = best.pose
+        tol = self.options.tol_px * self.map.resolution_m  # type: ignore[attr-defined]
+        q_n = 1.0 - math.exp(-s.count / 15.0)
+        q_sep = 1.0 if s.runner is None or not math.isfinite(s.runner_ncc) else \
+            min(1.0, max(0.0, (s.ncc - s.runner_ncc) / max(s.ncc, 1e-9)))
+        q_res = math.exp(-0.5 * (best.rms_m / (0.5 * tol)) ** 2)
+        return PoseEstimate(t_ns, self.name, x, y, yaw,
+                            float(q_n * q_sep * q_res * max(s.ncc, 0.0)),
+                            cov=best.cov, diagnostics={**diag, "ms": elapsed_ms(t0)},
+                            provenance=provenance, hypotheses=hyps)
+
+
+def _hypotheses(s: _Search) -> tuple[Hypothesis, ...]:
+    """The best pose and the runner-up, weighted by their inlier counts."""
+    total = float(s.count + s.runner_count)
+    out = []
+    for fit, n, label in ((s.best, s.count, "best"), (s.runner, s.runner_count, "runner-up")):
+        if fit is None:
+            continue
+        out.append(Hypothesis(fit.pose[0], fit.pose[1], fit.pose[2], fit.cov, n / total, label))
+    return tuple(out)
+
+
+__all__ = ["NO_MAP_MATCH", "TOO_FEW_FEATURES", "TextureEstimator", "TextureOptions"]

@@ -1,0 +1,175 @@
+"""The survey's pose graph, place matcher and loop path on synthetic data."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ceilkit.calib.survey_graph import (
+    Edge,
+    _Problem,
+    chain_poses,
+    compose,
+    relative,
+    solve_graph,
+)
+from ceilkit.calib.survey_loop import loop_perimeter_m, loop_trajectory
+from ceilkit.calib.survey_places import Place, match_places
+from ceilkit.runtime.errors import ConfigError
+
+
+def _drive(n: int, rng: np.random.Generator) -> np.ndarray:
+    steps = np.c_[rng.normal(0.1, 0.02, n - 1), rng.normal(0, 0.02, n - 1),
+                  rng.normal(0, 0.05, n - 1)]
+    return chain_poses(np.array([1.0, 2.0, 0.3]), steps)
+
+
+def test_compose_and_relative_are_inverse():
+    a, b = np.array([1.0, -2.0, 2.5]), np.array([0.3, 0.4, -3.0])
+    assert np.allclose(compose(a, relative(a, b))[:2], b[:2])
+    assert math.isclose((compose(a, relative(a, b))[2] - b[2]) % (2 * math.pi), 0,
+                        abs_tol=1e-12)
+
+
+def test_jacobian_matches_differences():
+    rng = np.random.default_rng(1)
+    truth = _drive(12, rng)
+    edges = [Edge(k, k + 1, relative(truth[k], truth[k + 1]), np.diag([1e-4, 2e-4, 1e-4]))
+             for k in range(11)] + [Edge(2, 9, relative(truth[2], truth[9]), np.eye(3) * 1e-6)]
+    prob = _Problem(12, edges, 0, truth[0])
+    v = truth[1:].ravel() + rng.normal(0, 0.01, 33)
+    J = prob.jacobian(v).toarray()
+    num = np.zeros_like(J)
+    for c in range(v.size):
+        d = np.zeros(v.size)
+        d[c] = 1e-6
+        num[:, c] = (prob.residuals(v + d) - prob.residuals(v - d)) / 2e-6
+    assert np.abs(J - num).max() < 1e-6 * np.abs(J).max()
+
+
+def _loop_graph(rng: np.random.Generator, wrong: bool = False):
+    truth = _drive(60, rng)
+    sig = np.array([0.003, 0.003, 0.002])
+    edges = [Edge(k, k + 1, relative(truth[k], truth[k + 1]) + rng.normal(0, sig),
+                  np.diag(sig ** 2)) for k in range(59)]
+    chain = chain_poses(truth[0], [e.z for e in edges])
+    edges.append(Edge(0, 59, relative(truth[0], truth[59]), np.eye(3) * 1e-6, "closure"))
+    if wrong:   # a closure a tile away from the truth
+        edges.append(Edge(10, 50, relative(truth[10], truth[50]) + [0.6, 0, 0],
+                          np.eye(3) * 1e-6, "closure"))
+    return truth, chain, edges
+
+
+def test_closure_pulls_the_end_back_and_holds_the_anchor():
+    truth, chain, edges = _loop_graph(np.random.default_rng(2))
+    sol = solve_graph(chain, edges)
+    assert np.allclose(sol.poses[0], truth[0])
+    end_chain = np.hypot(*(chain[-1, :2] - truth[-1, :2]))
+    end = np.hypot(*(sol.poses[-1, :2] - truth[-1, :2]))
+    assert end_chain > 0.02 and end < 0.002
+    assert sol.sigma[0].tolist() == [0, 0, 0] and np.all(sol.sigma[1:] > 0)
+
+
+def test_gauss_newton_is_no_worse_than_least_squares():
+    truth, chain, edges = _loop_graph(np.random.default_rng(3))
+    a = solve_graph(chain, edges)
+    b = solve_graph(chain, edges, solver="least_squares", max_iter=10)
+    ea = np.hypot(*(a.poses[:, :2] - truth[:, :2]).T)
+    eb = np.hypot(*(b.poses[:, :2] - truth[:, :2]).T)
+    assert a.iterations < 20 and np.sqrt(np.mean(ea ** 2)) <= np.sqrt(np.mean(eb ** 2)) + 1e-4
+    with pytest.raises(ValueError, match="solver"):
+        solve_graph(chain, edges, solver="ceres")
+
+
+def test_robust_loss_resists_a_wrong_closure():
+    truth, chain, edges = _loop_graph(np.random.default_rng(4), wrong=True)
+    sol = solve_graph(chain, edges)
+    err = np.hypot(*(sol.poses[:, :2] - truth[:, :2]).T)
+    assert err.max() < 0.1                       # bent, not torn to the tile's 0.6 m
+    assert sol.whitened[-1] > 100 * np.median(sol.whitened[:-2])
+
+
+def _descriptors(n: int, rng: np.random.Generator) -> np.ndarray:
+    return rng.integers(0, 256, (n, 32), dtype=np.uint8)
+
+
+def _moved(points: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Points of V_a seen from pose z (in V_a): p_b with q_a = R p_b + t."""
+    c, s = math.cos(z[2]), math.sin(z[2])
+    return (points - z[:2]) @ np.array([[c, -s], [s, c]])
+
+
+def test_unique_texture_matches_with_its_motion():
+    rng = np.random.default_rng(5)
+    q = rng.uniform(-1, 1, (80, 2))
+    d = _descriptors(80, rng)
+    z = np.array([0.12, -0.05, 0.2])
+    m = match_places(Place(q, d), Place(_moved(q, z) + rng.normal(0, 0.001, q.shape), d),
+                     np.random.default_rng(0))
+    assert m and np.allclose(m.z, z, atol=2e-3) and m.inliers >= 70
+    s = np.sqrt(np.diag(m.cov))
+    assert np.all(s > 0) and s[0] < 0.002
+
+
+def test_a_tile_grid_alone_is_ambiguous():
+    # corners of 0.6 m tiles all alike: a tile away explains as many as the truth
+    g = np.arange(-3, 4) * 0.6
+    q = np.array([(x, y) for x in g for y in g])
+    d = np.repeat(_descriptors(1, np.random.default_rng(6)), len(q), axis=0)
+    m = match_places(Place(q, d), Place(_moved(q, np.array([0.1, 0.0, 0.0])), d),
+                     np.random.default_rng(0))
+    assert not m and m.reason in ("ambiguous", "too few matches")
+
+
+def test_too_few_features_is_a_reason_not_an_exception():
+    m = match_places(Place(np.zeros((0, 2)), np.zeros((0, 32), np.uint8)),
+                     Place(np.zeros((0, 2)), np.zeros((0, 32), np.uint8)),
+                     np.random.default_rng(0))
+    assert not m and m.reason == "too few matches"
+
+
+def test_loop_trajectory_closes_and_keeps_speed():
+    t = loop_trajectory(6.0, 2.4, laps=1.0, fps=10.0, speed_mps=0.5)
+    step = np.hypot(np.diff(t.x_m), np.diff(t.y_m))
+    assert np.allclose(step, 0.05, atol=1e-3)
+    assert math.isclose(len(t.t_ns) * 0.05, loop_perimeter_m(6.0, 2.4, 0.6), abs_tol=0.06)
+    assert np.hypot(t.x_m[-1] - t.x_m[0], t.y_m[-1] - t.y_m[0]) < 0.06
+    assert np.abs(np.diff(t.yaw_rad)).max() < 0.1
+
+
+def test_loop_trajectory_refuses_bad_sizes():
+    with pytest.raises(ConfigError, match="radius_m"):
+        loop_trajectory(1.0, 1.0, radius_m=0.6)
+    with pytest.raises(ConfigError, match="speed_mps"):
+        loop_trajectory(6.0, 2.4, speed_mps=0.0)
+
+
+def _lights_site() -> np.ndarray:
+    from ceilkit.runtime.config.site import Site
+    from helpers import CONFIGS
+    return Site.load(CONFIGS / "lights" / "site.yaml").lights_m
+
+
+def test_lights_anchor_recovers_the_motion():
+    from ceilkit.calib.survey_anchor import anchor_by_lights
+    known = _lights_site()
+    motion = np.array([1.5, -0.7, 0.4])                   # survey frame in W
+    c, s = math.cos(-motion[2]), math.sin(-motion[2])
+    seen = known[[6, 7, 8, 11, 12]]                      # what a short drive saw
+    found = (seen - motion[:2]) @ np.array([[c, s], [-s, c]])
+    found += np.random.default_rng(7).normal(0, 0.003, found.shape)
+    a = anchor_by_lights(found, known)
+    assert a and len(a.pairs) == 5 and a.runner_up < 5
+    assert np.allclose(a.apply_xy(found), seen, atol=0.01)
+    assert abs(a.yaw_rad - motion[2]) < 0.01 and np.all(a.residual_m < 0.01)
+
+
+def test_lights_in_a_row_do_not_anchor():
+    from ceilkit.calib.survey_anchor import anchor_by_lights
+    row = np.c_[np.arange(6) * 2.0, np.zeros(6)]         # every shift along it fits
+    a = anchor_by_lights(row[1:4] + [0.3, 0.1], row)
+    assert not a and "ambiguous" in a.reason
+    one = anchor_by_lights(row[:1], row)
+    assert not one and "two of each" in one.reason

@@ -1,0 +1,161 @@
+"""The ``texture`` method on simulated office drives (the session's scene, conftest.py):
+single frames of another path localized on a map built from one path; the plain tile
+grid and a repeated scatter refused; a kidnap; a prior's window and the tracked fast
+path; odometry off the map; ``--method auto`` beside corridor."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate, Provenance
+from ceilkit.runtime.estimators.registry import ESTIMATORS, FUSED_METHODS, site_methods
+from ceilkit.runtime.estimators.texture import CeilingMap, TextureEstimator
+from ceilkit.runtime.multi import make_localizer
+from helpers import CONFIGS
+
+
+def _error(est: PoseEstimate, truth) -> tuple[float, float]:
+    d = math.hypot(est.x_m - truth[0], est.y_m - truth[1])
+    a = abs(math.degrees((est.yaw_rad - truth[2] + math.pi) % (2 * math.pi) - math.pi))
+    return d, a
+
+
+def _prior(pose, dx: float, sigma_m: float, sigma_rad: float = 0.03) -> PoseEstimate:
+    return PoseEstimate(0, "track", pose[0] + dx, pose[1] - 0.5 * dx, pose[2] + 0.005, 0.9,
+                        cov=np.diag([sigma_m ** 2, sigma_m ** 2, sigma_rad ** 2]))
+
+
+def test_single_frames_of_another_path_localize(office):
+    est = TextureEstimator(office.rig, office.sites["scatter"], {"plane_odometry": False})
+    got = [est.estimate(f, k * 100_000_000) for k, f in enumerate(office.drive)]
+    errors = [_error(g, p) for g, p in zip(got, office.drive_poses, strict=True) if g]
+    assert len(errors) >= len(office.drive_poses) - 1, [g.reason for g in got if not g]
+    assert np.median([d for d, _ in errors]) <= 0.01
+    assert all(d <= 0.10 and a <= 2.0 for d, a in errors), errors
+    assert all(g.provenance is Provenance.GLOBAL and g.hypotheses == () for g in got if g)
+
+
+def test_plain_tiles_give_no_valid_pose(office):
+    """A tile grid alone repeats: no frame may be published valid on its map."""
+    est = TextureEstimator(office.rig, office.sites["plain"], {"plane_odometry": False})
+    poses = [(2.3, 0.1, 0.3), (3.1, -0.2, 2.0), (2.8, 0.3, -1.2), (3.5, 0.0, 0.0)]
+    got = [est.estimate(f, k) for k, f in enumerate(office.frames(poses, 4, plain=True))]
+    assert not any(got), [(_error(g, p), dict(g.diagnostics)) for g, p in
+                          zip(got, poses, strict=True) if g]
+    ambiguous = [g for g in got if g.reason == AMBIGUOUS]
+    assert all(len(g.hypotheses) == 1 + (g.diagnostics["runner_up"] > 0) for g in ambiguous)
+
+
+def _repeated(cmap: CeilingMap) -> tuple[CeilingMap, float]:
+    """The map with its mosaic and features repeated once along +x (a ceiling whose
+    scatter repeats: every place has a twin ``shift`` metres on), and that shift."""
+    w = cmap.mosaic.shape[1]
+    shift = w * cmap.resolution_m
+    twin = cmap.points_xy + (shift, 0.0)
+    return dataclasses.replace(
+        cmap, mosaic=np.hstack([cmap.mosaic, cmap.mosaic]),
+        coverage=np.hstack([cmap.coverage, cmap.coverage]),
+        points_xy=np.vstack([cmap.points_xy, twin]),
+        descriptors=np.vstack([cmap.descriptors, cmap.descriptors]),
+        sigma_m=np.concatenate([cmap.sigma_m, cmap.sigma_m])), shift
+
+
+def test_a_repeated_scatter_is_ambiguous_until_a_prior_singles_one_out(office):
+    cmap, shift = _repeated(office.maps["scatter"])
+    path = cmap.save(office.folder / "repeated.npz")
+    site = dataclasses.replace(office.sites["scatter"], ceiling_map=str(path))
+    est = TextureEstimator(office.rig, site, {"plane_odometry": False})
+    for k in (2, 4, 6):
+        truth = office.drive_poses[k]
+        got = est.estimate(office.drive[k], k)
+        assert not got and got.reason == AMBIGUOUS, (k, got)
+        xs = sorted(h.x_m for h in got.hypotheses)
+        assert len(xs) == 2 and abs(xs[0] - truth[0]) < 0.01 \
+            and abs(xs[1] - truth[0] - shift) < 0.01, (xs, truth)
+        # a prior whose region holds both twins chooses neither
+        assert not est.estimate(office.drive[k], k, _prior(truth, shift / 2, shift))
+        # one that holds only one: that one, and never the other
+        for dx in (0.0, shift):
+            there = (truth[0] + dx, truth[1], truth[2])
+            got = est.estimate(office.drive[k], k, _prior(there, 0.05, 0.3))
+            assert got and _error(got, there)[0] <= 0.01, (k, dx, got)
+            assert got.provenance in (Provenance.PRIOR, Provenance.WINDOW)
+
+
+def test_a_kidnapped_vehicle_relocalizes_and_a_prior_narrows_the_search(office):
+    est = TextureEstimator(office.rig, office.sites["scatter"], {"plane_odometry": False})
+    truth, frame = office.drive_poses[4], office.drive[4]
+    wrong = PoseEstimate(0, "track", truth[0] + 2.5, truth[1] - 1.0, truth[2] + 1.0, 0.9,
+                         cov=np.diag([1e-4, 1e-4, 1e-4]))
+    got = est.estimate(frame, 1, prior=wrong)
+    assert got and got.provenance is Provenance.GLOBAL
+    assert _error(got, truth)[0] <= 0.01
+    # a tight track: the map's features followed from it (no detection)
+    got = est.estimate(frame, 2, prior=_prior(truth, 0.02, 0.03))
+    assert got and got.provenance is Provenance.WINDOW
+    assert got.diagnostics["search"] == "tracked"
+    assert _error(got, truth)[0] <= 0.01
+    # a vaguer one (its region could hold a twin 0.3 m off): the local search
+    got = est.estimate(frame, 3, prior=_prior(truth, 0.1, 0.2))
+    assert got and got.provenance is Provenance.WINDOW
+    assert got.diagnostics["search"] == "local"
+    assert _error(got, truth)[0] <= 0.01
+
+
+def test_off_the_map_no_fix_and_the_odometry_carries(office):
+    """Beyond the map's end (x 9 m; it covers x < 6.7 m) no frame is a fix, and each
+    carries the ceiling-plane odometry's increment from the one before."""
+    est = TextureEstimator(office.rig, office.sites["scatter"])
+    poses = [(9.0 + 0.03 * k, 0.2, 0.5) for k in range(3)]
+    got = [est.estimate(f, k * 33_000_000) for k, f in
+           enumerate(office.frames(poses, 6))]
+    assert not any(got), [dict(g.diagnostics) for g in got if g]
+    assert got[0].increment is None
+    for g in got[1:]:
+        assert g.increment is not None
+        assert abs(math.hypot(g.increment.dx_m, g.increment.dy_m) - 0.03) < 0.005
+
+
+def test_registered_and_run_by_auto(office):
+    assert ESTIMATORS["texture"] is TextureEstimator and "texture" in FUSED_METHODS
+    assert "texture" in site_methods(office.sites["scatter"])
+    assert "texture" not in site_methods(Site.load(CONFIGS / "office" / "site.yaml"))
+
+
+def test_auto_tracks_beside_corridor_and_relocalizes_after_a_kidnap(office):
+    """``--method auto`` on the office site with a map: texture runs beside corridor
+    (the tile grid's lines); the fused track publishes valid poses along a drive, the
+    camera is covered, the vehicle is carried 2 m off, and the track relocalizes within
+    3 frames of the camera uncovering, never confidently wrong."""
+    rig, site = office.rig, office.sites["scatter"]
+    auto, tracker = make_localizer("auto", rig, site)
+    assert auto.methods == ("texture", "corridor")
+    n1, nc, n2 = 5, 4, 4
+    poses = [(2.0 + 0.05 * k, -0.3 + 0.02 * k, 0.4) for k in range(n1)] + \
+        [(4.2 + 0.05 * k, 0.6, -2.0) for k in range(n2)]
+    imgs = office.frames(poses, 7)
+    blank = np.full_like(imgs[0], 3)
+    truth = poses[:n1] + [None] * nc + poses[n1:]
+    seq = imgs[:n1] + [blank] * nc + imgs[n1:]
+    out = []
+    for k, img in enumerate(seq):
+        t = k * 100_000_000
+        est = auto.estimate(img, t, tracker.predict(t))
+        if truth[k] is not None:
+            texture = next(c for c in est.cues if c.method == "texture")
+            assert texture, (k, texture)
+        res = tracker.update(est)
+        out.append((res.estimate, res.relocalized))
+    valid = [k for k, (e, _) in enumerate(out[:n1]) if isinstance(e, PoseEstimate)]
+    assert len(valid) >= n1 - 1
+    assert all(_error(out[k][0], truth[k])[0] <= 0.01 for k in valid)
+    bumps = [k for k, (_, reloc) in enumerate(out) if reloc and k >= n1]
+    assert bumps and bumps[0] <= n1 + nc + 2, bumps          # within 3 frames
+    wrong = [k for k, (e, _) in enumerate(out) if isinstance(e, PoseEstimate)
+             and truth[k] is not None and e.quality >= 0.8 and _error(e, truth[k])[0] > 0.05]
+    assert wrong == []
+    assert _error(out[-1][0], truth[-1])[0] <= 0.01
