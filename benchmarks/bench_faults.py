@@ -389,7 +389,7 @@ def _required(cmd, name: str) -> list[str]:
     return out
 
 
-OWN_HEADS = {"board": ["--board", "chess:9x6", "--square", "0.025"],
+OWN_HEADS = {"board": ["--board", "chess:9x6", "--square", "0.025", "--out", "{t}/b.pdf"],
              "autopilot": ["--rig", "{rec}/rig.yaml", "--firmware", "ardupilot-4.6"]}
 """Valid values for the commands that check their own arguments first (a bad value of
 another flag is then the only fault of the case)."""

@@ -217,7 +217,11 @@ class _Grid:
 
 
 _GRID_CACHE: OrderedDict[tuple, _Grid] = OrderedDict()
-_GRID_CACHE_SIZE = 3
+_RAY_CACHE: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+GRID_CACHE_BYTES = 512 * 2**20
+"""The most bytes of ray grids (and of a camera's sub-pixel rays, shared by the grids
+of its mount tilts) kept for reuse, least recently used dropped first (the newest
+grid is kept whatever its size). A 640x480 grid at supersample 3 is about 85 MB."""
 
 
 def _grid(cam: CameraModel, R_level_cam: np.ndarray, s: int) -> _Grid:
@@ -228,9 +232,19 @@ def _grid(cam: CameraModel, R_level_cam: np.ndarray, s: int) -> _Grid:
         return g
     g = _build_grid(cam, R_level_cam, int(s))
     _GRID_CACHE[key] = g
-    while len(_GRID_CACHE) > _GRID_CACHE_SIZE:
-        _GRID_CACHE.popitem(last=False)
+    _trim_caches()
     return g
+
+
+def _trim_caches() -> None:
+    def nbytes(v: Any) -> int:
+        arrays = v if isinstance(v, tuple) else vars(v).values()
+        return sum(a.nbytes for a in arrays if isinstance(a, np.ndarray))
+
+    total = sum(map(nbytes, _GRID_CACHE.values())) + sum(map(nbytes, _RAY_CACHE.values()))
+    while total > GRID_CACHE_BYTES and (_RAY_CACHE or len(_GRID_CACHE) > 1):
+        cache = _RAY_CACHE if _RAY_CACHE else _GRID_CACHE
+        total -= nbytes(cache.popitem(last=False)[1])
 
 
 def _to_cells(a: np.ndarray, ncy: int, ncx: int, b: int) -> np.ndarray:
@@ -239,37 +253,72 @@ def _to_cells(a: np.ndarray, ncy: int, ncx: int, b: int) -> np.ndarray:
                                 ).reshape(ncy * ncx, b * b)
 
 
-def _build_grid(cam: CameraModel, R_lc: np.ndarray, s: int) -> _Grid:
-    W, H = cam.width, cam.height
-    ncx, ncy = -(-W // CELL_PX), -(-H // CELL_PX)
-    b = CELL_PX * s
-    hs, ws = ncy * b, ncx * b
-    v = (np.arange(hs) + 0.5) / s - 0.5
-    u = (np.arange(ws) + 0.5) / s - 0.5
+def _unit_rays(cam: CameraModel, u: np.ndarray, v: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """``(rays (N, 3), ok (N,))`` of the pixels ``u x v`` (row-major, N = v.size *
+    u.size): :meth:`CameraModel.unit_rays` (the same numbers: its arithmetic in its
+    order, without its masks when every pixel is inside the image); a pixel outside
+    the image has the ray 0, one the lens does not define the optical axis."""
+    iu = (u >= -0.5) & (u <= cam.width - 0.5)
+    iv = (v >= -0.5) & (v <= cam.height - 0.5)
     uu, vv = np.meshgrid(u, v)
     px = np.stack([uu.ravel(), vv.ravel()], axis=1)
-    rays, ok = cam.unit_rays(px, _REPROJ_TOL_PX)
-    d = rays @ np.asarray(R_lc, float).T                  # level frame
-    dx, dy, dz = (d[:, k].reshape(hs, ws) for k in range(3))
-    ok = ok.reshape(hs, ws)
-    ceil = ok & (dz > _DZ_MIN)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        qx = np.where(ceil, dx / dz, np.nan)
-        qy = np.where(ceil, dy / dz, np.nan)
-    # footprint of a sample on the plane at unit height: the longer of its two steps
+    whole = bool(iu.all() and iv.all())
+    inside = None if whole else (iv[:, None] & iu[None, :]).ravel()
+    pin = px if whole else px[inside]
+    xy = cam.unproject(pin)
+    if cam.is_distorted:
+        good = cam.reprojects(pin, xy, _REPROJ_TOL_PX)
+    else:           # a linear lens's inverse reprojects within 1e-9 px wherever finite
+        good = np.isfinite(xy).all(axis=1)
+    x = np.where(good, xy[:, 0], 0.0)
+    y = np.where(good, xy[:, 1], 0.0)
+    n = np.sqrt((x * x + y * y) + 1.0)         # np.linalg.norm of (x, y, 1)
+    rays = np.zeros((px.shape[0], 3))
+    if whole:
+        rays[:, 0], rays[:, 1], rays[:, 2] = x / n, y / n, 1.0 / n
+        return rays, good
+    rays[inside] = np.stack([x / n, y / n, 1.0 / n], axis=1)
+    ok = inside.copy()
+    ok[inside] = good
+    return rays, ok
+
+
+def _level_rays(cam: CameraModel, R_lc: np.ndarray, s: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``dx, dy, dz, ok`` ``(Hs, Ws)``: the unit rays of the sub-pixel samples
+    (factor ``s``, the image padded to whole cells) in the level frame. Their rays in
+    the camera frame are kept for the next mount of the same camera."""
+    b = CELL_PX * s
+    hs, ws = -(-cam.height // CELL_PX) * b, -(-cam.width // CELL_PX) * b
+    key = (cam, s)
+    hit = _RAY_CACHE.get(key)
+    if hit is None:
+        hit = _unit_rays(cam, (np.arange(ws) + 0.5) / s - 0.5, (np.arange(hs) + 0.5) / s - 0.5)
+        _RAY_CACHE[key] = hit
+    _RAY_CACHE.move_to_end(key)
+    rays, ok = hit
+    d = rays @ np.asarray(R_lc, float).T
+    return d[:, 0].reshape(hs, ws), d[:, 1].reshape(hs, ws), d[:, 2].reshape(hs, ws), \
+        ok.reshape(hs, ws)
+
+
+def _footprint(qx: np.ndarray, qy: np.ndarray, ceil: np.ndarray) -> np.ndarray:
+    """Footprint of each sample on the plane at unit height: the longer of its two
+    steps; a sample beside a non-ceiling one (no gradient) takes the largest."""
     gi = np.hypot(np.gradient(qx, axis=0), np.gradient(qy, axis=0))
     gj = np.hypot(np.gradient(qx, axis=1), np.gradient(qy, axis=1))
     fq = np.fmax(gi, gj)
     fq = np.where(np.isfinite(fq) & (fq > 0), fq, np.nan)
-    # a sample beside a non-ceiling one has no gradient: use its neighbours' scale
     fill = np.nanmax(fq) if np.any(np.isfinite(fq)) else 1.0
-    fq = np.where(ceil & np.isnan(fq), fill, fq)
+    return np.where(ceil & np.isnan(fq), fill, fq)
 
-    def cells(a: np.ndarray) -> np.ndarray:
-        return _to_cells(a, ncy, ncx, b)
 
-    cqx, cqy, cceil, cok, cfq = cells(qx), cells(qy), cells(ceil), cells(ok), cells(fq)
-    n = ncy * ncx
+def _cell_bounds(cqx: np.ndarray, cqy: np.ndarray, cceil: np.ndarray, cfq: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per cell: ``cq (n, 2)`` the centre of its ceiling hits at h = 1, ``rq (n,)`` a
+    radius around it holding them all, ``fq (n,)`` its largest footprint (NaN: none)."""
+    n = cqx.shape[0]
     any_ceil = cceil.any(axis=1)
     cq = np.full((n, 2), np.nan)
     rq = np.full(n, np.nan)
@@ -285,17 +334,43 @@ def _build_grid(cam: CameraModel, R_lc: np.ndarray, s: int) -> _Grid:
         cq[any_ceil] = np.stack([mx, my], axis=1)
         rq[any_ceil] = r * (1 + 1e-6) + 1e-9
         fqc[any_ceil] = np.where(sc, cfq[any_ceil], 0.0).max(axis=1)
+    return cq, rq, fqc
+
+
+def _build_grid(cam: CameraModel, R_lc: np.ndarray, s: int) -> _Grid:
+    W, H = cam.width, cam.height
+    ncx, ncy = -(-W // CELL_PX), -(-H // CELL_PX)
+    b = CELL_PX * s
+    hs, ws = ncy * b, ncx * b
+    dx, dy, dz, ok = _level_rays(cam, R_lc, s)
+    ceil = ok & (dz > _DZ_MIN)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        qx = np.where(ceil, dx / dz, np.nan)
+        qy = np.where(ceil, dy / dz, np.nan)
+    fq = _footprint(qx, qy, ceil)
+
+    def cells(a: np.ndarray) -> np.ndarray:
+        return _to_cells(a, ncy, ncx, b)
+
+    cqx, cqy, cceil, cok, cfq = cells(qx), cells(qy), cells(ceil), cells(ok), cells(fq)
+    cq, rq, fqc = _cell_bounds(cqx, cqy, cceil, cfq)
+    any_ceil = cceil.any(axis=1)
     mixed = any_ceil & ~cceil.all(axis=1)
     has_other = (cok & ~cceil).any(axis=1)
     # pixel index of each sample in the padded (Hp, Wp) image
     pi = (np.arange(hs) // s)[:, None] * (ncx * CELL_PX) + (np.arange(ws) // s)[None, :]
-    # pixel centres
+    # pixel centres: for an odd s the middle samples (u + (k + 0.5) / s - 0.5 = u
+    # exactly at k = (s - 1) / 2), else their own rays
     hp, wp = ncy * CELL_PX, ncx * CELL_PX
-    pu, pv = np.meshgrid(np.arange(wp, dtype=float), np.arange(hp, dtype=float))
-    prays, pok = cam.unit_rays(np.stack([pu.ravel(), pv.ravel()], axis=1), _REPROJ_TOL_PX)
-    pd = prays @ np.asarray(R_lc, float).T
-    pdx, pdy, pdz = (pd[:, k].reshape(hp, wp) for k in range(3))
-    pok = pok.reshape(hp, wp)
+    if s % 2:
+        mid = slice(s // 2, None, s)
+        pdx, pdy, pdz = dx[mid, mid], dy[mid, mid], dz[mid, mid]
+        pok = np.ascontiguousarray(ok[mid, mid])
+    else:
+        prays, pok = _unit_rays(cam, np.arange(wp, dtype=float), np.arange(hp, dtype=float))
+        pd = prays @ np.asarray(R_lc, float).T
+        pdx, pdy, pdz = (pd[:, k].reshape(hp, wp) for k in range(3))
+        pok = pok.reshape(hp, wp)
     pceil = pok & (pdz > _DZ_MIN)
     with np.errstate(divide="ignore", invalid="ignore"):
         pqx = np.where(pceil, pdx / pdz, 0.0)
@@ -306,11 +381,12 @@ def _build_grid(cam: CameraModel, R_lc: np.ndarray, s: int) -> _Grid:
     vig = ((cu - cam.cx) ** 2 + (cv - cam.cy) ** 2) / rc2
 
     f32 = np.float32
+    with np.errstate(invalid="ignore"):     # q is finite on the ceiling, NaN off it
+        fx, fy = np.where(ceil, qx, 0.0).astype(f32), np.where(ceil, qy, 0.0).astype(f32)
     return _Grid(
-        s=s, width=W, height=H, ncy=ncy, ncx=ncx,
-        dx=cells(dx).astype(f32), dy=cells(dy).astype(f32), dz=cells(dz).astype(f32),
-        qx=np.nan_to_num(cqx).astype(f32), qy=np.nan_to_num(cqy).astype(f32),
-        valid=cok, ceil=cceil,
+        s=s, width=W, height=H, ncy=ncy, ncx=ncx,       # (cast, then reordered to cells)
+        dx=cells(dx.astype(f32)), dy=cells(dy.astype(f32)), dz=cells(dz.astype(f32)),
+        qx=cells(fx), qy=cells(fy), valid=cok, ceil=cceil,
         inv_fq=np.where(cceil, 1.0 / np.where(cceil, cfq, 1.0), 0.0).astype(f32),
         pix=cells(pi).astype(np.int64),
         cq=cq, rq=rq, fq=fqc, mixed=mixed | (cok.any(axis=1) & ~cok.all(axis=1)),

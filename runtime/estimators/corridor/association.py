@@ -52,6 +52,10 @@ class OffsetMatch:
         score: sum over the site's lines of ``exp(-e^2 / 2 sigma^2)`` for the closest
             offset matched to each (``sigma = tol / 3``): about the number of lines
             matched, discounted by their misfit.
+        prior_rival_m: with a prior, the shift nearest it after ``shift_m`` of those
+            the frame supports as well (scoring within :data:`AMBIGUITY_RATIO` of
+            it); None without a prior or such a shift. The prior singles
+            ``shift_m`` out only if its region holds neither this nor the runner-up.
     """
 
     shift_m: float
@@ -60,6 +64,7 @@ class OffsetMatch:
     weight: float
     runner_up: tuple[float, float, float] | None
     score: float = 0.0
+    prior_rival_m: float | None = None
 
 
 class MatchQuery(NamedTuple):
@@ -110,13 +115,14 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
     assign = np.empty(o.size, np.int64)
     query = MatchQuery(float(tol_m), prior_shift_m is not None,
                        0.0 if prior_shift_m is None else float(prior_shift_m))
-    found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift, score = match_core(
-        o, arr(weights, np.float64).ravel(), ys, query, arr(a, np.float64),
-        arr(cw, np.float64), assign)
+    found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift, score, rival = \
+        match_core(o, arr(weights, np.float64).ravel(), ys, query, arr(a, np.float64),
+                   arr(cw, np.float64), assign)
     if not found:
         return None
     return OffsetMatch(shift, assign, n_lines, weight,
-                       (r_score, r_weight, r_shift) if has_runner else None, score)
+                       (r_score, r_weight, r_shift) if has_runner else None, score,
+                       None if math.isnan(rival) else float(rival))
 
 
 @njit
@@ -172,11 +178,12 @@ def match_core(o_all, w_all, ys, query, anchors, cw_all, assign
     the site lines ``ys (J,)`` (``query``: a :class:`MatchQuery`), with ``compat``
     ``cw_all (N, J)`` (ones: none) and ``anchors (A,)`` (empty: none), the site line of
     each offset written to ``assign (N,)``: ``(found, shift, n_lines, weight,
-    has_runner, runner score, runner weight, runner shift, score)``: the hypotheses
+    has_runner, runner score, runner weight, runner shift, score, prior rival shift
+    (NaN: none))``: the hypotheses
     (:func:`_merged_shifts`) scored (:func:`_scored`), the winner and the runner-up
     (the best more than ``tol`` from it) as :func:`match_offsets` says."""
     tol, has_prior, prior_shift = query
-    nothing = (False, 0.0, 0, 0.0, False, 0.0, 0.0, 0.0, 0.0)
+    nothing = (False, 0.0, 0, 0.0, False, 0.0, 0.0, 0.0, 0.0, math.nan)
     assign[:] = -1
     ok = np.flatnonzero(np.isfinite(o_all))
     n = ok.size
@@ -208,13 +215,24 @@ def match_core(o_all, w_all, ys, query, anchors, cw_all, assign
     others = idx[np.abs(c_ref[idx] - c_ref[win]) > tol]
     has_runner = others.size > 0
     r_score = r_weight = r_shift = 0.0
+    rival = math.nan
     if has_runner:
         r = _best_of(others, soft, sw)
         r_score, r_weight, r_shift = soft[r], sw[r], c_ref[r]
+        if has_prior:
+            # the next nearest the prior of those the frame supports as well (within
+            # AMBIGUITY_RATIO): the one it must rule out (a tile grid's seams fit a
+            # shift a period either side; the best scoring other may lie beyond the
+            # prior, this one not)
+            near = math.inf
+            for k in others:
+                if soft[k] >= AMBIGUITY_RATIO * soft[win] and \
+                        abs(c_ref[k] - prior_shift) < near:
+                    rival, near = c_ref[k], abs(c_ref[k] - prior_shift)
     for i in range(n):
         assign[ok[i]] = jm[win, i]
     return (True, c_ref[win], n_lines[win], sw[win], has_runner, r_score, r_weight, r_shift,
-            soft[win])
+            soft[win], rival)
 
 
 @njit

@@ -233,10 +233,12 @@ def hypothesis(k: int, psi_rad: float, along: np.ndarray, across: np.ndarray,
     query = MatchQuery(float(ctx.match_tol_m), prior_shift is not None,
                        0.0 if prior_shift is None else float(prior_shift))
     offs, wa, compat, (found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift,
-                       score) = hypothesis_core(ctx.kernel_setup, fr.arrays, arr(fa, np.bool_),
-                                                arr(fb, np.bool_), pk, query, assign)
+                       score, rival) = hypothesis_core(ctx.kernel_setup, fr.arrays,
+                                                       arr(fa, np.bool_), arr(fb, np.bool_),
+                                                       pk, query, assign)
     m = (OffsetMatch(shift, assign, n_lines, weight,
-                     (r_score, r_weight, r_shift) if has_runner else None, score)
+                     (r_score, r_weight, r_shift) if has_runner else None, score,
+                     None if math.isnan(rival) else float(rival))
          if found else None)
     return Hypothesis(k, pk, fa, fb, m, offs, wa, compat, len_a, len_b)
 
@@ -591,12 +593,15 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
 def _prior_single_shift(m: OffsetMatch, chosen: Hypothesis, prior: PoseEstimate,
                        ctx: LabelContext) -> bool:
     """Whether the prior allows the lateral shift it chose (``m``, the nearest it) and
-    not the runner-up (:func:`~ceilkit.runtime.estimators.prior.prior_choice` over the
-    vehicle's y of each)."""
+    neither the runner-up nor the next nearest it of the shifts it could have chosen
+    (``m.prior_rival_m``: on a tile grid the best scoring other can lie beyond the
+    prior, a shift a period nearer not) (:func:`~ceilkit.runtime.estimators.prior.
+    prior_choice` over the vehicle's y of each)."""
     yaw = wrap_pi(chosen.psi_rad - ctx.setup.pan_rad)
     off = float((rot_z(yaw) @ ctx.setup.t_vc)[1])     # the shift is the camera's
-    ys = [m.shift_m - off, m.runner_up[2] - off]
-    return prior_choice(prior, [(None, y, yaw, None) for y in ys]) == 0
+    shifts = [m.shift_m, m.runner_up[2]] + ([] if m.prior_rival_m is None
+                                            else [m.prior_rival_m])
+    return prior_choice(prior, [(None, c - off, yaw, None) for c in shifts]) == 0
 
 
 @njit
