@@ -521,12 +521,16 @@ def parse_board(spec: str, square_m: float, marker_m: float | None = None,
     ``chess:COLSxROWS`` (inner corners, e.g. ``chess:9x6``) or
     ``charuco:SQUARES_XxSQUARES_Y[:DICT][:legacy]`` (squares, e.g.
     ``charuco:5x7:4X4_50``); ``square_m`` and ``marker_m`` in metres (the marker
-    defaults to 0.75 of the square); ``detector`` for chessboards (see
-    :class:`ChessBoard`). Raises ConfigError keyed ``board``.
+    defaults to 0.75 of the square; a chessboard takes none); ``detector`` for
+    chessboards (see :class:`ChessBoard`). Raises ConfigError keyed ``board``, or
+    ``marker`` for a marker size given to a chessboard.
     """
     s = spec.strip()
     m = _CHESS.match(s)
     if m:
+        if marker_m is not None:
+            raise ConfigError(None, "marker", f"a chessboard ({spec!r}) has no markers: "
+                              "give the marker size for a charuco board only")
         return ChessBoard(int(m.group(1)), int(m.group(2)), float(square_m),
                           detector=detector)
     m = _CHARUCO.match(s)

@@ -40,6 +40,7 @@ def test_parse_board_specs():
     ("charuco:5x7", 0.04, 0.05, "marker"), ("charuco:30x30:4X4_50", 0.04, 0.03, "board"),
     ("chess:9x6", float("inf"), None, "square"), ("chess:9x6", float("nan"), None, "square"),
     ("charuco:5x7", float("inf"), 0.03, "square"),
+    ("chess:9x6", 0.025, float("nan"), "marker"), ("chess:9x6", 0.025, 0.02, "marker"),
 ])
 def test_parse_board_errors(spec, square, marker, key):
     with pytest.raises(ConfigError) as e:

@@ -67,7 +67,7 @@ from ceilkit.runtime.estimators.block.detect import (
 )
 from ceilkit.runtime.estimators.block.fallback import MarkerReader
 from ceilkit.runtime.estimators.block.heading import ParallelsStage
-from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
+from ceilkit.runtime.estimators.block.odometry import PlaneOdometry, with_increment
 from ceilkit.runtime.estimators.block.parallels import ParallelsHeading
 from ceilkit.runtime.estimators.block.pnp import (
     PlanarGeometry,
@@ -285,11 +285,7 @@ class BlockEstimator(Estimator):
             return got
         fixed, gap = bool(got) and got.x_m is not None, not self._fixed
         self._fixed = fixed
-        inc = self._odo.increment(grey, t_ns, not fixed or gap, prior)
-        if inc is None:
-            return got
-        return dataclasses.replace(got, increment=inc,
-                                   diagnostics={**got.diagnostics, "ms": elapsed_ms(t0)})
+        return with_increment(self._odo, got, grey, t_ns, not fixed or gap, prior, t0)
 
     def _frame(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                t0: float) -> Estimate:

@@ -24,13 +24,14 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from ceilkit.runtime.estimators.base import PlaneIncrement
+from ceilkit.runtime.estimators.base import PlaneIncrement, elapsed_ms
 from ceilkit.runtime.estimators.ignore import ignored_from
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry, ceiling_points_vehicle
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
@@ -262,3 +263,17 @@ class PlaneOdometry:
             self._tracks = nxt[idx[(u >= HALF_WIN) & (u < w - HALF_WIN) & (v >= HALF_WIN)
                                    & (v < h - HALF_WIN)]]
         return inc
+
+
+def with_increment(odo: PlaneOdometry, got, grey: np.ndarray, t_ns: int, measure: bool,
+                   prior, t0: float):
+    """``got`` (a method's estimate of this frame) carrying the ceiling-plane increment
+    since the previous frame (:meth:`PlaneOdometry.increment`; ``measure``: whether it
+    is wanted: not after an absolute fix that followed another), and the method's time
+    ``ms`` since ``t0`` (``time.perf_counter``) with it; ``got`` itself when there is
+    none."""
+    inc = odo.increment(grey, t_ns, measure, prior)
+    if inc is None:
+        return got
+    return dataclasses.replace(got, increment=inc,
+                               diagnostics={**got.diagnostics, "ms": elapsed_ms(t0)})

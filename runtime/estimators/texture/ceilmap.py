@@ -495,6 +495,10 @@ def _patch_to_mosaic(n: int, res: float, col: float, row: float, yaw: float) -> 
     return np.array([[c, -s, col - (c * h - s * h)], [s, c, row - (s * h + c * h)]])
 
 
+_POPCOUNT = np.array([bin(b).count("1") for b in range(256)], np.uint8)
+_PAIR_CHUNK = 200_000
+
+
 def merge_features(points_xy: np.ndarray, descriptors: np.ndarray, views: np.ndarray,
                    resolution_m: float, min_views: int = MIN_VIEWS
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -513,9 +517,10 @@ def merge_features(points_xy: np.ndarray, descriptors: np.ndarray, views: np.nda
         return i
 
     pairs = cKDTree(points_xy).query_pairs(MERGE_RADIUS_PX * resolution_m, output_type="ndarray")
-    if len(pairs):
-        ham = np.unpackbits(descriptors[pairs[:, 0]] ^ descriptors[pairs[:, 1]], axis=1).sum(1)
-        for a, b in pairs[(ham <= MERGE_HAMMING) & (views[pairs[:, 0]] != views[pairs[:, 1]])]:
+    for c in range(0, len(pairs), _PAIR_CHUNK):     # bounded memory: a long drive's pairs
+        p = pairs[c:c + _PAIR_CHUNK]                # run to millions
+        ham = _POPCOUNT[descriptors[p[:, 0]] ^ descriptors[p[:, 1]]].sum(1, dtype=np.int32)
+        for a, b in p[(ham <= MERGE_HAMMING) & (views[p[:, 0]] != views[p[:, 1]])]:
             ra, rb = root(a), root(b)
             if ra != rb:
                 parent[rb] = ra

@@ -42,7 +42,7 @@ from ceilkit.runtime.estimators.base import (
     Provenance,
     elapsed_ms,
 )
-from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
+from ceilkit.runtime.estimators.block.odometry import PlaneOdometry, with_increment
 from ceilkit.runtime.estimators.honesty import MISFIT
 from ceilkit.runtime.estimators.prior import (
     allows,
@@ -183,11 +183,7 @@ class TextureEstimator(Estimator):
             return got
         fixed, gap = bool(got), not self._fixed
         self._fixed = fixed
-        inc = self._odo.increment(grey, t_ns, not fixed or gap, prior)
-        if inc is None:
-            return got
-        return dataclasses.replace(got, increment=inc,
-                                   diagnostics={**got.diagnostics, "ms": elapsed_ms(t0)})
+        return with_increment(self._odo, got, grey, t_ns, not fixed or gap, prior, t0)
 
     def _frame(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                t0: float) -> Estimate:
