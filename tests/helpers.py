@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -47,3 +49,25 @@ def assert_broken_field(load, path: Path, key: str, words: str) -> None:
     assert "\n" not in msg
     assert msg.startswith(f"{path}: {key}: "), msg
     assert words in msg, msg
+
+
+@contextlib.contextmanager
+def held_elsewhere(lock):
+    """``lock`` (a context manager: a ``FolderLock``, a file lock) held by another
+    thread, as by another run, for the ``with`` block (a lock the same thread holds is
+    taken again: a run's own nested step)."""
+    taken, release = threading.Event(), threading.Event()
+
+    def hold():
+        with lock:
+            taken.set()
+            release.wait(30)
+
+    thread = threading.Thread(target=hold, daemon=True)
+    thread.start()
+    assert taken.wait(10)
+    try:
+        yield lock
+    finally:
+        release.set()
+        thread.join(10)

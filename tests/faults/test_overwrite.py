@@ -5,11 +5,9 @@ folder at once (the lock). Table-driven: one row per output kind, one per overla
 
 from __future__ import annotations
 
-import contextlib
 import shutil
 import subprocess
 import sys
-import threading
 
 import pytest
 from typer.testing import CliRunner
@@ -19,7 +17,7 @@ from ceilkit.cli.ceilrun import app as ceilrun
 from ceilkit.runtime.errors import OutputError
 from ceilkit.runtime.io.outputs import LOCK_NAME, FolderLock, file_lock
 from ceilkit.runtime.replay import replay
-from helpers import CONFIGS, FIXTURES
+from helpers import CONFIGS, FIXTURES, held_elsewhere
 
 run = CliRunner().invoke
 REC = FIXTURES / "corridor_rec"
@@ -41,25 +39,6 @@ def _refused(res, tool: str, *words: str) -> str:
     return lines[0]
 
 
-@contextlib.contextmanager
-def held_elsewhere(lock):
-    """``lock`` (a :class:`FolderLock`) held by another thread, as by another run: a lock
-    the same thread holds is taken again (a run's own nested step)."""
-    taken, release = threading.Event(), threading.Event()
-
-    def hold():
-        with lock:
-            taken.set()
-            release.wait(30)
-
-    thread = threading.Thread(target=hold, daemon=True)
-    thread.start()
-    assert taken.wait(10)
-    try:
-        yield lock
-    finally:
-        release.set()
-        thread.join(10)
 
 
 # -- one row per output kind: (tool, file made by the user, arguments) ---------------------

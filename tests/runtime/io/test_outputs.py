@@ -10,7 +10,6 @@ import contextlib
 import os
 import subprocess
 import sys
-import threading
 
 import pytest
 
@@ -22,26 +21,7 @@ from ceilkit.runtime.io.outputs import (
     claimed,
     file_lock,
 )
-
-
-@contextlib.contextmanager
-def held_elsewhere(lock):
-    """``lock`` held by another thread (as by another run) for the ``with`` block."""
-    taken, release = threading.Event(), threading.Event()
-
-    def hold():
-        with lock:
-            taken.set()
-            release.wait(30)
-
-    thread = threading.Thread(target=hold, daemon=True)
-    thread.start()
-    assert taken.wait(10)
-    try:
-        yield
-    finally:
-        release.set()
-        thread.join(10)
+from helpers import held_elsewhere
 
 
 def test_a_lone_file_is_locked_beside_it_while_claimed(tmp_path):
