@@ -437,7 +437,9 @@ def settle_by_absence(m: OffsetMatch, offsets: np.ndarray, weights: np.ndarray,
     the site lines it puts clearly in view (:func:`.visibility.lines_in_view`) that no
     forward segment of a fitting kind lies on (``offsets``, ``weights`` ``(N,)`` and
     ``compat (N, J)`` of the forward family); :data:`ABSENCE_PENALTY` each. Returns the
-    match kept and whether the two are still within :data:`AMBIGUITY_RATIO`."""
+    match kept (the runner-up's only when it misses fewer lines and so scores higher:
+    a winner a prior chose may score a little below its runner-up, which is not
+    absence) and whether the two are still within :data:`AMBIGUITY_RATIO`."""
     c_w, c_r = m.shift_m, m.runner_up[2]
     in_view = lines_in_view(setup, camera, min_length_px, psi_rad, (c_w, c_r))
     o, cw, ys = arr(offsets, np.float64), arr(compat, np.float64), arr(setup.site_y, np.float64)
@@ -445,7 +447,9 @@ def settle_by_absence(m: OffsetMatch, offsets: np.ndarray, weights: np.ndarray,
            for r, c in enumerate((c_w, c_r))]
     s_w = m.score - ABSENCE_PENALTY * adj[0]
     s_r = m.runner_up[0] - ABSENCE_PENALTY * adj[1]
-    if s_r > s_w:
+    if s_r > s_w and adj[1] < adj[0]:
+        # only the absence settles here: with a prior the winner may score up to a line
+        # below the runner-up (the prior chose it), and that is the prior's to judge
         alt = match_offsets(offsets, weights, setup.site_y, tol_m, c_r, None, compat)
         if alt is None or abs(alt.shift_m - c_r) > tol_m:
             return m, True
