@@ -78,10 +78,11 @@ def test_an_output_that_cannot_be_written_is_an_output_error(tmp_path):
 
 
 def test_stop_on_signals_turns_sigint_into_a_stop_request():
-    with stop_on_signals() as stop:
+    before = signal.getsignal(signal.SIGINT)     # SIG_IGN when pytest runs in the
+    with stop_on_signals() as stop:               # background of a shell, else Python's
         os.kill(os.getpid(), signal.SIGINT)
         assert stop.wait(2.0)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is before             # the handler put back
 
 
 def test_sighup_stops_like_sigterm():
