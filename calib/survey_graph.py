@@ -63,10 +63,15 @@ class GraphSolution:
 
     Attributes:
         poses: ``(N, 3)`` x, y (m) and yaw (rad) of every node in W.
-        sigma: ``(N, 3)`` their 1-sigma (m, m, rad) from the solution's Jacobian (0 at
-            the anchor, which is held; NaN where not computed).
+        sigma: ``(N, 3)`` their 1-sigma (m, m, rad) from the solution's Jacobian,
+            scaled by ``sqrt(variance_factor)`` (0 at the anchor, which is held; NaN
+            where not computed).
         whitened: ``(E,)`` each edge's residual norm in sigmas, in ``edges``' order.
         cost: the final robust cost; ``iterations``: function evaluations.
+        variance_factor: the a-posteriori variance factor, at least 1: the robustly
+            weighted sum of squared whitened residuals over the degrees of freedom.
+            Above 1 the edges' stated covariances were too small for the scatter the
+            solution leaves, and every sigma grows by its square root.
     """
 
     poses: np.ndarray
@@ -74,6 +79,7 @@ class GraphSolution:
     whitened: np.ndarray
     cost: float
     iterations: int
+    variance_factor: float = 1.0
 
 
 def wrap(a: np.ndarray | float) -> np.ndarray | float:
@@ -246,8 +252,8 @@ def solve_graph(poses0: np.ndarray, edges: Sequence[Edge], anchor: int = 0,
 
     Returns:
         :class:`GraphSolution`: poses, their 1-sigma (the Gauss-Newton covariance at the
-        solution, without the robust loss's down-weighting), each edge's whitened
-        residual norm.
+        solution, without the robust loss's down-weighting, times the a-posteriori
+        variance factor when above 1), each edge's whitened residual norm.
     """
     poses0 = np.asarray(poses0, float).reshape(-1, 3)
     prob = _Problem(len(poses0), edges, anchor, poses0[anchor])
@@ -266,7 +272,11 @@ def solve_graph(poses0: np.ndarray, edges: Sequence[Edge], anchor: int = 0,
     sigma[anchor] = 0.0
     want = np.arange(len(poses)) if sigma_nodes is None else np.asarray(sigma_nodes, int)
     want = want[prob.col[want] >= 0]
+    r = prob.residuals(v)
+    white2 = np.sum(r.reshape(-1, 3) ** 2, 1)
+    w, _ = _robust(white2)
+    dof = r.size - v.size
+    factor = max(1.0, float(w @ white2) / dof) if dof > 0 else 1.0
     if v.size and want.size:
-        sigma[want] = _sigmas(prob.jacobian(v), prob.col[want])
-    white = np.linalg.norm(prob.residuals(v).reshape(-1, 3), axis=1)
-    return GraphSolution(poses, sigma, white, cost, iterations)
+        sigma[want] = _sigmas(prob.jacobian(v), prob.col[want]) * math.sqrt(factor)
+    return GraphSolution(poses, sigma, np.sqrt(white2), cost, iterations, factor)
