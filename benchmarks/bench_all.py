@@ -83,8 +83,8 @@ from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.odometry import PlaneOdometry
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.spots import niblack_mask

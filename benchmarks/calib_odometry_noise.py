@@ -7,7 +7,7 @@ Drives through configs/block (0.03 m steps, weaving in y and yaw as bench_block'
 drives), rendered with noise and blur, frames 0-3 of every 30 with the site's blocks and
 markers and the rest with them painted over (so increments beside markers, across their
 vanishing and on the bare tile ceiling are all measured). Each increment of
-:class:`~ceilkit.runtime.estimators.block.odometry.PlaneOdometry` is compared with the
+:class:`~ceilkit.runtime.estimators.odometry.PlaneOdometry` is compared with the
 true motion in the earlier frame's V. Printed per kind of step (``blocks>bare``: from a
 frame with blocks to one without) and for all:
 
@@ -36,8 +36,8 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.block.odometry import VAR_FACTOR, PlaneOdometry
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.odometry import VAR_FACTOR, PlaneOdometry
 from ceilkit.runtime.sim.render import SimOptions, render_frame
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "block"

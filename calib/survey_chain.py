@@ -21,7 +21,7 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.block.odometry import PlaneOdometry
+from ceilkit.runtime.estimators.odometry import PlaneOdometry
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry
 from ceilkit.runtime.geometry.ekf import MotionNoise

@@ -208,12 +208,17 @@ def test_a_cold_warm_up_shares_the_compiling_with_a_helper(loop_modules, monkeyp
         jit.warm_up(roots=names, helpers=1)
     assert jit._PENDING == []
     assert jit.cached(names)
-    # this process made the inner module, the helper the outer one, which is then
-    # loaded here from the cache
-    assert sum(outer.total.stats.cache_hits.values()) == 1
-    assert sum(inner.twice.stats.cache_misses.values()) == 1
-    assert [(s.done, s.total, s.module, s.compiled) for s in steps] == [
-        (0, 2, names[0], 0), (2, 2, "", 2)]
+    # the two processes take modules from one queue: which makes which depends on how
+    # fast the helper starts (usually this one the inner module, the helper the outer);
+    # each loop is compiled once in all and the one this process did not make is
+    # loaded here from the cache the helper filled
+    for loop in (inner.twice, outer.total):
+        hits, misses = (sum(c.values()) for c in (loop.stats.cache_hits,
+                                                  loop.stats.cache_misses))
+        assert hits + misses == 1, loop
+    assert (steps[0].done, steps[0].total) == (0, 2)
+    assert (steps[-1].done, steps[-1].total, steps[-1].module, steps[-1].compiled) == \
+        (2, 2, "", 2)
     assert steps[-1].line().startswith("compiling the per-frame loops (first start on this "
                                        "machine, 2 processes; ")
     assert outer.total(jit.arr(np.arange(3.0), np.float64), 2) == 10.0

@@ -67,7 +67,6 @@ from ceilkit.runtime.estimators.block.detect import (
 )
 from ceilkit.runtime.estimators.block.fallback import MarkerReader
 from ceilkit.runtime.estimators.block.heading import ParallelsStage
-from ceilkit.runtime.estimators.block.odometry import PlaneOdometry, with_increment
 from ceilkit.runtime.estimators.block.parallels import ParallelsHeading
 from ceilkit.runtime.estimators.block.pnp import (
     PlanarGeometry,
@@ -94,6 +93,7 @@ from ceilkit.runtime.estimators.block.window import (
     shape_fits,
     targets_of,
 )
+from ceilkit.runtime.estimators.odometry import PlaneOdometry, with_increment
 from ceilkit.runtime.estimators.prior import prior_choice
 from ceilkit.runtime.features.quads import MarkerCodes, Quad, sharpen_quad, signed_area
 from ceilkit.runtime.features.working import decimate

@@ -14,7 +14,7 @@ runner-up: when the mosaic explains the frame nearly as well there (``twin_ncc``
 the frame supports two poses and the estimate is an ``ambiguous`` Failure carrying
 both (a prior may choose one, by :mod:`~ceilkit.runtime.estimators.prior`'s rule).
 Between fixes the ceiling-plane odometry
-(:mod:`~ceilkit.runtime.estimators.block.odometry`) gives the increment.
+(:mod:`~ceilkit.runtime.estimators.odometry`) gives the increment.
 
 Example::
 
@@ -42,8 +42,8 @@ from ceilkit.runtime.estimators.base import (
     Provenance,
     elapsed_ms,
 )
-from ceilkit.runtime.estimators.block.odometry import PlaneOdometry, with_increment
 from ceilkit.runtime.estimators.honesty import MISFIT
+from ceilkit.runtime.estimators.odometry import PlaneOdometry, with_increment
 from ceilkit.runtime.estimators.prior import (
     allows,
     narrower_than,

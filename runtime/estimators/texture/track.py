@@ -5,7 +5,7 @@ The map's mosaic is resampled as the prior says the frame should show it
 (:func:`.ceilmap.predicted_patch`); the map features inside that predicted patch are
 followed into the frame's rectified patch by pyramidal Lucas-Kanade
 (``cv2.calcOpticalFlowPyrLK``, as the ceiling-plane odometry of
-:mod:`~ceilkit.runtime.estimators.block.odometry` does between frames). A feature at
+:mod:`~ceilkit.runtime.estimators.odometry` does between frames). A feature at
 predicted patch pixel ``u`` found at ``u + d`` in the frame's patch gives the pair
 ``q_V = (u + d - c) res`` ~ ``p_W`` (the map's point: the predicted patch shows it at
 ``u`` by construction), and the pairs give the pose by the same least squares as the

@@ -11,8 +11,8 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.base import PlaneIncrement
 from ceilkit.runtime.estimators.block.estimator import BlockEstimator
-from ceilkit.runtime.estimators.block.odometry import PlaneOdometry, corner_like, plane_motion
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.odometry import PlaneOdometry, corner_like, plane_motion
 from ceilkit.runtime.sim.render import SimOptions, render_frame
 from helpers import CONFIGS
 
@@ -53,7 +53,7 @@ def test_corners_are_carried_between_steps_and_detected_again_after_a_break(monk
     REDETECT_EVERY steps, and afresh after a frame kept without measuring or a gap (the
     carried corners belong to another frame). The motion stays exact to a fraction of
     a mm."""
-    import ceilkit.runtime.estimators.block.odometry as odometry
+    import ceilkit.runtime.estimators.odometry as odometry
     rig = Rig.load(CONFIGS / "block" / "rig.yaml")
     site = Site.load(CONFIGS / "block" / "site.yaml")
     odo = PlaneOdometry(PlanarGeometry.of(rig, site))
