@@ -50,12 +50,18 @@ except ConfigError as exc:
 """
 
 
-def run(body: str) -> tuple[str, float]:
+def child(body: str) -> tuple[str, float]:
+    """What ``body`` printed in a child process (its VmHWM line taken out), and that
+    process's peak resident memory, MB (also ``bench_startup.py``'s)."""
     res = subprocess.run([sys.executable, "-c", CHILD.format(body=body)],
                          capture_output=True, text=True)
     peak = float(re.search(r"VMHWM ([\d.]+)", res.stderr).group(1))
-    text = (res.stdout + res.stderr).replace("\n", " ")
-    return re.sub(r"VMHWM [\d.]+", "", text).strip(), peak
+    return re.sub(r"VMHWM [\d.]+\n?", "", res.stdout + res.stderr).strip(), peak
+
+
+def run(body: str) -> tuple[str, float]:
+    text, peak = child(body)
+    return text.replace("\n", " "), peak
 
 
 def square_pt(pdf: Path, square_m: float) -> str:

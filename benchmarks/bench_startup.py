@@ -26,12 +26,13 @@ from __future__ import annotations
 import argparse
 import csv
 import os
-import re
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from bench_board import CLI, child
 
 OUT = Path(__file__).parent / "out" / "bench_startup.csv"
 FIRST = ["--device", "sim:corridor", "--serial", "-", "--frames", "150",
@@ -39,21 +40,6 @@ FIRST = ["--device", "sim:corridor", "--serial", "-", "--frames", "150",
 TICK = os.sysconf("SC_CLK_TCK")
 COMMANDS = ["simulate", "intrinsics", "mount", "lightmap", "calibrate", "board",
             "exposure", "autopilot", "check-site"]
-CHILD = """
-import atexit, sys
-from pathlib import Path
-def hwm():
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            sys.stderr.write(f"VMHWM {{int(line.split()[1]) / 1024:.1f}}\\n")
-atexit.register(hwm)
-from ceilkit.cli.ceilcal import main
-sys.argv = ["ceilcal"] + {args!r}
-try:
-    main()   # the console script's entry point
-except SystemExit:
-    pass
-"""
 
 
 def cpu_s(pid: int) -> tuple[float, float]:
@@ -93,10 +79,7 @@ def first_pose(cache: Path, out: Path, tree: str | None) -> dict[str, float]:
 
 def peak_mb(args: list[str]) -> tuple[float, str]:
     """Peak RSS (MB) of ``ceilcal ARGS`` in a child process, and its first output line."""
-    res = subprocess.run([sys.executable, "-c", CHILD.format(args=args)],
-                         capture_output=True, text=True)
-    peak = float(re.search(r"VMHWM ([\d.]+)", res.stderr).group(1))
-    text = re.sub(r"VMHWM [\d.]+", "", res.stdout + res.stderr).strip()
+    text, peak = child(CLI.format(args=args))
     return peak, (text.splitlines() or [""])[0][:70]
 
 
