@@ -34,7 +34,7 @@ import sys
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import NamedTuple, TextIO
 
 import cv2
 import numpy as np
@@ -411,6 +411,51 @@ def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *
             (:func:`check_view_variety`), or a solve that fails.
     """
     check_model(model)
+    usable = _usable_views(views, min_views)
+    image_size = usable[0].image_size
+    original = {v.name: v for v in usable}
+    kept, dropped_views, sol = _reject_outliers(
+        usable, original, _Solve(image_size, model, fix_aspect_ratio, name, min_views),
+        corner_k, view_k, 50 if reject_outliers else 0)
+    grid, coverage = _coverage(kept, image_size)
+    cross_max, cross_rms = _cross_validate(kept, image_size, model, fix_aspect_ratio, grid,
+                                           max(3, min_views // 2))
+    n_kept = sum(len(v) for v in kept)
+    frac = 1.0 - n_kept / sum(len(v) for v in usable)
+    empty = tuple((int(c), int(r)) for r, c in zip(*np.nonzero(~grid), strict=False))
+    cam = sol.camera
+    names = ("fx", "fy", "cx", "cy") + _COEFF_NAMES[model]
+    params = (cam.fx, cam.fy, cam.cx, cam.cy) + tuple(float(d) for d in cam.dist)
+    report = IntrinsicsReport(
+        model=model, image_size=image_size, rms_px=_rms(sol.residuals), n_views=len(kept),
+        n_corners=n_kept, view_names=tuple(v.name for v in kept),
+        view_rms_px=tuple(_rms([r]) for r in sol.residuals), param_names=names,
+        params=tuple(float(p) for p in params), sigmas=tuple(float(s) for s in sol.sigmas),
+        dropped_views=tuple(v.name for v in dropped_views),
+        dropped_corners=sum(len(original[v.name]) - len(v) for v in kept),
+        dropped_fraction=float(frac), coverage=coverage, empty_cells=empty,
+        cross_max_px=cross_max, cross_rms_px=cross_rms,
+        warnings=_solve_warnings(frac, empty, grid.size, cross_max))
+    return IntrinsicsResult(cam, report, tuple(kept), sol.rvecs, sol.tvecs,
+                            tuple(sol.residuals), tuple(dropped_views))
+
+
+class _Solve(NamedTuple):
+    """What every solve of one calibration shares."""
+
+    image_size: tuple[int, int]
+    model: str
+    fix_aspect_ratio: bool
+    name: str
+    min_views: int
+
+    def __call__(self, kept: list[Detection]):
+        return _solve(kept, self.image_size, self.model, self.fix_aspect_ratio, self.name)
+
+
+def _usable_views(views: Sequence[Detection | None], min_views: int) -> list[Detection]:
+    """The detections with enough corners, all of one image size, uniquely named and
+    varied enough to solve (:func:`check_view_variety`)."""
     views = [v for v in views if v is not None]
     sizes = {v.image_size for v in views}
     if len(sizes) > 1:
@@ -426,78 +471,62 @@ def calibrate_intrinsics(views: Sequence[Detection], model: str = "plumb_bob", *
                                f"image(s) with at least {MIN_CORNERS_PER_VIEW} corners, need "
                                f"at least {min_views}")
     check_view_variety(usable, min_views)
-    image_size = usable[0].image_size
-    total = sum(len(v) for v in usable)
-    kept = list(usable)
-    original = {v.name: v for v in usable}
-    if len(original) != len(usable):
+    if len({v.name for v in usable}) != len(usable):
         raise ConfigError(None, None, "two views share a name: view names must be unique")
+    return usable
+
+
+def _reject_outliers(usable: list[Detection], original: dict[str, Detection],
+                     solve: _Solve, corner_k: float, view_k: float, rounds: int):
+    """Solve, then drop the worst view or the outlying corners and solve again, until
+    nothing is dropped (at most ``rounds`` times). Returns the kept views, the dropped
+    ones and the last solution."""
+    kept = list(usable)
     dropped_views: list[Detection] = []
-    sol = _solve(kept, image_size, model, fix_aspect_ratio, name)
-    for _ in range(50 if reject_outliers else 0):
+    sol = solve(kept)
+    for _ in range(rounds):
         # a view's score is its median corner residual: one bad corner does not sink it
         score = np.array([float(np.median(np.linalg.norm(r, axis=1))) for r in sol.residuals])
         med = float(np.median(score))
         mad = float(np.median(np.abs(score - med)))
         worst = int(np.argmax(score))
         limit_view = max(view_k * med, med + 6 * 1.4826 * mad, 0.4)
-        if score[worst] > limit_view and len(kept) > min_views:
+        if score[worst] > limit_view and len(kept) > solve.min_views:
             dropped_views.append(original[kept.pop(worst).name])
-            sol = _solve(kept, image_size, model, fix_aspect_ratio, name)
+            sol = solve(kept)
             continue
         norms = [np.linalg.norm(r, axis=1) for r in sol.residuals]
         sigma = float(np.median(np.concatenate(norms))) / 1.1774
         limit = max(corner_k * sigma, 0.5)
-        changed = False
-        new_kept = []
-        for v, n in zip(kept, norms, strict=False):
-            good = n <= limit
-            if not good.all():
-                changed = True
-                v = v.subset(good)
-            new_kept.append(v)
-        if not changed:
+        if all(bool((n <= limit).all()) for n in norms):
             break
-        short = [v for v in new_kept if len(v) < MIN_CORNERS_PER_VIEW]
-        kept = [v for v in new_kept if len(v) >= MIN_CORNERS_PER_VIEW]
-        dropped_views += [original[v.name] for v in short]
-        if len(kept) < min_views:
+        trimmed = [v.subset(n <= limit) for v, n in zip(kept, norms, strict=False)]
+        kept = [v for v in trimmed if len(v) >= MIN_CORNERS_PER_VIEW]
+        dropped_views += [original[v.name] for v in trimmed if len(v) < MIN_CORNERS_PER_VIEW]
+        if len(kept) < solve.min_views:
             raise CalibrationError(f"too few views left after outlier rejection: {len(kept)}, "
-                                   f"need at least {min_views}")
-        sol = _solve(kept, image_size, model, fix_aspect_ratio, name)
+                                   f"need at least {solve.min_views}")
+        sol = solve(kept)
+    return kept, dropped_views, sol
 
-    grid, coverage = _coverage(kept, image_size)
-    cross_max, cross_rms = _cross_validate(kept, image_size, model, fix_aspect_ratio, grid,
-                                           max(3, min_views // 2))
-    n_kept = sum(len(v) for v in kept)
-    dropped_corners = sum(len(original[v.name]) - len(v) for v in kept)
-    frac = 1.0 - n_kept / total
+
+def _solve_warnings(frac: float, empty: tuple, n_cells: int,
+                    cross_max: float | None) -> tuple[str, ...]:
+    """The report's warnings: many corners dropped, image cells never reached, the odd
+    and even views disagreeing."""
     warnings = []
     if frac > DROP_WARN_FRACTION:
         warnings.append(f"{100 * frac:.1f}% of the corners were dropped as outliers (over "
                         f"{100 * DROP_WARN_FRACTION:.0f}%): check the board is flat and the "
                         f"images sharp")
-    empty = tuple((int(c), int(r)) for r, c in zip(*np.nonzero(~grid), strict=False))
     if empty:
-        warnings.append(f"{len(empty)} of {grid.size} image cells were never reached by a "
+        warnings.append(f"{len(empty)} of {n_cells} image cells were never reached by a "
                         f"corner: the lens there is extrapolated; add views with the board "
                         f"near the edges and corners")
     if cross_max is not None and cross_max > 1.0:
         warnings.append(f"the odd and even views disagree by up to {cross_max:.2f} px: "
                         f"more, and more varied, views are needed")
-    cam = sol.camera
-    names = ("fx", "fy", "cx", "cy") + _COEFF_NAMES[model]
-    params = (cam.fx, cam.fy, cam.cx, cam.cy) + tuple(float(d) for d in cam.dist)
-    report = IntrinsicsReport(
-        model=model, image_size=image_size, rms_px=_rms(sol.residuals), n_views=len(kept),
-        n_corners=n_kept, view_names=tuple(v.name for v in kept),
-        view_rms_px=tuple(_rms([r]) for r in sol.residuals), param_names=names,
-        params=tuple(float(p) for p in params), sigmas=tuple(float(s) for s in sol.sigmas),
-        dropped_views=tuple(v.name for v in dropped_views), dropped_corners=dropped_corners,
-        dropped_fraction=float(frac), coverage=coverage, empty_cells=empty,
-        cross_max_px=cross_max, cross_rms_px=cross_rms, warnings=tuple(warnings))
-    return IntrinsicsResult(cam, report, tuple(kept), sol.rvecs, sol.tvecs,
-                            tuple(sol.residuals), tuple(dropped_views))
+    return tuple(warnings)
 
 
 # -- images and the detection cache -------------------------------------------------------
@@ -921,19 +950,10 @@ def capture_views(source: FrameSource, board: Board, model: str = "plumb_bob",
             if meter_obj is None:
                 meter_obj = CoverageMeter(det.image_size)
             meter_obj.add(det, vec)
+            enough = False
             if len(kept) >= stop.min_views and len(kept) - last_trial >= 3:
                 last_trial = len(kept)
-                try:
-                    sol = _solve(kept, det.image_size, model, False, "trial")
-                    rel_sigma = float(sol.sigmas[0] / sol.camera.fx)
-                    pp_ok = max(sol.sigmas[2], sol.sigmas[3]) <= stop.pp_sigma_px
-                except CalibrationError:
-                    rel_sigma, pp_ok = None, False
-                enough = (meter_obj.position >= stop.coverage and len(meter_obj.sizes) >= 2
-                          and len(meter_obj.tilts) >= 3 and rel_sigma is not None
-                          and rel_sigma <= stop.rel_focal_sigma and pp_ok)
-            else:
-                enough = False
+                enough, rel_sigma = _trial_enough(kept, model, stop, meter_obj)
             if meter is not None:
                 meter.write("\r" + meter_obj.line(len(kept), rel_sigma))
                 meter.flush()
@@ -946,6 +966,21 @@ def capture_views(source: FrameSource, board: Board, model: str = "plumb_bob",
         raise _no_board_error(board, samples, n_frames) if samples else CalibrationError(
             f"no {board.spec} board found in any of {n_frames} frame(s)")
     return kept
+
+def _trial_enough(kept: list[Detection], model: str, stop: StopRule,
+                  meter_obj: CoverageMeter) -> tuple[bool, float | None]:
+    """A trial solve of the views kept so far: whether coverage and accuracy suffice
+    (``stop``), and the focal length's relative 1 sigma (None when the solve fails)."""
+    try:
+        sol = _solve(kept, kept[-1].image_size, model, False, "trial")
+    except CalibrationError:
+        return False, None
+    rel_sigma = float(sol.sigmas[0] / sol.camera.fx)
+    pp_ok = max(sol.sigmas[2], sol.sigmas[3]) <= stop.pp_sigma_px
+    enough = (meter_obj.position >= stop.coverage and len(meter_obj.sizes) >= 2
+              and len(meter_obj.tilts) >= 3 and rel_sigma <= stop.rel_focal_sigma and pp_ok)
+    return enough, rel_sigma
+
 
 # -- plots ----------------------------------------------------------------------------------
 

@@ -318,6 +318,44 @@ def _start_rig(rig: str | Path | None, camera: str | Path | None) -> tuple[Rig, 
     return Rig(load_camera(camera), Mount(z_m=0.5)), str(camera)
 
 
+def _parse_mount_fixes(fix: Sequence[str], rig: Path | None) -> dict:
+    """``--fix`` parsed; a bare ``NAME`` (hold the rig's value) needs a rig."""
+    fixes = parse_fix(fix)
+    for name, value in fixes.items():
+        if value is None and rig is None:
+            raise ConfigError(None, "fix", f"--fix {name} holds the rig's value, but there "
+                              f"is no --rig: give the measured value, {name}=VALUE")
+    return fixes
+
+
+def _require_observable(pls, fixes: dict, has_drive: bool) -> None:
+    """Refuse, before any fit, a parameter the placements cannot determine and nothing
+    holds (a drive gives tilt and swing)."""
+    missing = dict(unobservable(pls, set(fixes)))
+    if has_drive:
+        missing.pop("tilt", None)
+        missing.pop("swing", None)
+    if missing:
+        name, why = next(iter(missing.items()))
+        raise CalibrationError(
+            f"{name} is not observable from these placements: {why}; or measure it and "
+            f"give --fix {name}=VALUE. Nothing written")
+
+
+def _tilt_swing_start(the_rig: Rig, drive: Path, fixes: dict) -> tuple[Mount, str]:
+    """Tilt and swing from a straight drive: the mount fit's start (pan and lateral
+    offset zero unless held) and the report's line."""
+    tilt, swing, rep = calibrate_tilt_swing(the_rig, load_drive(drive, the_rig.camera))
+    line = (f"drive ({rep['frames']} frames): tilt {math.degrees(tilt):.4f} "
+            f"+- {math.degrees(rep['sigma_tilt']):.4f} deg, swing "
+            f"{math.degrees(swing):.4f} +- {math.degrees(rep['sigma_swing']):.4f} "
+            f"deg, RMS {rep['rms_px']:.3f} px")
+    m = the_rig.mount
+    start = Mount(m.pan_rad if "pan" in fixes else 0.0, tilt, swing, m.x_m,
+                  m.y_m if "my" in fixes else 0.0, m.z_m)
+    return start, line
+
+
 def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = None,
           camera: Path | None = None, drive: Path | None = None,
           fix: Sequence[str] = (), max_frames: int = 8,
@@ -358,11 +396,7 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
     with _claim(out, force, [placements, site, rig, camera, drive,
                              *(v for v in upward.values() if isinstance(v, str | Path))],
                 export_paths(out).paths(), plots=plots, plot_names=(MOUNT_PLOT,)):
-        fixes = parse_fix(fix)
-        for name, value in fixes.items():
-            if value is None and rig is None:
-                raise ConfigError(None, "fix", f"--fix {name} holds the rig's value, but there "
-                                  f"is no --rig: give the measured value, {name}=VALUE")
+        fixes = _parse_mount_fixes(fix, rig)
         the_site = Site.load(site)
         if the_site.corridor is None and the_site.has_lights:
             return mount_upward(placements, the_site, site, out, rig=rig, camera=camera,
@@ -379,26 +413,11 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
         reasons = {n: (f"--fix {n} (the rig's value)" if v is None else f"--fix {n} (typed)")
                    for n, v in fixes.items()}
         pls = load_placements(placements, the_rig.camera, max_frames)
-        missing = {n: why for n, why in unobservable(pls, set(fixes)).items()}
+        _require_observable(pls, fixes, drive is not None)
+        start, lines = None, []
         if drive is not None:
-            missing.pop("tilt", None)
-            missing.pop("swing", None)
-        if missing:
-            name, why = next(iter(missing.items()))
-            raise CalibrationError(
-                f"{name} is not observable from these placements: {why}; or measure it and "
-                f"give --fix {name}=VALUE. Nothing written")
-        start = None
-        lines: list[str] = []
-        if drive is not None:
-            tilt, swing, rep = calibrate_tilt_swing(the_rig, load_drive(drive, the_rig.camera))
-            lines.append(f"drive ({rep['frames']} frames): tilt {math.degrees(tilt):.4f} "
-                         f"+- {math.degrees(rep['sigma_tilt']):.4f} deg, swing "
-                         f"{math.degrees(swing):.4f} +- {math.degrees(rep['sigma_swing']):.4f} "
-                         f"deg, RMS {rep['rms_px']:.3f} px")
-            m = the_rig.mount
-            start = Mount(m.pan_rad if "pan" in fixes else 0.0, tilt, swing, m.x_m,
-                          m.y_m if "my" in fixes else 0.0, m.z_m)
+            start, line = _tilt_swing_start(the_rig, drive, fixes)
+            lines.append(line)
             reasons.update(tilt="from the drive", swing="from the drive")
         res = calibrate_mount(the_rig, the_site, pls, fixed=reasons, start=start,
                               fit_height=None if "h" not in reasons else False)
