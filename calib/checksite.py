@@ -139,7 +139,7 @@ class CheckOptions:
 
 
 @dataclass(frozen=True)
-class Twin:
+class SiteTwin:
     """Another pose that sees the same picture: ``(x_m, y_m, yaw_rad)`` and its kind."""
 
     x_m: float
@@ -156,7 +156,7 @@ class PoseCell:
     y_m: float
     yaw_rad: float
     status: str
-    twins: tuple[Twin, ...] = ()
+    twins: tuple[SiteTwin, ...] = ()
     n_points: int = 0          # projected feature points in the picture
 
     @property
@@ -811,10 +811,10 @@ class TwinFinder:
         d, _ = self.world_tree.query(moved, distance_upper_bound=float(tol.max()))
         return bool(np.all(d <= tol))
 
-    def twins(self, x: float, y: float, yaw: float, pic: Picture) -> tuple[Twin, ...]:
+    def twins(self, x: float, y: float, yaw: float, pic: Picture) -> tuple[SiteTwin, ...]:
         o = self.r.o
         p = np.array([x, y])
-        found: list[Twin] = []
+        found: list[SiteTwin] = []
         turns = (0.0, math.pi) if self.sc.x_unobserved else TURNS_RAD
         tested = dict.fromkeys(turns, 0)
         hits = dict.fromkeys(turns, 0)
@@ -835,7 +835,7 @@ class TwinFinder:
                 continue
             if self.r.same(pic, self.r.render(q[0], q[1], yaw2)):
                 hits[turn] += 1
-                found.append(Twin(float(q[0]), float(q[1]), yaw2,
+                found.append(SiteTwin(float(q[0]), float(q[1]), yaw2,
                                   _kind(turn, float(np.linalg.norm(q - p)), pitch)))
         return tuple(found)
 
@@ -869,7 +869,7 @@ def _check_poses(finder: TwinFinder, poses: Sequence[tuple[float, float, float]]
     for x, y, yaw in poses:
         pic = r.render(x, y, yaw)
         status = _status_of(pic, r.scene.x_unobserved)
-        twins: tuple[Twin, ...] = ()
+        twins: tuple[SiteTwin, ...] = ()
         if status is None:
             twins = finder.twins(x, y, yaw, pic)
             status = AMBIGUOUS if twins else UNIQUE
@@ -1115,5 +1115,5 @@ def check_site_files(rig_path: str | Path, site_path: str | Path, out: str | Pat
     return check
 
 
-__all__ = ["CheckOptions", "PoseCell", "Region", "SiteCheck", "Twin", "check_site",
+__all__ = ["CheckOptions", "PoseCell", "Region", "SiteCheck", "SiteTwin", "check_site",
            "check_site_files", "map_png", "with_markers", "KINDS", "STATUSES"]
