@@ -23,11 +23,28 @@ Figures:
 
     .venv/bin/python benchmarks/bench_survey.py [--rec benchmarks/out/survey_office60]
         [--out benchmarks/out/bench_survey.json]
+
+``--against-known`` measures instead the survey's sections against the known-pose tools
+(issue 39: "the survey's lights agree with ``ceilcal lightmap`` from known poses within
+their σ; on a marker site, with ``ceilcal blockmap``"): a 12.6 m loop (3.6 x 2.4 m,
+1.15 laps, a frame every 0.1 m, noise 2, blur 0.8, supersample 1, seed 1) under the
+office scatter with eight spot lights (0.12 m) and four AprilTag markers (0.2 m) added,
+surveyed from its true start pose. Its lights (``survey_files._lights``: the lit spots
+placed with the solved poses, the clusters that stay put) against
+:func:`~ceilkit.calib.lightmap.survey_lights` with the true poses (what ``ceilcal
+lightmap`` does), the same clusters kept; its markers
+(:func:`~ceilkit.calib.survey_markers.survey_markers` with the solved poses) against the
+same placement with the true poses (ceilkit has no ``ceilcal blockmap``: this is what a
+known-pose marker map would hold) and against the site's markers.
+
+    .venv/bin/python benchmarks/bench_survey.py --against-known
+        [--rec benchmarks/out/survey_known] [--out benchmarks/out/bench_survey_known.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import resource
@@ -38,13 +55,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import ceilkit.calib.survey as survey_mod
+import ceilkit.calib.survey_files as survey_files
+from ceilkit.calib.lightmap import survey_lights
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.calib.survey import survey_drives, survey_map
 from ceilkit.calib.survey_graph import solve_graph
 from ceilkit.calib.survey_loop import loop_trajectory
+from ceilkit.calib.survey_markers import survey_markers
 from ceilkit.calib.survey_places import place_of
 from ceilkit.runtime.config.rig import Rig
-from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.config.site import MarkerPose, Markers, Site
 from ceilkit.runtime.estimators.texture.ceilmap import build_map
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.ceiling import vehicle_to_world
@@ -107,11 +127,79 @@ def _solvers(captured: dict, t_true: np.ndarray) -> dict:
     return out
 
 
+KNOWN_LIGHTS = np.array([[2.3, -1.5], [3.1, 1.4], [4.4, -1.3], [5.0, 1.6], [5.9, -0.6],
+                         [2.1, 0.5], [4.0, 0.1], [6.1, 1.0]])
+KNOWN_MARKERS = Markers("DICT_APRILTAG_36h11", 0.2, (
+    MarkerPose(1, 2.4, -0.9, 0.3, 0.2), MarkerPose(2, 4.7, 1.0, -1.2, 0.2),
+    MarkerPose(4, 5.6, -1.0, 2.0, 0.2), MarkerPose(6, 3.2, 0.9, 0.0, 0.2)))
+
+
+def _pcts(z: np.ndarray) -> dict:
+    return {"median": float(np.median(z)), "p95": float(np.percentile(z, 95)),
+            "max": float(np.max(z))}
+
+
+def against_known(folder: Path) -> dict:
+    """The survey's lights and markers against the known-pose placements (docstring)."""
+    office = Site.load(OFFICE / "site.yaml")
+    site = dataclasses.replace(office, lights_m=KNOWN_LIGHTS, light_diameter_m=0.12,
+                               markers=KNOWN_MARKERS)
+    rig = Rig.load(OFFICE / "rig.yaml")
+    if not (folder / "frames.csv").exists():
+        traj = loop_trajectory(3.6, 2.4, laps=1.15, fps=5.0, speed_mps=0.5,
+                               centre_m=(4.0, 0.0))
+        simulate_recording(rig, site, traj, folder, SimOptions(
+            noise_sigma=2.0, blur_px=0.8, supersample=1, scatter=scene_beside(office)),
+            seed=1)
+    rec = Recording(folder)
+    truth = np.c_[rec.truth.x_m, rec.truth.y_m, rec.truth.yaw_rad]
+    res = survey_drives([rec], rig, site.ceiling_height_m, tuple(truth[0]))
+    lm, note = survey_files._lights([rec], res)
+    known = survey_lights(rec, ceiling_height_m=site.ceiling_height_m)
+    keep = known.spread_m <= survey_files.LIGHT_SPREAD_M
+    d, j = cKDTree(known.lights_m[keep]).query(lm.lights_m)
+    z = d / np.hypot(lm.sigma_m, known.sigma_m[keep][j])
+    to_true = cKDTree(KNOWN_LIGHTS).query(lm.lights_m)[0]
+    out = {"lights": {"surveyed": len(lm.lights_m), "note": note,
+                      "known_pose_kept": int(keep.sum()), "distance_mm": _pcts(1e3 * d),
+                      "distance_over_sigma": _pcts(z),
+                      "sigma_mm_median": 1e3 * float(np.median(lm.sigma_m)),
+                      "true_lights_surveyed": int(np.count_nonzero(to_true < 0.02)),
+                      "other_stable_spots": int(np.count_nonzero(to_true >= 0.02))}}
+    frames = lambda P: ((to_grey(rec.frame(int(res.frame[n])).image), P[n])  # noqa: E731
+                        for n in res.keys)
+    sig = float(np.nanmedian(np.hypot(*res.sigma[res.keys, :2].T))) / math.sqrt(2)
+    ms = survey_markers(frames(res.poses), rig, site.ceiling_height_m,
+                        KNOWN_MARKERS.dictionary, sig)
+    mt = {m.id: m for m in survey_markers(frames(truth[res.frame]), rig,
+                                          site.ceiling_height_m, KNOWN_MARKERS.dictionary)}
+    rms = lambda a, b: float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))  # noqa: E731
+    out["markers"] = [{"id": m.id, "views": m.views, "sigma_mm": 1e3 * m.sigma_m,
+                       "vs_known_pose_rms_mm": 1e3 * rms(m.corners_m, mt[m.id].corners_m),
+                       "known_pose_sigma_mm": 1e3 * mt[m.id].sigma_m,
+                       "vs_site_rms_mm": 1e3 * rms(m.corners_m,
+                                                  KNOWN_MARKERS.pose(m.id).corners_m()),
+                       "known_pose_vs_site_rms_mm": 1e3 * rms(
+                           mt[m.id].corners_m, KNOWN_MARKERS.pose(m.id).corners_m())}
+                      for m in ms if m.id in mt]
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--rec", type=Path, default=ROOT / "benchmarks/out/survey_office60")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/out/bench_survey.json")
+    ap.add_argument("--rec", type=Path, default=None)
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--against-known", action="store_true")
     args = ap.parse_args()
+    if args.against_known:
+        out = against_known(args.rec or ROOT / "benchmarks/out/survey_known")
+        path = args.out or ROOT / "benchmarks/out/bench_survey_known.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(out, indent=1) + "\n")
+        print(json.dumps(out, indent=1))
+        return
+    args.rec = args.rec or ROOT / "benchmarks/out/survey_office60"
+    args.out = args.out or ROOT / "benchmarks/out/bench_survey.json"
     if not (args.rec / "frames.csv").exists():
         render(args.rec)
     rec = Recording(args.rec)

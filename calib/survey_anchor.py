@@ -53,17 +53,23 @@ class LightAnchor:
 
     def apply(self, poses: np.ndarray) -> np.ndarray:
         """Poses ``(N, 3)`` (x, y, yaw) of the survey's frame in the site's W."""
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        p = np.asarray(poses, float)
-        out = p.copy()
-        out[:, 0] = c * p[:, 0] - s * p[:, 1] + self.t_m[0]
-        out[:, 1] = s * p[:, 0] + c * p[:, 1] + self.t_m[1]
-        out[:, 2] = p[:, 2] + self.yaw_rad
-        return out
+        return move_poses(self.yaw_rad, self.t_m, poses)
 
     def apply_xy(self, xy: np.ndarray) -> np.ndarray:
         p = np.c_[np.asarray(xy, float).reshape(-1, 2), np.zeros(len(xy))]
         return self.apply(p)[:, :2]
+
+
+def move_poses(yaw_rad: float, t_m: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Poses ``(N, 3)`` (x, y, yaw rad) moved by ``X' = Rz(yaw) X + t``: positions rotated
+    and shifted, headings turned by ``yaw_rad``."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    p = np.asarray(poses, float).reshape(-1, 3)
+    out = p.copy()
+    out[:, 0] = c * p[:, 0] - s * p[:, 1] + t_m[0]
+    out[:, 1] = s * p[:, 0] + c * p[:, 1] + t_m[1]
+    out[:, 2] = p[:, 2] + yaw_rad
+    return out
 
 
 def _motions(found: np.ndarray, known: np.ndarray) -> list[tuple[float, np.ndarray]]:

@@ -29,27 +29,39 @@ from pathlib import Path
 import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
-from ceilkit.runtime.config.site import Site, check_rig_site
+from ceilkit.runtime.config.site import MarkerPose, Markers, Site, check_rig_site
 from ceilkit.runtime.config.yaml import atomic_write_text
 from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.estimators.texture.ceilmap import CeilingMap
+from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.features.quads import DICTIONARY_NAMES
 from ceilkit.runtime.io.outputs import claim_outputs, recording_inputs
 from ceilkit.runtime.io.recording import POSES_HEADER, Recording, Truth
 
 from .lightmap import LightMap, lightmap_header_lines, survey_lights
 from .survey import SurveyOptions, SurveyResult, survey_drives, survey_map
 from .survey_anchor import anchor_by_lights
+from .survey_geo import origin_from_start, parse_geodetic, start_pose_from_geodetic
+from .survey_markers import (
+    SurveyedMarker,
+    anchor_by_markers,
+    parse_anchor_marker,
+    survey_markers,
+)
 from .survey_report import report_lines, write_plot
 from .workflow import provenance_header
 
 MAP_FILE = "ceiling_map.npz"
 OUTPUT_FILES = ("site.yaml", MAP_FILE, "poses.csv", "survey.md", "survey.png")
+DEFAULT_DICTIONARY = "DICT_APRILTAG_36h11"
+"""The markers' dictionary when neither ``--site`` nor ``--marker-dictionary`` names one
+(SPEC §2's example)."""
 LIGHT_SPREAD_M = 0.015
-"""The lit spots are written as ``lights`` only when their single-frame detections
-scatter less than this about their clusters' centres (median over the clusters): spot
-lights do (the lights fixture: 0.4 mm median, 2.9 mm at most); the office scatter's
-panels, detectors and sprinklers give clusters of bright fragments (48 mm median on a
-19 m office loop) that are no lights a method could use."""
+"""A cluster of lit spots is written as a light only when its single-frame detections
+scatter less than this about its centre: spot lights do (the lights fixture: 0.4 mm
+median, 2.9 mm at most); the office scatter's panels, detectors and sprinklers give
+clusters of bright fragments (48 mm median on a 19 m office loop) that are no lights a
+method could use."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,6 +74,7 @@ class SurveyRun:
     lights: LightMap | None
     lights_note: str
     files: tuple[Path, ...]
+    markers: tuple[SurveyedMarker, ...] = ()
 
     def lines(self) -> list[str]:
         r = self.result
@@ -73,21 +86,31 @@ class SurveyRun:
                f"{_median_mm(self.cmap.sigma_m)} mm",
                f"lights: {len(self.lights.lights_m)}" if self.lights is not None
                else f"lights: none ({self.lights_note})"]
+        out += [_marker_line(m) for m in self.markers]
         return out + [f"wrote {p}" for p in self.files]
+
+
+def _marker_line(m: SurveyedMarker) -> str:
+    p = m.pose()
+    where = (f"at {m.places} places: two prints of one id, not written" if m.places > 1
+             else f"({p.x_m:.4f}, {p.y_m:.4f}) m, yaw {math.degrees(p.yaw_rad):.2f} deg, "
+                  f"side {p.size_m:.3f} m")
+    return (f"marker {m.id}: {where}; {m.views} views, corner 1-sigma "
+            f"{1e3 * m.sigma_m:.2f} mm (spread {1e3 * m.spread_m:.2f} mm)")
 
 
 def _median_mm(sigma_m: np.ndarray) -> str:
     return f"{1e3 * float(np.median(sigma_m)):.2f}" if len(sigma_m) else "-"
 
 
-def parse_start_pose(text: str | None) -> tuple[float, float, float]:
-    """``"X,Y,YAW"`` (m, m, degrees) as ``(x, y, yaw rad)``; the origin when None.
+def parse_start_pose(text: str | None) -> tuple[float, float, float] | None:
+    """``"X,Y,YAW"`` (m, m, degrees) as ``(x, y, yaw rad)``; None when not given.
 
     Raises:
         ConfigError: keyed ``--start-pose``, for anything but three finite numbers.
     """
     if text is None:
-        return 0.0, 0.0, 0.0
+        return None
     try:
         x, y, yaw = (float(p) for p in text.replace(" ", "").split(","))
     except ValueError:
@@ -96,6 +119,29 @@ def parse_start_pose(text: str | None) -> tuple[float, float, float]:
     if not all(math.isfinite(v) and abs(v) <= 1e6 for v in (x, y, yaw)):
         raise ConfigError(None, "--start-pose", f"expected finite X,Y,YAW, found {text!r}")
     return x, y, math.radians(yaw)
+
+
+def parse_anchors(start_pose: str | None, markers: Sequence[str], dictionary: str | None,
+                  geodetic: str | None, site: Path | None) -> Anchors:
+    """The command's anchor options parsed (:class:`Anchors`); a marker given with no side
+    takes ``--site``'s side for that id (else unchecked).
+
+    Raises:
+        ConfigError: a malformed option (keyed by its flag), an unknown dictionary, or a
+            bad ``--site``.
+    """
+    sizes, default = {}, math.nan
+    if markers and site is not None:
+        known = Site.load(site)
+        if known.markers is not None:
+            sizes = {p.id: p.size_m for p in known.markers.poses}
+            default = known.markers.size_m
+    if dictionary is not None and dictionary not in DICTIONARY_NAMES:
+        raise ConfigError(None, "--marker-dictionary", f"unknown aruco dictionary "
+                          f"{dictionary!r} (e.g. DICT_APRILTAG_36h11, DICT_4X4_50)")
+    return Anchors(parse_start_pose(start_pose),
+                   tuple(parse_anchor_marker(m, sizes, default) for m in markers),
+                   parse_geodetic(geodetic), dictionary)
 
 
 def _height(ceiling_height_m: float | None, site: Site | None, recordings: Sequence[Path]
@@ -117,19 +163,33 @@ def _height(ceiling_height_m: float | None, site: Site | None, recordings: Seque
 
 
 def _lights(recs: Sequence[Recording], res: SurveyResult) -> tuple[LightMap | None, str]:
-    """The lit spots of the first drive placed with its solved poses, or why none."""
+    """The lit spots of the first drive placed with its solved poses (those whose
+    detections stay within :data:`LIGHT_SPREAD_M` of their cluster's centre; each one's
+    1σ the cluster's, with the keyframes' median pose 1σ added in quadrature), or why
+    none; the note says how many clusters were left out."""
     d0 = res.drive == 0
     truth = Truth(res.t_ns[d0], res.poses[d0, 0], res.poses[d0, 1], res.poses[d0, 2])
     try:
         lm = survey_lights(recs[0], truth, ceiling_height_m=res.ceiling_height_m)
     except (CalibrationError, ConfigError) as exc:
         return None, str(exc).splitlines()[0]
-    spread = float(np.median(lm.spread_m))
-    if spread > LIGHT_SPREAD_M:
-        return None, (f"{len(lm.lights_m)} clusters of lit spots, but they do not stay put "
-                      f"from frame to frame (median spread {1e3 * spread:.0f} mm > "
+    stay = lm.spread_m <= LIGHT_SPREAD_M
+    left = int(np.count_nonzero(~stay))
+    if not stay.any():
+        return None, (f"{len(lm.lights_m)} clusters of lit spots, but none stays put "
+                      f"from frame to frame (median spread "
+                      f"{1e3 * float(np.median(lm.spread_m)):.0f} mm > "
                       f"{1e3 * LIGHT_SPREAD_M:.0f} mm): bright patches, not spot lights")
-    return lm, ""
+    keys = res.keys[res.drive[res.keys] == 0]
+    pose_sigma = float(np.nanmedian(np.hypot(*res.sigma[keys, :2].T))) / math.sqrt(2.0) \
+        if len(keys) else 0.0
+    lm = dataclasses.replace(lm, lights_m=lm.lights_m[stay], spread_m=lm.spread_m[stay],
+                             sigma_m=np.hypot(lm.sigma_m[stay], pose_sigma),
+                             views=lm.views[stay], unassigned=lm.unassigned)
+    note = (f"{left} of {len(stay)} clusters of lit spots left out: they do not stay put "
+            f"from frame to frame (spread > {1e3 * LIGHT_SPREAD_M:.0f} mm: bright "
+            "patches, not spot lights)") if left else ""
+    return lm, note
 
 
 def _poses_text(res: SurveyResult, drive: int) -> str:
@@ -145,7 +205,7 @@ def _poses_text(res: SurveyResult, drive: int) -> str:
 
 
 def _site_header(run_lines: list[str], res: SurveyResult, cmap: CeilingMap,
-                 lights: LightMap | None) -> list[str]:
+                 lights: LightMap | None, marks: Sequence[SurveyedMarker]) -> list[str]:
     keys = res.sigma[res.keys]
     lines = [f"anchor: {res.anchor}" + (f" (frame 0 of {res.drives[0]})"
                                          if res.anchor == "start pose" else ""),
@@ -157,19 +217,40 @@ def _site_header(run_lines: list[str], res: SurveyResult, cmap: CeilingMap,
              f"{math.degrees(float(np.nanmax(keys[:, 2]))):.3f} deg"]
     if lights is not None:
         lines += lightmap_header_lines(lights)
-    return run_lines + lines
+    return run_lines + lines + [_marker_line(m) for m in marks]
+
+
+@dataclass(frozen=True)
+class Anchors:
+    """What the user knows to anchor a survey (docs/survey.md, "Anchors").
+
+    Attributes:
+        start_pose: the first drive's first frame in W (m, m, rad); None: not given.
+        markers: markers of known pose (``--anchor-marker``), beside ``--site``'s.
+        geodetic: the first frame on the Earth ``(lat, lon, heading)``, degrees.
+        dictionary: the markers' aruco dictionary (None: ``--site``'s, else
+            :data:`DEFAULT_DICTIONARY`).
+    """
+
+    start_pose: tuple[float, float, float] | None = None
+    markers: tuple[MarkerPose, ...] = ()
+    geodetic: tuple[float, float, float] | None = None
+    dictionary: str | None = None
 
 
 def survey_site(rig: Path, recordings: Sequence[Path], out: Path, *,
-                site: Path | None = None, start_pose: tuple[float, float, float] = (0, 0, 0),
+                site: Path | None = None, anchors: Anchors = Anchors(),
                 ceiling_height_m: float | None = None, force: bool = False,
                 options: SurveyOptions = SurveyOptions()) -> SurveyRun:
-    """Survey ``recordings`` with ``rig`` and write ``out`` (module docstring).
+    """Survey ``recordings`` with ``rig`` and write ``out`` (module docstring), anchored
+    (first found): by markers of known pose (``anchors.markers``, else ``--site``'s),
+    by ``--site``'s lights, by the geodetic point on ``--site``'s ``origin``, by the
+    start pose (default the origin).
 
     Raises:
         ConfigError: a bad rig, site, recording or option (naming the file and key); an
             output that exists without ``force``.
-        CalibrationError: nothing could be chained.
+        CalibrationError: nothing could be chained; an anchor not seen or ambiguous.
     """
     the_rig = Rig.load(rig)
     known = Site.load(site) if site is not None else None
@@ -186,16 +267,125 @@ def survey_site(rig: Path, recordings: Sequence[Path], out: Path, *,
     with contextlib.ExitStack() as stack:
         claim_outputs({"out": files}, folders={"out": [out]}, inputs=inputs, force=force,
                       stack=stack)
-        res = survey_drives(recs, the_rig, height, start_pose, options)
+        start = _start_pose(anchors, known, site)
+        res = survey_drives(recs, the_rig, height, start or (0.0, 0.0, 0.0), options)
+        if start is not None and anchors.start_pose is None:
+            res = dataclasses.replace(res, anchor="geodetic point on --site's origin")
+        first = res.poses[0].copy()
         lights, note = _lights(recs, res)
-        if known is not None and known.has_lights:
-            res, lights = _anchor_lights(res, lights, note, known, site)
+        marks, base = _markers(res, recs, the_rig, anchors, known, base)
+        known_marks = anchors.markers or (known.markers.poses if known is not None and
+                                          known.markers is not None else ())
+        if known_marks:
+            res, lights, marks = _anchor_markers(res, lights, marks, known_marks)
+        elif known is not None and known.has_lights:
+            res, lights, marks = _anchor_lights(res, lights, note, known, site, marks)
+        base = _with_markers(base, marks, anchors)
+        if start is not None and anchors.start_pose is None and \
+                not res.anchor.startswith("geodetic"):
+            res = dataclasses.replace(res, anchor=res.anchor + "; --anchor-geodetic on "
+                                      f"--site's origin is {_pose_gap(first, res.poses[0])}"
+                                      " from it")
+        if anchors.geodetic is not None and base.origin is None:
+            base = dataclasses.replace(base, origin=origin_from_start(
+                anchors.geodetic, tuple(res.poses[0])))
+            res = dataclasses.replace(res, anchor=res.anchor + "; origin from "
+                                      f"--anchor-geodetic at frame {int(res.frame[0])} of "
+                                      "the first drive")
         cmap = survey_map(res, recs, the_rig)
-        return _write(out, res, cmap, lights, note, base, height)
+        return _write(out, res, cmap, lights, note, base, height, marks)
+
+
+def _pose_gap(a: np.ndarray, b: np.ndarray) -> str:
+    """How far pose ``a`` is from ``b``: ``"12.3 mm, 0.45 deg"``."""
+    dyaw = (a[2] - b[2] + math.pi) % (2 * math.pi) - math.pi
+    return f"{1e3 * math.hypot(a[0] - b[0], a[1] - b[1]):.1f} mm, {math.degrees(dyaw):.2f} deg"
+
+
+def _start_pose(anchors: Anchors, known: Site | None, site: Path | None
+                ) -> tuple[float, float, float] | None:
+    """The start pose: given, or the geodetic point on ``--site``'s origin (not both)."""
+    if anchors.geodetic is None or known is None or known.origin is None:
+        return anchors.start_pose
+    if anchors.start_pose is not None:
+        raise ConfigError(None, "--anchor-geodetic", f"{site} has an origin, so the "
+                          "geodetic point is the start pose: give it or --start-pose, "
+                          "not both")
+    return start_pose_from_geodetic(known.origin, anchors.geodetic)
+
+
+def _markers(res: SurveyResult, recs: Sequence[Recording], rig: Rig, anchors: Anchors,
+             known: Site | None, base: Site) -> tuple[list[SurveyedMarker], Site]:
+    """The markers the keyframes read (when a dictionary is known: ``--site``'s
+    markers, ``--anchor-marker`` or ``--marker-dictionary``), in the survey's frame."""
+    has = known is not None and known.markers is not None
+    if not (has or anchors.markers or anchors.dictionary):
+        return [], base
+    dictionary = (known.markers.dictionary if has else
+                  anchors.dictionary or DEFAULT_DICTIONARY)
+    frames = ((to_grey(recs[res.drive[n]].frame(int(res.frame[n])).image), res.poses[n])
+              for n in res.keys)
+    pose_sigma = float(np.nanmedian(np.hypot(*res.sigma[res.keys, :2].T))) / math.sqrt(2)
+    found = survey_markers(frames, rig, res.ceiling_height_m, dictionary,
+                           pose_sigma if math.isfinite(pose_sigma) else 0.0)
+    if not has:
+        base = dataclasses.replace(base, markers=Markers(dictionary, math.nan, ()))
+    return found, base
+
+
+def _anchor_markers(res: SurveyResult, lights: LightMap | None,
+                    marks: list[SurveyedMarker], known: Sequence[MarkerPose]
+                    ) -> tuple[SurveyResult, LightMap | None, list[SurveyedMarker]]:
+    """The survey moved onto the known markers
+    (:func:`~ceilkit.calib.survey_markers.anchor_by_markers`).
+
+    Raises:
+        CalibrationError: a known marker not seen, ambiguous, of another size, or the
+            markers disagree.
+    """
+    a = anchor_by_markers(marks, known)
+    if not a:
+        raise CalibrationError(f"the markers do not anchor the survey: {a.reason} (markers "
+                               "of known pose are the anchor when given: to anchor by the "
+                               "start pose, give a --site without markers)")
+    each = ", ".join(f"{i}: {1e3 * r:.1f} mm (side {s:.3f} m)"
+                     for i, r, s in zip(a.ids, a.residual_m, a.size_m, strict=True))
+    anchor = (f"markers: {len(a.ids)} of known pose; each one's RMS corner distance "
+              f"after the fit: {each}; the anchor's yaw 1-sigma "
+              f"{math.degrees(a.sigma_yaw_rad):.3f} deg ({1e3 * a.sigma_yaw_rad:.1f} mm "
+              "at 1 m from the markers)")
+    res = dataclasses.replace(res, poses=a.apply(res.poses), chain=a.apply(res.chain),
+                              anchor=anchor)
+    if lights is not None:
+        lights = dataclasses.replace(lights, lights_m=a.apply_xy(lights.lights_m))
+    marks = [dataclasses.replace(m, corners_m=a.apply_xy(m.corners_m)) for m in marks]
+    return res, lights, marks
+
+
+def _with_markers(base: Site, marks: list[SurveyedMarker], anchors: Anchors) -> Site:
+    """``base``'s markers with the surveyed ones it does not list (one place each) added,
+    and the ``--anchor-marker`` ones as given."""
+    if base.markers is None:
+        return base
+    listed = {p.id: p for p in base.markers.poses}
+    listed.update({p.id: p for p in anchors.markers if math.isfinite(p.size_m)})
+    for m in marks:
+        if m.id not in listed and m.places == 1:
+            p = m.pose()
+            listed[m.id] = MarkerPose(p.id, round(p.x_m, 4), round(p.y_m, 4), p.yaw_rad,
+                                      round(p.size_m, 3))
+    if not listed:
+        return dataclasses.replace(base, markers=None)
+    size = base.markers.size_m
+    if not math.isfinite(size):
+        size = float(np.median([p.size_m for p in listed.values()]))
+    return dataclasses.replace(base, markers=Markers(base.markers.dictionary, size,
+                                                     tuple(listed[i] for i in sorted(listed))))
 
 
 def _anchor_lights(res: SurveyResult, lights: LightMap | None, note: str, known: Site,
-                   site: Path | None) -> tuple[SurveyResult, LightMap]:
+                   site: Path | None, marks: list[SurveyedMarker]
+                   ) -> tuple[SurveyResult, LightMap, list[SurveyedMarker]]:
     """The survey moved into the known site's W by its lights
     (:func:`~ceilkit.calib.survey_anchor.anchor_by_lights`).
 
@@ -215,18 +405,20 @@ def _anchor_lights(res: SurveyResult, lights: LightMap | None, note: str, known:
               f"{a.runner_up}); their distances after the fit, mm: {res_mm}")
     res = dataclasses.replace(res, poses=a.apply(res.poses), chain=a.apply(res.chain),
                               anchor=anchor)
-    return res, dataclasses.replace(lights, lights_m=a.apply_xy(lights.lights_m))
+    marks = [dataclasses.replace(m, corners_m=a.apply_xy(m.corners_m)) for m in marks]
+    return res, dataclasses.replace(lights, lights_m=a.apply_xy(lights.lights_m)), marks
 
 
 def _write(out: Path, res: SurveyResult, cmap: CeilingMap, lights: LightMap | None,
-           note: str, base: Site, height: float) -> SurveyRun:
+           note: str, base: Site, height: float, marks: Sequence[SurveyedMarker]
+           ) -> SurveyRun:
     written = [cmap.save(out / MAP_FILE)]
     site = dataclasses.replace(base, ceiling_height_m=height, ceiling_map=MAP_FILE,
                                source=None)
     if lights is not None:
         site = dataclasses.replace(site, lights_m=np.round(lights.lights_m, 4))
     header = provenance_header("site surveyed by ceilcal survey (no external poses)",
-                               _site_header([], res, cmap, lights))
+                               _site_header([], res, cmap, lights, marks))
     site.save(out / "site.yaml", header)
     Site.load(out / "site.yaml")      # read back: valid by the same rules as any other
     written.append(out / "site.yaml")
@@ -240,4 +432,4 @@ def _write(out: Path, res: SurveyResult, cmap: CeilingMap, lights: LightMap | No
     written.append(out / "survey.md")
     if png is not None:
         written.append(png)
-    return SurveyRun(res, cmap, lights, note, tuple(written))
+    return SurveyRun(res, cmap, lights, note, tuple(written), tuple(marks))

@@ -60,7 +60,8 @@ def report_lines(res: SurveyResult, cmap: CeilingMap, lights: LightMap | None, n
     if lights is None:
         out.append(f"- `lights`: none ({note}).")
     else:
-        out.append(f"- `lights`: {len(lights.lights_m)}:")
+        out.append(f"- `lights`: {len(lights.lights_m)}" + (f" ({note})" if note else "")
+                   + ":")
         out += [f"  - ({p[0]:.4f}, {p[1]:.4f}) m: 1-sigma {1e3 * s:.2f} mm, {int(v)} views"
                 for p, s, v in zip(lights.lights_m, lights.sigma_m, lights.views, strict=True)]
     if png:

@@ -28,6 +28,16 @@ def register(app: typer.Typer) -> None:
         start_pose: str = typer.Option(None, "--start-pose", help="X,Y,YAW (m, m, "
                                        "degrees): the first drive's first frame in W "
                                        "(default 0,0,0)."),
+        anchor_marker: list[str] = typer.Option(None, "--anchor-marker", help="ID,X,Y,"
+                                                "YAW[,SIZE] (m, m, degrees, m): a marker "
+                                                "of known pose anchors the survey "
+                                                "(repeatable; beside --site's markers)."),
+        marker_dictionary: str = typer.Option(None, "--marker-dictionary", help="The "
+                                              "markers' aruco dictionary when --site has "
+                                              "none (default DICT_APRILTAG_36h11)."),
+        anchor_geodetic: str = typer.Option(None, "--anchor-geodetic", help="LAT,LON,"
+                                            "HEADING (degrees; heading clockwise from "
+                                            "north): the first frame on the Earth."),
         ceiling_height: float = typer.Option(None, "--ceiling-height", help="Ceiling "
                                              "height, m (default: --site's, else the "
                                              "first recording's site.yaml)."),
@@ -36,9 +46,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Survey a site from drives with no external poses: chained frames, loop
         closures, a pose graph; writes the site file and its ceiling map."""
-        from ceilkit.calib.survey_files import parse_start_pose, survey_site
+        from ceilkit.calib.survey_files import parse_anchors, survey_site
 
-        run = survey_site(rig, recordings, out, site=site,
-                          start_pose=parse_start_pose(start_pose),
+        anchors = parse_anchors(start_pose, anchor_marker or [], marker_dictionary,
+                                anchor_geodetic, site)
+        run = survey_site(rig, recordings, out, site=site, anchors=anchors,
                           ceiling_height_m=ceiling_height, force=force)
         typer.echo("\n".join(run.lines()))

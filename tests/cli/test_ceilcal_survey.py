@@ -71,6 +71,11 @@ def test_existing_outputs_are_refused_without_force(drive, tmp_path):
     (["--start-pose", "1,2"], "--start-pose"),
     (["--start-pose", "1,2,nan"], "--start-pose"),
     (["--ceiling-height", "-1"], "--ceiling-height"),
+    (["--anchor-marker", "7,1,2"], "--anchor-marker"),
+    (["--anchor-marker", "7,1,2,0,-0.2"], "--anchor-marker"),
+    (["--anchor-geodetic", "52,4"], "--anchor-geodetic"),
+    (["--anchor-geodetic", "91,4,0"], "--anchor-geodetic"),
+    (["--marker-dictionary", "DICT_NOPE"], "--marker-dictionary"),
 ])
 def test_bad_options_are_one_line(drive, tmp_path, args, words):
     res = _run(str(RIG), str(drive), "--out", str(tmp_path / "site"), *args)
@@ -134,3 +139,12 @@ def test_wheel_odometry_is_used_beside_the_camera(drive, tmp_path):
     res = survey_drives([rec], rec.rig, 2.7, tuple(poses[0]))
     assert res.edge_kinds.get("wheel") == len(poses) - 1
     assert np.hypot(*(res.poses[-1, :2] - poses[-1, :2])) < 0.01
+
+
+def test_a_known_marker_the_drive_never_saw_is_one_line(drive, tmp_path):
+    res = _run(str(RIG), str(drive), "--out", str(tmp_path / "site"), "--ceiling-height",
+               "2.7", "--anchor-marker", "7,1,2,0,0.2")
+    assert res.exit_code == 1
+    assert len(res.output.strip().splitlines()) == 1
+    assert "marker(s) 7 not seen" in res.output and "none" in res.output
+    assert not (tmp_path / "site").exists()
