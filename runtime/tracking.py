@@ -12,7 +12,13 @@ Per frame the tracker predicts the pose at the frame's time (the estimators'
   track: then the track is re-localized there and the result says so
   (``relocalized``), so the link can bump its reset counter;
 * no accepted measurement for ``lost_after_s``: the track is dropped and the
-  next measurement starts a new one (also a re-localization).
+  next measurement starts a new one (also a re-localization);
+* ``confirm`` ambiguous frames in a row whose poses (``hypotheses``) all lie outside
+  the prediction's region (:func:`~.estimators.prior.allows`): the frames contradict
+  the track (a kidnap, a wrong start pose) and it is dropped, as the fusion drops
+  one; kept, its region would widen frame by frame until it took in a twin of the
+  vehicle's new pose, which the prior would then choose (issue 36's held-out lamps:
+  34 valid poses 3.5 m and 180 deg off after a kidnap).
 
 Coordinates the method does not observe (x for the corridor method) are neither
 predicted nor gated.
@@ -26,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
-from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA
+from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA, allows
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 
@@ -81,6 +87,7 @@ class Tracker:
         self.start_poses = 0
         self._pending: tuple[float, float, float] | None = start_pose
         self._jumped = False    # a start pose was taken: the next result is a reset
+        self._disagree = 0      # frames in a row whose poses all lie outside the prior
 
     def set_start_pose(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float,
                        cov: object = None) -> None:
@@ -106,6 +113,7 @@ class Tracker:
     def reset(self) -> None:
         self._s = None
         self._candidates = []
+        self._disagree = 0
 
     def predict(self, t_ns: int, method: str = "track") -> PoseEstimate | None:
         """The predicted vehicle pose at ``t_ns``, or ``None`` when not tracking."""
@@ -139,6 +147,15 @@ class Tracker:
         return np.diag([sp * sp if s.x is not None else math.inf,
                         sp * sp if s.y is not None else math.inf, sr * sr])
 
+    def _contradicts(self, est: Failure) -> bool:
+        """Whether a failed frame lists poses (its ``hypotheses``: an ambiguous frame)
+        and none lies inside the prediction's region (:func:`~.estimators.prior.allows`)."""
+        if not est.hypotheses or self._s is None or self._pending is not None:
+            return False
+        pred = self.predict(est.t_ns)
+        return pred is not None and not any(
+            allows(pred, (h.x_m, h.y_m, h.yaw_rad, h.cov)) for h in est.hypotheses)
+
     def _inside(self, a: PoseEstimate, b: PoseEstimate, dt_s: float) -> bool:
         o = self.options
         gate_m = o.gate_m + o.max_speed_mps * abs(dt_s)
@@ -171,7 +188,16 @@ class Tracker:
             if self._s is not None and (est.t_ns - self._s.t_ns) * 1e-9 > \
                     self.options.lost_after_s:
                 self.reset()
+            elif self._contradicts(est):
+                # the frame supports poses, none of them the track's (a kidnap, a wrong
+                # start pose): ``confirm`` such frames in a row drop the track, as the
+                # fusion does; kept, its region would widen until it took in a twin of
+                # wherever the vehicle now is, and the prior would choose that twin
+                self._disagree += 1
+                if self._disagree >= self.options.confirm:
+                    self.reset()
             return TrackResult(est)
+        self._disagree = 0
         pred = self.predict(est.t_ns)
         if pred is None:
             return self._start(est)

@@ -72,6 +72,7 @@ from ceilkit.runtime.estimators.lights.observe import (
     Observation,
     SpotObserver,
     VisibilityTable,
+    fitted_spot_params,
 )
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
 from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
@@ -533,12 +534,16 @@ def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
     at a wide angle is a sliver: its shape is checked against the projected rectangle
     (:mod:`.observe`), not against the detector's round-spot bound; a lamp cut by the
     view's edge is not counted missing within :data:`~.observe.RECT_CUT_REACH` of it."""
-    spot_params = o.spot_params or (SpotParams() if rect is None
-                                    else SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO))
+    factor = working_factor((rig.camera.height, rig.camera.width), o.working_mpx)
+    spot_params = o.spot_params
+    if spot_params is None and rect is None:    # the Niblack window fitted to the discs
+        spot_params = fitted_spot_params(SpotParams(), rig, ceiling_height_m, diameter_m,
+                                         valid_mask, factor)
+    elif spot_params is None:   # rectangles: a window grown to them took their halo in
+        spot_params = SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO)
     observer = SpotObserver(rig, ceiling_height_m, 0.5 * diameter_m, spot_params,
-                            valid_mask, nadir, o.max_spots,
-                            working_factor((rig.camera.height, rig.camera.width),
-                                           o.working_mpx), o.spot_stage, light_size_m=rect)
+                            valid_mask, nadir, o.max_spots, factor, o.spot_stage,
+                            light_size_m=rect)
     visibility = VisibilityTable(
         rig, ceiling_height_m, lights_w, valid_mask, nadir, o.max_spots, 0.5 * diameter_m,
         reach_m=None if rect is None else RECT_CUT_REACH * 0.5 * math.hypot(*rect))
