@@ -56,6 +56,11 @@ class OffsetMatch:
             the frame supports as well (scoring within :data:`AMBIGUITY_RATIO` of
             it); None without a prior or such a shift. The prior singles
             ``shift_m`` out only if its region holds neither this nor the runner-up.
+        alike: ``(shift_m, score)`` of every other shift scoring within
+            :data:`AMBIGUITY_RATIO` of this one, more than the gate apart, best first
+            (the runner-up among them when the match is ambiguous): on a tile grid, a
+            shift a period either side of the chosen one and as many more as the
+            frame's lines fit (:func:`shifts_alike` counts their absent lines).
     """
 
     shift_m: float
@@ -65,6 +70,7 @@ class OffsetMatch:
     runner_up: tuple[float, float, float] | None
     score: float = 0.0
     prior_rival_m: float | None = None
+    alike: tuple[tuple[float, float], ...] = ()
 
 
 class MatchQuery(NamedTuple):
@@ -115,14 +121,22 @@ def match_offsets(offsets: np.ndarray, weights: np.ndarray, site_y: np.ndarray,
     assign = np.empty(o.size, np.int64)
     query = MatchQuery(float(tol_m), prior_shift_m is not None,
                        0.0 if prior_shift_m is None else float(prior_shift_m))
-    found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift, score, rival = \
-        match_core(o, arr(weights, np.float64).ravel(), ys, query, arr(a, np.float64),
-                   arr(cw, np.float64), assign)
+    res = match_core(o, arr(weights, np.float64).ravel(), ys, query, arr(a, np.float64),
+                     arr(cw, np.float64), assign)
+    return offset_match(res, assign)
+
+
+def offset_match(res: tuple, assign: np.ndarray) -> OffsetMatch | None:
+    """The :class:`OffsetMatch` of :func:`match_core`'s tuple ``res`` (None: nothing
+    matched)."""
+    found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift, score, rival, \
+        alike = res
     if not found:
         return None
     return OffsetMatch(shift, assign, n_lines, weight,
                        (r_score, r_weight, r_shift) if has_runner else None, score,
-                       None if math.isnan(rival) else float(rival))
+                       None if math.isnan(rival) else float(rival),
+                       tuple((float(c), float(v)) for c, v in alike))
 
 
 @njit
@@ -179,11 +193,12 @@ def match_core(o_all, w_all, ys, query, anchors, cw_all, assign
     ``cw_all (N, J)`` (ones: none) and ``anchors (A,)`` (empty: none), the site line of
     each offset written to ``assign (N,)``: ``(found, shift, n_lines, weight,
     has_runner, runner score, runner weight, runner shift, score, prior rival shift
-    (NaN: none))``: the hypotheses
+    (NaN: none), alike (K, 2))``: the hypotheses
     (:func:`_merged_shifts`) scored (:func:`_scored`), the winner and the runner-up
-    (the best more than ``tol`` from it) as :func:`match_offsets` says."""
+    (the best more than ``tol`` from it) as :func:`match_offsets` says, and every
+    other shift within :data:`AMBIGUITY_RATIO` of the winner (:attr:`OffsetMatch.alike`)."""
     tol, has_prior, prior_shift = query
-    nothing = (False, 0.0, 0, 0.0, False, 0.0, 0.0, 0.0, 0.0, math.nan)
+    nothing = (False, 0.0, 0, 0.0, False, 0.0, 0.0, 0.0, 0.0, math.nan, np.empty((0, 2)))
     assign[:] = -1
     ok = np.flatnonzero(np.isfinite(o_all))
     n = ok.size
@@ -232,7 +247,27 @@ def match_core(o_all, w_all, ys, query, anchors, cw_all, assign
     for i in range(n):
         assign[ok[i]] = jm[win, i]
     return (True, c_ref[win], n_lines[win], sw[win], has_runner, r_score, r_weight, r_shift,
-            soft[win], rival)
+            soft[win], rival, _alike(others, c_ref, soft, soft[win], tol))
+
+
+@njit
+def _alike(others, c_ref, soft, top, tol):  # pragma: no cover - compiled
+    """``(shift, score)`` of the hypotheses ``others`` scoring at least
+    :data:`AMBIGUITY_RATIO` of ``top``, best first, each more than ``tol`` from those
+    before it (the refined shifts of two pairings can meet)."""
+    out = np.empty((others.size, 2))
+    na = 0
+    order = others[np.argsort(-soft[others], kind="mergesort")]
+    for k in order:
+        if soft[k] < AMBIGUITY_RATIO * top:
+            break
+        dup = False
+        for a in range(na):
+            dup = dup or abs(out[a, 0] - c_ref[k]) <= tol
+        if not dup:
+            out[na, 0], out[na, 1] = c_ref[k], soft[k]
+            na += 1
+    return out[:na].copy()
 
 
 @njit
@@ -455,6 +490,28 @@ def settle_by_absence(m: OffsetMatch, offsets: np.ndarray, weights: np.ndarray,
             return m, True
         m, s_w, s_r = alt, s_r, s_w
     return m, bool(s_r >= AMBIGUITY_RATIO * s_w)
+
+
+def shifts_alike(m: OffsetMatch, offsets: np.ndarray, compat: np.ndarray, psi_rad: float,
+                 setup: CorridorSetup, camera: CameraModel, min_length_px: float,
+                 tol_m: float) -> tuple[float, ...]:
+    """The other lateral shifts (camera y, m) the frame supports as well as ``m``'s: of
+    :attr:`OffsetMatch.alike`, those whose score less :data:`ABSENCE_PENALTY` per site
+    line they put clearly in view that no forward segment of a fitting kind lies on is
+    at least :data:`AMBIGUITY_RATIO` of ``m``'s so charged (:func:`settle_by_absence`'s
+    rule, over every shift instead of the runner-up alone). On a tile grid these are
+    the shifts by whole tiles that keep the frame's seams on seams: every one is a pose
+    the frame supports, none a choice the frame made."""
+    if not m.alike:
+        return ()
+    cs = (m.shift_m,) + tuple(c for c, _ in m.alike)
+    in_view = lines_in_view(setup, camera, min_length_px, psi_rad, cs)
+    o, cw, ys = arr(offsets, np.float64), arr(compat, np.float64), arr(setup.site_y, np.float64)
+    adj = [unseen_core(o, cw, ys, float(c), float(tol_m), in_view[r])
+           for r, c in enumerate(cs)]
+    own = m.score - ABSENCE_PENALTY * adj[0]
+    return tuple(c for (c, s), a in zip(m.alike, adj[1:], strict=True)
+                 if s - ABSENCE_PENALTY * a >= AMBIGUITY_RATIO * own)
 
 
 @warmer

@@ -279,7 +279,7 @@ class CorridorEstimator(Estimator):
         self._ctx = LabelContext(
             self.setup, cam, self.angle_tol_rad, self.match_tol_m,
             self.detector.min_length_px, across_seams=across_seams(site),
-            mirror_y_m=mirror_line(self.setup),
+            mirror_y_m=mirror_line(self.setup), square_grid=square_grid(site),
             assume_heading_rad=(None if o.assume_heading_deg is None
                                 else math.radians(o.assume_heading_deg)))
         self.lines_track = (LineTracker(self.setup, cam, o.window_px) if o.window_search
@@ -568,9 +568,10 @@ def turned_twins(out: Estimate) -> bool:
 
 def complete_twins(twins: tuple[Twin, ...]) -> bool:
     """Whether the labelings ``twins`` are every pose the frame supports: the half and
-    quarter turns are each examined; a lateral shift's runner-up is only the best of
-    the shifts (a tile grid has as many as it has seams)."""
-    return all(t.exact for t in twins) and not any(t.label == "shift" for t in twins)
+    quarter turns are each examined, and every lateral shift of each that the frame's
+    lines fit as well (a tile grid has as many as it has seams in view:
+    :func:`~.hypotheses.alike_shifts`) is listed."""
+    return all(t.exact for t in twins)
 
 
 def across_seams(site: Site) -> bool:
@@ -589,6 +590,20 @@ def across_seams(site: Site) -> bool:
                 and (row.count == 1 or abs(row.pitch_m - row.length_m - s) < 1e-6)):
             return False
     return True
+
+
+def square_grid(site: Site, tol_m: float = 1e-6) -> bool:
+    """Whether the site is a square tile grid: ``lines_across`` are seams
+    (:func:`across_seams`), no lamps, and ``lines_along`` (two or more) are one
+    ``lines_across`` spacing apart. A quarter turn about a tile corner then maps the
+    grid onto itself (within its extent): the frame's families can swap with nothing
+    on the ceiling to tell, however many lines of each the frame's aspect shows."""
+    c = site.corridor
+    if c.lines_across is None or site.lamps or len(c.lines_along_m) < 2 \
+            or not across_seams(site):
+        return False
+    d = np.diff(np.sort(np.asarray(c.lines_along_m, float)))
+    return bool(np.all(np.abs(d - c.lines_across.spacing_m) <= tol_m))
 
 
 def model_failure(o: CorridorOptions, extent: SiteExtent, mf: Misfit,

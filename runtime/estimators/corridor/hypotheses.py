@@ -34,8 +34,10 @@ from ceilkit.runtime.estimators.corridor.association import (
     compat_core,
     is_ambiguous,
     match_core,
+    offset_match,
     pairwise_sum,
     settle_by_absence,
+    shifts_alike,
     spread_core,
     unseen_core,
 )
@@ -86,6 +88,9 @@ class LabelContext:
             (the ``assume_heading_deg`` option): a prior, never a frame's evidence.
         mirror_y_m: the y of the line the site's ``lines_along`` (their kinds, lengths
             and lamp rows) are symmetric about, or None (:func:`.setup.mirror_line`).
+        square_grid: the site is a square tile grid (``lines_along`` every
+            ``lines_across`` spacing, no lamps): a quarter turn is one of its
+            symmetries (:func:`.estimator.square_grid`).
     """
 
     setup: CorridorSetup
@@ -96,6 +101,7 @@ class LabelContext:
     across_seams: bool = False
     assume_heading_rad: float | None = None
     mirror_y_m: float | None = None
+    square_grid: bool = False
 
     @functools.cached_property
     def kernel_setup(self) -> SiteKernel:
@@ -232,15 +238,9 @@ def hypothesis(k: int, psi_rad: float, along: np.ndarray, across: np.ndarray,
     assign = np.empty(np.count_nonzero(fa), np.int64)
     query = MatchQuery(float(ctx.match_tol_m), prior_shift is not None,
                        0.0 if prior_shift is None else float(prior_shift))
-    offs, wa, compat, (found, shift, n_lines, weight, has_runner, r_score, r_weight, r_shift,
-                       score, rival) = hypothesis_core(ctx.kernel_setup, fr.arrays,
-                                                       arr(fa, np.bool_), arr(fb, np.bool_),
-                                                       pk, query, assign)
-    m = (OffsetMatch(shift, assign, n_lines, weight,
-                     (r_score, r_weight, r_shift) if has_runner else None, score,
-                     None if math.isnan(rival) else float(rival))
-         if found else None)
-    return Hypothesis(k, pk, fa, fb, m, offs, wa, compat, len_a, len_b)
+    offs, wa, compat, res = hypothesis_core(ctx.kernel_setup, fr.arrays, arr(fa, np.bool_),
+                                            arr(fb, np.bool_), pk, query, assign)
+    return Hypothesis(k, pk, fa, fb, offset_match(res, assign), offs, wa, compat, len_a, len_b)
 
 
 @njit
@@ -327,7 +327,7 @@ class Twin:
     psi_rad: float
     camera_y_m: float
     label: str
-    exact: bool = True      # False: its own lateral shift is a tie (another shift fits)
+    exact: bool = True      # False: not every lateral shift of it the frame fits is listed
 
 
 @dataclass(frozen=True)
@@ -408,8 +408,7 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
         # turn the frame does not rule out (a tile grid's are among the rivals already)
         other = hyp(chosen.k + 1) if hyp(chosen.k + 1) in cands else hyp(chosen.k + 3)
         if other.match is not None and other.match.n_lines >= 1:
-            rivals.append(Twin(other.psi_rad, other.match.shift_m, "quarter_turn",
-                               not is_ambiguous(other.match)))
+            rivals += labeling_twins(other, "quarter_turn", ctx)
     if ctx.assume_heading_rad is not None and rivals:
         # the user's statement, not the frame, rules out the rivals beyond 90 deg of it
         kept = [t for t in rivals if abs(wrap_pi(t.psi_rad - centre)) < np.pi / 2 - 1e-9]
@@ -485,6 +484,13 @@ def _rivals(chosen: Hypothesis, hyp, sup, ctx: LabelContext
         h = hyp(chosen.k + dk)
         if h.match is None or h.match.n_lines < 1:
             continue
+        if dk != 2 and ctx.square_grid:
+            # a square grid is its own quarter turn: the turned labeling explains the
+            # frame as well whatever the two families' counts (the frame's aspect
+            # shows more lines of one), unless site lines it puts in view are missing
+            if h.match.n_lines >= 2 and sup(h) >= TWIN_RATIO * h.match.score:
+                out += labeling_twins(h, lbl, ctx)
+            continue
         own = sup(chosen) if own is None else own
         bound = h.match.score + (1.0 if ctx.across_seams else 0.0)
         if own > 0.0 and bound < TWIN_RATIO * own:
@@ -498,8 +504,27 @@ def _rivals(chosen: Hypothesis, hyp, sup, ctx: LabelContext
         if dk == 2 and theirs > own / TWIN_RATIO:
             better = h
         elif theirs >= TWIN_RATIO * own or (dk != 2 and theirs > own):
-            out.append(Twin(h.psi_rad, h.match.shift_m, lbl, not is_ambiguous(h.match)))
+            out += labeling_twins(h, lbl, ctx)
     return out, better
+
+
+def alike_shifts(m: OffsetMatch, h: Hypothesis, ctx: LabelContext) -> tuple[float, ...]:
+    """The lateral shifts other than ``m``'s that labeling ``h``'s forward lines fit as
+    well (:func:`~.association.shifts_alike`), or its runner-up when absence leaves
+    none of them but called the match ambiguous (:func:`settle_by_absence` compares
+    the two alone)."""
+    out = shifts_alike(m, h.offsets_m, h.compat, h.psi_rad, ctx.setup, ctx.camera,
+                       ctx.min_length_px, ctx.match_tol_m)
+    return out or ((m.runner_up[2],) if m.runner_up is not None else ())
+
+
+def labeling_twins(h: Hypothesis, lbl: str, ctx: LabelContext) -> list[Twin]:
+    """The twins a rival labeling ``h`` makes: its shift and, when another fits as well
+    (a tile grid turned a quarter), every such shift: each a pose the frame supports,
+    so the list is complete (``exact``)."""
+    m = h.match
+    shifts = (m.shift_m,) + (alike_shifts(m, h, ctx) if is_ambiguous(m) else ())
+    return [Twin(h.psi_rad, c, lbl) for c in shifts]
 
 
 MIRRORED = True
@@ -543,18 +568,21 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         return Unresolved((-1, 0.0), "no_association",
                           "the forward lines do not match the site's lines_along")
     ambiguous = is_ambiguous(m)
+    alike: tuple[float, ...] = ()
     if ambiguous:
         settled, ambiguous = settle_by_absence(m, chosen.offsets_m, chosen.weights,
                                                chosen.compat, chosen.psi_rad, setup,
                                                ctx.camera, ctx.min_length_px, ctx.match_tol_m)
+        alike = alike_shifts(settled, chosen, ctx) if ambiguous else ()
         if prior is not None and prior.y_m is not None and settled is m and ambiguous \
-                and not _prior_single_shift(m, chosen, prior, ctx):
+                and not _prior_single_shift(m, alike, chosen, prior, ctx):
             return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
-                              f"{m.n_lines} forward lines fit two lateral positions "
-                              f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m) and the "
-                              "prior does not single one out",
-                              (Twin(chosen.psi_rad, m.shift_m, "chosen"),
-                               Twin(chosen.psi_rad, m.runner_up[2], "shift")))
+                              f"{m.n_lines} forward lines fit {len(alike) + 1} lateral "
+                              f"positions ({m.shift_m:+.3f} m, {alike[0]:+.3f} m, ...) and "
+                              "the prior does not single one out",
+                              (Twin(chosen.psi_rad, m.shift_m, "chosen"),)
+                              + _shift_twins(chosen.psi_rad, alike, rivals, ctx)
+                              + tuple(rivals))
         if settled is not m and prior is not None and prior.y_m is not None:
             # the prior chose m (the shift nearest it); the lines the frame misses
             # choose the runner-up: neither is trusted (a flip away from a good prior
@@ -563,7 +591,8 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
             return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
                               f"the prior's lateral shift ({m.shift_m:+.3f} m) and the "
                               f"frame's ({settled.shift_m:+.3f} m: fewer site lines "
-                              "missing) disagree")
+                              "missing) disagree", _disagreeing(m, settled, alike, chosen,
+                                                                rivals, ctx))
         m = settled
         if not ambiguous and how != "prior":
             how += "+absence"
@@ -571,13 +600,13 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         rivals = [Twin(t.psi_rad, 2.0 * ctx.mirror_y_m - m.shift_m, t.label, t.exact)
                   if t.label == "half_turn" else t for t in rivals]
     twins = tuple(rivals)
-    if ambiguous and m.runner_up is not None:
-        twins += (Twin(chosen.psi_rad, m.runner_up[2], "shift"),)
+    if ambiguous:
+        twins += _shift_twins(chosen.psi_rad, alike, rivals, ctx)
     if ambiguous and (prior is None or prior.y_m is None):
         return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
-                          f"{m.n_lines} forward lines fit two lateral positions "
-                          f"({m.shift_m:+.3f} m and {m.runner_up[2]:+.3f} m); no prior to choose",
-                          (Twin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
+                          f"{m.n_lines} forward lines fit {len(alike) + 1} lateral "
+                          f"positions ({m.shift_m:+.3f} m, {alike[0]:+.3f} m, ...); no "
+                          "prior to choose", (Twin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
     if rivals and how != "prior":
         kinds = " and ".join(sorted({t.label.replace("_", " ") for t in rivals}))
         return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
@@ -590,17 +619,45 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
                     assign, m.n_lines, ambiguous, how, twins=twins)
 
 
-def _prior_single_shift(m: OffsetMatch, chosen: Hypothesis, prior: PoseEstimate,
-                       ctx: LabelContext) -> bool:
+def _shift_twins(psi_rad: float, alike: tuple[float, ...], rivals: list[Twin],
+                 ctx: LabelContext) -> tuple[Twin, ...]:
+    """The twins of the other lateral shifts ``alike`` (camera y, m) at pan ``psi_rad``,
+    and, on a site symmetric about a centre line whose half turn is among ``rivals``,
+    each one's mirror (the half turn of every shift the frame fits)."""
+    out = tuple(Twin(psi_rad, c, "shift") for c in alike)
+    if ctx.mirror_y_m is not None and any(t.label == "half_turn" for t in rivals):
+        out += tuple(Twin(wrap_pi(psi_rad + np.pi), 2.0 * ctx.mirror_y_m - c, "half_turn")
+                     for c in alike)
+    return out
+
+
+def _disagreeing(m: OffsetMatch, settled: OffsetMatch, alike: tuple[float, ...],
+                 chosen: Hypothesis, rivals: list[Twin], ctx: LabelContext
+                 ) -> tuple[Twin, ...]:
+    """Every pose of a frame whose missing lines chose ``settled`` against the prior's
+    ``m``: both shifts, the others alike (``alike``, of ``settled``) and the rival
+    turns; a track then sees whether any lies where it expects the vehicle (a kidnap
+    shows none)."""
+    shifts = [settled.shift_m]
+    for c in alike + (m.shift_m,):
+        if all(abs(c - d) > ctx.match_tol_m for d in shifts):
+            shifts.append(c)
+    return ((Twin(chosen.psi_rad, shifts[0], "chosen"),)
+            + _shift_twins(chosen.psi_rad, tuple(shifts[1:]), rivals, ctx) + tuple(rivals))
+
+
+def _prior_single_shift(m: OffsetMatch, alike: tuple[float, ...], chosen: Hypothesis,
+                        prior: PoseEstimate, ctx: LabelContext) -> bool:
     """Whether the prior allows the lateral shift it chose (``m``, the nearest it) and
-    neither the runner-up nor the next nearest it of the shifts it could have chosen
-    (``m.prior_rival_m``: on a tile grid the best scoring other can lie beyond the
-    prior, a shift a period nearer not) (:func:`~ceilkit.runtime.estimators.prior.
-    prior_choice` over the vehicle's y of each)."""
+    none of the others the frame fits as well (``alike``: :func:`alike_shifts`; on a
+    tile grid the best scoring other can lie beyond the prior while a shift a period
+    nearer fits as well; the runner-up and ``m.prior_rival_m`` are among them)
+    (:func:`~ceilkit.runtime.estimators.prior.prior_choice` over the vehicle's y of
+    each)."""
     yaw = wrap_pi(chosen.psi_rad - ctx.setup.pan_rad)
     off = float((rot_z(yaw) @ ctx.setup.t_vc)[1])     # the shift is the camera's
-    shifts = [m.shift_m, m.runner_up[2]] + ([] if m.prior_rival_m is None
-                                            else [m.prior_rival_m])
+    shifts = [m.shift_m, *alike, m.runner_up[2]] + ([] if m.prior_rival_m is None
+                                                    else [m.prior_rival_m])
     return prior_choice(prior, [(None, c - off, yaw, None) for c in shifts]) == 0
 
 
