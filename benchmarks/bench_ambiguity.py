@@ -2,7 +2,7 @@
 repeats, on simulated drives written as SPEC recordings and run through ``replay`` (the
 library function of ``ceilrun replay``), as data from outside would be.
 
-Cases (noise 2 grey levels, blur 0.8 px, ``supersample=1`` to keep it short):
+Cases (by default noise 2 grey levels, blur 0.8 px, ``supersample=1`` to keep it short):
 
 * **corridor-reverse** / **corridor-forward**: the packaged corridor (lines and lamp row
   symmetric about its centre line) driven towards -x (heading about 180 deg) and +x,
@@ -27,15 +27,24 @@ Cases (noise 2 grey levels, blur 0.8 px, ``supersample=1`` to keep it short):
 
 For every run: frames, valid poses, **wrong valid poses** (more than 10 cm or 2 deg
 off, over the coordinates published), median position error, and the mean NEES of
-the published poses against their 95% band. Saved to ``benchmarks/out/bench_ambiguity.csv``.
+the published poses (each with its full covariance, taken from a pose sink:
+``poses.csv`` has sigmas only) against its 95% band. The
+band is that of the poses' effective number of independent samples
+(:func:`~ceilkit.runtime.fusion.effective_count`, from the NEES series'
+autocorrelation; ``n_eff``), not of their count: a track's errors correlate from frame
+to frame (a light grid's loop: about 46 of 60). Saved to
+``benchmarks/out/bench_ambiguity.csv``. ``--noise`` and ``--blur`` set the simulated
+camera (default 2 grey levels, 0.8 px; a cheap camera: 5 and 1.2).
 
     .venv/bin/python benchmarks/bench_ambiguity.py [--frames 60] [--only tiles ...]
+        [--noise 2] [--blur 0.8]
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import math
 import sys
 import tempfile
@@ -48,6 +57,8 @@ import yaml
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.fusion import effective_count, nees
 from ceilkit.runtime.geometry.ekf import chi2_quantile, mean_nees_band
 from ceilkit.runtime.replay import replay
 from ceilkit.runtime.sim.render import SimOptions, Trajectory, straight_drive
@@ -72,7 +83,23 @@ def loop(n: int, fps: float, cx: float, cy: float, r: float, speed: float) -> Tr
                       a + math.pi / 2)
 
 
-def score(folder: Path, out: Path) -> dict[str, float]:
+class Published:
+    """A pose sink keeping every published pose (with its full covariance, which
+    ``poses.csv`` does not carry)."""
+
+    def __init__(self) -> None:
+        self.poses: dict[int, PoseEstimate] = {}
+
+    def send(self, est, relocalized: bool, capture_ns: int) -> None:
+        if isinstance(est, PoseEstimate):
+            self.poses[int(est.t_ns)] = est
+
+
+def score(folder: Path, out: Path, published: dict[int, PoseEstimate]) -> dict[str, float]:
+    """Counts and errors from ``poses.csv``; the NEES of each published pose with its
+    full covariance over the coordinates it gives (:func:`~ceilkit.runtime.fusion.nees`:
+    the corridor's y and heading are strongly correlated, which a NEES from the sigmas
+    alone ignores)."""
     truth = {int(r["t_ns"]): r for r in csv.DictReader(open(folder / "truth.csv"))}
     rows = list(csv.DictReader(open(out / "poses.csv")))
     valid = wrong = 0
@@ -84,25 +111,23 @@ def score(folder: Path, out: Path) -> dict[str, float]:
         t = truth[int(r["t_ns"])]
         dyaw = math.remainder(math.radians(float(r["yaw_deg"]) - float(t["yaw_deg"])),
                               2 * math.pi)
-        e, sig = [], []
-        for k in ("x", "y"):
-            if r[k] != "":
-                e.append(float(r[k]) - float(t[k]))
-                sig.append(float(r[f"sigma_{k}"]) if r[f"sigma_{k}"] else math.nan)
+        e = [float(r[k]) - float(t[k]) for k in ("x", "y") if r[k] != ""]
         d = math.hypot(*e) if e else 0.0
         errs.append(d)
         wrong += d > 0.10 or abs(dyaw) > math.radians(2.0)
-        s_yaw = math.radians(float(r["sigma_yaw_deg"])) if r["sigma_yaw_deg"] else math.nan
-        z = [ei / si for ei, si in zip(e, sig, strict=True)] + [dyaw / s_yaw]
-        if all(math.isfinite(v) and v == v for v in z):
-            nees_v.append(sum(v * v for v in z))     # diagonal NEES (poses.csv has sigmas)
-            dofs.append(len(z))
+        est = published.get(int(r["t_ns"]))
+        got = None if est is None else nees(est, (float(t["x"]), float(t["y"]),
+                                                  math.radians(float(t["yaw_deg"]))))
+        if got is not None and math.isfinite(got[0]):
+            nees_v.append(got[0])
+            dofs.append(got[1])
     out_d = {"frames": len(rows), "valid": valid, "wrong": wrong,
              "median_m": float(np.median(errs)) if errs else math.nan}
     if nees_v:
         dof = round(float(np.mean(dofs)))
-        lo, hi = mean_nees_band(len(nees_v), dof)
-        out_d.update(nees=float(np.mean(nees_v)), nees_lo=lo, nees_hi=hi,
+        n_eff = effective_count(nees_v)          # the track's errors correlate in time
+        lo, hi = mean_nees_band(max(1, round(n_eff)), dof)
+        out_d.update(nees=float(np.mean(nees_v)), nees_lo=lo, nees_hi=hi, nees_n_eff=n_eff,
                      inside95=float(np.mean([v <= chi2_quantile(0.95, d)
                                              for v, d in zip(nees_v, dofs, strict=True)])))
     return out_d
@@ -111,8 +136,9 @@ def score(folder: Path, out: Path) -> dict[str, float]:
 def run(folder: Path, tag: str, method: str, start=None) -> dict[str, float]:
     out = folder.parent / f"{folder.name}-{tag}"
     t0 = time.perf_counter()
-    replay(folder, out, method=method, start_pose=start)
-    res = score(folder, out)
+    published = Published()
+    replay(folder, out, method=method, start_pose=start, sinks=[published])
+    res = score(folder, out, published.poses)
     res["s"] = time.perf_counter() - t0
     return res
 
@@ -211,7 +237,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--keep", type=Path, help="write the recordings and runs here (kept)")
+    ap.add_argument("--noise", type=float, default=SIM.noise_sigma,
+                    help="the image noise's 1σ in grey levels (default %(default)s)")
+    ap.add_argument("--blur", type=float, default=SIM.blur_px,
+                    help="the blur's 1σ in px (default %(default)s)")
     a = ap.parse_args(argv)
+    sim = dataclasses.replace(SIM, noise_sigma=a.noise, blur_px=a.blur)
     OUT.mkdir(exist_ok=True)
     rows = []
     with tempfile.TemporaryDirectory() as d:
@@ -220,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, (rig, site, traj, runs) in cases(tmp, a.frames).items():
             if a.only and name not in a.only:
                 continue
-            folder = simulate_recording(rig, site, traj, tmp / name, SIM, seed=7)
+            folder = simulate_recording(rig, site, traj, tmp / name, sim, seed=7)
             for method, start in runs:
                 tag = f"{method}-{'start' if start else 'nostart'}"
                 if start is not None:
@@ -232,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
                             if off > 0.1 or dyaw > math.radians(2.0) else "")
                 res = run(folder, tag, method, start)
                 rows.append({"case": name, "run": tag, **res})
-                nees = (f"NEES {res['nees']:.2f} [{res['nees_lo']:.2f}, {res['nees_hi']:.2f}]"
-                        if "nees" in res else "")
+                nees = (f"NEES {res['nees']:.2f} [{res['nees_lo']:.2f}, {res['nees_hi']:.2f}] "
+                        f"n_eff {res['nees_n_eff']:.0f}" if "nees" in res else "")
                 print(f"{name:22s} {tag:30s} valid {res['valid']:3d}/{res['frames']:3d} "
                       f"wrong {res['wrong']:3d}  median {1e3 * res['median_m']:7.2f} mm  "
                       f"{nees}  ({res['s']:.0f} s)", flush=True)

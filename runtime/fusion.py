@@ -33,7 +33,7 @@ import bisect
 import dataclasses
 import math
 from collections import Counter, deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -898,6 +898,31 @@ def nees(est: PoseEstimate, truth: tuple[float, float, float]) -> tuple[float, i
     return ekf.nis(e, C), len(rows)
 
 
+def effective_count(values: Sequence[float]) -> float:
+    """How many independent samples the mean of ``values`` (a series in time order,
+    e.g. each published pose's NEES) is worth: ``n / (1 + 2 Σ_k (1 - k/n) ρ_k)``, the
+    sum over the lags ``k`` from 1 while the sample autocorrelation ``ρ_k`` stays
+    positive (at most ``n / 3`` lags), at most ``n``. A track's errors are correlated
+    in time (the same lights seen from nearly the same place, a filter's memory): the
+    95% band of a mean NEES is that of this many frames, not of ``n``
+    (:func:`~ceilkit.runtime.geometry.ekf.mean_nees_band`)."""
+    x = np.asarray(values, float)
+    n = x.size
+    if n < 8:
+        return float(n)
+    d = x - x.mean()
+    v = float(d @ d)
+    if v <= 0.0:
+        return float(n)
+    s = 0.0
+    for k in range(1, n // 3):
+        rho = float(d[:-k] @ d[k:]) / v
+        if rho <= 0.0:
+            break
+        s += (1.0 - k / n) * rho
+    return float(n) / (1.0 + 2.0 * s)
+
+
 class FusionReport:
     """The summary of a fused run: per-cue contributions and, against a truth, the
     consistency of the published covariance (NEES)."""
@@ -935,10 +960,12 @@ class FusionReport:
         if self.values:
             inside = [v <= ekf.chi2_quantile(0.95, d) for v, d in self.values]
             dof = round(float(np.mean([d for _, d in self.values])))
-            lo, hi = ekf.mean_nees_band(len(self.values), dof)
+            n_eff = effective_count([v for v, _ in self.values])
+            lo, hi = ekf.mean_nees_band(max(1, round(n_eff)), dof)
             mean = float(np.mean([v for v, _ in self.values]))
             out.append(f"consistency: mean NEES {mean:.2f} ({dof} dof, 95% band "
-                       f"{lo:.2f}-{hi:.2f}), {100 * np.mean(inside):.1f}% of poses inside "
+                       f"{lo:.2f}-{hi:.2f} for {n_eff:.0f} independent of "
+                       f"{len(self.values)} poses), {100 * np.mean(inside):.1f}% of poses inside "
                        f"their 95% ellipsoid; quality >= 0.8 but > 5 cm off: "
                        f"{self.confident_wrong}")
         return out
@@ -953,4 +980,4 @@ def _failure(est: Estimate, cues: tuple) -> Failure:
 
 
 __all__ = ["Fusion", "FusionOptions", "FusionReport", "FilterBuffer",
-           "measurement", "nees", "NAME"]
+           "effective_count", "measurement", "nees", "NAME"]

@@ -175,6 +175,18 @@ def test_nees_of_noisy_fixes_is_consistent():
     assert share > 0.9
 
 
+def test_effective_count_is_the_count_of_independent_samples_only():
+    from ceilkit.runtime.fusion import effective_count
+    rng = np.random.default_rng(5)
+    white = rng.chisquare(3, 400)
+    assert effective_count(white) > 300
+    e = np.zeros(400)
+    for k in range(1, 400):             # AR(1), 0.8: the squares correlate as 0.64^k
+        e[k] = 0.8 * e[k - 1] + rng.normal()
+    assert 40 < effective_count(e ** 2) < 200   # 400 / (1 + 2 * 1.78) = 88
+    assert effective_count(np.ones(50)) == 50.0 and effective_count([1.0, 2.0]) == 2.0
+
+
 def test_a_full_fix_that_the_corridor_contradicts_does_not_start_the_track():
     fu = Fusion()
     res = fu.update(_frame(_lights(0, 40.0, 0.6, 0.3, mode="global"), _corridor(0, 0.0)))
