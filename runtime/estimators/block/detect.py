@@ -13,7 +13,10 @@
 * :func:`aruco_markers`: the full-resolution fallback where the decimated search finds
   no marker (markers down to ``cv2.aruco``'s own limit, about 3 px per cell, whose
   one-cell black border a decimated, opened mask breaks): ``cv2.aruco``'s default
-  detector on the whole frame, with the site's dictionary (about 2-3 ms at 640x480).
+  detector, with the site's dictionary, on the whole frame (about 2-3 ms at 640x480)
+  or only on crops about the marker-sized dark spots :func:`find_quads` flagged on the
+  decimated mask before its opening (:func:`marker_crops`; the same markers, a tenth
+  of the time on a tiled ceiling).
 
 Everything returns arrays or frozen dataclasses; nothing raises per frame.
 """
@@ -80,10 +83,14 @@ def background(grey: np.ndarray, dark: bool, shrink: int = BG_SHRINK,
 
 def find_quads(grey: np.ndarray, dark: bool, ratio: float,
                others: list[np.ndarray] | None = None,
-               small: np.ndarray | None = None) -> list[Quad]:
+               small: np.ndarray | None = None,
+               spots: SpotSearch | None = None) -> list[Quad]:
     """Convex quads darker than ``ratio`` times the ceiling around them (``dark``) or
     brighter than ``ratio`` times it; ``others`` receives the large regions of that
-    polarity that are not convex quads (a block partly occluded, a lamp of another shape).
+    polarity that are not convex quads (a block partly occluded, a lamp of another shape);
+    ``spots`` (a :class:`SpotSearch`) receives the mask *before* the opening, whose
+    marker-sized parts (:meth:`SpotSearch.boxes`) are where the fallback's ``cv2.aruco``
+    may read a marker the opening broke.
 
     The search runs on the frame decimated by :data:`DECIMATE` (``small``, from
     :func:`~ceilkit.runtime.features.working.decimate`: whole boxes, so that the
@@ -98,6 +105,8 @@ def find_quads(grey: np.ndarray, dark: bool, ratio: float,
     f = float(grey.shape[1] // small.shape[1])
     bg = background(small, dark, max(1, int(round(BG_SHRINK / f))), ratio)
     mask = cv2.compare(small.astype(np.float32), bg, cv2.CMP_LT if dark else cv2.CMP_GT)
+    if spots is not None:       # kept unopened; its spots are taken only if needed
+        spots.masks.append((mask, f))
     if f < 1.5:
         mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, _OPEN)
     else:      # an even kernel: erode and dilate about opposite anchors (no shift)
@@ -117,26 +126,136 @@ def find_quads(grey: np.ndarray, dark: bool, ratio: float,
 
 
 @functools.lru_cache(maxsize=8)
-def _aruco_detector(dictionary: str) -> cv2.aruco.ArucoDetector:
+def _aruco_detector(dictionary: str, crops: bool = False) -> cv2.aruco.ArucoDetector:
     """``cv2.aruco``'s detector for ``dictionary`` with its default parameters (its
-    thresholds at several scales: what it reads, the fallback reads)."""
+    thresholds at several scales: what it reads, the fallback reads); with ``crops`` a
+    second one, whose parameters :func:`aruco_markers` sets per crop."""
     return cv2.aruco.ArucoDetector(marker_dictionary(dictionary),
                                    cv2.aruco.DetectorParameters())
 
 
-def aruco_markers(grey: np.ndarray, dictionary: str) -> list[tuple[int, np.ndarray]]:
-    """The markers ``cv2.aruco``'s default detector reads on the full frame:
-    ``(id, corners (4, 2) px)`` in aruco's corner order (the printed top-left, top-right,
-    bottom-right, bottom-left: SPEC §2's corner k), coarse (no sub-pixel refinement:
-    :func:`measure_sides` measures the sides). An id read twice is left out (which of
-    the two is the site's marker is not known)."""
-    corners, ids, _ = _aruco_detector(dictionary).detectMarkers(grey)
-    if ids is None or len(corners) == 0:
-        return []
-    got = [(int(i), np.asarray(c, np.float64).reshape(4, 2))
-           for i, c in zip(np.asarray(ids).ravel(), corners, strict=True)]
+class SpotSearch(NamedTuple):
+    """What :func:`find_quads` flags for the marker fallback: ``masks`` receives its
+    unopened masks with their decimation factors; :meth:`boxes` are the spots of a
+    marker's size on them, ``side_px = (least, most)`` px."""
+
+    side_px: tuple[float, float]
+    masks: list[tuple[np.ndarray, float]]
+
+    def boxes(self) -> list[tuple[int, int, int, int]] | None:
+        """``(x0, y0, x1, y1)`` full-resolution pixel boxes (end exclusive) of the masks'
+        connected parts whose larger side lies in ``side_px`` (:func:`_spot_boxes`);
+        None when a mask has more than :data:`MAX_SPOT_CONTOURS` parts (read the whole
+        frame: crops would cover most of it)."""
+        out: list[tuple[int, int, int, int]] = []
+        for mask, f in self.masks:
+            got = _spot_boxes(mask, f, self.side_px)
+            if got is None:
+                return None
+            out.extend(got)
+        return out
+
+
+MAX_SPOT_CONTOURS = 256
+"""A mask of more parts than this is not searched for spots (:meth:`SpotSearch.boxes`):
+on configs/block at 1280x720 about 450 (speckle), and their crops covered 90 % of
+the frame."""
+
+
+def _spot_boxes(mask: np.ndarray, f: float, side_px: tuple[float, float]
+                ) -> list[tuple[int, int, int, int]] | None:
+    """The full-resolution boxes of ``mask``'s 8-connected parts (a frame decimated by
+    ``f``) whose larger side, times ``f``, lies within ``side_px``: the bounding boxes
+    of every contour, outer and inner (a part inside another's hole too; a third of
+    ``connectedComponentsWithStats``' time); None over :data:`MAX_SPOT_CONTOURS`."""
+    contours, _ = cv2.findContours(mask, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    if len(contours) > MAX_SPOT_CONTOURS:
+        return None
+    k, out = int(f), []
+    one = f < side_px[0]        # a contour of one point (one pixel) is then too small
+    for c in contours:
+        if one and len(c) == 1:
+            continue
+        x, y, w, h = cv2.boundingRect(c)
+        if side_px[0] <= max(w, h) * f <= side_px[1]:
+            out.append((x * k, y * k, (x + w) * k, (y + h) * k))
+    return out
+
+
+CROP_MARGIN_PX = 16
+"""A fallback crop reaches this far beyond its spot's box (px, plus a quarter of the
+box's larger side): past ``cv2.aruco``'s largest adaptive-threshold window (23 px, so
+every pixel of the marker is thresholded as on the whole frame) and its 3 px border
+rule."""
+
+
+CROP_MAX_SHARE = 0.5
+"""Crops covering more of the frame than this are read as the whole frame (one pass
+costs no more: a mask of many marker-sized parts)."""
+
+
+def marker_crops(boxes: list[tuple[int, int, int, int]], width: int, height: int
+                 ) -> list[tuple[int, int, int, int]] | None:
+    """``boxes`` grown by :data:`CROP_MARGIN_PX` and a quarter of their larger side,
+    clipped to the ``width`` x ``height`` frame, and merged where they overlap (so that
+    no marker is read in two crops): ``(x0, y0, x1, y1)``, end exclusive; None (read
+    the whole frame) when they cover more than :data:`CROP_MAX_SHARE` of it."""
+    grown = []
+    for x0, y0, x1, y1 in boxes:
+        m = CROP_MARGIN_PX + max(x1 - x0, y1 - y0) // 4
+        grown.append([max(0, x0 - m), max(0, y0 - m), min(width, x1 + m), min(height, y1 + m)])
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(grown)):
+            for j in range(len(grown) - 1, i, -1):
+                a, b = grown[i], grown[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    grown[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]),
+                                max(a[3], b[3])]
+                    del grown[j]
+                    merged = True
+    if sum((b[2] - b[0]) * (b[3] - b[1]) for b in grown) > CROP_MAX_SHARE * width * height:
+        return None
+    return [tuple(b) for b in grown]
+
+
+def aruco_markers(grey: np.ndarray, dictionary: str,
+                  crops: list[tuple[int, int, int, int]] | None = None
+                  ) -> list[tuple[int, np.ndarray]]:
+    """The markers ``cv2.aruco``'s default detector reads on the full frame, or with
+    ``crops`` (:func:`marker_crops`) on those parts of it only, its perimeter limits
+    kept at the full frame's pixels: ``(id, corners (4, 2) px)`` in aruco's corner
+    order (the printed top-left, top-right, bottom-right, bottom-left: SPEC §2's corner
+    k), coarse (no sub-pixel refinement: :func:`measure_sides` measures the sides). An
+    id read twice is left out (which of the two is the site's marker is not known)."""
+    got: list[tuple[int, np.ndarray]] = []
+    if crops is None:
+        _read(_aruco_detector(dictionary), grey, 0, 0, got)
+    else:
+        h, w = grey.shape
+        det, full = _aruco_detector(dictionary, True), cv2.aruco.DetectorParameters()
+        for x0, y0, x1, y1 in crops:
+            p = cv2.aruco.DetectorParameters()
+            scale = max(w, h) / max(x1 - x0, y1 - y0, 1)
+            p.minMarkerPerimeterRate = full.minMarkerPerimeterRate * scale
+            p.maxMarkerPerimeterRate = full.maxMarkerPerimeterRate * scale
+            det.setDetectorParameters(p)
+            _read(det, grey[y0:y1, x0:x1], x0, y0, got)
     seen = [i for i, _ in got]
     return [(i, c) for i, c in got if seen.count(i) == 1]
+
+
+def _read(det: cv2.aruco.ArucoDetector, grey: np.ndarray, x0: int, y0: int,
+          got: list[tuple[int, np.ndarray]]) -> None:
+    """The markers ``det`` reads on ``grey`` (a crop whose top-left is pixel ``(x0,
+    y0)`` of the frame) into ``got``, in frame pixels."""
+    corners, ids, _ = det.detectMarkers(grey)
+    if ids is None or len(corners) == 0:
+        return
+    off = np.array([x0, y0], np.float64)
+    got.extend((int(i), np.asarray(c, np.float64).reshape(4, 2) + off)
+               for i, c in zip(np.asarray(ids).ravel(), corners, strict=True))
 
 
 def fit_side_lines(points: np.ndarray, side: np.ndarray) -> np.ndarray:

@@ -297,20 +297,22 @@ class BlockEstimator(Estimator):
         n = _Counts()
         later: list[tuple[Quad, bool]] = []
         found = 0
+        # the dark search flags the marker-sized spots the fallback reads (fallback.py)
+        spots = self._fallback.spots() if self._fallback is not None and self._dark else None
         # the dark quads first (markers: an id, never ambiguous), the bright ones only
         # when those gave fewer than max_fixes fixes (their search is half the cost)
         for dark, wanted, ratio in ((True, self._dark, o.dark_ratio),
                                     (False, self._bright, o.bright_ratio)):
             if not wanted or len(fixes) >= o.max_fixes:
                 continue
-            quads = find_quads(grey, dark, ratio, others, small)
+            quads = find_quads(grey, dark, ratio, others, small, spots if dark else None)
             found += len(quads)
             self._fixes(grey, [(q, dark) for q in sorted(quads, key=lambda q: -q.area_px)],
                         prior, fixes, unknown, n, later)
-        fallback = 0      # cv2.aruco on the full frame where the decimated search gave no marker
+        fallback = 0      # cv2.aruco on the spots where the decimated search gave no marker
         if self._fallback is not None and len(fixes) < o.max_fixes and \
                 not any(f.source.startswith("marker:") for f in fixes):
-            fallback = self._fallback.aruco_fixes(grey, fixes, unknown, o.max_fixes)
+            fallback = self._fallback.aruco_fixes(grey, fixes, unknown, o.max_fixes, spots)
         for q, is_dark in later if not fixes else ():
             if len(fixes) >= o.max_fixes:
                 break

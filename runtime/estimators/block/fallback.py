@@ -6,7 +6,11 @@ The quad search runs on the frame decimated by 2 and opened (:func:`.detect.find
 a marker of about 3 px per cell (a 16 cm AprilTag 36h11 1.9 m away at f = 310 px) has a
 one-cell black border there of 1.6 px, which the opening breaks, so no quad. Where the
 decimated search gave no marker fix, ``cv2.aruco``'s default detector reads the full
-frame (:func:`.detect.aruco_markers`, the site's dictionary); each marker it reads is
+frame (:func:`.detect.aruco_markers`, the site's dictionary), or, when the dark search
+flagged the spots of a marker's size on its mask before the opening
+(:attr:`MarkerReader.spot_side_px`, :class:`.detect.SpotSearch`), on crops about those
+spots only (:func:`.detect.marker_crops`: no marker aruco reads on the whole frame lies
+outside them, and their perimeter limits are the whole frame's). Each marker it reads is
 measured on its edges about aruco's corners (two passes, the edges searched dark inside
 only: a cell away the first inner cells' edges and the quiet ring's are of the other
 polarity), read again by :func:`.detect.read_marker` as a check, and solved as any
@@ -15,6 +19,7 @@ marker (the caller's ``solve``). aruco's corner k is SPEC §2's corner k.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -22,12 +27,23 @@ import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import (
     Sides,
+    SpotSearch,
     aruco_markers,
+    marker_crops,
     measure_sides,
     read_marker,
 )
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.features.quads import MarkerCodes, Quad, signed_area
+from ceilkit.runtime.geometry.ceiling import ceiling_points_vehicle
+
+SPOT_GRID = (33, 25)
+"""Pixels across and down the frame where :func:`marker_side_range_px` samples the
+ceiling's scale."""
+
+SPOT_MARGIN = 1.5
+"""The largest spot searched is this many times the largest marker's diagonal at the
+frame's largest scale (the scale between the grid's samples, and blur)."""
 
 Solve = Callable[[Sides, np.ndarray, str, str], Any]
 """``solve(sides, corners_w, source, resolved_by)``: the caller's fix, or None."""
@@ -48,6 +64,12 @@ class MarkerReader:
                  edge_points: int, solve: Solve) -> None:
         self.geo, self.markers, self.codes = geo, markers, codes
         self.edge_points, self.solve = int(edge_points), solve
+        self.spot_side_px = marker_side_range_px(geo, [p.size_m for p in markers.poses])
+
+    def spots(self) -> SpotSearch:
+        """A fresh :class:`.detect.SpotSearch` of this site's marker sizes, for the dark
+        :func:`.detect.find_quads` of one frame."""
+        return SpotSearch(self.spot_side_px, [])
 
     def quad_fix(self, grey: np.ndarray, quad: Quad) -> Any:
         """A fix from a marker-sized dark quad of the decimated search, the id read when
@@ -68,13 +90,22 @@ class MarkerReader:
         return self.solve(sides, pose.corners_m(), f"marker:{marker_id}", "id")
 
     def aruco_fixes(self, grey: np.ndarray, fixes: list[Any], unknown: list[int],
-                    max_fixes: int) -> int:
-        """The fallback: the markers ``cv2.aruco`` reads on the full frame, the largest
-        first, measured and solved into ``fixes`` (up to ``max_fixes``; a source already
-        there is skipped), the ids not in the site into ``unknown``. Returns how many
-        markers aruco read."""
-        found = aruco_markers(grey, self.markers.dictionary)
-        found.sort(key=lambda m: -abs(signed_area(m[1])))
+                    max_fixes: int, spots: SpotSearch | None = None) -> int:
+        """The fallback: the markers ``cv2.aruco`` reads on the full frame (or, with the
+        frame's ``spots`` from the dark search, on crops about them only), the largest
+        first (of equal areas the nearest the principal point), measured and solved
+        into ``fixes`` (up to ``max_fixes``; a source already there is skipped), the ids
+        not in the site into ``unknown``. Returns how many markers aruco read."""
+        h, w = grey.shape
+        boxes = None if spots is None else spots.boxes()
+        crops = None if boxes is None else marker_crops(boxes, w, h)
+        found = aruco_markers(grey, self.markers.dictionary, crops)
+        # the largest first; of equal areas (aruco's corners are whole pixels) the one
+        # nearer the principal point (the least distorted), then by id: an order of the
+        # markers, not of how aruco or the crops met them
+        centre = np.array([self.geo.camera.cx, self.geo.camera.cy])
+        found.sort(key=lambda m: (-abs(signed_area(m[1])),
+                                  float(np.hypot(*(m[1].mean(axis=0) - centre))), m[0]))
         have = {f.source for f in fixes}
         for marker_id, corners in found:
             if len(fixes) >= max_fixes:
@@ -108,3 +139,32 @@ class MarkerReader:
         if read is not None and (read[0], read[1]) != (marker_id, 0):
             return None
         return self.solve(sides, pose.corners_m(), f"marker:{marker_id}", "id")
+
+
+def marker_side_range_px(geo: PlanarGeometry, sizes_m: list[float]) -> tuple[float, float]:
+    """``(least, most)`` px: the larger side of the box a marker of ``sizes_m`` (m) covers
+    anywhere in the frame, as the fallback's spots are searched. ``least``:
+    ``cv2.aruco``'s own limit (its default least perimeter, 3 % of the frame's larger
+    side, over 4), less the decimated search's 2 px rounding. ``most``: the largest
+    marker's diagonal at the ceiling's largest scale in px per metre over a
+    :data:`SPOT_GRID` of the frame (the larger singular value of the pixel's
+    derivative by the ceiling point), times :data:`SPOT_MARGIN`; infinite when no
+    sampled pixel sees the ceiling."""
+    cam = geo.camera
+    least = max(2.0, 0.03 * max(cam.width, cam.height) / 4.0 - 2.0)
+    if not sizes_m:
+        return least, least
+    gu, gv = SPOT_GRID
+    step = min((cam.width - 1) / gu, (cam.height - 1) / gv)
+    u, v = np.meshgrid(np.linspace(0, cam.width - 1 - step, gu),
+                       np.linspace(0, cam.height - 1 - step, gv))
+    px = np.stack([u.ravel(), v.ravel()], axis=1)
+    q = [ceiling_points_vehicle(geo, cam.unproject_fast(px + d))
+         for d in ((0.0, 0.0), (step, 0.0), (0.0, step))]
+    A = np.stack([(q[1] - q[0]) / step, (q[2] - q[0]) / step], axis=2)   # m per px
+    ok = np.isfinite(A).all(axis=(1, 2))
+    if not ok.any():
+        return least, float("inf")
+    s_min = np.linalg.svd(A[ok], compute_uv=False)[:, -1]                # m per px
+    scale = float(1.0 / max(s_min.min(), 1e-12))                          # px per m
+    return least, SPOT_MARGIN * math.sqrt(2.0) * max(sizes_m) * scale

@@ -39,7 +39,7 @@ from ceilkit.runtime.estimators.block.pnp import (
     Refined,
     solve_core,
 )
-from ceilkit.runtime.features.quads import BORDER_PX
+from ceilkit.runtime.features.quads import BORDER_PX, signed_area
 from ceilkit.runtime.geometry.camera import distort_points
 from ceilkit.runtime.geometry.ceiling import ceiling_norm
 from ceilkit.runtime.geometry.fits import rigid_fit_rms
@@ -240,8 +240,12 @@ class Windows:
                             float(o.shape_tol * tgt.min_side_m), float(o.window_px))
         out = SidesOut.empty(o.edge_points)
         got = SolvedOut(np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
+        # the edges of the target's polarity only (dark inside a dark target, as the
+        # fallback measures aruco's markers): a cell inside a small marker, its first
+        # inner cells' edges are of the other polarity
+        sign = (-1 if signed_area(px) > 0 else 1) * (1 if tgt.dark else -1)
         r = window_core(arr(grey, np.uint8), arr(px, np.float64),
-                        edge_search(o.edge_points, float(o.window_px)), self._mount,
+                        edge_search(o.edge_points, float(o.window_px), sign), self._mount,
                         (arr(tgt.corners_w, np.float64), self._drop[tgt.source]), check,
                         out, got)
         if not r.ok:

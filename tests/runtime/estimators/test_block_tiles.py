@@ -22,8 +22,15 @@ import pytest
 from ceilkit.runtime.config.rig import Mount, Rig
 from ceilkit.runtime.config.site import AcrossLines, Block, Corridor, MarkerPose, Markers, Site
 from ceilkit.runtime.estimators.base import PoseEstimate, Provenance
+from ceilkit.runtime.estimators.block.detect import (
+    DECIMATE,
+    aruco_markers,
+    find_quads,
+    marker_crops,
+)
 from ceilkit.runtime.estimators.block.estimator import BlockEstimator
 from ceilkit.runtime.features.quads import QUIET_CELLS, marker_cells
+from ceilkit.runtime.features.working import decimate
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.sim.marks import MARKER_BLACK_GREY, MARKER_WHITE_GREY
 from ceilkit.runtime.sim.render import SimOptions, render_frame, render_radiance
@@ -168,6 +175,52 @@ def test_the_hatch_alone_is_ambiguous_with_its_four_hypotheses(case):
     for h in e.hypotheses[1:]:
         assert math.hypot(h.x_m - x, h.y_m - y) > 0.05 or \
             abs(math.remainder(h.yaw_rad - yaw, 2 * math.pi)) > math.radians(80.0)
+
+
+def test_the_fallback_reads_on_the_flagged_spots_what_aruco_reads_on_the_whole_frame(case):
+    """Issue 38: ``cv2.aruco`` runs only on crops about the dark search's marker-sized
+    spots, and reads there every marker (id and corners) it reads on the whole frame."""
+    _, _, _, frames, _ = case
+    est = BlockEstimator(tile_rig(), tile_site())
+    lo, hi = est._reader.spot_side_px
+    assert lo < 3.2 * 8 < hi < 0.6 * 310 / 1.9        # a tag's box, not a 0.6 m tile's
+    read = 0
+    for f in frames:
+        spots = est._reader.spots()
+        find_quads(f, True, est.options.dark_ratio, [], decimate(f, DECIMATE), spots)
+        crops = marker_crops(spots.boxes(), f.shape[1], f.shape[0])
+        assert crops is not None
+        assert sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in crops) < 0.25 * f.size
+        whole = dict(aruco_markers(f, DICT))
+        assert set(dict(aruco_markers(f, DICT, crops))) == set(whole)
+        for i, c in aruco_markers(f, DICT, crops):
+            assert np.array_equal(c, whole[i])
+        read += len(whole)
+    assert read >= 14
+
+
+def test_marker_crops_merge_what_overlaps():
+    crops = marker_crops([(10, 10, 30, 30), (40, 12, 60, 30), (200, 200, 220, 220)], 640, 480)
+    assert sorted(crops) == [(0, 0, 81, 51), (179, 179, 241, 241)]
+    # crops over half the frame: the whole frame is read instead
+    assert marker_crops([(0, 0, 400, 300)], 640, 480) is None
+
+
+def test_the_window_path_measures_a_three_pixel_cell_marker_at_its_predicted_place(case):
+    """The window path searches a marker's edges dark inside only (as the fallback
+    does): a cell in, the first inner cells' edges are of the other polarity."""
+    rig, site, poses, frames, _ = case
+    est = BlockEstimator(rig, site, {"window_search": True})
+    fixed = 0
+    for p, f in zip(poses, frames, strict=True):
+        for tgt, px in est.windows.predicted(np.array(p)):
+            if not tgt.source.startswith("marker:"):
+                continue
+            got = est.windows.fix(f, tgt, px)
+            assert got is not None, (p, tgt.source)
+            assert math.hypot(*(got.refined.pose[:2] - p[:2])) < 0.01
+            fixed += 1
+    assert fixed >= 10
 
 
 def test_the_simulator_draws_a_three_pixel_cell_marker_cell_by_cell():
