@@ -47,6 +47,7 @@ from ceilkit.runtime.geometry.ceiling import (
     project_px,
     vehicle_to_world,
 )
+from ceilkit.runtime.jit import arr, njit, warmer
 
 MAP_FORMAT = "ceilkit-ceiling-map"
 MAP_VERSION = 1
@@ -232,19 +233,64 @@ def appearance_ncc(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
     cross-correlation of the two where both hold data, in [-1, 1]; NaN where they
     share less than :data:`MIN_NCC_SHARE` of the patch's valid pixels (off the map).
     With ``stride`` s, over every s-th row and column only (s² times cheaper; the
-    patch and the mosaic are compared at the same ceiling points, no smoothing)."""
-    pred, cover = predicted_patch(cmap, pose, patch.shape[0], stride)
-    patch, valid = patch[::stride, ::stride], valid[::stride, ::stride]
-    both = valid & cover  # type: ignore[operator]
-    m = int(np.count_nonzero(both))
-    if m < MIN_NCC_SHARE * max(int(np.count_nonzero(valid)), 1):
+    patch and the mosaic are compared at the same ceiling points, no smoothing). The
+    mosaic is read as :func:`predicted_patch` reads it (bilinear; covered where its
+    nearest pixel is), at those points only (:func:`_ncc_at`)."""
+    col, row = cmap.pixel_of(np.array([pose[:2]]))[0]
+    A = _patch_to_mosaic(patch.shape[0], cmap.resolution_m, col, row, pose[2])
+    return float(_ncc_at(arr(cmap.mosaic, np.uint8), arr(cmap.coverage, np.bool_),
+                         arr(patch, np.uint8), arr(valid, np.bool_), arr(A, np.float64),
+                         int(stride), MIN_NCC_SHARE))
+
+
+@njit
+def _ncc_at(mosaic, coverage, patch, valid, A, stride, min_share):  # pragma: no cover
+    """:func:`appearance_ncc` over the patch pixels ``(r, c)`` of every ``stride``-th row
+    and column, the mosaic at ``A @ (c, r, 1)`` (a point on the mosaic's outermost
+    pixels, which no bilinear sample spans, counts as not covered)."""
+    h, w = mosaic.shape
+    n = patch.shape[0]
+    cnt = m = 0
+    sa = sb = saa = sbb = sab = 0.0
+    for r in range(0, n, stride):
+        for c in range(0, n, stride):
+            if not valid[r, c]:
+                continue
+            cnt += 1
+            x = A[0, 0] * c + A[0, 1] * r + A[0, 2]
+            y = A[1, 0] * c + A[1, 1] * r + A[1, 2]
+            if not (0.0 <= x < w - 1 and 0.0 <= y < h - 1):
+                continue
+            x0, y0 = int(x), int(y)
+            fx, fy = x - x0, y - y0
+            if not coverage[y0 + (fy >= 0.5), x0 + (fx >= 0.5)]:
+                continue
+            r0, r1 = mosaic[y0], mosaic[y0 + 1]
+            v00, v01 = np.float64(r0[x0]), np.float64(r0[x0 + 1])
+            v10, v11 = np.float64(r1[x0]), np.float64(r1[x0 + 1])
+            b = (1 - fy) * (v00 + fx * (v01 - v00)) + fy * (v10 + fx * (v11 - v10))
+            a = np.float64(patch[r, c])
+            m += 1
+            sa += a
+            sb += b
+            saa += a * a
+            sbb += b * b
+            sab += a * b
+    if m == 0 or m < min_share * max(cnt, 1):
         return math.nan
-    a = patch[both].astype(np.float32)
-    b = pred[both].astype(np.float32)
-    a -= a.mean()
-    b -= b.mean()
-    den = math.sqrt(float(a @ a) * float(b @ b))
-    return float(a @ b) / den if den > 0 else math.nan
+    va, vb = saa - sa * sa / m, sbb - sb * sb / m
+    if va <= 0.0 or vb <= 0.0:
+        return math.nan
+    return (sab - sa * sb / m) / math.sqrt(va * vb)
+
+
+@warmer
+def _warm() -> None:
+    g = np.zeros((8, 8), np.uint8)
+    g[2:5, 2:5] = 100
+    A = arr(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), np.float64)
+    _ncc_at(arr(g, np.uint8), arr(np.ones((8, 8), bool), np.bool_), arr(g, np.uint8),
+            arr(np.ones((8, 8), bool), np.bool_), A, 2, MIN_NCC_SHARE)
 
 
 # -- a frame on the ceiling plane --------------------------------------------------------

@@ -53,7 +53,6 @@ from ceilkit.runtime.estimators.prior import (
 from ceilkit.runtime.estimators.texture.ceilmap import (
     CeilingMap,
     appearance_ncc,
-    coarser,
     features,
     footprint_half_extent,
     rectify,
@@ -64,7 +63,7 @@ from ceilkit.runtime.estimators.texture.match import (
     ransac_rigid,
     refine,
 )
-from ceilkit.runtime.estimators.texture.track import FeatureGrid, track_map
+from ceilkit.runtime.estimators.texture.track import MapTracker
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry
 
 TOO_FEW_FEATURES = "too_few_features"
@@ -73,12 +72,12 @@ MAX_WINDOW_M = 3.0       # a prior vaguer than this (3σ, m) is searched globall
 NCC_STRIDE = 3           # appearance_ncc over every 3rd row and column of the patch
 TRACK_LEVELS = 1         # the fast path's patch and mosaic: 2^L times coarser than the map
 TRACK_MIN_SHARE = 0.5    # ... its pose fits at least this share of the features followed
-TRACK_VAR_FACTOR = 4.0
+TRACK_VAR_FACTOR = 1.2
 """The fast path's measured / fitted variance: its fit's ``s² (JᵀJ)⁻¹`` scaled by it.
-On the 60-frame office drive of bench_texture (supersample 1, a prior 1 cm and 0.5°
-off) its position errors scattered 1.8 mm (sd per axis, no mean beyond 0.7 mm) where
-the fit said 0.9 mm: NEES (2 dof) median 4.7, 12 % beyond the 99.9 % region; the
-global path's median was 1.45 (honest), so only the fast path is scaled."""
+On the 60-frame office drive of bench_texture (supersample 2, a prior 1 cm and 0.5°
+off) its position errors (median 0.45 mm, worst 1.3 mm) gave an unscaled NEES (2 dof)
+median of 1.62 where the law's is 1.39; scaled, 1.35. (The global path's, unscaled,
+was 1.53.)"""
 
 
 @dataclass(frozen=True)
@@ -161,8 +160,7 @@ class TextureEstimator(Estimator):
                               f"the map was made at {self.map.ceiling_height:g} m, the site's "
                               f"ceiling is at {site.ceiling_height_m:g} m")
         self.index = DescriptorIndex(self.map.points_xy, self.map.descriptors)
-        self._coarse = coarser(self.map, TRACK_LEVELS)
-        self._grid = FeatureGrid(self.map.points_xy) if len(self.map.points_xy) else None
+        self._tracker = MapTracker(self.map, TRACK_LEVELS)
         self.half_m = o.half_extent_m or footprint_half_extent(rig, site.ceiling_height_m)
         self.sigma_floor_m = float(np.median(self.map.sigma_m)) if len(self.map.sigma_m) \
             else self.map.resolution_m
@@ -222,17 +220,18 @@ class TextureEstimator(Estimator):
         searches follow)."""
         o: TextureOptions = self.options  # type: ignore[assignment]
         res = self.map.resolution_m
-        if self._grid is None:
+        if self._tracker.grid is None:
             return None
-        cmap = self._coarse
+        cmap = self._tracker.map
         patch, valid = rectify(grey, self.rig, self.site.ceiling_height_m, cmap.resolution_m,
                                self.half_m)
-        got = track_map(cmap, self._grid, patch, valid,
-                        (float(prior.x_m), float(prior.y_m), float(prior.yaw_rad)),
-                        o.tol_px * res, self.sigma_floor_m, o.min_inliers)
+        got = self._tracker.follow(patch, valid,
+                                   (float(prior.x_m), float(prior.y_m), float(prior.yaw_rad)),
+                                   o.tol_px * res, self.sigma_floor_m, o.min_inliers)
         if got is None:
             return None
-        fit = dataclasses.replace(got.refined, cov=got.refined.cov * TRACK_VAR_FACTOR)
+        r = got.refined
+        fit = Refined(r.pose, r.cov * TRACK_VAR_FACTOR, r.used, r.rms_m)
         ncc = appearance_ncc(cmap, patch, valid, fit.pose, NCC_STRIDE)
         if fit.rms_m > o.max_rms_px * res or not ncc >= o.min_ncc or \
                 len(fit.used) < TRACK_MIN_SHARE * got.followed or \

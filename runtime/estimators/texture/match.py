@@ -26,38 +26,54 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ceilkit.runtime.geometry.fits import fit_rigid_2d
+from ceilkit.runtime.jit import arr, njit, warmer
 
-_LSH = {"algorithm": 6, "table_number": 12, "key_size": 16, "multi_probe_level": 0}
+LSH_TABLES = 16          # hash tables of the descriptor index ...
+LSH_KEY_BITS = 16        # ... each keyed by this many of the descriptor's bits
+LSH_SEED = 0             # the bits each table reads: drawn from this seed
 MIN_PAIR_SEP_M = 0.08    # a two-point sample's points at least this far apart (yaw)
 
 
 class DescriptorIndex:
-    """The map's binary descriptors, searchable globally (LSH) or near a point."""
+    """The map's binary descriptors, searchable globally (LSH) or near a point.
+
+    The global index is locality-sensitive hashing of the binary descriptors (as
+    FLANN's LSH, one probe a table): :data:`LSH_TABLES` tables, each keyed by
+    :data:`LSH_KEY_BITS` of the descriptor's bits drawn once (:data:`LSH_SEED`), each
+    a sorted array of the map's features by key (a bucket is a slice). A query reads
+    its bucket in each table and measures the Hamming distance to the features there
+    only (:func:`_lsh_knn`): its cost grows with the buckets' fill, not the map's area.
+    A descriptor within ``h`` bits of the query shares a table's key with probability
+    ``(1 - h / 256)^16``: 27 % a table at 20 bits, 99.4 % that some table of 16 holds
+    it.
+    """
 
     def __init__(self, points_xy: np.ndarray, descriptors: np.ndarray) -> None:
         self.points_xy = np.asarray(points_xy, float)
         self.descriptors = np.ascontiguousarray(descriptors, np.uint8)
-        self._lsh = cv2.flann_Index(self.descriptors, _LSH) if len(self.descriptors) else None
         self.tree = cKDTree(self.points_xy) if len(self.points_xy) else None
+        self.key_bits = arr(key_bits(self.descriptors), np.int64)
+        self._words = arr(_as_words(self.descriptors), np.uint64)
+        self._order, self._starts = _lsh_build(self.descriptors, self.key_bits)
 
     def match(self, desc: np.ndarray, k: int, max_hamming: int
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(qi, mj, unique)``: each query descriptor's ``k`` nearest map descriptors
         (LSH) within ``max_hamming`` bits; ``unique`` marks a query's nearest pair when
         the match is distinctive (:func:`distinctive`)."""
-        if self._lsh is None or len(desc) == 0:
+        if len(self.descriptors) == 0 or len(desc) == 0:
             return _none()
         k = min(max(k, 2), len(self.descriptors))
-        idx, dist = self._lsh.knnSearch(np.ascontiguousarray(desc, np.uint8), k,
-                                        params={"checks": 32})
-        return self._pairs(idx.reshape(len(desc), k), dist.reshape(len(desc), k),
-                           max_hamming)
+        desc = np.ascontiguousarray(desc, np.uint8)
+        idx, dist = _lsh_knn(arr(desc, np.uint8), arr(_as_words(desc), np.uint64),
+                             self._words, self.key_bits, self._order, self._starts, k)
+        return self._pairs(idx, dist, max_hamming)
 
     def near(self, desc: np.ndarray, xy: tuple[float, float], radius_m: float, k: int,
              max_hamming: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -129,24 +145,17 @@ def residuals(pose: tuple[float, float, float], q: np.ndarray, p: np.ndarray) ->
                     s * q[:, 0] + c * q[:, 1] + y - p[:, 1])
 
 
-def _samples(q: np.ndarray, p: np.ndarray, qi: np.ndarray, tol_m: float, iters: int,
-             rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Up to ``iters`` two-point samples ``(a, b)`` of distinct query features whose
-    distance the map keeps (within ``2 tol``) and at least :data:`MIN_PAIR_SEP_M`."""
-    m = len(qi)
-    ab = rng.integers(0, m, size=(8 * iters, 2))
-    a, b = ab[:, 0], ab[:, 1]
-    dq = np.hypot(*(q[a] - q[b]).T)
-    dp = np.hypot(*(p[a] - p[b]).T)
-    ok = (qi[a] != qi[b]) & (dq > MIN_PAIR_SEP_M) & (np.abs(dq - dp) < 2 * tol_m)
-    return a[ok][:iters], b[ok][:iters]
-
-
 def ransac_rigid(q: np.ndarray, p: np.ndarray, qi: np.ndarray, tol_m: float, iters: int,
                  rng: np.random.Generator, avoid: tuple[float, float, float] | None = None,
                  basin: tuple[float, float] = (0.1, math.radians(5.0))) -> RigidFit | None:
     """The pose with the most distinct query features within ``tol_m`` (two-point RANSAC
     over the correspondences ``q[k] ~ p[k]`` of query ``qi[k]``).
+
+    Up to ``iters`` two-point samples ``(a, b)`` of distinct query features whose
+    distance the map keeps (within ``2 tol``) and at least :data:`MIN_PAIR_SEP_M`, from
+    ``8 iters`` drawn; each gives the pose mapping ``q[a], q[b]`` onto ``p[a], p[b]``'s
+    direction; the one with the most correspondences within ``tol_m`` wins (the first
+    such). One compiled loop (:func:`_ransac`) over the draws.
 
     Args:
         avoid: a pose whose basin (``basin``: metres, radians) is not searched (the
@@ -157,28 +166,97 @@ def ransac_rigid(q: np.ndarray, p: np.ndarray, qi: np.ndarray, tol_m: float, ite
     """
     if len(qi) < 2:
         return None
-    a, b = _samples(q, p, qi, tol_m, iters, rng)
-    if len(a) == 0:
+    ab = rng.integers(0, len(qi), size=(8 * iters, 2))
+    ax, ay, ayaw = avoid if avoid is not None else (0.0, 0.0, 0.0)
+    found, x, y, yaw, inl, count = _ransac(
+        Pairs(arr(q, np.float64), arr(p, np.float64), arr(qi, np.int64)), ab,
+        Sampling(float(tol_m), int(iters), MIN_PAIR_SEP_M),
+        Avoid(avoid is not None, float(ax), float(ay), float(ayaw), float(basin[0]),
+              float(basin[1])))
+    if not found:
         return None
-    zq, zp = q[:, 0] + 1j * q[:, 1], p[:, 0] + 1j * p[:, 1]
-    rot = (zp[b] - zp[a]) / (zq[b] - zq[a])
-    rot /= np.abs(rot)
-    t = zp[a] - rot * zq[a]
-    if avoid is not None:
-        far = (np.abs(t - (avoid[0] + 1j * avoid[1])) > basin[0]) | \
-              (np.abs(np.angle(rot * np.exp(-1j * avoid[2]))) > basin[1])
-        rot, t = rot[far], t[far]
-        if len(rot) == 0:
-            return None
-    inl = np.abs(rot[:, None] * zq[None, :] + t[:, None] - zp[None, :]) < tol_m
-    counts = inl.sum(1)
-    k = int(np.argmax(counts))
-    pose = (float(t[k].real), float(t[k].imag), float(np.angle(rot[k])))
-    return RigidFit(pose, inl[k], _distinct(qi, inl[k]))
+    return RigidFit((x, y, yaw), inl, count)
 
 
-def _distinct(qi: np.ndarray, mask: np.ndarray) -> int:
-    return int(len(np.unique(qi[mask])))
+class Pairs(NamedTuple):
+    """Correspondences as the compiled loops take them: ``q (M, 2)`` in V ~ ``p (M, 2)``
+    in W (m), of query features ``qi (M,)``."""
+
+    q: np.ndarray
+    p: np.ndarray
+    qi: np.ndarray
+
+
+class Sampling(NamedTuple):
+    """:func:`ransac_rigid`'s settings: the inlier tolerance ``tol`` (m), the samples
+    ``iters`` and their points' least separation ``min_sep`` (m)."""
+
+    tol: float
+    iters: int
+    min_sep: float
+
+
+class Avoid(NamedTuple):
+    """A pose whose basin the runner-up's search leaves out (``on``: one is given):
+    ``(x, y, yaw)`` and the basin's ``metres`` and ``radians``."""
+
+    on: bool
+    x: float
+    y: float
+    yaw: float
+    metres: float
+    radians: float
+
+
+@njit
+def _ransac(pairs, ab, sampling, avoid):  # pragma: no cover - compiled
+    """:func:`ransac_rigid`'s loop over the drawn index pairs ``ab (S, 2)``: ``(found,
+    x, y, yaw, inliers (M,) bool, distinct query features among them)``."""
+    q, p, qi = pairs.q, pairs.p, pairs.qi
+    tol, iters, min_sep = sampling.tol, sampling.iters, sampling.min_sep
+    m = len(qi)
+    tol2 = tol * tol
+    best, bx, by, byaw, used = -1, 0.0, 0.0, 0.0, 0
+    for s in range(len(ab)):
+        if used == iters:
+            break
+        a, b = ab[s, 0], ab[s, 1]
+        qx, qy = q[b, 0] - q[a, 0], q[b, 1] - q[a, 1]
+        px, py = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1]
+        dq, dp = math.hypot(qx, qy), math.hypot(px, py)
+        if qi[a] == qi[b] or not dq > min_sep or not abs(dq - dp) < 2 * tol:
+            continue
+        used += 1
+        yaw = math.atan2(qx * py - qy * px, qx * px + qy * py)
+        c, sn = math.cos(yaw), math.sin(yaw)
+        tx = p[a, 0] - (c * q[a, 0] - sn * q[a, 1])
+        ty = p[a, 1] - (sn * q[a, 0] + c * q[a, 1])
+        if avoid.on and math.hypot(tx - avoid.x, ty - avoid.y) <= avoid.metres and \
+                abs(math.atan2(math.sin(yaw - avoid.yaw), math.cos(yaw - avoid.yaw))) \
+                <= avoid.radians:
+            continue
+        count = 0
+        for k in range(m):
+            ex = c * q[k, 0] - sn * q[k, 1] + tx - p[k, 0]
+            ey = sn * q[k, 0] + c * q[k, 1] + ty - p[k, 1]
+            count += ex * ex + ey * ey < tol2
+        if count > best:
+            best, bx, by, byaw = count, tx, ty, yaw
+    inl = np.zeros(m, np.bool_)
+    if best < 0:
+        return False, 0.0, 0.0, 0.0, inl, 0
+    c, sn = math.cos(byaw), math.sin(byaw)
+    seen = np.zeros(qi.max() + 1, np.bool_)
+    distinct = 0
+    for k in range(m):
+        ex = c * q[k, 0] - sn * q[k, 1] + bx - p[k, 0]
+        ey = sn * q[k, 0] + c * q[k, 1] + by - p[k, 1]
+        if ex * ex + ey * ey < tol2:
+            inl[k] = True
+            if not seen[qi[k]]:
+                seen[qi[k]] = True
+                distinct += 1
+    return True, bx, by, byaw, inl, distinct
 
 
 def one_per_query(q: np.ndarray, p: np.ndarray, qi: np.ndarray, pose: tuple[float, float, float],
@@ -215,34 +293,213 @@ def refine(q: np.ndarray, p: np.ndarray, qi: np.ndarray | None,
            pose: tuple[float, float, float], tol_m: float, sigma_floor_m: float,
            rounds: int = 2) -> Refined | None:
     """Least squares (:func:`~ceilkit.runtime.geometry.fits.fit_rigid_2d`) on the
-    correspondences within ``tol_m`` of ``pose`` (one per query feature; ``qi`` None:
-    every pair is its own query feature), the inliers collected again about each new
-    pose ``rounds`` times. The covariance is ``s² (JᵀJ)⁻¹`` with ``s²`` the residuals'
-    variance per axis (``2n - 3`` degrees of freedom), never below ``sigma_floor_m²``.
-    None with fewer than three inliers."""
-    used = np.zeros(0, int)
-    for _ in range(rounds):
-        used = np.flatnonzero(residuals(pose, q, p) < tol_m) if qi is None else \
-            one_per_query(q, p, qi, pose, tol_m)
+    correspondences within ``tol_m`` of ``pose`` (one per query feature, the nearest;
+    ``qi`` None: every pair is its own query feature), the inliers collected again
+    about each new pose ``rounds`` times. The covariance is ``s² (JᵀJ)⁻¹`` with ``s²``
+    the residuals' variance per axis (``2n - 3`` degrees of freedom), never below
+    ``sigma_floor_m²``. None with fewer than three inliers. One compiled loop
+    (:func:`_refine`)."""
+    has_qi = qi is not None
+    qi = arr(qi if has_qi else np.zeros(len(q), np.int64), np.int64)
+    good, x, y, yaw, cov, used, rms = _refine(
+        Pairs(arr(q, np.float64), arr(p, np.float64), qi), has_qi,
+        (float(pose[0]), float(pose[1]), float(pose[2])),
+        Fitting(float(tol_m), float(sigma_floor_m), int(rounds)))
+    return Refined((x, y, yaw), cov, used, rms) if good else None
+
+
+class Fitting(NamedTuple):
+    """:func:`refine`'s settings: the inlier tolerance ``tol`` and the covariance's
+    floor ``sigma_floor`` (m), the ``rounds`` of collecting the inliers again."""
+
+    tol: float
+    sigma_floor: float
+    rounds: int
+
+
+@njit
+def _refine(pairs, has_qi, pose, fitting):  # pragma: no cover - compiled
+    """:func:`refine` from ``pose (x, y, yaw)``: ``(good, x, y, yaw, cov (3, 3), used
+    (indices), rms_m)``; ``has_qi`` False: every pair is its own query feature."""
+    q, p, qi = pairs.q, pairs.p, pairs.qi
+    x, y, yaw = pose
+    tol, sigma_floor = fitting.tol, fitting.sigma_floor
+    used = np.zeros(0, np.int64)
+    for _ in range(fitting.rounds):
+        r = _residuals(q, p, x, y, yaw)
+        used = _one_per_query(r, qi, tol) if has_qi else np.flatnonzero(r < tol)
         if len(used) < 3:
-            return None
-        yaw, t = fit_rigid_2d(q[used], p[used])
-        pose = (float(t[0]), float(t[1]), float(yaw))
-    r = residuals(pose, q[used], p[used])
+            return False, x, y, yaw, np.zeros((3, 3)), used, 0.0
+        mask = np.zeros(len(q), np.bool_)
+        mask[used] = True
+        x, y, yaw = _rigid(q, p, mask)
+    c, s = math.cos(yaw), math.sin(yaw)
     n = len(used)
-    s2 = max(float(np.sum(r * r)) / max(2 * n - 3, 1), sigma_floor_m ** 2)
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    rq = q[used] @ np.array([[c, s], [-s, c]])          # R(yaw) q
-    J = np.zeros((2 * n, 3))
-    J[0::2, 0] = 1.0
-    J[1::2, 1] = 1.0
-    J[0::2, 2] = -rq[:, 1]
-    J[1::2, 2] = rq[:, 0]
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return None
-    return Refined(pose, cov, used, float(np.sqrt(np.mean(r * r))))
+    ss = sx = sy = srr = 0.0
+    for k in used:
+        rx, ry = c * q[k, 0] - s * q[k, 1], s * q[k, 0] + c * q[k, 1]
+        ex, ey = rx + x - p[k, 0], ry + y - p[k, 1]
+        ss += ex * ex + ey * ey
+        sx += rx
+        sy += ry
+        srr += rx * rx + ry * ry
+    s2 = max(ss / max(2 * n - 3, 1), sigma_floor * sigma_floor)
+    jtj = np.array([[n, 0.0, -sy], [0.0, n, sx], [-sy, sx, srr]])
+    if not abs(np.linalg.det(jtj)) > 1e-12:
+        return False, x, y, yaw, np.zeros((3, 3)), used, 0.0
+    return True, x, y, yaw, s2 * np.linalg.inv(jtj), used, math.sqrt(ss / n)
+
+
+@njit
+def _one_per_query(r, qi, tol):  # pragma: no cover - compiled
+    """:func:`one_per_query` on the residuals ``r``: the nearest pair within ``tol`` of
+    each query feature (the first on a tie), in the order of ``qi``'s values."""
+    top = qi.max() + 1 if len(qi) else 0
+    best = np.full(top, -1, np.int64)
+    for k in range(len(r)):
+        if r[k] < tol and (best[qi[k]] < 0 or r[k] < r[best[qi[k]]]):
+            best[qi[k]] = k
+    return best[best >= 0]
+
+
+@njit
+def _rigid(q, p, mask):  # pragma: no cover - compiled
+    """:func:`~ceilkit.runtime.geometry.fits.fit_rigid_2d` of the pairs ``mask`` holds:
+    ``(x, y, yaw)`` with ``p ≈ R(yaw) q + (x, y)``."""
+    m = qx = qy = px = py = 0.0
+    for k in range(len(q)):
+        if mask[k]:
+            m += 1.0
+            qx += q[k, 0]
+            qy += q[k, 1]
+            px += p[k, 0]
+            py += p[k, 1]
+    qx, qy, px, py = qx / m, qy / m, px / m, py / m
+    sc = sn = 0.0
+    for k in range(len(q)):
+        if mask[k]:
+            ax, ay, bx, by = q[k, 0] - qx, q[k, 1] - qy, p[k, 0] - px, p[k, 1] - py
+            sc += ax * bx + ay * by
+            sn += ax * by - ay * bx
+    yaw = math.atan2(sn, sc)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return px - (c * qx - s * qy), py - (s * qx + c * qy), yaw
+
+
+@njit
+def _residuals(q, p, x, y, yaw):  # pragma: no cover - compiled
+    """``(N,)`` distances ``|R(yaw) q + (x, y) - p|``, m (:func:`residuals`)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    out = np.empty(len(q))
+    for k in range(len(q)):
+        out[k] = math.hypot(c * q[k, 0] - s * q[k, 1] + x - p[k, 0],
+                            s * q[k, 0] + c * q[k, 1] + y - p[k, 1])
+    return out
+
+
+def key_bits(descriptors: np.ndarray, tables: int = LSH_TABLES, bits: int = LSH_KEY_BITS,
+             seed: int = LSH_SEED) -> np.ndarray:
+    """``(tables, bits)``: the descriptor bits (bit ``b`` is bit ``b % 8`` of byte
+    ``b // 8``) each LSH table is keyed by: the ``tables x bits`` bits whose share of
+    ones over the map's descriptors is nearest one half (a bit set in nearly every
+    descriptor or in none fills one bucket and empties the other), no bit twice,
+    dealt to the tables at random (``seed``)."""
+    d = np.asarray(descriptors, np.uint8)
+    n_bits = 8 * d.shape[1]
+    want = min(tables * bits, n_bits)
+    ones = np.unpackbits(d, axis=1, bitorder="little").mean(0) if len(d) else \
+        np.full(n_bits, 0.5)
+    chosen = np.argsort(np.abs(ones - 0.5), kind="stable")[:want]
+    chosen = np.random.default_rng(seed).permutation(chosen)
+    if want < tables * bits:            # a short descriptor: tables share bits
+        chosen = np.resize(chosen, tables * bits)
+    return chosen.reshape(tables, bits).astype(np.int64)
+
+
+def _as_words(desc: np.ndarray) -> np.ndarray:
+    """``(N, ceil(D / 8))`` uint64: each descriptor's bytes as words (zero-padded)."""
+    d = np.ascontiguousarray(desc, np.uint8)
+    if d.shape[1] % 8:
+        d = np.ascontiguousarray(np.pad(d, ((0, 0), (0, -d.shape[1] % 8))))
+    return d.view(np.uint64).reshape(len(d), d.shape[1] // 8)
+
+
+def _lsh_build(desc: np.ndarray, key_bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(order (T, N), starts (T, 2^K + 1))``: each table's features sorted by key,
+    and where each key's bucket starts in that order."""
+    keys = _lsh_keys(arr(desc, np.uint8), key_bits)
+    order = np.argsort(keys, axis=1, kind="stable")
+    n_keys = 1 << key_bits.shape[1]
+    starts = np.stack([np.searchsorted(np.take_along_axis(keys[t:t + 1], order[t:t + 1], 1)[0],
+                                       np.arange(n_keys + 1)) for t in range(len(keys))])
+    return arr(order.astype(np.int32), np.int32), arr(starts.astype(np.int32), np.int32)
+
+
+@njit
+def _lsh_keys(desc, key_bits):  # pragma: no cover - compiled
+    """``(T, N)``: each descriptor's key in each table (its bits ``key_bits[t]``, bit
+    ``b`` being bit ``b % 8`` of byte ``b // 8``)."""
+    out = np.zeros((key_bits.shape[0], desc.shape[0]), np.int64)
+    for t in range(key_bits.shape[0]):
+        for i in range(desc.shape[0]):
+            key = 0
+            for j in range(key_bits.shape[1]):
+                b = key_bits[t, j]
+                key = (key << 1) | ((desc[i, b >> 3] >> (b & 7)) & 1)
+            out[t, i] = key
+    return out
+
+
+@njit
+def _popcount(x):  # pragma: no cover - compiled
+    """Set bits of a uint64 (SWAR)."""
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
+
+
+@njit
+def _lsh_knn(desc, words, map_words, key_bits, order, starts, k):  # pragma: no cover
+    """``(idx (Q, k), dist (Q, k))``: each query's ``k`` nearest map descriptors among
+    those sharing its bucket in some table (nearest first, ties by index; -1 and a
+    distance past every descriptor's where fewer share one)."""
+    q, nw = words.shape
+    idx = np.full((q, k), -1, np.int64)
+    dist = np.full((q, k), 8 * 8 * nw + 1, np.int64)
+    seen = np.full(map_words.shape[0], -1, np.int64)
+    keys = _lsh_keys(desc, key_bits)
+    for i in range(q):
+        for t in range(key_bits.shape[0]):
+            key = keys[t, i]
+            for r in range(starts[t, key], starts[t, key + 1]):
+                j = order[t, r]
+                if seen[j] == i:
+                    continue
+                seen[j] = i
+                d = 0
+                for w in range(nw):
+                    d += _popcount(words[i, w] ^ map_words[j, w])
+                s = k
+                while s > 0 and (dist[i, s - 1] > d or (dist[i, s - 1] == d
+                                                         and idx[i, s - 1] > j)):
+                    s -= 1
+                if s < k:
+                    for m in range(k - 1, s, -1):
+                        idx[i, m], dist[i, m] = idx[i, m - 1], dist[i, m - 1]
+                    idx[i, s], dist[i, s] = j, d
+    return idx, dist
+
+
+@warmer
+def _warm() -> None:
+    d = np.arange(64, dtype=np.uint8).reshape(2, 32)
+    index = DescriptorIndex(np.zeros((2, 2)), d)
+    index.match(d, 2, 64)
+    q = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    ransac_rigid(q, q, np.arange(3), 0.03, 4, np.random.default_rng(0), (0.0, 0.0, 0.0))
+    refine(q, q, np.arange(3), (0.0, 0.0, 0.0), 0.03, 0.001)
+    refine(q, q, None, (0.0, 0.0, 0.0), 0.03, 0.001, 1)
 
 
 __all__ = ["DescriptorIndex", "distinctive", "Refined", "RigidFit", "one_per_query", "ransac_rigid",

@@ -1,16 +1,29 @@
 """The ``texture`` method's tracked fast path: the pose refined from a tight prior by
 following the map's own features into the frame, no detection, no descriptor.
 
-The map's mosaic is resampled as the prior says the frame should show it
-(:func:`.ceilmap.predicted_patch`); the map features inside that predicted patch are
-followed into the frame's rectified patch by pyramidal Lucas-Kanade
-(``cv2.calcOpticalFlowPyrLK``, as the ceiling-plane odometry of
-:mod:`~ceilkit.runtime.estimators.odometry` does between frames). A feature at
-predicted patch pixel ``u`` found at ``u + d`` in the frame's patch gives the pair
-``q_V = (u + d - c) res`` ~ ``p_W`` (the map's point: the predicted patch shows it at
-``u`` by construction), and the pairs give the pose by the same least squares as the
-global path (:func:`.match.refine`). Each frame is tied to the map, not to the
-previous frame: no drift.
+The frame is rectified a level coarser than the map (2 cm, :data:`.estimator.TRACK_LEVELS`);
+the map's mosaic is pyramided alike once, when the map is loaded
+(:class:`MapTracker`). Per frame, the map features the prior puts inside the frame's
+patch are ranked (:func:`corner_scores`: the smaller eigenvalue of the mosaic's
+structure tensor about each, rotation invariant, computed once) and at most
+:data:`PER_CELL` of the best are kept in each of :data:`CELLS` x CELLS cells of the
+patch (:data:`MAX_POINTS` in all, spread). Each is followed into the frame's patch by
+a Lucas-Kanade of its own (:func:`_lk_level`, one compiled loop a pyramid level):
+its template is the mosaic about the feature sampled as the prior says the patch
+shows it (turned by the prior's yaw; only those ``(2h + 3)²`` pixels, not the whole
+predicted patch), its parameters a translation and a grey offset (the frame's
+exposure is not the mosaic's), solved inverse-compositionally (the template's
+gradients and normal matrix once per feature and level). A feature is kept when the
+finest level converged inside the patch's valid part and its window correlates with
+the template at :data:`MIN_ZNCC` or more. The patch's own level is tried first (its
+basin, about ``LK_HALF / 2`` pixels, holds a tracked prior's error); when that does
+not give a pose, again from :data:`LK_LEVELS` coarser.
+
+A feature at predicted patch pixel ``u`` found at ``u + d`` gives the pair
+``q_V = (u + d - c) res`` ~ ``p_W`` (the map's point), and the pairs give the pose by
+the same least squares as the global path (:func:`.match.refine`), from a rigid fit
+of those within 3 MADs of the fit of all (:func:`_fit_pairs`). Each frame is tied to
+the map, not to the previous frame: no drift.
 
 What the fast path cannot do is enumerate twins: it converges to the pose nearest the
 prior. The estimator takes it only when the prior's region is too narrow to hold a
@@ -19,8 +32,8 @@ publishes its pose only where the prior's region holds it.
 
 Example::
 
-    grid = FeatureGrid(cmap.points_xy)
-    got = track_map(cmap, grid, patch, valid, prior_pose, 0.03, 0.002, 12)
+    tracker = MapTracker(cmap, levels=1)       # once per map
+    got = tracker.follow(patch, valid, prior_pose, 0.03, 0.002, 12)
     got.refined.pose if got is not None else None
 """
 
@@ -28,21 +41,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from ceilkit.runtime.estimators.texture.ceilmap import CeilingMap, _eroded, predicted_patch
-from ceilkit.runtime.estimators.texture.match import Refined, refine, residuals
-from ceilkit.runtime.geometry.fits import fit_rigid_2d
+from ceilkit.runtime.estimators.texture.ceilmap import CeilingMap, _eroded, coarser
+from ceilkit.runtime.estimators.texture.match import (
+    Fitting,
+    Pairs,
+    Refined,
+    _refine,
+    _residuals,
+    _rigid,
+)
+from ceilkit.runtime.jit import arr, njit, warmer
 
-MAX_POINTS = 64          # map features followed per frame, at most
-CELLS = 4                # ... spread over CELLS x CELLS cells of the patch
-LK_WIN = 11              # Lucas-Kanade window, patch pixels (odd)
-LK_LEVELS = 1            # pyramid levels above the patch (basin about 2^L * LK_WIN / 2)
-FB_MAX_PX = 0.3          # forward-backward disagreement of a kept track, patch pixels
-LK = {"winSize": (LK_WIN, LK_WIN), "maxLevel": LK_LEVELS,
-      "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.02)}
+CELLS = 4                # the patch's CELLS x CELLS cells ...
+PER_CELL = 4             # ... each keeps its best-ranked features, at most this many
+MAX_POINTS = CELLS * CELLS * PER_CELL   # map features followed per frame, at most
+LK_HALF = 4              # Lucas-Kanade window: (2 LK_HALF + 1)² patch pixels
+LK_LEVELS = 1            # pyramid levels above the patch (basin about 2^L LK_HALF px)
+LK_ITERS = 20            # iterations a level, at most
+LK_EPS_PX = 0.02         # ... stopping when a step is shorter (patch pixels)
+MIN_ZNCC = 0.8           # a followed window's correlation with its template, at least
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,8 +73,8 @@ class Tracked:
 
     Attributes:
         refined: the least-squares pose on the pairs within the tolerance.
-        followed: map features followed into the frame (LK converged).
-        predicted: map features the prior put inside the patch.
+        followed: map features followed into the frame (converged, correlating).
+        predicted: map features the prior put inside the patch and were followed from.
     """
 
     refined: Refined
@@ -62,8 +84,8 @@ class Tracked:
 
 class FeatureGrid:
     """The map's features bucketed in square cells of ``cell_m`` (sorted by cell, a row
-    of cells contiguous): those near a point at the cost of the cells they fill, not of
-    the map (a k-d tree's ball query built a Python list of every index)."""
+    of cells contiguous): those near a point at the cost of the cells they fill, not
+    of the map."""
 
     def __init__(self, points_xy: np.ndarray, cell_m: float = 1.0) -> None:
         self.cell_m = float(cell_m)
@@ -72,103 +94,474 @@ class FeatureGrid:
         ij -= self.lo
         self.size = (ij.max(0) + 1) if len(ij) else np.ones(2, np.int64)
         key = ij[:, 1] * self.size[0] + ij[:, 0]
-        self.order = np.argsort(key, kind="stable")
-        self.starts = np.searchsorted(key[self.order], np.arange(self.size.prod() + 1))
+        self.order = arr(np.argsort(key, kind="stable"), np.int64)
+        self.starts = arr(np.searchsorted(key[self.order], np.arange(self.size.prod() + 1)),
+                          np.int64)
+
+    def cells(self, x: float, y: float, half_m: float) -> tuple[int, int, int, int]:
+        """``(i0, j0, i1, j1)``: the cells (column, row; clipped to the grid, empty when
+        ``i1 < i0`` or ``j1 < j0``) that meet the square of half side ``half_m`` about
+        ``(x, y)``: their features are a superset of those inside it."""
+        c, (lx, ly), (nx, ny) = self.cell_m, self.lo.tolist(), self.size.tolist()
+        return (max(math.floor((x - half_m) / c) - lx, 0),
+                max(math.floor((y - half_m) / c) - ly, 0),
+                min(math.floor((x + half_m) / c) - lx, nx - 1),
+                min(math.floor((y + half_m) / c) - ly, ny - 1))
 
     def within(self, x: float, y: float, half_m: float) -> np.ndarray:
         """Indices of the features in the cells that meet the square of half side
         ``half_m`` about ``(x, y)`` (a superset of the features inside it)."""
-        c = self.cell_m
-        i0, j0 = (max(int(math.floor((v - half_m) / c)) - o, 0)
-                  for v, o in ((x, self.lo[0]), (y, self.lo[1])))
-        i1, j1 = (min(int(math.floor((v + half_m) / c)) - o, int(n) - 1)
-                  for v, o, n in ((x, self.lo[0], self.size[0]), (y, self.lo[1], self.size[1])))
+        i0, j0, i1, j1 = self.cells(x, y, half_m)
         if i1 < i0 or j1 < j0:
             return np.zeros(0, np.int64)
-        w = int(self.size[0])
-        rows = [self.order[self.starts[j * w + i0]:self.starts[j * w + i1 + 1]]
-                for j in range(j0, j1 + 1)]
+        st, nx = self.starts, int(self.size[0])
+        rows = [self.order[st[j * nx + i0]:st[j * nx + i1 + 1]] for j in range(j0, j1 + 1)]
         return np.concatenate(rows)
 
 
-def visible_features(cmap: CeilingMap, grid: FeatureGrid, pose: tuple[float, float, float],
-                     valid: np.ndarray, margin_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(idx (M,), uv (M, 2) float32)``: map features the pose puts inside the patch
-    (``valid``, at least ``margin_px`` from its edge), their predicted patch pixels
-    ``(col, row)``; of more than :data:`MAX_POINTS`, the first few of each of
-    :data:`CELLS` x CELLS cells (in the map's order): spread over the patch."""
-    n = valid.shape[0]
-    res = cmap.resolution_m
-    x, y, yaw = pose
-    idx = grid.within(x, y, math.sqrt(2.0) * n * res / 2)
-    if len(idx) == 0:
-        return idx, np.zeros((0, 2), np.float32)
-    c, s = math.cos(yaw), math.sin(yaw)
-    d = cmap.points_xy[idx] - (x, y)
-    uv = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]]) / res \
-        + (n - 1) / 2
-    inside = np.all((uv >= margin_px) & (uv <= n - 1 - margin_px), axis=1)
-    idx, uv = idx[inside], uv[inside]
-    ok = valid[np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)]
-    idx, uv = idx[ok], uv[ok]
-    if len(idx) > MAX_POINTS:
-        cell = (uv[:, 1] * CELLS // n).astype(int) * CELLS + (uv[:, 0] * CELLS // n).astype(int)
-        order = np.argsort(cell, kind="stable")
-        first = np.searchsorted(cell[order], cell[order])
-        rank = np.empty(len(idx), int)
-        rank[order] = np.arange(len(idx)) - first
-        keep = rank < max(1, MAX_POINTS // (CELLS * CELLS))
-        idx, uv = idx[keep], uv[keep]
-    return idx, uv.astype(np.float32)
+class MapTracker:
+    """The map made ready for the fast path, once per map: its mosaic at the patch's
+    resolution (``levels`` coarser than the map) and :data:`LK_LEVELS` coarser, each
+    feature's mosaic pixel and rank (:func:`corner_scores`), the grid of features."""
 
+    def __init__(self, cmap: CeilingMap, levels: int) -> None:
+        self.map = coarser(cmap, levels)
+        mosaics = [self.map.mosaic]
+        for _ in range(LK_LEVELS):
+            mosaics.append(cv2.pyrDown(mosaics[-1]))
+        self.mosaics = tuple(arr(m, np.uint8) for m in mosaics)
+        self.points_px = arr(self.map.pixel_of(cmap.points_xy), np.float64)
+        self.score = arr(corner_scores(self.mosaics[0], self.points_px, LK_HALF), np.float64)
+        self.grid = FeatureGrid(cmap.points_xy) if len(cmap.points_xy) else None
+        self._valid: np.ndarray | None = None
+        self._inner = np.zeros((0, 0), np.uint8)
 
-def track_map(cmap: CeilingMap, grid: FeatureGrid, patch: np.ndarray, valid: np.ndarray,
-              pose: tuple[float, float, float], tol_m: float, sigma_floor_m: float,
-              min_points: int) -> Tracked | None:
-    """The pose refined from ``pose`` (the prior) on the frame's rectified patch (see
-    the module docstring), or None with fewer than ``min_points`` map features
-    followed or fitting within ``tol_m``."""
-    n = patch.shape[0]
-    half = LK_WIN // 2 + 2
-    inner = _eroded(np.ascontiguousarray(valid, np.uint8).tobytes(), valid.shape, half)
-    idx, uv = visible_features(cmap, grid, pose, inner.astype(bool), half)
-    if len(idx) < min_points:
+    def visible(self, pose: tuple[float, float, float], inner: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """``(idx (M,), uv (M, 2))``: the map features the pose puts where ``inner``
+        (the patch's valid part, eroded by the window) holds, their predicted patch
+        pixels ``(col, row)``; the best :data:`PER_CELL` by rank of each cell."""
+        n = inner.shape[0]
+        x, y, yaw = pose
+        if self.grid is None:
+            return np.zeros(0, np.int64), np.zeros((0, 2))
+        g, res = self.grid, self.map.resolution_m
+        i0, j0, i1, j1 = g.cells(x, y, math.sqrt(2.0) * n * res / 2)
+        if i1 < i0 or j1 < j0:
+            return np.zeros(0, np.int64), np.zeros((0, 2))
+        ox, oy = self.map.origin_xy
+        return _visible(self.points_px, self.score,
+                        GridCells(g.order, g.starts, int(g.size[0]), i0, j0, i1, j1), inner,
+                        Placement((x - ox) / res, (y - oy) / res, math.cos(yaw), math.sin(yaw)),
+                        CELLS, PER_CELL)
+
+    def follow(self, patch: np.ndarray, valid: np.ndarray, pose: tuple[float, float, float],
+               tol_m: float, sigma_floor_m: float, min_points: int) -> Tracked | None:
+        """The pose refined from ``pose`` (the prior) on the frame's rectified patch at
+        this tracker's resolution (see the module docstring), or None with fewer than
+        ``min_points`` map features followed or fitting within ``tol_m``."""
+        if valid is not self._valid:     # the rectify tables' own array: made once
+            self._valid = valid
+            self._inner = arr(_eroded(np.ascontiguousarray(valid, np.uint8).tobytes(),
+                                      valid.shape, LK_HALF + 2), np.uint8)
+        inner = self._inner
+        idx, uv = self.visible(pose, inner)
+        if len(idx) < min_points:
+            return None
+        mpx = arr(self.points_px[idx], np.float64)
+        ox, oy = self.map.origin_xy
+        for levels in sorted({0, LK_LEVELS}):
+            found, ok = self._lk(patch, inner, mpx, uv, pose[2], levels)
+            good, x, y, yaw, cov, used, rms, followed = _fit_pairs(
+                found, ok, mpx, PatchFrame((patch.shape[0] - 1) / 2, self.map.resolution_m,
+                                           ox, oy), Fitting(tol_m, sigma_floor_m, 1),
+                min_points)
+            if good:
+                return Tracked(Refined((x, y, yaw), cov, np.flatnonzero(used), rms),
+                               followed, len(idx))
         return None
-    pred, _ = predicted_patch(cmap, pose, n, cover=False)
-    start = uv.reshape(-1, 1, 2)
-    found, st, _ = cv2.calcOpticalFlowPyrLK(pred, patch, start, None, **LK)
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(patch, pred, found, None, **LK)
-    fb = np.linalg.norm((back - start).reshape(-1, 2), axis=1)
-    found = found.reshape(-1, 2)
-    ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < FB_MAX_PX)
-    ok &= np.all((found >= 0) & (found <= n - 1), axis=1)
-    if np.count_nonzero(ok) < min_points:
-        return None
-    res = cmap.resolution_m
-    q = (found[ok].astype(float) - (n - 1) / 2) * res
-    p = cmap.points_xy[idx[ok]]
-    start = _robust_start(q, p, tol_m)
-    if start is None:
-        return None
-    refined = refine(q, p, None, start, tol_m, sigma_floor_m, rounds=1)
-    if refined is None or len(refined.used) < min_points:
-        return None
-    return Tracked(refined, int(np.count_nonzero(ok)), len(idx))
+
+    def _lk(self, patch: np.ndarray, inner: np.ndarray, mpx: np.ndarray, uv: np.ndarray,
+            yaw: float, levels: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(found (M, 2), ok (M,))``: where the window of each feature (mosaic pixel
+        ``mpx``, predicted at patch pixel ``uv``) lies in the patch, coarse to fine from
+        ``levels`` above it (:func:`_lk_level`), and whether it was followed."""
+        pyr = [arr(patch, np.uint8)]
+        for _ in range(levels):
+            pyr.append(arr(cv2.pyrDown(pyr[-1]), np.uint8))
+        d = np.zeros((len(mpx), 2))
+        ok = np.ones(len(mpx), np.bool_)
+        c, s = math.cos(yaw), math.sin(yaw)
+        fol = Following(mpx, uv, inner, c, s)
+        for level in range(levels, -1, -1):
+            _lk_level(Level(self.mosaics[level], pyr[level], 0.5 ** level, level == 0), fol,
+                      LK, d, ok)
+            if level:
+                d *= 2.0
+        d += uv
+        return d, ok
 
 
-def _robust_start(q: np.ndarray, p: np.ndarray, tol_m: float
-                  ) -> tuple[float, float, float] | None:
-    """The rigid fit of all pairs, then of those within 3 MADs of its residuals (or
-    ``tol_m``): where :func:`.match.refine` starts (the prior may be off by more than
-    the tolerance; a few pairs LK followed to the wrong place are dropped)."""
-    yaw, t = fit_rigid_2d(q, p)
-    r = residuals((float(t[0]), float(t[1]), float(yaw)), q, p)
-    med = float(np.median(r))
-    keep = r <= max(med + 3.0 * 1.4826 * med, tol_m)
-    if np.count_nonzero(keep) < 3:
-        return None
-    yaw, t = fit_rigid_2d(q[keep], p[keep])
-    return float(t[0]), float(t[1]), float(yaw)
+@njit
+def corner_scores(mosaic, points_px, half):  # pragma: no cover - compiled
+    """``(N,)``: the smaller eigenvalue of the structure tensor (central differences,
+    grey levels² per pixel, mean over the ``(2 half + 1)²`` window) of the mosaic about
+    each feature's pixel ``(col, row)`` (N, 2): how well a window there pins a
+    translation; 0 off the mosaic. Nearly rotation invariant: a rank of the features
+    for following whatever the heading."""
+    out = np.zeros(len(points_px))
+    h, w = mosaic.shape
+    for k in range(len(points_px)):
+        c0, r0 = int(round(points_px[k, 0])), int(round(points_px[k, 1]))
+        if c0 - half - 1 < 0 or r0 - half - 1 < 0 or c0 + half + 1 >= w or r0 + half + 1 >= h:
+            continue
+        a = b = cc = 0.0
+        for r in range(r0 - half, r0 + half + 1):
+            for c in range(c0 - half, c0 + half + 1):
+                gx = 0.5 * (np.float64(mosaic[r, c + 1]) - mosaic[r, c - 1])
+                gy = 0.5 * (np.float64(mosaic[r + 1, c]) - mosaic[r - 1, c])
+                a += gx * gx
+                b += gx * gy
+                cc += gy * gy
+        m = (2 * half + 1) ** 2
+        a, b, cc = a / m, b / m, cc / m
+        out[k] = 0.5 * (a + cc) - math.sqrt(0.25 * (a - cc) ** 2 + b * b)
+    return out
 
 
-__all__ = ["FeatureGrid", "Tracked", "track_map", "visible_features"]
+class GridCells(NamedTuple):
+    """A block of :class:`FeatureGrid`'s cells as the compiled loops take it: the
+    grid's ``order`` and ``starts``, ``nx`` cells a row, the cells ``i0..i1`` x
+    ``j0..j1`` (column, row; inside the grid)."""
+
+    order: np.ndarray
+    starts: np.ndarray
+    nx: int
+    i0: int
+    j0: int
+    i1: int
+    j1: int
+
+
+class Placement(NamedTuple):
+    """Where a patch lies on the mosaic: its centre at mosaic pixel ``(px, py)``, turned
+    by ``(c, s)`` (the cosine and sine of the vehicle's yaw)."""
+
+    px: float
+    py: float
+    c: float
+    s: float
+
+
+@njit
+def _visible(points_px, score, grid, inner, at, cells,
+             per_cell):  # pragma: no cover - compiled
+    """:meth:`MapTracker.visible` over the features of the cells ``grid``: each
+    feature's patch pixel from its mosaic pixel (the patch ``at``), kept where ``inner``
+    holds; then by ``score``, highest first, at most ``per_cell`` a cell of the patch
+    (``cells`` x ``cells``)."""
+    order, starts, nx = grid.order, grid.starts, grid.nx
+    i0, j0, i1, j1 = grid.i0, grid.j0, grid.i1, grid.j1
+    px, py, c, s = at.px, at.py, at.c, at.s
+    n = inner.shape[0]
+    half = (n - 1) / 2.0
+    m = 0
+    for j in range(j0, j1 + 1):
+        m += starts[j * nx + i1 + 1] - starts[j * nx + i0]
+    cand = np.empty(m, np.int64)
+    t = 0
+    for j in range(j0, j1 + 1):
+        for r in range(starts[j * nx + i0], starts[j * nx + i1 + 1]):
+            cand[t] = order[r]
+            t += 1
+    uv = np.empty((m, 2))
+    keep = np.zeros(m, np.bool_)
+    key = np.empty(m)
+    for k in range(m):
+        dx = points_px[cand[k], 0] - px
+        dy = points_px[cand[k], 1] - py
+        u = c * dx + s * dy + half
+        v = -s * dx + c * dy + half
+        uv[k, 0], uv[k, 1] = u, v
+        iu, iv = int(round(u)), int(round(v))
+        keep[k] = 0 <= iu < n and 0 <= iv < n and inner[iv, iu] > 0
+        key[k] = -score[cand[k]]
+    # each cell's best per_cell, by insertion (a handful a cell, hundreds of candidates)
+    best = np.full((cells * cells, per_cell), -1, np.int64)
+    for k in range(m):
+        if not keep[k]:
+            continue
+        cell = min(int(uv[k, 1] * cells / n), cells - 1) * cells + \
+            min(int(uv[k, 0] * cells / n), cells - 1)
+        j = per_cell
+        while j > 0 and (best[cell, j - 1] < 0 or key[best[cell, j - 1]] > key[k]):
+            j -= 1
+        if j < per_cell:
+            best[cell, j + 1:] = best[cell, j:-1].copy()
+            best[cell, j] = k
+    count = 0
+    for t in range(cells * cells):
+        for j in range(per_cell):
+            count += best[t, j] >= 0
+    out_uv = np.empty((count, 2))
+    out_idx = np.empty(count, np.int64)
+    t = 0
+    for cell in range(cells * cells):
+        for j in range(per_cell):
+            k = best[cell, j]
+            if k >= 0:
+                out_idx[t] = cand[k]
+                out_uv[t, 0], out_uv[t, 1] = uv[k, 0], uv[k, 1]
+                t += 1
+    return out_idx, out_uv
+
+
+class LKSettings(NamedTuple):
+    """The Lucas-Kanade's window half side ``half`` (px), its ``iters`` a level and the
+    step ``eps`` (px) that ends them, the correlation ``min_zncc`` a followed window
+    needs."""
+
+    half: int
+    iters: int
+    eps: float
+    min_zncc: float
+
+
+LK = LKSettings(LK_HALF, LK_ITERS, LK_EPS_PX, MIN_ZNCC)
+
+
+class Level(NamedTuple):
+    """One pyramid level: the ``mosaic`` and the frame's ``patch`` there, ``scale`` its
+    pixels per level-0 pixel, ``final``: the patch's own level (level 0)."""
+
+    mosaic: np.ndarray
+    patch: np.ndarray
+    scale: float
+    final: bool
+
+
+class Following(NamedTuple):
+    """The features followed: their mosaic pixels ``mpx (M, 2)`` and predicted patch
+    pixels ``uv (M, 2)`` (level 0), the patch's valid part eroded by the window
+    ``inner``, the prior's turn ``(c, s)``."""
+
+    mpx: np.ndarray
+    uv: np.ndarray
+    inner: np.ndarray
+    c: float
+    s: float
+
+
+@njit
+def _lk_level(level, fol, lk, d, ok):  # pragma: no cover - compiled
+    """One pyramid level of each feature's Lucas-Kanade (see the module docstring),
+    in place: ``d (M, 2)`` the displacement from ``uv`` (the level-0 patch pixels
+    ``uv``, the mosaic pixels ``mpx`` and ``d`` all times ``scale`` at this level);
+    ``ok`` cleared where the template leaves the mosaic or is flat, or (``final``) the
+    window leaves the patch, does not converge, correlates with the template under
+    ``min_zncc`` or ends where ``inner`` (the patch's valid part, eroded) does not
+    hold. A coarse level whose window leaves the patch keeps its displacement (the
+    finer one decides). The window moves as a whole: one bilinear weight set an
+    iteration for all its pixels."""
+    mosaic, patch, scale, final = level.mosaic, level.patch, level.scale, level.final
+    mpx, uv, inner, c, s = fol.mpx, fol.uv, fol.inner, fol.c, fol.s
+    half, iters, eps, min_zncc = lk.half, lk.iters, lk.eps, lk.min_zncc
+    w = 2 * half + 1
+    tpl = np.empty((w + 2, w + 2))
+    gx = np.empty((w, w))
+    gy = np.empty((w, w))
+    win = np.empty((w, w))
+    for k in range(len(mpx)):
+        if not ok[k]:
+            continue
+        u0, v0 = uv[k, 0] * scale - half, uv[k, 1] * scale - half
+        if not _template(mosaic, mpx[k, 0] * scale, mpx[k, 1] * scale, c, s, half, tpl):
+            ok[k] = False
+            continue
+        hxx = hxy = hyy = hx = hy = 0.0
+        for i in range(w):
+            for j in range(w):
+                a = 0.5 * (tpl[i + 1, j + 2] - tpl[i + 1, j])
+                b = 0.5 * (tpl[i + 2, j + 1] - tpl[i, j + 1])
+                gx[i, j], gy[i, j] = a, b
+                hxx += a * a
+                hxy += a * b
+                hyy += b * b
+                hx += a
+                hy += b
+        # the normal matrix [[hxx, hxy, hx], [hxy, hyy, hy], [hx, hy, w²]] (translation
+        # and grey offset): the rows of its inverse that give the translation
+        m = float(w * w)
+        c00, c01, c02 = hyy * m - hy * hy, hx * hy - hxy * m, hxy * hy - hyy * hx
+        c11, c12 = hxx * m - hx * hx, hxy * hx - hxx * hy
+        det = hxx * c00 + hxy * c01 + hx * c02
+        if not det > 1e-6 * m * (hxx + hyy) ** 2:
+            ok[k] = False
+            continue
+        i00, i01, i02, i11, i12 = c00 / det, c01 / det, c02 / det, c11 / det, c12 / det
+        dx, dy = d[k, 0], d[k, 1]
+        inside, done = True, False
+        for _ in range(iters):
+            inside = _window(patch, u0 + dx, v0 + dy, w, win)
+            if not inside:
+                break
+            bx = by = bb = 0.0
+            for i in range(w):
+                for j in range(w):
+                    e = win[i, j] - tpl[i + 1, j + 1]
+                    bx += gx[i, j] * e
+                    by += gy[i, j] * e
+                    bb += e
+            sx = i00 * bx + i01 * by + i02 * bb
+            sy = i01 * bx + i11 * by + i12 * bb
+            dx -= sx
+            dy -= sy
+            if sx * sx + sy * sy < eps * eps:
+                done = True
+                break
+        if not inside:
+            ok[k] = not final
+            continue
+        d[k, 0], d[k, 1] = dx, dy
+        if final:
+            ok[k] = done and _window(patch, u0 + dx, v0 + dy, w, win) and \
+                _zncc(win, tpl, half) >= min_zncc
+            iu, iv = int(round(u0 + half + dx)), int(round(v0 + half + dy))
+            ok[k] &= 0 <= iu < inner.shape[1] and 0 <= iv < inner.shape[0] and \
+                inner[iv, iu] > 0
+    return d
+
+
+@njit
+def _template(mosaic, cx, cy, c, s, half, tpl):  # pragma: no cover - compiled
+    """Fill ``tpl (w + 2, w + 2)`` with the mosaic (bilinear) about ``(cx, cy)`` as a
+    patch turned by ``(c, s)`` shows it (patch offset ``(a, b)`` at mosaic
+    ``(cx + c a - s b, cy + s a + c b)``); False when it leaves the mosaic."""
+    h, w = mosaic.shape
+    r = (half + 1) * 1.4143 + 1.0
+    if not (r <= cx < w - 1 - r and r <= cy < h - 1 - r):
+        return False
+    n = tpl.shape[0]
+    for i in range(n):
+        for j in range(n):
+            a, b = j - half - 1.0, i - half - 1.0
+            x, y = cx + c * a - s * b, cy + s * a + c * b
+            x0, y0 = int(x), int(y)
+            fx, fy = x - x0, y - y0
+            top = mosaic[y0, x0] + fx * (np.float64(mosaic[y0, x0 + 1]) - mosaic[y0, x0])
+            bot = mosaic[y0 + 1, x0] + fx * (np.float64(mosaic[y0 + 1, x0 + 1])
+                                              - mosaic[y0 + 1, x0])
+            tpl[i, j] = top + fy * (bot - top)
+    return True
+
+
+@njit
+def _window(img, x, y, w, out):  # pragma: no cover - compiled
+    """Fill ``out (w, w)`` with the image (bilinear) at ``(x + j, y + i)``: one shift
+    for the whole window, so one set of weights; False when it leaves the image."""
+    h, wi = img.shape
+    if not (0.0 <= x and 0.0 <= y and x + w < wi and y + w < h):
+        return False
+    x0, y0 = int(x), int(y)
+    fx, fy = x - x0, y - y0
+    w00, w01, w10, w11 = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
+    for i in range(w):
+        r0, r1 = img[y0 + i], img[y0 + i + 1]
+        for j in range(w):
+            out[i, j] = (w00 * r0[x0 + j] + w01 * r0[x0 + j + 1] + w10 * r1[x0 + j]
+                         + w11 * r1[x0 + j + 1])
+    return True
+
+
+@njit
+def _zncc(win, tpl, half):  # pragma: no cover - compiled
+    """The normalized cross-correlation of a window ``(w, w)`` with the template's
+    inside (``tpl[1:-1, 1:-1]``); 0 when either is flat."""
+    w = 2 * half + 1
+    sa = sb = saa = sbb = sab = 0.0
+    for i in range(w):
+        for j in range(w):
+            a, b = win[i, j], tpl[i + 1, j + 1]
+            sa += a
+            sb += b
+            saa += a * a
+            sbb += b * b
+            sab += a * b
+    m = w * w
+    va, vb = saa - sa * sa / m, sbb - sb * sb / m
+    if va <= 0.0 or vb <= 0.0:
+        return 0.0
+    return (sab - sa * sb / m) / math.sqrt(va * vb)
+
+
+class PatchFrame(NamedTuple):
+    """A patch's pixel ``(col, row)`` as a point of V, ``((col, row) - centre) res``,
+    and a mosaic pixel as one of W, ``(ox, oy) + (col, row) res`` (m)."""
+
+    centre: float
+    res: float
+    ox: float
+    oy: float
+
+
+@njit
+def _fit_pairs(found, ok, mpx, frame, fitting, min_points):  # pragma: no cover - compiled
+    """The pose of the followed features (``ok``): pairs ``q_V = (found - centre) res``
+    ~ ``p_W = origin + mpx res`` (m, ``frame``), robust to a few followed to the wrong
+    place (``fitting``'s tolerance ``tol``; one round of refining): the
+    rigid fit of all; again of those within 3 MADs of its residuals (or ``tol``); then
+    :func:`.match.refine`'s least squares (one round, every pair its own feature) on
+    the pairs within ``tol`` of that. Returns ``(good, x, y, yaw, cov (3, 3), used (N,)
+    bool over the followed, rms_m, followed)``: good with ``min_points`` followed and
+    used; the covariance ``s² (JᵀJ)⁻¹``, ``s²`` the residuals' variance per axis
+    (``2n - 3`` dof), never below ``sigma_floor²``."""
+    centre, res, ox, oy = frame.centre, frame.res, frame.ox, frame.oy
+    tol = fitting.tol
+    n = 0
+    for k in range(len(ok)):
+        n += ok[k]
+    q = np.empty((n, 2))
+    p = np.empty((n, 2))
+    j = 0
+    for k in range(len(ok)):
+        if ok[k]:
+            q[j, 0], q[j, 1] = (found[k, 0] - centre) * res, (found[k, 1] - centre) * res
+            p[j, 0], p[j, 1] = ox + mpx[k, 0] * res, oy + mpx[k, 1] * res
+            j += 1
+    used = np.ones(n, np.bool_)
+    if n < max(min_points, 3):
+        return False, 0.0, 0.0, 0.0, np.zeros((3, 3)), used, 0.0, n
+    x, y, yaw = _rigid(q, p, used)
+    r = _residuals(q, p, x, y, yaw)
+    med = np.median(r)
+    keep = r <= max(med + 3.0 * 1.4826 * med, tol)
+    if keep.sum() < 3:
+        return False, x, y, yaw, np.zeros((3, 3)), used, 0.0, n
+    x, y, yaw = _rigid(q, p, keep)
+    good, x, y, yaw, cov, idx, rms = _refine(Pairs(q, p, np.zeros(n, np.int64)), False,
+                                             (x, y, yaw), fitting)
+    used = np.zeros(n, np.bool_)
+    used[idx] = True
+    return good and len(idx) >= min_points, x, y, yaw, cov, used, rms, n
+
+
+@warmer
+def _warm() -> None:
+    g = np.zeros((24, 24), np.uint8)
+    g[8:16, 8:16] = 200
+    pts = arr(np.array([[12.0, 12.0]]), np.float64)
+    corner_scores(arr(g, np.uint8), pts, 2)
+    grid = FeatureGrid(pts)
+    inner = arr(np.ones((24, 24), np.uint8), np.uint8)
+    _visible(pts, arr(np.ones(1), np.float64), GridCells(grid.order, grid.starts, 1, 0, 0, 0, 0),
+             inner, Placement(12.0, 12.0, 1.0, 0.0), 2, 2)
+    d, ok = np.zeros((1, 2)), np.ones(1, np.bool_)
+    for final in (False, True):
+        _lk_level(Level(arr(g, np.uint8), arr(g, np.uint8), 1.0, final),
+                  Following(pts, pts, inner, 1.0, 0.0), LK, d, ok)
+    q = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    _fit_pairs(q, np.ones(4, np.bool_), arr(q, np.float64), PatchFrame(0.5, 0.02, 0.0, 0.0),
+               Fitting(0.03, 0.001, 1), 3)
+
+
+__all__ = ["FeatureGrid", "MapTracker", "Tracked", "corner_scores"]

@@ -1,0 +1,100 @@
+"""The ``texture`` method's matching stages on synthetic data: the LSH index against
+brute force, the two-point RANSAC and the least squares on a known pose among outliers;
+and the tracked fast path's basin on the session's office scene (conftest.py)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from ceilkit.runtime.estimators.base import PoseEstimate
+from ceilkit.runtime.estimators.texture import TextureEstimator
+from ceilkit.runtime.estimators.texture.match import (
+    LSH_KEY_BITS,
+    LSH_TABLES,
+    DescriptorIndex,
+    key_bits,
+    ransac_rigid,
+    refine,
+)
+
+
+def _flipped(desc: np.ndarray, bits: int, rng: np.random.Generator) -> np.ndarray:
+    """Each descriptor with ``bits`` of its 256 bits flipped (distinct bits)."""
+    out = desc.copy()
+    for row in out:
+        for b in rng.choice(256, bits, replace=False):
+            row[b // 8] ^= np.uint8(1 << (b % 8))
+    return out
+
+
+def test_index_finds_near_descriptors_within_the_distance():
+    rng = np.random.default_rng(1)
+    desc = rng.integers(0, 256, size=(5000, 32), dtype=np.uint8)
+    index = DescriptorIndex(rng.uniform(0, 30, size=(5000, 2)), desc)
+    kb = index.key_bits
+    assert kb.shape == (LSH_TABLES, LSH_KEY_BITS) and len(np.unique(kb)) == kb.size
+    pick = rng.choice(5000, 300, replace=False)
+    query = _flipped(desc[pick], 12, rng)
+    qi, mj, _ = index.match(query, 2, 64)
+    found = {(int(a), int(b)) for a, b in zip(qi, mj, strict=True)}
+    hit = np.mean([(k, int(j)) in found for k, j in enumerate(pick)])
+    # a descriptor 12 bits off shares a table's key with p = (244/256)^16 = 0.46: some
+    # table of 16 holds it with probability 1 - 0.54^16 = 0.99995
+    assert hit >= 0.98, hit
+    got = np.array([cv2.norm(query[a], desc[b], cv2.NORM_HAMMING)
+                    for a, b in zip(qi, mj, strict=True)])
+    assert np.all(got <= 64)
+
+
+def test_key_bits_are_the_balanced_ones():
+    rng = np.random.default_rng(2)
+    desc = rng.integers(0, 256, size=(400, 32), dtype=np.uint8)
+    desc[:, :4] = 0                      # 32 bits never set: no table may read them
+    kb = key_bits(desc, tables=8, bits=16)                    # 128 of the 224 balanced
+    assert kb.shape == (8, 16) and not np.any(kb < 32), kb[kb < 32]
+    every = key_bits(desc)               # the default's 16 x 16 keys read each bit once
+    assert sorted(every.ravel()) == list(range(256))
+
+
+def test_ransac_and_refine_find_the_pose_among_outliers():
+    rng = np.random.default_rng(3)
+    truth = (2.0, -1.0, 0.7)
+    q = rng.uniform(-1.5, 1.5, size=(60, 2))
+    c, s = math.cos(truth[2]), math.sin(truth[2])
+    p = q @ np.array([[c, s], [-s, c]]) + truth[:2] + rng.normal(0, 0.002, size=(60, 2))
+    p[40:] = rng.uniform(-3, 3, size=(20, 2))            # a third of the matches wrong
+    qi = np.arange(60)
+    fit = ransac_rigid(q, p, qi, 0.01, 200, rng)
+    assert fit is not None and fit.count >= 38
+    ref = refine(q, p, qi, fit.pose, 0.01, 0.0005)
+    assert ref is not None and len(ref.used) == 40 and set(ref.used) == set(range(40))
+    assert math.hypot(ref.pose[0] - truth[0], ref.pose[1] - truth[1]) < 0.002
+    assert abs(ref.pose[2] - truth[2]) < 0.002
+    sd = np.sqrt(np.diag(ref.cov))
+    assert 0.0002 < sd[0] < 0.002 and sd[2] < 0.003
+    # the runner-up's search leaves the best's basin out: only outliers remain
+    rest = np.ones(60, bool)
+    rest[ref.used] = False
+    other = ransac_rigid(q[rest], p[rest], qi[rest], 0.01, 200, rng, avoid=ref.pose)
+    assert other is None or other.count < 6
+
+
+def _prior(pose, d: float, sigma_m: float) -> PoseEstimate:
+    return PoseEstimate(0, "track", pose[0] + d, pose[1] - d, pose[2] + 0.01, 0.9,
+                        cov=np.diag([sigma_m ** 2, sigma_m ** 2, 0.02 ** 2]))
+
+
+def test_the_fast_path_follows_from_a_prior_some_centimetres_off(office):
+    """The fast path's basin: priors 1 to 7 cm off (each inside its own region, which is
+    too narrow for a twin 0.3 m away) give its pose within 2 mm."""
+    est = TextureEstimator(office.rig, office.sites["scatter"], {"plane_odometry": False})
+    for k in (1, 3, 5):
+        truth = office.drive_poses[k]
+        for d, sigma in ((0.01, 0.01), (0.03, 0.02), (0.05, 0.03)):
+            got = est.estimate(office.drive[k], k, _prior(truth, d, sigma))
+            assert got and got.diagnostics["search"] == "tracked", (k, d, got)
+            err = math.hypot(got.x_m - truth[0], got.y_m - truth[1])
+            assert err < 0.002, (k, d, err)
