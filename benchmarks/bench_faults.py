@@ -32,6 +32,7 @@ Prints the figures and saves them as JSON in ``--out``:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -351,7 +352,7 @@ def _outcome(case: Case, t: Path, rec: Path, proc: subprocess.CompletedProcess):
     line = errors[-1] if errors else (proc.stderr.strip().splitlines() or [""])[-1]
     if "Traceback (most recent call last)" in proc.stderr:
         return "traceback", line
-    if any(Path(g.format(t=t, rec=rec)).read_bytes() != MARK for g in case.guard):
+    if any(not _still_marked(Path(g.format(t=t, rec=rec))) for g in case.guard):
         return "data-loss", line
     if case.check is not None and (verdict := case.check(t, proc)) is not None:
         return verdict, line
@@ -362,6 +363,11 @@ def _outcome(case: Case, t: Path, rec: Path, proc: subprocess.CompletedProcess):
     words = [w.format(t=t, rec=rec) for w in case.names]
     one = len(errors) == 1 and errors[0].startswith(f"{case.argv[0]}: error: ")
     return ("clean" if one and all(w in line for w in words) else "unnamed"), line
+
+
+def _still_marked(path: Path) -> bool:
+    """Whether ``path`` is still the user's file (MARK): not replaced, not removed."""
+    return path.is_file() and path.read_bytes() == MARK
 
 
 def _commands():
@@ -428,10 +434,24 @@ def value_cases() -> list[Case]:
                     str(int(below)) if kind is int else repr(float(below))]
                 bad += ["-1"] if span is None or span.lo >= 0 else []
                 bad.append("99999999999999999999" if kind is int else "1e308")
+                bad += ["", _other_unit(span)]
             for v in dict.fromkeys(bad):
                 cases.append(Case("bad value", f"{prog} {name} {flag} {v!r}".replace("  ", " "),
                                   [*head, flag, v], names=(flag,)))
     return cases
+
+
+OTHER_UNITS = {"m": "mm", "m/s": "km/h", "s": "ms", "ms": "s", "degrees": "rad",
+               "Hz": "kHz", "px": "mm", "bit/s": "kbit/s", "frames": "s",
+               "grey levels": "%"}
+"""A unit a user may type after a number by mistake, for each unit of a flag's range."""
+
+
+def _other_unit(span) -> str:
+    """A value in range written with a unit (``25mm`` for a flag in m): not a number."""
+    unit = "" if span is None else span.unit.split(" (")[0]
+    value = 1 if span is None else max(min(1.0, span.hi), span.lo + 1e-3)
+    return f"{value:g}{OTHER_UNITS.get(unit, 'x')}"
 
 
 REPLAY = ["ceilrun", "replay", "{rec}", "--out", "{t}/o", "--method", "corridor"]
@@ -713,9 +733,511 @@ def concurrent_cases() -> list[Case]:
     return out
 
 
+CHARUCO = ["ceilcal", "board", "--board", "charuco:5x7", "--square", "0.04", "--out",
+           "{t}/b.pdf"]
+
+
+def board_cases() -> list[Case]:
+    """``ceilcal board`` with a ChArUco board: bad ``--marker`` values (and one not
+    smaller than the square), bad ``--paper`` names, board sizes and squares that do not
+    exist or do not fit the paper; each one line naming its flag, no PDF written."""
+    def no_pdf(t: Path, proc) -> str | None:
+        return "data-loss" if (t / "b.pdf").exists() else None
+
+    out = [Case("bad value", f"ceilcal board charuco --marker {v!r}",
+                [*CHARUCO, "--marker", v], ("--marker",), check=no_pdf)
+           for v in ("nan", "inf", "-inf", "-1", "0", "1e308", "", "0.04", "0.05", "30mm",
+                     "99999999999999999999")]
+    out += [Case("bad value", f"ceilcal board charuco --paper {v!r}",
+                 [*CHARUCO, "--marker", "0.03", "--paper", v], ("--paper",), check=no_pdf)
+            for v in ("", "a99", "a4x", "letter landscape", "210x297", "nan")]
+    sizes = [("--board", "charuco:0x7"), ("--board", "charuco:1x1"),
+             ("--board", "charuco:5x7:NO_SUCH_DICT"), ("--board", "charuco:99999x99999"),
+             ("--board", "charuco:5x"), ("--square", "0.5"), ("--square", "1e-9")]
+    for flag, v in sizes:
+        argv = [*CHARUCO, "--marker", "0.03"] if flag == "--board" else \
+            [*CHARUCO[:-4], flag, v, "--out", "{t}/b.pdf"]
+        if flag == "--board":
+            argv[3] = v
+        out.append(Case("bad value", f"ceilcal board {flag} {v!r} (charuco)", argv,
+                        (flag,), check=no_pdf))
+    return out
+
+
+_MCAP: dict[str, bytes] = {}
+"""The 8-frame corridor recording as MCAP bytes, made once by ``ceilrun convert``."""
+
+
+def _mcap_bytes() -> bytes:
+    if "data" not in _MCAP:
+        with tempfile.TemporaryDirectory(prefix="battery-mcap-") as tmp:
+            subprocess.run([_tool("ceilrun"), "convert", str(REC_FIXTURE),
+                            f"{tmp}/rec.mcap"], check=True, capture_output=True)
+            _MCAP["data"] = Path(tmp, "rec.mcap").read_bytes()
+    return _MCAP["data"]
+
+
+def _with_mcap(then: Callable[[Path], Callable[[], None] | None] | None = None):
+    """A setup writing ``{t}/in.mcap`` (the corridor recording), then ``then``."""
+    def setup(t: Path):
+        (t / "in.mcap").write_bytes(_mcap_bytes())
+        return then(t) if then is not None else None
+    return setup
+
+
+def _holding_lock(folder: str, name: str | None = None):
+    """A setup that starts another process holding the lock of ``{t}/folder`` (its
+    ``.ceilkit.lock``; ``name``: another lock file in it): another run writing there."""
+    def setup(t: Path) -> Callable[[], None]:
+        args = "sys.argv[1]" + (f", {name!r}" if name else "")
+        holder = subprocess.Popen(
+            [sys.executable, "-c", "import sys\nfrom ceilkit.runtime.io.outputs import "
+             f"FolderLock\nwith FolderLock({args}):\n    print('held', flush=True)\n"
+             "    sys.stdin.read()\n", str(t / folder)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        holder.stdout.readline()
+
+        def end() -> None:
+            holder.stdin.close()
+            holder.wait()
+        return end
+    return setup
+
+
+def _symlink(name: str, target: str, then=None):
+    def setup(t: Path):
+        (t / name).symlink_to(t / target)
+        return then(t) if then is not None else None
+    return setup
+
+
+def _listing(rel: str):
+    """A check: the folder ``rel`` ({rec}/frames) holds what the fixture's does."""
+    def check(t: Path, proc) -> str | None:
+        now = sorted(p.name for p in Path(rel.format(t=t, rec=t / "rec")).iterdir())
+        was = sorted(p.name for p in (REC_FIXTURE / rel.replace("{rec}", ".")).iterdir())
+        return None if now == was else "data-loss"
+    return check
+
+
+CONVERT = ["ceilrun", "convert"]
+HELD = [  # (folder held by another run, a file the user made in it, the command, --force)
+    ("o", "o/poses.csv", [*REPLAY, "--force"]),
+    ("ov", "ov/000003.png", [*REPLAY, "--overlays", "{t}/ov", "--force"]),
+    ("o", "o/poses.csv", [*LIVE, "--out", "{t}/o", "--force"]),
+    ("r", "r/notes.txt", [*LIVE, "--record", "{t}/r"]),
+    ("chk", "chk/check-site.yaml", ["ceilcal", "check-site", "--rig", "{rec}/rig.yaml",
+                                    "--site", "{rec}/site.yaml", "--out", "{t}/chk",
+                                    "--force"]),
+    ("pl", "pl/lightmap.png", ["ceilcal", "lightmap", "{rec}", "--out", "{t}/site.yaml",
+                               "--plots", "{t}/pl", "--force"]),
+    ("pl", "pl/views.png", ["ceilcal", "intrinsics", "{t}", *BOARD, "--out",
+                            "{t}/cam.yaml", "--plots", "{t}/pl", "--force"]),
+    ("pl", "pl/mount_residuals.png", [*MOUNT, "--plots", "{t}/pl", "--force"]),
+    ("conv", "conv/notes.txt", [*CONVERT, "{t}/in.mcap", "{t}/conv", "--force"]),
+    ("sim", "sim/notes.txt", ["ceilcal", "simulate", "--out", "{t}/sim", "--frames", "2"]),
+]
+
+
+def held_cases() -> list[Case]:
+    """Every output folder while another run holds its lock (even with ``--force``):
+    refused naming the other run, the user's file in it kept."""
+    out = []
+    for folder, made, argv in HELD:
+        setup = _holding_lock(folder)
+        if "{t}/in.mcap" in argv:
+            setup = _with_mcap(setup)
+        out.append(Case("data loss", f"{' '.join(argv[:2])} into {folder}/ held by another "
+                        "run", argv, ("another run", "is writing"), guard=("{t}/" + made,),
+                        setup=setup))
+    return out
+
+
+def convert_cases() -> list[Case]:
+    """``ceilrun convert`` over what exists, into or onto its source, into an ``.mcap``
+    being written."""
+    src = [*CONVERT, "{t}/in.mcap"]
+    return [
+        Case("data loss", "convert .mcap into a folder holding a recording",
+             [*src, "{t}/conv"], ("{t}/conv", "--force"), guard=("{t}/conv/frames.csv",),
+             setup=_with_mcap()),
+        Case("data loss", "convert .mcap into a folder holding a rig.yaml",
+             [*src, "{t}/conv"], ("{t}/conv", "--force"), guard=("{t}/conv/rig.yaml",),
+             setup=_with_mcap()),
+        Case("data loss", "convert a folder onto its own frames/",
+             [*CONVERT, "{rec}", "{rec}/frames/x.mcap"], ("DST", "inside an input"),
+             check=_listing("{rec}/frames")),
+        Case("data loss", "convert a folder into itself", [*CONVERT, "{rec}", "{rec}/x.mcap"],
+             ("DST", "inside an input"), check=_listing("{rec}")),
+        Case("data loss", "convert .mcap onto a link to itself", [*src, "{t}/lnk", "--force"],
+             ("DST", "is an input"), setup=_with_mcap(_symlink("lnk", "in.mcap")),
+             check=lambda t, proc: None if (t / "in.mcap").read_bytes() == _mcap_bytes()
+             else "data-loss"),
+        Case("data loss", "convert into an .mcap another run is recording",
+             [*CONVERT, "{rec}", "{t}/x.mcap", "--force"], ("another run", "is writing"),
+             guard=("{t}/x.mcap",), setup=_holding_lock(".", ".x.mcap.lock")),
+        Case("data loss", "convert over a user's .mcap", [*CONVERT, "{rec}", "{t}/x.mcap"],
+             ("{t}/x.mcap", "--force"), guard=("{t}/x.mcap",)),
+    ]
+
+
+INTO_INPUTS = [  # (command, the flag named, a check that the input stayed)
+    (["ceilcal", "intrinsics", "--ceiling", "{rec}", "--out", "{rec}/rig.yaml", "--force"],
+     "--out", "{rec}/rig.yaml"),
+    (["ceilcal", "lightmap", "{rec}", "--out", "{rec}/frames/site.yaml"], "--out",
+     "{rec}/frames"),
+    (["ceilcal", "lightmap", "{rec}", "--out", "{rec}/truth.csv", "--force"], "--out",
+     "{rec}/truth.csv"),
+    (["ceilcal", "lightmap", "{rec}", "--out", "{t}/site.yaml", "--plots", "{rec}/frames"],
+     "--plots", "{rec}/frames"),
+    (["ceilcal", "autopilot", "--rig", "{rec}/rig.yaml", "--firmware", "ardupilot-4.6",
+      "--out", "{rec}/rig.yaml", "--force"], "--out", "{rec}/rig.yaml"),
+    (["ceilcal", "check-site", "--rig", "{rec}/rig.yaml", "--site", "{rec}/site.yaml",
+      "--out", "{rec}/site.yaml", "--force"], "{rec}/site.yaml", "{rec}/site.yaml"),
+    (["ceilcal", "simulate", "--out", "{rec}", "--frames", "2"], "{rec}", "{rec}/frames"),
+    (["ceilcal", "simulate", "--out", "{rec}/site.yaml", "--frames", "2", "--site",
+      "{rec}/site.yaml"], "--out", "{rec}/site.yaml"),
+    ([*REPLAY[:4], "{rec}/frames", *REPLAY[5:]], "--out", "{rec}/frames"),
+    ([*REPLAY, "--tum", "--overlays", "{rec}/frames/sub"], "--overlays", "{rec}/frames"),
+]
+
+
+def into_input_cases() -> list[Case]:
+    """Outputs of the calibration commands (and a replay's) into or over one of their
+    inputs: refused naming the flag, the input as it was."""
+    out = []
+    for argv, flag, kept in INTO_INPUTS:
+        check = _listing(kept) if kept.endswith(("frames", "}")) else _unchanged(kept)
+        out.append(Case("data loss", f"{' '.join(argv[:2])} {flag} into its input "
+                        f"{kept.replace('{rec}/', 'REC/')}", argv, (flag,), check=check))
+    return out
+
+
+def _frame_png(shape: tuple[int, ...] | None = None, colour: bool = False) -> bytes:
+    import cv2
+
+    img = cv2.imread(str(REC_FIXTURE / "frames" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    if shape is not None:
+        img = cv2.resize(img, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
+    if colour and img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    return cv2.imencode(".png", img)[1].tobytes()
+
+
+FRAME_DAMAGE: dict[str, Callable[[bytes], bytes | None]] = {
+    "zero bytes": lambda data: b"",
+    "garbage": lambda data: np.random.default_rng(2).bytes(len(data)),
+    "a JPEG header, then garbage": lambda data: b"\xff\xd8\xff\xe0" + bytes(4000),
+    "half the resolution": lambda data: _frame_png((120, 160)),
+    "1x1 px": lambda data: _frame_png((1, 1)),
+    "missing": lambda data: None,
+}
+"""How frame 2 of a recording (or of an image folder) is damaged: its new bytes (None:
+the file is removed)."""
+
+
+LIGHTS_FIXTURE = REC_FIXTURE.parent / "lights_rec"
+
+
+def _damage_frame(folder: str, name: str, how: str):
+    def setup(t: Path) -> None:
+        if folder.startswith("lrec"):  # the 6-frame lights recording (a lightmap's input)
+            shutil.copytree(LIGHTS_FIXTURE, t / "lrec")
+        path = t / folder / name
+        data = FRAME_DAMAGE[how](path.read_bytes())
+        if data is None:
+            path.unlink()
+        else:
+            path.write_bytes(data)
+    return setup
+
+
+def _named_or_refused(name: str, then=None):
+    """A check: the run is refused in one error line naming ``name`` (the damaged file),
+    or it runs (exit 0), names it on stderr and passes ``then`` (no pose from it)."""
+    def check(t: Path, proc) -> str:
+        if proc.returncode != 0:  # one error line; the file named by it or before it
+            errors = [ln for ln in proc.stderr.splitlines() if ": error: " in ln]
+            return "clean" if len(errors) == 1 and name in proc.stderr else "unnamed"
+        if name not in proc.stderr:
+            return "silent-wrong"
+        return (then(t, proc) if then is not None else None) or "clean"
+    return check
+
+
+def _pose_after(t_ns: int, poses: str):
+    """A check: the row at ``t_ns`` has no pose and the next row has one (a frame after
+    a damaged one is estimated)."""
+    def check(t: Path, proc) -> str | None:
+        import csv
+        path = t / poses
+        rows = list(csv.DictReader(path.open())) if path.exists() else []
+        k = next((i for i, r in enumerate(rows) if int(r["t_ns"]) == t_ns), None)
+        ok = k is not None and k + 1 < len(rows) and rows[k]["yaw_deg"] == "" \
+            and rows[k + 1]["yaw_deg"] != ""
+        return None if ok else "silent-wrong"
+    return check
+
+
+def more_damage_cases() -> list[Case]:
+    """Frame 2 of a recording (and of an image folder) zero bytes, garbage, a JPEG cut
+    short, another resolution, 1x1 px or missing: a replay publishes no pose from it
+    and names it; a conversion and the calibrations that read a recording name it."""
+    out = []
+    for how in FRAME_DAMAGE:
+        setup = _damage_frame("rec/frames", "000002.png", how)
+        out.append(Case("damaged frame", f"replay, frame 2 {how}",
+                        [*REPLAY, "--option", "assume_heading_deg=0"], refused=False,
+                        setup=setup, check=_named_or_refused(
+                            "000002.png", _pose_after(200_000_000, "o/poses.csv"))))
+        out.append(Case("damaged frame", f"convert, frame 2 {how}",
+                        [*CONVERT, "{rec}", "{t}/x.mcap"], refused=False, setup=setup,
+                        check=_named_or_refused("000002.png")))
+        for argv, rec in ((["ceilcal", "lightmap", "{t}/lrec", "--out", "{t}/site.yaml"],
+                           "lrec"),
+                          (["ceilcal", "intrinsics", "--ceiling", "{rec}", "--out",
+                            "{t}/cam.yaml"], "rec")):
+            out.append(Case("damaged frame", f"{argv[1]}, frame 2 {how}", argv,
+                            refused=False, setup=_damage_frame(f"{rec}/frames",
+                                                               "000002.png", how),
+                            check=_named_or_refused("000002")))
+    for how in ("zero bytes", "garbage", "half the resolution"):
+        for ext in ("jpg", "png"):
+            out.append(Case("damaged frame", f"image folder, a {ext} {how}",
+                            ["ceilrun", "--device", "{t}/imgs", "--rig", "{rec}/rig.yaml",
+                             "--site", "{rec}/site.yaml", "--method", "corridor", "--out",
+                             "{t}/o"], refused=False,
+                            setup=_image_folder(ext, how), check=_named_or_refused(
+                                "frame 1 is 320x240" if how == "half the resolution"
+                                else f"000001.{ext}", _no_pose_at(None, "o/poses.csv"))))
+    return out
+
+
+def _image_folder(ext: str, how: str):
+    def setup(t: Path) -> None:
+        import cv2
+
+        img = cv2.imread(str(REC_FIXTURE / "frames" / "000000.png"), cv2.IMREAD_UNCHANGED)
+        (t / "imgs").mkdir()
+        for k in range(3):
+            data = cv2.imencode(f".{ext}", img)[1].tobytes()
+            if k == 1:
+                data = FRAME_DAMAGE[how](data) if how != "half the resolution" else \
+                    cv2.imencode(f".{ext}", img[::2, ::2])[1].tobytes()
+            (t / "imgs" / f"{k:06d}.{ext}").write_bytes(data)
+    return setup
+
+
+def _unreadable(path: Path) -> None:
+    """``path`` made a file whose reads fail: mode 000 for a user; as root (who reads
+    anything), a link to ``/proc/self/mem``, which opens but fails every read (EIO)."""
+    if os.geteuid() == 0:
+        path.symlink_to("/proc/self/mem")
+    else:
+        path.write_text("a: 1\n")
+        path.chmod(0)
+
+
+MORE_SPECIAL = {
+    "fifo": lambda p: os.mkfifo(p),
+    "/dev/null": lambda p: p.symlink_to("/dev/null"),
+    "a folder": lambda p: p.mkdir(),
+    "a file": lambda p: p.write_text("a: 1\n"),
+    "a symlink loop": lambda p: p.symlink_to(p),
+    "unreadable": _unreadable,
+}
+"""Special files given where a file (or a folder) is read."""
+FILE_USES = [  # (what, the command with {t}/in where the file goes)
+    ("ceilrun --rig", [*LIVE, "--rig", "{t}/in"]),
+    ("ceilrun --site", [*LIVE, "--site", "{t}/in"]),
+    ("ceilrun --capture", [*LIVE, "--capture", "{t}/in"]),
+    ("mount PLACEMENTS", ["ceilcal", "mount", "{t}/in", "--site", "{rec}/site.yaml",
+                          "--camera", "{rec}/rig.yaml", "--out", "{t}/rig.yaml"]),
+    ("lightmap --poses", ["ceilcal", "lightmap", "{rec}", "--poses", "{t}/in", "--out",
+                          "{t}/site.yaml"]),
+    ("autopilot --rig", ["ceilcal", "autopilot", "--rig", "{t}/in", "--firmware",
+                         "ardupilot-4.6", "--out", "{t}/ap.param"]),
+    ("check-site --rig", ["ceilcal", "check-site", "--rig", "{t}/in", "--site",
+                          "{rec}/site.yaml", "--out", "{t}/chk"]),
+    ("check-site --site", ["ceilcal", "check-site", "--rig", "{rec}/rig.yaml", "--site",
+                           "{t}/in", "--out", "{t}/chk"]),
+    ("exposure --rig", ["ceilcal", "exposure", "--device", "sim:lights", "--rig", "{t}/in",
+                        "--out", "{t}/capture.yaml"]),
+    ("survey RIG", ["ceilcal", "survey", "{t}/in", "--out", "{t}/sv"]),
+    ("convert SRC .mcap", [*CONVERT, "{t}/in", "{t}/conv"]),
+]
+FOLDER_USES = [
+    ("replay RECORDING", ["ceilrun", "replay", "{t}/in", "--out", "{t}/o"]),
+    ("repair RECORDING", ["ceilrun", "repair", "{t}/in"]),
+    ("convert SRC folder", [*CONVERT, "{t}/in", "{t}/x.mcap"]),
+    ("lightmap RECORDING", ["ceilcal", "lightmap", "{t}/in", "--out", "{t}/site.yaml"]),
+    ("intrinsics FOLDER", ["ceilcal", "intrinsics", "{t}/in", *BOARD, "--out",
+                           "{t}/cam.yaml"]),
+    ("intrinsics --ceiling", ["ceilcal", "intrinsics", "--ceiling", "{t}/in", "--out",
+                              "{t}/cam.yaml"]),
+    ("ceilrun --device FOLDER", [*LIVE[:2], "{t}/in", "--rig", "{rec}/rig.yaml", "--site",
+                                 "{rec}/site.yaml", "--method", "corridor"]),
+]
+
+
+def more_special_cases() -> list[Case]:
+    """Every other file and folder input given a FIFO, /dev/null, a folder (a file where
+    a folder is read), a symlink loop or an unreadable file; and /dev/null, a loop and
+    an unreadable file as the inputs the first table covers. Each one line naming it."""
+    out = []
+    uses = [(w, a, False) for w, a in FILE_USES] + [(w, a, True) for w, a in FOLDER_USES]
+    uses += [(f"{a[1]} {flag}", [*a, flag, "{t}/in"], False)
+             for flag, a in (("--rig", REPLAY), ("--site", REPLAY),
+                             ("--camera", MOUNT[:-4] + MOUNT[-2:]), ("--odometry", REPLAY))]
+    for what, argv, folder in uses:
+        kinds = [k for k in MORE_SPECIAL if k != ("a folder" if folder else "a file")]
+        if what.startswith(("replay --", "mount --camera")):
+            kinds = ["/dev/null", "a symlink loop", "unreadable"]  # the rest: special_cases
+        for kind in kinds:
+            out.append(Case("special file", f"{what} {kind}", argv, ("{t}/in",),
+                            setup=_make_in(kind)))
+    return out
+
+
+def _make_in(kind: str):
+    def setup(t: Path) -> None:
+        MORE_SPECIAL[kind](t / "in")
+    return setup
+
+
+def _nmea(body: str) -> bytes:
+    x = 0
+    for c in body.encode():
+        x ^= c
+    return f"${body}*{x:02X}\r\n".encode()
+
+
+class _Peer:
+    """The controller at the other end of a pty, ``{t}/tty`` a link to its slave (the
+    path ceilrun opens): ``away`` s after the first ``$PCEIL`` it closes its end and
+    the link goes; ``back`` s later (None: never) a new pty takes the path. ``answer``:
+    a ``$PCEIO`` body (``{t}``: the pose's stamp in ms) sent after each ``$PCEIL``."""
+
+    def __init__(self, t: Path, away: float | None = None, back: float | None = None,
+                 answer: str = ""):
+        self.link, self.away, self.back, self.answer = t / "tty", away, back, answer
+        self.before, self.after = bytearray(), bytearray()
+        self._stop = threading.Event()
+        self._open()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _open(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        with contextlib.suppress(FileNotFoundError):
+            self.link.unlink()
+        self.link.symlink_to(os.ttyname(self.slave))
+
+    def _close(self) -> None:
+        """Close this end once (a number closed twice may be another case's pty by then)."""
+        for fd in (self.master, self.slave):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self.master = self.slave = -1
+
+    def _read(self, into: bytearray, until: float) -> None:
+        while not self._stop.is_set() and time.monotonic() < until and self.master >= 0:
+            if select.select([self.master], [], [], 0.02)[0]:
+                try:
+                    chunk = os.read(self.master, 65536)
+                except OSError:
+                    return
+                into += chunk
+                for line in chunk.split(b"\r\n"):  # a pose or a status: its stamp
+                    if self.answer and line.startswith((b"$PCEIL,", b"$PCEIS,")):
+                        stamp = line.split(b",")[2]
+                        os.write(self.master, _nmea(self.answer.format(t=stamp.decode())))
+
+    def _run(self) -> None:
+        forever = float("inf")
+        while not self.before and not self._stop.is_set():  # the first bytes sent
+            self._read(self.before, time.monotonic() + 0.05)
+        if self.away is None:
+            return self._read(self.before, forever)
+        self._read(self.before, time.monotonic() + self.away)
+        self._close()
+        self.link.unlink()
+        if self.back is None:
+            return None
+        self._stop.wait(self.back)
+        self._open()
+        self._read(self.after, forever)
+        return None
+
+    def end(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._close()
+
+
+def _peer_case(**kw):
+    """A setup starting a :class:`_Peer`, and a check of what it saw."""
+    peer: dict = {}
+
+    def setup(t: Path) -> Callable[[], None]:
+        peer["p"] = _Peer(t, **kw)
+        return peer["p"].end
+
+    def check(t: Path, proc) -> str | None:
+        p, err = peer["p"], proc.stderr
+        if proc.returncode != 0 or not p.before:
+            return "silent-wrong"
+        if kw.get("away") is not None and " lost " not in err:
+            return "unnamed"  # no line said the link went
+        pose = b"\xfd" if "mavlink" in proc.args else b"$PCEIL"  # MAVLink 2: frames
+        if kw.get("back") is not None and (" back after " not in err or pose not in p.after):
+            return "silent-wrong"  # no line said it is back, or no pose after it
+        if kw.get("answer") and not ("PCEIO" in err or ("link odometry:" in err
+                                                         and " refused" in err)):
+            return "unnamed"  # the sentences refused, and nothing said so
+        return None
+    return setup, check
+
+
+LINK_LIVE = ["ceilrun", "--device", "sim:corridor", "--frames", "240", "--serial",
+             "{t}/tty", "--option", "assume_heading_deg=0"]  # poses, not only status
+PCEIO_BAD = {"dx 1e308": "PCEIO,{t},1e308,0,0", "dy -1e308": "PCEIO,{t},0,-1e308,0",
+             "dyaw 1e308": "PCEIO,{t},0,0,1e308", "all 1e308": "PCEIO,{t},1e308,-1e308,1e308",
+             "t 1e30": "PCEIO,1000000000000000000000000000000,0.01,0,0",
+             "t -5": "PCEIO,-5,0.01,0,0", "dx 900 m": "PCEIO,{t},900,0,0"}
+"""``$PCEIO`` sentences (correct checksums) out of bounds, answering every pose."""
+
+
+def link_cases() -> list[Case]:
+    """The serial peer going away and coming back (a pty whose path is taken by a new
+    one), going away for good; ``$PCEIO`` odometry out of bounds over the link. Each
+    run ends with exit 0 and lines saying what happened; poses resume once it is back."""
+    out = []
+    for name, kw, argv in (
+            ("peer away 1 s and back (nmea)", {"away": 0.3, "back": 1.0}, LINK_LIVE),
+            ("peer away 3 s and back (nmea)", {"away": 0.3, "back": 3.0}, LINK_LIVE),
+            ("peer away 1 s and back (mavlink)", {"away": 0.3, "back": 1.0},
+             [*LINK_LIVE, "--protocol", "mavlink"]),
+            ("peer away for good", {"away": 0.3, "back": None}, LINK_LIVE)):
+        setup, check = _peer_case(**kw)
+        out.append(Case("link", name, argv, refused=False, setup=setup, check=check,
+                        timeout_s=300))
+    for name, body in PCEIO_BAD.items():
+        setup, check = _peer_case(answer=body)
+        out.append(Case("link", f"$PCEIO {name} over the link",
+                        [*LINK_LIVE[:4], "120", *LINK_LIVE[5:], "--method", "auto",
+                         "--link-odometry"],
+                        refused=False, setup=setup, check=check, timeout_s=300))
+    return out
+
+
 def battery_cases() -> list[Case]:
     return (value_cases() + overwrite_cases() + damage_cases() + special_cases()
-            + content_cases() + concurrent_cases())
+            + content_cases() + concurrent_cases() + board_cases() + held_cases()
+            + convert_cases() + into_input_cases() + more_damage_cases()
+            + more_special_cases() + link_cases())
 
 
 def bench_battery(workers: int = 2, only: str = "") -> dict:

@@ -33,6 +33,7 @@ Example::
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -83,6 +84,21 @@ class LightMap:
     offset_s: float | None = None
     offset_sigma_s: float | None = None
 
+
+
+_SAID_DAMAGED: set[str] = set()
+"""The damaged frames already named (each is one line, however often it is read)."""
+
+
+def _image(recording: Recording, k: int) -> np.ndarray:
+    """Frame ``k``'s image; a damaged file (cut short, not an image) is named in one
+    line and is an empty image (no spots from it)."""
+    frame = recording.frame(k)
+    if frame.damage and frame.damage not in _SAID_DAMAGED:
+        _SAID_DAMAGED.add(frame.damage)
+        logging.getLogger("ceilkit.lightmap").warning("%s: skipped (bad_frame)",
+                                                      frame.damage)
+    return frame.image
 
 def load_pose_table(path: str | Path) -> Truth:
     """Known vehicle poses from ``truth.csv`` (``t_ns,x,y,yaw_deg``) or a ``poses.csv``
@@ -209,7 +225,7 @@ def check_spot_lights(recording: Recording, ceiling_height_m: float,
     n = len(recording)
     ext = []
     for k in sorted({int(i) for i in np.linspace(0, n - 1, min(samples, n)).round()}):
-        spots = detect_spots(recording.frame(k).image, spot_params, valid)
+        spots = detect_spots(_image(recording, k), spot_params, valid)
         if len(spots):
             ext.append(spot_extents_m(rig, ceiling_height_m, spots))
     if not ext:
@@ -275,7 +291,7 @@ def _detections(recording: Recording, table: StampedPoses, height: float,
                      for o in (-margin_s, 0.0, margin_s)):
             continue
         used += 1
-        spots = detect_spots(recording.frame(k).image, spot_params, valid)
+        spots = detect_spots(_image(recording, k), spot_params, valid)
         if len(spots) == 0:
             continue
         q, ok = ceiling_points(rig, height, spots.centroids_px)
@@ -684,7 +700,7 @@ def frame_points(recording: Recording, ceiling_height_m: float | None = None,
     jgrid = jacobian_grid(rig, height, 8)
     obs: list[tuple[int, np.ndarray, np.ndarray]] = []
     for k in range(len(recording)):
-        spots = detect_spots(recording.frame(k).image, spot_params, valid)
+        spots = detect_spots(_image(recording, k), spot_params, valid)
         if len(spots) == 0:
             continue
         q, ok = ceiling_points(rig, height, spots.centroids_px)

@@ -31,6 +31,7 @@ scanned over ``psi``: the coherent heading and pitch give ``psi_k, X_k, Y_k`` an
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -426,7 +427,14 @@ def load_seam_frames(recording: Path, max_frames: int = 40
     rec = Recording(recording)
     ks = np.unique(np.linspace(0, len(rec) - 1, min(max_frames, len(rec))).round()
                    .astype(int))
-    frames = [seam_points(rec.frame(int(k)).image, seed=int(k)) for k in ks]
+    frames = []
+    for k in ks:
+        frame = rec.frame(int(k))
+        if frame.damage:  # a file cut short or not an image: no seams from it, said
+            logging.getLogger("ceilkit.selfcal").warning("%s: skipped (bad_frame)",
+                                                         frame.damage)
+            continue
+        frames.append(seam_points(frame.image, seed=int(k)))
     cam = rec.rig.camera
     return frames, (cam.width, cam.height), rec.rig, rec.site
 

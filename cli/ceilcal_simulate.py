@@ -14,6 +14,7 @@ import typer
 from ceilkit.calib import workflow
 from ceilkit.calib.boards import parse_board
 from ceilkit.runtime.errors import ConfigError
+from ceilkit.runtime.io.outputs import claimed
 
 
 def register(app: typer.Typer) -> None:
@@ -62,23 +63,25 @@ def register(app: typer.Typer) -> None:
                                             "0.1,12 -0.1,-12)."),
     ) -> None:
         """Render simulated data with its truth: a recording, board views or placements."""
-        if kind == "boards":
-            if board is None or square is None:
-                raise ConfigError(None, "board", "--kind boards needs --board and --square")
-            typer.echo("\n".join(workflow.simulate_boards(
-                out, parse_board(board, square, marker), camera=camera, rig=rig,
-                views=views, seed=seed, noise_sigma=noise, blur_px=blur,
-                supersample=supersample).lines()))
-            return
-        if kind not in ("drive", "placements"):
-            raise ConfigError(None, "kind", f"expected drive, boards or placements, found "
-                              f"{kind!r}")
-        run = workflow.simulate(out, rig=rig, site=site, frames=frames, fps=fps,
-                                trajectory=trajectory, lateral_m=lateral, weave_m=weave,
-                                wobble_deg=wobble, speed_mps=speed, noise_sigma=noise,
-                                blur_px=blur, supersample=supersample, clutter=clutter,
-                                seed=seed, sim_preset=sim_preset,
-                                sim_faults=tuple(sim_fault or ()),
-                                placements=None if kind == "drive" else
-                                workflow.parse_placements(placement or ()), scene=scene)
-        typer.echo("\n".join(run.lines()))
+        inputs = [p for p in (rig, site, scene, camera) if p is not None]
+        with claimed({}, folders={"out": [out]}, inputs=inputs):  # locked while written
+            if kind == "boards":
+                if board is None or square is None:
+                    raise ConfigError(None, "board", "--kind boards needs --board and --square")
+                typer.echo("\n".join(workflow.simulate_boards(
+                    out, parse_board(board, square, marker), camera=camera, rig=rig,
+                    views=views, seed=seed, noise_sigma=noise, blur_px=blur,
+                    supersample=supersample).lines()))
+                return
+            if kind not in ("drive", "placements"):
+                raise ConfigError(None, "kind", f"expected drive, boards or placements, found "
+                                  f"{kind!r}")
+            run = workflow.simulate(out, rig=rig, site=site, frames=frames, fps=fps,
+                                    trajectory=trajectory, lateral_m=lateral, weave_m=weave,
+                                    wobble_deg=wobble, speed_mps=speed, noise_sigma=noise,
+                                    blur_px=blur, supersample=supersample, clutter=clutter,
+                                    seed=seed, sim_preset=sim_preset,
+                                    sim_faults=tuple(sim_fault or ()),
+                                    placements=None if kind == "drive" else
+                                    workflow.parse_placements(placement or ()), scene=scene)
+            typer.echo("\n".join(run.lines()))

@@ -59,6 +59,12 @@ from ceilkit.runtime.errors import ConfigError, OutputError
 from ceilkit.runtime.estimators.base import Estimate, PoseEstimate
 from ceilkit.runtime.io import ros2_msgs as msgs
 from ceilkit.runtime.io.images import decode_image
+from ceilkit.runtime.io.outputs import (
+    FolderLock,
+    check_overlaps,
+    claim_outputs,
+    recording_inputs,
+)
 from ceilkit.runtime.io.provenance import version_line
 from ceilkit.runtime.io.recording import (
     ODOMETRY_HEADER,
@@ -550,15 +556,42 @@ def convert_recording(src: str | Path, dst: str | Path, force: bool = False) -> 
     ways (the images are identical); rig, site, ``truth.csv`` and ``odometry.csv``
     travel too, so the copy replays to identical poses.
 
+    ``dst`` is claimed first (:func:`_claim_convert`): never the source itself nor inside
+    it, locked for the whole conversion (a second conversion or a recording into it is
+    refused at once).
+
     Raises:
-        ConfigError: a bad source; ``dst`` exists (without ``force``); both or neither
-            are ``.mcap``.
-        OutputError: ``dst`` cannot be written.
+        ConfigError: a bad source; ``dst`` exists (without ``force``), is the source or
+            lies inside it; both or neither are ``.mcap``.
+        OutputError: ``dst`` cannot be written, or another run is writing it.
     """
     src, dst = Path(src), Path(dst)
     if is_mcap(src) == is_mcap(dst):
         raise ConfigError(None, "dst", f"convert a folder to .mcap or .mcap to a folder; "
                           f"found {src} -> {dst}")
+    with contextlib.ExitStack() as stack:
+        _claim_convert(src, dst, force, stack)
+        return _convert(src, dst, force)
+
+
+def _claim_convert(src: Path, dst: Path, force: bool, stack: contextlib.ExitStack) -> None:
+    """Refuse a ``dst`` that is ``src`` or lies inside it (``ConfigError`` keyed ``dst``),
+    then lock it until ``stack`` closes: an ``.mcap`` by the lock a recording into it
+    takes (``.NAME.lock`` beside it; :class:`McapWriter` refuses it when it exists), a
+    folder by its :class:`~ceilkit.runtime.io.outputs.FolderLock`
+    (:class:`RecordingWriter` refuses a recording in it)."""
+    if not src.exists():      # before any output folder (or its lock) is made
+        raise ConfigError(src, None, "not a recording (not found)")
+    inputs = [*recording_inputs(src), src]   # the whole recording folder, not only its parts
+    if is_mcap(dst):
+        check_overlaps(inputs, {"dst": [dst]})
+        stack.enter_context(FolderLock(dst.parent, f".{dst.name}.lock", subject=dst))
+    else:
+        claim_outputs({}, folders={"dst": [dst]}, inputs=inputs, force=force, stack=stack)
+
+
+def _convert(src: Path, dst: Path, force: bool) -> int:
+    """:func:`convert_recording` once ``dst`` is claimed."""
     if is_mcap(dst):
         rec = Recording(src)
         files = {p.name: p.read_bytes() for p in sorted(src.glob("*.yaml"))}

@@ -37,6 +37,8 @@ from ceilkit.runtime.io.link.mavlink import MavFrame, crc_x25, split_frames
 from ceilkit.runtime.io.link.nmea import checksum
 
 TALKER = "PCEIO"
+MAX_T_MS = (2**63 - 1) // 1_000_000
+"""The latest ``$PCEIO`` stamp, ms: its ns fit a signed 64-bit integer (SPEC's t_ns)."""
 MSG_ID_ODOMETRY = 331
 MSG_ID_WHEEL_DISTANCE = 9000
 CRC_EXTRA_WHEEL_DISTANCE = 113
@@ -86,6 +88,8 @@ def decode_pceio(sentence: bytes | str) -> OdometryIncrement | None:
         raise LinkError(f"$PCEIO: expected numbers, found {text!r}") from None
     if not all(math.isfinite(v) for v in (dx, dy, dyaw)):
         raise LinkError(f"$PCEIO: expected finite numbers, found {text!r}")
+    if not 0 <= t_ms <= MAX_T_MS:  # a stamp in ns must fit 64 bits
+        raise LinkError(f"$PCEIO: expected a stamp in [0, {MAX_T_MS}] ms, found {text!r}")
     return OdometryIncrement(t_ms * 1_000_000, dx, dy, math.radians(dyaw))
 
 

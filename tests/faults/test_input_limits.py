@@ -59,10 +59,25 @@ def _too_large(path, cap):
         fh.truncate(cap + 1)
 
 
+def _unreadable(path, cap):
+    """A file whose reads fail: mode 000 for a user; as root (who reads anything), a
+    link to ``/proc/self/mem``, which opens and fails every read."""
+    if os.geteuid() == 0:
+        path.symlink_to("/proc/self/mem")
+    else:
+        path.write_text("a: 1\n")
+        path.chmod(0)
+
+
 SPECIAL = {
     "a FIFO": (_fifo, "expected a regular file, found a FIFO (named pipe)"),
     "a folder": (_folder, "expected a regular file, found a folder"),
     "/dev/zero": (_device, "expected a regular file, found a character device"),
+    "/dev/null": (lambda p, cap: p.symlink_to("/dev/null"),
+                  "expected a regular file, found a character device"),
+    "a symlink loop": (lambda p, cap: p.symlink_to(p),
+                       "cannot read: Too many levels of symbolic links"),
+    "unreadable": (_unreadable, "cannot read: "),
     "over the cap": (_too_large, "expected a file of at most "),
 }
 
