@@ -1052,7 +1052,7 @@ FILE_USES = [  # (what, the command with {t}/in where the file goes)
     ("ceilrun --site", [*LIVE, "--site", "{t}/in"]),
     ("ceilrun --capture", [*LIVE, "--capture", "{t}/in"]),
     ("mount PLACEMENTS", ["ceilcal", "mount", "{t}/in", "--site", "{rec}/site.yaml",
-                          "--camera", "{rec}/rig.yaml", "--out", "{t}/rig.yaml"]),
+                          "--rig", "{rec}/rig.yaml", "--out", "{t}/rig.yaml"]),
     ("lightmap --poses", ["ceilcal", "lightmap", "{rec}", "--poses", "{t}/in", "--out",
                           "{t}/site.yaml"]),
     ("autopilot --rig", ["ceilcal", "autopilot", "--rig", "{t}/in", "--firmware",
@@ -1063,7 +1063,7 @@ FILE_USES = [  # (what, the command with {t}/in where the file goes)
                            "{t}/in", "--out", "{t}/chk"]),
     ("exposure --rig", ["ceilcal", "exposure", "--device", "sim:lights", "--rig", "{t}/in",
                         "--out", "{t}/capture.yaml"]),
-    ("survey RIG", ["ceilcal", "survey", "{t}/in", "--out", "{t}/sv"]),
+    ("survey RIG", ["ceilcal", "survey", "{t}/in", "{rec}", "--out", "{t}/sv"]),
     ("convert SRC .mcap", [*CONVERT, "{t}/in", "{t}/conv"]),
 ]
 FOLDER_USES = [
