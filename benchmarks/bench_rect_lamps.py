@@ -21,7 +21,9 @@ Runs, each over every frame, on one core (``cv2.setNumThreads(1)``):
 
 Printed and written to ``bench_rect_lamps.json`` beside this file: frames posed,
 position median / p95 / max (cm) and yaw max (deg) of the poses, valid poses wrong by
-more than 10 cm or 2°, failure reasons, provenance, and ms per frame (median, p95).
+more than 10 cm or 2°, the poses' mean NEES (3 dof: the estimator's own covariance
+against the truth, no filter), failure reasons, provenance, and ms per frame (median,
+p95).
 
 Usage::
 
@@ -87,7 +89,7 @@ def run(name: str, est: LightsEstimator, poses, frames, mode: str, seed: int) ->
     tracker = Tracker()
     if mode == "tracker":
         tracker.set_start_pose(0, *poses[0][1:])
-    errs, yaws, ms, wrong = [], [], [], 0
+    errs, yaws, ms, nees, wrong = [], [], [], [], 0
     fails: Counter = Counter()
     prov: Counter = Counter()
     for k, ((t, x, y, yaw), img) in enumerate(zip(poses, frames, strict=True)):
@@ -110,6 +112,9 @@ def run(name: str, est: LightsEstimator, poses, frames, mode: str, seed: int) ->
             errs.append(d)
             yaws.append(dy)
             wrong += d > WRONG[0] or dy > WRONG[1]
+            dv = np.array([e.x_m - x, e.y_m - y, math.remainder(e.yaw_rad - yaw, 2 * math.pi)])
+            if e.cov is not None and np.all(np.isfinite(e.cov)):
+                nees.append(float(dv @ np.linalg.solve(e.cov, dv)))
             prov[e.provenance.name] += 1
         else:
             fails[e.reason] += 1
@@ -119,12 +124,15 @@ def run(name: str, est: LightsEstimator, poses, frames, mode: str, seed: int) ->
            "p95_cm": round(100 * float(np.percentile(e, 95)), 2),
            "max_cm": round(100 * float(np.max(e)), 2),
            "yaw_max_deg": round(float(max(yaws)), 3) if yaws else None,
-           "wrong_valid": int(wrong), "failures": dict(fails), "provenance": dict(prov),
+           "wrong_valid": int(wrong),
+           "nees": round(float(np.mean(nees)), 2) if nees else None,
+           "failures": dict(fails), "provenance": dict(prov),
            "ms_median": round(float(np.median(ms)), 1),
            "ms_p95": round(float(np.percentile(ms, 95)), 1)}
     print(f"{name:16s} posed {out['posed']:3d}/{out['frames']}  median {out['median_cm']:6.2f} "
           f"p95 {out['p95_cm']:6.2f} max {out['max_cm']:7.2f} cm  yaw max "
-          f"{out['yaw_max_deg']} deg  wrong valid {wrong:3d}  {dict(fails)}  {dict(prov)}  "
+          f"{out['yaw_max_deg']} deg  wrong valid {wrong:3d}  NEES {out['nees']}  {dict(fails)}  "
+          f"{dict(prov)}  "
           f"{out['ms_median']} / {out['ms_p95']} ms")
     return out
 

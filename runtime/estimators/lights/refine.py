@@ -6,6 +6,8 @@ each observation through its pixel Jacobian, so a step costs a 3x3 solve
 (:func:`_gauss_newton`); :func:`refine_pose` reprojects the map lights through the lens
 at every step and is kept as the reference it is tested against.
 Both return the covariance ``s² (JᵀJ)⁻¹``, ``s`` the pixel residual (floored).
+:func:`with_shifts` refits with shifts the frame's centroids share as more unknowns
+(a thresholded frame's radial shift), their uncertainty in the pose's covariance.
 
 Convention (SPEC §1): ``X_W = Rz(yaw) X_V + (x, y, 0)``; ceiling points in V, metres;
 pixels distorted.
@@ -28,6 +30,7 @@ from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
 
 SIGMA_FLOOR_PX = 0.02
+SHIFT_MIN_DOF = 2  # residual degrees of freedom :func:`with_shifts` leaves at least
 """Least pixel noise assumed in the covariance (px): a guard for a fit whose few
 residuals happen to be tiny, not a noise model. The covariance is the residuals' own
 ``s² (JᵀJ)⁻¹``: a real lens's unmodelled error is in the residuals and so in ``s²``.
@@ -135,6 +138,61 @@ def _refine(q, J, L, x, y, yaw, iterations, sigma_floor):  # pragma: no cover - 
     if math.isfinite(ssr):
         _scaled_inverse(N, s2, cov)
     return pose[0], pose[1], (pose[2] + math.pi) % (2.0 * math.pi) - math.pi, cov, norms
+
+
+def with_shifts(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarray,
+                shifts_px: np.ndarray,
+                fit: tuple[float, float, float, np.ndarray, np.ndarray],
+                sigma_floor_px: float = SIGMA_FLOOR_PX) -> tuple[
+                    float, float, float, np.ndarray, np.ndarray]:
+    """``fit`` (:func:`refine_pose_ceiling` of the same lights) refitted with ``m`` more
+    unknowns ``e_j``: every observed centroid ``i`` moved by ``sum_j e_j S_ij``, a
+    pattern shared by the frame's lights whose size the frame cannot tell from a pose
+    move alone (a threshold's radial shift under the lens's fall-off, ``S_i = p_i - c``;
+    a lamp's image larger or smaller than its map size, ``S_i`` its centroid offset:
+    :class:`~.observe.Observation`). One Gauss-Newton step over the pose and ``e`` from
+    ``fit`` (the model is linear in ``e``); the covariance is the pose block of
+    ``s² (AᵀA)⁻¹``, ``s² = max(SSR / (2K - 3 - m), floor²)``: what the patterns can
+    move is in it. ``fit`` itself when fewer than :data:`SHIFT_MIN_DOF` residual
+    degrees of freedom are left or the unknowns are not separable.
+
+    Args:
+        q_v, jac_px, lights_w: as :func:`refine_pose_ceiling` (``K`` lights).
+        shifts_px: ``(K, m, 2)`` each light's centroid motion per unit of each ``e_j``
+            (distorted pixels).
+    """
+    q = np.asarray(q_v, float).reshape(-1, 2)
+    k = q.shape[0]
+    S = np.asarray(shifts_px, float).reshape(k, -1, 2)
+    m = S.shape[1]
+    if m == 0 or 2 * k - 3 - m < SHIFT_MIN_DOF:
+        return fit
+    J = np.asarray(jac_px, float).reshape(-1, 2, 2)
+    L = np.asarray(lights_w, float).reshape(-1, 2)
+    x, y, yaw = fit[:3]
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = L - np.array([x, y])
+    qh = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+    r = np.einsum("kab,kb->ka", J, qh - q).ravel()
+    A = np.empty((2 * k, 3 + m))
+    A[:, 0] = np.einsum("kab,b->ka", J, np.array([-c, s])).ravel()
+    A[:, 1] = np.einsum("kab,b->ka", J, np.array([-s, -c])).ravel()
+    A[:, 2] = np.einsum("kab,kb->ka", J, np.stack([qh[:, 1], -qh[:, 0]], axis=1)).ravel()
+    A[:, 3:] = -S.transpose(0, 2, 1).reshape(2 * k, m)   # residual = predicted - observed
+    scale = np.linalg.norm(A, axis=0)
+    if not np.all(np.isfinite(A)) or not np.all(scale > 1e-12):
+        return fit
+    An = A / scale
+    N = An.T @ An
+    if np.linalg.cond(N) > 1e10:
+        return fit
+    Ni = np.linalg.inv(N) / np.outer(scale, scale)
+    step = -Ni @ (A.T @ r)
+    r_new = r + A @ step
+    s2 = max(float(r_new @ r_new) / (2 * k - 3 - m), sigma_floor_px ** 2)
+    norms = np.linalg.norm(r_new.reshape(-1, 2), axis=1)
+    return (float(x + step[0]), float(y + step[1]), float(wrap_pi(yaw + step[2])),
+            s2 * Ni[:3, :3], norms)
 
 
 def _inv3(N: np.ndarray) -> np.ndarray | None:
@@ -261,4 +319,4 @@ def _warm() -> None:
     _inv3(np.eye(3))
 
 
-__all__ = ["refine_pose", "refine_pose_ceiling"]
+__all__ = ["refine_pose", "refine_pose_ceiling", "with_shifts"]

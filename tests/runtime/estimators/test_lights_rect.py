@@ -18,6 +18,9 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.config.yaml import Node
 from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate, Provenance
 from ceilkit.runtime.estimators.lights import LightsEstimator, project_lights
+from ceilkit.runtime.estimators.lights import observe as observe_module
+from ceilkit.runtime.estimators.lights.observe import two_level
+from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling, with_shifts
 from ceilkit.runtime.features.spots import SpotParams, detect_spots
 from ceilkit.runtime.geometry.camera import CameraModel
 from ceilkit.runtime.sim.render import SimOptions, render_frame
@@ -239,3 +242,77 @@ def test_edge_lamps_alone_are_no_fix(scene):
     if isinstance(e, PoseEstimate):
         d, dyaw = errors(e, x, y, yaw)
         assert d <= 0.10 and dyaw <= 2.0
+
+
+def centre_errors_px(obs, rig: Rig, lamps_w: np.ndarray, x: float, y: float, yaw: float
+                     ) -> np.ndarray:
+    """Each kept spot's centre error (px): its ceiling point against the nearest lamp's
+    true place in V, through the spot's pixel Jacobian."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = lamps_w - np.array([x, y])
+    lv = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+    near = np.linalg.norm(obs.q_v[:, None] - lv[None], axis=2).argmin(axis=1)
+    e = np.einsum("kab,kb->ka", obs.jac_px, obs.q_v - lv[near])
+    return np.hypot(e[:, 0], e[:, 1])
+
+
+def test_two_level_frames_are_told_apart(scene):
+    """A 0/255 frame is two-level (its observation carries the principal point); the
+    same frame before thresholding is not."""
+    rig, est, poses, frames = scene
+    _, x, y, yaw = poses[0]
+    raw = render_frame(rig, grid_site(OFF, CLUTTER), x, y, yaw,
+                       SimOptions(noise_sigma=2.0, blur_px=0.8), np.random.default_rng(10))
+    assert two_level(frames[0]) and not two_level(raw)
+    np.testing.assert_allclose(est.observer.observe(frames[0]).centre_px,
+                               [rig.camera.cx, rig.camera.cy])
+    assert est.observer.observe(raw).centre_px is None
+
+
+def test_the_thresholds_shift_across_the_frame_is_taken_off(scene, monkeypatch):
+    """Under the lens's fall-off a fixed threshold trims a lamp's outer edge more than
+    its inner one: taking the fitted shift off (``edge_shift_px``) brings the lamps'
+    centre errors down; with no fall-off there is nothing to take off."""
+    rig, est, poses, frames = scene
+    lamps = np.vstack([est.lights_w, np.array(CLUTTER)])
+    shown = grid_site(OFF, CLUTTER)
+    for vignetting, fewer in ((0.3, True), (0.0, False)):
+        with_shift, without = [], []
+        for k in range(0, N_FRAMES, 3):
+            _, x, y, yaw = poses[k]
+            img = render_frame(rig, shown, x, y, yaw,
+                               SimOptions(noise_sigma=2.0, blur_px=0.8, vignetting=vignetting),
+                               np.random.default_rng(10 + k))
+            img = np.where(img > THRESHOLD, 255, 0).astype(np.uint8)
+            with_shift.append(centre_errors_px(est.observer.observe(img), rig, lamps, x, y, yaw))
+            with monkeypatch.context() as m:
+                m.setattr(observe_module, "edge_shift_px", lambda p, *a: np.zeros((len(p), 2)))
+                without.append(centre_errors_px(est.observer.observe(img), rig, lamps, x, y, yaw))
+        a, b = np.median(np.concatenate(with_shift)), np.median(np.concatenate(without))
+        if fewer:
+            assert a < 0.8 * b, (a, b)
+        else:
+            assert a == pytest.approx(b, rel=0.1), (a, b)
+
+
+def test_a_radial_shift_of_every_centroid_is_fitted_and_in_the_covariance():
+    """A linear camera (300 px/m about the principal point) whose centroids all moved
+    outwards by 1 %: the three-unknown fit is pulled off, the fit with the radial shift
+    finds the pose and a wider covariance than the three-unknown fit of exact points."""
+    centre = np.array([320.0, 240.0])
+    lights = np.array([[0.5, 0.2], [-0.6, 0.4], [0.3, -0.7], [1.1, 0.9], [-0.8, -0.5]])
+    x, y, yaw = 0.2, -0.1, 0.3
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = lights - np.array([x, y])
+    q_true = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+    q_obs = 1.01 * q_true
+    jac = np.tile(300.0 * np.eye(2), (5, 1, 1))
+    px = centre + 300.0 * q_obs
+    fit3 = refine_pose_ceiling(q_obs, jac, lights, x + 0.05, y, yaw)
+    assert math.hypot(fit3[0] - x, fit3[1] - y) > 1e-3
+    fit4 = with_shifts(q_obs, jac, lights, (px - centre)[:, None], fit3)
+    assert math.hypot(fit4[0] - x, fit4[1] - y) < 1e-6 and abs(fit4[2] - yaw) < 1e-6
+    exact = refine_pose_ceiling(q_true + 1e-4, jac, lights, x, y, yaw)
+    widened = with_shifts(q_true + 1e-4, jac, lights, 300.0 * (q_true + 1e-4)[:, None], exact)
+    assert np.all(np.diag(widened[3]) >= np.diag(exact[3]) * (1 - 1e-9))
+    assert with_shifts(q_obs[:2], jac[:2], lights[:2], (px - centre)[:2, None], fit3) is fit3
