@@ -48,7 +48,11 @@ from ceilkit.runtime.estimators.base import (
     PoseEstimate,
     Provenance,
 )
-from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA
+from ceilkit.runtime.estimators.prior import (
+    DEFAULT_PRIOR_SIGMA,
+    MAX_SPEED_MPS,
+    MAX_TURN_RPS,
+)
 from ceilkit.runtime.geometry import ekf
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.tracking import TrackResult
@@ -99,7 +103,17 @@ class FusionOptions:
             ``exp(-rate * seconds since the last absolute fix)``.
         default_sigma_m, default_sigma_rad: 1σ of a fix that carries no covariance.
         cell_m: spacing of a regular layout: the cell probability is reported.
-        start_speed_mps, start_turn_rps: 1σ of the velocity when a track starts.
+        max_speed_mps: the vehicle's stated maximum speed (m/s; the tracker's too,
+            :data:`~ceilkit.runtime.estimators.prior.MAX_SPEED_MPS`): a new track's
+            velocity is unknown but within it, so its 1σ per axis is
+            :meth:`start_speed_sigma`, whose ``gate_p`` region is that speed: the gate
+            of a track one frame old reaches no farther than the vehicle can move
+            (a Gaussian of 1σ 2.5 m/s reached a 0.6 m tile's twin 0.1 s later).
+        max_turn_rps: the vehicle's stated maximum turn rate (rad/s; the tracker's
+            too): a new track's turn rate has the 1σ :meth:`start_turn_sigma`, whose
+            ``gate_p`` region is that rate (a 1σ of 90 deg/s took a start pose's
+            heading past ``prior_sigma_rad`` in 0.1 s with no fix: a two-light frame
+            then got no prior).
         odo_scale_sigma: 1σ of the wheel odometry's scale factor when a track starts
             (a state of the filter: a scale error is a bias, not white noise).
         single_p, prune_p, max_modes: the modes an ambiguity leaves (:class:`ModeSet`):
@@ -127,12 +141,22 @@ class FusionOptions:
     default_sigma_m: float = 0.05
     default_sigma_rad: float = math.radians(2.0)
     cell_m: float | None = None
-    start_speed_mps: float = 2.5
-    start_turn_rps: float = math.radians(90.0)
+    max_speed_mps: float = MAX_SPEED_MPS
+    max_turn_rps: float = MAX_TURN_RPS
     odo_scale_sigma: float = 0.05
     single_p: float = 0.999
     prune_p: float = 1e-4
     max_modes: int = 32
+
+    def start_speed_sigma(self) -> float:
+        """1σ (m/s, per axis) of a new track's velocity: the Gaussian whose ``gate_p``
+        region (2 dof) is the disc of ``max_speed_mps``."""
+        return self.max_speed_mps / math.sqrt(ekf.chi2_quantile(self.gate_p, 2))
+
+    def start_turn_sigma(self) -> float:
+        """1σ (rad/s) of a new track's turn rate: the Gaussian whose ``gate_p`` region
+        (1 dof) is ``max_turn_rps``."""
+        return self.max_turn_rps / math.sqrt(ekf.chi2_quantile(self.gate_p, 1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -306,9 +330,7 @@ class Fusion:
         self._t_plane_ns: int | None = None   # the last ceiling-plane increment
         self.start_poses = 0
         self.modes = ModeSet(self.options, self.gates)   # the poses an ambiguity leaves
-        self._lateral_only = False   # the track applied a fix with y and no x (corridor)
-        self._disagree = 0           # frames in a row whose every fix was gated
-        self._confirmed = False      # a frame has confirmed the track since it started
+        self.tr = TrackFlags()
 
     @property
     def tracking(self) -> bool:
@@ -322,20 +344,20 @@ class Fusion:
         self._f = None
         self._candidates = []
         self.modes.clear()
-        self._disagree = 0
+        self.tr = TrackFlags()
 
     # -- inputs ----------------------------------------------------------------------
     def start(self, t_ns: int, pose: tuple[float, float, float], cov: np.ndarray) -> None:
         """Start the track at ``pose`` (x, y, yaw) with covariance ``cov`` (3, 3)."""
-        s, P = ekf.initial_state(pose, cov, self.options.start_speed_mps,
-                                 self.options.start_turn_rps, self.options.odo_scale_sigma)
+        s, P = ekf.initial_state(pose, cov, self.options.start_speed_sigma(),
+                                 self.options.start_turn_sigma(),
+                                 self.options.odo_scale_sigma)
         t_odo = None if self._f is None else self._f.latest.t_odo_ns
         self._f = FilterBuffer(_Node(int(t_ns), s, P, t_odo), self.options)
         self._t_fix_ns = int(t_ns)
         self._candidates = []
         self.modes.clear()
-        self._lateral_only, self._disagree = False, 0
-        self._confirmed = False    # no frame has confirmed the track yet (a start pose)
+        self.tr = TrackFlags()     # no frame has confirmed the track yet (a start pose)
 
     def add_odometry(self, t_ns: int, dx_m: float, dy_m: float, dyaw_rad: float,
                      cov: np.ndarray | None = None) -> bool:
@@ -456,7 +478,7 @@ class Fusion:
         self._plane_increments(t, cues)
         fixes = [m for c in cues if isinstance(c, PoseEstimate)
                  if (m := measurement(c, self.options)) is not None]
-        relocalized, started, contradicted = self._jumped, [], False
+        relocalized, started, contradicted, split = self._jumped, [], False, False
         self._jumped = False
         if self._lost(t):
             start = starting_fix(fixes, self.gates)
@@ -466,7 +488,8 @@ class Fusion:
             relocalized, started = True, [start.cue.method]
             fixes = [f for f in fixes if f is not start]
         else:
-            near, contradicted = twins_near(self._f, t, cues, self.options, self.gates)
+            near, contradicted, split = twins_near(self._f, t, cues, self.options,
+                                                   self.gates)
             fixes += near
         used = started + self._apply(t, fixes)
         if self._candidates and len(self._candidates) >= self.options.confirm:
@@ -477,34 +500,41 @@ class Fusion:
         if used:
             self._method = used[0]
         diag["coasting"] = not used
-        if self._candidates and (not used or self._candidates[-1].cue.t_ns == t):
-            # a fix this frame singles out puts the vehicle elsewhere: whatever else
-            # agrees with the track, the frame does not single the track's pose out
+        self.tr.carried = bool(used) or (self.tr.carried and (
+            self._wheels(t) or self._t_plane_ns == t))
+        if self._candidates:
+            # a fix singled out by its frame put the vehicle elsewhere and no full fix
+            # has agreed with the track since (it clears them): whatever else agrees
+            # with the track (a heading whose branch the track chose: the block twin
+            # start's 46 poses 180 deg off), nothing singles the track's pose out
             pend = self._candidates[-1].cue
             return TrackResult(Failure(
                 t, pend.method, "gated", f"{pend.method} puts the vehicle away from the "
                 f"track; {self.options.confirm - len(self._candidates)} more to confirm",
                 diagnostics={"rejected": pend}), relocalized)
-        if not used and (fixes or contradicted):
-            # the frame explains a pose, not the track's (a glitch, a kidnap, a wrong
-            # start pose): the track's pose is not what it shows, so it is not sent;
+        if self.tr.refuted(bool(used), bool(fixes), contradicted, split):
             # ``confirm`` such frames in a row drop the track (the next frame starts
             # anew, from what singles a pose out)
-            self._disagree += 1
-            if self._disagree >= self.options.confirm:
-                self._f, self._disagree = None, 0
+            self.tr.disagree += 1
+            if self.tr.disagree >= self.options.confirm:
+                self._f, self.tr = None, TrackFlags()
             who = "/".join(sorted({f.cue.method for f in fixes})) or "ambiguous cues"
             return TrackResult(Failure(t, self._method, "gated", f"the frame's {who} "
                                        "disagree with the track"), relocalized)
-        self._disagree = 0
-        self._confirmed |= bool(used)
-        if not self._confirmed:
+        self.tr.disagree, self.tr.split = 0, False
+        self.tr.confirmed |= bool(used)
+        self.tr.x_seen |= self.tr.x_fixed
+        if not self.tr.confirmed:
             # a start pose no frame has confirmed yet is what the user said, not what
             # the frames show: the frame's own answer goes out (the reset still does)
             return TrackResult(_failure(est, cues), relocalized)
+        if not self.tr.carried:
+            return TrackResult(Failure(t, self._method, "coasting", "no cue and no "
+                                       "odometry has measured the motion since the "
+                                       "last fix"), relocalized)
         pose = publish(self._f.node_at(t), self._method, diag, self.options,
-                       self._t_fix_ns, bool(self._candidates))
-        gone = unknown(pose, self.options, self._lateral_only)
+                       self._t_fix_ns, bool(self._candidates), x_known=self.tr.x_seen)
+        gone = unknown(pose, self.options, self.tr.lateral_only)
         if gone is not None:
             return TrackResult(gone)
         return TrackResult(pose, relocalized)
@@ -518,8 +548,8 @@ class Fusion:
         if best is not None:
             self._f, self._t_fix_ns, self._candidates, self._method = best.f, t_ns, [], \
                 best.method
-            self._lateral_only = float(best.f.latest.P[0, 0]) >= 0.5 * UNKNOWN_X_VAR
-            self._disagree, self._confirmed = 0, True
+            lateral = float(best.f.latest.P[0, 0]) >= 0.5 * UNKNOWN_X_VAR
+            self.tr = TrackFlags(lateral, confirmed=True, x_seen=not lateral)
             self.relocalizations += 1
             diag = {"applied": (best.method,), "pending": 0, "coasting": False}
             return TrackResult(publish(self._f.node_at(t_ns), best.method, diag,
@@ -533,24 +563,17 @@ class Fusion:
         cov[np.ix_(fix.rows, fix.rows)] = fix.R
         z[list(fix.rows)] = fix.z
         self.start(t_ns, (float(z[0]), float(z[1]), float(z[2])), cov)
-        self._lateral_only = 1 in fix.rows and 0 not in fix.rows
-        self._confirmed = True      # started from a fix, not a start pose
+        self.tr = TrackFlags(1 in fix.rows and 0 not in fix.rows, confirmed=True,
+                             x_seen=0 in fix.rows)     # from a fix, not a start pose
         self.relocalizations += 1
         self.contributions[fix.cue.method] += 1
-
-    def _confirm_at(self, t_ns: int, fix: _Fix) -> FilterBuffer:
-        """Start the track at the first fix a start pose chose
-        (:func:`confirmed_start`): the difference is the start pose's error, not
-        motion, so no velocity is inferred from it."""
-        self.start(t_ns, *confirmed_start(self._f.node_at(t_ns), fix))
-        self._confirmed = True
-        return self._f
 
     def _apply(self, t_ns: int, fixes: list[_Fix]) -> list[str]:
         """Gate and apply each fix at ``t_ns``; keep disagreeing unambiguous ones as
         relocalization candidates. Returns the methods applied."""
         f = self._f
         used: list[str] = []
+        self.tr.fresh = False
         for fix in sorted(fixes, key=lambda m: -len(m.rows)):
             n = f.node_at(t_ns)
             if fix.yaw_period:   # the branch of an ambiguous heading nearest the track
@@ -559,11 +582,16 @@ class Fusion:
                 fix = _Fix(fix.cue, np.array([wrap_pi(z)]), fix.rows, fix.R, p)
             y, S = ekf.innovation(n.s, n.P, fix.z, fix.rows, fix.R)
             if ekf.nis(y, S) <= self.gates[len(fix.rows)]:
-                if self._confirmed:
+                if self.tr.confirmed:
                     f.add(_Event(t_ns, "fix", (fix.z, fix.rows, fix.R)))
-                else:     # the start pose chose this fix: the track starts at it
-                    f = self._confirm_at(t_ns, fix)
-                self._lateral_only |= 1 in fix.rows and 0 not in fix.rows
+                else:     # the start pose chose this fix: the track starts at it, no
+                    # velocity inferred from the start pose's error (confirmed_start)
+                    pending = self._candidates     # still against it (kept)
+                    self.start(t_ns, *confirmed_start(f.node_at(t_ns), fix))
+                    f, self.tr.confirmed, self._candidates = self._f, True, pending
+                self.tr.lateral_only |= 1 in fix.rows and 0 not in fix.rows
+                self.tr.x_fixed |= 0 in fix.rows
+                self.tr.fresh |= fix.cue.provenance is not Provenance.PRIOR
                 used.append(fix.cue.method)
                 self.contributions[fix.cue.method] += 1
                 if fix.full or 1 in fix.rows:
@@ -577,18 +605,60 @@ class Fusion:
         return used
 
 
+@dataclass
+class TrackFlags:
+    """What a fused track knows of itself beside its filter; new when it (re)starts.
+
+    Attributes:
+        lateral_only: a fix with y and no x was applied (the corridor's).
+        confirmed: a frame has confirmed the track (not only a start pose).
+        x_seen: a frame has measured x (else x is not published: a start pose's x,
+            carried by odometry, is what the user stated); ``x_fixed``: this frame.
+        disagree: frames in a row that did not confirm the track.
+        fresh: this frame applied a fix found without the track's prior (not
+            ``Provenance.PRIOR``).
+        carried: every frame since the last fix had odometry (wheel rows or its
+            ceiling-plane increment): else the pose is the constant-velocity model's
+            guess, which no frame checked, and is not published (a ``coasting``
+            failure: a kidnap between frames without lights went out 3.7 m off).
+        split: an ambiguous frame since the track was last confirmed listed every pose
+            it supports and put none, or several, inside the track's gate.
+    """
+
+    lateral_only: bool = False
+    confirmed: bool = False
+    x_seen: bool = False
+    x_fixed: bool = False
+    disagree: int = 0
+    fresh: bool = False
+    carried: bool = True
+    split: bool = False
+
+    def refuted(self, used: bool, fixes: bool, contradicted: bool, split: bool) -> bool:
+        """Whether this frame does not confirm the track: it explains a pose, not the
+        track's (every fix gated, or a complete list with none in the gate: a glitch,
+        a kidnap, a wrong start pose), several about it (``split``), or, after such a
+        frame, only a pose the track's own prior chose (its region has widened since
+        and may hold a twin of wherever the vehicle now is: a kidnap on tiles followed
+        a twin 1.25 m off)."""
+        doubted = self.split and used and not self.fresh
+        self.split = (self.split or contradicted or split) and not (used and not doubted)
+        return (not used and (fixes or contradicted or split)) or doubted
+
+
 def publish(n: _Node, method: str, diag: dict[str, Any], o: FusionOptions,
             t_fix_ns: int, pending: bool, velocity: bool = False,
-            blank_above_m: float | None = None) -> PoseEstimate:
+            blank_above_m: float | None = None, x_known: bool = True) -> PoseEstimate:
     """The pose of node ``n``; with ``velocity``, the state's velocity too (a
     prior's, for the estimators' rolling-shutter rows); a coordinate whose 1σ
-    exceeds ``blank_above_m`` (default ``unobserved_sigma_m``) is left empty;
+    exceeds ``blank_above_m`` (default ``unobserved_sigma_m``) is left empty, and x
+    when not ``x_known`` (no frame measured it);
     ``quality`` 0 while relocalization candidates are ``pending``, decaying since the
     last absolute fix at ``t_fix_ns`` otherwise."""
     blank = o.unobserved_sigma_m if blank_above_m is None else blank_above_m
     cov = np.array(n.P[:3, :3])
     sd = np.sqrt(np.diag(cov))
-    observed = [bool(sd[0] <= blank), bool(sd[1] <= blank)]
+    observed = [bool(sd[0] <= blank) and x_known, bool(sd[1] <= blank)]
     for i in (0, 1):
         if not observed[i]:
             cov[i, :] = cov[:, i] = np.inf
@@ -670,17 +740,21 @@ def ambiguous_cues(cues: tuple) -> list[Failure]:
 
 
 def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
-               gates: Mapping[int, float]) -> tuple[list[_Fix], bool]:
+               gates: Mapping[int, float]) -> tuple[list[_Fix], bool, bool]:
     """The track (its filter ``f`` at ``t_ns``) decides the frame's ambiguous cues
     (:func:`ambiguous_cues`): of each one's hypotheses, the one inside the track's
-    gate when it is the only one there, as a fix. Also whether a cue contradicts the
+    gate when it is the only one there and the list is complete
+    (``hypotheses_complete``: a pose left out of an incomplete list may be the one
+    inside), as a fix. Also whether a complete list puts several poses inside the gate
+    (``split``: the frame does not single the track's pose out, so the track's pose
+    is not published on it), and whether a cue contradicts the
     track: none of its poses is inside (a method given the track's prior lists the
     poses near it first, and finds the one there when the prior singles it out; a cue
     that is ambiguous about a track's prior and lists no pose near it shows the vehicle
     elsewhere). A frame with no ambiguous cue costs no prediction."""
     ambiguous = ambiguous_cues(cues)
     n = f.node_at(t_ns) if ambiguous else None
-    out, contradicted = [], False
+    out, contradicted, split = [], False, False
     for c in ambiguous:
         inside = []
         for h in c.hypotheses:
@@ -688,10 +762,12 @@ def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
             y, S = ekf.innovation(n.s, n.P, m.z, m.rows, m.R)
             if ekf.nis(y, S) <= gates[len(m.rows)]:
                 inside.append(m)
-        if len(inside) == 1:
+        if len(inside) == 1 and c.hypotheses_complete:
             out.append(inside[0])
+        elif len(inside) > 1 and c.hypotheses_complete:
+            split = True
         contradicted |= not inside
-    return out, contradicted
+    return out, contradicted, split
 
 
 def starting_fix(fixes: list[_Fix], gates: Mapping[int, float]) -> _Fix | None:
@@ -715,12 +791,14 @@ def agree(a: _Fix, b: _Fix, gates: Mapping[int, float]) -> bool:
 
 
 def velocity_known(n: _Node, o: FusionOptions) -> bool:
-    """Whether the filter has measured its velocity: its 1-sigma well under the
-    start's (a new track's velocity is its start guess, 0, not a measurement; as
-    with the light tracker, the estimators then assume it unknown)."""
+    """Whether the filter has measured its velocity: its speed's 1σ under three
+    quarters of the start's (a new track's velocity is its start guess, 0, not a
+    measurement; as with the light tracker, the estimators then assume it unknown; a
+    second fix 0.1 s later halves it) and its turn rate's under half the vehicle's
+    ``max_turn_rps`` (the turn rate's process noise keeps its 1σ near the start's)."""
     sd = np.sqrt(np.maximum(np.diag(n.P)[3:6], 0.0))
-    return bool(sd[0] < 0.5 * o.start_speed_mps and sd[1] < 0.5 * o.start_speed_mps
-                and sd[2] < 0.5 * o.start_turn_rps)
+    v = 0.75 * o.start_speed_sigma()
+    return bool(sd[0] < v and sd[1] < v and sd[2] < 0.5 * o.max_turn_rps)
 
 
 def hypothesis_cue(t_ns: int, method: str, h: Hypothesis) -> PoseEstimate:
@@ -783,8 +861,8 @@ class ModeSet:
             z = np.zeros(3)
             cov[np.ix_(fix.rows, fix.rows)] = fix.R
             z[list(fix.rows)] = fix.z
-            s, P = ekf.initial_state(tuple(float(v) for v in z), cov, o.start_speed_mps,
-                                     o.start_turn_rps, o.odo_scale_sigma)
+            s, P = ekf.initial_state(tuple(float(v) for v in z), cov, o.start_speed_sigma(),
+                                     o.start_turn_sigma(), o.odo_scale_sigma)
             self.modes.append(Mode(FilterBuffer(_Node(int(t_ns), s, P, None), o),
                                    float(h.weight) if complete else 1.0, method, h.label))
         self._normalize()

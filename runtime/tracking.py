@@ -18,7 +18,9 @@ Per frame the tracker predicts the pose at the frame's time (the estimators'
   the track (a kidnap, a wrong start pose) and it is dropped, as the fusion drops
   one; kept, its region would widen frame by frame until it took in a twin of the
   vehicle's new pose, which the prior would then choose (issue 36's held-out lamps:
-  34 valid poses 3.5 m and 180 deg off after a kidnap).
+  34 valid poses 3.5 m and 180 deg off after a kidnap); after such a frame, a pose the
+  track's own prior chose among twins (``Provenance.PRIOR``) does not confirm the
+  track but counts as one more such frame.
 
 Coordinates the method does not observe (x for the corridor method) are neither
 predicted nor gated.
@@ -31,8 +33,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate
-from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA, allows
+from ceilkit.runtime.estimators.base import Estimate, Failure, PoseEstimate, Provenance
+from ceilkit.runtime.estimators.prior import (
+    DEFAULT_PRIOR_SIGMA,
+    MAX_SPEED_MPS,
+    MAX_TURN_RPS,
+    allows,
+)
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 
@@ -40,8 +47,8 @@ from ceilkit.runtime.geometry.rotations import wrap_pi
 class TrackerOptions:
     gate_m: float = 0.25             # position gate at dt = 0
     gate_rad: float = math.radians(8.0)
-    max_speed_mps: float = 2.5       # the gate grows by this times dt
-    max_turn_rps: float = math.radians(90.0)
+    max_speed_mps: float = MAX_SPEED_MPS  # the gate grows by this times dt (prior.py)
+    max_turn_rps: float = MAX_TURN_RPS
     velocity_smoothing: float = 0.3  # 0..1: weight of a new velocity sample
     confirm: int = 3                 # agreeing out-of-gate frames that re-localize
     lost_after_s: float = 1.0
@@ -197,6 +204,17 @@ class Tracker:
                 if self._disagree >= self.options.confirm:
                     self.reset()
             return TrackResult(est)
+        if self._disagree and est.provenance is Provenance.PRIOR:
+            # after a frame that contradicted the track, a pose its own prior chose among
+            # twins does not confirm it: the region has widened since and may hold a twin
+            # of wherever the vehicle now is (tiles2's kidnap: a quarter-turn twin, 28
+            # poses 90 deg and 2.3 m off)
+            self._disagree += 1
+            if self._disagree >= self.options.confirm:
+                self.reset()
+            return TrackResult(Failure(est.t_ns, est.method, "gated", "a pose the "
+                                       "track's prior chose after a frame contradicted "
+                                       "the track", diagnostics={"rejected": est}))
         self._disagree = 0
         pred = self.predict(est.t_ns)
         if pred is None:

@@ -35,6 +35,14 @@ PRIOR_P = 0.999
 Mahalanobis distance)."""
 DEFAULT_PRIOR_SIGMA = (0.1, math.radians(5.0))
 """1σ (m, rad) of a prior that carries no covariance: a start pose's default."""
+MAX_SPEED_MPS = 2.5
+"""The vehicle's stated maximum speed (m/s) over the floor: the farthest a track may have
+moved since its last fix, for the tracker's gate and the fusion's new tracks
+(``max_speed_mps`` of both options; docs/config.md, "The vehicle's limits"). A vehicle
+cannot cross a 0.6 m tile in one 0.1 s frame, so a tile's twin is never within reach."""
+MAX_TURN_RPS = math.radians(90.0)
+"""The vehicle's stated maximum turn rate (rad/s), as :data:`MAX_SPEED_MPS`
+(``max_turn_rps``)."""
 
 Pose = tuple[float | None, float | None, float, "np.ndarray | None"]
 

@@ -113,12 +113,20 @@ def test_lost_without_fixes_restarts_and_fails_with_the_cue_reason():
     assert fu.update(_lights(41, 5.0, 2.0, mode="global")).relocalized
 
 
+def _odometry_then(fu, k, est, dx=0.0, var=(1e-3, 1e-5, 3e-4)):
+    """A wheel row up to frame ``k`` (the motion measured, with variances ``var``), then
+    the frame."""
+    fu.add_odometry(k * DT, dx, 0.0, 0.0, cov=np.diag(var))
+    return fu.update(est)
+
+
 def test_coasting_publishes_a_growing_covariance_until_the_heading_is_unknown():
+    """Coasting on odometry (wheel rows, ceiling-plane increments) between fixes."""
     fu = Fusion()
     for k in range(10):
         fu.update(_lights(k, 0.01 * k, 0.0))
-    blank = [fu.update(Failure(k * DT, "lights", "blank_frame")).estimate
-             for k in range(10, 25)]
+    blank = [_odometry_then(fu, k, Failure(k * DT, "lights", "blank_frame"), 0.01).estimate
+             for k in range(10, 40)]
     published = [e for e in blank if isinstance(e, PoseEstimate)]
     assert blank[: len(published)] == published and len(published) >= 5
     sd = [math.sqrt(e.cov[2, 2]) for e in published]
@@ -128,6 +136,20 @@ def test_coasting_publishes_a_growing_covariance_until_the_heading_is_unknown():
     assert sd[-1] <= fu.options.unobserved_sigma_rad
     assert all(e.reason == "coasting" for e in blank[len(published):]) and \
         len(published) < len(blank)
+
+
+def test_coasting_on_the_motion_model_alone_is_not_published():
+    """Issue 36: frames with no cue and no odometry are explained by nothing but the
+    constant-velocity model (a kidnap between frames without lights went out 3.7 m
+    off): ``coasting`` failures, and the track is kept for the next fix."""
+    fu = Fusion()
+    for k in range(10):
+        fu.update(_lights(k, 0.01 * k, 0.0))
+    for k in range(10, 14):
+        res = fu.update(Failure(k * DT, "lights", "too_few_lights"))
+        assert res.estimate.reason == "coasting" and fu.tracking
+    res = fu.update(_lights(14, 0.14, 0.0))
+    assert res.estimate and res.estimate.x_m == pytest.approx(0.14, abs=2e-3)
 
 
 def test_start_pose_gives_a_prior_before_any_fix():
@@ -375,7 +397,7 @@ def test_a_lights_track_never_publishes_a_lateral_without_x():
                           cov=np.diag([0.06 ** 2, 1e-6, 1e-6])))   # x the weaker
     seen, reasons = [], set()
     for k in range(10, 60):
-        res = fu.update(Failure(k * DT, "lights", "no_lights"))
+        res = _odometry_then(fu, k, Failure(k * DT, "lights", "no_lights"), 0.5 * DT * 1e-9)
         e = res.estimate
         seen.append(bool(e))
         reasons.add(getattr(e, "reason", None))
@@ -421,3 +443,92 @@ def test_a_track_started_from_a_fix_fuses_the_frame_s_other_cues():
     assert res.relocalized and res.estimate.diagnostics["applied"] == ("lights", "corridor")
     assert res.estimate.x_m == pytest.approx(1.0, abs=1e-3)
     assert 0.1005 < res.estimate.y_m < 0.1015          # both weighed, not the corridor's alone
+
+
+def _tiles(k, y, dt_ns, yaw=0.0, tile=0.6):
+    """A corridor frame on a plain tile grid: every lateral shift alike, complete."""
+    from ceilkit.runtime.estimators.base import Hypothesis
+
+    cov = np.diag([np.inf, 1e-6, 1e-6])
+    hyps = tuple(Hypothesis(None, y + j * tile, yaw, cov, 1 / 5, f"shift {j}")
+                 for j in range(-2, 3))
+    return Failure(k * dt_ns, "corridor", "ambiguous", "tiles", hypotheses=hyps,
+                   hypotheses_complete=True)
+
+
+def test_a_new_track_s_gate_reaches_no_farther_than_the_vehicle_can_move():
+    """Issue 36, plain tiles from a start pose at 10 fps: a new track's unknown velocity
+    is bounded by ``max_speed_mps`` (2.5 m/s: 0.25 m a frame), so the next 0.6 m tile's
+    twin is outside its gate and the track keeps its tile (a Gaussian of 1σ 2.5 m/s
+    took both in: 3 valid poses of 180)."""
+    opt = FusionOptions()
+    assert opt.start_speed_sigma() * math.sqrt(chi2_quantile(opt.gate_p, 2)) == \
+        pytest.approx(opt.max_speed_mps)
+    dt = 100_000_000
+    fu = Fusion(start_pose=(0.0, 0.1, 0.0), start_sigma=(0.1, math.radians(5.0)))
+    for k in range(20):
+        fu.predict(k * dt)
+        res = fu.update(_tiles(k, 0.1 + 0.02 * k, dt))
+        assert res.estimate and res.estimate.y_m == pytest.approx(0.1 + 0.02 * k, abs=0.01)
+
+
+def test_a_start_pose_s_x_no_frame_measured_is_not_published():
+    """Issue 36: the corridor confirms a start pose's y and heading; its x (1σ 0.1 m,
+    the stated one) was never measured, so it does not go out."""
+    fu = Fusion(start_pose=(1.0, 0.1, 0.0))
+    for k in range(5):
+        fu.predict(k * DT)
+        res = fu.update(_corridor(k, 0.1))
+        assert res.estimate and res.estimate.x_m is None
+        assert res.estimate.y_m == pytest.approx(0.1, abs=1e-3)
+
+
+def test_an_incomplete_list_does_not_decide_an_ambiguous_cue():
+    """Issue 36: a pose left out of an incomplete list may be the one in the gate, so
+    the one listed there is not taken as a fix."""
+    fu = Fusion()
+    for k in range(5):
+        fu.update(_lights(k, 1.0, 2.0, mode="global"))
+    fu.update(_ambiguous(5, [(1.001, 2.0, 0.0), (3.0, -2.0, math.pi)], complete=False))
+    assert fu.contributions["lights"] == 5
+
+
+def test_a_prior_s_choice_after_a_split_frame_does_not_confirm_the_track():
+    """Issue 36 (a kidnap on tiles): a complete list with two poses in the track's gate
+    is not the track's pose; the frames after it whose twin the track's widened prior
+    chose do not confirm it, and ``confirm`` such frames drop it."""
+    fu = Fusion()
+    for k in range(5):
+        fu.update(_lights(k, 1.0, 2.0, mode="global"))
+    wide = np.diag([0.04 ** 2, 0.04 ** 2, 1e-6])
+    from ceilkit.runtime.estimators.base import Hypothesis
+
+    hyps = tuple(Hypothesis(1.0, 2.0 + d, 0.0, wide, 0.5, "") for d in (-0.1, 0.1))
+    res = fu.update(Failure(5 * DT, "lights", "ambiguous", hypotheses=hyps,
+                            hypotheses_complete=True))
+    assert not res.estimate
+    for k in (6, 7):
+        res = fu.update(_lights(k, 1.0, 2.05, mode="prior_resolved"))
+        assert not res.estimate
+    assert not fu.tracking
+
+
+def test_a_heading_whose_branch_a_contradicted_start_pose_chose_is_not_published():
+    """Issue 36 (block twin start): two markers single out a pose a half turn from the
+    start pose; a heading known modulo a quarter turn (the tiles' parallels) whose
+    branch the start pose chose confirms nothing while they wait (46 valid poses
+    180 deg off)."""
+    from ceilkit.runtime.estimators.base import Hypothesis
+
+    fu = Fusion(start_pose=(4.7, 0.0, math.pi / 2))
+    for k in (0, 1):
+        fu.predict(k * DT)
+        res = fu.update(_lights(k, 4.3, 0.0, -math.pi / 2, mode="global"))
+        assert res.estimate.reason == "gated"
+    quarter = tuple(Hypothesis(None, None, -math.pi / 2 + j * math.pi / 2, None, 0.25, "")
+                    for j in range(4))
+    for k in range(2, 8):
+        fu.predict(k * DT)
+        cue = PoseEstimate(k * DT, "block", None, None, -math.pi / 2, 0.0, None,
+                           np.diag([np.inf, np.inf, 1e-6]), hypotheses=quarter)
+        assert not fu.update(cue).estimate

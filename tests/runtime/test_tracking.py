@@ -74,3 +74,23 @@ def test_a_start_pose_is_a_reset_and_the_frame_says_where():
     tr.predict(0)
     res = tr.update(est)
     assert res.relocalized and not res.estimate and res.estimate.reason == "gated"
+
+
+def test_a_prior_s_choice_after_a_contradicting_frame_does_not_confirm_the_track():
+    """Issue 36 (tiles2's corridor kidnap): an ambiguous frame with no pose in the
+    track's region contradicts it; the poses its widened prior then chooses among
+    twins do not confirm it, and with the contradiction they drop the track."""
+    import numpy as np
+
+    from ceilkit.runtime.estimators.base import Hypothesis, Provenance
+
+    tr = Tracker()
+    for k in range(5):
+        tr.update(_pose(k, 0.0))
+    cov = np.diag([np.inf, 1e-6, 1e-6])
+    far = tuple(Hypothesis(None, 0.3 + 0.6 * j, math.radians(40.0), cov, 0.5, "")
+                for j in range(2))
+    assert not tr.update(Failure(5 * DT, "corridor", "ambiguous", hypotheses=far)).estimate
+    chosen = [tr.update(PoseEstimate(k * DT, "corridor", None, 0.02, 0.0, 0.9,
+                                     provenance=Provenance.PRIOR)) for k in (6, 7)]
+    assert not any(r.estimate for r in chosen) and not tr.tracking

@@ -150,8 +150,8 @@ def test_replay_publishes_one_pose_per_estimated_frame(tmp_path, ros_env):
 
 def test_initialpose_from_another_process_changes_the_track(tmp_path, ros_env):
     base = replay(REC, tmp_path / "base", method="auto", start_pose=START)
-    before = [r for r in rows(base.poses_path) if r["x"] != ""]
-    y0 = float(before[0]["y"])
+    before = [r for r in rows(base.poses_path) if r["y"] != ""]   # x: the start pose's,
+    y0 = float(before[0]["y"])                                    # never published
     proc, out = listener(tmp_path, ros_env, "initialpose", repr(y0))
     sent = []
 
