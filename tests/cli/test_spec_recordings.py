@@ -70,8 +70,10 @@ blocks:
   - {id: 7, corners: [[5.0, 19.8], [5.6, 19.8], [5.6, 20.2], [5.0, 20.2]]}
 """)
 CORRIDOR_SITE = (CONFIGS / "corridor" / "site.yaml").read_text()
-POSES = {"lights": [(6.0 + 0.3 * k, 0.5, math.radians(30.0)) for k in range(4)],
-         "corridor": [(2.0 + 0.25 * k, 0.05, math.radians(1.0)) for k in range(4)]}
+POSES = {"lights": [(6.0 + 0.04 * k, 0.5, math.radians(30.0)) for k in range(4)],
+         "corridor": [(2.0 + 0.04 * k, 0.05, math.radians(1.0)) for k in range(4)]}
+"""Frame k's vehicle pose, 1/30 s apart (1.2 m/s: within the vehicle's stated limits,
+``prior.MAX_SPEED_MPS``, so the fusion keeps one track through them)."""
 
 
 @pytest.fixture(scope="module")
