@@ -21,7 +21,7 @@ from ceilkit.runtime.errors import ConfigError, LinkError
 from ceilkit.runtime.estimators.registry import AUTO, METHOD_NAMES
 from ceilkit.runtime.io.mcap_rec import convert_recording
 from ceilkit.runtime.io.recording import LOG_DIR, Recording, repair_recording
-from ceilkit.runtime.multi import parse_start_pose
+from ceilkit.runtime.multi import parse_limits, parse_start_pose
 from ceilkit.runtime.replay import replay as run_replay
 from ceilkit.runtime.session import (
     LinkConfig,
@@ -61,6 +61,15 @@ START_HELP = ("Where the vehicle starts: x, y in m, yaw in degrees (any method),
 
 def _start_pose(text: str | None) -> tuple[float, ...] | None:
     return None if text is None else parse_start_pose(text)
+
+
+def _limits(text: str | None) -> tuple[float, float] | None:
+    return None if text is None else parse_limits(text)
+
+
+LIMITS_HELP = ("The vehicle's maximum speed, m/s, and optionally turn rate, degrees/s "
+               "(default 2.5,90): no track may move faster between frames, so a twin "
+               "farther than that (the next tile, cell or line) is out of reach.")
 
 app = make_app("ceilrun", "Run the localizer on the vehicle, or replay a recording.\n\n"
                "Live: ceilrun --device /dev/video0 --serial /dev/ttyUSB0 --rig rig.yaml "
@@ -215,6 +224,8 @@ def live(
     method: str = typer.Option(AUTO, help=METHOD_HELP),
     start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW[,SM,SDEG]",
                                   help=START_HELP),
+    max_speed: str = typer.Option(None, "--max-speed", metavar="MPS[,DEGPS]",
+                                  help=LIMITS_HELP),
     link_odometry: bool = typer.Option(False, "--link-odometry", help="Read wheel odometry "
                                        "back from --serial ($PCEIO, MAVLink ODOMETRY or "
                                        "WHEEL_DISTANCE) into the fusion (--method auto)."),
@@ -273,7 +284,7 @@ def live(
                                           gain),
         view=view, view_token=view_token, force=force, wait=wait, fsync_every_s=fsync_every,
         start_pose=_start_pose(start_pose), link_odometry=link_odometry,
-        wheel_track_m=wheel_track,
+        wheel_track_m=wheel_track, limits=_limits(max_speed),
         ros2=_ros2(ros2, ros2_namespace, ros2_odometry, ros2_param), realtime=realtime)
     with stop_on_signals() as stop:
         result = run_session(config, stop, _status_line(status, serial == "-"))
@@ -290,6 +301,8 @@ def replay(
     method: str = typer.Option(AUTO, help=METHOD_HELP),
     start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW[,SM,SDEG]",
                                   help=START_HELP),
+    max_speed: str = typer.Option(None, "--max-speed", metavar="MPS[,DEGPS]",
+                                  help=LIMITS_HELP),
     odometry: Path = typer.Option(None, "--odometry", metavar="FILE", help="Wheel odometry "
                                   "(odometry.csv layout) instead of the recording's own; "
                                   "fed to the fusion (--method auto)."),
@@ -343,6 +356,7 @@ def replay(
                      link=_link(serial, protocol, baud, missing_x=mavlink_missing_x),
                      overlays=overlays, overlays_only_failures=overlays_only_failures,
                      report=report, start_pose=_start_pose(start_pose), odometry=odometry,
+                     limits=_limits(max_speed),
                      ros2=_ros2(ros2, ros2_namespace, ros2_odometry, ros2_param, ros2_wait),
                      force=force)
     TERM_LINE.end()

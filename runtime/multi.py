@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -33,11 +34,11 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import Estimate, Estimator, PoseEstimate
-from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA
+from ceilkit.runtime.estimators.prior import DEFAULT_PRIOR_SIGMA, MAX_TURN_RPS
 from ceilkit.runtime.estimators.registry import AUTO, make_estimator, site_methods
 from ceilkit.runtime.fusion import Fusion, FusionOptions
 from ceilkit.runtime.jit import WarmUpProgress, reporting, warm_up
-from ceilkit.runtime.tracking import Tracker
+from ceilkit.runtime.tracking import Tracker, TrackerOptions
 
 
 class AutoEstimator:
@@ -100,7 +101,8 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
                    options: Mapping[str, Any] | None = None,
                    start_pose: tuple[float, float, float] | None = None,
                    odometry: bool = False,
-                   fusion: FusionOptions | None = None
+                   fusion: FusionOptions | None = None,
+                   limits: tuple[float, float] | None = None
                    ) -> tuple[Estimator | AutoEstimator, Tracker | Fusion]:
     """The estimator and its tracker for ``--method`` (see the module docstring).
 
@@ -113,6 +115,10 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
         odometry: wheel odometry will be fed to the tracker (auto only).
         fusion: the fusion's options (default: :class:`FusionOptions` with the site's
             light spacing as ``cell_m``).
+        limits: the vehicle's stated maximum speed and turn rate ``(m/s, rad/s)``
+            (``--max-speed``; :func:`parse_limits`) for the tracker and the fusion
+            (default :data:`~ceilkit.runtime.estimators.prior.MAX_SPEED_MPS`,
+            :data:`~ceilkit.runtime.estimators.prior.MAX_TURN_RPS`).
 
     The compiled loops the chosen estimators and their tracker use are loaded here
     (:func:`~.jit.warm_up` from their modules), not on the first frame; the other
@@ -121,14 +127,17 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
     Raises:
         ConfigError: a bad method or option.
     """
+    fusion = fusion or FusionOptions(cell_m=regular_spacing_m(site))
+    if limits is not None:
+        fusion = dataclasses.replace(fusion, max_speed_mps=limits[0],
+                                     max_turn_rps=limits[1])
     if method != AUTO:
-        out = _single(make_estimator(method, rig, site, options), site, fusion, start_pose)
+        out = _single(make_estimator(method, rig, site, options), fusion, start_pose)
     else:
         auto = AutoEstimator(rig, site, options)
         if len(auto.estimators) == 1 and start_pose is None and not odometry:
-            out = _single(auto.estimators[0], site, fusion)
+            out = _single(auto.estimators[0], fusion)
         else:
-            fusion = fusion or FusionOptions(cell_m=regular_spacing_m(site))
             pose, sigma = split_start_pose(start_pose)
             out = auto, Fusion(fusion, start_pose=pose, start_sigma=sigma)
     chosen = out[0].estimators if isinstance(out[0], AutoEstimator) else [out[0]]
@@ -146,17 +155,41 @@ def warm_up_all() -> WarmUpProgress:
     return steps[-1] if steps else WarmUpProgress(0, 0, "", 0, seconds)
 
 
-def _single(est: Estimator, site: Site, fusion: FusionOptions | None,
+def _single(est: Estimator, fusion: FusionOptions,
             start_pose: tuple[float, float, float] | None = None
             ) -> tuple[Estimator, Tracker | Fusion]:
-    """One method and its tracker: the constant-velocity one, or the fusion for a
-    method emitting ceiling-plane odometry (it chains the increments between fixes);
-    either starts from ``start_pose`` when given."""
+    """One method and its tracker: the constant-velocity one (with the fusion's vehicle
+    limits), or the fusion for a method emitting ceiling-plane odometry (it chains the
+    increments between fixes); either starts from ``start_pose`` when given."""
     pose, sigma = split_start_pose(start_pose)
     if not getattr(est.options, "plane_odometry", False):
-        return est, Tracker(start_pose=pose, start_sigma=sigma)
-    return est, Fusion(fusion or FusionOptions(cell_m=regular_spacing_m(site)),
-                       start_pose=pose, start_sigma=sigma)
+        limits = TrackerOptions(max_speed_mps=fusion.max_speed_mps,
+                                max_turn_rps=fusion.max_turn_rps)
+        return est, Tracker(limits, start_pose=pose, start_sigma=sigma)
+    return est, Fusion(fusion, start_pose=pose, start_sigma=sigma)
+
+
+def parse_limits(text: str) -> tuple[float, float]:
+    """``SPEED[,TURN]`` (m/s, degrees/s) as ``(m/s, rad/s)``: the vehicle's stated
+    limits (``--max-speed``); the turn rate defaults to
+    :data:`~ceilkit.runtime.estimators.prior.MAX_TURN_RPS`.
+
+    Raises:
+        ConfigError: ``max_speed`` unless one or two finite numbers, the speed in
+            (0, 100] m/s and the turn rate in (0, 3600] degrees/s.
+    """
+    try:
+        v = [float(t) for t in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) not in (1, 2):
+        raise ConfigError(None, "max_speed", "expected SPEED (m/s) or SPEED,TURN (m/s, "
+                          f"degrees/s), found {text!r}")
+    if not (math.isfinite(v[0]) and 0 < v[0] <= 100.0) or (
+            len(v) == 2 and not (math.isfinite(v[1]) and 0 < v[1] <= 3600.0)):
+        raise ConfigError(None, "max_speed", "expected a speed in (0, 100] m/s and a turn "
+                          f"rate in (0, 3600] degrees/s, found {text!r}")
+    return v[0], (math.radians(v[1]) if len(v) == 2 else MAX_TURN_RPS)
 
 
 def split_start_pose(start_pose: tuple[float, ...] | None
@@ -204,6 +237,7 @@ START_POSE_LIMIT_M = 1e6
 """The largest |x| or |y| of a start pose, m (bounded before it reaches the filter)."""
 
 
-__all__ = ["AutoEstimator", "make_localizer", "parse_start_pose", "regular_spacing_m",
+__all__ = ["AutoEstimator", "make_localizer", "parse_limits", "parse_start_pose",
+           "regular_spacing_m",
            "split_start_pose",
            "warm_up_all"]

@@ -121,7 +121,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
            overlays: str | Path | None = None, overlays_only_failures: bool = False,
            report: bool = False, start_pose: tuple[float, ...] | None = None,
            odometry: str | Path | None = None, ros2: Any = None,
-           force: bool = False) -> ReplayResult:
+           force: bool = False, limits: tuple[float, float] | None = None) -> ReplayResult:
     """Run the pipeline over a recording as fast as possible (or at recorded timing).
 
     Args:
@@ -144,6 +144,8 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
         report: also write ``OUT/report.html`` (:mod:`~ceilkit.runtime.viz.report`);
             with ``tum`` and a ``truth.csv``, ``truth.tum`` is written beside ``poses.tum``.
         start_pose: ``(x_m, y_m, yaw_rad[, sigma_m, sigma_rad])``: the first prior.
+        limits: the vehicle's stated maximum speed and turn rate ``(m/s, rad/s)``
+            (``--max-speed``), or ``None`` for the defaults (docs/config.md).
         odometry: an ``odometry.csv`` replacing the recording's own; the rows are fed
             to the fusion (``auto``) at their stamps.
         ros2: a :class:`~ceilkit.runtime.io.ros2.Ros2Config`: also publish on ROS 2
@@ -169,7 +171,8 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
         check_rig_site(rec.rig, rec.site)
         odo = load_odometry(odometry) if odometry is not None else rec.odometry
         estimator, tracker = make_localizer(method, rec.rig, rec.site, options, start_pose,
-                                            odo is not None and track)  # --ros2: the same
+                                            odo is not None and track,  # --ros2: the same
+                                            limits=limits)
         tracker = tracker if track else None
         poses_path = out / "poses.csv"
         tap, views = _views(estimator, rec, overlays, overlays_only_failures, report)

@@ -180,6 +180,8 @@ class SessionConfig:
             ``None`` for the site's default.
         start_pose: ``(x_m, y_m, yaw_rad)`` where the vehicle starts (any method: the first prior;
             two more numbers: its 1σ, m and rad).
+        limits: the vehicle's stated maximum speed and turn rate ``(m/s, rad/s)``
+            (``--max-speed``), or ``None`` for the defaults (docs/config.md).
         link_odometry: read wheel odometry back from the link (``$PCEIO``, MAVLink
             ODOMETRY, WHEEL_DISTANCE with ``wheel_track_m``) into the fusion (``auto``).
         options: the estimator's options by name (values may be strings).
@@ -226,6 +228,7 @@ class SessionConfig:
     wheel_track_m: float | None = None
     ros2: Any = None
     realtime: bool = False
+    limits: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -483,8 +486,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     record = record_folder(config.record) if config.record is not None else None
     _check_free(config, rig, record)  # before the method's loops load (seconds)
     estimator, tracker = make_localizer(config.method, rig, site, config.options,
-                                        config.start_pose,
-                                        config.link_odometry)  # --ros2: the same method
+                                        config.start_pose, config.link_odometry,
+                                        limits=config.limits)  # --ros2: the same method
     cap = config.capture
     start = time.monotonic()
     source = open_waiting(

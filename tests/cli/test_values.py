@@ -139,6 +139,12 @@ def test_an_empty_value_that_means_something_is_taken():
      "X,Y,YAW,SIGMA_M,SIGMA_DEG, found '1,2'"),
     (["--device", "sim:corridor", "--frames", "1", "--view", "abc"],
      "ceilrun: error: --view: expected [HOST:]PORT, found 'abc'"),
+    (["--device", "sim:corridor", "--frames", "1", "--max-speed", "nan"],
+     "ceilrun: error: --max-speed: expected a speed in (0, 100] m/s and a turn rate in "
+     "(0, 3600] degrees/s, found 'nan'"),
+    (["--device", "sim:corridor", "--frames", "1", "--max-speed", "2,x"],
+     "ceilrun: error: --max-speed: expected SPEED (m/s) or SPEED,TURN (m/s, degrees/s), "
+     "found '2,x'"),
 ])
 def test_a_library_parameter_is_named_by_its_flag(args, line):
     res = run(ceilrun_app, args)
