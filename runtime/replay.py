@@ -144,8 +144,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
         report: also write ``OUT/report.html`` (:mod:`~ceilkit.runtime.viz.report`);
             with ``tum`` and a ``truth.csv``, ``truth.tum`` is written beside ``poses.tum``.
         start_pose: ``(x_m, y_m, yaw_rad[, sigma_m, sigma_rad])``: the first prior.
-        limits: the vehicle's stated maximum speed and turn rate ``(m/s, rad/s)``
-            (``--max-speed``), or ``None`` for the defaults (docs/config.md).
+        limits: the vehicle's maximum ``(m/s, rad/s)`` (``--max-speed``; docs/config.md).
         odometry: an ``odometry.csv`` replacing the recording's own; the rows are fed
             to the fusion (``auto``) at their stamps.
         ros2: a :class:`~ceilkit.runtime.io.ros2.Ros2Config`: also publish on ROS 2
@@ -161,24 +160,22 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
             another run's lock on ``out_dir``).
     """
     out = Path(out_dir) if out_dir is not None else replay_folder(recording)
-    for given in (rig, site, odometry):  # a missing input is said before an existing output
-        if isinstance(given, str | Path) and not Path(given).exists():
-            raise ConfigError(Path(given), None, "file not found")
+    _check_given(rig, site, odometry)   # a missing input is said before an existing output
     with contextlib.ExitStack() as locked:  # the output folders locked to the end
         check_replay_outputs(recording, out, rig, site, link, tum, force, overlays,
                              report, odometry, locked)
         rec = open_recording(recording, rig=rig, site=site)
         check_rig_site(rec.rig, rec.site)
         odo = load_odometry(odometry) if odometry is not None else rec.odometry
-        estimator, tracker = make_localizer(method, rec.rig, rec.site, options, start_pose,
-                                            odo is not None and track,  # --ros2: the same
-                                            limits=limits)
+        estimator, tracker = make_localizer(  # --ros2: the same method
+            method, rec.rig, rec.site, options, start_pose, odo is not None and track,
+            limits=limits)
         tracker = tracker if track else None
         poses_path = out / "poses.csv"
         tap, views = _views(estimator, rec, overlays, overlays_only_failures, report)
         if tum and rec.truth is not None:
             write_truth_tum(rec.truth, out / "truth.tum")
-        meter = AccuracyMeter(rec.truth) if rec.truth is not None else None
+        meter = None if rec.truth is None else AccuracyMeter(rec.truth)
         with PoseWriter(poses_path, out / "poses.tum" if tum else None) as writer, \
                 opened_link(link, rec.rig, rec.site) as the_link, \
                 contextlib.ExitStack() as stack:
@@ -194,6 +191,14 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
                               0 if views is None else views.written,
                               tuple(res[1].lines()) if res[1] is not None else ())
         return _with_report(result, views, out) if report else result
+
+
+def _check_given(*given: Any) -> None:
+    """Refuse a file given by path (``--rig``, ``--site``, ``--odometry``) that is not
+    there (``ConfigError`` naming it)."""
+    for g in given:
+        if isinstance(g, str | Path) and not Path(g).exists():
+            raise ConfigError(Path(g), None, "file not found")
 
 
 def _with_report(result: ReplayResult, views: Any, out: Path) -> ReplayResult:
