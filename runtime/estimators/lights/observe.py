@@ -209,7 +209,12 @@ def two_level(grey: np.ndarray) -> bool:
     for 3; with the vignetting at 0, 1.0 and 3.5; raw frames (intensity-weighted
     centroids), 1.0 and 3.3."""
     g = np.asarray(grey)
-    return g.dtype == np.uint8 and not np.any((g > 0) & (g < 255))
+    if g.dtype != np.uint8:
+        return False
+    sample = g[::16, ::16]   # a raw frame shows mid levels nearly everywhere: settled here
+    if np.any((sample > 0) & (sample < 255)):
+        return False
+    return not np.any((g > 0) & (g < 255))
 
 
 def edge_shift_px(p: np.ndarray, area_px: np.ndarray, centre_px: np.ndarray,
@@ -386,10 +391,10 @@ class SpotObserver:
         shape for a light at their place) do not hide the lights behind them. One
         detection: examining more regions costs little beside the threshold."""
         spots, q, ok, table = self._examine(grey, MAX_BUDGET_FACTOR * self.max_spots)
-        cam = self.rig.camera
-        centre = np.array([cam.cx, cam.cy]) if two_level(grey) else None
         if len(spots) == 0:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
+        cam = self.rig.camera
+        centre = np.array([cam.cx, cam.cy]) if two_level(grey) else None
         weak = axis = None
         if self.light_size_m is not None:
             q, ok, weak, axis = self._rectangles(spots, q, ok, table, centre)
