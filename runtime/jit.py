@@ -49,6 +49,7 @@ import contextlib
 import importlib
 import inspect
 import os
+import pickle
 import subprocess
 import sys
 import textwrap
@@ -85,7 +86,24 @@ def njit(fn: F) -> F:
     :class:`SharedDispatcher` (see module)."""
     disp = SharedDispatcher(py_func=fn, locals={}, targetoptions=dict(OPTIONS))
     disp.enable_caching()
+    _stale_tolerant(disp._cache._cache_file)
     return disp  # type: ignore[return-value]
+
+
+def _stale_tolerant(index: Any) -> None:
+    """Let numba's cache index of an older source read as empty when it cannot be
+    unpickled. numba unpickles an index before it compares the source's stamp, so after
+    an upgrade that renamed a type in a loop's signature (a NamedTuple of arguments), a
+    cache left beside the source would raise instead of being recompiled."""
+    load = index._load_index
+
+    def load_or_empty() -> dict:
+        try:
+            return load()
+        except (AttributeError, ImportError, EOFError, pickle.UnpicklingError):
+            return {}
+
+    index._load_index = load_or_empty
 
 
 class SharedDispatcher(CPUDispatcher):

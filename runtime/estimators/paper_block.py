@@ -24,7 +24,7 @@ import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import Sides
 from ceilkit.runtime.estimators.block.estimator import BlockEstimator, BlockOptions, TargetFix
-from ceilkit.runtime.estimators.block.pnp import Refined, project_norm
+from ceilkit.runtime.estimators.block.pnp import PlanarFit, project_norm
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 MIN_SIGMA_PX = 0.3      # the corners' reprojection RMS is floored at this
@@ -83,7 +83,7 @@ class PaperBlockEstimator(BlockEstimator):
         sm = s_px / f * rng
         span = float(np.max(np.linalg.norm(corners_w - corners_w.mean(0), axis=1)))
         cov = np.diag([sm ** 2, sm ** 2, (sm / max(span, 1e-3)) ** 2])
-        ref = Refined(pose, cov, rms_px, len(corners_w))
+        ref = PlanarFit(pose, cov, rms_px, len(corners_w))
         return TargetFix(source, ref, float("nan"), sides.corners_norm, corners_w, resolved_by)
 
     def _parallels(self, grey: np.ndarray, hint: float | None,

@@ -258,3 +258,17 @@ def test_helper_count_reads_the_environment(monkeypatch):
     monkeypatch.setenv(jit.HELPERS_ENV, "two")
     with pytest.raises(ConfigError, match="CEILKIT_COMPILE_HELPERS: expected a whole"):
         jit.helper_count()
+
+
+def test_an_index_naming_a_renamed_type_reads_as_empty():
+    """An upgrade that renamed a type in a loop's signature leaves an index numba cannot
+    unpickle: it reads as an empty cache (the loop recompiles) instead of raising."""
+    from ceilkit.runtime import jit
+
+    class Index:
+        def _load_index(self):
+            raise AttributeError("Can't get attribute 'Mount' on <module ...>")
+
+    index = Index()
+    jit._stale_tolerant(index)
+    assert index._load_index() == {}

@@ -69,16 +69,16 @@ from ceilkit.runtime.estimators.block.fallback import MarkerReader
 from ceilkit.runtime.estimators.block.heading import ParallelsStage
 from ceilkit.runtime.estimators.block.parallels import ParallelsHeading
 from ceilkit.runtime.estimators.block.pnp import (
+    PlanarFit,
     PlanarGeometry,
     PooledSideOffsets,
-    Refined,
     ceiling_points_vehicle,
     six_dof_check,
     solve,
 )
 from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides
 from ceilkit.runtime.estimators.block.twins import (
-    Twin,
+    BlockTwin,
     fit_hypotheses,
     heading_branches,
     target_twins,
@@ -187,12 +187,12 @@ class BlockOptions(EstimatorOptions):
 @dataclass(frozen=True, eq=False)
 class TargetFix:
     source: str
-    refined: Refined
+    refined: PlanarFit
     shape_m: float
     corners_norm: np.ndarray
     corners_w: np.ndarray
     resolved_by: str
-    twins: tuple[Twin, ...] = ()    # the correspondences the prior ruled out
+    twins: tuple[BlockTwin, ...] = ()    # the correspondences the prior ruled out
 
 
 @dataclass(frozen=True, eq=False)
@@ -500,7 +500,7 @@ class BlockEstimator(Estimator):
         if not fits:
             return PARTIAL_BLOCK if quad.at_border else None
         every = [b.corners_m[(np.arange(4) + k) % 4] for b, k, _, _ in fits]
-        twins: tuple[Twin, ...] = ()
+        twins: tuple[BlockTwin, ...] = ()
         if len(fits) > 1:
             pick = _pick_by_prior(fits, prior)
             if pick is None:     # every fit a hypothesis; None: the edges do not fit (as _solve)

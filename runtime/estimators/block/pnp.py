@@ -118,7 +118,7 @@ def _side_residuals(geo: PlanarGeometry, poses: np.ndarray, corners_w: np.ndarra
 
 
 @dataclass(frozen=True, eq=False)
-class Refined:
+class PlanarFit:
     """A refined planar pose: ``pose`` (x, y, yaw), ``cov`` 3x3 (m², rad²), ``rms_px``
     of the edge residuals, ``n`` points used."""
 
@@ -146,7 +146,7 @@ class PooledSideOffsets:
         self.weight = float(weight)
         self._var: dict[str, float] = {}
 
-    def __call__(self, source: str, ref: Refined) -> Refined:
+    def __call__(self, source: str, ref: PlanarFit) -> PlanarFit:
         if ref.side_unit is None:
             return ref
         prev = self._var.get(source)
@@ -159,7 +159,7 @@ class PooledSideOffsets:
 
 
 def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np.ndarray,
-           edge_norm: np.ndarray, side: np.ndarray, scale: np.ndarray) -> Refined:
+           edge_norm: np.ndarray, side: np.ndarray, scale: np.ndarray) -> PlanarFit:
     """Gauss-Newton on the pose from ``pose0``: edge points ``(M, 2)`` (normalized) of
     side ``side`` (M,) (side k runs from corner k to k+1 of ``corners_w``), residuals in
     px by ``scale`` (M,) (:func:`magnification`). Needs M >= 3 over three sides."""
@@ -179,11 +179,11 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
         A = np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:
         pose[2] = wrap_pi(pose[2])
-        return Refined(pose, np.full((3, 3), np.inf), rms, int(r.size))
+        return PlanarFit(pose, np.full((3, 3), np.inf), rms, int(r.size))
     var_b, unit = side_offset_cov(r, J, side, A)
     cov = s2 * A if unit is None else s2 * A + var_b * unit
     pose[2] = wrap_pi(pose[2])
-    return Refined(pose, cov, rms, int(r.size), var_b, unit)
+    return PlanarFit(pose, cov, rms, int(r.size), var_b, unit)
 
 
 def _gauss_newton_numpy(geo: PlanarGeometry, pose: np.ndarray, *args: np.ndarray
@@ -342,7 +342,7 @@ SOLVED, NO_CLOSED_FORM, SINGULAR = 0, 1, 2     # solve_core's outcomes
 
 def solve(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray,
           edge_norm: np.ndarray, side: np.ndarray, drop: np.ndarray
-          ) -> tuple[float, Refined] | None:
+          ) -> tuple[float, PlanarFit] | None:
     """``(rms_m, refined)``: :func:`closed_form` of the corners (its RMS on the
     ceiling), then :func:`refine` from it on the edge points ``(M, 2)`` of the sides
     not in ``drop`` ``(4,)`` bool, weighted by the lens's :func:`magnification`; None
@@ -362,7 +362,7 @@ def solve(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray,
         keep = ~dr[sd]
         return float(out[3]), refine(geo, (out[0], out[1], out[2]), cw, en[keep], sd[keep],
                                      magnification(geo.camera, en[keep]))
-    return float(out[3]), Refined(out[:3].copy(), cov, rms, n, var_b,
+    return float(out[3]), PlanarFit(out[:3].copy(), cov, rms, n, var_b,
                                   unit if has_unit else None)
 
 
@@ -371,7 +371,7 @@ def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, 
                out, cov, unit):  # pragma: no cover - compiled
     """:func:`solve` in one call: into ``out (4,)`` the pose ``(x, y, yaw)`` and the
     closed form's RMS on the ceiling, into ``cov`` and ``unit`` ``(3, 3)``
-    :class:`Refined`'s; returns ``(status, n, rms_px, σ_b², has unit)``, status
+    :class:`PlanarFit`'s; returns ``(status, n, rms_px, σ_b², has unit)``, status
     :data:`SOLVED`, :data:`NO_CLOSED_FORM` or :data:`SINGULAR` (``out`` then holds
     the closed form, for the caller's least squares)."""
     # the closed form: the corners on the ceiling (V), rigidly fitted to the block's

@@ -1,7 +1,7 @@
 """Twins: the other poses a frame supports when what it shows is symmetric (issue 36).
 
 * A plain square block fits its corners in 4 ways, a rectangle in 2: each fit is a
-  vehicle pose, related to the others by a rigid motion of W (:class:`Twin`, from one
+  vehicle pose, related to the others by a rigid motion of W (:class:`BlockTwin`, from one
   correspondence's corners to another's). With no prior the frame is ``ambiguous`` and
   carries every fit (:func:`fit_hypotheses`); with a prior the published pose carries
   the twins the prior ruled out (:func:`with_twins`).
@@ -31,7 +31,7 @@ _LABELS = {0: "same_turn", 90: "quarter_turn", -90: "quarter_turn", 180: "half_t
 
 
 @dataclass(frozen=True)
-class Twin:
+class BlockTwin:
     """Another correspondence of a symmetric block: the rigid motion of W taking the
     published correspondence's corners to this one's (``p' = R(yaw) p + t``)."""
 
@@ -40,16 +40,16 @@ class Twin:
     label: str
 
 
-def twin(corners_a: np.ndarray, corners_b: np.ndarray) -> Twin:
+def twin(corners_a: np.ndarray, corners_b: np.ndarray) -> BlockTwin:
     """The rigid motion of W taking the corners ``corners_a`` ``(4, 2)`` onto
     ``corners_b`` (the same block's corners in another order, or another block's),
     labelled by its turn."""
     yaw, t, _ = rigid_fit_rms(np.asarray(corners_a, float), np.asarray(corners_b, float))
     deg = round(math.degrees(wrap_pi(yaw)))
-    return Twin(float(yaw), (float(t[0]), float(t[1])), _LABELS.get(deg, f"turn {deg:+d} deg"))
+    return BlockTwin(float(yaw), (float(t[0]), float(t[1])), _LABELS.get(deg, f"turn {deg:+d} deg"))
 
 
-def target_twins(corners_w: np.ndarray, tol_m: float) -> tuple[Twin, ...]:
+def target_twins(corners_w: np.ndarray, tol_m: float) -> tuple[BlockTwin, ...]:
     """The turns of a block's corners ``(4, 2)`` (by one, two, three places) that fit
     its own shape within ``tol_m`` RMS, as twins of the corners as given."""
     c = np.asarray(corners_w, float)
@@ -57,7 +57,7 @@ def target_twins(corners_w: np.ndarray, tol_m: float) -> tuple[Twin, ...]:
     return tuple(twin(c, r) for r in turns if rigid_fit_rms(c, r)[2] < tol_m)
 
 
-def moved(pose: np.ndarray, cov: np.ndarray | None, tw: Twin, weight: float,
+def moved(pose: np.ndarray, cov: np.ndarray | None, tw: BlockTwin, weight: float,
           label: str | None = None) -> Hypothesis:
     """The vehicle pose ``(x, y, yaw)`` with its covariance moved by ``tw``'s motion of
     W: the pose the frame gives under that correspondence."""
@@ -72,7 +72,7 @@ def moved(pose: np.ndarray, cov: np.ndarray | None, tw: Twin, weight: float,
                       weight, tw.label if label is None else label)
 
 
-def with_twins(pose: np.ndarray, cov: np.ndarray, twins: tuple[Twin, ...]
+def with_twins(pose: np.ndarray, cov: np.ndarray, twins: tuple[BlockTwin, ...]
                ) -> tuple[Hypothesis, ...]:
     """The published pose first, then each twin the prior ruled out (equal weights);
     empty without twins."""

@@ -35,8 +35,8 @@ from ceilkit.runtime.estimators.block.detect import (
 )
 from ceilkit.runtime.estimators.block.pnp import (
     SOLVED,
+    PlanarFit,
     PlanarGeometry,
-    Refined,
     solve_core,
 )
 from ceilkit.runtime.features.quads import BORDER_PX, signed_area
@@ -101,7 +101,7 @@ def shape_fits(blocks: Any, pv: np.ndarray, dark: bool, shape_tol: float
     return out
 
 
-class Mount(NamedTuple):
+class KernelMount(NamedTuple):
     """The rig as the compiled loops take it: ``R (3, 3)``, ``t (3,)`` the camera in
     the vehicle frame (read-only float64), the ceiling's height ``ceiling_m`` above the
     camera's origin, and the lens ``code``, ``lens (13,)``
@@ -161,7 +161,7 @@ class OutlineFix:
 
     sides: Sides
     shape_m: float
-    refined: Refined
+    refined: PlanarFit
 
 
 class Windows:
@@ -188,7 +188,7 @@ class Windows:
         self._drop = {t.source: none if drop is None else arr(drop(t.corners_w), np.bool_)
                       for t in targets}
         code, lens = geo.camera.lens
-        self._mount = Mount(arr(geo.R_vehicle_cam, np.float64),
+        self._mount = KernelMount(arr(geo.R_vehicle_cam, np.float64),
                             arr(geo.t_vehicle_cam, np.float64), float(geo.ceiling_m),
                             code, lens)
 
@@ -252,14 +252,14 @@ class Windows:
             return None
         sides = Sides(out.corners, out.edge[:r.n], out.side[:r.n], 4 * o.edge_points)
         return OutlineFix(sides, float(got.pose[3]),
-                          Refined(got.pose[:3].copy(), got.cov, r.rms_px, r.m, r.var_b,
+                          PlanarFit(got.pose[:3].copy(), got.cov, r.rms_px, r.m, r.var_b,
                                   got.unit if r.has_unit else None))
 
 
 @njit
 def predict_core(mount, pose, corners_w, bright, size, margin):  # pragma: no cover
     """:meth:`Windows.predicted` from ``pose (x, y, yaw)`` through the rig ``mount`` (a
-    :class:`Mount`): ``(px (T, 4, 2), order)``, the targets (corners
+    :class:`KernelMount`): ``(px (T, 4, 2), order)``, the targets (corners
     ``corners_w (4 T, 2)``, ``bright (T,)``) fully inside the frame ``size (width,
     height)`` px by ``margin`` px, dark first, each polarity by decreasing area in the
     image."""
@@ -298,7 +298,7 @@ def predict_core(mount, pose, corners_w, bright, size, margin):  # pragma: no co
 def window_core(grey, px, search, mount, target, check, sides, solved):  # pragma: no cover
     """:meth:`Windows.fix` in one call: the target ``target (corners_w (4, 2), drop
     (4,))`` measured about ``px (4, 2)`` (two edge passes as ``search``, a
-    :class:`.detect.EdgeSearch`, says), solved through ``mount`` (a :class:`Mount`) and
+    :class:`.detect.EdgeSearch`, says), solved through ``mount`` (a :class:`KernelMount`) and
     checked by ``check`` (a :class:`WindowCheck`): a :class:`WindowResult`; the sides
     into ``sides`` (a :class:`.detect.SidesOut`), the pose, shape and covariance into
     ``solved`` (a :class:`SolvedOut`) as :func:`.pnp.solve_core` writes them."""

@@ -56,7 +56,7 @@ from ceilkit.runtime.estimators.corridor.geometry import vanishing_line_check
 from ceilkit.runtime.estimators.corridor.hypotheses import (
     LabelContext,
     Labeling,
-    Twin,
+    LabelingTwin,
     Unresolved,
     best_labeling,
     dominant_pans,
@@ -531,7 +531,7 @@ class CorridorEstimator(Estimator):
                             hypotheses_complete=complete_twins(best.twins))
 
 
-def twin_hypotheses(setup: CorridorSetup, match_tol_m: float, twins: tuple[Twin, ...],
+def twin_hypotheses(setup: CorridorSetup, match_tol_m: float, twins: tuple[LabelingTwin, ...],
                     cov: np.ndarray | None) -> tuple[Hypothesis, ...]:
     """The vehicle poses of labelings ``twins`` (camera pan and y in W), each with
     ``cov`` (the chosen fit's; None: the 1-D gate ``match_tol_m`` as its sigma),
@@ -566,7 +566,7 @@ def turned_twins(out: Estimate) -> bool:
             and any(h.label in TURN_LABELS for h in out.hypotheses))
 
 
-def complete_twins(twins: tuple[Twin, ...]) -> bool:
+def complete_twins(twins: tuple[LabelingTwin, ...]) -> bool:
     """Whether the labelings ``twins`` are every pose the frame supports: the half and
     quarter turns are each examined, and every lateral shift of each that the frame's
     lines fit as well (a tile grid has as many as it has seams in view:

@@ -186,7 +186,7 @@ def families(ang: np.ndarray, tol: np.ndarray | float) -> tuple[np.ndarray, np.n
 
 
 @dataclass(frozen=True, eq=False)
-class Hypothesis:
+class TurnLabeling:
     """The labeling ``psi + k 90 deg`` of a frame's families (odd k: they swap).
 
     Attributes:
@@ -222,7 +222,7 @@ class Hypothesis:
 
 def hypothesis(k: int, psi_rad: float, along: np.ndarray, across: np.ndarray,
                fr: FrameLines, lens: tuple[float, float], prior: PoseEstimate | None,
-               ctx: LabelContext) -> Hypothesis:
+               ctx: LabelContext) -> TurnLabeling:
     """The labeling ``psi_rad + k 90 deg`` scored on the site; ``lens``: the along and
     across families' summed ceiling lengths (m). One compiled call
     (:func:`hypothesis_core`: the forward offsets, their edge compatibility, the lamp
@@ -240,7 +240,7 @@ def hypothesis(k: int, psi_rad: float, along: np.ndarray, across: np.ndarray,
                        0.0 if prior_shift is None else float(prior_shift))
     offs, wa, compat, res = hypothesis_core(ctx.kernel_setup, fr.arrays, arr(fa, np.bool_),
                                             arr(fb, np.bool_), pk, query, assign)
-    return Hypothesis(k, pk, fa, fb, offset_match(res, assign), offs, wa, compat, len_a, len_b)
+    return TurnLabeling(k, pk, fa, fb, offset_match(res, assign), offs, wa, compat, len_a, len_b)
 
 
 @njit
@@ -275,7 +275,7 @@ def hypothesis_core(ks, la, fa, fb, psi, query, assign):  # pragma: no cover - c
     return offs, wa, compat, match
 
 
-def across_on_grid(h: Hypothesis, fr: FrameLines, ctx: LabelContext) -> int:
+def across_on_grid(h: TurnLabeling, fr: FrameLines, ctx: LabelContext) -> int:
     """How many across segments of ``h`` sit on the ``lines_across`` grid (0 unless
     two or more)."""
     spacing = ctx.setup.across_spacing_m
@@ -316,11 +316,11 @@ class Labeling:
     ambiguous: bool
     how: str
     n_off_ceiling: int = 0
-    twins: tuple[Twin, ...] = ()
+    twins: tuple[LabelingTwin, ...] = ()
 
 
 @dataclass(frozen=True)
-class Twin:
+class LabelingTwin:
     """A labeling the frame supports as well as the chosen one: the camera's pan and y
     in W, and what makes it a twin (``half_turn``, ``quarter_turn``, ``shift``)."""
 
@@ -338,13 +338,13 @@ class Unresolved:
     score: tuple[int, float]
     reason: str
     detail: str
-    twins: tuple[Twin, ...] = ()
+    twins: tuple[LabelingTwin, ...] = ()
 
 
 def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
             lens: tuple[float, float], fr: FrameLines, prior: PoseEstimate | None,
             prior_psi: float | None, ctx: LabelContext
-            ) -> tuple[Hypothesis, str, list[Twin]]:
+            ) -> tuple[TurnLabeling, str, list[LabelingTwin]]:
     """The forward family's labeling about ``psi_rad``, the rule that chose it and its
     rivals: the labelings the frame supports as well (``lens``: the families' summed
     ceiling lengths). Nothing the frame cannot check decides between a labeling and
@@ -353,9 +353,9 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
     ``lines_across`` are seams (a tile grid); the prior, or the user's stated heading
     (``assume_heading_rad``), then chooses."""
     la, lb = lens
-    cache: dict[int, Hypothesis] = {}
+    cache: dict[int, TurnLabeling] = {}
 
-    def hyp(k: int) -> Hypothesis:
+    def hyp(k: int) -> TurnLabeling:
         k %= 4
         if k not in cache:
             cache[k] = hypothesis(k, psi_rad, along, across, fr, (la, lb), prior, ctx)
@@ -387,7 +387,7 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
     else:
         cands = [first, hyp(ks[1])]
 
-        def frame_score(h: Hypothesis) -> tuple:
+        def frame_score(h: TurnLabeling) -> tuple:
             return (h.n_a + min(grid(h), 2), h.elong)
 
         cands.sort(key=frame_score, reverse=True)
@@ -417,11 +417,11 @@ def _choose(psi_rad: float, along: np.ndarray, across: np.ndarray,
     return chosen, how, rivals
 
 
-def _per_labeling(fn: Callable[[Hypothesis], float]) -> Callable[[Hypothesis], float]:
+def _per_labeling(fn: Callable[[TurnLabeling], float]) -> Callable[[TurnLabeling], float]:
     """``fn`` computed once per labeling (its quarter turns ``k``) of one pan candidate."""
     memo: dict[int, float] = {}
 
-    def get(h: Hypothesis) -> float:
+    def get(h: TurnLabeling) -> float:
         if h.k not in memo:
             memo[h.k] = fn(h)
         return memo[h.k]
@@ -434,7 +434,7 @@ TWIN_RATIO = 0.85
 (the 1-D association's :data:`~.association.AMBIGUITY_RATIO`)."""
 
 
-def _support(h: Hypothesis, grid, ctx: LabelContext) -> float:
+def _support(h: TurnLabeling, grid, ctx: LabelContext) -> float:
     """How well labeling ``h`` explains the frame: its association's score (about the
     site lines matched, discounted by misfit), less :data:`~.association.ABSENCE_PENALTY`
     per site line it puts clearly in view that no forward segment lies on; where the
@@ -450,7 +450,7 @@ def _support(h: Hypothesis, grid, ctx: LabelContext) -> float:
     return max(score, 0.0)
 
 
-def _missing(h: Hypothesis, shift_m: float, ctx: LabelContext) -> int:
+def _missing(h: TurnLabeling, shift_m: float, ctx: LabelContext) -> int:
     """Site lines the labeling ``h`` at camera y ``shift_m`` puts clearly in view that
     no forward segment of a fitting kind lies on."""
     st = ctx.setup
@@ -460,8 +460,8 @@ def _missing(h: Hypothesis, shift_m: float, ctx: LabelContext) -> int:
                            view))
 
 
-def _rivals(chosen: Hypothesis, hyp, sup, ctx: LabelContext
-            ) -> tuple[list[Twin], Hypothesis | None]:
+def _rivals(chosen: TurnLabeling, hyp, sup, ctx: LabelContext
+            ) -> tuple[list[LabelingTwin], TurnLabeling | None]:
     """The labelings that explain the frame as well as ``chosen`` (support ``sup``,
     :func:`_support`, at least :data:`TWIN_RATIO` of its): its half turn, and its quarter
     turns where the site's ``lines_across`` are seams; and the one the frame prefers
@@ -478,7 +478,7 @@ def _rivals(chosen: Hypothesis, hyp, sup, ctx: LabelContext
     out, better, own = [], None, None
     for dk, lbl in turns:
         if dk == 2 and ctx.mirror_y_m is not None:
-            out.append(Twin(wrap_pi(chosen.psi_rad + np.pi),
+            out.append(LabelingTwin(wrap_pi(chosen.psi_rad + np.pi),
                             2.0 * ctx.mirror_y_m - chosen.match.shift_m, lbl, MIRRORED))
             continue
         h = hyp(chosen.k + dk)
@@ -508,7 +508,7 @@ def _rivals(chosen: Hypothesis, hyp, sup, ctx: LabelContext
     return out, better
 
 
-def alike_shifts(m: OffsetMatch, h: Hypothesis, ctx: LabelContext) -> tuple[float, ...]:
+def alike_shifts(m: OffsetMatch, h: TurnLabeling, ctx: LabelContext) -> tuple[float, ...]:
     """The lateral shifts other than ``m``'s that labeling ``h``'s forward lines fit as
     well (:func:`~.association.shifts_alike`), or its runner-up when absence leaves
     none of them but called the match ambiguous (:func:`settle_by_absence` compares
@@ -518,13 +518,13 @@ def alike_shifts(m: OffsetMatch, h: Hypothesis, ctx: LabelContext) -> tuple[floa
     return out or ((m.runner_up[2],) if m.runner_up is not None else ())
 
 
-def labeling_twins(h: Hypothesis, lbl: str, ctx: LabelContext) -> list[Twin]:
+def labeling_twins(h: TurnLabeling, lbl: str, ctx: LabelContext) -> list[LabelingTwin]:
     """The twins a rival labeling ``h`` makes: its shift and, when another fits as well
     (a tile grid turned a quarter), every such shift: each a pose the frame supports,
     so the list is complete (``exact``)."""
     m = h.match
     shifts = (m.shift_m,) + (alike_shifts(m, h, ctx) if is_ambiguous(m) else ())
-    return [Twin(h.psi_rad, c, lbl) for c in shifts]
+    return [LabelingTwin(h.psi_rad, c, lbl) for c in shifts]
 
 
 MIRRORED = True
@@ -580,7 +580,7 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
                               f"{m.n_lines} forward lines fit {len(alike) + 1} lateral "
                               f"positions ({m.shift_m:+.3f} m, {alike[0]:+.3f} m, ...) and "
                               "the prior does not single one out",
-                              (Twin(chosen.psi_rad, m.shift_m, "chosen"),)
+                              (LabelingTwin(chosen.psi_rad, m.shift_m, "chosen"),)
                               + _shift_twins(chosen.psi_rad, alike, rivals, ctx)
                               + tuple(rivals))
         if settled is not m and prior is not None and prior.y_m is not None:
@@ -597,7 +597,7 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         if not ambiguous and how != "prior":
             how += "+absence"
     if ctx.mirror_y_m is not None:     # mirror the lateral shift the frame settled on
-        rivals = [Twin(t.psi_rad, 2.0 * ctx.mirror_y_m - m.shift_m, t.label, t.exact)
+        rivals = [LabelingTwin(t.psi_rad, 2.0 * ctx.mirror_y_m - m.shift_m, t.label, t.exact)
                   if t.label == "half_turn" else t for t in rivals]
     twins = tuple(rivals)
     if ambiguous:
@@ -606,34 +606,35 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
         return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
                           f"{m.n_lines} forward lines fit {len(alike) + 1} lateral "
                           f"positions ({m.shift_m:+.3f} m, {alike[0]:+.3f} m, ...); no "
-                          "prior to choose", (Twin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
+                          "prior to choose",
+                          (LabelingTwin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
     if rivals and how != "prior":
         kinds = " and ".join(sorted({t.label.replace("_", " ") for t in rivals}))
         return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
                           f"the lines fit {len(rivals) + 1} headings equally well (a "
                           f"{kinds}: the ceiling looks the same); no prior to choose",
-                          (Twin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
+                          (LabelingTwin(chosen.psi_rad, m.shift_m, "chosen"),) + twins)
     assign = np.full(fr.q.shape[0], -1)
     assign[np.flatnonzero(chosen.fa)] = m.assign
     return Labeling((m.n_lines, m.weight), chosen.psi_rad, m.shift_m, chosen.fa, chosen.fb,
                     assign, m.n_lines, ambiguous, how, twins=twins)
 
 
-def _shift_twins(psi_rad: float, alike: tuple[float, ...], rivals: list[Twin],
-                 ctx: LabelContext) -> tuple[Twin, ...]:
+def _shift_twins(psi_rad: float, alike: tuple[float, ...], rivals: list[LabelingTwin],
+                 ctx: LabelContext) -> tuple[LabelingTwin, ...]:
     """The twins of the other lateral shifts ``alike`` (camera y, m) at pan ``psi_rad``,
     and, on a site symmetric about a centre line whose half turn is among ``rivals``,
     each one's mirror (the half turn of every shift the frame fits)."""
-    out = tuple(Twin(psi_rad, c, "shift") for c in alike)
+    out = tuple(LabelingTwin(psi_rad, c, "shift") for c in alike)
     if ctx.mirror_y_m is not None and any(t.label == "half_turn" for t in rivals):
-        out += tuple(Twin(wrap_pi(psi_rad + np.pi), 2.0 * ctx.mirror_y_m - c, "half_turn")
+        out += tuple(LabelingTwin(wrap_pi(psi_rad + np.pi), 2.0 * ctx.mirror_y_m - c, "half_turn")
                      for c in alike)
     return out
 
 
 def _disagreeing(m: OffsetMatch, settled: OffsetMatch, alike: tuple[float, ...],
-                 chosen: Hypothesis, rivals: list[Twin], ctx: LabelContext
-                 ) -> tuple[Twin, ...]:
+                 chosen: TurnLabeling, rivals: list[LabelingTwin], ctx: LabelContext
+                 ) -> tuple[LabelingTwin, ...]:
     """Every pose of a frame whose missing lines chose ``settled`` against the prior's
     ``m``: both shifts, the others alike (``alike``, of ``settled``) and the rival
     turns; a track then sees whether any lies where it expects the vehicle (a kidnap
@@ -642,11 +643,11 @@ def _disagreeing(m: OffsetMatch, settled: OffsetMatch, alike: tuple[float, ...],
     for c in alike + (m.shift_m,):
         if all(abs(c - d) > ctx.match_tol_m for d in shifts):
             shifts.append(c)
-    return ((Twin(chosen.psi_rad, shifts[0], "chosen"),)
+    return ((LabelingTwin(chosen.psi_rad, shifts[0], "chosen"),)
             + _shift_twins(chosen.psi_rad, tuple(shifts[1:]), rivals, ctx) + tuple(rivals))
 
 
-def _prior_single_shift(m: OffsetMatch, alike: tuple[float, ...], chosen: Hypothesis,
+def _prior_single_shift(m: OffsetMatch, alike: tuple[float, ...], chosen: TurnLabeling,
                         prior: PoseEstimate, ctx: LabelContext) -> bool:
     """Whether the prior allows the lateral shift it chose (``m``, the nearest it) and
     none of the others the frame fits as well (``alike``: :func:`alike_shifts`; on a

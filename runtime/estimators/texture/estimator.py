@@ -59,7 +59,7 @@ from ceilkit.runtime.estimators.texture.ceilmap import (
 )
 from ceilkit.runtime.estimators.texture.match import (
     DescriptorIndex,
-    Refined,
+    MapFit,
     ransac_rigid,
     refine,
 )
@@ -134,9 +134,9 @@ class TextureOptions(EstimatorOptions):
 class _Search:
     """The best pose and its runner-up among one set of correspondences."""
 
-    best: Refined | None
+    best: MapFit | None
     count: int
-    runner: Refined | None
+    runner: MapFit | None
     runner_count: int
     ncc: float
     runner_ncc: float
@@ -231,7 +231,7 @@ class TextureEstimator(Estimator):
         if got is None:
             return None
         r = got.refined
-        fit = Refined(r.pose, r.cov * TRACK_VAR_FACTOR, r.used, r.rms_m)
+        fit = MapFit(r.pose, r.cov * TRACK_VAR_FACTOR, r.used, r.rms_m)
         ncc = appearance_ncc(cmap, patch, valid, fit.pose, NCC_STRIDE)
         if fit.rms_m > o.max_rms_px * res or not ncc >= o.min_ncc or \
                 len(fit.used) < TRACK_MIN_SHARE * got.followed or \

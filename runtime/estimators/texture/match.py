@@ -273,7 +273,7 @@ def one_per_query(q: np.ndarray, p: np.ndarray, qi: np.ndarray, pose: tuple[floa
 
 
 @dataclass(frozen=True, eq=False)
-class Refined:
+class MapFit:
     """A least-squares pose on its inliers.
 
     Attributes:
@@ -291,7 +291,7 @@ class Refined:
 
 def refine(q: np.ndarray, p: np.ndarray, qi: np.ndarray | None,
            pose: tuple[float, float, float], tol_m: float, sigma_floor_m: float,
-           rounds: int = 2) -> Refined | None:
+           rounds: int = 2) -> MapFit | None:
     """Least squares (:func:`~ceilkit.runtime.geometry.fits.fit_rigid_2d`) on the
     correspondences within ``tol_m`` of ``pose`` (one per query feature, the nearest;
     ``qi`` None: every pair is its own query feature), the inliers collected again
@@ -305,7 +305,7 @@ def refine(q: np.ndarray, p: np.ndarray, qi: np.ndarray | None,
         Pairs(arr(q, np.float64), arr(p, np.float64), qi), has_qi,
         (float(pose[0]), float(pose[1]), float(pose[2])),
         Fitting(float(tol_m), float(sigma_floor_m), int(rounds)))
-    return Refined((x, y, yaw), cov, used, rms) if good else None
+    return MapFit((x, y, yaw), cov, used, rms) if good else None
 
 
 class Fitting(NamedTuple):
@@ -502,5 +502,5 @@ def _warm() -> None:
     refine(q, q, None, (0.0, 0.0, 0.0), 0.03, 0.001, 1)
 
 
-__all__ = ["DescriptorIndex", "distinctive", "Refined", "RigidFit", "one_per_query", "ransac_rigid",
+__all__ = ["DescriptorIndex", "distinctive", "MapFit", "RigidFit", "one_per_query", "ransac_rigid",
            "refine", "residuals"]

@@ -49,8 +49,8 @@ import numpy as np
 from ceilkit.runtime.estimators.texture.ceilmap import CeilingMap, _eroded, coarser
 from ceilkit.runtime.estimators.texture.match import (
     Fitting,
+    MapFit,
     Pairs,
-    Refined,
     _refine,
     _residuals,
     _rigid,
@@ -77,7 +77,7 @@ class Tracked:
         predicted: map features the prior put inside the patch and were followed from.
     """
 
-    refined: Refined
+    refined: MapFit
     followed: int
     predicted: int
 
@@ -177,7 +177,7 @@ class MapTracker:
                                            ox, oy), Fitting(tol_m, sigma_floor_m, 1),
                 min_points)
             if good:
-                return Tracked(Refined((x, y, yaw), cov, np.flatnonzero(used), rms),
+                return Tracked(MapFit((x, y, yaw), cov, np.flatnonzero(used), rms),
                                followed, len(idx))
         return None
 
