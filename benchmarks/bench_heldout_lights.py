@@ -34,7 +34,7 @@ lights within 70 deg of the vertical and 30 px inside the frame), median error, 
 Rows to ``benchmarks/out/bench_heldout_lights.csv``.
 
     .venv/bin/python benchmarks/bench_heldout_lights.py [--scenes 3] [--frames 100]
-        [--seed 1] [--only grid lamps rc] [--keep DIR]
+        [--seed 1] [--only grid lamps rc] [--pick rc0] [--runs auto-start] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -57,6 +57,7 @@ import yaml
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.lights.rays import project_poses
+from ceilkit.runtime.fusion import effective_count
 from ceilkit.runtime.geometry.ekf import chi2_quantile, mean_nees_band
 from ceilkit.runtime.replay import replay
 from ceilkit.runtime.sim.render import SimOptions, Trajectory, render_frame
@@ -251,7 +252,9 @@ def seen(rig: Rig, scene: Scene, traj: Trajectory) -> np.ndarray:
 
 def score(folder: Path, out: Path, seen_n: np.ndarray) -> dict:
     """Valid, wrong, tracked (valid and right) of all frames and of the frames that see
-    3 lights, median error, mean NEES and its band (as ``bench_ambiguity.score``)."""
+    3 lights, median error, mean NEES and its 95% band: that of the mean of ``n_eff``
+    independent values (:func:`~ceilkit.runtime.fusion.effective_count`: a drive's
+    poses are correlated in time, as the fusion's own consistency line counts them)."""
     truth = {int(r["t_ns"]): r for r in csv.DictReader(open(folder / "truth.csv"))}
     order = {t: k for k, t in enumerate(truth)}
     rows = list(csv.DictReader(open(out / "poses.csv")))
@@ -285,8 +288,9 @@ def score(folder: Path, out: Path, seen_n: np.ndarray) -> dict:
            "median_m": float(np.median(errs)) if errs else math.nan,
            "first_wrong": first_wrong}
     if nees_v:
-        lo, hi = mean_nees_band(len(nees_v), 3)
-        res.update(nees=float(np.mean(nees_v)), nees_lo=lo, nees_hi=hi,
+        n_eff = effective_count(nees_v)
+        lo, hi = mean_nees_band(max(1, round(n_eff)), 3)
+        res.update(nees=float(np.mean(nees_v)), n_eff=n_eff, nees_lo=lo, nees_hi=hi,
                    inside95=float(np.mean([v <= chi2_quantile(0.95, 3) for v in nees_v])))
     return res
 
@@ -301,14 +305,20 @@ def starts(scene: Scene, traj: Trajectory) -> list[tuple[str, str, tuple | None]
             ("20cm5deg", "lights", (x + 0.2, y, yaw + math.radians(5.0)))]
 
 
-def run_scene(scene: Scene, tmp: Path, seed: int) -> list[dict]:
-    """Both recordings of ``scene`` written and every run replayed and scored."""
+def run_scene(scene: Scene, tmp: Path, seed: int, only_runs: list[str] | None = None
+              ) -> list[dict]:
+    """Both recordings of ``scene`` written and every run replayed and scored (only the
+    runs named in ``only_runs``, e.g. ``auto-start``, when given; a recording none of
+    whose runs is asked for is not written)."""
     rows = []
     recs = [("", scene.drive, starts(scene, scene.drive))]
     x, y, yaw = scene.kidnap.pose(0)
     recs.append(("-kidnap", scene.kidnap, [("start", "lights", (x, y, yaw)),
                                            ("start", "auto", (x, y, yaw))]))
     for suffix, traj, runs in recs:
+        runs = [r for r in runs if only_runs is None or f"{r[1]}-{r[0]}" in only_runs]
+        if not runs:
+            continue
         folder, seen_n = write(scene, traj, tmp / f"{scene.name}{suffix}", seed)
         for tag, method, start in runs:
             out = folder.parent / f"{folder.name}-{method}-{tag}"
@@ -325,7 +335,9 @@ def run_scene(scene: Scene, tmp: Path, seed: int) -> list[dict]:
                   f"wrong {row['wrong']:3d} (first {row['first_wrong']})  tracked "
                   f"{100 * row['tracked']:5.1f}% (of seen {100 * row['tracked_seen']:5.1f}%, "
                   f"seen {row['seen']})  median {100 * row['median_m']:6.2f} cm  "
-                  f"NEES {row.get('nees', math.nan):.2f}  {row['failures']}", flush=True)
+                  f"NEES {row.get('nees', math.nan):.2f} (band {row.get('nees_lo', math.nan):.2f}-"
+                  f"{row.get('nees_hi', math.nan):.2f}, n_eff {row.get('n_eff', math.nan):.0f})  "
+                  f"{row['failures']}", flush=True)
     return rows
 
 
@@ -337,6 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="*", default=["grid", "lamps", "rc"])
     ap.add_argument("--pick", nargs="*", help="only these scenes (e.g. grid1 rc0)")
     ap.add_argument("--keep", type=Path, help="write the recordings and runs here (kept)")
+    ap.add_argument("--runs", nargs="*", help="only these runs (e.g. auto-start lights-nostart)")
     a = ap.parse_args(argv)
     OUT.mkdir(exist_ok=True)
     rows = []
@@ -350,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
                 if cls not in a.only or (a.pick and scene.name not in a.pick):
                     continue
                 print(f"{scene.name}: {scene.note}", flush=True)
-                rows += run_scene(scene, tmp, a.seed * 1000 + 10 * ci + i)
+                rows += run_scene(scene, tmp, a.seed * 1000 + 10 * ci + i, a.runs)
     keys = list(dict.fromkeys(k for r in rows for k in r))
     with open(OUT / "bench_heldout_lights.csv", "w", newline="") as f:
         w = csv.DictWriter(f, keys)

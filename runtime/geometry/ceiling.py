@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -36,6 +36,19 @@ from ceilkit.runtime.jit import arr, njit, warmer
 
 MIN_RZ = 1e-9
 """The default rising test: ``r_z > MIN_RZ`` (``r = R (x, y, 1)``)."""
+
+
+class KernelMount(NamedTuple):
+    """The rig as the compiled loops take it: ``R (3, 3)``, ``t (3,)`` the camera in
+    the vehicle frame (read-only float64), the ceiling's height ``ceiling_m`` above the
+    camera's origin, and the lens ``code``, ``lens (13,)``
+    (:attr:`~ceilkit.runtime.geometry.camera.CameraModel.lens`)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    ceiling_m: float
+    code: int
+    lens: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,6 +78,13 @@ class PlanarGeometry:
 
 
 # -- rays to the ceiling (numpy) -------------------------------------------------------
+def kernel_mount(geo: PlanarGeometry) -> KernelMount:
+    """``geo`` as the compiled loops take it (:class:`KernelMount`)."""
+    code, lens = geo.camera.lens
+    return KernelMount(arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
+                       float(geo.ceiling_m), code, lens)
+
+
 def ceiling_rays(points_norm: np.ndarray, R: np.ndarray, rise_m: float, *,
                  min_rz: float = MIN_RZ, min_sin: float = 0.0
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -26,7 +26,6 @@ EXEMPT: dict[str, str] = {
     "ceilkit.runtime.estimators.block.pnp._sides_at": _LEAD,
     "ceilkit.runtime.estimators.block.pnp.solve_core": _LEAD,
     "ceilkit.runtime.estimators.block.parallels._robust": _LATER,
-    "ceilkit.runtime.estimators.block.seams.chords_core": _LATER,
     "ceilkit.runtime.estimators.corridor.track._measure": _LATER,
     "ceilkit.runtime.estimators.lights.observe.examine_core": _LATER,
     "ceilkit.runtime.estimators.lights.track._predict": _LATER,

@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from ceilkit.runtime.geometry.camera import distort_points
-from ceilkit.runtime.geometry.ceiling import PlanarGeometry, ceiling_norm
+from ceilkit.runtime.geometry.ceiling import PlanarGeometry, ceiling_norm, kernel_mount
 from ceilkit.runtime.jit import arr, njit, warmer
 
 REACH_M = 3.5        # ceiling lines looked for this far from the camera's ceiling point
@@ -28,6 +29,30 @@ STEP_M = 0.5         # sample spacing along a line: a chord's ends and middle ar
 IGNORE_STEP_M = 0.1  # a chord's samples against the site's ignore regions
 MARGIN_PX = 8.0      # chord ends kept this far inside the frame
 MAX_CHORDS = 20      # chords measured per frame (spread over the lines)
+
+
+class SiteLines(NamedTuple):
+    """A site's ceiling lines as :func:`chords_core` takes them: ``along (L,)`` the lines
+    along x at these y (m), the lines across at ``first + k spacing`` (m; ``spacing`` 0:
+    none), looked for within ``reach_m`` of the camera's ceiling point."""
+
+    along: np.ndarray
+    first: float
+    spacing: float
+    reach_m: float
+
+
+class ChordGrid(NamedTuple):
+    """How :func:`chords_core` samples the lines: ``samples (T,)`` positions along a line
+    (m), a chord spans ``k`` of them, inside a ``width`` x ``height`` frame by
+    ``margin`` px; at most ``max_chords`` (< 0: every candidate, not spread)."""
+
+    samples: np.ndarray
+    k: int
+    width: float
+    height: float
+    margin: float
+    max_chords: int
 
 
 def site_lines(corridor, centre: np.ndarray, reach_m: float = REACH_M
@@ -127,14 +152,12 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
     first, spacing = (float(a.first_m), float(a.spacing_m)) if a is not None else (0.0, 0.0)
     ignoring = site is not None and bool(site.ignore_m)
     cam = geo.camera
-    code, lens = cam.lens
     k = max(1, round(CHORD_M / STEP_M))      # samples a chord spans (k STEP_M metres)
     t = _samples(reach_m)
     chords, li, si, p0, d = chords_core(
-        arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
-        float(geo.ceiling_m), code, lens, x, y, yaw, along, first, spacing, float(reach_m),
-        t, k, float(cam.width), float(cam.height), MARGIN_PX,
-        -1 if ignoring else max_chords)
+        kernel_mount(geo), x, y, yaw, SiteLines(along, first, spacing, float(reach_m)),
+        ChordGrid(t, k, float(cam.width), float(cam.height), MARGIN_PX,
+                  -1 if ignoring else max_chords))
     if not ignoring or not len(li):
         return chords
     # SPEC §2: no chord crosses an ignore region (tested every IGNORE_STEP_M)
@@ -160,12 +183,15 @@ def _along(lines_along_m: tuple[float, ...]) -> np.ndarray:
 
 
 @njit
-def chords_core(R, t, ceiling_m, code, lens, x, y, yaw, along, first, spacing, reach_m,
-                samples, k, width, height, margin, max_chords):  # pragma: no cover
-    """:func:`predicted_chords` without the ignore regions: ``(chords (N, 4) px, line
-    (N,), start sample (N,), line points (L, 2), directions (L, 2))`` (the lines of
-    :func:`site_lines` about the camera's ceiling point). ``max_chords < 0``: every
-    candidate chord, not spread (the caller drops the ignored ones first)."""
+def chords_core(mount, x, y, yaw, lines, grid):  # pragma: no cover
+    """:func:`predicted_chords` without the ignore regions, from the pose ``(x, y, yaw)``
+    through ``mount`` (:class:`~ceilkit.runtime.geometry.ceiling.KernelMount`), of ``lines`` (:class:`SiteLines`) sampled
+    by ``grid`` (:class:`ChordGrid`): ``(chords (N, 4) px, line (N,), start sample (N,),
+    line points (L, 2), directions (L, 2))`` (:func:`site_lines` about the camera's
+    ceiling point). ``grid.max_chords < 0``: every candidate, not spread."""
+    R, t, ceiling_m, code, lens = mount
+    along, first, spacing, reach_m = lines
+    samples, k, width, height, margin, max_chords = grid
     cz, sz = math.cos(yaw), math.sin(yaw)
     # the optical axis meets the ceiling at the centre of the lines looked for
     ax = cz * R[0, 2] - sz * R[1, 2]

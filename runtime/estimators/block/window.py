@@ -41,7 +41,7 @@ from ceilkit.runtime.estimators.block.pnp import (
 )
 from ceilkit.runtime.features.quads import BORDER_PX, signed_area
 from ceilkit.runtime.geometry.camera import distort_points
-from ceilkit.runtime.geometry.ceiling import ceiling_norm
+from ceilkit.runtime.geometry.ceiling import ceiling_norm, kernel_mount
 from ceilkit.runtime.geometry.fits import rigid_fit_rms
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -99,19 +99,6 @@ def shape_fits(blocks: Any, pv: np.ndarray, dark: bool, shape_tol: float
             if rms < tol:
                 out.append((blk, shift, rms, (float(t[0]), float(t[1]), yaw)))
     return out
-
-
-class KernelMount(NamedTuple):
-    """The rig as the compiled loops take it: ``R (3, 3)``, ``t (3,)`` the camera in
-    the vehicle frame (read-only float64), the ceiling's height ``ceiling_m`` above the
-    camera's origin, and the lens ``code``, ``lens (13,)``
-    (:attr:`~ceilkit.runtime.geometry.camera.CameraModel.lens`)."""
-
-    R: np.ndarray
-    t: np.ndarray
-    ceiling_m: float
-    code: int
-    lens: np.ndarray
 
 
 class WindowCheck(NamedTuple):
@@ -187,10 +174,7 @@ class Windows:
         none = arr(np.zeros(4, bool), np.bool_)
         self._drop = {t.source: none if drop is None else arr(drop(t.corners_w), np.bool_)
                       for t in targets}
-        code, lens = geo.camera.lens
-        self._mount = KernelMount(arr(geo.R_vehicle_cam, np.float64),
-                            arr(geo.t_vehicle_cam, np.float64), float(geo.ceiling_m),
-                            code, lens)
+        self._mount = kernel_mount(geo)
 
     def predicted(self, pose: np.ndarray) -> list[tuple[Target, np.ndarray]]:
         """``(target, corners px (4, 2))`` of the targets fully in view from ``pose``
