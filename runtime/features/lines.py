@@ -46,7 +46,7 @@ from ceilkit.runtime.features.edges import (
     sample_profiles,
 )
 from ceilkit.runtime.features.grey import to_grey
-from ceilkit.runtime.features.quads import _bilinear
+from ceilkit.runtime.features.quads import bilinear
 from ceilkit.runtime.features.working import decimate, undecimate
 from ceilkit.runtime.geometry.camera import (
     CameraModel,
@@ -522,7 +522,7 @@ def _refine_core(grey, chords, grid, kind, lens_code, lens, f_px):  # pragma: no
                 if inside:
                     prof[r, a, o] = _bilinear_inside(grey, su, sv)
                 else:
-                    prof[r, a, o] = _bilinear(grey, su, sv, w, hh)
+                    prof[r, a, o] = bilinear(grey, su, sv, w, hh)
     pol, pts, good = _kind_and_points(prof, chords, d, nrm, grid, kind)
     px = _stack_points(chords, pts, good)
     xy = np.empty_like(px)
@@ -576,7 +576,7 @@ def _stack_points(s, pts, good):  # pragma: no cover - compiled
 
 @njit
 def _bilinear_inside(grey, x, y):  # pragma: no cover - compiled
-    """:func:`~.quads._bilinear` at ``(x, y)`` with ``0 <= x < W - 1`` and ``0 <= y <
+    """:func:`~.quads.bilinear` at ``(x, y)`` with ``0 <= x < W - 1`` and ``0 <= y <
     H - 1`` (no clamping): the same number."""
     x0 = np.int64(x)
     y0 = np.int64(y)

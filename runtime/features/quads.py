@@ -362,7 +362,7 @@ def signed_area(pts: np.ndarray) -> float:
 
 
 @functools.lru_cache(maxsize=16)
-def _stations(per_side: int, search_px: float) -> tuple[np.ndarray, np.ndarray]:
+def edge_stations(per_side: int, search_px: float) -> tuple[np.ndarray, np.ndarray]:
     """edge_points' offsets across a side ``(K,)`` and stations along it ``(S,)``
     (read-only: shared between calls)."""
     offs = np.arange(-search_px, search_px + 1e-9, EDGE_STEP_PX)
@@ -382,7 +382,7 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     is searched for its steepest interval and the step located where the profile
     crosses half way between its two ends. Stations whose step is weak (below a
     quarter of the side's median) or at the search window's end are dropped. One
-    compiled loop (:func:`_edge_points`); the samples are bilinear in float (the
+    compiled loop (:func:`edge_points_core`); the samples are bilinear in float (the
     frame's edge replicated), not rounded to OpenCV's 1/32 px grid.
 
     ``sign``: 0 takes the steepest step of either polarity; -1 only a step darker
@@ -395,18 +395,18 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     Returns:
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
     """
-    offs, t = _stations(per_side, float(search_px))
+    offs, t = edge_stations(per_side, float(search_px))
     p0 = arr(corners_px, np.float64).reshape(4, 2)
     if not np.isfinite(p0).all():
         return np.zeros((0, 2)), np.zeros(0, np.int64)
-    pts, side, n = _edge_points(arr(grey, np.uint8), p0, arr(offs, np.float64),
+    pts, side, n = edge_points_core(arr(grey, np.uint8), p0, arr(offs, np.float64),
                                 arr(t, np.float64),
                                 EDGE_STEP_PX, int(sign))
     return pts[:n], side[:n]
 
 
 @njit
-def _edge_points(grey, p0, offs, t, step, sign=0):  # pragma: no cover - compiled
+def edge_points_core(grey, p0, offs, t, step, sign=0):  # pragma: no cover - compiled
     """:func:`edge_points` on a ``(4, 2)`` quad of finite corners: ``(points (4 S, 2),
     side (4 S,), count)``, the first ``count`` kept. Samples are bilinear in float
     (the frame's edge replicated beyond it), at offsets ``offs (K,)`` across each side
@@ -426,7 +426,7 @@ def _edge_points(grey, p0, offs, t, step, sign=0):  # pragma: no cover - compile
         for j in range(n_st):
             bx, by = ax + t[j] * dx, ay + t[j] * dy
             for i in range(n_off):
-                prof[i] = _bilinear(grey, bx + offs[i] * nx, by + offs[i] * ny, w, h)
+                prof[i] = bilinear(grey, bx + offs[i] * nx, by + offs[i] * ny, w, h)
             k, best = 0, -1.0
             for i in range(n_off - 1):
                 d = prof[i + 1] - prof[i]
@@ -459,7 +459,7 @@ def _edge_points(grey, p0, offs, t, step, sign=0):  # pragma: no cover - compile
 
 
 @njit
-def _bilinear(grey, x, y, w, h):  # pragma: no cover - compiled
+def bilinear(grey, x, y, w, h):  # pragma: no cover - compiled
     """The frame's grey level at ``(x, y)`` (px), bilinear, its edge replicated (a
     place far outside reads the edge, as OpenCV's remap does)."""
     x = min(max(x, -1.0), float(w))

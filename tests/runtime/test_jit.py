@@ -36,7 +36,7 @@ def test_reachable_follows_the_code_and_keeps_the_other_methods_out():
     assert not any(m.startswith(R + "estimators.lights") for m in corridor), corridor
     assert not any(m.startswith(R + "estimators.corridor") for m in lights), lights
     assert R + "estimators.block.detect" not in corridor | lights
-    # features.lines calls quads' _bilinear only from its compiled loops: compiled in
+    # features.lines calls quads' bilinear only from its compiled loops: compiled in
     assert R + "features.quads" not in corridor
     assert {LIGHTS, R + "features.spots"} <= jit.reachable([LIGHTS])   # a module: all of it
     assert jit.reachable(["not.a.module"]) == set()

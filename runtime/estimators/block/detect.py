@@ -39,10 +39,10 @@ from ceilkit.runtime.features.quads import (
     QUIET_CELLS,
     MarkerCodes,
     Quad,
-    _bilinear,
-    _edge_points,
-    _stations,
+    bilinear,
     edge_points,
+    edge_points_core,
+    edge_stations,
     line_corners,
     marker_dictionary,
     quads_of_mask,
@@ -372,7 +372,7 @@ class Sides:
 class EdgeSearch(NamedTuple):
     """The edge passes of :func:`measure_core` as it reads them: offsets across a side
     ``first (K,)`` px on the first pass and ``rest`` after, stations along it ``t (S,)``
-    (fractions of the side, :func:`~ceilkit.runtime.features.quads._stations`), the
+    (fractions of the side, :func:`~ceilkit.runtime.features.quads.edge_stations`), the
     profile's sampling ``step_px`` and the edges' polarity ``sign`` (-1, 0, +1)."""
 
     first: np.ndarray
@@ -400,8 +400,8 @@ class SidesOut(NamedTuple):
 def edge_search(per_side: int, search_px: float, sign: int = 0) -> EdgeSearch:
     """The :class:`EdgeSearch` of ``per_side`` stations a side, the first pass
     ``search_px`` across each side, the next ones :data:`EDGE_SEARCH_PX`."""
-    first, t = _stations(per_side, float(search_px))
-    rest, _ = _stations(per_side, EDGE_SEARCH_PX)
+    first, t = edge_stations(per_side, float(search_px))
+    rest, _ = edge_stations(per_side, EDGE_SEARCH_PX)
     return EdgeSearch(first, rest, t, float(EDGE_STEP_PX), int(sign))
 
 
@@ -438,7 +438,7 @@ def measure_core(grey, p0, passes, search, code, lens, out):  # pragma: no cover
     ``out.edge (4 S, 2)``, ``out.side (4 S,)`` (a :class:`SidesOut`); returns
     ``count``, or -1 (no measurement). A last pass that loses a side keeps the
     previous pass's points (through the lens). (numba keys this loop's cache on this
-    file's contents only: a change to ``quads._edge_points``, compiled into it, is
+    file's contents only: a change to ``quads.edge_points_core``, compiled into it, is
     taken only once this file changes too.)"""
     corners, edge, side = out.corners, out.edge, out.side
     cur = p0.copy()
@@ -447,7 +447,7 @@ def measure_core(grey, p0, passes, search, code, lens, out):  # pragma: no cover
     prev_side = np.empty(0, np.int64)
     have_prev = False
     for k in range(passes):
-        pts, sd, n = _edge_points(grey, cur, search.first if k == 0 else search.rest,
+        pts, sd, n = edge_points_core(grey, cur, search.first if k == 0 else search.rest,
                                   search.t, search.step_px, search.sign)
         if _too_few(sd, n):
             if k == passes - 1 and have_prev:
@@ -554,8 +554,8 @@ def contrast_core(grey, corners):  # pragma: no cover - compiled
             ox = corners[k, 0] + f * (corners[n, 0] - corners[k, 0])
             oy = corners[k, 1] + f * (corners[n, 1] - corners[k, 1])
             sx, sy = CONTRAST_INSET * (cx - ox), CONTRAST_INSET * (cy - oy)
-            inside[3 * k + j] = _bilinear(grey, ox + sx, oy + sy, w, h)
-            outside[3 * k + j] = _bilinear(grey, ox - sx, oy - sy, w, h)
+            inside[3 * k + j] = bilinear(grey, ox + sx, oy + sy, w, h)
+            outside[3 * k + j] = bilinear(grey, ox - sx, oy - sy, w, h)
     inside.sort()
     outside.sort()
     a, b = 0.5 * (inside[5] + inside[6]), 0.5 * (outside[5] + outside[6])

@@ -185,8 +185,8 @@ def _along(lines_along_m: tuple[float, ...]) -> np.ndarray:
 @njit
 def chords_core(mount, x, y, yaw, lines, grid):  # pragma: no cover
     """:func:`predicted_chords` without the ignore regions, from the pose ``(x, y, yaw)``
-    through ``mount`` (:class:`~ceilkit.runtime.geometry.ceiling.KernelMount`), of ``lines`` (:class:`SiteLines`) sampled
-    by ``grid`` (:class:`ChordGrid`): ``(chords (N, 4) px, line (N,), start sample (N,),
+    through ``mount`` (:class:`.ceiling.KernelMount`), of ``lines`` (:class:`SiteLines`)
+    sampled by ``grid`` (:class:`ChordGrid`): ``(chords (N, 4) px, line (N,), start (N,),
     line points (L, 2), directions (L, 2))`` (:func:`site_lines` about the camera's
     ceiling point). ``grid.max_chords < 0``: every candidate, not spread."""
     R, t, ceiling_m, code, lens = mount

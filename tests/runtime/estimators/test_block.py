@@ -374,7 +374,7 @@ def test_a_side_lost_on_the_last_edge_pass_keeps_the_previous_pass(rig):
     cannot find any step (two samples across each side): it keeps the first pass's
     points, through the lens, which is the one-pass measurement exactly."""
     from ceilkit.runtime.estimators.block import detect
-    from ceilkit.runtime.features.quads import EDGE_STEP_PX, _stations, sharpen_quad
+    from ceilkit.runtime.features.quads import EDGE_STEP_PX, edge_stations, sharpen_quad
 
     kite = np.array([[2.0, -0.2], [2.7, -0.25], [2.55, 0.2], [2.05, 0.25]])
     site = Site(3.0, blocks=(Block("K", kite, "dark"),))
@@ -386,7 +386,7 @@ def test_a_side_lost_on_the_last_edge_pass_keeps_the_previous_pass(rig):
     n = est.options.edge_points
     one = detect.measure_sides(grey, corners, est.geo, n, passes=1, search_px=4.0)
     assert one is not None
-    first, t = _stations(n, 4.0)
+    first, t = edge_stations(n, 4.0)
     blind = np.array([-0.5, 0.5])                    # no interval inside: no edge found
     out = detect.SidesOut.empty(n)
     search = detect.EdgeSearch(first, blind, t, EDGE_STEP_PX, 0)

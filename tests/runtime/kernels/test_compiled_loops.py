@@ -225,7 +225,7 @@ def test_robust_line_fit_equals_the_array_reading():
 # ----------------------------------------------------------------------------- quads
 
 def edge_points_reference(grey, corners, per_side, search_px):
-    offs, t = quads._stations(per_side, search_px)
+    offs, t = quads.edge_stations(per_side, search_px)
     h, w = grey.shape
     g = grey.astype(np.float32)
     pts, sides = [], []
@@ -622,9 +622,9 @@ def test_edge_stations_far_outside_the_frame_read_its_edge():
     sides) samples the frame's edge, as OpenCV's remap does, not the opposite edge."""
     g = np.zeros((40, 60), np.uint8)
     g[:, 59] = 200                                  # the right edge bright, the left dark
-    assert quads._bilinear(g, 1e20, 20.0, 60, 40) == 200.0
-    assert quads._bilinear(g, -1e20, 20.0, 60, 40) == 0.0
-    assert quads._bilinear(g, 59.0, 1e20, 60, 40) == 200.0
+    assert quads.bilinear(g, 1e20, 20.0, 60, 40) == 200.0
+    assert quads.bilinear(g, -1e20, 20.0, 60, 40) == 0.0
+    assert quads.bilinear(g, 59.0, 1e20, 60, 40) == 200.0
 
 
 def test_lights_refine_with_a_nan_point_has_no_covariance():
