@@ -12,9 +12,12 @@ its four sides, corners where they meet: :func:`frame_sightings`), met with the 
 A marker's pose is SPEC §2's centre ``(x, y)``, yaw ``a`` and side ``s``: corner k is
 ``(x, y) + Rz(a) (s/2) d_k``. With ``(p, q) = (s/2)(cos a, sin a)`` the corners are
 linear in ``(x, y, p, q)``, so the weighted least squares over all its sightings'
-corners is solved in closed form; its covariance is ``s² N⁻¹`` (``N`` the normal
+corners is solved in closed form. Its covariance is ``s² N⁻¹`` (``N`` the normal
 matrix, ``s²`` the residual's variance per pixel from the fit's ``8 V - 4`` degrees of
-freedom), moved to ``(x, y, yaw, side)`` by the Jacobian. A marker is *refused* (a
+freedom: the views' independent errors, averaged down) plus ``σ_b² N₁⁻¹`` (``N₁``: one
+view of the mean corner covariances; ``σ_b`` = the larger of :data:`SHARED_PX` and
+``s``: an error every view shares), moved to ``(x, y, yaw, side)`` by the Jacobian. A
+marker is *refused* (a
 value with its reason, not written) when
 
 * it is seen in fewer than :data:`MIN_VIEWS` frames;
@@ -58,6 +61,7 @@ from ceilkit.runtime.io.recording import Recording
 
 from .lightmap import load_pose_table
 from .poses import StampedPoses
+from .workflow import provenance_header
 
 MIN_VIEWS = 3
 """Fewest frames a marker must be seen in to be placed."""
@@ -71,6 +75,13 @@ SIZE_TOL = 0.05
 DEFAULT_DICTIONARY = "DICT_APRILTAG_36h11"
 MAX_GAP_S = 0.25
 """No pose is interpolated across a gap of the pose table longer than this (s)."""
+SHARED_PX = 0.1
+"""1σ per axis, pixels, of a corner's error shared by all its sightings (edges pulled
+by the blur and the cells beside them, a lamp's edge across a side): not averaged
+down over the views. Measured (``benchmarks/bench_blockmap.py``): 16 cm tags at 3.2 px
+a cell came out 0.56-0.71 mm small (0.05 px a side) from 22-46 views whose scatter
+alone gave a 0.03-0.08 mm corner 1σ. The larger of this and the fit's own residual
+(a marker under a panel's edge: 0.49 px) is taken."""
 EDGE_POINTS = 12
 """Edge stations a side (the block method's ``edge_points``)."""
 
@@ -217,9 +228,10 @@ def fit_marker(mid: int, sightings: Sequence[Sighting]) -> PlacedMarker:
         e = sg.corners_m - fit
         chi2 += float(np.einsum("ki,kij,kj->", e, W, e))
         worst = max(worst, math.sqrt(float(np.mean(np.sum(e ** 2, axis=1)))))
-    dof = 8 * len(sightings) - 4
-    s2 = chi2 / dof
-    cov_t = s2 * Ninv
+    s2 = chi2 / (8 * len(sightings) - 4)
+    shared = np.linalg.inv(np.mean([sg.cov_m2 for sg in sightings], axis=0))  # (4, 2, 2)
+    N1 = np.einsum("kia,kij,kjb->ab", _ROWS, shared, _ROWS)
+    cov_t = s2 * Ninv + max(SHARED_PX ** 2, s2) * np.linalg.inv(N1)
     x, y, p, q = theta
     r = math.hypot(p, q)
     J = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0],
@@ -395,8 +407,6 @@ def blockmap(recording: Path, out: Path, *, rig: Path | None = None,
             raise CalibrationError(f"{where}: no marker placed ({bm.frames_used} frames "
                                    f"with a pose read with {dictionary}"
                                    + (f"; {why}" if why else ": none seen") + "); nothing written")
-        from .workflow import provenance_header
-
         site = replace(base, markers=marker_section(bm, size_m), source=str(out))
         site.save(out, provenance_header("ceilcal blockmap: site map with surveyed markers",
                                          header_lines(bm, where)))

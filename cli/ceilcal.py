@@ -22,7 +22,8 @@ COMMANDS = {"simulate": "ceilcal_simulate", "intrinsics": "ceilcal_intrinsics",
             "mount": "ceilcal_mount", "lightmap": "ceilcal_lightmap",
             "calibrate": "ceilcal_calibrate", "board": "ceilcal_board",
             "exposure": "ceilcal_exposure", "autopilot": "ceilcal_autopilot",
-            "survey": "ceilcal_survey", "check-site": None}
+            "survey": "ceilcal_survey", "blockmap": "ceilcal_blockmap",
+            "check-site": None}
 """Each command and the module under ``ceilkit.cli`` that registers it, in the order
 ``--help`` lists them (``None``: defined here)."""
 

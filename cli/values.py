@@ -108,6 +108,8 @@ RANGES: Mapping[str, Range] = MappingProxyType({
     "--cluster": Range(0, 10, lo_open=True, unit="m"),
     "--start-yaw": Range(-360, 360, unit="degrees"),
     "--anchor-frame": Range(0, 100_000_000),
+    # ceilcal blockmap
+    "--size": Range(0, 10, lo_open=True, unit="m"),
     # ceilcal exposure
     "--settle": Range(0, 1000, unit="frames"),
     # ceilcal check-site
