@@ -138,10 +138,11 @@ def layout(board: Board, paper: str = DEFAULT_PAPER) -> Page:
                 (left, top, left + x1 - x0, top + y1 - y0), top + (y1 - y0) + q)
 
 
-def _too_big(board: Board, paper: str, pw: float, ph: float) -> ConfigError:
-    x0, y0, x1, y1 = (1000.0 * v for v in board.extent_m)
+def _largest_square_mm(board: Board, pw: float, ph: float) -> float:
+    """The largest square side (mm) at which ``board`` fits a ``pw x ph`` mm page."""
+    x0, y0, x1, y1 = board.extent_m
     s = board.square_m  # type: ignore[attr-defined]
-    nx, ny = (x1 - x0) / (1000 * s), (y1 - y0) / (1000 * s)   # in squares
+    nx, ny = (x1 - x0) / s, (y1 - y0) / s   # in squares
     e, lab = PRINTER_EDGE_MM, LABEL_MM
     best = 0.0
     for w, h in ((pw, ph), (ph, pw)):
@@ -150,12 +151,21 @@ def _too_big(board: Board, paper: str, pw: float, ph: float) -> ConfigError:
         # ... or narrower: the edge then sets the margins
         small = min((w - 2 * e) / nx, (h - 2 * e - lab) / (ny + QUIET_SQUARES), 2 * e)
         best = max(best, big if big >= 2 * e else small)
+    return best
+
+
+def _too_big(board: Board, paper: str, pw: float, ph: float) -> ConfigError:
+    x0, y0, x1, y1 = (1000.0 * v for v in board.extent_m)
+    s_mm = 1000.0 * board.square_m  # type: ignore[attr-defined]
+    best = _largest_square_mm(board, pw, ph)
     hint = (f"; the largest square that fits is {math.floor(best * 10) / 10:g} mm "
             f"(--square {math.floor(best * 10) / 10000:g})" if best >= 1.0 else "")
-    return ConfigError(None, "square", f"a {board.spec} board of {1000 * s:g} mm squares "
+    fits = [name for name, (w, h) in PAPERS.items() if _largest_square_mm(board, w, h) >= s_mm]
+    other = (f"; or give a --paper it fits ({', '.join(fits)})" if fits else
+             f"; it fits no --paper ({', '.join(PAPERS)}): give smaller squares")
+    return ConfigError(None, "square", f"a {board.spec} board of {s_mm:g} mm squares "
                        f"({x1 - x0:g} x {y1 - y0:g} mm and its margins) does not fit "
-                       f"{paper} ({pw:g} x {ph:g} mm, either way){hint}; or give a larger "
-                       f"--paper ({', '.join(PAPERS)})")
+                       f"{paper} ({pw:g} x {ph:g} mm, either way){hint}{other}")
 
 
 def ink_rectangles(board: Board) -> np.ndarray:

@@ -15,7 +15,7 @@ import typer
 
 from ceilkit.runtime.errors import ConfigError
 
-from .common import make_app, quiet_opencv
+from .common import HELP_FLAGS, make_app, quiet_opencv
 
 HELP = "Calibrate a ceiling-vision rig: intrinsics, mount, light map; simulate recordings."
 COMMANDS = {"simulate": "ceilcal_simulate", "intrinsics": "ceilcal_intrinsics",
@@ -62,8 +62,10 @@ def check_site(
     force: bool = typer.Option(False, "--force", help="Replace an existing check-site.png "
                                "and check-site.yaml in --out (refused otherwise)."),
 ) -> None:
-    """Where on the site one frame is ambiguous, with which twins, and what would
-    single it out."""
+    """Where on the site one frame is ambiguous, and what would single it out.
+
+    For each ambiguous pose, its twins; for each ambiguous region, the markers (or
+    asymmetric features) that would tell them apart."""
     from ceilkit.calib.checksite import CheckOptions, check_site_files
 
     try:
@@ -91,11 +93,14 @@ def __getattr__(name: str) -> typer.Typer:
 
 
 def main() -> None:
-    """The ``ceilcal`` entry point: builds only the command the arguments name (every
-    command for ``--help``, ``--version`` or a name it does not know)."""
+    """The ``ceilcal`` entry point: builds only the command the arguments name (none
+    for ``--version`` alone, every command for ``--help`` or a name it does not know)."""
     quiet_opencv()
-    words = [a for a in sys.argv[1:] if not a.startswith("-")][:1]
+    args = sys.argv[1:]
+    words = [a for a in args if not a.startswith("-")][:1]
     command = words[0] if words and words[0] in COMMANDS else None
+    if not words and "--version" in args and not set(HELP_FLAGS) & set(args):
+        command = ""                # the version needs no command's imports
     build_app(command)(prog_name="ceilcal")
 
 

@@ -44,8 +44,10 @@ def register(app: typer.Typer) -> None:
         force: bool = typer.Option(False, "--force", help="Replace existing outputs in "
                                    "--out (refused otherwise)."),
     ) -> None:
-        """Survey a site from drives with no external poses: chained frames, loop
-        closures, a pose graph; writes the site file and its ceiling map."""
+        """Map a site from drives with no external poses; writes its site and map.
+
+        Chained frames, loop closures and a pose graph give the site file and its
+        ceiling map (docs/survey.md)."""
         from ceilkit.calib.survey_files import parse_anchors, survey_site
 
         anchors = parse_anchors(start_pose, anchor_marker or [], marker_dictionary,
