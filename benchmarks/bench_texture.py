@@ -26,10 +26,10 @@ Prints the figures and writes them (JSON) to ``--out``.
 
 Measured (2026-12-06, the shared 2-core machine under load, ``--frames 60 --length 8
 --supersample 2``, a map of 1,192 features over 71 m²): global 60/60 valid, position
-median 1.40 mm, worst 3.3 mm and 0.14°, thread CPU 2.86 ms (0.71 x ``cv2.ORB(1000)``'s
-4.03 ms on the same frames); tracked 60/60 (all by the fast path), 0.45 mm, worst
-1.3 mm, 1.04 ms (0.26 x); against 17,880 features (1,000 m²) 59/60 (1 ambiguous),
-3.11 ms (0.77 x) and 1.03 ms (0.26 x). Kidnap: right again on the 3rd uncovered frame
+median 1.40 mm, worst 3.3 mm and 0.14°, thread CPU 2.90 ms (0.67 x ``cv2.ORB(1000)``'s
+4.35 ms on the same frames); tracked 60/60 (all by the fast path), 0.45 mm, worst
+1.4 mm, 0.94 ms (0.22 x); against 17,880 features (1,000 m²) 59/60 (1 ambiguous),
+3.17 ms (0.73 x) and 0.90 ms (0.21 x). Kidnap: right again on the 3rd uncovered frame
 after a 0.5 s cover, on the 1st after 1.5 s, for both methods in all 8 trials; no
 wrong pose published. docs/methods/texture.md, "Figures", has the tables.
 """

@@ -42,6 +42,7 @@ from .lightmap import LightMap, lightmap_header_lines, survey_lights
 from .survey import SurveyOptions, SurveyResult, survey_drives, survey_map
 from .survey_anchor import anchor_by_lights
 from .survey_geo import origin_from_start, parse_geodetic, start_pose_from_geodetic
+from .survey_lamps import MIN_LAMP_ROUNDNESS, lamp_shapes
 from .survey_markers import (
     SurveyedMarker,
     anchor_by_markers,
@@ -164,9 +165,10 @@ def _height(ceiling_height_m: float | None, site: Site | None, recordings: Seque
 
 def _lights(recs: Sequence[Recording], res: SurveyResult) -> tuple[LightMap | None, str]:
     """The lit spots of the first drive placed with its solved poses (those whose
-    detections stay within :data:`LIGHT_SPREAD_M` of their cluster's centre; each one's
-    1σ the cluster's, with the keyframes' median pose 1σ added in quadrature), or why
-    none; the note says how many clusters were left out."""
+    detections stay within :data:`LIGHT_SPREAD_M` of their cluster's centre and whose
+    spots are round, :mod:`.survey_lamps`; each one's 1σ the cluster's, with the
+    keyframes' median pose 1σ added in quadrature), or why none; the note says how many
+    clusters were left out."""
     d0 = res.drive == 0
     truth = Truth(res.t_ns[d0], res.poses[d0, 0], res.poses[d0, 1], res.poses[d0, 2])
     try:
@@ -183,13 +185,25 @@ def _lights(recs: Sequence[Recording], res: SurveyResult) -> tuple[LightMap | No
     keys = res.keys[res.drive[res.keys] == 0]
     pose_sigma = float(np.nanmedian(np.hypot(*res.sigma[keys, :2].T))) / math.sqrt(2.0) \
         if len(keys) else 0.0
-    lm = dataclasses.replace(lm, lights_m=lm.lights_m[stay], spread_m=lm.spread_m[stay],
-                             sigma_m=np.hypot(lm.sigma_m[stay], pose_sigma),
-                             views=lm.views[stay], unassigned=lm.unassigned)
-    note = (f"{left} of {len(stay)} clusters of lit spots left out: they do not stay put "
-            f"from frame to frame (spread > {1e3 * LIGHT_SPREAD_M:.0f} mm: bright "
-            "patches, not spot lights)") if left else ""
-    return lm, note
+    roundness = lamp_shapes(recs[0], res.frame[keys], res.poses[keys], lm.lights_m[stay],
+                            res.ceiling_height_m)[0]
+    lamp = np.zeros(len(stay), bool)
+    lamp[np.flatnonzero(stay)] = roundness >= MIN_LAMP_ROUNDNESS
+    if not lamp.any():
+        return None, (f"{int(stay.sum())} clusters of lit spots stay put, but none is "
+                      f"round (median minor / major extent under {MIN_LAMP_ROUNDNESS}): "
+                      "not spot lights")
+    lm = dataclasses.replace(lm, lights_m=lm.lights_m[lamp], spread_m=lm.spread_m[lamp],
+                             sigma_m=np.hypot(lm.sigma_m[lamp], pose_sigma),
+                             views=lm.views[lamp], unassigned=lm.unassigned)
+    notes = [f"{left} of {len(stay)} clusters of lit spots left out: they do not stay put "
+             f"from frame to frame (spread > {1e3 * LIGHT_SPREAD_M:.0f} mm: bright "
+             "patches, not spot lights)"] if left else []
+    if int(stay.sum() - lamp.sum()):
+        notes.append(f"{int(stay.sum() - lamp.sum())} that stay put left out: not round "
+                     f"(their spots' median minor / major extent under "
+                     f"{MIN_LAMP_ROUNDNESS}: not spot lights)")
+    return lm, "; ".join(notes)
 
 
 def _poses_text(res: SurveyResult, drive: int) -> str:

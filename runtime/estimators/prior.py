@@ -69,16 +69,33 @@ def prior_distance(prior: PoseEstimate, pose: Pose) -> tuple[float, int]:
             e.append(float(a) - float(b))
     rows.append(2)
     e.append(wrap_pi(float(yaw) - float(prior.yaw_rad)))
-    S = P[np.ix_(rows, rows)]
+    S = [[float(P[i, j]) for j in rows] for i in rows]
     if cov is not None:
-        C = np.asarray(cov, float)[np.ix_(rows, rows)]
-        if np.all(np.isfinite(C)):
-            S = S + C
-    v = np.array(e)
-    try:
-        return float(v @ np.linalg.solve(S, v)), len(rows)
-    except np.linalg.LinAlgError:
-        return math.inf, len(rows)
+        C = np.asarray(cov, float)
+        add = [[float(C[i, j]) for j in rows] for i in rows]
+        if all(math.isfinite(c) for r in add for c in r):
+            S = [[a + b for a, b in zip(r, q, strict=True)] for r, q in zip(S, add, strict=True)]
+    return _quadratic(S, e), len(rows)
+
+
+def _quadratic(S: list[list[float]], e: list[float]) -> float:
+    """``eᵀ S⁻¹ e`` for a symmetric ``S`` of 1-3 rows, by Gaussian elimination in
+    floats (a tracked frame calls it once: numpy's small-array calls cost ten times
+    the arithmetic); inf when ``S`` is singular."""
+    a = [list(r) + [v] for r, v in zip(S, e, strict=True)]
+    n = len(a)
+    for k in range(n):
+        piv = max(range(k, n), key=lambda i: abs(a[i][k]))
+        if a[piv][k] == 0.0 or not math.isfinite(a[piv][k]):
+            return math.inf
+        a[k], a[piv] = a[piv], a[k]
+        for i in range(k + 1, n):
+            f = a[i][k] / a[k][k]
+            a[i] = [x - f * y for x, y in zip(a[i], a[k], strict=True)]
+    x = [0.0] * n
+    for k in range(n - 1, -1, -1):
+        x[k] = (a[k][n] - sum(a[k][j] * x[j] for j in range(k + 1, n))) / a[k][k]
+    return float(sum(v * w for v, w in zip(e, x, strict=True)))
 
 
 def allows(prior: PoseEstimate, pose: Pose, p: float = PRIOR_P) -> bool:
@@ -99,7 +116,10 @@ def narrower_than(prior: PoseEstimate, distance_m: float,
     search, which enumerates no twins) cannot take a twin for the pose it finds."""
     P = prior_cov(prior)
     q = chi2_quantile(p, 3)
-    pos = np.linalg.eigvalsh(P[:2, :2])[-1] if np.all(np.isfinite(P[:2, :2])) else math.inf
+    a, b, c = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
+    # the larger eigenvalue of the position block, in closed form
+    pos = 0.5 * (a + c) + math.hypot(0.5 * (a - c), b) \
+        if all(map(math.isfinite, (a, b, c, float(P[1, 0])))) else math.inf
     return distance_m * distance_m > q * pos and angle_rad * angle_rad > q * P[2, 2]
 
 

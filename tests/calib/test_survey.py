@@ -83,6 +83,13 @@ def test_sigmas_cover_the_errors(office_loop):
     z = np.abs(err) / res.sigma[k, :2]
     assert np.all(np.isfinite(res.sigma[k]))
     assert np.median(z) < 3.0, np.median(z)
+    # the 2-D distance over its 1σ: the law's 95th percentile is 2.45. With the graph's
+    # own 1σ this loop gave 3.58 (it set POSE_SIGMA_FACTOR, with bench_survey.py
+    # --against-known --seeds' 2.0-3.3); with the factor, 2.4
+    d = np.hypot(*z.T)
+    print(f"keyframes' error / 1σ (2-D): median {np.median(d):.2f}, "
+          f"95th percentile {np.percentile(d, 95):.2f}")
+    assert np.percentile(d, 95) < 2.6, np.percentile(d, 95)
 
 
 def test_map_from_the_survey(office_loop):

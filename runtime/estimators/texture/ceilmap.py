@@ -236,8 +236,9 @@ def appearance_ncc(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
     patch and the mosaic are compared at the same ceiling points, no smoothing). The
     mosaic is read as :func:`predicted_patch` reads it (bilinear; covered where its
     nearest pixel is), at those points only (:func:`_ncc_at`)."""
-    col, row = cmap.pixel_of(np.array([pose[:2]]))[0]
-    A = _patch_to_mosaic(patch.shape[0], cmap.resolution_m, col, row, pose[2])
+    (ox, oy), res = cmap.origin_xy, cmap.resolution_m
+    col, row = (float(pose[0]) - ox) / res, (float(pose[1]) - oy) / res
+    A = _patch_to_mosaic(patch.shape[0], res, col, row, float(pose[2]))
     return float(_ncc_at(arr(cmap.mosaic, np.uint8), arr(cmap.coverage, np.bool_),
                          arr(patch, np.uint8), arr(valid, np.bool_), arr(A, np.float64),
                          int(stride), MIN_NCC_SHARE))
@@ -326,7 +327,10 @@ def _remap_tables(key: tuple, camera: Any, R: bytes, t: bytes, ceiling_m: float,
     ok &= (px[:, 1] >= 0) & (px[:, 1] <= camera.height - 1)
     if level is None:
         level = pyramid_level(px.reshape(n, n, 2), ok.reshape(n, n))
-    px = px / 2 ** level                 # pyrDown: pixel u of level 0 is u / 2 there
+    # pyrDown: pixel u of level 0 is u / 2 there; a 2x2 mean (:func:`_pyramid`'s first
+    # halving from level 2 up): (u - 0.5) / 2
+    shift = 0.5 if _area_first(level, camera.width, camera.height) else 0.0
+    px = (px - shift) / 2 ** level
     px[~ok] = -10.0
     m1, m2 = cv2.convertMaps(px[:, 0].reshape(n, n).astype(np.float32),
                              px[:, 1].reshape(n, n).astype(np.float32), cv2.CV_16SC2)
@@ -377,16 +381,64 @@ def rectify(grey: np.ndarray, rig: Any, ceiling_height: float, resolution_m: flo
         ``(patch (n, n) uint8, valid (n, n) bool)``: ``valid`` where the ceiling point is
         in the frame (0 grey elsewhere); ``n`` is :func:`patch_size`.
     """
-    cam = rig.camera
-    R = np.ascontiguousarray(rig.mount.R_vehicle_cam, float)
-    t = np.ascontiguousarray(rig.mount.t_vehicle_cam, float)
-    n = patch_size(resolution_m, half_extent_m)
-    m1, m2, valid, lv = _remap_tables(cam._key, cam, R.tobytes(), t.tobytes(),
-                                      float(ceiling_height), float(resolution_m), n, level)
-    for _ in range(lv):
+    return Rectifier.of(rig, ceiling_height, resolution_m, half_extent_m, level)(grey)
+
+
+@dataclass(frozen=True, eq=False)
+class Rectifier:
+    """:func:`rectify` for one rig, ceiling height, resolution and extent, its tables
+    looked up once: calling it on a frame is :func:`rectify` less the lookup (the
+    mount's rotation and the tables' key: a tenth of a tracked frame's time).
+
+    Attributes:
+        map1, map2: the fixed-point ``cv2.remap`` tables from the pyramid level.
+        valid: ``(n, n)`` where the patch's ceiling points fall inside the frame.
+        level: the frame's pyramid level sampled (:func:`_pyramid`).
+    """
+
+    map1: np.ndarray
+    map2: np.ndarray
+    valid: np.ndarray
+    level: int
+
+    @classmethod
+    def of(cls, rig: Any, ceiling_height: float, resolution_m: float, half_extent_m: float,
+           level: int | None = None) -> Rectifier:
+        """The tables of :func:`rectify` with these arguments."""
+        cam = rig.camera
+        R = np.ascontiguousarray(rig.mount.R_vehicle_cam, float)
+        t = np.ascontiguousarray(rig.mount.t_vehicle_cam, float)
+        n = patch_size(resolution_m, half_extent_m)
+        return cls(*_remap_tables(cam._key, cam, R.tobytes(), t.tobytes(),
+                                  float(ceiling_height), float(resolution_m), n, level))
+
+    def __call__(self, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(patch (n, n) uint8, valid (n, n) bool)`` of the frame, as :func:`rectify`."""
+        patch = cv2.remap(_pyramid(grey, self.level), self.map1, self.map2,
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return patch, self.valid
+
+
+def _pyramid(grey: np.ndarray, level: int) -> np.ndarray:
+    """The frame's pyramid level ``level``: ``cv2.pyrDown`` ``level`` times, except
+    that from level 2 up the first halving is the mean of each 2x2 block
+    (``cv2.INTER_AREA``, a quarter of ``pyrDown``'s time on a full frame): its blur
+    (σ 0.5 level-0 px) under the next ``pyrDown``'s (σ 2 level-0 px) gives σ 2.06 where
+    two ``pyrDown`` give 2.24; its half-pixel shift is in :func:`_remap_tables`. A side
+    of odd length keeps ``pyrDown`` (:func:`_area_first`)."""
+    h, w = grey.shape[:2]
+    if _area_first(level, w, h):
+        grey = cv2.resize(grey, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+        level -= 1
+    for _ in range(level):
         grey = cv2.pyrDown(grey)
-    patch = cv2.remap(grey, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    return patch, valid
+    return grey
+
+
+def _area_first(level: int, width: int, height: int) -> bool:
+    """Whether :func:`_pyramid` halves a ``width x height`` frame first by 2x2 means:
+    from level 2 up, the sides even (a 2x2 block for every pixel)."""
+    return level >= 2 and width % 2 == 0 and height % 2 == 0
 
 
 @functools.lru_cache(maxsize=4)
@@ -605,7 +657,7 @@ def _medoid(desc: np.ndarray) -> int:
     return int(np.argmin(ham.sum(1)))
 
 
-__all__ = ["DEFAULT_RESOLUTION_M", "MAP_FORMAT", "MAP_VERSION", "CeilingMap",
+__all__ = ["DEFAULT_RESOLUTION_M", "MAP_FORMAT", "MAP_VERSION", "CeilingMap", "Rectifier",
            "appearance_ncc", "build_map", "coarser", "features", "footprint_half_extent",
            "merge_features", "patch_points_v", "patch_size", "predicted_patch", "pyramid_level",
            "rectify"]

@@ -52,6 +52,7 @@ from ceilkit.runtime.estimators.prior import (
 )
 from ceilkit.runtime.estimators.texture.ceilmap import (
     CeilingMap,
+    Rectifier,
     appearance_ncc,
     features,
     footprint_half_extent,
@@ -162,6 +163,8 @@ class TextureEstimator(Estimator):
         self.index = DescriptorIndex(self.map.points_xy, self.map.descriptors)
         self._tracker = MapTracker(self.map, TRACK_LEVELS)
         self.half_m = o.half_extent_m or footprint_half_extent(rig, site.ceiling_height_m)
+        self._track_rectify = Rectifier.of(rig, site.ceiling_height_m,
+                                           self._tracker.map.resolution_m, self.half_m)
         self.sigma_floor_m = float(np.median(self.map.sigma_m)) if len(self.map.sigma_m) \
             else self.map.resolution_m
         self._odo = PlaneOdometry(PlanarGeometry.of(rig, site), site) if o.plane_odometry \
@@ -223,8 +226,7 @@ class TextureEstimator(Estimator):
         if self._tracker.grid is None:
             return None
         cmap = self._tracker.map
-        patch, valid = rectify(grey, self.rig, self.site.ceiling_height_m, cmap.resolution_m,
-                               self.half_m)
+        patch, valid = self._track_rectify(grey)
         got = self._tracker.follow(patch, valid,
                                    (float(prior.x_m), float(prior.y_m), float(prior.yaw_rad)),
                                    o.tol_px * res, self.sigma_floor_m, o.min_inliers)
