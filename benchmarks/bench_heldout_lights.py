@@ -30,7 +30,9 @@ with the right one; ``lights`` from a start pose one cell off, turned 180 deg, a
 the scene whose vehicle is carried elsewhere mid-drive (kidnap). Scored as
 ``bench_ambiguity.score``: valid poses, wrong ones (> 10 cm or > 2 deg), the tracked
 share (valid and right, of all frames; ``seen``: frames with at least 3 of the map's
-lights within 70 deg of the vertical and 30 px inside the frame), median error, mean NEES.
+lights within 70 deg of the vertical and 30 px inside the frame), median error, mean NEES
+and its 95% band for the NEES series' effective count ``n_eff`` (``--runs`` keeps only
+the runs named, e.g. ``auto-start lights-start``).
 Rows to ``benchmarks/out/bench_heldout_lights.csv``.
 
     .venv/bin/python benchmarks/bench_heldout_lights.py [--scenes 3] [--frames 100]

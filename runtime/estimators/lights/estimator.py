@@ -22,7 +22,8 @@ Stages per frame:
    residuals, one outlier pass; the covariance is ``s² (JᵀJ)⁻¹``. In a two-level
    frame (0/255) a radial shift of every centroid is a fourth unknown
    (:func:`frame_shifts`, :func:`~.refine.with_shifts`), its uncertainty in the
-   covariance.
+   covariance, which also covers what leaving any one lamp out moves the pose by
+   (:func:`~.refine.spot_jackknife`: each lamp's own threshold bias).
 4. quality (:func:`pose_quality`): lights, residuals, lights missed, the margin.
 
 Example::

@@ -37,6 +37,10 @@ residuals happen to be tiny, not a noise model. The covariance is the residuals'
 Measured (``benchmarks/bench_ambiguity.py``, noise 2, blur 0.8): the residuals give
 a light-grid drive's mean NEES 2.11 (3 dof; band 2.41-3.65), 0.36 with the former
 0.1 px floor; at noise 5, blur 1.2, 2.64, inside."""
+JACKKNIFE_MAX_LEVERAGE = 0.99
+"""A light whose own leverage in a fit (the largest eigenvalue of its 2x2 block of the
+hat matrix) reaches this is left out of :func:`spot_jackknife`: its residual says
+nothing about its error."""
 
 
 def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
@@ -153,8 +157,13 @@ def with_shifts(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarray,
     :class:`~.observe.Observation`). One Gauss-Newton step over the pose and ``e`` from
     ``fit`` (the model is linear in ``e``); the covariance is the pose block of
     ``s² (AᵀA)⁻¹``, ``s² = max(SSR / (2K - 3 - m), floor²)``: what the patterns can
-    move is in it. ``fit`` itself when fewer than :data:`SHIFT_MIN_DOF` residual
-    degrees of freedom are left or the unknowns are not separable.
+    move is in it; widened (:func:`covering`) to cover what leaving any one light out
+    moves the pose by (:func:`spot_jackknife`): a two-level frame's centroid errors are
+    each lamp's own trim (its halo, its place under the fall-off, a fixture beside it),
+    of very different sizes, and one lamp's bias pulls the pose by its leverage, which
+    the pooled ``s²`` does not see. ``fit`` itself when fewer than
+    :data:`SHIFT_MIN_DOF` residual degrees of freedom are left or the unknowns are not
+    separable.
 
     Args:
         q_v, jac_px, lights_w: as :func:`refine_pose_ceiling` (``K`` lights).
@@ -191,8 +200,56 @@ def with_shifts(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarray,
     r_new = r + A @ step
     s2 = max(float(r_new @ r_new) / (2 * k - 3 - m), sigma_floor_px ** 2)
     norms = np.linalg.norm(r_new.reshape(-1, 2), axis=1)
+    cov = covering(s2 * Ni[:3, :3], spot_jackknife(A, Ni, r_new)[:3, :3])
     return (float(x + step[0]), float(y + step[1]), float(wrap_pi(yaw + step[2])),
-            s2 * Ni[:3, :3], norms)
+            cov, norms)
+
+
+def spot_jackknife(A: np.ndarray, Ni: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``Σ_i δ_i δ_iᵀ``: what leaving each light out does to the unknowns of a linear
+    least-squares fit (the leave-one-out jackknife; HC3 by pairs of rows).
+
+    ``A (2K, n)`` the residuals' Jacobian (two rows per light), ``Ni = (AᵀA)⁻¹``,
+    ``r (2K,)`` the residuals at the fit. Light ``i``'s rows ``A_i`` have the leverage
+    ``H_i = A_i Ni A_iᵀ`` (2x2) and move the unknowns by ``δ_i = Ni A_iᵀ (I - H_i)⁻¹
+    r_i`` when left out. A light whose leverage reaches :data:`JACKKNIFE_MAX_LEVERAGE`
+    (the fit cannot see its own residual: no other light checks it) adds nothing; the
+    pooled ``s² Ni`` covers it (:func:`covering`). Units those of the unknowns²."""
+    k = A.shape[0] // 2
+    P = (Ni @ A.T).T.reshape(k, 2, -1)                 # (k, 2, n): A_i Ni, rows of P_iᵀ
+    Ak = A.reshape(k, 2, -1)
+    G = np.eye(2) - np.einsum("kan,kbn->kab", Ak, P)   # I - H_i
+    G = 0.5 * (G + np.swapaxes(G, 1, 2))
+    det = G[:, 0, 0] * G[:, 1, 1] - G[:, 0, 1] ** 2
+    tr = G[:, 0, 0] + G[:, 1, 1]
+    low = 0.5 * (tr - np.sqrt(np.maximum(tr * tr - 4.0 * det, 0.0)))   # least eigenvalue
+    use = low >= 1.0 - JACKKNIFE_MAX_LEVERAGE
+    rk = r.reshape(k, 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u0 = (G[:, 1, 1] * rk[:, 0] - G[:, 0, 1] * rk[:, 1]) / det   # (I - H_i)⁻¹ r_i
+        u1 = (G[:, 0, 0] * rk[:, 1] - G[:, 0, 1] * rk[:, 0]) / det
+    d = P[:, 0, :] * u0[:, None] + P[:, 1, :] * u1[:, None]          # (k, n)
+    d = d[use]
+    return d.T @ d
+
+
+def covering(C: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """The least covariance that covers both ``C`` and ``D`` along every direction of
+    ``C``'s whitened frame: ``L V max(Λ, 1) Vᵀ Lᵀ``, ``C = L Lᵀ``, ``V Λ Vᵀ`` the
+    eigen-decomposition of ``L⁻¹ D L⁻ᵀ``; ``C`` itself when either is not finite or
+    ``C`` is not positive definite (never less than ``C``)."""
+    if not (np.all(np.isfinite(C)) and np.all(np.isfinite(D))):
+        return C
+    try:
+        L = np.linalg.cholesky(0.5 * (C + C.T))
+    except np.linalg.LinAlgError:
+        return C
+    Li = np.linalg.inv(L)
+    w, V = np.linalg.eigh(Li @ (0.5 * (D + D.T)) @ Li.T)
+    if w.max() <= 1.0:
+        return C
+    B = L @ V
+    return B @ np.diag(np.maximum(w, 1.0)) @ B.T
 
 
 def _inv3(N: np.ndarray) -> np.ndarray | None:
@@ -319,4 +376,4 @@ def _warm() -> None:
     _inv3(np.eye(3))
 
 
-__all__ = ["refine_pose", "refine_pose_ceiling", "with_shifts"]
+__all__ = ["covering", "refine_pose", "refine_pose_ceiling", "spot_jackknife", "with_shifts"]
