@@ -63,14 +63,14 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
         a spot whose bright part does not reach the window's border (not cut off, not
         a neighbour's) and has positive weight; ``contrast`` the peak above ``I_b``.
 
-    One compiled loop over the windows (:func:`_read_windows`).
+    One compiled loop over the windows (:func:`read_windows_core`).
     """
     grey = arr(grey, np.uint8)
     corner = arr(corner, np.int64).reshape(-1, 2)
     k = corner.shape[0]
     r = (arr(rect, np.int64).reshape(-1, 4) if rect is not None
          else np.tile(np.array([0, 0, side - 1, side - 1], np.int64), (k, 1)))
-    out = _read_windows(grey, corner, side, r, float(core), FLAT)
+    out = read_windows_core(grey, corner, side, r, float(core), FLAT)
     i_b, peak, area, i_o = out[:, 0], out[:, 1], out[:, 2], out[:, 4]
     touches = out[:, 3] > 0
     mom = out[:, 5:]                              # m00 m10 m20 m01 m02 m11
@@ -92,7 +92,7 @@ def window_stats(grey: np.ndarray, corner: np.ndarray, side: int,
 
 
 @njit
-def _read_windows(grey, corner, side, rect, core, flat):  # pragma: no cover - compiled
+def read_windows_core(grey, corner, side, rect, core, flat):  # pragma: no cover - compiled
     """Per window ``(I_b, peak, area, on_border, I_o, m00, m10, m20, m01, m02, m11)``
     (K, 11) float64: the border's mean; the peak inside ``rect`` (0 when it holds no
     pixel); the pixels inside above half way from ``I_b`` to the peak (their count,
@@ -135,7 +135,7 @@ def _read_windows(grey, corner, side, rect, core, flat):  # pragma: no cover - c
 @njit
 def _levels(win, box, row_peak):  # pragma: no cover - compiled
     """``(I_b, peak, area, on_border, I_o, above)`` of one window
-    (:func:`_read_windows`): the spot's pixels are those of ``box`` at or above the
+    (:func:`read_windows_core`): the spot's pixels are those of ``box`` at or above the
     integer ``above`` (a grey level is above the half-peak level ``L`` exactly when it
     is at least ``floor(L) + 1``), counted in integers. ``row_peak`` gets each box
     row's peak: the rows below a level are skipped."""

@@ -65,7 +65,7 @@ from ceilkit.runtime.estimators.lights.rays import (
 )
 from ceilkit.runtime.estimators.lights.refine import SIGMA_FLOOR_PX, _refine
 from ceilkit.runtime.features.spots import FLAT
-from ceilkit.runtime.features.windows import _read_windows
+from ceilkit.runtime.features.windows import read_windows_core
 from ceilkit.runtime.jit import arr, njit, warmer
 
 TRACK_CORE = 0.6
@@ -347,7 +347,7 @@ def _measure(grey, corner, half, coef, limits, params):  # pragma: no cover - co
     rect = np.empty((k, 4), np.int64)
     for i in range(k):
         rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3] = 0, 0, side - 1, side - 1
-    out = _read_windows(grey, corner, side, rect, TRACK_CORE, FLAT)
+    out = read_windows_core(grey, corner, side, rect, TRACK_CORE, FLAT)
     rows = np.empty((k, 8))
     good = np.zeros(k, np.bool_)
     tab = np.full((k, coef.shape[2]), np.nan)
