@@ -42,8 +42,10 @@ def register(app: typer.Typer) -> None:
         force: bool = typer.Option(False, "--force", help="Write into an existing --out "
                                    "(its other sections kept; refused otherwise)."),
     ) -> None:
-        """Build the `markers` of a site map from a drive of known poses: every marker
-        seen in 3 frames or more, placed by least squares with its covariance."""
+        """Build the `markers` of a site map from a drive of known poses.
+
+        Every marker seen in 3 frames or more, placed by least squares with its
+        covariance."""
         from ceilkit.calib.blockmap import blockmap as run_blockmap
 
         run = run_blockmap(recording, out, rig=rig, poses=poses,

@@ -6,13 +6,15 @@
         [--width W --height H --fps F --fourcc MJPG --exposure E --gain G --capture FILE]
     ceilcal intrinsics --ceiling RECORDING [--compare camera.yaml] --out camera.yaml
 
-Parses, calls :func:`ceilkit.calib.workflow.intrinsics`, prints: the report goes to
-stdout, progress and warnings to stderr, the camera to ``--out`` (atomically, with a
-provenance header).
+Parses, calls :func:`ceilkit.calib.workflow.intrinsics`, prints: the report (with its
+warnings) goes to stdout, progress to stderr, the camera to ``--out`` (atomically, with
+a provenance header). The warnings are said again on stderr when stdout is not the
+terminal stderr shows (a file, a pipe), so that a person watching reads each once.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -58,6 +60,16 @@ class _MeterLine:
 
     def flush(self) -> None:
         sys.stderr.flush()
+
+
+def same_terminal() -> bool:
+    """Whether stdout and stderr are one terminal (whatever is in the report on stdout
+    has then been read there)."""
+    try:
+        return (sys.stdout.isatty() and sys.stderr.isatty() and os.fstat(
+            sys.stdout.fileno()).st_rdev == os.fstat(sys.stderr.fileno()).st_rdev)
+    except (OSError, ValueError, AttributeError):   # a stream without a descriptor
+        return False
 
 
 def register(app: typer.Typer) -> None:
@@ -123,5 +135,6 @@ def register(app: typer.Typer) -> None:
             capture=capture_settings(capture, width, height, fps, fourcc, exposure, gain),
             force=force)
         typer.echo("\n".join(run.lines()))
-        for w in run.warnings:
-            typer.echo(f"ceilcal: warning: {w}", err=True)
+        if not same_terminal():     # on a terminal the report said them
+            for w in run.warnings:
+                typer.echo(f"ceilcal: warning: {w}", err=True)

@@ -17,25 +17,30 @@ def register(app: typer.Typer) -> None:
     """Add ``survey`` to ``app``."""
     @app.command("survey")
     def survey(
-        rig: Path = typer.Argument(..., help="The rig.yaml (camera and mount)."),
-        recordings: list[Path] = typer.Argument(..., help="Recording folders (SPEC §2) of "
-                                                "drives under the site; several merge "
-                                                "into one map."),
+        rig: Path = typer.Argument(..., metavar="RIG", help="The rig.yaml (camera and "
+                                   "mount)."),
+        recordings: list[Path] = typer.Argument(..., metavar="RECORDING", help="Recording "
+                                                "folders (SPEC §2) of drives under the "
+                                                "site; several merge into one map."),
         out: Path = typer.Option(..., "--out", help="Folder to write: site.yaml, "
                                  "ceiling_map.npz, poses.csv, survey.md, survey.png."),
         site: Path = typer.Option(None, "--site", help="A site.yaml of what is known "
                                   "(its sections are kept, its ceiling height used)."),
-        start_pose: str = typer.Option(None, "--start-pose", help="X,Y,YAW (m, m, "
+        start_pose: str = typer.Option(None, "--start-pose", metavar="X,Y,YAW",
+                                       help="X,Y,YAW (m, m, "
                                        "degrees): the first drive's first frame in W "
                                        "(default 0,0,0)."),
-        anchor_marker: list[str] = typer.Option(None, "--anchor-marker", help="ID,X,Y,"
+        anchor_marker: list[str] = typer.Option(None, "--anchor-marker",
+                                                metavar="ID,X,Y,YAW[,SIZE]", help="ID,X,Y,"
                                                 "YAW[,SIZE] (m, m, degrees, m): a marker "
                                                 "of known pose anchors the survey "
                                                 "(repeatable; beside --site's markers)."),
-        marker_dictionary: str = typer.Option(None, "--marker-dictionary", help="The "
+        marker_dictionary: str = typer.Option(None, "--marker-dictionary", metavar="DICT",
+                                              help="The "
                                               "markers' aruco dictionary when --site has "
                                               "none (default DICT_APRILTAG_36h11)."),
-        anchor_geodetic: str = typer.Option(None, "--anchor-geodetic", help="LAT,LON,"
+        anchor_geodetic: str = typer.Option(None, "--anchor-geodetic",
+                                            metavar="LAT,LON,HEADING", help="LAT,LON,"
                                             "HEADING (degrees; heading clockwise from "
                                             "north): the first frame on the Earth."),
         ceiling_height: float = typer.Option(None, "--ceiling-height", help="Ceiling "

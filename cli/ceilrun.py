@@ -1,9 +1,14 @@
 """``ceilrun``: run on the vehicle (camera in, poses out over serial), or replay a recording.
 
 Exit codes: 0 when the run ended (the source ended, ``--frames`` reached, or SIGINT /
-SIGTERM asked it to stop: files are closed and complete); 1 for a ceilkit error
-(one line on stderr); 2 for bad options. A second SIGINT/SIGTERM while stopping
-kills the process at once.
+SIGTERM asked it to stop: files are closed and complete; during the warm-up of the
+compiled loops it stops at once, before anything is written); 1 for a ceilkit error
+(one line on stderr); 2 for bad options; 130 for a command other than the live run
+(``replay``, ``warm-up``, ...) interrupted by Ctrl-C. A second SIGINT/SIGTERM while
+stopping kills the process at once.
+
+The library is imported when a command runs, not when the program is built:
+``ceilrun --version`` and ``-h`` load neither numba nor OpenCV.
 """
 
 from __future__ import annotations
@@ -14,21 +19,11 @@ import textwrap
 import time
 from enum import Enum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from ceilkit.runtime.errors import ConfigError, LinkError
-from ceilkit.runtime.estimators.registry import AUTO, METHOD_NAMES
-from ceilkit.runtime.io.mcap_rec import convert_recording
-from ceilkit.runtime.io.recording import LOG_DIR, Recording, repair_recording
-from ceilkit.runtime.multi import parse_limits, parse_start_pose
-from ceilkit.runtime.replay import replay as run_replay
-from ceilkit.runtime.session import (
-    LinkConfig,
-    SessionConfig,
-    run_session,
-    stop_on_signals,
-)
 
 from .common import (
     CAPTURE_OPTION,
@@ -49,6 +44,16 @@ from .common import (
     warm_up_progress,
 )
 
+if TYPE_CHECKING:
+    from ceilkit.runtime.session import LinkConfig
+
+AUTO = "auto"
+METHOD_NAMES = ("corridor", "paper-corridor", "lights", "paper-lights", "block",
+                "paper-block", "texture")
+"""``auto`` and the estimators' names of :mod:`ceilkit.runtime.estimators.registry`
+(``AUTO``, ``METHOD_NAMES``), for the help: the registry imports every estimator
+(numba, OpenCV: 250 MB, seconds), which ``ceilrun -h`` need not (a test checks that
+they agree)."""
 METHOD_HELP = (f"Estimator: auto (every method the site supports, fused; on a site with one "
                f"method and no odometry or start pose, that method), or one of "
                f"{', '.join(METHOD_NAMES)}.")
@@ -60,10 +65,14 @@ START_HELP = ("Where the vehicle starts: x, y in m, yaw in degrees (any method),
 
 
 def _start_pose(text: str | None) -> tuple[float, ...] | None:
+    from ceilkit.runtime.multi import parse_start_pose
+
     return None if text is None else parse_start_pose(text)
 
 
 def _limits(text: str | None) -> tuple[float, float] | None:
+    from ceilkit.runtime.multi import parse_limits
+
     return None if text is None else parse_limits(text)
 
 
@@ -84,6 +93,10 @@ class Protocol(str, Enum):
     mavlink = "mavlink"
     mavlink_odometry = "mavlink-odometry"
     nmea_gps = "nmea-gps"
+
+
+PROTOCOL_HELP = ("Pose stream protocol: " + ", ".join(p.value for p in Protocol)
+                 + " (docs/serial.md).")
 
 
 class MissingX(str, Enum):
@@ -133,6 +146,8 @@ def _link(serial: str | None, protocol: Protocol, baud: int, sysid: int = 1,
           origin=None) -> LinkConfig | None:
     if serial is None:
         return None
+    from ceilkit.runtime.session import LinkConfig
+
     return LinkConfig(serial, protocol.value, baud, sysid, compid, missing_x.value, origin)
 
 
@@ -210,7 +225,7 @@ def live(
                                "(e.g. /dev/ttyUSB0), - for stdout, or a file to write the "
                                "same bytes to."),
     baud: int = typer.Option(115200, help="Serial baud rate."),
-    protocol: Protocol = typer.Option(Protocol.nmea, help="Pose stream protocol."),
+    protocol: Protocol = typer.Option(Protocol.nmea, metavar="NAME", help=PROTOCOL_HELP),
     sysid: int = typer.Option(1, help="MAVLink system id."),
     compid: int = typer.Option(197, help="MAVLink component id."),
     mavlink_missing_x: MissingX = typer.Option(
@@ -275,6 +290,8 @@ def live(
     """Run live: frames from --device, poses to --serial."""
     if ctx.invoked_subcommand is not None:
         return
+    from ceilkit.runtime.session import SessionConfig, run_session, stop_on_signals
+
     _setup_logging()
     config = SessionConfig(
         device, rig, site, method, parse_options(option),
@@ -314,7 +331,7 @@ def replay(
     tum: bool = typer.Option(False, "--tum", help="Also write poses.tum (for evo)."),
     realtime: bool = typer.Option(False, "--realtime", help="Replay at recorded timing."),
     serial: str = typer.Option(None, help="Also stream the poses to this port (or -)."),
-    protocol: Protocol = typer.Option(Protocol.nmea, help="Pose stream protocol."),
+    protocol: Protocol = typer.Option(Protocol.nmea, metavar="NAME", help=PROTOCOL_HELP),
     baud: int = typer.Option(115200, help="Serial baud rate."),
     mavlink_missing_x: MissingX = typer.Option(
         MissingX.skip, help="MAVLink, a pose without x: skip (default) or nan."),
@@ -350,6 +367,8 @@ def replay(
             n = int(30 * done / max(total, 1))
             TERM_LINE.show(f"[{'#' * n}{'.' * (30 - n)}] {done}/{total}")
 
+    from ceilkit.runtime.replay import replay as run_replay
+
     _setup_logging()
     res = run_replay(recording, out, rig, site, method, tum=tum, realtime=realtime,
                      track=not no_track, progress=bar, options=parse_options(option),
@@ -370,6 +389,8 @@ def repair(
     recording: Path = typer.Argument(..., help="A recording a killed run left."),
 ) -> None:
     """Write the frames a killed run left in RECORDING/frames.wal as PNGs and rows."""
+    from ceilkit.runtime.io.recording import LOG_DIR, Recording, repair_recording
+
     n = repair_recording(recording)
     typer.echo(f"{recording}: {n} frames written from {LOG_DIR}/; "
                f"{len(Recording(recording))} frames in all")
@@ -383,6 +404,8 @@ def convert(
     force: bool = typer.Option(False, "--force", help="Replace an existing DST."),
 ) -> None:
     """Convert a SPEC recording folder to MCAP (ROS 2 messages) or an MCAP back."""
+    from ceilkit.runtime.io.mcap_rec import convert_recording
+
     n = convert_recording(src, dst, force=force)
     typer.echo(f"{src} -> {dst}: {n} frames")
 
@@ -398,10 +421,20 @@ def warm_up_cmd() -> None:
                f"rest from numba's cache) in {done.elapsed_s:.1f} s")
 
 
-def main() -> None:
+def _run(args: list[str], prog: str) -> None:
+    """``app`` on ``args``: with the warm-up's progress line and OpenCV's warnings off,
+    unless only a help or the version is asked for (neither loads the library)."""
+    if set(HELP_FLAGS) & set(args) or "--version" in args:
+        app(args=args, prog_name=prog)
+        return
     quiet_opencv()
-    with warm_up_progress("ceilrun"):
-        app(args=_take_ros_args(sys.argv[1:]), prog_name="ceilrun")
+    with warm_up_progress(prog):
+        app(args=args, prog_name=prog)
+
+
+def main() -> None:
+    """The ``ceilrun`` entry point."""
+    _run(_take_ros_args(sys.argv[1:]), "ceilrun")
 
 
 ROS2_INTRO = ("ceilrun as a ROS 2 node: `ceilkit-ros2 [OPTIONS]` runs `ceilrun --ros2 "
@@ -442,9 +475,7 @@ def ros2_main() -> None:
         typer.echo(ros2_help(), nl=False)
         return
     args = ["replay", "--ros2", *args[1:]] if args[:1] == ["replay"] else ["--ros2", *args]
-    quiet_opencv()
-    with warm_up_progress("ceilkit-ros2"):
-        app(args=args, prog_name="ceilkit-ros2")
+    _run(args, "ceilkit-ros2")
 
 
 if __name__ == "__main__":

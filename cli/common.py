@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import sys
+import typing
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from types import MappingProxyType
@@ -196,12 +197,30 @@ def echo_err(msg: str) -> None:
         pass
 
 
+INTERRUPTED_EXIT = 130
+"""The exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell's): every
+command but the live run (``ceilrun``), which stops cleanly and exits 0."""
+
+
 def _flags_as_flags(params: list[Any]) -> list[Any]:
     """``params`` with every flag (an option that takes no value: ``--tum``,
     ``--help``) shown bare in ``--help``, not as ``--tum <bool>``."""
     for p in params:
         if getattr(p, "is_flag", False) and p.metavar is None:
             p.metavar = ""
+    return params
+
+
+def _lists_as_items(params: list[Any]) -> list[Any]:
+    """``params`` with an argument that takes several values shown in ``--help`` by
+    its items' type (``RECORDING  <path>...``), not as ``<list[Path]>``."""
+    for p in params:
+        desc = getattr(p, "type_descriptor", None)
+        if (getattr(p, "param_type_name", "") == "argument" and p.nargs != 1
+                and desc is not None and desc.is_list and "display_type_rich" not in vars(p)):
+            item = typing.get_args(desc.annotation)[0]
+            label = f"<{'path' if item is Path else p._bare_type(item)}>..."
+            p.display_type_rich = lambda ctx, label=label: label
     return params
 
 
@@ -212,7 +231,7 @@ class _Group(typer.core.TyperGroup):
     def get_command(self, ctx, cmd_name):  # type: ignore[override]
         cmd = super().get_command(ctx, cmd_name)
         if cmd is not None:
-            _flags_as_flags(cmd.get_params(ctx))
+            _lists_as_items(_flags_as_flags(cmd.get_params(ctx)))
         return cmd
 
     def parse_args(self, ctx, args):  # type: ignore[override]
@@ -248,6 +267,9 @@ class _Group(typer.core.TyperGroup):
             text = str(exc).replace(FORCE_HINT, force_hint(params))
             echo_err(f"{ctx.find_root().info_name}: error: {text}")
             ctx.exit(1)
+        except KeyboardInterrupt:   # Ctrl-C: one line, not click's "Aborted!"
+            echo_err(f"{ctx.find_root().info_name}: interrupted")
+            ctx.exit(INTERRUPTED_EXIT)
 
 
 def parse_options(items: list[str] | None) -> dict[str, Any]:

@@ -35,6 +35,8 @@ installer or a Dockerfile. :func:`reporting` hands each step's
 A warm-up that finds loops missing from the cache shares the compiling with helper
 processes, one per further CPU (:class:`CompileHelpers`, :func:`helper_count`): each
 module's loops are compiled in one of them, the others load them from the cache.
+A warm-up inside :func:`stop_when` stops, helpers and all, as soon as its event is set
+(:class:`WarmUpInterrupted`: ``ceilrun``'s Ctrl-C during a first start's compiling).
 
 Example::
 
@@ -373,6 +375,7 @@ def warm_up(roots: Iterable[Any] | None = None, helpers: int | None = None) -> f
             :func:`helper_count`. Loops found in the cache are loaded here alone.
     """
     t0 = time.perf_counter()
+    _check_stopped()
     wanted = None if roots is None else reachable(roots)
     todo = [w for w in _PENDING if wanted is None or w.__module__ in wanted]
     by_module: dict[str, list[Callable[[], object]]] = {}
@@ -383,7 +386,27 @@ def warm_up(roots: Iterable[Any] | None = None, helpers: int | None = None) -> f
     n_helpers = helper_count() if helpers is None else helpers
     pool = (CompileHelpers(order, n_helpers)
             if n_helpers > 0 and len(order) > 1 and not cached(order) else None)
-    n_pool = n_helpers if pool is not None else 0
+    _WARMING.append(threading.get_ident())
+    try:
+        if pool is not None:
+            pool.start()
+        done, compiled = _make(order, by_module, pool, total, t0)
+    finally:                        # an interrupt too: the helpers stop with this
+        _WARMING.remove(threading.get_ident())
+        if pool is not None:
+            pool.close()
+    elapsed = time.perf_counter() - t0
+    if todo:
+        _report(WarmUpProgress(done, total, "", compiled, elapsed,
+                               n_helpers if pool is not None else 0))
+    return elapsed
+
+
+def _make(order: list[str], by_module: dict[str, list[Callable[[], object]]],
+          pool: CompileHelpers | None, total: int, t0: float) -> tuple[int, int]:
+    """:func:`warm_up`'s modules made here (and by ``pool``'s helpers, then loaded
+    here): the loops made, and how many of them were compiled."""
+    n_pool = len(pool) if pool is not None else 0
     done = compiled = 0
 
     def run(module: str) -> tuple[int, int]:
@@ -396,6 +419,7 @@ def warm_up(roots: Iterable[Any] | None = None, helpers: int | None = None) -> f
     queue = pool.take if pool is not None else iter([*order, None]).__next__
     for last in (False, True):      # last: what a failed helper handed back
         while (module := queue()) is not None:
+            _check_stopped()
             extra = pool.progress() if pool is not None else (0, 0)
             _report(WarmUpProgress(done + extra[0], total, module, compiled + extra[1],
                                    time.perf_counter() - t0, n_pool))
@@ -407,10 +431,46 @@ def warm_up(roots: Iterable[Any] | None = None, helpers: int | None = None) -> f
     if pool is not None:            # their loads: from the cache the helpers filled
         for module, c in made.items():
             done, compiled = done + run(module)[0], compiled + c
-    elapsed = time.perf_counter() - t0
-    if todo:
-        _report(WarmUpProgress(done, total, "", compiled, elapsed, n_pool))
-    return elapsed
+    return done, compiled
+
+
+class WarmUpInterrupted(KeyboardInterrupt):
+    """A :func:`warm_up` stopped before it made every loop (:func:`stop_when`). Its
+    helper processes are stopped; numba writes each cache file whole (a temporary
+    file renamed), so the loops made so far are kept and the others are compiled on a
+    later start. A ``KeyboardInterrupt``, so that no ``except Exception`` in the
+    compiler takes it for a failed compile."""
+
+
+_STOPS: list[threading.Event] = []
+_WARMING: list[int] = []            # the threads in a warm-up now
+
+
+@contextlib.contextmanager
+def stop_when(stop: threading.Event) -> Iterator[None]:
+    """Within the block, a :func:`warm_up` raises :class:`WarmUpInterrupted` once
+    ``stop`` is set: when it starts, before each module, or at once when
+    :func:`interrupt` is called (the signal handler that sets ``stop`` calls it: a
+    first start's compiling takes minutes)."""
+    _STOPS.append(stop)
+    try:
+        yield
+    finally:
+        _STOPS.remove(stop)
+
+
+def _check_stopped() -> None:
+    if any(s.is_set() for s in _STOPS):
+        raise WarmUpInterrupted("the warm-up was stopped")
+
+
+def interrupt() -> None:
+    """For a signal handler (on the main thread) that has just set the event of a
+    :func:`stop_when`: a warm-up under way in this thread stops now (raises
+    :class:`WarmUpInterrupted` from the handler, wherever the compiling is); nothing
+    when none is."""
+    if threading.get_ident() in _WARMING:
+        _check_stopped()
 
 
 HELPERS_ENV = "CEILKIT_COMPILE_HELPERS"
@@ -476,15 +536,42 @@ class CompileHelpers:
         self._lock = threading.Lock()
         self._done: dict[str, int] = {}
         self._loops: dict[str, int] = {}
+        self._procs: list[subprocess.Popen] = []
+        self._closed = False
         self._threads = [threading.Thread(target=self._feed, daemon=True,
                                           name=f"compile-helper-{k}") for k in range(n)]
+
+    def __len__(self) -> int:
+        return len(self._threads)
+
+    def start(self) -> None:
+        """Start the helpers (each on a thread that feeds it modules)."""
         for t in self._threads:
             t.start()
 
-    def take(self) -> str | None:
-        """The next module to make (``None``: none left)."""
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop the helpers now (a warm-up interrupted; nothing once they are done): no
+        module is handed out any more, and each helper process is terminated and waited
+        for (killed after ``timeout_s``). A loop a helper was compiling is not written:
+        numba writes a cache file whole or not at all."""
         with self._lock:
-            return self._queue.pop(0) if self._queue else None
+            self._closed = True
+            self._queue.clear()
+            procs = list(self._procs)
+        for proc in procs:
+            if proc.poll() is None:
+                proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+    def take(self) -> str | None:
+        """The next module to make (``None``: none left, or closed)."""
+        with self._lock:
+            return self._queue.pop(0) if self._queue and not self._closed else None
 
     def progress(self) -> tuple[int, int]:
         """Loops the helpers made so far, and of them compiled."""
@@ -505,6 +592,10 @@ class CompileHelpers:
                                     text=True)
         except OSError:
             return
+        with self._lock:
+            self._procs.append(proc)
+            if self._closed:        # closed while it started
+                proc.terminate()
         with proc:
             while (module := self.take()) is not None:
                 try:
@@ -515,7 +606,8 @@ class CompileHelpers:
                     answer = []
                 if answer[:2] != ["done", module] or len(answer) != 4:
                     with self._lock:               # this process makes it
-                        self._queue.insert(0, module)
+                        if not self._closed:
+                            self._queue.insert(0, module)
                     break
                 with self._lock:
                     self._done[module], self._loops[module] = int(answer[2]), int(answer[3])
@@ -525,7 +617,16 @@ class CompileHelpers:
 
 def serve() -> None:
     """A :class:`CompileHelpers` process: for each module name read on stdin, import it,
-    run its warmers, and answer ``done MODULE COMPILED LOOPS`` (or ``failed MODULE``)."""
+    run its warmers, and answer ``done MODULE COMPILED LOOPS`` (or ``failed MODULE``).
+    A Ctrl-C on the terminal reaches the helpers too: they end quietly (the warm-up they
+    serve stops them all, :meth:`CompileHelpers.close`)."""
+    try:
+        _serve()
+    except KeyboardInterrupt:
+        pass
+
+
+def _serve() -> None:
     for line in sys.stdin:
         module = line.strip()
         try:
@@ -546,6 +647,7 @@ def _report(progress: WarmUpProgress) -> None:
         callback(progress)
 
 
-__all__ = ["HELPERS_ENV", "ROOT", "CompileHelpers", "SharedDispatcher", "WarmUpProgress",
-           "arr", "cached", "callee_first", "helper_count", "loops_of", "njit",
-           "reachable", "reporting", "serve", "unwritten", "warm_up", "warmer"]
+__all__ = ["HELPERS_ENV", "ROOT", "CompileHelpers", "SharedDispatcher", "WarmUpInterrupted",
+           "WarmUpProgress", "arr", "cached", "callee_first", "helper_count", "interrupt",
+           "loops_of", "njit", "reachable", "reporting", "serve", "stop_when", "unwritten",
+           "warm_up", "warmer"]

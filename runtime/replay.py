@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from ceilkit.runtime.config.rig import Rig
-from ceilkit.runtime.config.site import Site, check_rig_site
+from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.fusion import Fusion, FusionReport
 from ceilkit.runtime.io.link.transport import is_serial_path
@@ -61,7 +61,7 @@ from ceilkit.runtime.pipeline import (
     build_pipeline,
     open_ros2,
 )
-from ceilkit.runtime.session import LinkConfig, link_lines, opened_link
+from ceilkit.runtime.session import LinkConfig, check_inputs, link_lines, opened_link
 from ceilkit.runtime.viz.report import ReplayViews
 from ceilkit.runtime.viz.tap import EstimateTap
 
@@ -165,7 +165,7 @@ def replay(recording: str | Path, out_dir: str | Path | None = None,
         check_replay_outputs(recording, out, rig, site, link, tum, force, overlays,
                              report, odometry, locked)
         rec = open_recording(recording, rig=rig, site=site)
-        check_rig_site(rec.rig, rec.site)
+        check_inputs(rec.rig, rec.site, link)   # before the method's loops load
         odo = load_odometry(odometry) if odometry is not None else rec.odometry
         estimator, tracker = make_localizer(  # --ros2: the same method
             method, rec.rig, rec.site, options, start_pose, odo is not None and track,

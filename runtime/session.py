@@ -54,6 +54,7 @@ from ceilkit.runtime.io.recording import (
     RecordingWriter,
     refuse_existing,
 )
+from ceilkit.runtime.jit import WarmUpInterrupted, interrupt, stop_when
 from ceilkit.runtime.live import AsyncRecorder, LiveResult, run_live
 from ceilkit.runtime.metrics import Accuracy, AccuracyMeter, source_truth
 from ceilkit.runtime.multi import make_localizer
@@ -101,6 +102,20 @@ class LinkConfig:
     component_id: int = 197
     unobserved: str = "skip"
     origin: Any = None
+
+    def check(self, site: Any) -> None:
+        """Refuse, before the method's loops load (minutes on a first start), a
+        protocol that needs what ``site`` lacks: ``nmea-gps`` places the poses on the
+        Earth with the site's ``origin``.
+
+        Raises:
+            ConfigError: the site's file and ``origin``.
+        """
+        if self.protocol == "nmea-gps" and getattr(site, "origin", None) is None:
+            raise ConfigError(getattr(site, "source", None), "origin",
+                              "missing: the nmea-gps protocol places the poses on the "
+                              "Earth with the site's geodetic origin (origin: {lat, lon, "
+                              "alt, heading}; docs/serial.md)")
 
     def open(self, rig: Any = None, site: Any = None):
         """The link, not yet open (use it with ``with``)."""
@@ -258,13 +273,21 @@ class SessionResult:
         return self.run.telemetry
 
     def lines(self) -> list[str]:
-        """The end-of-run report: a heading, then indented details."""
+        """The end-of-run report: a heading, then indented details (``no frame
+        estimated`` for a run that had none)."""
         out = [f"{self.method} on {self.config.device}: {self.run.elapsed_s:.1f} s"
                + (" (stopped by a signal)" if self.run.stopped else "")]
-        out += ["  " + line for line in self.telemetry.summary() + list(self.link)]
+        tel = self.telemetry
+        if tel.frames or tel.dropped:
+            out += ["  " + line for line in tel.summary()]
+        else:
+            out.append("  no frame estimated: " + ("stopped before the first frame"
+                                                   if self.run.stopped else
+                                                   "the source gave none"))
+        out += ["  " + line for line in self.link]
         if self.camera_reopens:
             out.append(f"  camera reopened {self.camera_reopens}x")
-        if self.accuracy is not None:
+        if self.accuracy is not None and self.accuracy.frames:
             out.append("  against the source's ground truth:")
             out += ["    " + line for line in self.accuracy.lines()]
         out += ["  " + line for line in self.outputs]
@@ -301,8 +324,10 @@ def load_rig_site(device: str, rig: Rig | Path | None,
 @contextlib.contextmanager
 def stop_on_signals() -> Iterator[threading.Event]:
     """An event set by SIGINT, SIGTERM or SIGHUP (:data:`STOP_SIGNALS`, on the main
-    thread): the loop finishes its frame and closes files. A second signal while
-    stopping kills the process at once."""
+    thread): the loop finishes its frame and closes files; the compiled loops' warm-up
+    before the first frame (a first start: minutes) stops at once, helper processes and
+    all (:func:`~ceilkit.runtime.jit.interrupt`). A second signal while stopping kills
+    the process at once."""
     stop = threading.Event()
     previous = {}
 
@@ -311,6 +336,7 @@ def stop_on_signals() -> Iterator[threading.Event]:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
         stop.set()
+        interrupt()        # a first start's compiling stops now (run_session)
 
     if threading.current_thread() is threading.main_thread():
         for sig in STOP_SIGNALS:
@@ -468,7 +494,9 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     Args:
         config: what to run.
         stop: set it (from a signal handler, another thread) to stop after the frame
-            in hand; :func:`stop_on_signals` gives one.
+            in hand, or, before the first frame, the warm-up of the compiled loops
+            between two modules (at once from :func:`stop_on_signals`' handler): the
+            result then has no frame and nothing was written.
         on_frame: called after each frame with the telemetry (a status line).
         disk: how the recording and poses are written (a fake in tests).
 
@@ -482,12 +510,14 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
     """
     _check_config(config)
     stop = stop or threading.Event()
+    start = time.monotonic()
     rig, site = load_rig_site(config.device, config.rig, config.site)
     record = record_folder(config.record) if config.record is not None else None
     _check_free(config, rig, record)  # before the method's loops load (seconds)
-    estimator, tracker = make_localizer(config.method, rig, site, config.options,
-                                        config.start_pose, config.link_odometry,
-                                        limits=config.limits)  # --ros2: the same method
+    check_inputs(rig, site, config.link)
+    if (made := _localizer(config, rig, site, stop)) is None:  # stopped meanwhile
+        return _stopped(config, config.method or "the site's method", start)
+    estimator, tracker = made
     cap = config.capture
     start = time.monotonic()
     source = open_waiting(
@@ -497,9 +527,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                             pace=stop.wait if config.realtime else None),
         f"camera {config.device}", config.wait and _is_camera(config.device), stop)
     if source is None:  # stopped while waiting
-        return SessionResult(config, estimator.name,
-                             LiveResult(Telemetry(), 0, time.monotonic() - start, True),
-                             (), 0, None)
+        return _stopped(config, estimator.name, start)
     truth = source_truth(source)
     meter = AccuracyMeter(truth) if truth is not None else None
     guards: list[OutputGuard] = []
@@ -538,6 +566,35 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None,
                          source.reopens if isinstance(source, CameraSource) else 0,
                          meter.result() if meter is not None else None, record,
                          tuple(line for g in guards for line in g.lines()))
+
+
+def check_inputs(rig: Rig, site: Site, link: LinkConfig | None) -> None:
+    """The rig against the site (:func:`~ceilkit.runtime.config.site.check_rig_site`)
+    and the link's protocol against the site (:meth:`LinkConfig.check`), before the
+    method's loops load."""
+    check_rig_site(rig, site)
+    if link is not None:
+        link.check(site)
+
+
+def _stopped(config: SessionConfig, method: str, start: float) -> SessionResult:
+    """A session stopped before its first frame, at ``start`` (monotonic seconds)."""
+    return SessionResult(config, method,
+                         LiveResult(Telemetry(), 0, time.monotonic() - start, True),
+                         (), 0, None)
+
+
+def _localizer(config: SessionConfig, rig: Rig, site: Site,
+               stop: threading.Event) -> tuple[Any, Any] | None:
+    """The estimator and tracker, their loops made (a first start compiles them:
+    minutes); ``None`` when ``stop`` came meanwhile (:func:`~.jit.stop_when`)."""
+    try:
+        with stop_when(stop):
+            return make_localizer(config.method, rig, site, config.options,
+                                  config.start_pose, config.link_odometry,
+                                  limits=config.limits)  # --ros2: the same method
+    except WarmUpInterrupted:
+        return None
 
 
 def _check_free(config: SessionConfig, rig: Any, record: Path | None) -> None:

@@ -57,7 +57,7 @@ def test_a_stop_request_ends_the_session_at_once(tmp_path):
     res = run_session(SessionConfig(device="sim:corridor", frames=5, out=tmp_path), stop)
     assert res.run.stopped and res.telemetry.frames == 0
     assert "(stopped by a signal)" in res.lines()[0]
-    assert load_poses(tmp_path / "poses.csv").t_ns.size == 0  # closed, complete
+    assert not (tmp_path / "poses.csv").exists()  # stopped before anything was written
 
 
 def test_rig_and_site_are_needed_off_the_simulator():
