@@ -96,7 +96,8 @@ class FusionOptions:
             raise a method's where a real site's consistency line shows its NEES above
             the band (errors correlated from frame to frame, which a per-frame filter
             counts again and again).
-        fix_floor_m, fix_floor_rad: 1σ floors of a fix (unmodelled biases).
+        fix_floor_m, fix_floor_rad: 1σ floors of a fix (unmodelled biases): a variance
+            below its floor is raised to it, one above it is left as it is.
         coast_hazard_per_s: the rate at which something no model of the filter holds
             (the vehicle carried while the camera is covered, wheels slipping) happens
             while no absolute cue confirms the track; ``quality`` is multiplied by
@@ -296,7 +297,11 @@ def measurement(cue: PoseEstimate, options: FusionOptions) -> _Fix | None:
         R = np.diag(default ** 2)
     else:
         R = options.inflation.get(cue.method, options.fix_inflation) * cov
-    R = 0.5 * (R + R.T) + np.diag(floor ** 2)
+    R = 0.5 * (R + R.T)
+    # a floor, not an addition: a variance below it is raised to it, one above it is
+    # left alone (added to every fix, 0.001 deg was 15 % of a corridor fix's yaw
+    # variance and undid its y-yaw correlation, about 0.9: docs/fusion.md)
+    R = R + np.diag(np.maximum(floor ** 2 - np.diag(R), 0.0))
     # a heading known modulo a period (the parallels'): its branches are its hypotheses
     branches = len(cue.hypotheses) if rows == [ekf.YAW] else 0
     period = 2 * math.pi / branches if branches > 1 else None

@@ -37,11 +37,11 @@ from ceilkit.runtime.estimators.corridor.geometry import (
 )
 from ceilkit.runtime.estimators.corridor.hypotheses import PAN_BINS, Labeling, families
 from ceilkit.runtime.estimators.corridor.refine import (
-    MIN_SIGMA2_PX2,
     STEP_DONE,
     GNInputs,
     PanOffsetFit,
     RowRates,
+    residual_cov,
     residuals,
 )
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
@@ -408,7 +408,6 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
     tau = np.concatenate([gd.tau, gd.tau_b])
     r = np.zeros(0)
     H = Jw = Jr = None
-    wrr = 0.0
     for _ in range(max(1, iterations)):
         A = residuals(float(x[0]), float(x[1]), gd, setup)
         J = A[:, :2]
@@ -417,7 +416,6 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
         hw = np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9))    # Huber, k = 1 px
         Jw = J * hw[:, None]
         H = Jw.T @ J
-        wrr = float(r @ (hw * r))
         try:
             d = -np.linalg.solve(H, Jw.T @ r)
         except np.linalg.LinAlgError:
@@ -432,7 +430,8 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
             Hi = np.linalg.inv(H)
             S = -Hi @ (Jw.T @ Jr)                     # d (psi, c_y) / d (w, v)
             sig = np.array([rates.sigma_w_rps, rates.sigma_v_mps])
-            C = max(wrr / max(1, r.size - 2), MIN_SIGMA2_PX2) * Hi + (S * sig ** 2) @ S.T
+            Cr = residual_cov(float(x[0]), float(x[1]), gd, setup, rates)
+            C = None if Cr is None else Cr + (S * sig ** 2) @ S.T
         except np.linalg.LinAlgError:
             C = None
     if C is None or not np.all(np.isfinite(C)):

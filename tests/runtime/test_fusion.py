@@ -35,8 +35,7 @@ def test_measurement_rows_follow_what_the_cue_observes():
     assert m.rows == (1, 2) and m.R.shape == (2, 2)
     bare = PoseEstimate(0, "x", None, None, 0.3, 1.0)
     assert measurement(bare, opt).rows == (2,)
-    assert measurement(bare, opt).R[0, 0] == pytest.approx(
-        opt.default_sigma_rad ** 2 + opt.fix_floor_rad ** 2)
+    assert measurement(bare, opt).R[0, 0] == pytest.approx(opt.default_sigma_rad ** 2)
 
 
 def test_first_full_fix_starts_then_tracks_with_quality_from_the_covariance():

@@ -4,7 +4,10 @@ pan and y in W, over pixel residuals, and the vehicle pose it implies.
 Residuals (px): each matched forward segment's two endpoints to their site line's
 predicted image line, and each across segment's endpoint offset from the line
 joining its midpoint to the across vanishing point. Huber weights (k = 1 px); the
-covariance is ``max(sigma^2, 0.0004) (J^T W J)^-1`` (:data:`MIN_SIGMA2_PX2`).
+covariance is the frame's own residual variance propagated, in three parts: a forward
+segment's two endpoints come from one line fit, so their errors are not independent
+(an offset and a turn of the segment, the turn's about 3 times the offset's variance),
+and each part has its own variance (:func:`residual_cov`).
 
 A rolling shutter (:class:`RowRates`): each observation is seen from the pose at its
 row's time ``tau`` (:func:`~ceilkit.runtime.geometry.shutter.row_times_s`), to first
@@ -37,8 +40,9 @@ STEP_DONE = (1e-5, 2e-4)
 """A step below this in ``(psi rad, c_y m)`` converges: the next is far smaller."""
 
 MIN_SIGMA2_PX2 = 0.0004
-"""Floor of the residual variance (px^2) in the covariance: 0.02 px, as the lights' and
-the block's (a guard for a fit whose few residuals happen to be tiny). It was 0.1 px,
+"""Floor of each residual variance (px^2) in the covariance (:func:`residual_cov`): 0.02
+px, as the lights' and the block's (a guard for a fit whose few residuals happen to be
+tiny). It was 0.1 px,
 which over-covered the simulated drives' error about 4x in variance (mean NEES 0.56 of
 2 dof on the reversed corridor, ``benchmarks/bench_ambiguity.py``), then 0.05 px, which
 still set the covariance of a clean camera: at noise 0.5 the endpoints' residual
@@ -298,12 +302,10 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
     psi, cy, h00, h01, h10, h11, wrr = huber_steps(
         (float(psi_rad), float(camera_y_m)), _arrays(gd),
         level_camera(setup, setup.R_rows), max(1, iterations), r)
-    dof = max(1, r.size - 2)
-    sigma2 = wrr / dof
     det = h00 * h11 - h01 * h10
-    if abs(det) > 1e-300:
-        k = max(sigma2, MIN_SIGMA2_PX2) / det
-        cov = ((h11 * k, -h01 * k), (-h10 * k, h00 * k))
+    C = residual_cov(psi, cy, gd, setup) if abs(det) > 1e-300 else None
+    if C is not None:
+        cov = ((float(C[0, 0]), float(C[0, 1])), (float(C[1, 0]), float(C[1, 1])))
     else:
         nan = float("nan")
         cov = ((np.inf, nan), (nan, np.inf))        # (as T diag(inf, inf) T^T: inf * 0)
@@ -399,9 +401,9 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
     observation predicted from ``(psi + w tau, c_y + v tau)`` (first order) with the
     rates ``w, v`` of ``rates`` held fixed (fitting them too lets the frame's own small
     systematic errors pull them: the pose gets worse). The rates' uncertainty is added
-    to the covariance as a consider term, ``S diag(sigma_w^2, sigma_v^2) S^T`` with
-    ``S`` the solution's sensitivity to the rates. One compiled call
-    (:func:`rows_steps`)."""
+    to the covariance of :func:`residual_cov` as a consider term,
+    ``S diag(sigma_w^2, sigma_v^2) S^T`` with ``S`` the solution's sensitivity to the
+    rates. One compiled call (:func:`rows_steps`)."""
     r = np.empty(gd.e0.size + gd.p0.size)
     C = np.empty((2, 2))
     tau = arr(np.concatenate([gd.tau, gd.tau_b]), np.float64)
@@ -409,7 +411,9 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
         (float(psi_rad), float(camera_y_m)), _arrays(gd), tau,
         level_camera(setup, setup.R_level_cam), max(1, iterations),
         RowRates(*(float(v) for v in rates)), r, C)
-    if ok:
+    Cr = residual_cov(psi, cy, gd, setup, rates) if ok else None
+    if Cr is not None:
+        C = C + Cr
         cov = ((float(C[0, 0]), float(C[0, 1])), (float(C[1, 0]), float(C[1, 1])))
     else:
         nan = float("nan")
@@ -426,19 +430,19 @@ def rows_steps(start, gd, tau, cam, iterations, rates, r, C):  # pragma: no cove
     does), with the :class:`RowRates` ``rates`` (rows of :func:`residuals` with the
     rates' first-order shift ``(J_psi w + J_cy v) tau``, Huber at 1 px):
     ``(psi, c_y, ok)`` with ``r`` the last step's residuals (px) and ``C (2, 2)`` the
-    covariance (ok False: the normal equations were singular, or the covariance is not
-    finite)."""
+    rates' consider term of the covariance (ok False: the normal equations were
+    singular, or the term is not finite)."""
     psi, cy = start
     w_rps, v_mps, sigma_w, sigma_v = rates
     R = cam.R
     na, n = gd.e0.size, gd.e0.size + gd.p0.size
     J = np.empty((n, 2))
     hw = np.empty(n)
-    h00 = h01 = h10 = h11 = wrr = 0.0
+    h00 = h01 = h10 = h11 = 0.0
     solved = False
     for _ in range(iterations):
         dirs = directions_core(psi, R)
-        h00 = h01 = h10 = h11 = g0 = g1 = wrr = 0.0
+        h00 = h01 = h10 = h11 = g0 = g1 = 0.0
         for i in range(n):
             j0, j1, ri = observation(i, na, dirs, cy, gd, cam)
             J[i, 0], J[i, 1] = j0, j1
@@ -450,7 +454,6 @@ def rows_steps(start, gd, tau, cam, iterations, rates, r, C):  # pragma: no cove
             h11 += j1 * hw[i] * j1
             g0 += j0 * hw[i] * ri
             g1 += j1 * hw[i] * ri
-            wrr += ri * (hw[i] * ri)
         h10 = h01
         det = h00 * h11 - h01 * h10
         solved = det != 0.0
@@ -476,13 +479,119 @@ def rows_steps(start, gd, tau, cam, iterations, rates, r, C):  # pragma: no cove
         m11 += a1 * t1
     s00, s01 = -(i00 * m00 + i01 * m10), -(i00 * m01 + i01 * m11)
     s10, s11 = -(i10 * m00 + i11 * m10), -(i10 * m01 + i11 * m11)
-    k = max(wrr / max(1, n - 2), MIN_SIGMA2_PX2)
     vw, vv = sigma_w * sigma_w, sigma_v * sigma_v
-    C[0, 0] = k * i00 + (s00 * vw * s00 + s01 * vv * s01)
-    C[0, 1] = k * i01 + (s00 * vw * s10 + s01 * vv * s11)
-    C[1, 0] = k * i10 + (s10 * vw * s00 + s11 * vv * s01)
-    C[1, 1] = k * i11 + (s10 * vw * s10 + s11 * vv * s11)
+    C[0, 0] = s00 * vw * s00 + s01 * vv * s01
+    C[0, 1] = s00 * vw * s10 + s01 * vv * s11
+    C[1, 0] = s10 * vw * s00 + s11 * vv * s01
+    C[1, 1] = s10 * vw * s10 + s11 * vv * s11
     return psi, cy, bool(np.all(np.isfinite(C)))
+
+
+def residual_cov(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: CorridorSetup,
+                 rates: RowRates | None = None) -> np.ndarray | None:
+    """The ``(2, 2)`` covariance of ``(psi, c_y)`` (rad², rad m, m²) from the frame's own
+    residuals at the solution (:func:`residuals`, Huber-weighted at 1 px, with the rows'
+    shift of ``rates`` when given): :func:`segment_cov`. None where the normal
+    equations are singular."""
+    A = residuals(psi_rad, camera_y_m, gd, setup)
+    J, r = A[:, :2], A[:, 2]
+    if rates is not None:
+        tau = np.concatenate([gd.tau, gd.tau_b])
+        r = r + (J * tau[:, None]) @ np.array([rates.w_rps, rates.v_mps])
+    sw = np.sqrt(np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9)))
+    return segment_cov(J * sw[:, None], r * sw, gd.e0.size, gd.y[:gd.e0.size:2])
+
+
+MIN_SHARE_LINES = 4
+"""Site lines a frame needs for :func:`segment_cov`'s shares: the fit's 2 parameters
+take 2 of the lines' means, and a line's share needs 2 more to be seen."""
+
+
+def segment_cov(J: np.ndarray, r: np.ndarray, n_a: int, line_of: np.ndarray
+                ) -> np.ndarray | None:
+    """The covariance ``H^-1 M H^-1`` (``H = J^T J``) of a least-squares fit with
+    weighted Jacobian ``J (n, 2)`` and residuals ``r (n,)`` (px): the first ``n_a`` the
+    endpoints of forward segments in pairs, segment ``k`` on the site line
+    ``line_of[k]``; the rest one per across segment. ``M`` is ``J^T Σ J`` for the errors
+    the frame's own residuals show (:func:`_shares`):
+
+    * a segment's two endpoints come from one line fit: its offset ``(r_0 + r_1) /
+      sqrt 2`` and its turn ``(r_0 - r_1) / sqrt 2`` have their own variances (the
+      turn's about 3 times the offset's for a uniform fit);
+    * the segments of one site line share an error (the line's edge as the image and
+      the locator draw it, seen by every piece of it): each of the offset and the turn
+      has a share per segment and a share per site line, from the one-way analysis of
+      variance of the segments by line;
+    * the across rows: one variance.
+
+    On fewer than :data:`MIN_SHARE_LINES` site lines the fit takes the lines' means
+    (2 parameters), so no line's share shows in the residuals: one variance for every
+    residual, ``s^2 H^-1`` (times :func:`student`), whatever else they show (the
+    segments' shares alone covered a 2-line frame's error 3x too tight in variance,
+    ``test_edge_point_noise_sweep``).
+
+    One variance for every residual (the rule before) is ``s^2 H^-1``; it over-covered
+    the corridor's error 1.6x at noise 2 and under-covered a tile grid's, whose many
+    segments per seam average nothing of the seam's own error
+    (``benchmarks/bench_ambiguity.py``, docs/fusion.md). Each share's variance is its
+    sum of squares over its degrees of freedom ``nu``, at least :data:`MIN_SIGMA2_PX2`
+    (the line's share: what the line means hold beyond the segments' share, at least
+    0), times ``nu / (nu - 2)`` (at most 3): the variance of a Student-t error whose
+    scale was estimated from ``nu`` values, so that a frame of few segments or lines is
+    not taken at its sample variance. None where ``H`` is singular."""
+    H = J.T @ J
+    if not abs(np.linalg.det(H)) > 1e-300:
+        return None
+    Hi = np.linalg.inv(H)
+    _, line = np.unique(line_of, return_inverse=True)
+    if line.size == 0 or line.max() + 1 < MIN_SHARE_LINES:
+        nu = max(r.size - 2.0, 1.0)
+        return max(float(r @ r) / nu, MIN_SIGMA2_PX2) * student(nu) * Hi
+    M = np.zeros((2, 2))
+    if n_a:
+        a, q = J[:n_a].reshape(-1, 2, 2), r[:n_a].reshape(-1, 2)
+        h = math.sqrt(0.5)
+        for sign in (1.0, -1.0):
+            M += _shares((a[:, 0] + sign * a[:, 1]) * h, (q[:, 0] + sign * q[:, 1]) * h,
+                         line, Hi)
+    if r.size > n_a:
+        Jb, rb = J[n_a:], r[n_a:]
+        nu = max(rb.size - float(np.einsum("ij,jk,ik->", Jb, Hi, Jb)), 1.0)
+        M += max(float(rb @ rb) / nu, MIN_SIGMA2_PX2) * student(nu) * (Jb.T @ Jb)
+    C = Hi @ M @ Hi
+    C = 0.5 * (C + C.T)
+    return C if np.all(np.isfinite(C)) else None
+
+
+def _shares(Jg: np.ndarray, rg: np.ndarray, line: np.ndarray, Hi: np.ndarray
+            ) -> np.ndarray:
+    """``J^T Σ J`` of one part of the segments (their offsets or turns: rows ``Jg (K,
+    2)``, values ``rg (K,)`` px, segment ``k`` on line ``line[k]`` of ``0..L-1``) with
+    ``Σ = s_w^2 I + tau^2 Z Z^T`` (``Z`` the segments' line membership): ``s_w^2`` the
+    within-line mean square (``K - L`` dof), ``tau^2`` = (between-line mean square -
+    ``s_w^2``) / mean segments per line, the between-line dof ``L`` less the
+    parameters' share of ``Jg`` (its leverage, ``tr(Jg H^-1 Jg^T)``); each times
+    :func:`student` of its dof. Under 2 between-line dof (2 lines: the fit takes
+    their means, and no share of theirs shows in the residuals), one variance for
+    every segment (``K`` less the leverage dof): the within-line mean square alone
+    covered 2-line frames 3x too tight in variance (``test_edge_point_noise_sweep``)."""
+    k, n_l = rg.size, np.bincount(line)
+    n_lines = n_l.size
+    nu_b = max(n_lines - float(np.einsum("ij,jk,ik->", Jg, Hi, Jg)), 1.0)
+    mean = np.bincount(line, rg) / n_l
+    nu_w = max(k - n_lines, 1.0)
+    sw2 = float(np.sum((rg - mean[line]) ** 2)) / nu_w
+    tau2 = max(0.0, float(n_l @ mean ** 2) / nu_b - sw2) / (k / n_lines)
+    G = np.stack([np.bincount(line, Jg[:, 0]), np.bincount(line, Jg[:, 1])], axis=1)
+    return (max(sw2, MIN_SIGMA2_PX2) * student(nu_w) * (Jg.T @ Jg)
+            + tau2 * student(nu_b) * (G.T @ G))
+
+
+def student(nu: float) -> float:
+    """``nu / (nu - 2)``, at most 3 (``nu`` at most 3): the variance of a unit Student-t
+    error of ``nu`` degrees of freedom, the factor on a variance estimated from ``nu``
+    values that makes its mean NEES right."""
+    return nu / (nu - 2.0) if nu > 3.0 else 3.0
 
 
 def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup
