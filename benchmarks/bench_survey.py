@@ -45,7 +45,7 @@ known-pose marker map would hold) and against the site's markers.
 and its noise drawn from seed s; rendered into ``survey_known_s<s>`` beside ``--rec``):
 each keyframe's position error against the truth over its 1σ and each marker corner's
 (docs/survey.md, "Limits"; measured 2026-12-06, ``--seeds 5``: the worst seed's 95th
-percentile 2.19 for the keyframes and 2.01 for the corners, the 2-D law's 2.45).
+percentile 2.07 for the keyframes and 1.50 for the corners, the 2-D law's 2.45).
 
     .venv/bin/python benchmarks/bench_survey.py --against-known --seeds 5
         [--out benchmarks/out/bench_survey_honesty.json]
