@@ -1,10 +1,10 @@
 """The window search against the global path on the same frames, paired (issues 18, 38).
 
-Issue 38 turns each method's window search (``--option window_search=true``, formerly
-``track``) on by default only where a paired run on every bench case shows it no less
+Issue 38 turned each method's window search (``--option window_search=true``, formerly
+``track``) on by default once a paired run on every bench case showed it no less
 accurate than the global path. Every frame is estimated twice, with the same prior:
 
-* **global**: the estimator with ``window_search=false`` (the default until issue 38:
+* **global**: the estimator with ``window_search=false`` (the default before issue 38:
   the lights' association about the prior, the corridor's and block's global search
   with the prior choosing among twins);
 * **window**: the same estimator with ``window_search=true`` and no scheduled global
@@ -12,7 +12,9 @@ accurate than the global path. Every frame is estimated twice, with the same pri
   refuses a fix, its global fallback decides the frame.
 
 The prior is the true pose moved by a tracker's typical prediction error
-(``--prior-sigma``: 1 cm and 0.1 deg by default), with that covariance. Cases
+(``--prior-sigma``: 1 cm and 0.1 deg by default), with that covariance, and no velocity
+(``--velocity``: the truth's, as a track's prior carries it, which the rolling
+shutter's rows use). Cases
 (``--cases``):
 
 * **clean**: ``bench_all.py``'s drives, read back as SPEC recordings (``--frames``,
@@ -121,6 +123,16 @@ def frames_of(method: str, case: str, folder: Path, frames: int, sim_frames: int
     return rig, site, out, real.rolling_shutter_ms
 
 
+def velocity(frames: list, k: int) -> tuple[float, float, float]:
+    """The truth's velocity at frame ``k`` ``(vx m/s, vy m/s, yaw rate rad/s)`` in W, a
+    central difference of the frames beside it (one-sided at the ends): what a track's
+    prior carries (``--velocity``)."""
+    a, b = frames[max(k - 1, 0)], frames[min(k + 1, len(frames) - 1)]
+    dt = max((b[1] - a[1]) * 1e-9, 1e-9)
+    d = np.asarray(b[2], float) - np.asarray(a[2], float)
+    return float(d[0] / dt), float(d[1] / dt), float(math.remainder(d[2], 2 * math.pi) / dt)
+
+
 def paired(method: str, case: str, folder: Path, a: argparse.Namespace
            ) -> dict[str, object]:
     """Both paths on every frame of a case (see the module docstring): the frames, the
@@ -142,7 +154,8 @@ def paired(method: str, case: str, folder: Path, a: argparse.Namespace
     for k, (grey, t_ns, truth) in enumerate(frames):
         x, y, yaw = frames[(k + n // 2) % n][2] if case == "kidnap" else truth
         prior = PoseEstimate(t_ns, "prior", x + rng.normal(0, sp), y + rng.normal(0, sp),
-                             yaw + rng.normal(0, sr), 1.0, None, cov)
+                             yaw + rng.normal(0, sr), 1.0, None, cov,
+                             velocity=velocity(frames, k) if a.velocity else None)
         got = {"global": glob.estimate(grey, t_ns, prior),
                "window": win.estimate(grey, t_ns, prior)}
         for path, e in got.items():
@@ -242,6 +255,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-readout", action="store_true",
                     help="leave readout_ms at 0 in the realism cases (a global shutter assumed)")
+    ap.add_argument("--velocity", action="store_true",
+                    help="the prior carries the truth's velocity, as a track's does")
     ap.add_argument("--out", type=Path, default=OUT / "bench_paired.csv")
     a = ap.parse_args()
     bad = sorted(set(a.cases.split(",")) - set(CASES))

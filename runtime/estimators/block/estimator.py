@@ -147,10 +147,10 @@ class BlockOptions(EstimatorOptions):
         window_search: with a prior (a position), measure the blocks and markers the
             prior puts fully in view on their predicted outlines (no search of the
             frame, :meth:`BlockEstimator._tracked`); the global path runs when the
-            window check fails and every ``window_full_every``-th window fix. Off by
-            default (issue 38: less accurate than the global path on small markers,
-            and it fixes a block partly painted over that the global path refuses;
-            docs/methods/block.md). (Formerly ``track``.)
+            window check fails (it checks what the global path does: a block's inside
+            all of its grey, a marker's code read), and every ``window_full_every``-th
+            window fix. On by default (issue 38; docs/methods/block.md). (Formerly
+            ``track``.)
         window_px: how far (px) a side may lie from its predicted place. (Formerly
             ``track_window_px``.)
         window_full_every: a global search after this many window fixes (0: only when
@@ -174,7 +174,7 @@ class BlockOptions(EstimatorOptions):
     parallels_gate_deg: float = 1.0
     heading_cue: bool = True
     plane_odometry: bool = True
-    window_search: bool = False
+    window_search: bool = True
     window_px: float = 4.0
     window_full_every: int = 30
     marker_fallback: bool = True
@@ -260,7 +260,7 @@ class BlockEstimator(Estimator):
         self._pooled = PooledSideOffsets()
         self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
         self._fixed = True      # the previous frame had a fix (no track to carry yet)
-        self.windows = Windows(self.geo, targets, o, self._lined)
+        self.windows = Windows(self.geo, targets, o, self._lined, self._codes)
         self._reader = (MarkerReader(self.geo, markers, self._codes, o.edge_points,
                                      self._solve) if markers is not None else None)
         self._fallback = self._reader if o.marker_fallback else None
@@ -457,8 +457,9 @@ class BlockEstimator(Estimator):
         if best.resolved_by == "prior":
             quality = min(quality, 0.7)
         diag["ms"] = elapsed_ms(t0)
-        provenance = (Provenance.WINDOW if mode == WINDOW else Provenance.PRIOR
-                      if best.resolved_by == "prior" else Provenance.GLOBAL)
+        # a correspondence its prior chose among twins is the prior's, on either path
+        provenance = (Provenance.PRIOR if best.resolved_by == "prior" else
+                      Provenance.WINDOW if mode == WINDOW else Provenance.GLOBAL)
         return PoseEstimate(t_ns, self.name, float(pose[0]), float(pose[1]),
                             wrap_pi(float(pose[2])), quality, cov=cov, diagnostics=diag,
                             provenance=provenance, hypotheses=with_twins(pose, cov, best.twins))

@@ -23,6 +23,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Mapping
@@ -77,7 +78,11 @@ from ceilkit.runtime.estimators.corridor.setup import (
     default_match_tol_m,
     mirror_line,
 )
-from ceilkit.runtime.estimators.corridor.track import LineTracker, without_ignored
+from ceilkit.runtime.estimators.corridor.track import (
+    LineTracker,
+    window_twins,
+    without_ignored,
+)
 from ceilkit.runtime.estimators.honesty import (
     DEFAULT_ALPHA,
     HEADING_DISAGREES,
@@ -92,7 +97,7 @@ from ceilkit.runtime.estimators.honesty import (
     outside_site,
 )
 from ceilkit.runtime.estimators.ignore import IgnoreRegions
-from ceilkit.runtime.estimators.prior import allows
+from ceilkit.runtime.estimators.prior import prior_choice
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.lines import SegmentDetector
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
@@ -169,10 +174,10 @@ class CorridorOptions(ShutterOptions):
             fits every matched segment (the former behaviour, for comparisons).
         window_search: with a prior, search for the site lines only across their
             predicted image lines (:mod:`~.track`: 1-D edge searches, no line
-            detector); the global path runs when that check fails and every
-            ``window_full_every``-th window fix. Off by default (issue 38: with a prior
-            turned half way round it confirms the twin an asymmetric corridor rules
-            out, where the global path does not; docs/methods/corridor.md). (Formerly
+            detector); the global path runs when that check fails, when a twin of the
+            fix explains the frame better or lies inside the prior's region too
+            (:func:`~.track.window_twins`), and every ``window_full_every``-th window
+            fix. On by default (issue 38; docs/methods/corridor.md). (Formerly
             ``track``.)
         window_px: half-width of the searches (px): how far a line may lie from its
             prediction. (Formerly ``track_search_px``.)
@@ -216,7 +221,7 @@ class CorridorOptions(ShutterOptions):
     gn_iterations: int = 6
     min_elevation_deg: float = 3.0
     consensus: bool = True
-    window_search: bool = False
+    window_search: bool = True
     window_px: float = 5.0
     window_full_every: int = 30
     coarse_search: bool = True
@@ -330,9 +335,11 @@ class CorridorEstimator(Estimator):
     def _tracked(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
                  t0: float) -> Estimate | None:
         """The fix from edge searches across the lines predicted by ``prior``
-        (:mod:`~.track`), refined and checked as the global path's (:meth:`_pose`), or
-        ``None``: the searches or the check failed, the fix lies outside the prior's
-        region (a kidnap), or a global search is due."""
+        (:mod:`~.track`), refined and checked as the global path's (:meth:`_pose`),
+        with the twins the global path would list (:func:`fit_twins`: a fix with
+        twins is ``Provenance.PRIOR``, the prior chose it), or ``None``: the searches
+        or the check failed, a twin explains the frame better, the fix lies outside
+        the prior's region (a kidnap) or a twin inside it, or a global search is due."""
         o, st = self.options, self.setup
         if o.window_full_every > 0 and self._tracked_fixes >= o.window_full_every:
             self._tracked_fixes = 0
@@ -348,10 +355,14 @@ class CorridorEstimator(Estimator):
         if found is not None and self.lines_track.shift_px(
                 found[4].psi_rad - psi, found[4].camera_y_m - cy) > REMEASURE_PX:
             found = self._window_fit(grey, found[4].psi_rad, found[4].camera_y_m, prior)
-        out = (None if found is None
-               else self._pose(t_ns, *found[1:], found[0].rms_px, t0, "window"))
-        if out and not allows(prior, (None, out.y_m, out.yaw_rad, None)):
-            out = None              # outside the prior's region (estimators/prior.py)
+        twins = None if found is None else fit_twins(self.lines_track, self._ctx, grey, found)
+        out = None if twins is None else self._pose(t_ns, found[1], dataclasses.replace(
+            found[2], twins=twins, ambiguous=any(t.label == "shift" for t in twins)),
+            *found[3:], found[0].rms_px, t0, "window")
+        # outside the prior's region (a kidnap), or a twin inside it (estimators/prior.py)
+        if out and prior_choice(prior, [(None, h.y_m, h.yaw_rad, None)
+                                        for h in out.hypotheses or (out,)]) != 0:
+            out = None
         if not out:                 # not found, or the model check failed: go global
             self._tracked_fixes = 0
             return None
@@ -520,15 +531,31 @@ class CorridorEstimator(Estimator):
         if mf.inflation != 1.0:
             cov = cov * mf.inflation
         twins = twin_hypotheses(self.setup, self.match_tol_m, best.twins, cov)
-        provenance = (Provenance.WINDOW if search == "window" else
-                      Provenance.PRIOR if twins or best.ambiguous or "stated" in best.how
-                      else Provenance.GLOBAL)
+        # a pose its prior chose among twins is the prior's, on either path
+        provenance = (Provenance.PRIOR if twins or best.ambiguous or "stated" in best.how
+                      else Provenance.WINDOW if search == "window" else Provenance.GLOBAL)
         if twins:
             twins = (Hypothesis(None, y_m, yaw, cov, twins[0].weight, "chosen"),) + twins
         return PoseEstimate(int(t_ns), self.name, None, y_m, yaw,
                             min(max(float(quality), 0.0), 1.0), y_m - self.setup.axis_y_m,
                             cov, diag, provenance=provenance, hypotheses=twins,
                             hypotheses_complete=complete_twins(best.twins))
+
+
+def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: tuple
+              ) -> tuple[LabelingTwin, ...] | None:
+    """The twins of a window fit ``found`` (:meth:`CorridorEstimator._window_fit`) the
+    global path would list: the lateral shifts and half turns the frame supports as
+    well (:func:`~.track.window_twins`) and, where the site's ``lines_across`` are
+    seams (``ctx.across_seams``), both quarter turns (their camera y not measured:
+    ``exact`` False, so the list is not complete); None when the global path must
+    decide the frame."""
+    fit = found[4]
+    twins = window_twins(lt, grey, found[0], fit.psi_rad, fit.camera_y_m, ctx.mirror_y_m)
+    if twins is None or not ctx.across_seams:
+        return twins
+    return twins + tuple(LabelingTwin(wrap_pi(fit.psi_rad + d), math.nan, "quarter_turn",
+                                      False) for d in (-0.5 * math.pi, 0.5 * math.pi))
 
 
 def twin_hypotheses(setup: CorridorSetup, match_tol_m: float, twins: tuple[LabelingTwin, ...],
@@ -546,6 +573,11 @@ def twin_hypotheses(setup: CorridorSetup, match_tol_m: float, twins: tuple[Label
     for t in twins:
         yaw = wrap_pi(t.psi_rad - st.pan_rad)
         y = t.camera_y_m - (math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1])
+        if not math.isfinite(y):        # not measured (a window fix's quarter turn)
+            c = np.array(cov, float)
+            c[1, :] = c[:, 1] = np.inf
+            out.append(Hypothesis(None, None, float(yaw), c, w, t.label))
+            continue
         out.append(Hypothesis(None, float(y), float(yaw), cov, w, t.label))
     return tuple(out)
 

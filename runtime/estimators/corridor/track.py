@@ -33,10 +33,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ceilkit.runtime.estimators.corridor.association import ABSENCE_PENALTY
+from ceilkit.runtime.estimators.corridor.hypotheses import TWIN_RATIO, LabelingTwin
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.edges import PROFILE_STEP_PX, edge_grid, part_indices
 from ceilkit.runtime.features.lines import ProfileGrid, ProfileKind, _refine_core
 from ceilkit.runtime.geometry.camera import CameraModel, distort_points
+from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
 
 REACH_M = 8.0
@@ -58,6 +61,10 @@ N_ALONG = 8
 MIN_STEP, MIN_DEPTH = 20.0, 8.0
 """A chord's edge kind: the least step and thin-line depth (grey levels; as
 :func:`~ceilkit.runtime.features.lines.refine_undistorted`'s defaults)."""
+
+PROBE_CHORDS = 2
+"""Chords of a line a twin puts where the window fix searched none that are looked at
+(:meth:`LineTracker.probe`)."""
 
 MAX_CHORD_RMS_PX = 1.0
 """A chord whose located points scatter more than this about their line is dropped."""
@@ -134,6 +141,7 @@ class LineTracker:
                         arr(offs, np.float64), arr(t, np.float64), arr(il, np.int64),
                         arr(ir, np.int64), arr(ii, np.int64), *camera.lens,
                         arr(params, np.float64))
+        self.kernel_lines = (self._consts[1], arr(np.abs(setup.edge_kind), np.float64))
 
     def predicted_chords(self, psi_rad: float, camera_y_m: float
                          ) -> tuple[np.ndarray, np.ndarray]:
@@ -160,6 +168,40 @@ class LineTracker:
         the predicted lines: the larger of its two parts."""
         f = self.setup.f_px
         return max(abs(d_psi_rad) * f, abs(d_cy_m) * f / self.setup.ceiling_above_cam_m)
+
+    def chords_at(self, psi_rad: float, camera_y_m: float,
+                  site_y: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`predicted_chords` of the lines at W's y = ``site_y`` (default the
+        site's ``lines_along``): ``(chords (K, 4) px, line (K,))``, ``line`` indexing
+        ``site_y``; a line with no chord is not in view."""
+        c = self._consts
+        ys = c[1] if site_y is None else arr(site_y, np.float64)
+        return _predict(float(psi_rad), float(camera_y_m), c[0], ys, c[2], c[9], c[10],
+                        c[11])
+
+    def probe(self, grey: np.ndarray, chords: np.ndarray, line: np.ndarray,
+              kinds: np.ndarray, asked: np.ndarray) -> np.ndarray:
+        """``(L,)`` bool: whether an edge of the kind ``kinds[l]`` (0 a thin line, else a
+        step) lies on line ``l`` (of those ``asked``) at :data:`PROBE_CHORDS` of its
+        chords ``chords``/``line`` (:meth:`chords_at`), spread along it: a chord of the
+        right kind whose points scatter at most :data:`MAX_CHORD_RMS_PX` (a look, not
+        a measurement: one compiled call of the edge profiles)."""
+        out = np.zeros(kinds.size, bool)
+        pick = _probe_chords(line, arr(asked, np.bool_), PROBE_CHORDS)
+        if pick.size == 0:
+            return out
+        c = self._consts
+        p = c[11]
+        grid = ProfileGrid(c[4], c[5], c[6], c[7], c[8], np.int64(p[8]), np.int64(p[9]))
+        _, pol, rms = _refine_core(arr(grey, np.uint8), arr(chords[pick], np.float64), grid,
+                                   ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX),
+                                   c[9], c[10], p[7])
+        ln = line[pick]
+        step = kinds[ln] != 0
+        ok = np.isfinite(rms) & (rms <= MAX_CHORD_RMS_PX) & np.where(
+            step, np.abs(pol) == 1.0, pol == 0.0)
+        out[ln[ok]] = True
+        return out
 
     def reach(self) -> tuple[float, float]:
         """``(psi_rad, c_y m)``: how far from the prior a refined fit may move and still
@@ -241,6 +283,196 @@ def _measure(grey, psi, cam_y, R_lc, site_y, u, edge_kind, offs, t, il, ir, ii,
     if _distinct(line[ok]) < 2:
         return empty
     return True, ends[ok], chords[ok], line[ok], pol[ok], rms[ok], n
+
+
+TWIN_EPS_M = 1e-4
+"""Two site lines that a twin and the window fix put within this of each other (m,
+across) lie on the same image line: the twin's line is measured by the fix's."""
+
+
+def window_twins(lt: LineTracker, grey: np.ndarray, m: LineMeasurement, psi_rad: float,
+                 camera_y_m: float, mirror_y_m: float | None = None
+                 ) -> tuple[LabelingTwin, ...] | None:
+    """The other poses of the same heading family a window fix's frame supports as
+    well as the fix (camera pan ``psi_rad``, camera y ``camera_y_m``, its chords
+    ``m``): the lateral shifts and half turns that put site lines where the fix's
+    found lines lie (the site's symmetries applied to the fix; on a corridor symmetric
+    about ``mirror_y_m`` the half turn is always among them), each scored as the
+    global path scores a labeling: its site lines found, less
+    :data:`~.association.ABSENCE_PENALTY` per line it puts in view that is not
+    (:data:`~.hypotheses.TWIN_RATIO` of the fix's score makes a twin).
+
+    A twin's lines that lie on the fix's searched lines take the fix's measurement;
+    those in view where the fix searched none are looked at (a few chords each,
+    :meth:`LineTracker.probe`) when they could make it a twin.
+    None when a twin explains the frame better than the fix (the fix followed its
+    prior onto a twin: a half-turned start pose on a corridor that is not symmetric),
+    or a lateral shift matching about as many lines misses fewer in view (the global
+    path's absence test would choose it against the prior): the global path decides
+    the frame then. Quarter turns are not examined here."""
+    st = lt.setup
+    found = np.zeros(st.site_y.size, np.bool_)
+    found[m.line] = True
+    vis = np.zeros(st.site_y.size, np.bool_)
+    vis[lt.chords_at(psi_rad, camera_y_m)[1]] = True
+    vis |= found
+    own = float(found.sum() - ABSENCE_PENALTY * np.count_nonzero(vis & ~found))
+    maps = _twin_maps(lt.kernel_lines, found, vis,
+                      np.nan if mirror_y_m is None else float(mirror_y_m), TWIN_EPS_M)
+    cands, n_found, n_missing, where, ws, kinds = maps
+    score = n_found - ABSENCE_PENALTY * n_missing
+    hit = np.full(ws.size, -1, np.int64)            # per unsearched line: 1, 0, -1 unseen
+    if ws.size:
+        chords, line = lt.chords_at(psi_rad, camera_y_m, ws)
+        seen = np.zeros(ws.size, np.bool_)
+        seen[line] = True
+        hit[seen] = 0
+        ask = _asked(where, seen, score - TWIN_RATIO * own)
+        if ask.any():
+            hit[lt.probe(grey, chords, line, kinds, ask)] = 1
+    n_hit, n_seen = _tally(where, hit)
+    score = score + n_hit - ABSENCE_PENALTY * (n_seen - n_hit)
+    # a lateral shift matching as many lines and missing fewer is the one the global
+    # path's absence test settles on (association.settle_by_absence): against the
+    # prior's, it says ambiguous
+    n_all = n_found + n_hit
+    alike = (cands[:, 0] > 0) & (n_all >= max(2.0, TWIN_RATIO * found.sum()))
+    if np.any(alike & (n_missing + n_seen - n_hit < np.count_nonzero(vis & ~found))):
+        return None
+    out: list[LabelingTwin] = []
+    for c in np.flatnonzero((n_all >= 2) & (score >= TWIN_RATIO * own)):
+        if score[c] > own / TWIN_RATIO:
+            return None
+        sign, g = cands[c]
+        psi_t = psi_rad if sign > 0 else wrap_pi(psi_rad + math.pi)
+        cy_t = float(camera_y_m - g if sign > 0 else g - camera_y_m)
+        out.append(LabelingTwin(psi_t, cy_t, "shift" if sign > 0 else "half_turn"))
+    return tuple(out)
+
+
+@njit
+def _twin_maps(lines, found, vis, mirror, eps):  # pragma: no cover - compiled
+    """:func:`window_twins`' candidate maps ``w = sign * y + g`` of the site lines
+    ``lines = (site_y, |edge_kind|)`` onto W's y (a shift: sign +1, ``g = y_j - y_k``,
+    the identity left out; a half turn: sign -1, ``g = y_j + y_k``, and ``2 mirror``
+    when not NaN; ``y_j`` a ``found`` line), each once (within ``eps``):
+    ``(cands (C, 2), n_found (C,), n_missing (C,), where (C, J), ws (U,), kinds (U,))``.
+    Of a map's lines, those on a line the fix searched (a site line within ``eps``, in
+    view ``vis``) count as found (``found``, of the same kind: step or thin line) or
+    missing (not found, or of another kind); the others lie where the fix searched
+    none: ``where[c, k]`` indexes them in ``ws``, ``kinds`` (-1: not such a line)."""
+    site_y, kind = lines
+    n_j = site_y.size
+    raw = np.empty((2 * n_j * n_j + 1, 2))
+    n = 0
+    for j in range(n_j):
+        if not found[j]:
+            continue
+        for k in range(n_j):
+            if abs(site_y[j] - site_y[k]) > eps:
+                raw[n, 0], raw[n, 1] = 1.0, site_y[j] - site_y[k]
+                n += 1
+            raw[n, 0], raw[n, 1] = -1.0, site_y[j] + site_y[k]
+            n += 1
+    if math.isfinite(mirror):
+        raw[n, 0], raw[n, 1] = -1.0, 2.0 * mirror
+        n += 1
+    cands = np.empty((n, 2))
+    m = 0
+    for i in range(n):
+        new = True
+        for q in range(m):
+            if cands[q, 0] == raw[i, 0] and abs(cands[q, 1] - raw[i, 1]) < eps:
+                new = False
+                break
+        if new:
+            cands[m, 0], cands[m, 1] = raw[i, 0], raw[i, 1]
+            m += 1
+    cands = cands[:m]
+    n_found = np.zeros(m, np.int64)
+    n_missing = np.zeros(m, np.int64)
+    where = np.full((m, n_j), -1, np.int64)
+    ws = np.empty(m * n_j)
+    kinds = np.empty(m * n_j)
+    u = 0
+    for c in range(m):
+        for k in range(n_j):
+            w = cands[c, 0] * site_y[k] + cands[c, 1]
+            at = -1
+            for j in range(n_j):
+                if abs(site_y[j] - w) < eps:
+                    at = j
+                    break
+            if at >= 0:
+                if vis[at] and found[at] and kind[at] == kind[k]:
+                    n_found[c] += 1
+                elif vis[at]:
+                    n_missing[c] += 1
+                continue
+            for q in range(u):
+                if abs(ws[q] - w) < eps and kinds[q] == kind[k]:
+                    at = q
+                    break
+            if at < 0:
+                ws[u], kinds[u] = w, kind[k]
+                at = u
+                u += 1
+            where[c, k] = at
+    return cands, n_found, n_missing, where, ws[:u], kinds[:u]
+
+
+@njit
+def _asked(where, seen, bound):  # pragma: no cover - compiled
+    """``(U,)`` bool: the lines where the fix searched none (:func:`_twin_maps`'
+    ``where``) in view (``seen``) of the maps that would be twins were all of theirs
+    found (``bound``: a map's score less the twin's share of the fix's)."""
+    ask = np.zeros(seen.size, np.bool_)
+    for c in range(where.shape[0]):
+        n = 0
+        for k in range(where.shape[1]):
+            if where[c, k] >= 0 and seen[where[c, k]]:
+                n += 1
+        if n > 0 and bound[c] + n >= 0:
+            for k in range(where.shape[1]):
+                if where[c, k] >= 0 and seen[where[c, k]]:
+                    ask[where[c, k]] = True
+    return ask
+
+
+@njit
+def _tally(where, hit):  # pragma: no cover - compiled
+    """Per map: its lines where the fix searched none that were found (``hit`` 1) and
+    those in view (``hit`` >= 0)."""
+    n_c = where.shape[0]
+    n_hit = np.zeros(n_c, np.int64)
+    n_seen = np.zeros(n_c, np.int64)
+    for c in range(n_c):
+        for k in range(where.shape[1]):
+            q = where[c, k]
+            if q >= 0 and hit[q] >= 0:
+                n_seen[c] += 1
+                n_hit[c] += hit[q]
+    return n_hit, n_seen
+
+
+@njit
+def _probe_chords(line, asked, most):  # pragma: no cover - compiled
+    """Indices of up to ``most`` chords of each ``asked`` line (``line`` sorted),
+    spread evenly along its run."""
+    out = np.empty(line.size, np.int64)
+    n, a = 0, 0
+    while a < line.size:
+        b = a
+        while b < line.size and line[b] == line[a]:
+            b += 1
+        if asked[line[a]]:
+            k = b - a
+            take = min(most, k)
+            for i in range(take):
+                out[n] = a + (k * (2 * i + 1)) // (2 * take)
+                n += 1
+        a = b
+    return out[:n]
 
 
 @njit
@@ -331,6 +563,13 @@ def _warm() -> None:
              arr(ii, np.int64), *cam.lens,
              arr([2.0, 1.0, 6.0, 0.0, 48.0, 64.0, 48.0, 50.0, inner.start + 1,
                   inner.stop + 1], f))
+    lines = (arr([-1.0, 1.0], f), arr([0.0, 0.0], f))
+    maps = _twin_maps(lines, np.ones(2, np.bool_), np.ones(2, np.bool_), 0.0, 1e-4)
+    hit = np.zeros(maps[4].size, np.int64)
+    _asked(maps[3], hit >= 0, np.zeros(maps[0].shape[0]))
+    _tally(maps[3], hit)
+    _probe_chords(np.array([0, 0, 1]), np.ones(2, np.bool_), 2)
 
 
-__all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "LineMeasurement", "LineTracker", "REACH_M"]
+__all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "LineMeasurement", "LineTracker", "REACH_M",
+           "window_twins"]

@@ -206,21 +206,33 @@ def test_marker_crops_merge_what_overlaps():
     assert marker_crops([(0, 0, 400, 300)], 640, 480) is None
 
 
-def test_the_window_path_measures_a_three_pixel_cell_marker_at_its_predicted_place(case):
+def test_the_window_path_measures_a_three_pixel_cell_marker_at_its_predicted_place(
+        case, monkeypatch):
     """The window path searches a marker's edges dark inside only (as the fallback
-    does): a cell in, the first inner cells' edges are of the other polarity."""
+    does): a cell in, the first inner cells' edges are of the other polarity. Such a
+    marker (3.2 px a cell) is left to the global path by default (issue 38: below
+    ``MARKER_MIN_CELL_PX`` the window path measured it worse, docs/methods/block.md);
+    measured anyway, it is found at its place."""
+    from ceilkit.runtime.estimators.block import window
+
     rig, site, poses, frames, _ = case
     est = BlockEstimator(rig, site, {"window_search": True})
-    fixed = 0
-    for p, f in zip(poses, frames, strict=True):
-        for tgt, px in est.windows.predicted(np.array(p)):
-            if not tgt.source.startswith("marker:"):
-                continue
-            got = est.windows.fix(f, tgt, px)
-            assert got is not None, (p, tgt.source)
-            assert math.hypot(*(got.refined.pose[:2] - p[:2])) < 0.01
-            fixed += 1
-    assert fixed >= 10
+    for measured in (False, True):
+        if measured:
+            monkeypatch.setattr(window, "MARKER_MIN_CELL_PX", 0.0)
+        fixed = 0
+        for p, f in zip(poses, frames, strict=True):
+            for tgt, px in est.windows.predicted(np.array(p)):
+                if not tgt.source.startswith("marker:"):
+                    continue
+                got = est.windows.fix(f, tgt, px)
+                if not measured:
+                    assert got is None, (p, tgt.source)
+                    continue
+                assert got is not None, (p, tgt.source)
+                assert math.hypot(*(got.refined.pose[:2] - p[:2])) < 0.01
+                fixed += 1
+        assert fixed >= 10 or not measured
 
 
 def test_the_simulator_draws_a_three_pixel_cell_marker_cell_by_cell():

@@ -127,14 +127,13 @@ def test_bad_track_options_are_one_line_errors(rig, site):
         assert "\n" not in str(err.value) and repr(value) in str(err.value)
 
 
-def test_the_window_path_is_off_by_default(rig, site):
-    """Issue 38 left the block method's window path off by default (docs/methods/
-    block.md): with a prior the global path runs unless ``window_search=true`` (or the
-    deprecated ``track=true``)."""
+def test_the_window_path_is_on_by_default(rig, site):
+    """Issue 38 turned the block method's window path on by default (docs/methods/
+    block.md): with a prior the window path runs unless ``window_search=false``."""
     x, y, yaw = POSES[1]
     img = frame(rig, site, x, y, yaw, 5)
     est = BlockEstimator(rig, site, {"plane_odometry": False})
-    assert not est.options.window_search and est.options.window_full_every == 30
-    assert est.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == "global"
-    on = BlockEstimator(rig, site, {"window_search": True, "plane_odometry": False})
-    assert on.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == WINDOW
+    assert est.options.window_search and est.options.window_full_every == 30
+    assert est.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == WINDOW
+    off = BlockEstimator(rig, site, {"window_search": False, "plane_odometry": False})
+    assert off.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == "global"
