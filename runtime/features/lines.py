@@ -480,19 +480,19 @@ def refine_chords(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
                   half_width_px: float = 4.0, n_along: int = 8, min_step: float = 20.0,
                   min_depth: float = 8.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`refine_undistorted` of short chords predicted near their edges (no wider
-    retry), in one compiled call (:func:`_refine_core`): the same stages, with the
+    retry), in one compiled call (:func:`refine_chords_core`): the same stages, with the
     profiles sampled bilinear in float (the frame's edge replicated; not OpenCV's
     remap, rounded to grey levels) and the lens inverted exactly
     (:func:`~ceilkit.runtime.geometry.camera.undistort_points`). Returns
     ``(segs_n, polarity, rms_px)`` as :func:`refine_undistorted`."""
     s = arr(segs_px, np.float64).reshape(-1, 4)
     kind = ProfileKind(float(min_step), float(min_depth), PROFILE_STEP_PX)
-    return _refine_core(arr(gray, np.uint8), s, _grid(n_along, half_width_px), kind,
+    return refine_chords_core(arr(gray, np.uint8), s, _grid(n_along, half_width_px), kind,
                         *camera.lens, 0.5 * (camera.fx + camera.fy))
 
 
 @njit
-def _refine_core(grey, chords, grid, kind, lens_code, lens, f_px):  # pragma: no cover
+def refine_chords_core(grey, chords, grid, kind, lens_code, lens, f_px):  # pragma: no cover
     """:func:`refine_chords`: ``(segs_n (N, 4), polarity (N,), rms (N,))``, the profiles
     read on ``grid`` (a :class:`ProfileGrid`) as ``kind`` (a :class:`ProfileKind`) says,
     through the lens ``lens_code, lens``; ``f_px``: the focal length the residuals are

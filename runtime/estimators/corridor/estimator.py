@@ -177,8 +177,8 @@ class CorridorOptions(ShutterOptions):
             detector); the global path runs when that check fails, when a twin of the
             fix explains the frame better or lies inside the prior's region too
             (:func:`~.track.window_twins`), and every ``window_full_every``-th window
-            fix. On by default (issue 38; docs/methods/corridor.md). (Formerly
-            ``track``.)
+            fix. Off by default: less accurate than the global path on held-out
+            corridors (docs/methods/corridor.md). (Formerly ``track``.)
         window_px: half-width of the searches (px): how far a line may lie from its
             prediction. (Formerly ``track_search_px``.)
         window_full_every: a global search after this many window fixes (0: only when
@@ -221,7 +221,7 @@ class CorridorOptions(ShutterOptions):
     gn_iterations: int = 6
     min_elevation_deg: float = 3.0
     consensus: bool = True
-    window_search: bool = True
+    window_search: bool = False
     window_px: float = 5.0
     window_full_every: int = 30
     coarse_search: bool = True

@@ -37,7 +37,7 @@ from ceilkit.runtime.estimators.corridor.association import ABSENCE_PENALTY
 from ceilkit.runtime.estimators.corridor.hypotheses import TWIN_RATIO, LabelingTwin
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.edges import PROFILE_STEP_PX, edge_grid, part_indices
-from ceilkit.runtime.features.lines import ProfileGrid, ProfileKind, _refine_core
+from ceilkit.runtime.features.lines import ProfileGrid, ProfileKind, refine_chords_core
 from ceilkit.runtime.geometry.camera import CameraModel, distort_points
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -193,7 +193,7 @@ class LineTracker:
         c = self._consts
         p = c[11]
         grid = ProfileGrid(c[4], c[5], c[6], c[7], c[8], np.int64(p[8]), np.int64(p[9]))
-        _, pol, rms = _refine_core(arr(grey, np.uint8), arr(chords[pick], np.float64), grid,
+        _, pol, rms = refine_chords_core(arr(grey, np.uint8), arr(chords[pick], np.float64), grid,
                                    ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX),
                                    c[9], c[10], p[7])
         ln = line[pick]
@@ -271,7 +271,7 @@ def _measure(grey, psi, cam_y, R_lc, site_y, u, edge_kind, offs, t, il, ir, ii,
         return empty
     grid = ProfileGrid(offs, t, il, ir, ii, np.int64(p[8]), np.int64(p[9]))
     kind = ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX)
-    ends, pol, rms = _refine_core(grey, chords, grid, kind, lens_code, lens, p[7])
+    ends, pol, rms = refine_chords_core(grey, chords, grid, kind, lens_code, lens, p[7])
     ok = np.zeros(n, np.bool_)
     for r in range(n):
         kind_ok = abs(pol[r]) == 1.0 if edge_kind[line[r]] != 0 else pol[r] == 0.0

@@ -119,11 +119,11 @@ def test_schedule_and_default_off(corridor_rig, corridor_site):
                             {**HEADING, "window_search": True, "window_full_every": 2})
     how = [est.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] for _ in range(6)]
     assert [h == "window" for h in how] == [True, True, False, True, True, False]
-    # on by default (issue 38: the window fix carries its twins, so test_ambiguity.py's
-    # flipped prior on an asymmetric corridor goes to the global path); off on request
+    # off by default (issue 38: honest now, but less accurate than the global path on
+    # held-out corridors, docs/methods/corridor.md); on on request
     plain = CorridorEstimator(corridor_rig, corridor_site, HEADING)
-    assert plain.lines_track is not None and plain.options.window_search
-    assert plain.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] == "window"
+    assert plain.lines_track is None and not plain.options.window_search
+    assert plain.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] != "window"
     off = CorridorEstimator(corridor_rig, corridor_site, {**HEADING, "window_search": False})
     assert off.lines_track is None
     assert off.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] != "window"
