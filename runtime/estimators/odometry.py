@@ -272,14 +272,7 @@ class PlaneOdometry:
             ok &= (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
             if np.count_nonzero(ok) < MIN_TRACKS:
                 return None
-        cam = self.geo.camera
-        q = ceiling_points_vehicle(self.geo, cam.unproject(pts.reshape(-1, 2)[ok]))
-        p = ceiling_points_vehicle(self.geo, cam.unproject(nxt.reshape(-1, 2)[ok]))
-        good = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(p), axis=1)
-        hit = None if self.site is None else ignored_from(self.site, q, near)
-        if hit is not None:                      # SPEC §2: a region's tracks are not used
-            good &= ~hit
-        inc = plane_motion(q[good], p[good])
+        inc, good = self._fit(pts, nxt, ok, near)
         if inc is not None:
             # carried to the next step: the fit's inliers, not at the frame's edge
             idx = np.flatnonzero(ok)[np.flatnonzero(good)[inc.kept]]
@@ -288,6 +281,19 @@ class PlaneOdometry:
             self._tracks = nxt[idx[(u >= HALF_WIN) & (u < w - HALF_WIN) & (v >= HALF_WIN)
                                    & (v < h - HALF_WIN)]]
         return inc
+
+    def _fit(self, pts: np.ndarray, nxt: np.ndarray, ok: np.ndarray, near
+             ) -> tuple[Increment | None, np.ndarray]:
+        """The increment of the tracks ``pts -> nxt`` kept by ``ok``, and the mask of
+        those that met the ceiling outside the site's ignore regions."""
+        cam = self.geo.camera
+        q = ceiling_points_vehicle(self.geo, cam.unproject(pts.reshape(-1, 2)[ok]))
+        p = ceiling_points_vehicle(self.geo, cam.unproject(nxt.reshape(-1, 2)[ok]))
+        good = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(p), axis=1)
+        hit = None if self.site is None else ignored_from(self.site, q, near)
+        if hit is not None:                      # SPEC §2: a region's tracks are not used
+            good &= ~hit
+        return plane_motion(q[good], p[good]), good
 
 
 def _tracked(prev: np.ndarray, grey: np.ndarray, pts: np.ndarray

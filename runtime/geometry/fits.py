@@ -146,5 +146,24 @@ def _warm() -> None:
     median_of(np.ones(2))
 
 
-__all__ = ["fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d", "median_of",
+def covering(C: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """The least covariance that covers both ``C`` and ``D`` along every direction of
+    ``C``'s whitened frame: ``L V max(Λ, 1) Vᵀ Lᵀ``, ``C = L Lᵀ``, ``V Λ Vᵀ`` the
+    eigen-decomposition of ``L⁻¹ D L⁻ᵀ``; ``C`` itself when either is not finite or
+    ``C`` is not positive definite (never less than ``C``)."""
+    if not (np.all(np.isfinite(C)) and np.all(np.isfinite(D))):
+        return C
+    try:
+        L = np.linalg.cholesky(0.5 * (C + C.T))
+    except np.linalg.LinAlgError:
+        return C
+    Li = np.linalg.inv(L)
+    w, V = np.linalg.eigh(Li @ (0.5 * (D + D.T)) @ Li.T)
+    if w.max() <= 1.0:
+        return C
+    B = L @ V
+    return B @ np.diag(np.maximum(w, 1.0)) @ B.T
+
+
+__all__ = ["covering", "fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d", "median_of",
            "scaled_inverse3", "short_median"]

@@ -25,6 +25,7 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.rays import project_poses
+from ceilkit.runtime.geometry.fits import covering
 from ceilkit.runtime.geometry.fits import scaled_inverse3 as _scaled_inverse
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -233,25 +234,6 @@ def spot_jackknife(A: np.ndarray, Ni: np.ndarray, r: np.ndarray) -> np.ndarray:
     return d.T @ d
 
 
-def covering(C: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """The least covariance that covers both ``C`` and ``D`` along every direction of
-    ``C``'s whitened frame: ``L V max(Λ, 1) Vᵀ Lᵀ``, ``C = L Lᵀ``, ``V Λ Vᵀ`` the
-    eigen-decomposition of ``L⁻¹ D L⁻ᵀ``; ``C`` itself when either is not finite or
-    ``C`` is not positive definite (never less than ``C``)."""
-    if not (np.all(np.isfinite(C)) and np.all(np.isfinite(D))):
-        return C
-    try:
-        L = np.linalg.cholesky(0.5 * (C + C.T))
-    except np.linalg.LinAlgError:
-        return C
-    Li = np.linalg.inv(L)
-    w, V = np.linalg.eigh(Li @ (0.5 * (D + D.T)) @ Li.T)
-    if w.max() <= 1.0:
-        return C
-    B = L @ V
-    return B @ np.diag(np.maximum(w, 1.0)) @ B.T
-
-
 def _inv3(N: np.ndarray) -> np.ndarray | None:
     """The inverse of a symmetric ``(3, 3)`` matrix by cofactors, or ``None`` when it is
     singular or not finite (:func:`_scaled_inverse`)."""
@@ -376,4 +358,4 @@ def _warm() -> None:
     _inv3(np.eye(3))
 
 
-__all__ = ["covering", "refine_pose", "refine_pose_ceiling", "spot_jackknife", "with_shifts"]
+__all__ = ["refine_pose", "refine_pose_ceiling", "spot_jackknife", "with_shifts"]

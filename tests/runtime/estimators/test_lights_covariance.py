@@ -10,11 +10,11 @@ import math
 import numpy as np
 
 from ceilkit.runtime.estimators.lights.refine import (
-    covering,
     refine_pose_ceiling,
     spot_jackknife,
     with_shifts,
 )
+from ceilkit.runtime.geometry.fits import covering
 
 CENTRE = np.array([320.0, 240.0])
 LIGHTS = np.array([[0.5, 0.2], [-0.6, 0.4], [0.3, -0.7], [1.1, 0.9], [-0.8, -0.5],
