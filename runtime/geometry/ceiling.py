@@ -41,7 +41,8 @@ MIN_RZ = 1e-9
 class KernelMount(NamedTuple):
     """The rig as the compiled loops take it: ``R (3, 3)``, ``t (3,)`` the camera in
     the vehicle frame (read-only float64), the ceiling's height ``ceiling_m`` above the
-    camera's origin, and the lens ``code``, ``lens (13,)``
+    floor (z of V and W; above the camera: ``ceiling_m - t[2]``), and the lens ``code``,
+    ``lens (13,)``
     (:attr:`~ceilkit.runtime.geometry.camera.CameraModel.lens`)."""
 
     R: np.ndarray

@@ -25,11 +25,7 @@ EXEMPT: dict[str, str] = {
     "ceilkit.runtime.estimators.block.pnp._gauss_newton": _LEAD,
     "ceilkit.runtime.estimators.block.pnp._sides_at": _LEAD,
     "ceilkit.runtime.estimators.block.pnp.solve_core": _LEAD,
-    "ceilkit.runtime.estimators.block.parallels._robust": _LATER,
     "ceilkit.runtime.estimators.corridor.track._measure": _LATER,
-    "ceilkit.runtime.estimators.lights.observe.examine_core": _LATER,
-    "ceilkit.runtime.estimators.lights.track._predict": _LATER,
-    "ceilkit.runtime.estimators.lights.track._track": _LATER,
 }
 """``module.name`` -> why it may exceed the limit for now. Keep this tiny."""
 

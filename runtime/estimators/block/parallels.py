@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -53,6 +54,20 @@ class ParallelsHeading:
     sigma_rad: float
     period_rad: float
     n_lines: int
+
+
+class HeadingGate(NamedTuple):
+    """How :func:`_robust` picks and combines the lines: the reference heading ``hint``
+    (rad, in W) when ``has_hint``, the gate ``gate`` (rad) about it, the heading's
+    ``period`` (rad), the fewest lines ``min_lines`` and the sigma's floor ``floor``
+    (rad)."""
+
+    hint: float
+    has_hint: bool
+    gate: float
+    period: float
+    min_lines: int
+    floor: float
 
 
 def heading_from_parallels(p1_norm: np.ndarray, p2_norm: np.ndarray,
@@ -93,23 +108,25 @@ def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.n
     wts = (np.ones(p1.shape[0]) if weights is None
            else arr(weights, np.float64).reshape(-1))
     kept = np.zeros(p1.shape[0], np.bool_)
-    found, yaw, sigma, n = _robust(p1, p2, arr(R_vehicle_cam, np.float64),
-                                   wts, 0.0 if hint_yaw_rad is None else float(hint_yaw_rad),
-                                   hint_yaw_rad is not None, float(gate_rad),
-                                   float(period_rad), MIN_LINES, SIGMA_FLOOR_RAD, kept)
+    gate = HeadingGate(0.0 if hint_yaw_rad is None else float(hint_yaw_rad),
+                       hint_yaw_rad is not None, float(gate_rad), float(period_rad),
+                       MIN_LINES, SIGMA_FLOOR_RAD)
+    found, yaw, sigma, n = _robust(p1, p2, arr(R_vehicle_cam, np.float64), wts, gate, kept)
     if not found:
         return None, kept
     return _near_hint(ParallelsHeading(wrap_pi(yaw), sigma, period_rad, n), hint_yaw_rad), kept
 
 
 @njit
-def _robust(p1, p2, R, weights, hint, has_hint, gate, period, min_lines, floor, kept
-            ):  # pragma: no cover - compiled
+def _robust(p1, p2, R, weights, how, kept):  # pragma: no cover - compiled
     """:func:`robust_heading` in one loop: ``(found, yaw, sigma, n)`` and ``kept (N,)``
-    (the lines used) set. Each line's heading is eq. 10's ``atan2(m_x, m_y)`` (modulo
-    the period) with ``m = R l / |R l|``, ``l = (x1, y1, 1) x (x2, y2, 1)``, and its
-    weight ``|m_xy|²`` times ``weights``; the heading is their weighted circular mean
-    (:func:`_circular_mean`), its sigma their weighted spread about it (floored)."""
+    (the lines used) set, the lines picked and combined as ``how`` (a
+    :class:`HeadingGate`) says. Each line's heading is eq. 10's ``atan2(m_x, m_y)``
+    (modulo the period) with ``m = R l / |R l|``, ``l = (x1, y1, 1) x (x2, y2, 1)``, and
+    its weight ``|m_xy|²`` times ``weights``; the heading is their weighted circular
+    mean (:func:`_circular_mean`), its sigma their weighted spread about it (floored)."""
+    hint, has_hint, gate, period = how.hint, how.has_hint, how.gate, how.period
+    min_lines, floor = how.min_lines, how.floor
     n_l = p1.shape[0]
     phi = np.empty(n_l)
     w = np.empty(n_l)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -40,6 +41,7 @@ from ceilkit.runtime.estimators.lights.rays import (
 from ceilkit.runtime.features.spots import SpotParams, Spots
 from ceilkit.runtime.features.windows import detect_spots_windowed
 from ceilkit.runtime.features.working import decimated_mask, detect_spots_working
+from ceilkit.runtime.geometry.ceiling import KernelMount, PlanarGeometry, kernel_mount
 from ceilkit.runtime.jit import arr, njit, warmer
 
 JAC_STEP_PX = 8  # node spacing of the per-pixel spot table
@@ -114,6 +116,34 @@ class Observation:
                                    jac_px=self.jac_px[keep], kept=kept,
                                    weak=None if self.weak is None else self.weak[keep],
                                    axis_v=None if self.axis_v is None else self.axis_v[keep])
+
+
+class GridArrays(NamedTuple):
+    """The spot table as the compiled loops read it: a :class:`~.rays.GridTable`'s
+    ``coef`` and ``limits`` (read-only float64; :func:`~.rays.grid_row`)."""
+
+    coef: np.ndarray
+    limits: np.ndarray
+
+
+class SpotChecks(NamedTuple):
+    """The checks :func:`examine_core` applies to a spot: the light's ``radius_m``
+    (0: none), the frame's ``width`` and ``height`` (px), and :func:`uncut_spot`'s
+    ``rim_reach`` (:data:`RIM_REACH`) and ``rim_margin_px`` (:data:`RIM_MARGIN_PX`)."""
+
+    radius_m: float
+    width: int
+    height: int
+    rim_reach: float
+    rim_margin_px: float
+
+
+def kernel_rig(rig: Rig, ceiling_height_m: float) -> KernelMount:
+    """The rig and the ceiling's height (W's z, m) as the compiled loops take them
+    (:class:`~ceilkit.runtime.geometry.ceiling.KernelMount`; the mount's arrays those of
+    :func:`~.rays.mount_arrays`)."""
+    R_vc, t_vc = mount_arrays(rig.mount)
+    return kernel_mount(PlanarGeometry(rig.camera, R_vc, t_vc, float(ceiling_height_m)))
 
 
 def disc_offsets(rig: Rig, ceiling_height_m: float, light_radius_m: float,
@@ -374,12 +404,12 @@ class SpotObserver:
         self.valid_small = decimated_mask(valid_mask, factor)
         self.windowed = stage == "windowed" and factor == 1
         self.valid_half = decimated_mask(valid_mask, 2) if self.windowed else None
-        R_vc, t_vc = mount_arrays(rig.mount)
         # what the compiled examination reads (examine_core), made once
-        self._consts = (arr(self.grid.coef, np.float64), arr(self.grid.limits, np.float64),
-                        *rig.camera.lens, arr(R_vc, np.float64), arr(t_vc, np.float64),
-                        float(ceiling_height_m - rig.mount.z_m), float(light_radius_m),
-                        rig.camera.width, rig.camera.height, RIM_REACH, RIM_MARGIN_PX)
+        self.grid_arrays = GridArrays(arr(self.grid.coef, np.float64),
+                                      arr(self.grid.limits, np.float64))
+        self.mount = kernel_rig(rig, ceiling_height_m)
+        self.checks = SpotChecks(float(light_radius_m), rig.camera.width,
+                                 rig.camera.height, RIM_REACH, RIM_MARGIN_PX)
 
     def observe(self, grey: np.ndarray) -> Observation:
         """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
@@ -511,22 +541,26 @@ class SpotObserver:
             return spots, np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 8))
         q, ok, table = examine_core(
             arr(spots.centroids_px, np.float64), arr(spots.areas_px, np.float64),
-            arr(spots.cov_px, np.float64), *self._consts)
+            arr(spots.cov_px, np.float64), self.grid_arrays, self.mount, self.checks)
         return spots, q, ok, table
 
 
 @njit
-def examine_core(centroids, areas, cov, coef, limits, lens_code, lens, R, t, dz, radius,
-                 width, height, rim_reach, rim_margin):  # pragma: no cover - compiled
+def examine_core(centroids, areas, cov, grid, mount, checks):  # pragma: no cover - compiled
     """``(q (K, 2), ok (K,), table (K, C))`` of spots (centroids ``(K, 2)`` px, areas,
-    second moments ``cov (K, 2, 2)``): the spot table's row at each centroid
-    (:class:`~.rays.GridTable`, ``coef`` and ``limits``), the ceiling point in V of the
-    light's centre (the centroid minus its disc's centroid offset, the table's columns
-    8-9; :func:`~.rays.ceiling_points_core`, ``dz`` the ceiling above the camera) and
-    whether it is usable: its ray rises, the table is finite there and, for a light of
-    known ``radius`` (m; 0: no checks), its size and shape fit one
-    (:func:`plausible_spot`) and it lies well inside the frame (:func:`uncut_spot`,
-    ``rim_reach`` and ``rim_margin``: :data:`RIM_REACH`, :data:`RIM_MARGIN_PX`)."""
+    second moments ``cov (K, 2, 2)``): the spot table's row at each centroid (``grid``,
+    a :class:`GridArrays`), the ceiling point in V of the light's centre (the centroid
+    minus its disc's centroid offset, the table's columns 8-9;
+    :func:`~.rays.ceiling_points_core` through ``mount``, a
+    :class:`~ceilkit.runtime.geometry.ceiling.KernelMount`) and whether it is usable:
+    its ray rises, the table is finite there and, for a light of known radius
+    (``checks``, a :class:`SpotChecks`; radius 0: no checks), its size and shape fit
+    one (:func:`plausible_spot`) and it lies well inside the frame
+    (:func:`uncut_spot`)."""
+    coef, limits = grid.coef, grid.limits
+    radius, width, height = checks.radius_m, checks.width, checks.height
+    rim_reach, rim_margin = checks.rim_reach, checks.rim_margin_px
+    dz = mount.ceiling_m - mount.t[2]                 # the ceiling above the camera
     k = centroids.shape[0]
     table = np.empty((k, coef.shape[2]))
     centres = np.empty((k, 2))
@@ -536,7 +570,7 @@ def examine_core(centroids, areas, cov, coef, limits, lens_code, lens, R, t, dz,
             off = table[i, 8 + j]
             centres[i, j] = centroids[i, j] - (off if math.isfinite(off) else 0.0)
     q = np.empty((k, 2))
-    ok = ceiling_points_core(centres, lens_code, lens, R, t, dz, q)
+    ok = ceiling_points_core(centres, mount.code, mount.lens, mount.R, mount.t, dz, q)
     for i in range(k):
         ok[i] = ok[i] and math.isfinite(table[i, 0])
         if ok[i] and radius > 0:
@@ -725,14 +759,14 @@ def _warm() -> None:
     cam = CameraModel.pinhole(16, 16, 10.0)
     f = arr(np.zeros((1, 2)), np.float64)
     examine_core(f, arr(np.ones(1), np.float64), arr(np.zeros((1, 2, 2)), np.float64),
-                 arr(np.zeros((1, 4, 10)), np.float64), arr(np.ones(6), np.float64),
-                 *cam.lens, arr(np.eye(3), np.float64), arr(np.zeros(3), np.float64), 1.0,
-                 0.1, 16, 16, 1.6, 1.5)
+                 GridArrays(arr(np.zeros((1, 4, 10)), np.float64), arr(np.ones(6), np.float64)),
+                 kernel_mount(PlanarGeometry(cam, np.eye(3), np.zeros(3), 1.0)),
+                 SpotChecks(0.1, 16, 16, RIM_REACH, RIM_MARGIN_PX))
     locate_core(0.0, 0.0, 0.0, f, arr(np.zeros(9), np.float32), arr(np.ones(3), np.float64),
                 arr(np.ones(3), np.int64))
 
 
 __all__ = ["JAC_STEP_PX", "RIM_MARGIN_PX", "RIM_REACH", "VIEW_MARGIN_PX", "WEAK_WEIGHT",
-           "Observation", "polygon_moments", "rectangle_outline",
-           "SpotObserver", "VisibilityTable", "examine_core", "locate_core", "plausible_spot",
-           "spot_table", "uncut_spot"]
+           "GridArrays", "Observation", "SpotChecks", "kernel_rig", "polygon_moments",
+           "rectangle_outline", "SpotObserver", "VisibilityTable", "examine_core",
+           "locate_core", "plausible_spot", "spot_table", "uncut_spot"]

@@ -44,14 +44,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.observe import (
     JAC_STEP_PX,
+    GridArrays,
     SpotObserver,
     VisibilityTable,
+    kernel_rig,
     locate_core,
     plausible_spot,
 )
@@ -59,7 +62,6 @@ from ceilkit.runtime.estimators.lights.rays import (
     ceiling_points_core,
     grid_row,
     interp_grid,
-    mount_arrays,
     pixel_scale,
     project_lights,
 )
@@ -142,7 +144,22 @@ FIX, FEW_PREDICTED, WINDOW_TOO_BIG, FEW_FOUND, NO_RAY, FEW_KEPT, CHECK = range(7
 
 # the tracker's numbers, one read-only vector for the compiled call (_params)
 _P_WINDOW, _P_CONTRAST, _P_SHARE, _P_RESIDUAL, _P_MEDIANS, _P_GATE_M, _P_GATE_RAD, \
-    _P_DZ, _P_RADIUS = range(9)
+    _P_RADIUS = range(8)
+
+
+class PredictionArrays(NamedTuple):
+    """What :func:`_predict` reads to place the map's lights in the image: the map
+    ``lights (M, 2)`` in W (m), the prediction table ``cells (C, 9)``
+    (:func:`prediction_cells`), the visibility table ``padded (C,)`` float32 and its
+    ``geo`` (origin x, origin y, cell side; m) as
+    :attr:`~.observe.VisibilityTable.arrays` holds them, and ``ints`` (NI, NJ,
+    max_spots, the frame's width and height, :data:`MAX_HALF_PX`); all read-only."""
+
+    lights: np.ndarray
+    cells: np.ndarray
+    padded: np.ndarray
+    geo: np.ndarray
+    ints: np.ndarray
 
 
 class WindowTracker:
@@ -175,32 +192,31 @@ class WindowTracker:
         cam = rig.camera
         self.width, self.height = cam.width, cam.height
         # everything the compiled call reads, made once (read-only arrays)
-        params = np.zeros(9)
+        params = np.zeros(8)
         params[[_P_WINDOW, _P_CONTRAST, _P_SHARE, _P_RESIDUAL, _P_MEDIANS, _P_GATE_M,
-                _P_GATE_RAD, _P_DZ, _P_RADIUS]] = (
+                _P_GATE_RAD, _P_RADIUS]] = (
             window_px, min_contrast, min_share, max_residual_px, outlier_medians, gate_m,
-            gate_rad, ceiling_height_m - rig.mount.z_m, observer.light_radius_m)
-        R_vc, t_vc = mount_arrays(rig.mount)
+            gate_rad, observer.light_radius_m)
+        self._params = arr(params, np.float64)
         vis = visibility
-        grid = observer.grid
-        self._consts = (
+        self._seen = PredictionArrays(
+            self.lights_w,
             arr(prediction_cells(rig, ceiling_height_m, visibility, observer.table),
                 np.float64),
             arr(vis.padded, np.float32),
             arr([vis.origin_m[0], vis.origin_m[1], vis.cell_m], np.float64),
             arr([vis.table.shape[0], vis.table.shape[1], vis.max_spots, cam.width,
-                 cam.height, MAX_HALF_PX], np.int64),
-            arr(grid.coef, np.float64),
-            arr(grid.limits, np.float64),
-            *cam.lens, arr(R_vc, np.float64), arr(t_vc, np.float64), arr(params, np.float64))
-        self._cells = self._consts[0]
+                 cam.height, MAX_HALF_PX], np.int64))
+        self._grid = observer.grid_arrays
+        self._mount = kernel_rig(rig, ceiling_height_m)
+        self._cells = self._seen.cells
 
     def observe(self, grey: np.ndarray, x_m: float, y_m: float, yaw_rad: float
                 ) -> WindowFix | None:
         """The pose from the windows around the lights predicted from ``(x, y, yaw)``
         on a ``(H, W)`` uint8 frame, or ``None`` when the window check fails."""
         out = _track(arr(grey, np.uint8), float(x_m), float(y_m), float(yaw_rad),
-                     self.lights_w, *self._consts)
+                     self._seen, self._grid, self._mount, self._params)
         status, x, y, yaw, cov, res, cen, pairs, m, found, px = out
         if status != FIX:
             return None
@@ -210,10 +226,8 @@ class WindowTracker:
         """``(map indices, predicted px, predicted count, window corners, half side)``
         of the finite predictions, or ``None`` (fewer than 3, or windows too big)
         (:func:`_predict`)."""
-        c = self._consts
         status, idx, px, m, corner, half = _predict(
-            float(x_m), float(y_m), float(yaw_rad), self.lights_w, c[0], c[1], c[2], c[3],
-            c[-1][_P_WINDOW])
+            float(x_m), float(y_m), float(yaw_rad), self._seen, self._params[_P_WINDOW])
         return None if status != FIX else (idx, px, m, corner, half)
 
     def _measure(self, grey: np.ndarray, corner: np.ndarray, half: int, m: int
@@ -221,22 +235,23 @@ class WindowTracker:
         """``(rows (K, 8), good (K,), table rows (K, 10))`` of the windows at
         ``corner (K, 2)``: :func:`~ceilkit.runtime.features.windows.window_stats`'s
         rows, which pass the window check and the spot table's (:func:`_measure`)."""
-        c = self._consts
         return _measure(arr(grey, np.uint8), np.ascontiguousarray(corner, np.int64),
-                        int(half), c[4], c[5], c[-1])
+                        int(half), self._grid, self._params)
 
 
 @njit
-def _track(grey, x, y, yaw, lights, cells, vis, vis_geo, ints, coef, limits, lens_code,
-           lens, R, t, params):  # pragma: no cover - compiled
+def _track(grey, x, y, yaw, seen, grid, mount, params):  # pragma: no cover - compiled
     """The window fix from a prior ``(x, y, yaw)`` (module doc): ``(status, x, y, yaw,
     cov (3, 3), res (K,), centroids (F, 2), pairs (K, 2), predicted, found,
-    predicted_px (M, 2))``, status :data:`FIX` or why not (the rest then empty)."""
-    status, idx, px, m, corner, half = _predict(x, y, yaw, lights, cells, vis, vis_geo,
-                                                 ints, params[_P_WINDOW])
+    predicted_px (M, 2))``, status :data:`FIX` or why not (the rest then empty). The
+    lights placed by ``seen`` (a :class:`PredictionArrays`), read with the spot table
+    ``grid`` (:class:`~.observe.GridArrays`), their ceiling points through ``mount`` (a
+    :class:`~ceilkit.runtime.geometry.ceiling.KernelMount`)."""
+    lights = seen.lights
+    status, idx, px, m, corner, half = _predict(x, y, yaw, seen, params[_P_WINDOW])
     if status != FIX:
         return _refused(status, px, m)
-    rows, good, tab = _measure(grey, corner, half, coef, limits, params)
+    rows, good, tab = _measure(grey, corner, half, grid, params)
     n_found = 0
     for i in range(good.size):
         n_found += good[i]
@@ -262,7 +277,9 @@ def _track(grey, x, y, yaw, lights, cells, vis, vis_geo, ints, coef, limits, len
         pairs[f, 0], pairs[f, 1] = f, idx[i]
         f += 1
     q = np.empty((n_found, 2))
-    if not ceiling_points_core(centres, lens_code, lens, R, t, params[_P_DZ], q).all():
+    dz = mount.ceiling_m - mount.t[2]                 # the ceiling above the camera
+    if not ceiling_points_core(centres, mount.code, mount.lens, mount.R, mount.t, dz,
+                               q).all():
         return _refused(NO_RAY, px, m)
     status, fx, fy, fyaw, cov, res, keep = _fit(q, jac, L, x, y, yaw, params)
     if status != FIX:
@@ -277,18 +294,19 @@ def _refused(status, px, m):  # pragma: no cover - compiled
 
 
 @njit
-def _predict(x, y, yaw, lights, cells, vis, vis_geo, ints, window_px
-             ):  # pragma: no cover - compiled
+def _predict(x, y, yaw, seen, window_px):  # pragma: no cover - compiled
     """``(status, map indices (K,), predicted px (K, 2), predicted count, window corners
-    (K, 2), half side)`` of the lights the visibility table reports from ``(x, y,
-    yaw)`` (:meth:`~.observe.VisibilityTable.locate`: the ``max_spots`` nearest the
-    nadir, ties in map order), placed by the prediction table
+    (K, 2), half side)`` of the lights (``seen``, a :class:`PredictionArrays`) the
+    visibility table reports from ``(x, y, yaw)``
+    (:meth:`~.observe.VisibilityTable.locate`: the ``max_spots`` nearest the nadir, ties
+    in map order), placed by the prediction table
     (:func:`prediction_cells`: the cell centre's pixel plus its Jacobian times the
     light's offset from the centre) and kept where that is finite. Status
     :data:`FEW_PREDICTED` below 3, :data:`WINDOW_TOO_BIG` when the windows (sized by
     the largest predicted spot) would not fit the frame."""
+    lights, cells, ints = seen.lights, seen.cells, seen.ints
     w, h, max_half = ints[3], ints[4], ints[5]
-    ok, cell, zr, zi = locate_core(x, y, yaw, lights, vis, vis_geo, ints)
+    ok, cell, zr, zi = locate_core(x, y, yaw, lights, seen.padded, seen.geo, ints)
     n = lights.shape[0]
     seen = 0
     for k in range(n):
@@ -334,14 +352,15 @@ def _predict(x, y, yaw, lights, cells, vis, vis_geo, ints, window_px
 
 
 @njit
-def _measure(grey, corner, half, coef, limits, params):  # pragma: no cover - compiled
+def _measure(grey, corner, half, grid, params):  # pragma: no cover - compiled
     """``(rows (K, 8), good (K,), table (K, 10))`` of the windows at ``corner``:
     :func:`~ceilkit.runtime.features.windows.window_stats`' rows ``(u, v, I_o, I_b,
     c00, c01, c11, area)``; ``good`` where the window check passes (a spot clear of
     the window's border, contrast ``>= min_contrast``), the spot table is finite at the
     centroid and (a light of known radius) its size and shape fit
     (:func:`~.observe.plausible_spot`); the spot table's row at each good
-    centroid (:class:`~.rays.GridTable`; NaN elsewhere)."""
+    centroid (``grid``, a :class:`~.observe.GridArrays`; NaN elsewhere)."""
+    coef, limits = grid.coef, grid.limits
     k = corner.shape[0]
     side = 2 * half + 1
     rect = np.empty((k, 4), np.int64)
@@ -425,17 +444,19 @@ def _median(x):  # pragma: no cover - compiled
 @warmer
 def _warm() -> None:
     from ceilkit.runtime.geometry.camera import CameraModel
+    from ceilkit.runtime.geometry.ceiling import PlanarGeometry, kernel_mount
 
     cam = CameraModel.pinhole(16, 16, 10.0)
     grey = arr(np.zeros((16, 16), np.uint8), np.uint8)
-    f = arr(np.zeros((1, 2)), np.float64)
-    _track(grey, 0.0, 0.0, 0.0, f, arr(np.zeros((1, 9)), np.float64),
-           arr(np.zeros(1), np.float32), arr(np.zeros(3), np.float64),
-           arr(np.ones(6), np.int64), arr(np.zeros((1, 4, 10)), np.float64),
-           arr(np.ones(6), np.float64), *cam.lens, arr(np.eye(3), np.float64),
-           arr(np.zeros(3), np.float64), arr(np.zeros(9), np.float64))
-    _measure(grey, np.zeros((1, 2), np.int64), 1, arr(np.zeros((1, 4, 10)), np.float64),
-             arr(np.ones(6), np.float64), arr(np.zeros(9), np.float64))
+    seen = PredictionArrays(arr(np.zeros((1, 2)), np.float64),
+                            arr(np.zeros((1, 9)), np.float64), arr(np.zeros(1), np.float32),
+                            arr(np.zeros(3), np.float64), arr(np.ones(6), np.int64))
+    grid = GridArrays(arr(np.zeros((1, 4, 10)), np.float64), arr(np.ones(6), np.float64))
+    params = arr(np.zeros(8), np.float64)
+    _track(grey, 0.0, 0.0, 0.0, seen, grid,
+           kernel_mount(PlanarGeometry(cam, np.eye(3), np.zeros(3), 0.0)), params)
+    _measure(grey, np.zeros((1, 2), np.int64), 1, grid, params)
 
 
-__all__ = ["MAX_HALF_PX", "TRACK_CORE", "WindowFix", "WindowTracker", "prediction_cells"]
+__all__ = ["MAX_HALF_PX", "TRACK_CORE", "PredictionArrays", "WindowFix", "WindowTracker",
+           "prediction_cells"]

@@ -63,7 +63,8 @@ def test_examination_equals_the_array_reading(radius_m):
             spots = _spots(observer, rng, 40)
             q, ok, table = examine_core(arr(spots.centroids_px, np.float64),
                                         arr(spots.areas_px, np.float64),
-                                        arr(spots.cov_px, np.float64), *observer._consts)
+                                        arr(spots.cov_px, np.float64), observer.grid_arrays,
+                                        observer.mount, observer.checks)
             q_ref, ok_ref, table_ref = ref.examine(observer, spots)
             np.testing.assert_array_equal(ok, ok_ref)
             np.testing.assert_allclose(table, table_ref, rtol=1e-12, atol=1e-12)
