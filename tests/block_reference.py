@@ -143,5 +143,6 @@ def side_offset_cov(r, J, side, A):
     m = sums[on, 0] / n
     within = np.maximum(sums[on, 1] - n * m * m, 0.0) / np.maximum(n - 1.0, 1.0)
     g = sums[on, 2:]
-    var_b = max(float(m @ m) - float((within / n).sum()) * (K - 2) / K, 0.0) / (K - 2)
+    c, dof = (float(r.mean()), 1) if K == 4 else (0.0, K - 2)   # four sides: less their mean
+    var_b = max(float((m - c) @ (m - c)) - float((within / n).sum()) * dof / K, 0.0) / dof
     return var_b, A @ (g.T @ g) @ A

@@ -543,6 +543,19 @@ def step_contrast(grey: np.ndarray, corners_px: np.ndarray) -> float:
 @njit
 def contrast_core(grey, corners):  # pragma: no cover - compiled
     """:func:`step_contrast` (samples bilinear in float, the frame's edge replicated)."""
+    inside, outside = rim_samples(grey, corners)
+    inside.sort()
+    outside.sort()
+    a, b = 0.5 * (inside[5] + inside[6]), 0.5 * (outside[5] + outside[6])
+    return a / b if b > 0 else np.nan
+
+
+@njit
+def rim_samples(grey, corners):  # pragma: no cover - compiled
+    """``(inside (12,), outside (12,))``: the grey just inside and just outside a quad
+    ``(4, 2)`` px, :data:`CONTRAST_INSET` of the way from three points of every side
+    (:data:`CONTRAST_T`) towards and away from its centre (bilinear in float, the
+    frame's edge replicated)."""
     h, w = grey.shape
     cx = 0.25 * (corners[0, 0] + corners[1, 0] + corners[2, 0] + corners[3, 0])
     cy = 0.25 * (corners[0, 1] + corners[1, 1] + corners[2, 1] + corners[3, 1])
@@ -556,10 +569,7 @@ def contrast_core(grey, corners):  # pragma: no cover - compiled
             sx, sy = CONTRAST_INSET * (cx - ox), CONTRAST_INSET * (cy - oy)
             inside[3 * k + j] = bilinear(grey, ox + sx, oy + sy, w, h)
             outside[3 * k + j] = bilinear(grey, ox - sx, oy - sy, w, h)
-    inside.sort()
-    outside.sort()
-    a, b = 0.5 * (inside[5] + inside[6]), 0.5 * (outside[5] + outside[6])
-    return a / b if b > 0 else np.nan
+    return inside, outside
 
 
 @warmer

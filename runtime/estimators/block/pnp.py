@@ -12,7 +12,8 @@ height, only the vehicle's planar pose is unknown (SPEC §1):
 2. Gauss-Newton in pixels: the block's sides, projected for the pose, against points
    measured on the sides' edges; each point's residual is its distance to the projected
    side in normalized coordinates times the lens's local magnification (px). The
-   covariance is ``s² (JᵀJ)⁻¹``, s the residual RMS (floored).
+   covariance is the residuals' parts propagated (:func:`residual_parts`: the sides'
+   common offset, per-side offsets, white noise).
 
 :func:`six_dof_check` solves the unconstrained 6-DoF PnP (OpenCV's IPPE) and reports how
 far its camera lies from what the rig says (tilt, swing, height): a live check of the
@@ -58,9 +59,10 @@ GN_LINEAR_EPS = 1e-4        # a step (m, rad) below this ends the fit: the close
 JAC_EPS = 1e-6              # finite-difference step, m and rad
 _JAC_STEPS = np.vstack([np.zeros(3), np.eye(3) * JAC_EPS])   # the pose and its steps
 _JAC_STEPS.flags.writeable = False
-SIGMA_FLOOR_PX = 0.02       # the residual RMS used for the covariance is at least this
-                            # (a guard: the residuals and the side offsets set it; 0.05
-                            # over-covered a marker drive's error 3x in variance)
+SIGMA_FLOOR_PX = 0.02       # the white noise's RMS in the covariance is at least this
+                            # (a guard: the residuals set it, 0.029 px on configs/block's
+                            # markers at noise 2; 0.05 over-covered a marker drive's
+                            # error 3x in variance)
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
 
 
@@ -173,15 +175,13 @@ def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np
         pose = np.array(pose0, float)
         r, J, JtJ = _gauss_newton_numpy(geo, pose, cw, en, sd, sc)
     rms = float(np.sqrt(np.mean(r * r)))
-    dof = max(r.size - 3, 1)
-    s2 = max(float(r @ r) / dof, SIGMA_FLOOR_PX ** 2)
     try:
         A = np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:
         pose[2] = wrap_pi(pose[2])
         return PlanarFit(pose, np.full((3, 3), np.inf), rms, int(r.size))
-    var_b, unit = side_offset_cov(r, J, side, A)
-    cov = s2 * A if unit is None else s2 * A + var_b * unit
+    s2, var_b, unit, common = residual_parts(r, J, side, A)
+    cov = s2 * A + common + (var_b * unit if unit is not None else 0.0)
     pose[2] = wrap_pi(pose[2])
     return PlanarFit(pose, cov, rms, int(r.size), var_b, unit)
 
@@ -315,26 +315,44 @@ def _solve3(A, b, x):  # pragma: no cover - compiled
 
 def side_offset_cov(r: np.ndarray, J: np.ndarray, side: np.ndarray, A: np.ndarray
                     ) -> tuple[float, np.ndarray | None]:
-    """``(σ_b², U)``: the variance of an offset shared by every point of a side, px²,
-    and the pose covariance ``(3, 3)`` per px² of it (the term is ``σ_b² U``).
+    """``(σ_b², U)`` of :func:`residual_parts`: the variance of an offset of a whole
+    side, px², and the pose covariance ``(3, 3)`` per px² of it (None under 3 sides)."""
+    _, var_b, unit, _ = residual_parts(r, J, side, A)
+    return var_b, unit
 
-    The fit's ``s² (JᵀJ)⁻¹`` counts each edge point's error as independent; an error
-    that moves a whole side (a seam flush with a hatch's edge, narrower than the blur,
-    pulls the half-way crossing of every station the same way: on configs/block's
-    bright tile B, whose edge lies on a seam, 1.2-1.4 mm of x error against a 0.28 mm
-    sigma) averages out over none of them. The block's known size measures it: the
-    pose absorbs a common shift of opposite sides, not a difference, so the sides'
-    mean residuals ``r̄_k`` after the fit keep ``K - 2`` degrees of freedom of those
-    offsets (K sides). With ``σ_b² = max(Σ_k r̄_k² - (K - 2) / K Σ_k s_k² / n_k, 0) /
-    (K - 2)`` (``s_k`` the scatter within side k: white noise's share of the means)
-    and ``g_k = Σ_{i in k} J_i``, the least-squares pose's covariance from independent
-    side offsets of variance ``σ_b²`` is ``σ_b² A (Σ_k g_k g_kᵀ) A`` with
-    ``A = (JᵀJ)⁻¹``. ``(0, None)`` for fewer than three sides (no size check). One
-    compiled loop (:func:`_side_offsets`)."""
-    unit = np.empty((3, 3))
-    var_b, has_unit = _side_offsets(arr(r, np.float64), arr(J, np.float64),
-                                    arr(side, np.int64), arr(A, np.float64), unit)
-    return var_b, unit if has_unit else None
+
+def residual_parts(r: np.ndarray, J: np.ndarray, side: np.ndarray, A: np.ndarray
+                   ) -> tuple[float, float, np.ndarray | None, np.ndarray]:
+    """``(s², σ_b², U, C_c)``: the fit's residuals ``r (M,)`` (px, Jacobian ``J (M, 3)``,
+    ``A = (JᵀJ)⁻¹``) split by what moves the pose; the covariance is
+    ``s² A + σ_b² U + C_c``.
+
+    * **The common offset** of the four sides (the block seen larger or smaller: blur
+      rounding a small marker's corners, a hatch's edges on tile seams): the pose does
+      not absorb it (a shift moves opposite sides apart by nothing) and it barely moves
+      the pose, yet it stays in every residual. With four sides it is a fourth
+      parameter: ``c`` the mean residual, taken out of the residuals, and its own
+      effect on the pose, ``C_c = c² A g gᵀ A`` (``g = Σ_i J_i``), added. (Counted as
+      white noise and as side offsets, it made a hatch on seams 20-100x too wide in
+      variance and small markers 2.5x; issue 36.)
+    * **Side offsets** (an error that moves one side's every point: a seam flush with
+      an edge, narrower than the blur): the pose absorbs a common shift of opposite
+      sides, not a difference, so the sides' mean residuals ``r̄_k`` (less ``c``) keep
+      ``K - 3`` degrees of freedom of those offsets on four sides, ``K - 2`` on three
+      (where ``c`` and the lone side's shift are one). ``σ_b² = max(Σ_k r̄_k² - d / K
+      Σ_k s_k² / n_k, 0) / d`` (``d`` those degrees, ``s_k`` the scatter within side
+      k: white noise's share of the means) and ``U = A (Σ_k g_k g_kᵀ) A`` with
+      ``g_k = Σ_{i in k} J_i``. ``(0, None)`` under three sides (no size check).
+    * **White noise**: the rest, ``s²`` its sum of squares over its ``nu = M - 3``
+      degrees of freedom (``M - 4`` with ``c``), at least :data:`SIGMA_FLOOR_PX`, times
+      :func:`student` of ``nu``.
+
+    One compiled loop (:func:`_side_offsets`)."""
+    unit, common = np.empty((3, 3)), np.empty((3, 3))
+    s2, var_b, has_unit = _side_offsets(arr(r, np.float64), arr(J, np.float64),
+                                        arr(side, np.int64), arr(A, np.float64), unit,
+                                        common)
+    return s2, var_b, unit if has_unit else None, common
 
 
 SOLVED, NO_CLOSED_FORM, SINGULAR = 0, 1, 2     # solve_core's outcomes
@@ -423,49 +441,79 @@ def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, 
     for i in range(m):
         ssr += r[i] * r[i]
     rms = math.sqrt(ssr / m)
-    s2 = max(ssr / max(m - 3, 1), SIGMA_FLOOR_PX * SIGMA_FLOOR_PX)
     out[0], out[1] = pose[0], pose[1]
     out[2] = (pose[2] + math.pi) % (2.0 * math.pi) - math.pi
     A = np.empty((3, 3))
     if not scaled_inverse3(JtJ, 1.0, A):
         cov[:] = np.inf
         return SOLVED, m, rms, 0.0, False
-    var_b, has_unit = _side_offsets(r, J, sd, A, unit)
+    common = np.empty((3, 3))
+    s2, var_b, has_unit = _side_offsets(r, J, sd, A, unit, common)
     for a in range(3):
         for b in range(3):
-            cov[a, b] = s2 * A[a, b] + (var_b * unit[a, b] if has_unit else 0.0)
+            cov[a, b] = (s2 * A[a, b] + common[a, b]
+                         + (var_b * unit[a, b] if has_unit else 0.0))
     return SOLVED, m, rms, var_b, has_unit
 
 
 @njit
-def _side_offsets(r, J, side, A, unit):  # pragma: no cover - compiled
-    """:func:`side_offset_cov` in a loop: ``(σ_b², has unit)``, ``U`` into ``unit``."""
+def student(nu):  # pragma: no cover - compiled
+    """``nu / (nu - 2)``, at most 3 (``nu`` at most 3): the variance of a unit Student-t
+    error of ``nu`` degrees of freedom, the factor on a variance estimated from ``nu``
+    values (as the corridor's ``refine.student``)."""
+    return nu / (nu - 2.0) if nu > 3.0 else 3.0
+
+
+@njit
+def _side_offsets(r, J, side, A, unit, common):  # pragma: no cover - compiled
+    """:func:`residual_parts` in a loop: ``(s², σ_b², has unit)``, ``U`` into ``unit``,
+    the common offset's term into ``common``."""
     sums = np.zeros((4, 6))                    # n, Σr, Σr², ΣJ (3) per side
+    ssr = 0.0
     for i in range(side.size):
         k = side[i]
         sums[k, 0] += 1.0
         sums[k, 1] += r[i]
         sums[k, 2] += r[i] * r[i]
+        ssr += r[i] * r[i]
         for c in range(3):
             sums[k, 3 + c] += J[i, c]
+    common[:] = 0.0
+    m_all = float(side.size)
     K = 0
     for k in range(4):
         K += sums[k, 0] > 0
+    four = K == 4
+    c0 = 0.0
+    if four:                                   # the sides' common offset: a 4th parameter
+        c0 = (sums[0, 1] + sums[1, 1] + sums[2, 1] + sums[3, 1]) / m_all
+        ssr = max(ssr - m_all * c0 * c0, 0.0)
+        Ag = np.zeros(3)                       # A g, g = Σ_i J_i
+        for a in range(3):
+            for b in range(3):
+                Ag[a] += A[a, b] * (sums[0, 3 + b] + sums[1, 3 + b] + sums[2, 3 + b]
+                                    + sums[3, 3 + b])
+        for a in range(3):
+            for b in range(3):
+                common[a, b] = c0 * c0 * Ag[a] * Ag[b]
+    nu = max(m_all - (4.0 if four else 3.0), 1.0)
+    s2 = max(ssr / nu, SIGMA_FLOOR_PX * SIGMA_FLOOR_PX) * student(nu)
     if K < 3:
-        return 0.0, False
+        return s2, 0.0, False
     mm = noise = 0.0
     G = np.zeros((3, 3))
     for k in range(4):
         n = sums[k, 0]
         if n == 0:
             continue
-        m = sums[k, 1] / n
+        m = sums[k, 1] / n - c0
         mm += m * m
-        noise += max(sums[k, 2] - n * m * m, 0.0) / max(n - 1.0, 1.0) / n
+        noise += max(sums[k, 2] - n * (m + c0) * (m + c0), 0.0) / max(n - 1.0, 1.0) / n
         for a in range(3):
             for b in range(3):
                 G[a, b] += sums[k, 3 + a] * sums[k, 3 + b]
-    var_b = max(mm - noise * (K - 2) / K, 0.0) / (K - 2)
+    dof = K - 3 if four else K - 2
+    var_b = max(mm - noise * dof / K, 0.0) / dof
     for a in range(3):                         # U = A G A
         for b in range(3):
             acc = 0.0
@@ -473,7 +521,7 @@ def _side_offsets(r, J, side, A, unit):  # pragma: no cover - compiled
                 for j in range(3):
                     acc += A[a, i] * G[i, j] * A[j, b]
             unit[a, b] = acc
-    return var_b, True
+    return s2, var_b, True
 
 
 @functools.lru_cache(maxsize=8)

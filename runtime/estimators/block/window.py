@@ -26,14 +26,13 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import (
-    CONTRAST_INSET,
-    CONTRAST_T,
     Sides,
     SidesOut,
     contrast_core,
     edge_search,
     measure_core,
     read_marker,
+    rim_samples,
     side_lengths_m,
 )
 from ceilkit.runtime.estimators.block.pnp import (
@@ -301,19 +300,9 @@ def fill_core(grey, corners, n, dark):  # pragma: no cover - compiled
     """The share of ``n x n`` samples inside the quad ``corners (4, 2)`` px (bilinear in
     its corners, from 0.08 to 0.92 of the way across) that read as the outside: above
     (``dark``; else below) half way between their median and the median just outside
-    the quad (:func:`.detect.contrast_core`'s 12 outside samples)."""
+    the quad (:func:`.detect.rim_samples`' 12 outside samples)."""
+    outside = rim_samples(grey, corners)[1]
     h, w = grey.shape
-    cx = 0.25 * (corners[0, 0] + corners[1, 0] + corners[2, 0] + corners[3, 0])
-    cy = 0.25 * (corners[0, 1] + corners[1, 1] + corners[2, 1] + corners[3, 1])
-    outside = np.empty(12)
-    for k in range(4):
-        m = (k + 1) % 4
-        for j in range(3):
-            f = CONTRAST_T[j]
-            ox = corners[k, 0] + f * (corners[m, 0] - corners[k, 0])
-            oy = corners[k, 1] + f * (corners[m, 1] - corners[k, 1])
-            outside[3 * k + j] = bilinear(grey, ox - CONTRAST_INSET * (cx - ox),
-                                          oy - CONTRAST_INSET * (cy - oy), w, h)
     vals = np.empty(n * n)
     for i in range(n):
         a = 0.08 + 0.84 * (i + 0.5) / n
