@@ -30,7 +30,8 @@ is in view. Per run: frames, valid, wrong, median position error, mean NEES and 
 95% band (``bench_ambiguity.score``). Saved to ``benchmarks/out/bench_heldout_lines.csv``.
 
     .venv/bin/python benchmarks/bench_heldout_lines.py [--scenes 3] [--frames 60]
-        [--seed 36] [--only corridor tiles markers] [--methods corridor auto] [--keep DIR]
+        [--seed 36] [--only corridor tiles markers] [--runs TAG ...] [--keep DIR]
+        [--option KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -58,10 +59,11 @@ from ceilkit.runtime.config.site import (
     Site,
 )
 from ceilkit.runtime.geometry.camera import CameraModel
+from ceilkit.runtime.replay import replay
 from ceilkit.runtime.sim.render import SimOptions, Trajectory, straight_drive
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_ambiguity import kidnap, run  # noqa: E402
+from bench_ambiguity import Published, kidnap, score  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
 SIM = SimOptions(noise_sigma=2.0, blur_px=0.8, supersample=1)
@@ -218,6 +220,16 @@ def tiles_scene(rng: np.random.Generator, n: int, k: int, markers: bool = False)
                  tr, kidnap(tr, other, n // 2), twin, tname, methods)
 
 
+def run(folder: Path, tag: str, method: str, start, options: dict[str, str]
+        ) -> dict[str, float]:
+    """``bench_ambiguity.run`` with the estimator's ``options`` (``--option``)."""
+    out = folder.parent / f"{folder.name}-{tag}"
+    published = Published()
+    replay(folder, out, method=method, start_pose=start, sinks=[published],
+           options=options or None)
+    return score(folder, out, published.poses)
+
+
 def runs_for(sc: Scene) -> list[tuple[str, str, tuple | None, bool]]:
     """``(tag, method, start, kidnapped)`` of every run of a scene."""
     x, y, yaw = sc.traj.pose(0)
@@ -252,9 +264,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=36)
     ap.add_argument("--only", nargs="*", help="classes: corridor tiles markers")
     ap.add_argument("--runs", nargs="*", help="only runs whose tag contains one of these")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="an estimator option of every run (repeatable), e.g. "
+                         "window_search=true")
     ap.add_argument("--keep", type=Path, help="write the recordings and runs here (kept)")
     ap.add_argument("--out", type=Path, default=OUT / "bench_heldout_lines.csv")
     a = ap.parse_args(argv)
+    options = dict(o.split("=", 1) for o in a.option)
     rows = []
     with tempfile.TemporaryDirectory() as d:
         tmp = a.keep or Path(d)
@@ -270,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
                                                   sc.kidnapped if kid else sc.traj,
                                                   tmp / name, SIM, seed=a.seed)
                 t0 = time.perf_counter()
-                res = run(rec[kid], tag, method, start)
+                res = run(rec[kid], tag, method, start, options)
                 res["s"] = time.perf_counter() - t0
                 rows.append({"scene": sc.name, "run": tag, **res})
                 nees = (f"NEES {res['nees']:.2f} [{res['nees_lo']:.2f}, {res['nees_hi']:.2f}]"

@@ -478,25 +478,32 @@ def _ends_and_fit(xy, good, f_px):  # pragma: no cover - compiled
 
 def refine_chords(camera: CameraModel, gray: np.ndarray, segs_px: np.ndarray,
                   half_width_px: float = 4.0, n_along: int = 8, min_step: float = 20.0,
-                  min_depth: float = 8.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  min_depth: float = 8.0, local_share: float = 0.0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`refine_undistorted` of short chords predicted near their edges (no wider
     retry), in one compiled call (:func:`refine_chords_core`): the same stages, with the
     profiles sampled bilinear in float (the frame's edge replicated; not OpenCV's
     remap, rounded to grey levels) and the lens inverted exactly
-    (:func:`~ceilkit.runtime.geometry.camera.undistort_points`). Returns
-    ``(segs_n, polarity, rms_px)`` as :func:`refine_undistorted`."""
+    (:func:`~ceilkit.runtime.geometry.camera.undistort_points`). ``local_share`` > 0:
+    a place along a chord is used only where its own profile is of the chord's kind
+    at that share of ``min_step`` / ``min_depth`` (:func:`_local_kind`; 0: every
+    place, as :func:`refine_undistorted`). Returns ``(segs_n, polarity, rms_px)`` as
+    :func:`refine_undistorted`."""
     s = arr(segs_px, np.float64).reshape(-1, 4)
     kind = ProfileKind(float(min_step), float(min_depth), PROFILE_STEP_PX)
     return refine_chords_core(arr(gray, np.uint8), s, _grid(n_along, half_width_px), kind,
-                        *camera.lens, 0.5 * (camera.fx + camera.fy))
+                              *camera.lens, 0.5 * (camera.fx + camera.fy),
+                              float(local_share))
 
 
 @njit
-def refine_chords_core(grey, chords, grid, kind, lens_code, lens, f_px):  # pragma: no cover
+def refine_chords_core(grey, chords, grid, kind, lens_code, lens, f_px, local_share
+                       ):  # pragma: no cover - compiled
     """:func:`refine_chords`: ``(segs_n (N, 4), polarity (N,), rms (N,))``, the profiles
     read on ``grid`` (a :class:`ProfileGrid`) as ``kind`` (a :class:`ProfileKind`) says,
     through the lens ``lens_code, lens``; ``f_px``: the focal length the residuals are
-    scaled by."""
+    scaled by; ``local_share`` > 0: only the places whose own profile is of the chord's
+    kind (:func:`_local_kind`)."""
     offs, t = grid.offs, grid.t
     n = chords.shape[0]
     n_a, n_o = t.size, offs.size
@@ -524,11 +531,62 @@ def refine_chords_core(grey, chords, grid, kind, lens_code, lens, f_px):  # prag
                 else:
                     prof[r, a, o] = bilinear(grey, su, sv, w, hh)
     pol, pts, good = _kind_and_points(prof, chords, d, nrm, grid, kind)
-    px = _stack_points(chords, pts, good)
+    ends_px = chords
+    if local_share > 0.0:
+        _local_kind(prof, pol, grid, ProfileKind(local_share * kind.min_step,
+                                                 local_share * kind.min_depth, kind.step_px),
+                    good)
+        ends_px = _located_extent(chords, d, t, good)
+    px = _stack_points(ends_px, pts, good)
     xy = np.empty_like(px)
     undistort_points(px, lens_code, lens, xy)
     ends, rms = _ends_and_fit(xy, good, f_px)
     return ends, pol, rms
+
+
+@njit
+def _local_kind(prof, pol, grid, kind, good):  # pragma: no cover - compiled
+    """Unmark in ``good (N, A)`` the places whose own profile ``prof[r, a]``, or a
+    neighbouring place's (``a - 1``, ``a + 1`` on the segment), is not of segment
+    ``r``'s kind ``pol[r]`` (:func:`~.edges.classify` of that one profile, as ``kind``,
+    a :class:`ProfileKind`, says). A chord predicted along an interrupted edge (a lamp
+    row's long edge, lamps and gaps) keeps the kind of its mean profile where only
+    part of it lies on the edge: a place in a gap would locate the noise's largest
+    gradient anywhere across the profile, one beside a lamp's end the end's blur."""
+    n, n_a, _ = prof.shape
+    for r in range(n):
+        if not math.isfinite(pol[r]):
+            continue
+        local, _ = classify_rows(prof[r], grid.offs, grid.il, grid.ir, grid.ii,
+                                 kind.min_step, kind.min_depth, kind.step_px)
+        on = np.empty(n_a, np.bool_)
+        for a in range(n_a):
+            on[a] = local[a] == pol[r]
+        for a in range(n_a):
+            good[r, a] = (good[r, a] and on[a] and (a == 0 or on[a - 1])
+                          and (a == n_a - 1 or on[a + 1]))
+
+
+@njit
+def _located_extent(chords, d, t, good):  # pragma: no cover - compiled
+    """``(N, 4)`` px: each chord cut to its first and last located place (``good (N,
+    A)`` at ``t (A,)`` along ``d (N, 2)``), the chord itself where none is: a chord
+    measured over part of its length says nothing of the rest, and its endpoints,
+    projected on the fitted line, should not extrapolate it."""
+    out = chords.copy()
+    n, n_a = good.shape
+    for r in range(n):
+        a0, a1 = -1, -1
+        for a in range(n_a):
+            if good[r, a]:
+                a1 = a
+                if a0 < 0:
+                    a0 = a
+        if a0 >= 0 and a1 > a0:
+            for e, a in ((0, a0), (1, a1)):
+                out[r, 2 * e] = chords[r, 0] + t[a] * d[r, 0]
+                out[r, 2 * e + 1] = chords[r, 1] + t[a] * d[r, 1]
+    return out
 
 
 @njit

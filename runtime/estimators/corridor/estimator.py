@@ -79,6 +79,7 @@ from ceilkit.runtime.estimators.corridor.setup import (
     mirror_line,
 )
 from ceilkit.runtime.estimators.corridor.track import (
+    MAX_CHORD_RMS_PX,
     LineTracker,
     window_twins,
     without_ignored,
@@ -372,8 +373,8 @@ class CorridorEstimator(Estimator):
     def _window_fit(self, grey: np.ndarray, psi: float, cy: float, prior: PoseEstimate):
         """``(measurement, frame lines, labeling, GN inputs, fit)`` of the edge searches
         across the lines predicted for camera pan ``psi`` and camera y ``cy``
-        (:mod:`~.track`), or ``None``: not found, a poor fit, or a fit beyond the
-        searches' reach of where they looked."""
+        (:mod:`~.track`), or ``None``: not found, a poor fit (rms beyond what a chord
+        meets, docs/methods/corridor.md), or a fit beyond the searches' reach."""
         o, st = self.options, self.setup
         m = without_ignored(self.lines_track.measure(grey, psi, cy), self._ignore, prior)
         if m is None:
@@ -387,7 +388,7 @@ class CorridorEstimator(Estimator):
         gd = gn_inputs(fr, along, across, m.line, st, self._segment_times(fr, rates))
         fit = self._solve(gd, psi, cy, rates)
         reach_psi, reach_cy = self.lines_track.reach()
-        if (fit.rms_px > o.inlier_px
+        if (fit.rms_px > min(o.inlier_px, MAX_CHORD_RMS_PX)
                 or abs(math.remainder(fit.psi_rad - psi, 2 * math.pi)) > reach_psi
                 or abs(fit.camera_y_m - cy) > reach_cy):
             return None

@@ -9,8 +9,10 @@ edge-profile measurement (:func:`~ceilkit.runtime.features.lines.refine_undistor
 kind, sub-pixel location, a line fitted in undistorted coordinates), within
 ``search_px`` of the prediction. No full-frame line detector runs.
 
-A chord counts when its edge is of the kind the site says (a lamp's long edge is a
-step, a seam a thin line) and fits well (its points' scatter within
+Only the places whose own profile shows the edge, away from a lamp's end, are used
+(:data:`LOCAL_SHARE`: a lamp row's edge is broken by its gaps). A chord counts when its
+edge is of the kind the site says (a lamp's long edge is a step, a seam a thin line)
+and fits well (its points' scatter within
 :data:`MAX_CHORD_RMS_PX` and :data:`CHORD_RMS_MEDIANS` times the frame's median);
 the association is known (a chord is its line's), so the located chords go straight
 to the joint Gauss-Newton on ``(psi, c_y)`` (:func:`~.refine.gauss_newton`, started
@@ -55,12 +57,26 @@ MIN_CHORD_PX = 20.0
 SAMPLES = 121
 """Samples along each site line (W's x, over ``±REACH_M`` of the camera)."""
 
-N_ALONG = 8
-"""Cross profiles per chord (as :func:`~ceilkit.runtime.features.lines.refine_undistorted`)."""
+N_ALONG = 16
+"""Cross profiles per chord (every 3 px of a 48 px chord; twice
+:func:`~ceilkit.runtime.features.lines.refine_undistorted`'s 8): the places beside a
+lamp's end are left out (:data:`LOCAL_SHARE`), and a chord over lamp ends keeps enough
+on the lamps (corridor0 of bench_heldout_lines: 692 chords kept over 60 frames, 280
+with 8 places)."""
 
 MIN_STEP, MIN_DEPTH = 20.0, 8.0
 """A chord's edge kind: the least step and thin-line depth (grey levels; as
 :func:`~ceilkit.runtime.features.lines.refine_undistorted`'s defaults)."""
+
+LOCAL_SHARE = 0.5
+"""A place along a chord is located only where its own profile, and its neighbours',
+are of the chord's kind at this share of :data:`MIN_STEP` / :data:`MIN_DEPTH`
+(:func:`~ceilkit.runtime.features.lines.refine_chords`' ``local_share``), and the chord
+ends at its first and last such place. A chord over a lamp row's long edge covers lamp
+ends and gaps: its places in a gap located the noise, those beside a lamp's end its
+blur (bench_heldout_lines' corridor0, chords about the true pose: their middles 0.49 px
+rms off their line before, 0.028 px now, the global path's segments 0.021; issue 38,
+docs/methods/corridor.md)."""
 
 PROBE_CHORDS = 2
 """Chords of a line a twin puts where the window fix searched none that are looked at
@@ -195,7 +211,7 @@ class LineTracker:
         grid = ProfileGrid(c[4], c[5], c[6], c[7], c[8], np.int64(p[8]), np.int64(p[9]))
         _, pol, rms = refine_chords_core(arr(grey, np.uint8), arr(chords[pick], np.float64), grid,
                                    ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX),
-                                   c[9], c[10], p[7])
+                                   c[9], c[10], p[7], LOCAL_SHARE)
         ln = line[pick]
         step = kinds[ln] != 0
         ok = np.isfinite(rms) & (rms <= MAX_CHORD_RMS_PX) & np.where(
@@ -271,7 +287,8 @@ def _measure(grey, psi, cam_y, R_lc, site_y, u, edge_kind, offs, t, il, ir, ii,
         return empty
     grid = ProfileGrid(offs, t, il, ir, ii, np.int64(p[8]), np.int64(p[9]))
     kind = ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX)
-    ends, pol, rms = refine_chords_core(grey, chords, grid, kind, lens_code, lens, p[7])
+    ends, pol, rms = refine_chords_core(grey, chords, grid, kind, lens_code, lens, p[7],
+                                        LOCAL_SHARE)
     ok = np.zeros(n, np.bool_)
     for r in range(n):
         kind_ok = abs(pol[r]) == 1.0 if edge_kind[line[r]] != 0 else pol[r] == 0.0
