@@ -178,8 +178,9 @@ class CorridorOptions(ShutterOptions):
             detector); the global path runs when that check fails, when a twin of the
             fix explains the frame better or lies inside the prior's region too
             (:func:`~.track.window_twins`), and every ``window_full_every``-th window
-            fix. Off by default: less accurate than the global path on held-out
-            corridors (docs/methods/corridor.md). (Formerly ``track``.)
+            fix. Off by default: its p95 is larger than the global path's on the
+            realistic preset with a prior without velocity (docs/methods/corridor.md).
+            (Formerly ``track``.)
         window_px: half-width of the searches (px): how far a line may lie from its
             prediction. (Formerly ``track_search_px``.)
         window_full_every: a global search after this many window fixes (0: only when
