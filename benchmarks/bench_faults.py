@@ -529,18 +529,24 @@ def _holding(made: str):
     """A setup that starts another process holding ``made``'s lock (another run writing
     it); it returns what ends that process after the case."""
     def setup(t: Path) -> Callable[[], None]:
-        holder = subprocess.Popen(
-            [sys.executable, "-c", "import sys\nfrom ceilkit.runtime.io.outputs import "
-             "file_lock\nwith file_lock(sys.argv[1]):\n    print('held', flush=True)\n"
-             "    sys.stdin.read()\n", str(t / made)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        holder.stdout.readline()
-
-        def end() -> None:
-            holder.stdin.close()
-            holder.wait()
-        return end
+        return _hold_in_another_process("file_lock(sys.argv[1])", t / made)
     return setup
+
+
+def _hold_in_another_process(lock: str, path: Path) -> Callable[[], None]:
+    """Start a process that enters ``with <lock>:`` (Python, ``sys.argv[1]`` is
+    ``path``) and stays in it; returns what ends it."""
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys\nfrom ceilkit.runtime.io.outputs import "
+         f"FolderLock, file_lock\nwith {lock}:\n    print('held', flush=True)\n"
+         "    sys.stdin.read()\n", str(path)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    holder.stdout.readline()
+
+    def end() -> None:
+        holder.stdin.close()
+        holder.wait()
+    return end
 
 
 def _damage(rel: str, how: str):
@@ -790,17 +796,7 @@ def _holding_lock(folder: str, name: str | None = None):
     ``.ceilkit.lock``; ``name``: another lock file in it): another run writing there."""
     def setup(t: Path) -> Callable[[], None]:
         args = "sys.argv[1]" + (f", {name!r}" if name else "")
-        holder = subprocess.Popen(
-            [sys.executable, "-c", "import sys\nfrom ceilkit.runtime.io.outputs import "
-             f"FolderLock\nwith FolderLock({args}):\n    print('held', flush=True)\n"
-             "    sys.stdin.read()\n", str(t / folder)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        holder.stdout.readline()
-
-        def end() -> None:
-            holder.stdin.close()
-            holder.wait()
-        return end
+        return _hold_in_another_process(f"FolderLock({args})", t / folder)
     return setup
 
 

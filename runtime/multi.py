@@ -169,6 +169,14 @@ def _single(est: Estimator, fusion: FusionOptions,
     return est, Fusion(fusion, start_pose=pose, start_sigma=sigma)
 
 
+def _numbers(text: str) -> list[float]:
+    """The comma-separated numbers of ``text``; empty when one is not a number."""
+    try:
+        return [float(t) for t in text.split(",")]
+    except ValueError:
+        return []
+
+
 def parse_limits(text: str) -> tuple[float, float]:
     """``SPEED[,TURN]`` (m/s, degrees/s) as ``(m/s, rad/s)``: the vehicle's stated
     limits (``--max-speed``); the turn rate defaults to
@@ -178,10 +186,7 @@ def parse_limits(text: str) -> tuple[float, float]:
         ConfigError: ``max_speed`` unless one or two finite numbers, the speed in
             (0, 100] m/s and the turn rate in (0, 3600] degrees/s.
     """
-    try:
-        v = [float(t) for t in text.split(",")]
-    except ValueError:
-        v = []
+    v = _numbers(text)
     if len(v) not in (1, 2):
         raise ConfigError(None, "max_speed", "expected SPEED (m/s) or SPEED,TURN (m/s, "
                           f"degrees/s), found {text!r}")
@@ -213,10 +218,7 @@ def parse_start_pose(text: str) -> tuple[float, ...]:
             most :data:`START_POSE_LIMIT_M`, |yaw| at most 360 degrees, the sigmas in
             (0, 100] m and (0, 180] degrees.
     """
-    try:
-        v = [float(t) for t in text.split(",")]
-    except ValueError:
-        v = []
+    v = _numbers(text)
     if len(v) not in (3, 5):
         raise ConfigError(None, "start_pose", "expected X,Y,YAW (m, m, degrees) or "
                           f"X,Y,YAW,SIGMA_M,SIGMA_DEG, found {text!r}")

@@ -141,9 +141,19 @@ def scaled_inverse3(N, scale, out):  # pragma: no cover - compiled
     return True
 
 
+@njit
+def student(nu):  # pragma: no cover - compiled
+    """``nu / (nu - 2)``, at most 3 (``nu`` at most 3): the variance of a unit Student-t
+    error of ``nu`` degrees of freedom, the factor on a variance estimated from ``nu``
+    values that makes its mean NEES right (the corridor's and the block's fix
+    covariances, the parallels' heading)."""
+    return nu / (nu - 2.0) if nu > 3.0 else 3.0
+
+
 @warmer
 def _warm() -> None:
     median_of(np.ones(2))
+    student(5.0)
 
 
 def covering(C: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -166,4 +176,4 @@ def covering(C: np.ndarray, D: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["covering", "fit_rigid_2d", "fit_rigid_2d_complex", "fit_similarity_2d", "median_of",
-           "scaled_inverse3", "short_median"]
+           "scaled_inverse3", "short_median", "student"]

@@ -14,9 +14,9 @@ from ceilkit.runtime.estimators.corridor.refine import (
     MIN_SHARE_LINES,
     MIN_SIGMA2_PX2,
     segment_cov,
-    student,
 )
 from ceilkit.runtime.fusion import FusionOptions, measurement
+from ceilkit.runtime.geometry.fits import student
 
 
 def _frame(rng, lines: int, per: int, line_px: float, offset_px: float = 0.03,

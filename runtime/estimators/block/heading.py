@@ -26,7 +26,7 @@ from ceilkit.runtime.estimators.block.parallels import (
     ParallelsHeading,
     robust_heading,
 )
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, student
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, predicted_chords
 from ceilkit.runtime.estimators.ignore import IgnoreRegions
 from ceilkit.runtime.features.lines import (
@@ -35,6 +35,7 @@ from ceilkit.runtime.features.lines import (
     refine_undistorted,
     segment_lengths,
 )
+from ceilkit.runtime.geometry.fits import student
 
 
 class ParallelsStage:

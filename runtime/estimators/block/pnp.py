@@ -47,7 +47,7 @@ from ceilkit.runtime.geometry.ceiling import (
     seen_from,
     to_camera,
 )
-from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex, scaled_inverse3
+from ceilkit.runtime.geometry.fits import fit_rigid_2d_complex, scaled_inverse3, student
 from ceilkit.runtime.geometry.rotations import mount_angles, rot_z, wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -454,14 +454,6 @@ def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, 
             cov[a, b] = (s2 * A[a, b] + common[a, b]
                          + (var_b * unit[a, b] if has_unit else 0.0))
     return SOLVED, m, rms, var_b, has_unit
-
-
-@njit
-def student(nu):  # pragma: no cover - compiled
-    """``nu / (nu - 2)``, at most 3 (``nu`` at most 3): the variance of a unit Student-t
-    error of ``nu`` degrees of freedom, the factor on a variance estimated from ``nu``
-    values (as the corridor's ``refine.student``)."""
-    return nu / (nu - 2.0) if nu > 3.0 else 3.0
 
 
 @njit

@@ -33,6 +33,7 @@ import numpy as np
 from ceilkit.runtime.estimators.corridor.frame import FrameLines
 from ceilkit.runtime.estimators.corridor.geometry import vanishing_directions
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
+from ceilkit.runtime.geometry.fits import student
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -579,19 +580,12 @@ def _shares(Jg: np.ndarray, rg: np.ndarray, line: np.ndarray, Hi: np.ndarray
     n_lines = n_l.size
     nu_b = max(n_lines - float(np.einsum("ij,jk,ik->", Jg, Hi, Jg)), 1.0)
     mean = np.bincount(line, rg) / n_l
-    nu_w = max(k - n_lines, 1.0)
+    nu_w = float(max(k - n_lines, 1))
     sw2 = float(np.sum((rg - mean[line]) ** 2)) / nu_w
     tau2 = max(0.0, float(n_l @ mean ** 2) / nu_b - sw2) / (k / n_lines)
     G = np.stack([np.bincount(line, Jg[:, 0]), np.bincount(line, Jg[:, 1])], axis=1)
     return (max(sw2, MIN_SIGMA2_PX2) * student(nu_w) * (Jg.T @ Jg)
             + tau2 * student(nu_b) * (G.T @ G))
-
-
-def student(nu: float) -> float:
-    """``nu / (nu - 2)``, at most 3 (``nu`` at most 3): the variance of a unit Student-t
-    error of ``nu`` degrees of freedom, the factor on a variance estimated from ``nu``
-    values that makes its mean NEES right."""
-    return nu / (nu - 2.0) if nu > 3.0 else 3.0
 
 
 def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup

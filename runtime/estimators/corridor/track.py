@@ -574,18 +574,18 @@ def _warm() -> None:
     offs, t, inner = edge_grid(N_ALONG, 4.0)
     il, ir, ii = part_indices(offs)
     f = np.float64
-    _measure(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, arr(np.eye(3), f),
-             arr([-1.0, 1.0], f), arr(np.linspace(-1.0, 1.0, 5), f), arr([0.0, 0.0], f),
-             arr(offs, f), arr(t, f), arr(il, np.int64), arr(ir, np.int64),
-             arr(ii, np.int64), *cam.lens,
-             arr([2.0, 1.0, 6.0, 0.0, 48.0, 64.0, 48.0, 50.0, inner.start + 1,
-                  inner.stop + 1], f))
+    p = arr([2.0, 1.0, 6.0, 0.0, 48.0, 64.0, 48.0, 50.0, inner.start + 1, inner.stop + 1], f)
+    R, ys, u = arr(np.eye(3), f), arr([-1.0, 1.0], f), arr(np.linspace(-1.0, 1.0, 5), f)
+    _measure(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, R, ys, u,
+             arr([0.0, 0.0], f), arr(offs, f), arr(t, f), arr(il, np.int64),
+             arr(ir, np.int64), arr(ii, np.int64), *cam.lens, p)
+    _predict(0.0, 0.0, R, ys, u, *cam.lens, p)       # also called alone (chords_at)
     lines = (arr([-1.0, 1.0], f), arr([0.0, 0.0], f))
     maps = _twin_maps(lines, np.ones(2, np.bool_), np.ones(2, np.bool_), 0.0, 1e-4)
     hit = np.zeros(maps[4].size, np.int64)
     _asked(maps[3], hit >= 0, np.zeros(maps[0].shape[0]))
     _tally(maps[3], hit)
-    _probe_chords(np.array([0, 0, 1]), np.ones(2, np.bool_), 2)
+    _probe_chords(np.array([0, 0, 1]), arr(np.ones(2, np.bool_), np.bool_), 2)
 
 
 __all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "LineMeasurement", "LineTracker", "REACH_M",
