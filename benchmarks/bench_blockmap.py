@@ -12,7 +12,13 @@ Drives (each rendered once into ``--out-dir`` when not there):
   :func:`~ceilkit.calib.survey_markers.survey_markers` with the solved poses and the
   keyframes' median pose 1σ, as ``bench_survey.py --against-known`` places them).
 * **tiles** (``bench_tiles_markers.py``'s site: 0.6 m tiles, a hatch, five 16 cm tags
-  at about 3.2 px a cell): an ellipse of ``--tiles-frames`` poses, blockmap alone.
+  at about 3.2 px a cell): an ellipse of ``--tiles-frames`` poses; blockmap with the
+  true poses and the survey's markers from the true start pose, as for the office.
+
+Both measure a marker on its edges
+(:func:`~ceilkit.calib.blockmap.frame_sightings`) and fit its views as one square
+(:func:`~ceilkit.calib.blockmap.fit_marker`); they differ only in the poses (known, or
+the survey's solved keyframes, whose 1σ the survey's corners add).
 
 Figures, per drive and marker: each corner's distance (blockmap to truth, survey to
 blockmap, survey to truth) and the distance over the 1σ per axis the two sides claim,
@@ -128,10 +134,13 @@ def survey_vs_blockmap(rec: Recording, site: Site, placed: dict) -> dict:
         dt, zt = _compare(s.corners_m, s.sigma_m, site.markers.pose(s.id).corners_m(), 0.0)
         for k, v in (("d", 1e3 * d), ("z", z), ("dt", 1e3 * dt), ("zt", zt)):
             acc[k] += list(v)
+        side = site.markers.pose(s.id).size_m
         rows.append({"id": s.id, "survey_views": s.views, "survey_sigma_mm": 1e3 * s.sigma_m,
                      "blockmap_sigma_mm": 1e3 * b.corner_sigma_m,
                      "vs_blockmap_mm": [round(1e3 * v, 3) for v in d],
-                     "survey_side_mm_err": 1e3 * (s.size_m - site.markers.pose(s.id).size_m)})
+                     "vs_blockmap_over_sigma": [round(v, 3) for v in z],
+                     "survey_side_mm_err": 1e3 * (s.size_m - side),
+                     "blockmap_side_mm_err": 1e3 * (b.pose.size_m - side)})
     return {"keyframes": int(len(res.keys)), "cpu_s_survey_and_markers": cpu,
             "pose_sigma_mm": 1e3 * sig, "markers": rows,
             "vs_blockmap_mm": _pcts(acc["d"]), "vs_blockmap_over_sigma": _pcts(acc["z"]),
@@ -156,7 +165,8 @@ def main() -> None:
     out["office"], placed = blockmap_vs_truth(rec, site)
     out["office"]["survey"] = survey_vs_blockmap(rec, site, placed)
     rec = Recording(args.tiles_rec)
-    out["tiles"], _ = blockmap_vs_truth(rec, tiles_site())
+    out["tiles"], placed = blockmap_vs_truth(rec, tiles_site())
+    out["tiles"]["survey"] = survey_vs_blockmap(rec, tiles_site(), placed)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps(out, indent=1))

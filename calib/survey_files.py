@@ -372,7 +372,7 @@ def _anchor_markers(res: SurveyResult, lights: LightMap | None,
                               anchor=anchor)
     if lights is not None:
         lights = dataclasses.replace(lights, lights_m=a.apply_xy(lights.lights_m))
-    marks = [dataclasses.replace(m, corners_m=a.apply_xy(m.corners_m)) for m in marks]
+    marks = [m.moved(a.yaw_rad, a.t_m) for m in marks]
     return res, lights, marks
 
 
@@ -419,7 +419,7 @@ def _anchor_lights(res: SurveyResult, lights: LightMap | None, note: str, known:
               f"{a.runner_up}); their distances after the fit, mm: {res_mm}")
     res = dataclasses.replace(res, poses=a.apply(res.poses), chain=a.apply(res.chain),
                               anchor=anchor)
-    marks = [dataclasses.replace(m, corners_m=a.apply_xy(m.corners_m)) for m in marks]
+    marks = [m.moved(a.yaw_rad, a.t_m) for m in marks]
     return res, dataclasses.replace(lights, lights_m=a.apply_xy(lights.lights_m)), marks
 
 

@@ -2,12 +2,16 @@
 placed on the ceiling plane with the solved poses, and the survey anchored by markers
 of known pose (issue 39's "a marker of known pose").
 
-A marker's corners are met with the ceiling plane ``z = H`` through the rig (metric) and
-moved into the survey's frame by the keyframe's solved pose; its views are averaged
-corner by corner. A marker is *surveyed* only when seen in :data:`MIN_VIEWS` keyframes
-or more; an id whose views fall at two places farther apart than :data:`SAME_PLACE_M`
-(two prints of one id) is surveyed as ``places > 1``: which is the known one is not
-known, and it anchors nothing.
+Each keyframe's markers are measured on their edges as ``ceilcal blockmap`` and the
+block method measure one (:func:`~ceilkit.calib.blockmap.frame_sightings`: lines fitted
+to the four sides, corners where they meet), met with the ceiling plane ``z = H``
+through the rig (metric) and moved into the survey's frame by the keyframe's solved
+pose; a marker's views at its main place are fitted as blockmap fits them
+(:func:`~ceilkit.calib.blockmap.fit_marker`: a square, weighted by each corner's
+covariance), which gives each corner's covariance. A marker is *surveyed* only when
+seen in :data:`MIN_VIEWS` keyframes or more; an id whose views fall at two places
+farther apart than :data:`SAME_PLACE_M` (two prints of one id) is surveyed as
+``places > 1``: which is the known one is not known, and it anchors nothing.
 
 :func:`anchor_by_markers` moves the survey onto markers of known pose (``--site``'s
 ``markers``, or ``--anchor-marker``): the rigid motion of the plane that puts the
@@ -34,17 +38,15 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import MARKER_CORNER_DIRECTIONS, MarkerPose
 from ceilkit.runtime.errors import ConfigError
-from ceilkit.runtime.estimators.block.detect import aruco_markers
-from ceilkit.runtime.estimators.lights.rays import ceiling_points
-from ceilkit.runtime.geometry.ceiling import vehicle_to_world
+from ceilkit.runtime.geometry.ceiling import PlanarGeometry
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 
+from .blockmap import Sighting, fit_marker, frame_sightings
 from .survey_anchor import move_poses
 
 MIN_VIEWS = 3
@@ -52,12 +54,13 @@ SAME_PLACE_M = 0.10
 SIZE_TOL = 0.05
 RESIDUAL_M = 0.02
 CORNER_FLOOR_M = 0.001
-"""A surveyed corner's 1σ per axis is at least this: measured, the markers' corners
-from a survey lie 0.4-1.1 mm RMS from the same placement from the true poses
-(``bench_survey.py --against-known``), and one 0.2 m marker as the anchor turned a
-2 m drive by 0.22 deg (4.3 mm at the other marker 1.1 m away), what 1 mm a corner gives;
-their scatter over the views (0.1-0.4 mm) misses that shared error."""
-REFINE_HALF_PX = 4
+"""A surveyed corner's 1σ per axis is at least this in the anchor's yaw 1σ. Set when the
+corners were ``cornerSubPix``'s: one 0.2 m marker as the anchor then turned a 2 m drive
+by 0.22 deg (4.3 mm at the other marker 1.1 m away), what 1 mm a corner gives. Measured
+on their edges the same drive is turned by far less (the other marker 0.22 mm off;
+corners 0.2-0.5 mm RMS from the placement from the true poses on
+``bench_survey.py --against-known``): the floor now over-covers, kept until measured
+on more drives."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,15 +69,15 @@ class SurveyedMarker:
 
     Attributes:
         id: its id in the dictionary.
-        corners_m: ``(4, 2)`` its corners (SPEC §2 order), the mean over its views at the
-            main place.
+        corners_m: ``(4, 2)`` its corners (SPEC §2 order): the square fitted to its views
+            at the main place (:func:`~ceilkit.calib.blockmap.fit_marker`).
         views: keyframes that saw it there; ``places``: places its views fall at (more
             than 1: two prints of one id).
-        spread_m: RMS distance of the views' corners from ``corners_m``;
+        spread_m: RMS distance of the views' corners from ``corners_m``.
+        fit_cov_m2: ``(4, 2, 2)`` each corner's covariance from the fit, m² (the views'
+            scatter averaged down and an error every view shares, as blockmap states it).
         pose_sigma_m: the 1σ per axis of the poses that placed it (their errors are
-            shared between neighbouring views: not averaged down);
-            ``sigma_m``: a corner's 1σ per axis, ``spread_m / sqrt(2 views)`` and
-            ``pose_sigma_m`` in quadrature.
+            shared between neighbouring views: not averaged down).
     """
 
     id: int
@@ -82,12 +85,19 @@ class SurveyedMarker:
     views: int
     places: int
     spread_m: float
+    fit_cov_m2: np.ndarray
     pose_sigma_m: float = 0.0
 
     @property
+    def corner_cov(self) -> np.ndarray:
+        """``(4, 2, 2)`` each corner's covariance, m²: the fit's and the poses'
+        (``pose_sigma_m²`` per axis)."""
+        return self.fit_cov_m2 + self.pose_sigma_m ** 2 * np.eye(2)
+
+    @property
     def sigma_m(self) -> float:
-        return math.hypot(self.spread_m / math.sqrt(2.0 * max(self.views, 1)),
-                          self.pose_sigma_m)
+        """A corner's 1σ per axis (RMS over the four corners and both axes), metres."""
+        return math.sqrt(float(np.mean(np.trace(self.corner_cov, axis1=1, axis2=2))) / 2)
 
     @property
     def size_m(self) -> float:
@@ -101,30 +111,13 @@ class SurveyedMarker:
         yaw, t = fit_rigid_2d(0.5 * s * MARKER_CORNER_DIRECTIONS, self.corners_m)
         return MarkerPose(self.id, float(t[0]), float(t[1]), float(yaw), s)
 
-
-def refine_corners(grey: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """``cv2.aruco``'s coarse corners ``(4, 2)`` px moved to the grey level's saddle
-    (``cv2.cornerSubPix``, a window of :data:`REFINE_HALF_PX` either side, never wider
-    than a quarter of the marker's shortest side)."""
-    side = float(np.min(np.linalg.norm(px - np.roll(px, -1, axis=0), axis=1)))
-    half = int(max(1, min(REFINE_HALF_PX, side // 4)))
-    pts = np.ascontiguousarray(px, np.float32).reshape(-1, 1, 2)
-    cv2.cornerSubPix(grey, pts, (half, half), (-1, -1),
-                     (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01))
-    return pts.reshape(4, 2).astype(np.float64)
-
-
-def markers_in_frame(grey: np.ndarray, pose: np.ndarray, rig: Rig, height_m: float,
-                     dictionary: str) -> list[tuple[int, np.ndarray]]:
-    """``(id, corners (4, 2))`` in the survey's frame of the markers one frame reads, seen
-    from vehicle pose ``(x, y, yaw)``; markers with a corner off the ceiling are left out."""
-    out = []
-    for mid, px in aruco_markers(grey, dictionary):
-        px = refine_corners(grey, px)
-        q, ok = ceiling_points(rig, height_m, px)
-        if ok.all():
-            out.append((mid, vehicle_to_world(q, *pose)))
-    return out
+    def moved(self, yaw_rad: float, t_m: np.ndarray) -> SurveyedMarker:
+        """This marker in another frame, ``X' = Rz(yaw) X + t`` (an anchor's motion):
+        its corners moved, their covariance turned with them."""
+        p = move_poses(yaw_rad, np.asarray(t_m, float), np.c_[self.corners_m, np.zeros(4)])
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        R = np.array([[c, -s], [s, c]])
+        return replace(self, corners_m=p[:, :2], fit_cov_m2=R @ self.fit_cov_m2 @ R.T)
 
 
 def survey_markers(frames: Iterable[tuple[np.ndarray, np.ndarray]], rig: Rig,
@@ -133,24 +126,31 @@ def survey_markers(frames: Iterable[tuple[np.ndarray, np.ndarray]], rig: Rig,
     """Every marker id the frames ``(grey, solved pose (3,))`` read, each placed
     (module docstring), ordered by id; ids seen fewer than :data:`MIN_VIEWS` times are
     left out. ``pose_sigma_m``: the poses' 1σ per axis (m)."""
-    views: dict[int, list[np.ndarray]] = {}
-    for grey, pose in frames:
-        for mid, corners in markers_in_frame(grey, pose, rig, height_m, dictionary):
-            views.setdefault(mid, []).append(corners)
-    out = []
-    for mid in sorted(views):
-        c = np.array(views[mid])                              # (V, 4, 2)
-        centre = c.mean(axis=1)
-        main = np.linalg.norm(centre - np.median(centre, axis=0), axis=1) <= SAME_PLACE_M
-        if np.count_nonzero(main) < MIN_VIEWS:
-            continue
-        rest = centre[~main]
-        places = 1 + int(len(rest) >= MIN_VIEWS)
-        mean = c[main].mean(axis=0)
-        spread = float(np.sqrt(np.mean(np.sum((c[main] - mean) ** 2, axis=2))))
-        out.append(SurveyedMarker(mid, mean, int(np.count_nonzero(main)), places, spread,
-                                  pose_sigma_m))
-    return out
+    geo = PlanarGeometry(rig.camera, rig.mount.R_vehicle_cam, rig.mount.t_vehicle_cam,
+                         float(height_m))
+    views: dict[int, list[Sighting]] = {}
+    for k, (grey, pose) in enumerate(frames):
+        for mid, sg in frame_sightings(grey, k, pose, geo, dictionary):
+            views.setdefault(mid, []).append(sg)
+    found = (_placed(mid, views[mid], pose_sigma_m) for mid in sorted(views))
+    return [m for m in found if m is not None]
+
+
+def _placed(mid: int, sightings: list[Sighting], pose_sigma_m: float
+            ) -> SurveyedMarker | None:
+    """One id's views fitted at its main place (the views within :data:`SAME_PLACE_M`
+    of their median centre), or None when fewer than :data:`MIN_VIEWS` are there."""
+    centre = np.array([sg.corners_m.mean(axis=0) for sg in sightings])
+    main = np.linalg.norm(centre - np.median(centre, axis=0), axis=1) <= SAME_PLACE_M
+    if np.count_nonzero(main) < MIN_VIEWS:
+        return None
+    at = [sg for sg, ok in zip(sightings, main, strict=True) if ok]
+    fit = fit_marker(mid, at)
+    c = fit.corners_m
+    spread = math.sqrt(float(np.mean([np.sum((sg.corners_m - c) ** 2, axis=1)
+                                      for sg in at])))
+    places = 1 + int(len(sightings) - len(at) >= MIN_VIEWS)
+    return SurveyedMarker(mid, c, len(at), places, spread, fit.corner_cov, pose_sigma_m)
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from ceilkit.calib.blockmap import map_markers
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.calib.survey_files import Anchors, survey_site
 from ceilkit.calib.survey_geo import origin_from_start, parse_geodetic, start_pose_from_geodetic
@@ -16,10 +17,12 @@ from ceilkit.calib.survey_markers import (
     SurveyedMarker,
     anchor_by_markers,
     parse_anchor_marker,
+    survey_markers,
 )
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import MarkerPose, Markers, Site, SiteOrigin
 from ceilkit.runtime.errors import CalibrationError, ConfigError
+from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.io.recording import Recording
 from ceilkit.runtime.sim.render import SimOptions, straight_drive
 from ceilkit.runtime.sim.scatter_file import scene_beside
@@ -35,8 +38,9 @@ def _surveyed(motion=(0.4, np.array([-1.0, 2.0])), known=KNOWN, **kw) -> list[Su
     yaw, t = motion
     c, s = math.cos(yaw), math.sin(yaw)
     back = np.array([[c, s], [-s, c]])                  # Rz(-yaw): S = Rz(-yaw) (W - t)
+    cov = np.tile(1e-6 * np.eye(2), (4, 1, 1))
     return [SurveyedMarker(k.id, (k.corners_m() - t) @ back.T, kw.get("views", 6),
-                           kw.get("places", 1), 0.001) for k in known]
+                           kw.get("places", 1), 0.001, cov) for k in known]
 
 
 def test_markers_give_the_motion_back():
@@ -69,6 +73,18 @@ def test_markers_that_disagree_are_refused():
     a = anchor_by_markers(_surveyed(), moved)
     assert not a and a.reason.startswith("the markers disagree")
     assert a.residual_m.max() > 0.02
+
+
+def test_a_moved_marker_turns_its_covariance():
+    cov = np.tile(np.diag([4e-6, 1e-6]), (4, 1, 1))
+    m = dataclasses.replace(_surveyed()[0], fit_cov_m2=cov, pose_sigma_m=5e-4)
+    t = np.array([1.0, -2.0])
+    moved = m.moved(math.pi / 2, t)
+    assert moved.corners_m == pytest.approx(m.corners_m @ np.array([[0, 1], [-1, 0]]) + t)
+    assert moved.fit_cov_m2[0] == pytest.approx(np.diag([1e-6, 4e-6]))
+    assert moved.sigma_m == pytest.approx(m.sigma_m) == pytest.approx(
+        math.sqrt(2.5e-6 + 2.5e-7))
+    assert moved.pose().size_m == pytest.approx(m.size_m)
 
 
 def test_anchor_marker_option():
@@ -157,12 +173,13 @@ def test_anchor_marker_and_geodetic_write_the_sections(marker_drive, tmp_path):
     run = survey_site(CONFIGS / "office" / "rig.yaml", [marker_drive / "rec"], tmp_path,
                       anchors=anchors, ceiling_height_m=2.7)
     pos, _ = _errors(run, Recording(marker_drive / "rec"))
-    assert pos < 0.006, pos            # one marker's yaw (0.27 deg): measured 4.0 mm
+    # one marker's yaw: measured 0.22 mm (4.0 mm when its corners were cornerSubPix's)
+    assert pos < 0.002, pos
     assert "yaw 1-sigma" in run.result.anchor
     site = Site.load(tmp_path / "site.yaml")
     got = {p.id: p for p in site.markers.poses}
     assert set(got) == {3, 5} and site.markers.dictionary == "DICT_APRILTAG_36h11"
-    assert np.hypot(got[5].x_m - KNOWN[1].x_m, got[5].y_m - KNOWN[1].y_m) < 0.008
+    assert np.hypot(got[5].x_m - KNOWN[1].x_m, got[5].y_m - KNOWN[1].y_m) < 0.002  # 0.22 mm
     assert abs(got[5].size_m - 0.2) <= 0.002
     start = start_pose_from_geodetic(site.origin, (52.0, 4.0, 10.0))
     assert np.hypot(start[0] - run.result.poses[0, 0], start[1] - run.result.poses[0, 1]) \
@@ -197,3 +214,25 @@ def test_a_marker_the_drive_did_not_see_writes_nothing(marker_drive, tmp_path):
         survey_site(CONFIGS / "office" / "rig.yaml", [marker_drive / "rec"], tmp_path,
                     anchors=Anchors(markers=(far,)), ceiling_height_m=2.7)
     assert not (tmp_path / "site.yaml").exists()
+
+
+def test_survey_markers_are_measured_as_blockmap_measures_them(marker_drive):
+    """From the same frames and poses, the survey's markers are blockmap's (the edges
+    met, one square fitted), with the poses' 1σ added to the corners' covariance."""
+    rec = Recording(marker_drive / "rec")
+    truth = np.c_[rec.truth.x_m, rec.truth.y_m, rec.truth.yaw_rad]
+    frames = [(k, rec.frame(k).image, truth[k]) for k in range(len(rec))]
+    bm = {m.id: m for m in map_markers(frames, rec.rig, 2.7, "DICT_APRILTAG_36h11").placed}
+    got = survey_markers(((to_grey(im), p) for _, im, p in frames), rec.rig, 2.7,
+                         "DICT_APRILTAG_36h11", pose_sigma_m=4e-4)
+    assert [m.id for m in got] == sorted(bm) == [3, 5]
+    for m in got:
+        b = bm[m.id]
+        assert m.views == len(b.frames) and m.places == 1
+        assert m.corners_m == pytest.approx(b.corners_m, abs=1e-9)
+        assert m.corner_cov == pytest.approx(b.corner_cov + 1.6e-7 * np.eye(2))
+        assert m.sigma_m == pytest.approx(math.hypot(b.corner_sigma_m, 4e-4))
+        known = {k.id: k for k in KNOWN}[m.id]
+        # from the true poses, measured 0.007-0.031 mm from the printed corners (17 and
+        # 14 views); each corner's 1σ 0.53 mm, the 0.4 mm given for the poses in it
+        assert np.linalg.norm(m.corners_m - known.corners_m(), axis=1).max() < 2e-4
