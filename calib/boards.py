@@ -595,7 +595,10 @@ def render_board(board: Board, camera: CameraModel, rvec_cam_board: np.ndarray,
     R, _ = cv2.Rodrigues(np.asarray(rvec_cam_board, np.float64).reshape(3))
     t = np.asarray(t_cam_board_m, np.float64).reshape(3)
     H, W = camera.height, camera.width
-    strip = max(1, _RENDER_SUBPIXELS // (W * supersample * supersample))
+    # whole pairs of rows: subpixel_rays inverts the lens every 2 px from a strip's top
+    # row, so strips that start on even rows share one node grid (an odd start moved
+    # the sub-pixel samples by up to 0.2 px: a seam between strips)
+    strip = max(2, _RENDER_SUBPIXELS // (W * supersample * supersample) // 2 * 2)
     img = np.concatenate([_render_rows(board, camera, R, t, supersample, v0,
                                        min(H, v0 + strip)) for v0 in range(0, H, strip)])
     if blur_sigma_px > 0:

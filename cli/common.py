@@ -38,6 +38,7 @@ from .values import (
     UsageError,
     check_params,
     flag_of,
+    greedy_help_column,
     is_help_request,
     note_empty,
     usage_line,
@@ -225,6 +226,10 @@ def _lists_as_items(params: list[Any]) -> list[Any]:
 
 
 class _Group(typer.core.TyperGroup):
+    def format_help(self, ctx, formatter):  # type: ignore[override]
+        greedy_help_column()
+        return super().format_help(ctx, formatter)
+
     def get_params(self, ctx):  # type: ignore[override]
         return _flags_as_flags(super().get_params(ctx))
 

@@ -271,8 +271,42 @@ def is_help_request(exc: Exception) -> bool:
     return type(exc).__name__ == "NoArgsIsHelpError"
 
 
+def greedy_help_column() -> None:
+    """Make ``-h``'s option tables leave their help column the width the terminal has.
+
+    typer lays an option out in six columns (name, short name, negative name, its
+    short, value type, help) and rich narrows the help column to what the others leave:
+    at 100 columns ``ceilrun replay -h`` wrapped its help in 31 (11 at 80), for the one
+    ``--no-progress`` and the one ``-h``. Here an option's names share one column
+    (``--help, -h``; ``--progress, --no-progress``), as docs/cli.md writes them, and the
+    help column takes the rest (48 at 100 columns)."""
+    import typer.rich_utils as ru
+    from rich.table import Table
+    from rich.text import Text
+
+    if getattr(ru.Table, "greedy_help", False):
+        return
+
+    class _GreedyTable(Table):
+        greedy_help = True
+
+        def add_row(self, *cells: Any, **kwargs: Any) -> None:
+            if len(cells) >= 6:                 # [required], 4 name columns, type, help
+                head, names, rest = cells[:-6], cells[-6:-2], cells[-2:]
+                parts = [n for n in names if isinstance(n, Text) and n.plain]
+                joined = Text(", ").join(parts) if parts else Text("")
+                cells = (*head, joined, *rest)
+            super().add_row(*cells, **kwargs)
+
+    ru.Table = _GreedyTable
+
+
 class CheckedCommand(typer.core.TyperCommand):
     """A subcommand whose parameters pass :func:`check_params` before it runs."""
+
+    def format_help(self, ctx, formatter):  # type: ignore[override]
+        greedy_help_column()
+        return super().format_help(ctx, formatter)
 
     def parse_args(self, ctx, args):  # type: ignore[override]
         note_empty(self, ctx, args)

@@ -173,6 +173,7 @@ class ReplayViews:
                f"<meta name='generator' content='{version_line()}'>"
                f"<title>{html.escape(title)}</title><style>body{{font-family:sans-serif;"
                "max-width:900px;margin:auto}img{max-width:100%}"
+               "pre{white-space:pre-wrap;overflow-wrap:anywhere}"   # the summary's long lines
                "table.errors td,table.errors th{padding:1px 8px;text-align:right}"
                "</style></head><body>\n"
                + "\n".join(sections) + "\n</body></html>\n")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from ceilkit.calib import boards
 from ceilkit.calib.boards import (
     CharucoBoard,
     ChessBoard,
@@ -184,3 +185,17 @@ def test_decimated_charuco_is_as_accurate_as_full_resolution():
     assert np.array_equal(np.sort(det.ids), np.sort(full.ids))
     assert _rms(det, px) <= _rms(full, px) + 0.02
     assert _rms(det, px) < 0.15
+
+
+@pytest.mark.parametrize("rows", [35, 36, 37])
+def test_a_render_in_strips_has_no_seam(monkeypatch, rows):
+    """A render too big to trace at once is traced in strips of rows; the strips share
+    the lens table's node grid, so the image is the one traced whole (an odd strip moved
+    its sub-pixel samples: up to 73 grey levels at the strips' rows, 320x240 at s = 3)."""
+    cam = CameraModel.pinhole(320, 240, 250.0, dist=[-0.2, 0.05, 0.001, -0.002, 0.0])
+    board = parse_board("chess:9x6", 0.025)
+    rvec, t = look_at_pose(board, 0.4, 20, 30, 10)
+    whole, _, _ = render_board(board, cam, rvec, t, noise_sigma=0, blur_sigma_px=0)
+    monkeypatch.setattr(boards, "_RENDER_SUBPIXELS", 320 * 9 * rows)
+    strips, _, _ = render_board(board, cam, rvec, t, noise_sigma=0, blur_sigma_px=0)
+    assert np.array_equal(strips, whole)

@@ -7,10 +7,12 @@ import html
 import math
 import re
 import shutil
+import time
 
 import cv2
 import numpy as np
 import pytest
+from chromium_cdp import CHROMIUM, Browser
 
 from ceilkit.calib.simulate import simulate_recording
 from ceilkit.runtime.config.rig import Rig
@@ -165,3 +167,23 @@ def test_a_corridor_replay_says_why_poses_tum_is_empty(tmp_path, caplog):
     assert "note: 8 poses have no x" in text and "lateral error" in text
     assert "<tr><td>lateral (y) [mm]</td><td>8</td>" in text
     assert "<tr><td>x [mm]</td>" not in text
+
+
+@pytest.mark.skipif(shutil.which(CHROMIUM) is None,
+                    reason="Debian's chromium is not installed (.ci/run installs it)")
+def test_the_summary_fits_the_page_in_chromium(tmp_path):
+    """The summary's long lines (the timing line is about 120 characters) wrap inside
+    the report's 900 px column: no sideways scrolling (they ran 78 px past it)."""
+    res = replay(FIXTURES / "lights_rec", tmp_path / "out", report=True)
+    with Browser(tmp_path / "chromium", size=(1000, 800)) as browser:
+        browser.open(res.report.as_uri())
+        deadline = time.monotonic() + 30
+        while browser.evaluate("document.readyState") != "complete":
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        pre = browser.evaluate("[...document.querySelectorAll('pre')]"
+                               ".map(p => [p.scrollWidth, p.clientWidth])")
+        page = browser.evaluate("[document.documentElement.scrollWidth, "
+                                "document.documentElement.clientWidth]")
+    assert pre and all(scroll <= client for scroll, client in pre), pre
+    assert page[0] <= page[1], page
