@@ -23,7 +23,9 @@ Stages per frame:
    frame (0/255) a radial shift of every centroid is a fourth unknown
    (:func:`frame_shifts`, :func:`~.refine.with_shifts`), its uncertainty in the
    covariance, which also covers what leaving any one lamp out moves the pose by
-   (:func:`~.refine.spot_jackknife`: each lamp's own threshold bias).
+   (:func:`~.refine.spot_jackknife`: each lamp's own threshold bias); a lamp whose
+   spot reaches further beyond its rectangle than the frame's others (a bloom, a
+   fixture merged with it) weighs less (:func:`spot_weights`).
 4. quality (:func:`pose_quality`): lights, residuals, lights missed, the margin.
 
 Example::
@@ -79,7 +81,11 @@ from ceilkit.runtime.estimators.lights.observe import (
     fitted_spot_params,
 )
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
-from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling, with_shifts
+from ceilkit.runtime.estimators.lights.refine import (
+    RefinedPose,
+    refine_pose_ceiling,
+    with_shifts,
+)
 from ceilkit.runtime.estimators.lights.track import WindowTracker
 from ceilkit.runtime.estimators.lights.twins import (
     MAX_HYPOTHESES,
@@ -104,6 +110,10 @@ DEFAULT_LIGHT_DIAMETER_M = 0.16
 """A light's visible diameter when neither the options nor the site give one."""
 TRACK_MIN_SHARE = 0.6  # a prior is trusted when this share of the spots match near it
 PRIOR_RESOLVE = (1.0, math.radians(20.0))  # (m, rad): a rival this near the prior wins
+EXCESS_SCALE_PX = 1.0
+"""A lamp reaching this much (px) further beyond its rectangle than the frame's median
+lamp has its residual weighed 1/sqrt(2) (:func:`spot_weights`); measured 0.5, 1 and 2
+(docs/methods/lights.md §4)."""
 SPOT_STAGES = ("windowed", "full")  # the spot stages (LightsOptions.spot_stage)
 OUTLIER_MEDIANS = 4.0  # a residual this many times the median (and > max_residual_px) is out
 RECT_MIN_AXIS_RATIO = 0.03  # the detector's shape bound with rectangular lights
@@ -301,10 +311,10 @@ class LightsEstimator(Estimator):
                              f"{n} light found, a pose needs 2 with a prior, "
                              f"{self.options.min_inliers} without", **diag)
         found = self._candidate(obs, prior, t_ns, diag)
-        if not isinstance(found, tuple):
+        if not isinstance(found, Chosen):
             return found
-        cand, runner, mode, twins, complete = found
-        pairs, (x, y, yaw, cov, res) = self._refine(obs, cand, prior)
+        cand, runner, mode, twins = found.best, found.runner_up, found.mode, found.twins
+        pairs, x, y, yaw, cov, res = self._refine(obs, cand, prior)
         k = pairs.shape[0]
         min_k = 2 if mode == "about_prior" else self.options.min_inliers
         if k < min_k or not np.all(np.isfinite(cov)):
@@ -321,11 +331,11 @@ class LightsEstimator(Estimator):
         out = self.checked(t_ns, x, y, yaw, quality, cov, res, diag)
         if twins and isinstance(out, PoseEstimate):
             # a prior-resolved pose: the published one first, then the twins it ruled out
-            hyps = self._hypotheses(obs, [cand] + twins, prior, out.cov)
+            hyps = self._hypotheses(obs, [cand, *twins], prior, out.cov)
             first = Hypothesis(out.x_m, out.y_m, out.yaw_rad, out.cov, hyps[0].weight,
                                "published")
             out = dataclasses.replace(out, hypotheses=(first,) + hyps[1:],
-                                      hypotheses_complete=complete)
+                                      hypotheses_complete=found.complete)
         return out
 
     def checked(self, t_ns: int, x_m: float, y_m: float, yaw_rad: float, quality: float,
@@ -384,12 +394,11 @@ class LightsEstimator(Estimator):
         return out if isinstance(out, PoseEstimate) else None
 
     def _candidate(self, obs: Observation, prior: PoseEstimate | None, t_ns: int,
-                   diag: dict[str, Any]
-                   ) -> tuple[Candidate, Candidate | None, str, list[Candidate], bool] | Estimate:
-        """``(best, runner-up, mode, twins ruled out, whether they are every twin)`` of a
-        frame, or its Failure. ``mode``: ``about_prior`` (a local association around a
-        trusted prior: :meth:`_about_prior`), ``global`` or ``prior_resolved`` (the
-        prior picked one of several equally good poses, ``twins`` the others).
+                   diag: dict[str, Any]) -> Chosen | Estimate:
+        """The pose a frame's association singles out (:class:`Chosen`), or its Failure.
+        Its ``mode``: ``about_prior`` (a local association around a trusted prior:
+        :meth:`_about_prior`), ``global`` or ``prior_resolved`` (the prior picked one of
+        several equally good poses, ``twins`` the others).
 
         Without a prior the best pose must be singled out: every twin of it (the pose
         moved by each symmetry of the map, :class:`.twins.TwinJudge`, with the
@@ -453,12 +462,11 @@ class LightsEstimator(Estimator):
                              f"({r.x_m:.2f}, {r.y_m:.2f})): a symmetric layout",
                              hypotheses=self._hypotheses(obs, [cand] + rivals, prior),
                              complete=complete and len(rivals) < MAX_HYPOTHESES, **diag)
-        return (cand, (cands[1] if len(cands) > 1 else None), mode, twins,
-                complete and len(twins) < MAX_HYPOTHESES)
+        return Chosen(cand, cands[1] if len(cands) > 1 else None, mode, tuple(twins),
+                      complete and len(twins) < MAX_HYPOTHESES)
 
-    def _about_prior(self, obs: Observation, prior: PoseEstimate, n: int
-                     ) -> tuple[Candidate, None, str, list[Candidate], bool] | None:
-        """The association about ``prior`` (:meth:`_candidate`'s ``about_prior`` tuple), or
+    def _about_prior(self, obs: Observation, prior: PoseEstimate, n: int) -> Chosen | None:
+        """The association about ``prior`` (:meth:`_candidate`'s, mode ``about_prior``), or
         None: the prior is not trusted, the pose found about it lies outside the
         region it allows (:func:`~ceilkit.runtime.estimators.prior.allows`: a kidnap, a
         wrong start pose), or the frame prefers one of its twins."""
@@ -471,7 +479,7 @@ class LightsEstimator(Estimator):
                 and c.missing <= max(1, c.inliers // 2)
                 and allows(prior, (c.x_m, c.y_m, c.yaw_rad, None))):
             if not self.options.twins or c.inliers < self.options.min_inliers:
-                return c, None, "about_prior", [], False
+                return Chosen(c, None, "about_prior", (), False)
             # the twins the prior rules out (other cells: none inside its region),
             # unless the frame itself prefers one: then the global search decides
             weights = obs.weights()
@@ -483,7 +491,8 @@ class LightsEstimator(Estimator):
                    for t in twins) and prior_choice(
                     prior, [(t.x_m, t.y_m, t.yaw_rad, None) for t in [c] + twins]) == 0:
                 twins.sort(key=lambda t: -self.judge.evidence(t, weights))
-                return c, None, "about_prior", twins, complete and len(twins) < MAX_HYPOTHESES
+                return Chosen(c, None, "about_prior", tuple(twins),
+                              complete and len(twins) < MAX_HYPOTHESES)
         return None
 
     def _hypotheses(self, obs: Observation, cands: list[Candidate],
@@ -497,16 +506,36 @@ class LightsEstimator(Estimator):
                 prior, (c.x_m, c.y_m, c.yaw_rad, None))[0])
         if cov is None:
             try:
-                cov = self._refine(obs, cands[0], prior)[1][3]
+                cov = self._refine(obs, cands[0], prior).cov
             except (np.linalg.LinAlgError, ValueError):
                 cov = None
         return self.judge.hypotheses(obs, cands, cov)
 
     def _refine(self, obs: Observation, cand: Candidate, prior: PoseEstimate | None = None
-                ) -> tuple[np.ndarray, tuple[float, float, float, np.ndarray, np.ndarray]]:
+                ) -> RefinedPose:
         """:func:`refine_candidate` with this estimator's map, options and camera."""
         return refine_candidate(obs, cand, self.lights_w, self.options,
                                 self.rig.camera.height, prior)
+
+
+@dataclass(frozen=True, eq=False)
+class Chosen:
+    """The pose a frame's association singled out, before its refinement
+    (:meth:`LightsEstimator._candidate`).
+
+    Attributes:
+        best: the chosen :class:`~.matching.Candidate`.
+        runner_up: the next best of the global search (None: none, or ``about_prior``).
+        mode: ``about_prior``, ``global`` or ``prior_resolved``.
+        twins: the equally good poses the prior ruled out (published as hypotheses).
+        complete: whether ``twins`` are every twin of ``best``.
+    """
+
+    best: Candidate
+    runner_up: Candidate | None
+    mode: str
+    twins: tuple[Candidate, ...]
+    complete: bool
 
 
 def map_lights(site: Site) -> tuple[np.ndarray, np.ndarray, float]:
@@ -556,11 +585,12 @@ def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
 
 def refine_candidate(obs: Observation, cand: Candidate, lights_w: np.ndarray,
                      o: LightsOptions, height_px: int, prior: PoseEstimate | None = None
-                     ) -> tuple[np.ndarray, tuple[float, float, float, np.ndarray, np.ndarray]]:
+                     ) -> RefinedPose:
     """The inlier pairs and :func:`refine_pose_ceiling` of a candidate (its spots on the
-    map's ``lights_w``), after one pass that drops residuals beyond
-    ``max(max_residual_px, 4 x median)``; with a rolling shutter (``readout_ms``, rows
-    of a ``height_px`` frame) each light seen from its row's pose (:func:`fit_rows`)."""
+    map's ``lights_w``) as a :class:`~.refine.RefinedPose`, after one pass that drops
+    residuals beyond ``max(max_residual_px, 4 x median)``; with a rolling shutter
+    (``readout_ms``, rows of a ``height_px`` frame) each light seen from its row's pose
+    (:func:`fit_rows`)."""
     motion = row_motion(o, prior)
     pairs = cand.pairs
     rows = (obs, lights_w, o.readout_ms, height_px)
@@ -570,7 +600,7 @@ def refine_candidate(obs: Observation, cand: Candidate, lights_w: np.ndarray,
     if bad.any() and pairs.shape[0] - int(bad.sum()) >= 2:
         pairs = pairs[~bad]
         fit = fit_rows(*rows, pairs, fit[:3], motion)
-    return pairs, fit
+    return RefinedPose(pairs, *fit)
 
 
 def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_px: int,
@@ -587,8 +617,11 @@ def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_p
     q, jac = obs.q_v[pairs[:, 0]], obs.jac_px[pairs[:, 0]]
     lights = lights_w[pairs[:, 1]]
     if motion is None:
-        return with_shifts(q, jac, lights, frame_shifts(obs, pairs[:, 0]),
-                           refine_pose_ceiling(q, jac, lights, *start))
+        w = spot_weights(obs, pairs[:, 0])[:, None, None]
+        fit = refine_pose_ceiling(q, jac, lights, *start)
+        out = with_shifts(q, jac * w, lights, frame_shifts(obs, pairs[:, 0]) * w, fit)
+        # residual norms back in pixels (the outlier pass and the quality read them)
+        return out if out is fit else (*out[:4], out[4] / w[:, 0, 0])
     tau = row_times_s(obs.spots.centroids_px[pairs[:, 0], 1], height_px, readout_ms / 1e3)
     velocity, sigma = motion
 
@@ -621,6 +654,24 @@ def frame_shifts(obs: Observation, spots: np.ndarray) -> np.ndarray:
     if obs.centre_px is None:
         return np.zeros((len(spots), 0, 2))
     return (obs.spots.centroids_px[spots] - obs.centre_px)[:, None, :]
+
+
+def spot_weights(obs: Observation, spots: np.ndarray) -> np.ndarray:
+    """``(K,)`` each light's weight in a two-level frame's fit (:func:`~.refine.with_shifts`
+    on rows scaled by it): ``1 / sqrt(1 + (x_i / EXCESS_SCALE_PX)²)``, ``x_i`` how much
+    further lamp ``i``'s spot reaches beyond its rectangle than the frame's median lamp
+    (:attr:`~.observe.Observation.excess_px`, px; none below the median). A lamp's
+    centroid error is taken as growing with that excess: a bloomed lamp's region, cut by
+    the threshold where its halo crosses it under the lens's fall-off, or a fixture
+    merged with a lamp, moves its centroid by a share of it, on every frame (held-out
+    drives, the lamps' centres at the true pose: per-axis rms 0.2-0.3 px below the top
+    eighth of excess, 0.8-1.3 px within it; docs/methods/lights.md §4). Ones in a frame
+    with more grey levels or of round lights."""
+    if obs.centre_px is None or obs.excess_px is None or len(spots) == 0:
+        return np.ones(len(spots))
+    x = obs.excess_px[spots]
+    over = np.maximum(x - np.median(x), 0.0) / EXCESS_SCALE_PX
+    return 1.0 / np.sqrt(1.0 + over * over)
 
 
 def pose_quality(k: int, rms_px: float, best: Candidate, runner: Candidate | None,

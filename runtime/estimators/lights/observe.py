@@ -89,6 +89,10 @@ class Observation:
     # the principal point (px) when the frame holds two grey levels only (stored as
     # 0/255): its spots' centroids may share a radial shift (see two_level)
     centre_px: np.ndarray | None = None
+    # (N,) how far a rectangular lamp's spot reaches beyond its projected rectangle (px:
+    # the area beyond it over its perimeter; SpotObserver._rectangles): a bloom, a
+    # fixture merged with the lamp
+    excess_px: np.ndarray | None = None
 
     def weights(self) -> np.ndarray:
         """``(N,)`` each spot's weight as evidence: 1, :data:`WEAK_WEIGHT` for a weak
@@ -115,7 +119,9 @@ class Observation:
                                    order=new[self.order[keep[self.order]]],
                                    jac_px=self.jac_px[keep], kept=kept,
                                    weak=None if self.weak is None else self.weak[keep],
-                                   axis_v=None if self.axis_v is None else self.axis_v[keep])
+                                   axis_v=None if self.axis_v is None else self.axis_v[keep],
+                                   excess_px=None if self.excess_px is None
+                                   else self.excess_px[keep])
 
 
 class GridArrays(NamedTuple):
@@ -425,9 +431,9 @@ class SpotObserver:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
         cam = self.rig.camera
         centre = np.array([cam.cx, cam.cy]) if two_level(grey) else None
-        weak = axis = None
+        weak = axis = excess = None
         if self.light_size_m is not None:
-            q, ok, weak, axis = self._rectangles(spots, q, ok, table, centre)
+            q, ok, weak, axis, excess = self._rectangles(spots, q, ok, table, centre)
         if int(ok.sum()) > self.max_spots:             # the first max_spots examined
             ok &= np.cumsum(ok) <= self.max_spots
         J = table[:, :4].reshape(-1, 2, 2)
@@ -435,17 +441,17 @@ class SpotObserver:
         if not ok.all():
             spots, q, J = spots.select(ok), q[ok], J[ok]
         if weak is not None:
-            weak, axis = weak[ok], axis[ok]
+            weak, axis, excess = weak[ok], axis[ok], excess[ok]
         t_vc = self.t_vehicle_cam
         rng = np.hypot(q[:, 0] - t_vc[0], q[:, 1] - t_vc[1])
         return Observation(spots, q, rng.argsort(kind="stable"), J,
-                           candidates_px, ok, weak, axis, centre)
+                           candidates_px, ok, weak, axis, centre, excess)
 
     def _rectangles(self, spots: Spots, q: np.ndarray, ok: np.ndarray, table: np.ndarray,
                     centre_px: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The checks of rectangular lights (``light_size``), for the spots ``ok`` so
-        far: ``(q, ok, weak, axis)``.
+        far: ``(q, ok, weak, axis, excess)`` (``excess``: :attr:`Observation.excess_px`).
 
         A rectangle's orientation in V is not known without the pose: the spot's own
         second moments give it (modulo 180°; the long axis of ``J⁻¹ (S - blur) J⁻ᵀ``,
@@ -463,10 +469,10 @@ class SpotObserver:
         """
         n = q.shape[0]
         weak = np.zeros(n, bool)
-        axis = np.zeros(n)
+        axis, excess = np.zeros(n), np.zeros(n)
         idx = np.flatnonzero(ok)
         if idx.size == 0:
-            return q, ok, weak, axis
+            return q, ok, weak, axis, excess
         rig, h = self.rig, self.ceiling_height_m
         length, width = self.light_size_m
         c_obs = spots.centroids_px[idx]
@@ -499,8 +505,10 @@ class SpotObserver:
         area_p, cov_p = polygon_moments(img)
         cov_p = cov_p + RECT_BLUR_PX2 * np.eye(2)
         area_o = spots.areas_px[idx]
+        per = np.linalg.norm(np.roll(img, -1, axis=1) - img, axis=2).sum(axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = area_o / area_p
+            excess[idx] = np.nan_to_num((area_o - area_p) / per)
             ev = np.linalg.eigvals(np.linalg.solve(
                 np.where(good[:, None, None], cov_p, np.eye(2)), S)).real
         good &= (ratio >= RECT_AREA[0]) & (ratio <= RECT_AREA[1])
@@ -513,7 +521,7 @@ class SpotObserver:
         ok[idx] = good
         weak[idx] = weak_k
         axis[idx] = theta
-        return q, ok, weak, axis
+        return q, ok, weak, axis, excess
 
     def _inside(self, q_v: np.ndarray, theta: np.ndarray, outline: np.ndarray) -> np.ndarray:
         """``(K,)`` whether rectangles (``outline`` about ``q_v`` turned by ``theta``)

@@ -20,6 +20,7 @@ Example::
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -42,6 +43,20 @@ JACKKNIFE_MAX_LEVERAGE = 0.99
 """A light whose own leverage in a fit (the largest eigenvalue of its 2x2 block of the
 hat matrix) reaches this is left out of :func:`spot_jackknife`: its residual says
 nothing about its error."""
+
+
+class RefinedPose(NamedTuple):
+    """A candidate's refined pose (:func:`~.estimator.refine_candidate`): its inlier
+    ``pairs (K, 2)`` (spot index, light index in the map), the pose ``x_m, y_m,
+    yaw_rad`` (m, rad; W), its ``cov (3, 3)`` and the residual norms ``res_px (K,)``
+    (px)."""
+
+    pairs: np.ndarray
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov: np.ndarray
+    res_px: np.ndarray
 
 
 def refine_pose(rig: Rig, ceiling_height_m: float, points_px: np.ndarray,
