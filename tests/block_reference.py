@@ -1,6 +1,6 @@
 """The block method's per-frame stages in array code: the readings the compiled loops
 (:func:`.detect.measure_core`, :func:`.detect.contrast_core`, :func:`.pnp.solve_core`,
-:func:`.seams.chords_core`, :func:`.window.predict_core`) stand for, kept here as the
+:func:`.parallels.chords_core`, :func:`.window.predict_core`) stand for, kept here as the
 references they are tested against."""
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import MIN_SIDE_POINTS, Sides, fit_side_lines
+from ceilkit.runtime.estimators.block.parallels import CHORD_M, MARGIN_PX, STEP_M, site_lines
 from ceilkit.runtime.estimators.block.pnp import (
     PlanarGeometry,
     closed_form,
@@ -19,7 +20,6 @@ from ceilkit.runtime.estimators.block.pnp import (
     project_px,
     refine,
 )
-from ceilkit.runtime.estimators.block.seams import CHORD_M, MARGIN_PX, STEP_M, site_lines
 from ceilkit.runtime.features.quads import EDGE_SEARCH_PX, edge_points, line_corners
 from ceilkit.runtime.geometry.rotations import rot_z
 
@@ -77,7 +77,7 @@ def solve(geo: PlanarGeometry, corners_norm, corners_w, edge_norm, side, drop):
 
 
 def predicted_chords(geo, corridor, pose, max_chords, site=None, reach_m=3.5):
-    """:func:`.seams.predicted_chords` in arrays."""
+    """:func:`.parallels.predicted_chords` in arrays."""
     x, y, yaw = (float(v) for v in pose)
     rz = rot_z(yaw)
     R_wc = rz @ geo.R_vehicle_cam

@@ -23,8 +23,8 @@ import math
 import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import Sides
-from ceilkit.runtime.estimators.block.estimator import BlockEstimator, BlockOptions, TargetFix
-from ceilkit.runtime.estimators.block.pnp import PlanarFit, project_norm
+from ceilkit.runtime.estimators.block.estimator import BlockEstimator, BlockOptions
+from ceilkit.runtime.estimators.block.pnp import PlanarFit, PlanarSolver, TargetFix, project_norm
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 MIN_SIGMA_PX = 0.3      # the corners' reprojection RMS is floored at this
@@ -55,14 +55,12 @@ def linear_pnp(corners_norm: np.ndarray, corners_w: np.ndarray
     return R, p
 
 
-class PaperBlockEstimator(BlockEstimator):
-    """Xu et al.'s procedure (see the module); options as ``block``'s."""
+class PaperSolver(PlanarSolver):
+    """The block method's solve stage as the paper has it: eq. 3-4 on the four corners
+    (no refinement in pixels, no pooling; ``drop`` unused)."""
 
-    name = "paper-block"
-    Options = BlockOptions
-
-    def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
-               resolved_by: str) -> TargetFix | None:
+    def __call__(self, sides: Sides, corners_w: np.ndarray, source: str,
+                 resolved_by: str) -> TargetFix | None:
         g = self.geo
         got = linear_pnp(sides.corners_norm, corners_w)
         if got is None:
@@ -85,6 +83,14 @@ class PaperBlockEstimator(BlockEstimator):
         cov = np.diag([sm ** 2, sm ** 2, (sm / max(span, 1e-3)) ** 2])
         ref = PlanarFit(pose, cov, rms_px, len(corners_w))
         return TargetFix(source, ref, float("nan"), sides.corners_norm, corners_w, resolved_by)
+
+
+class PaperBlockEstimator(BlockEstimator):
+    """Xu et al.'s procedure (see the module); options as ``block``'s."""
+
+    name = "paper-block"
+    Options = BlockOptions
+    Solver = PaperSolver
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
                    pose: np.ndarray | None = None, max_chords: int = 0):

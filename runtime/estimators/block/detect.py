@@ -31,7 +31,6 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
 from ceilkit.runtime.features.quads import (
     EDGE_SEARCH_PX,
     EDGE_STEP_PX,
@@ -49,6 +48,7 @@ from ceilkit.runtime.features.quads import (
 )
 from ceilkit.runtime.features.working import decimate
 from ceilkit.runtime.geometry.camera import CameraModel, undistort_points
+from ceilkit.runtime.geometry.ceiling import PlanarGeometry
 from ceilkit.runtime.geometry.fits import short_median
 from ceilkit.runtime.jit import arr, njit, warmer
 

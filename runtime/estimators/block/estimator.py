@@ -66,17 +66,20 @@ from ceilkit.runtime.estimators.block.detect import (
     side_lengths_m,
 )
 from ceilkit.runtime.estimators.block.fallback import MarkerReader
-from ceilkit.runtime.estimators.block.heading import ParallelsStage
-from ceilkit.runtime.estimators.block.parallels import ParallelsHeading
+from ceilkit.runtime.estimators.block.parallels import (
+    MAX_CHORDS,
+    LinedSides,
+    ParallelsHeading,
+    ParallelsStage,
+)
 from ceilkit.runtime.estimators.block.pnp import (
-    PlanarFit,
+    RMS_BAD_PX,
     PlanarGeometry,
-    PooledSideOffsets,
+    PlanarSolver,
+    TargetFix,
     ceiling_points_vehicle,
     six_dof_check,
-    solve,
 )
-from ceilkit.runtime.estimators.block.seams import MAX_CHORDS, LinedSides
 from ceilkit.runtime.estimators.block.twins import (
     BlockTwin,
     fit_hypotheses,
@@ -104,7 +107,6 @@ PARTIAL_BLOCK = "partial_block"
 UNKNOWN_MARKER = "unknown_marker"
 PARTIAL_AREA_PX = 600.0     # a non-quad region this large may be a block cut short
 COARSE_TOL = 0.25          # a coarse quad's perimeter may differ this much from a block's
-RMS_BAD_PX = 1.0            # edge residual RMS at which quality reaches 0
 PARALLELS_AGREE_SIGMA = 4.0  # a parallels heading farther than this many sigma from the
                              # block's is reported, not fused
 HEADING_ONLY_QUALITY = 0.5  # quality of a heading-only cue (no position)
@@ -157,7 +159,7 @@ class BlockOptions(EstimatorOptions):
             the window check fails). (Formerly ``track_full_every``.)
         marker_fallback: where the decimated search gave no marker fix, run
             ``cv2.aruco``'s default detector (the site's dictionary) on the full frame
-            and measure and solve the markers it reads (:meth:`BlockEstimator._aruco_fixes`):
+            and measure and solve the markers it reads (:meth:`.fallback.MarkerReader.aruco_fixes`):
             markers down to about 3 px per cell, whose one-cell border the decimated
             search loses (about 2-3 ms per frame at 640x480).
     """
@@ -182,17 +184,6 @@ class BlockOptions(EstimatorOptions):
     ALIASES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "track": "window_search", "track_window_px": "window_px",
         "track_full_every": "window_full_every"})
-
-
-@dataclass(frozen=True, eq=False)
-class TargetFix:
-    source: str
-    refined: PlanarFit
-    shape_m: float
-    corners_norm: np.ndarray
-    corners_w: np.ndarray
-    resolved_by: str
-    twins: tuple[BlockTwin, ...] = ()    # the correspondences the prior ruled out
 
 
 @dataclass(frozen=True, eq=False)
@@ -225,6 +216,7 @@ class BlockEstimator(Estimator):
 
     name = "block"
     Options = BlockOptions
+    Solver = PlanarSolver      # the solve stage (:class:`.pnp.PlanarSolver`'s signature)
     site_sections = ("blocks", "markers")
 
     def __init__(self, rig: Any, site: Any,
@@ -257,24 +249,25 @@ class BlockEstimator(Estimator):
         self._heading = ParallelsStage(self.geo, site, o.parallels_min_px,
                                        o.parallels_gate_deg)
         self._lined = LinedSides(self._heading.corridor)
-        self._pooled = PooledSideOffsets()
+        self._solver = self.Solver(self.geo, self._lined)
         self._odo = PlaneOdometry(self.geo, site) if o.plane_odometry else None
         self._fixed = True      # the previous frame had a fix (no track to carry yet)
         self.windows = Windows(self.geo, targets, o, self._lined, self._codes)
         self._reader = (MarkerReader(self.geo, markers, self._codes, o.edge_points,
-                                     self._solve) if markers is not None else None)
+                                     self._solver) if markers is not None else None)
         self._fallback = self._reader if o.marker_fallback else None
         self._window_fixes = 0  # window fixes since the last global search
 
     def forget(self) -> None:  # Estimator.forget: pooled offsets, odometry image, counter
-        self._pooled, self._fixed, self._window_fixes = PooledSideOffsets(), True, 0
+        self._solver.pooled.reset()
+        self._fixed, self._window_fixes = True, 0
         if self._odo is not None:
             self._odo.reset()
 
     def _parallels(self, grey: np.ndarray, hint: float | None,
                    pose: np.ndarray | None = None, max_chords: int = MAX_CHORDS
                    ) -> ParallelsHeading | None:
-        """The heading from the frame's ceiling parallels (:class:`.heading.ParallelsStage`)."""
+        """The heading from the frame's ceiling parallels (:class:`.parallels.ParallelsStage`)."""
         return self._heading(grey, hint, pose, max_chords)
 
     # -- per frame ---------------------------------------------------------------------
@@ -408,7 +401,7 @@ class BlockEstimator(Estimator):
         symmetric target's turns that also fit its shape are its twins (the prior chose)."""
         twins = target_twins(tgt.corners_w, self.options.shape_tol * tgt.min_side_m) \
             if tgt.symmetric else ()
-        return TargetFix(tgt.source, self._pooled(tgt.source, got.refined), got.shape_m,
+        return TargetFix(tgt.source, self._solver.pooled(tgt.source, got.refined), got.shape_m,
                     got.sides.corners_norm, tgt.corners_w,
                     "prior" if tgt.symmetric else WINDOW, twins)
 
@@ -464,22 +457,6 @@ class BlockEstimator(Estimator):
                             wrap_pi(float(pose[2])), quality, cov=cov, diagnostics=diag,
                             provenance=provenance, hypotheses=with_twins(pose, cov, best.twins))
 
-    def _solve(self, sides: Sides, corners_w: np.ndarray, source: str,
-               resolved_by: str) -> TargetFix | None:
-        """The fix of measured sides as the block ``corners_w`` (:func:`.pnp.solve`,
-        the sides on a ceiling line left out), its covariance pooled per target; None
-        when the edge residual RMS exceeds :data:`RMS_BAD_PX` (quality 0: a quad cut
-        by the frame or by clutter that still fits the block's shape)."""
-        got = solve(self.geo, sides.corners_norm, corners_w, sides.edge_norm, sides.side,
-                    self._lined(corners_w))
-        if got is None:
-            return None
-        shape, ref = got
-        if not (np.all(np.isfinite(ref.pose)) and ref.rms_px <= RMS_BAD_PX):
-            return None         # the block's outline does not explain its edges
-        return TargetFix(source, self._pooled(source, ref), shape, sides.corners_norm, corners_w,
-                    resolved_by)
-
     def _block_fix(self, grey: np.ndarray, quad: Quad, dark: bool,
                    prior: PoseEstimate | None) -> TargetFix | _Ambiguous | str | None:
         """A fix from a plain quad, every pose it fits when no prior picks one
@@ -504,7 +481,7 @@ class BlockEstimator(Estimator):
         twins: tuple[BlockTwin, ...] = ()
         if len(fits) > 1:
             pick = _pick_by_prior(fits, prior)
-            if pick is None:     # every fit a hypothesis; None: the edges do not fit (as _solve)
+            if pick is None:     # every fit a hypothesis; None: the edges do not fit (as a fix)
                 hyps = fit_hypotheses(self.geo, sides, fits, every, self._lined(every[0]),
                                       RMS_BAD_PX)
                 return _Ambiguous(hyps) if hyps else PARTIAL_BLOCK if quad.at_border else None
@@ -515,7 +492,7 @@ class BlockEstimator(Estimator):
             blk, shift, _, _ = fits[0]
             resolved = "shape"
         corners_w = blk.corners_m[(np.arange(4) + shift) % 4]
-        got = self._solve(sides, corners_w, f"block:{blk.id}", resolved)
+        got = self._solver(sides, corners_w, f"block:{blk.id}", resolved)
         if got is not None and twins:
             got = dataclasses.replace(got, twins=twins)
         return PARTIAL_BLOCK if got is None and quad.at_border else got

@@ -14,13 +14,13 @@ outside them, and their perimeter limits are the whole frame's). Each marker it 
 measured on its edges about aruco's corners (two passes, the edges searched dark inside
 only: a cell away the first inner cells' edges and the quiet ring's are of the other
 polarity), read again by :func:`.detect.read_marker` as a check, and solved as any
-marker (the caller's ``solve``). aruco's corner k is SPEC §2's corner k.
+marker (the block method's solve stage, :class:`.pnp.PlanarSolver`). aruco's corner k
+is SPEC §2's corner k.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -33,7 +33,7 @@ from ceilkit.runtime.estimators.block.detect import (
     measure_sides,
     read_marker,
 )
-from ceilkit.runtime.estimators.block.pnp import PlanarGeometry
+from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, PlanarSolver, TargetFix
 from ceilkit.runtime.features.quads import MarkerCodes, Quad, signed_area
 from ceilkit.runtime.geometry.ceiling import ceiling_points_vehicle
 
@@ -45,10 +45,6 @@ SPOT_MARGIN = 1.5
 """The largest spot searched is this many times the largest marker's diagonal at the
 frame's largest scale (the scale between the grid's samples, and blur)."""
 
-Solve = Callable[[Sides, np.ndarray, str, str], Any]
-"""``solve(sides, corners_w, source, resolved_by)``: the caller's fix, or None."""
-
-
 class MarkerReader:
     """The site's markers read and solved for the block method (see module).
 
@@ -57,21 +53,25 @@ class MarkerReader:
         markers: the site's ``markers`` section.
         codes: its dictionary's codes (the check read).
         edge_points: edge stations per side (the block method's option).
-        solve: the block method's solve of measured sides.
+        solve: the block method's solve stage (:class:`.pnp.PlanarSolver`, or a
+            subclass: a marker's measured sides and corners in W, its fix or None).
     """
 
     def __init__(self, geo: PlanarGeometry, markers: Any, codes: MarkerCodes,
-                 edge_points: int, solve: Solve) -> None:
+                 edge_points: int, solve: PlanarSolver) -> None:
         self.geo, self.markers, self.codes = geo, markers, codes
         self.edge_points, self.solve = int(edge_points), solve
         self.spot_side_px = marker_side_range_px(geo, [p.size_m for p in markers.poses])
+        self._corners: dict[int, np.ndarray] = {}     # id -> corners (4, 2) in W, SPEC §2
+        for p in markers.poses:                       # (an id's first pose, as Markers.pose)
+            self._corners.setdefault(int(p.id), _read_only(p.corners_m()))
 
     def spots(self) -> SpotSearch:
         """A fresh :class:`.detect.SpotSearch` of this site's marker sizes, for the dark
         :func:`.detect.find_quads` of one frame."""
         return SpotSearch(self.spot_side_px, [])
 
-    def quad_fix(self, grey: np.ndarray, quad: Quad) -> Any:
+    def quad_fix(self, grey: np.ndarray, quad: Quad) -> TargetFix | int | None:
         """A fix from a marker-sized dark quad of the decimated search, the id read when
         the site does not hold it, or None (not a marker, or not measured)."""
         sides = measure_sides(grey, quad.corners_px, self.geo, self.edge_points, passes=1)
@@ -81,15 +81,15 @@ class MarkerReader:
         if read is None:
             return None
         marker_id, s, _ = read
-        pose = self.markers.pose(marker_id)
-        if pose is None:
+        corners_w = self._corners.get(marker_id)
+        if corners_w is None:
             return marker_id
         # corner s of the quad is the printed top-left: aruco's corner 0 (SPEC §2)
         sides = Sides(sides.corners_norm[(np.arange(4) + s) % 4], sides.edge_norm,
                       (sides.side - s) % 4, sides.stations)
-        return self.solve(sides, pose.corners_m(), f"marker:{marker_id}", "id")
+        return self.solve(sides, corners_w, f"marker:{marker_id}", "id")
 
-    def aruco_fixes(self, grey: np.ndarray, fixes: list[Any], unknown: list[int],
+    def aruco_fixes(self, grey: np.ndarray, fixes: list[TargetFix], unknown: list[int],
                     max_fixes: int, spots: SpotSearch | None = None) -> int:
         """The fallback: the markers ``cv2.aruco`` reads on the full frame (or, with the
         frame's ``spots`` from the dark search, on crops about them only), the largest
@@ -120,14 +120,15 @@ class MarkerReader:
                 fixes.append(got)
         return len(found)
 
-    def aruco_fix(self, grey: np.ndarray, marker_id: int, corners_px: np.ndarray) -> Any:
+    def aruco_fix(self, grey: np.ndarray, marker_id: int, corners_px: np.ndarray
+                  ) -> TargetFix | int | None:
         """The fix of one marker aruco read (its id, its corners ``(4, 2)`` px in aruco's
         order), the id when the site does not hold it, or None: the sides not measured,
         or :func:`.detect.read_marker` of the measured outline names another id or
         corner order (at the size aruco still reads, ours may read nothing: that is no
         conflict)."""
-        pose = self.markers.pose(marker_id)
-        if pose is None:
+        corners_w = self._corners.get(marker_id)
+        if corners_w is None:
             return marker_id
         # aruco's corners are coarse (up to a pixel or two off), clockwise as displayed
         sign = -1 if signed_area(corners_px) > 0 else 1
@@ -138,7 +139,13 @@ class MarkerReader:
         read = read_marker(grey, sides.corners_norm, self.geo, self.codes)
         if read is not None and (read[0], read[1]) != (marker_id, 0):
             return None
-        return self.solve(sides, pose.corners_m(), f"marker:{marker_id}", "id")
+        return self.solve(sides, corners_w, f"marker:{marker_id}", "id")
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` made read-only (shared by every fix of its marker)."""
+    a.setflags(write=False)
+    return a
 
 
 def marker_side_range_px(geo: PlanarGeometry, sizes_m: list[float]) -> tuple[float, float]:

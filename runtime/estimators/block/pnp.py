@@ -15,6 +15,11 @@ height, only the vehicle's planar pose is unknown (SPEC §1):
    covariance is the residuals' parts propagated (:func:`residual_parts`: the sides'
    common offset, per-side offsets, white noise).
 
+:class:`PlanarSolver` is the block method's solve stage: measured sides
+(:class:`.detect.Sides`) as a block of the site, its fix (:class:`TargetFix`), the
+sides on a ceiling line left out and the covariance pooled per target. The estimator
+builds it once and hands it to the marker reader (:mod:`.fallback`).
+
 :func:`six_dof_check` solves the unconstrained 6-DoF PnP (OpenCV's IPPE) and reports how
 far its camera lies from what the rig says (tilt, swing, height): a live check of the
 mount.
@@ -30,17 +35,21 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
+from ceilkit.runtime.estimators.block.detect import Sides
 from ceilkit.runtime.geometry.camera import CameraModel, magnification_points
 from ceilkit.runtime.geometry.ceiling import (
     MIN_RZ,
     PlanarGeometry,
     ceiling_norm,
     ceiling_points_vehicle,
+    kernel_mount,
     level_offset,
     meet_ceiling,
     on_ceiling,
@@ -64,6 +73,8 @@ SIGMA_FLOOR_PX = 0.02       # the white noise's RMS in the covariance is at leas
                             # markers at noise 2; 0.05 over-covered a marker drive's
                             # error 3x in variance)
 VERTICAL_RAD = math.radians(1.0)  # six_dof_check: swing unobservable this near 90°
+RMS_BAD_PX = 1.0            # edge residual RMS at which a fix's quality reaches 0: a
+                            # fix above it is refused (:class:`PlanarSolver`)
 
 
 def closed_form(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray
@@ -119,6 +130,64 @@ def _side_residuals(geo: PlanarGeometry, poses: np.ndarray, corners_w: np.ndarra
             + off[:, side]) * scale
 
 
+class SideEdges(NamedTuple):
+    """A block's measured sides as the Gauss-Newton loops take them: the block's
+    corners ``corners_w (4, 2)`` in W (side k runs from corner k to k+1), the edge
+    points ``edge_norm (M, 2)`` (normalized), the side of each ``side (M,)`` and the
+    scale of each residual ``scale (M,)`` (px per normalized unit,
+    :func:`magnification`)."""
+
+    corners_w: np.ndarray
+    edge_norm: np.ndarray
+    side: np.ndarray
+    scale: np.ndarray
+
+
+class GNArrays(NamedTuple):
+    """What :func:`_gauss_newton` writes: the residuals ``r (M,)`` (px), their
+    Jacobian ``J (M, 3)`` by the pose ``(x, y, yaw)`` and ``JtJ (3, 3)``."""
+
+    r: np.ndarray
+    J: np.ndarray
+    JtJ: np.ndarray
+
+
+class SeenBlock(NamedTuple):
+    """One frame's view of a block as :func:`solve_core` takes it: its corners seen
+    ``corners_norm (4, 2)`` (normalized) in the order of the block's corners
+    ``corners_w (4, 2)`` (W), the edge points ``edge_norm (N, 2)`` (normalized), the
+    side of each ``side (N,)``, and the sides left out ``drop (4,)`` bool."""
+
+    corners_norm: np.ndarray
+    corners_w: np.ndarray
+    edge_norm: np.ndarray
+    side: np.ndarray
+    drop: np.ndarray
+
+
+class SolvedOut(NamedTuple):
+    """The arrays :func:`solve_core` writes: ``pose (4,)`` (x m, y m, yaw rad, the
+    closed form's RMS on the ceiling m), ``cov (3, 3)`` and ``unit (3, 3)``
+    (:class:`PlanarFit`'s ``cov`` and ``side_unit``)."""
+
+    pose: np.ndarray
+    cov: np.ndarray
+    unit: np.ndarray
+
+
+class Solved(NamedTuple):
+    """What :func:`solve_core` returns: ``status`` (:data:`SOLVED`,
+    :data:`NO_CLOSED_FORM`, :data:`SINGULAR`), the edge points used ``m``, their
+    residual RMS ``rms_px``, the side offsets' variance ``var_b`` (px²) and whether
+    ``unit`` was written ``has_unit``."""
+
+    status: int
+    m: int
+    rms_px: float
+    var_b: float
+    has_unit: bool
+
+
 @dataclass(frozen=True, eq=False)
 class PlanarFit:
     """A refined planar pose: ``pose`` (x, y, yaw), ``cov`` 3x3 (m², rad²), ``rms_px``
@@ -148,6 +217,10 @@ class PooledSideOffsets:
         self.weight = float(weight)
         self._var: dict[str, float] = {}
 
+    def reset(self) -> None:
+        """Forget every target's pooled variance (a new drive)."""
+        self._var.clear()
+
     def __call__(self, source: str, ref: PlanarFit) -> PlanarFit:
         if ref.side_unit is None:
             return ref
@@ -160,20 +233,82 @@ class PooledSideOffsets:
         return dataclasses.replace(ref, cov=ref.cov + (v - ref.side_var_px2) * ref.side_unit)
 
 
+@dataclass(frozen=True, eq=False)
+class TargetFix:
+    """A block or marker of the site solved on one frame.
+
+    Attributes:
+        source: ``marker:ID`` or ``block:ID``.
+        refined: the refined pose, its covariance pooled per target
+            (:class:`PooledSideOffsets`).
+        shape_m: the closed form's RMS on the ceiling (m): how well the corners seen
+            fit the block's shape.
+        corners_norm: ``(4, 2)`` the corners seen (normalized), in the order of
+            ``corners_w``.
+        corners_w: ``(4, 2)`` the block's corners in W.
+        resolved_by: how the correspondence was chosen: ``id`` (a marker), ``shape``
+            (one fit), ``prior`` (the prior chose among twins), ``window``.
+        twins: the correspondences the prior ruled out (:class:`.twins.BlockTwin`).
+    """
+
+    source: str
+    refined: PlanarFit
+    shape_m: float
+    corners_norm: np.ndarray
+    corners_w: np.ndarray
+    resolved_by: str
+    twins: tuple = ()
+
+
+class PlanarSolver:
+    """The block method's solve stage: measured sides as a block of the site, a
+    :class:`TargetFix` (:func:`solve`, the sides ``drop`` leaves out, the covariance
+    pooled per target). Built once by the estimator, called by it for a plain block
+    and by :class:`.fallback.MarkerReader` for a marker.
+
+    Args:
+        geo: the rig and ceiling.
+        drop: ``drop(corners_w)``: ``(4,)`` bool, the sides the refinement leaves out
+            (:class:`.parallels.LinedSides`).
+    """
+
+    def __init__(self, geo: PlanarGeometry, drop: Callable[[np.ndarray], np.ndarray]
+                 ) -> None:
+        self.geo, self.drop = geo, drop
+        self.pooled = PooledSideOffsets()
+
+    def __call__(self, sides: Sides, corners_w: np.ndarray, source: str,
+                 resolved_by: str) -> TargetFix | None:
+        """The fix of measured ``sides`` as the block ``corners_w`` ``(4, 2)`` (W, in
+        the order of ``sides.corners_norm``); None when a corner's ray misses the
+        ceiling or the edge residual RMS exceeds :data:`RMS_BAD_PX` (quality 0: a quad
+        cut by the frame or by clutter that still fits the block's shape)."""
+        got = solve(self.geo, sides.corners_norm, corners_w, sides.edge_norm, sides.side,
+                    self.drop(corners_w))
+        if got is None:
+            return None
+        shape, ref = got
+        if not (np.all(np.isfinite(ref.pose)) and ref.rms_px <= RMS_BAD_PX):
+            return None         # the block's outline does not explain its edges
+        return TargetFix(source, self.pooled(source, ref), shape, sides.corners_norm,
+                         corners_w, resolved_by)
+
+
 def refine(geo: PlanarGeometry, pose0: tuple[float, float, float], corners_w: np.ndarray,
            edge_norm: np.ndarray, side: np.ndarray, scale: np.ndarray) -> PlanarFit:
     """Gauss-Newton on the pose from ``pose0``: edge points ``(M, 2)`` (normalized) of
     side ``side`` (M,) (side k runs from corner k to k+1 of ``corners_w``), residuals in
     px by ``scale`` (M,) (:func:`magnification`). Needs M >= 3 over three sides."""
     pose = np.array(pose0, float)
-    cw, en = arr(corners_w, np.float64), arr(edge_norm, np.float64)
-    sd, sc = arr(side, np.int64), arr(scale, np.float64)
-    r, J, JtJ = np.empty(sd.size), np.empty((sd.size, 3)), np.empty((3, 3))
-    solved = _gauss_newton(arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
-                           float(geo.ceiling_m), pose, cw, en, sd, sc, r, J, JtJ)
-    if not solved:                  # a singular step: numpy's least squares, from pose0
+    edges = SideEdges(arr(corners_w, np.float64), arr(edge_norm, np.float64),
+                      arr(side, np.int64), arr(scale, np.float64))
+    m = edges.side.size
+    fit = GNArrays(np.empty(m), np.empty((m, 3)), np.empty((3, 3)))
+    if _gauss_newton(kernel_mount(geo), pose, edges, fit):
+        r, J, JtJ = fit
+    else:                           # a singular step: numpy's least squares, from pose0
         pose = np.array(pose0, float)
-        r, J, JtJ = _gauss_newton_numpy(geo, pose, cw, en, sd, sc)
+        r, J, JtJ = _gauss_newton_numpy(geo, pose, *edges)
     rms = float(np.sqrt(np.mean(r * r)))
     try:
         A = np.linalg.inv(JtJ)
@@ -212,27 +347,27 @@ def _gauss_newton_numpy(geo: PlanarGeometry, pose: np.ndarray, *args: np.ndarray
 
 
 @njit
-def _gauss_newton(R, t, ceiling_m, pose, corners_w, edge_norm, side, scale, r, J, JtJ
-                  ):  # pragma: no cover - compiled
-    """Gauss-Newton of :func:`refine` from ``pose`` (moved in place): the residuals
-    ``r (M,)`` (px), their Jacobian ``J (M, 3)`` (forward differences of
-    :data:`JAC_EPS`) and ``JᵀJ`` at the end, written into the arrays given. At most
+def _gauss_newton(mount, pose, edges, fit):  # pragma: no cover - compiled
+    """Gauss-Newton of :func:`refine` from ``pose`` (moved in place) through the rig
+    ``mount`` (a :class:`KernelMount`; its lens unused) on ``edges`` (a
+    :class:`SideEdges`): the residuals ``r (M,)`` (px), their Jacobian ``J (M, 3)``
+    (forward differences of :data:`JAC_EPS`) and ``JᵀJ`` at the end, written into
+    ``fit`` (a :class:`GNArrays`). At most
     :data:`GN_ITERATIONS` steps; ends on a step below :data:`GN_STEP_EPS` (``r, J`` at
     the converged pose) or below :data:`GN_LINEAR_EPS` (``r`` moved linearly by the
     step, ``J`` kept). False (the caller falls back) when the normal equations are
     singular."""
-    m = side.size
+    r, J, JtJ = fit.r, fit.J, fit.JtJ
+    m = edges.side.size
     rp = np.empty(m)
     g = np.empty(3)
     step = np.empty(3)
     for it in range(GN_ITERATIONS + 1):
-        _sides_at(R, t, ceiling_m, pose[0], pose[1], pose[2], corners_w, edge_norm, side,
-                  scale, r)
+        _sides_at(mount, pose[0], pose[1], pose[2], edges, r)
         for c in range(3):
-            _sides_at(R, t, ceiling_m, pose[0] + (JAC_EPS if c == 0 else 0.0),
+            _sides_at(mount, pose[0] + (JAC_EPS if c == 0 else 0.0),
                       pose[1] + (JAC_EPS if c == 1 else 0.0),
-                      pose[2] + (JAC_EPS if c == 2 else 0.0), corners_w, edge_norm, side,
-                      scale, rp)
+                      pose[2] + (JAC_EPS if c == 2 else 0.0), edges, rp)
             for i in range(m):
                 J[i, c] = (rp[i] - r[i]) / JAC_EPS
         for a in range(3):
@@ -260,9 +395,12 @@ def _gauss_newton(R, t, ceiling_m, pose, corners_w, edge_norm, side, scale, r, J
 
 
 @njit
-def _sides_at(R, t, ceiling_m, x, y, yaw, corners_w, edge_norm, side, scale, out
-              ):  # pragma: no cover - compiled
-    """:func:`_side_residuals` of one pose into ``out (M,)``."""
+def _sides_at(mount, x, y, yaw, edges, out):  # pragma: no cover - compiled
+    """:func:`_side_residuals` of one pose ``(x, y, yaw)`` (m, m, rad) into ``out (M,)``:
+    ``edges`` (a :class:`SideEdges`) seen through the rig ``mount``."""
+    R, t, ceiling_m = mount.R, mount.t, mount.ceiling_m
+    corners_w, edge_norm, side, scale = edges.corners_w, edges.edge_norm, edges.side, \
+        edges.scale
     cz, sz = math.cos(yaw), math.sin(yaw)
     c = np.empty((4, 2))
     for k in range(4):
@@ -366,32 +504,33 @@ def solve(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.ndarray,
     not in ``drop`` ``(4,)`` bool, weighted by the lens's :func:`magnification`; None
     when a corner's ray misses the ceiling. One compiled call (:func:`solve_core`); a
     singular Gauss-Newton step falls back to :func:`refine`'s least squares."""
-    code, lens = geo.camera.lens
-    out, cov, unit = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
-    cw, en = arr(corners_w, np.float64), arr(edge_norm, np.float64)
-    sd, dr = arr(side, np.int64), arr(drop, np.bool_)
-    status, n, rms, var_b, has_unit = solve_core(
-        arr(geo.R_vehicle_cam, np.float64), arr(geo.t_vehicle_cam, np.float64),
-        float(geo.ceiling_m), code, lens, arr(corners_norm, np.float64), cw, en, sd, dr,
-        out, cov, unit)
-    if status == NO_CLOSED_FORM:
+    seen = SeenBlock(arr(corners_norm, np.float64), arr(corners_w, np.float64),
+                     arr(edge_norm, np.float64), arr(side, np.int64), arr(drop, np.bool_))
+    got = SolvedOut(np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
+    res = solve_core(kernel_mount(geo), seen, got)
+    out = got.pose
+    if res.status == NO_CLOSED_FORM:
         return None
-    if status == SINGULAR:
-        keep = ~dr[sd]
-        return float(out[3]), refine(geo, (out[0], out[1], out[2]), cw, en[keep], sd[keep],
-                                     magnification(geo.camera, en[keep]))
-    return float(out[3]), PlanarFit(out[:3].copy(), cov, rms, n, var_b,
-                                  unit if has_unit else None)
+    if res.status == SINGULAR:
+        en, sd = seen.edge_norm, seen.side
+        keep = ~seen.drop[sd]
+        return float(out[3]), refine(geo, (out[0], out[1], out[2]), seen.corners_w, en[keep],
+                                     sd[keep], magnification(geo.camera, en[keep]))
+    return float(out[3]), PlanarFit(out[:3].copy(), got.cov, res.rms_px, res.m, res.var_b,
+                                  got.unit if res.has_unit else None)
 
 
 @njit
-def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, side, drop,
-               out, cov, unit):  # pragma: no cover - compiled
-    """:func:`solve` in one call: into ``out (4,)`` the pose ``(x, y, yaw)`` and the
-    closed form's RMS on the ceiling, into ``cov`` and ``unit`` ``(3, 3)``
-    :class:`PlanarFit`'s; returns ``(status, n, rms_px, σ_b², has unit)``, status
-    :data:`SOLVED`, :data:`NO_CLOSED_FORM` or :data:`SINGULAR` (``out`` then holds
-    the closed form, for the caller's least squares)."""
+def solve_core(mount, seen, solved):  # pragma: no cover - compiled
+    """:func:`solve` in one call: ``seen`` (a :class:`SeenBlock`) through the rig
+    ``mount`` (a :class:`KernelMount`), into ``solved`` (a :class:`SolvedOut`) the pose
+    ``(x, y, yaw)`` and the closed form's RMS on the ceiling, and :class:`PlanarFit`'s
+    ``cov`` and ``unit``; returns a :class:`Solved`, status :data:`SOLVED`,
+    :data:`NO_CLOSED_FORM` or :data:`SINGULAR` (``solved.pose`` then holds the closed
+    form, for the caller's least squares)."""
+    R, t, ceiling_m = mount.R, mount.t, mount.ceiling_m
+    corners_norm, corners_w, edge_norm, side, drop = seen
+    out, cov, unit = solved
     # the closed form: the corners on the ceiling (V), rigidly fitted to the block's
     rise = ceiling_m - t[2]
     q = np.empty((4, 2))
@@ -399,11 +538,11 @@ def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, 
         rises, ox, oy = meet_ceiling(R, corners_norm[i, 0], corners_norm[i, 1], rise,
                                      MIN_RZ, 0.0)
         if not rises:
-            return NO_CLOSED_FORM, 0, np.nan, 0.0, False
+            return Solved(NO_CLOSED_FORM, 0, np.nan, 0.0, False)
         q[i, 0] = t[0] + ox
         q[i, 1] = t[1] + oy
         if not (math.isfinite(q[i, 0]) and math.isfinite(q[i, 1])):
-            return NO_CLOSED_FORM, 0, np.nan, 0.0, False
+            return Solved(NO_CLOSED_FORM, 0, np.nan, 0.0, False)
     qx, qy = 0.25 * q[:, 0].sum(), 0.25 * q[:, 1].sum()
     px, py = 0.25 * corners_w[:, 0].sum(), 0.25 * corners_w[:, 1].sum()
     sc = ss = 0.0
@@ -432,11 +571,11 @@ def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, 
             en[j, 0], en[j, 1], sd[j] = edge_norm[i, 0], edge_norm[i, 1], side[i]
             j += 1
     scale = np.empty(m)
-    magnification_points(en, code, lens, scale)
+    magnification_points(en, mount.code, mount.lens, scale)
     pose = out[:3].copy()
     r, J, JtJ = np.empty(m), np.empty((m, 3)), np.empty((3, 3))
-    if not _gauss_newton(R, t, ceiling_m, pose, corners_w, en, sd, scale, r, J, JtJ):
-        return SINGULAR, m, np.nan, 0.0, False
+    if not _gauss_newton(mount, pose, SideEdges(corners_w, en, sd, scale), GNArrays(r, J, JtJ)):
+        return Solved(SINGULAR, m, np.nan, 0.0, False)
     ssr = 0.0
     for i in range(m):
         ssr += r[i] * r[i]
@@ -446,14 +585,14 @@ def solve_core(R, t, ceiling_m, code, lens, corners_norm, corners_w, edge_norm, 
     A = np.empty((3, 3))
     if not scaled_inverse3(JtJ, 1.0, A):
         cov[:] = np.inf
-        return SOLVED, m, rms, 0.0, False
+        return Solved(SOLVED, m, rms, 0.0, False)
     common = np.empty((3, 3))
     s2, var_b, has_unit = _side_offsets(r, J, sd, A, unit, common)
     for a in range(3):
         for b in range(3):
             cov[a, b] = (s2 * A[a, b] + common[a, b]
                          + (var_b * unit[a, b] if has_unit else 0.0))
-    return SOLVED, m, rms, var_b, has_unit
+    return Solved(SOLVED, m, rms, var_b, has_unit)
 
 
 @njit
@@ -553,8 +692,7 @@ def six_dof_check(geo: PlanarGeometry, corners_norm: np.ndarray, corners_w: np.n
 def _warm() -> None:
     R = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]).T.copy()
     square = np.array([[1.0, -0.2], [1.4, -0.2], [1.4, 0.2], [1.0, 0.2]])
-    geo = PlanarGeometry(None, R, np.zeros(3), 3.0)         # (no lens: not used here)
+    geo = PlanarGeometry(CameraModel.pinhole(4, 4, 2.0), R, np.zeros(3), 3.0)
     edge = project_norm(geo, (1.2, 0.0, 0.0), square[np.repeat(np.arange(4), 2)])
     refine(geo, (1.2, 0.0, 0.0), square, edge, np.repeat(np.arange(4), 2), np.ones(8))
-    geo = PlanarGeometry(CameraModel.pinhole(4, 4, 2.0), R, np.zeros(3), 3.0)
     solve(geo, edge[::2], square, edge, np.repeat(np.arange(4), 2), np.zeros(4, bool))

@@ -39,6 +39,8 @@ from ceilkit.runtime.estimators.block.pnp import (
     SOLVED,
     PlanarFit,
     PlanarGeometry,
+    SeenBlock,
+    SolvedOut,
     solve_core,
 )
 from ceilkit.runtime.features.quads import BORDER_PX, bilinear, signed_area
@@ -125,16 +127,6 @@ class WindowCheck(NamedTuple):
     window_px: float
 
 
-class SolvedOut(NamedTuple):
-    """The arrays :func:`window_core` writes besides the sides: ``pose (4,)`` (x, y,
-    yaw, shape_m), ``cov (3, 3)`` and ``unit (3, 3)`` as :func:`.pnp.solve_core`
-    writes them."""
-
-    pose: np.ndarray
-    cov: np.ndarray
-    unit: np.ndarray
-
-
 class WindowResult(NamedTuple):
     """What :func:`window_core` returns: whether the check passed ``ok``, the edge
     points measured ``n`` and used ``m``, the edge residual ``rms_px``, the variance
@@ -168,7 +160,7 @@ class Windows:
         options: the block method's options (``window_px``, ``edge_points``,
             ``dark_ratio``, ``bright_ratio``, ``shape_tol``).
         drop: ``drop(corners_w)``: ``(4,)`` bool, the sides the refinement leaves out
-            (:class:`.seams.LinedSides`); none when not given.
+            (:class:`.parallels.LinedSides`); none when not given.
         codes: the site's marker dictionary (:class:`~..features.quads.MarkerCodes`):
             a marker's code is read on its measured outline (the window check).
     """
@@ -366,7 +358,7 @@ def window_core(grey, px, search, mount, target, check, sides, solved):  # pragm
     :class:`.detect.EdgeSearch`, says), solved through ``mount`` (a :class:`KernelMount`) and
     checked by ``check`` (a :class:`WindowCheck`): a :class:`WindowResult`; the sides
     into ``sides`` (a :class:`.detect.SidesOut`), the pose, shape and covariance into
-    ``solved`` (a :class:`SolvedOut`) as :func:`.pnp.solve_core` writes them."""
+    ``solved`` (a :class:`.pnp.SolvedOut`) as :func:`.pnp.solve_core` writes them."""
     corners_w, drop = target
     corners, edge, side = sides.corners, sides.edge, sides.side
     out, code, lens = solved.pose, mount.code, mount.lens
@@ -384,10 +376,8 @@ def window_core(grey, px, search, mount, target, check, sides, solved):  # pragm
     ratio = contrast_core(grey, cpx)
     if not (ratio < check.dark_ratio if check.dark else ratio > check.bright_ratio):
         return fail
-    status, m, rms, var_b, has_unit = solve_core(mount.R, mount.t, mount.ceiling_m, code,
-                                                 lens, corners, corners_w, edge[:n],
-                                                 side[:n], drop, out, solved.cov,
-                                                 solved.unit)
+    status, m, rms, var_b, has_unit = solve_core(
+        mount, SeenBlock(corners, corners_w, edge[:n], side[:n], drop), solved)
     if status != SOLVED or rms > check.max_rms_px or out[3] > check.max_shape_m:
         return fail
     if not (math.isfinite(out[0]) and math.isfinite(out[1]) and math.isfinite(out[2])):

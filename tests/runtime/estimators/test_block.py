@@ -162,7 +162,7 @@ def test_a_block_side_on_a_seam_is_left_out_and_the_pose_is_unbiased(rig):
     left outside it, narrower than the blur, pulled that edge ~0.3 px in (1.2-1.5 mm
     of x error with a 0.19 mm 1-sigma). That side is left out of the refinement (its
     opposite is on no line): the pose comes from the three clean sides."""
-    from ceilkit.runtime.estimators.block.seams import sides_on_lines
+    from ceilkit.runtime.estimators.block.parallels import sides_on_lines
     site = Site.load(CONFIGS / "block" / "site.yaml")
     b = next(blk for blk in site.blocks if blk.id == "B")
     assert sides_on_lines(site.corridor, b.corners_m).tolist() == [False, True, False, False]

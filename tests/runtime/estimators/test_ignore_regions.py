@@ -15,8 +15,8 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.base import PoseEstimate
 from ceilkit.runtime.estimators.block.estimator import BlockEstimator
+from ceilkit.runtime.estimators.block.parallels import predicted_chords
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, ceiling_points_vehicle
-from ceilkit.runtime.estimators.block.seams import predicted_chords
 from ceilkit.runtime.estimators.lights.rays import project_lights
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.sim.render import SimOptions, render_frame

@@ -14,10 +14,10 @@ import pytest
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
-from ceilkit.runtime.estimators.block import detect, pnp, seams
+from ceilkit.runtime.estimators.block import detect, parallels, pnp
 from ceilkit.runtime.estimators.block.estimator import BlockEstimator
+from ceilkit.runtime.estimators.block.parallels import LinedSides
 from ceilkit.runtime.estimators.block.pnp import PlanarGeometry, project_px
-from ceilkit.runtime.estimators.block.seams import LinedSides
 from ceilkit.runtime.estimators.block.window import WINDOW
 from ceilkit.runtime.geometry.camera import CameraModel, magnification_points
 from ceilkit.runtime.sim.render import SimOptions, render_frame
@@ -166,14 +166,14 @@ def test_predicted_chords_equal_the_array_reading(scene):
                                  (site.corridor, ignore, 20), (no_across, site, 20),
                                  (site.corridor, None, 0), (site.corridor, None, 1)):
                 want = ref.predicted_chords(geo, cor, p, most, s)
-                got = seams.predicted_chords(geo, cor, p, most, s)
+                got = parallels.predicted_chords(geo, cor, p, most, s)
                 assert got.shape == want.shape
                 np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
                 n += len(got)
     assert n > 500
     # looking at the sky: the camera's axis never meets the ceiling
     up = PlanarGeometry(geo.camera, np.diag([1.0, -1.0, -1.0]), geo.t_vehicle_cam, 3.0)
-    assert seams.predicted_chords(up, site.corridor, (0.0, 0.0, 0.0)).shape == (0, 4)
+    assert parallels.predicted_chords(up, site.corridor, (0.0, 0.0, 0.0)).shape == (0, 4)
 
 
 def test_predicted_outlines_equal_the_array_reading(scene):
