@@ -428,7 +428,7 @@ def mount(placements: Path | None, site: Path, out: Path, *, rig: Path | None = 
                 "re-measure it or leave it out. Nothing written")
         lines += res.lines() + _fix_lines(fixes, rig)
         header = provenance_header(
-            "rig.yaml written by ceilcal mount",
+            "rig.yaml: the camera's mount fitted from placements",
             [f"placements: {placements} ({len(pls)})", f"site: {site}"]
             + ([f"drive: {drive}"] if drive else []) + lines)
         exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
@@ -492,7 +492,7 @@ def mount_upward(recording: Path | None, the_site: Site, site: Path, out: Path, 
                                  estimate_offset=None if poses is None else True)
     lines = res.lines()
     header = provenance_header(
-        "rig.yaml written by ceilcal mount (upward lights rig)",
+        "rig.yaml: the camera's mount fitted from a drive (upward lights rig)",
         [f"drive: {recording} ({len(frames)} frames)", f"site: {site}"]
         + ([f"poses: {poses}"] if poses is not None else []) + lines)
     exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)
@@ -592,7 +592,7 @@ def _save_held_fit(the_rig: Rig, res, out: Path, camera_ref, kind: str, source: 
     lines = res.lines()
     how = "the rig's value" if from_rig else "typed"
     header = provenance_header(
-        f"rig.yaml written by ceilcal mount (upward lights rig, {kind})",
+        f"rig.yaml: the camera's mount fitted from a drive (upward lights rig, {kind})",
         [source, f"site: {site}",
          f"held: {held} (--fix {held}, {how}; not measured by this fit)"] + lines)
     exports = _save_rig(the_rig.with_mount(res.mount), out, header, camera_ref)

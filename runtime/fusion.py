@@ -1051,7 +1051,17 @@ class FusionReport:
                        f"{len(self.values)} poses), {100 * np.mean(inside):.1f}% of poses inside "
                        f"their 95% ellipsoid; quality >= 0.8 but > 5 cm off: "
                        f"{self.confident_wrong}")
+            if not lo <= mean <= hi:
+                out.append(_NEES_BELOW if mean < lo else _NEES_ABOVE)
         return out
+
+
+_NEES_BELOW = ("consistency: below the band: the published covariances are wider than the "
+               "errors made (conservative: a gate or a fusion downstream trusts these poses "
+               "less than it could); nothing to do on the vehicle")
+_NEES_ABOVE = ("consistency: ABOVE the band: the errors are larger than the published "
+               "covariances claim; do not fuse these poses with a tight gate, and report "
+               "the recording (docs/methods/honesty.md)")
 
 
 def _failure(est: Estimate, cues: tuple) -> Failure:

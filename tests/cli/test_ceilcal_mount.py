@@ -31,7 +31,7 @@ def test_mount_from_simulated_placements(tmp_path, corridor_rig, corridor_site):
     for name in ("tilt_rad", "swing_rad", "pan_rad"):
         assert abs(math.degrees(getattr(got.mount, name) - getattr(truth, name))) < 0.1
     assert abs(got.mount.y_m - truth.y_m) < 0.005
-    assert out.read_text().startswith("# rig.yaml written by ceilcal mount")
+    assert out.read_text().startswith("# rig.yaml: the camera's mount fitted from placements")
 
 
 def test_mount_bad_inputs(tmp_path):

@@ -531,3 +531,19 @@ def test_a_heading_whose_branch_a_contradicted_start_pose_chose_is_not_published
         cue = PoseEstimate(k * DT, "block", None, None, -math.pi / 2, 0.0, None,
                            np.diag([np.inf, np.inf, 1e-6]), hypotheses=quarter)
         assert not fu.update(cue).estimate
+
+
+@pytest.mark.parametrize("scale,word", [(0.1, "below the band"), (1.0, None),
+                                        (10.0, "ABOVE the band")])
+def test_consistency_line_says_what_a_nees_outside_its_band_means(scale, word):
+    """A replay's NEES outside its band comes with a line saying which way and what it
+    means for the vehicle (issue 37: "mean NEES 1.31 (band 1.77-2.24)" was printed with no
+    word); inside the band, no such line."""
+    from ceilkit.runtime.fusion import FusionReport
+
+    rng = np.random.default_rng(3)
+    report = FusionReport(Fusion())
+    report.values = [(scale * float(v), 2) for v in rng.chisquare(2, 400)]
+    lines = report.lines()
+    extra = [ln for ln in lines if "the band" in ln]
+    assert (extra == []) if word is None else (word in extra[0])
