@@ -11,9 +11,14 @@ The frames: per frame size, three simulated drives (noise 2 grey levels, blur 0.
 * ``lights``: configs/lights, a drive across the hall at 30 deg, 0.8 m/s;
 * ``corridor``: configs/corridor, a weaving drive down the corridor, 0.8 m/s, heading
   wobble 4 deg (the stated heading of ``stated.py``);
-* ``block``: configs/block, along its blocks and markers, 0.8 m/s, weaving 0.2 m.
+* ``block``: configs/block, along its blocks and markers, 0.8 m/s, weaving 0.2 m;
+* ``tiles`` (640x480 only): ``bench_all.py``'s tiled-ceiling drive (a plain 0.6 m tile
+  grid under configs/block's upward camera, round a loop at 10 fps; the corridor
+  method), the same recording (``benchmarks/out/recordings/tiles_<frames>``); every
+  frame is ``ambiguous`` without a prior, so the entries with a prior start from the
+  drive's first true pose (``bench_all.load``).
 
-Every drive runs at 60 fps. The camera at each size is the packaged rig's lens on a
+The other drives run at 60 fps. The camera at each size is the packaged rig's lens on a
 bigger sensor with the same horizontal field of view: the focal length scaled by
 ``W / 640`` (square pixels), the principal point kept at the same place relative to
 the image centre; the 16:9 sizes are the middle band of that lens's 4:3 frame (a
@@ -32,6 +37,8 @@ by this thread's CPU time (``time.thread_time_ns``; ``bench_all.run``):
   its scheduled global search every ``window_full_every`` fixes, the block's
   ceiling-plane odometry), behind the same tracker: the estimate a default
   ``ceilrun replay`` makes;
+* **off** (``--off``): the default options with ``window_search=false``, behind the
+  same tracker: the global path with a prior (the corridor's default before issue 38);
 * **kernel**: the reference: FastLineDetector from ``cv2.ximgproc`` with its defaults on
   the full frame (corridor, block), one global threshold plus
   ``connectedComponentsWithStats`` (lights, as ``bench_all.py`` runs it); for the
@@ -48,7 +55,7 @@ Output: a table on stdout and ``benchmarks/out/bench_frames.csv`` (``--out``) wi
 provenance header of ``bench_all.py``.
 
     .venv/bin/python benchmarks/bench_frames.py [--frames 60] [--sizes 640x480 1280x720]\
-        [--configs lights corridor block] [--fresh]
+        [--configs lights corridor block tiles] [--fresh] [--off]
 """
 
 from __future__ import annotations
@@ -63,6 +70,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from bench_all import Data, Entry, accuracy, fmt, load, method_entry, provenance, run
+from bench_ambiguity import loop, tiles_site
 from stated import stated  # noqa: E402  (the symmetric corridor's heading)
 
 from ceilkit.calib.simulate import simulate_recording
@@ -85,6 +93,9 @@ DRIVES = {
     "block": dict(speed_mps=0.8, x0_m=0.3, y_m=0.0, weave_m=0.2),
 }
 """The drives of ``bench_all.py`` (configs/lights, corridor, block), here at 60 fps."""
+CONFIG_NAMES = (*DRIVES, "tiles")
+TILES_SIZE = "640x480"
+"""The tiled-ceiling drive is ``bench_all.py``'s, at this size only."""
 SIM = SimOptions(noise_sigma=2.0, blur_px=0.8, supersample=2)
 """How the drives are rendered: 2 x 2 samples per pixel, not the simulator's default
 3 x 3 (a 1920x1080 drive's rendering is most of this benchmark's time)."""
@@ -121,7 +132,10 @@ def sized_camera(cam: CameraModel, width: int, height: int) -> CameraModel:
 
 
 def recording(config: str, size: str, frames: int, fresh: bool) -> Path:
-    """The config's drive at ``size`` as a SPEC recording (written once, then kept)."""
+    """The config's drive at ``size`` as a SPEC recording (written once, then kept);
+    ``tiles``: ``bench_all.py``'s tiled-ceiling drive (:data:`TILES_SIZE`)."""
+    if config == "tiles":
+        return tiles_recording(frames, fresh)
     rec = OUT / "recordings" / f"frames_{config}_{size}_{frames}"
     if rec.exists() and fresh:
         for p in sorted(rec.rglob("*"), reverse=True):
@@ -137,15 +151,38 @@ def recording(config: str, size: str, frames: int, fresh: bool) -> Path:
     return rec
 
 
-def entries(config: str, data: Data) -> tuple[list[Entry], str]:
-    """The method's global and tracked entries and the kernels; the reference's name."""
+def tiles_recording(frames: int, fresh: bool) -> Path:
+    """``bench_all.tiled_recordings``' ``tiles`` drive (the same folder, settings and
+    seed), written once, then kept."""
+    folder = OUT / "recordings"
+    rec = folder / f"tiles_{frames}"
+    if rec.exists() and fresh:
+        for p in sorted(rec.rglob("*"), reverse=True):
+            p.unlink() if p.is_file() else p.rmdir()
+        rec.rmdir()
+    if not rec.exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        simulate_recording(Rig.load(CONFIGS / "block" / "rig.yaml"),
+                           Site.load(tiles_site(folder)), loop(frames, 10.0, 1.0, 0.0, 1.5, 0.4),
+                           rec, SimOptions(noise_sigma=2.0, blur_px=0.8), seed=7)
+    return rec
+
+
+def entries(config: str, data: Data, off: bool = False) -> tuple[list[Entry], str]:
+    """The method's global, tracked and default entries (with ``off`` the default with
+    ``window_search=false`` too) and the kernels; the reference's name (``tiles``: the
+    corridor method on the tiled-ceiling drive)."""
     rig, site, g = data.rig, data.site, data.grey
-    glob = make_estimator(config, rig, site, stated(config, {"window_search": False}))
-    tracked = make_estimator(config, rig, site, stated(config, {"window_search": True}))
-    default = make_estimator(config, rig, site, stated(config))
+    method = "corridor" if config == "tiles" else config
+    glob = make_estimator(method, rig, site, stated(method, {"window_search": False}))
+    tracked = make_estimator(method, rig, site, stated(method, {"window_search": True}))
+    default = make_estimator(method, rig, site, stated(method))
     out = [method_entry(f"{config} global", "global", glob, data, False),
            method_entry(f"{config} tracked", "tracked", tracked, data, True),
            method_entry(f"{config} default", "default", default, data, True)]
+    if off:
+        est = make_estimator(method, rig, site, stated(method, {"window_search": False}))
+        out.append(method_entry(f"{config} window_search=false", "off", est, data, True))
     if config == "lights":
         def thr_cc(k: int):
             _, m = cv2.threshold(g[k], 200, 255, cv2.THRESH_BINARY)
@@ -157,7 +194,7 @@ def entries(config: str, data: Data) -> tuple[list[Entry], str]:
     fld = cv2.ximgproc.createFastLineDetector()
     ref = "kernel: FastLineDetector default, full frame"
     out.append(Entry(ref, "kernel", lambda k: fld.detect(g[k])))
-    if config == "corridor":
+    if method == "corridor":
         det = glob.detector
         out.append(Entry(f"kernel: {det.method} as the corridor configures it", "kernel",
                          lambda k: det(g[k])))
@@ -215,7 +252,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=60, help="frames per drive (60 fps)")
     ap.add_argument("--sizes", nargs="+", default=list(SIZES), help="WIDTHxHEIGHT ...")
-    ap.add_argument("--configs", nargs="+", default=list(DRIVES), choices=list(DRIVES))
+    ap.add_argument("--configs", nargs="+", default=list(DRIVES), choices=CONFIG_NAMES)
+    ap.add_argument("--off", action="store_true",
+                    help="also the default with window_search=false behind the tracker")
     ap.add_argument("--fresh", action="store_true", help="write the recordings again")
     ap.add_argument("--out", type=Path, default=OUT / "bench_frames.csv")
     args = ap.parse_args()
@@ -226,8 +265,10 @@ def main() -> None:
     all_rows: list[dict[str, object]] = []
     for size in args.sizes:
         for config in args.configs:
+            if config == "tiles" and size != TILES_SIZE:
+                continue
             data = load(recording(config, size, args.frames, args.fresh))
-            ents, ref = entries(config, data)
+            ents, ref = entries(config, data, args.off)
             t0 = time.perf_counter()
             run(data, ents, cpu_time=True)
             rows = rows_of(config, size, data, ents, ref)

@@ -26,7 +26,9 @@ shutter's rows use). Cases
 * **rolling_shutter**: the preset's rolling shutter alone (25 ms), told as above
   (``--no-readout``: both realism cases with ``readout_ms`` left at 0, a global shutter
   assumed; the lights' window tracker, which does not model the readout, runs only
-  then);
+  then; the corridor's runs with the readout only when the prior carries a velocity,
+  ``--velocity``: ``corridor.track.window_applies``, so without it those cases have no
+  corridor window fix);
 * **kidnap**: the clean frames with the prior of the frame half a drive away (the
   vehicle carried elsewhere, no odometry seeing it).
 

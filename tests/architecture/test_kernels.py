@@ -19,14 +19,7 @@ import numba
 
 MAX_PARAMETERS = 8
 
-_LEAD = "the lead's file, converted with its own change (issue 35 item 4)"
-_LATER = "not converted yet (issue 35 item 4)"
-EXEMPT: dict[str, str] = {
-    "ceilkit.runtime.estimators.block.pnp._gauss_newton": _LEAD,
-    "ceilkit.runtime.estimators.block.pnp._sides_at": _LEAD,
-    "ceilkit.runtime.estimators.block.pnp.solve_core": _LEAD,
-    "ceilkit.runtime.estimators.corridor.track._measure": _LATER,
-}
+EXEMPT: dict[str, str] = {}
 """``module.name`` -> why it may exceed the limit for now. Keep this tiny."""
 
 

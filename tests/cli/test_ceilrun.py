@@ -100,7 +100,7 @@ def test_replay_writes_poses_and_reports_errors(tmp_path):
 # ``global``: the global path on every frame (``window_search=false``, the default
 # before issue 38: these transcripts predate it); ``window``: the default run, the
 # lights' window search with the global path every ``window_full_every`` fixes (issue
-# 38; the corridor's stays off by default: its default run is its global path).
+# 38; the corridor's too since, its default run not pinned here).
 @pytest.mark.parametrize("name,protocol,path", [
     ("corridor", "nmea", "global"), ("lights", "nmea", "global"),
     ("lights", "mavlink", "global"), ("lights", "nmea", "window")])

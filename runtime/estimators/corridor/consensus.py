@@ -25,7 +25,6 @@ Example::
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -39,13 +38,14 @@ from ceilkit.runtime.estimators.corridor.geometry import (
 from ceilkit.runtime.estimators.corridor.hypotheses import Labeling, angles_core
 from ceilkit.runtime.estimators.corridor.refine import (
     FrameArrays,
+    FrameFit,
     GNInputs,
     LevelCamera,
-    PanOffsetFit,
     RowRates,
     directions_core,
     gn_arrays,
     huber_steps,
+    joint_fit,
     level_camera,
     observation,
     rows_steps,
@@ -169,15 +169,13 @@ def score_core(d, line_of, sigma, gate, inl):  # pragma: no cover - compiled
 
 
 def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: float,
-                  solve: Callable[[GNInputs, float, float], PanOffsetFit], iterations: int,
-                  rates: RowRates | None = None, tau_s: np.ndarray | None = None
-                  ) -> tuple[Labeling, GNInputs, PanOffsetFit]:
+                  iterations: int, rates: RowRates | None = None,
+                  tau_s: np.ndarray | None = None) -> FrameFit:
     """The joint fit of ``lab`` on the matched forward segments that lie on the site's
     ceiling lines: a line at another height (a pipe, a cable tray) that the 1-D
-    association matched is left out. ``solve(gd, psi, c_y)``: the fit from a start (at
-    most ``iterations`` steps: :func:`.refine.gauss_newton`, or with ``rates``, a
-    rolling shutter's, and the endpoints' row times ``tau_s (N, 2)``,
-    :func:`.refine.gauss_newton_rows`).
+    association matched is left out. The fit from a start: :func:`.refine.joint_fit`,
+    at most ``iterations`` steps (with ``rates``, a rolling shutter's, and the
+    endpoints' row times ``tau_s (N, 2)``: :func:`.refine.gauss_newton_rows`).
 
     The consensus (:func:`ceiling_consensus`, at the vanishing point's pan; its scale
     :data:`CONSENSUS_SIGMA_PX`, or :data:`VP_SIGMAS` times the frame's
@@ -190,10 +188,11 @@ def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: f
     fits). A core on
     fewer than :data:`CORE_MIN_LINES` site lines says nothing of the scatter: then all
     matched segments are fitted first, and the gate is its largest. Returns the
-    labeling with the segments left out unmatched (``n_lines`` recounted,
-    ``n_off_ceiling`` set), its GN inputs and the fit. The rounds run in one compiled
-    call (:func:`consensus_core`), which gives the last fit's assignment, GN inputs and
-    start; that fit is made again here (``solve``) for its residuals and covariance."""
+    :class:`~.refine.FrameFit`: the labeling with the segments left out unmatched
+    (``n_lines`` recounted, ``n_off_ceiling`` set), its GN inputs and the fit. The
+    rounds run in one compiled call (:func:`consensus_core`), which gives the last
+    fit's assignment, GN inputs and start; that fit is made again here
+    (:func:`.refine.joint_fit`) for its residuals and covariance."""
     f64 = np.float64
     rows = rates is not None and tau_s is not None
     assign = np.empty(lab.assign.size, np.int64)
@@ -211,8 +210,8 @@ def consensus_fit(fr: FrameLines, lab: Labeling, st: CorridorSetup, inlier_px: f
         lines, labeled, SiteLines(arr(st.site_y, f64), arr(st.edge_kind, f64)),
         level_camera(st, st.R_level_cam), start, shutter, assign)
     gd = GNInputs(*arrays, tau=tau if rows else None, tau_b=tau_b if rows else None)
-    return (replace(lab, assign=assign, n_lines=n_lines, n_off_ceiling=n_off), gd,
-            solve(gd, psi, cy))
+    return FrameFit(fr, replace(lab, assign=assign, n_lines=n_lines, n_off_ceiling=n_off),
+                    gd, joint_fit(gd, psi, cy, st, iterations, rates))
 
 
 class Labeled(NamedTuple):

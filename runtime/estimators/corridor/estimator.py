@@ -63,13 +63,11 @@ from ceilkit.runtime.estimators.corridor.hypotheses import (
     dominant_pans,
 )
 from ceilkit.runtime.estimators.corridor.refine import (
-    GNInputs,
-    PanOffsetFit,
+    FrameFit,
     RowRates,
     camera_y_speed,
-    gauss_newton,
-    gauss_newton_rows,
     gn_inputs,
+    joint_fit,
     vehicle_pose,
 )
 from ceilkit.runtime.estimators.corridor.setup import (
@@ -81,6 +79,8 @@ from ceilkit.runtime.estimators.corridor.setup import (
 from ceilkit.runtime.estimators.corridor.track import (
     MAX_CHORD_RMS_PX,
     LineTracker,
+    WindowFit,
+    window_applies,
     window_twins,
     without_ignored,
 )
@@ -178,9 +178,10 @@ class CorridorOptions(ShutterOptions):
             detector); the global path runs when that check fails, when a twin of the
             fix explains the frame better or lies inside the prior's region too
             (:func:`~.track.window_twins`), and every ``window_full_every``-th window
-            fix. Off by default: its p95 is larger than the global path's on the
-            realistic preset with a prior without velocity (docs/methods/corridor.md).
-            (Formerly ``track``.)
+            fix; with a rolling shutter (``readout_ms`` > 0) only when the prior
+            carries a velocity (:func:`~.track.window_applies`). On by default since
+            issue 38 (no less accurate than the global path on every bench case,
+            docs/methods/corridor.md). (Formerly ``track``.)
         window_px: half-width of the searches (px): how far a line may lie from its
             prediction. (Formerly ``track_search_px``.)
         window_full_every: a global search after this many window fixes (0: only when
@@ -223,7 +224,7 @@ class CorridorOptions(ShutterOptions):
     gn_iterations: int = 6
     min_elevation_deg: float = 3.0
     consensus: bool = True
-    window_search: bool = False
+    window_search: bool = True
     window_px: float = 5.0
     window_full_every: int = 30
     coarse_search: bool = True
@@ -305,7 +306,8 @@ class CorridorEstimator(Estimator):
         line-shift hypotheses when the frame alone cannot. Failure reasons besides the
         frame check's: ``too_few_lines``, ``no_ceiling_lines``, ``no_association``,
         ``ambiguous``."""
-        if self.lines_track is not None and prior is not None and prior.y_m is not None:
+        # with a rolling shutter, only a prior with a velocity (track.window_applies)
+        if self.lines_track is not None and window_applies(self.options.readout_ms, prior):
             fast = self._tracked(grey, t_ns, prior, t0)
             if fast is not None:
                 return fast
@@ -354,13 +356,17 @@ class CorridorEstimator(Estimator):
         # centre (a profile's edge model leans towards its middle): measured again
         # about itself (bench_paired, priors 1 and 3 cm off: lateral p95 0.59 and 7.5 mm
         # before, 0.18 and 0.19 mm after, the global path's 0.27)
-        if found is not None and self.lines_track.shift_px(
-                found[4].psi_rad - psi, found[4].camera_y_m - cy) > REMEASURE_PX:
-            found = self._window_fit(grey, found[4].psi_rad, found[4].camera_y_m, prior)
+        fit = None if found is None else found.frame.fit
+        if fit is not None and self.lines_track.shift_px(
+                fit.psi_rad - psi, fit.camera_y_m - cy) > REMEASURE_PX:
+            found = self._window_fit(grey, fit.psi_rad, fit.camera_y_m, prior)
         twins = None if found is None else fit_twins(self.lines_track, self._ctx, grey, found)
-        out = None if twins is None else self._pose(t_ns, found[1], dataclasses.replace(
-            found[2], twins=twins, ambiguous=any(t.label == "shift" for t in twins)),
-            *found[3:], found[0].rms_px, t0, "window")
+        out = None
+        if twins is not None:
+            lab = dataclasses.replace(found.frame.labeling, twins=twins,
+                                      ambiguous=any(t.label == "shift" for t in twins))
+            out = self._pose(t_ns, dataclasses.replace(found.frame, labeling=lab),
+                             found.chords.rms_px, t0, "window")
         # outside the prior's region (a kidnap), or a twin inside it (estimators/prior.py)
         if out and prior_choice(prior, [(None, h.y_m, h.yaw_rad, None)
                                         for h in out.hypotheses or (out,)]) != 0:
@@ -371,11 +377,13 @@ class CorridorEstimator(Estimator):
         self._tracked_fixes += 1
         return out
 
-    def _window_fit(self, grey: np.ndarray, psi: float, cy: float, prior: PoseEstimate):
-        """``(measurement, frame lines, labeling, GN inputs, fit)`` of the edge searches
-        across the lines predicted for camera pan ``psi`` and camera y ``cy``
-        (:mod:`~.track`), or ``None``: not found, a poor fit (rms beyond what a chord
-        meets, docs/methods/corridor.md), or a fit beyond the searches' reach."""
+    def _window_fit(self, grey: np.ndarray, psi: float, cy: float, prior: PoseEstimate
+                    ) -> WindowFit | None:
+        """The :class:`~.track.WindowFit` (the located chords, the frame fitted on them)
+        of the edge searches across the lines predicted for camera pan ``psi`` and
+        camera y ``cy`` (:mod:`~.track`), or ``None``: not found, a poor fit (rms beyond
+        what a chord meets, docs/methods/corridor.md), or a fit beyond the searches'
+        reach."""
         o, st = self.options, self.setup
         m = without_ignored(self.lines_track.measure(grey, psi, cy), self._ignore, prior)
         if m is None:
@@ -387,13 +395,13 @@ class CorridorEstimator(Estimator):
                        False, "window")
         rates = self._rates(prior)
         gd = gn_inputs(fr, along, across, m.line, st, self._segment_times(fr, rates))
-        fit = self._solve(gd, psi, cy, rates)
+        fit = joint_fit(gd, psi, cy, st, o.gn_iterations, rates)
         reach_psi, reach_cy = self.lines_track.reach()
         if (fit.rms_px > min(o.inlier_px, MAX_CHORD_RMS_PX)
                 or abs(math.remainder(fit.psi_rad - psi, 2 * math.pi)) > reach_psi
                 or abs(fit.camera_y_m - cy) > reach_cy):
             return None
-        return m, fr, lab, gd, fit
+        return WindowFit(m, FrameFit(fr, lab, gd, fit))
 
     def estimate_segments(self, segs_px: np.ndarray, t_ns: int,
                           prior: PoseEstimate | None = None,
@@ -436,8 +444,7 @@ class CorridorEstimator(Estimator):
             return self.fail(t_ns, best.reason, best.detail, hypotheses=hyps,
                              complete=complete_twins(best.twins),
                              n_segments=n_seg, segments_n=segs, search=search)
-        best, gd, fit = self._fit_labeling(fr, best, prior)
-        return self._pose(t_ns, fr, best, gd, fit, fit_rms, t0, search)
+        return self._pose(t_ns, self._fit_labeling(fr, best, prior), fit_rms, t0, search)
 
     def _rates(self, prior: PoseEstimate | None) -> RowRates | None:
         """A rolling shutter's rates (:func:`~ceilkit.runtime.estimators.rows.row_motion`
@@ -452,31 +459,20 @@ class CorridorEstimator(Estimator):
         return RowRates(w, camera_y_speed(yaw, vy, w, self.setup), s_w,
                         math.hypot(s_v, t_vx * s_w))
 
-    def _solve(self, gd: GNInputs, psi_rad: float, camera_y_m: float,
-               rates: RowRates | None) -> PanOffsetFit:
-        """:func:`~.refine.gauss_newton` from ``(psi, c_y)``, or with a rolling shutter
-        :func:`~.refine.gauss_newton_rows`."""
-        if rates is None:
-            return gauss_newton(psi_rad, camera_y_m, gd, self.setup, self.options.gn_iterations)
-        return gauss_newton_rows(psi_rad, camera_y_m, gd, self.setup,
-                                 self.options.gn_iterations, rates)
-
     def _fit_labeling(self, fr: FrameLines, lab: Labeling, prior: PoseEstimate | None
-                      ) -> tuple[Labeling, GNInputs, PanOffsetFit]:
-        """The refinement (:meth:`_solve`) of a labeled frame on the matched forward
-        segments that lie on the site's ceiling lines (:func:`~.consensus.consensus_fit`:
-        a pipe or a cable tray matched by the 1-D association is left out)."""
+                      ) -> FrameFit:
+        """The joint fit (:func:`~.refine.joint_fit`) of a labeled frame on the matched
+        forward segments that lie on the site's ceiling lines
+        (:func:`~.consensus.consensus_fit`: a pipe or a cable tray matched by the 1-D
+        association is left out; all of them with ``consensus`` off)."""
+        o = self.options
         rates = self._rates(prior)
         tau = self._segment_times(fr, rates)
-
-        def solve(gd: GNInputs, psi_rad: float, camera_y_m: float) -> PanOffsetFit:
-            return self._solve(gd, psi_rad, camera_y_m, rates)
-
-        if not self.options.consensus:
+        if not o.consensus:
             gd = gn_inputs(fr, lab.along, lab.across, lab.assign, self.setup, tau)
-            return lab, gd, solve(gd, lab.psi_rad, lab.camera_y_m)
-        return consensus_fit(fr, lab, self.setup, self.options.inlier_px, solve,
-                             self.options.gn_iterations, rates, tau)
+            return FrameFit(fr, lab, gd, joint_fit(gd, lab.psi_rad, lab.camera_y_m,
+                                                   self.setup, o.gn_iterations, rates))
+        return consensus_fit(fr, lab, self.setup, o.inlier_px, o.gn_iterations, rates, tau)
 
     def _segment_times(self, fr: FrameLines, rates: RowRates | None
                        ) -> np.ndarray | None:
@@ -487,11 +483,13 @@ class CorridorEstimator(Estimator):
         v_px = self.rig.camera.distort(fr.segs.reshape(-1, 2))[:, 1].reshape(-1, 2)
         return row_times_s(v_px, self.rig.camera.height, self.options.readout_ms / 1e3)
 
-    def _pose(self, t_ns: int, fr: FrameLines, best: Labeling, gd: GNInputs,
-              fit: PanOffsetFit, fit_rms: np.ndarray, t0: float, search: str) -> Estimate:
-        """The pose, its quality and diagnostics from the refined fit, or the Failure of
-        the first model check it does not pass (:func:`model_failure`); ``search``: the
+    def _pose(self, t_ns: int, ff: FrameFit, fit_rms: np.ndarray, t0: float,
+              search: str) -> Estimate:
+        """The pose, its quality and diagnostics from the fitted frame ``ff``, or the
+        Failure of the first model check it does not pass (:func:`model_failure`);
+        ``fit_rms (N,)``: each segment's edge-fit scatter (px); ``search``: the
         ``search`` diagnostic (``window`` on the tracked path)."""
+        fr, best, gd, fit = ff.lines, ff.labeling, ff.gd, ff.fit
         yaw, y_m, cov = vehicle_pose(fit, self.setup)
         along, across = best.along, best.across
         vl = vanishing_line_check(fr.lines, fr.len_n, along, across, self.setup.R_level_cam)
@@ -544,7 +542,7 @@ class CorridorEstimator(Estimator):
                             hypotheses_complete=complete_twins(best.twins))
 
 
-def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: tuple
+def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: WindowFit
               ) -> tuple[LabelingTwin, ...] | None:
     """The twins of a window fit ``found`` (:meth:`CorridorEstimator._window_fit`) the
     global path would list: the lateral shifts and half turns the frame supports as
@@ -552,8 +550,8 @@ def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: tuple
     seams (``ctx.across_seams``), both quarter turns (their camera y not measured:
     ``exact`` False, so the list is not complete); None when the global path must
     decide the frame."""
-    fit = found[4]
-    twins = window_twins(lt, grey, found[0], fit.psi_rad, fit.camera_y_m, ctx.mirror_y_m)
+    fit = found.frame.fit
+    twins = window_twins(lt, grey, found.chords, fit.psi_rad, fit.camera_y_m, ctx.mirror_y_m)
     if twins is None or not ctx.across_seams:
         return twins
     return twins + tuple(LabelingTwin(wrap_pi(fit.psi_rad + d), math.nan, "quarter_turn",

@@ -32,6 +32,7 @@ import numpy as np
 
 from ceilkit.runtime.estimators.corridor.frame import FrameLines
 from ceilkit.runtime.estimators.corridor.geometry import vanishing_directions
+from ceilkit.runtime.estimators.corridor.hypotheses import Labeling
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.geometry.fits import student
 from ceilkit.runtime.geometry.rotations import wrap_pi
@@ -423,6 +424,35 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
     return PanOffsetFit(psi, cy, cov, rms_px, r)
 
 
+def joint_fit(gd: GNInputs, psi_rad: float, camera_y_m: float, setup: CorridorSetup,
+              iterations: int, rates: RowRates | None = None) -> PanOffsetFit:
+    """The joint fit of a labeled frame from ``(psi, c_y)`` (rad, m; camera pan and y
+    in W), at most ``iterations`` steps: :func:`gauss_newton`, or with a rolling
+    shutter's ``rates`` (``gd`` with row times) :func:`gauss_newton_rows`."""
+    if rates is None:
+        return gauss_newton(psi_rad, camera_y_m, gd, setup, iterations)
+    return gauss_newton_rows(psi_rad, camera_y_m, gd, setup, iterations, rates)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameFit:
+    """A labeled frame and its joint fit, as the corridor's stages hand it on (the
+    consensus or the window search to the model check).
+
+    Attributes:
+        lines: the frame's segments (:class:`~.frame.FrameLines`).
+        labeling: their families and site lines (:class:`~.hypotheses.Labeling`; after
+            the consensus, the segments it left out unmatched).
+        gd: the fit's inputs (:class:`GNInputs`) of that labeling.
+        fit: the fit (:class:`PanOffsetFit`, :func:`joint_fit`).
+    """
+
+    lines: FrameLines
+    labeling: Labeling
+    gd: GNInputs
+    fit: PanOffsetFit
+
+
 @njit
 def rows_steps(start, gd, tau, cam, iterations, rates, r, C):  # pragma: no cover - compiled
     """The steps of :func:`gauss_newton_rows` from ``start (psi, c_y)`` on the arrays
@@ -492,20 +522,33 @@ def residual_cov(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
                  rates: RowRates | None = None) -> np.ndarray | None:
     """The ``(2, 2)`` covariance of ``(psi, c_y)`` (rad², rad m, m²) from the frame's own
     residuals at the solution (:func:`residuals`, Huber-weighted at 1 px, with the rows'
-    shift of ``rates`` when given): :func:`segment_cov`. None where the normal
-    equations are singular."""
-    A = residuals(psi_rad, camera_y_m, gd, setup)
-    J, r = A[:, :2], A[:, 2]
-    if rates is not None:
-        tau = np.concatenate([gd.tau, gd.tau_b])
-        r = r + (J * tau[:, None]) @ np.array([rates.w_rps, rates.v_mps])
-    sw = np.sqrt(np.minimum(1.0, 1.0 / np.maximum(np.abs(r), 1e-9)))
-    return segment_cov(J * sw[:, None], r * sw, gd.e0.size, gd.y[:gd.e0.size:2])
+    shift of ``rates`` when given): :func:`segment_cov`, in one compiled call
+    (:func:`fix_cov`). None where the normal equations are singular."""
+    tau = (arr(np.concatenate([gd.tau, gd.tau_b]), np.float64) if rates is not None
+           else arr(np.zeros(0), np.float64))
+    rates = RowRates(0.0, 0.0, 0.0, 0.0) if rates is None else RowRates(*map(float, rates))
+    C = np.empty((2, 2))
+    ok = fix_cov((float(psi_rad), float(camera_y_m)), _arrays(gd),
+                 level_camera(setup, setup.R_rows), tau, rates, C)
+    return C if ok else None
 
 
 MIN_SHARE_LINES = 4
 """Site lines a frame needs for :func:`segment_cov`'s shares: the fit's 2 parameters
 take 2 of the lines' means, and a line's share needs 2 more to be seen."""
+
+
+class ShareRows(NamedTuple):
+    """The weighted rows :func:`share_cov` reads: Jacobian ``J (n, 2)`` and residuals
+    ``r (n,)`` (px), the first ``n_a`` the endpoints of forward segments in pairs,
+    segment ``k`` on site line ``line[k]`` of ``0..n_lines - 1``, the rest one per
+    across segment."""
+
+    J: np.ndarray
+    r: np.ndarray
+    n_a: int
+    line: np.ndarray
+    n_lines: int
 
 
 def segment_cov(J: np.ndarray, r: np.ndarray, n_a: int, line_of: np.ndarray
@@ -514,7 +557,7 @@ def segment_cov(J: np.ndarray, r: np.ndarray, n_a: int, line_of: np.ndarray
     weighted Jacobian ``J (n, 2)`` and residuals ``r (n,)`` (px): the first ``n_a`` the
     endpoints of forward segments in pairs, segment ``k`` on the site line
     ``line_of[k]``; the rest one per across segment. ``M`` is ``J^T Σ J`` for the errors
-    the frame's own residuals show (:func:`_shares`):
+    the frame's own residuals show (:func:`_part_shares`):
 
     * a segment's two endpoints come from one line fit: its offset ``(r_0 + r_1) /
       sqrt 2`` and its turn ``(r_0 - r_1) / sqrt 2`` have their own variances (the
@@ -527,65 +570,170 @@ def segment_cov(J: np.ndarray, r: np.ndarray, n_a: int, line_of: np.ndarray
 
     On fewer than :data:`MIN_SHARE_LINES` site lines the fit takes the lines' means
     (2 parameters), so no line's share shows in the residuals: one variance for every
-    residual, ``s^2 H^-1`` (times :func:`student`), whatever else they show (the
-    segments' shares alone covered a 2-line frame's error 3x too tight in variance,
-    ``test_edge_point_noise_sweep``).
+    residual, ``s^2 H^-1``, whatever else they show (the segments' shares alone covered
+    a 2-line frame's error 3x too tight in variance, ``test_edge_point_noise_sweep``).
 
-    One variance for every residual (the rule before) is ``s^2 H^-1``; it over-covered
-    the corridor's error 1.6x at noise 2 and under-covered a tile grid's, whose many
-    segments per seam average nothing of the seam's own error
-    (``benchmarks/bench_ambiguity.py``, docs/fusion.md). Each share's variance is its
-    sum of squares over its degrees of freedom ``nu``, at least :data:`MIN_SIGMA2_PX2`
+    Each share's variance is its sum of squares over its degrees of freedom ``nu``
     (the line's share: what the line means hold beyond the segments' share, at least
-    0), times ``nu / (nu - 2)`` (at most 3): the variance of a Student-t error whose
-    scale was estimated from ``nu`` values, so that a frame of few segments or lines is
-    not taken at its sample variance. None where ``H`` is singular."""
-    H = J.T @ J
-    if not abs(np.linalg.det(H)) > 1e-300:
-        return None
-    Hi = np.linalg.inv(H)
-    _, line = np.unique(line_of, return_inverse=True)
-    if line.size == 0 or line.max() + 1 < MIN_SHARE_LINES:
+    0); a segment share or a single variance below :data:`MIN_SIGMA2_PX2` is set to it
+    (then a stated value, not an estimate). The sum ``M`` is taken at its Student-t
+    variance, times ``nu / (nu - 2)`` (at most 3) of its effective degrees of freedom
+    (Welch-Satterthwaite: ``(Σ t_i)^2 / Σ t_i^2 / nu_i``, ``t_i = tr(H^-1 M_i)`` each
+    share's part of the sum, a floored share counting none), so that a frame of few
+    segments or lines is not taken at its sample variance, and a share estimated from
+    few lines weighs on the factor as much as it weighs in the sum (each share at its
+    own factor, the rule before, took a small line share from about 2 dof at 3x: the
+    corridor's global path 1.2-1.3x wider in variance, docs/methods/honesty.md). One
+    compiled call (:func:`share_cov`). None where ``H`` is singular."""
+    _, line = np.unique(np.asarray(line_of), return_inverse=True)
+    rows = ShareRows(arr(J, np.float64), arr(r, np.float64), int(n_a),
+                     arr(line.ravel(), np.int64), int(line.max() + 1) if line.size else 0)
+    C = np.empty((2, 2))
+    return C if share_cov(rows, C) else None
+
+
+@njit
+def fix_cov(start, gd, cam, tau, rates, C):  # pragma: no cover - compiled
+    """:func:`residual_cov` into ``C (2, 2)`` at ``start (psi, c_y)`` on the arrays
+    ``gd`` (a :class:`GNArrays`) through ``cam`` (a :class:`LevelCamera`), with the
+    rows' shift ``(J_psi w + J_cy v) tau`` of the :class:`RowRates` ``rates`` where the
+    row times ``tau (K + B,)`` s are given (empty: none): the rows of :func:`residuals`
+    Huber-weighted at 1 px, then :func:`share_cov`. False: ``H`` singular."""
+    psi, cy = start
+    w_rps, v_mps = rates.w_rps, rates.v_mps
+    na, n = gd.e0.size, gd.e0.size + gd.p0.size
+    dirs = directions_core(psi, cam.R)
+    J = np.empty((n, 2))
+    r = np.empty(n)
+    for i in range(n):
+        j0, j1, ri = observation(i, na, dirs, cy, gd, cam)
+        if tau.size:
+            ri = ri + ((j0 * tau[i]) * w_rps + (j1 * tau[i]) * v_mps)
+        sw = math.sqrt(min(1.0, 1.0 / max(abs(ri), 1e-9)))
+        J[i, 0], J[i, 1], r[i] = j0 * sw, j1 * sw, ri * sw
+    ys = gd.y[0:na:2]
+    line = np.zeros(ys.size, np.int64)
+    n_lines = 0
+    if ys.size:
+        u = np.unique(ys)
+        line, n_lines = np.searchsorted(u, ys), u.size
+    return share_cov(ShareRows(J, r, na, line, n_lines), C)
+
+
+@njit
+def share_cov(rows, C):  # pragma: no cover - compiled
+    """:func:`segment_cov` of the :class:`ShareRows` ``rows`` into ``C (2, 2)``: False
+    where ``H`` is singular or ``C`` not finite."""
+    J, r, n_a = rows.J, rows.r, rows.n_a
+    h00 = h01 = h11 = rr = 0.0
+    for i in range(r.size):
+        h00 += J[i, 0] * J[i, 0]
+        h01 += J[i, 0] * J[i, 1]
+        h11 += J[i, 1] * J[i, 1]
+        rr += r[i] * r[i]
+    det = h00 * h11 - h01 * h01
+    if not abs(det) > 1e-300:
+        return False
+    Hi = (h11 / det, -h01 / det, h00 / det)
+    # acc: M00, M01, M11, Σ t_i, Σ t_i^2 / nu_i (Welch-Satterthwaite)
+    acc = np.zeros(5)
+    if rows.n_lines < MIN_SHARE_LINES:
         nu = max(r.size - 2.0, 1.0)
-        return max(float(r @ r) / nu, MIN_SIGMA2_PX2) * student(nu) * Hi
-    M = np.zeros((2, 2))
-    if n_a:
-        a, q = J[:n_a].reshape(-1, 2, 2), r[:n_a].reshape(-1, 2)
-        h = math.sqrt(0.5)
-        for sign in (1.0, -1.0):
-            M += _shares((a[:, 0] + sign * a[:, 1]) * h, (q[:, 0] + sign * q[:, 1]) * h,
-                         line, Hi)
-    if r.size > n_a:
-        Jb, rb = J[n_a:], r[n_a:]
-        nu = max(rb.size - float(np.einsum("ij,jk,ik->", Jb, Hi, Jb)), 1.0)
-        M += max(float(rb @ rb) / nu, MIN_SIGMA2_PX2) * student(nu) * (Jb.T @ Jb)
-    C = Hi @ M @ Hi
-    C = 0.5 * (C + C.T)
-    return C if np.all(np.isfinite(C)) else None
+        _add_share(acc, rr / nu, nu, (h00, h01, h11), Hi)
+    else:
+        if n_a:
+            _part_shares(rows, 1.0, Hi, acc)
+            _part_shares(rows, -1.0, Hi, acc)
+        if r.size > n_a:
+            b00 = b01 = b11 = rb = 0.0
+            for i in range(n_a, r.size):
+                b00 += J[i, 0] * J[i, 0]
+                b01 += J[i, 0] * J[i, 1]
+                b11 += J[i, 1] * J[i, 1]
+                rb += r[i] * r[i]
+            nu = max(r.size - n_a - (Hi[0] * b00 + 2.0 * Hi[1] * b01 + Hi[2] * b11), 1.0)
+            _add_share(acc, rb / nu, nu, (b00, b01, b11), Hi)
+    f = student(acc[3] * acc[3] / acc[4]) if acc[4] > 0.0 else 1.0
+    m00, m01, m11 = acc[0] * f, acc[1] * f, acc[2] * f
+    i00, i01, i11 = Hi
+    a00, a01 = i00 * m00 + i01 * m01, i00 * m01 + i01 * m11      # Hi M
+    a10, a11 = i01 * m00 + i11 * m01, i01 * m01 + i11 * m11
+    C[0, 0] = a00 * i00 + a01 * i01
+    C[1, 1] = a10 * i01 + a11 * i11
+    C[0, 1] = C[1, 0] = 0.5 * ((a00 * i01 + a01 * i11) + (a10 * i00 + a11 * i01))
+    return math.isfinite(C[0, 0]) and math.isfinite(C[0, 1]) and math.isfinite(C[1, 1])
 
 
-def _shares(Jg: np.ndarray, rg: np.ndarray, line: np.ndarray, Hi: np.ndarray
-            ) -> np.ndarray:
-    """``J^T Σ J`` of one part of the segments (their offsets or turns: rows ``Jg (K,
-    2)``, values ``rg (K,)`` px, segment ``k`` on line ``line[k]`` of ``0..L-1``) with
-    ``Σ = s_w^2 I + tau^2 Z Z^T`` (``Z`` the segments' line membership): ``s_w^2`` the
-    within-line mean square (``K - L`` dof), ``tau^2`` = (between-line mean square -
-    ``s_w^2``) / mean segments per line, the between-line dof ``L`` less the
-    parameters' share of ``Jg`` (its leverage, ``tr(Jg H^-1 Jg^T)``); each times
-    :func:`student` of its dof. Under 2 between-line dof (2 lines: the fit takes
-    their means, and no share of theirs shows in the residuals), one variance for
-    every segment (``K`` less the leverage dof): the within-line mean square alone
-    covered 2-line frames 3x too tight in variance (``test_edge_point_noise_sweep``)."""
-    k, n_l = rg.size, np.bincount(line)
-    n_lines = n_l.size
-    nu_b = max(n_lines - float(np.einsum("ij,jk,ik->", Jg, Hi, Jg)), 1.0)
-    mean = np.bincount(line, rg) / n_l
+@njit
+def _add_share(acc, s2, nu, m, Hi):  # pragma: no cover - compiled
+    """Add a share of variance ``s2`` (px², from ``nu`` dof; below
+    :data:`MIN_SIGMA2_PX2` set to it and counted as stated, no dof) on the rows whose
+    ``J^T J`` is ``m (m00, m01, m11)`` to ``acc`` (:func:`share_cov`), given ``H^-1``
+    as ``Hi (i00, i01, i11)``."""
+    floored = s2 < MIN_SIGMA2_PX2
+    v = MIN_SIGMA2_PX2 if floored else s2
+    _add_term(acc, v, math.inf if floored else nu, m, Hi)
+
+
+@njit
+def _add_term(acc, v, nu, m, Hi):  # pragma: no cover - compiled
+    """Add ``v m`` to ``acc``'s sum and its part ``t = v tr(H^-1 m)`` to the
+    Welch-Satterthwaite sums (``t^2 / nu`` none for ``nu`` inf)."""
+    t = v * (Hi[0] * m[0] + 2.0 * Hi[1] * m[1] + Hi[2] * m[2])
+    acc[0] += v * m[0]
+    acc[1] += v * m[1]
+    acc[2] += v * m[2]
+    acc[3] += t
+    if math.isfinite(nu):
+        acc[4] += t * t / nu
+
+
+@njit
+def _part_shares(rows, sign, Hi, acc):  # pragma: no cover - compiled
+    """Add the shares of one part of the segments (``sign`` 1: their offsets, -1: their
+    turns; rows ``(J_0 ± J_1) / sqrt 2``, values ``(r_0 ± r_1) / sqrt 2`` px) to ``acc``
+    (:func:`share_cov`): ``Σ = s_w^2 I + tau^2 Z Z^T`` (``Z`` the segments' line
+    membership), ``s_w^2`` the within-line mean square (``K - L`` dof, a segment share),
+    ``tau^2`` = (between-line mean square - ``s_w^2``) / mean segments per line, at
+    least 0, its dof ``L`` less the parameters' share of the part (its leverage,
+    ``tr(Jg H^-1 Jg^T)``)."""
+    J, r, line, n_lines = rows.J, rows.r, rows.line, rows.n_lines
+    k = rows.n_a // 2
+    h = math.sqrt(0.5)
+    cnt = np.zeros(n_lines)
+    sr = np.zeros(n_lines)
+    g0 = np.zeros(n_lines)
+    g1 = np.zeros(n_lines)
+    m00 = m01 = m11 = lev = 0.0
+    for s in range(k):
+        a0 = (J[2 * s, 0] + sign * J[2 * s + 1, 0]) * h
+        a1 = (J[2 * s, 1] + sign * J[2 * s + 1, 1]) * h
+        j = line[s]
+        cnt[j] += 1.0
+        sr[j] += (r[2 * s] + sign * r[2 * s + 1]) * h
+        g0[j] += a0
+        g1[j] += a1
+        m00 += a0 * a0
+        m01 += a0 * a1
+        m11 += a1 * a1
+        lev += Hi[0] * a0 * a0 + 2.0 * Hi[1] * a0 * a1 + Hi[2] * a1 * a1
+    ssw = 0.0
+    for s in range(k):
+        d = (r[2 * s] + sign * r[2 * s + 1]) * h - sr[line[s]] / cnt[line[s]]
+        ssw += d * d
+    nu_b = max(n_lines - lev, 1.0)
     nu_w = float(max(k - n_lines, 1))
-    sw2 = float(np.sum((rg - mean[line]) ** 2)) / nu_w
-    tau2 = max(0.0, float(n_l @ mean ** 2) / nu_b - sw2) / (k / n_lines)
-    G = np.stack([np.bincount(line, Jg[:, 0]), np.bincount(line, Jg[:, 1])], axis=1)
-    return (max(sw2, MIN_SIGMA2_PX2) * student(nu_w) * (Jg.T @ Jg)
-            + tau2 * student(nu_b) * (G.T @ G))
+    sw2 = ssw / nu_w
+    msb = 0.0
+    q00 = q01 = q11 = 0.0
+    for j in range(n_lines):
+        msb += sr[j] * sr[j] / cnt[j]
+        q00 += g0[j] * g0[j]
+        q01 += g0[j] * g1[j]
+        q11 += g1[j] * g1[j]
+    tau2 = max(0.0, msb / nu_b - sw2) / (k / n_lines)
+    _add_share(acc, sw2, nu_w, (m00, m01, m11), Hi)
+    _add_term(acc, tau2, nu_b, (q00, q01, q11), Hi)
 
 
 def vehicle_pose(fit: PanOffsetFit, setup: CorridorSetup
@@ -618,6 +766,9 @@ def _warm() -> None:
         cam = LevelCamera(arr(np.eye(3), np.float64), 2.0, 400.0)
         huber_steps((0.0, 0.0), gd, cam, 1, np.empty(2))
         rows_steps((0.0, 0.0), gd, one, cam, 1, rates, np.empty(2), np.empty((2, 2)))
+        for tau in (none, one):                      # global shutter; rows
+            fix_cov((0.0, 0.0), gd, cam, tau, rates, np.empty((2, 2)))
+    segment_cov(np.ones((2, 2)), np.ones(2), 2, np.zeros(1))
     f = np.float64
     seg = arr(np.array([[0.0, 0.0, 0.1, 0.0]]), f)
     on = arr(np.ones(1, bool), np.bool_)

@@ -32,11 +32,15 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import NamedTuple
 
 import numpy as np
 
+from ceilkit.runtime.estimators.base import PoseEstimate
 from ceilkit.runtime.estimators.corridor.association import ABSENCE_PENALTY
 from ceilkit.runtime.estimators.corridor.hypotheses import TWIN_RATIO, LabelingTwin
+from ceilkit.runtime.estimators.corridor.refine import FrameFit
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.edges import PROFILE_STEP_PX, edge_grid, part_indices
 from ceilkit.runtime.features.lines import ProfileGrid, ProfileKind, refine_chords_core
@@ -118,6 +122,88 @@ class LineMeasurement:
         return int(np.unique(self.line).size)
 
 
+class ChordView(NamedTuple):
+    """Where a predicted chord may lie, as the compiled loops take it: the ceiling's
+    height above the camera ``h_m`` (m), the lens's field radius ``field_r``
+    (normalized), the margin ``margin_px`` kept inside the image, the image rows
+    searched ``row0 .. row1``, the image's ``width`` and ``height`` and the focal
+    length ``f_px`` (px; all floats)."""
+
+    h_m: float
+    field_r: float
+    margin_px: float
+    row0: float
+    row1: float
+    width: float
+    height: float
+    f_px: float
+
+
+class ChordSearch(NamedTuple):
+    """What :func:`_measure` and :func:`_predict` read, made once per tracker
+    (read-only arrays): the camera's ``R_level_cam (3, 3)``, the site's lines along
+    ``site_y (J,)`` (m, W's y) and their ``edge_kind (J,)``, the samples along each
+    line ``along_m (S,)`` (m, W's x from the camera), the cross profiles ``grid``
+    (:class:`~ceilkit.runtime.features.lines.ProfileGrid`), the lens ``lens_code``,
+    ``lens`` (:attr:`~ceilkit.runtime.geometry.camera.CameraModel.lens`) and the
+    image ``bounds`` (:class:`ChordView`)."""
+
+    R_level_cam: np.ndarray
+    site_y: np.ndarray
+    edge_kind: np.ndarray
+    along_m: np.ndarray
+    grid: ProfileGrid
+    lens_code: int
+    lens: np.ndarray
+    bounds: ChordView
+
+
+def chord_search(setup: CorridorSetup, camera: CameraModel, search_px: float
+                 ) -> ChordSearch:
+    """The :class:`ChordSearch` of a site's lines seen through ``camera``, cross
+    profiles ``search_px`` to either side of a prediction (px)."""
+    offs, t, inner = edge_grid(N_ALONG, search_px)
+    il, ir, ii = part_indices(offs)
+    f = np.float64
+    grid = ProfileGrid(arr(offs, f), arr(t, f), arr(il, np.int64), arr(ir, np.int64),
+                       arr(ii, np.int64), np.int64(inner.start + 1), np.int64(inner.stop + 1))
+    bounds = ChordView(float(setup.ceiling_above_cam_m), float(setup.field_radius),
+                       float(search_px + 2.0), float(setup.rows[0]), float(setup.rows[1]),
+                       float(camera.width), float(camera.height), float(setup.f_px))
+    return ChordSearch(arr(setup.R_level_cam, f), arr(setup.site_y, f),
+                       arr(setup.edge_kind, f), arr(np.linspace(-REACH_M, REACH_M, SAMPLES), f),
+                       grid, *camera.lens, bounds)
+
+
+@dataclass(frozen=True, eq=False)
+class WindowFit:
+    """A window fix before its model check: the located ``chords``
+    (:class:`LineMeasurement`) and the ``frame`` fitted on them
+    (:class:`~.refine.FrameFit`: the chords as forward segments, each labeled with its
+    site line)."""
+
+    chords: LineMeasurement
+    frame: FrameFit
+
+
+def window_applies(readout_ms: float, prior: PoseEstimate | None) -> bool:
+    """Whether a frame may take the window path: a prior with a lateral position, and
+    with a rolling shutter (``readout_ms`` > 0) one that carries a velocity (a track's
+    prediction once it has measured one; the fusion's once its velocity is known).
+
+    Without a velocity the rows' motion is unknown (:func:`~..rows.row_motion`: zero,
+    with the ``unknown_*`` sigmas) on either path, and each path's lateral error is
+    that motion seen through where its evidence lies in the frame: on bench_paired's
+    rolling-shutter drive (25 ms) both errors are linear in the truth's lateral speed
+    and yaw rate to 0.22 mm (global) and 0.07 mm (window) rms of 5.2 and 5.7, the
+    window's chords 27 mm of lateral per rad/s of yaw rate against the global path's
+    segments' 25 (its p95 0.75 mm larger). Such a frame goes to the global path, the
+    one the default was measured against (docs/methods/corridor.md)."""
+    if prior is None or prior.y_m is None:
+        return False
+    return readout_ms <= 0 or prior.velocity is not None
+
+
 def without_ignored(m: LineMeasurement | None, regions, pose) -> LineMeasurement | None:
     """``m`` without the chords inside the site's ``ignore`` regions seen from ``pose``
     (:class:`~ceilkit.runtime.estimators.ignore.IgnoreRegions`; SPEC §2), None when
@@ -145,28 +231,15 @@ class LineTracker:
     def __init__(self, setup: CorridorSetup, camera: CameraModel, search_px: float) -> None:
         self.setup, self.camera = setup, camera
         self.search_px = float(search_px)
-        offs, t, inner = edge_grid(N_ALONG, self.search_px)
-        il, ir, ii = part_indices(offs)
-        params = np.array([setup.ceiling_above_cam_m, setup.field_radius, self.search_px + 2.0,
-                           setup.rows[0], setup.rows[1], camera.width, camera.height,
-                           setup.f_px, inner.start + 1, inner.stop + 1])
-        # what the compiled measurement reads, made once (read-only arrays)
-        self._consts = (arr(setup.R_level_cam, np.float64), arr(setup.site_y, np.float64),
-                        arr(np.linspace(-REACH_M, REACH_M, SAMPLES), np.float64),
-                        arr(setup.edge_kind, np.float64),
-                        arr(offs, np.float64), arr(t, np.float64), arr(il, np.int64),
-                        arr(ir, np.int64), arr(ii, np.int64), *camera.lens,
-                        arr(params, np.float64))
-        self.kernel_lines = (self._consts[1], arr(np.abs(setup.edge_kind), np.float64))
+        self.search = chord_search(setup, camera, self.search_px)
+        self.kernel_lines = (self.search.site_y, arr(np.abs(setup.edge_kind), np.float64))
 
     def predicted_chords(self, psi_rad: float, camera_y_m: float
                          ) -> tuple[np.ndarray, np.ndarray]:
         """``(chords (K, 4) px, line (K,))``: the visible stretches of every site line
         for camera pan ``psi_rad`` and camera y ``camera_y_m``, cut into chords of about
         :data:`CHORD_PX` (:func:`_predict`)."""
-        c = self._consts
-        return _predict(float(psi_rad), float(camera_y_m), c[0], c[1], c[2], c[9], c[10],
-                        c[11])
+        return _predict(float(psi_rad), float(camera_y_m), self.search.site_y, self.search)
 
     def measure(self, grey: np.ndarray, psi_rad: float, camera_y_m: float
                 ) -> LineMeasurement | None:
@@ -174,7 +247,7 @@ class LineTracker:
         predicted for ``(psi_rad, camera_y_m)``; ``None`` when fewer than two site lines
         hold a located chord of the right kind. One compiled call (:func:`_measure`)."""
         found, segs_n, chords, line, pol, rms, n = _measure(
-            arr(grey, np.uint8), float(psi_rad), float(camera_y_m), *self._consts)
+            arr(grey, np.uint8), float(psi_rad), float(camera_y_m), self.search)
         if not found:
             return None
         return LineMeasurement(segs_n, chords, line, pol, rms, n)
@@ -190,10 +263,8 @@ class LineTracker:
         """:meth:`predicted_chords` of the lines at W's y = ``site_y`` (default the
         site's ``lines_along``): ``(chords (K, 4) px, line (K,))``, ``line`` indexing
         ``site_y``; a line with no chord is not in view."""
-        c = self._consts
-        ys = c[1] if site_y is None else arr(site_y, np.float64)
-        return _predict(float(psi_rad), float(camera_y_m), c[0], ys, c[2], c[9], c[10],
-                        c[11])
+        ys = self.search.site_y if site_y is None else arr(site_y, np.float64)
+        return _predict(float(psi_rad), float(camera_y_m), ys, self.search)
 
     def probe(self, grey: np.ndarray, chords: np.ndarray, line: np.ndarray,
               kinds: np.ndarray, asked: np.ndarray) -> np.ndarray:
@@ -206,12 +277,10 @@ class LineTracker:
         pick = _probe_chords(line, arr(asked, np.bool_), PROBE_CHORDS)
         if pick.size == 0:
             return out
-        c = self._consts
-        p = c[11]
-        grid = ProfileGrid(c[4], c[5], c[6], c[7], c[8], np.int64(p[8]), np.int64(p[9]))
-        _, pol, rms = refine_chords_core(arr(grey, np.uint8), arr(chords[pick], np.float64), grid,
-                                   ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX),
-                                   c[9], c[10], p[7], LOCAL_SHARE)
+        s = self.search
+        _, pol, rms = refine_chords_core(arr(grey, np.uint8), arr(chords[pick], np.float64),
+                                         s.grid, ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX),
+                                         s.lens_code, s.lens, s.bounds.f_px, LOCAL_SHARE)
         ln = line[pick]
         step = kinds[ln] != 0
         ok = np.isfinite(rms) & (rms <= MAX_CHORD_RMS_PX) & np.where(
@@ -228,16 +297,18 @@ class LineTracker:
 
 
 @njit
-def _predict(psi, cam_y, R_lc, site_y, u, lens_code, lens, p):  # pragma: no cover - compiled
+def _predict(psi, cam_y, site_y, search):  # pragma: no cover - compiled
     """``(chords (K, 4) px, line (K,))`` of :meth:`LineTracker.predicted_chords`: every
-    site line ``y = site_y[j]`` sampled at ``u`` (W's x from the camera), seen from
-    the camera rotation ``R_cw = R_level_camᵀ Rz(-psi)`` at ``h = p[0]`` below the
-    ceiling; a sample is visible in front of the camera, within :data:`REACH_M` on the
-    ceiling, inside the lens's field (``p[1]``) and ``p[2]`` px inside the image's
-    rows ``p[3]..p[4]`` (``p[5] x p[6]`` px); each line's longest visible run is cut
-    into chords (:func:`_chords_of_runs`)."""
-    h, field_r, m = p[0], p[1], p[2]
-    row0, row1, w, hh = p[3], p[4], p[5], p[6]
+    line ``y = site_y[j]`` (m, W) sampled at ``search.along_m`` (W's x from the camera;
+    ``search``: a :class:`ChordSearch`), seen from the camera rotation
+    ``R_cw = R_level_camᵀ Rz(-psi)`` at ``h = search.bounds.h_m`` below the ceiling; a
+    sample is visible in front of the camera, within :data:`REACH_M` on the ceiling,
+    inside the lens's field and the margin inside the image's rows searched
+    (:class:`ChordView`); each line's longest visible run is cut into chords
+    (:func:`_chords_of_runs`)."""
+    R_lc, u, v = search.R_level_cam, search.along_m, search.bounds
+    h, field_r, m = v.h_m, v.field_r, v.margin_px
+    row0, row1, w, hh = v.row0, v.row1, v.width, v.height
     c, s = math.cos(-psi), math.sin(-psi)
     R = np.empty((3, 3))
     for i in range(3):                     # R_lcᵀ Rz(-psi)
@@ -259,7 +330,7 @@ def _predict(psi, cam_y, R_lc, site_y, u, lens_code, lens, p):  # pragma: no cov
             front[j, i] = f and x * x + y * y <= field_r * field_r
             xy[j * n_s + i, 0], xy[j * n_s + i, 1] = x, y
     px = np.empty((n_j * n_s, 2))
-    distort_points(xy, lens_code, lens, px)
+    distort_points(xy, search.lens_code, search.lens, px)
     px = px.reshape(n_j, n_s, 2)
     vis = np.empty((n_j, n_s), np.bool_)
     lo_v, hi_v = max(m, row0), min(hh - 1 - m, row1)
@@ -271,27 +342,26 @@ def _predict(psi, cam_y, R_lc, site_y, u, lens_code, lens, p):  # pragma: no cov
 
 
 @njit
-def _measure(grey, psi, cam_y, R_lc, site_y, u, edge_kind, offs, t, il, ir, ii,
-             lens_code, lens, p):  # pragma: no cover - compiled
-    """:meth:`LineTracker.measure`: ``(found, segs_n, chords, line, polarity, rms,
-    searched)``. The chords of :func:`_predict` are measured by
+def _measure(grey, psi, cam_y, s):  # pragma: no cover - compiled
+    """:meth:`LineTracker.measure` (``s``: the tracker's :class:`ChordSearch`):
+    ``(found, segs_n, chords, line, polarity, rms, searched)``. The chords of
+    :func:`_predict` are measured by
     :func:`~ceilkit.runtime.features.lines.refine_chords`' loop; then the chords of the
     wrong kind or a poor fit are dropped (:data:`MAX_CHORD_RMS_PX`,
     :data:`CHORD_RMS_MEDIANS`). ``found`` is False when fewer than two site lines are
     predicted or keep a chord."""
-    chords, line = _predict(psi, cam_y, R_lc, site_y, u, lens_code, lens, p)
+    chords, line = _predict(psi, cam_y, s.site_y, s)
     n = chords.shape[0]
     empty = (False, np.empty((0, 4)), np.empty((0, 4)), np.empty(0, np.int64),
              np.empty(0), np.empty(0), n)
     if _distinct(line) < 2:
         return empty
-    grid = ProfileGrid(offs, t, il, ir, ii, np.int64(p[8]), np.int64(p[9]))
     kind = ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX)
-    ends, pol, rms = refine_chords_core(grey, chords, grid, kind, lens_code, lens, p[7],
-                                        LOCAL_SHARE)
+    ends, pol, rms = refine_chords_core(grey, chords, s.grid, kind, s.lens_code, s.lens,
+                                        s.bounds.f_px, LOCAL_SHARE)
     ok = np.zeros(n, np.bool_)
     for r in range(n):
-        kind_ok = abs(pol[r]) == 1.0 if edge_kind[line[r]] != 0 else pol[r] == 0.0
+        kind_ok = abs(pol[r]) == 1.0 if s.edge_kind[line[r]] != 0 else pol[r] == 0.0
         ok[r] = math.isfinite(rms[r]) and rms[r] <= MAX_CHORD_RMS_PX and kind_ok
     if ok.any():
         limit = CHORD_RMS_MEDIANS * np.median(rms[ok])
@@ -571,15 +641,13 @@ def _warm() -> None:
     px = np.stack([np.linspace(0.0, 100.0, 5), np.zeros(5)], axis=1)[None]
     _cut_chords(px, np.ones((1, 5), bool))
     cam = CameraModel.pinhole(64, 48, 50.0)
-    offs, t, inner = edge_grid(N_ALONG, 4.0)
-    il, ir, ii = part_indices(offs)
     f = np.float64
-    p = arr([2.0, 1.0, 6.0, 0.0, 48.0, 64.0, 48.0, 50.0, inner.start + 1, inner.stop + 1], f)
-    R, ys, u = arr(np.eye(3), f), arr([-1.0, 1.0], f), arr(np.linspace(-1.0, 1.0, 5), f)
-    _measure(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, R, ys, u,
-             arr([0.0, 0.0], f), arr(offs, f), arr(t, f), arr(il, np.int64),
-             arr(ir, np.int64), arr(ii, np.int64), *cam.lens, p)
-    _predict(0.0, 0.0, R, ys, u, *cam.lens, p)       # also called alone (chords_at)
+    toy = SimpleNamespace(ceiling_above_cam_m=2.0, field_radius=1.0, rows=(0, 48), f_px=50.0,
+                          R_level_cam=np.eye(3), site_y=np.array([-1.0, 1.0]),
+                          edge_kind=np.zeros(2))
+    s = chord_search(toy, cam, 4.0)
+    _measure(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, s)
+    _predict(0.0, 0.0, s.site_y, s)       # also called alone (chords_at)
     lines = (arr([-1.0, 1.0], f), arr([0.0, 0.0], f))
     maps = _twin_maps(lines, np.ones(2, np.bool_), np.ones(2, np.bool_), 0.0, 1e-4)
     hit = np.zeros(maps[4].size, np.int64)
@@ -588,5 +656,6 @@ def _warm() -> None:
     _probe_chords(np.array([0, 0, 1]), arr(np.ones(2, np.bool_), np.bool_), 2)
 
 
-__all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "LineMeasurement", "LineTracker", "REACH_M",
+__all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "ChordSearch", "ChordView", "LineMeasurement",
+           "LineTracker", "REACH_M", "WindowFit", "chord_search", "window_applies",
            "window_twins"]

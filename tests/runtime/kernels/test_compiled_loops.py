@@ -368,7 +368,7 @@ def test_solve3_is_gesv_and_reports_a_singular_matrix():
 # ----------------------------------------------------------------------------- warm-up
 
 def _loop_modules():
-    from ceilkit.runtime.estimators.block import detect, parallels, seams
+    from ceilkit.runtime.estimators.block import detect, parallels
     from ceilkit.runtime.estimators.block import window as bwindow
     from ceilkit.runtime.estimators.corridor import refine as cref
     from ceilkit.runtime.estimators.lights import refine
@@ -376,7 +376,7 @@ def _loop_modules():
     from ceilkit.runtime.geometry import camera, fits
 
     return (windows, spots, quads, edges, lines, track, pnp, refine, parallels, cref,
-            detect, seams, bwindow, camera, fits)
+            detect, bwindow, camera, fits)
 
 
 def _loops():
@@ -482,8 +482,7 @@ def test_corridor_gauss_newton_equals_the_residuals_reading(monkeypatch):
         seen.append((psi, cy, gd, setup, iterations))
         return real(psi, cy, gd, setup, iterations)
 
-    import ceilkit.runtime.estimators.corridor.estimator as cest
-    monkeypatch.setattr(cest, "gauss_newton", spy)
+    monkeypatch.setattr(cref, "gauss_newton", spy)   # what refine.joint_fit calls
     for k, pose in enumerate([(3.0, 0.1, 0.02), (6.0, -0.2, -0.05)]):
         img = render_frame(rig, site, *pose, rng=np.random.default_rng(k),
                            options=SimOptions(noise_sigma=2.0, blur_px=0.8))

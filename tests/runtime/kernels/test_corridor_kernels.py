@@ -73,7 +73,7 @@ def seen():
     spy(cest, "dominant_pans", "pans", lambda q, w: (q, w))
     spy(hypotheses, "label", "label", lambda *a: a)
     spy(cest, "consensus_fit", "fit",
-        lambda fr, lab, st, inlier_px, solve, iterations, rates, tau:
+        lambda fr, lab, st, inlier_px, iterations, rates, tau:
         (fr, lab, st, inlier_px, iterations))
     prior = None
     try:
@@ -241,18 +241,13 @@ def test_consensus_fit_equals_the_array_reading(seen, rolling):
         def inputs(assign, fr=fr, lab=lab, st=st, tau=tau):
             return gn_inputs(fr, lab.along, lab.across, assign, st, tau)
 
-        def solve(gd, psi, cy, st=st, iterations=iterations, rates=rates):
-            if rates is None:
-                return gauss_newton(psi, cy, gd, st, iterations)
-            return gauss_newton_rows(psi, cy, gd, st, iterations, rates)
-
         def solve_ref(gd, psi, cy, st=st, iterations=iterations, rates=rates):
             if rates is None:
                 return gauss_newton(psi, cy, gd, st, iterations)
             return ref.gauss_newton_rows(psi, cy, gd, st, iterations, rates)
 
-        got_lab, got_gd, got = consensus.consensus_fit(fr, lab, st, inlier_px, solve,
-                                                       iterations, rates, tau)
+        ff = consensus.consensus_fit(fr, lab, st, inlier_px, iterations, rates, tau)
+        got_lab, got_gd, got = ff.labeling, ff.gd, ff.fit
         want_lab, want_gd, want = ref.consensus_fit(fr, lab, st, inlier_px, inputs, solve_ref,
                                                     rates)
         assert np.array_equal(got_lab.assign, want_lab.assign)

@@ -98,3 +98,24 @@ def test_the_fast_path_follows_from_a_prior_some_centimetres_off(office):
             assert got and got.diagnostics["search"] == "tracked", (k, d, got)
             err = math.hypot(got.x_m - truth[0], got.y_m - truth[1])
             assert err < 0.002, (k, d, err)
+
+
+def test_a_place_with_several_descriptors_is_weighed_against_another_place():
+    """Two rows of one feature (its views' descriptors, at one point) are one place: the
+    ratio test weighs the nearest against the next place, never against the feature's
+    own second descriptor (which would make every such match look distinctive)."""
+    rng = np.random.default_rng(2)
+    a = rng.integers(0, 256, size=(1, 32), dtype=np.uint8)
+    query = _flipped(a, 10, rng)
+    # feature A at (1, 1) seen two ways (10 and 20 bits from the query), feature B at
+    # (4, 0) 22 bits from it: a ratio 10/22 alone would single A out, but A's first
+    # descriptor is 10 off and B's is 22: distinctive; B at 12 bits: not (10 > 0.8 x 12)
+    near_a = _flipped(query, 20, rng)
+    for b_bits, expected in ((22, True), (12, False)):
+        b = _flipped(query, b_bits, rng)
+        points = np.array([[1.0, 1.0], [1.0, 1.0], [4.0, 0.0]])
+        index = DescriptorIndex(points, np.vstack([a, near_a, b]))
+        for qi, mj, unique in (index.match(query, 2, 64),
+                               index.near(query, (2.0, 0.0), 5.0, 2, 64)):
+            assert list(qi) == [0, 0] and list(mj) == [0, 2], (qi, mj)
+            assert bool(unique[0]) is expected, (b_bits, unique)
