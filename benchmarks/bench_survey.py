@@ -79,6 +79,7 @@ from ceilkit.calib.survey_places import place_of
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import MarkerPose, Markers, Site
 from ceilkit.runtime.estimators.texture.ceilmap import build_map
+from ceilkit.runtime.estimators.texture.match import places
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.ceiling import vehicle_to_world
 from ceilkit.runtime.io.recording import Recording
@@ -113,13 +114,15 @@ def map_errors(rec: Recording, res, truth: np.ndarray) -> dict:
     frames = (to_grey(rec.frame(int(res.frame[n])).image) for n in res.keys)
     ref = build_map(frames, [tuple(truth[int(res.frame[n])]) for n in res.keys], rec.rig,
                     res.ceiling_height_m)
-    d, j = cKDTree(ref.points_xy).query(cmap.points_xy, distance_upper_bound=0.02)
+    # a feature's first row (its medoid descriptor) stands for it, on both maps
+    a, b = (np.unique(places(m.points_xy)[0]) for m in (cmap, ref))
+    d, j = cKDTree(ref.points_xy[b]).query(cmap.points_xy[a], distance_upper_bound=0.02)
     ok = np.isfinite(d)
-    bits = np.unpackbits(cmap.descriptors[ok] ^ ref.descriptors[j[ok]], axis=1).sum(1)
+    bits = np.unpackbits(cmap.descriptors[a][ok] ^ ref.descriptors[b][j[ok]], axis=1).sum(1)
     good = d[ok][bits <= 40]
-    return {"features": int(len(cmap.points_xy)), "matched": int(len(good)),
+    return {"features": int(len(a)), "matched": int(len(good)),
             "rms_mm": 1e3 * float(np.sqrt(np.mean(good ** 2))) if len(good) else None,
-            "sigma_median_mm": 1e3 * float(np.median(cmap.sigma_m))}
+            "sigma_median_mm": 1e3 * float(np.median(cmap.sigma_m[a]))}
 
 
 def _stats(err: np.ndarray) -> dict:

@@ -83,7 +83,7 @@ class SurveyRun:
         out = [f"surveyed {len(r.poses)} frames of {len(r.drives)} drive(s): "
                f"{len(r.links)} place matches ({loops} loop or drive closures), "
                f"{r.unplaced} frames not placed; graph solved in {r.solve_s:.2f} s",
-               f"ceiling map: {len(self.cmap.points_xy)} features, median 1-sigma "
+               f"ceiling map: {self.cmap.feature_count} features, median 1-sigma "
                f"{_median_mm(self.cmap.sigma_m)} mm",
                f"lights: {len(self.lights.lights_m)}" if self.lights is not None
                else f"lights: none ({self.lights_note})"]
@@ -223,7 +223,7 @@ def _site_header(run_lines: list[str], res: SurveyResult, cmap: CeilingMap,
     keys = res.sigma[res.keys]
     lines = [f"anchor: {res.anchor}" + (f" (frame 0 of {res.drives[0]})"
                                          if res.anchor == "start pose" else ""),
-             f"ceiling_map: {len(cmap.points_xy)} features; 1-sigma per axis median "
+             f"ceiling_map: {cmap.feature_count} features; 1-sigma per axis median "
              f"{_median_mm(cmap.sigma_m)} mm, 95th percentile "
              f"{1e3 * float(np.percentile(cmap.sigma_m, 95)) if len(cmap.sigma_m) else 0:.2f}"
              " mm (from the views' scatter); keyframe poses' 1-sigma (relative to the "

@@ -51,7 +51,7 @@ def report_lines(res: SurveyResult, cmap: CeilingMap, lights: LightMap | None, n
     links = [lk.whitened for lk in res.links if lk.kind == "link"]
     out += ["", f"Keyframe links: {len(links)}, residual median {_pct(np.array(links), 50):.2f}"
             f" sigmas, max {max(links, default=0):.2f}.", "", "## Sections and their 1-sigma",
-            "", f"- `ceiling_map`: {len(cmap.points_xy)} features; per-axis 1-sigma median "
+            "", f"- `ceiling_map`: {cmap.feature_count} features; per-axis 1-sigma median "
             f"{1e3 * _pct(cmap.sigma_m, 50):.2f} mm, 95th percentile "
             f"{1e3 * _pct(cmap.sigma_m, 95):.2f} mm, max "
             f"{1e3 * np.max(cmap.sigma_m, initial=0):.2f} mm (every feature's in "

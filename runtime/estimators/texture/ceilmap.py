@@ -63,6 +63,8 @@ MERGE_RADIUS_PX = 2.0    # build_map: observations of one feature lie this close
 MERGE_HAMMING = 64       # ... and their descriptors differ by at most this many bits
 MIN_VIEWS = 2            # build_map: a feature seen in fewer frames is not indexed
 MIN_SIGMA_PX = 0.25      # the least 1σ of a feature's position, in rectified pixels
+VIEW_DESCRIPTORS = 4     # build_map: a feature's descriptors, at most (views unlike ...
+VIEW_APART_BITS = 40     # ... each other by more than this many bits each add one)
 _ARRAYS = ("mosaic", "coverage", "points_xy", "descriptors", "sigma_m")
 
 
@@ -75,7 +77,8 @@ class CeilingMap:
         origin_xy: ``(x, y)`` of W at mosaic pixel (0, 0)'s centre, m.
         mosaic: ``(H, W)`` uint8 grey: the ceiling seen from below, rectified.
         coverage: ``(H, W)`` bool: where the mosaic holds data.
-        points_xy: ``(N, 2)`` float64: the indexed features in W, m.
+        points_xy: ``(N, 2)`` float64: the indexed features in W, m (a feature with
+            several descriptors: a row each, at the very same point).
         descriptors: ``(N, D)`` uint8: their descriptors (ORB: D = 32).
         sigma_m: ``(N,)`` float64: each feature's 1σ position, m (per axis).
         ceiling_height: the ceiling plane's height above the floor, m.
@@ -103,6 +106,12 @@ class CeilingMap:
         r = self.resolution_m
         x0, y0 = self.origin_xy[0] - r / 2, self.origin_xy[1] - r / 2
         return x0, y0, x0 + w * r, y0 + h * r
+
+    @property
+    def feature_count(self) -> int:
+        """The features the map holds (distinct points; a feature with several
+        descriptors has a row each)."""
+        return int(len(np.unique(self.points_xy, axis=0))) if len(self.points_xy) else 0
 
     def pixel_of(self, points_xy: np.ndarray) -> np.ndarray:
         """``(N, 2)`` mosaic pixel ``(col, row)`` (float) of points of W ``(N, 2)``."""
@@ -489,11 +498,18 @@ def build_map(frames: Iterable[np.ndarray], poses: Iterable[tuple[float, float, 
     (the mean of the frames covering a pixel); its features (:func:`features`) are put
     in W. Observations of one feature in several frames (within
     :data:`MERGE_RADIUS_PX` pixels, descriptors within :data:`MERGE_HAMMING` bits) are
-    merged: the feature is their mean, its descriptor their medoid, its ``sigma_m``
-    their scatter's standard error (a per-observation scatter pooled over all merged
-    features where a feature has too few views to give its own, never below
-    :data:`MIN_SIGMA_PX` pixels). Features seen in fewer than ``min_views`` frames are
-    left out (noise, or at the edge of the drive).
+    merged: the feature is their mean, its ``sigma_m`` their scatter's standard error
+    (a per-observation scatter pooled over all merged features where a feature has too
+    few views to give its own, never below :data:`MIN_SIGMA_PX` pixels), its
+    descriptors their medoid and, up to :data:`VIEW_DESCRIPTORS`, those of the views
+    farthest from the ones kept while more than :data:`VIEW_APART_BITS` bits from each
+    (:func:`_view_descriptors`: one row each, at the feature's point). A drive's views
+    of a spot differ: the middle between two rows 2.4 m apart is seen only near the
+    frames' edges, darker and oblique, and a frame at the spot itself describes it
+    78 bits (median) from that medoid against 63 on a map whose views were near it
+    (bench_texture's office, supersample 2); one descriptor a view kind lets the frame
+    match the view nearest its own. Features seen in fewer than ``min_views`` frames
+    are left out (noise, or at the edge of the drive).
 
     Args:
         half_extent_m: the patch's half side (default: the frame's ceiling footprint,
@@ -569,7 +585,8 @@ class _Mosaic:
         count = np.zeros((h, w), np.float32)
         for (patch, valid, (x, y, yaw)), cw in zip(self.items, corners, strict=True):
             # the frame's own window of the mosaic: (col, row) from c0, r0
-            c0, r0 = (int(v) for v in np.floor((cw.min(0) - lo) / res))
+            # (at least 0: a corner on a pixel's edge may floor one below ``lo``)
+            c0, r0 = (max(int(v), 0) for v in np.floor((cw.min(0) - lo) / res))
             c1, r1 = (int(v) + 2 for v in np.ceil((cw.max(0) - lo) / res))
             c1, r1 = min(c1, w), min(r1, h)
             A = _patch_to_mosaic(patch.shape[0], res, (x - lo[0]) / res - c0,
@@ -601,8 +618,8 @@ def merge_features(points_xy: np.ndarray, descriptors: np.ndarray, views: np.nda
                    resolution_m: float, min_views: int = MIN_VIEWS
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Merge observations ``(N, 2)`` in W (with their descriptors and frame indices)
-    of the same feature: ``(points (M, 2), descriptors (M, D), sigma_m (M,))`` (see
-    :func:`build_map`)."""
+    of the same feature: ``(points (M, 2), descriptors (M, D), sigma_m (M,))``, a row
+    per descriptor kept (see :func:`build_map`)."""
     n = len(points_xy)
     if n == 0:
         return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0)
@@ -646,15 +663,28 @@ def _clusters(points_xy: np.ndarray, descriptors: np.ndarray, views: np.ndarray,
     own = np.sqrt(sq / np.maximum(2.0 * (counts - 1), 1.0))
     per_obs = np.where(multi, own, pooled)
     sigma = np.maximum(per_obs / np.sqrt(counts), MIN_SIGMA_PX * resolution_m)
-    desc = np.array([descriptors[g[_medoid(descriptors[g])]] if len(g) > 1
-                     else descriptors[g[0]] for g in keep], np.uint8)
-    return means, desc, sigma
+    rows = [g[_view_descriptors(descriptors[g])] for g in keep]
+    owner = np.repeat(np.arange(len(keep)), [len(r) for r in rows])
+    return means[owner], descriptors[np.concatenate(rows)], sigma[owner]
 
 
-def _medoid(desc: np.ndarray) -> int:
+def _view_descriptors(desc: np.ndarray, most: int = VIEW_DESCRIPTORS,
+                      apart_bits: int = VIEW_APART_BITS) -> np.ndarray:
+    """Indices of the descriptors a feature keeps among its observations' ``(n, D)``:
+    the medoid (least summed Hamming distance to the others), then greedily the one
+    farthest from all kept while that is more than ``apart_bits`` bits, ``most`` in all."""
+    if len(desc) == 1:
+        return np.zeros(1, int)
     bits = np.unpackbits(desc, axis=1).astype(np.int16)
     ham = (bits[:, None, :] != bits[None, :, :]).sum(2)
-    return int(np.argmin(ham.sum(1)))
+    chosen = [int(np.argmin(ham.sum(1)))]
+    while len(chosen) < most:
+        far = ham[:, chosen].min(1)
+        j = int(np.argmax(far))
+        if not far[j] > apart_bits:
+            break
+        chosen.append(j)
+    return np.array(chosen)
 
 
 __all__ = ["DEFAULT_RESOLUTION_M", "MAP_FORMAT", "MAP_VERSION", "CeilingMap", "Rectifier",

@@ -168,8 +168,8 @@ class TextureEstimator(Estimator):
         # took 160 ms against 16 ms for the same work once they were there)
         self._rectify = Rectifier.of(rig, site.ceiling_height_m, self.map.resolution_m,
                                      self.half_m)
-        self.sigma_floor_m = float(np.median(self.map.sigma_m)) if len(self.map.sigma_m) \
-            else self.map.resolution_m
+        self.sigma_floor_m = float(np.median(self.map.sigma_m[np.unique(self.index.place)])) \
+            if len(self.map.sigma_m) else self.map.resolution_m
         self._odo = PlaneOdometry(PlanarGeometry.of(rig, site), site) if o.plane_odometry \
             else None
         self._fixed = True

@@ -52,12 +52,19 @@ class DescriptorIndex:
     A descriptor within ``h`` bits of the query shares a table's key with probability
     ``(1 - h / 256)^16``: 27 % a table at 20 bits, 99.4 % that some table of 16 holds
     it.
+
+    A map feature may hold several descriptors (rows at one point: the feature as
+    views unlike each other saw it, :func:`.ceilmap.build_map`); a query's ``k``
+    nearest are then ``k`` places, each at its nearest descriptor (:func:`_by_place`),
+    so that the ratio test (:func:`distinctive`) weighs the feature against another
+    place, never against itself.
     """
 
     def __init__(self, points_xy: np.ndarray, descriptors: np.ndarray) -> None:
         self.points_xy = np.asarray(points_xy, float)
         self.descriptors = np.ascontiguousarray(descriptors, np.uint8)
         self.tree = cKDTree(self.points_xy) if len(self.points_xy) else None
+        self.place, self.rows_per_place = places(self.points_xy)
         self.key_bits = arr(key_bits(self.descriptors), np.int64)
         self._words = arr(_as_words(self.descriptors), np.uint64)
         self._order, self._starts = _lsh_build(self.descriptors, self.key_bits)
@@ -72,8 +79,9 @@ class DescriptorIndex:
         k = min(max(k, 2), len(self.descriptors))
         desc = np.ascontiguousarray(desc, np.uint8)
         idx, dist = _lsh_knn(arr(desc, np.uint8), arr(_as_words(desc), np.uint64),
-                             self._words, self.key_bits, self._order, self._starts, k)
-        return self._pairs(idx, dist, max_hamming)
+                             self._words, self.key_bits, self._order, self._starts,
+                             min(k * self.rows_per_place, len(self.descriptors)))
+        return self._pairs(*_by_place(idx, dist, self.place, k), max_hamming)
 
     def near(self, desc: np.ndarray, xy: tuple[float, float], radius_m: float, k: int,
              max_hamming: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -87,9 +95,10 @@ class DescriptorIndex:
         k = min(max(k, 2), len(sub))
         dist, idx = cv2.batchDistance(np.ascontiguousarray(desc, np.uint8),
                                       self.descriptors[sub], -1, normType=cv2.NORM_HAMMING,
-                                      K=k)
+                                      K=min(k * self.rows_per_place, len(sub)))
         idx = np.where(idx >= 0, sub[np.maximum(idx, 0)], -1)
-        return self._pairs(idx, dist, max_hamming)
+        return self._pairs(*_by_place(arr(idx, np.int64), arr(dist, np.int64), self.place,
+                                      k), max_hamming)
 
     def _pairs(self, idx: np.ndarray, dist: np.ndarray, max_hamming: int
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -99,6 +108,43 @@ class DescriptorIndex:
             uniq[:, 0] = ok[:, 0] & distinctive(dist, idx, self.points_xy)
         qi, _ = np.nonzero(ok)
         return qi.astype(int), idx[ok].astype(int), uniq[ok]
+
+
+def places(points_xy: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(place (N,), most)``: for each row of ``points_xy`` the first row at the very
+    same point (a map feature's several descriptors share its point), and the most rows
+    one point has (1: every row a place of its own)."""
+    pts = np.asarray(points_xy, float).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.zeros(0, np.int64), 1
+    _, first, inverse, counts = np.unique(pts, axis=0, return_index=True,
+                                          return_inverse=True, return_counts=True)
+    return arr(first[inverse.ravel()], np.int64), int(counts.max())
+
+
+@njit
+def _by_place(idx, dist, place, k):  # pragma: no cover - compiled
+    """``(idx (Q, k), dist (Q, k))`` from nearest-first ``(Q, K)`` candidates: the
+    first ``k`` distinct places (:func:`places`), each at its nearest row (-1 and the
+    last column's distance where fewer)."""
+    q, kk = idx.shape
+    out_i = np.full((q, k), -1, np.int64)
+    out_d = np.empty((q, k), np.int64)
+    for i in range(q):
+        n = 0
+        for c in range(kk):
+            j = idx[i, c]
+            if j < 0 or n == k:
+                break
+            seen = False
+            for m in range(n):
+                seen = seen or place[out_i[i, m]] == place[j]
+            if not seen:
+                out_i[i, n], out_d[i, n] = j, dist[i, c]
+                n += 1
+        for m in range(n, k):
+            out_d[i, m] = dist[i, kk - 1] if kk else 0
+    return out_i, out_d
 
 
 RATIO = 0.8              # distinctive: nearest <= RATIO x the next place's distance
@@ -496,11 +542,12 @@ def _warm() -> None:
     d = np.arange(64, dtype=np.uint8).reshape(2, 32)
     index = DescriptorIndex(np.zeros((2, 2)), d)
     index.match(d, 2, 64)
+    index.near(d, (0.0, 0.0), 1.0, 2, 64)
     q = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     ransac_rigid(q, q, np.arange(3), 0.03, 4, np.random.default_rng(0), (0.0, 0.0, 0.0))
     refine(q, q, np.arange(3), (0.0, 0.0, 0.0), 0.03, 0.001)
     refine(q, q, None, (0.0, 0.0, 0.0), 0.03, 0.001, 1)
 
 
-__all__ = ["DescriptorIndex", "distinctive", "MapFit", "RigidFit", "one_per_query", "ransac_rigid",
-           "refine", "residuals"]
+__all__ = ["DescriptorIndex", "distinctive", "MapFit", "RigidFit", "one_per_query", "places",
+           "ransac_rigid", "refine", "residuals"]

@@ -59,6 +59,7 @@ from ceilkit.runtime.estimators.texture.match import (
     _refine,
     _residuals,
     _rigid,
+    places,
 )
 from ceilkit.runtime.jit import arr, njit, warmer
 
@@ -136,9 +137,11 @@ class MapTracker:
         for _ in range(LK_LEVELS):
             mosaics.append(cv2.pyrDown(mosaics[-1]))
         self.mosaics = tuple(arr(m, np.uint8) for m in mosaics)
-        self.points_px = arr(self.map.pixel_of(cmap.points_xy), np.float64)
+        # a feature with several descriptors is one point to follow: its first row
+        points = cmap.points_xy[np.unique(places(cmap.points_xy)[0])]
+        self.points_px = arr(self.map.pixel_of(points), np.float64)
         self.score = arr(corner_scores(self.mosaics[0], self.points_px, LK_HALF), np.float64)
-        self.grid = FeatureGrid(cmap.points_xy) if len(cmap.points_xy) else None
+        self.grid = FeatureGrid(points) if len(points) else None
         self._valid: np.ndarray | None = None
         self._inner = np.zeros((0, 0), np.uint8)
 

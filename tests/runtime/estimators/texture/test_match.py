@@ -107,10 +107,10 @@ def test_a_place_with_several_descriptors_is_weighed_against_another_place():
     rng = np.random.default_rng(2)
     a = rng.integers(0, 256, size=(1, 32), dtype=np.uint8)
     query = _flipped(a, 10, rng)
-    # feature A at (1, 1) seen two ways (10 and 20 bits from the query), feature B at
-    # (4, 0) 22 bits from it: a ratio 10/22 alone would single A out, but A's first
-    # descriptor is 10 off and B's is 22: distinctive; B at 12 bits: not (10 > 0.8 x 12)
-    near_a = _flipped(query, 20, rng)
+    # feature A at (1, 1) seen two ways (10 and 11 bits from the query), feature B at
+    # (4, 0): 22 bits off, A is distinctive (10 <= 0.8 x 22); 12 bits off, it is not
+    # (10 > 0.8 x 12), though A's own second row (11) is nearer than B
+    near_a = _flipped(query, 11, rng)
     for b_bits, expected in ((22, True), (12, False)):
         b = _flipped(query, b_bits, rng)
         points = np.array([[1.0, 1.0], [1.0, 1.0], [4.0, 0.0]])

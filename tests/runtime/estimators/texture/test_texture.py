@@ -13,7 +13,7 @@ import numpy as np
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate, Provenance
 from ceilkit.runtime.estimators.registry import ESTIMATORS, FUSED_METHODS, site_methods
-from ceilkit.runtime.estimators.texture import CeilingMap, TextureEstimator
+from ceilkit.runtime.estimators.texture import CeilingMap, TextureEstimator, build_map
 from ceilkit.runtime.multi import make_localizer
 from helpers import CONFIGS
 
@@ -159,3 +159,26 @@ def test_auto_tracks_beside_corridor_and_relocalizes_after_a_kidnap(office):
              and truth[k] is not None and e.quality >= 0.8 and _error(e, truth[k])[0] > 0.05]
     assert wrong == []
     assert _error(out[-1][0], truth[-1])[0] <= 0.01
+
+
+def test_between_two_rows_of_the_map_drive_frames_localize(office):
+    """A map from two rows 2.4 m apart (headings 0 and 180 deg, as ceilcal survey's
+    office drive): the middle is seen only near the frames' edges, and a frame there
+    describes its features far from those views' medoid. The map keeps a descriptor
+    per unlike view (build_map): 23 or more of 24 frames between the rows localize
+    (with the medoid alone: 18), none wrong. (The survey's kidnap: issue 39.)"""
+    rows = [(x, y, 0.0 if y < 0 else math.pi) for y in (-1.2, 1.2)
+            for x in np.arange(1.0, 5.01, 0.25)]
+    cmap = build_map(office.frames(rows, 6), rows, office.rig,
+                     office.sites["scatter"].ceiling_height_m)
+    assert cmap.feature_count < len(cmap.points_xy)      # some features: several rows
+    site = dataclasses.replace(office.sites["scatter"],
+                               ceiling_map=str(cmap.save(office.folder / "rows.npz")))
+    est = TextureEstimator(office.rig, site, {"plane_odometry": False})
+    rng = np.random.default_rng(3)
+    mid = [(rng.uniform(2.0, 4.0), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+           for _ in range(24)]
+    got = [est.estimate(f, k) for k, f in enumerate(office.frames(mid, 7))]
+    assert sum(map(bool, got)) >= 23, [g.reason for g in got if not g]
+    assert all(_error(g, p)[0] <= 0.01 and _error(g, p)[1] <= 0.5
+               for g, p in zip(got, mid, strict=True) if g)
