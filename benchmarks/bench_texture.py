@@ -24,14 +24,16 @@ Prints the figures and writes them (JSON) to ``--out``.
         [--supersample 2] [--big-m2 1000] [--kidnaps 8]
         [--out benchmarks/out/bench_texture.json]
 
-Measured (2026-12-06, the shared 2-core machine under load, ``--frames 60 --length 8
---supersample 2``, a map of 1,192 features over 71 m²): global 60/60 valid, position
-median 1.40 mm, worst 3.3 mm and 0.14°, thread CPU 2.90 ms (0.67 x ``cv2.ORB(1000)``'s
-4.35 ms on the same frames); tracked 60/60 (all by the fast path), 0.45 mm, worst
-1.4 mm, 0.94 ms (0.22 x); against 17,880 features (1,000 m²) 59/60 (1 ambiguous),
-3.17 ms (0.73 x) and 0.90 ms (0.21 x). Kidnap: right again on the 3rd uncovered frame
-after a 0.5 s cover, on the 1st after 1.5 s, for both methods in all 8 trials; no
-wrong pose published. docs/methods/texture.md, "Figures", has the tables.
+Measured (2026-12-06 18:57 and 19:01 UTC, git 1b28e0d, the shared 2-core machine at
+load 5.6-6.7, ``--frames 60 --length 8 --supersample 2``, a map of 1,143 features in
+2,532 descriptor rows over 71 m²): global 60/60 valid, position median 1.17 mm, worst
+3.6 mm and 0.12°, thread CPU 4.41 and 3.39 ms (0.70 and 0.72 x ``cv2.ORB(1000)``'s
+6.32 and 4.70 ms on the same frames); tracked 60/60 (all by the fast path), 0.43 mm,
+worst 1.4 mm, 1.30 and 1.04 ms (0.21, 0.22 x); against 16,837 features in 37,980 rows
+(1,000 m²) 60/60, 5.39 and 4.30 ms (0.85, 0.91 x) and 1.27 and 1.01 ms (0.20, 0.21 x).
+Kidnap: right again on the 3rd uncovered frame after a 0.5 s cover, on the 1st after
+1.5 s, for both methods in all 8 trials; no wrong pose published.
+docs/methods/texture.md, "Figures", has the tables.
 """
 
 from __future__ import annotations
@@ -129,9 +131,12 @@ def main() -> None:
                      "big_ms": big_ms, "big": _row(b, p), "big_tracked_ms": big_t_ms,
                      "big_tracked": _row(bt, p)})
     map_site = dataclasses.replace(site, ceiling_map=str(tmp / "map.npz"))
-    res = {"map_frames": len(map_poses), "map_features": int(len(cmap.points_xy)),
+    res = {"map_frames": len(map_poses), "map_rows": int(len(cmap.points_xy)),
+           "map_features": int(len(np.unique(cmap.points_xy, axis=0))),
            "map_m2": float(np.prod(np.subtract(cmap.extent_xy[2:], cmap.extent_xy[:2]))),
-           "big_features": int(len(big.map.points_xy)), "build_ms": build_ms, "rows": rows,
+           "big_rows": int(len(big.map.points_xy)),
+           "big_features": int(len(np.unique(big.map.points_xy, axis=0))),
+           "build_ms": build_ms, "rows": rows,
            "kidnaps": kidnaps(rig, map_site, opts, args.length, args.kidnaps)}
     _report(res)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -237,9 +242,10 @@ def _report(res: dict) -> None:
                   f"{sum(v is None for v in n)}), wrong poses published "
                   f"{sum(r['wrong'] for r in runs)}, right before the cover "
                   f"{sum(r['valid_before'] for r in runs)}/{len(runs) * KIDNAP_BEFORE}")
-    print(f"the map: {res['map_features']} features over {res['map_m2']:.0f} m^2 from "
-          f"{res['map_frames']} frames, built in {res['build_ms'] / 1e3:.1f} s; tiled to "
-          f"the --big-m2 area: {res['big_features']} features")
+    print(f"the map: {res['map_features']} features ({res['map_rows']} descriptor rows) "
+          f"over {res['map_m2']:.0f} m^2 from {res['map_frames']} frames, built in "
+          f"{res['build_ms'] / 1e3:.1f} s; tiled to the --big-m2 area: "
+          f"{res['big_features']} features ({res['big_rows']} rows)")
 
 
 if __name__ == "__main__":
