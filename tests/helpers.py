@@ -71,3 +71,20 @@ def held_elsewhere(lock):
     finally:
         release.set()
         thread.join(10)
+
+
+def tile_grid(folder: Path):
+    """``(rig, site)``: bench_ambiguity's plain 0.6 m drop-tile grid given as corridor
+    lines along and across (3 m up), seen by configs/block's upward wide-angle camera;
+    the site file written in ``folder``."""
+    import yaml
+
+    from ceilkit.runtime.config.rig import Rig
+    from ceilkit.runtime.config.site import Site
+
+    d = {"ceiling_height": 3.0,
+         "corridor": {"lines_along": [round(-3.0 + 0.6 * i, 2) for i in range(11)],
+                      "lines_across": {"first": 0.0, "spacing": 0.6}}}
+    p = Path(folder) / "tiles.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return Rig.load(CONFIGS / "block" / "rig.yaml"), Site.load(p)

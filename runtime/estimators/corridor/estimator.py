@@ -123,9 +123,18 @@ COARSE_MIN_QUALITY = 0.5
 """A coarse search's pose below this quality (or its failure) is searched again at full
 resolution: a published valid pose (``quality >= 0.5``) comes from either search."""
 
-REMEASURE_PX = 1.0
+REMEASURE_PX = 0.02
 """A tracked fit that moves the predicted lines further than this (px) is searched
-again about itself (bench_all's drive with its own tracker: 1 frame in 58)."""
+again about itself. A chord located about a prediction that misses its edge by
+``delta`` carries an error that depends on ``delta`` (the profile's samples are 0.5 px
+apart: the thin line's centroid gains or loses a sample with the phase, up to 0.03 px
+at a tile seam; and the edge model leans towards the profile's middle), the same on
+every chord of the fix, so the fix followed its prior by a share no residual shows:
+on bench_ambiguity's tiles loop (noise 2) its y 41 um off from a prior 0.2 px
+(1.1 mm) off, 1 um from the truth as prior, against a 1 sigma of 16 um; the track's
+predictions 0.44 px off (median), its mean NEES 5.47 against its band [0.96, 3.42]
+with 1 px here, 1.88 [1.53, 2.54] with 0.02 px (a second search on nearly every
+frame; issue 36, docs/methods/corridor.md)."""
 HORIZONTAL_NORMAL = 0.2
 """Segments whose level normal's horizontal part is below this weigh less in the pan
 histogram (they are near the horizon or point at the vanishing line)."""
@@ -353,9 +362,10 @@ class CorridorEstimator(Estimator):
         cy = float(prior.y_m) + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
         found = self._window_fit(grey, psi, cy, prior)
         # a fit that moved the lines from where they were searched was measured off
-        # centre (a profile's edge model leans towards its middle): measured again
-        # about itself (bench_paired, priors 1 and 3 cm off: lateral p95 0.59 and 7.5 mm
-        # before, 0.18 and 0.19 mm after, the global path's 0.27)
+        # centre (the locator's error depends on the edge's offset from the profile's
+        # middle, alike on every chord): measured again about itself (REMEASURE_PX;
+        # bench_paired, priors 1 and 3 cm off: lateral p95 0.59 and 7.5 mm before,
+        # 0.18 and 0.19 mm after, the global path's 0.27)
         fit = None if found is None else found.frame.fit
         if fit is not None and self.lines_track.shift_px(
                 fit.psi_rad - psi, fit.camera_y_m - cy) > REMEASURE_PX:

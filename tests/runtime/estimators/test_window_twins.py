@@ -20,7 +20,7 @@ from ceilkit.runtime.estimators.block.estimator import WINDOW, BlockEstimator
 from ceilkit.runtime.estimators.corridor import CorridorEstimator
 from ceilkit.runtime.sim.marks import BLOCK_GREY
 from ceilkit.runtime.sim.render import SimOptions, render_frame
-from helpers import CONFIGS
+from helpers import CONFIGS, tile_grid
 
 SIM = SimOptions(noise_sigma=2.0, blur_px=0.8)
 
@@ -44,12 +44,7 @@ def twins_of(est, label):
 
 @pytest.fixture(scope="module")
 def tiles(tmp_path_factory) -> tuple[Rig, Site]:
-    d = {"ceiling_height": 3.0,
-         "corridor": {"lines_along": [round(-3.0 + 0.6 * i, 2) for i in range(11)],
-                      "lines_across": {"first": 0.0, "spacing": 0.6}}}
-    p = tmp_path_factory.mktemp("tiles") / "site.yaml"
-    p.write_text(yaml.safe_dump(d))
-    return Rig.load(CONFIGS / "block" / "rig.yaml"), Site.load(p)
+    return tile_grid(tmp_path_factory.mktemp("tiles"))
 
 
 def test_a_window_fix_on_a_symmetric_corridor_carries_its_half_turn():
