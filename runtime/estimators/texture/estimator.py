@@ -36,13 +36,12 @@ from ceilkit.runtime.estimators.base import (
     AMBIGUOUS,
     Estimate,
     Estimator,
-    EstimatorOptions,
     Hypothesis,
     PoseEstimate,
     Provenance,
     elapsed_ms,
 )
-from ceilkit.runtime.estimators.honesty import MISFIT
+from ceilkit.runtime.estimators.honesty import MISFIT, check_options
 from ceilkit.runtime.estimators.odometry import PlaneOdometry, with_increment
 from ceilkit.runtime.estimators.prior import (
     allows,
@@ -50,6 +49,7 @@ from ceilkit.runtime.estimators.prior import (
     prior_choice,
     prior_cov,
 )
+from ceilkit.runtime.estimators.rows import ShutterOptions
 from ceilkit.runtime.estimators.texture.ceilmap import (
     CeilingMap,
     Rectifier,
@@ -63,6 +63,7 @@ from ceilkit.runtime.estimators.texture.match import (
     ransac_rigid,
     refine,
 )
+from ceilkit.runtime.estimators.texture.shutter import Readout, widened
 from ceilkit.runtime.estimators.texture.track import MapTracker
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry
 
@@ -81,7 +82,7 @@ was 1.53.)"""
 
 
 @dataclass(frozen=True)
-class TextureOptions(EstimatorOptions):
+class TextureOptions(ShutterOptions):
     """What a user may set (``--option KEY=VALUE``).
 
     Attributes:
@@ -110,6 +111,12 @@ class TextureOptions(EstimatorOptions):
             least this far: half the 0.6 m tile of a drop ceiling).
         plane_odometry: carry the ceiling-plane odometry between fixes.
         seed: the RANSAC's random seed (with the frame's stamp).
+        readout_ms, rate_sigma_dps, speed_sigma_mps, unknown_rate_dps,
+            unknown_speed_mps: (inherited) a rolling shutter
+            (:class:`~ceilkit.runtime.estimators.rows.ShutterOptions`): each feature put
+            back to the stamp by the prior's velocity (:mod:`.shutter`), the fit's
+            covariance grown by the velocity's sigmas (the ``unknown_*`` ones without a
+            velocity, the features then taken as seen at the stamp).
     """
 
     half_extent_m: float = 0.0
@@ -154,6 +161,7 @@ class TextureEstimator(Estimator):
                  options: TextureOptions | dict[str, Any] | None = None) -> None:
         super().__init__(rig, site, options)
         o: TextureOptions = self.options  # type: ignore[assignment]
+        check_options(o)
         self.map = CeilingMap.load(site.ceiling_map)
         if abs(self.map.ceiling_height - site.ceiling_height_m) > 1e-6:
             raise ConfigError(site.ceiling_map, "header.ceiling_height",
@@ -204,17 +212,20 @@ class TextureEstimator(Estimator):
             return self.fail(t_ns, TOO_FEW_FEATURES, f"{len(q)} ceiling features, a pose "
                              f"needs {o.min_inliers}", features=len(q), ms=elapsed_ms(t0))
         rng = np.random.default_rng([o.seed, t_ns & 0x7FFFFFFFFFFFFFFF])
+        rows = self._rows(q, prior)
+        if rows is not None:   # the RANSAC's features turned back to the stamp
+            q = rows[0].unrolled(q, rows[2], None)
         if near:
             radius = self._window_radius(prior)  # type: ignore[arg-type]
             if radius is not None:
                 qi, mj, uq = self.index.near(desc, (prior.x_m, prior.y_m),  # type: ignore
                                              radius, o.knn, o.max_hamming)
-                got = self._decide(q, qi, self._search(q, qi, mj, uq, rng, patch, valid),
+                got = self._decide(q, qi, self._search(q, qi, mj, uq, rng, patch, valid, rows),
                                    prior, t_ns, t0, local=True)
                 if got is not None:
                     return got
         qi, mj, uq = self.index.match(desc, o.knn, o.max_hamming)
-        return self._decide(q, qi, self._search(q, qi, mj, uq, rng, patch, valid), prior,
+        return self._decide(q, qi, self._search(q, qi, mj, uq, rng, patch, valid, rows), prior,
                             t_ns, t0, local=False)
 
     def _tracked(self, grey: np.ndarray, prior: PoseEstimate, t_ns: int, t0: float
@@ -232,7 +243,8 @@ class TextureEstimator(Estimator):
         patch, valid = self._track_rectify(grey)
         got = self._tracker.follow(patch, valid,
                                    (float(prior.x_m), float(prior.y_m), float(prior.yaw_rad)),
-                                   o.tol_px * res, self.sigma_floor_m, o.min_inliers)
+                                   o.tol_px * res, self.sigma_floor_m, o.min_inliers,
+                                   Readout.of(self.rig, self.site.ceiling_height_m, o, prior))
         if got is None:
             return None
         r = got.refined
@@ -259,16 +271,18 @@ class TextureEstimator(Estimator):
         return math.sqrt(2.0) * self.half_m + self.options.window_m + spread  # type: ignore
 
     def _search(self, q: np.ndarray, qi: np.ndarray, mj: np.ndarray, unique: np.ndarray,
-                rng: np.random.Generator, patch: np.ndarray, valid: np.ndarray) -> _Search:
+                rng: np.random.Generator, patch: np.ndarray, valid: np.ndarray,
+                rows: _Rows | None = None) -> _Search:
         """The best pose among the correspondences and the runner-up (the same search
         without the best's inliers, outside its basin), each with how well the mosaic
-        at it explains the frame (:func:`.ceilmap.appearance_ncc`)."""
+        at it explains the frame (:func:`.ceilmap.appearance_ncc`). With a rolling
+        shutter (``rows``: :meth:`_rows`) each least squares is :meth:`_refined`'s."""
         o: TextureOptions = self.options  # type: ignore[assignment]
         tol = o.tol_px * self.map.resolution_m
         qq, pp = q[qi], self.map.points_xy[mj]
+        sub = None if rows is None else (rows[0], rows[1][qi], rows[2][qi])
         first = ransac_rigid(qq, pp, qi, tol, o.iterations, rng)
-        best = None if first is None else refine(qq, pp, qi, first.pose, tol,
-                                                 self.sigma_floor_m)
+        best = None if first is None else self._refined(qq, pp, qi, first.pose, sub)
         if best is None:
             return _Search(None, 0, None, 0, math.nan, math.nan)
         rest = np.ones(len(qi), bool)
@@ -278,12 +292,34 @@ class TextureEstimator(Estimator):
         # a runner-up RANSAC found with under half of min_inliers is no twin (refining
         # it, about its pose again, does not double it): its least squares is skipped
         runner = None if second is None or 2 * second.count < o.min_inliers else \
-            refine(qq[rest], pp[rest], qi[rest], second.pose, tol, self.sigma_floor_m)
+            self._refined(qq[rest], pp[rest], qi[rest], second.pose,
+                          None if sub is None else (sub[0], sub[1][rest], sub[2][rest]))
         ncc = appearance_ncc(self.map, patch, valid, best.pose, NCC_STRIDE)
         ncc2 = math.nan if runner is None or len(runner.used) < o.min_inliers else \
             appearance_ncc(self.map, patch, valid, runner.pose, NCC_STRIDE)
         return _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
                        ncc, ncc2, int(np.count_nonzero(unique[best.used])))
+
+    def _rows(self, q: np.ndarray, prior: PoseEstimate | None) -> _Rows | None:
+        """With a rolling shutter (``readout_ms`` > 0): the frame's row model
+        (:class:`.shutter.Readout`, the prior's velocity), the features as observed
+        and their row times; None for a global shutter."""
+        ro = Readout.of(self.rig, self.site.ceiling_height_m,
+                        self.options, prior)  # type: ignore[arg-type]
+        return None if ro is None else (ro, q, ro.times(q))
+
+    def _refined(self, qq: np.ndarray, pp: np.ndarray, qi: np.ndarray,
+                 pose: tuple[float, float, float], rows: _Rows | None) -> MapFit | None:
+        """:func:`.match.refine` from a RANSAC ``pose``; with a rolling shutter
+        (``rows`` over these pairs) on the features put back to the stamp at that
+        pose's heading (:meth:`.shutter.Readout.unrolled`), the covariance grown by
+        the velocity's sigmas (:func:`.shutter.widened`)."""
+        tol = self.options.tol_px * self.map.resolution_m  # type: ignore[attr-defined]
+        if rows is None:
+            return refine(qq, pp, qi, pose, tol, self.sigma_floor_m)
+        ro, q_raw, tau = rows
+        fit = refine(ro.unrolled(q_raw, tau, pose[2]), pp, qi, pose, tol, self.sigma_floor_m)
+        return None if fit is None else widened(fit, ro, q_raw, tau)
 
     def _decide(self, q: np.ndarray, qi: np.ndarray, s: _Search,
                 prior: PoseEstimate | None, t_ns: int, t0: float, local: bool
@@ -345,6 +381,11 @@ class TextureEstimator(Estimator):
                             float(q_n * q_sep * q_res * max(s.ncc, 0.0)),
                             cov=best.cov, diagnostics={**diag, "ms": elapsed_ms(t0)},
                             provenance=provenance, hypotheses=hyps)
+
+
+_Rows = tuple[Readout, np.ndarray, np.ndarray]
+"""A rolling-shutter frame's row model, its features ``(N, 2)`` in V as observed and their
+row times ``(N,)`` s (:meth:`TextureEstimator._rows`; indexed as the pairs they go with)."""
 
 
 def _hypotheses(s: _Search) -> tuple[Hypothesis, ...]:

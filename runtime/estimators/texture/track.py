@@ -28,7 +28,10 @@ A feature at predicted patch pixel ``u`` found at ``u + d`` gives the pair
 ``q_V = (u + d - c) res`` ~ ``p_W`` (the map's point), and the pairs give the pose by
 the same least squares as the global path (:func:`.match.refine`), from a rigid fit
 of those within 3 MADs of the fit of all (:func:`_fit_pairs`). Each frame is tied to
-the map, not to the previous frame: no drift.
+the map, not to the previous frame: no drift. Under a rolling shutter (a
+:class:`.shutter.Readout`) each found place is first put back to the stamp at the
+prior's heading and the fit's covariance grown by the velocity's sigmas, as on the
+global path.
 
 What the fast path cannot do is enumerate twins: it converges to the pose nearest the
 prior. The estimator takes it only when the prior's region is too narrow to hold a
@@ -61,6 +64,7 @@ from ceilkit.runtime.estimators.texture.match import (
     _rigid,
     places,
 )
+from ceilkit.runtime.estimators.texture.shutter import Readout, widened
 from ceilkit.runtime.jit import arr, njit, warmer
 
 CELLS = 4                # the patch's CELLS x CELLS cells ...
@@ -165,10 +169,13 @@ class MapTracker:
                         CELLS, PER_CELL)
 
     def follow(self, patch: np.ndarray, valid: np.ndarray, pose: tuple[float, float, float],
-               tol_m: float, sigma_floor_m: float, min_points: int) -> Tracked | None:
+               tol_m: float, sigma_floor_m: float, min_points: int,
+               readout: Readout | None = None) -> Tracked | None:
         """The pose refined from ``pose`` (the prior) on the frame's rectified patch at
         this tracker's resolution (see the module docstring), or None with fewer than
-        ``min_points`` map features followed or fitting within ``tol_m``."""
+        ``min_points`` map features followed or fitting within ``tol_m``. With a
+        rolling shutter (``readout``) the found places are put back to the stamp
+        first and the covariance grown (:mod:`.shutter`)."""
         if valid is not self._valid:     # the rectify tables' own array: made once
             self._valid = valid
             self._inner = arr(_eroded(np.ascontiguousarray(valid, np.uint8).tobytes(),
@@ -179,15 +186,20 @@ class MapTracker:
             return None
         mpx = arr(self.points_px[idx], np.float64)
         ox, oy = self.map.origin_xy
+        frame = PatchFrame((patch.shape[0] - 1) / 2, self.map.resolution_m, ox, oy)
         for levels in sorted({0, LK_LEVELS}):
             found, ok = self._lk(patch, inner, mpx, uv, pose[2], levels)
+            if readout is not None:
+                q_raw = (found - frame.centre) * frame.res
+                tau = readout.times(q_raw)
+                found = readout.unrolled(q_raw, tau, pose[2]) / frame.res + frame.centre
             good, x, y, yaw, cov, used, rms, followed = _fit_pairs(
-                found, ok, mpx, PatchFrame((patch.shape[0] - 1) / 2, self.map.resolution_m,
-                                           ox, oy), Fitting(tol_m, sigma_floor_m, 1),
-                min_points)
+                found, ok, mpx, frame, Fitting(tol_m, sigma_floor_m, 1), min_points)
             if good:
-                return Tracked(MapFit((x, y, yaw), cov, np.flatnonzero(used), rms),
-                               followed, len(idx))
+                fit = MapFit((x, y, yaw), cov, np.flatnonzero(used), rms)
+                if readout is not None:   # _fit_pairs' pairs: the followed, in order
+                    fit = widened(fit, readout, q_raw[ok], tau[ok])
+                return Tracked(fit, followed, len(idx))
         return None
 
     def _lk(self, patch: np.ndarray, inner: np.ndarray, mpx: np.ndarray, uv: np.ndarray,
