@@ -22,6 +22,7 @@ from ceilkit.runtime.estimators.paper_corridor import (
 )
 from ceilkit.runtime.estimators.registry import make_estimator
 from ceilkit.runtime.geometry.rotations import R_level_cam, rot_z
+from ceilkit.runtime.sim.render import render_frame
 
 CONFIGS = Path(__file__).resolve().parents[3] / "configs" / "corridor"
 
@@ -66,9 +67,8 @@ def test_paper_estimator_frames():
     with pytest.raises(ConfigError):
         PaperCorridorEstimator(rig, site, {"nope": 1})
     assert est.estimate(np.zeros((10, 10), np.uint8), 3).reason == "bad_frame"
-    sim = pytest.importorskip("ceilkit.runtime.sim.render")
     yaw = math.radians(12.0)
-    img = sim.render_frame(rig, site, 0.3, 0.1, yaw, rng=np.random.default_rng(2))
+    img = render_frame(rig, site, 0.3, 0.1, yaw, rng=np.random.default_rng(2))
     r = est.estimate(img, 5)
     assert r and r.x_m is None and r.t_ns == 5
     assert abs(math.degrees(r.yaw_rad - yaw)) < 10.0       # the paper reports ~1-5 deg
