@@ -15,6 +15,10 @@ from ceilkit.runtime.estimators.texture.match import (
     LSH_KEY_BITS,
     LSH_TABLES,
     DescriptorIndex,
+    LshTables,
+    _as_words,
+    _lsh_keys,
+    _lsh_knn,
     key_bits,
     ransac_rigid,
     refine,
@@ -119,3 +123,35 @@ def test_a_place_with_several_descriptors_is_weighed_against_another_place():
                                index.near(query, (2.0, 0.0), 5.0, 2, 64)):
             assert list(qi) == [0, 0] and list(mj) == [0, 2], (qi, mj)
             assert bool(unique[0]) is expected, (b_bits, unique)
+
+
+def test_the_global_search_is_the_nearest_places_among_the_bucket_sharing_rows():
+    """The compiled search (one pass, its list kept by place) against the reference:
+    every row sharing a bucket with the query, sorted by (distance, row), the first
+    ``k`` places each at its nearest row; with places of 1 to 4 rows, their rows in
+    several tables' buckets and ties of distance."""
+    rng = np.random.default_rng(5)
+    base = rng.integers(0, 256, size=(300, 32), dtype=np.uint8)
+    owner = np.repeat(np.arange(300), rng.integers(1, 5, size=300))
+    desc = _flipped(base[owner], 6, rng)
+    desc[1::7] = desc[::7][: len(desc[1::7])]            # equal rows: distance ties
+    index = DescriptorIndex(rng.uniform(0, 30, size=(300, 2))[owner], desc)
+    query = _flipped(base[rng.choice(300, 120)], 14, rng)
+    keys = _lsh_keys(query, index.key_bits)
+    for k in (2, 3):
+        idx, dist = _lsh_knn(query, _as_words(query),
+                             LshTables(index._words, index.key_bits, index._order,
+                                       index._starts), index.place, k)
+        for i in range(len(query)):
+            rows = np.unique(np.concatenate([
+                index._order[t, index._starts[t, keys[t, i]]:index._starts[t, keys[t, i] + 1]]
+                for t in range(len(keys))]))
+            d = np.array([cv2.norm(query[i], desc[j], cv2.NORM_HAMMING) for j in rows], int)
+            want, seen = [], set()
+            for j, dj in sorted(zip(rows.tolist(), d.tolist(), strict=True),
+                                key=lambda r: (r[1], r[0])):
+                if index.place[j] not in seen and len(want) < k:
+                    seen.add(index.place[j])
+                    want.append((j, dj))
+            got = [(int(j), int(dj)) for j, dj in zip(idx[i], dist[i], strict=True) if j >= 0]
+            assert got == want, (k, i, got, want)
