@@ -11,6 +11,7 @@ followed from the prior into the frame, no detection. A pose whose inliers hold 
 few distinctive matches (:func:`.match.distinctive`) is not singled out. The same
 search run again without the best pose's inliers and outside its basin gives the
 runner-up: when the mosaic explains the frame nearly as well there (``twin_ncc``),
+over the whole frame and where the two poses' mosaics differ (:func:`where_they_differ`),
 the frame supports two poses and the estimate is an ``ambiguous`` Failure carrying
 both (a prior may choose one, by :mod:`~ceilkit.runtime.estimators.prior`'s rule).
 Between fixes the ceiling-plane odometry
@@ -56,6 +57,7 @@ from ceilkit.runtime.estimators.texture.ceilmap import (
     appearance_ncc,
     features,
     footprint_half_extent,
+    predicted_patch,
 )
 from ceilkit.runtime.estimators.texture.match import (
     DescriptorIndex,
@@ -73,6 +75,9 @@ MAX_WINDOW_M = 3.0       # a prior vaguer than this (3σ, m) is searched globall
 NCC_STRIDE = 3           # appearance_ncc over every 3rd row and column of the patch
 TRACK_LEVELS = 1         # the fast path's patch and mosaic: 2^L times coarser than the map
 TRACK_MIN_SHARE = 0.5    # ... its pose fits at least this share of the features followed
+DIFFER_Z = 1.0           # two poses' mosaics differ where they are > 1 std apart ...
+DIFFER_MIN_SHARE = 0.05  # ... on at least this share of the pixels all three hold, or
+#                          the two cannot be told apart by the frame (twins)
 TRACK_VAR_FACTOR = 1.2
 """The fast path's measured / fitted variance: its fit's ``s² (JᵀJ)⁻¹`` scaled by it.
 On the 60-frame office drive of bench_texture (supersample 2, a prior 1 cm and 0.5°
@@ -101,8 +106,10 @@ class TextureOptions(ShutterOptions):
         min_ncc: the least normalized cross-correlation of the rectified frame with the
             map's mosaic at the pose (the model explains the whole frame).
         twin_ncc: a runner-up pose with ``min_inliers`` whose mosaic correlates with the
-            frame within this of the best's (or cannot be checked: off the mosaic)
-            makes the frame ``ambiguous``.
+            frame within this of the best's (or cannot be checked: off the mosaic),
+            over the whole frame and where the two mosaics differ
+            (:func:`where_they_differ`; or they differ too little to tell), makes the
+            frame ``ambiguous``.
         window_m: with a prior, the map is searched within the frame's footprint plus
             this plus the prior's 3σ of its position.
         window_twin_m: the tracked fast path (:mod:`.track`: the map's features followed
@@ -148,6 +155,7 @@ class _Search:
     ncc: float
     runner_ncc: float
     unique: int = 0
+    differ_ncc: tuple[float, float] = (math.nan, math.nan)
 
 
 class TextureEstimator(Estimator):
@@ -297,8 +305,10 @@ class TextureEstimator(Estimator):
         ncc = appearance_ncc(self.map, patch, valid, best.pose, NCC_STRIDE)
         ncc2 = math.nan if runner is None or len(runner.used) < o.min_inliers else \
             appearance_ncc(self.map, patch, valid, runner.pose, NCC_STRIDE)
+        differ = where_they_differ(self.map, patch, valid, best.pose, runner.pose) \
+            if math.isfinite(ncc2) and not ncc2 < ncc - o.twin_ncc else (math.nan, math.nan)
         return _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
-                       ncc, ncc2, int(np.count_nonzero(unique[best.used])))
+                       ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ)
 
     def _rows(self, q: np.ndarray, prior: PoseEstimate | None) -> _Rows | None:
         """With a rolling shutter (``readout_ms`` > 0): the frame's row model
@@ -342,8 +352,10 @@ class TextureEstimator(Estimator):
                 f"{s.best.rms_m / res:.2f} px, the mosaic correlates {s.ncc:.2f}", **diag,
                 ms=elapsed_ms(t0))
         diag["unique"] = s.unique
+        diag.update(differ_ncc=s.differ_ncc[0], runner_up_differ_ncc=s.differ_ncc[1])
         twin = s.runner is not None and s.runner_count >= o.min_inliers and \
-            not s.runner_ncc < s.ncc - o.twin_ncc
+            not s.runner_ncc < s.ncc - o.twin_ncc and \
+            not s.differ_ncc[1] < s.differ_ncc[0] - o.twin_ncc
         if not twin and s.unique < o.min_unique:
             return None if local else self.fail(
                 t_ns, AMBIGUOUS, f"{s.count} features fit, {s.unique} of them match one "
@@ -388,6 +400,42 @@ _Rows = tuple[Readout, np.ndarray, np.ndarray]
 row times ``(N,)`` s (:meth:`TextureEstimator._rows`; indexed as the pairs they go with)."""
 
 
+def where_they_differ(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
+                      a: tuple[float, float, float], b: tuple[float, float, float]
+                      ) -> tuple[float, float]:
+    """``(ncc_a, ncc_b)``: how well the mosaic at pose ``a`` and at pose ``b`` explain a
+    rectified patch where the two differ (every :data:`NCC_STRIDE`-th pixel the patch and
+    both hold, each standardized over them; those more than :data:`DIFFER_Z` apart): the
+    frame's evidence between two poses, which the whole patch's correlation dilutes by
+    what both show alike (a tile grid's seams seen from a pose turned 90°). NaN, NaN
+    where they differ on less than :data:`DIFFER_MIN_SHARE` of those pixels (twins:
+    the frame cannot tell them apart)."""
+    n = patch.shape[0]
+    f = patch[::NCC_STRIDE, ::NCC_STRIDE].astype(float)
+    pa, ca = predicted_patch(cmap, a, n, NCC_STRIDE)
+    pb, cb = predicted_patch(cmap, b, n, NCC_STRIDE)
+    both = valid[::NCC_STRIDE, ::NCC_STRIDE] & ca & cb  # type: ignore[operator]
+    if np.count_nonzero(both) < 3:
+        return math.nan, math.nan
+    za, zb = (_standard(x.astype(float), both) for x in (pa, pb))
+    differ = both & (np.abs(za - zb) > DIFFER_Z)
+    if np.count_nonzero(differ) < max(3.0, DIFFER_MIN_SHARE * np.count_nonzero(both)):
+        return math.nan, math.nan
+    fa = f[differ]
+    return _ncc(fa, za[differ]), _ncc(fa, zb[differ])
+
+
+def _standard(x: np.ndarray, where: np.ndarray) -> np.ndarray:
+    v = x[where]
+    return (x - v.mean()) / max(float(v.std()), 1e-9)
+
+
+def _ncc(x: np.ndarray, y: np.ndarray) -> float:
+    x, y = x - x.mean(), y - y.mean()
+    d = math.sqrt(float(np.dot(x, x) * np.dot(y, y)))
+    return float(np.dot(x, y) / d) if d > 0 else math.nan
+
+
 def _hypotheses(s: _Search) -> tuple[Hypothesis, ...]:
     """The best pose and the runner-up, weighted by their inlier counts."""
     total = float(s.count + s.runner_count)
@@ -399,4 +447,5 @@ def _hypotheses(s: _Search) -> tuple[Hypothesis, ...]:
     return tuple(out)
 
 
-__all__ = ["NO_MAP_MATCH", "TOO_FEW_FEATURES", "TextureEstimator", "TextureOptions"]
+__all__ = ["NO_MAP_MATCH", "TOO_FEW_FEATURES", "TextureEstimator", "TextureOptions",
+           "where_they_differ"]

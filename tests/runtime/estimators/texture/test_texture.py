@@ -14,6 +14,8 @@ from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate, Provenance
 from ceilkit.runtime.estimators.registry import ESTIMATORS, FUSED_METHODS, site_methods
 from ceilkit.runtime.estimators.texture import CeilingMap, TextureEstimator, build_map
+from ceilkit.runtime.estimators.texture.ceilmap import Rectifier, footprint_half_extent
+from ceilkit.runtime.estimators.texture.estimator import where_they_differ
 from ceilkit.runtime.multi import make_localizer
 from helpers import CONFIGS
 
@@ -182,3 +184,25 @@ def test_between_two_rows_of_the_map_drive_frames_localize(office):
     assert sum(map(bool, got)) >= 23, [g.reason for g in got if not g]
     assert all(_error(g, p)[0] <= 0.01 and _error(g, p)[1] <= 0.5
                for g, p in zip(got, mid, strict=True) if g)
+
+
+def test_a_runner_up_is_weighed_where_its_mosaic_differs(office):
+    """where_they_differ: the frame against two poses where the mosaic at them differs.
+    A pose turned 90° on the tile grid shows the seams alike and the scatter not: the
+    frame tells the truth from it there (the whole patch's correlation would dilute the
+    gap by the seams); a repeated scatter's twin differs nowhere (NaN: twins), nor does
+    the pose from itself."""
+    cmap = office.maps["scatter"]
+    rep, shift = _repeated(cmap)
+    h = office.sites["scatter"].ceiling_height_m
+    rectify = Rectifier.of(office.rig, h, cmap.resolution_m,
+                           footprint_half_extent(office.rig, h))
+    for k in (2, 4, 6):
+        x, y, yaw = office.drive_poses[k]
+        patch, valid = rectify(office.drive[k])
+        a, b = where_they_differ(cmap, patch, valid, (x, y, yaw), (x, y, yaw + math.pi / 2))
+        assert a >= 0.7 and b <= a - 0.4, (k, a, b)
+        assert all(math.isnan(v) for v in where_they_differ(
+            rep, patch, valid, (x, y, yaw), (x + shift, y, yaw)))
+        assert all(math.isnan(v) for v in where_they_differ(
+            cmap, patch, valid, (x, y, yaw), (x, y, yaw)))
