@@ -52,7 +52,10 @@ Measured (2026-12-06 19:43 UTC, load 4-6; 21 s wall a run once the drive is rend
 median 1.14 mm, p95 2.7, max 4.4, 0 wrong; ``--preset realistic`` 184 / 200, median
 3.19 mm, 0 wrong; ``--preset realistic --velocity`` 189 / 200 (94.5 %: 9 frames a person
 under the camera, 2 ``ambiguous``), median 1.16 mm, p95 2.5, max 4.0, heading 0.26° at
-most, 0 wrong (docs/survey.md, "A second drive").
+most, 0 wrong. After a pose with few distinctive matches lists and judges its twins
+(19:50 UTC): noise and blur 200 / 200, ``--preset realistic --velocity`` 191 / 200
+(95.5 %: the 9 person frames), median 1.15 mm, 0 wrong (docs/survey.md, "A second
+drive").
 
 ``--against-known`` measures instead the survey's sections against the known-pose tools
 (issue 39: "the survey's lights agree with ``ceilcal lightmap`` from known poses within

@@ -64,6 +64,7 @@ from ceilkit.runtime.estimators.texture.match import (
     MapFit,
     ransac_rigid,
     refine,
+    residuals,
 )
 from ceilkit.runtime.estimators.texture.shutter import Readout, widened
 from ceilkit.runtime.estimators.texture.track import MapTracker
@@ -78,6 +79,8 @@ TRACK_MIN_SHARE = 0.5    # ... its pose fits at least this share of the features
 DIFFER_Z = 1.0           # two poses' mosaics differ where they are > 1 std apart ...
 DIFFER_MIN_SHARE = 0.05  # ... on at least this share of the pixels all three hold, or
 #                          the two cannot be told apart by the frame (twins)
+TWIN_SUPPORT = 3         # a pose's twin candidate: this many of its alike matches agree
+MAX_TWINS = 8            # candidates judged at most (more: the twins are not all listed)
 TRACK_VAR_FACTOR = 1.2
 """The fast path's measured / fitted variance: its fit's ``s² (JᵀJ)⁻¹`` scaled by it.
 On the 60-frame office drive of bench_texture (supersample 2, a prior 1 cm and 0.5°
@@ -156,6 +159,9 @@ class _Search:
     runner_ncc: float
     unique: int = 0
     differ_ncc: tuple[float, float] = (math.nan, math.nan)
+    twins: tuple[MapFit, ...] = ()
+    judged: int = 0
+    singled: bool = False
 
 
 class TextureEstimator(Estimator):
@@ -228,13 +234,14 @@ class TextureEstimator(Estimator):
             if radius is not None:
                 qi, mj, uq = self.index.near(desc, (prior.x_m, prior.y_m),  # type: ignore
                                              radius, o.knn, o.max_hamming)
-                got = self._decide(q, qi, self._search(q, qi, mj, uq, rng, patch, valid, rows),
+                got = self._decide(q, qi, self._search(q, desc, (qi, mj, uq), rng,
+                                                       (patch, valid), rows),
                                    prior, t_ns, t0, local=True)
                 if got is not None:
                     return got
         qi, mj, uq = self.index.match(desc, o.knn, o.max_hamming)
-        return self._decide(q, qi, self._search(q, qi, mj, uq, rng, patch, valid, rows), prior,
-                            t_ns, t0, local=False)
+        return self._decide(q, qi, self._search(q, desc, (qi, mj, uq), rng, (patch, valid),
+                                                rows), prior, t_ns, t0, local=False)
 
     def _tracked(self, grey: np.ndarray, prior: PoseEstimate, t_ns: int, t0: float
                  ) -> PoseEstimate | None:
@@ -278,14 +285,18 @@ class TextureEstimator(Estimator):
             return None
         return math.sqrt(2.0) * self.half_m + self.options.window_m + spread  # type: ignore
 
-    def _search(self, q: np.ndarray, qi: np.ndarray, mj: np.ndarray, unique: np.ndarray,
-                rng: np.random.Generator, patch: np.ndarray, valid: np.ndarray,
-                rows: _Rows | None = None) -> _Search:
-        """The best pose among the correspondences and the runner-up (the same search
+    def _search(self, q: np.ndarray, desc: np.ndarray,
+                pairs: tuple[np.ndarray, np.ndarray, np.ndarray], rng: np.random.Generator,
+                frame: tuple[np.ndarray, np.ndarray], rows: _Rows | None = None) -> _Search:
+        """The best pose among the correspondences ``pairs`` (``qi, mj, unique``:
+        :meth:`.match.DescriptorIndex.match`) and the runner-up (the same search
         without the best's inliers, outside its basin), each with how well the mosaic
-        at it explains the frame (:func:`.ceilmap.appearance_ncc`). With a rolling
-        shutter (``rows``: :meth:`_rows`) each least squares is :meth:`_refined`'s."""
+        at it explains the frame (``frame``: the rectified patch and its valid mask;
+        :func:`.ceilmap.appearance_ncc`); with too few distinctive inliers, the best's
+        twins (:meth:`_twins`). With a rolling shutter (``rows``: :meth:`_rows`) each
+        least squares is :meth:`_refined`'s."""
         o: TextureOptions = self.options  # type: ignore[assignment]
+        (qi, mj, unique), (patch, valid) = pairs, frame
         tol = o.tol_px * self.map.resolution_m
         qq, pp = q[qi], self.map.points_xy[mj]
         sub = None if rows is None else (rows[0], rows[1][qi], rows[2][qi])
@@ -307,8 +318,54 @@ class TextureEstimator(Estimator):
             appearance_ncc(self.map, patch, valid, runner.pose, NCC_STRIDE)
         differ = where_they_differ(self.map, patch, valid, best.pose, runner.pose) \
             if math.isfinite(ncc2) and not ncc2 < ncc - o.twin_ncc else (math.nan, math.nan)
-        return _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
-                       ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ)
+        s = _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
+                    ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ)
+        if s.unique >= o.min_unique or _runner_twin(s, o):
+            return s
+        return dataclasses.replace(s, **dict(zip(("twins", "judged", "singled"), self._twins(
+            q, desc, qi[best.used][~unique[best.used]], best, ncc, frame, rows), strict=True)))
+
+    def _twins(self, q: np.ndarray, desc: np.ndarray, feats: np.ndarray, best: MapFit,
+               ncc: float, frame: tuple[np.ndarray, np.ndarray], rows: _Rows | None
+               ) -> tuple[tuple[MapFit, ...], int, bool]:
+        """``(twins, judged, complete)``: the poses other than ``best`` that its
+        non-distinctive matches (query features ``feats``) support alike, the frame does
+        not rule out. Each feature is paired with every place of the map the ratio test
+        cannot tell from its nearest (:meth:`.match.DescriptorIndex.alike`, exact), its
+        place at ``best`` left out; the pose the most of them agree on (every two
+        pairs a sample: :func:`.match.ransac_rigid`, exhaustive; outside ``best``'s
+        basin), refined, is a candidate while :data:`TWIN_SUPPORT` features agree on
+        it, its pairs then left out, :data:`MAX_TWINS` at most. A candidate is ruled
+        out as the runner-up is (:func:`_told_apart`, ``twin_ncc``). ``complete``: every
+        alike place was listed and fewer than :data:`MAX_TWINS` candidates were found;
+        otherwise the twins are not all known."""
+        o: TextureOptions = self.options  # type: ignore[assignment]
+        tol = o.tol_px * self.map.resolution_m
+        patch, valid = frame
+        qi, mj, complete = self.index.alike(desc[feats], o.max_hamming)
+        qi = feats[qi]
+        qq, pp = q[qi], self.map.points_xy[mj]
+        keep = residuals(best.pose, qq, pp) >= tol
+        found: list[MapFit] = []
+        while np.count_nonzero(keep) >= 2:
+            k = np.flatnonzero(keep)
+            got = ransac_rigid(qq[k], pp[k], qi[k], tol, 0, None,  # type: ignore[arg-type]
+                               avoid=best.pose, exhaustive=True)
+            if got is None or got.count < TWIN_SUPPORT:
+                break
+            if len(found) == MAX_TWINS:
+                complete = False
+                break
+            fit = self._refined(qq[k], pp[k], qi[k], got.pose,
+                                None if rows is None else (rows[0], rows[1][qi[k]], rows[2][qi[k]]))
+            found.append(fit if fit is not None else
+                         MapFit(got.pose, best.cov, np.flatnonzero(got.inliers), math.nan))
+            keep[k[got.inliers]] = False
+        left = tuple(f for f in found if not _told_apart(
+            ncc, appearance_ncc(self.map, patch, valid, f.pose, NCC_STRIDE),
+            lambda f=f: where_they_differ(self.map, patch, valid, best.pose, f.pose),
+            o.twin_ncc))
+        return left, len(found), complete
 
     def _rows(self, q: np.ndarray, prior: PoseEstimate | None) -> _Rows | None:
         """With a rolling shutter (``readout_ms`` > 0): the frame's row model
@@ -353,15 +410,16 @@ class TextureEstimator(Estimator):
                 ms=elapsed_ms(t0))
         diag["unique"] = s.unique
         diag.update(differ_ncc=s.differ_ncc[0], runner_up_differ_ncc=s.differ_ncc[1])
-        twin = s.runner is not None and s.runner_count >= o.min_inliers and \
-            not s.runner_ncc < s.ncc - o.twin_ncc and \
-            not s.differ_ncc[1] < s.differ_ncc[0] - o.twin_ncc
-        if not twin and s.unique < o.min_unique:
+        twin = _runner_twin(s, o)
+        if s.unique < o.min_unique:
+            diag.update(twins=s.judged, twins_left=len(s.twins))
+        if not twin and s.unique < o.min_unique and not (s.singled and not s.twins):
+            why = f"{len(s.twins)} of the {s.judged} poses they support alike explain the " \
+                  f"frame as well" if s.singled else "their twins could not all be listed"
             return None if local else self.fail(
                 t_ns, AMBIGUOUS, f"{s.count} features fit, {s.unique} of them match one "
-                f"place of the map (it needs {o.min_unique}): the rest match their twins "
-                f"alike, which the search did not enumerate", _hypotheses(s), **diag,
-                ms=elapsed_ms(t0))
+                f"place of the map (it needs {o.min_unique}) and {why}", _hypotheses(s),
+                **diag, ms=elapsed_ms(t0))
         if not twin:
             if local and not allows(prior, (*s.best.pose, s.best.cov)):
                 return None
@@ -425,6 +483,27 @@ def where_they_differ(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
     return _ncc(fa, za[differ]), _ncc(fa, zb[differ])
 
 
+def _runner_twin(s: _Search, o: TextureOptions) -> bool:
+    """Whether the runner-up is the best's twin: ``min_inliers`` features, and the frame
+    does not rule it out (``twin_ncc``: over the whole frame and where they differ)."""
+    return s.runner is not None and s.runner_count >= o.min_inliers and \
+        not s.runner_ncc < s.ncc - o.twin_ncc and \
+        not s.differ_ncc[1] < s.differ_ncc[0] - o.twin_ncc
+
+
+def _told_apart(ncc: float, ncc2: float, differ: Any, twin_ncc: float) -> bool:
+    """Whether the frame rules out a second pose (mosaic correlation ``ncc2``) against
+    the best (``ncc``): more than ``twin_ncc`` below over the whole frame, or, called
+    only when not, where the two mosaics differ (``differ()``: :func:`where_they_differ`;
+    NaN there, or off the mosaic: not ruled out)."""
+    if ncc2 < ncc - twin_ncc:
+        return True
+    if not math.isfinite(ncc2):
+        return False
+    a, b = differ()
+    return bool(b < a - twin_ncc)
+
+
 def _standard(x: np.ndarray, where: np.ndarray) -> np.ndarray:
     v = x[where]
     return (x - v.mean()) / max(float(v.std()), 1e-9)
@@ -437,10 +516,13 @@ def _ncc(x: np.ndarray, y: np.ndarray) -> float:
 
 
 def _hypotheses(s: _Search) -> tuple[Hypothesis, ...]:
-    """The best pose and the runner-up, weighted by their inlier counts."""
-    total = float(s.count + s.runner_count)
+    """The best pose, the runner-up and the best's twins the frame did not rule out
+    (:meth:`TextureEstimator._twins`), weighted by their inlier counts."""
+    fits = ((s.best, s.count, "best"), (s.runner, s.runner_count, "runner-up"),
+            *((t, len(t.used), f"twin {i + 1}") for i, t in enumerate(s.twins)))
+    total = float(sum(n for fit, n, _ in fits if fit is not None))
     out = []
-    for fit, n, label in ((s.best, s.count, "best"), (s.runner, s.runner_count, "runner-up")):
+    for fit, n, label in fits:
         if fit is None:
             continue
         out.append(Hypothesis(fit.pose[0], fit.pose[1], fit.pose[2], fit.cov, n / total, label))

@@ -38,6 +38,8 @@ LSH_TABLES = 16          # hash tables of the descriptor index ...
 LSH_KEY_BITS = 16        # ... each keyed by this many of the descriptor's bits
 LSH_SEED = 0             # the bits each table reads: drawn from this seed
 MIN_PAIR_SEP_M = 0.08    # a two-point sample's points at least this far apart (yaw)
+RATIO = 0.8              # distinctive: nearest <= RATIO x the next place's distance
+SAME_PLACE_M = 0.03      # two map features this close are one place (not a twin)
 
 
 class DescriptorIndex:
@@ -103,6 +105,26 @@ class DescriptorIndex:
         return self._pairs(*_by_place(arr(idx, np.int64), arr(dist, np.int64), self.place,
                                       k), max_hamming)
 
+    def alike(self, desc: np.ndarray, max_hamming: int, rows: int = 64
+              ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """``(qi, mj, complete)``: for each query descriptor, every place of the map
+        whose nearest descriptor is as near as a match the ratio test cannot tell from
+        the query's nearest (within its distance / :data:`RATIO` and ``max_hamming``
+        bits), each at that descriptor; brute force over the whole map (exact: no LSH
+        miss), the nearest ``rows`` rows a query. ``complete`` is False when some
+        query's ``rows``-th row is still that near (its list may miss places)."""
+        n = len(self.descriptors)
+        if n == 0 or len(desc) == 0:
+            return *_none()[:2], True
+        kk = min(rows, n)
+        dist, idx = cv2.batchDistance(np.ascontiguousarray(desc, np.uint8), self.descriptors,
+                                      -1, normType=cv2.NORM_HAMMING, K=kk)
+        bound = np.minimum(dist[:, :1] / RATIO, max_hamming)
+        complete = kk == n or bool(np.all(dist[:, -1:] > bound))
+        idx, dist = _by_place(arr(idx, np.int64), arr(dist, np.int64), self.place, kk)
+        qi, col = np.nonzero((idx >= 0) & (dist <= bound))
+        return qi.astype(int), idx[qi, col].astype(int), complete
+
     def _pairs(self, idx: np.ndarray, dist: np.ndarray, max_hamming: int
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ok = (dist <= max_hamming) & (idx >= 0)
@@ -150,8 +172,6 @@ def _by_place(idx, dist, place, k):  # pragma: no cover - compiled
     return out_i, out_d
 
 
-RATIO = 0.8              # distinctive: nearest <= RATIO x the next place's distance
-SAME_PLACE_M = 0.03      # two map features this close are one place (not a twin)
 
 
 def distinctive(dist: np.ndarray, idx: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
@@ -196,7 +216,8 @@ def residuals(pose: tuple[float, float, float], q: np.ndarray, p: np.ndarray) ->
 
 def ransac_rigid(q: np.ndarray, p: np.ndarray, qi: np.ndarray, tol_m: float, iters: int,
                  rng: np.random.Generator, avoid: tuple[float, float, float] | None = None,
-                 basin: tuple[float, float] = (0.1, math.radians(5.0))) -> RigidFit | None:
+                 basin: tuple[float, float] = (0.1, math.radians(5.0)),
+                 exhaustive: bool = False) -> RigidFit | None:
     """The pose with the most distinct query features within ``tol_m`` (two-point RANSAC
     over the correspondences ``q[k] ~ p[k]`` of query ``qi[k]``).
 
@@ -209,13 +230,20 @@ def ransac_rigid(q: np.ndarray, p: np.ndarray, qi: np.ndarray, tol_m: float, ite
     Args:
         avoid: a pose whose basin (``basin``: metres, radians) is not searched (the
             runner-up's search leaves the best's out).
+        exhaustive: every pair of correspondences is a sample (``iters`` and ``rng``
+            unused): the pose the most support among those two samples give, for
+            certain (for a few dozen correspondences: a pose's twins, ``estimator._twins``).
 
     Returns:
         The best :class:`RigidFit`, or None with fewer than two usable samples.
     """
     if len(qi) < 2:
         return None
-    ab = rng.integers(0, len(qi), size=(8 * iters, 2))
+    if exhaustive:
+        ab = np.stack(np.triu_indices(len(qi), 1), axis=1)
+        iters = len(ab)
+    else:
+        ab = rng.integers(0, len(qi), size=(8 * iters, 2))
     ax, ay, ayaw = avoid if avoid is not None else (0.0, 0.0, 0.0)
     found, x, y, yaw, inl, count = _ransac(
         Pairs(arr(q, np.float64), arr(p, np.float64), arr(qi, np.int64)), ab,

@@ -49,7 +49,8 @@ def test_plain_tiles_give_no_valid_pose(office):
     assert not any(got), [(_error(g, p), dict(g.diagnostics)) for g, p in
                           zip(got, poses, strict=True) if g]
     ambiguous = [g for g in got if g.reason == AMBIGUOUS]
-    assert all(len(g.hypotheses) == 1 + (g.diagnostics["runner_up"] > 0) for g in ambiguous)
+    assert all(len(g.hypotheses) == 1 + (g.diagnostics["runner_up"] > 0)
+               + g.diagnostics.get("twins_left", 0) for g in ambiguous)
 
 
 def _repeated(cmap: CeilingMap) -> tuple[CeilingMap, float]:
@@ -206,3 +207,26 @@ def test_a_runner_up_is_weighed_where_its_mosaic_differs(office):
             rep, patch, valid, (x, y, yaw), (x + shift, y, yaw)))
         assert all(math.isnan(v) for v in where_they_differ(
             cmap, patch, valid, (x, y, yaw), (x, y, yaw)))
+
+
+def test_a_pose_with_few_distinctive_matches_is_valid_when_its_twins_are_ruled_out(office):
+    """Issue 39: a frame that sees mostly the tile grid has few distinctive matches. Its
+    twins (the poses its other matches support alike) are listed and judged by the
+    frame: on the scatter's map each is ruled out and the pose is valid (here every
+    frame is held to more distinctive matches than it has); on the plain grid, or a
+    scatter repeated, a twin explains the frame as well: ``ambiguous``."""
+    strict = {"plane_odometry": False, "min_unique": 1000}
+    est = TextureEstimator(office.rig, office.sites["scatter"], strict)
+    got = [est.estimate(f, k) for k, f in enumerate(office.drive)]
+    assert sum(map(bool, got)) >= len(got) - 1, [(g.reason, g.detail) for g in got if not g]
+    for g, p in zip(got, office.drive_poses, strict=True):
+        assert not g or (_error(g, p)[0] <= 0.01 and g.diagnostics["twins_left"] == 0), g
+    plain = TextureEstimator(office.rig, office.sites["plain"], strict)
+    poses = [(2.3, 0.1, 0.3), (3.1, -0.2, 2.0), (2.8, 0.3, -1.2), (3.5, 0.0, 0.0)]
+    assert not any(plain.estimate(f, k) for k, f in
+                   enumerate(office.frames(poses, 4, plain=True)))
+    cmap, _ = _repeated(office.maps["scatter"])
+    path = cmap.save(office.folder / "repeated_strict.npz")
+    twice = TextureEstimator(office.rig, dataclasses.replace(
+        office.sites["scatter"], ceiling_map=str(path)), strict)
+    assert not any(twice.estimate(office.drive[k], k) for k in (2, 4, 6))
