@@ -364,7 +364,7 @@ class TextureEstimator(Estimator):
         left = tuple(f for f in found if not _told_apart(
             ncc, appearance_ncc(self.map, patch, valid, f.pose, NCC_STRIDE),
             lambda f=f: where_they_differ(self.map, patch, valid, best.pose, f.pose),
-            o.twin_ncc))
+            o.twin_ncc, o.min_ncc))
         return left, len(found), complete
 
     def _rows(self, q: np.ndarray, prior: PoseEstimate | None) -> _Rows | None:
@@ -485,23 +485,28 @@ def where_they_differ(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
 
 def _runner_twin(s: _Search, o: TextureOptions) -> bool:
     """Whether the runner-up is the best's twin: ``min_inliers`` features, and the frame
-    does not rule it out (``twin_ncc``: over the whole frame and where they differ)."""
+    does not rule it out (``twin_ncc``: over the whole frame, and where they differ when
+    the best explains the frame there, ``min_ncc``)."""
+    a, b = s.differ_ncc
     return s.runner is not None and s.runner_count >= o.min_inliers and \
         not s.runner_ncc < s.ncc - o.twin_ncc and \
-        not s.differ_ncc[1] < s.differ_ncc[0] - o.twin_ncc
+        not (a >= o.min_ncc and b < a - o.twin_ncc)
 
 
-def _told_apart(ncc: float, ncc2: float, differ: Any, twin_ncc: float) -> bool:
+def _told_apart(ncc: float, ncc2: float, differ: Any, twin_ncc: float,
+                min_ncc: float) -> bool:
     """Whether the frame rules out a second pose (mosaic correlation ``ncc2``) against
     the best (``ncc``): more than ``twin_ncc`` below over the whole frame, or, called
-    only when not, where the two mosaics differ (``differ()``: :func:`where_they_differ`;
-    NaN there, or off the mosaic: not ruled out)."""
+    only when not, where the two mosaics differ (``differ()``: :func:`where_they_differ`)
+    when the best explains the frame there (at least ``min_ncc``: a frame whose differing
+    pixels are hidden or changed tells the two apart by chance, 5-11 % of random
+    patches in review). NaN there, or off the mosaic: not ruled out."""
     if ncc2 < ncc - twin_ncc:
         return True
     if not math.isfinite(ncc2):
         return False
     a, b = differ()
-    return bool(b < a - twin_ncc)
+    return bool(a >= min_ncc and b < a - twin_ncc)
 
 
 def _standard(x: np.ndarray, where: np.ndarray) -> np.ndarray:
