@@ -768,7 +768,6 @@ def _warm() -> None:
         rows_steps((0.0, 0.0), gd, one, cam, 1, rates, np.empty(2), np.empty((2, 2)))
         for tau in (none, one):                      # global shutter; rows
             fix_cov((0.0, 0.0), gd, cam, tau, rates, np.empty((2, 2)))
-    segment_cov(np.ones((2, 2)), np.ones(2), 2, np.zeros(1))
     f = np.float64
     seg = arr(np.array([[0.0, 0.0, 0.1, 0.0]]), f)
     on = arr(np.ones(1, bool), np.bool_)

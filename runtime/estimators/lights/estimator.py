@@ -617,8 +617,10 @@ def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_p
     q, jac = obs.q_v[pairs[:, 0]], obs.jac_px[pairs[:, 0]]
     lights = lights_w[pairs[:, 1]]
     if motion is None:
-        w = spot_weights(obs, pairs[:, 0])[:, None, None]
         fit = refine_pose_ceiling(q, jac, lights, *start)
+        if obs.centre_px is None or obs.excess_px is None:   # every weight 1
+            return with_shifts(q, jac, lights, frame_shifts(obs, pairs[:, 0]), fit)
+        w = spot_weights(obs, pairs[:, 0])[:, None, None]
         out = with_shifts(q, jac * w, lights, frame_shifts(obs, pairs[:, 0]) * w, fit)
         # residual norms back in pixels (the outlier pass and the quality read them)
         return out if out is fit else (*out[:4], out[4] / w[:, 0, 0])

@@ -54,7 +54,6 @@ from ceilkit.runtime.estimators.lights.observe import (
     GridArrays,
     SpotObserver,
     VisibilityTable,
-    kernel_rig,
     locate_core,
     plausible_spot,
 )
@@ -208,7 +207,7 @@ class WindowTracker:
             arr([vis.table.shape[0], vis.table.shape[1], vis.max_spots, cam.width,
                  cam.height, MAX_HALF_PX], np.int64))
         self._grid = observer.grid_arrays
-        self._mount = kernel_rig(rig, ceiling_height_m)
+        self._mount = observer.mount   # the same rig and ceiling
         self._cells = self._seen.cells
 
     def observe(self, grey: np.ndarray, x_m: float, y_m: float, yaw_rad: float
