@@ -37,6 +37,7 @@ Rows to ``benchmarks/out/bench_heldout_lights.csv``.
 
     .venv/bin/python benchmarks/bench_heldout_lights.py [--scenes 3] [--frames 100]
         [--seed 1] [--only grid lamps rc] [--pick rc0] [--runs auto-start] [--keep DIR]
+        [--supersample 1]
 """
 
 from __future__ import annotations
@@ -145,8 +146,11 @@ def grid(drives: list[Trajectory], pitch: tuple[float, float], rng: np.random.Ge
     return np.array([[a, b] for a in gx for b in gy])
 
 
-def draw(cls: str, rng: np.random.Generator, n: int, index: int) -> Scene:
-    """One scene of class ``cls`` (``grid``, ``lamps``, ``rc``)."""
+def draw(cls: str, rng: np.random.Generator, n: int, index: int, supersample: int = 1
+         ) -> Scene:
+    """One scene of class ``cls`` (``grid``, ``lamps``, ``rc``), rendered with
+    ``supersample`` x ``supersample`` samples per pixel (the draw itself does not
+    depend on it)."""
     rc = cls == "rc"
     cam, tilt, note = camera(rng, True if rc else None)
     if rc:
@@ -163,7 +167,7 @@ def draw(cls: str, rng: np.random.Generator, n: int, index: int) -> Scene:
     mz = 0.3 if rc else float(rng.uniform(0.2, 0.6))
     above = 2.5 if rc else float(rng.uniform(2.0, 3.5))
     site: dict = {"ceiling_height": round(mz + above, 3)}
-    sim = dict(noise_sigma=2.0, blur_px=0.8, supersample=1)
+    sim = dict(noise_sigma=2.0, blur_px=0.8, supersample=supersample)
     f = cam["camera_matrix"]["data"][0]
     # the pitch a pinhole can see three lights of: 0.8 of its view's short side
     wide = 4.0 if cam["distortion_model"] == "equidistant" else 0.8 * H / f * above
@@ -352,6 +356,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pick", nargs="*", help="only these scenes (e.g. grid1 rc0)")
     ap.add_argument("--keep", type=Path, help="write the recordings and runs here (kept)")
     ap.add_argument("--runs", nargs="*", help="only these runs (e.g. auto-start lights-nostart)")
+    ap.add_argument("--supersample", type=int, default=1,
+                    help="samples per pixel per axis (3: a sensor integrating over its "
+                         "pixel; a --keep DIR of other recordings is reused as it is)")
     a = ap.parse_args(argv)
     OUT.mkdir(exist_ok=True)
     rows = []
@@ -361,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
         for ci, cls in enumerate(("grid", "lamps", "rc")):
             rng = np.random.default_rng([a.seed, ci])
             for i in range(a.scenes):
-                scene = draw(cls, rng, a.frames, i)
+                scene = draw(cls, rng, a.frames, i, a.supersample)
                 if cls not in a.only or (a.pick and scene.name not in a.pick):
                     continue
                 print(f"{scene.name}: {scene.note}", flush=True)
