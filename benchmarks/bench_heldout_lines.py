@@ -4,7 +4,8 @@ seed, beyond the cases ``bench_ambiguity.py`` and ``bench_tiles_markers.py`` wer
 Each scene is written as a SPEC recording (``frames/``, ``frames.csv``, ``rig.yaml``,
 ``site.yaml``, ``truth.csv``) and replayed through :func:`ceilkit.runtime.replay.replay`
 (the library function of ``ceilrun replay``), as a recording made outside the project
-would be. Noise 2 grey levels, blur 0.8 px, ``supersample=1``. Classes:
+would be. Noise 2 grey levels, blur 0.8 px, ``supersample=1`` (``--noise``, ``--blur``,
+``--supersample``). Classes:
 
 * **corridor**: 2-6 lines mirror-symmetric about the centre line at irregular spacing,
   1.5-4 m wide (walls 0.75 m past the outermost line), a lamp row down the middle or
@@ -31,13 +32,14 @@ is in view. Per run: frames, valid, wrong, median position error, mean NEES and 
 
     .venv/bin/python benchmarks/bench_heldout_lines.py [--scenes 3] [--frames 60]
         [--seed 36] [--only corridor tiles markers] [--runs TAG ...] [--keep DIR]
-        [--option KEY=VALUE ...]
+        [--option KEY=VALUE ...] [--noise 2] [--blur 0.8] [--supersample 1]
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import math
 import sys
 import tempfile
@@ -269,8 +271,16 @@ def main(argv: list[str] | None = None) -> int:
                          "window_search=true")
     ap.add_argument("--keep", type=Path, help="write the recordings and runs here (kept)")
     ap.add_argument("--out", type=Path, default=OUT / "bench_heldout_lines.csv")
+    ap.add_argument("--noise", type=float, default=SIM.noise_sigma,
+                    help="the image noise's 1σ in grey levels (default %(default)s)")
+    ap.add_argument("--blur", type=float, default=SIM.blur_px,
+                    help="the blur's 1σ in px (default %(default)s)")
+    ap.add_argument("--supersample", type=int, default=SIM.supersample,
+                    help="samples per pixel side of the render (default %(default)s)")
     a = ap.parse_args(argv)
     options = dict(o.split("=", 1) for o in a.option)
+    sim = dataclasses.replace(SIM, noise_sigma=a.noise, blur_px=a.blur,
+                              supersample=a.supersample)
     rows = []
     with tempfile.TemporaryDirectory() as d:
         tmp = a.keep or Path(d)
@@ -284,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
                     name = sc.name + ("-kidnapped" if kid else "")
                     rec[kid] = simulate_recording(sc.rig, sc.site,
                                                   sc.kidnapped if kid else sc.traj,
-                                                  tmp / name, SIM, seed=a.seed)
+                                                  tmp / name, sim, seed=a.seed)
                 t0 = time.perf_counter()
                 res = run(rec[kid], tag, method, start, options)
                 res["s"] = time.perf_counter() - t0
