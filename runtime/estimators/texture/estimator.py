@@ -66,7 +66,7 @@ from ceilkit.runtime.estimators.texture.match import (
     refine,
     residuals,
 )
-from ceilkit.runtime.estimators.texture.shutter import Readout, widened
+from ceilkit.runtime.estimators.texture.shutter import Readout, refit
 from ceilkit.runtime.estimators.texture.track import MapTracker
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry
 
@@ -125,8 +125,10 @@ class TextureOptions(ShutterOptions):
             unknown_speed_mps: (inherited) a rolling shutter
             (:class:`~ceilkit.runtime.estimators.rows.ShutterOptions`): each feature put
             back to the stamp by the prior's velocity (:mod:`.shutter`), the fit's
-            covariance grown by the velocity's sigmas (the ``unknown_*`` ones without a
-            velocity, the features then taken as seen at the stamp).
+            covariance grown by the velocity's sigmas; without a velocity the frame's
+            own fitted with the pose where its rows determine it
+            (:func:`.shutter.joint_fit`), else the features taken as seen at the stamp
+            with the ``unknown_*`` sigmas.
     """
 
     half_extent_m: float = 0.0
@@ -190,6 +192,10 @@ class TextureEstimator(Estimator):
         # took 160 ms against 16 ms for the same work once they were there)
         self._rectify = Rectifier.of(rig, site.ceiling_height_m, self.map.resolution_m,
                                      self.half_m)
+        # the ORB detector and both paths' eroded masks too (made on frame 0: issue 37)
+        features(np.zeros(self._rectify.valid.shape, np.uint8), self._rectify.valid,
+                 self.map.resolution_m, n_features=o.n_features)
+        self._tracker.inner(self._track_rectify.valid)
         self.sigma_floor_m = float(np.median(self.map.sigma_m[np.unique(self.index.place)])) \
             if len(self.map.sigma_m) else self.map.resolution_m
         self._odo = PlaneOdometry(PlanarGeometry.of(rig, site), site) if o.plane_odometry \
@@ -263,7 +269,7 @@ class TextureEstimator(Estimator):
         if got is None:
             return None
         r = got.refined
-        fit = MapFit(r.pose, r.cov * TRACK_VAR_FACTOR, r.used, r.rms_m)
+        fit = dataclasses.replace(r, cov=r.cov * TRACK_VAR_FACTOR)
         ncc = appearance_ncc(cmap, patch, valid, fit.pose, NCC_STRIDE)
         if fit.rms_m > o.max_rms_px * res or not ncc >= o.min_ncc or \
                 len(fit.used) < TRACK_MIN_SHARE * got.followed or \
@@ -271,7 +277,7 @@ class TextureEstimator(Estimator):
             return None
         diag = {"features": got.predicted, "matches": got.followed, "inliers": len(fit.used),
                 "runner_up": 0, "search": "tracked", "rms_px": fit.rms_m / res, "ncc": ncc,
-                "runner_up_ncc": math.nan}
+                "runner_up_ncc": math.nan, **_velocity_diag(fit)}
         return self._pose(t_ns, _Search(fit, len(fit.used), None, 0, ncc, math.nan),
                           Provenance.WINDOW, (), diag, t0)
 
@@ -378,15 +384,12 @@ class TextureEstimator(Estimator):
     def _refined(self, qq: np.ndarray, pp: np.ndarray, qi: np.ndarray,
                  pose: tuple[float, float, float], rows: _Rows | None) -> MapFit | None:
         """:func:`.match.refine` from a RANSAC ``pose``; with a rolling shutter
-        (``rows`` over these pairs) on the features put back to the stamp at that
-        pose's heading (:meth:`.shutter.Readout.unrolled`), the covariance grown by
-        the velocity's sigmas (:func:`.shutter.widened`)."""
+        (``rows`` over these pairs) :func:`.shutter.refit`'s (the prior's velocity, or
+        the frame's own where it determines it, or the ``unknown_*`` sigmas)."""
         tol = self.options.tol_px * self.map.resolution_m  # type: ignore[attr-defined]
         if rows is None:
             return refine(qq, pp, qi, pose, tol, self.sigma_floor_m)
-        ro, q_raw, tau = rows
-        fit = refine(ro.unrolled(q_raw, tau, pose[2]), pp, qi, pose, tol, self.sigma_floor_m)
-        return None if fit is None else widened(fit, ro, q_raw, tau)
+        return refit(*rows, pp, qi, pose, tol, self.sigma_floor_m)
 
     def _decide(self, q: np.ndarray, qi: np.ndarray, s: _Search,
                 prior: PoseEstimate | None, t_ns: int, t0: float, local: bool
@@ -401,7 +404,8 @@ class TextureEstimator(Estimator):
             return None if local else self.fail(
                 t_ns, NO_MAP_MATCH, f"{s.count} features agree on a pose, it needs "
                 f"{o.min_inliers}", **diag, ms=elapsed_ms(t0))
-        diag.update(rms_px=s.best.rms_m / res, ncc=s.ncc, runner_up_ncc=s.runner_ncc)
+        diag.update(rms_px=s.best.rms_m / res, ncc=s.ncc, runner_up_ncc=s.runner_ncc,
+                    **_velocity_diag(s.best))
         if s.count < o.min_inlier_share * len(q) or s.best.rms_m > o.max_rms_px * res \
                 or not s.ncc >= o.min_ncc:
             return None if local else self.fail(
@@ -481,6 +485,15 @@ def where_they_differ(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
         return math.nan, math.nan
     fa = f[differ]
     return _ncc(fa, za[differ]), _ncc(fa, zb[differ])
+
+
+def _velocity_diag(fit: MapFit) -> dict[str, Any]:
+    """The diagnostics of a fit that estimated the velocity from the frame's rows
+    (:func:`.shutter.joint_fit`): ``velocity`` and ``velocity_sigma`` (W; m/s, m/s,
+    rad/s); none otherwise."""
+    if fit.velocity is None:
+        return {}
+    return {"velocity": fit.velocity, "velocity_sigma": fit.velocity_sigma}
 
 
 def _runner_twin(s: _Search, o: TextureOptions) -> bool:

@@ -358,12 +358,17 @@ class MapFit:
         cov: ``(3, 3)`` covariance of the pose.
         used: indices of the correspondences used (one per query feature).
         rms_m: RMS residual, m.
+        velocity, velocity_sigma: ``(vx m/s, vy m/s, yaw rate rad/s)`` in W and their
+            1-sigma when the fit estimated the velocity from the frame's rows
+            (:func:`.shutter.joint_fit`); None otherwise.
     """
 
     pose: tuple[float, float, float]
     cov: np.ndarray
     used: np.ndarray
     rms_m: float
+    velocity: tuple[float, float, float] | None = None
+    velocity_sigma: tuple[float, ...] | None = None
 
 
 def refine(q: np.ndarray, p: np.ndarray, qi: np.ndarray | None,

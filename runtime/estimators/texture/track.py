@@ -31,7 +31,8 @@ of those within 3 MADs of the fit of all (:func:`_fit_pairs`). Each frame is tie
 the map, not to the previous frame: no drift. Under a rolling shutter (a
 :class:`.shutter.Readout`) each found place is first put back to the stamp at the
 prior's heading and the fit's covariance grown by the velocity's sigmas, as on the
-global path.
+global path; when the prior has no velocity, the frame's own is fitted with the pose
+where its rows determine it (:func:`_unrolled_fit`).
 
 What the fast path cannot do is enumerate twins: it converges to the pose nearest the
 prior. The estimator takes it only when the prior's region is too narrow to hold a
@@ -64,7 +65,7 @@ from ceilkit.runtime.estimators.texture.match import (
     _rigid,
     places,
 )
-from ceilkit.runtime.estimators.texture.shutter import Readout, widened
+from ceilkit.runtime.estimators.texture.shutter import Readout, joint_fit, widened
 from ceilkit.runtime.jit import arr, njit, warmer
 
 CELLS = 4                # the patch's CELLS x CELLS cells ...
@@ -168,6 +169,16 @@ class MapTracker:
                         Placement((x - ox) / res, (y - oy) / res, math.cos(yaw), math.sin(yaw)),
                         CELLS, PER_CELL)
 
+    def inner(self, valid: np.ndarray) -> np.ndarray:
+        """``valid`` (a rectifier's mask) eroded by the Lucas-Kanade window: where a
+        window lies wholly on the ceiling; made once per mask (the estimator makes it at
+        construction, not on the first frame)."""
+        if valid is not self._valid:     # the rectify tables' own array: made once
+            self._valid = valid
+            self._inner = arr(_eroded(np.ascontiguousarray(valid, np.uint8).tobytes(),
+                                      valid.shape, LK_HALF + 2), np.uint8)
+        return self._inner
+
     def follow(self, patch: np.ndarray, valid: np.ndarray, pose: tuple[float, float, float],
                tol_m: float, sigma_floor_m: float, min_points: int,
                readout: Readout | None = None) -> Tracked | None:
@@ -176,11 +187,7 @@ class MapTracker:
         ``min_points`` map features followed or fitting within ``tol_m``. With a
         rolling shutter (``readout``) the found places are put back to the stamp
         first and the covariance grown (:mod:`.shutter`)."""
-        if valid is not self._valid:     # the rectify tables' own array: made once
-            self._valid = valid
-            self._inner = arr(_eroded(np.ascontiguousarray(valid, np.uint8).tobytes(),
-                                      valid.shape, LK_HALF + 2), np.uint8)
-        inner = self._inner
+        inner = self.inner(valid)
         idx, uv = self.visible(pose, inner)
         if len(idx) < min_points:
             return None
@@ -198,7 +205,8 @@ class MapTracker:
             if good:
                 fit = MapFit((x, y, yaw), cov, np.flatnonzero(used), rms)
                 if readout is not None:   # _fit_pairs' pairs: the followed, in order
-                    fit = widened(fit, readout, q_raw[ok], tau[ok])
+                    fit = _unrolled_fit(fit, readout, q_raw[ok], tau[ok],
+                                        frame, mpx[ok], (tol_m, sigma_floor_m))
                 return Tracked(fit, followed, len(idx))
         return None
 
@@ -213,7 +221,7 @@ class MapTracker:
         d = np.zeros((len(mpx), 2))
         ok = np.ones(len(mpx), np.bool_)
         c, s = math.cos(yaw), math.sin(yaw)
-        fol = Following(mpx, uv, inner, c, s)
+        fol = Following(mpx, arr(uv, np.float64), inner, c, s)   # read-only, as warmed
         for level in range(levels, -1, -1):
             _lk_level(Level(self.mosaics[level], pyr[level], 0.5 ** level, level == 0), fol,
                       LK, d, ok)
@@ -572,6 +580,22 @@ def _zncc(win, tpl, half):  # pragma: no cover - compiled
     if va <= 0.0 or vb <= 0.0:
         return 0.0
     return (sab - sa * sb / m) / math.sqrt(va * vb)
+
+
+def _unrolled_fit(fit: MapFit, readout: Readout, q_raw: np.ndarray, tau: np.ndarray,
+                  frame: PatchFrame, mpx: np.ndarray, tol: tuple[float, float]) -> MapFit:
+    """The followed pairs' fit under a rolling shutter: with the prior's velocity
+    ``fit`` (on the places put back to the stamp) with its covariance grown
+    (:func:`.shutter.widened`); without, the frame's own velocity fitted with the pose
+    where its rows determine it (:func:`.shutter.joint_fit`, on the places as observed,
+    ``q_raw`` at row times ``tau``, against the map's ``mpx``; ``tol``: the inlier
+    tolerance and the covariance's floor, m), else the ``unknown_*`` growth."""
+    if not readout.known:
+        p = np.column_stack([frame.ox + mpx[:, 0] * frame.res, frame.oy + mpx[:, 1] * frame.res])
+        joint = joint_fit(q_raw, tau, p, np.arange(len(p)), fit.pose, *tol, readout.sigma)
+        if joint is not None:
+            return joint
+    return widened(fit, readout, q_raw, tau)
 
 
 class PatchFrame(NamedTuple):

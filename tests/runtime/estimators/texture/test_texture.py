@@ -9,6 +9,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.base import AMBIGUOUS, PoseEstimate, Provenance
@@ -67,11 +68,15 @@ def _repeated(cmap: CeilingMap) -> tuple[CeilingMap, float]:
         sigma_m=np.concatenate([cmap.sigma_m, cmap.sigma_m])), shift
 
 
-def test_a_repeated_scatter_is_ambiguous_until_a_prior_singles_one_out(office):
+@pytest.mark.parametrize("readout_ms", [0.0, 25.0])
+def test_a_repeated_scatter_is_ambiguous_until_a_prior_singles_one_out(office, readout_ms):
+    """Also with a rolling shutter and no velocity: each twin's fit estimates the
+    frame's velocity alike (:func:`.shutter.joint_fit`), and neither is ruled out."""
     cmap, shift = _repeated(office.maps["scatter"])
     path = cmap.save(office.folder / "repeated.npz")
     site = dataclasses.replace(office.sites["scatter"], ceiling_map=str(path))
-    est = TextureEstimator(office.rig, site, {"plane_odometry": False})
+    est = TextureEstimator(office.rig, site, {"plane_odometry": False,
+                                              "readout_ms": readout_ms})
     for k in (2, 4, 6):
         truth = office.drive_poses[k]
         got = est.estimate(office.drive[k], k)
