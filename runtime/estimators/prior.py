@@ -27,8 +27,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from ceilkit.runtime.estimators.base import PoseEstimate
-from ceilkit.runtime.geometry.ekf import chi2_quantile
+from ceilkit.runtime.geometry.ekf import chi2_quantile, chi2_table
 from ceilkit.runtime.geometry.rotations import wrap_pi
+from ceilkit.runtime.jit import warmer
 
 PRIOR_P = 0.999
 """The probability of the region a prior allows (chi-square quantile of its
@@ -132,3 +133,8 @@ def prior_choice(prior: PoseEstimate | None, poses: Sequence[Pose],
         return None
     inside = [k for k, q in enumerate(poses) if allows(prior, q, p)]
     return inside[0] if len(inside) == 1 else None
+
+
+@warmer
+def _warm() -> None:
+    chi2_table(PRIOR_P)   # the regions' quantiles before the first frame (issue 37)

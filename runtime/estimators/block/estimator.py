@@ -61,6 +61,7 @@ from ceilkit.runtime.estimators.base import (
 from ceilkit.runtime.estimators.block.detect import (
     DECIMATE,
     Sides,
+    _cell_grid,
     find_quads,
     measure_sides,
     side_lengths_m,
@@ -71,12 +72,14 @@ from ceilkit.runtime.estimators.block.parallels import (
     LinedSides,
     ParallelsHeading,
     ParallelsStage,
+    _along,
 )
 from ceilkit.runtime.estimators.block.pnp import (
     RMS_BAD_PX,
     PlanarGeometry,
     PlanarSolver,
     TargetFix,
+    _mount_tilt_swing,
     ceiling_points_vehicle,
     six_dof_check,
 )
@@ -257,6 +260,13 @@ class BlockEstimator(Estimator):
                                      self._solver) if markers is not None else None)
         self._fallback = self._reader if o.marker_fallback else None
         self._window_fixes = 0  # window fixes since the last global search
+        # the small tables frame 0 made (issue 37): the marker cells' samples, the site
+        # lines' array, the rig's mount angles
+        if self._codes is not None:
+            _cell_grid(self._codes.bits + 2)
+        if self._heading.corridor is not None:
+            _along(tuple(self._heading.corridor.lines_along_m))
+        _mount_tilt_swing(np.asarray(self.geo.R_vehicle_cam, np.float64).tobytes())
 
     def forget(self) -> None:  # Estimator.forget: pooled offsets, odometry image, counter
         self._solver.pooled.reset()
