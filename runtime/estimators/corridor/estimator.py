@@ -77,7 +77,8 @@ from ceilkit.runtime.estimators.corridor.setup import (
     mirror_line,
 )
 from ceilkit.runtime.estimators.corridor.track import (
-    MAX_CHORD_RMS_PX,
+    ChordFit,
+    LineMeasurement,
     LineTracker,
     WindowFit,
     window_applies,
@@ -301,6 +302,9 @@ class CorridorEstimator(Estimator):
                                 else math.radians(o.assume_heading_deg)))
         self.lines_track = (LineTracker(self.setup, cam, o.window_px) if o.window_search
                             else None)
+        self._chord_fit = None if self.lines_track is None else ChordFit(
+            self.setup, self.angle_tol_rad, o.inlier_px, o.gn_iterations,
+            self.lines_track.reach(), self._segment_times)
         self._tracked_fixes = 0  # tracked fixes since the last global search
         self._ignore = IgnoreRegions.of(rig, site)
 
@@ -360,16 +364,23 @@ class CorridorEstimator(Estimator):
         yaw = prior.yaw_rad
         psi = yaw + st.pan_rad
         cy = float(prior.y_m) + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
-        found = self._window_fit(grey, psi, cy, prior)
         # a fit that moved the lines from where they were searched was measured off
         # centre (the locator's error depends on the edge's offset from the profile's
         # middle, alike on every chord): measured again about itself (REMEASURE_PX;
         # bench_paired, priors 1 and 3 cm off: lateral p95 0.59 and 7.5 mm before,
-        # 0.18 and 0.19 mm after, the global path's 0.27)
-        fit = None if found is None else found.frame.fit
-        if fit is not None and self.lines_track.shift_px(
-                fit.psi_rad - psi, fit.camera_y_m - cy) > REMEASURE_PX:
-            found = self._window_fit(grey, fit.psi_rad, fit.camera_y_m, prior)
+        # 0.18 and 0.19 mm after, the global path's 0.27). The first fit only says
+        # where (:meth:`~.track.ChordFit.first`); the frame is fitted on the chords
+        # that count.
+        fitter, rates = self._chord_fit, self._rates(prior)
+        m = self._window_chords(grey, psi, cy, prior)
+        first = None if m is None else fitter.first(m, psi, cy, rates)
+        found = None
+        if first is not None and self.lines_track.shift_px(
+                first[0] - psi, first[1] - cy) > REMEASURE_PX:
+            m = self._window_chords(grey, first[0], first[1], prior)
+            found = None if m is None else fitter.frame(m, first[0], first[1], rates)
+        elif first is not None:
+            found = fitter.frame(m, psi, cy, rates)
         twins = None if found is None else fit_twins(self.lines_track, self._ctx, grey, found)
         out = None
         if twins is not None:
@@ -387,31 +398,12 @@ class CorridorEstimator(Estimator):
         self._tracked_fixes += 1
         return out
 
-    def _window_fit(self, grey: np.ndarray, psi: float, cy: float, prior: PoseEstimate
-                    ) -> WindowFit | None:
-        """The :class:`~.track.WindowFit` (the located chords, the frame fitted on them)
-        of the edge searches across the lines predicted for camera pan ``psi`` and
-        camera y ``cy`` (:mod:`~.track`), or ``None``: not found, a poor fit (rms beyond
-        what a chord meets, docs/methods/corridor.md), or a fit beyond the searches'
-        reach."""
-        o, st = self.options, self.setup
-        m = without_ignored(self.lines_track.measure(grey, psi, cy), self._ignore, prior)
-        if m is None:
-            return None
-        n = m.segs_n.shape[0]
-        fr = frame_lines(m.segs_n, m.polarity, st, self.angle_tol_rad, o.inlier_px)
-        along, across = np.ones(n, bool), np.zeros(n, bool)
-        lab = Labeling((m.n_lines, float(n)), psi, cy, along, across, m.line, m.n_lines,
-                       False, "window")
-        rates = self._rates(prior)
-        gd = gn_inputs(fr, along, across, m.line, st, self._segment_times(fr, rates))
-        fit = joint_fit(gd, psi, cy, st, o.gn_iterations, rates)
-        reach_psi, reach_cy = self.lines_track.reach()
-        if (fit.rms_px > min(o.inlier_px, MAX_CHORD_RMS_PX)
-                or abs(math.remainder(fit.psi_rad - psi, 2 * math.pi)) > reach_psi
-                or abs(fit.camera_y_m - cy) > reach_cy):
-            return None
-        return WindowFit(m, FrameFit(fr, lab, gd, fit))
+    def _window_chords(self, grey: np.ndarray, psi: float, cy: float,
+                       prior: PoseEstimate) -> LineMeasurement | None:
+        """The chords located across the lines predicted for camera pan ``psi`` and
+        camera y ``cy`` (:meth:`~.track.LineTracker.measure`), outside the ignore
+        regions; None: fewer than two site lines found."""
+        return without_ignored(self.lines_track.measure(grey, psi, cy), self._ignore, prior)
 
     def estimate_segments(self, segs_px: np.ndarray, t_ns: int,
                           prior: PoseEstimate | None = None,
@@ -554,7 +546,7 @@ class CorridorEstimator(Estimator):
 
 def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: WindowFit
               ) -> tuple[LabelingTwin, ...] | None:
-    """The twins of a window fit ``found`` (:meth:`CorridorEstimator._window_fit`) the
+    """The twins of a window fit ``found`` (:meth:`~.track.ChordFit.frame`) the
     global path would list: the lateral shifts and half turns the frame supports as
     well (:func:`~.track.window_twins`) and, where the site's ``lines_across`` are
     seams (``ctx.across_seams``), both quarter turns (their camera y not measured:

@@ -24,6 +24,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -76,6 +77,11 @@ class GNInputs:
     scale_b: np.ndarray
     tau: np.ndarray | None = None
     tau_b: np.ndarray | None = None
+
+    @functools.cached_property
+    def arrays(self) -> GNArrays:
+        """The arrays as the compiled loops take them (:func:`_arrays`), made once."""
+        return _arrays(self)
 
 
 class RowRates(NamedTuple):
@@ -183,9 +189,19 @@ def gn_inputs(fr: FrameLines, along: np.ndarray, across: np.ndarray, assign: np.
 
 def level_camera(setup: CorridorSetup, R: np.ndarray) -> LevelCamera:
     """The :class:`LevelCamera` of ``setup`` with the rotation ``R`` (its
-    ``R_level_cam`` or its rows, as the caller passes them)."""
+    ``R_level_cam`` or its rows, as the caller passes them: the same numbers, made once
+    per setup)."""
+    if R is setup.R_level_cam or R is setup.R_rows:
+        return _setup_camera(setup)
     return LevelCamera(arr(R, np.float64), float(setup.ceiling_above_cam_m),
                        float(setup.f_px))
+
+
+@functools.lru_cache(maxsize=16)
+def _setup_camera(setup: CorridorSetup) -> LevelCamera:
+    """:func:`level_camera` of ``setup``'s own rotation."""
+    return LevelCamera(arr(setup.R_level_cam, np.float64),
+                       float(setup.ceiling_above_cam_m), float(setup.f_px))
 
 
 @njit
@@ -302,7 +318,7 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
     solution (its step was below the threshold, the one after it far smaller)."""
     r = np.empty(gd.e0.size + gd.p0.size)
     psi, cy, h00, h01, h10, h11, wrr = huber_steps(
-        (float(psi_rad), float(camera_y_m)), _arrays(gd),
+        (float(psi_rad), float(camera_y_m)), gd.arrays,
         level_camera(setup, setup.R_rows), max(1, iterations), r)
     det = h00 * h11 - h01 * h10
     C = residual_cov(psi, cy, gd, setup) if abs(det) > 1e-300 else None
@@ -313,6 +329,43 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
         cov = ((np.inf, nan), (nan, np.inf))        # (as T diag(inf, inf) T^T: inf * 0)
     rms_px = math.sqrt(float(r @ r) / r.size) if r.size else float("nan")
     return PanOffsetFit(psi, cy, cov, rms_px, r)
+
+
+def along_fit(segs_n: np.ndarray, line: np.ndarray, site_y: np.ndarray, cam: LevelCamera,
+              psi_rad: float, camera_y_m: float, iterations: int) -> tuple[float, float, float]:
+    """``(psi, c_y, rms_px)`` of :func:`gauss_newton` on forward segments only, each on
+    its known site line: ``segs_n (N, 4)`` undistorted normalized, ``line (N,)`` indexes
+    ``site_y (J,)`` (m), ``cam`` the :class:`LevelCamera` of ``R_level_cam``; the same
+    numbers as :func:`gn_inputs` and :func:`joint_fit` of that labeling (a global
+    shutter) without their arrays, covariance or objects: one compiled call
+    (:func:`along_steps`), for a fit whose only use is where to search again."""
+    r = np.empty(2 * segs_n.shape[0])
+    psi, cy = along_steps(arr(segs_n, np.float64), arr(line, np.int64), site_y, cam,
+                          (float(psi_rad), float(camera_y_m)),
+                          max(1, iterations), r)
+    return psi, cy, (math.sqrt(float(r @ r) / r.size) if r.size else float("nan"))
+
+
+@njit
+def along_steps(segs, line, site_y, cam, start, iterations, r):  # pragma: no cover - compiled
+    """:func:`along_fit`: :func:`gn_arrays`' forward rows of ``segs (N, 4)`` on site lines
+    ``site_y[line]`` (the same arithmetic), then :func:`huber_steps` (``r (2N,)``: the
+    residuals written out); ``(psi, c_y)``."""
+    n = segs.shape[0]
+    R = cam.R
+    y, e0, e1, ez = np.empty(2 * n), np.empty(2 * n), np.empty(2 * n), np.empty(2 * n)
+    for i in range(n):
+        for e in range(2):
+            k = 2 * i + e
+            ex, ey = segs[i, 2 * e], segs[i, 2 * e + 1]
+            y[k] = site_y[line[i]]
+            e0[k] = R[0, 0] * ex + R[0, 1] * ey + R[0, 2]
+            e1[k] = R[1, 0] * ex + R[1, 1] * ey + R[1, 2]
+            ez[k] = R[2, 0] * ex + R[2, 1] * ey + R[2, 2]
+    none = np.empty(0)
+    fit = huber_steps(start, GNArrays(2 * n, y, e0, e1, ez, none, none, none, none, none),
+                      cam, iterations, r)
+    return fit.psi, fit.cy
 
 
 def _arrays(gd: GNInputs) -> GNArrays:
@@ -410,7 +463,7 @@ def gauss_newton_rows(psi_rad: float, camera_y_m: float, gd: GNInputs,
     C = np.empty((2, 2))
     tau = arr(np.concatenate([gd.tau, gd.tau_b]), np.float64)
     psi, cy, ok = rows_steps(
-        (float(psi_rad), float(camera_y_m)), _arrays(gd), tau,
+        (float(psi_rad), float(camera_y_m)), gd.arrays, tau,
         level_camera(setup, setup.R_level_cam), max(1, iterations),
         RowRates(*(float(v) for v in rates)), r, C)
     Cr = residual_cov(psi, cy, gd, setup, rates) if ok else None
@@ -528,7 +581,7 @@ def residual_cov(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
            else arr(np.zeros(0), np.float64))
     rates = RowRates(0.0, 0.0, 0.0, 0.0) if rates is None else RowRates(*map(float, rates))
     C = np.empty((2, 2))
-    ok = fix_cov((float(psi_rad), float(camera_y_m)), _arrays(gd),
+    ok = fix_cov((float(psi_rad), float(camera_y_m)), gd.arrays,
                  level_camera(setup, setup.R_rows), tau, rates, C)
     return C if ok else None
 
@@ -775,3 +828,5 @@ def _warm() -> None:
                         arr(np.zeros(1), f), arr(np.ones(1), f))
     gn_arrays(lines, on, on, arr(np.zeros(1, np.int64), np.int64), arr(np.zeros(1), f),
               LevelCamera(arr(np.eye(3), f), 2.0, 400.0))
+    along_fit(seg, arr(np.zeros(1, np.int64), np.int64), arr(np.zeros(1), f),
+              LevelCamera(arr(np.eye(3), f), 2.0, 400.0), 0.0, 0.0, 1)

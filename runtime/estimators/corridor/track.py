@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import NamedTuple
@@ -39,8 +40,16 @@ import numpy as np
 
 from ceilkit.runtime.estimators.base import PoseEstimate
 from ceilkit.runtime.estimators.corridor.association import ABSENCE_PENALTY
-from ceilkit.runtime.estimators.corridor.hypotheses import TWIN_RATIO, LabelingTwin
-from ceilkit.runtime.estimators.corridor.refine import FrameFit
+from ceilkit.runtime.estimators.corridor.frame import FrameLines, frame_lines
+from ceilkit.runtime.estimators.corridor.hypotheses import TWIN_RATIO, Labeling, LabelingTwin
+from ceilkit.runtime.estimators.corridor.refine import (
+    FrameFit,
+    RowRates,
+    along_fit,
+    gn_inputs,
+    joint_fit,
+    level_camera,
+)
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.edges import PROFILE_STEP_PX, edge_grid, part_indices
 from ceilkit.runtime.features.lines import ProfileGrid, ProfileKind, refine_chords_core
@@ -184,6 +193,70 @@ class WindowFit:
 
     chords: LineMeasurement
     frame: FrameFit
+
+
+class ChordFit:
+    """How the window path fits the chords it located (a stage of the estimator, its
+    constants made once): the chords as forward segments, each on its site line, fitted
+    by the joint Gauss-Newton on ``(psi, c_y)`` from where they were searched, and kept
+    when the fit's rms is within what a chord meets (``inlier_px`` and
+    :data:`MAX_CHORD_RMS_PX`, docs/methods/corridor.md) and the fit within ``reach``
+    (:meth:`LineTracker.reach`).
+
+    Args:
+        setup: the estimator's :class:`~.setup.CorridorSetup`.
+        angle_tol_rad, inlier_px: the frame's family gate (:func:`~.frame.frame_lines`).
+        iterations: the Gauss-Newton's steps at most.
+        reach: ``(psi_rad, c_y m)`` how far a kept fit may move from its start.
+        times: the row times ``(N, 2)`` of a frame's segments for a rolling shutter's
+            rates (None: a global shutter): the estimator's.
+    """
+
+    def __init__(self, setup: CorridorSetup, angle_tol_rad: float, inlier_px: float,
+                 iterations: int, reach: tuple[float, float],
+                 times: Callable[[FrameLines, RowRates | None], np.ndarray | None]) -> None:
+        self.setup, self.angle_tol_rad, self.inlier_px = setup, angle_tol_rad, inlier_px
+        self.iterations, self.reach, self.times = iterations, reach, times
+        self.cam = level_camera(setup, setup.R_level_cam)
+        self.site_y = arr(setup.site_y, np.float64)
+
+    def ok(self, fit: tuple[float, float, float], psi: float, cy: float) -> bool:
+        """Whether a fit ``(psi, c_y, rms_px)`` started at ``(psi, cy)`` is kept."""
+        reach_psi, reach_cy = self.reach
+        return not (fit[2] > min(self.inlier_px, MAX_CHORD_RMS_PX)
+                    or abs(math.remainder(fit[0] - psi, 2 * math.pi)) > reach_psi
+                    or abs(fit[1] - cy) > reach_cy)
+
+    def first(self, m: LineMeasurement, psi: float, cy: float, rates: RowRates | None
+              ) -> tuple[float, float] | None:
+        """``(psi, c_y)`` of :meth:`frame`'s fit, None where it is None; with a global
+        shutter from one compiled call (:func:`~.refine.along_fit`: the same numbers,
+        without the frame's arrays, the covariance and the objects): the fit whose only
+        use is where to search again."""
+        if rates is not None:
+            found = self.frame(m, psi, cy, rates)
+            return None if found is None else (found.frame.fit.psi_rad,
+                                               found.frame.fit.camera_y_m)
+        fit = along_fit(m.segs_n, m.line, self.site_y, self.cam, psi, cy,
+                        self.iterations)
+        return fit[:2] if self.ok(fit, psi, cy) else None
+
+    def frame(self, m: LineMeasurement, psi: float, cy: float, rates: RowRates | None
+              ) -> WindowFit | None:
+        """The :class:`WindowFit` of chords ``m`` searched about camera pan ``psi`` and
+        camera y ``cy`` with a rolling shutter's ``rates`` (None: a global shutter), or
+        None: not kept."""
+        st = self.setup
+        n = m.segs_n.shape[0]
+        fr = frame_lines(m.segs_n, m.polarity, st, self.angle_tol_rad, self.inlier_px)
+        along, across = np.ones(n, bool), np.zeros(n, bool)
+        lab = Labeling((m.n_lines, float(n)), psi, cy, along, across, m.line, m.n_lines,
+                       False, "window")
+        gd = gn_inputs(fr, along, across, m.line, st, self.times(fr, rates))
+        fit = joint_fit(gd, psi, cy, st, self.iterations, rates)
+        if not self.ok((fit.psi_rad, fit.camera_y_m, fit.rms_px), psi, cy):
+            return None
+        return WindowFit(m, FrameFit(fr, lab, gd, fit))
 
 
 def window_applies(readout_ms: float, prior: PoseEstimate | None) -> bool:
@@ -397,34 +470,10 @@ def window_twins(lt: LineTracker, grey: np.ndarray, m: LineMeasurement, psi_rad:
     or a lateral shift matching about as many lines misses fewer in view (the global
     path's absence test would choose it against the prior): the global path decides
     the frame then. Quarter turns are not examined here."""
-    st = lt.setup
-    found = np.zeros(st.site_y.size, np.bool_)
-    found[m.line] = True
-    vis = np.zeros(st.site_y.size, np.bool_)
-    vis[lt.chords_at(psi_rad, camera_y_m)[1]] = True
-    vis |= found
-    own = float(found.sum() - ABSENCE_PENALTY * np.count_nonzero(vis & ~found))
-    maps = _twin_maps(lt.kernel_lines, found, vis,
-                      np.nan if mirror_y_m is None else float(mirror_y_m), TWIN_EPS_M)
-    cands, n_found, n_missing, where, ws, kinds = maps
-    score = n_found - ABSENCE_PENALTY * n_missing
-    hit = np.full(ws.size, -1, np.int64)            # per unsearched line: 1, 0, -1 unseen
-    if ws.size:
-        chords, line = lt.chords_at(psi_rad, camera_y_m, ws)
-        seen = np.zeros(ws.size, np.bool_)
-        seen[line] = True
-        hit[seen] = 0
-        ask = _asked(where, seen, score - TWIN_RATIO * own)
-        if ask.any():
-            hit[lt.probe(grey, chords, line, kinds, ask)] = 1
-    n_hit, n_seen = _tally(where, hit)
-    score = score + n_hit - ABSENCE_PENALTY * (n_seen - n_hit)
-    # a lateral shift matching as many lines and missing fewer is the one the global
-    # path's absence test settles on (association.settle_by_absence): against the
-    # prior's, it says ambiguous
-    n_all = n_found + n_hit
-    alike = (cands[:, 0] > 0) & (n_all >= max(2.0, TWIN_RATIO * found.sum()))
-    if np.any(alike & (n_missing + n_seen - n_hit < np.count_nonzero(vis & ~found))):
+    cands, score, n_all, own, settled = _twin_scores(
+        arr(grey, np.uint8), float(psi_rad), float(camera_y_m), lt.search, lt.kernel_lines[1],
+        m.line, np.nan if mirror_y_m is None else float(mirror_y_m))
+    if settled:
         return None
     out: list[LabelingTwin] = []
     for c in np.flatnonzero((n_all >= 2) & (score >= TWIN_RATIO * own)):
@@ -435,6 +484,73 @@ def window_twins(lt: LineTracker, grey: np.ndarray, m: LineMeasurement, psi_rad:
         cy_t = float(camera_y_m - g if sign > 0 else g - camera_y_m)
         out.append(LabelingTwin(psi_t, cy_t, "shift" if sign > 0 else "half_turn"))
     return tuple(out)
+
+
+@njit
+def _twin_scores(grey, psi, cam_y, s, kind_abs, line, mirror):  # pragma: no cover - compiled
+    """:func:`window_twins`' numbers in one call (``s``: the tracker's
+    :class:`ChordSearch`, ``kind_abs (J,)`` ``|edge_kind|``, ``line``: the fix's chords'
+    site lines, ``mirror`` NaN for none): ``(cands (C, 2), score (C,), n_all (C,), own,
+    settled)``: the maps of :func:`_twin_maps`, each scored with its lines where the fix
+    searched none looked at (:func:`_probe_hits`), the fix's own score, and whether a
+    lateral shift matching about as many lines misses fewer in view (then the global
+    path decides the frame)."""
+    n_j = s.site_y.size
+    found = np.zeros(n_j, np.bool_)
+    for i in range(line.size):
+        found[line[i]] = True
+    vis = found.copy()
+    _, in_view = _predict(psi, cam_y, s.site_y, s)
+    for i in range(in_view.size):
+        vis[in_view[i]] = True
+    n_own, n_gone = 0, 0
+    for j in range(n_j):
+        n_own += found[j]
+        n_gone += vis[j] and not found[j]
+    own = float(n_own - ABSENCE_PENALTY * n_gone)
+    cands, n_found, n_missing, where, ws, kinds = _twin_maps(
+        (s.site_y, kind_abs), found, vis, mirror, TWIN_EPS_M)
+    score = n_found - ABSENCE_PENALTY * n_missing
+    hit = np.full(ws.size, -1, np.int64)            # per unsearched line: 1, 0, -1 unseen
+    if ws.size:
+        chords, c_line = _predict(psi, cam_y, ws, s)
+        seen = np.zeros(ws.size, np.bool_)
+        for i in range(c_line.size):
+            seen[c_line[i]] = True
+            hit[c_line[i]] = 0
+        ask = _asked(where, seen, score - TWIN_RATIO * own)
+        if ask.any():
+            _probe_hits(grey, chords, c_line, kinds, ask, s, hit)
+    n_hit, n_seen = _tally(where, hit)
+    score = score + n_hit - ABSENCE_PENALTY * (n_seen - n_hit)
+    # a lateral shift matching as many lines and missing fewer is the one the global
+    # path's absence test settles on (association.settle_by_absence): against the
+    # prior's, it says ambiguous
+    n_all = n_found + n_hit
+    least = max(2.0, TWIN_RATIO * n_own)
+    settled = False
+    for c in range(cands.shape[0]):
+        if (cands[c, 0] > 0 and n_all[c] >= least
+                and n_missing[c] + n_seen[c] - n_hit[c] < n_gone):
+            settled = True
+    return cands, score, n_all, own, settled
+
+
+@njit
+def _probe_hits(grey, chords, line, kinds, asked, s, hit):  # pragma: no cover - compiled
+    """:meth:`LineTracker.probe` into ``hit``: 1 for each ``asked`` line an edge of its
+    kind lies on."""
+    pick = _probe_chords(line, asked, PROBE_CHORDS)
+    if pick.size == 0:
+        return
+    _, pol, rms = refine_chords_core(grey, chords[pick], s.grid,
+                                     ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX),
+                                     s.lens_code, s.lens, s.bounds.f_px, LOCAL_SHARE)
+    for i in range(pick.size):
+        ln = line[pick[i]]
+        kind_ok = abs(pol[i]) == 1.0 if kinds[ln] != 0 else pol[i] == 0.0
+        if math.isfinite(rms[i]) and rms[i] <= MAX_CHORD_RMS_PX and kind_ok:
+            hit[ln] = 1
 
 
 @njit
@@ -654,8 +770,10 @@ def _warm() -> None:
     _asked(maps[3], hit >= 0, np.zeros(maps[0].shape[0]))
     _tally(maps[3], hit)
     _probe_chords(np.array([0, 0, 1]), arr(np.ones(2, np.bool_), np.bool_), 2)
+    _twin_scores(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, s,
+                 arr(np.zeros(2), f), np.array([0, 1]), 0.0)
 
 
-__all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "ChordSearch", "ChordView", "LineMeasurement",
-           "LineTracker", "REACH_M", "WindowFit", "chord_search", "window_applies",
-           "window_twins"]
+__all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "ChordFit", "ChordSearch", "ChordView",
+           "LineMeasurement", "LineTracker", "REACH_M", "WindowFit", "chord_search",
+           "window_applies", "window_twins"]

@@ -129,3 +129,28 @@ def test_schedule_and_default_on(corridor_rig, corridor_site):
     off = CorridorEstimator(corridor_rig, corridor_site, {**HEADING, "window_search": False})
     assert off.lines_track is None
     assert off.estimate(img, 0, prior(y, yaw)).diagnostics["hypothesis"] != "window"
+
+
+def test_first_fit_is_the_full_fit(corridor_rig, corridor_site, tracked):
+    """The window path's first fit (where to search again) is one compiled call
+    (ChordFit.first, refine.along_fit): the same psi and c_y as the full fit of the same
+    chords (ChordFit.frame: frame arrays, gn_inputs, joint_fit), bit for bit, and None
+    where it is None (its rms and reach checks)."""
+    st = tracked.setup
+    kept = 0
+    for k, (x, y, yaw) in enumerate(POSES):
+        img = frame(corridor_rig, corridor_site, x, y, yaw, k)
+        for dy, dyaw in ((0.01, 0.005), (-0.02, -0.003), (0.3, 0.0)):
+            psi = yaw + dyaw + st.pan_rad
+            cy = y + dy + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
+            p = prior(y + dy, yaw + dyaw)
+            m = tracked._window_chords(img, psi, cy, p)
+            if m is None:
+                continue
+            full = tracked._chord_fit.frame(m, psi, cy, None)
+            first = tracked._chord_fit.first(m, psi, cy, None)
+            assert (full is None) == (first is None)
+            if full is not None:
+                kept += 1
+                assert first == (full.frame.fit.psi_rad, full.frame.fit.camera_y_m)
+    assert kept >= 6
