@@ -28,7 +28,19 @@ Measured (2026-12-06 18:55 UTC, git 1b28e0d, load 4-6): features 2.80 mm RMS wit
 chain alone, 1.07 mm (max 2.4) after loop closure (issue 39: ≤ 1 cm); poses 0.95 mm
 RMS; the map 1955 of 2335 features matched, 1.59 mm RMS; 277 keyframes, 288 closures;
 17.2 s CPU; peak RSS 334 MB (docs/survey.md, "Figures"). The survey's drive has noise
-and blur only (surveying under the ``realistic`` preset is not measured).
+and blur only; under the ``realistic`` preset, told its readout (``--preset realistic``,
+2026-12-06 21:56 UTC): features 18.6 mm chain, 1.49 mm (max 4.7) after closure, poses
+1.44 mm RMS; not told 26.4 mm.
+
+``--preset NAME`` renders the same drive (path and seed) under configs/office's
+simulator preset into ``benchmarks/out/survey_office60_<NAME>`` (``--seed N`` past 1:
+``..._s<N>``, the noise and the preset's layout drawn from it) and tells the survey the
+preset's rolling shutter as ``readout_ms`` (``--no-readout``: not told). The features'
+truth is then each point's ceiling point seen from the true pose at its row's time
+(:func:`feature_errors`; with no rolling shutter, the frame's stamp as before).
+
+    .venv/bin/python benchmarks/bench_survey.py --preset realistic [--no-readout]
+        [--seed N]
 
 ``--second-drive`` measures instead a second drive on that map (issue 39: "a second
 drive on another path then localizes from single frames on ≥ 95 % of frames, position
@@ -41,10 +53,13 @@ noise and blur only); each frame estimated alone by ``texture`` (no odometry, th
 preset's rolling shutter as ``readout_ms``; with ``--velocity`` a prior holding the
 truth's velocity and no position, what a track or wheel odometry and a gyro carry).
 Prints each refused frame's reason, the valid share, the position error's median, 95th
-percentile and max, the worst heading and the valid poses wrong by > 10 cm or 2°.
+percentile and max, the worst heading, the valid poses wrong by > 10 cm or 2°, the
+position NEES (2 dof: the law's median 1.39, 95th percentile 5.99) and on how many
+valid frames the texture method fitted the frame's own velocity (no ``--velocity``).
 
     .venv/bin/python benchmarks/bench_survey.py --second-drive [--preset realistic]
         [--velocity] [--second-rec benchmarks/out/survey_second_<preset>]
+        [--survey-preset realistic [--no-readout]]
         [--out benchmarks/out/bench_survey_second_<preset>[_velocity].json]
 
 Measured (2026-12-06 19:43 UTC, load 4-6; 21 s wall a run once the drive is rendered,
@@ -55,7 +70,11 @@ under the camera, 2 ``ambiguous``), median 1.16 mm, p95 2.5, max 4.0, heading 0.
 most, 0 wrong. After a pose with few distinctive matches lists and judges its twins
 (19:50 UTC): noise and blur 200 / 200, ``--preset realistic --velocity`` 191 / 200
 (95.5 %: the 9 person frames), median 1.15 mm, 0 wrong (docs/survey.md, "A second
-drive").
+drive"). After the texture method fits a frame's own velocity from its rows when the
+prior gives none (2026-12-06 21:00 UTC): ``--preset realistic`` 191 / 200 (95.5 %:
+the 9 person frames), median 1.17 mm, p95 2.83, max 5.13, NEES median 1.37, 0 wrong;
+with ``--velocity`` and noise and blur unchanged (191 and 200 / 200, NEES medians 1.80
+and 1.85).
 
 ``--against-known`` measures instead the survey's sections against the known-pose tools
 (issue 39: "the survey's lights agree with ``ceilcal lightmap`` from known poses within
@@ -112,7 +131,7 @@ import ceilkit.calib.survey as survey_mod
 import ceilkit.calib.survey_files as survey_files
 from ceilkit.calib.lightmap import survey_lights
 from ceilkit.calib.simulate import simulate_recording
-from ceilkit.calib.survey import survey_drives, survey_map
+from ceilkit.calib.survey import SurveyOptions, result_frames, survey_drives, survey_map
 from ceilkit.calib.survey_graph import solve_graph
 from ceilkit.calib.survey_loop import loop_trajectory
 from ceilkit.calib.survey_markers import survey_markers
@@ -123,6 +142,7 @@ from ceilkit.runtime.estimators.base import PoseEstimate
 from ceilkit.runtime.estimators.texture import TextureEstimator
 from ceilkit.runtime.estimators.texture.ceilmap import build_map
 from ceilkit.runtime.estimators.texture.match import places
+from ceilkit.runtime.estimators.texture.shutter import Readout
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.geometry.ceiling import vehicle_to_world
 from ceilkit.runtime.io.recording import Recording
@@ -137,28 +157,62 @@ ROOT = Path(__file__).resolve().parents[1]
 OFFICE = ROOT / "configs" / "office"
 
 
-def render(folder: Path) -> None:
+def render(folder: Path, preset: str | None = None, seed: int = 1) -> None:
+    """The survey drive (docstring) into ``folder``, with configs/office's ``preset``
+    (None: noise and blur only); ``seed`` draws the noise, and past 1 the preset's
+    layout too (``layout_seed`` ``seed - 1``: the people elsewhere); the same path."""
     rig = Rig.load(OFFICE / "rig.yaml")
     site = Site.load(OFFICE / "site.yaml")
     traj = loop_trajectory(12.8, 2.4, laps=2.05, fps=10.0, speed_mps=0.5,
                            centre_m=(6.0, 0.0))
+    real = load_preset(OFFICE / "site.yaml", preset) if preset else None
+    if real is not None and seed > 1:
+        real = dataclasses.replace(real, layout_seed=seed - 1)
     simulate_recording(rig, site, traj, folder, SimOptions(
-        noise_sigma=2.0, blur_px=0.8, supersample=3, scatter=scene_beside(site)), seed=1)
+        noise_sigma=2.0, blur_px=0.8, supersample=3, scatter=scene_beside(site)),
+        seed=seed, realism=real)
 
 
-def feature_errors(rec: Recording, res, truth: np.ndarray, poses: np.ndarray) -> np.ndarray:
+def truth_at(rec: Recording, t_ns: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` the true pose at stamps ``t_ns`` (linear between truth.csv's rows, the
+    heading unwrapped)."""
+    tt = rec.truth.t_ns.astype(float)
+    yaw = np.unwrap(rec.truth.yaw_rad)
+    return np.column_stack([np.interp(t_ns, tt, v) for v in (rec.truth.x_m, rec.truth.y_m,
+                                                            yaw)])
+
+
+def feature_errors(rec: Recording, res, poses: np.ndarray, readout_ms: float
+                   ) -> list[np.ndarray]:
+    """Every keyframe's ORB points of the frame as recorded: where the survey puts each
+    (the keyframe's surveyed pose, the point put back to the stamp with the survey's
+    velocity when it was told a readout, as its resampling does) against the ceiling
+    point it truly is (seen from the true pose at its row's time, ``readout_ms`` the
+    camera's true readout), m: one array per keyframe."""
     out = []
     for n in res.keys:
         k = int(res.frame[n])
         q = place_of(to_grey(rec.frame(k).image), rec.rig, res.ceiling_height_m).points_v
-        out.append(np.hypot(*(vehicle_to_world(q, *poses[n])
-                              - vehicle_to_world(q, *truth[k])).T))
-    return np.concatenate(out)
+        ro = Readout(rec.rig, res.ceiling_height_m, max(readout_ms, 1e-9) / 1e3,
+                     (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+        tau = ro.times(q) if readout_ms > 0 else np.zeros(len(q))
+        t = truth_at(rec, rec.t_ns[k] + 1e9 * tau)          # each point's row's pose
+        c, s = np.cos(t[:, 2]), np.sin(t[:, 2])
+        true_w = np.column_stack([t[:, 0] + c * q[:, 0] - s * q[:, 1],
+                                  t[:, 1] + s * q[:, 0] + c * q[:, 1]])
+        if res.velocity is not None and res.readout_ms > 0 and readout_ms > 0:
+            q = dataclasses.replace(ro, velocity=tuple(res.velocity[n])).unrolled(
+                q, tau * res.readout_ms / readout_ms, 0.0)
+        out.append(np.hypot(*(vehicle_to_world(q, *poses[n]) - true_w).T))
+    return out
 
 
 def map_errors(rec: Recording, res, truth: np.ndarray) -> dict:
+    """The map from the surveyed poses against one from the true poses, the same
+    keyframes read the same way (with the survey's resampling when it had one)."""
     cmap = survey_map(res, [rec], rec.rig)
-    frames = (to_grey(rec.frame(int(res.frame[n])).image) for n in res.keys)
+    read = result_frames(res, [rec], rec.rig)
+    frames = (read.grey(0, int(res.frame[n])) for n in res.keys)
     ref = build_map(frames, [tuple(truth[int(res.frame[n])]) for n in res.keys], rec.rig,
                     res.ceiling_height_m)
     # a feature's first row (its medoid descriptor) stands for it, on both maps
@@ -320,15 +374,17 @@ def _honesty_report(runs: list[dict], path: Path) -> None:
 
 
 def second_drive(rec: Recording, folder: Path, preset: str | None, with_velocity: bool,
-                 n: int = 200) -> dict:
+                 n: int = 200, survey_readout_ms: float = 0.0) -> dict:
     """``--second-drive``: ``rec`` surveyed from its first frame's true pose, its map
     (:func:`~ceilkit.calib.survey.survey_map`) the site's; the second path (docstring)
     rendered into ``folder`` when it does not hold it, with ``preset`` (None: noise and
     blur only); each of its frames estimated alone by ``texture`` (no odometry),
     ``readout_ms`` the preset's rolling shutter, the prior (with ``with_velocity``) the
-    truth's velocity and no position. The summary and every frame's outcome."""
+    truth's velocity and no position. The summary and every frame's outcome.
+    ``survey_readout_ms``: the survey drive's readout told to the survey."""
     truth = np.c_[rec.truth.x_m, rec.truth.y_m, rec.truth.yaw_rad]
-    res = survey_drives([rec], rec.rig, rec.site.ceiling_height_m, tuple(truth[0]))
+    res = survey_drives([rec], rec.rig, rec.site.ceiling_height_m, tuple(truth[0]),
+                        SurveyOptions(readout_ms=survey_readout_ms))
     smap = survey_map(res, [rec], rec.rig)
     real = load_preset(OFFICE / "site.yaml", preset) if preset else None
     rig, site = Rig.load(OFFICE / "rig.yaml"), Site.load(OFFICE / "site.yaml")
@@ -359,8 +415,12 @@ def second_drive(rec: Recording, folder: Path, preset: str | None, with_velocity
             "features", "matches", "inliers", "unique", "runner_up", "ncc", "runner_up_ncc",
             "differ_ncc", "runner_up_differ_ncc")}}
         if e:
-            row.update(err_mm=1e3 * math.hypot(e.x_m - t[0], e.y_m - t[1]),
-                       err_deg=abs(math.degrees(math.remainder(e.yaw_rad - t[2], 2 * math.pi))))
+            d = np.array([e.x_m - t[0], e.y_m - t[1]])
+            row.update(err_mm=1e3 * math.hypot(*d),
+                       err_deg=abs(math.degrees(math.remainder(e.yaw_rad - t[2], 2 * math.pi))),
+                       nees=float(d @ np.linalg.solve(np.asarray(e.cov, float)[:2, :2], d)),
+                       velocity=e.diagnostics.get("velocity"),
+                       velocity_sigma=e.diagnostics.get("velocity_sigma"))
         else:
             row.update(reason=e.reason, detail=e.detail)
         rows.append(row)
@@ -372,17 +432,29 @@ def second_drive(rec: Recording, folder: Path, preset: str | None, with_velocity
             "max_mm": float(np.max(err)),
             "max_deg": max((r["err_deg"] for r in ok), default=math.nan),
             "wrong": sum(r["err_mm"] > 100.0 or r["err_deg"] > 2.0 for r in ok),
+            "nees_median": float(np.median([r["nees"] for r in ok])) if ok else math.nan,
+            "nees_p95": float(np.percentile([r["nees"] for r in ok], 95)) if ok else math.nan,
+            "own_velocity": sum(r["velocity"] is not None for r in ok),
             "reasons": dict(Counter(r["reason"] for r in rows if not r["valid"])),
             "per_frame": rows}
 
 
 def _second_report(args: argparse.Namespace) -> None:
-    rec = Recording(args.rec or ROOT / "benchmarks/out/survey_office60")
+    # --survey-preset: the map surveyed from the survey drive rendered under that preset
+    # (survey_office60_<name>, told its readout unless --no-readout)
+    sp = args.survey_preset
+    rec = Recording(args.rec or ROOT / ("benchmarks/out/survey_office60" +
+                                        (f"_{sp}" if sp else "")))
+    told = 0.0 if not sp or args.no_readout else \
+        load_preset(OFFICE / "site.yaml", sp).rolling_shutter_ms
     name = args.preset or "noise_blur"
     out = second_drive(rec, args.second_rec or ROOT / f"benchmarks/out/survey_second_{name}",
-                       args.preset, args.velocity)
+                       args.preset, args.velocity, survey_readout_ms=told)
+    out.update(survey_recording=str(rec.folder), survey_readout_ms=told)
     path = args.out or ROOT / (f"benchmarks/out/bench_survey_second_{name}"
-                               f"{'_velocity' if args.velocity else ''}.json")
+                               f"{'_velocity' if args.velocity else ''}"
+                               f"{f'_on_{sp}' if sp else ''}"
+                               f"{'_no_readout' if sp and args.no_readout else ''}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1) + "\n")
     for r in out["per_frame"]:
@@ -391,8 +463,9 @@ def _second_report(args: argparse.Namespace) -> None:
     print(f"second drive ({name}{', the truth velocity' if args.velocity else ''}): valid "
           f"{out['valid']} / {out['frames']} ({out['valid_pct']:.1f} %), position median "
           f"{out['median_mm']:.2f} p95 {out['p95_mm']:.2f} max {out['max_mm']:.2f} mm, "
-          f"heading max {out['max_deg']:.2f} deg, wrong {out['wrong']}; refused "
-          f"{out['reasons']}")
+          f"heading max {out['max_deg']:.2f} deg, wrong {out['wrong']}; position NEES (2 dof) "
+          f"median {out['nees_median']:.2f} p95 {out['nees_p95']:.2f}; the frame's own "
+          f"velocity fitted on {out['own_velocity']}; refused {out['reasons']}")
 
 
 def main() -> None:
@@ -405,7 +478,15 @@ def main() -> None:
     ap.add_argument("--second-drive", action="store_true",
                     help="localize a second drive's single frames on the surveyed map")
     ap.add_argument("--preset", default=None,
-                    help="with --second-drive: configs/office's simulator preset")
+                    help="configs/office's simulator preset of the survey drive (or, with "
+                    "--second-drive, of the second drive)")
+    ap.add_argument("--survey-preset", default=None,
+                    help="with --second-drive: the map surveyed from the survey drive "
+                    "rendered under this preset")
+    ap.add_argument("--seed", type=int, default=1,
+                    help="the survey drive's seed (past 1 also the preset's layout)")
+    ap.add_argument("--no-readout", action="store_true",
+                    help="do not tell the survey the preset's rolling shutter")
     ap.add_argument("--velocity", action="store_true",
                     help="with --second-drive: each frame's prior the truth's velocity")
     ap.add_argument("--second-rec", type=Path, default=None,
@@ -428,10 +509,24 @@ def main() -> None:
         path.write_text(json.dumps(out, indent=1) + "\n")
         print(json.dumps(out, indent=1))
         return
-    args.rec = args.rec or ROOT / "benchmarks/out/survey_office60"
-    args.out = args.out or ROOT / "benchmarks/out/bench_survey.json"
+    _survey_report(args)
+
+
+def _survey_report(args: argparse.Namespace) -> None:
+    """The survey part (docstring): the drive rendered into ``--rec`` when it does not
+    hold it (``--preset``, ``--seed``), surveyed (told the preset's readout unless
+    ``--no-readout``), its figures printed and written to ``--out``."""
+    name = "survey_office60" + (f"_{args.preset}" if args.preset else "") + \
+        (f"_s{args.seed}" if args.seed > 1 else "")
+    args.rec = args.rec or ROOT / "benchmarks/out" / name
+    args.out = args.out or ROOT / "benchmarks/out" / (
+        name.replace("survey_office60", "bench_survey") +
+        ("_no_readout" if args.no_readout else "") + ".json")
     if not (args.rec / "frames.csv").exists():
-        render(args.rec)
+        render(args.rec, args.preset, args.seed)
+    real = load_preset(OFFICE / "site.yaml", args.preset) if args.preset else None
+    readout = real.rolling_shutter_ms if real is not None else 0.0
+    told = 0.0 if args.no_readout else readout
     rec = Recording(args.rec)
     truth = np.c_[rec.truth.x_m, rec.truth.y_m, rec.truth.yaw_rad]
     captured: dict = {}
@@ -443,24 +538,32 @@ def main() -> None:
 
     survey_mod.solve_graph = spy
     t0, w0 = time.process_time(), time.perf_counter()
-    res = survey_drives([rec], rec.rig, rec.site.ceiling_height_m, tuple(truth[0]))
+    res = survey_drives([rec], rec.rig, rec.site.ceiling_height_m, tuple(truth[0]),
+                        SurveyOptions(readout_ms=told))
     cpu, wall = time.process_time() - t0, time.perf_counter() - w0
     survey_mod.solve_graph = real_solve
     rss_survey = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     t_true = truth[res.frame]
     yaw = lambda p: math.degrees(float(np.max(np.abs(  # noqa: E731
         (p[:, 2] - t_true[:, 2] + math.pi) % (2 * math.pi) - math.pi))))
-    out = {"frames": len(rec), "driven_m": float(np.sum(np.hypot(
-        np.diff(truth[:, 0]), np.diff(truth[:, 1])))), "keyframes": int(len(res.keys)),
-        "closures": sum(lk.kind == "loop" for lk in res.links),
-        "links": sum(lk.kind == "link" for lk in res.links), "refused": res.refused,
-        "survey_cpu_s": cpu, "survey_wall_s": wall, "solve_wall_s": res.solve_s,
-        "solve_iterations": res.iterations, "solvers": _solvers(captured, t_true)}
-    for name, P in (("chain", res.chain), ("solved", res.poses)):
+    out = {"recording": str(args.rec), "preset": args.preset, "readout_ms": readout,
+           "readout_told_ms": told, "frames": len(rec), "driven_m": float(np.sum(np.hypot(
+               np.diff(truth[:, 0]), np.diff(truth[:, 1])))), "keyframes": int(len(res.keys)),
+           "closures": sum(lk.kind == "loop" for lk in res.links),
+           "links": sum(lk.kind == "link" for lk in res.links), "refused": res.refused,
+           "unplaced": res.unplaced, "survey_cpu_s": cpu, "survey_wall_s": wall,
+           "solve_wall_s": res.solve_s, "solve_iterations": res.iterations,
+           "solvers": _solvers(captured, t_true)}
+    for key, P in (("chain", res.chain), ("solved", res.poses)):
         pos = np.hypot(*(P[:, :2] - t_true[:, :2]).T)
-        out[name] = {"features": _stats(feature_errors(rec, res, truth, P)),
-                     "poses": {**_stats(pos), "end_mm": 1e3 * float(pos[-1]),
-                               "yaw_max_deg": yaw(P)}}
+        per_key = feature_errors(rec, res, P, readout)
+        out[key] = {"features": _stats(np.concatenate(per_key)),
+                    "poses": {**_stats(pos), "end_mm": 1e3 * float(pos[-1]),
+                              "yaw_max_deg": yaw(P)},
+                    "per_keyframe": [
+                        [int(res.frame[n]), len(e), 1e3 * float(np.sqrt(np.mean(e ** 2)))
+                         if len(e) else None]
+                        for n, e in zip(res.keys, per_key, strict=True)]}
     t0 = time.process_time()
     out["map"] = map_errors(rec, res, truth)
     out["map"]["cpu_s_both_maps"] = time.process_time() - t0
@@ -469,7 +572,6 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps(out, indent=1))
-
 
 if __name__ == "__main__":
     main()

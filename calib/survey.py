@@ -22,6 +22,8 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 import time
 from collections import Counter
@@ -38,12 +40,12 @@ from ceilkit.runtime.estimators.texture.ceilmap import (
     CeilingMap,
     build_map,
 )
-from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.io.recording import Recording
 
 from .survey_chain import Segment, chain_drive, keyframes, path_length, wheel_edges
 from .survey_graph import Edge, compose, relative, solve_graph
 from .survey_places import Place, match_places, place_of
+from .survey_shutter import GlobalShutter, SurveyFrames, chain_velocities
 
 POSE_SIGMA_FACTOR = 1.5
 """The keyframes' 1σ is the graph's (the inverse of its normal matrix) times this.
@@ -78,6 +80,12 @@ class SurveyOptions:
         drive_candidates: keyframes of other drives verified per keyframe (most shared
             descriptors first).
         seed: the place matcher's RANSAC seed.
+        readout_ms: the camera's readout time, top row to bottom row, ms (0: a global
+            shutter; the estimators' ``readout_ms`` option). With a rolling shutter every
+            frame is put back to its stamp before it is read
+            (:mod:`~ceilkit.calib.survey_shutter`), with the velocity of a first chain:
+            the survey would otherwise come out shrunk along the travel (0.53 % at
+            0.5 m/s, 25 ms on the office rig).
     """
 
     key_step_m: float = 0.2
@@ -89,6 +97,12 @@ class SurveyOptions:
     closures_per_key: int = 2
     drive_candidates: int = 2
     seed: int = 0
+    readout_ms: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.readout_ms) and self.readout_ms >= 0):
+            raise ConfigError(None, "readout_ms", f"expected a time >= 0 ms, found "
+                              f"{self.readout_ms!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,6 +140,9 @@ class SurveyResult:
         odometry_whitened: ``(E,)`` the consecutive-frame edges' residuals, sigmas.
         unplaced: frames of segments no closure tied to the anchor's.
         ceiling_height_m, anchor, solve_s, iterations, edge_kinds: as named.
+        velocity: ``(N, 3)`` each frame's velocity in its V (m/s, m/s, rad/s) that its
+            rolling shutter was undone with (the first chain's), or None (a global
+            shutter); ``readout_ms``: the readout time it was undone for.
     """
 
     drives: tuple[str, ...]
@@ -145,6 +162,8 @@ class SurveyResult:
     solve_s: float
     iterations: int
     edge_kinds: dict[str, int]
+    velocity: np.ndarray | None = None
+    readout_ms: float = 0.0
 
 
 @dataclass(eq=False)
@@ -162,7 +181,7 @@ class _Nodes:
         return cls(segments, offset, np.repeat(np.arange(len(segments)), sizes))
 
 
-def _places(recs: Sequence[Recording], nodes: _Nodes, keys: np.ndarray, rig: Rig,
+def _places(frames: SurveyFrames, nodes: _Nodes, keys: np.ndarray, rig: Rig,
             height_m: float, cache: dict[tuple[int, int], Place]) -> dict[int, Place]:
     """The place of every keyframe node."""
     out = {}
@@ -170,8 +189,7 @@ def _places(recs: Sequence[Recording], nodes: _Nodes, keys: np.ndarray, rig: Rig
         seg = nodes.segments[nodes.seg_of[n]]
         k = int(seg.frames[n - nodes.offset[nodes.seg_of[n]]])
         if (seg.drive, k) not in cache:
-            cache[(seg.drive, k)] = place_of(to_grey(recs[seg.drive].frame(k).image), rig,
-                                             height_m)
+            cache[(seg.drive, k)] = place_of(frames.grey(seg.drive, k), rig, height_m)
         out[int(n)] = cache[(seg.drive, k)]
     return out
 
@@ -306,25 +324,57 @@ def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: f
     """
     if not recordings:
         raise ConfigError(None, "recordings", "give at least one recording")
-    rng = np.random.default_rng(options.seed)
-    segments: list[Segment] = []
-    cache: dict[tuple[int, int], Place] = {}
-    for d, rec in enumerate(recordings):
+    for rec in recordings:
         if len(rec) == 0:
             raise ConfigError(rec.folder / "frames.csv", None, "the recording has no frame")
-        segs, bridged = chain_drive(rec, d, rig, ceiling_height_m, rng)
-        segments += segs
-        cache.update({(d, k): p for k, p in bridged.items()})
+    rng = np.random.default_rng(options.seed)
+    frames = SurveyFrames(recordings)
+    segments, cache = _chain(frames, rig, ceiling_height_m, rng)
+    if options.readout_ms > 0:          # again, each frame put back to its stamp
+        frames = SurveyFrames(recordings, GlobalShutter.of(
+            rig, ceiling_height_m, options.readout_ms), _velocities(recordings, segments))
+        segments, cache = _chain(frames, rig, ceiling_height_m, rng)
     nodes = _Nodes.of(segments)
     keys_of = _keys(nodes, options)
     keys = np.concatenate([nodes.offset[s] + k for s, k in enumerate(keys_of)])
-    places = _places(recordings, nodes, keys, rig, ceiling_height_m, cache)
+    places = _places(frames, nodes, keys, rig, ceiling_height_m, cache)
     links, refused = _match(_segment_pairs(nodes, keys_of, options), places, rng)
     more, refused2 = _match(_drive_pairs(nodes, places, options), places, rng)
     links += more
     refused.update({k: refused.get(k, 0) + v for k, v in refused2.items()})
     chain, placed = _initial(nodes, links, np.asarray(start_pose, float))
-    return _solve(recordings, nodes, keys, links, refused, chain, placed, ceiling_height_m)
+    res = _solve(recordings, nodes, keys, links, refused, chain, placed, ceiling_height_m)
+    if frames.shutter is None:
+        return res
+    vel = np.array([frames.velocity.get((int(d), int(k)), (0.0, 0.0, 0.0))
+                    for d, k in zip(res.drive, res.frame, strict=True)], float)
+    return dataclasses.replace(res, velocity=vel.reshape(-1, 3),
+                               readout_ms=float(options.readout_ms))
+
+
+def _chain(frames: SurveyFrames, rig: Rig, height_m: float, rng: np.random.Generator
+           ) -> tuple[list[Segment], dict[tuple[int, int], Place]]:
+    """Every drive's segments and the places made to bridge its odometry gaps."""
+    segments: list[Segment] = []
+    cache: dict[tuple[int, int], Place] = {}
+    for d, rec in enumerate(frames.recordings):
+        segs, bridged = chain_drive(rec, d, rig, height_m, rng,
+                                    functools.partial(frames.prepare, d))
+        segments += segs
+        cache.update({(d, k): p for k, p in bridged.items()})
+    return segments, cache
+
+
+def _velocities(recs: Sequence[Recording], segments: list[Segment]
+                ) -> dict[tuple[int, int], tuple[float, float, float]]:
+    """Each chained frame's velocity in its V (:func:`~.survey_shutter.chain_velocities`),
+    by ``(drive, frame)``."""
+    out = {}
+    for seg in segments:
+        v = chain_velocities(seg.chain, recs[seg.drive].t_ns[seg.frames])
+        out.update({(seg.drive, int(k)): tuple(map(float, v[i]))
+                    for i, k in enumerate(seg.frames)})
+    return out
 
 
 def _solve(recs: Sequence[Recording], nodes: _Nodes, keys: np.ndarray, links: list[Link],
@@ -358,12 +408,25 @@ def _solve(recs: Sequence[Recording], nodes: _Nodes, keys: np.ndarray, links: li
         sol.iterations, dict(Counter(e.kind for e in edges)))
 
 
+def result_frames(result: SurveyResult, recordings: Sequence[Recording], rig: Rig
+                  ) -> SurveyFrames:
+    """The recordings' frames as ``result`` read them (its rolling shutter undone with
+    its velocities, when it was told a readout)."""
+    if result.velocity is None or result.readout_ms <= 0:
+        return SurveyFrames(recordings)
+    vel = {(int(d), int(k)): tuple(map(float, v))
+           for d, k, v in zip(result.drive, result.frame, result.velocity, strict=True)}
+    return SurveyFrames(recordings, GlobalShutter.of(rig, result.ceiling_height_m,
+                                                     result.readout_ms), vel)
+
+
 def survey_map(result: SurveyResult, recordings: Sequence[Recording], rig: Rig,
                resolution_m: float = DEFAULT_RESOLUTION_M) -> CeilingMap:
     """The ceiling map (:func:`~ceilkit.runtime.estimators.texture.ceilmap.build_map`)
-    from the keyframes at their solved poses."""
-    frames = (to_grey(recordings[result.drive[n]].frame(int(result.frame[n])).image)
-              for n in result.keys)
+    from the keyframes at their solved poses (each as the survey read it:
+    :func:`result_frames`)."""
+    read = result_frames(result, recordings, rig)
+    frames = (read.grey(int(result.drive[n]), int(result.frame[n])) for n in result.keys)
     poses = [tuple(result.poses[n]) for n in result.keys]
     return build_map(frames, poses, rig, result.ceiling_height_m, resolution_m,
                      anchor=result.anchor.split(";")[0])

@@ -15,6 +15,7 @@ across, 2 % of the turn plus 0.5 deg per sqrt(m)), the same as ``ceilrun`` assum
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,9 +82,13 @@ def wheel_between(odo: Odometry, t0_ns: int, t1_ns: int,
 
 
 def chain_drive(rec: Recording, drive: int, rig: Rig, height_m: float,
-                rng: np.random.Generator) -> tuple[list[Segment], dict[int, Place]]:
+                rng: np.random.Generator,
+                prepare: Callable[[int, np.ndarray], np.ndarray] | None = None
+                ) -> tuple[list[Segment], dict[int, Place]]:
     """The segments of one recording (module docstring) and the places computed to
-    bridge odometry gaps (by frame position)."""
+    bridge odometry gaps (by frame position). ``prepare(k, grey)``: each frame's grey
+    image as the survey reads it (the rolling shutter undone:
+    :mod:`~ceilkit.calib.survey_shutter`); default as recorded."""
     geo = PlanarGeometry.of(rig, Site(height_m))
     odo = PlaneOdometry(geo)
     segments: list[Segment] = []
@@ -95,6 +100,8 @@ def chain_drive(rec: Recording, drive: int, rig: Rig, height_m: float,
         if frame.damage:
             continue
         grey = to_grey(frame.image)
+        if prepare is not None:
+            grey = prepare(k, grey)
         t_ns = int(rec.t_ns[k])
         inc = odo.increment(grey, t_ns)
         edge = None

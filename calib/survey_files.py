@@ -33,13 +33,12 @@ from ceilkit.runtime.config.site import MarkerPose, Markers, Site, check_rig_sit
 from ceilkit.runtime.config.yaml import atomic_write_text
 from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.estimators.texture.ceilmap import CeilingMap
-from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.quads import DICTIONARY_NAMES
 from ceilkit.runtime.io.outputs import claim_outputs, recording_inputs
 from ceilkit.runtime.io.recording import POSES_HEADER, Recording, Truth
 
 from .lightmap import LightMap, lightmap_header_lines, survey_lights
-from .survey import SurveyOptions, SurveyResult, survey_drives, survey_map
+from .survey import SurveyOptions, SurveyResult, result_frames, survey_drives, survey_map
 from .survey_anchor import anchor_by_lights
 from .survey_geo import origin_from_start, parse_geodetic, start_pose_from_geodetic
 from .survey_lamps import MIN_LAMP_ROUNDNESS, lamp_shapes
@@ -337,7 +336,8 @@ def _markers(res: SurveyResult, recs: Sequence[Recording], rig: Rig, anchors: An
         return [], base
     dictionary = (known.markers.dictionary if has else
                   anchors.dictionary or DEFAULT_DICTIONARY)
-    frames = ((to_grey(recs[res.drive[n]].frame(int(res.frame[n])).image), res.poses[n])
+    read = result_frames(res, recs, rig)
+    frames = ((read.grey(int(res.drive[n]), int(res.frame[n])), res.poses[n])
               for n in res.keys)
     pose_sigma = float(np.nanmedian(np.hypot(*res.sigma[res.keys, :2].T))) / math.sqrt(2)
     found = survey_markers(frames, rig, res.ceiling_height_m, dictionary,

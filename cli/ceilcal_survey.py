@@ -46,6 +46,9 @@ def register(app: typer.Typer) -> None:
         ceiling_height: float = typer.Option(None, "--ceiling-height", help="Ceiling "
                                              "height, m (default: --site's, else the "
                                              "first recording's site.yaml)."),
+        readout_ms: float = typer.Option(0.0, "--readout-ms", help="The camera's "
+                                         "rolling-shutter readout, top row to bottom, ms "
+                                         "(0: a global shutter)."),
         force: bool = typer.Option(False, "--force", help="Replace existing outputs in "
                                    "--out (refused otherwise)."),
     ) -> None:
@@ -53,10 +56,12 @@ def register(app: typer.Typer) -> None:
 
         Chained frames, loop closures and a pose graph give the site file and its
         ceiling map (docs/survey.md)."""
+        from ceilkit.calib.survey import SurveyOptions
         from ceilkit.calib.survey_files import parse_anchors, survey_site
 
         anchors = parse_anchors(start_pose, anchor_marker or [], marker_dictionary,
                                 anchor_geodetic, site)
         run = survey_site(rig, recordings, out, site=site, anchors=anchors,
-                          ceiling_height_m=ceiling_height, force=force)
+                          ceiling_height_m=ceiling_height, force=force,
+                          options=SurveyOptions(readout_ms=readout_ms))
         typer.echo("\n".join(run.lines()))

@@ -110,6 +110,8 @@ RANGES: Mapping[str, Range] = MappingProxyType({
     "--anchor-frame": Range(0, 100_000_000),
     # ceilcal blockmap
     "--size": Range(0, 10, lo_open=True, unit="m"),
+    # ceilcal survey
+    "--readout-ms": Range(0, 1000, unit="ms (0: a global shutter)"),
     # ceilcal exposure
     "--settle": Range(0, 1000, unit="frames"),
     # ceilcal check-site
