@@ -6,7 +6,10 @@ matched lights on lights (:func:`~.matching.map_symmetries`, found once per map)
 :class:`TwinJudge` moves a pose by them, verifies the moved poses against the frame
 (:meth:`~.matching.PatternMatcher.twins`) and scores every candidate by the same
 evidence, so that the estimator can say whether the frame singles one out
-(docs/methods/lights.md, docs/methods/honesty.md).
+(docs/methods/lights.md, docs/methods/honesty.md). A map of more than
+:data:`~.matching.SYMMETRY_MAX_LIGHTS` lights (up to :data:`PAIR_TWINS_MAX_LIGHTS`) is
+not searched for its symmetries: each pose's twins are found per frame, as the
+placements of pairs of its lights (:class:`PairVectors`).
 
 Example::
 
@@ -21,6 +24,7 @@ import math
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ceilkit.runtime.estimators.base import Hypothesis
 from ceilkit.runtime.estimators.honesty import SiteExtent
@@ -39,6 +43,127 @@ from ceilkit.runtime.geometry.rotations import wrap_pi
 MAX_TWIN_CHECKS = 1000  # at most this many of the map's symmetries are verified per frame
 MAX_HYPOTHESES = 32  # an ambiguous frame carries at most this many poses
 HYPOTHESIS_SHARPNESS = 2.0  # a hypothesis' weight goes as exp(this x its evidence score)
+PAIR_TWINS_MAX_LIGHTS = 20_000
+"""Maps of more lights are not searched for twins per frame (:class:`PairVectors`: its
+work grows with the map, 10 ms a frame at 10 000 irregular lights, 77 ms at 100 000):
+their twins are only the poses the vote verifies (docs/methods/lights.md, Known gaps)."""
+TWIN_BATCH = 64  # twins are verified in batches of this many, then twice as many, ...
+PAIR_NEIGHBOUR = 4
+"""On a map not searched for symmetries, the pairs indexed for the per-frame twin search
+reach 1.5 times the median distance of a light to its this-th nearest other
+(:class:`PairVectors`)."""
+
+
+class PairVectors:
+    """The map's short pairs as vectors, for a per-frame twin search on a map too large
+    to search for its symmetries once (more than :data:`~.matching.SYMMETRY_MAX_LIGHTS`
+    lights).
+
+    Every pair ``i < j`` of lights at most ``reach_m`` apart is kept with its vector
+    ``L_j - L_i`` (W, m) in a 2-D k-d tree; ``reach_m`` is 1.5 times the median distance
+    of a light to its :data:`PAIR_NEIGHBOUR`-th nearest other, plus ``2 gate_m``
+    (``O(M)`` pairs: 8 per light on the held-out grid of two lights per 0.5 m tile,
+    4.7 on an irregular field 1.6 m apart).
+    :meth:`placements` finds every placement of two matched lights on the map, at
+    each quarter turn: a pose's twins, complete whenever the two lie at most
+    ``reach_m - 2 gate_m`` apart (every placement's pair is then indexed).
+    """
+
+    def __init__(self, lights_w: np.ndarray, gate_m: float) -> None:
+        L = np.asarray(lights_w, float).reshape(-1, 2)
+        self.lights, self.tol_m = L, 2.0 * gate_m
+        tree = self.light_tree = cKDTree(L)
+        k = min(PAIR_NEIGHBOUR, L.shape[0] - 1)
+        d4 = float(np.median(tree.query(L, k=k + 1)[0][:, k])) if k > 0 else 0.0
+        self.reach_m = 1.5 * d4 + self.tol_m
+        pp = tree.query_pairs(self.reach_m, output_type="ndarray").reshape(-1, 2)
+        self.pairs = pp.astype(np.int64)
+        self.tree = cKDTree(L[pp[:, 1]] - L[pp[:, 0]]) if pp.shape[0] else None
+
+    def placements(self, a: int, b: int) -> np.ndarray | None:
+        """``(K, 3)`` rows ``(turn, tx, ty)``: the rigid motions ``p -> Rz(turn) p + t``
+        (``turn`` a quarter turn) that take lights ``a`` and ``b`` onto two lights of the
+        map (within ``2 gate_m`` of their vector), the identity among them; ``None``
+        when ``a`` and ``b`` lie too far apart for every placement to be indexed."""
+        pa, pb = self.lights[a], self.lights[b]
+        v = pb - pa
+        if self.tree is None or math.hypot(*v) > self.reach_m - self.tol_m:
+            return None
+        mid = 0.5 * (pa + pb)
+        rows = []
+        for k in range(4):
+            turn = 0.5 * math.pi * k
+            c, s = round(math.cos(turn)), round(math.sin(turn))
+            vk = np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
+            mk = np.array([c * mid[0] - s * mid[1], s * mid[0] + c * mid[1]])
+            for sign in (1.0, -1.0):          # a pair is indexed once, i < j
+                hit = np.asarray(self.tree.query_ball_point(sign * vk, self.tol_m), np.int64)
+                if hit.size == 0:
+                    continue
+                ij = self.pairs[hit]
+                mids = 0.5 * (self.lights[ij[:, 0]] + self.lights[ij[:, 1]])
+                t = mids - mk
+                rows.append(np.column_stack([np.full(hit.size, turn), t]))
+        return np.concatenate(rows) if rows else np.zeros((0, 3))
+
+    def motions(self, ids: np.ndarray, need: int) -> tuple[np.ndarray, bool]:
+        """``(K, 3)`` rows ``(turn, tx, ty)``, nearest first, that hold every
+        quarter-turn motion keeping at least ``need`` of the lights ``ids`` on lights
+        (:meth:`keeping` picks those out); and whether they hold all of them.
+
+        The lights are paired, nearest pairs first and each light once; a motion that
+        keeps ``need`` of ``n`` lights keeps both lights of one of any ``n - need + 1``
+        such pairs, so the placements of that many pairs (:meth:`placements`) hold
+        every such motion. Not all when fewer pairs lie within the indexed reach."""
+        n = ids.size
+        if need > n:
+            return np.zeros((0, 3)), True
+        seeds = self._seed_pairs(ids)
+        want = n - need + 1
+        found = [r for a, b in seeds[:want]
+                 if (r := self.placements(a, b)) is not None and r.shape[0]]
+        if not found:
+            return np.zeros((0, 3)), want <= len(seeds)
+        rows = np.concatenate(found)
+        # one motion per cluster (several pairs find the same one)
+        cell = np.round(rows[:, 1:] / self.tol_m).astype(np.int64)
+        cell -= cell.min(axis=0)
+        key = ((np.round(rows[:, 0] / (0.5 * math.pi)).astype(np.int64) * (cell[:, 0].max() + 1)
+                + cell[:, 0]) * (cell[:, 1].max() + 1) + cell[:, 1])
+        rows = rows[np.sort(np.unique(key, return_index=True)[1])]
+        return rows[np.argsort(np.hypot(rows[:, 1], rows[:, 2]), kind="stable")], \
+            want <= len(seeds)
+
+    def keeping(self, rows: np.ndarray, ids: np.ndarray, need: int) -> np.ndarray:
+        """The motions of ``rows`` that put at least ``need`` of the lights ``ids`` within
+        ``gate_m`` of a light (as :func:`~.matching.symmetry_table`), in their order."""
+        hits = np.zeros(rows.shape[0], np.int64)
+        c, s = np.cos(rows[:, 0]), np.sin(rows[:, 0])
+        for left, p in zip(range(ids.size - 1, -1, -1), self.lights[ids], strict=True):
+            moved = np.column_stack([c * p[0] - s * p[1], s * p[0] + c * p[1]]) + rows[:, 1:]
+            d, _ = self.light_tree.query(moved, distance_upper_bound=0.5 * self.tol_m)
+            hits += np.isfinite(d)
+            ok = hits + left >= need          # the others cannot make up the rest
+            rows, hits, c, s = rows[ok], hits[ok], c[ok], s[ok]
+        return rows
+
+    def _seed_pairs(self, ids: np.ndarray) -> list[tuple[int, int]]:
+        """The lights ``ids`` paired, nearest first, each light at most once, the pairs
+        within ``reach_m - 2 gate_m`` (:meth:`placements` finds all their placements)."""
+        p = self.lights[ids]
+        d = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
+        iu = np.triu_indices(ids.size, 1)
+        order = np.argsort(d[iu], kind="stable")
+        used = np.zeros(ids.size, bool)
+        out = []
+        for k in order:
+            i, j = iu[0][k], iu[1][k]
+            if d[i, j] > self.reach_m - self.tol_m:
+                break
+            if not used[i] and not used[j]:
+                used[i] = used[j] = True
+                out.append((int(ids[i]), int(ids[j])))
+        return out
 
 
 class TwinJudge:
@@ -58,7 +183,11 @@ class TwinJudge:
         self.matcher, self.extent, self.options = matcher, extent, o
         sym = (map_symmetries(lights_w, o.gate_m, o.min_inliers) if o.twins
                else np.zeros((0, 3)))
-        self.searched = bool(o.twins and lights_w.shape[0] <= SYMMETRY_MAX_LIGHTS)
+        # a larger map: each pose's twins searched per frame (PairVectors)
+        m = lights_w.shape[0]
+        self.pair_vectors = (PairVectors(lights_w, o.gate_m) if o.twins
+                             and SYMMETRY_MAX_LIGHTS < m <= PAIR_TWINS_MAX_LIGHTS else None)
+        self.searched = bool(o.twins and m <= PAIR_TWINS_MAX_LIGHTS)
         # nearest first: beyond MAX_TWIN_CHECKS that apply to a pose the far ones go
         # unchecked, and no global fix is then singled out (the estimator's _candidate)
         self.symmetries = sym[np.argsort(np.hypot(sym[:, 1], sym[:, 2]), kind="stable")]
@@ -86,26 +215,66 @@ class TwinJudge:
         return float(weights[c.pairs[:, 0]].sum()) - MISSING_PENALTY * c.missing
 
     def twins(self, obs: Observation, best: Candidate) -> tuple[list[Candidate], bool]:
-        """The best pose moved by each of the map's symmetries (on a regular grid the
-        other cells and the turned placements, which a vote over pair lengths may leave
-        unverified) that keeps at least ``min_inliers`` of its matched lights on lights,
-        verified (:meth:`PatternMatcher.twins`); and whether they were all checked (the
-        map was searched for symmetries, and at most :data:`MAX_TWIN_CHECKS` apply)."""
-        if self.symmetries.shape[0] == 0:
-            return [], self.searched
-        kept = self.lights[:, best.pairs[:, 1]].sum(axis=1)
+        """The best pose moved by each motion of the map (on a regular grid the other
+        cells and the turned placements, which a vote may leave unverified) that keeps
+        enough of its matched lights on lights to come within the margin of it (at least
+        ``min_inliers``, and with the spots it leaves unexplained its evidence less
+        ``ambiguity_margin``), verified (:meth:`PatternMatcher.twins`); and whether
+        they were all checked. The motions: the map's symmetries, found once, or on a
+        map too large for that search those that put best's lights on lights, found per
+        frame (:meth:`PairVectors.motions`); at most :data:`MAX_TWIN_CHECKS`."""
         # a twin explains at most the best's spots it keeps on lights and the spots the
         # best leaves unexplained: one that cannot come within the margin of the best
         # is no rival, and is not verified (most partial symmetries of an irregular map)
-        bound = kept + (len(obs.spots) - best.inliers)
         reach = self.evidence(best, obs.weights()) - self.options.ambiguity_margin
-        sym = self.symmetries[(kept >= self.options.min_inliers) & (bound >= reach)]
-        complete = self.searched and sym.shape[0] <= MAX_TWIN_CHECKS
-        if sym.shape[0] == 0:
-            return [], complete
-        starts = twin_poses(sym[:MAX_TWIN_CHECKS], best.x_m, best.y_m, best.yaw_rad)
-        return self.matcher.twins(obs.q_v, starts, 2.0 * self.options.gate_m,
-                                  self.options.min_inliers), complete
+        need = max(self.options.min_inliers,
+                   math.ceil(reach - (len(obs.spots) - best.inliers) - 1e-9))
+        keep = None
+        if self.pair_vectors is not None:
+            ids = np.unique(best.pairs[:, 1])
+            sym, complete = self.pair_vectors.motions(ids, need)
+
+            def keep(rows: np.ndarray) -> np.ndarray:
+                return self.pair_vectors.keeping(rows, ids, need)
+        else:
+            if self.symmetries.shape[0] == 0:
+                return [], self.searched
+            kept = self.lights[:, best.pairs[:, 1]].sum(axis=1)
+            sym = self.symmetries[kept >= need]
+            complete = self.searched
+        twins, stopped = self._verified(obs, best, sym, keep)
+        return twins, complete and not stopped
+
+    def _verified(self, obs: Observation, best: Candidate, sym: np.ndarray,
+                  keep: Any = None) -> tuple[list[Candidate], bool]:
+        """``best`` moved by each motion of ``sym`` (:func:`~.matching.twin_poses`; those
+        ``keep`` keeps when given), verified (:meth:`PatternMatcher.twins`), nearest
+        first in batches of :data:`TWIN_BATCH`, then twice as many, ...; and whether the
+        search stopped before the end: past :data:`MAX_TWIN_CHECKS` motions, or once two
+        distinct possible poses lie within ``ambiguity_margin`` of the best found (the
+        frame then singles none out whatever the other motions would show; a regular
+        grid has hundreds of twins, each verification some 0.1 ms)."""
+        weights, out, start, size, checked = obs.weights(), [], 0, TWIN_BATCH, 0
+        margin = self.options.ambiguity_margin
+        if keep is None:             # the map's symmetries: all at once, as found
+            size = MAX_TWIN_CHECKS
+        while start < sym.shape[0]:
+            batch = sym[start:start + size]
+            start, size = start + size, 2 * size
+            batch = batch if keep is None else keep(batch)
+            checked += batch.shape[0]
+            if checked > MAX_TWIN_CHECKS:
+                return out, True
+            if batch.shape[0] == 0:
+                continue
+            out += self.matcher.twins(
+                obs.q_v, twin_poses(batch, best.x_m, best.y_m, best.yaw_rad),
+                2.0 * self.options.gate_m, self.options.min_inliers)
+            ev = [self.evidence(c, weights) for c in distinct([best] + out)
+                  if self.possible(c)]
+            if start < sym.shape[0] and sum(e >= max(ev) - margin for e in ev) >= 2:
+                return out, True
+        return out, False
 
     def ranked(self, obs: Observation, cands: list[Candidate], weights: np.ndarray
                ) -> tuple[list[Candidate], bool]:
@@ -114,8 +283,7 @@ class TwinJudge:
         and whether every twin was checked. Empty when only a pose outside the site
         (which its model check would refuse) explains the frame best, by more than
         ``ambiguity_margin``."""
-        twins, complete = self.twins(obs, cands[0])
-        every = [c for c in distinct(cands + twins) if c.inliers >= self.options.min_inliers]
+        every, complete = self._every(obs, cands, weights)
         ev = [self.evidence(c, weights) for c in every]          # each scored once
         ok = [self.possible(c) for c in every]
         out_e = max((e for e, o in zip(ev, ok, strict=True) if not o), default=-math.inf)
@@ -125,6 +293,23 @@ class TwinJudge:
         order = sorted((i for i in range(len(every)) if ok[i]),
                        key=lambda i: (-ev[i], -every[i].inliers, every[i].rms_m))
         return [every[i] for i in order], complete
+
+
+    def _every(self, obs: Observation, cands: list[Candidate], weights: np.ndarray
+               ) -> tuple[list[Candidate], bool]:
+        """``cands`` with the twins of the first, distinct, those of ``min_inliers``;
+        and whether every twin was checked. Where the twins are placements of two
+        lights found per frame (:meth:`PairVectors.motions`) and one explains spots the
+        first did not, that one's twins are added too (a pose the vote missed, whose
+        own twins need keep few of the first's lights)."""
+        twins, complete = self.twins(obs, cands[0])
+        every = distinct(cands + twins)
+        if self.pair_vectors is not None and every:
+            top = max(every, key=lambda c: self.evidence(c, weights))
+            if np.setdiff1d(top.pairs[:, 0], cands[0].pairs[:, 0]).size:
+                more, done = self.twins(obs, top)
+                every, complete = distinct(every + more), complete and done
+        return [c for c in every if c.inliers >= self.options.min_inliers], complete
 
     def hypotheses(self, obs: Observation, cands: list[Candidate], cov: np.ndarray | None
                    ) -> tuple[Hypothesis, ...]:
