@@ -87,11 +87,13 @@ class Tracked:
         refined: the least-squares pose on the pairs within the tolerance.
         followed: map features followed into the frame (converged, correlating).
         predicted: map features the prior put inside the patch and were followed from.
+        inlier_xy: ``(N, 2)`` the map features the pose rests on (``refined.used``), W, m.
     """
 
     refined: MapFit
     followed: int
     predicted: int
+    inlier_xy: np.ndarray
 
 
 class FeatureGrid:
@@ -207,7 +209,8 @@ class MapTracker:
                 if readout is not None:   # _fit_pairs' pairs: the followed, in order
                     fit = _unrolled_fit(fit, readout, q_raw[ok], tau[ok],
                                         frame, mpx[ok], (tol_m, sigma_floor_m))
-                return Tracked(fit, followed, len(idx))
+                xy = np.asarray(self.map.origin_xy) + mpx[ok][fit.used] * frame.res
+                return Tracked(fit, followed, len(idx), xy)
         return None
 
     def _lk(self, patch: np.ndarray, inner: np.ndarray, mpx: np.ndarray, uv: np.ndarray,

@@ -17,6 +17,7 @@ from ceilkit.runtime.estimators.texture.ceilmap import (
     CeilingMap,
     appearance_ncc,
     merge_features,
+    part_ncc,
     patch_points_v,
     patch_size,
     pyramid_level,
@@ -149,3 +150,40 @@ def test_site_names_its_ceiling_map(tmp_path):
     (tmp_path / "bad.yaml").write_text(text.replace("map.npz", "none.npz"))
     with pytest.raises(ConfigError, match="bad.yaml: ceiling_map: no such file"):
         Site.load(tmp_path / "bad.yaml")
+
+
+def test_keyframe_error_is_shared_not_divided_and_round_trips(tmp_path):
+    """A survey's keyframe 1σ moves every feature its keyframe placed together: the
+    pose on 50 such features carries that 1σ whole (not / sqrt(50)); a map of known
+    poses (zeros, or none in the file) adds nothing; the arrays survive the file."""
+    import dataclasses
+    m = dataclasses.replace(_map(), keyframe_poses=np.array([[1.0, 0.0, 0.0], [9.0, 0.0, 0.0]]),
+                            keyframe_sigma=np.array([[0.004, 0.003, 0.0], [0.05, 0.05, 0.0]]))
+    pts = np.random.default_rng(1).normal([1.0, 0.0], 0.3, (50, 2))
+    C = m.placement_cov(pts, (1.2, 0.1, 0.0))
+    assert np.allclose(np.sqrt(np.diag(C)[:2]), [0.004, 0.003])
+    back = CeilingMap.load(m.save(tmp_path / "k.npz"))
+    assert np.array_equal(back.keyframe_sigma, m.keyframe_sigma)
+    assert not np.any(_map().placement_cov(pts, (1.2, 0.1, 0.0)))
+    bad = dataclasses.replace(m, keyframe_sigma=-m.keyframe_sigma)
+    assert bad.shape_problem()[0] == "keyframe_sigma"
+
+
+def test_a_pose_must_explain_each_part_of_the_frame():
+    """A patch that is the mosaic in one third and unrelated texture elsewhere: the whole
+    patch's correlation is carried by the matching third, its parts' median is not."""
+    rng = np.random.default_rng(4)
+    mosaic = cv2.GaussianBlur(rng.integers(0, 255, (200, 200), dtype=np.uint8), (5, 5), 1.5)
+    m = CeilingMap(0.01, (0.0, 0.0), mosaic, np.ones_like(mosaic, bool), np.zeros((0, 2)),
+                   np.zeros((0, 32), np.uint8), np.zeros(0), 2.7)
+    pose, n = (1.0, 1.0, 0.0), 91
+    from ceilkit.runtime.estimators.texture.ceilmap import predicted_patch
+    same, _ = predicted_patch(m, pose, n)
+    other = cv2.GaussianBlur(rng.integers(0, 255, (n, n), dtype=np.uint8), (5, 5), 1.5)
+    valid = np.ones((n, n), bool)
+    assert part_ncc(m, same, valid, pose) > 0.9
+    mixed = (0.3 * other.astype(float) + 90).astype(np.uint8)    # fainter, unrelated
+    third = 2.0 * (same[:, : n // 3].astype(float) - same.mean()) + 128
+    mixed[:, : n // 3] = np.clip(third, 0, 255).astype(np.uint8)  # the matching third
+    assert appearance_ncc(m, mixed, valid, pose) > 0.5
+    assert part_ncc(m, mixed, valid, pose) < 0.3
