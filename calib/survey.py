@@ -165,6 +165,18 @@ class SurveyResult:
     velocity: np.ndarray | None = None
     readout_ms: float = 0.0
 
+    @property
+    def unchecked(self) -> str:
+        """One line when no loop or drive closure was accepted (empty otherwise): then
+        nothing measured the chain's drift, and the keyframes' 1σ is what the chain's
+        steps state, not checked (a drifting chain on a plain tile grid ended 1.9 m off
+        under a stated 1σ of 0.26 m, issue 39)."""
+        if any(lk.kind != "link" for lk in self.links):
+            return ""
+        return ("no loop closed: nothing checked the chain's drift, so the keyframes' "
+                "1-sigma is the chain's own, unverified (drive over the start again to "
+                "close a loop)")
+
 
 @dataclass(eq=False)
 class _Nodes:
@@ -320,7 +332,8 @@ def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: f
 
     Raises:
         ConfigError: no recordings, or a recording with no frame.
-        CalibrationError: nothing chained (every frame alone).
+        CalibrationError: nothing chained (every frame alone), or no two keyframes
+            matched as places.
     """
     if not recordings:
         raise ConfigError(None, "recordings", "give at least one recording")
@@ -342,6 +355,8 @@ def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: f
     more, refused2 = _match(_drive_pairs(nodes, places, options), places, rng)
     links += more
     refused.update({k: refused.get(k, 0) + v for k, v in refused2.items()})
+    if not links:
+        _refuse_unmatched(recordings, refused)
     chain, placed = _initial(nodes, links, np.asarray(start_pose, float))
     res = _solve(recordings, nodes, keys, links, refused, chain, placed, ceiling_height_m)
     if frames.shutter is None:
@@ -350,6 +365,20 @@ def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: f
                     for d, k in zip(res.drive, res.frame, strict=True)], float)
     return dataclasses.replace(res, velocity=vel.reshape(-1, 3),
                                readout_ms=float(options.readout_ms))
+
+
+def _refuse_unmatched(recordings: Sequence[Recording], refused: dict[str, int]) -> None:
+    """No two keyframes matched as places: nothing checks the chain, and the map's
+    features would place no frame (the ``texture`` method matches as the places do).
+
+    Raises:
+        CalibrationError: always, one line naming the first drive and the refusals.
+    """
+    why = ", ".join(f"{k} {v}" for k, v in sorted(refused.items())) or "no pair to try"
+    raise CalibrationError(
+        f"{recordings[0].folder}: no two keyframes matched as places ({why}): the "
+        "ceiling's features do not single out where a frame is (plain or repeating "
+        "tiles?), so nothing checks the chained drive and its map could place no frame")
 
 
 def _chain(frames: SurveyFrames, rig: Rig, height_m: float, rng: np.random.Generator
@@ -424,9 +453,11 @@ def survey_map(result: SurveyResult, recordings: Sequence[Recording], rig: Rig,
                resolution_m: float = DEFAULT_RESOLUTION_M) -> CeilingMap:
     """The ceiling map (:func:`~ceilkit.runtime.estimators.texture.ceilmap.build_map`)
     from the keyframes at their solved poses (each as the survey read it:
-    :func:`result_frames`)."""
+    :func:`result_frames`), with their 1σ: a pose on the map carries the error its
+    keyframes share with every feature they placed (docs/methods/texture.md)."""
     read = result_frames(result, recordings, rig)
     frames = (read.grey(int(result.drive[n]), int(result.frame[n])) for n in result.keys)
     poses = [tuple(result.poses[n]) for n in result.keys]
     return build_map(frames, poses, rig, result.ceiling_height_m, resolution_m,
-                     anchor=result.anchor.split(";")[0])
+                     anchor=result.anchor.split(";")[0],
+                     pose_sigma=result.sigma[result.keys])

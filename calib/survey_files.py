@@ -86,6 +86,7 @@ class SurveyRun:
                f"{_median_mm(self.cmap.sigma_m)} mm",
                f"lights: {len(self.lights.lights_m)}" if self.lights is not None
                else f"lights: none ({self.lights_note})"]
+        out += [f"warning: {r.unchecked}"] if r.unchecked else []
         out += [_marker_line(m) for m in self.markers]
         return out + [f"wrote {p}" for p in self.files]
 
@@ -228,6 +229,7 @@ def _site_header(run_lines: list[str], res: SurveyResult, cmap: CeilingMap,
              " mm (from the views' scatter); keyframe poses' 1-sigma (relative to the "
              f"anchor) up to {1e3 * float(np.nanmax(keys[:, :2])):.2f} mm, "
              f"{math.degrees(float(np.nanmax(keys[:, 2]))):.3f} deg"]
+    lines += [f"warning: {res.unchecked}"] if res.unchecked else []
     if lights is not None:
         lines += lightmap_header_lines(lights)
     return run_lines + lines + [_marker_line(m) for m in marks]

@@ -46,7 +46,13 @@ HALF_EXTENT_M = 1.2
 INLIER_M = 0.015          # a match agrees with a motion within this, m
 MIN_INLIERS = 20          # fewest agreeing points of an accepted match
 RUNNER_UP_SHARE = 0.5     # the runner-up's inliers, at most this share of the winner's
-DISTINCT_M = 0.05         # a runner-up differs from the winner by this much ...
+DISTINCT_M = 2 * INLIER_M
+"""A runner-up differs from the winner by this much (m) or :data:`DISTINCT_RAD`: past
+twice the inlier radius a translation shares no inlier with the winner's. (It was
+0.05 m: two survey frames 49.997 mm apart matched as a standstill, 46 inliers, and the
+true motion (45) was ruled the same one, so no runner-up: 50 mm off at a 1σ of
+0.27 mm; issue 39. Now that pair is ``ambiguous``: ORB points along seams parallel to
+the travel support a standstill.)"""
 DISTINCT_RAD = math.radians(3.0)   # ... or by this turn
 RANSAC_SAMPLES = 600
 VAR_FLOOR_M = 0.002       # the least 1σ of one point's fit residual, m

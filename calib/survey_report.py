@@ -57,6 +57,7 @@ def report_lines(res: SurveyResult, cmap: CeilingMap, lights: LightMap | None, n
             f"{1e3 * np.max(cmap.sigma_m, initial=0):.2f} mm (every feature's in "
             "`ceiling_map.npz`, `sigma_m`); keyframe poses' 1-sigma relative to the anchor "
             f"up to {1e3 * float(np.nanmax(res.sigma[res.keys, :2])):.2f} mm."]
+    out += [f"- **Warning**: {res.unchecked}."] if res.unchecked else []
     if lights is None:
         out.append(f"- `lights`: none ({note}).")
     else:

@@ -102,6 +102,9 @@ def test_map_from_the_survey(office_loop):
     assert len(cmap.points_xy) > 200 and cmap.anchor == "start pose"
     x0, y0, x1, y1 = cmap.extent_xy
     assert x0 < truth[:, 0].min() and x1 > truth[:, 0].max()
+    # the keyframes' 1σ go with the map: a pose on it carries the error they share
+    assert np.array_equal(cmap.keyframe_sigma, res.sigma[res.keys])
+    assert np.all(cmap.keyframe_sigma[1:, :2] > 0)
 
 
 def test_no_recording_is_refused():
@@ -158,3 +161,55 @@ def _first_rows(cmap):
     a = np.unique(places(cmap.points_xy)[0])
     return dataclasses.replace(cmap, points_xy=cmap.points_xy[a],
                                descriptors=cmap.descriptors[a], sigma_m=cmap.sigma_m[a])
+
+
+def test_plain_tiles_are_refused(tmp_path):
+    """A plain tile grid (1.2 x 0.6 m tiles, no scatter, no texture; 15 frames 0.1 m
+    apart): no two keyframes single out a place, so nothing checks the chain (on a
+    40 m loop of such tiles the chain ended 1.9 m and 47.5 deg off under a stated 1σ of
+    0.26 m, issue 39) and the survey refuses in one line rather than write its map."""
+    from ceilkit.runtime.config.site import AcrossLines, Corridor
+    from ceilkit.runtime.errors import CalibrationError
+    from ceilkit.runtime.sim.render import straight_drive
+    rig = Rig.load(CONFIGS / "office" / "rig.yaml")
+    site = Site(2.7, corridor=Corridor(tuple(round(1.2 * i, 3) for i in range(-5, 6)),
+                                       AcrossLines(0.0, 0.6)))
+    traj = straight_drive(15, fps=5.0, speed_mps=0.5, x0_m=0.1, y_m=0.2)
+    out = simulate_recording(rig, site, traj, tmp_path / "plain", SimOptions(
+        noise_sigma=2.0, blur_px=0.8, supersample=1, texture=0.0), seed=1)
+    rec = Recording(out)
+    with pytest.raises(CalibrationError, match="no two keyframes matched as places") as e:
+        survey_drives([rec], rig, 2.7, (0.1, 0.2, 0.0))
+    assert "\n" not in str(e.value) and str(out) in str(e.value)
+
+
+def test_a_survey_with_no_loop_says_its_sigma_is_unverified(office_loop):
+    """With a loop closed the survey says nothing more; with its links alone (the
+    closures taken out) it says in one line that its 1σ is unchecked."""
+    import dataclasses
+    res = office_loop[2]
+    assert res.unchecked == ""
+    links = tuple(lk for lk in res.links if lk.kind == "link")
+    open_ = dataclasses.replace(res, links=links)
+    assert open_.unchecked.startswith("no loop closed") and "\n" not in open_.unchecked
+
+
+
+def test_a_rival_a_step_away_makes_the_match_ambiguous():
+    """40 points that stay put (a seam along the travel: a standstill) and 30 that
+    moved 4 cm (the true step): the rival is 4 cm from the winner, a distinct motion
+    (past twice the inlier radius), so the pair is ambiguous. With rivals counted only
+    5 cm away the standstill was accepted (issue 39: a survey bridge 50 mm off)."""
+    from ceilkit.calib.survey_places import Place, match_places
+    rng = np.random.default_rng(3)
+    still, moved = rng.uniform(-0.5, 0.5, (40, 2)), rng.uniform(-0.5, 0.5, (30, 2))
+    d_still = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    d_moved = rng.integers(0, 256, (30, 32), dtype=np.uint8)
+    a = Place(np.r_[still, moved], np.r_[d_still, d_moved])
+    b = Place(np.r_[still, moved - [0.04, 0.0]], np.r_[d_still, d_moved])
+    m = match_places(a, b, np.random.default_rng(0))
+    assert not m and m.reason == "ambiguous" and (m.inliers, m.runner_up) == (40, 30)
+    # the true step alone is accepted
+    m = match_places(Place(moved, d_moved), Place(moved - [0.04, 0.0], d_moved),
+                     np.random.default_rng(0))
+    assert m and abs(m.z[0] - 0.04) < 1e-6
