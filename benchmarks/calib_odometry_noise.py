@@ -2,6 +2,7 @@
 measured scatter of the increments against the truth over the scatter the fit reports.
 
     python benchmarks/calib_odometry_noise.py [--drives 4] [--frames 120] [--seed 0]
+    python benchmarks/calib_odometry_noise.py --heldout 1 36 2 [--noise 2] [--stretch 15]
 
 Drives through configs/block (0.03 m steps, weaving in y and yaw as bench_block's fused
 drives), rendered with noise and blur, frames 0-3 of every 30 with the site's blocks and
@@ -21,6 +22,12 @@ frame with blocks to one without) and for all:
   longer ones);
 * NEES with the published covariance (``VAR_FACTOR`` in): 3 on average when honest;
 * the suggested factor: the larger of the per-step and the stretch squares.
+
+``--heldout SEED ...``: instead, the held-out marker drives of
+``bench_heldout_lines.py`` (``markers`` class, 2 scenes a seed, 60 frames, noise
+``--noise``, blur 0.8 at noise 2 and 1.2 above: another camera, texture and speed than
+configs/block), steps grouped by scene and by whether their corners were detected
+afresh (``fresh``) or carried from the step before (``carried``).
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ import argparse
 import collections
 import dataclasses
 import math
+import sys
 from pathlib import Path
 
 import cv2
@@ -71,6 +79,33 @@ def drive_steps(rig, site, rng, frames: int, step_m: float = 0.03) -> list[tuple
     return out
 
 
+def heldout_steps(seed: int, noise: float) -> list[tuple]:
+    """``(scene, error (3,), published cov (3, 3), frame, fresh|carried)`` of every
+    increment of the held-out marker drives of ``seed`` (see the module)."""
+    import bench_heldout_lines as held
+
+    sim = dataclasses.replace(held.SIM, noise_sigma=noise, blur_px=0.8 if noise <= 2 else 1.2)
+    out = []
+    for n, sc in enumerate(held.scenes(seed, 2, 60, ["markers"])):
+        odo = PlaneOdometry(PlanarGeometry.of(sc.rig, sc.site))
+        prev = None
+        for i in range(60):
+            x, y, yaw = sc.traj.pose(i)
+            grey = render_frame(sc.rig, sc.site, x, y, yaw, sim, np.random.default_rng([seed, i]))
+            inc = odo.step(grey)
+            if inc is not None and prev is not None:
+                c, s = math.cos(prev[2]), math.sin(prev[2])
+                dx, dy = x - prev[0], y - prev[1]
+                truth = np.array([c * dx + s * dy, -s * dx + c * dy,
+                                  math.remainder(yaw - prev[2], 2 * math.pi)])
+                kind = "fresh" if odo._age == 1 else "carried"     # detected on this step
+                e = np.array([inc.dx_m, inc.dy_m, inc.dyaw_rad]) - truth
+                out.append((f"s{seed} {sc.name[:8]}", e, np.asarray(inc.cov, float),
+                            1000 * n + i, kind))
+            prev = (x, y, yaw)
+    return out
+
+
 def report(name: str, steps: list[tuple], stretch: int) -> np.ndarray:
     f = np.sqrt(VAR_FACTOR)
     e = np.array([s[1] for s in steps])
@@ -109,16 +144,27 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--stretch", type=int, default=STRETCH, help="steps per summed stretch")
+    ap.add_argument("--heldout", type=int, nargs="*",
+                    help="seeds of bench_heldout_lines' marker drives to measure instead")
+    ap.add_argument("--noise", type=float, default=2.0, help="with --heldout: grey levels")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    rig, site = Rig.load(CONFIG / "rig.yaml"), Site.load(CONFIG / "site.yaml")
-    rng = np.random.default_rng(args.seed)
-    steps = [s for _ in range(args.drives) for s in drive_steps(rig, site, rng, args.frames)]
+    if args.heldout:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        steps = [s for seed in args.heldout for s in heldout_steps(seed, args.noise)]
+        print(f"VAR_FACTOR now {VAR_FACTOR.tolist()}; held-out marker drives, seeds "
+              f"{args.heldout}, noise {args.noise}")
+        for kind in ("fresh", "carried"):
+            report(kind, [s for s in steps if s[4] == kind], args.stretch)
+    else:
+        rig, site = Rig.load(CONFIG / "rig.yaml"), Site.load(CONFIG / "site.yaml")
+        rng = np.random.default_rng(args.seed)
+        steps = [s for _ in range(args.drives) for s in drive_steps(rig, site, rng, args.frames)]
+        print(f"VAR_FACTOR now {VAR_FACTOR.tolist()}; {args.drives} drives x {args.frames} "
+              f"frames, seed {args.seed}")
     by = collections.defaultdict(list)
     for s in steps:
         by[s[0]].append(s)
-    print(f"VAR_FACTOR now {VAR_FACTOR.tolist()}; {args.drives} drives x {args.frames} "
-          f"frames, seed {args.seed}")
     for kind in sorted(by):
         if by[kind][0][1] is None:
             print(f"{kind:22s} n={len(by[kind]):4d}  (no increment)")
