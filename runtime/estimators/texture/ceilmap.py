@@ -303,11 +303,29 @@ def appearance_ncc(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
 
 
 @njit
+def _mosaic_at(mosaic, coverage, A, r, c):  # pragma: no cover - compiled
+    """The mosaic's bilinear value at patch pixel ``(r, c)`` mapped by ``A @ (c, r, 1)``;
+    NaN off the mosaic (its outermost pixels, which no bilinear sample spans, count as
+    off) or where its nearest pixel is not covered."""
+    h, w = mosaic.shape
+    x = A[0, 0] * c + A[0, 1] * r + A[0, 2]
+    y = A[1, 0] * c + A[1, 1] * r + A[1, 2]
+    if not (0.0 <= x < w - 1 and 0.0 <= y < h - 1):
+        return math.nan
+    x0, y0 = int(x), int(y)
+    fx, fy = x - x0, y - y0
+    if not coverage[y0 + (fy >= 0.5), x0 + (fx >= 0.5)]:
+        return math.nan
+    v00, v01 = np.float64(mosaic[y0, x0]), np.float64(mosaic[y0, x0 + 1])
+    v10, v11 = np.float64(mosaic[y0 + 1, x0]), np.float64(mosaic[y0 + 1, x0 + 1])
+    return (1 - fy) * (v00 + fx * (v01 - v00)) + fy * (v10 + fx * (v11 - v10))
+
+
+@njit
 def _ncc_at(mosaic, coverage, patch, valid, A, stride, min_share):  # pragma: no cover
     """:func:`appearance_ncc` over the patch pixels ``(r, c)`` of every ``stride``-th row
     and column, the mosaic at ``A @ (c, r, 1)`` (a point on the mosaic's outermost
-    pixels, which no bilinear sample spans, counts as not covered)."""
-    h, w = mosaic.shape
+    pixels, which no bilinear sample spans, counts as not covered: :func:`_mosaic_at`)."""
     n = patch.shape[0]
     cnt = m = 0
     sa = sb = saa = sbb = sab = 0.0
@@ -316,18 +334,9 @@ def _ncc_at(mosaic, coverage, patch, valid, A, stride, min_share):  # pragma: no
             if not valid[r, c]:
                 continue
             cnt += 1
-            x = A[0, 0] * c + A[0, 1] * r + A[0, 2]
-            y = A[1, 0] * c + A[1, 1] * r + A[1, 2]
-            if not (0.0 <= x < w - 1 and 0.0 <= y < h - 1):
+            b = _mosaic_at(mosaic, coverage, A, r, c)
+            if math.isnan(b):
                 continue
-            x0, y0 = int(x), int(y)
-            fx, fy = x - x0, y - y0
-            if not coverage[y0 + (fy >= 0.5), x0 + (fx >= 0.5)]:
-                continue
-            r0, r1 = mosaic[y0], mosaic[y0 + 1]
-            v00, v01 = np.float64(r0[x0]), np.float64(r0[x0 + 1])
-            v10, v11 = np.float64(r1[x0]), np.float64(r1[x0 + 1])
-            b = (1 - fy) * (v00 + fx * (v01 - v00)) + fy * (v10 + fx * (v11 - v10))
             a = np.float64(patch[r, c])
             m += 1
             sa += a
@@ -420,7 +429,6 @@ def _part_sums(mosaic, coverage, patch, valid, A, stride, blocks):  # pragma: no
     (``r``, ``c`` the sampled row and column in the block, ``a`` the patch, ``b`` the
     mosaic): n, Σr, Σc, Σr², Σc², Σrc, Σa, Σar, Σac, Σa², Σb, Σbr, Σbc, Σb², Σab; and
     the block's sampled pixels (column 15)."""
-    h, w = mosaic.shape
     n = patch.shape[0]
     m = (n + stride - 1) // stride
     S = np.zeros((blocks * blocks, 16))
@@ -434,17 +442,9 @@ def _part_sums(mosaic, coverage, patch, valid, A, stride, blocks):  # pragma: no
             r, c = i * stride, j * stride
             if not valid[r, c]:
                 continue
-            x = A[0, 0] * c + A[0, 1] * r + A[0, 2]
-            y = A[1, 0] * c + A[1, 1] * r + A[1, 2]
-            if not (0.0 <= x < w - 1 and 0.0 <= y < h - 1):
+            b = _mosaic_at(mosaic, coverage, A, r, c)
+            if math.isnan(b):
                 continue
-            x0, y0 = int(x), int(y)
-            fx, fy = x - x0, y - y0
-            if not coverage[y0 + (fy >= 0.5), x0 + (fx >= 0.5)]:
-                continue
-            v00, v01 = np.float64(mosaic[y0, x0]), np.float64(mosaic[y0, x0 + 1])
-            v10, v11 = np.float64(mosaic[y0 + 1, x0]), np.float64(mosaic[y0 + 1, x0 + 1])
-            b = (1 - fy) * (v00 + fx * (v01 - v00)) + fy * (v10 + fx * (v11 - v10))
             a = np.float64(patch[r, c])
             u = np.float64(i - r0)
             v = np.float64(j - (bj * m + blocks - 1) // blocks)
