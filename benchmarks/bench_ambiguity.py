@@ -237,17 +237,22 @@ def cases(tmp: Path, n: int) -> dict[str, tuple]:
     }
 
 
+def add_render_args(ap: argparse.ArgumentParser, sim: SimOptions) -> None:
+    """``--noise``, ``--blur`` and ``--supersample``, their defaults ``sim``'s."""
+    ap.add_argument("--noise", type=float, default=sim.noise_sigma,
+                    help="the image noise's 1σ in grey levels (default %(default)s)")
+    ap.add_argument("--blur", type=float, default=sim.blur_px,
+                    help="the blur's 1σ in px (default %(default)s)")
+    ap.add_argument("--supersample", type=int, default=sim.supersample,
+                    help="samples per pixel side of the render (default %(default)s)")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--keep", type=Path, help="write the recordings and runs here (kept)")
-    ap.add_argument("--noise", type=float, default=SIM.noise_sigma,
-                    help="the image noise's 1σ in grey levels (default %(default)s)")
-    ap.add_argument("--blur", type=float, default=SIM.blur_px,
-                    help="the blur's 1σ in px (default %(default)s)")
-    ap.add_argument("--supersample", type=int, default=SIM.supersample,
-                    help="samples per pixel side of the render (default %(default)s)")
+    add_render_args(ap, SIM)
     a = ap.parse_args(argv)
     sim = dataclasses.replace(SIM, noise_sigma=a.noise, blur_px=a.blur,
                               supersample=a.supersample)

@@ -87,6 +87,22 @@ class Scene:
     note: str
 
 
+def camera_yaml(w: int, h: int, f: float, model: str, dist: list[float]) -> dict:
+    """A camera.yaml mapping (ROS ``camera_info`` layout, written by hand as another tool
+    would): square pixels of focal length ``f`` px, the principal point at the image
+    centre, distortion ``model`` with coefficients ``dist``."""
+    cx, cy = (w - 1) / 2, (h - 1) / 2
+    return {"image_width": w, "image_height": h, "camera_name": "heldout",
+            "camera_matrix": {"rows": 3, "cols": 3, "data": [f, 0.0, cx, 0.0, f, cy, 0, 0, 1.0]},
+            "distortion_model": model,
+            "distortion_coefficients": {"rows": 1, "cols": len(dist), "data": dist},
+            "rectification_matrix": {"rows": 3, "cols": 3,
+                                     "data": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]},
+            "projection_matrix": {"rows": 3, "cols": 4,
+                                  "data": [f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0,
+                                           0.0]}}
+
+
 def camera(rng: np.random.Generator, fisheye: bool | None = None) -> tuple[dict, float, str]:
     """A camera.yaml mapping (ROS ``camera_info`` layout), its tilt from the vertical
     (deg), and a note."""
@@ -101,16 +117,7 @@ def camera(rng: np.random.Generator, fisheye: bool | None = None) -> tuple[dict,
         f = float(rng.uniform(300.0, 600.0))
         model, dist, tilt = "plumb_bob", [float(rng.uniform(-0.1, 0.05)), 0.0, 0.0, 0.0, 0.0], 0.0
         note = f"pinhole f{f:.0f}"
-    cx, cy = (W - 1) / 2, (H - 1) / 2
-    cam = {"image_width": W, "image_height": H, "camera_name": "heldout",
-           "camera_matrix": {"rows": 3, "cols": 3, "data": [f, 0.0, cx, 0.0, f, cy, 0, 0, 1.0]},
-           "distortion_model": model,
-           "distortion_coefficients": {"rows": 1, "cols": len(dist), "data": dist},
-           "rectification_matrix": {"rows": 3, "cols": 3,
-                                    "data": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]},
-           "projection_matrix": {"rows": 3, "cols": 4,
-                                 "data": [f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0]}}
-    return cam, tilt, note
+    return camera_yaml(W, H, f, model, dist), tilt, note
 
 
 def drive(rng: np.random.Generator, n: int, fps: float, speed: float, turn_dps: float,

@@ -65,7 +65,7 @@ from ceilkit.runtime.replay import replay
 from ceilkit.runtime.sim.render import SimOptions, Trajectory, straight_drive
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_ambiguity import Published, kidnap, score  # noqa: E402
+from bench_ambiguity import Published, add_render_args, kidnap, score  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
 SIM = SimOptions(noise_sigma=2.0, blur_px=0.8, supersample=1)
@@ -271,12 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                          "window_search=true")
     ap.add_argument("--keep", type=Path, help="write the recordings and runs here (kept)")
     ap.add_argument("--out", type=Path, default=OUT / "bench_heldout_lines.csv")
-    ap.add_argument("--noise", type=float, default=SIM.noise_sigma,
-                    help="the image noise's 1σ in grey levels (default %(default)s)")
-    ap.add_argument("--blur", type=float, default=SIM.blur_px,
-                    help="the blur's 1σ in px (default %(default)s)")
-    ap.add_argument("--supersample", type=int, default=SIM.supersample,
-                    help="samples per pixel side of the render (default %(default)s)")
+    add_render_args(ap, SIM)
     a = ap.parse_args(argv)
     options = dict(o.split("=", 1) for o in a.option)
     sim = dataclasses.replace(SIM, noise_sigma=a.noise, blur_px=a.blur,

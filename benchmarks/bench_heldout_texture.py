@@ -86,6 +86,7 @@ from ceilkit.runtime.sim.scatter import PRESETS, Scatter, ScatterItem, generate
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_all import provenance  # noqa: E402
 from bench_ambiguity import Published, kidnap, score  # noqa: E402
+from bench_heldout_lights import camera_yaml  # noqa: E402
 from bench_survey import feature_errors  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,16 +132,7 @@ def camera(rng: np.random.Generator, fisheye: bool, size: tuple[int, int]
         f = (w / 2) / math.tan(math.radians(fov / 2))
         model, dist = "plumb_bob", [float(rng.uniform(-0.08, 0.03)), 0.0, 0.0, 0.0, 0.0]
         note = f"pinhole {fov:.0f}deg f{f:.0f}"
-    cx, cy = (w - 1) / 2, (h - 1) / 2
-    cam = {"image_width": w, "image_height": h, "camera_name": "heldout",
-           "camera_matrix": {"rows": 3, "cols": 3, "data": [f, 0.0, cx, 0.0, f, cy, 0, 0, 1.0]},
-           "distortion_model": model,
-           "distortion_coefficients": {"rows": 1, "cols": len(dist), "data": dist},
-           "rectification_matrix": {"rows": 3, "cols": 3,
-                                    "data": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]},
-           "projection_matrix": {"rows": 3, "cols": 4,
-                                 "data": [f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0]}}
-    return cam, f"{w}x{h} {note}"
+    return camera_yaml(w, h, f, model, dist), f"{w}x{h} {note}"
 
 
 def drives(rng: np.random.Generator, n: int, step_m: float
