@@ -31,7 +31,9 @@ the scene whose vehicle is carried elsewhere mid-drive (kidnap). Scored as
 ``bench_ambiguity.score``: valid poses, wrong ones (> 10 cm or > 2 deg), the tracked
 share (valid and right, of all frames; ``seen``: frames with at least 3 of the map's
 lights within 70 deg of the vertical and 30 px inside the frame), median error, mean NEES
-and its 95% band for the NEES series' effective count ``n_eff`` (``--runs`` keeps only
+(each published pose with its full covariance, from a pose sink, as docs/fusion.md
+defines it; ``poses.csv`` has sigmas only) and its 95% band for the NEES series'
+effective count ``n_eff`` (``--runs`` keeps only
 the runs named, e.g. ``auto-start lights-start``).
 Rows to ``benchmarks/out/bench_heldout_lights.csv``.
 
@@ -60,10 +62,13 @@ import yaml
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.lights.rays import project_poses
-from ceilkit.runtime.fusion import effective_count
+from ceilkit.runtime.fusion import effective_count, nees
 from ceilkit.runtime.geometry.ekf import chi2_quantile, mean_nees_band
 from ceilkit.runtime.replay import replay
 from ceilkit.runtime.sim.render import SimOptions, Trajectory, render_frame
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_ambiguity import Published  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
 WRONG = (0.10, 2.0)      # m, deg: a valid pose further off is wrong
@@ -263,7 +268,7 @@ def seen(rig: Rig, scene: Scene, traj: Trajectory) -> np.ndarray:
     return (inside & up).sum(axis=1)
 
 
-def score(folder: Path, out: Path, seen_n: np.ndarray) -> dict:
+def score(folder: Path, out: Path, seen_n: np.ndarray, published: dict) -> dict:
     """Valid, wrong, tracked (valid and right) of all frames and of the frames that see
     3 lights, median error, mean NEES and its 95% band: that of the mean of ``n_eff``
     independent values (:func:`~ceilkit.runtime.fusion.effective_count`: a drive's
@@ -288,12 +293,12 @@ def score(folder: Path, out: Path, seen_n: np.ndarray) -> dict:
         if bad and first_wrong is None:
             first_wrong = order[int(r["t_ns"])]
         right_seen += (not bad) and seen_n[order[int(r["t_ns"])]] >= 3
-        sig = [float(r["sigma_x"] or "nan"), float(r["sigma_y"] or "nan"),
-               math.radians(float(r["sigma_yaw_deg"] or "nan"))]
-        z = [e[0] / sig[0], e[1] / sig[1], dyaw / sig[2]]
-        if all(math.isfinite(v) for v in z):
-            nees_v.append(sum(v * v for v in z))
-            dofs.append(3)
+        est = published.get(int(r["t_ns"]))     # its full covariance (docs/fusion.md)
+        got = None if est is None else nees(est, (float(t["x"]), float(t["y"]),
+                                                  math.radians(float(t["yaw_deg"]))))
+        if got is not None and math.isfinite(got[0]):
+            nees_v.append(got[0])
+            dofs.append(got[1])
     n_seen = int((seen_n >= 3).sum())
     res = {"frames": len(rows), "valid": valid, "wrong": wrong,
            "tracked": (valid - wrong) / max(len(rows), 1),
@@ -337,9 +342,10 @@ def run_scene(scene: Scene, tmp: Path, seed: int, only_runs: list[str] | None = 
             out = folder.parent / f"{folder.name}-{method}-{tag}"
             shutil.rmtree(out, ignore_errors=True)
             t0 = time.perf_counter()
-            res = replay(folder, out, method=method, start_pose=start)
+            published = Published()
+            res = replay(folder, out, method=method, start_pose=start, sinks=[published])
             row = {"scene": scene.name + suffix, "run": f"{method}-{tag}",
-                   **score(folder, out, seen_n),
+                   **score(folder, out, seen_n, published.poses),
                    "failures": " ".join(f"{k}:{v}" for k, v in
                                         Counter(res.telemetry.failures).most_common(3)),
                    "s": round(time.perf_counter() - t0, 1), "note": scene.note}
