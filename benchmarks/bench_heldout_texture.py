@@ -29,8 +29,10 @@ Per scene:
    5-10 cm a frame), written as a recording whose ``site.yaml`` holds the ceiling height
    alone, surveyed by :func:`~ceilkit.calib.survey_files.survey_site` (what
    ``ceilcal survey RIG REC --out DIR --start-pose`` calls) anchored by its first
-   frame's true pose. Figures: the surveyed frames' positions against the truth (RMS,
-   max), the worst heading, every keyframe's ORB points on the ceiling placed by the
+   frame's true pose. Figures: the closures and the gaps of the chain matched across,
+   the frames (and pieces of the drive) not placed; the surveyed frames' positions
+   against the truth (RMS, max), the worst heading, every keyframe's ORB points on the
+   ceiling placed by the
    surveyed pose against by the true pose (``bench_survey.feature_errors``: RMS), each
    keyframe's position error over its stated 1σ (``hypot(ex / σx, ey / σy)``: the 2-D
    law's median 1.18, 95th percentile 2.45) and the map features' stated 1σ (median);
@@ -72,6 +74,7 @@ import cv2
 import numpy as np
 import yaml
 
+from ceilkit.calib.survey import CLOSURE_KINDS
 from ceilkit.calib.survey_files import Anchors, survey_site
 from ceilkit.calib.survey_loop import loop_trajectory
 from ceilkit.runtime.config.rig import Rig
@@ -290,7 +293,9 @@ def surveyed(folder: Path, out: Path) -> tuple[dict, Path | None]:
     z = np.hypot(*((res.poses[keys, :2] - truth[res.frame[keys], :2])
                    / res.sigma[keys, :2]).T)
     return {"survey": "ok", "survey_cpu_s": cpu, "keyframes": int(len(res.keys)),
-            "closures": sum(lk.kind != "link" for lk in res.links), "unplaced": res.unplaced,
+            "closures": sum(lk.kind in CLOSURE_KINDS for lk in res.links),
+            "gaps": sum(lk.kind == "gap" for lk in res.links), "unplaced": res.unplaced,
+            "pieces_unplaced": res.unplaced_pieces,
             "map_features": run.cmap.feature_count,
             "poses_rms_mm": 1e3 * float(np.sqrt(np.mean(pos ** 2))),
             "poses_max_mm": 1e3 * float(pos.max()), "yaw_max_deg": float(dyaw.max()),

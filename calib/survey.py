@@ -42,7 +42,14 @@ from ceilkit.runtime.estimators.texture.ceilmap import (
 )
 from ceilkit.runtime.io.recording import Recording
 
-from .survey_chain import Segment, chain_drive, keyframes, path_length, wheel_edges
+from .survey_chain import (
+    Segment,
+    chain_drive,
+    gap_matches,
+    keyframes,
+    path_length,
+    wheel_edges,
+)
 from .survey_graph import Edge, compose, relative, solve_graph
 from .survey_places import Place, match_places, place_of
 from .survey_shutter import GlobalShutter, SurveyFrames, chain_velocities
@@ -63,6 +70,11 @@ tracked again on the later frame turned back (``odometry.TURN_WARP_MIN_RAD``; no
 -0.001 %): that took the keyframes' median error from 0.3-0.8 to 0.22-0.40 mm, and
 their 1σ with it (the odometry's scatter fell), so the factor stayed (before: 3.29,
 2.51, 2.01 and 3.58)."""
+
+
+CLOSURE_KINDS = ("loop", "drives")
+"""The kinds of :class:`Link` that close a loop (check the chain's drift); ``link``
+(the next keyframes) and ``gap`` (across a break of the chain) only chain it."""
 
 
 @dataclass(frozen=True)
@@ -108,7 +120,7 @@ class SurveyOptions:
 @dataclass(frozen=True, eq=False)
 class Link:
     """An accepted place match between graph nodes ``a`` and ``b`` (b's pose in V_a:
-    ``z``, its covariance ``cov``); ``kind``: ``link``, ``loop`` or ``drives``;
+    ``z``, its covariance ``cov``); ``kind``: ``link``, ``gap``, ``loop`` or ``drives``;
     ``inliers`` and ``runner_up`` the match's support; ``whitened``: its residual after
     the solve, sigmas."""
 
@@ -138,7 +150,8 @@ class SurveyResult:
         keys: ``(K,)`` the keyframes' nodes.
         links: the accepted place matches; ``refused``: the refused ones, by reason.
         odometry_whitened: ``(E,)`` the consecutive-frame edges' residuals, sigmas.
-        unplaced: frames of segments no closure tied to the anchor's.
+        unplaced: frames of segments no closure tied to the anchor's;
+            ``unplaced_pieces``: how many such segments (none is in the map).
         ceiling_height_m, anchor, solve_s, iterations, edge_kinds: as named.
         velocity: ``(N, 3)`` each frame's velocity in its V (m/s, m/s, rad/s) that its
             rolling shutter was undone with (the first chain's), or None (a global
@@ -164,6 +177,7 @@ class SurveyResult:
     edge_kinds: dict[str, int]
     velocity: np.ndarray | None = None
     readout_ms: float = 0.0
+    unplaced_pieces: int = 0
 
     @property
     def unchecked(self) -> str:
@@ -171,7 +185,7 @@ class SurveyResult:
         nothing measured the chain's drift, and the keyframes' 1σ is what the chain's
         steps state, not checked (a drifting chain on a plain tile grid ended 1.9 m off
         under a stated 1σ of 0.26 m, issue 39)."""
-        if any(lk.kind != "link" for lk in self.links):
+        if any(lk.kind in CLOSURE_KINDS for lk in self.links):
             return ""
         return ("no loop closed: nothing checked the chain's drift, so the keyframes' "
                 "1-sigma is the chain's own, unverified (drive over the start again to "
@@ -355,8 +369,11 @@ def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: f
     more, refused2 = _match(_drive_pairs(nodes, places, options), places, rng)
     links += more
     refused.update({k: refused.get(k, 0) + v for k, v in refused2.items()})
-    if not links:
+    if not links:                       # gap matches alone would not place a frame
         _refuse_unmatched(recordings, refused)
+    gaps, refused3 = _gaps(frames, nodes, rig, ceiling_height_m, cache, rng)
+    links += gaps
+    refused.update({k: refused.get(k, 0) + v for k, v in refused3.items()})
     chain, placed = _initial(nodes, links, np.asarray(start_pose, float))
     res = _solve(recordings, nodes, keys, links, refused, chain, placed, ceiling_height_m)
     if frames.shutter is None:
@@ -365,6 +382,21 @@ def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: f
                     for d, k in zip(res.drive, res.frame, strict=True)], float)
     return dataclasses.replace(res, velocity=vel.reshape(-1, 3),
                                readout_ms=float(options.readout_ms))
+
+
+def _gaps(frames: SurveyFrames, nodes: _Nodes, rig: Rig, height_m: float,
+          cache: dict[tuple[int, int], Place], rng: np.random.Generator
+          ) -> tuple[list[Link], dict[str, int]]:
+    """The breaks of the chain matched across (:func:`~.survey_chain.gap_matches`) as
+    links of kind ``gap``, and the refused tries."""
+    def place(d: int, k: int) -> Place:
+        if (d, k) not in cache:
+            cache[(d, k)] = place_of(frames.grey(d, k), rig, height_m)
+        return cache[(d, k)]
+
+    got, refused = gap_matches(nodes.segments, place, rng)
+    return [Link(int(nodes.offset[s]) + i, int(nodes.offset[t]) + j, m.z, m.cov, "gap",
+                 m.inliers, m.runner_up) for s, i, t, j, m in got], refused
 
 
 def _refuse_unmatched(recordings: Sequence[Recording], refused: dict[str, int]) -> None:
@@ -434,7 +466,8 @@ def _solve(recs: Sequence[Recording], nodes: _Nodes, keys: np.ndarray, links: li
         sol.sigma * POSE_SIGMA_FACTOR,
         chain[keep], new[keys[keep[keys]]], out_links, refused, sol.whitened[:n_odo],
         int(np.count_nonzero(~keep)), float(height_m), "start pose", solve_s,
-        sol.iterations, dict(Counter(e.kind for e in edges)))
+        sol.iterations, dict(Counter(e.kind for e in edges)),
+        unplaced_pieces=int(np.count_nonzero(~placed)))
 
 
 def result_frames(result: SurveyResult, recordings: Sequence[Recording], rig: Rig

@@ -29,7 +29,7 @@ from ceilkit.runtime.geometry.ekf import MotionNoise
 from ceilkit.runtime.io.recording import Odometry, Recording
 
 from .survey_graph import Edge, chain_poses, compose
-from .survey_places import Place, match_places, place_of
+from .survey_places import Place, PlaceMatch, match_places, place_of
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,7 +134,7 @@ def _bridge(rec: Recording, k0: int, k1: int, grey0: np.ndarray | None, grey1: n
         for k, g in ((k0, grey0), (k1, grey1)):
             if k not in places:
                 places[k] = place_of(g, rig, height_m)
-        m = match_places(places[k0], places[k1], rng)
+        m = match_places(places[k0], places[k1], rng, min_points=0)   # a step
         if m:
             return Edge(j - 1, j, m.z, m.cov, "place")
     if rec.odometry is not None:
@@ -142,6 +142,47 @@ def _bridge(rec: Recording, k0: int, k1: int, grey0: np.ndarray | None, grey1: n
         if w is not None:
             return Edge(j - 1, j, w[0], w[1], "wheel")
     return None
+
+
+GAP_REACH = 3
+"""Frames either side of a break in the chain that :func:`gap_matches` pairs: places
+up to ``GAP_REACH + 1`` frames apart (0.4 s at 10 fps)."""
+
+
+def gap_matches(segments: list[Segment], place: Callable[[int, int], Place],
+                rng: np.random.Generator
+                ) -> tuple[list[tuple[int, int, int, int, PlaceMatch]], dict[str, int]]:
+    """Where the chain broke (nothing linked frame ``k - 1`` to ``k``: a new segment
+    started), the frames either side matched as places at longer baselines: for each
+    segment and each later segment of its drive that starts within
+    :data:`GAP_REACH` + 1 frames of its end, its last :data:`GAP_REACH` frames against
+    the other's first, nearest in time first, until one match is accepted
+    (:func:`~.survey_places.match_places` as a step: singled out, beyond chance). A sparse
+    frame or a seam's standstill that broke one step often leaves the frames around
+    it matchable. ``place(drive, k)``: a frame's place.
+
+    Returns the accepted ``(segment, position, other segment, position, match)`` and
+    the refused tries by reason (``gap: <reason>``)."""
+    out, refused = [], {}
+    for s, a in enumerate(segments):
+        for t in range(s + 1, len(segments)):
+            b = segments[t]
+            if b.drive != a.drive or b.frames[0] - a.frames[-1] > GAP_REACH + 1:
+                break
+            tries = sorted(((int(b.frames[j] - a.frames[i]), i, j)
+                            for i in range(max(0, len(a.frames) - GAP_REACH), len(a.frames))
+                            for j in range(min(GAP_REACH, len(b.frames)))),
+                           key=lambda x: x[0])
+            for gap, i, j in tries:
+                if gap > GAP_REACH + 1:
+                    break
+                m = match_places(place(a.drive, int(a.frames[i])),
+                                 place(b.drive, int(b.frames[j])), rng, min_points=0)
+                if m:
+                    out.append((s, i, t, j, m))
+                    break
+                refused[f"gap: {m.reason}"] = refused.get(f"gap: {m.reason}", 0) + 1
+    return out, refused
 
 
 def wheel_edges(rec: Recording, seg: Segment, offset: int) -> list[Edge]:

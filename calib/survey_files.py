@@ -38,7 +38,14 @@ from ceilkit.runtime.io.outputs import claim_outputs, recording_inputs
 from ceilkit.runtime.io.recording import POSES_HEADER, Recording, Truth
 
 from .lightmap import LightMap, lightmap_header_lines, survey_lights
-from .survey import SurveyOptions, SurveyResult, result_frames, survey_drives, survey_map
+from .survey import (
+    CLOSURE_KINDS,
+    SurveyOptions,
+    SurveyResult,
+    result_frames,
+    survey_drives,
+    survey_map,
+)
 from .survey_anchor import anchor_by_lights
 from .survey_geo import origin_from_start, parse_geodetic, start_pose_from_geodetic
 from .survey_lamps import MIN_LAMP_ROUNDNESS, lamp_shapes
@@ -78,10 +85,11 @@ class SurveyRun:
 
     def lines(self) -> list[str]:
         r = self.result
-        loops = sum(lk.kind != "link" for lk in r.links)
+        loops = sum(lk.kind in CLOSURE_KINDS for lk in r.links)
         out = [f"surveyed {len(r.poses)} frames of {len(r.drives)} drive(s): "
                f"{len(r.links)} place matches ({loops} loop or drive closures), "
-               f"{r.unplaced} frames not placed; graph solved in {r.solve_s:.2f} s",
+               f"{r.unplaced} frames not placed (in {r.unplaced_pieces} pieces no closure "
+               f"tied to the anchor's); graph solved in {r.solve_s:.2f} s",
                f"ceiling map: {self.cmap.feature_count} features, median 1-sigma "
                f"{_median_mm(self.cmap.sigma_m)} mm",
                f"lights: {len(self.lights.lights_m)}" if self.lights is not None

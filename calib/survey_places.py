@@ -10,8 +10,10 @@ odometry) from descriptor matches, each point's two nearest descriptors (so that
 tile grid's repeats are all candidates, not hidden by a ratio test), by RANSAC over
 two-point rigid fits, then a least-squares fit on the inliers.
 
-The match is accepted only when the evidence singles it out: at least
-:data:`MIN_INLIERS` points agree within :data:`INLIER_M`, and the best *other* motion
+The match is accepted only when the evidence singles it out: its agreeing points
+(within :data:`INLIER_M`) make more separate features than a wrong motion gathers by
+chance (:func:`min_inliers`; a closure also :data:`MIN_INLIERS` points), and the best
+*other* motion
 (RANSAC again over the matches the winner did not explain, a motion at least
 :data:`DISTINCT_M` or :data:`DISTINCT_RAD` from the winner: a tile period away, a
 half turn) gathers fewer than :data:`RUNNER_UP_SHARE` of the winner's inliers. A
@@ -34,6 +36,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+from scipy.special import bdtrc
 
 from ceilkit.runtime.estimators.texture.ceilmap import features, rectify
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
@@ -44,7 +50,23 @@ centre (2.2 m / 450 px), so that a keypoint's pixel is a few millimetres."""
 HALF_EXTENT_M = 1.2
 """Half the side of a place's patch, m (the office rig sees 1.55 x 1.17 m each side)."""
 INLIER_M = 0.015          # a match agrees with a motion within this, m
-MIN_INLIERS = 20          # fewest agreeing points of an accepted match
+MIN_INLIERS = 20
+"""Fewest agreeing points of a closure (frames anywhere on the drives) beside
+:func:`min_inliers`: the site's repeats beyond one view are not in the pair to test. On
+the survey drive of ``bench_heldout_texture.py --seed 1`` scatter0 (light panels on a
+lattice), 7 of 1000 pairs of frames 3.5 m apart or more matched at the chance minimum
+alone, 3.4-5.5 m off (6-9 features, no rival in the view): at 20 points none did. A
+*step* (frames a few apart in time, ``min_points=0``) needs the chance minimum only:
+its wrong motion would come from a repeat within the view, which the rival test sees
+(none of 1,000 step pairs more than 4 mm off, on seeds 1 and 2)."""
+FALSE_MATCH_ALPHA = 1e-4
+"""The chance that a wrong motion gathers :func:`min_inliers` features, per pair tried
+(a survey tries a few thousand pairs: below one expected by chance, before the rival
+test)."""
+FEATURE_M = 2 * INLIER_M
+"""Points of a place closer than this (m) are counted as one feature by
+:func:`min_inliers` (ORB finds one blob at several scales: a sprinkler's 3 points
+agree with a wrong motion together or not at all)."""
 RUNNER_UP_SHARE = 0.5     # the runner-up's inliers, at most this share of the winner's
 DISTINCT_M = 2 * INLIER_M
 """A runner-up differs from the winner by this much (m) or :data:`DISTINCT_RAD`: past
@@ -72,7 +94,10 @@ class PlaceMatch:
     """The result of :func:`match_places`; falsy when not accepted (``reason`` says
     why). ``z``: place b's pose in V_a (m, m, rad), ``cov`` its ``(3, 3)``
     covariance; ``inliers``: the winner's agreeing points; ``runner_up``: the best
-    other motion's (0 when none); ``rms_m``: the winner's residual RMS."""
+    other motion's (0 when none); ``rms_m``: the winner's residual RMS; ``features``:
+    the winner's agreeing points counted as separate features (:data:`FEATURE_M`),
+    ``min_features`` the fewest that chance does not explain (:func:`min_inliers`),
+    ``runner_features`` the runner-up's agreeing points as features."""
 
     ok: bool
     reason: str
@@ -81,6 +106,9 @@ class PlaceMatch:
     inliers: int = 0
     runner_up: int = 0
     rms_m: float = float("nan")
+    features: int = 0
+    min_features: int = 0
+    runner_features: int = 0
 
     def __bool__(self) -> bool:
         return self.ok
@@ -93,6 +121,46 @@ def place_of(grey: np.ndarray, rig, ceiling_height_m: float,
     patch, valid = rectify(grey, rig, ceiling_height_m, resolution_m, half_extent_m)
     q, d = features(patch, valid, resolution_m)
     return Place(np.asarray(q, float), np.asarray(d, np.uint8))
+
+
+def feature_count(points: np.ndarray) -> int:
+    """The separate features among ``points`` ``(N, 2)`` (m): groups of points linked
+    by gaps under :data:`FEATURE_M`."""
+    pts = np.unique(np.asarray(points, float).reshape(-1, 2), axis=0)
+    if len(pts) < 2:
+        return len(pts)
+    pairs = cKDTree(pts).query_pairs(FEATURE_M, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(len(pts), len(pts)))
+    return int(connected_components(graph, directed=False)[0])
+
+
+def min_inliers(a: Place, b: Place, alpha: float = FALSE_MATCH_ALPHA) -> int:
+    """The fewest separate features (:func:`feature_count`) of b that must agree with a
+    motion before chance is ruled out, at false-match probability ``alpha``.
+
+    Under a wrong motion a feature of b lands within :data:`INLIER_M` of one of a's
+    ``F_a`` features with probability at most ``p = F_a pi r^2 / A`` (``A``: the area
+    of the convex hull of a's points, m²; as if any of a's features could be its match,
+    whatever the descriptors say: the tile grid's corners and a ceiling's identical
+    sprinklers do look alike). A RANSAC hypothesis explains its two sample features,
+    and each of the other ``F_b - 2`` by chance: the minimum is the least ``n`` with
+    ``RANSAC_SAMPLES * P(Binomial(F_b - 2, p) >= n - 2) <= alpha``. The office drive's
+    frames (64-123 ORB points in 18-36 features) need 8-9; a frame whose features
+    cover more of the ceiling needs more (a wrong motion meets more by chance). On the
+    survey drive of ``bench_heldout_texture.py --seed 2`` scatter0 (docs/survey.md) the
+    best motion between frames 3.5 m apart or more (1,000 pairs) never passed it, and
+    297 of 384 consecutive pairs did, none more than 2.6 mm off.
+    Returns a number above ``F_b`` when no count could rule chance out."""
+    fa, fb = feature_count(a.points_v), feature_count(b.points_v)
+    if len(a.points_v) < 3 or fb < 3:
+        return fb + 1
+    area = cv2.contourArea(cv2.convexHull(a.points_v.astype(np.float32)))
+    p = min(1.0, fa * math.pi * INLIER_M ** 2 / max(area, 1e-12))
+    n = np.arange(3, fb + 1)
+    tail = RANSAC_SAMPLES * bdtrc(n - 3, fb - 2, p)      # P(X > n - 3)
+    ok = np.flatnonzero(tail <= alpha)
+    return int(n[ok[0]]) if ok.size else fb + 1
 
 
 def _candidates(a: Place, b: Place) -> tuple[np.ndarray, np.ndarray]:
@@ -185,24 +253,31 @@ def _covariance(q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray
     return s2 * np.linalg.inv(J.T @ J), float(np.sqrt(np.mean(np.sum(r * r, 1))))
 
 
-def match_places(a: Place, b: Place, rng: np.random.Generator) -> PlaceMatch:
-    """Place b's pose in V_a, accepted only when singled out (module docstring)."""
+def match_places(a: Place, b: Place, rng: np.random.Generator,
+                 min_points: int = MIN_INLIERS) -> PlaceMatch:
+    """Place b's pose in V_a, accepted only when singled out (module docstring), with at
+    least ``min_points`` agreeing points (:data:`MIN_INLIERS`: a closure; 0: a step)."""
     q, p = _candidates(a, b)
+    need = min_inliers(a, b)
     win = _best(q, p, rng)
-    if win is None or win[3] < MIN_INLIERS:
-        return PlaceMatch(False, "too few matches", inliers=0 if win is None else win[3])
+    if win is None or win[3] < max(need, min_points):   # points >= features
+        return PlaceMatch(False, "too few matches", inliers=0 if win is None else win[3],
+                          min_features=need)
     yaw, t, keep = _refine(q, p, win[0], win[1])
-    n = int(_count(keep[None], p)[0])
-    if n < MIN_INLIERS:
-        return PlaceMatch(False, "too few matches", inliers=n)
+    n, nf = int(_count(keep[None], p)[0]), feature_count(p[keep])
+    if nf < need or n < min_points:
+        return PlaceMatch(False, "too few matches", inliers=n, features=nf,
+                          min_features=need)
     rest = ~keep
     other = _best(q[rest], p[rest], rng)
-    runner = 0
+    runner = runner_f = 0
     if other is not None:
         dyaw = abs((other[0] - yaw + math.pi) % (2 * math.pi) - math.pi)
         if dyaw > DISTINCT_RAD or np.hypot(*(other[1] - t)) > DISTINCT_M:
-            runner = other[3]
+            runner, runner_f = other[3], feature_count(p[rest][other[2]])
     if runner >= RUNNER_UP_SHARE * n:
-        return PlaceMatch(False, "ambiguous", inliers=n, runner_up=runner)
+        return PlaceMatch(False, "ambiguous", inliers=n, runner_up=runner, features=nf,
+                          min_features=need, runner_features=runner_f)
     cov, rms = _covariance(q[keep], p[keep], yaw, t)
-    return PlaceMatch(True, "", np.array([t[0], t[1], yaw]), cov, n, runner, rms)
+    return PlaceMatch(True, "", np.array([t[0], t[1], yaw]), cov, n, runner, rms, nf, need,
+                      runner_f)

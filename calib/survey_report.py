@@ -14,7 +14,7 @@ from ceilkit.runtime.config.yaml import atomic_write_bytes
 from ceilkit.runtime.estimators.texture.ceilmap import CeilingMap
 
 from .lightmap import LightMap
-from .survey import SurveyResult
+from .survey import CLOSURE_KINDS, SurveyResult
 
 
 def _pct(values: np.ndarray, q: float) -> float:
@@ -29,8 +29,9 @@ def report_lines(res: SurveyResult, cmap: CeilingMap, lights: LightMap | None, n
     refused = ", ".join(f"{k} {v}" for k, v in sorted(res.refused.items()))
     out = ["# Survey", "",
            f"Drives: {', '.join(res.drives)}; {len(res.poses)} frames placed, "
-           f"{res.unplaced} not placed (no closure tied their piece of the drive to the "
-           f"anchor's); ceiling height {res.ceiling_height_m:g} m; anchor: {res.anchor}.",
+           f"{res.unplaced} not placed ({res.unplaced_pieces} pieces of the drive that no "
+           f"closure tied to the anchor's: not in the map); ceiling height "
+           f"{res.ceiling_height_m:g} m; anchor: {res.anchor}.",
            "", "## Graph", "",
            f"Edges: {', '.join(f'{k} {v}' for k, v in sorted(res.edge_kinds.items()))}; "
            f"solved in {res.solve_s:.3f} s ({res.iterations} iterations).",
@@ -41,7 +42,8 @@ def report_lines(res: SurveyResult, cmap: CeilingMap, lights: LightMap | None, n
            f"{1e3 * np.max(moved, initial=0):.1f} mm at most (the chain's drift that the "
            "closures corrected).",
            f"Refused place matches: {refused or 'none'}.",
-           "", "## Closures", "",
+           "", "## Closures", "", "Loop and drive closures, and the gaps of the chain matched "
+           "across (kind `gap`: a break bridged by frames a few steps apart).", "",
            "| a | b | kind | dx m | dy m | dyaw deg | inliers | runner-up | residual (sigmas) |",
            "|---|---|---|---|---|---|---|---|---|"]
     for lk in closures:
@@ -86,7 +88,7 @@ def write_plot(path: Path, res: SurveyResult, cmap: CeilingMap) -> Path | None:
             label="chain before the solve")
     ax.plot(res.poses[:, 0], res.poses[:, 1], color="tab:blue", lw=1.0, label="solved path")
     for lk in res.links:
-        if lk.kind != "link":
+        if lk.kind in CLOSURE_KINDS:
             a, b = res.poses[lk.a], res.poses[lk.b]
             ax.plot([a[0], b[0]], [a[1], b[1]], color="tab:red", lw=0.6)
     ax.plot([], [], color="tab:red", lw=0.6, label="loop / drive closures")

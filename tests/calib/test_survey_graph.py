@@ -16,7 +16,12 @@ from ceilkit.calib.survey_graph import (
     solve_graph,
 )
 from ceilkit.calib.survey_loop import loop_perimeter_m, loop_trajectory
-from ceilkit.calib.survey_places import Place, match_places
+from ceilkit.calib.survey_places import (
+    Place,
+    feature_count,
+    match_places,
+    min_inliers,
+)
 from ceilkit.runtime.errors import ConfigError
 
 
@@ -121,6 +126,54 @@ def test_a_tile_grid_alone_is_ambiguous():
     m = match_places(Place(q, d), Place(_moved(q, np.array([0.1, 0.0, 0.0])), d),
                      np.random.default_rng(0))
     assert not m and m.reason in ("ambiguous", "too few matches")
+
+
+def _sparse(n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points over 2.4 x 1.8 m, at least 0.1 m apart (separate features)."""
+    pts = []
+    while len(pts) < n:
+        c = rng.uniform([-1.2, -0.9], [1.2, 0.9])
+        if all(math.hypot(*(c - o)) > 0.1 for o in pts):
+            pts.append(c)
+    return np.array(pts)
+
+
+def test_a_sparse_frame_is_matched_when_chance_cannot_explain_it():
+    """A sparse ceiling: 14 features a frame (a few sprinklers and stains). A step
+    between two such frames is singled out (no rival) with all 14 agreeing, though
+    under the fixed 20 points of before it was "too few matches" (issue 39: a survey
+    of such a ceiling placed 19 frames of 385). Two unrelated sparse frames stay
+    refused: what a wrong motion gathers is chance, below the minimum."""
+    rng = np.random.default_rng(11)
+    q, d = _sparse(14, rng), _descriptors(14, rng)
+    a = Place(q, d)
+    need = min_inliers(a, a)
+    assert 4 <= need <= 8, need
+    z = np.array([0.08, 0.01, 0.02])
+    b = Place(_moved(q, z) + rng.normal(0, 0.001, q.shape), d)
+    m = match_places(a, b, np.random.default_rng(0), min_points=0)      # a step
+    assert m and np.allclose(m.z, z, atol=3e-3) and m.features == 14
+    # as a closure (frames anywhere on the drive) it still needs 20 points
+    assert match_places(a, b, np.random.default_rng(0)).reason == "too few matches"
+    refused = 0
+    for k in range(20):
+        other = Place(_sparse(14, rng), _descriptors(14, rng))
+        refused += not match_places(a, other, np.random.default_rng(k), min_points=0)
+    assert refused == 20
+
+
+def test_a_blob_seen_at_several_scales_is_one_feature():
+    # ORB finds a sprinkler at three scales within a few mm: one feature, not three
+    blob = np.array([[0.0, 0.0], [0.004, 0.0], [0.0, 0.006]])
+    assert feature_count(blob) == 1
+    assert feature_count(np.r_[blob, blob + 0.5, [[0.04, 0.0]]]) == 3
+    # the minimum is counted in features: ten blobs at three scales need what ten
+    # single points need
+    rng = np.random.default_rng(1)
+    one = _sparse(10, rng)
+    three = np.concatenate([one + o for o in blob])
+    assert min_inliers(Place(three, _descriptors(30, rng)), Place(three, _descriptors(30, rng))) \
+        == min_inliers(Place(one, _descriptors(10, rng)), Place(one, _descriptors(10, rng)))
 
 
 def test_too_few_features_is_a_reason_not_an_exception():
