@@ -61,16 +61,21 @@ def prior_cov(prior: PoseEstimate) -> np.ndarray:
 def prior_distance(prior: PoseEstimate, pose: Pose) -> tuple[float, int]:
     """``(d2, dof)``: the squared Mahalanobis distance of ``pose`` ``(x, y, yaw, cov)``
     from ``prior`` over the coordinates both give (yaw always), with both covariances."""
+    return _distance(prior, prior_cov(prior).tolist(), pose)
+
+
+def _distance(prior: PoseEstimate, P: list[list[float]], pose: Pose) -> tuple[float, int]:
+    """:func:`prior_distance` with the prior's covariance ``P`` given (:func:`prior_cov`
+    as nested lists of floats: made once for all the poses of :func:`prior_choice`)."""
     x, y, yaw, cov = pose
-    P = prior_cov(prior)
     rows, e = [], []
     for i, (a, b) in enumerate(((x, prior.x_m), (y, prior.y_m))):
-        if a is not None and b is not None and math.isfinite(P[i, i]):
+        if a is not None and b is not None and math.isfinite(P[i][i]):
             rows.append(i)
             e.append(float(a) - float(b))
     rows.append(2)
     e.append(wrap_pi(float(yaw) - float(prior.yaw_rad)))
-    S = [[float(P[i, j]) for j in rows] for i in rows]
+    S = [[P[i][j] for j in rows] for i in rows]
     if cov is not None:
         C = np.asarray(cov, float)
         add = [[float(C[i, j]) for j in rows] for i in rows]
@@ -105,6 +110,21 @@ def allows(prior: PoseEstimate, pose: Pose, p: float = PRIOR_P) -> bool:
     return d2 <= chi2_quantile(p, dof)
 
 
+def _allows_all(prior: PoseEstimate, poses: Sequence[Pose], p: float) -> list[int]:
+    """The indices of ``poses`` the prior allows (:func:`allows`), its covariance and
+    the quantiles taken once (a tile grid's window fix checks 15 poses a frame)."""
+    P = prior_cov(prior).tolist()
+    q: dict[int, float] = {}
+    inside = []
+    for k, pose in enumerate(poses):
+        d2, dof = _distance(prior, P, pose)
+        if dof not in q:
+            q[dof] = chi2_quantile(p, dof)
+        if d2 <= q[dof]:
+            inside.append(k)
+    return inside
+
+
 TWIN_ANGLE_RAD = math.pi / 3
 """The smallest turn a map's twins are assumed apart by (a hexagonal layout's; a grid's
 are a quarter turn) in :func:`narrower_than`."""
@@ -131,7 +151,7 @@ def prior_choice(prior: PoseEstimate | None, poses: Sequence[Pose],
     tell them apart)."""
     if prior is None:
         return None
-    inside = [k for k, q in enumerate(poses) if allows(prior, q, p)]
+    inside = _allows_all(prior, poses, p)
     return inside[0] if len(inside) == 1 else None
 
 

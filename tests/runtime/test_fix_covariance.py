@@ -46,11 +46,23 @@ def segment_cov_numpy(J, r, n_a, line_of):
     if not abs(np.linalg.det(H)) > 1e-300:
         return None
     Hi = np.linalg.inv(H)
-    _, line = np.unique(line_of, return_inverse=True)
     parts: list = []
+    raw = np.where(r ** 2 > refine.HUBER_PX ** 2, r ** 2 / refine.HUBER_PX, np.abs(r))
+    cut = max(refine.HUBER_PX, refine.OUTLIER_SIGMAS * 1.4826 * float(np.median(raw)))
+    own = raw > cut if r.size else np.zeros(0, bool)   # clipped outliers: own terms
+    seg = own[:n_a:2] | own[1:n_a:2]
+    own[:n_a] = np.repeat(seg, 2)
+    g = np.r_[(J[:n_a] * r[:n_a, None]).reshape(-1, 2, 2).sum(axis=1)[seg],
+              (J[n_a:] * r[n_a:, None])[own[n_a:]]]
+    for gi in g:                                     # a clipped segment's pull, both ends
+        _share(parts, 1.0, math.inf, np.outer(gi, gi), Hi, floor=False)
+    J, r, line_of, n_a = J[~own], r[~own], np.asarray(line_of)[~seg], n_a - int(own[:n_a].sum())
+    if own.any() and abs(np.linalg.det(J.T @ J)) > 1e-300:   # about the kept rows' own fit
+        r = r - J @ np.linalg.solve(J.T @ J, J.T @ r)
+    _, line = np.unique(line_of, return_inverse=True)
     if line.size == 0 or line.max() + 1 < MIN_SHARE_LINES:
         nu = max(r.size - 2.0, 1.0)
-        _share(parts, float(r @ r) / nu, nu, H, Hi)
+        _share(parts, float(r @ r) / nu, nu, J.T @ J, Hi)
     else:
         a, q = J[:n_a].reshape(-1, 2, 2), r[:n_a].reshape(-1, 2)
         for sign in (1.0, -1.0):

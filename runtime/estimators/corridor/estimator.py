@@ -370,17 +370,20 @@ class CorridorEstimator(Estimator):
         # bench_paired, priors 1 and 3 cm off: lateral p95 0.59 and 7.5 mm before,
         # 0.18 and 0.19 mm after, the global path's 0.27). The first fit only says
         # where (:meth:`~.track.ChordFit.first`); the frame is fitted on the chords
-        # that count.
+        # that count, always from a full search (the first reads a quarter of its
+        # profiles: track.FIRST_ALONG, FIRST_STRIDE).
         fitter, rates = self._chord_fit, self._rates(prior)
-        m = self._window_chords(grey, psi, cy, prior)
+        m = self._window_chords(grey, psi, cy, prior, first=True)
         first = None if m is None else fitter.first(m, psi, cy, rates)
+        if first is None:           # the quarter missed (a prior pixels off): a full one
+            m = self._window_chords(grey, psi, cy, prior)
+            first = None if m is None else fitter.first(m, psi, cy, rates)
         found = None
-        if first is not None and self.lines_track.shift_px(
-                first[0] - psi, first[1] - cy) > REMEASURE_PX:
+        if first is not None:
+            if self.lines_track.shift_px(first[0] - psi, first[1] - cy) <= REMEASURE_PX:
+                first = (psi, cy)
             m = self._window_chords(grey, first[0], first[1], prior)
             found = None if m is None else fitter.frame(m, first[0], first[1], rates)
-        elif first is not None:
-            found = fitter.frame(m, psi, cy, rates)
         twins = None if found is None else fit_twins(self.lines_track, self._ctx, grey, found)
         out = None
         if twins is not None:
@@ -399,11 +402,13 @@ class CorridorEstimator(Estimator):
         return out
 
     def _window_chords(self, grey: np.ndarray, psi: float, cy: float,
-                       prior: PoseEstimate) -> LineMeasurement | None:
+                       prior: PoseEstimate, first: bool = False) -> LineMeasurement | None:
         """The chords located across the lines predicted for camera pan ``psi`` and
-        camera y ``cy`` (:meth:`~.track.LineTracker.measure`), outside the ignore
-        regions; None: fewer than two site lines found."""
-        return without_ignored(self.lines_track.measure(grey, psi, cy), self._ignore, prior)
+        camera y ``cy`` (:meth:`~.track.LineTracker.measure`; ``first``: the frame's
+        first search), outside the ignore regions; None: fewer than two site lines
+        found."""
+        return without_ignored(self.lines_track.measure(grey, psi, cy, first), self._ignore,
+                               prior)
 
     def estimate_segments(self, segs_px: np.ndarray, t_ns: int,
                           prior: PoseEstimate | None = None,

@@ -77,6 +77,15 @@ lamp's end are left out (:data:`LOCAL_SHARE`), and a chord over lamp ends keeps 
 on the lamps (corridor0 of bench_heldout_lines: 692 chords kept over 60 frames, 280
 with 8 places)."""
 
+FIRST_ALONG = 8
+"""Cross profiles per chord of the first search of a frame (every 6 px of a 48 px
+chord), whose fit only says where the second, with :data:`N_ALONG`, searches again
+(:meth:`LineTracker.measure`, ``first``): with :data:`FIRST_STRIDE` a quarter of the
+profiles and points of a full search, about 0.45x its time (issue 38)."""
+
+FIRST_STRIDE = 2
+"""... and of every this many chords of a line (its first always)."""
+
 MIN_STEP, MIN_DEPTH = 20.0, 8.0
 """A chord's edge kind: the least step and thin-line depth (grey levels; as
 :func:`~ceilkit.runtime.features.lines.refine_undistorted`'s defaults)."""
@@ -128,7 +137,8 @@ class LineMeasurement:
 
     @property
     def n_lines(self) -> int:
-        return int(np.unique(self.line).size)
+        """How many site lines hold a chord."""
+        return int(_count_distinct(arr(self.line, np.int64)))
 
 
 class ChordView(NamedTuple):
@@ -153,7 +163,8 @@ class ChordSearch(NamedTuple):
     (read-only arrays): the camera's ``R_level_cam (3, 3)``, the site's lines along
     ``site_y (J,)`` (m, W's y) and their ``edge_kind (J,)``, the samples along each
     line ``along_m (S,)`` (m, W's x from the camera), the cross profiles ``grid``
-    (:class:`~ceilkit.runtime.features.lines.ProfileGrid`), the lens ``lens_code``,
+    (:class:`~ceilkit.runtime.features.lines.ProfileGrid`; ``first_grid`` the first
+    search's, :data:`FIRST_ALONG` places), the lens ``lens_code``,
     ``lens`` (:attr:`~ceilkit.runtime.geometry.camera.CameraModel.lens`) and the
     image ``bounds`` (:class:`ChordView`)."""
 
@@ -162,6 +173,7 @@ class ChordSearch(NamedTuple):
     edge_kind: np.ndarray
     along_m: np.ndarray
     grid: ProfileGrid
+    first_grid: ProfileGrid
     lens_code: int
     lens: np.ndarray
     bounds: ChordView
@@ -171,17 +183,24 @@ def chord_search(setup: CorridorSetup, camera: CameraModel, search_px: float
                  ) -> ChordSearch:
     """The :class:`ChordSearch` of a site's lines seen through ``camera``, cross
     profiles ``search_px`` to either side of a prediction (px)."""
-    offs, t, inner = edge_grid(N_ALONG, search_px)
-    il, ir, ii = part_indices(offs)
     f = np.float64
-    grid = ProfileGrid(arr(offs, f), arr(t, f), arr(il, np.int64), arr(ir, np.int64),
-                       arr(ii, np.int64), np.int64(inner.start + 1), np.int64(inner.stop + 1))
     bounds = ChordView(float(setup.ceiling_above_cam_m), float(setup.field_radius),
                        float(search_px + 2.0), float(setup.rows[0]), float(setup.rows[1]),
                        float(camera.width), float(camera.height), float(setup.f_px))
     return ChordSearch(arr(setup.R_level_cam, f), arr(setup.site_y, f),
                        arr(setup.edge_kind, f), arr(np.linspace(-REACH_M, REACH_M, SAMPLES), f),
-                       grid, *camera.lens, bounds)
+                       _profile_grid(N_ALONG, search_px), _profile_grid(FIRST_ALONG, search_px),
+                       *camera.lens, bounds)
+
+
+def _profile_grid(n_along: int, search_px: float) -> ProfileGrid:
+    """The :class:`~ceilkit.runtime.features.lines.ProfileGrid` of ``n_along`` cross
+    profiles ``search_px`` to either side of a chord."""
+    offs, t, inner = edge_grid(n_along, search_px)
+    il, ir, ii = part_indices(offs)
+    f = np.float64
+    return ProfileGrid(arr(offs, f), arr(t, f), arr(il, np.int64), arr(ir, np.int64),
+                       arr(ii, np.int64), np.int64(inner.start + 1), np.int64(inner.stop + 1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -247,10 +266,10 @@ class ChordFit:
         camera y ``cy`` with a rolling shutter's ``rates`` (None: a global shutter), or
         None: not kept."""
         st = self.setup
-        n = m.segs_n.shape[0]
+        n, n_lines = m.segs_n.shape[0], m.n_lines
         fr = frame_lines(m.segs_n, m.polarity, st, self.angle_tol_rad, self.inlier_px)
         along, across = np.ones(n, bool), np.zeros(n, bool)
-        lab = Labeling((m.n_lines, float(n)), psi, cy, along, across, m.line, m.n_lines,
+        lab = Labeling((n_lines, float(n)), psi, cy, along, across, m.line, n_lines,
                        False, "window")
         gd = gn_inputs(fr, along, across, m.line, st, self.times(fr, rates))
         fit = joint_fit(gd, psi, cy, st, self.iterations, rates)
@@ -314,13 +333,18 @@ class LineTracker:
         :data:`CHORD_PX` (:func:`_predict`)."""
         return _predict(float(psi_rad), float(camera_y_m), self.search.site_y, self.search)
 
-    def measure(self, grey: np.ndarray, psi_rad: float, camera_y_m: float
-                ) -> LineMeasurement | None:
+    def measure(self, grey: np.ndarray, psi_rad: float, camera_y_m: float,
+                first: bool = False) -> LineMeasurement | None:
         """The chords located on a ``(H, W)`` uint8 frame around the site lines
         predicted for ``(psi_rad, camera_y_m)``; ``None`` when fewer than two site lines
-        hold a located chord of the right kind. One compiled call (:func:`_measure`)."""
+        hold a located chord of the right kind. One compiled call (:func:`_measure`);
+        ``first``: a frame's first search, :data:`FIRST_ALONG` places on every
+        :data:`FIRST_STRIDE`-th chord of a line (its fit only says where to search
+        again), else :data:`N_ALONG` places on every chord."""
+        s = self.search
         found, segs_n, chords, line, pol, rms, n = _measure(
-            arr(grey, np.uint8), float(psi_rad), float(camera_y_m), self.search)
+            arr(grey, np.uint8), float(psi_rad), float(camera_y_m), s,
+            s.first_grid if first else s.grid, FIRST_STRIDE if first else 1)
         if not found:
             return None
         return LineMeasurement(segs_n, chords, line, pol, rms, n)
@@ -415,8 +439,9 @@ def _predict(psi, cam_y, site_y, search):  # pragma: no cover - compiled
 
 
 @njit
-def _measure(grey, psi, cam_y, s):  # pragma: no cover - compiled
-    """:meth:`LineTracker.measure` (``s``: the tracker's :class:`ChordSearch`):
+def _measure(grey, psi, cam_y, s, grid, stride):  # pragma: no cover - compiled
+    """:meth:`LineTracker.measure` (``s``: the tracker's :class:`ChordSearch`, ``grid``
+    its ``grid`` or ``first_grid``, every ``stride``-th chord of a line):
     ``(found, segs_n, chords, line, polarity, rms, searched)``. The chords of
     :func:`_predict` are measured by
     :func:`~ceilkit.runtime.features.lines.refine_chords`' loop; then the chords of the
@@ -424,13 +449,16 @@ def _measure(grey, psi, cam_y, s):  # pragma: no cover - compiled
     :data:`CHORD_RMS_MEDIANS`). ``found`` is False when fewer than two site lines are
     predicted or keep a chord."""
     chords, line = _predict(psi, cam_y, s.site_y, s)
+    if stride > 1:
+        pick = _every(line, stride)
+        chords, line = chords[pick], line[pick]
     n = chords.shape[0]
     empty = (False, np.empty((0, 4)), np.empty((0, 4)), np.empty(0, np.int64),
              np.empty(0), np.empty(0), n)
     if _distinct(line) < 2:
         return empty
     kind = ProfileKind(MIN_STEP, MIN_DEPTH, PROFILE_STEP_PX)
-    ends, pol, rms = refine_chords_core(grey, chords, s.grid, kind, s.lens_code, s.lens,
+    ends, pol, rms = refine_chords_core(grey, chords, grid, kind, s.lens_code, s.lens,
                                         s.bounds.f_px, LOCAL_SHARE)
     ok = np.zeros(n, np.bool_)
     for r in range(n):
@@ -679,6 +707,33 @@ def _probe_chords(line, asked, most):  # pragma: no cover - compiled
 
 
 @njit
+def _count_distinct(line):  # pragma: no cover - compiled
+    """How many distinct values a non-negative ``line`` holds (in any order)."""
+    if line.size == 0:
+        return 0
+    seen = np.zeros(line.max() + 1, np.bool_)
+    k = 0
+    for v in line:
+        k += not seen[v]
+        seen[v] = True
+    return k
+
+
+@njit
+def _every(line, stride):  # pragma: no cover - compiled
+    """Indices of every ``stride``-th chord of each line's run (``line`` sorted), its
+    first always."""
+    out = np.empty(line.size, np.int64)
+    n, k = 0, 0
+    for i in range(line.size):
+        k = k + 1 if i > 0 and line[i] == line[i - 1] else 0
+        if k % stride == 0:
+            out[n] = i
+            n += 1
+    return out[:n]
+
+
+@njit
 def _distinct(line):  # pragma: no cover - compiled
     """How many distinct values a sorted ``line`` holds."""
     k = 0
@@ -762,8 +817,9 @@ def _warm() -> None:
                           R_level_cam=np.eye(3), site_y=np.array([-1.0, 1.0]),
                           edge_kind=np.zeros(2))
     s = chord_search(toy, cam, 4.0)
-    _measure(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, s)
+    _measure(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, s, s.grid, 1)
     _predict(0.0, 0.0, s.site_y, s)       # also called alone (chords_at)
+    _count_distinct(arr(np.array([0, 1]), np.int64))
     lines = (arr([-1.0, 1.0], f), arr([0.0, 0.0], f))
     maps = _twin_maps(lines, np.ones(2, np.bool_), np.ones(2, np.bool_), 0.0, 1e-4)
     hit = np.zeros(maps[4].size, np.int64)

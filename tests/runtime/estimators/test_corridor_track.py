@@ -154,3 +154,43 @@ def test_first_fit_is_the_full_fit(corridor_rig, corridor_site, tracked):
                 kept += 1
                 assert first == (full.frame.fit.psi_rad, full.frame.fit.camera_y_m)
     assert kept >= 6
+
+
+def test_every_other_chord_first_of_each_line():
+    from ceilkit.runtime.estimators.corridor.track import _every
+
+    line = np.array([0, 0, 0, 1, 2, 2, 2, 2, 2])
+    assert _every(line, 2).tolist() == [0, 2, 3, 4, 6, 8]
+    assert _every(line, 1).tolist() == list(range(line.size))
+
+
+def test_quarter_first_search_gives_the_full_first_search_fix(corridor_rig, corridor_site,
+                                                              monkeypatch):
+    """The frame's first search reads every FIRST_STRIDE-th chord at FIRST_ALONG places
+    (its fit only centres the second, full search): the fixes are those of a full first
+    search to a few micrometres and 1e-4 deg (the second search centred up to a few
+    hundredths of a pixel elsewhere), from priors 3 mm and 1 cm off."""
+    import ceilkit.runtime.estimators.corridor.track as track
+
+    opts = {"window_search": True, "window_full_every": 0}
+    quarter = CorridorEstimator(corridor_rig, corridor_site, opts)
+    monkeypatch.setattr(track, "FIRST_ALONG", track.N_ALONG)
+    monkeypatch.setattr(track, "FIRST_STRIDE", 1)
+    full = CorridorEstimator(corridor_rig, corridor_site, opts)
+    assert quarter.lines_track.search.first_grid.t.size == 8
+    assert full.lines_track.search.first_grid.t.size == track.N_ALONG
+    dy_max = dyaw_max = 0.0
+    for k, (x, y, yaw) in enumerate(POSES):
+        img = frame(corridor_rig, corridor_site, x, y, yaw, k)
+        for off in (0.003, -0.01):
+            p = prior(y + off, yaw + 0.3 * off)
+            monkeypatch.setattr(track, "FIRST_STRIDE", 2)
+            q = quarter.estimate(img, 0, p)
+            monkeypatch.setattr(track, "FIRST_STRIDE", 1)
+            f = full.estimate(img, 0, p)
+            assert q and f and q.diagnostics["search"] == f.diagnostics["search"] == "window"
+            dy_max = max(dy_max, abs(q.y_m - f.y_m))
+            dyaw_max = max(dyaw_max, abs(math.degrees(q.yaw_rad - f.yaw_rad)))
+    print(f"quarter vs full first search: |dy| <= {dy_max * 1e6:.2f} um, "
+          f"|dyaw| <= {dyaw_max:.2e} deg")
+    assert dy_max < 5e-6 and dyaw_max < 1e-4
