@@ -294,7 +294,8 @@ def surveyed(folder: Path, out: Path) -> tuple[dict, Path | None]:
                    / res.sigma[keys, :2]).T)
     return {"survey": "ok", "survey_cpu_s": cpu, "keyframes": int(len(res.keys)),
             "closures": sum(lk.kind in CLOSURE_KINDS for lk in res.links),
-            "gaps": sum(lk.kind == "gap" for lk in res.links), "unplaced": res.unplaced,
+            "gaps": sum(lk.kind == "gap" for lk in res.links),
+            "piece_joins": sum(lk.kind == "piece" for lk in res.links), "unplaced": res.unplaced,
             "pieces_unplaced": res.unplaced_pieces,
             "map_features": run.cmap.feature_count,
             "poses_rms_mm": 1e3 * float(np.sqrt(np.mean(pos ** 2))),

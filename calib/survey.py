@@ -7,7 +7,9 @@ odometry, the wheel odometry when the recording has it, or a place match
 of travel) are matched as places (:mod:`~ceilkit.calib.survey_places`): each with
 the next few (*links*), with those the chain brings back near it after a detour
 (*loop closures*), and, between drives or pieces of a drive that nothing chains, with
-the keyframes whose descriptors it shares most (*drive closures*). A match counts only
+the keyframes whose descriptors it shares most (*drive closures*); pieces still apart
+are joined by closures singled out against the whole other piece
+(:mod:`~ceilkit.calib.survey_pieces`, kind ``piece``). A match counts only
 when it is singled out (no runner-up motion half as strong: the tile grid's repeats
 are refused, not guessed). All of it is one 2-D pose graph solved by scipy's sparse
 least squares with a robust loss (:mod:`~ceilkit.calib.survey_graph`), anchored by
@@ -51,6 +53,7 @@ from .survey_chain import (
     wheel_edges,
 )
 from .survey_graph import Edge, compose, relative, solve_graph
+from .survey_pieces import piece_closures
 from .survey_places import Place, match_places, place_of
 from .survey_shutter import GlobalShutter, SurveyFrames, chain_velocities
 
@@ -120,7 +123,8 @@ class SurveyOptions:
 @dataclass(frozen=True, eq=False)
 class Link:
     """An accepted place match between graph nodes ``a`` and ``b`` (b's pose in V_a:
-    ``z``, its covariance ``cov``); ``kind``: ``link``, ``gap``, ``loop`` or ``drives``;
+    ``z``, its covariance ``cov``); ``kind``: ``link``, ``gap``, ``loop``, ``drives``
+    or ``piece``;
     ``inliers`` and ``runner_up`` the match's support; ``whitened``: its residual after
     the solve, sigmas."""
 
@@ -374,6 +378,10 @@ def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: f
     gaps, refused3 = _gaps(frames, nodes, rig, ceiling_height_m, cache, rng)
     links += gaps
     refused.update({k: refused.get(k, 0) + v for k, v in refused3.items()})
+    joins, refused4 = piece_closures(nodes.segments, keys_of, places, nodes.offset, links,
+                                     rng)
+    links += [Link(*j[:4], "piece", *j[4:]) for j in joins]
+    refused.update({k: refused.get(k, 0) + v for k, v in refused4.items()})
     chain, placed = _initial(nodes, links, np.asarray(start_pose, float))
     res = _solve(recordings, nodes, keys, links, refused, chain, placed, ceiling_height_m)
     if frames.shutter is None:

@@ -58,7 +58,9 @@ lattice), 7 of 1000 pairs of frames 3.5 m apart or more matched at the chance mi
 alone, 3.4-5.5 m off (6-9 features, no rival in the view): at 20 points none did. A
 *step* (frames a few apart in time, ``min_points=0``) needs the chance minimum only:
 its wrong motion would come from a repeat within the view, which the rival test sees
-(none of 1,000 step pairs more than 4 mm off, on seeds 1 and 2)."""
+(none of 1,000 step pairs more than 4 mm off, on seeds 1 and 2). Pieces of a drive
+that nothing else joins may be joined below it, by matches singled out against the
+whole other piece that agree (:mod:`~ceilkit.calib.survey_pieces`)."""
 FALSE_MATCH_ALPHA = 1e-4
 """The chance that a wrong motion gathers :func:`min_inliers` features, per pair tried
 (a survey tries a few thousand pairs: below one expected by chance, before the rival
@@ -97,7 +99,8 @@ class PlaceMatch:
     other motion's (0 when none); ``rms_m``: the winner's residual RMS; ``features``:
     the winner's agreeing points counted as separate features (:data:`FEATURE_M`),
     ``min_features`` the fewest that chance does not explain (:func:`min_inliers`),
-    ``runner_features`` the runner-up's agreeing points as features."""
+    ``runner_features`` the runner-up's agreeing points as features; ``points_b``: the
+    winner's agreeing points of b, ``(n, 2)`` in V_b (m)."""
 
     ok: bool
     reason: str
@@ -109,6 +112,7 @@ class PlaceMatch:
     features: int = 0
     min_features: int = 0
     runner_features: int = 0
+    points_b: np.ndarray | None = None
 
     def __bool__(self) -> bool:
         return self.ok
@@ -135,7 +139,8 @@ def feature_count(points: np.ndarray) -> int:
     return int(connected_components(graph, directed=False)[0])
 
 
-def min_inliers(a: Place, b: Place, alpha: float = FALSE_MATCH_ALPHA) -> int:
+def min_inliers(a: Place, b: Place, alpha: float = FALSE_MATCH_ALPHA, *,
+                samples: int = RANSAC_SAMPLES, area_m2: float | None = None) -> int:
     """The fewest separate features (:func:`feature_count`) of b that must agree with a
     motion before chance is ruled out, at false-match probability ``alpha``.
 
@@ -150,25 +155,28 @@ def min_inliers(a: Place, b: Place, alpha: float = FALSE_MATCH_ALPHA) -> int:
     cover more of the ceiling needs more (a wrong motion meets more by chance). On the
     survey drive of ``bench_heldout_texture.py --seed 2`` scatter0 (docs/survey.md) the
     best motion between frames 3.5 m apart or more (1,000 pairs) never passed it, and
-    297 of 384 consecutive pairs did, none more than 2.6 mm off.
+    297 of 384 consecutive pairs did, none more than 2.6 mm off. ``samples``: the
+    hypotheses tried (:data:`RANSAC_SAMPLES`); ``area_m2``: the area a's features cover
+    when not their hull (a piece of a drive: :mod:`~ceilkit.calib.survey_pieces`).
     Returns a number above ``F_b`` when no count could rule chance out."""
     fa, fb = feature_count(a.points_v), feature_count(b.points_v)
     if len(a.points_v) < 3 or fb < 3:
         return fb + 1
-    area = cv2.contourArea(cv2.convexHull(a.points_v.astype(np.float32)))
+    area = area_m2 if area_m2 is not None else \
+        cv2.contourArea(cv2.convexHull(a.points_v.astype(np.float32)))
     p = min(1.0, fa * math.pi * INLIER_M ** 2 / max(area, 1e-12))
     n = np.arange(3, fb + 1)
-    tail = RANSAC_SAMPLES * bdtrc(n - 3, fb - 2, p)      # P(X > n - 3)
+    tail = samples * bdtrc(n - 3, fb - 2, p)      # P(X > n - 3)
     ok = np.flatnonzero(tail <= alpha)
     return int(n[ok[0]]) if ok.size else fb + 1
 
 
-def _candidates(a: Place, b: Place) -> tuple[np.ndarray, np.ndarray]:
-    """``(q_a (M, 2), p_b (M, 2))``: for every point of b its two nearest descriptors in
-    a (Hamming)."""
-    if len(a.descriptors) < 2 or len(b.descriptors) < 2:
+def _candidates(a: Place, b: Place, k: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """``(q_a (M, 2), p_b (M, 2))``: for every point of b its ``k`` nearest descriptors
+    in a (Hamming)."""
+    if len(a.descriptors) < k or len(b.descriptors) < 2:
         return np.zeros((0, 2)), np.zeros((0, 2))
-    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(b.descriptors, a.descriptors, k=2)
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(b.descriptors, a.descriptors, k=k)
     pairs = [(m.trainIdx, m.queryIdx) for ms in knn for m in ms if m.distance <= 80]
     if not pairs:
         return np.zeros((0, 2)), np.zeros((0, 2))
@@ -176,13 +184,13 @@ def _candidates(a: Place, b: Place) -> tuple[np.ndarray, np.ndarray]:
     return a.points_v[ia], b.points_v[ib]
 
 
-def _hypotheses(q: np.ndarray, p: np.ndarray, rng: np.random.Generator
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Two-point rigid motions ``(K,)`` yaw and ``(K, 2)`` t from random pairs of
-    matches whose lengths agree."""
+def _hypotheses(q: np.ndarray, p: np.ndarray, rng: np.random.Generator,
+                samples: int = RANSAC_SAMPLES) -> tuple[np.ndarray, np.ndarray]:
+    """Two-point rigid motions ``(K,)`` yaw and ``(K, 2)`` t from ``samples`` random
+    pairs of matches, those whose lengths agree."""
     m = len(q)
-    i = rng.integers(0, m, RANSAC_SAMPLES)
-    j = rng.integers(0, m, RANSAC_SAMPLES)
+    i = rng.integers(0, m, samples)
+    j = rng.integers(0, m, samples)
     dq, dp = q[j] - q[i], p[j] - p[i]
     lq, lp = np.hypot(*dq.T), np.hypot(*dp.T)
     ok = (i != j) & (lp > 0.1) & (np.abs(lq - lp) < 2 * INLIER_M)
@@ -210,12 +218,12 @@ def _count(mask: np.ndarray, p: np.ndarray) -> np.ndarray:
     return np.count_nonzero(mask & unique[None, :], axis=1)
 
 
-def _best(q: np.ndarray, p: np.ndarray, rng: np.random.Generator
-          ) -> tuple[float, np.ndarray, np.ndarray, int] | None:
+def _best(q: np.ndarray, p: np.ndarray, rng: np.random.Generator,
+          samples: int = RANSAC_SAMPLES) -> tuple[float, np.ndarray, np.ndarray, int] | None:
     """The RANSAC winner: ``(yaw, t, inlier mask, count)``, or None."""
     if len(q) < 2:
         return None
-    yaw, t = _hypotheses(q, p, rng)
+    yaw, t = _hypotheses(q, p, rng, samples)
     if yaw.size == 0:
         return None
     mask = _inliers(q, p, yaw, t)
@@ -254,12 +262,17 @@ def _covariance(q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray
 
 
 def match_places(a: Place, b: Place, rng: np.random.Generator,
-                 min_points: int = MIN_INLIERS) -> PlaceMatch:
+                 min_points: int = MIN_INLIERS, *, knn: int = 2,
+                 samples: int = RANSAC_SAMPLES, area_m2: float | None = None
+                 ) -> PlaceMatch:
     """Place b's pose in V_a, accepted only when singled out (module docstring), with at
-    least ``min_points`` agreeing points (:data:`MIN_INLIERS`: a closure; 0: a step)."""
-    q, p = _candidates(a, b)
-    need = min_inliers(a, b)
-    win = _best(q, p, rng)
+    least ``min_points`` agreeing points (:data:`MIN_INLIERS`: a closure; 0: a step).
+    ``knn``: candidates in a per point of b; ``samples``: RANSAC hypotheses, for the
+    winner and for the runner-up; ``area_m2``: as :func:`min_inliers` (a's features
+    spread over many views: a piece of a drive, :mod:`~ceilkit.calib.survey_pieces`)."""
+    q, p = _candidates(a, b, knn)
+    need = min_inliers(a, b, samples=samples, area_m2=area_m2)
+    win = _best(q, p, rng, samples)
     if win is None or win[3] < max(need, min_points):   # points >= features
         return PlaceMatch(False, "too few matches", inliers=0 if win is None else win[3],
                           min_features=need)
@@ -269,7 +282,7 @@ def match_places(a: Place, b: Place, rng: np.random.Generator,
         return PlaceMatch(False, "too few matches", inliers=n, features=nf,
                           min_features=need)
     rest = ~keep
-    other = _best(q[rest], p[rest], rng)
+    other = _best(q[rest], p[rest], rng, samples)
     runner = runner_f = 0
     if other is not None:
         dyaw = abs((other[0] - yaw + math.pi) % (2 * math.pi) - math.pi)
@@ -280,4 +293,4 @@ def match_places(a: Place, b: Place, rng: np.random.Generator,
                           min_features=need, runner_features=runner_f)
     cov, rms = _covariance(q[keep], p[keep], yaw, t)
     return PlaceMatch(True, "", np.array([t[0], t[1], yaw]), cov, n, runner, rms, nf, need,
-                      runner_f)
+                      runner_f, p[keep])

@@ -43,7 +43,9 @@ def report_lines(res: SurveyResult, cmap: CeilingMap, lights: LightMap | None, n
            "closures corrected).",
            f"Refused place matches: {refused or 'none'}.",
            "", "## Closures", "", "Loop and drive closures, and the gaps of the chain matched "
-           "across (kind `gap`: a break bridged by frames a few steps apart).", "",
+           "across (kind `gap`: a break bridged by frames a few steps apart), and the "
+           "pieces joined (kind `piece`: a keyframe matched against the whole other piece, "
+           "agreeing with others).", "",
            "| a | b | kind | dx m | dy m | dyaw deg | inliers | runner-up | residual (sigmas) |",
            "|---|---|---|---|---|---|---|---|---|"]
     for lk in closures:
