@@ -26,8 +26,10 @@ frame with blocks to one without) and for all:
 ``--heldout SEED ...``: instead, the held-out marker drives of
 ``bench_heldout_lines.py`` (``markers`` class, 2 scenes a seed, 60 frames, noise
 ``--noise``, blur 0.8 at noise 2 and 1.2 above: another camera, texture and speed than
-configs/block), steps grouped by scene and by whether their corners were detected
-afresh (``fresh``) or carried from the step before (``carried``).
+configs/block), steps grouped by scene and by whether their fit used corners detected
+afresh on that step (``fresh``: a stream's first step), corners carried from the step
+before while fresh ones were detected beside them (``redetect``), or carried ones
+alone (``carried``).
 """
 
 from __future__ import annotations
@@ -98,7 +100,10 @@ def heldout_steps(seed: int, noise: float) -> list[tuple]:
                 dx, dy = x - prev[0], y - prev[1]
                 truth = np.array([c * dx + s * dy, -s * dx + c * dy,
                                   math.remainder(yaw - prev[2], 2 * math.pi)])
-                kind = "fresh" if odo._age == 1 else "carried"     # detected on this step
+                # fitted from corners detected on this step; detected on it but fitted
+                # from the carried ones; carried
+                kind = "fresh" if getattr(odo, "fresh_fit", odo._age == 1) else \
+                    "redetect" if odo._age == 1 else "carried"
                 e = np.array([inc.dx_m, inc.dy_m, inc.dyaw_rad]) - truth
                 out.append((f"s{seed} {sc.name[:8]}", e, np.asarray(inc.cov, float),
                             1000 * n + i, kind))
@@ -154,8 +159,9 @@ def main() -> None:
         steps = [s for seed in args.heldout for s in heldout_steps(seed, args.noise)]
         print(f"VAR_FACTOR now {VAR_FACTOR.tolist()}; held-out marker drives, seeds "
               f"{args.heldout}, noise {args.noise}")
-        for kind in ("fresh", "carried"):
-            report(kind, [s for s in steps if s[4] == kind], args.stretch)
+        for kind in ("fresh", "redetect", "carried"):
+            if sum(s[4] == kind for s in steps) >= 3:
+                report(kind, [s for s in steps if s[4] == kind], args.stretch)
     else:
         rig, site = Rig.load(CONFIG / "rig.yaml"), Site.load(CONFIG / "site.yaml")
         rng = np.random.default_rng(args.seed)

@@ -71,13 +71,14 @@ def test_loop_closure_reduces_the_error(office_loop):
     assert sum(lk.kind == "loop" for lk in res.links) >= 5
     chain = np.hypot(*(res.chain[:, :2] - truth[res.frame, :2]).T)
     solved = np.hypot(*(res.poses[:, :2] - truth[res.frame, :2]).T)
-    # the chain alone drifts: measured 2.3 mm at the end, RMS 1.22 mm (24 mm at the end
+    # the chain alone drifts: measured at most 2.72 mm, RMS 1.72 mm (its end 0.97 mm: a
+    # drift can come back near the start, so the end alone says little; 24 mm at the end
     # before the odometry's turns were tracked on the frame turned back,
-    # odometry.TURN_WARP_MIN_RAD); the closures take them to 0.43 and 0.62 mm (5.3x and
-    # 2.0x: the RMS is now near the place matches' own error)
-    assert chain[-1] > 0.001
-    assert solved[-1] < chain[-1] / 3
-    assert np.sqrt(np.mean(solved ** 2)) < np.sqrt(np.mean(chain ** 2)) / 1.5
+    # odometry.TURN_WARP_MIN_RAD); the closures take them to 0.86 and 0.48 mm (3.2x and
+    # 3.6x: near the place matches' own error)
+    assert chain.max() > 0.001
+    assert solved.max() < chain.max() / 2
+    assert np.sqrt(np.mean(solved ** 2)) < np.sqrt(np.mean(chain ** 2)) / 2
 
 
 def test_sigmas_cover_the_errors(office_loop):
