@@ -77,7 +77,8 @@ their 1σ with it (the odometry's scatter fell), so the factor stayed (before: 3
 
 CLOSURE_KINDS = ("loop", "drives")
 """The kinds of :class:`Link` that close a loop (check the chain's drift); ``link``
-(the next keyframes) and ``gap`` (across a break of the chain) only chain it."""
+(the next keyframes), ``gap`` (across a break of the chain) and ``piece`` (a piece
+joined to another, :mod:`~ceilkit.calib.survey_pieces`) only chain it."""
 
 
 @dataclass(frozen=True)

@@ -275,8 +275,8 @@ class PlaneOdometry:
         detected afresh (:func:`corner_like` of ``goodFeaturesToTrack``'s, not within
         :data:`NEW_APART_PX` of a carried one) and tracked beside them, but fitted only
         from their next step (the module: unbiased). With fewer than
-        :data:`MIN_TRACKS` carried (the stream's first step, after a frame kept
-        without measuring) the fresh corners are fitted on their first step. Carrying
+        :data:`MIN_TRACKS` carried (the stream's first step, after a gap or a failed
+        step) the fresh corners are fitted on their first step. Carrying
         costs no detection (two thirds of a step's time) and measures the same motion:
         each step's KLT error is its own, wherever the patch came from."""
         carried = self._tracks
@@ -404,9 +404,12 @@ def with_increment(odo: PlaneOdometry, got, grey: np.ndarray, t_ns: int, measure
     since the previous frame (:meth:`PlaneOdometry.increment`; ``measure``: whether it
     is wanted: not after an absolute fix that followed another), and the method's time
     ``ms`` since ``t0`` (``time.perf_counter``) with it; ``got`` itself when there is
-    none."""
+    none, its ``ms`` (when it has one) again with the tracking that ran (a frame kept
+    without measuring still tracks: :meth:`PlaneOdometry.increment`)."""
     inc = odo.increment(grey, t_ns, measure, prior)
     if inc is None:
-        return got
+        if "ms" not in got.diagnostics:
+            return got
+        return dataclasses.replace(got, diagnostics={**got.diagnostics, "ms": elapsed_ms(t0)})
     return dataclasses.replace(got, increment=inc,
                                diagnostics={**got.diagnostics, "ms": elapsed_ms(t0)})

@@ -242,3 +242,23 @@ def test_a_step_whose_tracks_no_rigid_motion_explains_is_no_increment():
     e = np.array([bad.dx_m, bad.dy_m, bad.dyaw_rad]) - [t[0], t[1], yaw]
     assert float(e @ np.linalg.solve(bad.cov, e)) > 11.3    # and under-covers it
     assert not explained(bad, mixed, p, m_per_px)
+
+
+def test_a_frame_kept_without_measuring_counts_its_tracking_time(monkeypatch):
+    """A frame with a fix after a fix publishes no increment but still tracks (issue
+    36): the method's ``ms`` includes that tracking, not only the fix's time."""
+    import time
+
+    from ceilkit.runtime.estimators.base import PoseEstimate
+    from ceilkit.runtime.estimators.odometry import with_increment
+
+    odo = PlaneOdometry(PlanarGeometry.of(Rig.load(CONFIGS / "block" / "rig.yaml"),
+                                          Site.load(CONFIGS / "block" / "site.yaml")))
+    monkeypatch.setattr(odo, "_motion", lambda *a: time.sleep(0.05))
+    grey = np.zeros((48, 64), np.uint8)
+    got = PoseEstimate(33_333_333, "block", 1.0, 2.0, 0.1, 1.0, cov=np.eye(3) * 1e-6,
+                       diagnostics={"ms": 0.0})
+    odo.increment(grey, 0)
+    t0 = time.perf_counter()
+    out = with_increment(odo, got, grey, 33_333_333, False, None, t0)
+    assert out.increment is None and out.diagnostics["ms"] >= 50.0
