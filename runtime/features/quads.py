@@ -365,11 +365,19 @@ def signed_area(pts: np.ndarray) -> float:
 def edge_stations(per_side: int, search_px: float) -> tuple[np.ndarray, np.ndarray]:
     """edge_points' offsets across a side ``(K,)`` and stations along it ``(S,)``
     (read-only: shared between calls)."""
-    offs = np.arange(-search_px, search_px + 1e-9, EDGE_STEP_PX)
+    offs = edge_offsets(search_px)
     t = np.linspace(EDGE_END_SKIP, 1 - EDGE_END_SKIP, per_side)
-    for a in (offs, t):
-        a.flags.writeable = False
+    t.flags.writeable = False
     return offs, t
+
+
+def edge_offsets(search_px: float) -> np.ndarray:
+    """edge_points' offsets across a side ``(K,)``, ``-search_px`` to ``search_px`` by
+    :data:`EDGE_STEP_PX` (read-only; not cached: a reach a frame sets costs an
+    ``arange``, not a cache entry)."""
+    offs = np.arange(-search_px, search_px + 1e-9, EDGE_STEP_PX)
+    offs.flags.writeable = False
+    return offs
 
 
 def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,

@@ -39,6 +39,7 @@ from ceilkit.runtime.features.quads import (
     MarkerCodes,
     Quad,
     bilinear,
+    edge_offsets,
     edge_points,
     edge_points_core,
     edge_stations,
@@ -47,7 +48,7 @@ from ceilkit.runtime.features.quads import (
     quads_of_mask,
 )
 from ceilkit.runtime.features.working import decimate
-from ceilkit.runtime.geometry.camera import CameraModel, undistort_points
+from ceilkit.runtime.geometry.camera import CameraModel, distort_points, undistort_points
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry
 from ceilkit.runtime.geometry.fits import short_median
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -333,8 +334,10 @@ def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
     grid, k, ring, border = _cell_grid(n)
     square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
     H = cv2.getPerspectiveTransform(square, np.asarray(corners_norm, np.float32))
-    norm = cv2.perspectiveTransform(grid, H).reshape(-1, 2)
-    px = geo.camera.distort(norm).astype(np.float32)
+    norm = arr(cv2.perspectiveTransform(grid, H).reshape(-1, 2), np.float64)
+    px = np.empty_like(norm)
+    distort_points(norm, *geo.camera.lens, px)          # one compiled call
+    px = px.astype(np.float32)
     if not np.all(np.isfinite(px)):
         return None
     vals = cv2.remap(grey, px[:, 0].reshape(k, k), px[:, 1].reshape(k, k),
@@ -400,8 +403,8 @@ class SidesOut(NamedTuple):
 def edge_search(per_side: int, search_px: float, sign: int = 0) -> EdgeSearch:
     """The :class:`EdgeSearch` of ``per_side`` stations a side, the first pass
     ``search_px`` across each side, the next ones :data:`EDGE_SEARCH_PX`."""
-    first, t = edge_stations(per_side, float(search_px))
-    rest, _ = edge_stations(per_side, EDGE_SEARCH_PX)
+    rest, t = edge_stations(per_side, EDGE_SEARCH_PX)
+    first = rest if float(search_px) == EDGE_SEARCH_PX else edge_offsets(float(search_px))
     return EdgeSearch(first, rest, t, float(EDGE_STEP_PX), int(sign))
 
 

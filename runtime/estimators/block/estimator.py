@@ -148,7 +148,9 @@ class BlockOptions(EstimatorOptions):
         plane_odometry: a frame with no block fix, and the first fix after such
             frames, carries the ceiling-plane odometry since the previous frame
             (:mod:`.odometry`) as ``diagnostics["increment"]`` for the fusion; other
-            frames with a fix only keep the image (no KLT).
+            frames with a fix give no increment but still track the corners (KLT), so
+            that the next leg starts from tracks carried at sub-pixel, not from
+            fresh whole-pixel corners (docs/methods/block.md).
         window_search: with a prior (a position), measure the blocks and markers the
             prior puts fully in view on their predicted outlines (no search of the
             frame, :meth:`BlockEstimator._tracked`); the global path runs when the
@@ -456,7 +458,7 @@ class BlockEstimator(Estimator):
         if self.options.six_dof_check and mode != WINDOW:
             diag.update(six_dof_check(self.geo, best.corners_norm, best.corners_w,
                                       float(r.pose[2])))
-        quality = float(np.clip(1.0 - r.rms_px / RMS_BAD_PX, 0.0, 1.0))
+        quality = min(max(1.0 - float(r.rms_px) / RMS_BAD_PX, 0.0), 1.0)
         if best.resolved_by == "prior":
             quality = min(quality, 0.7)
         diag["ms"] = elapsed_ms(t0)

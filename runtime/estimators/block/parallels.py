@@ -43,7 +43,6 @@ Example::
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -56,7 +55,6 @@ from ceilkit.runtime.features.lines import (
     SegmentDetector,
     refine_chords,
     refine_undistorted,
-    segment_lengths,
 )
 from ceilkit.runtime.geometry.camera import distort_points
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry, ceiling_norm, kernel_mount
@@ -141,7 +139,7 @@ def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.n
     gate = HeadingGate(0.0 if hint_yaw_rad is None else float(hint_yaw_rad),
                        hint_yaw_rad is not None, float(gate_rad), float(period_rad),
                        MIN_LINES, SIGMA_FLOOR_RAD)
-    found, yaw, sigma, n = _robust(p1, p2, arr(R_vehicle_cam, np.float64), wts, gate, kept)
+    found, yaw, sigma, n = _robust(p1, p2, arr(R_vehicle_cam, np.float64), wts, gate, kept)[:4]
     if not found:
         return None, kept
     return _near_hint(ParallelsHeading(wrap_pi(yaw), sigma, period_rad, n), hint_yaw_rad), kept
@@ -149,7 +147,8 @@ def robust_heading(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.n
 
 @njit
 def _robust(p1, p2, R, weights, how, kept):  # pragma: no cover - compiled
-    """:func:`robust_heading` in one loop: ``(found, yaw, sigma, n)`` and ``kept (N,)``
+    """:func:`robust_heading` in one loop: ``(found, yaw, sigma, n, sw, sww)`` (``sw``,
+    ``sww``: the sum of the kept lines' weights and of their squares) and ``kept (N,)``
     (the lines used) set, the lines picked and combined as ``how`` (a
     :class:`HeadingGate`) says. Each line's heading is eq. 10's ``atan2(m_x, m_y)``
     (modulo the period) with ``m = R l / |R l|``, ``l = (x1, y1, 1) x (x2, y2, 1)``, and
@@ -176,7 +175,7 @@ def _robust(p1, p2, R, weights, how, kept):  # pragma: no cover - compiled
         ok[i] = math.isfinite(phi[i]) and w[i] > 1e-12
         n_ok += ok[i]
     if n_ok < min_lines:
-        return False, 0.0, 0.0, 0
+        return False, 0.0, 0.0, 0, 0.0, 0.0
     ref = hint if has_hint else _circular_mean(phi, w, ok, period)
     if not has_hint:
         sel = ok & (np.abs(_wrap_period(phi - ref, period)) < 3 * gate)
@@ -185,16 +184,17 @@ def _robust(p1, p2, R, weights, how, kept):  # pragma: no cover - compiled
     kept[:] = ok & (np.abs(_wrap_period(phi - ref, period)) < gate)
     n = int(kept.sum())
     if n < min_lines:
-        return False, 0.0, 0.0, 0
+        return False, 0.0, 0.0, 0, 0.0, 0.0
     yaw = _circular_mean(phi, w, kept, period)
     res = _wrap_period(phi - yaw, period)
-    sw = swr = 0.0
+    sw = swr = sww = 0.0
     for i in range(n_l):
         if kept[i]:
             sw += w[i]
+            sww += w[i] * w[i]
             swr += w[i] * res[i] * res[i]
     sigma = max(math.sqrt(swr / sw / max(n - 1, 1)), floor)
-    return True, yaw, sigma, n
+    return True, yaw, sigma, n, sw, sww
 
 
 @njit
@@ -229,6 +229,10 @@ def _warm_heading() -> None:
     p1 = np.array([[0.0, 0.0], [0.0, 0.1], [0.1, 0.0]])
     robust_heading(p1, p1 + [0.2, 0.0], np.eye(3), None)
     robust_heading(p1, p1 + [0.2, 0.0], np.eye(3), 0.0, weights=np.ones(3))
+    segs = np.hstack([p1, p1 + [0.2, 0.0]])
+    _stage_heading(arr(segs, np.float64), arr(segs * 100.0, np.float64),
+                   arr(np.ones(3, bool), np.bool_), arr(np.eye(3), np.float64),
+                   HeadingGate(0.0, True, 0.02, PERIOD_RAD, MIN_LINES, SIGMA_FLOOR_RAD))
 
 
 # -- the site's lines in the image ------------------------------------------------------
@@ -349,13 +353,14 @@ class LinedSides:
 
 
 def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
-                     max_chords: int = MAX_CHORDS, site=None, reach_m: float = REACH_M
-                     ) -> np.ndarray:
+                     max_chords: int = MAX_CHORDS, site=None, reach_m: float = REACH_M,
+                     mount=None) -> np.ndarray:
     """Pixel chords ``(N, 4)`` along the site's ceiling lines seen from ``pose``, at most
     ``max_chords`` of them spread over the lines (one projection of every sample).
     With ``site``, samples inside its ``ignore`` regions are not used (SPEC §2). One
-    compiled call (:func:`chords_core`); the ignore regions' test after it."""
-    x, y, yaw = (float(v) for v in pose)
+    compiled call (:func:`chords_core`); the ignore regions' test after it. ``mount``:
+    :func:`.ceiling.kernel_mount` of ``geo``, when the caller keeps it."""
+    x, y, yaw = float(pose[0]), float(pose[1]), float(pose[2])
     along = _along(tuple(corridor.lines_along_m))
     a = corridor.lines_across
     first, spacing = (float(a.first_m), float(a.spacing_m)) if a is not None else (0.0, 0.0)
@@ -364,7 +369,8 @@ def predicted_chords(geo: PlanarGeometry, corridor, pose: np.ndarray,
     k = max(1, round(CHORD_M / STEP_M))      # samples a chord spans (k STEP_M metres)
     t = _samples(reach_m)
     chords, li, si, p0, d = chords_core(
-        kernel_mount(geo), x, y, yaw, SiteLines(along, first, spacing, float(reach_m)),
+        kernel_mount(geo) if mount is None else mount, x, y, yaw,
+        SiteLines(along, first, spacing, float(reach_m)),
         ChordGrid(t, k, float(cam.width), float(cam.height), MARGIN_PX,
                   -1 if ignoring else max_chords))
     if not ignoring or not len(li):
@@ -516,6 +522,8 @@ class ParallelsStage:
         self._detector: SegmentDetector | None = None     # made on first use
         self.ignore = IgnoreRegions(geo, site) if site.ignore_m else None
         self.mode = ""           # how the last heading's lines were found
+        self._R = arr(geo.R_vehicle_cam, np.float64)
+        self._mount = kernel_mount(geo)
 
     def __call__(self, grey: np.ndarray, hint: float | None,
                  pose: np.ndarray | None = None, max_chords: int = MAX_CHORDS
@@ -525,7 +533,8 @@ class ParallelsStage:
         given (at most ``max_chords`` chords); None with fewer than two lines."""
         segs = np.zeros((0, 4))
         if pose is not None and self.corridor is not None:
-            segs = predicted_chords(self.geo, self.corridor, pose, max_chords, self.site)
+            segs = predicted_chords(self.geo, self.corridor, pose, max_chords, self.site,
+                                    mount=self._mount)
             mode = "predicted"
         if len(segs) < 2:
             if self._detector is None:
@@ -543,14 +552,41 @@ class ParallelsStage:
         good = np.isfinite(rms) if mode == "predicted" else np.ones(len(sn), bool)
         if self.ignore is not None and pose is not None:    # SPEC §2: not in a region
             good &= self.ignore.keep_segments(sn, pose)
-        length = segment_lengths(segs)
-        h, kept = robust_heading(sn[good, :2], sn[good, 2:], self.geo.R_vehicle_cam, hint,
-                                 self.gate_rad, length[good], PERIOD_RAD)
+        how = HeadingGate(0.0 if hint is None else float(hint), hint is not None,
+                          self.gate_rad, PERIOD_RAD, MIN_LINES, SIGMA_FLOOR_RAD)
+        found, yaw, sigma, n = _stage_heading(arr(sn, np.float64), arr(segs, np.float64),
+                                              arr(good, np.bool_), self._R, how)
         self.mode = mode
-        if h is None:
+        if not found:
             return None
-        w = line_weights(sn[good, :2], sn[good, 2:], self.geo.R_vehicle_cam, length[good])
-        return dataclasses.replace(h, sigma_rad=h.sigma_rad * few_lines_factor(w[kept]))
+        return _near_hint(ParallelsHeading(wrap_pi(yaw), sigma, PERIOD_RAD, n), hint)
+
+
+@njit
+def _stage_heading(segs_n, segs, good, R, how):  # pragma: no cover - compiled
+    """:class:`ParallelsStage`'s heading in one call: :func:`robust_heading` of the lines
+    ``segs_n (N, 4)`` (normalized ends) marked ``good (N,)``, weighted by their length
+    in ``segs (N, 4)`` (px), picked as ``how`` (a :class:`HeadingGate`) says, its sigma
+    times :func:`few_lines_factor` of the kept lines' weights (:func:`line_weights`):
+    ``(found, yaw, sigma, n)``, ``yaw`` not yet on the hint's branch."""
+    m = 0
+    for i in range(good.size):
+        m += good[i]
+    p1 = np.empty((m, 2))
+    p2 = np.empty((m, 2))
+    length = np.empty(m)
+    j = 0
+    for i in range(good.size):
+        if good[i]:
+            p1[j, 0], p1[j, 1] = segs_n[i, 0], segs_n[i, 1]
+            p2[j, 0], p2[j, 1] = segs_n[i, 2], segs_n[i, 3]
+            length[j] = math.hypot(segs[i, 2] - segs[i, 0], segs[i, 3] - segs[i, 1])
+            j += 1
+    kept = np.zeros(m, np.bool_)
+    found, yaw, sigma, n, sw, sww = _robust(p1, p2, R, length, how, kept)
+    if not found:
+        return False, 0.0, 0.0, 0
+    return True, yaw, sigma * _few_lines(n, sw, sww), n
 
 
 def line_weights(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.ndarray,
@@ -572,8 +608,14 @@ def few_lines_factor(w: np.ndarray) -> float:
     of them is a Student-t scale: ``sqrt((n - 1) / nu * nu / (nu - 2))`` (at most 3 in
     variance for ``nu`` at most 3). (The sigma over ``n - 1`` was 1.1-1.5x too small in
     variance on 17-20 chords, bench_ambiguity's tile cases; issue 36.)"""
-    n = w.size
-    if n < 2 or not np.sum(w) > 0:
+    return _few_lines(w.size, float(np.sum(w)), float(np.sum(w * w)))
+
+
+@njit
+def _few_lines(n, sw, sww):  # pragma: no cover - compiled
+    """:func:`few_lines_factor` of ``n`` lines whose weights sum to ``sw``, their
+    squares to ``sww``."""
+    if n < 2 or not sw > 0:
         return 1.0
-    nu = max(float(np.sum(w)) ** 2 / float(np.sum(w * w)) - 1.0, 1.0)
+    nu = max(sw * sw / sww - 1.0, 1.0)
     return math.sqrt(max((n - 1) / nu, 1.0) * student(nu))

@@ -186,7 +186,7 @@ class Windows:
         compiled call (:func:`predict_core`)."""
         if not self.targets:
             return []
-        x, y, yaw = (float(v) for v in pose)
+        x, y, yaw = float(pose[0]), float(pose[1]), float(pose[2])
         cam = self.geo.camera
         px, order = predict_core(self._mount, (x, y, yaw), self._corners, self._bright,
                                  (float(cam.width), float(cam.height)),
@@ -265,8 +265,7 @@ class Windows:
             return reach
         if self.codes is None:
             return 0.0
-        side_px = float(np.mean(np.hypot(*(np.roll(px, -1, axis=0) - px).T)))
-        cell_px = side_px / (self.codes.bits + 2)
+        cell_px = mean_side_px(arr(px, np.float64)) / (self.codes.bits + 2)
         return 0.0 if cell_px < MARKER_MIN_CELL_PX else min(reach, MARKER_WINDOW_CELLS * cell_px)
 
     def _inside_ok(self, grey: np.ndarray, tgt: Target, px: np.ndarray,
@@ -311,6 +310,15 @@ def fill_core(grey, corners, n, dark):  # pragma: no cover - compiled
         if (v > thr) if dark else (v < thr):
             wrong += 1
     return wrong / (n * n)
+
+
+@njit
+def mean_side_px(px):  # pragma: no cover - compiled
+    """The mean length (px) of the sides of the quad ``px (4, 2)``."""
+    total = 0.0
+    for c in range(4):
+        total += np.hypot(px[(c + 1) % 4, 0] - px[c, 0], px[(c + 1) % 4, 1] - px[c, 1])
+    return total / 4.0
 
 
 @njit
@@ -406,3 +414,4 @@ def _warm() -> None:
     grey = np.full((48, 64), 200, np.uint8)
     win.fix(grey, win.targets[0], win.predicted((0.0, 0.0, 0.0))[0][1])
     fill_core(grey, arr(square * 10.0 + 20.0, np.float64), 2, True)
+    mean_side_px(arr(square, np.float64))

@@ -139,3 +139,47 @@ def test_the_window_path_is_on_by_default(rig, site):
     assert est.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == WINDOW
     off = BlockEstimator(rig, site, {"window_search": False, "plane_odometry": False})
     assert off.estimate(img, 0, prior(x, y, yaw)).diagnostics["mode"] == "global"
+
+
+@pytest.mark.parametrize("hint", [None, 0.3])
+def test_the_stage_heading_is_the_array_reading(hint):
+    """The parallels stage's one compiled call (weights, gate, sigma and its few-lines
+    factor) gives what robust_heading, line_weights and few_lines_factor give on the
+    same lines, a line marked bad left out (to rounding: the weights are summed in
+    another order)."""
+    from ceilkit.runtime.estimators.block import parallels as P
+    from ceilkit.runtime.jit import arr
+    rng = np.random.default_rng(3)
+    ang = rng.choice([0.0, math.pi / 2], 12) + rng.normal(0, 0.004, 12) + 0.3
+    p1 = rng.uniform(-0.5, 0.5, (12, 2))
+    p2 = p1 + 0.2 * np.column_stack([np.cos(ang), np.sin(ang)])
+    px = np.hstack([p1, p2]) * 400.0 + 300.0
+    good = np.ones(12, bool)
+    good[[2, 7]] = False
+    p1[1] += [0.05, 0.0]                 # a line off the axes: the gate drops it
+    R = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    length = np.hypot(px[:, 2] - px[:, 0], px[:, 3] - px[:, 1])
+    gate = math.radians(1.0)
+    want, kept = P.robust_heading(p1[good], p2[good], R, hint, gate, length[good])
+    w = P.line_weights(p1[good], p2[good], R, length[good])
+    how = P.HeadingGate(0.0 if hint is None else hint, hint is not None, gate,
+                        P.PERIOD_RAD, P.MIN_LINES, P.SIGMA_FLOOR_RAD)
+    found, yaw, sigma, n = P._stage_heading(arr(np.hstack([p1, p2]), np.float64),
+                                            arr(px, np.float64), arr(good, np.bool_),
+                                            arr(R, np.float64), how)
+    assert found and n == want.n_lines == kept.sum() < 10
+    assert P._near_hint(P.ParallelsHeading(yaw, sigma, P.PERIOD_RAD, n), hint).yaw_rad \
+        == pytest.approx(want.yaw_rad, abs=1e-12)
+    assert sigma == pytest.approx(want.sigma_rad * P.few_lines_factor(w[kept]), rel=1e-12)
+    assert P.few_lines_factor(w[kept]) > 1.0
+
+
+def test_the_mean_side_is_numpys():
+    """A marker's cell size in the image (the window search's reach) from the compiled
+    mean side length: numpy's to the bit."""
+    from ceilkit.runtime.estimators.block.window import mean_side_px
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        px = rng.uniform(0, 640, (4, 2))
+        want = float(np.mean(np.hypot(*(np.roll(px, -1, axis=0) - px).T)))
+        assert mean_side_px(px) == want
