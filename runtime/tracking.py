@@ -38,8 +38,10 @@ from ceilkit.runtime.estimators.prior import (
     DEFAULT_PRIOR_SIGMA,
     MAX_SPEED_MPS,
     MAX_TURN_RPS,
+    PRIOR_P,
     allows,
 )
+from ceilkit.runtime.geometry.ekf import chi2_quantile
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 
@@ -54,7 +56,8 @@ class TrackerOptions:
     lost_after_s: float = 1.0
     # the prediction's 1σ (the region in which its prior may choose among a frame's
     # twins, estimators/prior.py): an accepted pose's, growing with the velocity's
-    # 1σ (a measured velocity; an unknown one: half the gate's speeds)
+    # 1σ (a measured velocity; an unknown one: ``unknown_rates``, whose PRIOR_P
+    # region is the vehicle's stated limits)
     sigma_m: float = 0.01
     sigma_rad: float = math.radians(1.0)
     speed_sigma_mps: float = 0.3
@@ -149,7 +152,7 @@ class Tracker:
         """The prediction's covariance ``dt`` after the state (diagonal; x unknown: inf)."""
         o = self.options
         sv, sw = ((o.speed_sigma_mps, o.turn_sigma_rps) if s.moving
-                  else (0.5 * o.max_speed_mps, 0.5 * o.max_turn_rps))
+                  else unknown_rates(o))
         sp, sr = s.sd[0] + sv * dt, s.sd[1] + sw * dt
         return np.diag([sp * sp if s.x is not None else math.inf,
                         sp * sp if s.y is not None else math.inf, sr * sr])
@@ -264,6 +267,19 @@ class Tracker:
             f"pose jumped from the track ({_describe_jump(est, pred)}); "
             f"waiting for {self.options.confirm - len(self._candidates)} more to confirm",
             diagnostics={"rejected": est}))
+
+
+def unknown_rates(o: TrackerOptions) -> tuple[float, float]:
+    """1σ (m/s per axis, rad/s) of a velocity not yet measured: the Gaussian whose
+    ``PRIOR_P`` region over the prior's fewest coordinates (2: a corridor track's y and
+    heading) reaches ``max_speed_mps`` and ``max_turn_rps``, the vehicle's stated limits
+    (over all three, 8 % farther): a twin beyond the vehicle's reach is outside it.
+    Half the limits (before, 2026-12-07) reached 1.86 times them: 0.1 s after a start
+    pose a corridor track's region held the twins a 0.5 m tile away, and its prior
+    chose on no later frame of a tile grid (``bench_heldout_lines.py``'s tiles0: 1 of
+    60 valid)."""
+    k = math.sqrt(chi2_quantile(PRIOR_P, 2))
+    return o.max_speed_mps / k, o.max_turn_rps / k
 
 
 def _describe_jump(est: PoseEstimate, pred: PoseEstimate) -> str:

@@ -568,13 +568,18 @@ def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: Windo
 def twin_hypotheses(setup: CorridorSetup, match_tol_m: float, twins: tuple[LabelingTwin, ...],
                     cov: np.ndarray | None) -> tuple[Hypothesis, ...]:
     """The vehicle poses of labelings ``twins`` (camera pan and y in W), each with
-    ``cov`` (the chosen fit's; None: the 1-D gate ``match_tol_m`` as its sigma),
-    weighted alike (the frame supports them alike, the chosen one too)."""
+    ``cov`` (the chosen fit's; None, an unfitted frame: the association's own sigma,
+    a third of the 1-D gate ``match_tol_m``, as its scores take an offset's misfit),
+    weighted alike (the frame supports them alike, the chosen one too). With the
+    whole gate as the sigma (before, 2026-12-07) a twin 0.19 m off a corridor track's
+    prediction (1σ 4 cm) still lay inside its region: the frame after a kidnap did not
+    contradict the track, and the prior then chose that twin (29 poses wrong on
+    ``bench_heldout_lines.py``'s tiles0 kidnap)."""
     if not twins:
         return ()
     st = setup
     if cov is None:
-        cov = np.diag([np.inf, match_tol_m ** 2, math.radians(1.0) ** 2])
+        cov = np.diag([np.inf, (match_tol_m / 3.0) ** 2, math.radians(1.0) ** 2])
     w = 1.0 / (len(twins) + (0 if twins[0].label == "chosen" else 1))
     out = []
     for t in twins:

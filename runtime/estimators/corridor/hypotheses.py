@@ -587,12 +587,16 @@ def label(psi0_rad: float, fr: FrameLines, prior: PoseEstimate | None,
             # the prior chose m (the shift nearest it); the lines the frame misses
             # choose the runner-up: neither is trusted (a flip away from a good prior
             # published a lateral three seams off, at a sigma of 0.4 mm: a wall's
-            # clutter imitating seams, docs/methods/corridor.md)
-            return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
-                              f"the prior's lateral shift ({m.shift_m:+.3f} m) and the "
-                              f"frame's ({settled.shift_m:+.3f} m: fewer site lines "
-                              "missing) disagree", _disagreeing(m, settled, alike, chosen,
-                                                                rivals, ctx))
+            # clutter imitating seams, docs/methods/corridor.md), unless the prior's
+            # region holds m and none of the others (the vehicle cannot be there)
+            others = _other_shifts(m.shift_m, (settled.shift_m,) + alike, ctx)
+            if not _prior_single_shift(m, others, chosen, prior, ctx):
+                return Unresolved((m.n_lines, m.weight), AMBIGUOUS,
+                                  f"the prior's lateral shift ({m.shift_m:+.3f} m) and the "
+                                  f"frame's ({settled.shift_m:+.3f} m: fewer site lines "
+                                  "missing) disagree", _disagreeing(m, settled, alike,
+                                                                    chosen, rivals, ctx))
+            settled, ambiguous, alike = m, True, others
         m = settled
         if not ambiguous and how != "prior":
             how += "+absence"
@@ -639,12 +643,20 @@ def _disagreeing(m: OffsetMatch, settled: OffsetMatch, alike: tuple[float, ...],
     ``m``: both shifts, the others alike (``alike``, of ``settled``) and the rival
     turns; a track then sees whether any lies where it expects the vehicle (a kidnap
     shows none)."""
-    shifts = [settled.shift_m]
-    for c in alike + (m.shift_m,):
-        if all(abs(c - d) > ctx.match_tol_m for d in shifts):
-            shifts.append(c)
+    shifts = (settled.shift_m,) + _other_shifts(settled.shift_m, alike + (m.shift_m,), ctx)
     return ((LabelingTwin(chosen.psi_rad, shifts[0], "chosen"),)
-            + _shift_twins(chosen.psi_rad, tuple(shifts[1:]), rivals, ctx) + tuple(rivals))
+            + _shift_twins(chosen.psi_rad, shifts[1:], rivals, ctx) + tuple(rivals))
+
+
+def _other_shifts(first: float, shifts: tuple[float, ...], ctx: LabelContext
+                  ) -> tuple[float, ...]:
+    """Those of ``shifts`` (camera y, m), in order, farther than the association's
+    tolerance from ``first`` and from each one kept before."""
+    kept = [first]
+    for c in shifts:
+        if all(abs(c - d) > ctx.match_tol_m for d in kept):
+            kept.append(c)
+    return tuple(kept[1:])
 
 
 def _prior_single_shift(m: OffsetMatch, alike: tuple[float, ...], chosen: TurnLabeling,
