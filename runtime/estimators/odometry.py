@@ -24,8 +24,9 @@ marker drives). So a detection step is fitted from the tracks carried into it al
 its fresh corners are tracked beside them and, those the fit explains, carried on and
 fitted from their next step, sub-pixel at both ends. Only a step with no carried
 tracks (a stream's first, after a gap or a failed step) is fitted from fresh corners;
-a frame kept without measuring (``measure=False``) still tracks, so a leg between
-fixes does not start from fresh corners.
+a frame kept without measuring (``measure=False``) still follows the carried tracks
+into it (KLT alone, no fit; corners detected only when too few remain), so a leg
+between fixes does not start from fresh corners.
 
 Example::
 
@@ -251,9 +252,10 @@ class PlaneOdometry:
     def increment(self, grey: np.ndarray, t_ns: int, measure: bool = True, near=None
                   ) -> PlaneIncrement | None:
         """The motion since the previous frame (at its stamp ``t0_ns``) as a
-        :class:`~ceilkit.runtime.estimators.base.PlaneIncrement`; ``measure=False`` only
-        publishes nothing (an absolute fix makes the increment moot) but still tracks the
-        carried corners into the frame, so the next step is not fitted from fresh ones.
+        :class:`~ceilkit.runtime.estimators.base.PlaneIncrement`; ``measure=False``
+        publishes nothing (an absolute fix makes the increment moot) and only follows the
+        carried corners into the frame (:meth:`_keep_alive`), so the next step is not
+        fitted from fresh ones.
         ``near``: a pose (``x_m``, ``y_m``, ``yaw_rad``; the prior) that places the
         tracks on the ceiling: those inside the site's ``ignore`` regions are not used
         (SPEC §2: a fan, a moving shadow); without it every track counts."""
@@ -262,10 +264,48 @@ class PlaneOdometry:
         if prev is None or t_prev is None or not 0 < (t_ns - t_prev) * 1e-9 <= MAX_GAP_S:
             self._tracks = None          # the carried corners belong to another frame
             return None
+        if not measure:
+            self._keep_alive(prev, grey)
+            return None
         inc = self._motion(prev, grey, near)
-        if not measure or inc is None:
+        if inc is None:
             return None
         return PlaneIncrement(t_prev, inc.dx_m, inc.dy_m, inc.dyaw_rad, inc.cov)
+
+    def _keep_alive(self, prev: np.ndarray, grey: np.ndarray) -> None:
+        """A frame kept without measuring: only what the next step needs. The carried
+        tracks are followed from ``prev`` into ``grey`` by KLT (:func:`_tracked`: both
+        ways, back within :data:`FB_MAX_PX`; no turn warp, no fit: a track's position
+        on the frame only chooses the patch the next step tracks, whose motion its fit
+        then tests) and kept off the frame's edge; fewer than :data:`MIN_TRACKS` are
+        dropped. Corners are detected on ``prev`` only when fewer than
+        :data:`REDETECT_SHARE` of those detected remain (or none: a stream's first
+        frames, after a gap or a failed step), not every :data:`REDETECT_EVERY` steps,
+        and followed into ``grey`` beside the carried ones, so that the next step fits
+        tracks at sub-pixel, never fresh whole-pixel corners (the module)."""
+        carried, self._tracks = self._tracks, None
+        if carried is None or len(carried) < MIN_TRACKS:
+            carried = np.zeros((0, 1, 2), np.float32)
+        fresh = len(carried) < max(MIN_TRACKS, REDETECT_SHARE * self._detected)
+        if fresh:
+            pts = cv2.goodFeaturesToTrack(prev, CANDIDATES, CORNER_QUALITY, 8, blockSize=5)
+            if pts is not None:
+                pts = pts[corner_like(prev, pts.reshape(-1, 2))]
+                if len(carried):
+                    d = np.linalg.norm(pts[:, None, 0, :] - carried[None, :, 0, :], axis=2)
+                    pts = pts[d.min(axis=1) >= NEW_APART_PX]
+                carried = np.concatenate([carried, pts.astype(np.float32)])
+        if len(carried) < MIN_TRACKS:
+            return
+        nxt, ok = _tracked(prev, grey, carried)
+        h, w = grey.shape
+        u, v = nxt[:, 0, 0], nxt[:, 0, 1]
+        ok &= (u >= HALF_WIN) & (u < w - HALF_WIN) & (v >= HALF_WIN) & (v < h - HALF_WIN)
+        if np.count_nonzero(ok) < MIN_TRACKS:
+            return
+        self._tracks = nxt[ok]
+        if fresh:
+            self._detected, self._age = len(self._tracks), 1
 
     def _corners(self, prev: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """``(pts (N, 1, 2) float32, fit (N,) bool)``: the corners of ``prev`` to track

@@ -245,8 +245,8 @@ def test_a_step_whose_tracks_no_rigid_motion_explains_is_no_increment():
 
 
 def test_a_frame_kept_without_measuring_counts_its_tracking_time(monkeypatch):
-    """A frame with a fix after a fix publishes no increment but still tracks (issue
-    36): the method's ``ms`` includes that tracking, not only the fix's time."""
+    """A frame with a fix after a fix publishes no increment but still follows its
+    tracks (issue 36): the method's ``ms`` includes that, not only the fix's time."""
     import time
 
     from ceilkit.runtime.estimators.base import PoseEstimate
@@ -254,7 +254,7 @@ def test_a_frame_kept_without_measuring_counts_its_tracking_time(monkeypatch):
 
     odo = PlaneOdometry(PlanarGeometry.of(Rig.load(CONFIGS / "block" / "rig.yaml"),
                                           Site.load(CONFIGS / "block" / "site.yaml")))
-    monkeypatch.setattr(odo, "_motion", lambda *a: time.sleep(0.05))
+    monkeypatch.setattr(odo, "_keep_alive", lambda *a: time.sleep(0.05))
     grey = np.zeros((48, 64), np.uint8)
     got = PoseEstimate(33_333_333, "block", 1.0, 2.0, 0.1, 1.0, cov=np.eye(3) * 1e-6,
                        diagnostics={"ms": 0.0})
@@ -262,3 +262,50 @@ def test_a_frame_kept_without_measuring_counts_its_tracking_time(monkeypatch):
     t0 = time.perf_counter()
     out = with_increment(odo, got, grey, 33_333_333, False, None, t0)
     assert out.increment is None and out.diagnostics["ms"] >= 50.0
+
+
+def test_a_frame_kept_without_measuring_only_follows_the_tracks(monkeypatch):
+    """A frame kept without measuring follows the carried tracks by KLT and nothing
+    else while enough remain: no detection (even past REDETECT_EVERY), no fit (issue
+    38: it cost a whole step). The next step fits those tracks, sub-pixel at both ends,
+    to a fraction of a mm. Too few carried: corners are detected on the frame before
+    and followed into this one, so the next step still fits followed tracks."""
+    import ceilkit.runtime.estimators.odometry as odometry
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    odo = PlaneOdometry(PlanarGeometry.of(rig, site))
+    opts = SimOptions(noise_sigma=2.0, blur_px=1.0)
+    calls = []
+    detect = odometry.cv2.goodFeaturesToTrack
+    monkeypatch.setattr(odometry.cv2, "goodFeaturesToTrack",
+                        lambda *a, **k: calls.append(1) or detect(*a, **k))
+    fits = []
+    fit = odometry.plane_motion
+    monkeypatch.setattr(odometry, "plane_motion", lambda q, p: fits.append((len(q), fit(q, p)))
+                        or fits[-1][1])
+    n = odometry.REDETECT_EVERY + 4
+    poses = [(1.0 + 0.02 * k, 0.1 + 0.004 * k, 0.3 + 0.003 * k) for k in range(n + 3)]
+    frames = [render_frame(rig, site, *p, opts) for p in poses]
+    assert odo.increment(frames[0], 0) is None
+    assert odo.increment(frames[1], 33_333_333) is not None and odo.fresh_fit
+    assert len(calls) == 1 and len(fits) == 1
+    for k in range(2, n):
+        before = odo._tracks
+        assert odo.increment(frames[k], k * 33_333_333, measure=False) is None
+        assert len(calls) == 1 and len(fits) == 1          # no detection, no fit
+        assert odometry.MIN_TRACKS <= len(odo._tracks) <= len(before)
+    carried = len(odo._tracks)
+    inc = odo.increment(frames[n], n * 33_333_333)
+    assert inc is not None and not odo.fresh_fit and fits[-1][0] <= carried
+    (x0, y0, a0), (x1, y1, _) = poses[n - 1], poses[n]
+    c, s = math.cos(a0), math.sin(a0)
+    dx, dy = c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0)
+    assert math.hypot(inc.dx_m - dx, inc.dy_m - dy) < 0.001
+    # too few carried: corners of the frame before are detected and followed
+    odo._tracks = odo._tracks[:odometry.MIN_TRACKS - 1]
+    detections, n_fits = len(calls), len(fits)
+    assert odo.increment(frames[n + 1], (n + 1) * 33_333_333, measure=False) is None
+    assert len(calls) == detections + 1 and len(fits) == n_fits
+    assert len(odo._tracks) >= odometry.MIN_TRACKS
+    assert odo.increment(frames[n + 2], (n + 2) * 33_333_333) is not None
+    assert not odo.fresh_fit and len(calls) == detections + 1
