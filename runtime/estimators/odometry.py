@@ -288,13 +288,7 @@ class PlaneOdometry:
             carried = np.zeros((0, 1, 2), np.float32)
         fresh = len(carried) < max(MIN_TRACKS, REDETECT_SHARE * self._detected)
         if fresh:
-            pts = cv2.goodFeaturesToTrack(prev, CANDIDATES, CORNER_QUALITY, 8, blockSize=5)
-            if pts is not None:
-                pts = pts[corner_like(prev, pts.reshape(-1, 2))]
-                if len(carried):
-                    d = np.linalg.norm(pts[:, None, 0, :] - carried[None, :, 0, :], axis=2)
-                    pts = pts[d.min(axis=1) >= NEW_APART_PX]
-                carried = np.concatenate([carried, pts.astype(np.float32)])
+            carried = np.concatenate([carried, _fresh_corners(prev, carried)])
         if len(carried) < MIN_TRACKS:
             return
         nxt, ok = _tracked(prev, grey, carried)
@@ -325,14 +319,9 @@ class PlaneOdometry:
             self._age += 1
             self.fresh_fit = False
             return carried, np.ones(len(carried), bool)
-        pts = cv2.goodFeaturesToTrack(prev, CANDIDATES, CORNER_QUALITY, 8, blockSize=5)
-        pts = None if pts is None else pts[corner_like(prev, pts.reshape(-1, 2))]
         if carried is None or len(carried) < MIN_TRACKS:
             carried = np.zeros((0, 1, 2), np.float32)
-        if pts is not None and len(carried):
-            d = np.linalg.norm(pts[:, None, 0, :] - carried[None, :, 0, :], axis=2)
-            pts = pts[d.min(axis=1) >= NEW_APART_PX]
-        pts = np.zeros((0, 1, 2), np.float32) if pts is None else pts.astype(np.float32)
+        pts = _fresh_corners(prev, carried)
         fit = np.zeros(len(carried) + len(pts), bool)
         fit[:len(carried)] = True
         if not len(carried):
@@ -436,6 +425,19 @@ def _turn_warp(p0: np.ndarray, p1: np.ndarray) -> np.ndarray | None:
     c, s = math.cos(yaw), math.sin(yaw)
     t = np.rint(t)               # whole pixels: a shift alone is not resampled
     return np.array([[c, -s, t[0]], [s, c, t[1]]])
+
+
+def _fresh_corners(prev: np.ndarray, carried: np.ndarray) -> np.ndarray:
+    """``(M, 1, 2) float32``: the corners detected on ``prev`` (:func:`corner_like` of
+    ``goodFeaturesToTrack``'s) not within :data:`NEW_APART_PX` of a ``carried`` track."""
+    pts = cv2.goodFeaturesToTrack(prev, CANDIDATES, CORNER_QUALITY, 8, blockSize=5)
+    if pts is None:
+        return np.zeros((0, 1, 2), np.float32)
+    pts = pts[corner_like(prev, pts.reshape(-1, 2))]
+    if len(carried) and len(pts):
+        d = np.linalg.norm(pts[:, None, 0, :] - carried[None, :, 0, :], axis=2)
+        pts = pts[d.min(axis=1) >= NEW_APART_PX]
+    return pts.astype(np.float32)
 
 
 def with_increment(odo: PlaneOdometry, got, grey: np.ndarray, t_ns: int, measure: bool,

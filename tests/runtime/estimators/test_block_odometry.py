@@ -53,6 +53,23 @@ def test_rendered_step_gives_the_motion():
     assert np.all(np.linalg.eigvalsh(inc.cov) > 0)
 
 
+def _counted_odometry(monkeypatch):
+    """``(rig, site, odometry, detections, fits)`` on configs/block: every
+    ``goodFeaturesToTrack`` call appends to ``detections``, every rigid fit
+    ``(pairs, fit)`` to ``fits``."""
+    import ceilkit.runtime.estimators.odometry as odometry
+    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
+    site = Site.load(CONFIGS / "block" / "site.yaml")
+    calls, fits = [], []
+    detect = odometry.cv2.goodFeaturesToTrack
+    monkeypatch.setattr(odometry.cv2, "goodFeaturesToTrack",
+                        lambda *a, **k: calls.append(1) or detect(*a, **k))
+    fit = odometry.plane_motion
+    monkeypatch.setattr(odometry, "plane_motion",
+                        lambda q, p: fits.append((len(q), fit(q, p))) or fits[-1][1])
+    return rig, site, PlaneOdometry(PlanarGeometry.of(rig, site)), calls, fits
+
+
 def test_corners_are_carried_between_steps_and_detected_again_after_a_break(monkeypatch):
     """A step's tracked corners are the next step's: the corners are detected once per
     REDETECT_EVERY steps, and afresh after a gap (the carried corners belong to another
@@ -60,17 +77,8 @@ def test_corners_are_carried_between_steps_and_detected_again_after_a_break(monk
     fitted from fresh corners (issue 36). The motion stays exact to a fraction of a
     mm."""
     import ceilkit.runtime.estimators.odometry as odometry
-    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
-    site = Site.load(CONFIGS / "block" / "site.yaml")
-    odo = PlaneOdometry(PlanarGeometry.of(rig, site))
+    rig, site, odo, calls, fits = _counted_odometry(monkeypatch)
     opts = SimOptions(noise_sigma=2.0, blur_px=1.0)
-    calls = []
-    detect = odometry.cv2.goodFeaturesToTrack
-    monkeypatch.setattr(odometry.cv2, "goodFeaturesToTrack",
-                        lambda *a, **k: calls.append(1) or detect(*a, **k))
-    fits = []
-    fit = odometry.plane_motion
-    monkeypatch.setattr(odometry, "plane_motion", lambda q, p: fits.append(fit(q, p)) or fits[-1])
     n = odometry.REDETECT_EVERY + 2
     poses = [(1.0 + 0.03 * k, 0.1 + 0.005 * k, 0.3 + 0.004 * k) for k in range(n + 4)]
     frames = [render_frame(rig, site, *p, opts) for p in poses]
@@ -83,7 +91,7 @@ def test_corners_are_carried_between_steps_and_detected_again_after_a_break(monk
             dx, dy = c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0)
             assert math.hypot(inc.dx_m - dx, inc.dy_m - dy) < 0.001
             # only the fit's inliers go on (and, on a detection step, fresh corners)
-            assert 0 < len(odo._tracks) and (odo._age == 1 or len(odo._tracks) <= fits[-1].n)
+            assert 0 < len(odo._tracks) and (odo._age == 1 or len(odo._tracks) <= fits[-1][1].n)
     assert len(calls) == 2                   # steps 1-5 carry one detection, step 6 anew
     assert odo.increment(frames[n], n * 33_333_333, measure=False) is None
     assert odo._tracks is not None and len(odo._tracks) > 0
@@ -271,18 +279,8 @@ def test_a_frame_kept_without_measuring_only_follows_the_tracks(monkeypatch):
     to a fraction of a mm. Too few carried: corners are detected on the frame before
     and followed into this one, so the next step still fits followed tracks."""
     import ceilkit.runtime.estimators.odometry as odometry
-    rig = Rig.load(CONFIGS / "block" / "rig.yaml")
-    site = Site.load(CONFIGS / "block" / "site.yaml")
-    odo = PlaneOdometry(PlanarGeometry.of(rig, site))
+    rig, site, odo, calls, fits = _counted_odometry(monkeypatch)
     opts = SimOptions(noise_sigma=2.0, blur_px=1.0)
-    calls = []
-    detect = odometry.cv2.goodFeaturesToTrack
-    monkeypatch.setattr(odometry.cv2, "goodFeaturesToTrack",
-                        lambda *a, **k: calls.append(1) or detect(*a, **k))
-    fits = []
-    fit = odometry.plane_motion
-    monkeypatch.setattr(odometry, "plane_motion", lambda q, p: fits.append((len(q), fit(q, p)))
-                        or fits[-1][1])
     n = odometry.REDETECT_EVERY + 4
     poses = [(1.0 + 0.02 * k, 0.1 + 0.004 * k, 0.3 + 0.003 * k) for k in range(n + 3)]
     frames = [render_frame(rig, site, *p, opts) for p in poses]
