@@ -28,8 +28,7 @@ import numpy as np
 
 from ceilkit.runtime.estimators.base import PoseEstimate
 from ceilkit.runtime.geometry.ekf import chi2_quantile, chi2_table
-from ceilkit.runtime.geometry.rotations import wrap_pi
-from ceilkit.runtime.jit import warmer
+from ceilkit.runtime.jit import arr, njit, warmer
 
 PRIOR_P = 0.999
 """The probability of the region a prior allows (chi-square quantile of its
@@ -61,47 +60,99 @@ def prior_cov(prior: PoseEstimate) -> np.ndarray:
 def prior_distance(prior: PoseEstimate, pose: Pose) -> tuple[float, int]:
     """``(d2, dof)``: the squared Mahalanobis distance of ``pose`` ``(x, y, yaw, cov)``
     from ``prior`` over the coordinates both give (yaw always), with both covariances."""
-    return _distance(prior, prior_cov(prior).tolist(), pose)
+    d2, dof = _distances(prior, prior_cov(prior), (pose,))
+    return float(d2[0]), int(dof[0])
 
 
-def _distance(prior: PoseEstimate, P: list[list[float]], pose: Pose) -> tuple[float, int]:
-    """:func:`prior_distance` with the prior's covariance ``P`` given (:func:`prior_cov`
-    as nested lists of floats: made once for all the poses of :func:`prior_choice`)."""
-    x, y, yaw, cov = pose
-    rows, e = [], []
-    for i, (a, b) in enumerate(((x, prior.x_m), (y, prior.y_m))):
-        if a is not None and b is not None and math.isfinite(P[i][i]):
-            rows.append(i)
-            e.append(float(a) - float(b))
-    rows.append(2)
-    e.append(wrap_pi(float(yaw) - float(prior.yaw_rad)))
-    S = [[P[i][j] for j in rows] for i in rows]
-    if cov is not None:
-        C = np.asarray(cov, float)
-        add = [[float(C[i, j]) for j in rows] for i in rows]
-        if all(math.isfinite(c) for r in add for c in r):
-            S = [[a + b for a, b in zip(r, q, strict=True)] for r, q in zip(S, add, strict=True)]
-    return _quadratic(S, e), len(rows)
+def _distances(prior: PoseEstimate, P: np.ndarray, poses: Sequence[Pose]
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`prior_distance` of each of ``poses`` in one compiled call
+    (:func:`_distances_core`) with the prior's covariance ``P`` ``(3, 3)`` given
+    (:func:`prior_cov`, made once for all the poses of :func:`prior_choice`; a tile
+    grid's window fix checks 15 poses a frame): ``(d2 (K,), dof (K,))``."""
+    gx, gy = prior.x_m is not None, prior.y_m is not None
+    rows = np.array([(0.0 if x is None else x, 0.0 if y is None else y, yaw,
+                      gx and x is not None, gy and y is not None) for x, y, yaw, _ in poses],
+                    float).reshape(-1, 5)
+    covs = _NO_COVS
+    if any(pose[3] is not None for pose in poses):
+        covs = np.full((len(poses), 3, 3), np.nan)     # NaN: none (not finite: not added)
+        for k, pose in enumerate(poses):
+            if pose[3] is not None:
+                covs[k] = np.asarray(pose[3], float)
+    ref = (0.0 if prior.x_m is None else prior.x_m, 0.0 if prior.y_m is None else prior.y_m,
+           prior.yaw_rad)
+    f = np.float64
+    return _distances_core(arr(ref, f), arr(P, f), arr(rows, f), arr(covs, f))
 
 
-def _quadratic(S: list[list[float]], e: list[float]) -> float:
-    """``eᵀ S⁻¹ e`` for a symmetric ``S`` of 1-3 rows, by Gaussian elimination in
-    floats (a tracked frame calls it once: numpy's small-array calls cost ten times
-    the arithmetic); inf when ``S`` is singular."""
-    a = [list(r) + [v] for r, v in zip(S, e, strict=True)]
-    n = len(a)
+_NO_COVS = arr(np.empty((0, 3, 3)), np.float64)
+""":func:`_distances`' ``covs`` when no pose carries a covariance."""
+
+
+@njit
+def _distances_core(ref, P, poses, covs):  # pragma: no cover - compiled
+    """:func:`_distances`: the prior's ``ref (3,)`` ``(x, y, yaw)`` and ``P (3, 3)``;
+    per pose ``poses (K, 5)``: its x, y, yaw and whether its x and y are compared
+    (1: the pose and the prior both give it; and ``P``'s variance is finite), and its
+    covariance ``covs (K, 3, 3)`` (added where finite over the rows compared; none
+    when ``covs`` is empty): ``(d2, dof)``, the yaw's error wrapped into [-pi, pi)
+    (:func:`~..geometry.rotations.wrap_pi`)."""
+    n_k = poses.shape[0]
+    d2 = np.empty(n_k)
+    dof = np.empty(n_k, np.int64)
+    rows = np.empty(3, np.int64)
+    e = np.empty(3)
+    a = np.empty((3, 4))
+    for k in range(n_k):
+        n = 0
+        for i in range(2):
+            if poses[k, 3 + i] != 0.0 and math.isfinite(P[i, i]):
+                rows[n], e[n] = i, poses[k, i] - ref[i]
+                n += 1
+        rows[n], e[n] = 2, (poses[k, 2] - ref[2] + math.pi) % (2.0 * math.pi) - math.pi
+        n += 1
+        add = covs.shape[0] > 0
+        for i in range(n):
+            for j in range(n):
+                add = add and math.isfinite(covs[k, rows[i], rows[j]])
+        for i in range(n):
+            for j in range(n):
+                s = P[rows[i], rows[j]]
+                a[i, j] = s + covs[k, rows[i], rows[j]] if add else s
+            a[i, n] = e[i]
+        d2[k], dof[k] = _quadratic(a, e, n), n
+    return d2, dof
+
+
+@njit
+def _quadratic(a, e, n):  # pragma: no cover - compiled
+    """``eᵀ S⁻¹ e`` for ``a = [S | e]`` (its first ``n`` rows and ``n + 1`` columns;
+    overwritten) of a symmetric ``S`` of 1-3 rows, by Gaussian elimination with
+    partial pivoting (the first largest pivot); inf when ``S`` is singular."""
     for k in range(n):
-        piv = max(range(k, n), key=lambda i: abs(a[i][k]))
-        if a[piv][k] == 0.0 or not math.isfinite(a[piv][k]):
-            return math.inf
-        a[k], a[piv] = a[piv], a[k]
+        piv = k
         for i in range(k + 1, n):
-            f = a[i][k] / a[k][k]
-            a[i] = [x - f * y for x, y in zip(a[i], a[k], strict=True)]
-    x = [0.0] * n
+            if abs(a[i, k]) > abs(a[piv, k]):
+                piv = i
+        if a[piv, k] == 0.0 or not math.isfinite(a[piv, k]):
+            return math.inf
+        for j in range(n + 1):
+            a[k, j], a[piv, j] = a[piv, j], a[k, j]
+        for i in range(k + 1, n):
+            f = a[i, k] / a[k, k]
+            for j in range(n + 1):
+                a[i, j] = a[i, j] - f * a[k, j]
+    x = np.zeros(3)
     for k in range(n - 1, -1, -1):
-        x[k] = (a[k][n] - sum(a[k][j] * x[j] for j in range(k + 1, n))) / a[k][k]
-    return float(sum(v * w for v, w in zip(e, x, strict=True)))
+        s = 0.0
+        for j in range(k + 1, n):
+            s += a[k, j] * x[j]
+        x[k] = (a[k, n] - s) / a[k, k]
+    out = 0.0
+    for i in range(n):
+        out += e[i] * x[i]
+    return out
 
 
 def allows(prior: PoseEstimate, pose: Pose, p: float = PRIOR_P) -> bool:
@@ -112,17 +163,13 @@ def allows(prior: PoseEstimate, pose: Pose, p: float = PRIOR_P) -> bool:
 
 def _allows_all(prior: PoseEstimate, poses: Sequence[Pose], p: float) -> list[int]:
     """The indices of ``poses`` the prior allows (:func:`allows`), its covariance and
-    the quantiles taken once (a tile grid's window fix checks 15 poses a frame)."""
-    P = prior_cov(prior).tolist()
-    q: dict[int, float] = {}
-    inside = []
-    for k, pose in enumerate(poses):
-        d2, dof = _distance(prior, P, pose)
-        if dof not in q:
-            q[dof] = chi2_quantile(p, dof)
-        if d2 <= q[dof]:
-            inside.append(k)
-    return inside
+    the quantiles taken once, the distances in one compiled call (:func:`_distances`)."""
+    if not poses:
+        return []
+    d2, dof = _distances(prior, prior_cov(prior), poses)
+    q = chi2_table(p)[:3].tolist()   # chi2_quantile's table (dof 1-3 here)
+    return [k for k, (d, n) in enumerate(zip(d2.tolist(), dof.tolist(), strict=True))
+            if d <= q[n - 1]]
 
 
 TWIN_ANGLE_RAD = math.pi / 3
@@ -158,3 +205,5 @@ def prior_choice(prior: PoseEstimate | None, poses: Sequence[Pose],
 @warmer
 def _warm() -> None:
     chi2_table(PRIOR_P)   # the regions' quantiles before the first frame (issue 37)
+    f = np.float64
+    _distances_core(arr(np.zeros(3), f), arr(np.eye(3), f), arr(np.zeros((1, 5)), f), _NO_COVS)

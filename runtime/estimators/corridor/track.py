@@ -54,7 +54,6 @@ from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.edges import PROFILE_STEP_PX, edge_grid, part_indices
 from ceilkit.runtime.features.lines import ProfileGrid, ProfileKind, refine_chords_core
 from ceilkit.runtime.geometry.camera import CameraModel, distort_points
-from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
 
 REACH_M = 8.0
@@ -498,20 +497,40 @@ def window_twins(lt: LineTracker, grey: np.ndarray, m: LineMeasurement, psi_rad:
     or a lateral shift matching about as many lines misses fewer in view (the global
     path's absence test would choose it against the prior): the global path decides
     the frame then. Quarter turns are not examined here."""
-    cands, score, n_all, own, settled = _twin_scores(
+    refused, psi_t, cy_t, shift = _twins_core(
         arr(grey, np.uint8), float(psi_rad), float(camera_y_m), lt.search, lt.kernel_lines[1],
         m.line, np.nan if mirror_y_m is None else float(mirror_y_m))
-    if settled:
+    if refused:
         return None
-    out: list[LabelingTwin] = []
-    for c in np.flatnonzero((n_all >= 2) & (score >= TWIN_RATIO * own)):
+    return tuple(LabelingTwin(p, c, "shift" if t else "half_turn")
+                 for p, c, t in zip(psi_t.tolist(), cy_t.tolist(), shift.tolist(), strict=True))
+
+
+@njit
+def _twins_core(grey, psi, cam_y, s, kind_abs, line, mirror):  # pragma: no cover - compiled
+    """:func:`window_twins` in one call (the arguments of :func:`_twin_scores`):
+    ``(refused, psi_t (T,), cy_t (T,), shift (T,) bool)``: the twins' camera pan and y
+    (a lateral shift's pan is ``psi``'s; a half turn's ``psi + pi`` wrapped into
+    [-pi, pi)), in the order of :func:`_twin_maps`' maps; ``refused`` when the global
+    path decides the frame (a shift settled by absence, or a twin scoring above the
+    fix's over :data:`~.hypotheses.TWIN_RATIO`)."""
+    cands, score, n_all, own, settled = _twin_scores(grey, psi, cam_y, s, kind_abs, line,
+                                                     mirror)
+    n_c = cands.shape[0]
+    psi_t, cy_t, shift = np.empty(n_c), np.empty(n_c), np.empty(n_c, np.bool_)
+    n = 0
+    for c in range(n_c):
+        if settled or not (n_all[c] >= 2 and score[c] >= TWIN_RATIO * own):
+            continue
         if score[c] > own / TWIN_RATIO:
-            return None
-        sign, g = cands[c]
-        psi_t = psi_rad if sign > 0 else wrap_pi(psi_rad + math.pi)
-        cy_t = float(camera_y_m - g if sign > 0 else g - camera_y_m)
-        out.append(LabelingTwin(psi_t, cy_t, "shift" if sign > 0 else "half_turn"))
-    return tuple(out)
+            return True, psi_t[:0], cy_t[:0], shift[:0]
+        sign, g = cands[c, 0], cands[c, 1]
+        half = psi + math.pi
+        psi_t[n] = psi if sign > 0 else (half + math.pi) % (2.0 * math.pi) - math.pi
+        cy_t[n] = cam_y - g if sign > 0 else g - cam_y
+        shift[n] = sign > 0
+        n += 1
+    return settled, psi_t[:n], cy_t[:n], shift[:n]
 
 
 @njit
@@ -826,8 +845,8 @@ def _warm() -> None:
     _asked(maps[3], hit >= 0, np.zeros(maps[0].shape[0]))
     _tally(maps[3], hit)
     _probe_chords(np.array([0, 0, 1]), arr(np.ones(2, np.bool_), np.bool_), 2)
-    _twin_scores(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, s,
-                 arr(np.zeros(2), f), np.array([0, 1]), 0.0)
+    _twins_core(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, s,
+                arr(np.zeros(2), f), np.array([0, 1]), 0.0)
 
 
 __all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "ChordFit", "ChordSearch", "ChordView",
