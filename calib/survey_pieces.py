@@ -1,22 +1,27 @@
 """Pieces of a survey joined by closures singled out against the whole other piece.
 
-A drive whose chain broke leaves *pieces*: segments (:mod:`~ceilkit.calib.survey_chain`)
-that no link, gap or closure ties together. A closure between two keyframes needs
-:data:`~ceilkit.calib.survey_places.MIN_INLIERS` points because a repeat of the ceiling
-beyond one view (light panels on a lattice) cannot be seen within the pair. Here a
-keyframe of one piece is matched instead against the *whole other piece*: every
-keyframe of it put in the piece's frame (its first frame's V) by its chain, their
-features merged (:func:`~ceilkit.runtime.estimators.texture.ceilmap.merge_features`),
-so that the rival motion is searched over every place of the piece (each point's
-:data:`PIECE_KNN` nearest descriptors, :data:`PIECE_SAMPLES` hypotheses), and the
-chance minimum (:func:`~ceilkit.calib.survey_places.min_inliers`) counts the piece's
-features over the area its views cover. Such a match may still be a repeat of the
-piece outside it, so two pieces are joined only when closures from two keyframes or
-more agree on where one piece lies in the other, within their 1σ (a chi-square test,
-the chains' drift between the keyframes included), and the separate features they
-agree on together reach a closure's floor (``MIN_INLIERS``) and the chance minimum of
-all their keyframes' features. Two such sets that share no closure join nothing
-(``ambiguous``). The joins are links of kind ``piece``.
+A drive whose chain broke leaves *segments* (:mod:`~ceilkit.calib.survey_chain`); a
+*piece* is a connected component of them under every accepted link (the chain's steps,
+gap matches, loop and drive closures, and the joins made here): :func:`pieces` puts
+each piece's frames in one frame (its first node's V) along a spanning tree of those
+links, with each frame's pose covariance along it. A closure between two keyframes
+needs :data:`~ceilkit.calib.survey_places.MIN_INLIERS` points because a repeat of the
+ceiling beyond one view (light panels on a lattice) cannot be seen within the pair.
+Here a keyframe of one piece is matched instead against the *whole other piece*: its
+keyframes' features merged in its frame
+(:func:`~ceilkit.runtime.estimators.texture.ceilmap.merge_features`), so that the rival
+motion is searched over every place of the piece (each point's :data:`PIECE_KNN`
+nearest descriptors, :data:`PIECE_SAMPLES` hypotheses), and the chance minimum
+(:func:`~ceilkit.calib.survey_places.min_inliers`) counts the piece's features over the
+area its views cover. Such a match may still be a repeat of the piece outside it, so
+two pieces are joined only when closures from two keyframes or more agree on where one
+piece lies in the other, within their 1σ (a chi-square test, both pieces' drift
+between the keyframes included), and the separate features they agree on together
+reach a closure's floor (``MIN_INLIERS``) and the chance minimum of all their
+keyframes' features. Two such sets that share no closure join nothing (``ambiguous``).
+The joins are links of kind ``piece``; a pair refused is tried again once either piece
+has grown by a join. A piece of one keyframe is never joined (one match cannot be
+checked by a second): it is said so (``piece apart: one keyframe``).
 
 Example::
 
@@ -25,7 +30,9 @@ Example::
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -58,6 +65,30 @@ CELL_M = 0.1              # the raster cell that measures a piece's covered area
 
 
 @dataclass(frozen=True, eq=False)
+class Piece:
+    """Segments tied by accepted links, in one frame (its first node's V).
+
+    Attributes:
+        segments: the segments' numbers.
+        nodes: ``(n,)`` the graph nodes of their frames.
+        poses: ``(n, 3)`` each node's pose in the piece's frame (m, m, rad).
+        cov: ``(n, 3, 3)`` its covariance there (the spanning tree's motions composed,
+            independent; the first node's is zero).
+        parent: ``(n,)`` each node's parent in the spanning tree (position in ``nodes``;
+            -1 at the first node); ``depth``: ``(n,)`` its steps from the first node.
+        keys: positions in ``nodes`` of the keyframes.
+    """
+
+    segments: tuple[int, ...]
+    nodes: np.ndarray
+    poses: np.ndarray
+    cov: np.ndarray
+    parent: np.ndarray
+    depth: np.ndarray
+    keys: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class PieceMap:
     """A piece's features in its frame: ``place`` (merged over its keyframes),
     ``area_m2`` the area its keyframes' views cover."""
@@ -68,7 +99,7 @@ class PieceMap:
 
 @dataclass(frozen=True, eq=False)
 class _Closure:
-    """A keyframe ``a`` (position in its segment) of one piece placed in the other's
+    """A keyframe ``a`` (position in its piece) of one piece placed in the other's
     frame: ``z`` (m, m, rad), ``cov``; ``points``: its agreeing points in its own
     piece's frame (m); ``near``: the other piece's keyframe nearest to it; ``inliers``,
     ``runner_up``: the match's support; ``seen``: all its points in its piece's frame."""
@@ -89,10 +120,123 @@ def _in_frame(pose: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return pts @ np.array([[c, s], [-s, c]]) + pose[:2]
 
 
-def piece_map(seg: Segment, keys: np.ndarray, places: Sequence[Place]) -> PieceMap:
-    """The features of a segment's keyframes (positions ``keys``, their ``places``)
-    in the segment's frame, merged, and the area their views cover (m²)."""
-    pts = [_in_frame(seg.chain[k], pl.points_v) for k, pl in zip(keys, places, strict=True)]
+def _rotated(cov: np.ndarray, yaw: float) -> np.ndarray:
+    """A pose covariance given in a frame turned by ``yaw``, in the outer frame."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    r = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    return r @ cov @ r.T
+
+
+def _lever(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """How an error of pose ``a`` (x, y, yaw in a frame) moves pose ``b`` reached from
+    it by a fixed motion: ``(3, 3)``."""
+    return np.array([[1.0, 0, -(b[1] - a[1])], [0, 1.0, b[0] - a[0]], [0, 0, 1.0]])
+
+
+def _inverse(z: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The motion back (``a`` in V_b from ``b`` in V_a) and its covariance."""
+    c, s = math.cos(z[2]), math.sin(z[2])
+    jac = np.array([[-c, -s, s * z[0] - c * z[1]], [s, -c, c * z[0] + s * z[1]],
+                    [0, 0, -1.0]])
+    return relative(z, np.zeros(3)), jac @ cov @ jac.T
+
+
+def _roots(n: int, pairs: Sequence[tuple[int, int]]) -> np.ndarray:
+    """``(n,)`` each item's component under the ``pairs`` (its smallest member)."""
+    comp = list(range(n))
+
+    def root(s: int) -> int:
+        while comp[s] != s:
+            s = comp[s]
+        return s
+
+    for a, b in pairs:
+        ra, rb = root(a), root(b)
+        comp[max(ra, rb)] = min(ra, rb)
+    return np.array([root(s) for s in range(n)], int)
+
+
+def _edges(segs: Sequence[int], segments: Sequence[Segment], offset: np.ndarray,
+           links: Sequence[tuple]) -> tuple[np.ndarray, list[list[tuple]]]:
+    """The nodes of ``segs`` and each one's measured motions to others
+    ``(position, z, cov)`` (both ways: a motion and its inverse)."""
+    nodes = np.concatenate([offset[s] + np.arange(len(segments[s].frames)) for s in segs])
+    where = {int(n): i for i, n in enumerate(nodes)}
+    adj: list[list[tuple]] = [[] for _ in nodes]
+    motions = [(int(offset[s] + e.i), int(offset[s] + e.j), e.z, e.cov)
+               for s in segs for e in segments[s].steps]
+    motions += [lk for lk in links if int(lk[0]) in where and int(lk[1]) in where]
+    for a, b, z, cov in motions:
+        ia, ib = where[int(a)], where[int(b)]
+        adj[ia].append((ib, np.asarray(z, float), np.asarray(cov, float)))
+        adj[ib].append((ia, *_inverse(np.asarray(z, float), np.asarray(cov, float))))
+    return nodes, adj
+
+
+def _piece(segs: Sequence[int], segments: Sequence[Segment], offset: np.ndarray,
+           keys_of: Sequence[np.ndarray], links: Sequence[tuple]) -> Piece:
+    """One piece (:class:`Piece`): a breadth-first spanning tree of its motions from
+    its first node, the poses and covariances composed along it."""
+    nodes, adj = _edges(segs, segments, offset, links)
+    n = len(nodes)
+    poses, cov = np.zeros((n, 3)), np.zeros((n, 3, 3))
+    parent, depth = np.full(n, -1), np.zeros(n, int)
+    seen = np.zeros(n, bool)
+    seen[0] = True
+    todo = deque([0])
+    while todo:
+        i = todo.popleft()
+        for j, z, c in adj[i]:
+            if seen[j]:
+                continue
+            seen[j], parent[j], depth[j] = True, i, depth[i] + 1
+            poses[j] = compose(poses[i], z)
+            lev = _lever(poses[i], poses[j])
+            cov[j] = lev @ cov[i] @ lev.T + _rotated(c, poses[i, 2])
+            todo.append(j)
+    where = {int(v): i for i, v in enumerate(nodes)}
+    keys = np.array(sorted(where[int(offset[s] + k)] for s in segs for k in keys_of[s]), int)
+    return Piece(tuple(int(s) for s in segs), nodes, poses, cov, parent, depth, keys)
+
+
+def pieces(segments: Sequence[Segment], offset: np.ndarray, keys_of: Sequence[np.ndarray],
+           links: Sequence[tuple]) -> list[Piece]:
+    """The pieces (connected components of segments under ``links``: ``(node a, node
+    b, z, cov)``, b's pose in V_a), each in its frame; in the order of their first
+    segment. ``keys_of``: each segment's keyframe positions; ``offset``: each
+    segment's first node."""
+    seg_of = np.repeat(np.arange(len(segments)), [len(s.frames) for s in segments])
+    comp = _roots(len(segments), [(int(seg_of[lk[0]]), int(seg_of[lk[1]])) for lk in links])
+    return [_piece(np.flatnonzero(comp == r), segments, offset, keys_of, links)
+            for r in np.unique(comp)]
+
+
+def between(piece: Piece, i: int, j: int) -> np.ndarray:
+    """The covariance of node ``j``'s pose relative to node ``i``'s (positions in the
+    piece), in the piece's frame: the tree's motions from their common ancestor to
+    each, independent."""
+    a, b = i, j
+    while a != b:
+        if piece.depth[a] >= piece.depth[b]:
+            a = int(piece.parent[a])
+        else:
+            b = int(piece.parent[b])
+    p = piece.poses
+
+    def own(x: int) -> np.ndarray:       # what the branch from the ancestor adds to x
+        lev = _lever(p[a], p[x])
+        return piece.cov[x] - lev @ piece.cov[a] @ lev.T
+
+    lev = _lever(p[i], p[j])
+    return own(j) + lev @ own(i) @ lev.T
+
+
+def piece_map(piece: Piece, places: Sequence[Place]) -> PieceMap:
+    """The features of a piece's keyframes (their ``places``, in the order of
+    ``piece.keys``) in the piece's frame, merged, and the area their views cover
+    (m²)."""
+    pts = [_in_frame(piece.poses[k], pl.points_v)
+           for k, pl in zip(piece.keys, places, strict=True)]
     allp = np.concatenate(pts) if pts else np.zeros((0, 2))
     desc = np.concatenate([pl.descriptors for pl in places]) if places else \
         np.zeros((0, 32), np.uint8)
@@ -110,42 +254,16 @@ def piece_map(seg: Segment, keys: np.ndarray, places: Sequence[Place]) -> PieceM
     return PieceMap(Place(q, d), float(np.count_nonzero(grid)) * CELL_M ** 2)
 
 
-def _chain_cov(seg: Segment, i: int, j: int) -> np.ndarray:
-    """The covariance of the chain's motion between positions ``i`` and ``j`` (its steps
-    composed, independent), in the earlier one's V."""
-    i, j = min(i, j), max(i, j)
-    pose, cov = np.zeros(3), np.zeros((3, 3))
-    for e in seg.steps[i:j]:
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        zx, zy = e.z[0], e.z[1]
-        j1 = np.array([[1, 0, -s * zx - c * zy], [0, 1, c * zx - s * zy], [0, 0, 1.0]])
-        j2 = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-        cov = j1 @ cov @ j1.T + j2 @ e.cov @ j2.T
-        pose = compose(pose, e.z)
-    return cov
-
-
-def _rotated(cov: np.ndarray, yaw: float) -> np.ndarray:
-    """A pose covariance given in a frame turned by ``yaw``, in the outer frame."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    r = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    return r @ cov @ r.T
-
-
-def agree(ci: _Closure, cj: _Closure, seg: Segment, other: Segment) -> bool:
-    """Whether closure ``cj`` is where closure ``ci`` and the chains put it, within the
-    1σ of both, the chain's drift between their keyframes in ``seg`` and between the
-    keyframes of ``other`` they fell near (chi-square under :data:`AGREE_CHI2`)."""
-    d = relative(seg.chain[ci.a], seg.chain[cj.a])
+def agree(ci: _Closure, cj: _Closure, mine: Piece, other: Piece) -> bool:
+    """Whether closure ``cj`` is where closure ``ci`` and the pieces put it, within the
+    1σ of both, the drift of ``mine`` between their keyframes and of ``other``
+    between the keyframes they fell near (chi-square under :data:`AGREE_CHI2`)."""
+    d = relative(mine.poses[ci.a], mine.poses[cj.a])
     pred = compose(ci.z, d)
     c, s = math.cos(ci.z[2]), math.sin(ci.z[2])
     jp = np.array([[1, 0, -s * d[0] - c * d[1]], [0, 1, c * d[0] - s * d[1]], [0, 0, 1.0]])
-    first = ci.a if ci.a <= cj.a else cj.a
-    drift = _rotated(_chain_cov(seg, ci.a, cj.a), ci.z[2] + seg.chain[first, 2]
-                     - seg.chain[ci.a, 2])
-    there = _rotated(_chain_cov(other, ci.near, cj.near),
-                     other.chain[min(ci.near, cj.near), 2])
-    cov = cj.cov + jp @ ci.cov @ jp.T + drift + there
+    drift = _rotated(between(mine, ci.a, cj.a), ci.z[2] - mine.poses[ci.a, 2])
+    cov = cj.cov + jp @ ci.cov @ jp.T + drift + between(other, ci.near, cj.near)
     e = cj.z - pred
     e[2] = math.remainder(e[2], 2 * math.pi)
     return float(e @ np.linalg.solve(cov + np.eye(3) * 1e-12, e)) < AGREE_CHI2
@@ -166,25 +284,24 @@ def _beyond_chance(group: list[_Closure], pm: PieceMap) -> bool:
     return agreed >= max(MIN_INLIERS, need)
 
 
-def _closures(seg: Segment, keys: np.ndarray, places: Sequence[Place], target: Segment,
-              target_keys: np.ndarray, pm: PieceMap, rng: np.random.Generator
-              ) -> list[_Closure]:
-    """Each keyframe of ``seg`` matched against the piece map of ``target``: the ones
-    singled out against the whole piece."""
+def _closures(mine: Piece, places: Sequence[Place], other: Piece, pm: PieceMap,
+              rng: np.random.Generator) -> list[_Closure]:
+    """Each keyframe of ``mine`` (its ``places``, in the order of its keys) matched
+    against the piece map of ``other``: the ones singled out against the whole piece."""
     out = []
-    tk = target.chain[target_keys, :2]
-    for k, pl in zip(keys, places, strict=True):
+    tk = other.poses[other.keys, :2]
+    for k, pl in zip(mine.keys, places, strict=True):
         m = match_places(pm.place, pl, rng, min_points=0, knn=PIECE_KNN,
                          samples=PIECE_SAMPLES, area_m2=pm.area_m2)
         if not m:
             continue
-        near = int(target_keys[np.argmin(np.hypot(*(tk - m.z[:2]).T))])
-        out.append(_Closure(int(k), m.z, m.cov, _in_frame(seg.chain[k], m.points_b), near,
-                            m.inliers, m.runner_up, _in_frame(seg.chain[k], pl.points_v)))
+        near = int(other.keys[np.argmin(np.hypot(*(tk - m.z[:2]).T))])
+        out.append(_Closure(int(k), m.z, m.cov, _in_frame(mine.poses[k], m.points_b), near,
+                            m.inliers, m.runner_up, _in_frame(mine.poses[k], pl.points_v)))
     return out
 
 
-def join(closures: list[_Closure], seg: Segment, other: Segment, pm: PieceMap
+def join(closures: list[_Closure], mine: Piece, other: Piece, pm: PieceMap
          ) -> tuple[list[_Closure], str]:
     """The closures that join two pieces (empty, with the reason, when none may): the
     largest set agreeing with one closure that is beyond chance together
@@ -192,7 +309,7 @@ def join(closures: list[_Closure], seg: Segment, other: Segment, pm: PieceMap
     (``ambiguous``)."""
     sets = []
     for ci in closures:
-        group = [cj for cj in closures if cj is ci or agree(ci, cj, seg, other)]
+        group = [cj for cj in closures if cj is ci or agree(ci, cj, mine, other)]
         if _beyond_chance(group, pm):
             sets.append(group)
     if not sets:
@@ -204,46 +321,55 @@ def join(closures: list[_Closure], seg: Segment, other: Segment, pm: PieceMap
     return best, ""
 
 
+def _try(q: Piece, m: Piece, places: dict[int, Place], pm: PieceMap,
+         rng: np.random.Generator) -> tuple[list[tuple], str]:
+    """Piece ``q``'s keyframes (``places`` by node) against the map ``pm`` of piece
+    ``m``: the joins ``(node a, node b, z, cov, inliers, runner_up)`` (b's pose in
+    V_a), or the reason none was made."""
+    got = _closures(q, [places[int(q.nodes[k])] for k in q.keys], m, pm, rng)
+    chosen, why = join(got, q, m, pm)
+    out = []
+    for c in chosen:
+        base = m.poses[c.near]
+        out.append((int(m.nodes[c.near]), int(q.nodes[c.a]), relative(base, c.z),
+                    _rotated(c.cov, -base[2]), c.inliers, c.runner_up))
+    return out, why
+
+
 def piece_closures(segments: Sequence[Segment], keys_of: Sequence[np.ndarray],
                    places: dict[int, Place], offset: np.ndarray, links: Sequence,
                    rng: np.random.Generator) -> tuple[list[tuple], dict[str, int]]:
-    """Joins between the pieces that ``links`` (anything with node numbers ``a``, ``b``)
-    leave apart: for each two, the keyframes of the one with fewer matched against the
-    other's piece map (module docstring). ``keys_of``: each segment's keyframe
-    positions; ``places``: keyframes' places by node (``offset[s]`` + position).
+    """Joins between the pieces that ``links`` (anything with node numbers ``a``, ``b``,
+    ``z`` and ``cov``) leave apart: for each two, the keyframes of the one with fewer
+    matched against the other's piece map (module docstring), again once either has
+    grown by a join. ``keys_of``: each segment's keyframe positions; ``places``:
+    keyframes' places by node (``offset[s]`` + position).
 
     Returns ``(node a, node b, z, cov, inliers, runner_up)`` per closure (b's pose in
-    V_a) and the refused joins by reason (``piece: <reason>``)."""
-    seg_of = np.repeat(np.arange(len(segments)), [len(s.frames) for s in segments])
-    comp = list(range(len(segments)))
-
-    def root(s: int) -> int:
-        while comp[s] != s:
-            s = comp[s]
-        return s
-
-    for lk in links:
-        comp[root(int(seg_of[lk.a]))] = root(int(seg_of[lk.b]))
-    out, refused, maps = [], {}, {}
-    for s in range(len(segments)):
-        for t in range(s + 1, len(segments)):
-            if root(s) == root(t) or min(len(keys_of[s]), len(keys_of[t])) < 2:
+    V_a) and the refused joins by reason (``piece: <reason>`` per pair tried;
+    ``piece apart: <reason>`` per piece left apart from segment 0's at the end:
+    ``one keyframe``, or ``no checked join``)."""
+    known = [(lk.a, lk.b, lk.z, lk.cov) for lk in links]
+    out, refused, maps, tried = [], {}, {}, set()
+    grew = True
+    while grew:
+        grew = False
+        ps = pieces(segments, offset, keys_of, known + [j[:4] for j in out])
+        for a, b in itertools.combinations(ps, 2):
+            q, m = (a, b) if len(a.keys) <= len(b.keys) else (b, a)
+            if len(q.keys) < 2 or (q.segments, m.segments) in tried:
                 continue
-            q, m = (s, t) if len(keys_of[s]) <= len(keys_of[t]) else (t, s)
-            if m not in maps:
-                maps[m] = piece_map(segments[m], keys_of[m], [
-                    places[int(offset[m] + k)] for k in keys_of[m]])
-            got = _closures(segments[q], keys_of[q],
-                            [places[int(offset[q] + k)] for k in keys_of[q]],
-                            segments[m], keys_of[m], maps[m], rng)
-            chosen, why = join(got, segments[q], segments[m], maps[m])
-            if not chosen:
+            tried.add((q.segments, m.segments))
+            if m.segments not in maps:
+                maps[m.segments] = piece_map(m, [places[int(m.nodes[k])] for k in m.keys])
+            got, why = _try(q, m, places, maps[m.segments], rng)
+            if not got:
                 refused[f"piece: {why}"] = refused.get(f"piece: {why}", 0) + 1
                 continue
-            comp[root(q)] = root(m)
-            for c in chosen:
-                base = segments[m].chain[c.near]
-                out.append((int(offset[m] + c.near), int(offset[q] + c.a),
-                            relative(base, c.z), _rotated(c.cov, -base[2]), c.inliers,
-                            c.runner_up))
+            out += got
+            grew = True
+            break
+    for p in ps[1:]:                   # ps[0] holds segment 0 (the anchor's)
+        why = "piece apart: " + ("one keyframe" if len(p.keys) < 2 else "no checked join")
+        refused[why] = refused.get(why, 0) + 1
     return out, refused

@@ -7,7 +7,14 @@ import numpy as np
 
 from ceilkit.calib.survey_chain import Segment
 from ceilkit.calib.survey_graph import Edge, chain_poses, compose, relative
-from ceilkit.calib.survey_pieces import PieceMap, _Closure, join, piece_closures
+from ceilkit.calib.survey_pieces import (
+    PieceMap,
+    _Closure,
+    between,
+    join,
+    piece_closures,
+    pieces,
+)
 from ceilkit.calib.survey_places import HALF_EXTENT_M, Place
 
 
@@ -77,18 +84,19 @@ def test_agreeing_closures_join_only_on_features_beyond_chance():
     # keyframes on 6-8 features; a join needs a closure's 20 features together
     rng = np.random.default_rng(3)
     seg = _piece(*_ceiling(rng, False), np.zeros(3), 10, rng)[0]
+    piece = pieces([seg], np.array([0]), [np.arange(10)], [])[0]
     other = PieceMap(Place(rng.uniform(0, 3, (120, 2)), np.zeros((120, 32), np.uint8)), 7.2)
     where = np.array([1.0, 0.5, 0.2])
     feats = rng.uniform(-1, 1, (30, 2))
 
     def closures(n_features: int) -> list[_Closure]:
-        return [_Closure(k, compose(where, seg.chain[k]), np.eye(3) * 1e-7,
+        return [_Closure(k, compose(where, piece.poses[k]), np.eye(3) * 1e-7,
                          feats[np.arange(k, k + n_features) % n_features], 0, 10, 0,
                          rng.uniform(-1, 1, (40, 2))) for k in (0, 2, 4)]
 
-    chosen, why = join(closures(7), seg, seg, other)
+    chosen, why = join(closures(7), piece, piece, other)
     assert chosen == [] and why == "too few agreeing features"
-    assert len(join(closures(24), seg, seg, other)[0]) == 3
+    assert len(join(closures(24), piece, piece, other)[0]) == 3
 
 
 def test_overlapping_pieces_under_a_panel_lattice_are_joined_by_the_scatter():
@@ -96,3 +104,59 @@ def test_overlapping_pieces_under_a_panel_lattice_are_joined_by_the_scatter():
     assert joins, refused
     for a, b, z, _cov, _n, _r in joins:
         assert np.hypot(*(z[:2] - relative(truth[a], truth[b])[:2])) < 0.003
+
+
+def test_a_piece_spans_the_segments_its_links_tie_and_its_drift_is_the_steps_composed():
+    # two segments tied by a link from the first's 3rd frame into the second's 4th: one
+    # piece, the second put where the link says (its first frames reached backwards);
+    # the covariance between two frames is what sampled motions give (4000 draws)
+    rng = np.random.default_rng(5)
+    cov = np.diag([1e-4, 2e-4, 2e-3])
+    z = [np.array([0.4, 0.1, 0.5])] * 5
+    segs = [Segment(0, np.arange(6), tuple(Edge(k, k + 1, z[k], cov) for k in range(5)),
+                    chain_poses(np.zeros(3), z)) for _ in range(2)]
+    link = (2, 9, np.array([0.1, 0.3, -0.4]), cov * 2)
+    (one,) = pieces(segs, np.array([0, 6]), [np.arange(6), np.arange(6)], [link])
+    assert one.segments == (0, 1) and np.allclose(one.poses[9], compose(one.poses[2], link[2]))
+    draws = []
+    for _ in range(4000):
+        step = [m + rng.multivariate_normal(np.zeros(3), c)
+                for m, c in [(z[1], cov), (z[2], cov), (z[3], cov), (link[2], link[3]),
+                             (z[2], cov), (z[1], cov)]]
+        p4 = chain_poses(np.zeros(3), step[:3])[-1]            # frame 1 -> 4
+        p9 = compose(chain_poses(np.zeros(3), step[:1])[-1], step[3])   # 1 -> 2 -> 9
+        p7 = compose(compose(p9, relative(step[4], np.zeros(3))),
+                     relative(step[5], np.zeros(3)))          # 9 -> 8 -> 7, backwards
+        draws.append(relative(p4, p7))
+    yaw = one.poses[4, 2]
+    r = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    want = r @ np.cov(np.array(draws).T) @ r.T         # in the piece's frame
+    got = between(one, 4, 7)
+    scale = np.sqrt(np.outer(np.diag(got), np.diag(got)))
+    assert np.all(np.abs(got - want) / scale < 0.07)
+    assert np.allclose(between(one, 1, 4), between(one, 1, 4).T)
+
+
+def test_pieces_in_a_row_join_through_the_grown_piece_and_a_lone_frame_is_said():
+    # A (x 0-3.9) and C (x 3.0-6.9) overlap; B (x 6.0-9.9) overlaps only C: B is joined
+    # once C is part of A's piece; a one-frame piece cannot be checked by two matches
+    rng = np.random.default_rng(2)
+    pts, desc = _ceiling(rng, False)
+    a = _piece(pts, desc, np.array([0.0, 0.0, 0.0]), 40, rng)
+    b = _piece(pts, desc, np.array([6.0, 0.1, 0.05]), 40, rng)
+    c = _piece(pts, desc, np.array([3.0, -0.1, -0.05]), 40, rng)
+    lone = _piece(pts, desc, np.array([1.0, 0.0, 0.0]), 1, rng)
+    offset = np.array([0, 40, 80, 120])
+    places = {int(o + k): p for o, pc in zip(offset, (a, b, c, lone), strict=True)
+              for k, p in zip(pc[1], pc[2], strict=True)}
+    joins, refused = piece_closures([a[0], b[0], c[0], lone[0]], [a[1], b[1], c[1], lone[1]],
+                                    places, offset, [], np.random.default_rng(1))
+    truth = np.r_[a[3], b[3], c[3], lone[3]]
+    tied = pieces([a[0], b[0], c[0], lone[0]], offset, [a[1], b[1], c[1], lone[1]],
+                  [j[:4] for j in joins])
+    assert [p.segments for p in tied] == [(0, 1, 2), (3,)], refused
+    assert refused["piece apart: one keyframe"] == 1 and "piece apart: no checked join" \
+        not in refused
+    for x, y, z, _cov, _n, _r in joins:
+        t = relative(truth[x], truth[y])
+        assert np.hypot(*(z[:2] - t[:2])) < 0.003 and abs(z[2] - t[2]) < 0.002
