@@ -547,3 +547,24 @@ def test_consistency_line_says_what_a_nees_outside_its_band_means(scale, word):
     lines = report.lines()
     extra = [ln for ln in lines if "the band" in ln]
     assert (extra == []) if word is None else (word in extra[0])
+
+
+
+def test_a_relocalized_track_is_covered_as_a_new_one_started_at_its_fix():
+    """After a kidnap the track restarts at the fix that confirmed the relocalization,
+    with that fix's covariance, and nothing of the old track (its covariance, an
+    inflated noise) is kept: its poses and covariances are those of a new track fed the
+    same fixes from that frame (docs/fusion.md, "Kidnapped drives' NEES")."""
+    rng = np.random.default_rng(5)
+    sd = np.array([0.003, 0.003, 0.002])
+    fixes = [_lights(k, *((1.0 + 0.02 * k, 2.0, 0.0) if k < 10 else
+                          (4.0 + 0.02 * k, 2.0, 0.5 * math.pi)) + rng.normal(0.0, sd),
+                     mode="global", cov=np.diag(sd ** 2)) for k in range(40)]
+    kidnapped, fresh = Fusion(), Fusion()
+    out = [kidnapped.update(z) for z in fixes]
+    k0 = next(k for k in range(10, 40) if out[k].relocalized)
+    assert k0 == 12
+    for k in range(k0, 40):
+        a, b = out[k].estimate, fresh.update(fixes[k]).estimate
+        assert (a.x_m, a.y_m, a.yaw_rad) == pytest.approx((b.x_m, b.y_m, b.yaw_rad), abs=1e-12)
+        assert np.allclose(a.cov, b.cov, rtol=1e-9, atol=0.0)
