@@ -10,7 +10,7 @@ import numpy as np
 from lights_reference import centres, locate, plausible
 
 from ceilkit.runtime.estimators.lights.rays import ceiling_points
-from ceilkit.runtime.estimators.lights.refine import refine_pose_ceiling
+from ceilkit.runtime.estimators.lights.refine import pattern_cover, refine_pose_ceiling
 from ceilkit.runtime.estimators.lights.track import MAX_HALF_PX, TRACK_CORE, WindowTracker
 from ceilkit.runtime.features.spots import rows_to_spots
 from ceilkit.runtime.features.windows import window_stats
@@ -75,7 +75,8 @@ def measure(w: WindowTracker, grey: np.ndarray, corner: np.ndarray, half: int):
 
 
 def fit_pose(w: WindowTracker, spots, idx, tab, x_m, y_m, yaw_rad):
-    q, ok = ceiling_points(w.rig, w.ceiling_height_m, centres(spots.centroids_px, tab))
+    cen = centres(spots.centroids_px, tab)
+    q, ok = ceiling_points(w.rig, w.ceiling_height_m, cen)
     if not ok.all():
         return None
     J = tab[:, :4].reshape(-1, 2, 2)
@@ -84,13 +85,16 @@ def fit_pose(w: WindowTracker, spots, idx, tab, x_m, y_m, yaw_rad):
     fit = refine_pose_ceiling(q, J, L, x_m, y_m, yaw_rad)
     res = fit[4]
     bad = res > max(w.max_residual_px, w.outlier_medians * short_median(res))
+    keep = ~bad
     if bad.any():
         if idx.size - int(bad.sum()) < 3:
             return None
-        keep = ~bad
         pairs = pairs[keep]
         fit = refine_pose_ceiling(q[keep], J[keep], L[keep], *fit[:3])
         res = fit[4]
+    # the covariance without the lights' shared radial shift (refine.pattern_cover)
+    cam = w.rig.camera
+    fit = pattern_cover(q[keep], J[keep], L[keep], cen[keep] - (cam.cx, cam.cy), fit)
     x, y, yaw, cov_p, res = fit
     rms = math.sqrt(float((res * res).sum()) / res.size)
     if (rms > w.max_residual_px or not np.all(np.isfinite(cov_p))

@@ -19,7 +19,9 @@ Stages per frame:
    grid), the frame is ``ambiguous`` and carries the poses as ``hypotheses``; a pose
    the prior chose is ``Provenance.PRIOR`` and carries the twins it ruled out.
 3. ``refine`` (:func:`~.refine.refine_pose_ceiling`): Gauss-Newton on the pixel
-   residuals, one outlier pass; the covariance is ``s² (JᵀJ)⁻¹``. In a two-level
+   residuals, one outlier pass; the covariance is ``s² (JᵀJ)⁻¹``, in a frame with
+   more grey levels ``s²`` counted without the radial shift the centroids share and
+   what that shift moves the pose by added (:func:`~.refine.pattern_cover`). In a two-level
    frame (0/255) a radial shift of every centroid is a fourth unknown
    (:func:`frame_shifts`, :func:`~.refine.with_shifts`), its uncertainty in the
    covariance, which also covers what leaving any one lamp out moves the pose by
@@ -83,6 +85,7 @@ from ceilkit.runtime.estimators.lights.observe import (
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
 from ceilkit.runtime.estimators.lights.refine import (
     RefinedPose,
+    pattern_cover,
     refine_pose_ceiling,
     with_shifts,
 )
@@ -618,6 +621,9 @@ def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_p
     lights = lights_w[pairs[:, 1]]
     if motion is None:
         fit = refine_pose_ceiling(q, jac, lights, *start)
+        if obs.centre_px is None and obs.principal_px is not None:   # more grey levels
+            return pattern_cover(q, jac, lights,
+                                 obs.spots.centroids_px[pairs[:, 0]] - obs.principal_px, fit)
         if obs.centre_px is None or obs.excess_px is None:   # every weight 1
             return with_shifts(q, jac, lights, frame_shifts(obs, pairs[:, 0]), fit)
         w = spot_weights(obs, pairs[:, 0])[:, None, None]

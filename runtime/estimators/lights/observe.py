@@ -93,6 +93,9 @@ class Observation:
     # the area beyond it over its perimeter; SpotObserver._rectangles): a bloom, a
     # fixture merged with the lamp
     excess_px: np.ndarray | None = None
+    # the principal point (px) of every frame: the centre of the radial shift its
+    # intensity-weighted centroids share (refine.pattern_cover)
+    principal_px: np.ndarray | None = None
 
     def weights(self) -> np.ndarray:
         """``(N,)`` each spot's weight as evidence: 1, :data:`WEAK_WEIGHT` for a weak
@@ -430,7 +433,8 @@ class SpotObserver:
         if len(spots) == 0:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
         cam = self.rig.camera
-        centre = np.array([cam.cx, cam.cy]) if two_level(grey) else None
+        principal = np.array([cam.cx, cam.cy])
+        centre = principal if two_level(grey) else None
         weak = axis = excess = None
         if self.light_size_m is not None:
             q, ok, weak, axis, excess = self._rectangles(spots, q, ok, table, centre)
@@ -445,7 +449,7 @@ class SpotObserver:
         t_vc = self.t_vehicle_cam
         rng = np.hypot(q[:, 0] - t_vc[0], q[:, 1] - t_vc[1])
         return Observation(spots, q, rng.argsort(kind="stable"), J,
-                           candidates_px, ok, weak, axis, centre, excess)
+                           candidates_px, ok, weak, axis, centre, excess, principal)
 
     def _rectangles(self, spots: Spots, q: np.ndarray, ok: np.ndarray, table: np.ndarray,
                     centre_px: np.ndarray | None = None

@@ -26,7 +26,7 @@ import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.estimators.lights.rays import project_poses
-from ceilkit.runtime.geometry.fits import covering
+from ceilkit.runtime.geometry.fits import covering, student
 from ceilkit.runtime.geometry.fits import scaled_inverse3 as _scaled_inverse
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -38,7 +38,9 @@ residuals happen to be tiny, not a noise model. The covariance is the residuals'
 ``s² (JᵀJ)⁻¹``: a real lens's unmodelled error is in the residuals and so in ``s²``.
 Measured (``benchmarks/bench_ambiguity.py``, noise 2, blur 0.8): the residuals give
 a light-grid drive's mean NEES 2.11 (3 dof; band 2.41-3.65), 0.36 with the former
-0.1 px floor; at noise 5, blur 1.2, 2.64, inside."""
+0.1 px floor; at noise 5, blur 1.2, 2.64, inside. With the shared radial shift counted
+out (:func:`pattern_cover`, frames with more grey levels; 2026-12-07): 3.11 (band
+2.38-3.69) and 3.39 (2.39-3.67)."""
 JACKKNIFE_MAX_LEVERAGE = 0.99
 """A light whose own leverage in a fit (the largest eigenvalue of its 2x2 block of the
 hat matrix) reaches this is left out of :func:`spot_jackknife`: its residual says
@@ -221,6 +223,86 @@ def with_shifts(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarray,
             cov, norms)
 
 
+def pattern_cover(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarray,
+                  shifts_px: np.ndarray,
+                  fit: tuple[float, float, float, np.ndarray, np.ndarray],
+                  sigma_floor_px: float = SIGMA_FLOOR_PX) -> tuple[
+                      float, float, float, np.ndarray, np.ndarray]:
+    """``fit`` (:func:`refine_pose_ceiling` of the same lights) with the covariance of
+    :func:`_pattern_cover`: the pose kept, ``s²`` counted without a centroid shift
+    ``e S_i`` the frame's lights share (``shifts_px (K, 2)``: the radial ``p_i - c``),
+    and what the fitted ``e`` moves the pose by added. ``fit`` itself when fewer than
+    :data:`SHIFT_MIN_DOF` residual degrees of freedom are left or the pattern is not
+    separable from a pose move."""
+    k = np.asarray(q_v).reshape(-1, 2).shape[0]
+    if 2 * k - 4 < SHIFT_MIN_DOF or not np.all(np.isfinite(fit[3])):
+        return fit
+    cov = np.empty((3, 3))
+    ok = _pattern_cover(arr(q_v, np.float64).reshape(-1, 2),
+                        arr(jac_px, np.float64).reshape(-1, 2, 2),
+                        arr(lights_w, np.float64).reshape(-1, 2),
+                        np.array(fit[:3], float), arr(shifts_px, np.float64).reshape(-1, 2),
+                        cov, float(sigma_floor_px))
+    return (*fit[:3], cov, fit[4]) if ok else fit
+
+
+@njit
+def _pattern_cover(q, J, L, pose, S, cov, floor):  # pragma: no cover - compiled
+    """The covariance (into ``cov``; False when it cannot be had) of the
+    three-unknown fit at ``pose`` whose lights' centroid errors hold a shift ``e S_i``
+    they share (``S (K, 2)`` px per unit ``e``) besides errors of their own.
+
+    With ``A`` the residuals' pose Jacobian, ``N = AᵀA``, ``r`` the residuals at the
+    fit, ``g = N⁻¹ AᵀS`` (what a unit ``e`` moves the pose by) and ``m = SᵀS - Sᵀ A g``
+    (the part of the pattern no pose move takes): ``ê = Sᵀr / m``, and the covariance
+    is ``s² student(ν) N⁻¹ + max(ê² - s² / m, 0) g gᵀ``, ``s² = max((rᵀr - (Sᵀr)² / m)
+    / ν, floor²)``, ``ν = 2K - 4`` (a variance estimated from ``ν`` residuals:
+    :func:`~ceilkit.runtime.geometry.fits.student`; ``ê²`` less its own variance). A
+    frame's fall-off and halo move every intensity-weighted centroid towards the
+    principal point by a place-dependent
+    0.02-0.05 px (docs/methods/lights.md §4): in the residuals, where it was a third of
+    ``s²``, but not in the pose of a centred upward camera (``g`` small), so the pooled
+    ``s² N⁻¹`` over-covered (the spot grid's mean NEES 2.16 below 2.33-3.75; now 3.11
+    in 2.38-3.69)."""
+    k = q.shape[0]
+    B = _basis(q, J, L)
+    r = np.empty(2 * k)
+    At = np.empty((3, 2 * k))
+    ssr = _residuals(B, pose[0], pose[1], pose[2], r, At)
+    N = np.empty((3, 3))
+    h = np.empty(3)
+    _normal(At, r, N, h)
+    Ni = np.empty((3, 3))
+    if not (math.isfinite(ssr) and _scaled_inverse(N, 1.0, Ni)):
+        return False
+    a_s = np.zeros(3)
+    ss = sr = 0.0
+    for j in range(2 * k):
+        sj = S[j // 2, j % 2]
+        ss += sj * sj
+        sr += sj * r[j]
+        for a in range(3):
+            a_s[a] += At[a, j] * sj
+    g = np.zeros(3)
+    m = ss
+    for a in range(3):
+        for b in range(3):
+            g[a] += Ni[a, b] * a_s[b]
+    for a in range(3):
+        m -= a_s[a] * g[a]
+    if not (math.isfinite(m) and m > 1e-9 * max(ss, 1e-300)):
+        return False
+    e = sr / m
+    nu = 2.0 * k - 4.0
+    s2 = max((ssr - sr * e) / nu, floor * floor)
+    e2 = max(e * e - s2 / m, 0.0)                 # ê² less its own variance s² / m
+    s2 *= student(nu)
+    for a in range(3):
+        for b in range(3):
+            cov[a, b] = s2 * Ni[a, b] + e2 * g[a] * g[b]
+    return True
+
+
 def spot_jackknife(A: np.ndarray, Ni: np.ndarray, r: np.ndarray) -> np.ndarray:
     """``Σ_i δ_i δ_iᵀ``: what leaving each light out does to the unknowns of a linear
     least-squares fit (the leave-one-out jackknife; HC3 by pairs of rows).
@@ -268,15 +350,7 @@ def _gauss_newton(q, J, L, pose, iterations, N, norms):  # pragma: no cover - co
     it lowers the sum (a ridge of 1e-9 on the normal equations, a Cholesky solve);
     steps end below 1e-5 m and 1e-6 rad."""
     k = q.shape[0]
-    B = np.empty((5, 2 * k))
-    for i in range(k):
-        for a in range(2):
-            j0, j1 = J[i, a, 0], J[i, a, 1]
-            B[0, 2 * i + a] = j0 * L[i, 0] + j1 * L[i, 1]
-            B[1, 2 * i + a] = j0 * L[i, 1] - j1 * L[i, 0]
-            B[2, 2 * i + a] = j0
-            B[3, 2 * i + a] = j1
-            B[4, 2 * i + a] = j0 * q[i, 0] + j1 * q[i, 1]
+    B = _basis(q, J, L)
     r = np.empty(2 * k)
     At = np.empty((3, 2 * k))
     r_new = np.empty(2 * k)
@@ -304,6 +378,22 @@ def _gauss_newton(q, J, L, pose, iterations, N, norms):  # pragma: no cover - co
     for i in range(k):
         norms[i] = math.sqrt(r[2 * i] ** 2 + r[2 * i + 1] ** 2)
     return ssr
+
+
+@njit
+def _basis(q, J, L):  # pragma: no cover - compiled
+    """The fixed basis ``B (5, 2k)`` of :func:`_gauss_newton`'s residuals."""
+    k = q.shape[0]
+    B = np.empty((5, 2 * k))
+    for i in range(k):
+        for a in range(2):
+            j0, j1 = J[i, a, 0], J[i, a, 1]
+            B[0, 2 * i + a] = j0 * L[i, 0] + j1 * L[i, 1]
+            B[1, 2 * i + a] = j0 * L[i, 1] - j1 * L[i, 0]
+            B[2, 2 * i + a] = j0
+            B[3, 2 * i + a] = j1
+            B[4, 2 * i + a] = j0 * q[i, 0] + j1 * q[i, 1]
+    return B
 
 
 @njit
@@ -371,6 +461,9 @@ def _warm() -> None:
     q = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     refine_pose_ceiling(q, np.tile(np.eye(2) * 300.0, (3, 1, 1)), q, 0.0, 0.0, 0.0)
     _inv3(np.eye(3))
+    pattern_cover(q, np.tile(np.eye(2) * 300.0, (3, 1, 1)), q, q[:, ::-1],
+                  (0.0, 0.0, 0.0, np.eye(3), np.zeros(3)))
 
 
-__all__ = ["refine_pose", "refine_pose_ceiling", "spot_jackknife", "with_shifts"]
+__all__ = ["pattern_cover", "refine_pose", "refine_pose_ceiling", "spot_jackknife",
+           "with_shifts"]

@@ -64,7 +64,12 @@ from ceilkit.runtime.estimators.lights.rays import (
     pixel_scale,
     project_lights,
 )
-from ceilkit.runtime.estimators.lights.refine import SIGMA_FLOOR_PX, _refine
+from ceilkit.runtime.estimators.lights.refine import (
+    SHIFT_MIN_DOF,
+    SIGMA_FLOOR_PX,
+    _pattern_cover,
+    _refine,
+)
 from ceilkit.runtime.features.spots import FLAT
 from ceilkit.runtime.features.windows import read_windows_core
 from ceilkit.runtime.jit import arr, njit, warmer
@@ -280,7 +285,11 @@ def _track(grey, x, y, yaw, seen, grid, mount, params):  # pragma: no cover - co
     if not ceiling_points_core(centres, mount.code, mount.lens, mount.R, mount.t, dz,
                                q).all():
         return _refused(NO_RAY, px, m)
-    status, fx, fy, fyaw, cov, res, keep = _fit(q, jac, L, x, y, yaw, params)
+    shift = np.empty((n_found, 2))             # the radial pattern (refine._pattern_cover)
+    for f in range(n_found):
+        shift[f, 0] = centres[f, 0] - mount.lens[2]
+        shift[f, 1] = centres[f, 1] - mount.lens[3]
+    status, fx, fy, fyaw, cov, res, keep = _fit(q, jac, L, x, y, yaw, shift, params)
     if status != FIX:
         return _refused(status, px, m)
     return (FIX, fx, fy, fyaw, cov, res, cen, pairs[keep], m, n_found, px)
@@ -395,12 +404,14 @@ def _measure(grey, corner, half, grid, params):  # pragma: no cover - compiled
 
 
 @njit
-def _fit(q, jac, L, x, y, yaw, params):  # pragma: no cover - compiled
+def _fit(q, jac, L, x, y, yaw, shift, params):  # pragma: no cover - compiled
     """``(status, x, y, yaw, cov, res, keep)``: :func:`~.refine.refine_pose_ceiling`
     from the prior, one outlier pass (residuals beyond ``max(max_residual_px,
-    outlier_medians x median)`` dropped, refitted from the first fit) and the frame's
-    checks (RMS, a finite covariance, within the prior's gate): status :data:`FEW_KEPT`
-    or :data:`CHECK` when they fail."""
+    outlier_medians x median)`` dropped, refitted from the first fit), the covariance
+    of :func:`~.refine.pattern_cover` with the lights' radial pattern ``shift (K, 2)``
+    (px about the principal point), and the frame's checks (RMS, a finite covariance,
+    within the prior's gate): status :data:`FEW_KEPT` or :data:`CHECK` when they
+    fail."""
     k = q.shape[0]
     keep = np.ones(k, np.bool_)
     fx, fy, fyaw, cov, res = _refine(q, jac, L, x, y, yaw, 3, SIGMA_FLOOR_PX)
@@ -415,6 +426,11 @@ def _fit(q, jac, L, x, y, yaw, params):  # pragma: no cover - compiled
             return FEW_KEPT, 0.0, 0.0, 0.0, cov, res, keep
         fx, fy, fyaw, cov, res = _refine(q[keep], jac[keep], L[keep], fx, fy, fyaw, 3,
                                          SIGMA_FLOOR_PX)
+    if 2 * res.size - 4 >= SHIFT_MIN_DOF:
+        covered = np.empty((3, 3))
+        if _pattern_cover(q[keep], jac[keep], L[keep], np.array([fx, fy, fyaw]),
+                          shift[keep], covered, SIGMA_FLOOR_PX):
+            cov = covered
     ss = 0.0
     for i in range(res.size):
         ss += res[i] * res[i]

@@ -1,7 +1,8 @@
 """The lights fit's covariance in a two-level frame (issue 36): it covers what any one
 lamp does to the pose (``refine.spot_jackknife``, ``refine.covering``), so a lamp whose
 centroid is biased (a fixture beside it, a trimmed edge) does not leave the pose outside
-its own ellipse."""
+its own ellipse; in a frame with more grey levels the centroids' shared radial shift is
+counted out of ``s²`` (``refine.pattern_cover``)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import math
 import numpy as np
 
 from ceilkit.runtime.estimators.lights.refine import (
+    pattern_cover,
     refine_pose_ceiling,
     spot_jackknife,
     with_shifts,
@@ -177,3 +179,46 @@ def test_a_bloomed_lamps_bias_weighs_less(monkeypatch):
     weighted = rms_error()
     monkeypatch.setattr(est, "spot_weights", lambda obs, spots: np.ones(len(spots)))
     assert weighted < 0.6 * rms_error()
+
+
+def _radial_frame(rng: np.random.Generator, shift: float, noise_px: float):
+    """A frame of :data:`LIGHTS` under an upward pinhole (f 250 px, 2.5 m below the
+    ceiling) whose centroids share a radial shift ``shift (p - c)`` and carry
+    independent noise: ``(q, J, S, fit)`` with ``fit`` refined from :data:`POSE`."""
+    f_m = 250.0 / 2.5                                      # px per metre on the ceiling
+    q_true = seen(LIGHTS)
+    p = CENTRE + f_m * q_true
+    p_obs = p + shift * (p - CENTRE) + rng.normal(0.0, noise_px, p.shape)
+    q = (p_obs - CENTRE) / f_m
+    J = np.tile(f_m * np.eye(2), (len(LIGHTS), 1, 1))
+    return q, J, p_obs - CENTRE, refine_pose_ceiling(q, J, LIGHTS, *POSE)
+
+
+def _nees(fits) -> float:
+    out = []
+    for x, y, yaw, cov, _ in fits:
+        e = np.array([x - POSE[0], y - POSE[1], math.remainder(yaw - POSE[2], 2 * math.pi)])
+        out.append(e @ np.linalg.solve(cov, e))
+    return float(np.mean(out))
+
+
+def test_a_shared_radial_shift_is_counted_out_of_a_raw_frames_covariance():
+    """A shift every centroid shares about the principal point (the lens's fall-off
+    across each spot) is in the residuals but hardly moves the pose: with it counted
+    out (``pattern_cover``) the mean NEES stays near 3 (the Student factor makes an
+    estimated variance's right; what the shift moves the pose by, these lights lying
+    to one side, in its ``ê² g gᵀ``), where the pooled ``s²`` reads below; the pose is
+    the three-unknown fit's."""
+    rng = np.random.default_rng(13)
+    pooled, covered, clean = [], [], []
+    for _ in range(600):
+        q, J, S, fit = _radial_frame(rng, -2e-3, 0.03)      # 0.2-0.34 px at 100-170 px
+        out = pattern_cover(q, J, LIGHTS, S, fit)
+        assert out[:3] == fit[:3]
+        pooled.append(fit)
+        covered.append(out)
+        q, J, S, fit = _radial_frame(rng, 0.0, 0.03)
+        clean.append(pattern_cover(q, J, LIGHTS, S, fit))
+    assert _nees(pooled) < 2.2      # 1.81
+    assert 2.6 < _nees(covered) < 3.4     # 2.89
+    assert 2.6 < _nees(clean) < 3.4       # 3.04
