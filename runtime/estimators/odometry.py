@@ -24,9 +24,11 @@ marker drives). So a detection step is fitted from the tracks carried into it al
 its fresh corners are tracked beside them and, those the fit explains, carried on and
 fitted from their next step, sub-pixel at both ends. Only a step with no carried
 tracks (a stream's first, after a gap or a failed step) is fitted from fresh corners;
-a frame kept without measuring (``measure=False``) still follows the carried tracks
-into it (KLT alone, no fit; corners detected only when too few remain), so a leg
-between fixes does not start from fresh corners.
+a frame kept without measuring (``measure=False``) is followed by the carried tracks
+(KLT alone, no fit; corners detected only when too few remain) when the next step
+that measures comes, before it measures, so a leg between fixes does not start from
+fresh corners and a run of fixes pays no tracking (only the last kept frame is
+followed: a run of two or more starts from corners detected on the frame before it).
 
 Example::
 
@@ -233,6 +235,9 @@ class PlaneOdometry:
         # the corners tracked into the previous frame (N, 1, 2) float32, carried to
         # the next step instead of detecting again; how many were detected, how old
         self._tracks: np.ndarray | None = None
+        # a frame kept without measuring, not yet followed: (the frame before it, the
+        # corners carried into that one or None); followed only when a step needs it
+        self._kept: tuple[np.ndarray, np.ndarray | None] | None = None
         self._detected = 0
         self._age = 0
         self.fresh_fit = False   # the last step fitted corners detected on that step
@@ -241,6 +246,7 @@ class PlaneOdometry:
         self._prev = None
         self._t_prev = None
         self._tracks = None
+        self._kept = None
 
     def step(self, grey: np.ndarray) -> Increment | None:
         """The motion since the previous frame given to :meth:`step`, or None."""
@@ -253,20 +259,26 @@ class PlaneOdometry:
                   ) -> PlaneIncrement | None:
         """The motion since the previous frame (at its stamp ``t0_ns``) as a
         :class:`~ceilkit.runtime.estimators.base.PlaneIncrement`; ``measure=False``
-        publishes nothing (an absolute fix makes the increment moot) and only follows the
-        carried corners into the frame (:meth:`_keep_alive`), so the next step is not
-        fitted from fresh ones.
+        publishes nothing (an absolute fix makes the increment moot) and costs nothing
+        then: the frame is kept, and the carried corners are followed into it
+        (:meth:`_keep_alive`) by the next step that measures, before it measures, so no
+        step is fitted from fresh corners (issue 38: a run of fixes pays no tracking; a
+        step after a lone kept frame tracks as if it had been followed at once).
         ``near``: a pose (``x_m``, ``y_m``, ``yaw_rad``; the prior) that places the
         tracks on the ceiling: those inside the site's ``ignore`` regions are not used
         (SPEC §2: a fan, a moving shadow); without it every track counts."""
         prev, t_prev = self._prev, self._t_prev
+        kept, self._kept = self._kept, None
         self._prev, self._t_prev = grey, int(t_ns)
         if prev is None or t_prev is None or not 0 < (t_ns - t_prev) * 1e-9 <= MAX_GAP_S:
             self._tracks = None          # the carried corners belong to another frame
             return None
-        if not measure:
-            self._keep_alive(prev, grey)
+        if not measure:                  # followed later, if a step needs it
+            self._kept, self._tracks = (prev, self._tracks), None
             return None
+        if kept is not None:             # the kept frame (prev) followed now
+            self._tracks = kept[1]
+            self._keep_alive(kept[0], prev)
         inc = self._motion(prev, grey, near)
         if inc is None:
             return None

@@ -46,12 +46,18 @@ def test_the_rectifier_is_rectify_with_its_tables_looked_up_once():
 
 
 def test_the_priors_quadratic_form_is_numpys():
+    def quadratic(S, e):
+        n = len(e)
+        a = np.zeros((3, 4))
+        a[:n, :n], a[:n, n] = S, e
+        return _quadratic(a, np.asarray(e, float), n)
+
     rng = np.random.default_rng(2)
     for n in (1, 2, 3):
         for _ in range(50):
             a = rng.normal(size=(n, n))
             S = a @ a.T + 1e-3 * np.eye(n)
             e = rng.normal(size=n)
-            assert math.isclose(_quadratic(S.tolist(), e.tolist()),
-                                float(e @ np.linalg.solve(S, e)), rel_tol=1e-9)
-    assert _quadratic([[1.0, 1.0], [1.0, 1.0]], [1.0, 0.0]) == math.inf
+            assert math.isclose(quadratic(S, e), float(e @ np.linalg.solve(S, e)),
+                                rel_tol=1e-9)
+    assert quadratic([[1.0, 1.0], [1.0, 1.0]], [1.0, 0.0]) == math.inf
