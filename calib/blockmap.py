@@ -54,7 +54,7 @@ from ceilkit.runtime.config.site import (
 from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.estimators.block.detect import aruco_markers, measure_sides
 from ceilkit.runtime.features.grey import to_grey
-from ceilkit.runtime.features.quads import signed_area
+from ceilkit.runtime.features.quads import marker_dictionary, signed_area
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry, ceiling_jacobian, ceiling_points
 from ceilkit.runtime.io.outputs import claimed, recording_inputs
 from ceilkit.runtime.io.recording import Recording
@@ -189,14 +189,16 @@ def frame_sightings(grey: np.ndarray, frame: int, pose: np.ndarray, geo: PlanarG
     vehicle pose ``(x, y, yaw)`` (m, m, rad). Each is measured on its edges as the
     block method measures a marker (:func:`~ceilkit.runtime.estimators.block.detect.measure_sides`:
     lines fitted to :data:`EDGE_POINTS` edge points a side, dark inside, two passes
-    about aruco's corners; corner k between sides k-1 and k); a marker whose sides are
-    not measured, or with a corner whose ray does not rise to the ceiling, is left out."""
+    about aruco's corners, each edge's level half a cell either side of it; corner k
+    between sides k-1 and k); a marker whose sides are not measured, or with a corner
+    whose ray does not rise to the ceiling, is left out."""
     x, y, yaw = (float(v) for v in pose)
     c, s = math.cos(yaw), math.sin(yaw)
+    cells = int(marker_dictionary(dictionary).markerSize) + 2
     out = []
     for mid, px in aruco_markers(grey, dictionary):
         sign = -1 if signed_area(px) > 0 else 1
-        sides = measure_sides(grey, px, geo, EDGE_POINTS, passes=2, sign=sign)
+        sides = measure_sides(grey, px, geo, EDGE_POINTS, passes=2, sign=sign, cells=cells)
         if sides is None:
             continue
         q, ok = ceiling_points(sides.corners_norm, geo.R_vehicle_cam, geo.t_vehicle_cam,

@@ -381,7 +381,7 @@ def edge_offsets(search_px: float) -> np.ndarray:
 
 
 def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
-                search_px: float = EDGE_SEARCH_PX, sign: int = 0
+                search_px: float = EDGE_SEARCH_PX, sign: int = 0, cells: int = 0
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel points of each side of a coarse quad ``(4, 2)`` (side k: corner k to k+1).
 
@@ -400,6 +400,15 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     one cell either side (both of the other polarity), where an unsigned one within
     ``search_px`` of about a cell may take either.
 
+    ``cells``: a marker's cells across its black square (its border included: the
+    dictionary's bits + 2), 0 for a plain block. On a marker the half-way level is
+    then read half a cell either side of the step (the black border cell's centre
+    inside, the quiet ring's outside; :func:`half_cell_level`) instead of at the
+    profile's ends: on a cell of about 4 px the inner end lies on the blurred edge of
+    the first code cell, whose colour moved the level and with it the step (a white
+    cell there: outwards, about 0.17 px at 4 px a cell and blur 1.2, docs/methods/
+    block.md).
+
     Returns:
         points_px ``(M, 2)`` and side ``(M,)`` int (0..3) of each point.
     """
@@ -408,18 +417,20 @@ def edge_points(grey: np.ndarray, corners_px: np.ndarray, per_side: int = 12,
     if not np.isfinite(p0).all():
         return np.zeros((0, 2)), np.zeros(0, np.int64)
     pts, side, n = edge_points_core(arr(grey, np.uint8), p0, arr(offs, np.float64),
-                                arr(t, np.float64),
-                                EDGE_STEP_PX, int(sign))
+                                    arr(t, np.float64), EDGE_STEP_PX, int(sign),
+                                    float(cells))
     return pts[:n], side[:n]
 
 
 @njit
-def edge_points_core(grey, p0, offs, t, step, sign=0):  # pragma: no cover - compiled
+def edge_points_core(grey, p0, offs, t, step, sign=0, cells=0.0):  # pragma: no cover
     """:func:`edge_points` on a ``(4, 2)`` quad of finite corners: ``(points (4 S, 2),
     side (4 S,), count)``, the first ``count`` kept. Samples are bilinear in float
     (the frame's edge replicated beyond it), at offsets ``offs (K,)`` across each side
-    at the fractions ``t (S,)`` along it; ``sign`` as :func:`edge_points`'s."""
+    at the fractions ``t (S,)`` along it; ``sign`` and ``cells`` as
+    :func:`edge_points`'s."""
     h, w = grey.shape
+    half_cell = 0.5 * mean_side_px(p0) / cells if cells > 0 else 0.0
     n_st, n_off = t.size, offs.size
     prof = np.empty(n_off)
     pts = np.empty((4 * n_st, 2))
@@ -445,8 +456,14 @@ def edge_points_core(grey, p0, offs, t, step, sign=0):  # pragma: no cover - com
             # ends, in the steepest interval (unbiased for a symmetric blur, unlike the
             # peak of a sampled gradient)
             mid = 0.25 * (prof[0] + prof[1] + prof[n_off - 1] + prof[n_off - 2])
-            d0, d1 = prof[k] - mid, prof[k + 1] - mid
-            frac = d0 / (d0 - d1) if abs(d0 - d1) > 1e-6 else 0.5
+            frac = _crossing(prof[k], prof[k + 1], mid)
+            # a marker: the level half a cell either side of the step found, twice
+            # (the second about the first's step: 2.2-4.7x less of the code cell's
+            # colour than the ends, the noise 1.1-1.2x, docs/methods/block.md)
+            for _ in range(2 if half_cell > 0 else 0):
+                o = offs[0] + (k + min(max(frac, -1.0), 2.0)) * step
+                mid = half_cell_level(grey, (bx, by), (nx, ny), o, half_cell)
+                frac = _crossing(prof[k], prof[k + 1], mid)
             o = offs[0] + (k + min(max(frac, -1.0), 2.0)) * step
             strength[s, j] = best
             u, v = bx + o * nx, by + o * ny
@@ -464,6 +481,40 @@ def edge_points_core(grey, p0, offs, t, step, sign=0):  # pragma: no cover - com
                 side[n] = s
                 n += 1
     return pts, side, n
+
+
+@njit
+def _crossing(p0, p1, mid):  # pragma: no cover - compiled
+    """Where (a fraction of the interval) the segment ``p0`` -> ``p1`` crosses ``mid``;
+    0.5 for a flat one."""
+    d0, d1 = p0 - mid, p1 - mid
+    return d0 / (d0 - d1) if abs(d0 - d1) > 1e-6 else 0.5
+
+
+@njit
+def mean_side_px(px):  # pragma: no cover - compiled
+    """The mean length (px) of the sides of the quad ``px (4, 2)``."""
+    total = 0.0
+    for c in range(4):
+        total += np.hypot(px[(c + 1) % 4, 0] - px[c, 0], px[(c + 1) % 4, 1] - px[c, 1])
+    return total / 4.0
+
+
+@njit
+def half_cell_level(grey, base, normal, o, half_cell):  # pragma: no cover - compiled
+    """The half-way level of a marker's edge at ``o`` px along ``normal (nx, ny)`` from
+    ``base (x, y)``: the mean of the grey ``half_cell`` px either side (the centres of
+    the black border cell and of the quiet ring's, as far from the code's first cells
+    as a read can be), each side the mean of two bilinear samples a quarter pixel
+    either side of it."""
+    h, w = grey.shape
+    bx, by = base
+    nx, ny = normal
+    total = 0.0
+    for d in (o - half_cell - 0.25, o - half_cell + 0.25,
+              o + half_cell - 0.25, o + half_cell + 0.25):
+        total += bilinear(grey, bx + d * nx, by + d * ny, w, h)
+    return 0.25 * total
 
 
 @njit

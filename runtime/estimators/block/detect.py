@@ -376,13 +376,16 @@ class EdgeSearch(NamedTuple):
     """The edge passes of :func:`measure_core` as it reads them: offsets across a side
     ``first (K,)`` px on the first pass and ``rest`` after, stations along it ``t (S,)``
     (fractions of the side, :func:`~ceilkit.runtime.features.quads.edge_stations`), the
-    profile's sampling ``step_px`` and the edges' polarity ``sign`` (-1, 0, +1)."""
+    profile's sampling ``step_px``, the edges' polarity ``sign`` (-1, 0, +1) and a
+    marker's ``cells`` across its black square (0: a plain block;
+    :func:`~ceilkit.runtime.features.quads.edge_points`')."""
 
     first: np.ndarray
     rest: np.ndarray
     t: np.ndarray
     step_px: float
     sign: int
+    cells: float = 0.0
 
 
 class SidesOut(NamedTuple):
@@ -400,17 +403,19 @@ class SidesOut(NamedTuple):
                         np.empty(4 * per_side, np.int64))
 
 
-def edge_search(per_side: int, search_px: float, sign: int = 0) -> EdgeSearch:
+def edge_search(per_side: int, search_px: float, sign: int = 0, cells: int = 0
+                ) -> EdgeSearch:
     """The :class:`EdgeSearch` of ``per_side`` stations a side, the first pass
-    ``search_px`` across each side, the next ones :data:`EDGE_SEARCH_PX`."""
+    ``search_px`` across each side, the next ones :data:`EDGE_SEARCH_PX`; ``cells`` a
+    marker's cells across its black square (0: a plain block)."""
     rest, t = edge_stations(per_side, EDGE_SEARCH_PX)
     first = rest if float(search_px) == EDGE_SEARCH_PX else edge_offsets(float(search_px))
-    return EdgeSearch(first, rest, t, float(EDGE_STEP_PX), int(sign))
+    return EdgeSearch(first, rest, t, float(EDGE_STEP_PX), int(sign), float(cells))
 
 
 def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
                   per_side: int, passes: int = 2, search_px: float = EDGE_SEARCH_PX,
-                  sign: int = 0) -> Sides | None:
+                  sign: int = 0, cells: int = 0) -> Sides | None:
     """The quad's sides measured on the frame (see the module docstring), ``passes``
     times: each pass about the corners the previous one found (a coarse contour's
     corners, a predicted quad's, may be a few pixels off); the first pass looks for
@@ -418,15 +423,17 @@ def measure_sides(grey: np.ndarray, corners_px: np.ndarray, geo: PlanarGeometry,
     None when a side has fewer than :data:`MIN_SIDE_POINTS` points. The passes before
     the last fit the sides in pixels (no lens model: straight over a short run, and
     only the next pass's stations depend on them). ``sign``: the edges' polarity
-    (:func:`~ceilkit.runtime.features.quads.edge_points`'; 0: either). One compiled
-    call (:func:`measure_core`)."""
+    (:func:`~ceilkit.runtime.features.quads.edge_points`'; 0: either); ``cells``: a
+    marker's cells across its black square, its border included (the level of each
+    edge read half a cell either side of it), 0 for a plain block. One compiled call
+    (:func:`measure_core`)."""
     p0 = arr(corners_px, np.float64).reshape(4, 2)
     if not np.isfinite(p0).all():
         return None
     code, lens = geo.camera.lens
     out = SidesOut.empty(per_side)
-    n = measure_core(arr(grey, np.uint8), p0, passes, edge_search(per_side, search_px, sign),
-                     code, lens, out)
+    n = measure_core(arr(grey, np.uint8), p0, passes,
+                     edge_search(per_side, search_px, sign, cells), code, lens, out)
     if n < 0:
         return None
     return Sides(out.corners, out.edge[:n], out.side[:n], 4 * per_side)
@@ -451,7 +458,7 @@ def measure_core(grey, p0, passes, search, code, lens, out):  # pragma: no cover
     have_prev = False
     for k in range(passes):
         pts, sd, n = edge_points_core(grey, cur, search.first if k == 0 else search.rest,
-                                  search.t, search.step_px, search.sign)
+                                      search.t, search.step_px, search.sign, search.cells)
         if _too_few(sd, n):
             if k == passes - 1 and have_prev:
                 return _lens_sides(prev_pts, prev_side, code, lens, lines, corners, edge, side)

@@ -43,7 +43,7 @@ from ceilkit.runtime.estimators.block.pnp import (
     SolvedOut,
     solve_core,
 )
-from ceilkit.runtime.features.quads import BORDER_PX, bilinear, signed_area
+from ceilkit.runtime.features.quads import BORDER_PX, bilinear, mean_side_px, signed_area
 from ceilkit.runtime.geometry.camera import distort_points
 from ceilkit.runtime.geometry.ceiling import ceiling_norm, kernel_mount
 from ceilkit.runtime.geometry.fits import rigid_fit_rms
@@ -235,8 +235,10 @@ class Windows:
         # fallback measures aruco's markers): a cell inside a small marker, its first
         # inner cells' edges are of the other polarity
         sign = (-1 if signed_area(px) > 0 else 1) * (1 if tgt.dark else -1)
+        # a marker's edge level read half a cell either side (quads.edge_points' cells)
+        cells = 0 if tgt.marker_id is None else self.codes.bits + 2
         r = window_core(arr(grey, np.uint8), arr(px, np.float64),
-                        edge_search(o.edge_points, reach, sign), self._mount,
+                        edge_search(o.edge_points, reach, sign, cells), self._mount,
                         (arr(tgt.corners_w, np.float64), self._drop[tgt.source]), check,
                         out, got)
         if not r.ok or not self._inside_ok(grey, tgt, px, out.corners):
@@ -310,15 +312,6 @@ def fill_core(grey, corners, n, dark):  # pragma: no cover - compiled
         if (v > thr) if dark else (v < thr):
             wrong += 1
     return wrong / (n * n)
-
-
-@njit
-def mean_side_px(px):  # pragma: no cover - compiled
-    """The mean length (px) of the sides of the quad ``px (4, 2)``."""
-    total = 0.0
-    for c in range(4):
-        total += np.hypot(px[(c + 1) % 4, 0] - px[c, 0], px[(c + 1) % 4, 1] - px[c, 1])
-    return total / 4.0
 
 
 @njit

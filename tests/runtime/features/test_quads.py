@@ -104,3 +104,54 @@ def test_a_signed_edge_search_takes_a_small_markers_outer_edge():
                 assert outer.max() < 1.0
             elif a == 20.0:
                 assert inner.max() < 1.0
+
+
+def marker_image(cell_px: float, ring_white: bool, blur: float, cells: int = 6
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A marker of ``cells`` cells across its black border, ``cell_px`` a cell, turned 7°,
+    its quiet ring white on a grey ceiling, its first code ring all white
+    (``ring_white``) or all black, the rest grey, rendered at 8x8 samples a pixel and
+    blurred by ``blur`` px; and its outline ``(4, 2)`` px (clockwise as displayed)."""
+    s, c0, a = 8, np.array([60.0, 55.0]), np.radians(7.0)
+    turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    big = np.full((120 * s, 120 * s), 120, np.uint8)
+    outline = None
+    for lo, level in ((-1, 230), (0, 25), (1, 230 if ring_white else 25), (2, 128)):
+        hi = cells - lo
+        px = np.array([[lo, lo], [hi, lo], [hi, hi], [lo, hi]]) * cell_px @ turn.T + c0
+        cv2.fillPoly(big, [np.rint((px + 0.5) * s - 0.5).astype(np.int32)], level)
+        outline = px if lo == 0 else outline
+    img = cv2.resize(big, (120, 120), interpolation=cv2.INTER_AREA)
+    return cv2.GaussianBlur(img, (0, 0), blur), outline
+
+
+def side_offsets(img: np.ndarray, outline: np.ndarray, cells: int) -> np.ndarray:
+    """Each side's mean edge point, px outwards of the true side (from a coarse outline
+    0.7 px off), by :func:`edge_points` with ``cells``."""
+    pts, side = edge_points(img, outline + np.array([0.6, -0.4]), 12, 3.0, sign=-1,
+                            cells=cells)
+    assert np.bincount(side, minlength=4).min() >= 6
+    out = []
+    for k in range(4):
+        a, b = outline[k], outline[(k + 1) % 4]
+        t = (b - a) / np.linalg.norm(b - a)
+        out.append(float(((pts[side == k] - a) @ np.array([t[1], -t[0]])).mean()))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("cell_px", [3.2, 3.9, 4.4])
+def test_a_markers_edge_does_not_follow_the_colour_of_its_first_code_cells(cell_px):
+    """At about 4 px a cell the profile's ends (±3 px) lie on the first code cells'
+    blurred edge: a white ring there moved every side's step outwards (by 0.08-0.36 px
+    at blur 0.8 here). Read half a cell either side (``cells``), the step moves by at
+    most a quarter of that (the 1-D model of docs/methods/block.md: a fifth) and a
+    side lies within 0.15 px of the truth whatever the code."""
+    got = {}
+    for cells in (0, 6):
+        dark, white = (side_offsets(*marker_image(cell_px, w, 0.8), cells)
+                       for w in (False, True))
+        got[cells] = float(np.mean(white - dark))
+        if cells:
+            assert np.abs(np.concatenate([dark, white])).max() < 0.15
+    assert got[0] > 0.07
+    assert abs(got[6]) < 0.25 * got[0]
