@@ -96,8 +96,10 @@ class FusionOptions:
             raise a method's where a real site's consistency line shows its NEES above
             the band (errors correlated from frame to frame, which a per-frame filter
             counts again and again).
-        fix_floor_m, fix_floor_rad: 1σ floors of a fix (unmodelled biases): a variance
-            below its floor is raised to it, one above it is left as it is.
+        fix_floor_m, fix_floor_rad: 1σ floors of a fix (0.001 mm, 0.0001 deg: a guard
+            against a degenerate fit's zero variance, below every estimator's measured
+            1σ; docs/fusion.md): a variance below its floor is raised to it, one above
+            it is left as it is.
         coast_hazard_per_s: the rate at which something no model of the filter holds
             (the vehicle carried while the camera is covered, wheels slipping) happens
             while no absolute cue confirms the track; ``quality`` is multiplied by
@@ -136,8 +138,8 @@ class FusionOptions:
     fix_inflation: float = 1.0
     inflation: Mapping[str, float] = field(
         default_factory=lambda: MappingProxyType({}))
-    fix_floor_m: float = 0.00001
-    fix_floor_rad: float = math.radians(0.001)
+    fix_floor_m: float = 0.000001
+    fix_floor_rad: float = math.radians(0.0001)
     coast_hazard_per_s: float = 0.5
     default_sigma_m: float = 0.05
     default_sigma_rad: float = math.radians(2.0)
