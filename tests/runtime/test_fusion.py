@@ -196,6 +196,30 @@ def test_nees_of_noisy_fixes_is_consistent():
     assert share > 0.9
 
 
+def test_a_precise_corridor_fix_is_published_with_its_own_covariance():
+    """The held-out corridor's fixes (y 1σ 40-80 µm, heading 0.7-2.3 mdeg, correlation
+    about ±0.9; issue 36, docs/fusion.md): the constant-velocity prediction between
+    frames (millimetres) weighs nothing against them, and the floors, below them, leave
+    them alone, so each published pose carries its fix's covariance and the fused NEES
+    is the fix's own (a 0.001 deg floor raised a 1.2e-5 rad heading: 0.85 against 1.59)."""
+    rng = np.random.default_rng(36)
+    sd = np.array([50e-6, 1.2e-5])
+    rho = -0.94
+    R = np.array([[sd[0] ** 2, rho * sd[0] * sd[1]], [rho * sd[0] * sd[1], sd[1] ** 2]])
+    cov = np.full((3, 3), np.inf)
+    cov[1:, 1:] = R
+    fu = Fusion()
+    for k in range(40):
+        e = rng.multivariate_normal(np.zeros(2), R)
+        cue = PoseEstimate(k * DT, "corridor", None, 0.1 + 0.02 * k * DT * 1e-9 + e[0],
+                           0.05 + e[1], 1.0, None, cov)
+        est = fu.update(cue).estimate
+        assert isinstance(est, PoseEstimate) and est.x_m is None
+        assert est.cov[1:, 1:] == pytest.approx(R, rel=1e-2)
+        assert est.y_m == pytest.approx(cue.y_m, abs=0.01 * sd[0])
+        assert est.yaw_rad == pytest.approx(cue.yaw_rad, abs=0.01 * sd[1])
+
+
 def test_effective_count_is_the_count_of_independent_samples_only():
     from ceilkit.runtime.fusion import effective_count
     rng = np.random.default_rng(5)
