@@ -327,7 +327,8 @@ def stop_on_signals() -> Iterator[threading.Event]:
     thread): the loop finishes its frame and closes files; the compiled loops' warm-up
     before the first frame (a first start: minutes) stops at once, helper processes and
     all (:func:`~ceilkit.runtime.jit.interrupt`). A second signal while stopping kills
-    the process at once."""
+    the process at once. A SIGHUP the process was started ignoring (``nohup ceilrun``,
+    a session that must outlive its terminal) stays ignored."""
     stop = threading.Event()
     previous = {}
 
@@ -340,6 +341,8 @@ def stop_on_signals() -> Iterator[threading.Event]:
 
     if threading.current_thread() is threading.main_thread():
         for sig in STOP_SIGNALS:
+            if sig == signal.SIGHUP and signal.getsignal(sig) is signal.SIG_IGN:
+                continue                  # nohup: the terminal's hang-up is not a stop
             previous[sig] = signal.signal(sig, handler)
     try:
         yield stop

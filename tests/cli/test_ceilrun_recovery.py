@@ -136,8 +136,11 @@ def _start(tmp_path: Path, serial: str) -> subprocess.Popen:
             # the fixture corridor is symmetric about its centre line: the heading is stated
             "--option", "assume_heading_deg=0"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # started as from an ssh session's shell (SIGHUP not ignored, even when the tests
+    # run under nohup: a ceilrun started with nohup keeps running on a hang-up)
     return subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
+                            stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))
 
 
 def _finish(proc: subprocess.Popen, sig: int) -> tuple[int, str]:

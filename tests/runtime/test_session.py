@@ -85,11 +85,22 @@ def test_stop_on_signals_turns_sigint_into_a_stop_request():
     assert signal.getsignal(signal.SIGINT) is before             # the handler put back
 
 
-def test_sighup_stops_like_sigterm():
-    with stop_on_signals() as stop:
-        os.kill(os.getpid(), signal.SIGHUP)
-        assert stop.wait(2.0)
-    assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL
+def test_sighup_stops_like_sigterm_unless_started_with_nohup():
+    original = signal.getsignal(signal.SIGHUP)    # SIG_IGN under nohup
+    try:
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+        with stop_on_signals() as stop:
+            os.kill(os.getpid(), signal.SIGHUP)
+            assert stop.wait(2.0)
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL    # put back
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)                 # nohup ceilrun
+        with stop_on_signals() as stop:
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGHUP)
+            assert not stop.wait(0.2)                 # the hang-up did not stop it
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, original)
 
 
 def test_frames_below_zero_and_existing_outputs_are_config_errors(tmp_path):
