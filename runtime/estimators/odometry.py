@@ -458,8 +458,8 @@ def with_increment(odo: PlaneOdometry, got, grey: np.ndarray, t_ns: int, measure
     since the previous frame (:meth:`PlaneOdometry.increment`; ``measure``: whether it
     is wanted: not after an absolute fix that followed another), and the method's time
     ``ms`` since ``t0`` (``time.perf_counter``) with it; ``got`` itself when there is
-    none, its ``ms`` (when it has one) again with the tracking that ran (a frame kept
-    without measuring still tracks: :meth:`PlaneOdometry.increment`)."""
+    none, its ``ms`` (when it has one) again with the tracking that ran (a step after a
+    kept frame first follows the tracks into it: :meth:`PlaneOdometry.increment`)."""
     inc = odo.increment(grey, t_ns, measure, prior)
     if inc is None:
         if "ms" not in got.diagnostics:
