@@ -11,7 +11,13 @@ import cv2
 import numpy as np
 
 from ceilkit.runtime.estimators.block.detect import MIN_SIDE_POINTS, Sides, fit_side_lines
-from ceilkit.runtime.estimators.block.parallels import CHORD_M, MARGIN_PX, STEP_M, site_lines
+from ceilkit.runtime.estimators.block.parallels import (
+    CHORD_M,
+    MARGIN_PX,
+    STEP_M,
+    _few_lines,
+    site_lines,
+)
 from ceilkit.runtime.estimators.block.pnp import (
     PlanarGeometry,
     closed_form,
@@ -146,3 +152,21 @@ def side_offset_cov(r, J, side, A):
     c, dof = (float(r.mean()), 1) if K == 4 else (0.0, K - 2)   # four sides: less their mean
     var_b = max(float((m - c) @ (m - c)) - float((within / n).sum()) * dof / K, 0.0) / dof
     return var_b, A @ (g.T @ g) @ A
+
+
+def line_weights(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.ndarray,
+                 length: np.ndarray) -> np.ndarray:
+    """``(N,)`` the weights :func:`.parallels.robust_heading` gives lines through the
+    normalized points ``p1, p2 (N, 2)``: eq. 10's ``|m_xy|²`` (``m = R l / |R l|``, ``l``
+    the plane of the line and the optical centre) times ``length`` (the reading
+    :func:`.parallels._stage_heading` stands for)."""
+    ones = np.ones((len(p1_norm), 1))
+    m = np.cross(np.hstack([p1_norm, ones]), np.hstack([p2_norm, ones])) @ \
+        np.asarray(R_vehicle_cam, float).T
+    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
+    return (m[:, 0] ** 2 + m[:, 1] ** 2) * np.asarray(length, float)
+
+
+def few_lines_factor(w: np.ndarray) -> float:
+    """:func:`.parallels._few_lines` of lines of weights ``w (n,)``."""
+    return _few_lines(w.size, float(np.sum(w)), float(np.sum(w * w)))

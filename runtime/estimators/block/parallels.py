@@ -567,7 +567,8 @@ def _stage_heading(segs_n, segs, good, R, how):  # pragma: no cover - compiled
     """:class:`ParallelsStage`'s heading in one call: :func:`robust_heading` of the lines
     ``segs_n (N, 4)`` (normalized ends) marked ``good (N,)``, weighted by their length
     in ``segs (N, 4)`` (px), picked as ``how`` (a :class:`HeadingGate`) says, its sigma
-    times :func:`few_lines_factor` of the kept lines' weights (:func:`line_weights`):
+    times :func:`_few_lines` of the kept lines' weights (eq. 10's ``|m_xy|²`` times
+    the length, as :func:`robust_heading` weighs them):
     ``(found, yaw, sigma, n)``, ``yaw`` not yet on the hint's branch."""
     m = 0
     for i in range(good.size):
@@ -589,32 +590,15 @@ def _stage_heading(segs_n, segs, good, R, how):  # pragma: no cover - compiled
     return True, yaw, sigma * _few_lines(n, sw, sww), n
 
 
-def line_weights(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.ndarray,
-                 length: np.ndarray) -> np.ndarray:
-    """``(N,)`` the weights :func:`robust_heading` gives lines through the
-    normalized points ``p1, p2 (N, 2)``: eq. 10's ``|m_xy|²`` (``m = R l / |R l|``, ``l``
-    the plane of the line and the optical centre) times ``length``."""
-    ones = np.ones((len(p1_norm), 1))
-    m = np.cross(np.hstack([p1_norm, ones]), np.hstack([p2_norm, ones])) @ \
-        np.asarray(R_vehicle_cam, float).T
-    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
-    return (m[:, 0] ** 2 + m[:, 1] ** 2) * np.asarray(length, float)
-
-
-def few_lines_factor(w: np.ndarray) -> float:
-    """The factor (>= 1) on :func:`robust_heading`'s sigma (the lines' weighted
-    spread over ``n - 1``) for lines of weights ``w (n,)``: the spread of a weighted mean
-    counts ``n_eff = (Σw)² / Σw²`` lines, not ``n``, and a spread from ``nu = n_eff - 1``
-    of them is a Student-t scale: ``sqrt((n - 1) / nu * nu / (nu - 2))`` (at most 3 in
-    variance for ``nu`` at most 3). (The sigma over ``n - 1`` was 1.1-1.5x too small in
-    variance on 17-20 chords, bench_ambiguity's tile cases; issue 36.)"""
-    return _few_lines(w.size, float(np.sum(w)), float(np.sum(w * w)))
-
-
 @njit
 def _few_lines(n, sw, sww):  # pragma: no cover - compiled
-    """:func:`few_lines_factor` of ``n`` lines whose weights sum to ``sw``, their
-    squares to ``sww``."""
+    """The factor (>= 1) on :func:`robust_heading`'s sigma (the lines' weighted spread
+    over ``n - 1``) for ``n`` lines whose weights sum to ``sw``, their squares to
+    ``sww``: the spread of a weighted mean counts ``n_eff = (Σw)² / Σw²`` lines, not
+    ``n``, and a spread from ``nu = n_eff - 1`` of them is a Student-t scale:
+    ``sqrt((n - 1) / nu * nu / (nu - 2))`` (at most 3 in variance for ``nu`` at most
+    3). (The sigma over ``n - 1`` was 1.1-1.5x too small in variance on 17-20 chords,
+    bench_ambiguity's tile cases; issue 36.)"""
     if n < 2 or not sw > 0:
         return 1.0
     nu = max(sw * sw / sww - 1.0, 1.0)

@@ -147,6 +147,8 @@ def test_the_stage_heading_is_the_array_reading(hint):
     factor) gives what robust_heading, line_weights and few_lines_factor give on the
     same lines, a line marked bad left out (to rounding: the weights are summed in
     another order)."""
+    from block_reference import few_lines_factor, line_weights
+
     from ceilkit.runtime.estimators.block import parallels as P
     from ceilkit.runtime.jit import arr
     rng = np.random.default_rng(3)
@@ -161,7 +163,7 @@ def test_the_stage_heading_is_the_array_reading(hint):
     length = np.hypot(px[:, 2] - px[:, 0], px[:, 3] - px[:, 1])
     gate = math.radians(1.0)
     want, kept = P.robust_heading(p1[good], p2[good], R, hint, gate, length[good])
-    w = P.line_weights(p1[good], p2[good], R, length[good])
+    w = line_weights(p1[good], p2[good], R, length[good])
     how = P.HeadingGate(0.0 if hint is None else hint, hint is not None, gate,
                         P.PERIOD_RAD, P.MIN_LINES, P.SIGMA_FLOOR_RAD)
     found, yaw, sigma, n = P._stage_heading(arr(np.hstack([p1, p2]), np.float64),
@@ -170,8 +172,8 @@ def test_the_stage_heading_is_the_array_reading(hint):
     assert found and n == want.n_lines == kept.sum() < 10
     assert P._near_hint(P.ParallelsHeading(yaw, sigma, P.PERIOD_RAD, n), hint).yaw_rad \
         == pytest.approx(want.yaw_rad, abs=1e-12)
-    assert sigma == pytest.approx(want.sigma_rad * P.few_lines_factor(w[kept]), rel=1e-12)
-    assert P.few_lines_factor(w[kept]) > 1.0
+    assert sigma == pytest.approx(want.sigma_rad * few_lines_factor(w[kept]), rel=1e-12)
+    assert few_lines_factor(w[kept]) > 1.0
 
 
 def test_the_mean_side_is_numpys():
