@@ -54,7 +54,7 @@ from ceilkit.runtime.config.site import (
 from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.estimators.block.detect import aruco_markers, measure_sides
 from ceilkit.runtime.features.grey import to_grey
-from ceilkit.runtime.features.quads import marker_dictionary, signed_area
+from ceilkit.runtime.features.quads import signed_area, square_cells
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry, ceiling_jacobian, ceiling_points
 from ceilkit.runtime.io.outputs import claimed, recording_inputs
 from ceilkit.runtime.io.recording import Recording
@@ -194,7 +194,7 @@ def frame_sightings(grey: np.ndarray, frame: int, pose: np.ndarray, geo: PlanarG
     whose ray does not rise to the ceiling, is left out."""
     x, y, yaw = (float(v) for v in pose)
     c, s = math.cos(yaw), math.sin(yaw)
-    cells = int(marker_dictionary(dictionary).markerSize) + 2
+    cells = square_cells(dictionary)
     out = []
     for mid, px in aruco_markers(grey, dictionary):
         sign = -1 if signed_area(px) > 0 else 1

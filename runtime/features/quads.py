@@ -63,6 +63,12 @@ def marker_dictionary(name: str) -> cv2.aruco.Dictionary:
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
 
 
+def square_cells(name: str) -> int:
+    """Cells across a marker's black square of the dictionary ``name``, its border
+    included: the code's bits + 2."""
+    return int(marker_dictionary(name).markerSize) + 2
+
+
 @functools.lru_cache(maxsize=256)
 def marker_cells(name: str, marker_id: int) -> np.ndarray:
     """The printed marker ``(N, N)`` as 1 (white) / 0 (black) cells, its black border
@@ -76,7 +82,7 @@ def marker_cells(name: str, marker_id: int) -> np.ndarray:
     if not 0 <= int(marker_id) < n_ids:
         raise ConfigError(None, "markers.poses",
                           f"marker id {marker_id} is not in {name} (ids 0..{n_ids - 1})")
-    n = int(d.markerSize) + 2
+    n = square_cells(name)
     cells = (cv2.aruco.generateImageMarker(d, int(marker_id), n) // 255).astype(np.uint8)
     cells.setflags(write=False)
     return cells
@@ -123,6 +129,7 @@ class MarkerCodes:
 
     Attributes:
         bits: cells per side of the code (the black border excluded), e.g. 6 for 36h11.
+        cells: cells across the black square, its border included (``bits + 2``).
         max_errors: bits that may be wrong in a read (the dictionary's correction bits).
     """
 
@@ -130,6 +137,7 @@ class MarkerCodes:
         d = marker_dictionary(dictionary)
         self.dictionary = dictionary
         self.bits = int(d.markerSize)
+        self.cells = self.bits + 2
         self.max_errors = int(d.maxCorrectionBits)
         n_ids = int(d.bytesList.shape[0])
         printed = np.array([marker_cells(dictionary, i)[1:-1, 1:-1] for i in range(n_ids)])

@@ -329,7 +329,7 @@ def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
         ``(id, s, errors)`` (:meth:`MarkerCodes.identify`: corner ``s`` of the quad is
         the printed top-left, aruco's corner 0), or None.
     """
-    n = codes.bits + 2                                   # cells across the black square
+    n = codes.cells                                      # cells across the black square
     g = n + 2 * QUIET_CELLS
     grid, k, ring, border = _cell_grid(n)
     square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)

@@ -265,7 +265,7 @@ class BlockEstimator(Estimator):
         # the small tables frame 0 made (issue 37): the marker cells' samples, the site
         # lines' array, the rig's mount angles
         if self._codes is not None:
-            _cell_grid(self._codes.bits + 2)
+            _cell_grid(self._codes.cells)
         if self._heading.corridor is not None:
             _along(tuple(self._heading.corridor.lines_along_m))
         _mount_tilt_swing(np.asarray(self.geo.R_vehicle_cam, np.float64).tobytes())

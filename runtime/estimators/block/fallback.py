@@ -75,7 +75,7 @@ class MarkerReader:
         """A fix from a marker-sized dark quad of the decimated search, the id read when
         the site does not hold it, or None (not a marker, or not measured)."""
         sides = measure_sides(grey, quad.corners_px, self.geo, self.edge_points, passes=1,
-                              cells=self.codes.bits + 2)
+                              cells=self.codes.cells)
         if sides is None:
             return None
         read = read_marker(grey, sides.corners_norm, self.geo, self.codes)
@@ -134,7 +134,7 @@ class MarkerReader:
         # aruco's corners are coarse (up to a pixel or two off), clockwise as displayed
         sign = -1 if signed_area(corners_px) > 0 else 1
         sides = measure_sides(grey, corners_px, self.geo, self.edge_points, passes=2,
-                              sign=sign, cells=self.codes.bits + 2)
+                              sign=sign, cells=self.codes.cells)
         if sides is None:
             return None
         read = read_marker(grey, sides.corners_norm, self.geo, self.codes)

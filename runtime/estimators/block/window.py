@@ -236,7 +236,7 @@ class Windows:
         # inner cells' edges are of the other polarity
         sign = (-1 if signed_area(px) > 0 else 1) * (1 if tgt.dark else -1)
         # a marker's edge level read half a cell either side (quads.edge_points' cells)
-        cells = 0 if tgt.marker_id is None else self.codes.bits + 2
+        cells = 0 if tgt.marker_id is None else self.codes.cells
         r = window_core(arr(grey, np.uint8), arr(px, np.float64),
                         edge_search(o.edge_points, reach, sign, cells), self._mount,
                         (arr(tgt.corners_w, np.float64), self._drop[tgt.source]), check,
@@ -267,7 +267,7 @@ class Windows:
             return reach
         if self.codes is None:
             return 0.0
-        cell_px = mean_side_px(arr(px, np.float64)) / (self.codes.bits + 2)
+        cell_px = mean_side_px(arr(px, np.float64)) / self.codes.cells
         return 0.0 if cell_px < MARKER_MIN_CELL_PX else min(reach, MARKER_WINDOW_CELLS * cell_px)
 
     def _inside_ok(self, grey: np.ndarray, tgt: Target, px: np.ndarray,
