@@ -304,9 +304,7 @@ class PlaneOdometry:
         if len(carried) < MIN_TRACKS:
             return
         nxt, ok = _tracked(prev, grey, carried)
-        h, w = grey.shape
-        u, v = nxt[:, 0, 0], nxt[:, 0, 1]
-        ok &= (u >= HALF_WIN) & (u < w - HALF_WIN) & (v >= HALF_WIN) & (v < h - HALF_WIN)
+        ok &= _off_edge(nxt, grey.shape)
         if np.count_nonzero(ok) < MIN_TRACKS:
             return
         self._tracks = nxt[ok]
@@ -373,10 +371,7 @@ class PlaneOdometry:
             # carried to the next step: the fit's inliers and the fresh corners it
             # explains, not at the frame's edge
             idx = np.flatnonzero(ok)[carry]
-            h, w = grey.shape
-            u, v = nxt[idx, 0, 0], nxt[idx, 0, 1]
-            self._tracks = nxt[idx[(u >= HALF_WIN) & (u < w - HALF_WIN) & (v >= HALF_WIN)
-                                   & (v < h - HALF_WIN)]]
+            self._tracks = nxt[idx[_off_edge(nxt[idx], grey.shape)]]
         return inc
 
     def _fit(self, pts: np.ndarray, nxt: np.ndarray, ok: np.ndarray, near,
@@ -414,6 +409,13 @@ class PlaneOdometry:
             carry[new[chi2 <= chi2_quantile(1.0 - MISFIT_ALPHA, 2)]] = True
         return inc, carry
 
+
+def _off_edge(pts: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``(N,)`` bool: which of the tracks ``pts (N, 1, 2)`` lie :data:`HALF_WIN` px or
+    more inside a frame of ``shape`` (a window KLT can follow them with)."""
+    h, w = shape
+    u, v = pts[:, 0, 0], pts[:, 0, 1]
+    return (u >= HALF_WIN) & (u < w - HALF_WIN) & (v >= HALF_WIN) & (v < h - HALF_WIN)
 
 
 def _tracked(prev: np.ndarray, grey: np.ndarray, pts: np.ndarray
@@ -462,7 +464,7 @@ def with_increment(odo: PlaneOdometry, got, grey: np.ndarray, t_ns: int, measure
     kept frame first follows the tracks into it: :meth:`PlaneOdometry.increment`)."""
     inc = odo.increment(grey, t_ns, measure, prior)
     if inc is None:
-        if "ms" not in got.diagnostics:
+        if not measure or "ms" not in got.diagnostics:     # a kept frame: nothing ran
             return got
         return dataclasses.replace(got, diagnostics={**got.diagnostics, "ms": elapsed_ms(t0)})
     return dataclasses.replace(got, increment=inc,
