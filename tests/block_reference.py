@@ -170,3 +170,41 @@ def line_weights(p1_norm: np.ndarray, p2_norm: np.ndarray, R_vehicle_cam: np.nda
 def few_lines_factor(w: np.ndarray) -> float:
     """:func:`.parallels._few_lines` of lines of weights ``w (n,)``."""
     return _few_lines(w.size, float(np.sum(w)), float(np.sum(w * w)))
+
+
+def read_marker(grey, corners_norm, geo, codes):
+    """:func:`.detect.read_marker` in OpenCV and array code (its reading before
+    :func:`.detect.read_core`): the homography, ``perspectiveTransform``, the lens,
+    ``remap``, each cell's mean of its 2x2 samples, and the dictionary's nearest code."""
+    from ceilkit.runtime.estimators.block.detect import (
+        BORDER_ERRORS,
+        MIN_MARKER_CONTRAST,
+        _cell_grid,
+    )
+    from ceilkit.runtime.features.quads import QUIET_CELLS
+    from ceilkit.runtime.geometry.camera import distort_points
+    from ceilkit.runtime.geometry.fits import short_median
+
+    n = codes.cells
+    g = n + 2 * QUIET_CELLS
+    grid, k, ring, border = _cell_grid(n)
+    square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
+    H = cv2.getPerspectiveTransform(square, np.asarray(corners_norm, np.float32))
+    norm = np.ascontiguousarray(cv2.perspectiveTransform(grid, H).reshape(-1, 2), np.float64)
+    px = np.empty_like(norm)
+    distort_points(norm, *geo.camera.lens, px)
+    px = px.astype(np.float32)
+    if not np.all(np.isfinite(px)):
+        return None
+    vals = cv2.remap(grey, px[:, 0].reshape(k, k), px[:, 1].reshape(k, k),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    cells = vals.reshape(g, 2, g, 2).sum(axis=(1, 3), dtype=np.float32) * np.float32(0.25)
+    flat = cells.ravel()
+    on_border = flat[border]
+    white, black = short_median(flat[ring]), short_median(on_border)
+    if white - black < MIN_MARKER_CONTRAST:
+        return None
+    thr = 0.5 * (white + black)
+    if int(np.count_nonzero(on_border > thr)) > BORDER_ERRORS:
+        return None
+    return codes.identify(cells[2:-2, 2:-2] > thr)

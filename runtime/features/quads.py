@@ -150,6 +150,12 @@ class MarkerCodes:
         # and count took 10x as long)
         self._packed = _pack_bits(table)
 
+    @property
+    def packed(self) -> np.ndarray:
+        """``(4 ids,)`` uint64: every code as read from an outline whose corner ``s`` is the
+        printed top-left, row ``4 id + s``, bit ``i`` the code's cell ``i`` (row-major)."""
+        return self._packed
+
     def identify(self, cells: np.ndarray) -> tuple[int, int, int] | None:
         """``(id, s, errors)`` of the code nearest ``cells`` ``(bits, bits)`` bool (True:
         white; row 0 along the outline's corner 0 -> 1), ``s`` the outline corner that is

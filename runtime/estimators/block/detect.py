@@ -50,7 +50,6 @@ from ceilkit.runtime.features.quads import (
 from ceilkit.runtime.features.working import decimate
 from ceilkit.runtime.geometry.camera import CameraModel, distort_points, undistort_points
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry
-from ceilkit.runtime.geometry.fits import short_median
 from ceilkit.runtime.jit import arr, njit, warmer
 
 BG_SHRINK = 16             # background(): the frame shrunk by this factor
@@ -330,29 +329,130 @@ def read_marker(grey: np.ndarray, corners_norm: np.ndarray, geo: PlanarGeometry,
         the printed top-left, aruco's corner 0), or None.
     """
     n = codes.cells                                      # cells across the black square
-    g = n + 2 * QUIET_CELLS
-    grid, k, ring, border = _cell_grid(n)
     square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
     H = cv2.getPerspectiveTransform(square, np.asarray(corners_norm, np.float32))
-    norm = arr(cv2.perspectiveTransform(grid, H).reshape(-1, 2), np.float64)
-    px = np.empty_like(norm)
-    distort_points(norm, *geo.camera.lens, px)          # one compiled call
-    px = px.astype(np.float32)
-    if not np.all(np.isfinite(px)):
+    found, errors = read_core(arr(grey, np.uint8), H, _cell_read(codes), *geo.camera.lens)
+    if found < 0 or errors > codes.max_errors:
         return None
-    vals = cv2.remap(grey, px[:, 0].reshape(k, k), px[:, 1].reshape(k, k),
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    # each cell: the mean of its 2x2 samples
-    cells = vals.reshape(g, 2, g, 2).sum(axis=(1, 3), dtype=np.float32) * np.float32(0.25)
-    flat = cells.ravel()
-    on_border = flat[border]
-    white, black = short_median(flat[ring]), short_median(on_border)
+    i, s = divmod(found, 4)
+    return i, s, errors
+
+
+@functools.lru_cache(maxsize=8)
+def _cell_read(codes: MarkerCodes) -> CellRead:
+    """:func:`read_core`'s constants for one dictionary (its grid and its codes)."""
+    grid, _, ring, border = _cell_grid(codes.cells)
+    return CellRead(arr(grid.reshape(-1, 2), np.float32), arr(ring, np.int64),
+                    arr(border, np.int64), arr(codes.packed, np.uint64))
+
+
+class CellRead(NamedTuple):
+    """What :func:`read_marker` reads the cells with: ``grid (k*k, 2)`` float32 samples
+    (column, row in cells, :func:`_cell_grid`), the flat indices of the quiet ring's
+    cells ``ring`` and of the black border's ``border``, and the dictionary's codes
+    ``packed (4 ids,)`` uint64 (:attr:`~ceilkit.runtime.features.quads.MarkerCodes.packed`)."""
+
+    grid: np.ndarray
+    ring: np.ndarray
+    border: np.ndarray
+    packed: np.ndarray
+
+
+@njit
+def read_core(grey, H, cells, code, lens):  # pragma: no cover - compiled
+    """:func:`read_marker` after its homography ``H`` (3, 3), in one compiled loop:
+    ``(k, errors)``, ``k`` the nearest code's row of ``cells.packed`` (id 4 + s), -1
+    where the samples leave the lens, the contrast is short or the border is broken.
+
+    The samples' steps are OpenCV's own, number for number: ``perspectiveTransform``
+    of float32 points (a double homography, float32 out), the lens
+    (:func:`~ceilkit.runtime.geometry.camera.distort_points`) to float32 maps, and
+    ``remap``'s bilinear read with a replicated border (its float interpolation in
+    OpenCV 5: the row pair's lerps, then the column's, rounded half to even)."""
+    n = cells.grid.shape[0]
+    norm = np.empty((n, 2))
+    for i in range(n):
+        x, y = np.float64(cells.grid[i, 0]), np.float64(cells.grid[i, 1])
+        w = x * H[2, 0] + y * H[2, 1] + H[2, 2]
+        if abs(w) > 1.1920928955078125e-07:
+            w = 1.0 / w
+            norm[i, 0] = np.float32((x * H[0, 0] + y * H[0, 1] + H[0, 2]) * w)
+            norm[i, 1] = np.float32((x * H[1, 0] + y * H[1, 1] + H[1, 2]) * w)
+        else:
+            norm[i, 0] = norm[i, 1] = 0.0
+    px = np.empty((n, 2))
+    distort_points(norm, code, lens, px)
+    k = int(round(math.sqrt(n)))
+    g = k // 2
+    cell = np.zeros(g * g, np.float32)
+    for i in range(n):
+        u, v = np.float32(px[i, 0]), np.float32(px[i, 1])
+        if not (np.isfinite(u) and np.isfinite(v)):
+            return -1, 0
+        r, c = i // k, i % k
+        cell[(r // 2) * g + c // 2] += _bilinear(grey, u, v)
+    for j in range(g * g):
+        cell[j] *= np.float32(0.25)
+    white = _median32(cell[cells.ring])
+    on_border = cell[cells.border]
+    black = _median32(on_border)
     if white - black < MIN_MARKER_CONTRAST:
-        return None
-    thr = 0.5 * (white + black)
-    if int(np.count_nonzero(on_border > thr)) > BORDER_ERRORS:
-        return None
-    return codes.identify(cells[2:-2, 2:-2] > thr)
+        return -1, 0
+    thr = np.float32(0.5 * (white + black))        # as numpy compares a float32 array
+    if np.count_nonzero(on_border > thr) > BORDER_ERRORS:
+        return -1, 0
+    word = np.uint64(0)
+    b = 0
+    for r in range(2, g - 2):
+        for c in range(2, g - 2):
+            if cell[r * g + c] > thr:
+                word |= np.uint64(1) << np.uint64(b)
+            b += 1
+    return _nearest_code(cells.packed, word)
+
+
+@njit
+def _bilinear(grey, u, v):  # pragma: no cover - compiled
+    """``cv2.remap``'s ``INTER_LINEAR`` of uint8 ``grey`` at float32 ``(u, v)``,
+    ``BORDER_REPLICATE``, as a float32 integer."""
+    h, w = grey.shape
+    iu, iv = int(math.floor(u)), int(math.floor(v))
+    fu, fv = np.float32(u - np.float32(iu)), np.float32(v - np.float32(iv))
+    u0, u1 = min(max(iu, 0), w - 1), min(max(iu + 1, 0), w - 1)
+    v0, v1 = min(max(iv, 0), h - 1), min(max(iv + 1, 0), h - 1)
+    p00, p01 = np.float32(grey[v0, u0]), np.float32(grey[v0, u1])
+    p10, p11 = np.float32(grey[v1, u0]), np.float32(grey[v1, u1])
+    a = p00 + fu * (p01 - p00)
+    b = p10 + fu * (p11 - p10)
+    return np.float32(min(max(np.rint(a + fv * (b - a)), 0.0), 255.0))
+
+
+@njit
+def _median32(x):  # pragma: no cover - compiled
+    """:func:`~ceilkit.runtime.geometry.fits.short_median` of float32 ``x``, as it is
+    in Python (the middle pair's mean in float32)."""
+    s = np.sort(x)
+    n = s.size
+    mid = s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / np.float32(2)
+    return np.float64(mid)
+
+
+@njit
+def _nearest_code(packed, word):  # pragma: no cover - compiled
+    """``(k, bits)``: the first row of ``packed`` with the fewest bits differing from
+    ``word`` (:meth:`~ceilkit.runtime.features.quads.MarkerCodes.identify`)."""
+    best, errors = -1, 65
+    m1, m2 = np.uint64(0x5555555555555555), np.uint64(0x3333333333333333)
+    m4, h01 = np.uint64(0x0F0F0F0F0F0F0F0F), np.uint64(0x0101010101010101)
+    for i in range(packed.size):
+        x = packed[i] ^ word
+        x = x - ((x >> np.uint64(1)) & m1)
+        x = (x & m2) + ((x >> np.uint64(2)) & m2)
+        x = (x + (x >> np.uint64(4))) & m4
+        c = int((x * h01) >> np.uint64(56))
+        if c < errors:
+            best, errors = i, c
+    return best, errors
 
 
 @dataclass(frozen=True, eq=False)
@@ -582,6 +682,10 @@ def rim_samples(grey, corners):  # pragma: no cover - compiled
     return inside, outside
 
 
+_WARM_READ = CellRead(arr(np.zeros((16, 2)), np.float32), arr(np.arange(4), np.int64),
+                      arr(np.arange(4), np.int64), arr(np.zeros(4), np.uint64))
+
+
 @warmer
 def _warm() -> None:
     g = np.zeros((40, 40), np.uint8)
@@ -593,3 +697,4 @@ def _warm() -> None:
         geo = PlanarGeometry(cam, np.eye(3), np.zeros(3), 3.0)
         measure_sides(g, sq, geo, 4, passes=2, search_px=4.0)
         measure_sides(g, sq, geo, 4, passes=2, search_px=4.0, sign=-1)
+        read_core(arr(g, np.uint8), np.eye(3), _WARM_READ, *cam.lens)
