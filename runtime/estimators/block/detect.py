@@ -368,7 +368,8 @@ def read_core(grey, H, cells, code, lens):  # pragma: no cover - compiled
     of float32 points (a double homography, float32 out), the lens
     (:func:`~ceilkit.runtime.geometry.camera.distort_points`) to float32 maps, and
     ``remap``'s bilinear read with a replicated border (its float interpolation in
-    OpenCV 5: the row pair's lerps, then the column's, rounded half to even)."""
+    OpenCV 5: the row pair's lerps, then the column's, rounded half to even; releases
+    before it rounded the sample's place to 1/32 px, a grey level apart at most)."""
     n = cells.grid.shape[0]
     norm = np.empty((n, 2))
     for i in range(n):
