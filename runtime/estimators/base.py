@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+import sys
 import time
 import types
 import typing
@@ -339,12 +340,46 @@ def check_frame(grey: np.ndarray, width: int, height: int,
         found = "x".join(str(n) for n in grey.shape[1::-1]) if grey.ndim >= 2 else str(grey.shape)
         return BAD_FRAME, f"frame is {found}, the camera is {width}x{height}"
     if min_contrast > 0:
-        mean, std = _sample_stats(arr(grey, np.uint8), 4)
+        mean, std = sample_stats(grey)
         if std < 0.5 * min_contrast:
             if mean >= SATURATED_MEAN:
                 return SATURATED_FRAME, "the frame is saturated"
             return BLANK_FRAME, "the frame has no contrast"
     return None
+
+
+def sample_stats(grey: np.ndarray) -> tuple[float, float]:
+    """``(mean, std)`` of the pixels ``grey[::4, ::4]`` of a uint8 frame (the frame
+    check's 1-in-16 sample; ``cv2.meanStdDev``'s numbers, from exact integer sums).
+
+    Where the rows are whole 32-bit words (the width a multiple of 4, the buffer
+    aligned, a little-endian machine), each word's low byte is the sample: read as
+    words, the loop runs on contiguous memory (a quarter of the strided read's time)."""
+    g = arr(grey, np.uint8)
+    if g.shape[1] % 4 == 0 and g.ctypes.data % 4 == 0 and sys.byteorder == "little":
+        return _word_stats(g.view(np.uint32))
+    return _sample_stats(g, 4)
+
+
+@njit
+def _word_stats(words):  # pragma: no cover - compiled
+    """:func:`_sample_stats` with step 4 of a frame read as ``(H, W / 4)`` uint32
+    little-endian words: the low byte of word ``j`` is pixel ``4 j``. A row's sums fit
+    in 32 bits for any width under 130 000 px."""
+    n = s = ss = 0
+    for i in range(0, words.shape[0], 4):
+        row = words[i]
+        row_s = row_ss = np.int32(0)
+        for j in range(row.shape[0]):
+            v = np.int32(row[j] & np.uint32(255))
+            row_s += v
+            row_ss += v * v
+        s += row_s
+        ss += row_ss
+        n += row.shape[0]
+    if n == 0:
+        return 0.0, 0.0
+    return s / n, math.sqrt(max(n * ss - s * s, 0) / (n * n))
 
 
 @njit
@@ -369,6 +404,7 @@ def _sample_stats(grey, step):  # pragma: no cover - compiled
 @warmer
 def _warm() -> None:
     _sample_stats(arr(np.zeros((2, 2), np.uint8), np.uint8), 4)
+    sample_stats(np.zeros((4, 4), np.uint8))
 
 
 class Estimator(ABC):

@@ -672,15 +672,22 @@ def test_undistort_points_is_opencvs_inverse(model, dist, skew):
 
 def test_frame_check_statistics_equal_opencvs():
     """The frame check's mean and deviation of the 1-in-16 sample are
-    cv2.meanStdDev's, for frame sizes that are and are not multiples of the step."""
-    from ceilkit.runtime.estimators.base import _sample_stats
+    cv2.meanStdDev's, for frame sizes that are and are not multiples of the step, read
+    as words or pixel by pixel (a frame at an odd address), both ways equal."""
+    from ceilkit.runtime.estimators.base import _sample_stats, sample_stats
 
     rng = np.random.default_rng(2)
-    for shape in ((480, 640), (481, 643), (5, 3), (1, 1)):
+    for shape in ((480, 640), (720, 1280), (481, 643), (482, 644), (5, 3), (1, 1), (3, 4)):
         g = rng.integers(0, 256, shape).astype(np.uint8)
+        odd = np.empty(g.size + 1, np.uint8)[1:].reshape(shape)  # at an odd address
+        odd[:] = g
         mean, std = (float(np.ravel(v)[0]) for v in cv2.meanStdDev(g[::4, ::4]))
-        got = _sample_stats(g, 4)
-        assert got[0] == pytest.approx(mean, abs=1e-9) and got[1] == pytest.approx(std, abs=1e-9)
+        for got in (sample_stats(g), sample_stats(odd), _sample_stats(g, 4)):
+            assert got[0] == pytest.approx(mean, abs=1e-9)
+            assert got[1] == pytest.approx(std, abs=1e-9)
+        assert sample_stats(g) == _sample_stats(g, 4)         # the same integer sums
+    white = np.full((480, 640), 255, np.uint8)                # the sums' largest terms
+    assert sample_stats(white) == (255.0, 0.0)
 
 
 @pytest.mark.parametrize("model,dist,skew", [
