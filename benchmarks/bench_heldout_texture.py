@@ -243,15 +243,18 @@ def write(scene: Scene, traj: Trajectory, folder: Path, site_yaml: str, seed: in
     """The recording of ``traj`` under ``scene`` in the SPEC layout, written by hand,
     ``site_yaml`` its ``site.yaml`` (and ``beside`` copied next to it: the ceiling map);
     frame k's noise from ``default_rng([seed, k])``. A folder that already holds a whole
-    recording (``truth.csv``: ``--keep`` of an earlier run) is reused."""
-    if (folder / "truth.csv").exists():
-        return folder
-    shutil.rmtree(folder, ignore_errors=True)
-    (folder / "frames").mkdir(parents=True)
-    (folder / "rig.yaml").write_text(yaml.safe_dump(scene.rig, sort_keys=False))
+    recording (``truth.csv``: ``--keep`` of an earlier run) keeps its frames, but takes
+    this ``site_yaml`` and ``beside`` (the survey just run: its map, not the last one's)."""
+    whole = (folder / "truth.csv").exists()
+    if not whole:
+        shutil.rmtree(folder, ignore_errors=True)
+        (folder / "frames").mkdir(parents=True)
+        (folder / "rig.yaml").write_text(yaml.safe_dump(scene.rig, sort_keys=False))
     (folder / "site.yaml").write_text(site_yaml)
     for p in beside:
         shutil.copy(p, folder / p.name)
+    if whole:
+        return folder
     rig, shown = Rig.load(folder / "rig.yaml"), scene.shown()
     opts = dataclasses.replace(sim, scatter=scene.scatter, texture=scene.texture)
     part = folder / "truth.csv.part"          # truth.csv last: a whole recording has it
