@@ -327,29 +327,41 @@ def _ncc_at(mosaic, coverage, patch, valid, A, stride, min_share):  # pragma: no
     and column, the mosaic at ``A @ (c, r, 1)`` (a point on the mosaic's outermost
     pixels, which no bilinear sample spans, counts as not covered: :func:`_mosaic_at`)."""
     n = patch.shape[0]
-    cnt = m = 0
-    sa = sb = saa = sbb = sab = 0.0
+    W = np.zeros(7)
     for r in range(0, n, stride):
         for c in range(0, n, stride):
-            if not valid[r, c]:
-                continue
-            cnt += 1
-            b = _mosaic_at(mosaic, coverage, A, r, c)
-            if math.isnan(b):
-                continue
-            a = np.float64(patch[r, c])
-            m += 1
-            sa += a
-            sb += b
-            saa += a * a
-            sbb += b * b
-            sab += a * b
-    if m == 0 or m < min_share * max(cnt, 1):
+            if valid[r, c]:
+                _add_whole(W, np.float64(patch[r, c]), _mosaic_at(mosaic, coverage, A, r, c))
+    return _ncc_of(W, min_share)
+
+
+@njit
+def _add_whole(W, a, b):  # pragma: no cover - compiled
+    """One valid patch sample ``a`` and the mosaic's ``b`` (NaN: not held) added to the
+    whole patch's sums ``W``: the valid samples, those both hold, Σa, Σb, Σa², Σb²,
+    Σab (:func:`_ncc_of`)."""
+    W[0] += 1.0
+    if math.isnan(b):
+        return
+    W[1] += 1.0
+    W[2] += a
+    W[3] += b
+    W[4] += a * a
+    W[5] += b * b
+    W[6] += a * b
+
+
+@njit
+def _ncc_of(W, min_share):  # pragma: no cover - compiled
+    """The correlation of :func:`_add_whole`'s sums ``W``; NaN where both hold fewer
+    than ``min_share`` of the valid samples, or either is flat."""
+    m, sa, sb = W[1], W[2], W[3]
+    if m == 0 or m < min_share * max(W[0], 1.0):
         return math.nan
-    va, vb = saa - sa * sa / m, sbb - sb * sb / m
+    va, vb = W[4] - sa * sa / m, W[5] - sb * sb / m
     if va <= 0.0 or vb <= 0.0:
         return math.nan
-    return (sab - sa * sb / m) / math.sqrt(va * vb)
+    return (W[6] - sa * sb / m) / math.sqrt(va * vb)
 
 
 @warmer
@@ -359,9 +371,11 @@ def _warm() -> None:
     A = arr(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), np.float64)
     _ncc_at(arr(g, np.uint8), arr(np.ones((8, 8), bool), np.bool_), arr(g, np.uint8),
             arr(np.ones((8, 8), bool), np.bool_), A, 2, MIN_NCC_SHARE)
-    _part_median(_part_sums(arr(g, np.uint8), arr(np.ones((8, 8), bool), np.bool_),
-                            arr(g, np.uint8), arr(np.ones((8, 8), bool), np.bool_), A, 2,
-                            PART_BLOCKS), PART_MIN_STD, MIN_PARTS)
+    S, W = _part_sums(arr(g, np.uint8), arr(np.ones((8, 8), bool), np.bool_),
+                      arr(g, np.uint8), arr(np.ones((8, 8), bool), np.bool_), A, 2,
+                      PART_BLOCKS)
+    _part_median(S, PART_MIN_STD, MIN_PARTS)
+    _ncc_of(W, MIN_NCC_SHARE)
 
 
 PART_BLOCKS = 3          # part_ncc: the patch cut in 3 x 3 blocks ...
@@ -384,13 +398,21 @@ def part_ncc(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
     grid) and the rest does not: a pose off the mapped place (issue 39's held-out
     kidnap: 0.66 over the whole frame, 0.22 over its parts). NaN with fewer than
     :data:`MIN_PARTS` blocks judged. One compiled pass (:func:`_part_sums`)."""
+    return explains(cmap, patch, valid, pose, stride)[1]
+
+
+def explains(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
+             pose: tuple[float, float, float], stride: int = 1) -> tuple[float, float]:
+    """``(appearance_ncc, part_ncc)`` of the mosaic at ``pose``, the same two figures to
+    the bit, from one pass over the patch (:func:`_part_sums`): a pose's whole-frame and
+    parts checks read each sample once."""
     (ox, oy), res = cmap.origin_xy, cmap.resolution_m
     col, row = (float(pose[0]) - ox) / res, (float(pose[1]) - oy) / res
     A = _patch_to_mosaic(patch.shape[0], res, col, row, float(pose[2]))
-    S = _part_sums(arr(cmap.mosaic, np.uint8), arr(cmap.coverage, np.bool_),
-                   arr(patch, np.uint8), arr(valid, np.bool_), arr(A, np.float64),
-                   int(stride), PART_BLOCKS)
-    return float(_part_median(S, PART_MIN_STD, MIN_PARTS))
+    S, W = _part_sums(arr(cmap.mosaic, np.uint8), arr(cmap.coverage, np.bool_),
+                      arr(patch, np.uint8), arr(valid, np.bool_), arr(A, np.float64),
+                      int(stride), PART_BLOCKS)
+    return float(_ncc_of(W, MIN_NCC_SHARE)), float(_part_median(S, PART_MIN_STD, MIN_PARTS))
 
 
 @njit
@@ -428,10 +450,12 @@ def _part_sums(mosaic, coverage, patch, valid, A, stride, blocks):  # pragma: no
     """:func:`part_ncc`'s sums per block ``(blocks², 16)``: over the pixels both hold
     (``r``, ``c`` the sampled row and column in the block, ``a`` the patch, ``b`` the
     mosaic): n, Σr, Σc, Σr², Σc², Σrc, Σa, Σar, Σac, Σa², Σb, Σbr, Σbc, Σb², Σab; and
-    the block's sampled pixels (column 15)."""
+    the block's sampled pixels (column 15); and the whole patch's sums ``(7,)`` in
+    :func:`_ncc_at`'s order (:func:`_add_whole`: the same correlation, to the bit)."""
     n = patch.shape[0]
     m = (n + stride - 1) // stride
     S = np.zeros((blocks * blocks, 16))
+    W = np.zeros(7)
     for i in range(m):
         bi = i * blocks // m
         r0 = (bi * m + blocks - 1) // blocks
@@ -443,9 +467,10 @@ def _part_sums(mosaic, coverage, patch, valid, A, stride, blocks):  # pragma: no
             if not valid[r, c]:
                 continue
             b = _mosaic_at(mosaic, coverage, A, r, c)
+            a = np.float64(patch[r, c])
+            _add_whole(W, a, b)
             if math.isnan(b):
                 continue
-            a = np.float64(patch[r, c])
             u = np.float64(i - r0)
             v = np.float64(j - (bj * m + blocks - 1) // blocks)
             S[k, 0] += 1.0
@@ -463,7 +488,7 @@ def _part_sums(mosaic, coverage, patch, valid, A, stride, blocks):  # pragma: no
             S[k, 12] += b * v
             S[k, 13] += b * b
             S[k, 14] += a * b
-    return S
+    return S, W
 
 
 # -- a frame on the ceiling plane --------------------------------------------------------
@@ -648,6 +673,18 @@ def features(patch: np.ndarray, valid: np.ndarray, resolution_m: float, *,
         return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
     uv = np.array([kp.pt for kp in kps], float)
     return (uv - (n - 1) / 2) * resolution_m, desc
+
+
+def warm_features(valid: np.ndarray, resolution_m: float, n_features: int = ORB_FEATURES
+                  ) -> None:
+    """:func:`features`' first calls made before a first frame (issue 37): the ORB
+    detector, the eroded mask of ``valid``, and the describing's, on a textured patch
+    (blurred noise, a fixed seed: it finds ``n_features`` keypoints). A blank patch
+    finds none and left the describing's first call to frame 0: its ORB took 1.0 ms
+    against 0.55 ms after this (the office example's frame 0, fresh processes
+    alternated, 2026-12-07)."""
+    noise = np.random.default_rng(0).integers(0, 256, valid.shape, np.uint8)
+    features(cv2.GaussianBlur(noise, (0, 0), 2.0), valid, resolution_m, n_features=n_features)
 
 
 # -- building a map from frames with known poses --------------------------------------
@@ -858,6 +895,6 @@ def _view_descriptors(desc: np.ndarray, most: int = VIEW_DESCRIPTORS,
 
 
 __all__ = ["DEFAULT_RESOLUTION_M", "MAP_FORMAT", "MAP_VERSION", "CeilingMap", "Rectifier",
-           "appearance_ncc", "build_map", "coarser", "features", "footprint_half_extent",
-           "merge_features", "part_ncc", "patch_points_v", "patch_size", "predicted_patch",
-           "pyramid_level", "rectify"]
+           "appearance_ncc", "build_map", "coarser", "explains", "features",
+           "footprint_half_extent", "merge_features", "part_ncc", "patch_points_v",
+           "patch_size", "predicted_patch", "pyramid_level", "rectify", "warm_features"]

@@ -58,10 +58,11 @@ from ceilkit.runtime.estimators.texture.ceilmap import (
     CeilingMap,
     Rectifier,
     appearance_ncc,
+    explains,
     features,
     footprint_half_extent,
-    part_ncc,
     predicted_patch,
+    warm_features,
 )
 from ceilkit.runtime.estimators.texture.match import (
     DescriptorIndex,
@@ -175,6 +176,7 @@ class _Search:
     twins: tuple[MapFit, ...] = ()
     judged: int = 0
     singled: bool = False
+    part: float = math.nan     # the best's part_ncc (:func:`.ceilmap.explains`)
 
 
 class TextureEstimator(Estimator):
@@ -204,8 +206,7 @@ class TextureEstimator(Estimator):
         self._rectify = Rectifier.of(rig, site.ceiling_height_m, self.map.resolution_m,
                                      self.half_m)
         # the ORB detector and both paths' eroded masks too (made on frame 0: issue 37)
-        features(np.zeros(self._rectify.valid.shape, np.uint8), self._rectify.valid,
-                 self.map.resolution_m, n_features=o.n_features)
+        warm_features(self._rectify.valid, self.map.resolution_m, o.n_features)
         self._tracker.inner(self._track_rectify.valid)
         self.sigma_floor_m = float(np.median(self.map.sigma_m[np.unique(self.index.place)])) \
             if len(self.map.sigma_m) else self.map.resolution_m
@@ -253,13 +254,12 @@ class TextureEstimator(Estimator):
                                              radius, o.knn, o.max_hamming)
                 got = self._decide(q, qi, self._search(q, desc, (qi, mj, uq), rng,
                                                        (patch, valid), rows),
-                                   prior, t_ns, t0, local=True, frame=(patch, valid))
+                                   prior, t_ns, t0, local=True)
                 if got is not None:
                     return got
         qi, mj, uq = self.index.match(desc, o.knn, o.max_hamming)
         return self._decide(q, qi, self._search(q, desc, (qi, mj, uq), rng, (patch, valid),
-                                                rows), prior, t_ns, t0, local=False,
-                            frame=(patch, valid))
+                                                rows), prior, t_ns, t0, local=False)
 
     def _tracked(self, grey: np.ndarray, prior: PoseEstimate, t_ns: int, t0: float
                  ) -> PoseEstimate | None:
@@ -283,9 +283,9 @@ class TextureEstimator(Estimator):
         r = got.refined
         fit = dataclasses.replace(r, cov=r.cov * TRACK_VAR_FACTOR
                                   + self.map.placement_cov(got.inlier_xy, r.pose))
-        ncc = appearance_ncc(cmap, patch, valid, fit.pose, NCC_STRIDE)
+        ncc, part = explains(cmap, patch, valid, fit.pose, NCC_STRIDE)
         if fit.rms_m > o.max_rms_px * res or not ncc >= o.min_ncc or \
-                part_ncc(cmap, patch, valid, fit.pose, NCC_STRIDE) < o.min_part_ncc or \
+                part < o.min_part_ncc or \
                 len(fit.used) < TRACK_MIN_SHARE * got.followed or \
                 not allows(prior, (*fit.pose, fit.cov)):
             return None
@@ -298,9 +298,7 @@ class TextureEstimator(Estimator):
     def _window_radius(self, prior: PoseEstimate) -> float | None:
         """The radius about the prior's position the map is searched within, or None
         when the prior is too vague for a local search (:data:`MAX_WINDOW_M`)."""
-        P = prior_cov(prior)
-        spread = 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(P[:2, :2])[-1]), 0.0)) \
-            if np.all(np.isfinite(P[:2, :2])) else math.inf
+        spread = 3.0 * math.sqrt(max(_largest_eigenvalue(prior_cov(prior)[:2, :2]), 0.0))
         if not spread <= MAX_WINDOW_M:
             return None
         return math.sqrt(2.0) * self.half_m + self.options.window_m + spread  # type: ignore
@@ -333,13 +331,13 @@ class TextureEstimator(Estimator):
         runner = None if second is None or 2 * second.count < o.min_inliers else \
             self._refined(qq[rest], pp[rest], qi[rest], second.pose,
                           None if sub is None else (sub[0], sub[1][rest], sub[2][rest]))
-        ncc = appearance_ncc(self.map, patch, valid, best.pose, NCC_STRIDE)
+        ncc, part = explains(self.map, patch, valid, best.pose, NCC_STRIDE)
         ncc2 = math.nan if runner is None or len(runner.used) < o.min_inliers else \
             appearance_ncc(self.map, patch, valid, runner.pose, NCC_STRIDE)
         differ = where_they_differ(self.map, patch, valid, best.pose, runner.pose) \
             if math.isfinite(ncc2) and not ncc2 < ncc - o.twin_ncc else (math.nan, math.nan)
         s = _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
-                    ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ)
+                    ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ, part=part)
         if s.unique >= o.min_unique or _runner_twin(s, o):
             return s
         return dataclasses.replace(s, **dict(zip(("twins", "judged", "singled"), self._twins(
@@ -411,11 +409,11 @@ class TextureEstimator(Estimator):
                                                                              fit.pose))
 
     def _decide(self, q: np.ndarray, qi: np.ndarray, s: _Search,
-                prior: PoseEstimate | None, t_ns: int, t0: float, local: bool,
-                frame: tuple[np.ndarray, np.ndarray]) -> Estimate | None:
+                prior: PoseEstimate | None, t_ns: int, t0: float, local: bool
+                ) -> Estimate | None:
         """The estimate a search gives (None: a local search that found nothing the
-        prior allows; the global search follows). ``frame``: the rectified patch and
-        its valid mask; the pose must explain each part of it (:func:`.part_ncc`)."""
+        prior allows; the global search follows). The pose must explain the frame as a
+        whole and each part of it (``s.ncc``, ``s.part``: :func:`.ceilmap.explains`)."""
         o: TextureOptions = self.options  # type: ignore[assignment]
         res = self.map.resolution_m
         diag = {"features": len(q), "matches": len(qi), "inliers": s.count,
@@ -426,7 +424,7 @@ class TextureEstimator(Estimator):
                 f"{o.min_inliers}", **diag, ms=elapsed_ms(t0))
         diag.update(rms_px=s.best.rms_m / res, ncc=s.ncc, runner_up_ncc=s.runner_ncc,
                     **_velocity_diag(s.best))
-        part = part_ncc(self.map, *frame, s.best.pose, NCC_STRIDE)
+        part = s.part
         diag["part_ncc"] = part
         if s.count < o.min_inlier_share * len(q) or s.best.rms_m > o.max_rms_px * res \
                 or not s.ncc >= o.min_ncc or part < o.min_part_ncc:
@@ -507,6 +505,16 @@ def where_they_differ(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
         return math.nan, math.nan
     fa = f[differ]
     return _ncc(fa, za[differ]), _ncc(fa, zb[differ])
+
+
+def _largest_eigenvalue(P: np.ndarray) -> float:
+    """The larger eigenvalue of a symmetric ``(2, 2)``, its lower triangle read as
+    ``np.linalg.eigvalsh`` reads it, in closed form (eigvalsh took 0.1 ms of a frame
+    0's window search); inf when an entry is not finite."""
+    a, b_up, b, c = P.ravel().tolist()
+    if not all(map(math.isfinite, (a, b_up, b, c))):
+        return math.inf
+    return 0.5 * (a + c) + math.hypot(0.5 * (a - c), b)
 
 
 def _velocity_diag(fit: MapFit) -> dict[str, Any]:

@@ -16,6 +16,7 @@ from ceilkit.runtime.errors import ConfigError
 from ceilkit.runtime.estimators.texture.ceilmap import (
     CeilingMap,
     appearance_ncc,
+    explains,
     merge_features,
     part_ncc,
     patch_points_v,
@@ -187,3 +188,27 @@ def test_a_pose_must_explain_each_part_of_the_frame():
     mixed[:, : n // 3] = np.clip(third, 0, 255).astype(np.uint8)  # the matching third
     assert appearance_ncc(m, mixed, valid, pose) > 0.5
     assert part_ncc(m, mixed, valid, pose) < 0.3
+
+
+def test_explains_is_both_correlations_to_the_bit():
+    """One pass for the whole frame's and the parts' correlations: the whole frame's the
+    same figure as appearance_ncc's own loop (part_ncc is explains' second), on and
+    partly off the mosaic, with holes, at strides 1 and 3."""
+    rng = np.random.default_rng(5)
+    mosaic = cv2.GaussianBlur(rng.integers(0, 255, (160, 200), dtype=np.uint8), (5, 5), 1.5)
+    cover = np.ones_like(mosaic, bool)
+    cover[:, 150:] = False
+    m = CeilingMap(0.01, (0.0, 0.0), mosaic, cover, np.zeros((0, 2)),
+                   np.zeros((0, 32), np.uint8), np.zeros(0), 2.7)
+    n = 61
+    valid = rng.random((n, n)) > 0.2
+    from ceilkit.runtime.estimators.texture.ceilmap import predicted_patch
+    for pose in ((0.8, 0.7, 0.3), (1.45, 0.8, -1.0), (1.9, 1.5, 2.0), (5.0, 5.0, 0.0)):
+        patch, _ = predicted_patch(m, (pose[0] + 0.01, pose[1], pose[2] + 0.02), n)
+        patch = np.clip(patch.astype(float) + rng.normal(0, 4, patch.shape), 0, 255)
+        patch = patch.astype(np.uint8)
+        for stride in (1, 3):
+            got = explains(m, patch, valid, pose, stride)
+            want = (appearance_ncc(m, patch, valid, pose, stride),
+                    part_ncc(m, patch, valid, pose, stride))
+            assert np.array_equal(np.array(got), np.array(want), equal_nan=True), (got, want)

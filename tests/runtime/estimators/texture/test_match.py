@@ -19,10 +19,12 @@ from ceilkit.runtime.estimators.texture.match import (
     _as_words,
     _lsh_keys,
     _lsh_knn,
+    _rows_knn,
     key_bits,
     ransac_rigid,
     refine,
 )
+from ceilkit.runtime.jit import arr
 
 
 def _flipped(desc: np.ndarray, bits: int, rng: np.random.Generator) -> np.ndarray:
@@ -51,6 +53,39 @@ def test_index_finds_near_descriptors_within_the_distance():
     got = np.array([cv2.norm(query[a], desc[b], cv2.NORM_HAMMING)
                     for a, b in zip(qi, mj, strict=True)])
     assert np.all(got <= 64)
+
+
+def _batch_knn(index: DescriptorIndex, desc: np.ndarray, rows: np.ndarray, kk: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The reference of ``_rows_knn``: OpenCV's K nearest (``cv2.batchDistance``), as
+    ``near`` and ``alike`` called it before, in map rows."""
+    dist, idx = cv2.batchDistance(desc, index.descriptors[rows], -1,
+                                  normType=cv2.NORM_HAMMING, K=kk)
+    return np.where(idx >= 0, rows[np.maximum(idx, 0)], -1), dist
+
+
+def test_rows_knn_is_opencvs_k_nearest_ties_and_all():
+    """The window's and the twins' brute force (a compiled popcount) lists the same rows
+    in the same order as cv2.batchDistance's K nearest: ties in the rows' order, on
+    descriptors of a few values (many ties) and on random ones."""
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        n, q = int(rng.integers(2, 300)), int(rng.integers(1, 60))
+        base = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+        if trial % 2:
+            desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+            query = rng.integers(0, 256, (q, 32), dtype=np.uint8)
+        else:
+            noise = (rng.random((n, 32)) < 0.03) * rng.integers(0, 256, (n, 32))
+            desc = base[rng.integers(0, 3, n)] ^ noise.astype(np.uint8)
+            query = base[rng.integers(0, 3, q)]
+        index = DescriptorIndex(rng.uniform(0, 3, (n, 2)), desc)
+        rows = rng.permutation(n)[: int(rng.integers(1, n + 1))]
+        kk = int(rng.integers(1, len(rows) + 1))
+        got = _rows_knn(arr(_as_words(query), np.uint64), index._words,
+                        arr(rows.astype(np.int64), np.int64), kk)
+        want = _batch_knn(index, query, rows, kk)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), trial
 
 
 def test_key_bits_are_the_balanced_ones():
