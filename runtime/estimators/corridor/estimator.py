@@ -373,24 +373,20 @@ class CorridorEstimator(Estimator):
         # that count, always from a full search (the first reads a quarter of its
         # profiles: track.FIRST_ALONG, FIRST_STRIDE).
         fitter, rates = self._chord_fit, self._rates(prior)
-        m = self._window_chords(grey, psi, cy, prior, first=True)
-        first = None if m is None else fitter.first(m, psi, cy, rates)
-        if first is None:           # the quarter missed (a prior pixels off): a full one
-            m = self._window_chords(grey, psi, cy, prior)
-            first = None if m is None else fitter.first(m, psi, cy, rates)
-        found = None
-        if first is not None:
-            if self.lines_track.shift_px(first[0] - psi, first[1] - cy) <= REMEASURE_PX:
-                first = (psi, cy)
-            m = self._window_chords(grey, first[0], first[1], prior)
-            found = None if m is None else fitter.frame(m, first[0], first[1], rates)
+        if rates is None and self._ignore is None:      # all of it in one compiled call
+            m, psi1, cy1, fitted = self.lines_track.window(grey, psi, cy, fitter.kernel,
+                                                           REMEASURE_PX, self._ctx.mirror_y_m)
+            found = None if m is None else fitter.fitted(m, psi1, cy1, fitted)
+        else:
+            found = searched(self, grey, psi, cy, prior, rates)
         twins = None if found is None else fit_twins(self.lines_track, self._ctx, grey, found)
         out = None
         if twins is not None:
             lab = dataclasses.replace(found.frame.labeling, twins=twins,
                                       ambiguous=any(t.label == "shift" for t in twins))
             out = self._pose(t_ns, dataclasses.replace(found.frame, labeling=lab),
-                             found.chords.rms_px, t0, "window")
+                             found.chords.rms_px, t0, "window",
+                             None if found.checks is None else found.checks[:2])
         # outside the prior's region (a kidnap), or a twin inside it (estimators/prior.py)
         if out and prior_choice(prior, [(None, h.y_m, h.yaw_rad, None)
                                         for h in out.hypotheses or (out,)]) != 0:
@@ -491,15 +487,18 @@ class CorridorEstimator(Estimator):
         return row_times_s(v_px, self.rig.camera.height, self.options.readout_ms / 1e3)
 
     def _pose(self, t_ns: int, ff: FrameFit, fit_rms: np.ndarray, t0: float,
-              search: str) -> Estimate:
+              search: str, checks: tuple | None = None) -> Estimate:
         """The pose, its quality and diagnostics from the fitted frame ``ff``, or the
         Failure of the first model check it does not pass (:func:`model_failure`);
         ``fit_rms (N,)``: each segment's edge-fit scatter (px); ``search``: the
-        ``search`` diagnostic (``window`` on the tracked path)."""
+        ``search`` diagnostic (``window`` on the tracked path); ``checks``: the
+        vanishing line's dict and the counts where computed (:class:`~.track.WindowFit`:
+        the same numbers)."""
         fr, best, gd, fit = ff.lines, ff.labeling, ff.gd, ff.fit
         yaw, y_m, cov = vehicle_pose(fit, self.setup)
         along, across = best.along, best.across
-        vl = vanishing_line_check(fr.lines, fr.len_n, along, across, self.setup.R_level_cam)
+        vl = (vanishing_line_check(fr.lines, fr.len_n, along, across, self.setup.R_level_cam)
+              if checks is None else checks[0])
         groups = np.concatenate([gd.y, 1e9 + np.arange(gd.p0.size)])
         mf = misfit(fit.residuals_px, self.options.noise_px, 2, groups,
                     self.options.misfit_alpha, huber_px=1.0)
@@ -507,8 +506,9 @@ class CorridorEstimator(Estimator):
                    / (1.0 + (fit.rms_px / 1.5) ** 2))
         if best.ambiguous:
             quality *= 0.5
-        n_along, n_across, n_steps, n_thin, fit_rms_px, span = labeled_counts(
-            fr, along, across, best.assign, fit_rms)
+        n_along, n_across, n_steps, n_thin, fit_rms_px, span = (
+            labeled_counts(fr, along, across, best.assign, fit_rms) if checks is None
+            else checks[1])
         diag = {
             "n_segments": fr.segs.shape[0],
             "n_along": n_along,
@@ -549,6 +549,26 @@ class CorridorEstimator(Estimator):
                             hypotheses_complete=complete_twins(best.twins))
 
 
+def searched(est: CorridorEstimator, grey: np.ndarray, psi: float, cy: float,
+             prior: PoseEstimate, rates: RowRates | None) -> WindowFit | None:
+    """The window fit about camera pan ``psi`` and y ``cy`` (``est``'s
+    :meth:`~CorridorEstimator._tracked` searches and fits, one by one: with the ignore
+    regions or a rolling shutter's ``rates``; :meth:`~.track.LineTracker.window`
+    otherwise), or None."""
+    fitter = est._chord_fit
+    m = est._window_chords(grey, psi, cy, prior, first=True)
+    first = None if m is None else fitter.first(m, psi, cy, rates)
+    if first is None:           # the quarter missed (a prior pixels off): a full one
+        m = est._window_chords(grey, psi, cy, prior)
+        first = None if m is None else fitter.first(m, psi, cy, rates)
+    if first is None:
+        return None
+    if est.lines_track.shift_px(first[0] - psi, first[1] - cy) <= REMEASURE_PX:
+        first = (psi, cy)
+    m = est._window_chords(grey, first[0], first[1], prior)
+    return None if m is None else fitter.frame(m, first[0], first[1], rates)
+
+
 def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: WindowFit
               ) -> tuple[LabelingTwin, ...] | None:
     """The twins of a window fit ``found`` (:meth:`~.track.ChordFit.frame`) the
@@ -558,7 +578,8 @@ def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: Windo
     ``exact`` False, so the list is not complete); None when the global path must
     decide the frame."""
     fit = found.frame.fit
-    twins = window_twins(lt, grey, found.chords, fit.psi_rad, fit.camera_y_m, ctx.mirror_y_m)
+    twins = (window_twins(lt, grey, found.chords, fit.psi_rad, fit.camera_y_m, ctx.mirror_y_m)
+             if found.checks is None else found.checks[2])
     if twins is None or not ctx.across_seams:
         return twins
     return twins + tuple(LabelingTwin(wrap_pi(fit.psi_rad + d), math.nan, "quarter_turn",

@@ -156,6 +156,12 @@ def frame_lines(segs: np.ndarray, pol: np.ndarray, setup: CorridorSetup,
         segs, arr(setup.R_level_cam, np.float64),
         float(setup.ceiling_above_cam_m), arr(setup.lamp_width_m, np.float64),
         float(angle_tol_rad), float(inlier_px), float(setup.f_px))
+    return frame_of(segs, pol, out)
+
+
+def frame_of(segs: np.ndarray, pol: np.ndarray, out: tuple) -> FrameLines:
+    """The :class:`FrameLines` of segments ``segs (N, 4)`` (float64, C order), polarities
+    ``pol (N,)`` and :func:`_frame_arrays`' output ``out`` (made read-only here)."""
     for a in out:               # read-only, as the compiled loops take them
         a.flags.writeable = False
     lines_t, len_n, mx, my, q, ceil_len, ceil_sx, ceil_sy, lamp_end, tol = out

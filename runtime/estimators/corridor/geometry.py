@@ -139,9 +139,14 @@ def vanishing_line_check(lines: np.ndarray, len_n: np.ndarray, along: np.ndarray
     ``vp_along_elevation_deg``, ``implied_tilt_deg``, ``implied_swing_deg`` (NaN where
     a family has fewer than two segments)."""
     lines_t = np.ascontiguousarray(np.asarray(lines, np.float64).reshape(-1, 3).T)
-    resid, elev, tilt, swing = _vanishing_line(
+    return vanishing_line_dict(*_vanishing_line(
         arr(lines_t, np.float64), arr(len_n, np.float64), arr(along, np.bool_),
-        arr(across, np.bool_), arr(R_level_cam, np.float64))
+        arr(across, np.bool_), arr(R_level_cam, np.float64)))
+
+
+def vanishing_line_dict(resid: float, elev: float, tilt: float, swing: float
+                        ) -> dict[str, float]:
+    """:func:`vanishing_line_check`'s dict of :func:`_vanishing_line`'s numbers."""
     return {"vanishing_line_residual_deg": resid, "vp_along_elevation_deg": elev,
             "implied_tilt_deg": tilt, "implied_swing_deg": swing}
 

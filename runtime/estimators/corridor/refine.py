@@ -322,6 +322,13 @@ def gauss_newton(psi_rad: float, camera_y_m: float, gd: GNInputs, setup: Corrido
         level_camera(setup, setup.R_rows), max(1, iterations), r)
     det = h00 * h11 - h01 * h10
     C = residual_cov(psi, cy, gd, setup) if abs(det) > 1e-300 else None
+    return pan_offset_fit(psi, cy, C, r)
+
+
+def pan_offset_fit(psi: float, cy: float, C: np.ndarray | None, r: np.ndarray
+                   ) -> PanOffsetFit:
+    """The :class:`PanOffsetFit` of :func:`gauss_newton`'s solution ``(psi, cy)``, its
+    covariance ``C (2, 2)`` (None: singular) and last residuals ``r`` (px)."""
     if C is not None:
         cov = ((float(C[0, 0]), float(C[0, 1])), (float(C[1, 0]), float(C[1, 1])))
     else:

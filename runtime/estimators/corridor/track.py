@@ -40,15 +40,31 @@ import numpy as np
 
 from ceilkit.runtime.estimators.base import PoseEstimate
 from ceilkit.runtime.estimators.corridor.association import ABSENCE_PENALTY
-from ceilkit.runtime.estimators.corridor.frame import FrameLines, frame_lines
+from ceilkit.runtime.estimators.corridor.frame import (
+    FrameLines,
+    _frame_arrays,
+    counts_core,
+    frame_lines,
+    frame_of,
+)
+from ceilkit.runtime.estimators.corridor.geometry import _vanishing_line, vanishing_line_dict
 from ceilkit.runtime.estimators.corridor.hypotheses import TWIN_RATIO, Labeling, LabelingTwin
 from ceilkit.runtime.estimators.corridor.refine import (
+    FrameArrays,
     FrameFit,
+    GNArrays,
+    GNInputs,
+    LevelCamera,
     RowRates,
     along_fit,
+    along_steps,
+    fix_cov,
+    gn_arrays,
     gn_inputs,
+    huber_steps,
     joint_fit,
     level_camera,
+    pan_offset_fit,
 )
 from ceilkit.runtime.estimators.corridor.setup import CorridorSetup
 from ceilkit.runtime.features.edges import PROFILE_STEP_PX, edge_grid, part_indices
@@ -202,6 +218,22 @@ def _profile_grid(n_along: int, search_px: float) -> ProfileGrid:
                        arr(ii, np.int64), np.int64(inner.start + 1), np.int64(inner.stop + 1))
 
 
+def flat_search(s: ChordSearch) -> tuple:
+    """``s`` as plain nested tuples, the form the compiled entries take (numba types a
+    named tuple argument field by field in Python: about 8 us a call here, against its
+    own fast path for a plain tuple); :func:`_unflat` makes ``s`` of it again inside."""
+    return (s.R_level_cam, s.site_y, s.edge_kind, s.along_m,
+            tuple(s.grid[:5]) + (int(s.grid.i0), int(s.grid.i1)),
+            tuple(s.first_grid[:5]) + (int(s.first_grid.i0), int(s.first_grid.i1)),
+            int(s.lens_code), s.lens, tuple(float(v) for v in s.bounds))
+
+
+def _measurement(found: tuple) -> LineMeasurement | None:
+    """The :class:`LineMeasurement` of :func:`_measure`'s output, None where not found."""
+    ok, segs_n, chords, line, pol, rms, n = found
+    return LineMeasurement(segs_n, chords, line, pol, rms, n) if ok else None
+
+
 @dataclass(frozen=True, eq=False)
 class WindowFit:
     """A window fix before its model check: the located ``chords``
@@ -211,6 +243,10 @@ class WindowFit:
 
     chords: LineMeasurement
     frame: FrameFit
+    checks: tuple | None = None
+    """What the compiled window call also computed of the fix (None: not computed):
+    ``(vanishing line, counts, twins)``, :func:`~.geometry.vanishing_line_check`'s
+    dict, :func:`~.frame.labeled_counts`' tuple and :func:`window_twins`' answer."""
 
 
 class ChordFit:
@@ -237,6 +273,14 @@ class ChordFit:
         self.iterations, self.reach, self.times = iterations, reach, times
         self.cam = level_camera(setup, setup.R_level_cam)
         self.site_y = arr(setup.site_y, np.float64)
+        self.kernel = ((self.cam.R, self.cam.h_m, self.cam.f_px), self.site_y,
+                       (min(inlier_px, MAX_CHORD_RMS_PX), float(reach[0]), float(reach[1])),
+                       int(max(1, iterations)),
+                       (arr(setup.lamp_width_m, np.float64), float(angle_tol_rad),
+                        float(inlier_px)))
+        """What :func:`_window_core` takes of the fit: the camera, the site's lines,
+        the checks of :meth:`ok`, the steps and the frame's
+        (:func:`~.frame.frame_lines`: the lamps' widths, the family gate)."""
 
     def ok(self, fit: tuple[float, float, float], psi: float, cy: float) -> bool:
         """Whether a fit ``(psi, c_y, rms_px)`` started at ``(psi, cy)`` is kept."""
@@ -258,6 +302,22 @@ class ChordFit:
         fit = along_fit(m.segs_n, m.line, self.site_y, self.cam, psi, cy,
                         self.iterations)
         return fit[:2] if self.ok(fit, psi, cy) else None
+
+    def fitted(self, m: LineMeasurement, psi: float, cy: float, fitted: tuple
+               ) -> WindowFit | None:
+        """:meth:`frame` (a global shutter) from its numbers computed in the compiled
+        call (:func:`_frame_fit`'s ``fitted``): the same objects, None: not kept."""
+        frame_out, g, (fit_psi, fit_cy, cov_ok, C, r), vl, counts, twins = fitted
+        fit = pan_offset_fit(fit_psi, fit_cy, C if cov_ok else None, r)
+        if not self.ok((fit.psi_rad, fit.camera_y_m, fit.rms_px), psi, cy):
+            return None
+        fr = frame_of(arr(m.segs_n, np.float64), m.polarity, frame_out)
+        n, n_lines = m.segs_n.shape[0], m.n_lines
+        along, across = np.ones(n, bool), np.zeros(n, bool)
+        lab = Labeling((n_lines, float(n)), psi, cy, along, across, m.line, n_lines,
+                       False, "window")
+        return WindowFit(m, FrameFit(fr, lab, GNInputs(*g), fit),
+                         (vanishing_line_dict(*vl), counts, labeling_twins(*twins)))
 
     def frame(self, m: LineMeasurement, psi: float, cy: float, rates: RowRates | None
               ) -> WindowFit | None:
@@ -323,6 +383,7 @@ class LineTracker:
         self.setup, self.camera = setup, camera
         self.search_px = float(search_px)
         self.search = chord_search(setup, camera, self.search_px)
+        self.flat = flat_search(self.search)
         self.kernel_lines = (self.search.site_y, arr(np.abs(setup.edge_kind), np.float64))
 
     def predicted_chords(self, psi_rad: float, camera_y_m: float
@@ -340,13 +401,28 @@ class LineTracker:
         ``first``: a frame's first search, :data:`FIRST_ALONG` places on every
         :data:`FIRST_STRIDE`-th chord of a line (its fit only says where to search
         again), else :data:`N_ALONG` places on every chord."""
-        s = self.search
-        found, segs_n, chords, line, pol, rms, n = _measure(
-            arr(grey, np.uint8), float(psi_rad), float(camera_y_m), s,
-            s.first_grid if first else s.grid, FIRST_STRIDE if first else 1)
-        if not found:
-            return None
-        return LineMeasurement(segs_n, chords, line, pol, rms, n)
+        return _measurement(_measure_flat(arr(grey, np.uint8), float(psi_rad),
+                                          float(camera_y_m), self.flat,
+                                          FIRST_STRIDE if first else 0))
+
+    def window(self, grey: np.ndarray, psi_rad: float, camera_y_m: float, fit: tuple,
+               remeasure_px: float, mirror_y_m: float | None = None
+               ) -> tuple[LineMeasurement | None, float, float, tuple]:
+        """A frame's searches, with a global shutter and no ignore region, as one compiled
+        call (:func:`_window_core`): the first search (:meth:`measure`, ``first``), its
+        fit (:meth:`ChordFit.first`; a full first search where the quarter gives none),
+        and the full search about that fit (about ``(psi_rad, camera_y_m)`` where it moves
+        the lines at most ``remeasure_px``, :meth:`shift_px`) and the frame's fit of its
+        chords (:meth:`ChordFit.frame`'s numbers): ``(chords, psi, c_y, fitted)``, the
+        chords the frame's fit takes (None: none kept), where they were searched and
+        the fit for :meth:`ChordFit.fitted`, with the fix's checks and its twins
+        (:func:`window_twins`, ``mirror_y_m``): the estimator's reading, the same
+        numbers, without the calls between; ``fit``: :attr:`ChordFit.kernel`."""
+        found, psi, cy, m, fitted = _window_core(arr(grey, np.uint8), float(psi_rad),
+                                                 float(camera_y_m), self.flat, fit,
+                                                 (float(remeasure_px), FIRST_STRIDE),
+                                                 (self.kernel_lines[1], _mirror(mirror_y_m)))
+        return (_measurement(m) if found else None), psi, cy, fitted
 
     def shift_px(self, d_psi_rad: float, d_cy_m: float) -> float:
         """How far (px, at the image's scale) a change of the camera's pan and y moves
@@ -472,6 +548,112 @@ def _measure(grey, psi, cam_y, s, grid, stride):  # pragma: no cover - compiled
     return True, ends[ok], chords[ok], line[ok], pol[ok], rms[ok], n
 
 
+@njit
+def _unflat(f):  # pragma: no cover - compiled
+    """The :class:`ChordSearch` of :func:`flat_search`'s tuple ``f``."""
+    g, q, b = f[4], f[5], f[8]
+    return ChordSearch(f[0], f[1], f[2], f[3],
+                       ProfileGrid(g[0], g[1], g[2], g[3], g[4], g[5], g[6]),
+                       ProfileGrid(q[0], q[1], q[2], q[3], q[4], q[5], q[6]), f[6], f[7],
+                       ChordView(b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]))
+
+
+@njit
+def _measure_flat(grey, psi, cam_y, flat, stride):  # pragma: no cover - compiled
+    """:func:`_measure` of :func:`flat_search`'s ``flat``: a first search on every
+    ``stride``-th chord of a line (its ``first_grid``), a full one where ``stride`` is 0."""
+    s = _unflat(flat)
+    if stride > 0:
+        return _measure(grey, psi, cam_y, s, s.first_grid, stride)
+    return _measure(grey, psi, cam_y, s, s.grid, 1)
+
+
+@njit
+def _window_core(grey, psi, cam_y, flat, fit, how, twin):  # pragma: no cover - compiled
+    """:meth:`LineTracker.window` (``fit``: :attr:`ChordFit.kernel`; ``how``: the
+    shift searched again about itself, px, and :data:`FIRST_STRIDE`; ``twin``:
+    :func:`_twins_core`'s ``kind_abs`` and ``mirror``):
+    ``(found, psi, c_y, measured, fitted)``, ``measured`` as :func:`_measure`'s,
+    ``fitted`` as :func:`_frame_fit`'s (of no chords where not found)."""
+    s = _unflat(flat)
+    m = _measure(grey, psi, cam_y, s, s.first_grid, how[1])
+    ok, psi1, cy1 = _first_fit(m, psi, cam_y, fit)
+    if not ok:                  # the quarter missed (a prior pixels off): a full one
+        m = _measure(grey, psi, cam_y, s, s.grid, 1)
+        ok, psi1, cy1 = _first_fit(m, psi, cam_y, fit)
+    if ok:
+        b = s.bounds           # LineTracker.shift_px (Python's max: the first unless above)
+        a, c = abs(psi1 - psi) * b.f_px, abs(cy1 - cam_y) * b.f_px / b.h_m
+        if (c if c > a else a) <= how[0]:
+            psi1, cy1 = psi, cam_y
+        m = _measure(grey, psi1, cy1, s, s.grid, 1)
+    found = ok and m[0]
+    k = m[1].shape[0] if found else 0
+    fitted = _frame_fit(m[1][:k], m[3][:k], m[4][:k], m[5][:k], psi1, cy1, fit)
+    fx = fitted[2]
+    refused, psi_t, cy_t, shift = _twins_of(grey, fx[0], fx[1], s, twin[0], m[3][:k],
+                                            twin[1])
+    return found, psi1, cy1, m, fitted + ((refused or k == 0, psi_t, cy_t, shift),)
+
+
+@njit
+def _frame_fit(segs, line, pol, rms, psi, cam_y, fit):  # pragma: no cover - compiled
+    """:meth:`ChordFit.frame`'s numbers (a global shutter) for chords ``segs (K, 4)``
+    on site lines ``line (K,)``, of kinds ``pol`` and scatters ``rms (K,)``, searched
+    about ``(psi, cam_y)`` (``fit``: :attr:`ChordFit.kernel`): ``(frame, gn, (psi,
+    c_y, cov_ok, C (2, 2), r), vanishing line, counts)``, the arrays of
+    :func:`~.frame._frame_arrays`, those of :func:`~.refine.gn_arrays` (every chord
+    forward on its line), then :func:`~.refine.gauss_newton`'s compiled calls
+    (:func:`~.refine.huber_steps`, :func:`~.refine.fix_cov`) on them, and the model
+    check's :func:`~.geometry._vanishing_line` and :func:`~.frame.counts_core`: the
+    same numbers in the same order."""
+    (R, h, f), site_y, _, iterations, (lamp_w, angle_tol, inlier_px) = fit
+    cam = LevelCamera(R, h, f)
+    out = _frame_arrays(segs, R, h, lamp_w, angle_tol, inlier_px, f)
+    n = segs.shape[0]
+    along, across = np.ones(n, np.bool_), np.zeros(n, np.bool_)
+    g = gn_arrays(FrameArrays(segs, out[0], out[2], out[3], out[1]), along, across, line,
+                  site_y, cam)
+    vl = _vanishing_line(out[0], out[1], along, across, R)
+    counts = counts_core(segs, pol, along, across, line, rms)
+    gd = GNArrays(g.e0.size, g.y, g.e0, g.e1, g.ez, g.p0, g.p1, g.mx_b, g.my_b, g.scale_b)
+    r = np.empty(gd.e0.size + gd.p0.size)
+    C = np.empty((2, 2))
+    cov_ok = False
+    if n == 0:
+        return out, tuple(g), (psi, cam_y, cov_ok, C, r), vl, counts
+    hf = huber_steps((psi, cam_y), gd, cam, iterations, r)
+    if abs(hf.h00 * hf.h11 - hf.h01 * hf.h10) > 1e-300:
+        cov_ok = fix_cov((hf.psi, hf.cy), gd, cam, np.empty(0), RowRates(0.0, 0.0, 0.0, 0.0),
+                         C)
+    return out, tuple(g), (hf.psi, hf.cy, cov_ok, C, r), vl, counts
+
+
+@njit
+def _first_fit(m, psi, cam_y, fit):  # pragma: no cover - compiled
+    """:meth:`ChordFit.first` (a global shutter) of :func:`_measure`'s ``m``:
+    ``(kept, psi, c_y)`` of :func:`~.refine.along_steps` from ``(psi, cam_y)``, kept as
+    :meth:`ChordFit.ok` says (its rms summed in order: it is only compared)."""
+    if not m[0]:
+        return False, psi, cam_y
+    (R, h, f), site_y, (most_px, reach_psi, reach_cy), iterations, _ = fit
+    segs, line = m[1], m[3]
+    r = np.empty(2 * segs.shape[0])
+    psi1, cy1 = along_steps(segs, line, site_y, LevelCamera(R, h, f), (psi, cam_y),
+                            iterations, r)
+    ss = 0.0
+    for v in r:
+        ss += v * v
+    rms = math.sqrt(ss / r.size) if r.size else math.nan
+    d = np.fmod(psi1 - psi, 2.0 * math.pi)  # math.remainder's size, exactly
+    if d > math.pi:
+        d -= 2.0 * math.pi
+    elif d < -math.pi:
+        d += 2.0 * math.pi
+    refused = rms > most_px or abs(d) > reach_psi or abs(cy1 - cam_y) > reach_cy
+    return not refused, psi1, cy1
+
+
 TWIN_EPS_M = 1e-4
 """Two site lines that a twin and the window fix put within this of each other (m,
 across) lie on the same image line: the twin's line is measured by the fix's."""
@@ -497,9 +679,19 @@ def window_twins(lt: LineTracker, grey: np.ndarray, m: LineMeasurement, psi_rad:
     or a lateral shift matching about as many lines misses fewer in view (the global
     path's absence test would choose it against the prior): the global path decides
     the frame then. Quarter turns are not examined here."""
-    refused, psi_t, cy_t, shift = _twins_core(
-        arr(grey, np.uint8), float(psi_rad), float(camera_y_m), lt.search, lt.kernel_lines[1],
-        m.line, np.nan if mirror_y_m is None else float(mirror_y_m))
+    return labeling_twins(*_twins_core(
+        arr(grey, np.uint8), float(psi_rad), float(camera_y_m), lt.flat, lt.kernel_lines[1],
+        m.line, _mirror(mirror_y_m)))
+
+
+def _mirror(mirror_y_m: float | None) -> float:
+    """The compiled calls' ``mirror``: NaN for none."""
+    return np.nan if mirror_y_m is None else float(mirror_y_m)
+
+
+def labeling_twins(refused: bool, psi_t: np.ndarray, cy_t: np.ndarray, shift: np.ndarray
+                   ) -> tuple[LabelingTwin, ...] | None:
+    """:func:`window_twins`' answer from :func:`_twins_core`'s."""
     if refused:
         return None
     return tuple(LabelingTwin(p, c, "shift" if t else "half_turn")
@@ -507,7 +699,13 @@ def window_twins(lt: LineTracker, grey: np.ndarray, m: LineMeasurement, psi_rad:
 
 
 @njit
-def _twins_core(grey, psi, cam_y, s, kind_abs, line, mirror):  # pragma: no cover - compiled
+def _twins_core(grey, psi, cam_y, flat, kind_abs, line, mirror):  # pragma: no cover - compiled
+    """:func:`_twins_of` of the search as :func:`flat_search` makes it."""
+    return _twins_of(grey, psi, cam_y, _unflat(flat), kind_abs, line, mirror)
+
+
+@njit
+def _twins_of(grey, psi, cam_y, s, kind_abs, line, mirror):  # pragma: no cover - compiled
     """:func:`window_twins` in one call (the arguments of :func:`_twin_scores`):
     ``(refused, psi_t (T,), cy_t (T,), shift (T,) bool)``: the twins' camera pan and y
     (a lateral shift's pan is ``psi``'s; a half turn's ``psi + pi`` wrapped into
@@ -836,7 +1034,13 @@ def _warm() -> None:
                           R_level_cam=np.eye(3), site_y=np.array([-1.0, 1.0]),
                           edge_kind=np.zeros(2))
     s = chord_search(toy, cam, 4.0)
-    _measure(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, s, s.grid, 1)
+    g = arr(np.zeros((48, 64), np.uint8), np.uint8)
+    flat = flat_search(s)
+    _measure_flat(g, 0.0, 0.0, flat, 0)
+    _measure_flat(g, 0.0, 0.0, flat, 2)
+    cam_fit = ((s.R_level_cam, 2.0, 50.0), s.site_y, (1.0, 0.1, 0.1), 6,
+               (arr(np.array([0.3]), f), 0.03, 2.5))
+    _window_core(g, 0.0, 0.0, flat, cam_fit, (0.02, 2), (arr(np.zeros(2), f), 0.0))
     _predict(0.0, 0.0, s.site_y, s)       # also called alone (chords_at)
     _count_distinct(arr(np.array([0, 1]), np.int64))
     lines = (arr([-1.0, 1.0], f), arr([0.0, 0.0], f))
@@ -845,7 +1049,7 @@ def _warm() -> None:
     _asked(maps[3], hit >= 0, np.zeros(maps[0].shape[0]))
     _tally(maps[3], hit)
     _probe_chords(np.array([0, 0, 1]), arr(np.ones(2, np.bool_), np.bool_), 2)
-    _twins_core(arr(np.zeros((48, 64), np.uint8), np.uint8), 0.0, 0.0, s,
+    _twins_core(g, 0.0, 0.0, flat,
                 arr(np.zeros(2), f), np.array([0, 1]), 0.0)
 
 

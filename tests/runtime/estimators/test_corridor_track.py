@@ -194,3 +194,54 @@ def test_quarter_first_search_gives_the_full_first_search_fix(corridor_rig, corr
     print(f"quarter vs full first search: |dy| <= {dy_max * 1e6:.2f} um, "
           f"|dyaw| <= {dyaw_max:.2e} deg")
     assert dy_max < 5e-6 and dyaw_max < 1e-4
+
+
+def test_one_compiled_window_call_is_the_calls_one_by_one(corridor_rig, corridor_site,
+                                                         tracked):
+    """The window path's searches, fits, checks and twins as one compiled call
+    (LineTracker.window, ChordFit.fitted) give the numbers of the calls one by one
+    (estimator.searched, then vanishing_line_check, labeled_counts and
+    window_twins on its fit), bit for bit, and None where they give None: priors on
+    the truth, centimetres off and 0.3 m off (a twin's or no fix)."""
+    from ceilkit.runtime.estimators.corridor.estimator import REMEASURE_PX, searched
+    from ceilkit.runtime.estimators.corridor.frame import labeled_counts
+    from ceilkit.runtime.estimators.corridor.geometry import vanishing_line_check
+    from ceilkit.runtime.estimators.corridor.track import window_twins
+
+    st, lt, fitter = tracked.setup, tracked.lines_track, tracked._chord_fit
+    mirror = tracked._ctx.mirror_y_m
+    kept = 0
+    for k, (x, y, yaw) in enumerate(POSES):
+        img = frame(corridor_rig, corridor_site, x, y, yaw, k)
+        for dy, dyaw in ((0.0, 0.0), (0.01, 0.005), (-0.02, -0.003), (0.3, 0.0)):
+            psi = yaw + dyaw + st.pan_rad
+            cy = y + dy + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
+            one = searched(tracked, img, psi, cy, prior(y + dy, yaw + dyaw), None)
+            m, psi1, cy1, fitted = lt.window(img, psi, cy, fitter.kernel, REMEASURE_PX, mirror)
+            fused = None if m is None else fitter.fitted(m, psi1, cy1, fitted)
+            assert (one is None) == (fused is None)
+            if one is None:
+                continue
+            kept += 1
+            a, b = one.frame, fused.frame
+            for f in ("segs_n", "segs_px", "line", "polarity", "rms_px"):
+                assert np.array_equal(getattr(one.chords, f), getattr(fused.chords, f))
+            assert (a.fit.psi_rad, a.fit.camera_y_m, a.fit.cov, a.fit.rms_px) == (
+                b.fit.psi_rad, b.fit.camera_y_m, b.fit.cov, b.fit.rms_px)
+            assert np.array_equal(a.fit.residuals_px, b.fit.residuals_px)
+            for f in ("lines_t", "len_n", "q", "ceil_len", "lamp_end", "tol"):
+                assert np.array_equal(getattr(a.lines, f), getattr(b.lines, f))
+            for f in ("y", "e0", "e1", "ez"):
+                assert np.array_equal(getattr(a.gd, f), getattr(b.gd, f))
+            vl, counts, twins = fused.checks
+            lab = a.labeling
+            vl_one = vanishing_line_check(a.lines.lines, a.lines.len_n, lab.along,
+                                          lab.across, st.R_level_cam)
+            assert vl.keys() == vl_one.keys()
+            assert np.array_equal(list(vl.values()), list(vl_one.values()), equal_nan=True)
+            assert np.array_equal(counts, labeled_counts(a.lines, lab.along, lab.across,
+                                                         lab.assign, one.chords.rms_px),
+                                  equal_nan=True)
+            assert twins == window_twins(lt, img, one.chords, a.fit.psi_rad,
+                                         a.fit.camera_y_m, mirror)
+    assert kept >= 6
