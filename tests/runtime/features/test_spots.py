@@ -121,6 +121,41 @@ def test_niblack_masks_agree_on_spots():
     assert (m1 > 0).mean() < 0.05 and (m1 > 0).sum() <= (ref > 0).sum()
 
 
+
+def _array_levels(small, win, k, min_contrast, rel):
+    """The Niblack levels as the array operations read them (before niblack_levels)."""
+    mean = cv2.boxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
+    sq = cv2.sqrBoxFilter(small, cv2.CV_32F, (win, win), borderType=cv2.BORDER_REFLECT)
+    box = (mean.copy(), sq.copy())
+    sq -= mean * mean
+    std = cv2.sqrt(np.maximum(sq, 0.0, out=sq))
+    floor = np.maximum(mean * np.float32(rel), np.float32(min_contrast))
+    std *= np.float32(k)
+    thr = np.add(mean, np.maximum(std, floor, out=std), out=mean)
+    return np.minimum(np.maximum(thr, 0.0, out=thr), 254.0, out=thr).astype(np.uint8), box
+
+
+def test_niblack_levels_equal_the_array_reading():
+    """The compiled thresholds are the array operations' bit for bit: noise, spots,
+    two-level (0/255) frames, flat frames, small and large windows."""
+    from ceilkit.runtime.features.spots import niblack_levels
+
+    rng = np.random.default_rng(4)
+    imgs = [(rng.random((60, 80)) * 255).astype(np.uint8),
+            np.where(rng.random((60, 80)) > 0.85, 255, 0).astype(np.uint8),
+            np.full((60, 80), 255, np.uint8), np.zeros((60, 80), np.uint8),
+            cv2.resize(blobs(CENTRES), (60, 40), interpolation=cv2.INTER_LINEAR)]
+    differ = 0
+    for img in imgs:
+        for win, k, mc, rel in [(11, 0.8, 10.0, 0.2), (3, 0.8, 10.0, 0.2),
+                                (21, 1.3, 0.0, 0.0), (7, 0.5, 5.0, 0.35)]:
+            want, (mean, sq) = _array_levels(img, win, k, mc, rel)
+            got = niblack_levels(mean, sq, np.float32(k), np.float32(mc), np.float32(rel),
+                                 np.float32(254.0))
+            differ += int(np.count_nonzero(got != want))
+    assert differ == 0
+
+
 def test_axis_ratios():
     cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[2.0, 0.0], [0.0, 2.0]]])
     np.testing.assert_allclose(axis_ratios(cov), [0.5, 1.0])

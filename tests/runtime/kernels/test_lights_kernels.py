@@ -148,6 +148,67 @@ def test_pattern_matcher_equals_the_array_reading(with_visibility):
     assert n_cands > 60 and n_ambiguous > 5       # many candidates, rivals among them
 
 
+
+def _abs_association(qc, rot, t, lights_c, gate):  # pragma: no cover - compiled
+    """The association as the compiled loop read it before it compared squared
+    distances: every distance by ``abs``, ``np.argmin`` per row (the first of equal
+    ones), the first smallest per column."""
+    n, m = qc.size, lights_c.size
+    d = np.empty((n, m))
+    for i in range(n):
+        p = qc[i] * rot + t
+        for j in range(m):
+            d[i, j] = abs(p - lights_c[j])
+    out = np.empty((n, 2), np.int64)
+    k = 0
+    for i in range(n):
+        if m == 0:
+            break
+        j = np.argmin(d[i])
+        if not d[i, j] < gate:
+            continue
+        best = 0
+        for r in range(1, n):
+            if d[r, j] < d[best, j]:
+                best = r
+        if best == i:
+            out[k, 0], out[k, 1] = i, j
+            k += 1
+    return out[:k].copy()
+
+
+def test_association_ties_equal_the_abs_reading():
+    """Points midway between lights of a grid (equal distances to two or four of them),
+    repeated observations, points a rounding apart, and a random scatter: the compiled
+    association (squared distances, ``abs`` near a tie) pairs them as the loop reading
+    every distance by ``abs`` does (compiled too: numba's ``abs`` of a complex number
+    and numpy's may round a tie apart differently, so the array reading is no
+    reference on exact ties)."""
+    import numba
+
+    from ceilkit.runtime.estimators.lights.matching import _associate
+
+    want_f = numba.njit(_abs_association)
+    rng = np.random.default_rng(9)
+    g = np.arange(5) * 1.2
+    grid = np.stack(np.meshgrid(g, g * 2.0), -1).reshape(-1, 2)
+    pairs = 0
+    for trial in range(600):
+        if trial % 2:
+            lights = grid[:, 0] + 1j * grid[:, 1]
+            q = rng.integers(0, 9, 8) * 0.6 + 1j * rng.integers(0, 9, 8) * 1.2
+            q = np.concatenate([q, q[:2], q[2:3] + 1e-15])
+        else:
+            lights = rng.uniform(0, 6, 30) + 1j * rng.uniform(0, 6, 30)
+            q = lights[rng.integers(0, 30, 10)] + rng.normal(0, 0.03, 10)
+        for yaw, gate in ((0.0, 0.7), (0.0, 0.61), (math.pi / 2, 10.0), (0.3, 0.1)):
+            rot = complex(math.cos(yaw), math.sin(yaw))
+            want = want_f(q, rot, 0j, lights, gate)
+            np.testing.assert_array_equal(_associate(q, rot, 0j, lights, gate), want)
+            pairs += want.shape[0]
+    assert pairs > 2000
+
+
 def test_visibility_lookup_equals_the_array_reading():
     from ceilkit.runtime.estimators.lights.observe import VisibilityTable
 
