@@ -338,10 +338,13 @@ class TextureEstimator(Estimator):
             if math.isfinite(ncc2) and not ncc2 < ncc - o.twin_ncc else (math.nan, math.nan)
         s = _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
                     ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ, part=part)
-        if s.unique >= o.min_unique or _runner_twin(s, o):
+        if s.unique >= o.min_unique:
             return s
-        return dataclasses.replace(s, **dict(zip(("twins", "judged", "singled"), self._twins(
-            q, desc, qi[best.used][~unique[best.used]], best, ncc, frame, rows), strict=True)))
+        # too few distinctive: every twin listed, the runner-up's once (_decide's prior)
+        twins, judged, singled = self._twins(q, desc, qi[best.used][~unique[best.used]], best,
+                                             ncc, frame, rows)
+        twins = tuple(t for t in twins if runner is None or not _same_basin(t.pose, runner.pose))
+        return dataclasses.replace(s, twins=twins, judged=judged, singled=singled)
 
     def _twins(self, q: np.ndarray, desc: np.ndarray, feats: np.ndarray, best: MapFit,
                ncc: float, frame: tuple[np.ndarray, np.ndarray], rows: _Rows | None
@@ -450,7 +453,8 @@ class TextureEstimator(Estimator):
             return self._pose(t_ns, s, Provenance.WINDOW if local else Provenance.GLOBAL,
                               (), diag, t0)
         hyps = _hypotheses(s)
-        k = prior_choice(prior, [(h.x_m, h.y_m, h.yaw_rad, h.cov) for h in hyps])
+        k = prior_choice(prior, [(h.x_m, h.y_m, h.yaw_rad, h.cov) for h in hyps]) \
+            if s.unique >= o.min_unique or s.singled else None    # every twin listed
         if k is not None:
             chosen = dataclasses.replace(s, best=s.runner, runner=s.best) if k == 1 else s
             return self._pose(t_ns, chosen, Provenance.PRIOR,
@@ -524,6 +528,13 @@ def _velocity_diag(fit: MapFit) -> dict[str, Any]:
     if fit.velocity is None:
         return {}
     return {"velocity": fit.velocity, "velocity_sigma": fit.velocity_sigma}
+
+
+def _same_basin(a: tuple[float, float, float], b: tuple[float, float, float]) -> bool:
+    """Whether two poses lie in one RANSAC basin (:func:`.match.ransac_rigid`'s
+    ``basin``: 0.1 m and 5 deg): one hypothesis, not two."""
+    turn = math.atan2(math.sin(a[2] - b[2]), math.cos(a[2] - b[2]))
+    return math.hypot(a[0] - b[0], a[1] - b[1]) <= 0.1 and abs(turn) <= math.radians(5.0)
 
 
 def _runner_twin(s: _Search, o: TextureOptions) -> bool:
