@@ -340,10 +340,10 @@ class TextureEstimator(Estimator):
                     ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ, part=part)
         if s.unique >= o.min_unique:
             return s
-        # too few distinctive: every twin listed, the runner-up's once (_decide's prior)
         twins, judged, singled = self._twins(q, desc, qi[best.used][~unique[best.used]], best,
                                              ncc, frame, rows)
-        twins = tuple(t for t in twins if runner is None or not _same_basin(t.pose, runner.pose))
+        if _runner_twin(s, o):    # every twin listed for _decide's prior, the runner-up once
+            twins = tuple(t for t in twins if not _same_basin(t.pose, runner.pose))
         return dataclasses.replace(s, twins=twins, judged=judged, singled=singled)
 
     def _twins(self, q: np.ndarray, desc: np.ndarray, feats: np.ndarray, best: MapFit,
