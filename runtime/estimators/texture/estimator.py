@@ -455,7 +455,7 @@ class TextureEstimator(Estimator):
         hyps = _hypotheses(s)
         k = prior_choice(prior, [(h.x_m, h.y_m, h.yaw_rad, h.cov) for h in hyps]) \
             if s.unique >= o.min_unique or s.singled else None    # every twin listed
-        if k is not None:
+        if k is not None and k < 2:   # a listed twin's fit is not checked here: none chosen
             chosen = dataclasses.replace(s, best=s.runner, runner=s.best) if k == 1 else s
             return self._pose(t_ns, chosen, Provenance.PRIOR,
                               (hyps[k], *(h for i, h in enumerate(hyps) if i != k)), diag, t0)

@@ -118,6 +118,11 @@ def test_a_prior_chooses_only_among_every_twin_the_frame_supports(office):
             got = est.estimate(office.drive[k], k, _prior(
                 (truth[0], truth[1] + 0.5 * dx, truth[2]), dx, 0.2 * shift))
             assert not got, (k, centre, got.x_m - truth[0], got.provenance)
+        for copy in (0, 1, 2):          # a region holding one copy: that one, or none
+            dx = copy * shift
+            got = est.estimate(office.drive[k], k, _prior(
+                (truth[0], truth[1] + 0.5 * dx, truth[2]), dx, 0.15 * shift))
+            assert not got or abs(got.x_m - truth[0] - dx) < 0.1, (k, copy, got.x_m - truth[0])
 
 
 def test_a_kidnapped_vehicle_relocalizes_and_a_prior_narrows_the_search(office):
