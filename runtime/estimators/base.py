@@ -364,8 +364,8 @@ def sample_stats(grey: np.ndarray) -> tuple[float, float]:
 @njit
 def _word_stats(words):  # pragma: no cover - compiled
     """:func:`_sample_stats` with step 4 of a frame read as ``(H, W / 4)`` uint32
-    little-endian words: the low byte of word ``j`` is pixel ``4 j``. A row's sums fit
-    in 32 bits for any width under 130 000 px."""
+    little-endian words: the low byte of word ``j`` is pixel ``4 j`` (the sums in 64-bit
+    integers, as numba widens them)."""
     n = s = ss = 0
     for i in range(0, words.shape[0], 4):
         row = words[i]

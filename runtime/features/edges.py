@@ -113,6 +113,9 @@ def remap_linear(grey, x, y):  # pragma: no cover - compiled
     1/32; this is bit-equal to ``cv2.remap`` where OpenCV dispatches its FMA code.)"""
     h, w = grey.shape
     f32 = np.float32
+    # a point far outside reads the edge (its taps clamped), as OpenCV's; clamped first,
+    # so that no coordinate overflows the integer floor
+    x, y = min(max(x, f32(-1.0)), f32(w)), min(max(y, f32(-1.0)), f32(h))
     x0, y0 = math.floor(x), math.floor(y)
     a, b = np.float64(f32(x - f32(x0))), np.float64(f32(y - f32(y0)))
     xa, xb = min(max(x0, 0), w - 1), min(max(x0 + 1, 0), w - 1)

@@ -107,7 +107,7 @@ def fit_similarity_2d(q: np.ndarray, p: np.ndarray) -> tuple[float, float, np.nd
 
 
 def short_median(x: np.ndarray) -> float:
-    """``np.median`` of a short 1-D array (a fit's residuals, a marker's cells): the same
+    """``np.median`` of a short 1-D array (a fit's residuals): the same
     number for a fraction of its call."""
     s = np.sort(x)
     n = s.size

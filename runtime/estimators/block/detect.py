@@ -31,6 +31,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from ceilkit.runtime.features.edges import remap_linear
 from ceilkit.runtime.features.quads import (
     EDGE_SEARCH_PX,
     EDGE_STEP_PX,
@@ -50,6 +51,7 @@ from ceilkit.runtime.features.quads import (
 from ceilkit.runtime.features.working import decimate
 from ceilkit.runtime.geometry.camera import CameraModel, distort_points, undistort_points
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry
+from ceilkit.runtime.geometry.fits import median_of
 from ceilkit.runtime.jit import arr, njit, warmer
 
 BG_SHRINK = 16             # background(): the frame shrunk by this factor
@@ -367,9 +369,10 @@ def read_core(grey, H, cells, code, lens):  # pragma: no cover - compiled
     The samples' steps are OpenCV's own, number for number: ``perspectiveTransform``
     of float32 points (a double homography, float32 out), the lens
     (:func:`~ceilkit.runtime.geometry.camera.distort_points`) to float32 maps, and
-    ``remap``'s bilinear read with a replicated border (its float interpolation in
-    OpenCV 5: the row pair's lerps, then the column's, rounded half to even; releases
-    before it rounded the sample's place to 1/32 px, a grey level apart at most)."""
+    ``remap``'s bilinear read with a replicated border
+    (:func:`~ceilkit.runtime.features.edges.remap_linear`: OpenCV 5's float
+    interpolation; releases before it rounded the sample's place to 1/32 px, a grey
+    level apart at most)."""
     n = cells.grid.shape[0]
     norm = np.empty((n, 2))
     for i in range(n):
@@ -391,12 +394,12 @@ def read_core(grey, H, cells, code, lens):  # pragma: no cover - compiled
         if not (np.isfinite(u) and np.isfinite(v)):
             return -1, 0
         r, c = i // k, i % k
-        cell[(r // 2) * g + c // 2] += _bilinear(grey, u, v)
+        cell[(r // 2) * g + c // 2] += np.float32(remap_linear(grey, u, v))
     for j in range(g * g):
         cell[j] *= np.float32(0.25)
-    white = _median32(cell[cells.ring])
+    white = np.float64(median_of(cell[cells.ring]))   # multiples of 1/4: exact either way
     on_border = cell[cells.border]
-    black = _median32(on_border)
+    black = np.float64(median_of(on_border))
     if white - black < MIN_MARKER_CONTRAST:
         return -1, 0
     thr = np.float32(0.5 * (white + black))        # as numpy compares a float32 array
@@ -410,32 +413,6 @@ def read_core(grey, H, cells, code, lens):  # pragma: no cover - compiled
                 word |= np.uint64(1) << np.uint64(b)
             b += 1
     return _nearest_code(cells.packed, word)
-
-
-@njit
-def _bilinear(grey, u, v):  # pragma: no cover - compiled
-    """``cv2.remap``'s ``INTER_LINEAR`` of uint8 ``grey`` at float32 ``(u, v)``,
-    ``BORDER_REPLICATE``, as a float32 integer."""
-    h, w = grey.shape
-    iu, iv = int(math.floor(u)), int(math.floor(v))
-    fu, fv = np.float32(u - np.float32(iu)), np.float32(v - np.float32(iv))
-    u0, u1 = min(max(iu, 0), w - 1), min(max(iu + 1, 0), w - 1)
-    v0, v1 = min(max(iv, 0), h - 1), min(max(iv + 1, 0), h - 1)
-    p00, p01 = np.float32(grey[v0, u0]), np.float32(grey[v0, u1])
-    p10, p11 = np.float32(grey[v1, u0]), np.float32(grey[v1, u1])
-    a = p00 + fu * (p01 - p00)
-    b = p10 + fu * (p11 - p10)
-    return np.float32(min(max(np.rint(a + fv * (b - a)), 0.0), 255.0))
-
-
-@njit
-def _median32(x):  # pragma: no cover - compiled
-    """:func:`~ceilkit.runtime.geometry.fits.short_median` of float32 ``x``, as it is
-    in Python (the middle pair's mean in float32)."""
-    s = np.sort(x)
-    n = s.size
-    mid = s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / np.float32(2)
-    return np.float64(mid)
 
 
 @njit

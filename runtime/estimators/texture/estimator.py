@@ -65,6 +65,7 @@ from ceilkit.runtime.estimators.texture.ceilmap import (
     warm_features,
 )
 from ceilkit.runtime.estimators.texture.match import (
+    BASIN,
     DescriptorIndex,
     MapFit,
     ransac_rigid,
@@ -309,10 +310,10 @@ class TextureEstimator(Estimator):
         """The best pose among the correspondences ``pairs`` (``qi, mj, unique``:
         :meth:`.match.DescriptorIndex.match`) and the runner-up (the same search
         without the best's inliers, outside its basin), each with how well the mosaic
-        at it explains the frame (``frame``: the rectified patch and its valid mask;
-        :func:`.ceilmap.appearance_ncc`); with too few distinctive inliers, the best's
-        twins (:meth:`_twins`). With a rolling shutter (``rows``: :meth:`_rows`) each
-        least squares is :meth:`_refined`'s."""
+        at it explains the frame (``frame``: the rectified patch, its valid mask;
+        :func:`.ceilmap.explains`, the runner-up's :func:`.ceilmap.appearance_ncc`);
+        with too few distinctive inliers, the best's twins (:meth:`_twins`). With a
+        rolling shutter (``rows``: :meth:`_rows`) each fit is :meth:`_refined`'s."""
         o: TextureOptions = self.options  # type: ignore[assignment]
         (qi, mj, unique), (patch, valid) = pairs, frame
         tol = o.tol_px * self.map.resolution_m
@@ -531,10 +532,9 @@ def _velocity_diag(fit: MapFit) -> dict[str, Any]:
 
 
 def _same_basin(a: tuple[float, float, float], b: tuple[float, float, float]) -> bool:
-    """Whether two poses lie in one RANSAC basin (:func:`.match.ransac_rigid`'s
-    ``basin``: 0.1 m and 5 deg): one hypothesis, not two."""
+    """Whether two poses lie in one RANSAC basin (:data:`.match.BASIN`): one hypothesis."""
     turn = math.atan2(math.sin(a[2] - b[2]), math.cos(a[2] - b[2]))
-    return math.hypot(a[0] - b[0], a[1] - b[1]) <= 0.1 and abs(turn) <= math.radians(5.0)
+    return math.hypot(a[0] - b[0], a[1] - b[1]) <= BASIN[0] and abs(turn) <= BASIN[1]
 
 
 def _runner_twin(s: _Search, o: TextureOptions) -> bool:

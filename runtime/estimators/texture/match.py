@@ -210,9 +210,14 @@ def residuals(pose: tuple[float, float, float], q: np.ndarray, p: np.ndarray) ->
                     s * q[:, 0] + c * q[:, 1] + y - p[:, 1])
 
 
+BASIN = (0.1, math.radians(5.0))
+"""A pose's RANSAC basin (m, rad): :func:`ransac_rigid` searches a runner-up outside
+the best's; two poses within it are one hypothesis."""
+
+
 def ransac_rigid(q: np.ndarray, p: np.ndarray, qi: np.ndarray, tol_m: float, iters: int,
                  rng: np.random.Generator, avoid: tuple[float, float, float] | None = None,
-                 basin: tuple[float, float] = (0.1, math.radians(5.0)),
+                 basin: tuple[float, float] = BASIN,
                  exhaustive: bool = False) -> RigidFit | None:
     """The pose with the most distinct query features within ``tol_m`` (two-point RANSAC
     over the correspondences ``q[k] ~ p[k]`` of query ``qi[k]``).
