@@ -61,7 +61,7 @@ from ceilkit.runtime.estimators.base import (
 from ceilkit.runtime.estimators.block.detect import (
     DECIMATE,
     Sides,
-    _cell_grid,
+    _cell_read,
     find_quads,
     measure_sides,
     side_lengths_m,
@@ -262,10 +262,10 @@ class BlockEstimator(Estimator):
                                      self._solver) if markers is not None else None)
         self._fallback = self._reader if o.marker_fallback else None
         self._window_fixes = 0  # window fixes since the last global search
-        # the small tables frame 0 made (issue 37): the marker cells' samples, the site
-        # lines' array, the rig's mount angles
+        # the small tables frame 0 made (issue 37): the marker read's samples and codes,
+        # the site lines' array, the rig's mount angles
         if self._codes is not None:
-            _cell_grid(self._codes.cells)
+            _cell_read(self._codes)
         if self._heading.corridor is not None:
             _along(tuple(self._heading.corridor.lines_along_m))
         _mount_tilt_swing(np.asarray(self.geo.R_vehicle_cam, np.float64).tobytes())
