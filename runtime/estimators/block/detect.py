@@ -31,6 +31,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from ceilkit.runtime.features.bits import popcount
 from ceilkit.runtime.features.edges import remap_linear
 from ceilkit.runtime.features.quads import (
     EDGE_SEARCH_PX,
@@ -420,14 +421,8 @@ def _nearest_code(packed, word):  # pragma: no cover - compiled
     """``(k, bits)``: the first row of ``packed`` with the fewest bits differing from
     ``word`` (:meth:`~ceilkit.runtime.features.quads.MarkerCodes.identify`)."""
     best, errors = -1, 65
-    m1, m2 = np.uint64(0x5555555555555555), np.uint64(0x3333333333333333)
-    m4, h01 = np.uint64(0x0F0F0F0F0F0F0F0F), np.uint64(0x0101010101010101)
     for i in range(packed.size):
-        x = packed[i] ^ word
-        x = x - ((x >> np.uint64(1)) & m1)
-        x = (x & m2) + ((x >> np.uint64(2)) & m2)
-        x = (x + (x >> np.uint64(4))) & m4
-        c = int((x * h01) >> np.uint64(56))
+        c = popcount(packed[i] ^ word)
         if c < errors:
             best, errors = i, c
     return best, errors

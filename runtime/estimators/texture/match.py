@@ -31,6 +31,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ceilkit.runtime.features.bits import popcount
 from ceilkit.runtime.jit import arr, njit, warmer
 
 LSH_TABLES = 16          # hash tables of the descriptor index ...
@@ -534,15 +535,6 @@ def _lsh_keys(desc, key_bits):  # pragma: no cover - compiled
 
 
 @njit
-def _popcount(x):  # pragma: no cover - compiled
-    """Set bits of a uint64 (SWAR)."""
-    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
-    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
-    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-    return int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
-
-
-@njit
 def _rows_knn(qwords, words, rows, kk):  # pragma: no cover - compiled
     """``(idx (Q, kk), dist (Q, kk))``: each query's ``kk`` nearest of the map's ``rows``
     (Hamming distance of the descriptors as words, :func:`_as_words`), nearest first,
@@ -557,7 +549,7 @@ def _rows_knn(qwords, words, rows, kk):  # pragma: no cover - compiled
             j = rows[r]
             d = 0
             for w in range(nw):
-                d += _popcount(qwords[i, w] ^ words[j, w])
+                d += popcount(qwords[i, w] ^ words[j, w])
             if d >= dist[i, kk - 1]:
                 continue
             s = kk - 1
@@ -603,7 +595,7 @@ def _lsh_knn(desc, words, tables, place, k):  # pragma: no cover - compiled
                 j = order[t, r]
                 d = 0
                 for w in range(nw):
-                    d += _popcount(words[i, w] ^ map_words[j, w])
+                    d += popcount(words[i, w] ^ map_words[j, w])
                 if d > dist[i, k - 1] or (d == dist[i, k - 1] and 0 <= idx[i, k - 1] < j):
                     continue
                 end = k - 1                     # the slot the row frees: its place's ...
