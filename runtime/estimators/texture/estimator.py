@@ -177,7 +177,7 @@ class _Search:
     twins: tuple[MapFit, ...] = ()
     judged: int = 0
     singled: bool = False
-    part: float = math.nan     # the best's part_ncc (:func:`.ceilmap.explains`)
+    part: float = dataclasses.field(kw_only=True)  # the best's part_ncc (.ceilmap.explains)
 
 
 class TextureEstimator(Estimator):
@@ -293,7 +293,7 @@ class TextureEstimator(Estimator):
         diag = {"features": got.predicted, "matches": got.followed, "inliers": len(fit.used),
                 "runner_up": 0, "search": "tracked", "rms_px": fit.rms_m / res, "ncc": ncc,
                 "runner_up_ncc": math.nan, **_velocity_diag(fit)}
-        return self._pose(t_ns, _Search(fit, len(fit.used), None, 0, ncc, math.nan),
+        return self._pose(t_ns, _Search(fit, len(fit.used), None, 0, ncc, math.nan, part=part),
                           Provenance.WINDOW, (), diag, t0)
 
     def _window_radius(self, prior: PoseEstimate) -> float | None:
@@ -322,7 +322,7 @@ class TextureEstimator(Estimator):
         first = ransac_rigid(qq, pp, qi, tol, o.iterations, rng)
         best = None if first is None else self._refined(qq, pp, qi, first.pose, sub)
         if best is None:
-            return _Search(None, 0, None, 0, math.nan, math.nan)
+            return _Search(None, 0, None, 0, math.nan, math.nan, part=math.nan)
         rest = np.ones(len(qi), bool)
         rest[best.used] = False
         second = ransac_rigid(qq[rest], pp[rest], qi[rest], tol, o.iterations, rng,
