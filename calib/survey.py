@@ -465,8 +465,11 @@ def _solve(recs: Sequence[Recording], nodes: _Nodes, keys: np.ndarray, links: li
     """The graph of the placed segments solved; the result in the placed nodes' order."""
     keep = placed[nodes.seg_of]
     if np.count_nonzero(keep) < 2:
-        raise CalibrationError("nothing to survey: no two consecutive frames were chained "
-                               "(is the ceiling in view and textured?)")
+        why = ", ".join(f"{k} {v}" for k, v in sorted(refused.items()))
+        raise CalibrationError(
+            "nothing to survey: no two consecutive frames were chained (is the ceiling "
+            "in view and textured, and not one pattern repeated?)"
+            + (f"; place matches refused: {why}" if why else ""))
     new = np.cumsum(keep) - 1
     edges = [Edge(int(new[e.i]), int(new[e.j]), e.z, e.cov, e.kind)
              for e in _graph_edges(recs, nodes) if keep[e.i] and keep[e.j]]

@@ -19,14 +19,18 @@ chance (:func:`min_inliers`; a closure also :data:`MIN_INLIERS` points), and the
 half turn) gathers fewer than :data:`RUNNER_UP_SHARE` of the winner's inliers. A
 ceiling whose features repeat with the tile grid gives a runner-up as strong as the
 winner: that pair is ``ambiguous`` and no edge is made, whatever the drive's chain
-suggests (the chain is what the closure is to correct).
+suggests (the chain is what the closure is to correct). Nor may any rival motion
+(:func:`_twin`: the best RANSAC motions, and the winner moved by a's own repeats)
+explain the features it brings over a's about as well as the winner explains its
+own: such a pair is a ``twin`` (a repeated pattern: the twin of larger overlap
+would otherwise win), refused too.
 
 Example::
 
     a, b = place_of(grey_a, rig, 2.7), place_of(grey_b, rig, 2.7)
     m = match_places(a, b, np.random.default_rng(0))
     if m.ok: m.z, m.cov, m.inliers, m.runner_up
-    else: m.reason                       # "too few matches", "ambiguous", ...
+    else: m.reason                       # "too few matches", "ambiguous", "twin"
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.special import bdtrc
+from scipy.stats import hypergeom
 
 from ceilkit.runtime.estimators.texture.ceilmap import features, rectify
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
@@ -80,6 +85,23 @@ the travel support a standstill.)"""
 DISTINCT_RAD = math.radians(3.0)   # ... or by this turn
 RANSAC_SAMPLES = 600
 VAR_FLOOR_M = 0.002       # the least 1σ of one point's fit residual, m
+DESCRIPTOR_MAX = 80
+"""Two ORB descriptors this close (Hamming, of 256 bits) may be one feature: the
+candidates' gate, and a twin's test of whether a point lands on a like feature."""
+TWIN_ALPHA = 1e-2
+"""A rival motion is ruled out when it explains so few of the features it brings over
+a's that a rate as high as the winner's gives as few with at most this probability
+(:func:`_twin`: one-sided Fisher's exact test). On ``bench_heldout_texture.py --seed 3``'s
+repeated control (one tile's scatter on every tile) the twins a tile away read 0.05-1;
+on the synthetic panel lattice of ``tests/calib/test_survey_pieces.py`` the rivals
+that explain a lattice's corners at a piece's edge and miss its 3 scatter features
+read 0.003-0.012 (at 1e-3 they stood, and the pieces were not joined)."""
+TWIN_RIVALS = 24          # the RANSAC motions, best first, that a twin test evaluates
+SELF_SHIFTS = 8           # ... and a's own repeats, strongest first, moved by
+SELF_KNN = 4              # each feature of a's nearest like features, for its repeats
+COVER_CELL_M = 0.1
+"""The cell of a place's coverage: a point of b over a cell with a feature of a (or
+beside one) is in the views' overlap, where a twin must explain it."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,12 +153,18 @@ def feature_count(points: np.ndarray) -> int:
     """The separate features among ``points`` ``(N, 2)`` (m): groups of points linked
     by gaps under :data:`FEATURE_M`."""
     pts = np.unique(np.asarray(points, float).reshape(-1, 2), axis=0)
+    return int(feature_labels(pts).max(initial=-1)) + 1
+
+
+def feature_labels(points: np.ndarray) -> np.ndarray:
+    """``(N,)`` each point's feature (:func:`feature_count`'s groups), numbered from 0."""
+    pts = np.asarray(points, float).reshape(-1, 2)
     if len(pts) < 2:
-        return len(pts)
+        return np.arange(len(pts))
     pairs = cKDTree(pts).query_pairs(FEATURE_M, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
                        shape=(len(pts), len(pts)))
-    return int(connected_components(graph, directed=False)[0])
+    return connected_components(graph, directed=False)[1]
 
 
 def min_inliers(a: Place, b: Place, alpha: float = FALSE_MATCH_ALPHA, *,
@@ -162,9 +190,23 @@ def min_inliers(a: Place, b: Place, alpha: float = FALSE_MATCH_ALPHA, *,
     fa, fb = feature_count(a.points_v), feature_count(b.points_v)
     if len(a.points_v) < 3 or fb < 3:
         return fb + 1
+    return _chance_need(fb, _chance_p(a, fa, area_m2), samples, alpha)
+
+
+def _chance_p(a: Place, fa: int, area_m2: float | None) -> float:
+    """The chance that a wrong motion brings one feature of b onto one of a's ``fa``
+    (:func:`min_inliers`)."""
     area = area_m2 if area_m2 is not None else \
         cv2.contourArea(cv2.convexHull(a.points_v.astype(np.float32)))
-    p = min(1.0, fa * math.pi * INLIER_M ** 2 / max(area, 1e-12))
+    return min(1.0, fa * math.pi * INLIER_M ** 2 / max(area, 1e-12))
+
+
+def _chance_need(fb: int, p: float, samples: int, alpha: float) -> int:
+    """The least count of ``fb`` features that ``samples`` wrong motions, each bringing a
+    feature on one of a's with probability ``p``, reach with at most ``alpha``
+    (:func:`min_inliers`); ``fb + 1`` when none."""
+    if fb < 3:
+        return fb + 1
     n = np.arange(3, fb + 1)
     tail = samples * bdtrc(n - 3, fb - 2, p)      # P(X > n - 3)
     ok = np.flatnonzero(tail <= alpha)
@@ -177,7 +219,8 @@ def _candidates(a: Place, b: Place, k: int = 2) -> tuple[np.ndarray, np.ndarray]
     if len(a.descriptors) < k or len(b.descriptors) < 2:
         return np.zeros((0, 2)), np.zeros((0, 2))
     knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(b.descriptors, a.descriptors, k=k)
-    pairs = [(m.trainIdx, m.queryIdx) for ms in knn for m in ms if m.distance <= 80]
+    pairs = [(m.trainIdx, m.queryIdx) for ms in knn for m in ms
+             if m.distance <= DESCRIPTOR_MAX]
     if not pairs:
         return np.zeros((0, 2)), np.zeros((0, 2))
     ia, ib = np.array(pairs).T
@@ -210,12 +253,19 @@ def _inliers(q: np.ndarray, p: np.ndarray, yaw: np.ndarray, t: np.ndarray) -> np
 
 
 def _count(mask: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Inliers counted once per point of b (its two candidates explain it once)."""
+    """``(K,)`` the points of b each motion explains, a point once however many of its
+    candidates agree (rows of ``mask`` ``(K, M)`` over the candidates, ``p`` their
+    points of b). (Until 2026-12-07 a point counted only when its *first* candidate
+    agreed: a point whose second-nearest descriptor was the right feature was not an
+    inlier, and on a repeated scatter, every candidate a copy, the truth's count was
+    chance's.)"""
     key = np.round(p[:, 0] * 1e5) * 1e6 + np.round(p[:, 1] * 1e5)
-    _, first = np.unique(key, return_index=True)
-    unique = np.zeros(len(p), bool)
-    unique[first] = True
-    return np.count_nonzero(mask & unique[None, :], axis=1)
+    _, inverse = np.unique(key, return_inverse=True)
+    order = np.argsort(inverse, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(inverse[order]) != 0])
+    if mask.shape[1] == 0:
+        return np.zeros(len(mask), int)
+    return np.count_nonzero(np.logical_or.reduceat(mask[:, order], starts, axis=1), axis=1)
 
 
 def _best(q: np.ndarray, p: np.ndarray, rng: np.random.Generator,
@@ -261,6 +311,145 @@ def _covariance(q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray
     return s2 * np.linalg.inv(J.T @ J), float(np.sqrt(np.mean(np.sum(r * r, 1))))
 
 
+@dataclass(frozen=True, eq=False)
+class _Cover:
+    """What a twin test needs of place a: its points' k-d tree, its descriptors' bits,
+    and the cells its features cover (:data:`COVER_CELL_M`, each grown by one)."""
+
+    tree: cKDTree
+    bits: np.ndarray
+    origin: np.ndarray
+    cells: np.ndarray
+
+    @classmethod
+    def of(cls, a: Place) -> _Cover:
+        ij = np.floor(a.points_v / COVER_CELL_M).astype(int)
+        origin = ij.min(0) - 1
+        cells = np.zeros(tuple(ij.max(0) - origin + 2), bool)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                cells[ij[:, 0] - origin[0] + di, ij[:, 1] - origin[1] + dj] = True
+        return cls(cKDTree(a.points_v), np.unpackbits(a.descriptors, axis=1), origin,
+                   cells)
+
+    def over(self, x: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: which points ``x`` ``(N, 2)`` (V_a, m) lie over a's features."""
+        ij = np.floor(x / COVER_CELL_M).astype(int) - self.origin
+        inside = np.all((ij >= 0) & (ij < self.cells.shape), axis=1)
+        out = np.zeros(len(x), bool)
+        out[inside] = self.cells[ij[inside, 0], ij[inside, 1]]
+        return out
+
+    def explained(self, x: np.ndarray, bits_b: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: which points ``x`` (V_a, m), with descriptor bits ``bits_b``
+        ``(N, 256)``, land within :data:`INLIER_M` of a feature of a that looks alike
+        (:data:`DESCRIPTOR_MAX`)."""
+        _, idx = self.tree.query(x, k=4, distance_upper_bound=INLIER_M)
+        near = idx < len(self.bits)
+        hit = np.zeros(len(x), bool)
+        rows, cols = np.nonzero(near)
+        if rows.size:
+            d = np.count_nonzero(self.bits[idx[rows, cols]] != bits_b[rows], axis=1)
+            hit[rows[d <= DESCRIPTOR_MAX]] = True
+        return hit
+
+
+def _self_shifts(a: Place, limit: int = SELF_SHIFTS) -> np.ndarray:
+    """``(K, 2)`` a's repeats: the displacements (V_a, m) from each feature of a to its
+    :data:`SELF_KNN` nearest descriptors (within :data:`DESCRIPTOR_MAX`) past
+    :data:`DISTINCT_M` that most pairs share, at least three, strongest first (a
+    tile-period scatter's period, a grid's pitch)."""
+    if len(a.points_v) < SELF_KNN + 1:
+        return np.zeros((0, 2))
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a.descriptors, a.descriptors,
+                                                   k=SELF_KNN + 1)
+    pairs = np.array([(m.queryIdx, m.trainIdx) for ms in knn for m in ms
+                      if m.distance <= DESCRIPTOR_MAX and m.queryIdx != m.trainIdx],
+                     int).reshape(-1, 2)
+    v = a.points_v[pairs[:, 1]] - a.points_v[pairs[:, 0]]
+    v = v[np.hypot(*v.T) > DISTINCT_M]
+    v = np.concatenate([v, -v])
+    if not len(v):
+        return np.zeros((0, 2))
+    key, count = np.unique(np.round(v / (2 * INLIER_M)).astype(int), axis=0,
+                           return_counts=True)
+    best = np.argsort(-count, kind="stable")[:limit]
+    best = best[count[best] >= 3]
+    return key[best] * (2 * INLIER_M)
+
+
+def _rivals(q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray, a: Place,
+            cover: _Cover, rng: np.random.Generator, samples: int
+            ) -> list[tuple[float, np.ndarray]]:
+    """The motions a twin test weighs against the winner ``(yaw, t)``: the best
+    :data:`TWIN_RIVALS` RANSAC motions distinct from it and from each other, and the
+    winner moved by each of a's own repeats (:func:`_self_shifts`)."""
+    out = [(yaw, t + d) for d in _self_shifts(a)]
+    yaws, ts = _hypotheses(q, p, rng, samples)
+    if yaws.size:
+        order = np.argsort(-_count(_inliers(q, p, yaws, ts), p), kind="stable")
+        for k in order:
+            if len(out) >= TWIN_RIVALS + SELF_SHIFTS:
+                break
+            if all(_distinct(yaws[k], ts[k], y, tt) for y, tt in [(yaw, t), *out]):
+                out.append((float(yaws[k]), ts[k]))
+    return [r for r in out if _distinct(r[0], r[1], yaw, t)]
+
+
+def _distinct(yaw_a: float, t_a: np.ndarray, yaw_b: float, t_b: np.ndarray) -> bool:
+    """Whether two motions are two (:data:`DISTINCT_M`, :data:`DISTINCT_RAD`)."""
+    dyaw = abs((yaw_a - yaw_b + math.pi) % (2 * math.pi) - math.pi)
+    return dyaw > DISTINCT_RAD or float(np.hypot(*(t_a - t_b))) > DISTINCT_M
+
+
+def _moved(p: np.ndarray, yaw: float, t: np.ndarray) -> np.ndarray:
+    """Points ``p`` ``(N, 2)`` of b in V_a under the motion ``(yaw, t)``."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return p @ np.array([[c, s], [-s, c]]) + t
+
+
+def _twin(a: Place, b: Place, q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray,
+          rng: np.random.Generator, samples: int, area_m2: float | None
+          ) -> tuple[int, int]:
+    """The strongest rival that the pair does not rule out: ``(its explained features,
+    its explained points)``, ``(0, 0)`` when every rival is ruled out.
+
+    Each motion is weighed by the features of b it brings over a's (:class:`_Cover`)
+    and how many of those land on a like feature of a. A rival is *credible* when the
+    features it explains beat chance over its overlap (:func:`_chance_need`, as the
+    winner's must), and *ruled out* when it explains so few that a rate as high as
+    the winner's gives as few with at most :data:`TWIN_ALPHA` (one-sided Fisher's
+    exact test on the two counts). A repeat of the ceiling (a tile-period scatter)
+    explains its overlap as well as the truth does, whatever the views' overlap: the
+    runner-up of :func:`match_places` (counted on
+    the matches the winner left) does not see it when the descriptors' nearest
+    candidates all point at one copy, and the smaller-overlap truth loses to a twin
+    of larger overlap."""
+    cover = _Cover.of(a)
+    bits_b = np.unpackbits(b.descriptors, axis=1)
+    p_one = _chance_p(a, feature_count(a.points_v), area_m2)
+
+    label = feature_labels(b.points_v)
+
+    def weigh(y: float, tt: np.ndarray) -> tuple[int, int, int]:
+        x = _moved(b.points_v, y, tt)
+        over = cover.over(x)
+        hit = cover.explained(x, bits_b) & over
+        return (len(np.unique(label[over])), len(np.unique(label[hit])),
+                int(np.count_nonzero(hit)))
+
+    n_over, n_hit, _ = weigh(yaw, t)
+    best = (0, 0)
+    for y, tt in _rivals(q, p, yaw, t, a, cover, rng, samples):
+        r_over, r_hit, r_points = weigh(y, tt)
+        if r_hit < max(3, _chance_need(r_over, p_one, samples, FALSE_MATCH_ALPHA)):
+            continue
+        if hypergeom.cdf(r_hit, n_over + r_over, n_hit + r_hit, r_over) < TWIN_ALPHA:
+            continue        # its rate below the winner's (one-sided Fisher's exact test)
+        best = max(best, (r_hit, r_points))
+    return best
+
+
 def match_places(a: Place, b: Place, rng: np.random.Generator,
                  min_points: int = MIN_INLIERS, *, knn: int = 2,
                  samples: int = RANSAC_SAMPLES, area_m2: float | None = None
@@ -291,6 +480,10 @@ def match_places(a: Place, b: Place, rng: np.random.Generator,
     if runner >= RUNNER_UP_SHARE * n:
         return PlaceMatch(False, "ambiguous", inliers=n, runner_up=runner, features=nf,
                           min_features=need, runner_features=runner_f)
+    twin_f, twin = _twin(a, b, q, p, yaw, t, rng, samples, area_m2)
+    if twin_f:
+        return PlaceMatch(False, "twin", inliers=n, runner_up=twin, features=nf,
+                          min_features=need, runner_features=twin_f)
     cov, rms = _covariance(q[keep], p[keep], yaw, t)
     return PlaceMatch(True, "", np.array([t[0], t[1], yaw]), cov, n, runner, rms, nf, need,
                       runner_f, p[keep])
