@@ -46,6 +46,7 @@ from ceilkit.runtime.io.recording import Recording
 
 from .survey_chain import (
     Segment,
+    chain_between,
     chain_drive,
     gap_matches,
     keyframes,
@@ -54,7 +55,7 @@ from .survey_chain import (
 )
 from .survey_graph import Edge, compose, relative, solve_graph
 from .survey_pieces import piece_closures
-from .survey_places import Place, match_places, place_of
+from .survey_places import Place, chosen_by, match_places, place_of
 from .survey_shutter import GlobalShutter, SurveyFrames, chain_velocities
 
 POSE_SIGMA_FACTOR = 1.5
@@ -291,10 +292,19 @@ def _drive_pairs(nodes: _Nodes, places: dict[int, Place], opts: SurveyOptions
 
 
 def _match(pairs: list[tuple[int, int, str]], places: dict[int, Place],
-           rng: np.random.Generator) -> tuple[list[Link], dict[str, int]]:
+           rng: np.random.Generator, nodes: _Nodes
+           ) -> tuple[list[Link], dict[str, int]]:
+    """Each candidate pair matched as places; a pair of one segment that only a twin
+    stopped is accepted when its chain singles the winner out
+    (:func:`~.survey_places.chosen_by`): the odometry between the two frames is a
+    measurement, and a repeat a tile away lies far outside it."""
     links, refused = [], Counter()
     for a, b, kind in pairs:
         m = match_places(places[a], places[b], rng)
+        s = int(nodes.seg_of[a])
+        if m.reason == "twin" and s == int(nodes.seg_of[b]):
+            off = int(nodes.offset[s])
+            m = chosen_by(m, *chain_between(nodes.segments[s], a - off, b - off))
         if m:
             links.append(Link(a, b, m.z, m.cov, kind, m.inliers, m.runner_up))
         else:
@@ -380,8 +390,8 @@ def survey_drives(recordings: Sequence[Recording], rig: Rig, ceiling_height_m: f
     keys_of = _keys(nodes, options)
     keys = np.concatenate([nodes.offset[s] + k for s, k in enumerate(keys_of)])
     places = _places(frames, nodes, keys, rig, ceiling_height_m, cache)
-    links, refused = _match(_segment_pairs(nodes, keys_of, options), places, rng)
-    more, refused2 = _match(_drive_pairs(nodes, places, options), places, rng)
+    links, refused = _match(_segment_pairs(nodes, keys_of, options), places, rng, nodes)
+    more, refused2 = _match(_drive_pairs(nodes, places, options), places, rng, nodes)
     links += more
     refused.update({k: refused.get(k, 0) + v for k, v in refused2.items()})
     if not links:                       # gap matches alone would not place a frame

@@ -218,3 +218,19 @@ def keyframes(chain: np.ndarray, step_m: float, turn_rad: float) -> np.ndarray:
 def path_length(chain: np.ndarray) -> np.ndarray:
     """``(n,)`` the distance driven to each pose of a chain, m."""
     return np.r_[0.0, np.cumsum(np.hypot(*np.diff(chain[:, :2], axis=0).T))]
+
+
+def chain_between(seg: Segment, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """The chain's motion from position ``i`` to ``j > i`` of a segment (pose ``j`` in
+    the frame of pose ``i``) and its ``(3, 3)`` covariance, the steps' covariances
+    propagated to first order (each step's, rotated into the frame of ``i``, plus the
+    lever of the turns' errors on the steps after them)."""
+    pose, cov = np.zeros(3), np.zeros((3, 3))
+    for e in seg.steps[i:j]:
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        x, y = e.z[0], e.z[1]
+        A = np.array([[1.0, 0.0, -s * x - c * y], [0.0, 1.0, c * x - s * y], [0.0, 0.0, 1.0]])
+        B = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        cov = A @ cov @ A.T + B @ np.asarray(e.cov, float) @ B.T
+        pose = compose(pose, e.z)
+    return pose, cov

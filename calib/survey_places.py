@@ -35,6 +35,8 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -99,6 +101,9 @@ read 0.003-0.012 (at 1e-3 they stood, and the pieces were not joined)."""
 TWIN_RIVALS = 24          # the RANSAC motions, best first, that a twin test evaluates
 SELF_SHIFTS = 8           # ... and a's own repeats, strongest first, moved by
 SELF_KNN = 4              # each feature of a's nearest like features, for its repeats
+PRIOR_GATE_CHI2 = 16.27
+"""A prior's gate for :func:`chosen_by`: the chi-square of 3 degrees of freedom at
+0.999 (a motion as far from the prior as that is ruled out by it)."""
 COVER_CELL_M = 0.1
 """The cell of a place's coverage: a point of b over a cell with a feature of a (or
 beside one) is in the views' overlap, where a twin must explain it."""
@@ -122,7 +127,10 @@ class PlaceMatch:
     the winner's agreeing points counted as separate features (:data:`FEATURE_M`),
     ``min_features`` the fewest that chance does not explain (:func:`min_inliers`),
     ``runner_features`` the runner-up's agreeing points as features; ``points_b``: the
-    winner's agreeing points of b, ``(n, 2)`` in V_b (m)."""
+    winner's agreeing points of b, ``(n, 2)`` in V_b (m). A ``twin`` refusal keeps the
+    winner's ``z``, ``cov`` and ``points_b`` and gives the motions that stood beside it
+    in ``twins`` (each fitted on the points it explains, as an accepted match), for a
+    prior to choose among (:func:`chosen_by`)."""
 
     ok: bool
     reason: str
@@ -135,6 +143,7 @@ class PlaceMatch:
     min_features: int = 0
     runner_features: int = 0
     points_b: np.ndarray | None = None
+    twins: tuple[PlaceMatch, ...] = ()
 
     def __bool__(self) -> bool:
         return self.ok
@@ -269,8 +278,10 @@ def _count(mask: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def _best(q: np.ndarray, p: np.ndarray, rng: np.random.Generator,
-          samples: int = RANSAC_SAMPLES) -> tuple[float, np.ndarray, np.ndarray, int] | None:
-    """The RANSAC winner: ``(yaw, t, inlier mask, count)``, or None."""
+          samples: int = RANSAC_SAMPLES
+          ) -> tuple[float, np.ndarray, np.ndarray, int, tuple] | None:
+    """The RANSAC winner: ``(yaw, t, inlier mask, count, every hypothesis as
+    (yaws, ts, counts))``, or None."""
     if len(q) < 2:
         return None
     yaw, t = _hypotheses(q, p, rng, samples)
@@ -279,7 +290,7 @@ def _best(q: np.ndarray, p: np.ndarray, rng: np.random.Generator,
     mask = _inliers(q, p, yaw, t)
     n = _count(mask, p)
     k = int(np.argmax(n))
-    return float(yaw[k]), t[k], mask[k], int(n[k])
+    return float(yaw[k]), t[k], mask[k], int(n[k]), (yaw, t, n)
 
 
 def _refine(q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray
@@ -322,6 +333,7 @@ class _Cover:
     cells: np.ndarray
 
     @classmethod
+    @functools.lru_cache(maxsize=32)   # noqa: B019 - places are few and kept by the survey
     def of(cls, a: Place) -> _Cover:
         ij = np.floor(a.points_v / COVER_CELL_M).astype(int)
         origin = ij.min(0) - 1
@@ -341,19 +353,23 @@ class _Cover:
         return out
 
     def explained(self, x: np.ndarray, bits_b: np.ndarray) -> np.ndarray:
-        """``(N,)`` bool: which points ``x`` (V_a, m), with descriptor bits ``bits_b``
-        ``(N, 256)``, land within :data:`INLIER_M` of a feature of a that looks alike
-        (:data:`DESCRIPTOR_MAX`)."""
+        """``(N,)`` for each point ``x`` (V_a, m), with descriptor bits ``bits_b``
+        ``(N, 256)``, the nearest feature of a within :data:`INLIER_M` that looks alike
+        (:data:`DESCRIPTOR_MAX`), -1 where none."""
         _, idx = self.tree.query(x, k=4, distance_upper_bound=INLIER_M)
         near = idx < len(self.bits)
-        hit = np.zeros(len(x), bool)
+        out = np.full(len(x), -1)
         rows, cols = np.nonzero(near)
         if rows.size:
             d = np.count_nonzero(self.bits[idx[rows, cols]] != bits_b[rows], axis=1)
-            hit[rows[d <= DESCRIPTOR_MAX]] = True
-        return hit
+            like = d <= DESCRIPTOR_MAX
+            # the first (nearest) like one: rows come in order, their columns by distance
+            first = np.unique(rows[like], return_index=True)[1]
+            out[rows[like][first]] = idx[rows[like], cols[like]][first]
+        return out
 
 
+@functools.lru_cache(maxsize=32)       # a place (by identity) is matched many times
 def _self_shifts(a: Place, limit: int = SELF_SHIFTS) -> np.ndarray:
     """``(K, 2)`` a's repeats: the displacements (V_a, m) from each feature of a to its
     :data:`SELF_KNN` nearest descriptors (within :data:`DESCRIPTOR_MAX`) past
@@ -378,41 +394,32 @@ def _self_shifts(a: Place, limit: int = SELF_SHIFTS) -> np.ndarray:
     return key[best] * (2 * INLIER_M)
 
 
-def _rivals(q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray, a: Place,
-            cover: _Cover, rng: np.random.Generator, samples: int
-            ) -> list[tuple[float, np.ndarray]]:
-    """The motions a twin test weighs against the winner ``(yaw, t)``: the best
-    :data:`TWIN_RIVALS` RANSAC motions distinct from it and from each other, and the
-    winner moved by each of a's own repeats (:func:`_self_shifts`)."""
-    out = [(yaw, t + d) for d in _self_shifts(a)]
-    yaws, ts = _hypotheses(q, p, rng, samples)
-    if yaws.size:
-        order = np.argsort(-_count(_inliers(q, p, yaws, ts), p), kind="stable")
-        for k in order:
-            if len(out) >= TWIN_RIVALS + SELF_SHIFTS:
-                break
-            if all(_distinct(yaws[k], ts[k], y, tt) for y, tt in [(yaw, t), *out]):
-                out.append((float(yaws[k]), ts[k]))
-    return [r for r in out if _distinct(r[0], r[1], yaw, t)]
+def _rivals(hypotheses: tuple, yaw: float, t: np.ndarray, a: Place
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The motions a twin test weighs against the winner ``(yaw, t)``, ``(yaws (R,),
+    ts (R, 2))``: the winner moved by each of a's own repeats (:func:`_self_shifts`),
+    and the best :data:`TWIN_RIVALS` of the winner's RANSAC motions (``hypotheses``:
+    ``(yaws, ts, counts)``) distinct from it, the strongest of each cell of
+    :data:`DISTINCT_M` x :data:`DISTINCT_RAD`."""
+    shifts = _self_shifts(a)
+    yaws, ts, counts = hypotheses
+    dyaw = np.abs((yaws - yaw + math.pi) % (2 * math.pi) - math.pi)
+    far = (dyaw > DISTINCT_RAD) | (np.hypot(*(ts - t).T) > DISTINCT_M)
+    yaws, ts, counts = yaws[far], ts[far], counts[far]
+    cell = np.c_[np.floor(ts / DISTINCT_M), np.floor(np.mod(yaws, 2 * math.pi) / DISTINCT_RAD)]
+    order = np.lexsort((-counts, *cell.T[::-1]))      # by cell, strongest first in each
+    first = order[np.r_[True, np.any(np.diff(cell[order], axis=0) != 0, axis=1)]] \
+        if len(order) else order
+    top = first[np.argsort(-counts[first], kind="stable")[:TWIN_RIVALS]]
+    return (np.r_[np.full(len(shifts), yaw), yaws[top]],
+            np.r_[t + shifts.reshape(-1, 2), ts[top].reshape(-1, 2)])
 
 
-def _distinct(yaw_a: float, t_a: np.ndarray, yaw_b: float, t_b: np.ndarray) -> bool:
-    """Whether two motions are two (:data:`DISTINCT_M`, :data:`DISTINCT_RAD`)."""
-    dyaw = abs((yaw_a - yaw_b + math.pi) % (2 * math.pi) - math.pi)
-    return dyaw > DISTINCT_RAD or float(np.hypot(*(t_a - t_b))) > DISTINCT_M
-
-
-def _moved(p: np.ndarray, yaw: float, t: np.ndarray) -> np.ndarray:
-    """Points ``p`` ``(N, 2)`` of b in V_a under the motion ``(yaw, t)``."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return p @ np.array([[c, s], [-s, c]]) + t
-
-
-def _twin(a: Place, b: Place, q: np.ndarray, p: np.ndarray, yaw: float, t: np.ndarray,
-          rng: np.random.Generator, samples: int, area_m2: float | None
-          ) -> tuple[int, int]:
-    """The strongest rival that the pair does not rule out: ``(its explained features,
-    its explained points)``, ``(0, 0)`` when every rival is ruled out.
+def _twin(a: Place, b: Place, hypotheses: tuple, yaw: float, t: np.ndarray, samples: int,
+          area_m2: float | None) -> tuple[int, int, list[PlaceMatch]]:
+    """The rivals that the pair does not rule out: ``(the strongest's explained
+    features, its explained points, every standing rival fitted as a match)``,
+    ``(0, 0, [])`` when every rival is ruled out.
 
     Each motion is weighed by the features of b it brings over a's (:class:`_Cover`)
     and how many of those land on a like feature of a. A rival is *credible* when the
@@ -428,26 +435,73 @@ def _twin(a: Place, b: Place, q: np.ndarray, p: np.ndarray, yaw: float, t: np.nd
     cover = _Cover.of(a)
     bits_b = np.unpackbits(b.descriptors, axis=1)
     p_one = _chance_p(a, feature_count(a.points_v), area_m2)
-
     label = feature_labels(b.points_v)
-
-    def weigh(y: float, tt: np.ndarray) -> tuple[int, int, int]:
-        x = _moved(b.points_v, y, tt)
-        over = cover.over(x)
-        hit = cover.explained(x, bits_b) & over
-        return (len(np.unique(label[over])), len(np.unique(label[hit])),
-                int(np.count_nonzero(hit)))
-
-    n_over, n_hit, _ = weigh(yaw, t)
-    best = (0, 0)
-    for y, tt in _rivals(q, p, yaw, t, a, cover, rng, samples):
-        r_over, r_hit, r_points = weigh(y, tt)
-        if r_hit < max(3, _chance_need(r_over, p_one, samples, FALSE_MATCH_ALPHA)):
+    yaws, ts = _rivals(hypotheses, yaw, t, a)
+    over, on = _weigh(cover, b.points_v, bits_b, np.r_[yaw, yaws], np.r_[t[None], ts])
+    f_over = _per_motion(over, label)
+    f_hit = _per_motion(on >= 0, label)
+    n_over, n_hit = int(f_over[0]), int(f_hit[0])
+    best, standing = (0, 0), []
+    for r in range(1, len(over)):
+        if f_hit[r] < max(3, _chance_need(int(f_over[r]), p_one, samples,
+                                          FALSE_MATCH_ALPHA)):
             continue
-        if hypergeom.cdf(r_hit, n_over + r_over, n_hit + r_hit, r_over) < TWIN_ALPHA:
+        if hypergeom.cdf(f_hit[r], n_over + f_over[r], n_hit + f_hit[r], f_over[r]) \
+                < TWIN_ALPHA:
             continue        # its rate below the winner's (one-sided Fisher's exact test)
-        best = max(best, (r_hit, r_points))
-    return best
+        best = max(best, (int(f_hit[r]), int(np.count_nonzero(on[r] >= 0))))
+        fit = _fit_on(a.points_v, b.points_v, on[r], yaws[r - 1], ts[r - 1])
+        if all(_apart(fit.z, o) for o in [np.array([t[0], t[1], yaw]),
+                                          *(f.z for f in standing)]):
+            standing.append(fit)           # the same twin reached twice counts once
+    return best[0], best[1], standing
+
+
+def _apart(z_a: np.ndarray, z_b: np.ndarray) -> bool:
+    """Whether two motions (m, m, rad) are two (:data:`DISTINCT_M`,
+    :data:`DISTINCT_RAD`)."""
+    dyaw = abs((z_a[2] - z_b[2] + math.pi) % (2 * math.pi) - math.pi)
+    return dyaw > DISTINCT_RAD or float(np.hypot(*(z_a[:2] - z_b[:2]))) > DISTINCT_M
+
+
+def _weigh(cover: _Cover, pb: np.ndarray, bits_b: np.ndarray, yaws: np.ndarray,
+           ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Under each motion ``(yaws (R,), ts (R, 2))``, which points of b lie over a's
+    features, ``(R, N)`` bool, and the like feature of a each of those lands on,
+    ``(R, N)`` (-1 none; :meth:`_Cover.explained`)."""
+    c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+    x = np.stack([c * pb[None, :, 0] - s * pb[None, :, 1] + ts[:, None, 0],
+                  s * pb[None, :, 0] + c * pb[None, :, 1] + ts[:, None, 1]], axis=2)
+    flat = x.reshape(-1, 2)
+    over = cover.over(flat).reshape(len(yaws), -1)
+    on = np.full(flat.shape[0], -1)
+    sel = over.ravel()
+    on[sel] = cover.explained(flat[sel], np.tile(bits_b, (len(yaws), 1))[sel])
+    return over, on.reshape(len(yaws), -1)
+
+
+def _per_motion(mask: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """``(R,)`` the separate features (``label``: each point's, :func:`feature_labels`)
+    with a point in each row of ``mask`` ``(R, N)``."""
+    n = int(label.max(initial=-1)) + 1
+    seen = np.zeros((len(mask), max(n, 1)), bool)
+    r, i = np.nonzero(mask)
+    seen[r, label[i]] = True
+    return np.count_nonzero(seen, axis=1)
+
+
+def _fit_on(qa: np.ndarray, pb: np.ndarray, on: np.ndarray, yaw: float, t: np.ndarray
+            ) -> PlaceMatch:
+    """A standing twin as an accepted match: the points of b it explains fitted to the
+    like features of a they land on (``on``: a's point per point of b, -1 none)."""
+    sel = on >= 0
+    if np.count_nonzero(sel) >= 3:
+        yaw, t = fit_rigid_2d(pb[sel], qa[on[sel]])
+        t = np.asarray(t, float)
+    cov, rms = _covariance(qa[on[sel]], pb[sel], float(yaw), t)
+    return PlaceMatch(True, "", np.array([t[0], t[1], float(yaw)]), cov,
+                      int(np.count_nonzero(sel)), rms_m=rms,
+                      features=feature_count(pb[sel]), points_b=pb[sel])
 
 
 def match_places(a: Place, b: Place, rng: np.random.Generator,
@@ -480,10 +534,35 @@ def match_places(a: Place, b: Place, rng: np.random.Generator,
     if runner >= RUNNER_UP_SHARE * n:
         return PlaceMatch(False, "ambiguous", inliers=n, runner_up=runner, features=nf,
                           min_features=need, runner_features=runner_f)
-    twin_f, twin = _twin(a, b, q, p, yaw, t, rng, samples, area_m2)
-    if twin_f:
-        return PlaceMatch(False, "twin", inliers=n, runner_up=twin, features=nf,
-                          min_features=need, runner_features=twin_f)
+    twin_f, twin, twins = _twin(a, b, win[4], yaw, t, samples, area_m2)
     cov, rms = _covariance(q[keep], p[keep], yaw, t)
+    if twin_f:
+        return PlaceMatch(False, "twin", np.array([t[0], t[1], yaw]), cov, n, twin, rms,
+                          nf, need, twin_f, p[keep], tuple(twins))
     return PlaceMatch(True, "", np.array([t[0], t[1], yaw]), cov, n, runner, rms, nf, need,
                       runner_f, p[keep])
+
+
+def chosen_by(m: PlaceMatch, prior: np.ndarray, prior_cov: np.ndarray,
+              gate: float = PRIOR_GATE_CHI2) -> PlaceMatch:
+    """A ``twin`` refusal accepted when a prior on the motion (the chain of the
+    odometry between the two frames: a measurement, with its covariance) singles out
+    one of the winner and its standing twins: that one within ``gate`` (squared
+    Mahalanobis distance under the prior's covariance plus the motion's), every other
+    beyond it. The one chosen is returned as the match (its own fit; ``runner_up``
+    the winner's strongest twin, as refused). Any other match is returned as it is."""
+    if m.ok or m.reason != "twin" or m.z is None or m.cov is None:
+        return m
+
+    def d2(c: PlaceMatch) -> float:
+        e = np.asarray(c.z, float) - prior
+        e[2] = (e[2] + math.pi) % (2 * math.pi) - math.pi
+        return float(e @ np.linalg.solve(np.asarray(prior_cov, float) + c.cov, e))
+
+    winner = dataclasses.replace(m, ok=True, reason="", twins=())
+    inside = [c for c in (winner, *m.twins) if d2(c) <= gate]
+    if len(inside) != 1:
+        return m
+    return dataclasses.replace(inside[0], runner_up=m.runner_up,
+                               runner_features=m.runner_features,
+                               min_features=m.min_features)

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from ceilkit.calib.survey_chain import Segment, chain_between
 from ceilkit.calib.survey_graph import (
     Edge,
     _Problem,
@@ -18,6 +19,7 @@ from ceilkit.calib.survey_graph import (
 from ceilkit.calib.survey_loop import loop_perimeter_m, loop_trajectory
 from ceilkit.calib.survey_places import (
     Place,
+    chosen_by,
     feature_count,
     match_places,
     min_inliers,
@@ -168,6 +170,46 @@ def test_a_repeated_scatter_is_a_twin_not_the_larger_overlap():
         b = _view(pts, d, np.array([0.03 + dx, 0.01, 0.0]), rng)
         m = match_places(a, b, np.random.default_rng(0), min_points=0)
         assert not m and m.reason in ("twin", "ambiguous"), (dx, m.reason, m.z)
+
+
+def test_the_chain_chooses_between_twins_only_when_it_rules_the_others_out():
+    """Two frames of one segment 0.4 m apart on a repeated scatter: the pair alone is a
+    twin (the motion a tile shorter, of larger overlap, won it); the odometry between
+    them (a measurement, mm-sized 1σ) puts the truth inside its gate and every other
+    twin outside, so the truth's own fit is accepted; a chain too vague to rule the
+    others out (1σ 0.5 m), or one that agrees with none, leaves it refused."""
+    rng = np.random.default_rng(21)
+    pts, d = _tile_period_scatter(rng)
+    a = _view(pts, d, np.array([0.03, 0.01, 0.0]), rng)
+    b = _view(pts, d, np.array([0.43, 0.01, 0.0]), rng)
+    m = match_places(a, b, np.random.default_rng(0), min_points=0)
+    assert m.reason == "twin" and m.twins
+    truth = np.array([0.4, 0.0, 0.0])
+    assert np.hypot(*(m.z[:2] - truth[:2])) > 0.1     # the larger overlap won the pair
+    got = chosen_by(m, truth + [0.002, -0.001, 0.0], np.diag([1e-6, 1e-6, 1e-5]))
+    assert got and np.allclose(got.z, truth, atol=2e-3) and got.inliers >= 20
+    assert np.all(np.sqrt(np.diag(got.cov))[:2] < 0.002)
+    assert not chosen_by(m, truth, np.diag([0.25, 0.25, 0.1]))
+    assert not chosen_by(m, np.array([5.0, 5.0, 0.0]), np.diag([1e-6, 1e-6, 1e-5]))
+
+
+def test_the_chain_between_two_frames_composes_its_steps_and_their_covariance():
+    rng = np.random.default_rng(3)
+    steps = [np.array([0.3, 0.02, 0.4]), np.array([0.25, -0.01, -0.2]),
+             np.array([0.3, 0.0, 0.1])]
+    covs = [np.diag([1e-4, 4e-4, 1e-3]) for _ in steps]
+    seg = Segment(0, np.arange(4), tuple(Edge(k, k + 1, z, c) for k, (z, c) in
+                                         enumerate(zip(steps, covs, strict=True))),
+                  chain_poses(np.zeros(3), steps))
+    z, cov = chain_between(seg, 0, 3)
+    assert np.allclose(z, seg.chain[3])
+    draws = np.array([chain_poses(np.zeros(3), [s + rng.multivariate_normal(np.zeros(3), c)
+                                                for s, c in zip(steps, covs, strict=True)])[3]
+                      for _ in range(4000)])
+    mc = np.cov(draws.T)
+    assert np.allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(mc)), rtol=0.08)
+    z12, _ = chain_between(seg, 1, 3)
+    assert np.allclose(z12, relative(seg.chain[1], seg.chain[3]))
 
 
 def test_a_unique_scatter_on_a_repeated_one_is_singled_out():
