@@ -170,14 +170,19 @@ def test_keyframe_error_is_shared_not_divided_and_round_trips(tmp_path):
     assert bad.shape_problem()[0] == "keyframe_sigma"
 
 
+def _blurred_mosaic(rng: np.random.Generator) -> tuple[CeilingMap, tuple, int]:
+    """A 2 x 2 m map of blurred noise at 1 cm, a pose at its middle and a patch size."""
+    mosaic = cv2.GaussianBlur(rng.integers(0, 255, (200, 200), dtype=np.uint8), (5, 5), 1.5)
+    m = CeilingMap(0.01, (0.0, 0.0), mosaic, np.ones_like(mosaic, bool), np.zeros((0, 2)),
+                   np.zeros((0, 32), np.uint8), np.zeros(0), 2.7)
+    return m, (1.0, 1.0, 0.0), 91
+
+
 def test_a_pose_must_explain_each_part_of_the_frame():
     """A patch that is the mosaic in one third and unrelated texture elsewhere: the whole
     patch's correlation is carried by the matching third, its parts' median is not."""
     rng = np.random.default_rng(4)
-    mosaic = cv2.GaussianBlur(rng.integers(0, 255, (200, 200), dtype=np.uint8), (5, 5), 1.5)
-    m = CeilingMap(0.01, (0.0, 0.0), mosaic, np.ones_like(mosaic, bool), np.zeros((0, 2)),
-                   np.zeros((0, 32), np.uint8), np.zeros(0), 2.7)
-    pose, n = (1.0, 1.0, 0.0), 91
+    m, pose, n = _blurred_mosaic(rng)
     from ceilkit.runtime.estimators.texture.ceilmap import predicted_patch
     same, _ = predicted_patch(m, pose, n)
     other = cv2.GaussianBlur(rng.integers(0, 255, (n, n), dtype=np.uint8), (5, 5), 1.5)
@@ -190,10 +195,26 @@ def test_a_pose_must_explain_each_part_of_the_frame():
     assert part_ncc(m, mixed, valid, pose) < 0.3
 
 
-def test_explains_is_both_correlations_to_the_bit():
-    """One pass for the whole frame's and the parts' correlations: the whole frame's the
-    same figure as appearance_ncc's own loop (part_ncc is explains' second), on and
-    partly off the mosaic, with holes, at strides 1 and 3."""
+def _flat_reference(a: np.ndarray, b: np.ndarray, blocks: int = 3) -> float:
+    """flat_ncc by hand on two whole square patches: each block of each less its
+    least-squares plane, the residuals pooled into one correlation."""
+    n, taa, tbb, tab = a.shape[0], 0.0, 0.0, 0.0
+    edges = [(k * n + blocks - 1) // blocks for k in range(blocks + 1)]
+    for i in range(blocks):
+        for j in range(blocks):
+            r, c = np.mgrid[edges[i]:edges[i + 1], edges[j]:edges[j + 1]]
+            X = np.c_[np.ones(r.size), r.ravel(), c.ravel()]
+            ra, rb = (v[r, c].ravel().astype(float) for v in (a, b))
+            ra = ra - X @ np.linalg.lstsq(X, ra, rcond=None)[0]
+            rb = rb - X @ np.linalg.lstsq(X, rb, rcond=None)[0]
+            taa, tbb, tab = taa + ra @ ra, tbb + rb @ rb, tab + ra @ rb
+    return tab / math.sqrt(taa * tbb)
+
+
+def test_explains_is_the_flat_and_the_parts_correlation():
+    """One pass for the whole frame's (each block less its plane, pooled: flat_ncc) and
+    the parts' correlations: the first as computed by hand on the mosaic resampled at
+    the pose, at strides 1 and 3; NaN off the mosaic."""
     rng = np.random.default_rng(5)
     mosaic = cv2.GaussianBlur(rng.integers(0, 255, (160, 200), dtype=np.uint8), (5, 5), 1.5)
     cover = np.ones_like(mosaic, bool)
@@ -201,14 +222,34 @@ def test_explains_is_both_correlations_to_the_bit():
     m = CeilingMap(0.01, (0.0, 0.0), mosaic, cover, np.zeros((0, 2)),
                    np.zeros((0, 32), np.uint8), np.zeros(0), 2.7)
     n = 61
-    valid = rng.random((n, n)) > 0.2
-    from ceilkit.runtime.estimators.texture.ceilmap import predicted_patch
-    for pose in ((0.8, 0.7, 0.3), (1.45, 0.8, -1.0), (1.9, 1.5, 2.0), (5.0, 5.0, 0.0)):
+    from ceilkit.runtime.estimators.texture.ceilmap import flat_ncc, predicted_patch
+    for pose in ((0.8, 0.7, 0.3), (0.75, 0.8, -1.0)):
         patch, _ = predicted_patch(m, (pose[0] + 0.01, pose[1], pose[2] + 0.02), n)
         patch = np.clip(patch.astype(float) + rng.normal(0, 4, patch.shape), 0, 255)
         patch = patch.astype(np.uint8)
         for stride in (1, 3):
-            got = explains(m, patch, valid, pose, stride)
-            want = (appearance_ncc(m, patch, valid, pose, stride),
-                    part_ncc(m, patch, valid, pose, stride))
-            assert np.array_equal(np.array(got), np.array(want), equal_nan=True), (got, want)
+            got = explains(m, patch, np.ones((n, n), bool), pose, stride)
+            seen, _ = predicted_patch(m, pose, n, stride)
+            want = _flat_reference(patch[::stride, ::stride], seen)
+            assert abs(got[0] - want) < 0.01, (got, want, stride)
+            assert got == (flat_ncc(m, patch, np.ones((n, n), bool), pose, stride),
+                           part_ncc(m, patch, np.ones((n, n), bool), pose, stride))
+    assert np.isnan(explains(m, patch, np.ones((n, n), bool), (5.0, 5.0, 0.0))).all()
+
+
+def test_the_flat_correlation_leaves_the_lenss_shading_out():
+    """A faint texture under a lens's falloff (issue 39's seeds 2 and 3): the whole
+    frame's raw correlation with the mosaic is carried by the shading, and falls under
+    min_ncc at the true pose; less each block's plane it reads the texture, high at the
+    pose and low a texture's width off it."""
+    rng = np.random.default_rng(6)
+    m, pose, n = _blurred_mosaic(rng)
+    from ceilkit.runtime.estimators.texture.ceilmap import flat_ncc, predicted_patch
+    seen, _ = predicted_patch(m, pose, n)
+    r2 = np.hypot(*(np.mgrid[:n, :n] - n // 2)) ** 2 / (n / 2) ** 2
+    faint = 0.5 * (seen.astype(float) - seen.mean())       # std 8 under a 70 falloff
+    shaded = np.clip(200 * (1 - 0.35 * r2) + faint + rng.normal(0, 2, (n, n)), 0, 255)
+    patch, valid = shaded.astype(np.uint8), np.ones((n, n), bool)
+    assert appearance_ncc(m, patch, valid, pose) < 0.5
+    assert flat_ncc(m, patch, valid, pose) > 0.8
+    assert flat_ncc(m, patch, valid, (1.1, 1.0, 0.0)) < 0.3
