@@ -1124,7 +1124,8 @@ def write_site(lm: LightMap, out: str | Path, base: Site | None, header: str = "
             raise ConfigError(None, "ceiling_height_m", f"no site to keep the ceiling height "
                               f"of ({out} is new): give the ceiling height")
         base = Site(ceiling_height_m)
-    site = replace(base, lights_m=np.round(lm.lights_m, 4), source=str(out))
+    site = replace(base, lights_m=np.round(lm.lights_m, 4), light_sigma_m=None,
+                   source=str(out))
     if ceiling_height_m is not None:
         site = replace(site, ceiling_height_m=ceiling_height_m)
     site.save(out, header)

@@ -175,8 +175,8 @@ def _lights(recs: Sequence[Recording], res: SurveyResult) -> tuple[LightMap | No
     """The lit spots of the first drive placed with its solved poses (those whose
     detections stay within :data:`LIGHT_SPREAD_M` of their cluster's centre and whose
     spots are round, :mod:`.survey_lamps`; each one's 1σ the cluster's, with the
-    keyframes' median pose 1σ added in quadrature), or why none; the note says how many
-    clusters were left out."""
+    keyframes' median radial pose 1σ added in quadrature), or why none; the note says how
+    many clusters were left out."""
     d0 = res.drive == 0
     truth = Truth(res.t_ns[d0], res.poses[d0, 0], res.poses[d0, 1], res.poses[d0, 2])
     try:
@@ -191,8 +191,9 @@ def _lights(recs: Sequence[Recording], res: SurveyResult) -> tuple[LightMap | No
                       f"{1e3 * float(np.median(lm.spread_m)):.0f} mm > "
                       f"{1e3 * LIGHT_SPREAD_M:.0f} mm): bright patches, not spot lights")
     keys = res.keys[res.drive[res.keys] == 0]
-    pose_sigma = float(np.nanmedian(np.hypot(*res.sigma[keys, :2].T))) / math.sqrt(2.0) \
-        if len(keys) else 0.0
+    # radial, as the centre's standard error it is added to (LightMap.sigma_m); until
+    # 2026-12-07 per axis (/ sqrt 2), so the header's 1-sigma was 0.71 of its own
+    pose_sigma = float(np.nanmedian(np.hypot(*res.sigma[keys, :2].T))) if len(keys) else 0.0
     roundness = lamp_shapes(recs[0], res.frame[keys], res.poses[keys], lm.lights_m[stay],
                             res.ceiling_height_m)[0]
     lamp = np.zeros(len(stay), bool)
@@ -439,8 +440,9 @@ def _write(out: Path, res: SurveyResult, cmap: CeilingMap, lights: LightMap | No
     written = [cmap.save(out / MAP_FILE)]
     site = dataclasses.replace(base, ceiling_height_m=height, ceiling_map=MAP_FILE,
                                source=None)
-    if lights is not None:
-        site = dataclasses.replace(site, lights_m=np.round(lights.lights_m, 4))
+    if lights is not None:      # each light's 1σ per axis (light_sigma: the map's error)
+        site = dataclasses.replace(site, lights_m=np.round(lights.lights_m, 4),
+                                   light_sigma_m=np.round(lights.sigma_m / math.sqrt(2.0), 6))
     header = provenance_header("site surveyed by ceilcal survey (no external poses)",
                                _site_header([], res, cmap, lights, marks))
     site.save(out / "site.yaml", header)

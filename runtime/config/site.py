@@ -33,7 +33,8 @@ from ceilkit.runtime.config.yaml import (
 from ceilkit.runtime.errors import ConfigError
 
 SITE_KEYS = ("ceiling_height", "corridor", "lamps", "lights", "light_diameter", "light_size",
-             "light_yaw", "ignore", "blocks", "markers", "origin", "ceiling_map")
+             "light_yaw", "light_sigma", "ignore", "blocks", "markers", "origin",
+             "ceiling_map")
 LAMP_KEYS = ("x", "y", "length", "width", "pitch", "count", "z")
 BLOCK_KEYS = ("id", "corners", "appearance")
 BLOCK_APPEARANCES = ("dark", "bright")
@@ -240,6 +241,10 @@ class Site:
     ``ceiling_map`` (ceilkit's extension of SPEC §2, ``ceiling_map: FILE``): the path of
     the site's ceiling map (the ``texture`` method's; relative paths in the file are
     resolved against the site file's folder), or None.
+
+    ``light_sigma_m`` (ceilkit's extension of SPEC §2, ``light_sigma``): ``(N,)`` the 1σ
+    per axis of each light's position in ``lights_m`` (a surveyed map's own error:
+    ``ceilcal survey`` writes it), or None: the lights are exact.
     """
 
     ceiling_height_m: float
@@ -255,9 +260,16 @@ class Site:
     light_size_m: tuple[float, float] | None = None
     light_yaw_rad: float = 0.0
     ceiling_map: str | None = None
+    light_sigma_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ignore_m", tuple(_readonly(p) for p in self.ignore_m))
+        if self.light_sigma_m is not None:
+            sig = _readonly(np.asarray(self.light_sigma_m, float).reshape(-1))
+            if sig.shape[0] != self.lights_m.shape[0]:
+                raise ValueError(f"light_sigma_m holds {sig.shape[0]} values for "
+                                 f"{self.lights_m.shape[0]} lights")
+            object.__setattr__(self, "light_sigma_m", sig)
         if self.light_size_m is not None:
             object.__setattr__(self, "light_size_m",
                                (float(self.light_size_m[0]), float(self.light_size_m[1])))
@@ -351,6 +363,8 @@ class Site:
             d["lamps"] = [_lamp_dict(r) for r in self.lamps]
         if self.has_lights:
             d["lights"] = [[float(a), float(b)] for a, b in self.lights_m]
+        if self.light_sigma_m is not None:
+            d["light_sigma"] = [float(v) for v in self.light_sigma_m]
         if self.light_diameter_m is not None:
             d["light_diameter"] = float(self.light_diameter_m)
         if self.light_size_m is not None:
@@ -400,7 +414,7 @@ class Site:
         source = source or (str(node.path) if node.path else None)
         cmap = _ceiling_map(node.get("ceiling_map"), source) if node.has("ceiling_map") else None
         return cls(height, corridor, lamps, lights, blocks, diameter, ignore, markers, origin,
-                   source, size, light_yaw, cmap)
+                   source, size, light_yaw, cmap, _light_sigma(node, lights.shape[0]))
 
 
 # -- polygons (pure) ------------------------------------------------------------------
@@ -513,6 +527,22 @@ def _lights(ln: Node) -> np.ndarray:
             raise ConfigError(ln.path, f"{ln.key}[{hi}]",
                               f"duplicate light: same place as {ln.key}[{lo}]")
     return lights
+
+
+def _light_sigma(node: Node, n: int) -> np.ndarray | None:
+    """``(n,)`` of ``light_sigma`` (one number for every light, or one per light in the
+    order of ``lights``; metres, per axis, >= 0), or None when absent."""
+    if not node.has("light_sigma"):
+        return None
+    sn = node.get("light_sigma")
+    if n == 0:
+        raise sn.error("light_sigma needs lights (the 1-sigma of their positions)")
+    if not isinstance(sn.value, list):
+        return np.full(n, sn.number(0.0, None, what=" m"))
+    if len(sn.value) != n:
+        raise sn.expected(f"one 1-sigma per light ({n}, in the order of lights) or one "
+                          "number for all")
+    return np.array([v.number(0.0, None, what=" m") for v in sn.items()])
 
 
 def _plain_lights(value: object) -> np.ndarray | None:

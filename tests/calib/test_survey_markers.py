@@ -162,6 +162,12 @@ def test_survey_anchored_by_the_sites_markers(marker_drive, tmp_path):
     z = d / np.hypot(lights.sigma_m, known.sigma_m[keep][j])
     assert np.median(z) < 1.0 and z.max() < 4.0, z
     assert cKDTree(lights.lights_m).query(LIGHTS)[0].max() < 0.005    # the three lamps
+    # each light's 1σ per axis written for the runtime (light_sigma: the map's own error
+    # in the lights fix, issue 36): the radial 1σ over sqrt 2, in the lights' order
+    written = Site.load(tmp_path / "site.yaml")
+    np.testing.assert_allclose(written.lights_m, np.round(lights.lights_m, 4))
+    np.testing.assert_allclose(written.light_sigma_m, lights.sigma_m / math.sqrt(2.0),
+                               atol=1e-6)
 
 
 def test_anchor_marker_and_geodetic_write_the_sections(marker_drive, tmp_path):

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, ClassVar
@@ -85,6 +85,7 @@ from ceilkit.runtime.estimators.lights.observe import (
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
 from ceilkit.runtime.estimators.lights.refine import (
     RefinedPose,
+    map_cov,
     pattern_cover,
     refine_pose_ceiling,
     with_shifts,
@@ -349,7 +350,7 @@ class LightsEstimator(Estimator):
         evenly over u and v gives the same statistic over the 2K residuals, 3 fitted:
         :func:`~ceilkit.runtime.estimators.honesty.misfit_sum`), ``outside_site``. A
         least-squares fit of independent residuals has an inflation of 1: a passing
-        fit's covariance is the refinement's."""
+        fit's covariance is the refinement's and the map's own error's (:func:`map_error`)."""
         o = self.options
         res = np.asarray(res_px, float)
         mf = misfit_sum(float(res @ res), 2 * res.size, o.noise_px, 3, o.misfit_alpha)
@@ -359,6 +360,7 @@ class LightsEstimator(Estimator):
         out = outside_site(self.extent, x_m, y_m, o.site_margin_m)
         if out is not None:
             return self.fail(t_ns, OUTSIDE_SITE, out, **diag)
+        cov = cov + map_error(self.site, diag["matched_lights"], x_m, y_m)
         return PoseEstimate(t_ns, NAME, x_m, y_m, yaw_rad, quality, None, cov, diag,
                             provenance=PROVENANCE[diag.get("mode", "global")])
 
@@ -604,6 +606,16 @@ def refine_candidate(obs: Observation, cand: Candidate, lights_w: np.ndarray,
         pairs = pairs[~bad]
         fit = fit_rows(*rows, pairs, fit[:3], motion)
     return RefinedPose(pairs, *fit)
+
+
+def map_error(site: Site, ids: Sequence[int], x_m: float, y_m: float) -> np.ndarray:
+    """``(3, 3)``: what the map error of the lights ``ids`` (their ``site.light_sigma_m``,
+    a surveyed map's) does to a fix at ``(x_m, y_m)`` (:func:`~.refine.map_cov`); zeros
+    when the site gives none (the lights exact)."""
+    if site.light_sigma_m is None:
+        return np.zeros((3, 3))
+    i = np.asarray(ids, int)
+    return map_cov(site.lights_m[i], x_m, y_m, site.light_sigma_m[i])
 
 
 def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_px: int,

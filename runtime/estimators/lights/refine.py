@@ -456,6 +456,30 @@ def _cholesky3(N, g, ridge):  # pragma: no cover - compiled
     return True, x0, x1, x2
 
 
+def map_cov(lights_w: np.ndarray, x_m: float, y_m: float, sigma_m: np.ndarray
+            ) -> np.ndarray:
+    """``(3, 3)``: what the map's own error does to a pose fitted on ``lights_w``
+    ``(K, 2)`` (W) from ``(x_m, y_m)``, each light's position off by an independent
+    error of 1σ ``sigma_m (K,)`` per axis (a surveyed map's: SPEC §2 extension
+    ``light_sigma``). A light moved by ``d`` moves the least-squares rigid fit of the
+    plane by ``A⁺ d``, ``A`` the fit's design (a unit translation, and the turn about the
+    pose: ``perp(L - t)``); so the pose takes ``A⁺ diag(σ²) A⁺ᵀ``. The fit's own
+    weights (the pixel Jacobians) are left out: the same weight for every light (what a
+    camera looking straight up gives). Issue 36: the surveyed lights of
+    ``bench_heldout_texture.py --seed 3`` scatter1 are 0.3-4.7 mm off, against fixes of
+    0.35 mm 1σ (docs/methods/lights.md, "A surveyed map's own error")."""
+    L = np.asarray(lights_w, float).reshape(-1, 2)
+    d = L - np.array([x_m, y_m])
+    A = np.zeros((2 * L.shape[0], 3))
+    A[0::2, 0] = 1.0
+    A[1::2, 1] = 1.0
+    A[0::2, 2] = -d[:, 1]
+    A[1::2, 2] = d[:, 0]
+    Ap = np.linalg.pinv(A)
+    var = np.repeat(np.asarray(sigma_m, float).reshape(-1) ** 2, 2)
+    return (Ap * var) @ Ap.T
+
+
 @warmer
 def _warm() -> None:
     q = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
@@ -465,5 +489,5 @@ def _warm() -> None:
                   (0.0, 0.0, 0.0, np.eye(3), np.zeros(3)))
 
 
-__all__ = ["pattern_cover", "refine_pose", "refine_pose_ceiling", "spot_jackknife",
+__all__ = ["map_cov", "pattern_cover", "refine_pose", "refine_pose_ceiling", "spot_jackknife",
            "with_shifts"]
