@@ -425,11 +425,7 @@ def _gaps(frames: SurveyFrames, nodes: _Nodes, rig: Rig, height_m: float,
             cache[(d, k)] = place_of(frames.grey(d, k), rig, height_m)
         return cache[(d, k)]
 
-    def seconds(d: int, k0: int, k1: int) -> float:
-        t_ns = frames.recordings[d].t_ns
-        return (int(t_ns[k1]) - int(t_ns[k0])) * 1e-9
-
-    got, refused = gap_matches(nodes.segments, place, rng, seconds)
+    got, refused = gap_matches(nodes.segments, place, rng)
     return [Link(int(nodes.offset[s]) + i, int(nodes.offset[t]) + j, m.z, m.cov, "gap",
                  m.inliers, m.runner_up) for s, i, t, j, m in got], refused
 

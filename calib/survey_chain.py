@@ -29,7 +29,7 @@ from ceilkit.runtime.geometry.ekf import MotionNoise
 from ceilkit.runtime.io.recording import Odometry, Recording
 
 from .survey_graph import Edge, chain_poses, compose
-from .survey_places import Place, PlaceMatch, match_places, place_of, within_reach
+from .survey_places import Place, PlaceMatch, match_places, place_of
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,7 +135,6 @@ def _bridge(rec: Recording, k0: int, k1: int, grey0: np.ndarray | None, grey1: n
             if k not in places:
                 places[k] = place_of(g, rig, height_m)
         m = match_places(places[k0], places[k1], rng, min_points=0)   # a step
-        m = within_reach(m, (int(rec.t_ns[k1]) - int(rec.t_ns[k0])) * 1e-9)
         if m:
             return Edge(j - 1, j, m.z, m.cov, "place")
     if rec.odometry is not None:
@@ -151,8 +150,7 @@ up to ``GAP_REACH + 1`` frames apart (0.4 s at 10 fps)."""
 
 
 def gap_matches(segments: list[Segment], place: Callable[[int, int], Place],
-                rng: np.random.Generator,
-                seconds: Callable[[int, int, int], float] | None = None
+                rng: np.random.Generator
                 ) -> tuple[list[tuple[int, int, int, int, PlaceMatch]], dict[str, int]]:
     """Where the chain broke (nothing linked frame ``k - 1`` to ``k``: a new segment
     started), the frames either side matched as places at longer baselines: for each
@@ -161,9 +159,7 @@ def gap_matches(segments: list[Segment], place: Callable[[int, int], Place],
     the other's first, nearest in time first, until one match is accepted
     (:func:`~.survey_places.match_places` as a step: singled out, beyond chance). A sparse
     frame or a seam's standstill that broke one step often leaves the frames around
-    it matchable. ``place(drive, k)``: a frame's place; ``seconds(drive, k0, k1)``: the
-    time between two frames, for the vehicle's limits to settle a twin
-    (:func:`~.survey_places.within_reach`; None: not settled).
+    it matchable. ``place(drive, k)``: a frame's place.
 
     Returns the accepted ``(segment, position, other segment, position, match)`` and
     the refused tries by reason (``gap: <reason>``)."""
@@ -180,10 +176,8 @@ def gap_matches(segments: list[Segment], place: Callable[[int, int], Place],
             for gap, i, j in tries:
                 if gap > GAP_REACH + 1:
                     break
-                k0, k1 = int(a.frames[i]), int(b.frames[j])
-                m = match_places(place(a.drive, k0), place(b.drive, k1), rng, min_points=0)
-                if seconds is not None:
-                    m = within_reach(m, seconds(a.drive, k0, k1))
+                m = match_places(place(a.drive, int(a.frames[i])),
+                                 place(b.drive, int(b.frames[j])), rng, min_points=0)
                 if m:
                     out.append((s, i, t, j, m))
                     break

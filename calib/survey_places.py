@@ -48,7 +48,6 @@ from scipy.spatial import cKDTree
 from scipy.special import bdtrc
 from scipy.stats import hypergeom
 
-from ceilkit.runtime.estimators.prior import MAX_SPEED_MPS, MAX_TURN_RPS
 from ceilkit.runtime.estimators.texture.ceilmap import features, rectify
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 
@@ -565,28 +564,5 @@ def chosen_by(m: PlaceMatch, prior: np.ndarray, prior_cov: np.ndarray,
     if len(inside) != 1:
         return m
     return dataclasses.replace(inside[0], runner_up=m.runner_up,
-                               runner_features=m.runner_features,
-                               min_features=m.min_features)
-
-
-def within_reach(m: PlaceMatch, dt_s: float, max_speed_mps: float = MAX_SPEED_MPS,
-                 max_turn_rps: float = MAX_TURN_RPS) -> PlaceMatch:
-    """A ``twin`` refusal between two frames ``dt_s`` apart accepted when the vehicle's
-    stated limits (the runtime's: :data:`~ceilkit.runtime.estimators.prior.MAX_SPEED_MPS`,
-    :data:`~ceilkit.runtime.estimators.prior.MAX_TURN_RPS`) leave one of the winner and
-    its standing twins within reach (its translation and turn, plus :data:`INLIER_M`
-    and :data:`DISTINCT_RAD`, no farther than the vehicle goes in ``dt_s``): a vehicle
-    cannot cross a 0.6 m tile between two frames 0.1 s apart. Any other match is
-    returned as it is."""
-    if m.ok or m.reason != "twin" or m.z is None:
-        return m
-    winner = dataclasses.replace(m, ok=True, reason="", twins=())
-    near = [c for c in (winner, *m.twins)
-            if math.hypot(c.z[0], c.z[1]) <= max_speed_mps * dt_s + INLIER_M
-            and abs((c.z[2] + math.pi) % (2 * math.pi) - math.pi)
-            <= max_turn_rps * dt_s + DISTINCT_RAD]
-    if len(near) != 1:
-        return m
-    return dataclasses.replace(near[0], runner_up=m.runner_up,
                                runner_features=m.runner_features,
                                min_features=m.min_features)

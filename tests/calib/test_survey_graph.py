@@ -23,7 +23,6 @@ from ceilkit.calib.survey_places import (
     feature_count,
     match_places,
     min_inliers,
-    within_reach,
 )
 from ceilkit.runtime.errors import ConfigError
 
@@ -192,23 +191,6 @@ def test_the_chain_chooses_between_twins_only_when_it_rules_the_others_out():
     assert np.all(np.sqrt(np.diag(got.cov))[:2] < 0.002)
     assert not chosen_by(m, truth, np.diag([0.25, 0.25, 0.1]))
     assert not chosen_by(m, np.array([5.0, 5.0, 0.0]), np.diag([1e-6, 1e-6, 1e-5]))
-
-
-def test_the_vehicles_limits_choose_a_step_only_when_one_motion_is_within_reach():
-    """Two frames 0.1 m apart on a repeated scatter (a tile of 0.6 m): every twin is a
-    tile away. Frames 0.1 s apart: at the stated 2.5 m/s only the truth is within reach,
-    so the step is accepted at it; frames 0.3 s apart (0.75 m of reach) leave twins
-    within reach, and the step stays refused."""
-    rng = np.random.default_rng(25)
-    pts, d = _tile_period_scatter(rng)
-    truth = np.array([0.1, 0.0, 0.0])
-    a = _view(pts, d, np.array([0.03, 0.01, 0.0]), rng)
-    b = _view(pts, d, np.array([0.13, 0.01, 0.0]), rng)
-    m = match_places(a, b, np.random.default_rng(0), min_points=0)
-    assert m.reason == "twin"
-    got = within_reach(m, 0.1)
-    assert got and np.allclose(got.z, truth, atol=2e-3)
-    assert not within_reach(m, 0.3)
 
 
 def test_the_chain_between_two_frames_composes_its_steps_and_their_covariance():
