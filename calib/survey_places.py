@@ -19,7 +19,7 @@ chance (:func:`min_inliers`; a closure also :data:`MIN_INLIERS` points), and the
 half turn) gathers fewer than :data:`RUNNER_UP_SHARE` of the winner's inliers. A
 ceiling whose features repeat with the tile grid gives a runner-up as strong as the
 winner: that pair is ``ambiguous`` and no edge is made, whatever the drive's chain
-suggests (the chain is what the closure is to correct). Nor may any rival motion
+suggests (a link's chain may settle it: :func:`chosen_by`). Nor may any rival motion
 (:func:`_twin`: the best RANSAC motions, and the winner moved by a's own repeats)
 explain the features it brings over a's about as well as the winner explains its
 own: such a pair is a ``twin`` (a repeated pattern: the twin of larger overlap
@@ -101,6 +101,10 @@ read 0.003-0.012 (at 1e-3 they stood, and the pieces were not joined)."""
 TWIN_RIVALS = 24          # the RANSAC motions, best first, that a twin test evaluates
 SELF_SHIFTS = 8           # ... and a's own repeats, strongest first, moved by
 SELF_KNN = 4              # each feature of a's nearest like features, for its repeats
+SELF_QUERIES = 1500
+"""At most this many of a's features (evenly strided) look for their like features in
+the whole of a (:func:`_self_shifts`): a piece map of 20 000 points cost 3.2 s a pair
+against all of itself (review of stop 51); a keyframe's 60-300 points are all asked."""
 PRIOR_GATE_CHI2 = 16.27
 """A prior's gate for :func:`chosen_by`: the chi-square of 3 degrees of freedom at
 0.999 (a motion as far from the prior as that is ruled out by it)."""
@@ -377,10 +381,11 @@ def _self_shifts(a: Place, limit: int = SELF_SHIFTS) -> np.ndarray:
     tile-period scatter's period, a grid's pitch)."""
     if len(a.points_v) < SELF_KNN + 1:
         return np.zeros((0, 2))
-    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a.descriptors, a.descriptors,
+    query = np.arange(0, len(a.points_v), -(-len(a.points_v) // SELF_QUERIES))
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a.descriptors[query], a.descriptors,
                                                    k=SELF_KNN + 1)
-    pairs = np.array([(m.queryIdx, m.trainIdx) for ms in knn for m in ms
-                      if m.distance <= DESCRIPTOR_MAX and m.queryIdx != m.trainIdx],
+    pairs = np.array([(query[m.queryIdx], m.trainIdx) for ms in knn for m in ms
+                      if m.distance <= DESCRIPTOR_MAX and query[m.queryIdx] != m.trainIdx],
                      int).reshape(-1, 2)
     v = a.points_v[pairs[:, 1]] - a.points_v[pairs[:, 0]]
     v = v[np.hypot(*v.T) > DISTINCT_M]

@@ -553,8 +553,10 @@ def _runner_twin(s: _Search, o: TextureOptions) -> bool:
 
 
 def _twin_free(prior: PoseEstimate | None, o: TextureOptions) -> bool:
-    """Whether a prior's region is too narrow to hold two twins (``window_twin_m``
-    apart: :func:`.prior.narrower_than`), so that it may choose among a pose's listed
+    """Whether a prior's region is too narrow to hold two twins ``window_twin_m`` apart
+    (its radius under half that: :func:`.prior.narrower_than`; two poses on either
+    side of the prior fit a region of radius under ``window_twin_m``, review of stop
+    51), so that it may choose among a pose's listed
     twins when its matches are not distinctive. The listing (:meth:`TextureEstimator._twins`)
     finds the twins the best's own features support alike; a twin whose copies of
     *other* features the map holds with other descriptors (a repeated ceiling whose
@@ -563,7 +565,7 @@ def _twin_free(prior: PoseEstimate | None, o: TextureOptions) -> bool:
     pose, frame 30 (the prior 5 mm off, 1σ 0.19 m; the true pose unlisted, the mosaic
     explaining it as well: 0.95 against 0.96) published a tile off."""
     return prior is not None and prior.x_m is not None and prior.y_m is not None and \
-        narrower_than(prior, o.window_twin_m)
+        narrower_than(prior, 0.5 * o.window_twin_m)
 
 
 def _told_apart(ncc: float, ncc2: float, differ: Any, twin_ncc: float,
