@@ -180,6 +180,18 @@ def feature_labels(points: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
+@functools.lru_cache(maxsize=256)      # a keyframe's place is in several pairs
+def _features(place: Place) -> int:
+    """:func:`feature_count` of a place's points."""
+    return feature_count(place.points_v)
+
+
+@functools.lru_cache(maxsize=256)
+def _labels(place: Place) -> np.ndarray:
+    """:func:`feature_labels` of a place's points."""
+    return feature_labels(place.points_v)
+
+
 def min_inliers(a: Place, b: Place, alpha: float = FALSE_MATCH_ALPHA, *,
                 samples: int = RANSAC_SAMPLES, area_m2: float | None = None) -> int:
     """The fewest separate features (:func:`feature_count`) of b that must agree with a
@@ -200,7 +212,7 @@ def min_inliers(a: Place, b: Place, alpha: float = FALSE_MATCH_ALPHA, *,
     hypotheses tried (:data:`RANSAC_SAMPLES`); ``area_m2``: the area a's features cover
     when not their hull (a piece of a drive: :mod:`~ceilkit.calib.survey_pieces`).
     Returns a number above ``F_b`` when no count could rule chance out."""
-    fa, fb = feature_count(a.points_v), feature_count(b.points_v)
+    fa, fb = _features(a), _features(b)
     if len(a.points_v) < 3 or fb < 3:
         return fb + 1
     return _chance_need(fb, _chance_p(a, fa, area_m2), samples, alpha)
@@ -439,8 +451,8 @@ def _twin(a: Place, b: Place, hypotheses: tuple, yaw: float, t: np.ndarray, samp
     of larger overlap."""
     cover = _Cover.of(a)
     bits_b = np.unpackbits(b.descriptors, axis=1)
-    p_one = _chance_p(a, feature_count(a.points_v), area_m2)
-    label = feature_labels(b.points_v)
+    p_one = _chance_p(a, _features(a), area_m2)
+    label = _labels(b)
     yaws, ts = _rivals(hypotheses, yaw, t, a)
     over, on = _weigh(cover, b.points_v, bits_b, np.r_[yaw, yaws], np.r_[t[None], ts])
     f_over = _per_motion(over, label)
