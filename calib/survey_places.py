@@ -97,7 +97,14 @@ a's that a rate as high as the winner's gives as few with at most this probabili
 repeated control (one tile's scatter on every tile) the twins a tile away read 0.05-1;
 on the synthetic panel lattice of ``tests/calib/test_survey_pieces.py`` the rivals
 that explain a lattice's corners at a piece's edge and miss its 3 scatter features
-read 0.003-0.012 (at 1e-3 they stood, and the pieces were not joined)."""
+read 0.003-0.012 (at 1e-3 they stood, and the pieces were not joined). Not its nominal
+rate: the winner is the best of the RANSAC motions, so its rate is biased high, and on
+a synthetic tile-period scatter true twins that explain the frame as the winner does
+were ruled out at this level in 6-12 % of pairs (review of stop 51); a tile-period
+ceiling has many twins, so some stand (every pair of ``--seed 3``'s control was
+refused), but a ceiling with a single twin would be matched a period off in about as
+many pairs. A held-out rate (the winner's on points it was not chosen on) is the
+next step."""
 TWIN_RIVALS = 24          # the RANSAC motions, best first, that a twin test evaluates
 SELF_SHIFTS = 8           # ... and a's own repeats, strongest first, moved by
 SELF_KNN = 4              # each feature of a's nearest like features, for its repeats
