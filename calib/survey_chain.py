@@ -24,6 +24,7 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import Site
 from ceilkit.runtime.estimators.odometry import PlaneOdometry
 from ceilkit.runtime.features.grey import to_grey
+from ceilkit.runtime.geometry import ekf
 from ceilkit.runtime.geometry.ceiling import PlanarGeometry
 from ceilkit.runtime.geometry.ekf import MotionNoise
 from ceilkit.runtime.io.recording import Odometry, Recording
@@ -222,15 +223,14 @@ def path_length(chain: np.ndarray) -> np.ndarray:
 
 def chain_between(seg: Segment, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
     """The chain's motion from position ``i`` to ``j > i`` of a segment (pose ``j`` in
-    the frame of pose ``i``) and its ``(3, 3)`` covariance, the steps' covariances
-    propagated to first order (each step's, rotated into the frame of ``i``, plus the
-    lever of the turns' errors on the steps after them)."""
-    pose, cov = np.zeros(3), np.zeros((3, 3))
+    the frame of pose ``i``) and its ``(3, 3)`` covariance: the steps applied as the
+    tracker applies an odometry increment of its own scale
+    (:func:`~ceilkit.runtime.geometry.ekf.predict_odometry`), their covariances
+    propagated to first order."""
+    s, P = np.zeros(ekf.N_STATE), np.zeros((ekf.N_STATE, ekf.N_STATE))
+    s[ekf.SCALE] = 1.0
     for e in seg.steps[i:j]:
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        x, y = e.z[0], e.z[1]
-        A = np.array([[1.0, 0.0, -s * x - c * y], [0.0, 1.0, c * x - s * y], [0.0, 0.0, 1.0]])
-        B = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        cov = A @ cov @ A.T + B @ np.asarray(e.cov, float) @ B.T
-        pose = compose(pose, e.z)
-    return pose, cov
+        s, P = ekf.predict_odometry(s, P, tuple(map(float, e.z)), 0.0, MotionNoise(),
+                                    cov_v=e.cov, scaled=False)
+    pose = np.ix_(ekf.FULL_POSE, ekf.FULL_POSE)
+    return s[list(ekf.FULL_POSE)], P[pose]

@@ -49,6 +49,7 @@ from scipy.special import bdtrc
 from scipy.stats import hypergeom
 
 from ceilkit.runtime.estimators.texture.ceilmap import features, rectify
+from ceilkit.runtime.geometry.ekf import chi2_quantile
 from ceilkit.runtime.geometry.fits import fit_rigid_2d
 
 RESOLUTION_M = 0.005
@@ -112,9 +113,9 @@ SELF_QUERIES = 1500
 """At most this many of a's features (evenly strided) look for their like features in
 the whole of a (:func:`_self_shifts`): a piece map of 20 000 points cost 3.2 s a pair
 against all of itself (review of stop 51); a keyframe's 60-300 points are all asked."""
-PRIOR_GATE_CHI2 = 16.27
+PRIOR_GATE_CHI2 = chi2_quantile(0.999, 3)
 """A prior's gate for :func:`chosen_by`: the chi-square of 3 degrees of freedom at
-0.999 (a motion as far from the prior as that is ruled out by it)."""
+0.999, 16.27 (a motion as far from the prior as that is ruled out by it)."""
 COVER_CELL_M = 0.1
 """The cell of a place's coverage: a point of b over a cell with a feature of a (or
 beside one) is in the views' overlap, where a twin must explain it."""
@@ -552,8 +553,7 @@ def match_places(a: Place, b: Place, rng: np.random.Generator,
     other = _best(q[rest], p[rest], rng, samples)
     runner = runner_f = 0
     if other is not None:
-        dyaw = abs((other[0] - yaw + math.pi) % (2 * math.pi) - math.pi)
-        if dyaw > DISTINCT_RAD or np.hypot(*(other[1] - t)) > DISTINCT_M:
+        if _apart(np.r_[other[1], other[0]], np.r_[t, yaw]):
             runner, runner_f = other[3], feature_count(p[rest][other[2]])
     if runner >= RUNNER_UP_SHARE * n:
         return PlaceMatch(False, "ambiguous", inliers=n, runner_up=runner, features=nf,
