@@ -87,6 +87,7 @@ DIFFER_MIN_SHARE = 0.05  # ... on at least this share of the pixels all three ho
 #                          the two cannot be told apart by the frame (twins)
 TWIN_SUPPORT = 3         # a pose's twin candidate: this many of its alike matches agree
 MAX_TWINS = 8            # candidates judged at most (more: the twins are not all listed)
+REPEAT_SHARE = 0.5       # a map repeat is a twin when this share of the inliers recur
 TRACK_VAR_FACTOR = 1.2
 """The fast path's measured / fitted variance: its fit's ``s² (JᵀJ)⁻¹`` scaled by it.
 On the 60-frame office drive of bench_texture (supersample 2, a prior 1 cm and 0.5°
@@ -347,14 +348,14 @@ class TextureEstimator(Estimator):
         if s.unique >= o.min_unique:
             return s
         twins, judged, singled = self._twins(q, desc, qi[best.used][~unique[best.used]], best,
-                                             ncc, frame, rows)
+                                             mj[best.used], ncc, frame, rows)
         if _runner_twin(s, o):    # every twin listed for _decide's prior, the runner-up once
             twins = tuple(t for t in twins if not _same_basin(t.pose, runner.pose))
         return dataclasses.replace(s, twins=twins, judged=judged, singled=singled)
 
     def _twins(self, q: np.ndarray, desc: np.ndarray, feats: np.ndarray, best: MapFit,
-               ncc: float, frame: tuple[np.ndarray, np.ndarray], rows: _Rows | None
-               ) -> tuple[tuple[MapFit, ...], int, bool]:
+               used: np.ndarray, ncc: float, frame: tuple[np.ndarray, np.ndarray],
+               rows: _Rows | None) -> tuple[tuple[MapFit, ...], int, bool]:
         """``(twins, judged, complete)``: the poses other than ``best`` that its
         non-distinctive matches (query features ``feats``) support alike, the frame does
         not rule out. Each feature is paired with every place of the map the ratio test
@@ -362,10 +363,13 @@ class TextureEstimator(Estimator):
         place at ``best`` left out; the pose the most of them agree on (every two
         pairs a sample: :func:`.match.ransac_rigid`, exhaustive; outside ``best``'s
         basin), refined, is a candidate while :data:`TWIN_SUPPORT` features agree on
-        it, its pairs then left out, :data:`MAX_TWINS` at most. A candidate is ruled
-        out as the runner-up is (:func:`_told_apart`, ``twin_ncc``). ``complete``: every
-        alike place was listed and fewer than :data:`MAX_TWINS` candidates were found;
-        otherwise the twins are not all known."""
+        it, its pairs then left out, :data:`MAX_TWINS` at most. Then the map's own
+        repeats about ``best`` (:meth:`_repeats`: ``used``, the map features of its
+        inliers, recurring elsewhere in the map), which the frame's descriptors need
+        not show. A candidate is ruled out as the runner-up is (:func:`_told_apart`,
+        ``twin_ncc``). ``complete``: every alike place was listed and fewer than
+        :data:`MAX_TWINS` candidates were found; otherwise the twins are not all
+        known."""
         o: TextureOptions = self.options  # type: ignore[assignment]
         tol = o.tol_px * self.map.resolution_m
         patch, valid = frame
@@ -388,11 +392,36 @@ class TextureEstimator(Estimator):
             found.append(fit if fit is not None else
                          MapFit(got.pose, best.cov, np.flatnonzero(got.inliers), math.nan))
             keep[k[got.inliers]] = False
+        complete = self._repeats(best, used, found) and complete
         left = tuple(f for f in found if not _told_apart(
             ncc, flat_ncc(self.map, patch, valid, f.pose, NCC_STRIDE),
             lambda f=f: where_they_differ(self.map, patch, valid, best.pose, f.pose),
             o.twin_ncc, o.min_ncc))
         return left, len(found), complete
+
+    def _repeats(self, best: MapFit, used: np.ndarray, found: list[MapFit]) -> bool:
+        """Add to ``found`` (the twins listed so far, :meth:`_twins`) the poses where
+        the map repeats what ``best`` explains: ``best`` moved by each shift under
+        which at least :data:`REPEAT_SHARE` of its inliers' map features ``used`` (and
+        :data:`TWIN_SUPPORT`) recur (:meth:`.match.DescriptorIndex.repeats`), outside
+        the basins of ``best`` and of those listed; False when :data:`MAX_TWINS` would
+        be passed (the twins are not all known). On a repeated ceiling the frame's
+        descriptors match a few of the copies alike and the others not (each copy was
+        surveyed from other views: ``bench_heldout_texture.py --seed 5``'s repeated
+        control, a kidnap, published 6 poses 2.25 m off, three tiles by two, with its
+        two listed twins ruled out and the true copy never listed)."""
+        o: TextureOptions = self.options  # type: ignore[assignment]
+        shifts, support = self.index.repeats(used, o.max_hamming)
+        need = max(TWIN_SUPPORT, REPEAT_SHARE * len(np.unique(self.index.place[used])))
+        x, y, yaw = best.pose
+        for d, n in zip(shifts, support, strict=True):
+            pose = (x + float(d[0]), y + float(d[1]), yaw)
+            if n < need or any(_same_basin(pose, f.pose) for f in (best, *found)):
+                continue
+            if len(found) == MAX_TWINS:
+                return False
+            found.append(MapFit(pose, best.cov, np.arange(int(n)), math.nan))
+        return True
 
     def _rows(self, q: np.ndarray, prior: PoseEstimate | None) -> _Rows | None:
         """With a rolling shutter (``readout_ms`` > 0): the frame's row model

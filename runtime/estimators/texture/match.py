@@ -40,6 +40,8 @@ LSH_SEED = 0             # the bits each table reads: drawn from this seed
 MIN_PAIR_SEP_M = 0.08    # a two-point sample's points at least this far apart (yaw)
 RATIO = 0.8              # distinctive: nearest <= RATIO x the next place's distance
 SAME_PLACE_M = 0.03      # two map features this close are one place (not a twin)
+REPEAT_ROWS = 128        # DescriptorIndex.repeats: the nearest rows a feature reads ...
+REPEAT_MAX = 32          # ... and the most-supported shifts it returns at most
 
 
 class DescriptorIndex:
@@ -122,6 +124,31 @@ class DescriptorIndex:
         qi, col = np.nonzero((idx >= 0) & (dist <= bound))
         return qi.astype(int), idx[qi, col].astype(int), complete
 
+    def repeats(self, mj: np.ndarray, max_hamming: int, rows: int = REPEAT_ROWS
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """``(shifts (K, 2), support (K,))``: the translations of the map (m, in W)
+        under which its features ``mj`` recur, most supported first: another place of
+        the map within ``max_hamming`` bits of a feature's descriptor (no ratio test),
+        past :data:`SAME_PLACE_M` from it, at that displacement (votes in cells of
+        :data:`SAME_PLACE_M`, each counted in its cell and the eight beside it, the
+        shift the mean of the votes there); ``support``: how many of ``mj``'s places
+        recur so. Brute force over the whole map, the nearest ``rows`` rows a feature:
+        the map's own repeats about a pose, which the frame's matches need not show
+        (a repeated item surveyed from other views carries other descriptors)."""
+        mj = np.unique(self.place[np.asarray(mj, np.int64)])
+        n = len(self.descriptors)
+        if n < 2 or len(mj) == 0:
+            return np.zeros((0, 2)), np.zeros(0, np.int64)
+        idx, dist = _rows_knn(self._words[mj], self._words, arr(np.arange(n), np.int64),
+                              min(rows, n))
+        qi, col = np.nonzero((idx >= 0) & (dist <= max_hamming))
+        d = self.points_xy[idx[qi, col]] - self.points_xy[mj[qi]]
+        far = np.hypot(*d.T) > SAME_PLACE_M
+        qi, d = qi[far], d[far]
+        if not len(d):
+            return np.zeros((0, 2)), np.zeros(0, np.int64)
+        return _vote_shifts(qi, d)
+
     def _pairs(self, idx: np.ndarray, dist: np.ndarray, max_hamming: int
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ok = (dist <= max_hamming) & (idx >= 0)
@@ -130,6 +157,28 @@ class DescriptorIndex:
             uniq[:, 0] = ok[:, 0] & distinctive(dist, idx, self.points_xy)
         qi, _ = np.nonzero(ok)
         return qi.astype(int), idx[ok].astype(int), uniq[ok]
+
+
+def _vote_shifts(who: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`DescriptorIndex.repeats`' vote: displacements ``d (V, 2)`` of the
+    features ``who (V,)``; ``(shifts (K, 2), support (K,))``: for each cell of
+    :data:`SAME_PLACE_M` the distinct features with a vote in it or beside it, most
+    first, no two kept within a cell of each other (at most :data:`REPEAT_MAX`),
+    each shift the mean of the votes about its cell."""
+    cell = np.round(d / SAME_PLACE_M).astype(np.int64)
+    off = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], np.int64)
+    keys = (cell[:, None, :] + off[None]).reshape(-1, 2)
+    pair = np.unique(np.c_[keys, np.repeat(who, len(off))], axis=0)
+    ukeys, support = np.unique(pair[:, :2], axis=0, return_counts=True)
+    kept: list[int] = []
+    for k in np.argsort(-support, kind="stable"):
+        if support[k] < 2 or len(kept) == REPEAT_MAX:
+            break
+        if all(np.max(np.abs(ukeys[k] - ukeys[m])) > 1 for m in kept):
+            kept.append(int(k))
+    shifts = np.array([d[np.max(np.abs(cell - ukeys[k]), axis=1) <= 1].mean(axis=0)
+                       for k in kept]).reshape(-1, 2)
+    return shifts, support[kept].astype(np.int64)
 
 
 def places(points_xy: np.ndarray) -> tuple[np.ndarray, int]:
