@@ -32,6 +32,8 @@ from ceilkit.runtime.config.rig import Rig
 from ceilkit.runtime.config.site import MarkerPose, Markers, Site, check_rig_site
 from ceilkit.runtime.config.yaml import atomic_write_text
 from ceilkit.runtime.errors import CalibrationError, ConfigError
+from ceilkit.runtime.estimators.lights.estimator import LightsOptions
+from ceilkit.runtime.estimators.lights.matching import map_symmetries
 from ceilkit.runtime.estimators.texture.ceilmap import CeilingMap
 from ceilkit.runtime.features.quads import DICTIONARY_NAMES
 from ceilkit.runtime.io.outputs import claim_outputs, recording_inputs
@@ -171,6 +173,27 @@ def _height(ceiling_height_m: float | None, site: Site | None, recordings: Seque
                       "give --ceiling-height or --site")
 
 
+def _repeated_beyond(lights_m: np.ndarray, unplaced: int) -> str:
+    """Why lights found on a drive the survey did not all place are not written ('' when
+    they are): they repeat (a motion of the map puts at least half of them on others,
+    :func:`~ceilkit.runtime.estimators.lights.matching.map_symmetries` at the lights
+    method's gate), so a pose matched to them has twins a period on, and the frames
+    left unplaced (refused as twins, most often) say the ceiling goes on beyond the
+    lights placed, where those twins lie and no light of the map can rule them out.
+    (``bench_heldout_texture.py --seed 10``'s repeated control, a detector and a
+    sprinkler on every tile, 318 of 334 frames unplaced: 28 lights of a lattice over
+    six keyframes, and ``auto`` published 15-26 poses 3.1 m off from them.)"""
+    n, o = len(lights_m), LightsOptions()
+    if unplaced == 0 or n < 2 * o.min_inliers:
+        return ""
+    sym = map_symmetries(lights_m, o.gate_m, max(o.min_inliers, math.ceil(n / 2)))
+    if not len(sym):
+        return ""
+    return (f"{n} lights left out: a motion of the map puts half of them or more on others "
+            f"(they repeat) and {unplaced} frames of the drive were not placed, so a pose "
+            "matched to them has twins beyond the part surveyed that no light rules out")
+
+
 def _lights(recs: Sequence[Recording], res: SurveyResult) -> tuple[LightMap | None, str]:
     """The lit spots of the first drive placed with its solved poses (those whose
     detections stay within :data:`LIGHT_SPREAD_M` of their cluster's centre and whose
@@ -205,6 +228,9 @@ def _lights(recs: Sequence[Recording], res: SurveyResult) -> tuple[LightMap | No
     lm = dataclasses.replace(lm, lights_m=lm.lights_m[lamp], spread_m=lm.spread_m[lamp],
                              sigma_m=np.hypot(lm.sigma_m[lamp], pose_sigma),
                              views=lm.views[lamp], unassigned=lm.unassigned)
+    repeated = _repeated_beyond(lm.lights_m, res.unplaced)
+    if repeated:
+        return None, repeated
     notes = [f"{left} of {len(stay)} clusters of lit spots left out: they do not stay put "
              f"from frame to frame (spread > {1e3 * LIGHT_SPREAD_M:.0f} mm: bright "
              "patches, not spot lights)"] if left else []

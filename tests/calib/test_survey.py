@@ -216,3 +216,19 @@ def test_a_rival_a_step_away_makes_the_match_ambiguous():
     m = match_places(Place(moved, d_moved), Place(moved - [0.04, 0.0], d_moved),
                      np.random.default_rng(0))
     assert m and abs(m.z[0] - 0.04) < 1e-6
+
+
+def test_lights_that_repeat_are_not_written_from_a_drive_not_all_placed():
+    """A lattice of lights (a detector on every 0.6 m tile) surveyed from part of a drive
+    (frames left unplaced): a pose matched to them has twins a period on, where the
+    lights were not placed, so they are left out with the reason; from a drive placed
+    whole, or where the lights do not repeat, they are written."""
+    from ceilkit.calib.survey_files import _repeated_beyond
+
+    gx, gy = np.meshgrid(np.arange(5) * 0.6, np.arange(4) * 0.6)
+    lattice = np.c_[gx.ravel(), gy.ravel()] + 0.3
+    why = _repeated_beyond(lattice, unplaced=120)
+    assert "20 lights left out" in why and "120 frames" in why, why
+    assert _repeated_beyond(lattice, unplaced=0) == ""
+    scatter = np.random.default_rng(3).uniform(0, 3.0, (12, 2))
+    assert _repeated_beyond(scatter, unplaced=120) == ""

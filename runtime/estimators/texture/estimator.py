@@ -346,7 +346,7 @@ class TextureEstimator(Estimator):
         s = _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
                     ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ, part=part)
         if s.unique >= o.min_unique:
-            return s
+            return self._repeated(s, mj[best.used], ncc, frame)
         twins, judged, singled = self._twins(q, desc, qi[best.used][~unique[best.used]], best,
                                              mj[best.used], ncc, frame, rows)
         if _runner_twin(s, o):    # every twin listed for _decide's prior, the runner-up once
@@ -399,7 +399,29 @@ class TextureEstimator(Estimator):
             o.twin_ncc, o.min_ncc))
         return left, len(found), complete
 
-    def _repeats(self, best: MapFit, used: np.ndarray, found: list[MapFit]) -> bool:
+    def _repeated(self, s: _Search, used: np.ndarray, ncc: float,
+                  frame: tuple[np.ndarray, np.ndarray]) -> _Search:
+        """A search whose matches are distinctive, with the map's own repeats about its
+        pose that the frame does not rule out as its ``twins`` (:meth:`_repeats` over
+        the global index: a small map of a repeated ceiling holds a few copies, each
+        with other descriptors, so the matches look distinctive; ``bench_heldout_texture.py
+        --seed 10``'s repeated control, surveyed into 6 keyframes, published 15 poses a
+        tile off so)."""
+        o: TextureOptions = self.options  # type: ignore[assignment]
+        assert s.best is not None
+        found: list[MapFit] = []
+        complete = self._repeats(s.best, used, found, exact=False)
+        if not found:
+            return s
+        patch, valid = frame
+        left = tuple(f for f in found if not _told_apart(
+            ncc, flat_ncc(self.map, patch, valid, f.pose, NCC_STRIDE),
+            lambda f=f: where_they_differ(self.map, patch, valid, s.best.pose, f.pose),
+            o.twin_ncc, o.min_ncc))
+        return dataclasses.replace(s, twins=left, judged=len(found), singled=complete)
+
+    def _repeats(self, best: MapFit, used: np.ndarray, found: list[MapFit],
+                 exact: bool = True) -> bool:
         """Add to ``found`` (the twins listed so far, :meth:`_twins`) the poses where
         the map repeats what ``best`` explains: ``best`` moved by each shift under
         which at least :data:`REPEAT_SHARE` of its inliers' map features ``used`` (and
@@ -411,7 +433,7 @@ class TextureEstimator(Estimator):
         control, a kidnap, published 6 poses 2.25 m off, three tiles by two, with its
         two listed twins ruled out and the true copy never listed)."""
         o: TextureOptions = self.options  # type: ignore[assignment]
-        shifts, support = self.index.repeats(used, o.max_hamming)
+        shifts, support = self.index.repeats(used, o.max_hamming, exact=exact)
         need = max(TWIN_SUPPORT, REPEAT_SHARE * len(np.unique(self.index.place[used])))
         x, y, yaw = best.pose
         for d, n in zip(shifts, support, strict=True):
@@ -473,15 +495,16 @@ class TextureEstimator(Estimator):
         diag["unique"] = s.unique
         diag.update(differ_ncc=s.differ_ncc[0], runner_up_differ_ncc=s.differ_ncc[1])
         twin = _runner_twin(s, o)
-        if s.unique < o.min_unique:
+        if local and s.unique >= o.min_unique:      # the map's repeats the prior rules out
+            s = dataclasses.replace(s, twins=tuple(
+                t for t in s.twins if allows(prior, (*t.pose, t.cov))))
+        if s.unique < o.min_unique or s.judged:
             diag.update(twins=s.judged, twins_left=len(s.twins))
-        if not twin and s.unique < o.min_unique and not (s.singled and not s.twins):
-            why = f"{len(s.twins)} of the {s.judged} poses they support alike explain the " \
-                  f"frame as well" if s.singled else "their twins could not all be listed"
+        if not twin and (s.unique < o.min_unique or s.twins) \
+                and not (s.singled and not s.twins):
             return None if local else self.fail(
-                t_ns, AMBIGUOUS, f"{s.count} features fit, {s.unique} of them match one "
-                f"place of the map (it needs {o.min_unique}) and {why}", _hypotheses(s),
-                **diag, ms=elapsed_ms(t0))
+                t_ns, AMBIGUOUS, _why_ambiguous(s, o), _hypotheses(s), **diag,
+                ms=elapsed_ms(t0))
         if not twin:
             if local and not allows(prior, (*s.best.pose, s.best.cov)):
                 return None
@@ -563,6 +586,18 @@ def _velocity_diag(fit: MapFit) -> dict[str, Any]:
     if fit.velocity is None:
         return {}
     return {"velocity": fit.velocity, "velocity_sigma": fit.velocity_sigma}
+
+
+def _why_ambiguous(s: _Search, o: TextureOptions) -> str:
+    """The detail of an ``ambiguous`` frame whose listed twins stand or are not all
+    known (:meth:`TextureEstimator._decide`)."""
+    why = f"{len(s.twins)} of the {s.judged} poses they support alike explain the " \
+          f"frame as well" if s.singled else "their twins could not all be listed"
+    if s.unique >= o.min_unique:
+        return f"{s.count} features fit, {s.unique} of them distinctive, but the map " \
+               f"repeats about the pose: {why}"
+    return f"{s.count} features fit, {s.unique} of them match one place of the map " \
+           f"(it needs {o.min_unique}) and {why}"
 
 
 def _same_basin(a: tuple[float, float, float], b: tuple[float, float, float]) -> bool:

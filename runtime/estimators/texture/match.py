@@ -42,6 +42,7 @@ RATIO = 0.8              # distinctive: nearest <= RATIO x the next place's dist
 SAME_PLACE_M = 0.03      # two map features this close are one place (not a twin)
 REPEAT_ROWS = 128        # DescriptorIndex.repeats: the nearest rows a feature reads ...
 REPEAT_MAX = 32          # ... and the most-supported shifts it returns at most
+REPEAT_PLACES = 16       # ... or, not exact, the nearest places the global index gives
 
 
 class DescriptorIndex:
@@ -124,23 +125,30 @@ class DescriptorIndex:
         qi, col = np.nonzero((idx >= 0) & (dist <= bound))
         return qi.astype(int), idx[qi, col].astype(int), complete
 
-    def repeats(self, mj: np.ndarray, max_hamming: int, rows: int = REPEAT_ROWS
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def repeats(self, mj: np.ndarray, max_hamming: int, rows: int = REPEAT_ROWS,
+                exact: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """``(shifts (K, 2), support (K,))``: the translations of the map (m, in W)
         under which its features ``mj`` recur, most supported first: another place of
         the map within ``max_hamming`` bits of a feature's descriptor (no ratio test),
         past :data:`SAME_PLACE_M` from it, at that displacement (votes in cells of
         :data:`SAME_PLACE_M`, each counted in its cell and the eight beside it, the
         shift the mean of the votes there); ``support``: how many of ``mj``'s places
-        recur so. Brute force over the whole map, the nearest ``rows`` rows a feature:
-        the map's own repeats about a pose, which the frame's matches need not show
-        (a repeated item surveyed from other views carries other descriptors)."""
+        recur so. Brute force over the whole map, the nearest ``rows`` rows a feature
+        (``exact``), or the global index's nearest :data:`REPEAT_PLACES` places (LSH:
+        its cost does not grow with the map): the map's own repeats about a pose, which
+        the frame's matches need not show (a repeated item surveyed from other views
+        carries other descriptors)."""
         mj = np.unique(self.place[np.asarray(mj, np.int64)])
         n = len(self.descriptors)
         if n < 2 or len(mj) == 0:
             return np.zeros((0, 2)), np.zeros(0, np.int64)
-        idx, dist = _rows_knn(self._words[mj], self._words, arr(np.arange(n), np.int64),
-                              min(rows, n))
+        if exact:
+            idx, dist = _rows_knn(self._words[mj], self._words,
+                                  arr(np.arange(n), np.int64), min(rows, n))
+        else:
+            idx, dist = _lsh_knn(arr(self.descriptors[mj], np.uint8), self._words[mj],
+                                 LshTables(self._words, self.key_bits, self._order,
+                                           self._starts), self.place, min(REPEAT_PLACES, n))
         qi, col = np.nonzero((idx >= 0) & (dist <= max_hamming))
         d = self.points_xy[idx[qi, col]] - self.points_xy[mj[qi]]
         far = np.hypot(*d.T) > SAME_PLACE_M
