@@ -433,8 +433,8 @@ class TextureEstimator(Estimator):
         control, a kidnap, published 6 poses 2.25 m off, three tiles by two, with its
         two listed twins ruled out and the true copy never listed)."""
         o: TextureOptions = self.options  # type: ignore[assignment]
-        shifts, support = self.index.repeats(used, o.max_hamming, exact=exact)
-        need = max(TWIN_SUPPORT, REPEAT_SHARE * len(np.unique(self.index.place[used])))
+        need = max(TWIN_SUPPORT, math.ceil(REPEAT_SHARE * len(np.unique(self.index.place[used]))))
+        shifts, support = self.index.repeats(used, o.max_hamming, need, exact=exact)
         x, y, yaw = best.pose
         for d, n in zip(shifts, support, strict=True):
             pose = (x + float(d[0]), y + float(d[1]), yaw)

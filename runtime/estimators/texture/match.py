@@ -125,19 +125,20 @@ class DescriptorIndex:
         qi, col = np.nonzero((idx >= 0) & (dist <= bound))
         return qi.astype(int), idx[qi, col].astype(int), complete
 
-    def repeats(self, mj: np.ndarray, max_hamming: int, rows: int = REPEAT_ROWS,
-                exact: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def repeats(self, mj: np.ndarray, max_hamming: int, least: int = 2,
+                rows: int = REPEAT_ROWS, exact: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
         """``(shifts (K, 2), support (K,))``: the translations of the map (m, in W)
         under which its features ``mj`` recur, most supported first: another place of
         the map within ``max_hamming`` bits of a feature's descriptor (no ratio test),
         past :data:`SAME_PLACE_M` from it, at that displacement (votes in cells of
         :data:`SAME_PLACE_M`, each counted in its cell and the eight beside it, the
         shift the mean of the votes there); ``support``: how many of ``mj``'s places
-        recur so. Brute force over the whole map, the nearest ``rows`` rows a feature
-        (``exact``), or the global index's nearest :data:`REPEAT_PLACES` places (LSH:
-        its cost does not grow with the map): the map's own repeats about a pose, which
-        the frame's matches need not show (a repeated item surveyed from other views
-        carries other descriptors)."""
+        recur so, ``least`` at the fewest. Brute force over the whole map, the nearest
+        ``rows`` rows a feature (``exact``), or the global index's nearest
+        :data:`REPEAT_PLACES` places (LSH: its cost does not grow with the map): the
+        map's own repeats about a pose, which the frame's matches need not show (a
+        repeated item surveyed from other views carries other descriptors)."""
         mj = np.unique(self.place[np.asarray(mj, np.int64)])
         n = len(self.descriptors)
         if n < 2 or len(mj) == 0:
@@ -155,7 +156,7 @@ class DescriptorIndex:
         qi, d = qi[far], d[far]
         if not len(d):
             return np.zeros((0, 2)), np.zeros(0, np.int64)
-        return _vote_shifts(qi, d)
+        return _vote_shifts(qi, d, least)
 
     def _pairs(self, idx: np.ndarray, dist: np.ndarray, max_hamming: int
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -167,24 +168,32 @@ class DescriptorIndex:
         return qi.astype(int), idx[ok].astype(int), uniq[ok]
 
 
-def _vote_shifts(who: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _vote_shifts(who: np.ndarray, d: np.ndarray, least: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """:meth:`DescriptorIndex.repeats`' vote: displacements ``d (V, 2)`` of the
     features ``who (V,)``; ``(shifts (K, 2), support (K,))``: for each cell of
-    :data:`SAME_PLACE_M` the distinct features with a vote in it or beside it, most
-    first, no two kept within a cell of each other (at most :data:`REPEAT_MAX`),
-    each shift the mean of the votes about its cell."""
+    :data:`SAME_PLACE_M` the distinct features with a vote in it or beside it, those of
+    ``least`` or more, most first, no two kept within two cells of each other (at most
+    :data:`REPEAT_MAX`), each shift the mean of the votes about its cell."""
     cell = np.round(d / SAME_PLACE_M).astype(np.int64)
-    off = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], np.int64)
-    keys = (cell[:, None, :] + off[None]).reshape(-1, 2)
-    pair = np.unique(np.c_[keys, np.repeat(who, len(off))], axis=0)
-    ukeys, support = np.unique(pair[:, :2], axis=0, return_counts=True)
+    span = int(np.abs(cell).max()) + 2
+    side = 2 * span + 1
+    code = (cell[:, 0] + span) * side + cell[:, 1] + span
+    off = np.array([a * side + b for a in (-1, 0, 1) for b in (-1, 0, 1)], np.int64)
+    keys = (code[:, None] + off[None]).ravel()
+    n_who = int(who.max()) + 1
+    pair = np.unique(keys * n_who + np.repeat(who, len(off)))
+    ukeys, support = np.unique(pair // n_who, return_counts=True)
+    top = np.flatnonzero(support >= max(least, 2))
+    top = top[np.argsort(-support[top], kind="stable")]
+    at = np.c_[ukeys // side - span, ukeys % side - span]
     kept: list[int] = []
-    for k in np.argsort(-support, kind="stable"):
-        if support[k] < 2 or len(kept) == REPEAT_MAX:
-            break
-        if all(np.max(np.abs(ukeys[k] - ukeys[m])) > 1 for m in kept):
+    for k in top[:9 * REPEAT_MAX]:      # a cluster's votes fill 3 x 3 cells alike
+        if all(np.max(np.abs(at[k] - at[m])) > 2 for m in kept):
             kept.append(int(k))
-    shifts = np.array([d[np.max(np.abs(cell - ukeys[k]), axis=1) <= 1].mean(axis=0)
+            if len(kept) == REPEAT_MAX:
+                break
+    shifts = np.array([d[np.max(np.abs(cell - at[k]), axis=1) <= 1].mean(axis=0)
                        for k in kept]).reshape(-1, 2)
     return shifts, support[kept].astype(np.int64)
 
