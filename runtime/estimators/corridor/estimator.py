@@ -53,7 +53,10 @@ from ceilkit.runtime.estimators.corridor.frame import (
     labeled_counts,
     undistorted,
 )
-from ceilkit.runtime.estimators.corridor.geometry import vanishing_line_check
+from ceilkit.runtime.estimators.corridor.geometry import (
+    vanishing_line_check,
+    vanishing_line_dict,
+)
 from ceilkit.runtime.estimators.corridor.hypotheses import (
     LabelContext,
     Labeling,
@@ -64,6 +67,7 @@ from ceilkit.runtime.estimators.corridor.hypotheses import (
 )
 from ceilkit.runtime.estimators.corridor.refine import (
     FrameFit,
+    PanOffsetFit,
     RowRates,
     camera_y_speed,
     gn_inputs,
@@ -81,6 +85,7 @@ from ceilkit.runtime.estimators.corridor.track import (
     LineMeasurement,
     LineTracker,
     WindowFit,
+    labeling_twins,
     window_applies,
     window_twins,
     without_ignored,
@@ -105,6 +110,7 @@ from ceilkit.runtime.features.lines import SegmentDetector
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.geometry.shutter import row_times_s
+from ceilkit.runtime.jit import arr
 
 MIN_LENGTH_SHARE = 0.04
 """The default shortest segment, as a share of the image width."""
@@ -372,21 +378,11 @@ class CorridorEstimator(Estimator):
         # where (:meth:`~.track.ChordFit.first`); the frame is fitted on the chords
         # that count, always from a full search (the first reads a quarter of its
         # profiles: track.FIRST_ALONG, FIRST_STRIDE).
-        fitter, rates = self._chord_fit, self._rates(prior)
+        rates = self._rates(prior)
         if rates is None and self._ignore is None:      # all of it in one compiled call
-            m, psi1, cy1, fitted = self.lines_track.window(grey, psi, cy, fitter.kernel,
-                                                           REMEASURE_PX, self._ctx.mirror_y_m)
-            found = None if m is None else fitter.fitted(m, psi1, cy1, fitted)
+            out = window_pose(self, grey, t_ns, psi, cy, t0)
         else:
-            found = searched(self, grey, psi, cy, prior, rates)
-        twins = None if found is None else fit_twins(self.lines_track, self._ctx, grey, found)
-        out = None
-        if twins is not None:
-            lab = dataclasses.replace(found.frame.labeling, twins=twins,
-                                      ambiguous=any(t.label == "shift" for t in twins))
-            out = self._pose(t_ns, dataclasses.replace(found.frame, labeling=lab),
-                             found.chords.rms_px, t0, "window",
-                             None if found.checks is None else found.checks[:2])
+            out = searched_pose(self, grey, t_ns, prior, psi, cy, rates, t0)
         # outside the prior's region (a kidnap), or a twin inside it (estimators/prior.py)
         if out and prior_choice(prior, [(None, h.y_m, h.yaw_rad, None)
                                         for h in out.hypotheses or (out,)]) != 0:
@@ -487,30 +483,39 @@ class CorridorEstimator(Estimator):
         return row_times_s(v_px, self.rig.camera.height, self.options.readout_ms / 1e3)
 
     def _pose(self, t_ns: int, ff: FrameFit, fit_rms: np.ndarray, t0: float,
-              search: str, checks: tuple | None = None) -> Estimate:
+              search: str) -> Estimate:
         """The pose, its quality and diagnostics from the fitted frame ``ff``, or the
         Failure of the first model check it does not pass (:func:`model_failure`);
         ``fit_rms (N,)``: each segment's edge-fit scatter (px); ``search``: the
-        ``search`` diagnostic (``window`` on the tracked path); ``checks``: the
-        vanishing line's dict and the counts where computed (:class:`~.track.WindowFit`:
-        the same numbers)."""
-        fr, best, gd, fit = ff.lines, ff.labeling, ff.gd, ff.fit
-        yaw, y_m, cov = vehicle_pose(fit, self.setup)
-        along, across = best.along, best.across
-        vl = (vanishing_line_check(fr.lines, fr.len_n, along, across, self.setup.R_level_cam)
-              if checks is None else checks[0])
+        ``search`` diagnostic (``window`` on the tracked path). The check itself is
+        :meth:`_checked` (the window path's :func:`window_pose` calls it with the same
+        numbers from its compiled call)."""
+        fr, best, gd = ff.lines, ff.labeling, ff.gd
+        vl = vanishing_line_check(fr.lines, fr.len_n, best.along, best.across,
+                                  self.setup.R_level_cam)
+        counts = labeled_counts(fr, best.along, best.across, best.assign, fit_rms)
         groups = np.concatenate([gd.y, 1e9 + np.arange(gd.p0.size)])
+        return self._checked(t_ns, fr.segs, best, ff.fit, (groups, gd.n_a), (vl, counts), t0,
+                             search)
+
+    def _checked(self, t_ns: int, segs: np.ndarray, best: Labeling, fit: PanOffsetFit,
+                 rows: tuple[np.ndarray, int], checks: tuple, t0: float, search: str
+                 ) -> Estimate:
+        """:meth:`_pose` of its numbers: the frame's segments ``segs (N, 4)``, their
+        labeling ``best``, the fit, its rows' systematic-error groups and along rows
+        ``rows`` (the misfit's ``groups``, :class:`~.refine.GNInputs`' ``n_a``) and
+        ``checks``, the vanishing line's dict and the counts."""
+        groups, n_a = rows
+        vl, (n_along, n_across, n_steps, n_thin, fit_rms_px, span) = checks
+        yaw, y_m, cov = vehicle_pose(fit, self.setup)
         mf = misfit(fit.residuals_px, self.options.noise_px, 2, groups,
                     self.options.misfit_alpha, huber_px=1.0)
-        quality = (min(1.0, best.n_lines / 3.0) * min(1.0, gd.n_a / 4.0)
+        quality = (min(1.0, best.n_lines / 3.0) * min(1.0, n_a / 4.0)
                    / (1.0 + (fit.rms_px / 1.5) ** 2))
         if best.ambiguous:
             quality *= 0.5
-        n_along, n_across, n_steps, n_thin, fit_rms_px, span = (
-            labeled_counts(fr, along, across, best.assign, fit_rms) if checks is None
-            else checks[1])
         diag = {
-            "n_segments": fr.segs.shape[0],
+            "n_segments": segs.shape[0],
             "n_along": n_along,
             "n_across": n_across,
             "n_lines_matched": int(best.n_lines),
@@ -529,7 +534,8 @@ class CorridorEstimator(Estimator):
             **vl, **mf.diagnostics(),
             # for overlays (references, no copies): the undistorted normalized segments,
             # the two families and the site line of each forward segment (-1: none)
-            "segments_n": fr.segs, "along": along, "across": across, "assign": best.assign,
+            "segments_n": segs, "along": best.along, "across": best.across,
+            "assign": best.assign,
             "ms": elapsed_ms(t0),
         }
         failed = model_failure(self.options, self.extent, mf, diag, y_m)
@@ -547,6 +553,48 @@ class CorridorEstimator(Estimator):
                             min(max(float(quality), 0.0), 1.0), y_m - self.setup.axis_y_m,
                             cov, diag, provenance=provenance, hypotheses=twins,
                             hypotheses_complete=complete_twins(best.twins))
+
+
+def window_pose(est: CorridorEstimator, grey: np.ndarray, t_ns: int, psi: float, cy: float,
+                t0: float) -> Estimate | None:
+    """``est``'s window fix about camera pan ``psi`` and y ``cy`` with a global shutter
+    and no ignore region, from one compiled call (:meth:`~.track.LineTracker.fix`),
+    checked (:meth:`CorridorEstimator._checked`) with its twins
+    (:func:`with_quarter_turns`), or None: no fix kept, or the global path decides the
+    frame. The numbers of :func:`searched_pose` without its objects: no frame arrays,
+    fit inputs or window fit are made, only the labeling the check reads."""
+    fx = est.lines_track.fix(grey, psi, cy, est._chord_fit.kernel, REMEASURE_PX,
+                             est._ctx.mirror_y_m)
+    fit = None if fx is None else est._chord_fit.kept(fx.fit, fx.psi, fx.cy)
+    if fit is None:
+        return None
+    twins = with_quarter_turns(est._ctx, fit.psi_rad, labeling_twins(*fx.twins))
+    if twins is None:
+        return None
+    n = fx.segs_n.shape[0]
+    lab = Labeling((fx.n_lines, float(n)), fx.psi, fx.cy, np.ones(n, bool), np.zeros(n, bool),
+                   fx.line, fx.n_lines, any(t.label == "shift" for t in twins), "window",
+                   twins=twins)
+    groups = np.concatenate([fx.y, 1e9 + np.arange(fx.n_b)])
+    return est._checked(t_ns, arr(fx.segs_n, np.float64), lab, fit, (groups, fx.n_a),
+                        (vanishing_line_dict(*fx.vl), fx.counts), t0, "window")
+
+
+def searched_pose(est: CorridorEstimator, grey: np.ndarray, t_ns: int, prior: PoseEstimate,
+                  psi: float, cy: float, rates: RowRates | None, t0: float
+                  ) -> Estimate | None:
+    """``est``'s window fix about camera pan ``psi`` and y ``cy`` from the calls one by
+    one (:func:`searched`: with the ignore regions or a rolling shutter's ``rates``),
+    checked (:meth:`CorridorEstimator._pose`) with its twins (:func:`fit_twins`), or
+    None."""
+    found = searched(est, grey, psi, cy, prior, rates)
+    twins = None if found is None else fit_twins(est.lines_track, est._ctx, grey, found)
+    if twins is None:
+        return None
+    lab = dataclasses.replace(found.frame.labeling, twins=twins,
+                              ambiguous=any(t.label == "shift" for t in twins))
+    return est._pose(t_ns, dataclasses.replace(found.frame, labeling=lab),
+                     found.chords.rms_px, t0, "window")
 
 
 def searched(est: CorridorEstimator, grey: np.ndarray, psi: float, cy: float,
@@ -578,11 +626,19 @@ def fit_twins(lt: LineTracker, ctx: LabelContext, grey: np.ndarray, found: Windo
     ``exact`` False, so the list is not complete); None when the global path must
     decide the frame."""
     fit = found.frame.fit
-    twins = (window_twins(lt, grey, found.chords, fit.psi_rad, fit.camera_y_m, ctx.mirror_y_m)
-             if found.checks is None else found.checks[2])
+    twins = window_twins(lt, grey, found.chords, fit.psi_rad, fit.camera_y_m, ctx.mirror_y_m)
+    return with_quarter_turns(ctx, fit.psi_rad, twins)
+
+
+def with_quarter_turns(ctx: LabelContext, psi_rad: float,
+                       twins: tuple[LabelingTwin, ...] | None
+                       ) -> tuple[LabelingTwin, ...] | None:
+    """A window fix's ``twins`` (:func:`~.track.window_twins`; None: the global path
+    decides) with both quarter turns of its camera pan ``psi_rad`` where the site's
+    ``lines_across`` are seams (``ctx.across_seams``; :func:`fit_twins`)."""
     if twins is None or not ctx.across_seams:
         return twins
-    return twins + tuple(LabelingTwin(wrap_pi(fit.psi_rad + d), math.nan, "quarter_turn",
+    return twins + tuple(LabelingTwin(wrap_pi(psi_rad + d), math.nan, "quarter_turn",
                                       False) for d in (-0.5 * math.pi, 0.5 * math.pi))
 
 
@@ -603,9 +659,11 @@ def twin_hypotheses(setup: CorridorSetup, match_tol_m: float, twins: tuple[Label
         cov = np.diag([np.inf, (match_tol_m / 3.0) ** 2, math.radians(1.0) ** 2])
     w = 1.0 / (len(twins) + (0 if twins[0].label == "chosen" else 1))
     out = []
+    # the mount's offset as floats once (the same IEEE products as numpy's scalars)
+    pan, tx, ty = float(st.pan_rad), float(st.t_vc[0]), float(st.t_vc[1])
     for t in twins:
-        yaw = wrap_pi(t.psi_rad - st.pan_rad)
-        y = t.camera_y_m - (math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1])
+        yaw = wrap_pi(t.psi_rad - pan)
+        y = t.camera_y_m - (math.sin(yaw) * tx + math.cos(yaw) * ty)
         if not math.isfinite(y):        # not measured (a window fix's quarter turn)
             c = np.array(cov, float)
             c[1, :] = c[:, 1] = np.inf

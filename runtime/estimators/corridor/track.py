@@ -45,16 +45,15 @@ from ceilkit.runtime.estimators.corridor.frame import (
     _frame_arrays,
     counts_core,
     frame_lines,
-    frame_of,
 )
-from ceilkit.runtime.estimators.corridor.geometry import _vanishing_line, vanishing_line_dict
+from ceilkit.runtime.estimators.corridor.geometry import _vanishing_line
 from ceilkit.runtime.estimators.corridor.hypotheses import TWIN_RATIO, Labeling, LabelingTwin
 from ceilkit.runtime.estimators.corridor.refine import (
     FrameArrays,
     FrameFit,
     GNArrays,
-    GNInputs,
     LevelCamera,
+    PanOffsetFit,
     RowRates,
     along_fit,
     along_steps,
@@ -234,6 +233,31 @@ def _measurement(found: tuple) -> LineMeasurement | None:
     return LineMeasurement(segs_n, chords, line, pol, rms, n) if ok else None
 
 
+class WindowFix(NamedTuple):
+    """What the estimator reads of a frame's window path (:meth:`LineTracker.fix`,
+    :func:`_window_fix`): the chords the frame's fit takes, ``segs_n (K, 4)``
+    undistorted normalized, on site lines ``line (K,)`` (``n_lines`` distinct), searched
+    about camera pan ``psi`` and y ``cy``; the fit ``fit`` ``(psi, c_y, cov_ok, C (2, 2),
+    r)`` (:meth:`ChordFit.kept`), its rows' site y ``y (2K,)``, ``n_a`` along rows and
+    ``n_b`` across rows (:class:`~.refine.GNInputs`' ``y``, ``n_a``, ``p0.size``); the
+    model check's vanishing line ``vl`` (:func:`~.geometry.vanishing_line_dict`'s
+    numbers) and ``counts`` (:func:`~.frame.labeled_counts`), and the ``twins``
+    (:func:`labeling_twins`' arguments)."""
+
+    segs_n: np.ndarray
+    line: np.ndarray
+    n_lines: int
+    psi: float
+    cy: float
+    fit: tuple
+    y: np.ndarray
+    n_a: int
+    n_b: int
+    vl: tuple
+    counts: tuple
+    twins: tuple
+
+
 @dataclass(frozen=True, eq=False)
 class WindowFit:
     """A window fix before its model check: the located ``chords``
@@ -243,10 +267,6 @@ class WindowFit:
 
     chords: LineMeasurement
     frame: FrameFit
-    checks: tuple | None = None
-    """What the compiled window call also computed of the fix (None: not computed):
-    ``(vanishing line, counts, twins)``, :func:`~.geometry.vanishing_line_check`'s
-    dict, :func:`~.frame.labeled_counts`' tuple and :func:`window_twins`' answer."""
 
 
 class ChordFit:
@@ -303,21 +323,13 @@ class ChordFit:
                         self.iterations)
         return fit[:2] if self.ok(fit, psi, cy) else None
 
-    def fitted(self, m: LineMeasurement, psi: float, cy: float, fitted: tuple
-               ) -> WindowFit | None:
-        """:meth:`frame` (a global shutter) from its numbers computed in the compiled
-        call (:func:`_frame_fit`'s ``fitted``): the same objects, None: not kept."""
-        frame_out, g, (fit_psi, fit_cy, cov_ok, C, r), vl, counts, twins = fitted
+    def kept(self, fx: tuple, psi: float, cy: float) -> PanOffsetFit | None:
+        """The :class:`~.refine.PanOffsetFit` of the compiled fit ``fx`` ``(psi, c_y,
+        cov_ok, C, r)`` (:func:`_frame_fit`'s) started at ``(psi, cy)``, None: not kept
+        (:meth:`ok`)."""
+        fit_psi, fit_cy, cov_ok, C, r = fx
         fit = pan_offset_fit(fit_psi, fit_cy, C if cov_ok else None, r)
-        if not self.ok((fit.psi_rad, fit.camera_y_m, fit.rms_px), psi, cy):
-            return None
-        fr = frame_of(arr(m.segs_n, np.float64), m.polarity, frame_out)
-        n, n_lines = m.segs_n.shape[0], m.n_lines
-        along, across = np.ones(n, bool), np.zeros(n, bool)
-        lab = Labeling((n_lines, float(n)), psi, cy, along, across, m.line, n_lines,
-                       False, "window")
-        return WindowFit(m, FrameFit(fr, lab, GNInputs(*g), fit),
-                         (vanishing_line_dict(*vl), counts, labeling_twins(*twins)))
+        return fit if self.ok((fit.psi_rad, fit.camera_y_m, fit.rms_px), psi, cy) else None
 
     def frame(self, m: LineMeasurement, psi: float, cy: float, rates: RowRates | None
               ) -> WindowFit | None:
@@ -405,24 +417,23 @@ class LineTracker:
                                           float(camera_y_m), self.flat,
                                           FIRST_STRIDE if first else 0))
 
-    def window(self, grey: np.ndarray, psi_rad: float, camera_y_m: float, fit: tuple,
-               remeasure_px: float, mirror_y_m: float | None = None
-               ) -> tuple[LineMeasurement | None, float, float, tuple]:
+    def fix(self, grey: np.ndarray, psi_rad: float, camera_y_m: float, fit: tuple,
+            remeasure_px: float, mirror_y_m: float | None = None) -> WindowFix | None:
         """A frame's searches, with a global shutter and no ignore region, as one compiled
-        call (:func:`_window_core`): the first search (:meth:`measure`, ``first``), its
-        fit (:meth:`ChordFit.first`; a full first search where the quarter gives none),
-        and the full search about that fit (about ``(psi_rad, camera_y_m)`` where it moves
-        the lines at most ``remeasure_px``, :meth:`shift_px`) and the frame's fit of its
-        chords (:meth:`ChordFit.frame`'s numbers): ``(chords, psi, c_y, fitted)``, the
-        chords the frame's fit takes (None: none kept), where they were searched and
-        the fit for :meth:`ChordFit.fitted`, with the fix's checks and its twins
-        (:func:`window_twins`, ``mirror_y_m``): the estimator's reading, the same
-        numbers, without the calls between; ``fit``: :attr:`ChordFit.kernel`."""
-        found, psi, cy, m, fitted = _window_core(arr(grey, np.uint8), float(psi_rad),
-                                                 float(camera_y_m), self.flat, fit,
-                                                 (float(remeasure_px), FIRST_STRIDE),
-                                                 (self.kernel_lines[1], _mirror(mirror_y_m)))
-        return (_measurement(m) if found else None), psi, cy, fitted
+        call (:func:`_window_fix`, :func:`_window_core`): the first search (:meth:`measure`,
+        ``first``), its fit (:meth:`ChordFit.first`; a full first search where the quarter
+        gives none), the full search about that fit (about ``(psi_rad, camera_y_m)`` where
+        it moves the lines at most ``remeasure_px``, :meth:`shift_px`), the frame's fit of
+        its chords (:meth:`ChordFit.frame`'s numbers), the fix's checks and its twins
+        (:func:`window_twins`, ``mirror_y_m``): the estimator's reading, the same numbers,
+        without the calls between; ``fit``: :attr:`ChordFit.kernel`. What the estimator
+        reads of it (:class:`WindowFix`), None where no chords are kept: only those arrays
+        go back to Python (each array handed back costs its boxing, about a microsecond:
+        8 arrays, against 29 for the whole of :func:`_window_core`'s output)."""
+        found, *rest = _window_fix(arr(grey, np.uint8), float(psi_rad), float(camera_y_m),
+                                   self.flat, fit, (float(remeasure_px), FIRST_STRIDE),
+                                   (self.kernel_lines[1], _mirror(mirror_y_m)))
+        return WindowFix(*rest) if found else None
 
     def shift_px(self, d_psi_rad: float, d_cy_m: float) -> float:
         """How far (px, at the image's scale) a change of the camera's pan and y moves
@@ -594,6 +605,19 @@ def _window_core(grey, psi, cam_y, flat, fit, how, twin):  # pragma: no cover - 
     refused, psi_t, cy_t, shift = _twins_of(grey, fx[0], fx[1], s, twin[0], m[3][:k],
                                             twin[1])
     return found, psi1, cy1, m, fitted + ((refused or k == 0, psi_t, cy_t, shift),)
+
+
+@njit
+def _window_fix(grey, psi, cam_y, flat, fit, how, twin):  # pragma: no cover - compiled
+    """:meth:`LineTracker.fix`: :func:`_window_core`'s ``(found, segs_n, line, n_lines,
+    psi, c_y, fit, y, n_a, n_b, vanishing line, counts, twins)`` (:class:`WindowFix`
+    after ``found``), the chords and rows of none where not found."""
+    found, psi1, cy1, m, fitted = _window_core(grey, psi, cam_y, flat, fit, how, twin)
+    k = m[1].shape[0] if found else 0
+    line = m[3][:k]
+    _, g, fx, vl, counts, twins = fitted
+    return (found, m[1][:k], line, _count_distinct(line), psi1, cy1, fx, g[1], g[0],
+            g[5].size, vl, counts, twins)
 
 
 @njit
@@ -1041,6 +1065,7 @@ def _warm() -> None:
     cam_fit = ((s.R_level_cam, 2.0, 50.0), s.site_y, (1.0, 0.1, 0.1), 6,
                (arr(np.array([0.3]), f), 0.03, 2.5))
     _window_core(g, 0.0, 0.0, flat, cam_fit, (0.02, 2), (arr(np.zeros(2), f), 0.0))
+    _window_fix(g, 0.0, 0.0, flat, cam_fit, (0.02, 2), (arr(np.zeros(2), f), 0.0))
     _predict(0.0, 0.0, s.site_y, s)       # also called alone (chords_at)
     _count_distinct(arr(np.array([0, 1]), np.int64))
     lines = (arr([-1.0, 1.0], f), arr([0.0, 0.0], f))
@@ -1054,5 +1079,5 @@ def _warm() -> None:
 
 
 __all__ = ["CHORD_PX", "CHORD_RMS_MEDIANS", "ChordFit", "ChordSearch", "ChordView",
-           "LineMeasurement", "LineTracker", "REACH_M", "WindowFit", "chord_search",
+           "LineMeasurement", "LineTracker", "REACH_M", "WindowFit", "WindowFix", "chord_search",
            "window_applies", "window_twins"]

@@ -199,14 +199,17 @@ def test_quarter_first_search_gives_the_full_first_search_fix(corridor_rig, corr
 def test_one_compiled_window_call_is_the_calls_one_by_one(corridor_rig, corridor_site,
                                                          tracked):
     """The window path's searches, fits, checks and twins as one compiled call
-    (LineTracker.window, ChordFit.fitted) give the numbers of the calls one by one
-    (estimator.searched, then vanishing_line_check, labeled_counts and
-    window_twins on its fit), bit for bit, and None where they give None: priors on
-    the truth, centimetres off and 0.3 m off (a twin's or no fix)."""
+    (LineTracker.fix) give the numbers of the calls one by one (estimator.searched,
+    then vanishing_line_check, labeled_counts and window_twins on its fit), bit for bit,
+    and None where they give None: priors on the truth, centimetres off and 0.3 m off
+    (a twin's or no fix)."""
     from ceilkit.runtime.estimators.corridor.estimator import REMEASURE_PX, searched
     from ceilkit.runtime.estimators.corridor.frame import labeled_counts
-    from ceilkit.runtime.estimators.corridor.geometry import vanishing_line_check
-    from ceilkit.runtime.estimators.corridor.track import window_twins
+    from ceilkit.runtime.estimators.corridor.geometry import (
+        vanishing_line_check,
+        vanishing_line_dict,
+    )
+    from ceilkit.runtime.estimators.corridor.track import labeling_twins, window_twins
 
     st, lt, fitter = tracked.setup, tracked.lines_track, tracked._chord_fit
     mirror = tracked._ctx.mirror_y_m
@@ -217,31 +220,80 @@ def test_one_compiled_window_call_is_the_calls_one_by_one(corridor_rig, corridor
             psi = yaw + dyaw + st.pan_rad
             cy = y + dy + math.sin(yaw) * st.t_vc[0] + math.cos(yaw) * st.t_vc[1]
             one = searched(tracked, img, psi, cy, prior(y + dy, yaw + dyaw), None)
-            m, psi1, cy1, fitted = lt.window(img, psi, cy, fitter.kernel, REMEASURE_PX, mirror)
-            fused = None if m is None else fitter.fitted(m, psi1, cy1, fitted)
-            assert (one is None) == (fused is None)
+            fx = lt.fix(img, psi, cy, fitter.kernel, REMEASURE_PX, mirror)
+            fit = None if fx is None else fitter.kept(fx.fit, fx.psi, fx.cy)
+            assert (one is None) == (fit is None)
             if one is None:
                 continue
             kept += 1
-            a, b = one.frame, fused.frame
-            for f in ("segs_n", "segs_px", "line", "polarity", "rms_px"):
-                assert np.array_equal(getattr(one.chords, f), getattr(fused.chords, f))
+            a = one.frame
+            assert np.array_equal(one.chords.segs_n, fx.segs_n)
+            assert np.array_equal(one.chords.line, fx.line)
+            assert one.chords.n_lines == fx.n_lines
+            assert (a.labeling.psi_rad, a.labeling.camera_y_m) == (fx.psi, fx.cy)
             assert (a.fit.psi_rad, a.fit.camera_y_m, a.fit.cov, a.fit.rms_px) == (
-                b.fit.psi_rad, b.fit.camera_y_m, b.fit.cov, b.fit.rms_px)
-            assert np.array_equal(a.fit.residuals_px, b.fit.residuals_px)
-            for f in ("lines_t", "len_n", "q", "ceil_len", "lamp_end", "tol"):
-                assert np.array_equal(getattr(a.lines, f), getattr(b.lines, f))
-            for f in ("y", "e0", "e1", "ez"):
-                assert np.array_equal(getattr(a.gd, f), getattr(b.gd, f))
-            vl, counts, twins = fused.checks
+                fit.psi_rad, fit.camera_y_m, fit.cov, fit.rms_px)
+            assert np.array_equal(a.fit.residuals_px, fit.residuals_px)
+            assert np.array_equal(a.gd.y, fx.y)
+            assert (a.gd.n_a, a.gd.p0.size) == (fx.n_a, fx.n_b)
             lab = a.labeling
             vl_one = vanishing_line_check(a.lines.lines, a.lines.len_n, lab.along,
                                           lab.across, st.R_level_cam)
+            vl = vanishing_line_dict(*fx.vl)
             assert vl.keys() == vl_one.keys()
             assert np.array_equal(list(vl.values()), list(vl_one.values()), equal_nan=True)
-            assert np.array_equal(counts, labeled_counts(a.lines, lab.along, lab.across,
-                                                         lab.assign, one.chords.rms_px),
+            assert np.array_equal(fx.counts, labeled_counts(a.lines, lab.along, lab.across,
+                                                            lab.assign, one.chords.rms_px),
                                   equal_nan=True)
-            assert twins == window_twins(lt, img, one.chords, a.fit.psi_rad,
-                                         a.fit.camera_y_m, mirror)
+            assert labeling_twins(*fx.twins) == window_twins(lt, img, one.chords,
+                                                             a.fit.psi_rad,
+                                                             a.fit.camera_y_m, mirror)
+    assert kept >= 6
+
+
+def _same(a, b) -> bool:
+    """Equal to the last bit, NaN equal to NaN, arrays by dtype, shape and values."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype
+                and a.shape == b.shape and np.array_equal(a, b, equal_nan=True))
+    if isinstance(a, float) and isinstance(b, float):
+        return a == b or (math.isnan(a) and math.isnan(b))
+    return type(a) is type(b) and a == b
+
+
+def test_the_window_fix_is_the_window_calls_numbers(corridor_rig, corridor_site, tracked):
+    """The estimator's window path (LineTracker.fix, window_pose: the compiled call's
+    numbers without the frame's objects) publishes what the calls one by one publish
+    (searched_pose: searched, fit_twins, _pose), bit for bit: pose, covariance,
+    quality, provenance, hypotheses and every diagnostic but the time: priors on the
+    truth, centimetres off and 0.3 m off."""
+    from ceilkit.runtime.estimators.corridor.estimator import searched_pose, window_pose
+
+    st = tracked.setup
+    kept = 0
+    for k, (x, y, yaw) in enumerate(POSES):
+        img = frame(corridor_rig, corridor_site, x, y, yaw, k)
+        for dy, dyaw in ((0.0, 0.0), (0.01, 0.005), (-0.02, -0.003), (0.3, 0.0)):
+            psi = yaw + dyaw + st.pan_rad
+            cy = y + dy + math.sin(yaw + dyaw) * st.t_vc[0] + math.cos(yaw + dyaw) * st.t_vc[1]
+            p = prior(y + dy, yaw + dyaw)
+            lean = window_pose(tracked, img, 0, psi, cy, 0.0)
+            one = searched_pose(tracked, img, 0, p, psi, cy, None, 0.0)
+            assert (lean is None) == (one is None)
+            if lean is None:
+                continue
+            kept += bool(lean)
+            assert type(lean) is type(one)
+            for f in ("y_m", "yaw_rad", "quality", "lateral_m", "cov", "provenance",
+                      "hypotheses_complete", "reason", "detail"):
+                assert _same(getattr(lean, f, None), getattr(one, f, None)), f
+            assert [(h.y_m, h.yaw_rad, h.weight, h.label) for h in lean.hypotheses] == [
+                (h.y_m, h.yaw_rad, h.weight, h.label) for h in one.hypotheses]
+            assert all(_same(a.cov, b.cov) for a, b in zip(lean.hypotheses, one.hypotheses,
+                                                           strict=True))
+            da, db = dict(lean.diagnostics), dict(one.diagnostics)
+            da.pop("ms"), db.pop("ms")
+            assert da.keys() == db.keys()
+            assert all(_same(da[key], db[key]) for key in da), [
+                key for key in da if not _same(da[key], db[key])]
     assert kept >= 6

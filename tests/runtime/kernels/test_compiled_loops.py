@@ -670,6 +670,37 @@ def test_undistort_points_is_opencvs_inverse(model, dist, skew):
     assert cam.reprojects(px, out, 1e-9)[has_inverse].all()
 
 
+@pytest.mark.parametrize("dist", [[-0.08, 0.02, 0.0, 0.0, 0.0], [-0.3, 0.1, 0.0, 0.0, 0.05],
+                                  [0.2, -0.05, 0.0, 0.0, 0.01], [-0.5, 0.3, 0.0, 0.0, -0.1]])
+def test_radial_lens_inverse_is_the_general_one(dist):
+    """A polynomial lens without tangential or rational terms is inverted with their
+    terms left out (camera.radial_only: they add exact zeros and divide by an exact 1):
+    the same numbers as the general step to the last bit, over and far beyond the image
+    (where the steps fold and halve), on the principal point's row and column and on
+    1/32 px positions (the located points' rounding), and NaN and infinite pixels."""
+    from ceilkit.runtime.geometry.camera import (
+        CameraModel,
+        _undistort_polynomial,
+        radial_only,
+    )
+
+    cam = CameraModel.pinhole(640, 480, 400.0, dist=dist)
+    code, lens = cam.lens
+    fx, fy, cx, cy, k = lens[0], lens[1], lens[2], lens[3], lens[5:]
+    assert code == 1 and radial_only(k)
+    assert not radial_only(CameraModel.pinhole(640, 480, 400.0,
+                                               dist=[-0.3, 0.1, 0.001, 0.0, 0.0]).lens[1][5:])
+    rng = np.random.default_rng(5)
+    px = np.concatenate([rng.uniform([-320.0, -240.0], [960.0, 720.0], (20000, 2)),
+                         np.round(rng.uniform([0.0, 0.0], [640.0, 480.0], (5000, 2)) * 32) / 32,
+                         [[cx, cy], [cx, 10.0], [10.0, cy], [np.nan, 1.0], [np.inf, 2.0],
+                          [1e300, -1e300]]])
+    for u, v in px:
+        a = _undistort_polynomial(u, v, fx, fy, cx, cy, k, True)
+        b = _undistort_polynomial(u, v, fx, fy, cx, cy, k, False)
+        assert np.array_equal(np.array(a).view(np.int64), np.array(b).view(np.int64)), (u, v)
+
+
 def test_frame_check_statistics_equal_opencvs():
     """The frame check's mean and deviation of the 1-in-16 sample are
     cv2.meanStdDev's, for frame sizes that are and are not multiples of the step, read
