@@ -174,25 +174,29 @@ def _vote_shifts(who: np.ndarray, d: np.ndarray, least: int
     features ``who (V,)``; ``(shifts (K, 2), support (K,))``: for each cell of
     :data:`SAME_PLACE_M` the distinct features with a vote in it or beside it, those of
     ``least`` or more, most first, no two kept within two cells of each other (at most
-    :data:`REPEAT_MAX`), each shift the mean of the votes about its cell."""
+    :data:`REPEAT_MAX`), each shift the mean of the votes about its cell. The cells
+    whose 3 x 3 block holds ``least`` votes of distinct features per cell are counted
+    exactly, the others never reach it (a map that does not repeat costs one sort)."""
     cell = np.round(d / SAME_PLACE_M).astype(np.int64)
     span = int(np.abs(cell).max()) + 2
     side = 2 * span + 1
     code = (cell[:, 0] + span) * side + cell[:, 1] + span
-    off = np.array([a * side + b for a in (-1, 0, 1) for b in (-1, 0, 1)], np.int64)
-    keys = (code[:, None] + off[None]).ravel()
     n_who = int(who.max()) + 1
-    pair = np.unique(keys * n_who + np.repeat(who, len(off)))
-    ukeys, support = np.unique(pair // n_who, return_counts=True)
-    top = np.flatnonzero(support >= max(least, 2))
-    top = top[np.argsort(-support[top], kind="stable")]
-    at = np.c_[ukeys // side - span, ukeys % side - span]
+    ucode, count = np.unique(np.unique(code * n_who + who) // n_who, return_counts=True)
+    block = np.zeros(len(ucode), np.int64)
+    for off in (a * side + b for a in (-1, 0, 1) for b in (-1, 0, 1)):
+        i = np.minimum(np.searchsorted(ucode, ucode + off), len(ucode) - 1)
+        block += np.where(ucode[i] == ucode + off, count[i], 0)
+    cand = ucode[block >= max(least, 2)]
+    at = np.c_[cand // side - span, cand % side - span]
+    support = np.array([len(np.unique(who[np.max(np.abs(cell - c), axis=1) <= 1]))
+                        for c in at], np.int64)
     kept: list[int] = []
-    for k in top[:9 * REPEAT_MAX]:      # a cluster's votes fill 3 x 3 cells alike
+    for k in np.argsort(-support, kind="stable"):
+        if support[k] < max(least, 2) or len(kept) == REPEAT_MAX:
+            break
         if all(np.max(np.abs(at[k] - at[m])) > 2 for m in kept):
             kept.append(int(k))
-            if len(kept) == REPEAT_MAX:
-                break
     shifts = np.array([d[np.max(np.abs(cell - at[k]), axis=1) <= 1].mean(axis=0)
                        for k in kept]).reshape(-1, 2)
     return shifts, support[kept].astype(np.int64)
