@@ -4,7 +4,8 @@ Two ways, both from a recording (SPEC §2):
 
 * **Known poses** (:func:`survey_lights`): every frame's spots
   (:func:`ceilkit.runtime.features.spots.detect_spots`) become ceiling points in the vehicle
-  frame (:func:`ceilkit.runtime.estimators.lights.ceiling_points`), then in W with the frame's
+  frame, each the centroid of the spot's lit face on the ceiling plane
+  (:func:`ceilkit.runtime.estimators.lights.ceiling_centroids`), then in W with the frame's
   known pose (``X_W = Rz(yaw) X_V + (x, y)``, SPEC §1). Points of all frames are
   clustered (leader clustering within ``cluster_m``, then every point re-assigned to
   its nearest centre); a cluster seen in at least ``min_views`` frames is a light,
@@ -45,6 +46,7 @@ from ceilkit.runtime.config.site import Site, check_rig_site
 from ceilkit.runtime.errors import CalibrationError, ConfigError
 from ceilkit.runtime.estimators.lights import (
     PatternMatcher,
+    ceiling_centroids,
     ceiling_points,
     interp_grid,
     jacobian_grid,
@@ -294,7 +296,7 @@ def _detections(recording: Recording, table: StampedPoses, height: float,
         spots = detect_spots(_image(recording, k), spot_params, valid)
         if len(spots) == 0:
             continue
-        q, ok = ceiling_points(rig, height, spots.centroids_px)
+        q, ok = ceiling_centroids(rig, height, spots.centroids_px, spots.cov_px)
         qs.append(q[ok][:, :2])
         ts.append(np.full(int(ok.sum()), t[0], np.int64))
         fs.append(np.full(int(ok.sum()), k))
@@ -691,7 +693,9 @@ def frame_points(recording: Recording, ceiling_height_m: float | None = None,
                  spot_params: SpotParams | None = None, max_view_angle_deg: float = 60.0
                  ) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """Per frame with lights: ``(frame index, ceiling points in V (n, 2), pixel
-    Jacobians d(px)/d(q) (n, 2, 2))``; spots beyond ``max_view_angle_deg`` from the
+    Jacobians d(px)/d(q) (n, 2, 2))``, each point the centroid of the spot's lit face on
+    the ceiling (:func:`~ceilkit.runtime.estimators.lights.ceiling_centroids`), each
+    Jacobian at its image centroid; spots beyond ``max_view_angle_deg`` from the
     vertical are left out."""
     rig = recording.rig
     height = recording.site.ceiling_height_m if ceiling_height_m is None else ceiling_height_m
@@ -703,7 +707,7 @@ def frame_points(recording: Recording, ceiling_height_m: float | None = None,
         spots = detect_spots(_image(recording, k), spot_params, valid)
         if len(spots) == 0:
             continue
-        q, ok = ceiling_points(rig, height, spots.centroids_px)
+        q, ok = ceiling_centroids(rig, height, spots.centroids_px, spots.cov_px)
         J = interp_grid(jgrid, 8, spots.centroids_px)
         ok &= np.all(np.isfinite(J), axis=(1, 2))
         if np.any(ok):

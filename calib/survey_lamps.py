@@ -27,7 +27,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ceilkit.runtime.estimators.lights import ceiling_points, view_mask
+from ceilkit.runtime.estimators.lights import ceiling_centroids, view_mask
 from ceilkit.runtime.features.grey import to_grey
 from ceilkit.runtime.features.spots import detect_spots
 from ceilkit.runtime.geometry.ceiling import vehicle_to_world
@@ -59,7 +59,7 @@ def lamp_shapes(rec: Recording, frames: np.ndarray, poses: np.ndarray,
         spots = detect_spots(to_grey(rec.frame(int(k)).image), None, valid)
         if len(spots) == 0:
             continue
-        q, ok = ceiling_points(rec.rig, height_m, spots.centroids_px)
+        q, ok = ceiling_centroids(rec.rig, height_m, spots.centroids_px, spots.cov_px)
         d, j = tree.query(vehicle_to_world(np.nan_to_num(q), *pose))
         ext = spot_extents_m(rec.rig, height_m, spots)
         for s in np.flatnonzero(ok & (d <= NEAR_M) & np.all(np.isfinite(ext), axis=1)):

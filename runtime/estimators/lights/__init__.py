@@ -20,6 +20,7 @@ from ceilkit.runtime.estimators.lights.observe import (
     VisibilityTable,
 )
 from ceilkit.runtime.estimators.lights.rays import (
+    ceiling_centroids,
     ceiling_points,
     interp_grid,
     jacobian_grid,
@@ -31,6 +32,6 @@ from ceilkit.runtime.estimators.lights.refine import refine_pose, refine_pose_ce
 
 __all__ = ["DEFAULT_LIGHT_DIAMETER_M", "Candidate", "LightsEstimator", "LightsOptions",
            "Observation", "PatternMatcher", "SpotObserver", "VisibilityTable",
-           "ceiling_points", "interp_grid", "jacobian_grid", "light_diameter_m",
-           "pixel_scale", "pose_quality", "project_lights", "refine_pose",
+           "ceiling_centroids", "ceiling_points", "interp_grid", "jacobian_grid",
+           "light_diameter_m", "pixel_scale", "pose_quality", "project_lights", "refine_pose",
            "refine_pose_ceiling", "view_mask"]

@@ -61,6 +61,70 @@ def ceiling_points(rig: Rig, ceiling_height_m: float, points_px: np.ndarray
                                   min_sin=RISE_SIN)
 
 
+_STENCIL = np.array([(i, j) for j in (-1, 0, 1) for i in (-1, 0, 1)], float)   # (9, 2)
+_STENCIL_PX = 1.0   # the finite differences' step (the lens is smooth over a pixel)
+
+
+def ceiling_centroids(rig: Rig, ceiling_height_m: float, centroids_px: np.ndarray,
+                      cov_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ceiling points in V of spots given by their image moments: the centroid of each
+    spot's lit face *on the ceiling plane*, to second order in its image moments.
+
+    A spot's weights are the ceiling's radiance seen through the lens, so its image
+    centroid ``c`` is the mean of the pixels; :func:`ceiling_points` of ``c`` is not the
+    mean of their ceiling points, and a lens that compresses the far side of a disc
+    (a fisheye seen off-axis, a tilted pinhole) moves it towards the camera. With ``f``
+    the map from pixels to the ceiling (V), ``a = |det Df|`` the ceiling area of a pixel
+    and ``Σ`` the spot's second central moments (px²), the face's centroid is
+
+        q = f(c) + Df Σ ∇log a + ½ Σ_jk ∂²f/∂p_j∂p_k Σ_jk  (+ third order)
+
+    with ``∂_k log a = tr(Df⁻¹ ∂²f/∂p ∂p_k)``; ``Df`` and the second derivatives by
+    differences over a 3 x 3 pixel stencil about ``c`` (one :func:`ceiling_points` call).
+    On the optical axis of a camera looking straight up both terms vanish (``f`` is
+    then linear and ``a`` flat at ``c``): the point is ``f(c)``.
+
+    Args:
+        rig: camera and mount.
+        ceiling_height_m: ``H``, the ceiling's height above the floor (W's z).
+        centroids_px: ``(N, 2)`` spot centroids, distorted pixels.
+        cov_px: ``(N, 2, 2)`` their second central moments, px² (``Spots.cov_px``).
+
+    Returns:
+        ``(q_V (N, 2), ok (N,))`` as :func:`ceiling_points`; where a stencil pixel's ray
+        does not rise (a spot at the horizon) the point is ``f(c)``, uncorrected.
+
+    Example::
+
+        q_v, ok = ceiling_centroids(rig, 3.0, spots.centroids_px, spots.cov_px)
+    """
+    c = np.asarray(centroids_px, float).reshape(-1, 2)
+    n = c.shape[0]
+    S = np.asarray(cov_px, float).reshape(n, 2, 2)
+    pts = c[:, None, :] + _STENCIL_PX * _STENCIL[None]                   # (N, 9, 2)
+    q, ok = ceiling_points(rig, ceiling_height_m, pts.reshape(-1, 2))
+    q, ok = q.reshape(n, 3, 3, 2), ok.reshape(n, 9)                      # [n, v, u]
+    f0 = q[:, 1, 1]
+    h = _STENCIL_PX
+    Df = np.stack([(q[:, 1, 2] - q[:, 1, 0]) / (2 * h),
+                   (q[:, 2, 1] - q[:, 0, 1]) / (2 * h)], axis=2)          # (N, 2, 2)
+    H = np.empty((n, 2, 2, 2))                                           # [n, i, j, k]
+    H[:, :, 0, 0] = (q[:, 1, 2] - 2 * f0 + q[:, 1, 0]) / h ** 2
+    H[:, :, 1, 1] = (q[:, 2, 1] - 2 * f0 + q[:, 0, 1]) / h ** 2
+    H[:, :, 0, 1] = H[:, :, 1, 0] = (q[:, 2, 2] - q[:, 2, 0] - q[:, 0, 2]
+                                     + q[:, 0, 0]) / (4 * h * h)
+    good = ok.all(axis=1) & (np.abs(np.linalg.det(np.where(
+        ok.all(axis=1)[:, None, None], Df, 1.0))) > 0)
+    out = f0.copy()
+    if np.any(good):
+        Dg, Hg, Sg = Df[good], H[good], S[good]
+        Dinv = np.linalg.inv(Dg)
+        grad_log_a = np.einsum("nji,nijk->nk", Dinv, Hg)
+        out[good] = (f0[good] + np.einsum("nij,njk,nk->ni", Dg, Sg, grad_log_a)
+                     + 0.5 * np.einsum("nijk,njk->ni", Hg, Sg))
+    return out, ok[:, 4]
+
+
 def project_lights(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray, x_m: float,
                    y_m: float, yaw_rad: float) -> np.ndarray:
     """Pixels ``(N, 2)`` of ceiling lights ``(N, 2)`` (W) seen from a vehicle pose.
@@ -241,6 +305,6 @@ def max_pair_m(rig: Rig, ceiling_height_m: float, gate_m: float) -> float:
     return float(np.linalg.norm(q[:, None] - q[None], axis=2).max()) + 2 * gate_m
 
 
-__all__ = ["GridTable", "ceiling_points", "ceiling_points_core", "grid_row", "interp_grid",
-           "jacobian_grid", "max_pair_m", "mount_arrays", "nadir_px", "pixel_scale",
-           "project_lights", "project_poses", "view_mask"]
+__all__ = ["GridTable", "ceiling_centroids", "ceiling_points", "ceiling_points_core",
+           "grid_row", "interp_grid", "jacobian_grid", "max_pair_m", "mount_arrays",
+           "nadir_px", "pixel_scale", "project_lights", "project_poses", "view_mask"]
