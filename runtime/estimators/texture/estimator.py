@@ -346,7 +346,7 @@ class TextureEstimator(Estimator):
         s = _Search(best, len(best.used), runner, 0 if runner is None else len(runner.used),
                     ncc, ncc2, int(np.count_nonzero(unique[best.used])), differ, part=part)
         if s.unique >= o.min_unique:
-            return self._repeated(s, mj[best.used], ncc, frame)
+            return _with_repeats(self.index, self.map, s, mj[best.used], frame, o)
         twins, judged, singled = self._twins(q, desc, qi[best.used][~unique[best.used]], best,
                                              mj[best.used], ncc, frame, rows)
         if _runner_twin(s, o):    # every twin listed for _decide's prior, the runner-up once
@@ -364,7 +364,7 @@ class TextureEstimator(Estimator):
         pairs a sample: :func:`.match.ransac_rigid`, exhaustive; outside ``best``'s
         basin), refined, is a candidate while :data:`TWIN_SUPPORT` features agree on
         it, its pairs then left out, :data:`MAX_TWINS` at most. Then the map's own
-        repeats about ``best`` (:meth:`_repeats`: ``used``, the map features of its
+        repeats about ``best`` (:func:`add_repeats`: ``used``, the map features of its
         inliers, recurring elsewhere in the map), which the frame's descriptors need
         not show. A candidate is ruled out as the runner-up is (:func:`_told_apart`,
         ``twin_ncc``). ``complete``: every alike place was listed and fewer than
@@ -372,7 +372,6 @@ class TextureEstimator(Estimator):
         known."""
         o: TextureOptions = self.options  # type: ignore[assignment]
         tol = o.tol_px * self.map.resolution_m
-        patch, valid = frame
         qi, mj, complete = self.index.alike(desc[feats], o.max_hamming)
         qi = feats[qi]
         qq, pp = q[qi], self.map.points_xy[mj]
@@ -392,58 +391,8 @@ class TextureEstimator(Estimator):
             found.append(fit if fit is not None else
                          MapFit(got.pose, best.cov, np.flatnonzero(got.inliers), math.nan))
             keep[k[got.inliers]] = False
-        complete = self._repeats(best, used, found) and complete
-        left = tuple(f for f in found if not _told_apart(
-            ncc, flat_ncc(self.map, patch, valid, f.pose, NCC_STRIDE),
-            lambda f=f: where_they_differ(self.map, patch, valid, best.pose, f.pose),
-            o.twin_ncc, o.min_ncc))
-        return left, len(found), complete
-
-    def _repeated(self, s: _Search, used: np.ndarray, ncc: float,
-                  frame: tuple[np.ndarray, np.ndarray]) -> _Search:
-        """A search whose matches are distinctive, with the map's own repeats about its
-        pose that the frame does not rule out as its ``twins`` (:meth:`_repeats` over
-        the global index: a small map of a repeated ceiling holds a few copies, each
-        with other descriptors, so the matches look distinctive; ``bench_heldout_texture.py
-        --seed 10``'s repeated control, surveyed into 6 keyframes, published 15 poses a
-        tile off so)."""
-        o: TextureOptions = self.options  # type: ignore[assignment]
-        assert s.best is not None
-        found: list[MapFit] = []
-        complete = self._repeats(s.best, used, found, exact=False)
-        if not found:
-            return s
-        patch, valid = frame
-        left = tuple(f for f in found if not _told_apart(
-            ncc, flat_ncc(self.map, patch, valid, f.pose, NCC_STRIDE),
-            lambda f=f: where_they_differ(self.map, patch, valid, s.best.pose, f.pose),
-            o.twin_ncc, o.min_ncc))
-        return dataclasses.replace(s, twins=left, judged=len(found), singled=complete)
-
-    def _repeats(self, best: MapFit, used: np.ndarray, found: list[MapFit],
-                 exact: bool = True) -> bool:
-        """Add to ``found`` (the twins listed so far, :meth:`_twins`) the poses where
-        the map repeats what ``best`` explains: ``best`` moved by each shift under
-        which at least :data:`REPEAT_SHARE` of its inliers' map features ``used`` (and
-        :data:`TWIN_SUPPORT`) recur (:meth:`.match.DescriptorIndex.repeats`), outside
-        the basins of ``best`` and of those listed; False when :data:`MAX_TWINS` would
-        be passed (the twins are not all known). On a repeated ceiling the frame's
-        descriptors match a few of the copies alike and the others not (each copy was
-        surveyed from other views: ``bench_heldout_texture.py --seed 5``'s repeated
-        control, a kidnap, published 6 poses 2.25 m off, three tiles by two, with its
-        two listed twins ruled out and the true copy never listed)."""
-        o: TextureOptions = self.options  # type: ignore[assignment]
-        need = max(TWIN_SUPPORT, math.ceil(REPEAT_SHARE * len(np.unique(self.index.place[used]))))
-        shifts, support = self.index.repeats(used, o.max_hamming, need, exact=exact)
-        x, y, yaw = best.pose
-        for d, n in zip(shifts, support, strict=True):
-            pose = (x + float(d[0]), y + float(d[1]), yaw)
-            if n < need or any(_same_basin(pose, f.pose) for f in (best, *found)):
-                continue
-            if len(found) == MAX_TWINS:
-                return False
-            found.append(MapFit(pose, best.cov, np.arange(int(n)), math.nan))
-        return True
+        complete = add_repeats(self.index, best, used, found, o.max_hamming) and complete
+        return _standing(self.map, frame, best.pose, ncc, found, o), len(found), complete
 
     def _rows(self, q: np.ndarray, prior: PoseEstimate | None) -> _Rows | None:
         """With a rolling shutter (``readout_ms`` > 0): the frame's row model
@@ -542,6 +491,61 @@ class TextureEstimator(Estimator):
 _Rows = tuple[Readout, np.ndarray, np.ndarray]
 """A rolling-shutter frame's row model, its features ``(N, 2)`` in V as observed and their
 row times ``(N,)`` s (:meth:`TextureEstimator._rows`; indexed as the pairs they go with)."""
+
+
+def _with_repeats(index: DescriptorIndex, cmap: CeilingMap, s: _Search, used: np.ndarray,
+                  frame: tuple[np.ndarray, np.ndarray], o: TextureOptions) -> _Search:
+    """A search ``s`` whose matches are distinctive, with the map's own repeats about
+    its pose that the frame does not rule out as its ``twins`` (:func:`add_repeats`
+    over the global index: a small map of a repeated ceiling holds a few copies, each
+    with other descriptors, so the matches look distinctive; ``bench_heldout_texture.py
+    --seed 10``'s repeated control, surveyed into 6 keyframes, published 15 poses a
+    tile off so)."""
+    assert s.best is not None
+    found: list[MapFit] = []
+    complete = add_repeats(index, s.best, used, found, o.max_hamming, exact=False)
+    if not found:
+        return s
+    return dataclasses.replace(s, twins=_standing(cmap, frame, s.best.pose, s.ncc, found, o),
+                               judged=len(found), singled=complete)
+
+
+def add_repeats(index: DescriptorIndex, best: MapFit, used: np.ndarray,
+                found: list[MapFit], max_hamming: int, exact: bool = True) -> bool:
+    """Add to ``found`` (the twins listed so far, :meth:`TextureEstimator._twins`) the
+    poses where the map repeats what ``best`` explains: ``best`` moved by each shift
+    under which at least :data:`REPEAT_SHARE` of its inliers' map features ``used``
+    (and :data:`TWIN_SUPPORT`) recur (:meth:`.match.DescriptorIndex.repeats`), outside
+    the basins of ``best`` and of those listed; False when :data:`MAX_TWINS` would be
+    passed (the twins are not all known). On a repeated ceiling the frame's
+    descriptors match a few of the copies alike and the others not (each copy was
+    surveyed from other views: ``bench_heldout_texture.py --seed 5``'s repeated
+    control, a kidnap, published 6 poses 2.25 m off, three tiles by two, with its two
+    listed twins ruled out and the true copy never listed)."""
+    need = max(TWIN_SUPPORT, math.ceil(REPEAT_SHARE * len(np.unique(index.place[used]))))
+    shifts, support = index.repeats(used, max_hamming, need, exact=exact)
+    x, y, yaw = best.pose
+    for d, n in zip(shifts, support, strict=True):
+        pose = (x + float(d[0]), y + float(d[1]), yaw)
+        if n < need or any(_same_basin(pose, f.pose) for f in (best, *found)):
+            continue
+        if len(found) == MAX_TWINS:
+            return False
+        found.append(MapFit(pose, best.cov, np.arange(int(n)), math.nan))
+    return True
+
+
+def _standing(cmap: CeilingMap, frame: tuple[np.ndarray, np.ndarray],
+              best: tuple[float, float, float], ncc: float, found: list[MapFit],
+              o: TextureOptions) -> tuple[MapFit, ...]:
+    """The candidates ``found`` the frame (its rectified patch and valid mask) does not
+    rule out against the best pose (whole-frame correlation ``ncc``): as the runner-up
+    is (:func:`_told_apart`, ``twin_ncc``)."""
+    patch, valid = frame
+    return tuple(f for f in found if not _told_apart(
+        ncc, flat_ncc(cmap, patch, valid, f.pose, NCC_STRIDE),
+        lambda f=f: where_they_differ(cmap, patch, valid, best, f.pose),
+        o.twin_ncc, o.min_ncc))
 
 
 def where_they_differ(cmap: CeilingMap, patch: np.ndarray, valid: np.ndarray,
