@@ -232,3 +232,17 @@ def test_lights_that_repeat_are_not_written_from_a_drive_not_all_placed():
     assert _repeated_beyond(lattice, unplaced=0) == ""
     scatter = np.random.default_rng(3).uniform(0, 3.0, (12, 2))
     assert _repeated_beyond(scatter, unplaced=120) == ""
+
+
+def test_a_lattice_of_more_lights_than_the_runtime_searches_is_also_left_out():
+    """The rule searches every light, also past the runtime's SYMMETRY_MAX_LIGHTS (a
+    20 x 20 lattice, 400 lights: written before, seed 4's repeated control held 364)."""
+    from ceilkit.calib.survey_files import _repeated_beyond
+    from ceilkit.runtime.estimators.lights.matching import SYMMETRY_MAX_LIGHTS
+
+    gx, gy = np.meshgrid(np.arange(20) * 0.6, np.arange(20) * 0.6)
+    lattice = np.c_[gx.ravel(), gy.ravel()] + 0.3
+    assert len(lattice) > SYMMETRY_MAX_LIGHTS
+    assert "400 lights left out" in _repeated_beyond(lattice, unplaced=5)
+    scatter = np.random.default_rng(4).uniform(0, 12.0, (400, 2))
+    assert _repeated_beyond(scatter, unplaced=5) == ""

@@ -185,6 +185,13 @@ class _Search:
     singled: bool = False
     part: float = dataclasses.field(kw_only=True)  # the best's part_ncc (.ceilmap.explains)
 
+    @property
+    def listed(self) -> bool:
+        """Every twin looked for is known: none was, or all were listed (not past
+        :data:`MAX_TWINS`; a pose with distinctive matches and more of the map's repeats
+        about it than that is not singled out by the few judged)."""
+        return self.singled or not self.judged
+
 
 class TextureEstimator(Estimator):
     """Global localization on the site's ceiling map (see the module docstring)."""
@@ -449,7 +456,7 @@ class TextureEstimator(Estimator):
                 t for t in s.twins if allows(prior, (*t.pose, t.cov))))
         if s.unique < o.min_unique or s.judged:
             diag.update(twins=s.judged, twins_left=len(s.twins))
-        if not twin and (s.unique < o.min_unique or s.twins) \
+        if not twin and (s.unique < o.min_unique or s.twins or not s.listed) \
                 and not (s.singled and not s.twins):
             return None if local else self.fail(
                 t_ns, AMBIGUOUS, _why_ambiguous(s, o), _hypotheses(s), **diag,
@@ -461,7 +468,7 @@ class TextureEstimator(Estimator):
                               (), diag, t0)
         hyps = _hypotheses(s)
         k = prior_choice(prior, [(h.x_m, h.y_m, h.yaw_rad, h.cov) for h in hyps]) \
-            if s.unique >= o.min_unique or (s.singled and _twin_free(prior, o)) else None
+            if s.unique >= o.min_unique and s.listed or s.singled and _twin_free(prior, o) else None
         if k is not None and k < 2:   # a listed twin's fit is not checked here: none chosen
             chosen = dataclasses.replace(s, best=s.runner, runner=s.best) if k == 1 else s
             return self._pose(t_ns, chosen, Provenance.PRIOR,
