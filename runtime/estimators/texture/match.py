@@ -143,11 +143,12 @@ class DescriptorIndex:
         n = len(self.descriptors)
         if n < 2 or len(mj) == 0:
             return np.zeros((0, 2)), np.zeros(0, np.int64)
+        words = arr(self._words[mj], np.uint64)       # read-only: one type a loop
         if exact:
-            idx, dist = _rows_knn(self._words[mj], self._words,
-                                  arr(np.arange(n), np.int64), min(rows, n))
+            idx, dist = _rows_knn(words, self._words, arr(np.arange(n), np.int64),
+                                  min(rows, n))
         else:
-            idx, dist = _lsh_knn(arr(self.descriptors[mj], np.uint8), self._words[mj],
+            idx, dist = _lsh_knn(arr(self.descriptors[mj], np.uint8), words,
                                  LshTables(self._words, self.key_bits, self._order,
                                            self._starts), self.place, min(REPEAT_PLACES, n))
         qi, col = np.nonzero((idx >= 0) & (dist <= max_hamming))
