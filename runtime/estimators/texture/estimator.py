@@ -534,8 +534,8 @@ def add_repeats(index: DescriptorIndex, best: MapFit, used: np.ndarray,
     x, y, yaw = best.pose
     for d, n in zip(shifts, support, strict=True):
         pose = (x + float(d[0]), y + float(d[1]), yaw)
-        if n < need or any(_same_basin(pose, f.pose) for f in (best, *found)):
-            continue
+        if any(_same_basin(pose, f.pose) for f in (best, *found)):
+            continue            # (every shift returned has the support ``need``)
         if len(found) == MAX_TWINS:
             return False
         found.append(MapFit(pose, best.cov, np.arange(int(n)), math.nan))

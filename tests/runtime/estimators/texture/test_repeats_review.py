@@ -7,10 +7,9 @@ import dataclasses
 import numpy as np
 
 from ceilkit.runtime.estimators.base import AMBIGUOUS
-from ceilkit.runtime.estimators.texture import TextureEstimator
 from ceilkit.runtime.estimators.texture.estimator import MAX_TWINS
 
-from .test_texture import _error, _repeated
+from .test_texture import _error, _on_map, _repeated
 
 
 def _many_copies(office, copies: int):
@@ -41,9 +40,7 @@ def test_a_pose_with_more_repeats_than_listed_is_not_published(office):
     80.85 m off (copy 11)."""
     copies = MAX_TWINS + 4
     cmap, _ = _many_copies(office, copies)
-    site = dataclasses.replace(office.sites["scatter"],
-                               ceiling_map=str(cmap.save(office.folder / "many.npz")))
-    est = TextureEstimator(office.rig, site, {"plane_odometry": False})
+    est = _on_map(office, cmap, "many.npz")
     for k in (2, 4, 6):
         truth = office.drive_poses[k]
         got = est.estimate(office.drive[k], k)

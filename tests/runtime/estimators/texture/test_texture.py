@@ -73,6 +73,14 @@ def _repeated(cmap: CeilingMap, copies: int = 2) -> tuple[CeilingMap, float]:
         sigma_m=np.concatenate([cmap.sigma_m] * copies)), shift
 
 
+def _on_map(office, cmap: CeilingMap, name: str) -> TextureEstimator:
+    """A texture estimator (no odometry) on the office scatter site with map ``cmap``,
+    saved as ``name``."""
+    site = dataclasses.replace(office.sites["scatter"],
+                               ceiling_map=str(cmap.save(office.folder / name)))
+    return TextureEstimator(office.rig, site, {"plane_odometry": False})
+
+
 @pytest.mark.parametrize("readout_ms", [0.0, 25.0])
 def test_a_repeated_scatter_is_ambiguous_until_a_prior_singles_one_out(office, readout_ms):
     """Also with a rolling shutter and no velocity: each twin's fit estimates the
@@ -140,9 +148,7 @@ def test_a_prior_wider_than_a_twin_apart_chooses_no_unlisted_twin(office):
     desc = cmap.descriptors.copy()
     desc[:n] ^= flips
     cmap = dataclasses.replace(cmap, descriptors=desc)
-    site = dataclasses.replace(office.sites["scatter"],
-                               ceiling_map=str(cmap.save(office.folder / "unlisted.npz")))
-    est = TextureEstimator(office.rig, site, {"plane_odometry": False})
+    est = _on_map(office, cmap, "unlisted.npz")
     for k in (2, 4, 6):
         truth = office.drive_poses[k]
         got = est.estimate(office.drive[k], k)
@@ -168,9 +174,7 @@ def test_a_twin_the_frame_does_not_match_alike_is_listed_by_the_maps_repeats(off
     mosaic = cmap.mosaic.copy()
     mosaic[:, 2 * w:] = np.flipud(mosaic[:, 2 * w:])
     cmap = dataclasses.replace(cmap, descriptors=desc, mosaic=mosaic)
-    site = dataclasses.replace(office.sites["scatter"],
-                               ceiling_map=str(cmap.save(office.folder / "unalike.npz")))
-    est = TextureEstimator(office.rig, site, {"plane_odometry": False})
+    est = _on_map(office, cmap, "unalike.npz")
     for k in (2, 4, 6):
         truth = office.drive_poses[k]
         got = est.estimate(office.drive[k], k)
@@ -265,9 +269,7 @@ def test_between_two_rows_of_the_map_drive_frames_localize(office):
     cmap = build_map(office.frames(rows, 6), rows, office.rig,
                      office.sites["scatter"].ceiling_height_m)
     assert cmap.feature_count < len(cmap.points_xy)      # some features: several rows
-    site = dataclasses.replace(office.sites["scatter"],
-                               ceiling_map=str(cmap.save(office.folder / "rows.npz")))
-    est = TextureEstimator(office.rig, site, {"plane_odometry": False})
+    est = _on_map(office, cmap, "rows.npz")
     rng = np.random.default_rng(3)
     mid = [(rng.uniform(2.0, 4.0), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
            for _ in range(24)]
