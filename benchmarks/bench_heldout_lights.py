@@ -21,7 +21,8 @@ The camera of a ``grid`` or ``lamps`` scene is a pinhole looking up (f 300-600 p
 equidistant fisheye of 150-190 deg tilted 0-30 deg from the vertical (under a pinhole the
 pitch is at most 0.8 of its view's short side on the ceiling, lamps at least their length
 + 0.6 m apart: a grid it could never see three lights of is no test); its frames are
-stored raw or thresholded to 0/255 at 150-230; 15, 30 or 60 fps; 0.3-2 m/s, turning at
+stored raw or thresholded to 0/255 at 150-230 (raised above the ceiling's grey:
+:func:`above_ceiling`); 15, 30 or 60 fps; 0.3-2 m/s, turning at
 up to 60 deg/s (a sine of 3-8 s). Noise 2, blur 0.8, the simulator's vignetting.
 
 Runs (the recording's own rig and site): ``lights`` and ``auto`` with no start pose and
@@ -65,7 +66,7 @@ from ceilkit.runtime.estimators.lights.rays import project_poses
 from ceilkit.runtime.fusion import effective_count, nees
 from ceilkit.runtime.geometry.ekf import chi2_quantile, mean_nees_band
 from ceilkit.runtime.replay import replay
-from ceilkit.runtime.sim.render import SimOptions, Trajectory, render_frame
+from ceilkit.runtime.sim.render import CEILING_GREY, SimOptions, Trajectory, render_frame
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_ambiguity import Published  # noqa: E402
@@ -214,11 +215,27 @@ def draw(cls: str, rng: np.random.Generator, n: int, index: int, supersample: in
     shown = dict(site, lights=[[float(p), float(q)] for p, q in
                                np.vstack([nodes[lit], clutter])])
     thr = 200 if rc else (None if rng.random() < 0.4 else int(rng.integers(150, 231)))
+    thr = above_ceiling(thr, SimOptions(**sim))
     rig = {"camera": cam, "mount": {"pan": 0.0, "tilt": round(90.0 - tilt, 3), "swing": 0.0,
                                     "x": 0.1, "y": 0.0, "z": round(mz, 3)}}
     note += (f", {fps:.0f} fps {speed:.1f} m/s turn {turn:.0f} dps, off {int((~lit).sum())}"
              f" extra {extra}, {'raw' if thr is None else f'thr {thr}'}")
     return Scene(f"{cls}{index}", rig, site, shown, SimOptions(**sim), thr, a, kid, pitch, note)
+
+
+def above_ceiling(threshold: int | None, sim: SimOptions) -> int | None:
+    """A drawn 0/255 threshold raised above the ceiling's own grey (the simulator's
+    ``CEILING_GREY`` times the exposure, plus 3σ of its texture and noise), or the frames
+    stored raw where that passes 250. A camera that thresholds its frames is set to part
+    the lamps from the ceiling; one set below the ceiling stores white frames (seed 7's
+    lamps0 and lamps1 at 160 and 166 under a 195-225 ceiling: 73-89 % of every frame
+    white, ``no_lights`` throughout), which test nothing. Draws nothing, so every other
+    scene of a seed is as it was."""
+    if threshold is None:
+        return None
+    floor = math.ceil(sim.exposure * CEILING_GREY
+                      + 3.0 * math.hypot(sim.exposure * sim.texture, sim.noise_sigma))
+    return max(threshold, floor) if floor <= 250 else None
 
 
 def write(scene: Scene, traj: Trajectory, folder: Path, seed: int) -> tuple[Path, np.ndarray]:

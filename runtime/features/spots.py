@@ -83,6 +83,8 @@ class SpotParams:
         min_axis_ratio: least minor/major axis ratio of a region (before any
             per-spot prediction); 0 disables.
         max_spots: keep at most this many spots (the highest perception index).
+        max_light_px: the largest core the glare split keeps of a region over
+            ``max_area_px`` (a light's own largest image; 0: ``max_area_px``).
     """
 
     window_px: int = 41
@@ -95,6 +97,7 @@ class SpotParams:
     min_relative_contrast: float = 0.3
     min_axis_ratio: float = 0.15
     max_spots: int = 64
+    max_light_px: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -852,7 +855,8 @@ def _split_glare(grey: np.ndarray, mask: np.ndarray, contour: np.ndarray, x0: in
     """A region too large for one light (a glare halo): keep its core.
 
     Re-thresholds the region at 75 % of the way from its ring mean to its peak and
-    keeps the single core region, if it is small enough; ``None`` otherwise.
+    keeps the single core region, if it is small enough (``max_area_px``, or a light's
+    own ``max_light_px``); ``None`` otherwise.
     """
     H, W = grey.shape
     xa, ya = max(0, x0 - 2), max(0, y0 - 2)
@@ -875,7 +879,7 @@ def _split_glare(grey: np.ndarray, mask: np.ndarray, contour: np.ndarray, x0: in
     cx, cy, cw, ch = cv2.boundingRect(cs[0])
     # stats around the core, inside the halo: I_b is the halo level around the core
     u, v, i_o, i_b2, cov, area = _region_stats(roi, core, cs[0], cx, cy, cw, ch, True)
-    if not (params.min_area_px <= area <= params.max_area_px):
+    if not (params.min_area_px <= area <= max(params.max_area_px, params.max_light_px)):
         return None
     return [u + xa, v + ya, i_o, min(i_b2, i_b + 0.5 * (peak - i_b)), cov[0, 0], cov[0, 1],
             cov[1, 1], float(area)]

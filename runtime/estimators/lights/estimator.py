@@ -76,10 +76,13 @@ from ceilkit.runtime.estimators.lights.matching import (
     PatternMatcher,
 )
 from ceilkit.runtime.estimators.lights.observe import (
+    DISC_AREA_MAX,
+    RECT_AREA,
     RECT_CUT_REACH,
     Observation,
     SpotObserver,
     VisibilityTable,
+    fitted_light_bound,
     fitted_spot_params,
 )
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
@@ -579,6 +582,11 @@ def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
                                          valid_mask, factor)
     elif spot_params is None:   # rectangles: a window grown to them took their halo in
         spot_params = SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO)
+    if o.spot_params is None:   # a light's core larger than the glare bound is kept
+        area_m2, upper = (rect[0] * rect[1], RECT_AREA[1]) if rect is not None else \
+            (0.25 * math.pi * diameter_m ** 2, DISC_AREA_MAX)
+        spot_params = fitted_light_bound(spot_params, rig, ceiling_height_m, area_m2, upper,
+                                         valid_mask, factor)
     observer = SpotObserver(rig, ceiling_height_m, 0.5 * diameter_m, spot_params,
                             valid_mask, nadir, o.max_spots, factor, o.spot_stage,
                             light_size_m=rect)

@@ -316,3 +316,32 @@ def test_a_radial_shift_of_every_centroid_is_fitted_and_in_the_covariance():
     widened = with_shifts(q_true + 1e-4, jac, lights, 300.0 * (q_true + 1e-4)[:, None], exact)
     assert np.all(np.diag(widened[3]) >= np.diag(exact[3]) * (1 - 1e-9))
     assert with_shifts(q_obs[:2], jac[:2], lights[:2], (px - centre)[:2, None], fit3) is fit3
+
+
+def test_a_lamp_larger_than_the_glare_bound_is_kept_whole():
+    """A saturated lamp whose own image is over the detector's glare bound
+    (``max_area_px``, 6000 px: a 0.93 x 0.46 m lamp 2.5 m above a 334 px pinhole is
+    about 7,500 px) went through the glare split and its core was dropped as too large:
+    ``no_lights`` on every frame (held-out ``lamps0-2`` of seed 7). The estimator now
+    keeps a core up to the lamp's largest image in the view; the halo stays out (the
+    region is still split) and each kept spot's ceiling point is a lamp's centre."""
+    cam = CameraModel.pinhole(640, 480, 334.0)
+    rig = Rig(cam, Mount(tilt_rad=math.pi / 2, x_m=0.1, z_m=0.54))
+    lamps = [[i * 1.81, j * 2.45] for i in range(-3, 4) for j in range(-3, 4)]
+    site = Site.from_node(Node({"ceiling_height": 3.05, "lights": lamps,
+                                "light_size": [0.93, 0.46], "light_yaw": 0.0}, None, ""))
+    x, y, yaw = 0.4, 0.3, 0.5
+    img = render_frame(rig, site, x, y, yaw, SimOptions(noise_sigma=2.0, blur_px=0.8,
+                                                        exposure=1.3),
+                       np.random.default_rng(3))
+    est = LightsEstimator(rig, site)
+    params = est.observer.spot_params
+    assert params.max_light_px > params.max_area_px
+    old = detect_spots(img, dataclasses.replace(params, max_light_px=0))   # the lamps dropped
+    assert old.rejected["large"] >= 2 and not np.any(old.areas_px > 1000), old.areas_px
+    obs = est.observer.observe(img)
+    assert len(obs.spots) >= 2 and obs.spots.areas_px.max() > params.max_area_px
+    c, s = math.cos(yaw), math.sin(yaw)
+    world = np.array([x, y]) + obs.q_v @ np.array([[c, s], [-s, c]])
+    d = np.linalg.norm(world[:, None] - est.lights_w[None], axis=2).min(axis=1)
+    assert d.max() < 0.03, d
