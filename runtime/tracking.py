@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -62,6 +63,14 @@ class TrackerOptions:
     sigma_rad: float = math.radians(1.0)
     speed_sigma_mps: float = 0.3
     turn_sigma_rps: float = math.radians(15.0)
+
+
+class _Pose(NamedTuple):
+    """A predicted pose as the gate reads it (:meth:`Tracker._predicted`)."""
+
+    x_m: float | None
+    y_m: float | None
+    yaw_rad: float
 
 
 @dataclass(frozen=True)
@@ -127,6 +136,19 @@ class Tracker:
 
     def predict(self, t_ns: int, method: str = "track") -> PoseEstimate | None:
         """The predicted vehicle pose at ``t_ns``, or ``None`` when not tracking."""
+        at = self._predicted(t_ns)
+        if at is None:
+            return None
+        s, dt, pose = at
+        return PoseEstimate(
+            t_ns=t_ns, method=method, x_m=pose.x_m, y_m=pose.y_m, yaw_rad=pose.yaw_rad,
+            quality=0.0, cov=self._cov(s, max(dt, 0.0)),
+            velocity=(s.vx, s.vy, s.vyaw) if s.moving else None)
+
+    def _predicted(self, t_ns: int) -> tuple[_State, float, _Pose] | None:
+        """``(state, dt s, pose)``: :meth:`predict`'s pose at ``t_ns`` (a pending start
+        pose taken first) without its covariance or object (the gate reads the pose
+        only), or ``None`` when not tracking."""
         pending, self._pending = self._pending, None
         if pending is not None:
             x, y, yaw = pending
@@ -140,13 +162,9 @@ class Tracker:
         dt = (t_ns - s.t_ns) * 1e-9
         if dt > self.options.lost_after_s:
             return None
-        return PoseEstimate(
-            t_ns=t_ns, method=method,
-            x_m=None if s.x is None else s.x + s.vx * dt,
-            y_m=None if s.y is None else s.y + s.vy * dt,
-            yaw_rad=wrap_pi(s.yaw + s.vyaw * dt), quality=0.0,
-            cov=self._cov(s, max(dt, 0.0)),
-            velocity=(s.vx, s.vy, s.vyaw) if s.moving else None)
+        return s, dt, _Pose(None if s.x is None else s.x + s.vx * dt,
+                            None if s.y is None else s.y + s.vy * dt,
+                            wrap_pi(s.yaw + s.vyaw * dt))
 
     def _cov(self, s: _State, dt: float) -> np.ndarray:
         """The prediction's covariance ``dt`` after the state (diagonal; x unknown: inf)."""
@@ -166,7 +184,7 @@ class Tracker:
         return pred is not None and not any(
             allows(pred, (h.x_m, h.y_m, h.yaw_rad, h.cov)) for h in est.hypotheses)
 
-    def _inside(self, a: PoseEstimate, b: PoseEstimate, dt_s: float) -> bool:
+    def _inside(self, a: PoseEstimate, b: PoseEstimate | _Pose, dt_s: float) -> bool:
         o = self.options
         gate_m = o.gate_m + o.max_speed_mps * abs(dt_s)
         gate_r = o.gate_rad + o.max_turn_rps * abs(dt_s)
@@ -219,9 +237,10 @@ class Tracker:
                                        "track's prior chose after a frame contradicted "
                                        "the track", diagnostics={"rejected": est}))
         self._disagree = 0
-        pred = self.predict(est.t_ns)
-        if pred is None:
+        at = self._predicted(est.t_ns)
+        if at is None:
             return self._start(est)
+        pred = at[2]
         s = self._s
         dt = (est.t_ns - s.t_ns) * 1e-9
         if self._inside(est, pred, 0.0 if dt <= 0 else dt):
@@ -282,7 +301,7 @@ def unknown_rates(o: TrackerOptions) -> tuple[float, float]:
     return o.max_speed_mps / k, o.max_turn_rps / k
 
 
-def _describe_jump(est: PoseEstimate, pred: PoseEstimate) -> str:
+def _describe_jump(est: PoseEstimate, pred: PoseEstimate | _Pose) -> str:
     parts = [f"yaw {math.degrees(wrap_pi(est.yaw_rad - pred.yaw_rad)):+.1f} deg"]
     if est.y_m is not None and pred.y_m is not None:
         parts.append(f"y {est.y_m - pred.y_m:+.2f} m")

@@ -71,9 +71,11 @@ def _distances(prior: PoseEstimate, P: np.ndarray, poses: Sequence[Pose]
     (:func:`prior_cov`, made once for all the poses of :func:`prior_choice`; a tile
     grid's window fix checks 15 poses a frame): ``(d2 (K,), dof (K,))``."""
     gx, gy = prior.x_m is not None, prior.y_m is not None
-    rows = np.array([(0.0 if x is None else x, 0.0 if y is None else y, yaw,
-                      gx and x is not None, gy and y is not None) for x, y, yaw, _ in poses],
-                    float).reshape(-1, 5)
+    flat: list[float] = []      # one flat list: numpy reads it without finding a shape
+    for x, y, yaw, _ in poses:
+        flat += (0.0 if x is None else x, 0.0 if y is None else y, yaw,
+                 1.0 if gx and x is not None else 0.0, 1.0 if gy and y is not None else 0.0)
+    rows = np.array(flat, float).reshape(-1, 5)
     covs = _NO_COVS
     if any(pose[3] is not None for pose in poses):
         covs = np.full((len(poses), 3, 3), np.nan)     # NaN: none (not finite: not added)

@@ -501,6 +501,7 @@ def _predict(psi, cam_y, site_y, search):  # pragma: no cover - compiled
     n_j, n_s = site_y.size, u.size
     xy = np.empty((n_j * n_s, 2))
     front = np.empty((n_j, n_s), np.bool_)
+    n_f = 0
     for j in range(n_j):
         dy = site_y[j] - cam_y
         for i in range(n_s):
@@ -511,16 +512,25 @@ def _predict(psi, cam_y, site_y, search):  # pragma: no cover - compiled
             z = d2 if f else 1.0
             x, y = d0 / z, d1 / z
             front[j, i] = f and x * x + y * y <= field_r * field_r
-            xy[j * n_s + i, 0], xy[j * n_s + i, 1] = x, y
-    px = np.empty((n_j * n_s, 2))
-    distort_points(xy, search.lens_code, search.lens, px)
-    px = px.reshape(n_j, n_s, 2)
-    vis = np.empty((n_j, n_s), np.bool_)
+            if front[j, i]:
+                xy[n_f, 0], xy[n_f, 1] = x, y
+                n_f += 1
+    # only the samples in front are distorted (the lens maps each point alone; the
+    # others are not visible, and _chords_of_runs reads the pixels of visible runs only)
+    px_f = np.empty((n_f, 2))
+    distort_points(xy[:n_f], search.lens_code, search.lens, px_f)
+    px = np.zeros((n_j, n_s, 2))
+    vis = np.zeros((n_j, n_s), np.bool_)
     lo_v, hi_v = max(m, row0), min(hh - 1 - m, row1)
+    k = 0
     for j in range(n_j):
         for i in range(n_s):
-            pu, pv = px[j, i, 0], px[j, i, 1]
-            vis[j, i] = front[j, i] and m <= pu <= w - 1 - m and lo_v <= pv <= hi_v
+            if not front[j, i]:
+                continue
+            pu, pv = px_f[k, 0], px_f[k, 1]
+            k += 1
+            px[j, i, 0], px[j, i, 1] = pu, pv
+            vis[j, i] = m <= pu <= w - 1 - m and lo_v <= pv <= hi_v
     return _chords_of_runs(px, vis, CHORD_PX, MIN_CHORD_PX)
 
 
