@@ -111,6 +111,9 @@ class Candidate:
             seen but is not.
         rms_m: RMS of the inliers' ceiling distances.
         missing: map lights that should be seen from this pose but matched nothing.
+        present: map lights it should show that matched nothing but lie where the frame
+            has a region the checks did not keep (not in ``missing``:
+            :meth:`~.twins.TwinJudge.present`).
     """
 
     x_m: float
@@ -120,6 +123,7 @@ class Candidate:
     score: float
     rms_m: float
     missing: int = 0
+    present: int = 0
 
     @property
     def inliers(self) -> int:
@@ -241,6 +245,15 @@ class PatternMatcher:
             return None
         return Candidate(out.x, out.y, out.yaw, out.pairs, out.score, out.rms_m,
                          out.missing)
+
+    def unmatched_seen(self, c: Candidate) -> np.ndarray:
+        """``(K,)`` the map lights (in V, ``x + iy``) the pose ``c`` should show that
+        matched none of its spots: what its ``missing`` counts (:func:`_unmatched_seen`)."""
+        if self._vis[3][0] < 0 or c.missing == 0:
+            return np.zeros(0, np.complex128)
+        return _unmatched_seen(arr([c.x_m, c.y_m, c.yaw_rad], np.float64),
+                               arr(c.pairs[:, 1], np.int64), self._map[0], self._vis,
+                               self._grid, float(self._params.reach_m))
 
     def twins(self, q_v: np.ndarray, starts: np.ndarray, gate_m: float,
               min_inliers: int) -> list[Candidate]:
@@ -433,6 +446,29 @@ def _local(grid, m, t, r):  # pragma: no cover - compiled
     if grid[0].size == 0:
         return np.arange(m)
     return near_core(grid, t.real, t.imag, r)
+
+
+@njit
+def _unmatched_seen(pose, matched, lights_c, vis, grid, reach):  # pragma: no cover
+    """:meth:`PatternMatcher.unmatched_seen`: the lights within ``reach`` of ``pose``
+    ``(x, y, yaw)`` that :func:`~.observe.locate_core` says it shows, less the map
+    lights ``matched``, in V as ``x + iy`` (the count :func:`_verify` calls missing)."""
+    vis_lights, padded, geo, ints = vis
+    t = complex(pose[0], pose[1])
+    local = _local(grid, lights_c.size, t, reach + 1e-6)
+    seen, _, zr, zi = locate_core(pose[0], pose[1], pose[2], vis_lights[local], padded,
+                                  geo, ints)
+    for j in matched:
+        k = np.searchsorted(local, j)
+        if k < local.size and local[k] == j:
+            seen[k] = False
+    out = np.empty(int(seen.sum()), np.complex128)
+    n = 0
+    for k in range(seen.size):
+        if seen[k]:
+            out[n] = complex(zr[k], zi[k])
+            n += 1
+    return out
 
 
 @njit
@@ -762,6 +798,8 @@ def _warm() -> None:
     m.verify(q, 0.0, np.zeros(2))
     m.twins(q, np.zeros((1, 3)), 0.2, 3)
     m.associate(q, 0.0, np.zeros(2), 0.1)
+    _unmatched_seen(arr(np.zeros(3), np.float64), arr(np.zeros(1), np.int64), m._map[0],
+                    m._vis, m._grid, 1.0)
     # the constellations' vote takes its poses from Python (read-only arrays)
     _vote(_complex(q), arr(np.zeros((1, 3)), np.float64), arr(np.zeros(1), np.float64),
           m._map[0], m._hash_params, m._vis, m._grid)

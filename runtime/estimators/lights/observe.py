@@ -97,6 +97,10 @@ class Observation:
     # the principal point (px) of every frame: the centre of the radial shift its
     # intensity-weighted centroids share (refine.pattern_cover)
     principal_px: np.ndarray | None = None
+    # (R,) the ceiling points in V of the regions examined and not kept, as x + iy: a
+    # bright region where a light may be that the checks could not measure (a bloomed
+    # or cut lamp), so a map light there is not missing (twins.TwinJudge.present)
+    rejected_v: np.ndarray | None = None
 
     def weights(self) -> np.ndarray:
         """``(N,)`` each spot's weight as evidence: 1, :data:`WEAK_WEIGHT` for a weak
@@ -478,6 +482,8 @@ class SpotObserver:
             ok &= np.cumsum(ok) <= self.max_spots
         J = table[:, :4].reshape(-1, 2, 2)
         candidates_px = spots.centroids_px
+        out = ~ok & np.all(np.isfinite(q), axis=1)
+        rejected_v = q[out, 0] + 1j * q[out, 1]
         if not ok.all():
             spots, q, J = spots.select(ok), q[ok], J[ok]
         if weak is not None:
@@ -485,7 +491,8 @@ class SpotObserver:
         t_vc = self.t_vehicle_cam
         rng = np.hypot(q[:, 0] - t_vc[0], q[:, 1] - t_vc[1])
         return Observation(spots, q, rng.argsort(kind="stable"), J,
-                           candidates_px, ok, weak, axis, centre, excess, principal)
+                           candidates_px, ok, weak, axis, centre, excess, principal,
+                           rejected_v)
 
     def _rectangles(self, spots: Spots, q: np.ndarray, ok: np.ndarray, table: np.ndarray,
                     centre_px: np.ndarray | None = None

@@ -20,6 +20,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -175,12 +176,15 @@ class TwinJudge:
         extent: the site's extent (a pose outside it is not possible).
         options: the estimator's options (``twins``, ``gate_m``, ``min_inliers``,
             ``site_margin_m``).
+        present_m: how near a light's ceiling point a region the observer did not keep
+            shows it there (:meth:`present`; 0: never).
     """
 
     def __init__(self, lights_w: np.ndarray, matcher: PatternMatcher, extent: SiteExtent,
-                 options: Any) -> None:
+                 options: Any, present_m: float = 0.0) -> None:
         o = options
         self.matcher, self.extent, self.options = matcher, extent, o
+        self.present_m = present_m
         sym = (map_symmetries(lights_w, o.gate_m, o.min_inliers) if o.twins
                else np.zeros((0, 3)))
         # a larger map: each pose's twins searched per frame (PairVectors)
@@ -206,6 +210,33 @@ class TwinJudge:
         found, complete = self.twins(obs, c)
         return [t for t in distinct([c] + found) if self.possible(t)
                 and not t.same_pose(c, 0.3, math.radians(5.0))], complete
+
+    def present(self, obs: Observation, c: Candidate) -> Candidate:
+        """``c`` with the map lights it should show that matched no spot but lie where
+        the frame has a region the observer examined and did not keep (within
+        ``present_m`` of its ceiling point: :attr:`~.observe.Observation.rejected_v`)
+        no longer counted missing. Such a light is there, only not measurable: a lamp
+        bloomed into an oval no rectangle fits, a light cut by the lens's edge. Counted
+        missing, they ranked a pose by how few lights it predicts in view: under a
+        183 deg fisheye with bloomed lamps (held-out ``lamps1`` of seed 7) only slivers
+        at the rim were kept, every pose inside the grid had a dozen lights missing, a
+        pose at the map's edge three cells away few, and it came out singled out (a
+        complete list of four poses, all 12-15 m off, which ``auto`` then published).
+        A light where the frame is dark stays missing (a lamp that is off). Such lights
+        are no evidence against a pose, nor is a pose that shows more of them than it
+        measures explained (the estimator's ``misfit``)."""
+        rv = obs.rejected_v
+        if rv is None or rv.size == 0 or c.missing == 0 or self.present_m <= 0:
+            return c
+        z = self.matcher.unmatched_seen(c)
+        if z.size == 0:
+            return c
+        there = int(np.count_nonzero(
+            np.abs(z[:, None] - rv[None, :]).min(axis=1) <= self.present_m))
+        if there == 0:
+            return c
+        return dataclasses.replace(c, missing=c.missing - there, present=there,
+                                   score=c.score + MISSING_PENALTY * there)
 
     @staticmethod
     def evidence(c: Candidate, weights: np.ndarray) -> float:
@@ -267,9 +298,9 @@ class TwinJudge:
                 return out, True
             if batch.shape[0] == 0:
                 continue
-            out += self.matcher.twins(
+            out += [self.present(obs, c) for c in self.matcher.twins(
                 obs.q_v, twin_poses(batch, best.x_m, best.y_m, best.yaw_rad),
-                2.0 * self.options.gate_m, self.options.min_inliers)
+                2.0 * self.options.gate_m, self.options.min_inliers)]
             ev = [self.evidence(c, weights) for c in distinct([best] + out)
                   if self.possible(c)]
             if start < sym.shape[0] and sum(e >= max(ev) - margin for e in ev) >= 2:
