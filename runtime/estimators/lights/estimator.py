@@ -87,13 +87,14 @@ from ceilkit.runtime.estimators.lights.observe import (
 )
 from ceilkit.runtime.estimators.lights.rays import max_pair_m, nadir_px, view_mask
 from ceilkit.runtime.estimators.lights.refine import (
+    NoisePool,
     RefinedPose,
     map_cov,
     pattern_cover,
     refine_pose_ceiling,
     with_shifts,
 )
-from ceilkit.runtime.estimators.lights.track import WindowTracker
+from ceilkit.runtime.estimators.lights.track import WindowFix, WindowTracker
 from ceilkit.runtime.estimators.lights.twins import (
     MAX_HYPOTHESES,
     MAX_TWIN_CHECKS,
@@ -284,10 +285,12 @@ class LightsEstimator(Estimator):
             o.window_px, (o.spot_params or SpotParams()).min_contrast,
             TRACK_MIN_SHARE, o.max_residual_px, OUTLIER_MEDIANS, self.prior_gate_m,
             PRIOR_RESOLVE[1])
-        self._window_fixes = 0  # window fixes since the last global search
+        # window fixes since the last global search; the run's pixel noise, and the
+        # last fit's own [SSR, ν] in [2:] (refine.NoisePool)
+        self._window_fixes, self._pool, self._noise = 0, NoisePool(), NoisePool().array()
 
-    def forget(self) -> None:  # Estimator.forget: the window counter
-        self._window_fixes = 0
+    def forget(self) -> None:  # Estimator.forget: the window counter, the noise pool
+        self._window_fixes, self._pool = 0, NoisePool()
 
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
@@ -307,17 +310,10 @@ class LightsEstimator(Estimator):
             if fast is not None:
                 return fast
         obs = self.observer.observe(grey).outside(self.site, prior)   # SPEC §2 ignore
-        n = len(obs.spots)
-        diag: dict[str, Any] = {"spots": n, "candidates": obs.spots.n_candidates,
-                                # for overlays (references): spots used, examined, kept
-                                "spots_px": obs.spots.centroids_px,
-                                "candidates_px": obs.candidates_px, "kept": obs.kept}
-        if n == 0:
-            return self.fail(t_ns, "no_lights", "no light found in the frame", **diag)
-        if n < 2:
-            return self.fail(t_ns, "too_few_lights",
-                             f"{n} light found, a pose needs 2 with a prior, "
-                             f"{self.options.min_inliers} without", **diag)
+        diag = spot_diag(obs)
+        short = too_few(len(obs.spots), self.options.min_inliers)
+        if short is not None:
+            return self.fail(t_ns, *short, **diag)
         found = self._candidate(obs, prior, t_ns, diag)
         if not isinstance(found, Chosen):
             return found
@@ -339,6 +335,8 @@ class LightsEstimator(Estimator):
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": elapsed_ms(t0)})
         out = self.checked(t_ns, x, y, yaw, quality, cov, res, diag)
+        if isinstance(out, PoseEstimate) and pools(obs, self.options):
+            self._pool = self._pool.added(self._noise[2:])
         if twins and isinstance(out, PoseEstimate):
             # a prior-resolved pose: the published one first, then the twins it ruled out
             hyps = self._hypotheses(obs, [cand, *twins], prior, out.cov)
@@ -380,7 +378,8 @@ class LightsEstimator(Estimator):
         if every > 0 and self._window_fixes >= every:
             self._window_fixes = 0
             return None
-        fix = self.windows.observe(grey, float(prior.x_m), float(prior.y_m), prior.yaw_rad)
+        fix = self.windows.observe(grey, float(prior.x_m), float(prior.y_m), prior.yaw_rad,
+                                   self._pool)
         if fix is None or not allows(prior, (fix.x_m, fix.y_m, fix.yaw_rad, None)):
             self._window_fixes = 0
             return None
@@ -390,18 +389,13 @@ class LightsEstimator(Estimator):
         cand = Candidate(fix.x_m, fix.y_m, fix.yaw_rad, fix.pairs, float(k), 0.0,
                          fix.predicted - fix.found)
         quality = pose_quality(k, rms, cand, None, "about_prior")
-        site_pairs = fix.pairs.copy()      # (spot index in spots_px, light index in the site)
-        ids = site_pairs[:, 1] = self.site_ids[fix.pairs[:, 1]]
-        diag = {"spots": fix.found, "candidates": fix.predicted,
-                "spots_px": fix.centroids_px, "candidates_px": fix.predicted_px,
-                "kept": None, "inliers": k,
-                "matched_lights": tuple(ids.tolist()), "pairs": site_pairs,
-                "rms_px": rms, "mode": "window", "score": float(k),
-                "runner_up_score": None, "ms": elapsed_ms(t0)}
+        diag = window_diag(fix, self.site_ids, rms, elapsed_ms(t0))
         # the same model check as the global path; a window fix that fails it is not
         # published: the global search decides the frame
         out = self.checked(t_ns, fix.x_m, fix.y_m, fix.yaw_rad, quality, fix.cov,
                            fix.res_px, diag)
+        if isinstance(out, PoseEstimate):
+            self._pool = self._pool.added(fix.noise)
         return out if isinstance(out, PoseEstimate) else None
 
     def _candidate(self, obs: Observation, prior: PoseEstimate | None, t_ns: int,
@@ -526,8 +520,9 @@ class LightsEstimator(Estimator):
     def _refine(self, obs: Observation, cand: Candidate, prior: PoseEstimate | None = None
                 ) -> RefinedPose:
         """:func:`refine_candidate` with this estimator's map, options and camera."""
+        self._noise = self._pool.array()
         return refine_candidate(obs, cand, self.lights_w, self.options,
-                                self.rig.camera.height, prior)
+                                self.rig.camera.height, prior, self._noise)
 
 
 @dataclass(frozen=True, eq=False)
@@ -568,6 +563,25 @@ def map_lights(site: Site) -> tuple[np.ndarray, np.ndarray, float]:
     if spacing_m < 1e-3:
         raise ConfigError(site.source, "lights", "duplicate light: two lights at the same place")
     return np.flatnonzero(keep), lights_w, spacing_m
+
+
+def spot_diag(obs: Observation) -> dict[str, Any]:
+    """A frame's diagnostics before any pose: spots kept, regions examined, and for
+    overlays (references) the spots used, the regions examined and which were kept."""
+    return {"spots": len(obs.spots), "candidates": obs.spots.n_candidates,
+            "spots_px": obs.spots.centroids_px, "candidates_px": obs.candidates_px,
+            "kept": obs.kept}
+
+
+def too_few(n: int, min_inliers: int) -> tuple[str, str] | None:
+    """``(reason, detail)`` of a frame of ``n`` spots too few for any pose (2 with a
+    prior), or None."""
+    if n == 0:
+        return "no_lights", "no light found in the frame"
+    if n < 2:
+        return ("too_few_lights", f"{n} light found, a pose needs 2 with a prior, "
+                f"{min_inliers} without")
+    return None
 
 
 def unmeasured(c: Candidate) -> str:
@@ -621,22 +635,23 @@ def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
 
 
 def refine_candidate(obs: Observation, cand: Candidate, lights_w: np.ndarray,
-                     o: LightsOptions, height_px: int, prior: PoseEstimate | None = None
-                     ) -> RefinedPose:
+                     o: LightsOptions, height_px: int, prior: PoseEstimate | None = None,
+                     noise: np.ndarray | None = None) -> RefinedPose:
     """The inlier pairs and :func:`refine_pose_ceiling` of a candidate (its spots on the
     map's ``lights_w``) as a :class:`~.refine.RefinedPose`, after one pass that drops
     residuals beyond ``max(max_residual_px, 4 x median)``; with a rolling shutter
     (``readout_ms``, rows of a ``height_px`` frame) each light seen from its row's pose
-    (:func:`fit_rows`)."""
+    (:func:`fit_rows`); a frame with more grey levels with the run's pixel noise
+    ``noise`` (:meth:`~.refine.NoisePool.array`, :func:`pools`)."""
     motion = row_motion(o, prior)
     pairs = cand.pairs
     rows = (obs, lights_w, o.readout_ms, height_px)
-    fit = fit_rows(*rows, pairs, (cand.x_m, cand.y_m, cand.yaw_rad), motion)
+    fit = fit_rows(*rows, pairs, (cand.x_m, cand.y_m, cand.yaw_rad), motion, noise)
     res = fit[4]
     bad = res > max(o.max_residual_px, OUTLIER_MEDIANS * short_median(res))
     if bad.any() and pairs.shape[0] - int(bad.sum()) >= 2:
         pairs = pairs[~bad]
-        fit = fit_rows(*rows, pairs, fit[:3], motion)
+        fit = fit_rows(*rows, pairs, fit[:3], motion, noise)
     return RefinedPose(pairs, *fit)
 
 
@@ -652,7 +667,8 @@ def map_error(site: Site, ids: Sequence[int], x_m: float, y_m: float) -> np.ndar
 
 def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_px: int,
              pairs: np.ndarray, start: tuple[float, float, float],
-             motion: tuple[tuple[float, float, float], tuple[float, float, float]] | None
+             motion: tuple[tuple[float, float, float], tuple[float, float, float]] | None,
+             noise: np.ndarray | None = None
              ) -> tuple[float, float, float, np.ndarray, np.ndarray]:
     """:func:`refine_pose_ceiling` of ``pairs`` from ``start``. With ``motion``
     (:func:`~ceilkit.runtime.estimators.rows.row_motion`) a spot at row time ``tau``
@@ -660,14 +676,16 @@ def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_p
     order the light ``L`` seen from the stamp's pose ``t`` at
     ``L - (dx, dy) - dyaw perp(L - t)``; each velocity component moved by its sigma
     refits once, and the moves' outer products are added to the covariance (what
-    the velocity's uncertainty does to the pose)."""
+    the velocity's uncertainty does to the pose). A frame with more grey levels and no
+    ``motion`` takes the run's pixel noise ``noise`` (:func:`~.refine.pattern_cover`)."""
     q, jac = obs.q_v[pairs[:, 0]], obs.jac_px[pairs[:, 0]]
     lights = lights_w[pairs[:, 1]]
     if motion is None:
         fit = refine_pose_ceiling(q, jac, lights, *start)
         if obs.centre_px is None and obs.principal_px is not None:   # more grey levels
             return pattern_cover(q, jac, lights,
-                                 obs.spots.centroids_px[pairs[:, 0]] - obs.principal_px, fit)
+                                 obs.spots.centroids_px[pairs[:, 0]] - obs.principal_px, fit,
+                                 noise)
         if obs.centre_px is None or obs.excess_px is None:   # every weight 1
             return with_shifts(q, jac, lights, frame_shifts(obs, pairs[:, 0]), fit)
         w = spot_weights(obs, pairs[:, 0])[:, None, None]
@@ -694,6 +712,28 @@ def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_p
         d[2] = wrap_pi(d[2])
         cov = cov + np.outer(d, d)
     return fit[0], fit[1], fit[2], cov, fit[4]
+
+
+def window_diag(fix: WindowFix, site_ids: np.ndarray, rms_px: float, ms: float
+                ) -> dict[str, Any]:
+    """A window fix's diagnostics (:meth:`LightsEstimator._tracked`), the global path's
+    keys; ``pairs`` (spot index in ``spots_px``, light index in the site)."""
+    k = fix.pairs.shape[0]
+    site_pairs = fix.pairs.copy()
+    ids = site_pairs[:, 1] = site_ids[fix.pairs[:, 1]]
+    return {"spots": fix.found, "candidates": fix.predicted,
+            "spots_px": fix.centroids_px, "candidates_px": fix.predicted_px,
+            "kept": None, "inliers": k, "matched_lights": tuple(ids.tolist()),
+            "pairs": site_pairs, "rms_px": rms_px, "mode": "window", "score": float(k),
+            "runner_up_score": None, "ms": ms}
+
+
+def pools(obs: Observation, o: LightsOptions) -> bool:
+    """Whether a fix of ``obs`` takes and feeds the run's pixel noise
+    (:class:`~.refine.NoisePool`): a frame with more grey levels (a two-level frame's
+    fit weighs its lamps and has its own rule, :func:`~.refine.with_shifts`) and no
+    rolling shutter modelled. Window fixes always do (:mod:`~.track`)."""
+    return obs.centre_px is None and obs.principal_px is not None and o.readout_ms <= 0
 
 
 def frame_shifts(obs: Observation, spots: np.ndarray) -> np.ndarray:

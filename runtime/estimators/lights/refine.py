@@ -20,6 +20,7 @@ Example::
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -35,16 +36,74 @@ SIGMA_FLOOR_PX = 0.02
 SHIFT_MIN_DOF = 2  # residual degrees of freedom :func:`with_shifts` leaves at least
 """Least pixel noise assumed in the covariance (px): a guard for a fit whose few
 residuals happen to be tiny, not a noise model. The covariance is the residuals' own
-``s² (JᵀJ)⁻¹``: a real lens's unmodelled error is in the residuals and so in ``s²``.
+``s² (JᵀJ)⁻¹`` (pooled over the run: :class:`NoisePool`): a real lens's unmodelled error
+is in the residuals and so in ``s²``.
 Measured (``benchmarks/bench_ambiguity.py``, noise 2, blur 0.8): the residuals give
 a light-grid drive's mean NEES 2.11 (3 dof; band 2.41-3.65), 0.36 with the former
 0.1 px floor; at noise 5, blur 1.2, 2.64, inside. With the shared radial shift counted
 out (:func:`pattern_cover`, frames with more grey levels; 2026-12-07): 3.11 (band
 2.38-3.69) and 3.39 (2.39-3.67)."""
+POOL_MEMORY_DOF = 200.0
+"""How many residual degrees of freedom a run's pixel-noise pool (:class:`NoisePool`)
+remembers: past it the older sums are scaled down (a forgetting), so the pool follows
+a change of the frames' noise. 200 because the variance of ``ν`` residuals is known to
+``sqrt(2 / ν)`` = 10 % and its Student factor ``ν / (ν - 2)`` is 1.01 there: more
+memory buys no accuracy the covariance could use. At 4 lights a fix (5 dof) it is 40
+fixes, 1.3 s at 30 fps."""
 JACKKNIFE_MAX_LEVERAGE = 0.99
 """A light whose own leverage in a fit (the largest eigenvalue of its 2x2 block of the
 hat matrix) reaches this is left out of :func:`spot_jackknife`: its residual says
 nothing about its error."""
+
+
+@dataclass(frozen=True)
+class NoisePool:
+    """A run's pixel noise: the sum ``ssr_px2`` (px²) of the published fixes' squared
+    pixel residuals and their residual degrees of freedom ``dof`` (a fit's own, as its
+    covariance counts them: ``2K - 4`` with the shared radial pattern counted out,
+    :func:`pattern_cover`; ``2K - 3`` where it cannot be, a fit of two lights). A fix's
+    covariance takes ``s² = (ssr + its own SSR) / (dof + its ν)`` with the Student factor
+    of that many degrees of freedom (:func:`pooled`, :func:`pattern_cover`): one frame's
+    few residuals (a fit of two lights has one) estimate the variance no better than a
+    chi-square of one degree of freedom, whose inverse has no mean (issue 36, held-out
+    ``grid0`` of seed 7: every fix on two lights, ``s`` 0.001-0.02 px from its own
+    residual against 0.026 px pooled). Held by the estimator between frames
+    (``LightsEstimator.forget`` empties it); empty, a fix is its own residual's."""
+
+    ssr_px2: float = 0.0
+    dof: float = 0.0
+
+    def added(self, own: np.ndarray) -> NoisePool:
+        """The pool with a published fix's own ``[SSR px², ν]`` added (what
+        :func:`pooled` or :func:`pattern_cover` wrote into ``noise[2:]``), at most
+        :data:`POOL_MEMORY_DOF` degrees of freedom kept."""
+        ssr, dof = self.ssr_px2 + float(own[0]), self.dof + float(own[1])
+        if not (math.isfinite(ssr) and dof > 0):
+            return self
+        keep = min(1.0, POOL_MEMORY_DOF / dof)
+        return NoisePool(ssr * keep, dof * keep)
+
+    def array(self) -> np.ndarray:
+        """``(4,)`` ``[ssr_px2, dof, nan, nan]``: the compiled calls read the pool and
+        write the fix's own ``[SSR, ν]`` into the last two."""
+        return np.array([self.ssr_px2, self.dof, math.nan, math.nan])
+
+
+def pooled(fit: tuple[float, float, float, np.ndarray, np.ndarray], noise: np.ndarray
+           ) -> tuple[float, float, float, np.ndarray, np.ndarray]:
+    """``fit`` (:func:`refine_pose_ceiling`'s, covariance ``max(SSR / ν, floor²) N⁻¹``,
+    ``ν = 2K - 3``) with the covariance ``max((pool SSR + SSR) / (pool dof + ν), floor²)
+    student(pool dof + ν) N⁻¹``, the pool ``noise[:2]`` (:meth:`NoisePool.array`; the
+    fit's own ``[SSR, ν]`` written into ``noise[2:]``); the pose kept."""
+    res = np.asarray(fit[4], float)
+    ssr, nu = float(res @ res), 2.0 * res.size - 3.0
+    if nu <= 0 or not np.all(np.isfinite(fit[3])):
+        return fit
+    noise[2], noise[3] = ssr, nu
+    own = max(ssr / nu, SIGMA_FLOOR_PX ** 2)
+    dof = noise[1] + nu
+    s2 = max((noise[0] + ssr) / dof, SIGMA_FLOOR_PX ** 2) * student(dof)
+    return (*fit[:3], np.asarray(fit[3], float) * (s2 / own), fit[4])
 
 
 class RefinedPose(NamedTuple):
@@ -226,37 +285,43 @@ def with_shifts(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarray,
 def pattern_cover(q_v: np.ndarray, jac_px: np.ndarray, lights_w: np.ndarray,
                   shifts_px: np.ndarray,
                   fit: tuple[float, float, float, np.ndarray, np.ndarray],
-                  sigma_floor_px: float = SIGMA_FLOOR_PX) -> tuple[
+                  noise: np.ndarray | None = None) -> tuple[
                       float, float, float, np.ndarray, np.ndarray]:
     """``fit`` (:func:`refine_pose_ceiling` of the same lights) with the covariance of
     :func:`_pattern_cover`: the pose kept, ``s²`` counted without a centroid shift
-    ``e S_i`` the frame's lights share (``shifts_px (K, 2)``: the radial ``p_i - c``),
-    and what the fitted ``e`` moves the pose by added. ``fit`` itself when fewer than
-    :data:`SHIFT_MIN_DOF` residual degrees of freedom are left or the pattern is not
-    separable from a pose move."""
+    ``e S_i`` the frame's lights share (``shifts_px (K, 2)``: the radial ``p_i - c``)
+    and pooled with the run's pixel noise ``noise[:2]`` (:meth:`NoisePool.array`, an
+    empty pool when None; the fit's own ``[SSR, ν]`` written into ``noise[2:]``), and
+    what the fitted ``e`` moves the pose by added. ``fit`` with the pooled noise
+    (:func:`pooled`) when fewer than :data:`SHIFT_MIN_DOF` residual degrees of freedom
+    are left or the pattern is not separable from a pose move."""
+    noise = NoisePool().array() if noise is None else noise
     k = np.asarray(q_v).reshape(-1, 2).shape[0]
     if 2 * k - 4 < SHIFT_MIN_DOF or not np.all(np.isfinite(fit[3])):
-        return fit
+        return pooled(fit, noise)
     cov = np.empty((3, 3))
     ok = _pattern_cover(arr(q_v, np.float64).reshape(-1, 2),
                         arr(jac_px, np.float64).reshape(-1, 2, 2),
                         arr(lights_w, np.float64).reshape(-1, 2),
                         np.array(fit[:3], float), arr(shifts_px, np.float64).reshape(-1, 2),
-                        cov, float(sigma_floor_px))
-    return (*fit[:3], cov, fit[4]) if ok else fit
+                        cov, noise)
+    return (*fit[:3], cov, fit[4]) if ok else pooled(fit, noise)
 
 
 @njit
-def _pattern_cover(q, J, L, pose, S, cov, floor):  # pragma: no cover - compiled
+def _pattern_cover(q, J, L, pose, S, cov, noise):  # pragma: no cover - compiled
     """The covariance (into ``cov``; False when it cannot be had) of the
     three-unknown fit at ``pose`` whose lights' centroid errors hold a shift ``e S_i``
-    they share (``S (K, 2)`` px per unit ``e``) besides errors of their own.
+    they share (``S (K, 2)`` px per unit ``e``) besides errors of their own, the run's
+    pixel noise ``noise[:2]`` ``[SSR px², dof]`` so far (:class:`NoisePool`; the fit's
+    own ``[SSR, ν]`` written into ``noise[2:]``).
 
     With ``A`` the residuals' pose Jacobian, ``N = AᵀA``, ``r`` the residuals at the
     fit, ``g = N⁻¹ AᵀS`` (what a unit ``e`` moves the pose by) and ``m = SᵀS - Sᵀ A g``
     (the part of the pattern no pose move takes): ``ê = Sᵀr / m``, and the covariance
-    is ``s² student(ν) N⁻¹ + max(ê² - s² / m, 0) g gᵀ``, ``s² = max((rᵀr - (Sᵀr)² / m)
-    / ν, floor²)``, ``ν = 2K - 4`` (a variance estimated from ``ν`` residuals:
+    is ``s² student(ν) N⁻¹ + max(ê² - s² / m, 0) g gᵀ``, ``s² = max((pool SSR + rᵀr -
+    (Sᵀr)² / m) / ν, floor²)``, ``ν = pool dof + 2K - 4`` (a variance estimated from
+    ``ν`` residuals, the run's and the frame's:
     :func:`~ceilkit.runtime.geometry.fits.student`; ``ê²`` less its own variance). A
     frame's fall-off and halo move every intensity-weighted centroid towards the
     principal point by a place-dependent
@@ -293,8 +358,9 @@ def _pattern_cover(q, J, L, pose, S, cov, floor):  # pragma: no cover - compiled
     if not (math.isfinite(m) and m > 1e-9 * max(ss, 1e-300)):
         return False
     e = sr / m
-    nu = 2.0 * k - 4.0
-    s2 = max((ssr - sr * e) / nu, floor * floor)
+    noise[2], noise[3] = ssr - sr * e, 2.0 * k - 4.0
+    nu = noise[1] + noise[3]
+    s2 = max((noise[0] + noise[2]) / nu, SIGMA_FLOOR_PX * SIGMA_FLOOR_PX)
     e2 = max(e * e - s2 / m, 0.0)                 # ê² less its own variance s² / m
     s2 *= student(nu)
     for a in range(3):
@@ -486,8 +552,8 @@ def _warm() -> None:
     refine_pose_ceiling(q, np.tile(np.eye(2) * 300.0, (3, 1, 1)), q, 0.0, 0.0, 0.0)
     _inv3(np.eye(3))
     pattern_cover(q, np.tile(np.eye(2) * 300.0, (3, 1, 1)), q, q[:, ::-1],
-                  (0.0, 0.0, 0.0, np.eye(3), np.zeros(3)))
+                  (0.0, 0.0, 0.0, np.eye(3), np.zeros(3)), NoisePool().array())
 
 
-__all__ = ["map_cov", "pattern_cover", "refine_pose", "refine_pose_ceiling", "spot_jackknife",
-           "with_shifts"]
+__all__ = ["NoisePool", "map_cov", "pattern_cover", "pooled", "refine_pose",
+           "refine_pose_ceiling", "spot_jackknife", "with_shifts"]

@@ -67,6 +67,7 @@ from ceilkit.runtime.estimators.lights.rays import (
 from ceilkit.runtime.estimators.lights.refine import (
     SHIFT_MIN_DOF,
     SIGMA_FLOOR_PX,
+    NoisePool,
     _pattern_cover,
     _refine,
 )
@@ -129,6 +130,7 @@ class WindowFix:
         predicted: how many lights the prior says the detector should report.
         found: how many windows held a plausible light (``F``).
         predicted_px: ``(M, 2)`` the predicted pixels (for overlays).
+        noise: ``(2,)`` the fit's own ``[SSR px², ν]`` (:meth:`~.refine.NoisePool.added`).
     """
 
     x_m: float
@@ -141,6 +143,7 @@ class WindowFix:
     predicted: int
     found: int
     predicted_px: np.ndarray
+    noise: np.ndarray
 
 
 # why a window fix was refused (:func:`_track`'s status; 0: a fix)
@@ -148,7 +151,7 @@ FIX, FEW_PREDICTED, WINDOW_TOO_BIG, FEW_FOUND, NO_RAY, FEW_KEPT, CHECK = range(7
 
 # the tracker's numbers, one read-only vector for the compiled call (_params)
 _P_WINDOW, _P_CONTRAST, _P_SHARE, _P_RESIDUAL, _P_MEDIANS, _P_GATE_M, _P_GATE_RAD, \
-    _P_RADIUS = range(8)
+    _P_RADIUS, _P_POOL_SSR, _P_POOL_DOF = range(10)
 
 
 class PredictionArrays(NamedTuple):
@@ -196,7 +199,7 @@ class WindowTracker:
         cam = rig.camera
         self.width, self.height = cam.width, cam.height
         # everything the compiled call reads, made once (read-only arrays)
-        params = np.zeros(8)
+        params = np.zeros(10)    # the run's pixel noise (_P_POOL_*) set per call
         params[[_P_WINDOW, _P_CONTRAST, _P_SHARE, _P_RESIDUAL, _P_MEDIANS, _P_GATE_M,
                 _P_GATE_RAD, _P_RADIUS]] = (
             window_px, min_contrast, min_share, max_residual_px, outlier_medians, gate_m,
@@ -215,16 +218,22 @@ class WindowTracker:
         self._mount = observer.mount   # the same rig and ceiling
         self._cells = self._seen.cells
 
-    def observe(self, grey: np.ndarray, x_m: float, y_m: float, yaw_rad: float
-                ) -> WindowFix | None:
+    def observe(self, grey: np.ndarray, x_m: float, y_m: float, yaw_rad: float,
+                pool: NoisePool = NoisePool()) -> WindowFix | None:
         """The pose from the windows around the lights predicted from ``(x, y, yaw)``
-        on a ``(H, W)`` uint8 frame, or ``None`` when the window check fails."""
+        on a ``(H, W)`` uint8 frame, or ``None`` when the window check fails; its
+        covariance with the run's pixel noise ``pool`` (:class:`~.refine.NoisePool`)."""
+        params = self._params
+        if pool.dof > 0:
+            params = params.copy()
+            params[_P_POOL_SSR], params[_P_POOL_DOF] = pool.ssr_px2, pool.dof
+            params = arr(params, np.float64)
         out = _track(arr(grey, np.uint8), float(x_m), float(y_m), float(yaw_rad),
-                     self._seen, self._grid, self._mount, self._params)
-        status, x, y, yaw, cov, res, cen, pairs, m, found, px = out
+                     self._seen, self._grid, self._mount, params)
+        status, x, y, yaw, cov, res, cen, pairs, m, found, px, own = out
         if status != FIX:
             return None
-        return WindowFix(x, y, yaw, cov, res, cen, pairs, m, found, px)
+        return WindowFix(x, y, yaw, cov, res, cen, pairs, m, found, px, own)
 
     def _predict(self, x_m: float, y_m: float, yaw_rad: float):
         """``(map indices, predicted px, predicted count, window corners, half side)``
@@ -289,16 +298,16 @@ def _track(grey, x, y, yaw, seen, grid, mount, params):  # pragma: no cover - co
     for f in range(n_found):
         shift[f, 0] = centres[f, 0] - mount.lens[2]
         shift[f, 1] = centres[f, 1] - mount.lens[3]
-    status, fx, fy, fyaw, cov, res, keep = _fit(q, jac, L, x, y, yaw, shift, params)
+    status, fx, fy, fyaw, cov, res, keep, own = _fit(q, jac, L, x, y, yaw, shift, params)
     if status != FIX:
         return _refused(status, px, m)
-    return (FIX, fx, fy, fyaw, cov, res, cen, pairs[keep], m, n_found, px)
+    return (FIX, fx, fy, fyaw, cov, res, cen, pairs[keep], m, n_found, px, own)
 
 
 @njit
 def _refused(status, px, m):  # pragma: no cover - compiled
     return (status, 0.0, 0.0, 0.0, np.full((3, 3), np.inf), np.empty(0), np.empty((0, 2)),
-            np.empty((0, 2), np.int64), m, 0, px)
+            np.empty((0, 2), np.int64), m, 0, px, np.full(2, np.nan))
 
 
 @njit
@@ -405,13 +414,14 @@ def _measure(grey, corner, half, grid, params):  # pragma: no cover - compiled
 
 @njit
 def _fit(q, jac, L, x, y, yaw, shift, params):  # pragma: no cover - compiled
-    """``(status, x, y, yaw, cov, res, keep)``: :func:`~.refine.refine_pose_ceiling`
+    """``(status, x, y, yaw, cov, res, keep, own)``: :func:`~.refine.refine_pose_ceiling`
     from the prior, one outlier pass (residuals beyond ``max(max_residual_px,
     outlier_medians x median)`` dropped, refitted from the first fit), the covariance
     of :func:`~.refine.pattern_cover` with the lights' radial pattern ``shift (K, 2)``
-    (px about the principal point), and the frame's checks (RMS, a finite covariance,
-    within the prior's gate): status :data:`FEW_KEPT` or :data:`CHECK` when they
-    fail."""
+    (px about the principal point) and the run's pixel noise (``params``' pool), and
+    the frame's checks (RMS, a finite covariance, within the prior's gate): status
+    :data:`FEW_KEPT` or :data:`CHECK` when they fail; ``own`` the fit's ``[SSR, ν]``
+    (:class:`~.refine.NoisePool`)."""
     k = q.shape[0]
     keep = np.ones(k, np.bool_)
     fx, fy, fyaw, cov, res = _refine(q, jac, L, x, y, yaw, 3, SIGMA_FLOOR_PX)
@@ -423,13 +433,14 @@ def _fit(q, jac, L, x, y, yaw, shift, params):  # pragma: no cover - compiled
             n_bad += 1
     if n_bad:
         if k - n_bad < 3:
-            return FEW_KEPT, 0.0, 0.0, 0.0, cov, res, keep
+            return FEW_KEPT, 0.0, 0.0, 0.0, cov, res, keep, np.full(2, np.nan)
         fx, fy, fyaw, cov, res = _refine(q[keep], jac[keep], L[keep], fx, fy, fyaw, 3,
                                          SIGMA_FLOOR_PX)
+    noise = np.array([params[_P_POOL_SSR], params[_P_POOL_DOF], np.nan, np.nan])
     if 2 * res.size - 4 >= SHIFT_MIN_DOF:
         covered = np.empty((3, 3))
         if _pattern_cover(q[keep], jac[keep], L[keep], np.array([fx, fy, fyaw]),
-                          shift[keep], covered, SIGMA_FLOOR_PX):
+                          shift[keep], covered, noise):
             cov = covered
     ss = 0.0
     for i in range(res.size):
@@ -444,8 +455,8 @@ def _fit(q, jac, L, x, y, yaw, shift, params):  # pragma: no cover - compiled
     if (rms > params[_P_RESIDUAL] or not finite
             or math.hypot(fx - x, fy - y) > params[_P_GATE_M]
             or abs(d_yaw) > params[_P_GATE_RAD]):
-        return CHECK, fx, fy, fyaw, cov, res, keep
-    return FIX, fx, fy, fyaw, cov, res, keep
+        return CHECK, fx, fy, fyaw, cov, res, keep, noise[2:]
+    return FIX, fx, fy, fyaw, cov, res, keep, noise[2:]
 
 
 @njit
@@ -467,7 +478,7 @@ def _warm() -> None:
                             arr(np.zeros((1, 9)), np.float64), arr(np.zeros(1), np.float32),
                             arr(np.zeros(3), np.float64), arr(np.ones(6), np.int64))
     grid = GridArrays(arr(np.zeros((1, 4, 10)), np.float64), arr(np.ones(6), np.float64))
-    params = arr(np.zeros(8), np.float64)
+    params = arr(np.zeros(10), np.float64)
     _track(grey, 0.0, 0.0, 0.0, seen, grid,
            kernel_mount(PlanarGeometry(cam, np.eye(3), np.zeros(3), 0.0)), params)
     _measure(grey, np.zeros((1, 2), np.int64), 1, grid, params)

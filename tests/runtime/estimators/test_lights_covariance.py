@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from ceilkit.runtime.estimators.lights.refine import (
+    NoisePool,
     pattern_cover,
     refine_pose_ceiling,
     spot_jackknife,
@@ -222,3 +223,43 @@ def test_a_shared_radial_shift_is_counted_out_of_a_raw_frames_covariance():
     assert _nees(pooled) < 2.2      # 1.81
     assert 2.6 < _nees(covered) < 3.4     # 2.89
     assert 2.6 < _nees(clean) < 3.4       # 3.04
+
+
+def _run(rng: np.random.Generator, lights: np.ndarray, frames: int, noise_px: float):
+    """A run of frames of ``lights`` (upward pinhole as :func:`_radial_frame`, no shift),
+    each fit with its own residual's covariance and with the run's pixel noise pooled
+    (:class:`NoisePool`, fed after each fix as the estimator does): ``(own, pooled)``,
+    ``own`` the rule before the pool (each fit's own residual, floored)."""
+    f_m = 250.0 / 2.5
+    p = CENTRE + f_m * seen(lights)
+    J = np.tile(f_m * np.eye(2), (len(lights), 1, 1))
+    pool, own, pool_fits = NoisePool(), [], []
+    for _ in range(frames):
+        p_obs = p + rng.normal(0.0, noise_px, p.shape)
+        q = (p_obs - CENTRE) / f_m
+        fit = refine_pose_ceiling(q, J, lights, *POSE)
+        noise = pool.array()
+        out = pattern_cover(q, J, lights, p_obs - CENTRE, fit, noise)
+        pool = pool.added(noise[2:])
+        # the fit's own rule: a fit of two lights keeps refine_pose_ceiling's
+        own.append(fit if len(lights) < 3 else pattern_cover(q, J, lights, p_obs - CENTRE, fit))
+        pool_fits.append(out)
+    return own, pool_fits
+
+
+def test_a_fit_of_two_lights_takes_the_runs_pixel_noise():
+    """A fit of two lights has one residual degree of freedom: its own ``s**2`` is a
+    chi-square of one, whose inverse has no mean, so its covariance sits at the floor
+    on most frames and the mean NEES runs far above 3 (held-out ``grid0`` of seed 7:
+    7.87). With the run's residuals pooled (:class:`NoisePool`) it is near 3."""
+    own, pool_fits = _run(np.random.default_rng(21), LIGHTS[:2], 400, 0.05)
+    assert _nees(own) > 6.0               # 8.7 (seeds 1-4, 22: 9.2-9.7)
+    assert 2.4 < _nees(pool_fits) < 3.6   # 2.82 (2.85-3.11)
+
+
+def test_pooling_keeps_a_fit_of_more_lights_near_three():
+    """Four lights, independent noise: one frame's ``s**2`` of 4 degrees of freedom with
+    its Student factor 2 is right on average; pooled over the run, the factor near 1,
+    it stays right (2.82, seeds 1-4 and 21: 2.65-3.12)."""
+    _, pool_fits = _run(np.random.default_rng(22), LIGHTS[:4], 400, 0.05)
+    assert 2.4 < _nees(pool_fits) < 3.6
