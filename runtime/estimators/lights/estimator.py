@@ -82,6 +82,7 @@ from ceilkit.runtime.estimators.lights.observe import (
     Observation,
     SpotObserver,
     VisibilityTable,
+    fitted_lamp_window,
     fitted_light_bound,
     fitted_spot_params,
 )
@@ -618,8 +619,10 @@ def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
     if spot_params is None and rect is None:    # the Niblack window fitted to the discs
         spot_params = fitted_spot_params(SpotParams(), rig, ceiling_height_m, diameter_m,
                                          valid_mask, factor)
-    elif spot_params is None:   # rectangles: a window grown to them took their halo in
-        spot_params = SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO)
+    elif spot_params is None:   # rectangles: a window grown to them took their halo in,
+        # so the grown window's regions are used only where they hold no clipped plateau
+        spot_params = fitted_lamp_window(SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO), rig,
+                                         ceiling_height_m, rect[0], valid_mask, factor)
     if o.spot_params is None:   # a light's core larger than the glare bound is kept
         area_m2, upper = (rect[0] * rect[1], RECT_AREA[1]) if rect is not None else \
             (0.25 * math.pi * diameter_m ** 2, DISC_AREA_MAX)

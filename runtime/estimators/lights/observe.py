@@ -352,6 +352,24 @@ def fitted_spot_params(params: SpotParams, rig: Rig, ceiling_height_m: float,
     return dataclasses.replace(params, window_px=window)
 
 
+def fitted_lamp_window(params: SpotParams, rig: Rig, ceiling_height_m: float,
+                       length_m: float, valid_mask: np.ndarray,
+                       factor: int = 1) -> SpotParams:
+    """``params`` with ``lamp_window_px``, the second Niblack window of rectangular lamps
+    (:func:`~ceilkit.runtime.features.spots.lamp_mask`): :func:`fitted_spot_params`'s
+    window for a light of the lamp's length ``length_m``, where that exceeds
+    ``params.window_px``; ``params`` unchanged otherwise. Only the regions of that
+    window that hold no saturated plateau are used: an unsaturated lamp wider than the
+    window is taken whole (the held-out lamps1 of seed 3: 0.82 x 0.50 m lamps at 248
+    grey levels, 96 x 59 px under a 407 px pinhole, were fragments of 20-35 px under the
+    41 px window and gave ``no_lights`` on every frame), a saturated one keeps the
+    default window's region, without its halo."""
+    grown = fitted_spot_params(params, rig, ceiling_height_m, length_m, valid_mask, factor)
+    if grown.window_px == params.window_px:
+        return params
+    return dataclasses.replace(params, lamp_window_px=grown.window_px)
+
+
 def view_jacobians(rig: Rig, ceiling_height_m: float, valid_mask: np.ndarray,
                    step: int = 16) -> np.ndarray:
     """``(K, 2, 2)`` the ceiling-to-pixel Jacobians at the nodes (every ``step`` px)

@@ -17,13 +17,15 @@ from ceilkit.runtime.sim.render import SimOptions, render_frame
 from ceilkit.runtime.tracking import Tracker
 
 
-def _irregular_lights(seed: int) -> np.ndarray:
-    """About 45 lights scattered over 7 x 7 m, at least 0.6 m apart: no twins."""
+def _irregular_lights(seed: int, n: int = 45, half_m: float = 3.5,
+                      apart_m: float = 0.6) -> np.ndarray:
+    """``n`` lights scattered over a square of ``2 half_m`` (by default 45 over 7 x 7 m),
+    at least ``apart_m`` apart: no twins."""
     rng = np.random.default_rng(seed)
     pts: list[np.ndarray] = []
-    while len(pts) < 45:
-        p = rng.uniform(-3.5, 3.5, 2)
-        if all(np.hypot(*(p - q)) >= 0.6 for q in pts):
+    while len(pts) < n:
+        p = rng.uniform(-half_m, half_m, 2)
+        if all(np.hypot(*(p - q)) >= apart_m for q in pts):
             pts.append(p)
     return np.array(pts)
 
@@ -117,3 +119,51 @@ def test_an_ambiguous_frame_that_holds_the_tracks_pose_keeps_the_track():
         p = tr.predict(k * dt)
         tr.update(_ambiguous(k * dt, [(p.x_m, p.y_m, p.yaw_rad), (p.x_m + 3.05, p.y_m, 0.0)]))
     assert tr.tracking
+
+
+def _lamp_scene(seed: int) -> tuple[Rig, Site]:
+    """The held-out lamps1 of seed 3's geometry: a 407 px pinhole looking up, 0.82 x
+    0.50 m lamps 3.48 m above the lens (about 96 x 59 px), scattered (no twins)."""
+    from ceilkit.runtime.config.yaml import Node
+    cam = CameraModel.pinhole(640, 480, 407.0)
+    rig = Rig(cam, Mount(tilt_rad=math.radians(90.0), x_m=0.1, z_m=0.2))
+    pts = _irregular_lights(seed, 30, 4.0, 1.3)
+    site = Site.from_node(Node({"ceiling_height": 3.683, "lights": [list(p) for p in pts],
+                                "light_size": [0.82, 0.504], "light_yaw": 69.0}, None, ""))
+    return rig, site
+
+
+def test_unsaturated_lamps_wider_than_the_window_are_found_whole():
+    """Raw frames of lamps at about 250 grey levels (not clipped), wider than the 41 px
+    window, which hollowed each into fragments of 20-35 px (held-out lamps1 of seed 3:
+    ``no_lights`` on every frame). The lamps' own window (``lamp_window_px``) takes them
+    whole: every frame is fixed from the frame alone, within 1 cm and 0.5 deg."""
+    rig, site = _lamp_scene(5)
+    est = LightsEstimator(rig, site)
+    assert est.observer.spot_params.lamp_window_px >= 1.6 * 0.82 * 407 / 3.483
+    for k, (x, y, yaw) in enumerate([(0.2, -0.3, 0.4), (-0.6, 0.5, -1.9), (0.9, 0.1, 2.8)]):
+        img = render_frame(rig, site, x, y, yaw, SimOptions(supersample=1),
+                           np.random.default_rng(k))
+        assert int((img == 255).sum()) < 50      # the lamps are not saturated
+        out = est.estimate(img, 0)
+        assert isinstance(out, PoseEstimate), out
+        assert math.hypot(out.x_m - x, out.y_m - y) < 0.01
+        assert abs(math.remainder(out.yaw_rad - yaw, 2 * math.pi)) < math.radians(0.5)
+
+
+def test_saturated_lamps_keep_the_default_windows_regions():
+    """The same lamps clipped (exposure 1.5, their halo bright): every region of the
+    lamps' window holds a clipped plateau, so the mask is the default window's, bit
+    for bit (the larger window would let the halo in)."""
+    from ceilkit.runtime.features.spots import SpotParams, lamp_mask, niblack_mask
+    rig, site = _lamp_scene(5)
+    img = render_frame(rig, site, 0.2, -0.3, 0.4, SimOptions(supersample=1, exposure=1.5),
+                       np.random.default_rng(0))
+    params = LightsEstimator(rig, site).observer.spot_params
+    mask = niblack_mask(img, params.window_px, params.k, params.min_contrast,
+                        params.min_contrast_rel)
+    grown = niblack_mask(img, params.lamp_window_px, params.k, params.min_contrast,
+                         params.min_contrast_rel)
+    assert int((grown & ~mask).sum()) > 0               # the halo the larger window takes
+    assert np.array_equal(lamp_mask(img, mask, params), mask)
+    assert np.array_equal(lamp_mask(img, mask, SpotParams()), mask)
