@@ -480,10 +480,12 @@ class LightsEstimator(Estimator):
         c = self.matcher.verify(obs.q_v, prior.yaw_rad,
                                 np.array([float(prior.x_m), float(prior.y_m)]),
                                 self.prior_gate_m)
-        # the prior is trusted only when most spots, and most lights the pose
-        # should see, match: a stale prior must not pull a local false match
+        # scored as its twins are (TwinJudge.present); the prior is trusted only when
+        # most spots, and most lights the pose should see (there or not), match: a
+        # stale prior must not pull a local false match
+        c = None if c is None else self.judge.present(obs, c)
         if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
-                and c.missing <= max(1, c.inliers // 2)
+                and c.missing + c.present <= max(1, c.inliers // 2)
                 and allows(prior, (c.x_m, c.y_m, c.yaw_rad, None))):
             if not self.options.twins or c.inliers < self.options.min_inliers:
                 return Chosen(c, None, "about_prior", (), False)

@@ -398,7 +398,8 @@ def fitted_light_bound(params: SpotParams, rig: Rig, ceiling_height_m: float,
     too, so a lamp whose own image is larger (a 0.93 x 0.46 m lamp 2.5 m above a
     334 px pinhole: about 7,500 px) gave ``no_lights`` on every frame (held-out
     ``lamps0-2`` of seed 7). The halo stays out: the region is still split, only its
-    core is kept up to the light's own size; the window is not grown (Known gaps)."""
+    core is kept up to the light's own size (an unsaturated lamp wider than the window
+    is another matter: :func:`fitted_lamp_window`)."""
     if area_m2 <= 0:
         return params
     J = view_jacobians(rig, ceiling_height_m, valid_mask)
