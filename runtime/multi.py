@@ -159,12 +159,13 @@ def _single(est: Estimator, fusion: FusionOptions,
             start_pose: tuple[float, float, float] | None = None
             ) -> tuple[Estimator, Tracker | Fusion]:
     """One method and its tracker: the constant-velocity one (with the fusion's vehicle
-    limits), or the fusion for a method emitting ceiling-plane odometry (it chains the
-    increments between fixes); either starts from ``start_pose`` when given."""
+    limits and motion model), or the fusion for a method emitting ceiling-plane
+    odometry (it chains the increments between fixes); either starts from
+    ``start_pose`` when given."""
     pose, sigma = split_start_pose(start_pose)
     if not getattr(est.options, "plane_odometry", False):
         limits = TrackerOptions(max_speed_mps=fusion.max_speed_mps,
-                                max_turn_rps=fusion.max_turn_rps)
+                                max_turn_rps=fusion.max_turn_rps, noise=fusion.noise)
         return est, Tracker(limits, start_pose=pose, start_sigma=sigma)
     return est, Fusion(fusion, start_pose=pose, start_sigma=sigma)
 

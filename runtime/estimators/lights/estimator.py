@@ -480,13 +480,9 @@ class LightsEstimator(Estimator):
         c = self.matcher.verify(obs.q_v, prior.yaw_rad,
                                 np.array([float(prior.x_m), float(prior.y_m)]),
                                 self.prior_gate_m)
-        # scored as its twins are (TwinJudge.present); the prior is trusted only when
-        # most spots, and most lights the pose should see where the frame is dark,
-        # match (a stale prior must not pull a local false match), and it measures at
-        # least as many lights as it shows there unkept (:func:`unmeasured`'s rule): a
-        # lamp at the rim the checks did not keep is there, not missing (held-out
-        # seed 13 lamps1: 12 of 12 spots matched, 6-7 rim lamps unkept; counted as
-        # missing they lost the track after 15 frames)
+        # scored as its twins are (TwinJudge.present): trusted when most spots, and most
+        # lights it shows where the frame is dark, match (a stale prior must not pull a
+        # local false match) and it measures as many as it shows unkept (`unmeasured`)
         c = None if c is None else self.judge.present(obs, c)
         if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
                 and c.missing <= max(1, c.inliers // 2) and c.present <= c.inliers
