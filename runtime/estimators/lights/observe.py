@@ -5,7 +5,8 @@ lights a pose should show.
 light of the known diameter at their place in the image (or, for rectangular lamps
 (``light_size``), the lamp's rectangle projected at the spot's own orientation, its
 centroid offset taken off, lamps cut by the frame or the lens's edge dropped and
-those near it marked weak: :meth:`SpotObserver._rectangles`), and gives each its ceiling
+those near it marked weak: :meth:`SpotObserver._rectangles`; in a raw frame the lens's
+fall-off divided out first: :func:`falloff_gain`), and gives each its ceiling
 point in V (:func:`~ceilkit.runtime.estimators.lights.rays.ceiling_points`) and its
 pixel Jacobian (from a table). :class:`VisibilityTable` answers, for a pose, which
 map lights the detector should report (a lookup, not a projection).
@@ -25,6 +26,7 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from ceilkit.runtime.config.rig import Rig
@@ -65,6 +67,12 @@ RECT_MOMENTS = (0.3, 3.0)  # eigenvalues of C_pred⁻¹ S_obs (whitened second m
 RECT_ITERATIONS = 2  # centroid-offset corrections of a rectangle's centre
 EDGE_FIT_MIN = 4  # spots a two-level frame's threshold shift across the frame is fitted on
 EDGE_SHIFT_MAX_PX = 1.0  # most a spot's centroid is moved for that shift (px)
+FALLOFF_STEP = 4  # a raw frame's fall-off is read on every 4th pixel each way (falloff_gain)
+FALLOFF_BINS = 16  # ... in this many rings of equal rho² width
+FALLOFF_QUANTILE = 25.0  # ... each ring's ceiling grey: this percentile of its pixels
+FALLOFF_MIN_PX = 40  # ... of a ring that holds at least this many
+FALLOFF_MIN_RINGS = 6  # ... at least this many rings explained by the fit
+FALLOFF_MAX_RESIDUAL = 0.03  # ... the fit leaving no ring further off (of the centre's level)
 WINDOW_LIGHTS = 1.6  # the Niblack window spans at least this many of a light's typical image
 
 
@@ -259,6 +267,90 @@ def two_level(grey: np.ndarray) -> bool:
     if np.any((sample > 0) & (sample < 255)):
         return False
     return not np.any((g > 0) & (g < 255))
+
+
+class FalloffRings(NamedTuple):
+    """Where a raw frame's fall-off is read (:func:`falloff_rings`, :func:`falloff_gain`)."""
+
+    rho2: np.ndarray      # (H, W) float32: (distance from the principal point / half diagonal)²
+    sample: np.ndarray    # (M,) flat pixel indices read, ring by ring
+    starts: np.ndarray    # (R + 1,) each ring's first index into sample, and the end
+    x: np.ndarray         # (R,) each ring's mean rho2
+
+
+def falloff_rings(rig: Rig, valid_mask: np.ndarray) -> FalloffRings:
+    """The rings a frame's fall-off is read in: every :data:`FALLOFF_STEP`-th pixel each
+    way inside ``valid_mask``, in :data:`FALLOFF_BINS` rings of equal ``rho²`` width
+    (``rho``: the distance from the principal point over the half diagonal; a lens's
+    fall-off is a function of it), the rings of fewer than :data:`FALLOFF_MIN_PX` left
+    out."""
+    cam = rig.camera
+    h, w = cam.height, cam.width
+    u = (np.arange(w, dtype=np.float32) - np.float32(cam.cx))[None, :]
+    v = (np.arange(h, dtype=np.float32) - np.float32(cam.cy))[:, None]
+    rho2 = (u * u + v * v) / np.float32(0.25 * (w * w + h * h))
+    grid = np.zeros((h, w), bool)
+    grid[::FALLOFF_STEP, ::FALLOFF_STEP] = True
+    sample = np.flatnonzero(grid & (valid_mask > 0))
+    r2 = rho2.reshape(-1)[sample]
+    hi = float(r2.max()) if r2.size else 1.0
+    ring = np.minimum((r2 * (FALLOFF_BINS / max(hi, 1e-9))).astype(int), FALLOFF_BINS - 1)
+    keep = np.bincount(ring, minlength=FALLOFF_BINS)[ring] >= FALLOFF_MIN_PX
+    order = np.argsort(ring[keep], kind="stable")
+    sample, r2, ring = sample[keep][order], r2[keep][order], ring[keep][order]
+    starts = np.flatnonzero(np.r_[True, ring[1:] != ring[:-1], True])
+    x = np.add.reduceat(r2, starts[:-1]) / np.diff(starts) if r2.size else np.zeros(0)
+    return FalloffRings(rho2, sample, starts, x.astype(float))
+
+
+def falloff_gain(grey: np.ndarray, rings: FalloffRings) -> tuple[float, float] | None:
+    """``(b, c)`` of the frame's fall-off ``g = 1 + b rho² + c rho⁴`` (vignetting about
+    the principal point; :func:`falloff_rings`), read off its ceiling: each ring's
+    :data:`FALLOFF_QUANTILE` percentile (the ceiling's grey where lamps and their halos
+    cover less than the rest of a ring), fitted by least squares weighted by the square
+    root of the rings' counts; a ring the fit leaves more than
+    :data:`FALLOFF_MAX_RESIDUAL` of the centre's level off is left out (the worst
+    first: the dark corners beyond a fisheye's image, a wall) and the fit made again.
+    ``None`` when fewer than :data:`FALLOFF_MIN_RINGS` rings are left (not a radial
+    fall-off: a ceiling of two greys) or when the gain is outside (0.3, 1.05] in a kept
+    ring (not what a lens does)."""
+    g = grey.reshape(-1)[rings.sample]
+    st = rings.starts
+    ya = np.empty(len(st) - 1)
+    for i in range(len(st) - 1):
+        seg = g[st[i]:st[i + 1]]
+        kth = int(FALLOFF_QUANTILE / 100.0 * (seg.size - 1))
+        ya[i] = np.partition(seg, kth)[kth]
+    xa, wa = rings.x, np.sqrt(np.diff(st).astype(float))
+    while xa.size >= FALLOFF_MIN_RINGS:
+        A = np.stack([np.ones_like(xa), xa, xa * xa], axis=1)
+        coef = np.linalg.lstsq(A * wa[:, None], ya * wa, rcond=None)[0]
+        if not coef[0] > 0:
+            return None
+        res = np.abs(ya - A @ coef)
+        if res.max() <= FALLOFF_MAX_RESIDUAL * coef[0]:
+            gain = A @ coef / coef[0]
+            if gain.min() <= 0.3 or gain.max() > 1.05:
+                return None
+            return float(coef[1] / coef[0]), float(coef[2] / coef[0])
+        keep = np.arange(xa.size) != int(np.argmax(res))     # the worst ring left out
+        xa, ya, wa = xa[keep], ya[keep], wa[keep]
+    return None
+
+
+def deshaded(grey: np.ndarray, rho2: np.ndarray, bc: tuple[float, float]) -> np.ndarray:
+    """``grey`` (uint8) divided by the fall-off ``1 + b rho² + c rho⁴``
+    (:func:`falloff_gain`), rounded; a clipped pixel (255) stays 255 and no other
+    reaches it (at most 254): which lamps hold a clipped plateau is the sensor's
+    (``spots.lamp_mask`` reads it; made clipped, the unclipped 248-grey lamps of
+    held-out ``lamps1`` of seed 3 were hollowed again)."""
+    gain = rho2 * np.float32(bc[1])
+    gain += np.float32(bc[0])
+    gain *= rho2
+    gain += np.float32(1.0)
+    np.maximum(gain, np.float32(0.3), out=gain)
+    out = cv2.min(cv2.divide(grey, gain, dtype=cv2.CV_8U), 254)
+    return cv2.bitwise_or(out, cv2.compare(grey, 254, cv2.CMP_GT))
 
 
 def edge_shift_px(p: np.ndarray, area_px: np.ndarray, centre_px: np.ndarray,
@@ -478,6 +570,10 @@ class SpotObserver:
         self.mount = kernel_rig(rig, ceiling_height_m)
         self.checks = SpotChecks(float(light_radius_m), rig.camera.width,
                                  rig.camera.height, RIM_REACH, RIM_MARGIN_PX)
+        # rectangular lamps in raw frames: the lens's fall-off read off the ceiling
+        # and divided out first (falloff_gain)
+        self.falloff = None if light_size_m is None else falloff_rings(rig, valid_mask)
+        self.principal = np.array([rig.camera.cx, rig.camera.cy])
 
     def observe(self, grey: np.ndarray) -> Observation:
         """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
@@ -487,13 +583,18 @@ class SpotObserver:
         the nadir first, and the first ``max_spots`` that fit a light there are kept:
         regions that are not lights (a grille, a pipe crossing, a window: wrong size or
         shape for a light at their place) do not hide the lights behind them. One
-        detection: examining more regions costs little beside the threshold."""
+        detection: examining more regions costs little beside the threshold. A raw
+        frame of rectangular lamps is first divided by the lens's fall-off read off its
+        ceiling (:func:`falloff_gain`, :func:`deshaded`): under it a lamp's halo, in
+        its intensity-weighted centroid, moves the centroid towards the image centre."""
+        centre = self.principal.copy() if two_level(grey) else None
+        if self.falloff is not None and centre is None:
+            bc = falloff_gain(grey, self.falloff)
+            grey = grey if bc is None else deshaded(grey, self.falloff.rho2, bc)
         spots, q, ok, table = self._examine(grey, MAX_BUDGET_FACTOR * self.max_spots)
         if len(spots) == 0:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
-        cam = self.rig.camera
-        principal = np.array([cam.cx, cam.cy])
-        centre = principal if two_level(grey) else None
+        principal = self.principal.copy()
         weak = axis = excess = None
         if self.light_size_m is not None:
             q, ok, weak, axis, excess = self._rectangles(spots, q, ok, table, centre)
