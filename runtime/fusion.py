@@ -52,6 +52,7 @@ from ceilkit.runtime.estimators.prior import (
     DEFAULT_PRIOR_SIGMA,
     MAX_SPEED_MPS,
     MAX_TURN_RPS,
+    PRIOR_P,
 )
 from ceilkit.runtime.geometry import ekf
 from ceilkit.runtime.geometry.rotations import wrap_pi
@@ -496,7 +497,7 @@ class Fusion:
             fixes = [f for f in fixes if f is not start]
         else:
             near, contradicted, split = twins_near(self._f, t, cues, self.options,
-                                                   self.gates)
+                                                   prior_regions())
             fixes += near
         used = started + self._apply(t, fixes)
         if self._candidates and len(self._candidates) >= self.options.confirm:
@@ -746,13 +747,24 @@ def ambiguous_cues(cues: tuple) -> list[Failure]:
             if isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses]
 
 
+def prior_regions() -> dict[int, float]:
+    """The squared-distance bounds (by dof, 1-3) of the region in which a track may
+    choose among a frame's twins (:func:`twins_near`): the prior's, ``PRIOR_P``
+    (estimators/prior.py: the one rule every prior chooses by), not the fixes'
+    innovation gate (``gate_p``: wider; a kidnap on tiles put a quarter-turn twin of
+    the new pose at NIS 15.7, under the gate's 18.4 and over the region's 13.8, and
+    the track followed it: held-out lines seed 17's ``tiles0``, 30 wrong of 60)."""
+    return {k: ekf.chi2_quantile(PRIOR_P, k) for k in (1, 2, 3)}
+
+
 def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
                gates: Mapping[int, float]) -> tuple[list[_Fix], bool, bool]:
     """The track (its filter ``f`` at ``t_ns``) decides the frame's ambiguous cues
     (:func:`ambiguous_cues`): of each one's hypotheses, the one inside the track's
-    gate when it is the only one there and the list is complete
-    (``hypotheses_complete``: a pose left out of an incomplete list may be the one
-    inside), as a fix. Also whether a complete list puts several poses inside the gate
+    region (``gates``: :func:`prior_regions`) when it is the only one there and the
+    list is complete (``hypotheses_complete``: a pose left out of an incomplete list
+    may be the one inside), as a fix. Also whether a complete list puts several poses
+    inside the region
     (``split``: the frame does not single the track's pose out, so the track's pose
     is not published on it), and whether a cue contradicts the
     track: none of its poses is inside (a method given the track's prior lists the

@@ -592,3 +592,28 @@ def test_a_relocalized_track_is_covered_as_a_new_one_started_at_its_fix():
         a, b = out[k].estimate, fresh.update(fixes[k]).estimate
         assert (a.x_m, a.y_m, a.yaw_rad) == pytest.approx((b.x_m, b.y_m, b.yaw_rad), abs=1e-12)
         assert np.allclose(a.cov, b.cov, rtol=1e-9, atol=0.0)
+
+
+def test_a_twin_inside_the_gate_but_outside_the_prior_s_region_is_no_fix():
+    """Issue 36 (held-out lines seed 17, a kidnap on 0.6 m tiles): the track chooses among
+    a frame's twins in the region every prior chooses in (``PRIOR_P``,
+    estimators/prior.py), not in the fixes' wider innovation gate (``gate_p``). A
+    complete list whose only pose near the track lies between the two is no fix: the
+    frame contradicts the track (with the gate the track took a quarter-turn twin of
+    the kidnapped vehicle and followed it, 30 poses 2.2 m and 90 deg off)."""
+    from ceilkit.runtime.estimators.prior import PRIOR_P
+    from ceilkit.runtime.fusion import ambiguous_cues, hypothesis_cue
+    from ceilkit.runtime.geometry import ekf
+
+    fu = Fusion()
+    for k in range(5):
+        fu.update(_lights(k, 1.0, 2.0, mode="global"))
+    n = fu._f.node_at(5 * DT)
+    probe = ambiguous_cues((_ambiguous(5, [(1.0, 2.01, 0.0)]),))[0].hypotheses[0]
+    m = measurement(hypothesis_cue(n.t_ns, "lights", probe), fu.options)
+    nis = ekf.nis(*ekf.innovation(n.s, n.P, m.z, m.rows, m.R))
+    region, gate = chi2_quantile(PRIOR_P, 3), chi2_quantile(fu.options.gate_p, 3)
+    d = 0.01 * math.sqrt(0.5 * (region + gate) / nis)      # between the two
+    res = fu.update(_ambiguous(5, [(1.0, 2.0 + d, 0.0), (3.0, -2.0, math.pi)]))
+    assert not res.estimate
+    assert fu.contributions["lights"] == 5
