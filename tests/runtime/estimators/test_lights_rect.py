@@ -347,6 +347,17 @@ def test_a_lamp_larger_than_the_glare_bound_is_kept_whole():
     assert d.max() < 0.03, d
 
 
+def thresholded_drive(rig, site, poses, sim, level):
+    """``(estimator, poses, frames)``: ``poses`` ``(x, y, yaw_deg)`` rendered under ``sim``
+    and stored 0/255 at ``level`` (a camera that thresholds its frames)."""
+    frames = []
+    for k, (x, y, yaw_deg) in enumerate(poses):
+        img = render_frame(rig, site, x, y, math.radians(yaw_deg), sim,
+                           np.random.default_rng(k))
+        frames.append(np.where(img > level, 255, 0).astype(np.uint8))
+    return LightsEstimator(rig, site), poses, frames
+
+
 @pytest.fixture(scope="module")
 def bloomed():
     """Held-out ``lamps1`` of seed 7, rebuilt: a 183 deg fisheye tilted 23 deg under a
@@ -360,12 +371,7 @@ def bloomed():
     site = Site.from_node(Node({"ceiling_height": 3.646, "lights": lamps,
                                 "light_size": [1.037, 0.387], "light_yaw": 54.06}, None, ""))
     poses = [(-1.197, -0.115, -203.15), (-1.32, -0.057, -206.6), (-0.6, -0.23, -176.0)]
-    frames = []
-    for k, (x, y, yaw_deg) in enumerate(poses):
-        img = render_frame(rig, site, x, y, math.radians(yaw_deg),
-                           SimOptions(exposure=1.5, halo=100.0), np.random.default_rng(k))
-        frames.append(np.where(img > 246, 255, 0).astype(np.uint8))
-    return LightsEstimator(rig, site), poses, frames
+    return thresholded_drive(rig, site, poses, SimOptions(exposure=1.5, halo=100.0), 246)
 
 
 def test_bloomed_lamps_are_there_not_missing(bloomed):
@@ -406,12 +412,7 @@ def rim_lamps():
                                 "light_size": [0.613, 0.371], "light_yaw": 90.0}, None, ""))
     poses = [(-0.746, -0.9013, -128.12), (-0.9513, -1.1652, -127.545),
              (-1.053, -1.2978, -127.324)]
-    frames = []
-    for k, (x, y, yaw_deg) in enumerate(poses):
-        img = render_frame(rig, site, x, y, math.radians(yaw_deg),
-                           SimOptions(exposure=1.422, halo=59.58), np.random.default_rng(k))
-        frames.append(np.where(img > 228, 255, 0).astype(np.uint8))
-    return LightsEstimator(rig, site), poses, frames
+    return thresholded_drive(rig, site, poses, SimOptions(exposure=1.422, halo=59.58), 228)
 
 
 def test_a_prior_is_not_refused_for_lamps_the_checks_did_not_keep(rim_lamps):
