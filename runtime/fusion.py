@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import functools
 import math
 from collections import Counter, deque
 from collections.abc import Mapping, Sequence
@@ -496,8 +497,7 @@ class Fusion:
             relocalized, started = True, [start.cue.method]
             fixes = [f for f in fixes if f is not start]
         else:
-            near, contradicted, split = twins_near(self._f, t, cues, self.options,
-                                                   prior_regions())
+            near, contradicted, split = twins_near(self._f, t, cues, self.options)
             fixes += near
         used = started + self._apply(t, fixes)
         if self._candidates and len(self._candidates) >= self.options.confirm:
@@ -747,6 +747,7 @@ def ambiguous_cues(cues: tuple) -> list[Failure]:
             if isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses]
 
 
+@functools.cache
 def prior_regions() -> dict[int, float]:
     """The squared-distance bounds (by dof, 1-3) of the region in which a track may
     choose among a frame's twins (:func:`twins_near`): the prior's, ``PRIOR_P``
@@ -757,11 +758,11 @@ def prior_regions() -> dict[int, float]:
     return {k: ekf.chi2_quantile(PRIOR_P, k) for k in (1, 2, 3)}
 
 
-def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
-               gates: Mapping[int, float]) -> tuple[list[_Fix], bool, bool]:
+def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions
+               ) -> tuple[list[_Fix], bool, bool]:
     """The track (its filter ``f`` at ``t_ns``) decides the frame's ambiguous cues
     (:func:`ambiguous_cues`): of each one's hypotheses, the one inside the track's
-    region (``gates``: :func:`prior_regions`) when it is the only one there and the
+    region (:func:`prior_regions`) when it is the only one there and the
     list is complete (``hypotheses_complete``: a pose left out of an incomplete list
     may be the one inside), as a fix. Also whether a complete list puts several poses
     inside the region
@@ -772,6 +773,7 @@ def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
     that is ambiguous about a track's prior and lists no pose near it shows the vehicle
     elsewhere). A frame with no ambiguous cue costs no prediction."""
     ambiguous = ambiguous_cues(cues)
+    region = prior_regions()
     n = f.node_at(t_ns) if ambiguous else None
     out, contradicted, split = [], False, False
     for c in ambiguous:
@@ -779,7 +781,7 @@ def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions,
         for h in c.hypotheses:
             m = measurement(hypothesis_cue(n.t_ns, c.method, h), options)
             y, S = ekf.innovation(n.s, n.P, m.z, m.rows, m.R)
-            if ekf.nis(y, S) <= gates[len(m.rows)]:
+            if ekf.nis(y, S) <= region[len(m.rows)]:
                 inside.append(m)
         if len(inside) == 1 and c.hypotheses_complete:
             out.append(inside[0])

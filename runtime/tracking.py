@@ -55,7 +55,7 @@ from ceilkit.runtime.estimators.prior import (
     PRIOR_P,
     allows,
 )
-from ceilkit.runtime.geometry.ekf import MotionNoise, chi2_quantile
+from ceilkit.runtime.geometry.ekf import MotionNoise, chi2_quantile, cv_noise
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
 
@@ -318,10 +318,9 @@ def _advanced(st: _State, dt_s: float, noise: MotionNoise) -> tuple[_Axis, _Axis
     out = []
     for a, q in zip(st.axes, (noise.accel_mps2, noise.accel_mps2, noise.turn_rps2),
                     strict=True):
-        q2 = q * q
-        out.append(_Axis(a.p + a.v * dt, a.v,
-                         a.ppp + dt * (2.0 * a.ppv + dt * a.pvv) + q2 * dt ** 3 / 3.0,
-                         a.ppv + dt * a.pvv + q2 * dt * dt / 2.0, a.pvv + q2 * dt))
+        qpp, qpv, qvv = cv_noise(q, dt)
+        out.append(_Axis(a.p + a.v * dt, a.v, a.ppp + dt * (2.0 * a.ppv + dt * a.pvv) + qpp,
+                         a.ppv + dt * a.pvv + qpv, a.pvv + qvv))
     return out[0], out[1], out[2]
 
 

@@ -96,12 +96,19 @@ def predict_cv(s: np.ndarray, P: np.ndarray, dt_s: float,
     Q = np.zeros((N_STATE, N_STATE))
     for pos, vel, q in ((0, 3, noise.accel_mps2), (1, 4, noise.accel_mps2),
                         (2, 5, noise.turn_rps2)):
-        q2 = q * q
-        Q[pos, pos] = q2 * dt_s ** 3 / 3
-        Q[pos, vel] = Q[vel, pos] = q2 * dt_s ** 2 / 2
-        Q[vel, vel] = q2 * dt_s
+        Q[pos, pos], Q[pos, vel], Q[vel, vel] = cv_noise(q, dt_s)
+        Q[vel, pos] = Q[pos, vel]
     Q[SCALE, SCALE] = noise.scale_walk ** 2 * dt_s
     return s2, F @ P @ F.T + Q
+
+
+def cv_noise(q: float, dt_s: float) -> tuple[float, float, float]:
+    """The process noise ``(pp, pv, vv)`` of one axis (a position and its rate) over
+    ``dt_s`` under white acceleration of density ``q`` (per sqrt(Hz)): what
+    :func:`predict_cv` adds to each of its axes, and the single-method tracker to its
+    own (``tracking._advanced``)."""
+    q2 = q * q
+    return q2 * dt_s ** 3 / 3, q2 * dt_s ** 2 / 2, q2 * dt_s
 
 
 def predict_hold(s: np.ndarray, P: np.ndarray, dt_s: float,
