@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
-import functools
 import math
 from collections import Counter, deque
 from collections.abc import Mapping, Sequence
@@ -747,14 +746,15 @@ def ambiguous_cues(cues: tuple) -> list[Failure]:
             if isinstance(c, Failure) and c.reason == "ambiguous" and c.hypotheses]
 
 
-@functools.cache
 def prior_regions() -> dict[int, float]:
     """The squared-distance bounds (by dof, 1-3) of the region in which a track may
     choose among a frame's twins (:func:`twins_near`): the prior's, ``PRIOR_P``
     (estimators/prior.py: the one rule every prior chooses by), not the fixes'
     innovation gate (``gate_p``: wider; a kidnap on tiles put a quarter-turn twin of
     the new pose at NIS 15.7, under the gate's 18.4 and over the region's 13.8, and
-    the track followed it: held-out lines seed 17's ``tiles0``, 30 wrong of 60)."""
+    the track followed it: held-out lines seed 17's ``tiles0``, 30 wrong of 60). Three
+    look-ups in the quantile table warmed before the first frame, made only on frames
+    with an ambiguous cue (a cache of its own would be filled on frame 0)."""
     return {k: ekf.chi2_quantile(PRIOR_P, k) for k in (1, 2, 3)}
 
 
@@ -773,7 +773,7 @@ def twins_near(f: FilterBuffer, t_ns: int, cues: tuple, options: FusionOptions
     that is ambiguous about a track's prior and lists no pose near it shows the vehicle
     elsewhere). A frame with no ambiguous cue costs no prediction."""
     ambiguous = ambiguous_cues(cues)
-    region = prior_regions()
+    region = prior_regions() if ambiguous else {}
     n = f.node_at(t_ns) if ambiguous else None
     out, contradicted, split = [], False, False
     for c in ambiguous:
