@@ -311,6 +311,61 @@ def measurement(cue: PoseEstimate, options: FusionOptions) -> _Fix | None:
     return _Fix(cue, np.array(z), tuple(rows), R, None if period is None else float(period))
 
 
+class PlaneChain:
+    """Whether each ceiling-plane increment continues the vehicle's motion: its
+    velocity (the increment over its interval, in V) against the last accepted one's,
+    under the motion model's white acceleration (``noise``): the two intervals'
+    averages of a velocity whose rate is white noise of density ``q`` differ by a
+    variance ``q² (dt_a / 3 + gap + dt_b / 3)``, to which each increment's own
+    covariance over its interval squared is added. A normalized difference beyond
+    ``gate`` (the fusion's 3-dof gate) is a motion no vehicle made in that time: the
+    frame-to-frame registration of a repeating ceiling locked onto a twin of the
+    motion (one tile over, a quarter turn), or the vehicle was carried elsewhere.
+    Body-frame velocities are compared: a vehicle turning steadily keeps its own.
+    """
+
+    def __init__(self, noise: ekf.MotionNoise, gate: float):
+        self.q2 = np.array([noise.accel_mps2, noise.accel_mps2, noise.turn_rps2]) ** 2
+        self.gate = gate
+        self._last: tuple[int, float, np.ndarray, np.ndarray] | None = None
+        self.refused = 0                       # increments refused, and the last one's
+        self.refused_at: int | None = None     # frame time
+
+    def event(self, t_ns: int, cues: tuple) -> _Event | None:
+        """The filter's odometry event of the first cue's :class:`PlaneIncrement`
+        (the motion over ``[t0_ns, t_ns]``, unscaled), None when no cue carries one or
+        it is refused (:meth:`continues`: a frame motion no vehicle made, a kidnap or a
+        registration locked onto a twin of the motion; the motion model carries the
+        track over it)."""
+        inc = next((c.increment for c in cues if isinstance(c.increment, PlaneIncrement)),
+                   None)
+        if inc is None:
+            return None
+        if not self.continues(t_ns, inc):
+            self.refused, self.refused_at = self.refused + 1, t_ns
+            return None
+        return _Event(t_ns, "odo", ((inc.dx_m, inc.dy_m, inc.dyaw_rad),
+                                    np.asarray(inc.cov, float), False, int(inc.t0_ns)))
+
+    def continues(self, t_ns: int, inc: PlaneIncrement) -> bool:
+        """Whether ``inc`` (ending at ``t_ns``) is accepted; an accepted one becomes the
+        one the next is compared with (the first always is)."""
+        dt = (t_ns - int(inc.t0_ns)) * 1e-9
+        if dt <= 0:
+            return True
+        v = np.array([inc.dx_m, inc.dy_m, inc.dyaw_rad]) / dt
+        cv = np.asarray(inc.cov, float) / (dt * dt)
+        last = self._last
+        if last is not None:
+            t_end, dt_a, v_a, cv_a = last
+            gap = max(0.0, (int(inc.t0_ns) - t_end) * 1e-9)
+            S = cv + cv_a + np.diag(self.q2 * (dt_a / 3 + gap + dt / 3))
+            if not np.all(np.isfinite(S)) or ekf.nis(v - v_a, S) > self.gate:
+                return False
+        self._last = (int(t_ns), dt, v, cv)
+        return True
+
+
 class Fusion:
     """See the module docstring. Counts: ``relocalizations``, ``contributions`` (fixes
     applied per method), ``gated`` (per method), ``odometry_rows``."""
@@ -336,6 +391,7 @@ class Fusion:
         self._jumped = False         # a start pose was set: the next pose is a reset
         self.plane_increments = 0
         self._t_plane_ns: int | None = None   # the last ceiling-plane increment
+        self.chain = PlaneChain(self.options.noise, self.gates[3])
         self.start_poses = 0
         self.modes = ModeSet(self.options, self.gates)   # the poses an ambiguity leaves
         self.tr = TrackFlags()
@@ -419,22 +475,20 @@ class Fusion:
             (t_ns - self._t_wheel_ns) * 1e-9 <= self.options.odometry_timeout_s
 
     def _plane_increments(self, t_ns: int, cues: tuple) -> None:
-        """Ceiling-plane odometry carried by the cues (:class:`PlaneIncrement`): the
-        motion while no wheel odometry comes (with wheels, the camera's increment would
-        count the same motion twice)."""
+        """Ceiling-plane odometry (:meth:`PlaneChain.event`) while no wheel rows come
+        (they would count the motion twice); a refused one leaves the track in doubt
+        (``TrackFlags.split``: :meth:`TrackFlags.refuted`)."""
         if (self._f is None and not self.modes) or self._wheels(t_ns):
             return
-        for c in cues:
-            inc = c.increment
-            if isinstance(inc, PlaneIncrement):
-                ev = _Event(t_ns, "odo", ((inc.dx_m, inc.dy_m, inc.dyaw_rad),
-                                          np.asarray(inc.cov, float), False, int(inc.t0_ns)))
-                if self._f is not None:
-                    self._f.add(ev)
-                self.modes.add(ev)
-                self.plane_increments += 1
-                self._t_plane_ns = t_ns
-                return
+        ev = self.chain.event(t_ns, cues)
+        if ev is None:
+            self.tr.split |= self.chain.refused_at == t_ns
+            return
+        if self._f is not None:
+            self._f.add(ev)
+        self.modes.add(ev)
+        self.plane_increments += 1
+        self._t_plane_ns = t_ns
 
     def feed(self, odometry: Any, first: int, t_ns: int) -> int:
         """Feed rows ``first..`` of an :class:`~ceilkit.runtime.io.recording.Odometry`
@@ -598,7 +652,8 @@ class Fusion:
                     f, self.tr.confirmed, self._candidates = self._f, True, pending
                 self.tr.lateral_only |= 1 in fix.rows and 0 not in fix.rows
                 self.tr.x_fixed |= 0 in fix.rows
-                self.tr.fresh |= fix.cue.provenance is not Provenance.PRIOR
+                # not a window about the prior, nor a heading's branch it chose
+                self.tr.fresh |= fix.cue.provenance is Provenance.GLOBAL and fix.yaw_period is None
                 used.append(fix.cue.method)
                 self.contributions[fix.cue.method] += 1
                 if fix.full or 1 in fix.rows:
@@ -622,8 +677,9 @@ class TrackFlags:
         x_seen: a frame has measured x (else x is not published: a start pose's x,
             carried by odometry, is what the user stated); ``x_fixed``: this frame.
         disagree: frames in a row that did not confirm the track.
-        fresh: this frame applied a fix found without the track's prior (not
-            ``Provenance.PRIOR``).
+        fresh: this frame applied a fix found without the track's prior
+            (``Provenance.GLOBAL``: not chosen among twins by it, nor searched for about
+            it; not a heading whose branch it chose).
         carried: every frame since the last fix had odometry (wheel rows or its
             ceiling-plane increment): else the pose is the constant-velocity model's
             guess, which no frame checked, and is not published (a ``coasting``
@@ -1054,7 +1110,9 @@ class FusionReport:
                f"{fu.odometry_rows}"
                + (f" ({fu.odometry_refused} refused: out of reach)" if fu.odometry_refused
                   else "")
-               + f", ceiling-plane increments {fu.plane_increments}; "
+               + f", ceiling-plane increments {fu.plane_increments}"
+               + (f" ({fu.chain.refused} refused: a motion no vehicle made)"
+                  if fu.chain.refused else "") + "; "
                f"late rows re-filtered {fu.refiltered}"]
         if self.values:
             inside = [v <= ekf.chi2_quantile(0.95, d) for v, d in self.values]
