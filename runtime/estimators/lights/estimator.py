@@ -76,6 +76,7 @@ from ceilkit.runtime.estimators.lights.matching import (
     PatternMatcher,
 )
 from ceilkit.runtime.estimators.lights.observe import (
+    BLOOM_CENTRE_SHARE,
     DISC_AREA_MAX,
     RECT_AREA,
     RECT_CUT_REACH,
@@ -110,7 +111,7 @@ from ceilkit.runtime.estimators.prior import (
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.spots import SpotParams
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
-from ceilkit.runtime.geometry.fits import short_median
+from ceilkit.runtime.geometry.fits import covering, short_median
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.geometry.shutter import row_times_s
 
@@ -273,13 +274,14 @@ class LightsEstimator(Estimator):
         self.light_size_m = (site.light_size_m if o.light_diameter_m is None else None)
         self.observer, self.visibility = observe_stages(
             rig, self.ceiling_height_m, self.lights_w, o, diameter_m, self.light_size_m,
-            self.valid_mask, self.nadir_px)
+            self.valid_mask, self.nadir_px, self.spacing_m)
         self.matcher = PatternMatcher(self.lights_w, o.gate_m,
                                       max_pair_m(rig, self.ceiling_height_m, o.gate_m),
                                       visible=self.visibility)
         # the map's rigid self-similarities (a grid's cells): every pose's twins
         self.judge = TwinJudge(self.lights_w, self.matcher, self.extent, o,
-                               present_m(diameter_m, self.light_size_m, o.gate_m))
+                               present_m(diameter_m, self.light_size_m, o.gate_m),
+                               site.light_yaw_rad if self.light_size_m else None)
         # the window tracker reads discs: rectangular lights take the global path
         self.windows = None if not o.window_search or self.light_size_m else WindowTracker(
             rig, self.ceiling_height_m, self.lights_w, self.observer, self.visibility,
@@ -483,10 +485,10 @@ class LightsEstimator(Estimator):
         # scored as its twins are (TwinJudge.present): trusted when most spots, and most
         # lights it shows where the frame is dark, match (a stale prior must not pull a
         # local false match) and it measures as many as it shows unkept (`unmeasured`)
-        c = None if c is None else self.judge.present(obs, c)
+        c = None if c is None else self.judge.refitted(obs, self.judge.present(obs, c))
         if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
                 and c.missing <= max(1, c.inliers // 2) and c.present <= c.inliers
-                and allows(prior, (c.x_m, c.y_m, c.yaw_rad, None))):
+                and allows(prior, (c.x_m, c.y_m, c.yaw_rad, fit_cov(c, self.lights_w)))):
             if not self.options.twins or c.inliers < self.options.min_inliers:
                 return Chosen(c, None, "about_prior", (), False)
             # the twins the prior rules out (other cells: none inside its region),
@@ -610,12 +612,16 @@ def present_m(diameter_m: float, rect: tuple[float, float] | None, gate_m: float
 def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
                    o: LightsOptions, diameter_m: float,
                    rect: tuple[float, float] | None, valid_mask: np.ndarray,
-                   nadir: np.ndarray) -> tuple[SpotObserver, VisibilityTable]:
+                   nadir: np.ndarray, spacing_m: float = math.inf
+                   ) -> tuple[SpotObserver, VisibilityTable]:
     """The spot observer and the visibility table of the lights ``lights_w`` (m, W):
     discs of ``diameter_m``, or rectangles ``rect`` (length, width; m). A rectangle seen
     at a wide angle is a sliver: its shape is checked against the projected rectangle
     (:mod:`.observe`), not against the detector's round-spot bound; a lamp cut by the
-    view's edge is not counted missing within :data:`~.observe.RECT_CUT_REACH` of it."""
+    view's edge is not counted missing within :data:`~.observe.RECT_CUT_REACH` of it. A
+    lamp's region may be its rectangle bloomed by up to half the narrowest gap between
+    two lamps (``spacing_m``, the map's smallest distance between two lights, less the
+    rectangle's diagonal): a wider bloom would have merged the two."""
     factor = working_factor((rig.camera.height, rig.camera.width), o.working_mpx)
     spot_params = o.spot_params
     if spot_params is None and rect is None:    # the Niblack window fitted to the discs
@@ -632,7 +638,8 @@ def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
                                          valid_mask, factor)
     observer = SpotObserver(rig, ceiling_height_m, 0.5 * diameter_m, spot_params,
                             valid_mask, nadir, o.max_spots, factor, o.spot_stage,
-                            light_size_m=rect)
+                            light_size_m=rect, bloom_max_m=0.0 if rect is None else max(
+                                0.0, 0.5 * (min(spacing_m, 1e6) - math.hypot(*rect))))
     visibility = VisibilityTable(
         rig, ceiling_height_m, lights_w, valid_mask, nadir, o.max_spots, 0.5 * diameter_m,
         reach_m=None if rect is None else RECT_CUT_REACH * 0.5 * math.hypot(*rect))
@@ -657,6 +664,14 @@ def refine_candidate(obs: Observation, cand: Candidate, lights_w: np.ndarray,
     if bad.any() and pairs.shape[0] - int(bad.sum()) >= 2:
         pairs = pairs[~bad]
         fit = fit_rows(*rows, pairs, fit[:3], motion, noise)
+    grown = None if obs.bloom_m is None else obs.bloom_m[pairs[:, 0]]
+    if grown is not None and np.any(grown > 0):
+        # a bloomed lamp's centre keeps an error of its own for the frame, a share of how
+        # far it bloomed (observe.BLOOM_CENTRE_SHARE): a map error of that light's, which
+        # the fit's covariance is widened to cover (the residuals see part of it)
+        cov = covering(fit[3], map_cov(lights_w[pairs[:, 1]], fit[0], fit[1],
+                                       BLOOM_CENTRE_SHARE * grown))
+        fit = (*fit[:3], cov, fit[4])
     return RefinedPose(pairs, *fit)
 
 
@@ -717,6 +732,18 @@ def fit_rows(obs: Observation, lights_w: np.ndarray, readout_ms: float, height_p
         d[2] = wrap_pi(d[2])
         cov = cov + np.outer(d, d)
     return fit[0], fit[1], fit[2], cov, fit[4]
+
+
+def fit_cov(c: Candidate, lights_w: np.ndarray) -> np.ndarray | None:
+    """The covariance of a candidate's own pose, the association's unweighted rigid fit
+    on the map's ``lights_w``: its residual (``rms_m``, per axis over ``2K - 3`` degrees
+    of freedom) each light's error (:func:`~.refine.map_cov`). A pose found about a prior
+    lies in the prior's region within its own error. None with fewer than 3 pairs."""
+    k = c.inliers
+    if k < 3 or not math.isfinite(c.rms_m):
+        return None
+    sigma = c.rms_m * math.sqrt(k / (2 * k - 3))    # per axis: 2K residuals
+    return map_cov(lights_w[c.pairs[:, 1]], c.x_m, c.y_m, np.full(k, sigma))
 
 
 def window_diag(fix: WindowFix, site_ids: np.ndarray, rms_px: float, ms: float
