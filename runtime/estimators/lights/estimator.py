@@ -489,7 +489,14 @@ class LightsEstimator(Estimator):
         if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
                 and c.missing <= max(1, c.inliers // 2) and c.present <= c.inliers
                 and allows(prior, (c.x_m, c.y_m, c.yaw_rad, fit_cov(c, self.lights_w)))):
-            if not self.options.twins or c.inliers < self.options.min_inliers:
+            if not self.options.twins:
+                return Chosen(c, None, "about_prior", (), False)
+            if c.inliers < self.options.min_inliers:
+                # too few spots to list their twins: trusted only where the prior's
+                # region cannot hold a pose one light spacing away (a track coasting
+                # since its start pose put two unmapped lights on map lights 1.5 m off)
+                if not narrower_than(prior, self.spacing_m):
+                    return None
                 return Chosen(c, None, "about_prior", (), False)
             # the twins the prior rules out (other cells: none inside its region),
             # unless the frame itself prefers one: then the global search decides
