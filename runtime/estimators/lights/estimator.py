@@ -111,7 +111,7 @@ from ceilkit.runtime.estimators.prior import (
 from ceilkit.runtime.estimators.rows import ShutterOptions, row_motion
 from ceilkit.runtime.features.spots import SpotParams
 from ceilkit.runtime.features.working import WORKING_MPX, working_factor
-from ceilkit.runtime.geometry.fits import covering, short_median
+from ceilkit.runtime.geometry.fits import short_median
 from ceilkit.runtime.geometry.rotations import wrap_pi
 from ceilkit.runtime.geometry.shutter import row_times_s
 
@@ -674,10 +674,10 @@ def refine_candidate(obs: Observation, cand: Candidate, lights_w: np.ndarray,
     grown = None if obs.bloom_m is None else obs.bloom_m[pairs[:, 0]]
     if grown is not None and np.any(grown > 0):
         # a bloomed lamp's centre keeps an error of its own for the frame, a share of how
-        # far it bloomed (observe.BLOOM_CENTRE_SHARE): a map error of that light's, which
-        # the fit's covariance is widened to cover (the residuals see part of it)
-        cov = covering(fit[3], map_cov(lights_w[pairs[:, 1]], fit[0], fit[1],
-                                       BLOOM_CENTRE_SHARE * grown))
+        # far it bloomed (observe.BLOOM_CENTRE_SHARE): added as a map error of that light
+        # is (checked: map_error)
+        cov = fit[3] + map_cov(lights_w[pairs[:, 1]], fit[0], fit[1],
+                               BLOOM_CENTRE_SHARE * grown)
         fit = (*fit[:3], cov, fit[4])
     return RefinedPose(pairs, *fit)
 
