@@ -495,22 +495,9 @@ class LightsEstimator(Estimator):
                 # too few spots to list their twins: trusted only where the prior's
                 # region cannot hold a pose one light spacing away (a track coasting
                 # since its start pose put two unmapped lights on map lights 1.5 m off)
-                if not narrower_than(prior, self.spacing_m):
-                    return None
-                return Chosen(c, None, "about_prior", (), False)
-            # the twins the prior rules out (other cells: none inside its region),
-            # unless the frame itself prefers one: then the global search decides
-            weights = obs.weights()
-            own = self.judge.evidence(c, weights)
-            rivals, complete = self.judge.rivals(obs, c)
-            twins = [t for t in rivals
-                     if self.judge.evidence(t, weights) >= own - self.options.ambiguity_margin]
-            if all(self.judge.evidence(t, weights) <= own + self.options.ambiguity_margin
-                   for t in twins) and prior_choice(
-                    prior, [(t.x_m, t.y_m, t.yaw_rad, None) for t in [c] + twins]) == 0:
-                twins.sort(key=lambda t: -self.judge.evidence(t, weights))
-                return Chosen(c, None, "about_prior", tuple(twins),
-                              complete and len(twins) < MAX_HYPOTHESES)
+                return (Chosen(c, None, "about_prior", (), False)
+                        if narrower_than(prior, self.spacing_m) else None)
+            return prior_twins(self.judge, obs, c, prior, self.options.ambiguity_margin)
         return None
 
     def _hypotheses(self, obs: Observation, cands: list[Candidate],
@@ -605,6 +592,24 @@ def unmeasured(c: Candidate) -> str:
     carried a prior 10-14 cm off in three frames)."""
     return (f"{c.present} lights this pose shows are there but fit no light's shape, "
             f"{c.inliers} measured: the frame's lights are not measurable")
+
+
+def prior_twins(judge: TwinJudge, obs: Observation, c: Candidate, prior: PoseEstimate,
+                margin: float) -> Chosen | None:
+    """``c``, found about ``prior``, chosen with the twins the prior rules out (other
+    cells: none inside its region; :class:`Chosen`, mode ``about_prior``), or None: the
+    frame itself prefers one of them by more than ``margin`` (then the global search
+    decides) or the prior allows another."""
+    weights = obs.weights()
+    own = judge.evidence(c, weights)
+    rivals, complete = judge.rivals(obs, c)
+    twins = [t for t in rivals if judge.evidence(t, weights) >= own - margin]
+    if all(judge.evidence(t, weights) <= own + margin for t in twins) and prior_choice(
+            prior, [(t.x_m, t.y_m, t.yaw_rad, None) for t in [c] + twins]) == 0:
+        twins.sort(key=lambda t: -judge.evidence(t, weights))
+        return Chosen(c, None, "about_prior", tuple(twins),
+                      complete and len(twins) < MAX_HYPOTHESES)
+    return None
 
 
 def present_m(diameter_m: float, rect: tuple[float, float] | None, gate_m: float) -> float:
