@@ -8,7 +8,7 @@ the earlier one by their rigid fit in pixels and the corners are tracked again (
 window does not turn: it read every turn short); both sets are
 undistorted and met with the ceiling plane in V
 (:func:`~ceilkit.runtime.geometry.ceiling.ceiling_points_vehicle`);
-a rigid 2-D fit ``q_prev ~ R(dyaw) p_now + (dx, dy)`` with two passes dropping
+a rigid 2-D fit ``q_prev ~ R(dyaw) p_now + (dx, dy)`` with three passes dropping
 pairs off by more than 3 MADs, the first about the median translation (:func:`plane_motion`),
 gives the motion in the earlier frame's V. The covariance is the
 fit's residual scatter, ``s² (JᵀJ)⁻¹``, scaled by :data:`VAR_FACTOR`: the ratio of
@@ -116,8 +116,9 @@ class Increment:
 
 
 def plane_motion(q_prev: np.ndarray, p_now: np.ndarray) -> Increment | None:
-    """The rigid fit of ceiling points (V, ``(N, 2)`` each) with two outlier passes, the
-    first about the median translation (at the fit's turn): on held-out texture seed 9
+    """The rigid fit of ceiling points (V, ``(N, 2)`` each) after three outlier passes,
+    the first about the median translation (at the fit's turn), the next two about the
+    least-squares fit of the pairs kept: on held-out texture seed 9
     ``scatter0`` a vent grille's bars held a share of the tracks one bar off, and the
     least-squares start kept them: nine survey steps 5-7 % short at a stated 1.2 mm 1σ,
     48 mm by the tenth frame (now within 0.1 mm)."""
