@@ -80,9 +80,11 @@ from ceilkit.runtime.estimators.lights.observe import (
     DISC_AREA_MAX,
     RECT_AREA,
     RECT_CUT_REACH,
+    BloomPool,
     Observation,
     SpotObserver,
     VisibilityTable,
+    bloomed_area,
     fitted_lamp_window,
     fitted_light_bound,
     fitted_spot_params,
@@ -291,9 +293,10 @@ class LightsEstimator(Estimator):
         # window fixes since the last global search; the run's pixel noise, and the
         # last fit's own [SSR, ν] in [2:] (refine.NoisePool)
         self._window_fixes, self._pool, self._noise = 0, NoisePool(), NoisePool().array()
+        self._blooms = BloomPool()      # the run's recent blooms (observe.BloomPool)
 
-    def forget(self) -> None:  # Estimator.forget: the window counter, the noise pool
-        self._window_fixes, self._pool = 0, NoisePool()
+    def forget(self) -> None:  # Estimator.forget: the window counter, the pools
+        self._window_fixes, self._pool, self._blooms = 0, NoisePool(), BloomPool()
 
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
@@ -312,7 +315,8 @@ class LightsEstimator(Estimator):
             fast = self._tracked(grey, t_ns, prior, t0)
             if fast is not None:
                 return fast
-        obs = self.observer.observe(grey).outside(self.site, prior)   # SPEC §2 ignore
+        obs = self.observer.observe(grey, self._blooms).outside(self.site, prior)  # §2 ignore
+        self._blooms = self._blooms.added(obs.blooms_seen)
         diag = spot_diag(obs)
         short = too_few(len(obs.spots), self.options.min_inliers)
         if short is not None:
@@ -643,15 +647,18 @@ def observe_stages(rig: Rig, ceiling_height_m: float, lights_w: np.ndarray,
         # so the grown window's regions are used only where they hold no clipped plateau
         spot_params = fitted_lamp_window(SpotParams(min_axis_ratio=RECT_MIN_AXIS_RATIO), rig,
                                          ceiling_height_m, rect[0], valid_mask, factor)
+    bloom_max_m = 0.0 if rect is None else max(
+        0.0, 0.5 * (min(spacing_m, 1e6) - math.hypot(*rect)))
     if o.spot_params is None:   # a light's core larger than the glare bound is kept
         area_m2, upper = (rect[0] * rect[1], RECT_AREA[1]) if rect is not None else \
             (0.25 * math.pi * diameter_m ** 2, DISC_AREA_MAX)
+        if rect is not None and bloom_max_m > 0:   # ... and a lamp bloomed its farthest
+            upper = max(upper, bloomed_area(*rect, bloom_max_m) / area_m2)
         spot_params = fitted_light_bound(spot_params, rig, ceiling_height_m, area_m2, upper,
                                          valid_mask, factor)
     observer = SpotObserver(rig, ceiling_height_m, 0.5 * diameter_m, spot_params,
                             valid_mask, nadir, o.max_spots, factor, o.spot_stage,
-                            light_size_m=rect, bloom_max_m=0.0 if rect is None else max(
-                                0.0, 0.5 * (min(spacing_m, 1e6) - math.hypot(*rect))))
+                            light_size_m=rect, bloom_max_m=bloom_max_m)
     visibility = VisibilityTable(
         rig, ceiling_height_m, lights_w, valid_mask, nadir, o.max_spots, 0.5 * diameter_m,
         reach_m=None if rect is None else RECT_CUT_REACH * 0.5 * math.hypot(*rect))

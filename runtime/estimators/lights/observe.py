@@ -77,6 +77,17 @@ BLOOM_STEPS = 2  # corrections of a bloom's dilation to the spot's area (SpotObs
 # times the median of at least BLOOM_MIN_SPOTS blooms in its frame.
 BLOOM_SPREAD = 1.5
 BLOOM_MIN_SPOTS = 3
+# ... counted with the run's recent blooms (BloomPool): under a pinhole one or two lamps
+# are in view, and bloom beyond their rectangle's size check one at a time (held-out
+# lamps0 of seed 7: one bloom in 21 of 22 frames measured)
+BLOOM_MEMORY = 32
+# A two-level frame's lamp whose region reaches this far beyond its rectangle (px: the
+# area beyond it over its perimeter) is tried as a bloom even when the rectangle's size
+# check passes: the threshold cut its halo nearer the lamp on the side away from the
+# image centre, and its rectangle's centroid was 5-10 cm off (held-out lamps0 of seed 7,
+# 13,000-15,000 px regions of 7,000 px lamps). Unbloomed two-level lamps reach -0.7 to
+# 0.5 px (10th-90th percentile, the rc drives of seeds 7 and 13).
+BLOOM_MIN_PX = 2.0
 BLOOM_CENTRE_SHARE = 0.045
 """A bloomed lamp's centre error, per axis on the ceiling, as a share of its dilation
 (its frame's error of that light, added to the fit's covariance in ``refine.map_cov``'s
@@ -133,6 +144,9 @@ class Observation:
     # (N,) how far a bloomed lamp's region reaches beyond its rectangle on the ceiling
     # (m: SpotObserver._bloomed's dilation), 0 for a spot its rectangle fits
     bloom_m: np.ndarray | None = None
+    # the frame's blooms for the run's pool (BloomPool.added): (u, s) of every spot
+    # tried as a bloomed lamp whose dilation lies within bounds, kept or not
+    blooms_seen: tuple[np.ndarray, np.ndarray] | None = None
 
     def weights(self) -> np.ndarray:
         """``(N,)`` each spot's weight as evidence: 1, :data:`WEAK_WEIGHT` for a weak
@@ -163,6 +177,27 @@ class Observation:
                                    excess_px=None if self.excess_px is None
                                    else self.excess_px[keep],
                                    bloom_m=None if self.bloom_m is None else self.bloom_m[keep])
+
+
+@dataclass(frozen=True, eq=False)
+class BloomPool:
+    """A run's recent blooms (:meth:`SpotObserver._bloomed`): each spot's ``u`` (its
+    squared distance from the principal point over the half diagonal's) and dilation
+    ``s`` (m), the last :data:`BLOOM_MEMORY`. A frame's blooms are judged with them: the
+    median a bloom must lie near and the slope of the dilation across the view are
+    the run's, which one lamp in view cannot give. Held by the estimator between
+    frames (``LightsEstimator.forget`` empties it); empty, a frame is judged alone."""
+
+    u: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    s: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+
+    def added(self, seen: tuple[np.ndarray, np.ndarray] | None) -> BloomPool:
+        """The pool with a frame's ``blooms_seen`` added (the oldest dropped past
+        :data:`BLOOM_MEMORY`); itself when there are none."""
+        if seen is None or seen[0].size == 0:
+            return self
+        return BloomPool(np.concatenate([self.u, seen[0]])[-BLOOM_MEMORY:],
+                         np.concatenate([self.s, seen[1]])[-BLOOM_MEMORY:])
 
 
 class GridArrays(NamedTuple):
@@ -249,6 +284,12 @@ def bloom_outline(length_m: float, width_m: float, per_side: int = RECT_SIDE_POI
         out += [np.repeat(normals[k:k + 1], per_side, axis=0),
                 np.stack([np.cos(phi), np.sin(phi)], axis=1)]
     return np.concatenate(base), np.concatenate(out)
+
+
+def bloomed_area(length_m: float, width_m: float, s_m: float) -> float:
+    """Area (m²) of a ``length_m x width_m`` rectangle dilated by ``s_m`` (Steiner's
+    formula: its sides moved out, its corners rounded; :func:`bloom_outline`)."""
+    return length_m * width_m + 2.0 * (length_m + width_m) * s_m + math.pi * s_m * s_m
 
 
 def _project_rectangles(rig: Rig, ceiling_height_m: float, q_v: np.ndarray,
@@ -591,6 +632,24 @@ def bloom_slope(u: np.ndarray, s: np.ndarray, good: np.ndarray) -> float:
     return float(du @ (s[good] - s[good].mean()) / den)
 
 
+def judged_blooms(u: np.ndarray, s: np.ndarray, bounded: np.ndarray, pool: BloomPool
+                  ) -> tuple[np.ndarray, float]:
+    """``(good (K,), b)``: which of a frame's blooms ``s (K,)`` (m, at ``u (K,)``) are a
+    single lamp's, and the dilation's slope ``b`` across the view
+    (:func:`bloom_slope`), judged together with the run's recent blooms ``pool``
+    (:class:`BloomPool`). A bloom is kept when ``bounded`` and within
+    :data:`BLOOM_SPREAD` times the median of at least :data:`BLOOM_MIN_SPOTS`, the
+    frame's ``bounded`` ones and the pool's; the slope is fitted over those alike."""
+    pu = np.concatenate([pool.u, u[bounded]])
+    ps = np.concatenate([pool.s, s[bounded]])
+    if ps.size < BLOOM_MIN_SPOTS:
+        return np.zeros(s.shape, bool), 0.0
+    limit = BLOOM_SPREAD * float(np.median(ps))
+    with np.errstate(invalid="ignore"):
+        good = bounded & (s <= limit)
+    return good, bloom_slope(pu, ps, ps <= limit)
+
+
 def centred(rig: Rig, ceiling_height_m: float, c_obs: np.ndarray, q_v: np.ndarray,
             theta: np.ndarray, outline: np.ndarray, good: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray]:
@@ -676,7 +735,7 @@ class SpotObserver:
         self.falloff = None if light_size_m is None else falloff_rings(rig, valid_mask)
         self.principal = np.array([rig.camera.cx, rig.camera.cy])
 
-    def observe(self, grey: np.ndarray) -> Observation:
+    def observe(self, grey: np.ndarray, blooms: BloomPool | None = None) -> Observation:
         """The usable spots of a ``(H, W)`` uint8 frame, their ceiling points in V, a
         reliability order (nearest the camera first) and their pixel Jacobians.
 
@@ -687,7 +746,8 @@ class SpotObserver:
         detection: examining more regions costs little beside the threshold. A raw
         frame of rectangular lamps is first divided by the lens's fall-off read off its
         ceiling (:func:`falloff_gain`, :func:`deshaded`): under it a lamp's halo, in
-        its intensity-weighted centroid, moves the centroid towards the image centre."""
+        its intensity-weighted centroid, moves the centroid towards the image centre.
+        ``blooms``: the run's recent blooms, which a bloomed lamp is judged with."""
         centre = self.principal.copy() if two_level(grey) else None
         if self.falloff is not None and centre is None:
             bc = falloff_gain(grey, self.falloff)
@@ -696,9 +756,10 @@ class SpotObserver:
         if len(spots) == 0:
             return Observation(spots, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2, 2)))
         principal = self.principal.copy()
-        weak = axis = excess = bloom = None
+        weak = axis = excess = bloom = seen = None
         if self.light_size_m is not None:
-            q, ok, weak, axis, excess, bloom = self._rectangles(spots, q, ok, table, centre)
+            q, ok, weak, axis, excess, bloom, seen = self._rectangles(
+                spots, q, ok, table, centre, blooms or BloomPool())
         if int(ok.sum()) > self.max_spots:             # the first max_spots examined
             ok &= np.cumsum(ok) <= self.max_spots
         J = table[:, :4].reshape(-1, 2, 2)
@@ -713,14 +774,14 @@ class SpotObserver:
         rng = np.hypot(q[:, 0] - t_vc[0], q[:, 1] - t_vc[1])
         return Observation(spots, q, rng.argsort(kind="stable"), J,
                            candidates_px, ok, weak, axis, centre, excess, principal,
-                           rejected_v, bloom)
+                           rejected_v, bloom, seen)
 
     def _rectangles(self, spots: Spots, q: np.ndarray, ok: np.ndarray, table: np.ndarray,
-                    centre_px: np.ndarray | None = None
+                    centre_px: np.ndarray | None = None, blooms: BloomPool = BloomPool()
                     ) -> tuple[np.ndarray, ...]:
         """The checks of rectangular lights (``light_size``), for the spots ``ok`` so
-        far: ``(q, ok, weak, axis, excess, bloom)`` (:class:`Observation`'s ``weak``,
-        ``axis_v``, ``excess_px``, ``bloom_m``).
+        far: ``(q, ok, weak, axis, excess, bloom, seen)`` (:class:`Observation`'s
+        ``weak``, ``axis_v``, ``excess_px``, ``bloom_m``, ``blooms_seen``).
 
         A rectangle's orientation in V is not known without the pose: the spot's own
         second moments give it (modulo 180°; the long axis of ``J⁻¹ (S - blur) J⁻ᵀ``,
@@ -740,9 +801,10 @@ class SpotObserver:
         n = q.shape[0]
         weak = np.zeros(n, bool)
         axis, excess, bloom = np.zeros(n), np.zeros(n), np.zeros(n)
+        seen = None
         idx = np.flatnonzero(ok)
         if idx.size == 0:
-            return q, ok, weak, axis, excess, bloom
+            return q, ok, weak, axis, excess, bloom, seen
         rig, h = self.rig, self.ceiling_height_m
         c_obs = spots.centroids_px[idx]
         S = spots.cov_px[idx]
@@ -772,10 +834,19 @@ class SpotObserver:
         fits = good & (ratio >= RECT_AREA[0]) & (ratio <= RECT_AREA[1])
         fits &= moments_fit(cov_p, S, good) & self._inside(qk, theta, outline * RECT_CUT_REACH)
         weak_k = ~self._inside(qk, theta, outline * RECT_WEAK_REACH)
-        big = np.flatnonzero(good & (ratio > RECT_AREA[1])) if self.bloom_max_m > 0 else ()
+        big = good & (ratio > RECT_AREA[1])
+        if centre_px is not None:   # a two-level frame: a quiet bloom, too (BLOOM_MIN_PX)
+            big |= fits & (excess[idx] > BLOOM_MIN_PX)
+        big = np.flatnonzero(big) if self.bloom_max_m > 0 else ()
         if len(big):
-            qk[big], fits[big], weak_k[big], grown = self._bloomed(
-                c_obs[big], qk[big], theta[big], S[big], area_o[big], np.abs(det[big]))
+            qb, fb, wb, grown, seen = self._bloomed(
+                c_obs[big], qk[big], theta[big], S[big], area_o[big], np.abs(det[big]),
+                blooms)
+            # a quiet bloom is measured as its rectangle while the run has too few blooms
+            # to judge one by (a run's first frames)
+            judged = blooms.s.size + seen[1].size >= BLOOM_MIN_SPOTS
+            use = (ratio[big] > RECT_AREA[1]) | judged
+            qk[big[use]], fits[big[use]], weak_k[big[use]] = qb[use], fb[use], wb[use]
             bloom[idx[big]] = grown
         q = q.copy()
         q[idx] = qk
@@ -786,12 +857,13 @@ class SpotObserver:
         with np.errstate(invalid="ignore", divide="ignore"):
             shows = lam[:, 1] >= AXIS_MIN_ELONGATION * np.maximum(lam[:, 0], 0.0)
         axis[idx] = np.where(good & shows, theta, np.nan)
-        return q, ok, weak, axis, excess, bloom
+        return q, ok, weak, axis, excess, bloom, seen
 
     def _bloomed(self, c_obs: np.ndarray, q_v: np.ndarray, theta: np.ndarray, S: np.ndarray,
-                 area_px: np.ndarray, det_px: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(q, ok, weak, s)`` of ``K`` spots too large for their lamp's rectangle, each
+                 area_px: np.ndarray, det_px: np.ndarray, blooms: BloomPool = BloomPool()
+                 ) -> tuple[np.ndarray, ...]:
+        """``(q, ok, weak, s, seen)`` of ``K`` spots too large for their lamp's rectangle
+        (``seen``: the ``(u, s)`` of those within ``bloom_max_m``, for the pool), each
         tried as that rectangle dilated by ``s`` metres on the ceiling (its sides moved
         out, its corners rounded: :func:`bloom_outline`): a lamp whose halo, or the
         lens's glare, lies over the threshold round it. ``s`` is the one that covers the
@@ -799,9 +871,10 @@ class SpotObserver:
         determinant ``det_px``, then :data:`BLOOM_STEPS` corrections on the projected
         outline); the spot is kept when ``0 < s <= bloom_max_m`` (a bloom wider than
         half the gap between two lamps would merge them), ``s`` is within
-        :data:`BLOOM_SPREAD` times the median of the frame's blooms (at least
-        :data:`BLOOM_MIN_SPOTS` of them: one region of two merged lamps reaches about
-        twice as far as each would), its whitened second moments
+        :data:`BLOOM_SPREAD` times the median of the frame's and the run's recent blooms
+        (``blooms``; at least :data:`BLOOM_MIN_SPOTS` of them: one region of two merged
+        lamps reaches about twice as far as each would; :func:`judged_blooms`), its
+        whitened second moments
         fit the dilated outline (:data:`RECT_MOMENTS`) and that outline, like a
         rectangle's, lies inside the frame and the view. A symmetric dilation leaves the
         centre where it was; the lens's fall-off does not: the threshold cuts the halo
@@ -820,18 +893,14 @@ class SpotObserver:
                 img = _project_rectangles(rig, h, q_v, theta, base + s[:, None, None] * out)
                 s = s + (area_px - polygon_moments(img)[0]) / (
                     polygon_perimeters(img) * np.sqrt(det_px))
-        good = np.isfinite(s) & (s > 0) & (s <= self.bloom_max_m)
-        if int(good.sum()) >= BLOOM_MIN_SPOTS:    # two merged lamps: a bloom too wide
-            good &= s <= BLOOM_SPREAD * np.median(s[good])
-        else:
-            good[:] = False
-        # the dilation falls off across the view with the lens's fall-off: its slope over
-        # the frame's blooms spread along each outline (its centroid moves with it)
-        s_k = np.where(good, s, 0.0)[:, None]
+        bounded = np.isfinite(s) & (s > 0) & (s <= self.bloom_max_m)
         cam = rig.camera
         half_diag2 = 0.25 * (cam.width ** 2 + cam.height ** 2)
         u = np.sum((c_obs - self.principal) ** 2, axis=1) / half_diag2
-        b = bloom_slope(u, s, good)
+        good, b = judged_blooms(u, s, bounded, blooms)
+        # the dilation falls off across the view with the lens's fall-off: its slope over
+        # the blooms spread along each outline (its centroid moves with it)
+        s_k = np.where(good, s, 0.0)[:, None]
         if b != 0.0:
             img = _project_rectangles(rig, h, q_v, theta, base + s_k[..., None] * out)
             u_k = np.sum((img - self.principal) ** 2, axis=2) / half_diag2
@@ -841,7 +910,7 @@ class SpotObserver:
         cov_p = polygon_moments(_project_rectangles(rig, h, q_v, theta, outline))[1]
         good &= moments_fit(cov_p, S, good) & self._inside(q_v, theta, outline * RECT_CUT_REACH)
         return (q_v, good, ~self._inside(q_v, theta, outline * RECT_WEAK_REACH),
-                np.where(good, s, 0.0))
+                np.where(good, s, 0.0), (u[bounded], s[bounded]))
 
     def _inside(self, q_v: np.ndarray, theta: np.ndarray, outline: np.ndarray) -> np.ndarray:
         """``(K,)`` whether rectangles (``outline`` about ``q_v`` turned by ``theta``)
