@@ -658,10 +658,12 @@ def centred(rig: Rig, ceiling_height_m: float, c_obs: np.ndarray, q_v: np.ndarra
     P, 2)``, turned by ``theta`` about each; :func:`_project_rectangles`), by
     :data:`RECT_ITERATIONS` corrections from ``q_v``: an outline's centroid is the image
     of its centre only on the ceiling. ``good`` loses the ones no ray reaches."""
+    # the centre projected with the outline, as its last point (one projection)
+    with_centre = np.concatenate(
+        [outline, np.zeros(outline.shape[:-2] + (1, 2))], axis=-2)
     for _ in range(RECT_ITERATIONS):
-        img = _project_rectangles(rig, ceiling_height_m, q_v, theta, outline)
-        centre = project_lights(rig, ceiling_height_m, q_v, 0.0, 0.0, 0.0)
-        off = polygon_centroids(img) - centre
+        img = _project_rectangles(rig, ceiling_height_m, q_v, theta, with_centre)
+        off = polygon_centroids(img[:, :-1]) - img[:, -1]
         bad = ~np.all(np.isfinite(off), axis=1)
         qn, okn = ceiling_points(rig, ceiling_height_m,
                                  c_obs - np.where(bad[:, None], 0.0, off))
@@ -832,8 +834,9 @@ class SpotObserver:
             ratio = area_o / area_p
             excess[idx] = np.nan_to_num((area_o - area_p) / polygon_perimeters(img))
         fits = good & (ratio >= RECT_AREA[0]) & (ratio <= RECT_AREA[1])
-        fits &= moments_fit(cov_p, S, good) & self._inside(qk, theta, outline * RECT_CUT_REACH)
-        weak_k = ~self._inside(qk, theta, outline * RECT_WEAK_REACH)
+        uncut, strong = self._inside(qk, theta, outline)
+        fits &= moments_fit(cov_p, S, good) & uncut
+        weak_k = ~strong
         big = good & (ratio > RECT_AREA[1])
         if centre_px is not None:   # a two-level frame: a quiet bloom, too (BLOOM_MIN_PX)
             big |= fits & (excess[idx] > BLOOM_MIN_PX)
@@ -908,21 +911,29 @@ class SpotObserver:
         outline = base + s_k[..., None] * out
         q_v, good = centred(rig, h, c_obs, q_v, theta, outline, good)
         cov_p = polygon_moments(_project_rectangles(rig, h, q_v, theta, outline))[1]
-        good &= moments_fit(cov_p, S, good) & self._inside(q_v, theta, outline * RECT_CUT_REACH)
-        return (q_v, good, ~self._inside(q_v, theta, outline * RECT_WEAK_REACH),
+        uncut, strong = self._inside(q_v, theta, outline)
+        good &= moments_fit(cov_p, S, good) & uncut
+        return (q_v, good, ~strong,
                 np.where(good, s, 0.0), (u[bounded], s[bounded]))
 
-    def _inside(self, q_v: np.ndarray, theta: np.ndarray, outline: np.ndarray) -> np.ndarray:
-        """``(K,)`` whether rectangles (``outline`` about ``q_v`` turned by ``theta``)
-        project inside the frame by :data:`RIM_MARGIN_PX` and inside the view mask."""
-        img = _project_rectangles(self.rig, self.ceiling_height_m, q_v, theta, outline)
-        fin = np.all(np.isfinite(img), axis=(1, 2))
+    def _inside(self, q_v: np.ndarray, theta: np.ndarray, outline: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """``(uncut, strong)``, each ``(K,)``: whether rectangles (``outline``, ``(P, 2)`` or
+        ``(K, P, 2)``, about ``q_v`` turned by ``theta``) grown :data:`RECT_CUT_REACH`
+        and :data:`RECT_WEAK_REACH` times project inside the frame by
+        :data:`RIM_MARGIN_PX` and inside the view mask (both in one projection)."""
+        both = np.concatenate(np.broadcast_arrays(outline * RECT_CUT_REACH,
+                                                  outline * RECT_WEAK_REACH), axis=-2)
+        img = _project_rectangles(self.rig, self.ceiling_height_m, q_v, theta, both)
+        fin = np.isfinite(img).all(axis=2)
         flat = np.nan_to_num(img.reshape(-1, 2), nan=-1e9)
         cam = self.rig.camera
         inside = cam.in_image(flat, margin_px=RIM_MARGIN_PX).reshape(img.shape[:2])
         uv = np.clip(np.rint(flat), 0, [cam.width - 1, cam.height - 1]).astype(int)
         in_mask = (self.valid_mask[uv[:, 1], uv[:, 0]] > 0).reshape(img.shape[:2])
-        return fin & np.all(inside & in_mask, axis=1)
+        ok = fin & inside & in_mask
+        p = outline.shape[-2]
+        return np.all(ok[:, :p], axis=1), np.all(ok[:, p:], axis=1)
 
     def _examine(self, grey: np.ndarray, budget: int
                  ) -> tuple[Spots, np.ndarray, np.ndarray, np.ndarray]:
