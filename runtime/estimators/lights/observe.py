@@ -149,8 +149,10 @@ class Observation:
     # bright region where a light may be that the checks could not measure (a bloomed
     # or cut lamp), so a map light there is not missing (twins.TwinJudge.present)
     rejected_v: np.ndarray | None = None
-    # (N,) how far a bloomed lamp's region reaches beyond its rectangle on the ceiling
-    # (m: SpotObserver._bloomed's dilation), 0 for a spot its rectangle fits
+    # (N,) the dilation (m) a bloomed lamp's centre error is a share of
+    # (BLOOM_CENTRE_SHARE): its region's reach beyond its rectangle on the ceiling
+    # (SpotObserver._bloomed), at least the median of the frame's and the run's blooms
+    # (one cut short by the fall-off is no better placed); 0 for a spot its rectangle fits
     bloom_m: np.ndarray | None = None
     # the frame's blooms for the run's pool (BloomPool.added): (u, s) of every spot
     # tried as a bloomed lamp whose dilation lies within bounds, kept or not
@@ -641,21 +643,22 @@ def bloom_slope(u: np.ndarray, s: np.ndarray, good: np.ndarray) -> float:
 
 
 def judged_blooms(u: np.ndarray, s: np.ndarray, bounded: np.ndarray, pool: BloomPool
-                  ) -> tuple[np.ndarray, float]:
-    """``(good (K,), b)``: which of a frame's blooms ``s (K,)`` (m, at ``u (K,)``) are a
-    single lamp's, and the dilation's slope ``b`` across the view
-    (:func:`bloom_slope`), judged together with the run's recent blooms ``pool``
+                  ) -> tuple[np.ndarray, float, float]:
+    """``(good (K,), b, median)``: which of a frame's blooms ``s (K,)`` (m, at ``u
+    (K,)``) are a single lamp's, the dilation's slope ``b`` across the view
+    (:func:`bloom_slope`) and the blooms' median, judged together with the run's recent
+    blooms ``pool``
     (:class:`BloomPool`). A bloom is kept when ``bounded`` and within
     :data:`BLOOM_SPREAD` times the median of at least :data:`BLOOM_MIN_SPOTS`, the
     frame's ``bounded`` ones and the pool's; the slope is fitted over those alike."""
     pu = np.concatenate([pool.u, u[bounded]])
     ps = np.concatenate([pool.s, s[bounded]])
     if ps.size < BLOOM_MIN_SPOTS:
-        return np.zeros(s.shape, bool), 0.0
-    limit = BLOOM_SPREAD * float(np.median(ps))
+        return np.zeros(s.shape, bool), 0.0, 0.0
+    median = float(np.median(ps))
     with np.errstate(invalid="ignore"):
-        good = bounded & (s <= limit)
-    return good, bloom_slope(pu, ps, ps <= limit)
+        good = bounded & (s <= BLOOM_SPREAD * median)
+    return good, bloom_slope(pu, ps, ps <= BLOOM_SPREAD * median), median
 
 
 def centred(rig: Rig, ceiling_height_m: float, c_obs: np.ndarray, q_v: np.ndarray,
@@ -910,7 +913,7 @@ class SpotObserver:
         cam = rig.camera
         half_diag2 = 0.25 * (cam.width ** 2 + cam.height ** 2)
         u = np.sum((c_obs - self.principal) ** 2, axis=1) / half_diag2
-        good, b = judged_blooms(u, s, bounded, blooms)
+        good, b, median = judged_blooms(u, s, bounded, blooms)
         # the dilation falls off across the view with the lens's fall-off: its slope over
         # the blooms spread along each outline (its centroid moves with it)
         s_k = np.where(good, s, 0.0)[:, None]
@@ -923,8 +926,10 @@ class SpotObserver:
         cov_p = polygon_moments(_project_rectangles(rig, h, q_v, theta, outline))[1]
         uncut, strong = self._inside(q_v, theta, outline)
         good &= moments_fit(cov_p, S, good) & uncut
+        # a bloom cut short by the fall-off (towards the view's edge) keeps the centre
+        # error of the run's typical bloom (BLOOM_CENTRE_SHARE)
         return (q_v, good, ~strong,
-                np.where(good, s, 0.0), (u[bounded], s[bounded]))
+                np.where(good, np.maximum(s, median), 0.0), (u[bounded], s[bounded]))
 
     def _inside(self, q_v: np.ndarray, theta: np.ndarray, outline: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:
