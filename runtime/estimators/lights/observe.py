@@ -642,6 +642,26 @@ def bloom_slope(u: np.ndarray, s: np.ndarray, good: np.ndarray) -> float:
     return float(du @ (s[good] - s[good].mean()) / den)
 
 
+def lamp_axes(J: np.ndarray, S: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(det, good, theta, shows)`` of ``K`` spots: the local ceiling-to-pixel
+    Jacobians' determinants ``J (K, 2, 2)`` and where they are usable, the long axis in V
+    (rad, mod pi) of each spot's second moments ``S (K, 2, 2)`` taken to the ceiling
+    (``J⁻¹ (S - blur) J⁻ᵀ``, the optics' blur :data:`RECT_BLUR_PX2` off), and whether the
+    spot is elongated enough to show it (:data:`AXIS_MIN_ELONGATION`)."""
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    good = np.isfinite(det) & (np.abs(det) > 1e-9)
+    Ji = np.linalg.inv(np.where(good[:, None, None], J, np.eye(2)))
+    lo = np.linalg.eigvalsh(S)[:, 0]
+    blur = np.minimum(RECT_BLUR_PX2, 0.5 * np.maximum(lo, 0.0))
+    M = Ji @ (S - blur[:, None, None] * np.eye(2)) @ np.swapaxes(Ji, 1, 2)
+    theta = 0.5 * np.arctan2(2 * M[:, 0, 1], M[:, 0, 0] - M[:, 1, 1])
+    lam = np.linalg.eigvalsh(0.5 * (M + np.swapaxes(M, 1, 2)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shows = lam[:, 1] >= AXIS_MIN_ELONGATION * np.maximum(lam[:, 0], 0.0)
+    return det, good, theta, shows
+
+
 def judged_blooms(u: np.ndarray, s: np.ndarray, bounded: np.ndarray, pool: BloomPool
                   ) -> tuple[np.ndarray, float, float]:
     """``(good (K,), b, median)``: which of a frame's blooms ``s (K,)`` (m, at ``u
@@ -822,14 +842,7 @@ class SpotObserver:
         rig, h = self.rig, self.ceiling_height_m
         c_obs = spots.centroids_px[idx]
         S = spots.cov_px[idx]
-        J = table[idx, :4].reshape(-1, 2, 2)
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        good = np.isfinite(det) & (np.abs(det) > 1e-9)
-        Ji = np.linalg.inv(np.where(good[:, None, None], J, np.eye(2)))
-        lo = np.linalg.eigvalsh(S)[:, 0]
-        blur = np.minimum(RECT_BLUR_PX2, 0.5 * np.maximum(lo, 0.0))
-        M = Ji @ (S - blur[:, None, None] * np.eye(2)) @ np.swapaxes(Ji, 1, 2)
-        theta = 0.5 * np.arctan2(2 * M[:, 0, 1], M[:, 0, 0] - M[:, 1, 1])
+        det, good, theta, shows = lamp_axes(table[idx, :4].reshape(-1, 2, 2), S)
         outline = rectangle_outline(*self.light_size_m)          # (P, 2), long side on x
         qk = q[idx].copy()
         if centre_px is not None:     # a two-level frame: the threshold's shift taken off
@@ -869,9 +882,6 @@ class SpotObserver:
         ok = ok.copy()
         ok[idx] = fits
         weak[idx] = weak_k
-        lam = np.linalg.eigvalsh(0.5 * (M + np.swapaxes(M, 1, 2)))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            shows = lam[:, 1] >= AXIS_MIN_ELONGATION * np.maximum(lam[:, 0], 0.0)
         axis[idx] = np.where(good & shows, theta, np.nan)
         return q, ok, weak, axis, excess, bloom, seen
 
