@@ -102,6 +102,7 @@ from ceilkit.runtime.estimators.lights.track import WindowFix, WindowTracker
 from ceilkit.runtime.estimators.lights.twins import (
     MAX_HYPOTHESES,
     MAX_TWIN_CHECKS,
+    DetectionRates,
     TwinJudge,
 )
 from ceilkit.runtime.estimators.prior import (
@@ -290,13 +291,14 @@ class LightsEstimator(Estimator):
             o.window_px, (o.spot_params or SpotParams()).min_contrast,
             TRACK_MIN_SHARE, o.max_residual_px, OUTLIER_MEDIANS, self.prior_gate_m,
             PRIOR_RESOLVE[1])
-        # window fixes since the last global search; the run's pixel noise, and the
-        # last fit's own [SSR, ν] in [2:] (refine.NoisePool)
-        self._window_fixes, self._pool, self._noise = 0, NoisePool(), NoisePool().array()
-        self._blooms = BloomPool()      # the run's recent blooms (observe.BloomPool)
+        # the last fit's own [SSR, ν] in [2:] (refine.NoisePool); the run's window fixes,
+        # pixel noise, blooms (observe.BloomPool), detection rates (twins): forget()
+        self._noise = NoisePool().array()
+        self.forget()
 
-    def forget(self) -> None:  # Estimator.forget: the window counter, the pools
+    def forget(self) -> None:  # Estimator.forget: the window counter, the pools, the rates
         self._window_fixes, self._pool, self._blooms = 0, NoisePool(), BloomPool()
+        self._detect = DetectionRates()
 
     def _estimate(self, grey: np.ndarray, t_ns: int, prior: PoseEstimate | None,
                   t0: float) -> Estimate:
@@ -317,6 +319,7 @@ class LightsEstimator(Estimator):
                 return fast
         obs = self.observer.observe(grey, self._blooms).outside(self.site, prior)  # §2 ignore
         self._blooms = self._blooms.added(obs.blooms_seen)
+        obs = dataclasses.replace(obs, detect=self._detect) if self._detect.missed else obs
         diag = spot_diag(obs)
         short = too_few(len(obs.spots), self.options.min_inliers)
         if short is not None:
@@ -342,8 +345,10 @@ class LightsEstimator(Estimator):
                      "runner_up_score": None if runner is None else runner.score,
                      "ms": elapsed_ms(t0)})
         out = self.checked(t_ns, x, y, yaw, quality, cov, res, diag)
-        if isinstance(out, PoseEstimate) and pools(obs, self.options):
-            self._pool = self._pool.added(self._noise[2:])
+        if isinstance(out, PoseEstimate):
+            if pools(obs, self.options):
+                self._pool = self._pool.added(self._noise[2:])
+            self._detect = self._detect.added(*self.judge.detections(obs, cand))
         if twins and isinstance(out, PoseEstimate):
             # a prior-resolved pose: the published one first, then the twins it ruled out
             hyps = self._hypotheses(obs, [cand, *twins], prior, out.cov)
@@ -491,7 +496,7 @@ class LightsEstimator(Estimator):
         # local false match) and it measures as many as it shows unkept (`unmeasured`)
         c = None if c is None else self.judge.refitted(obs, self.judge.present(obs, c))
         if (c is not None and c.inliers >= max(2, math.ceil(TRACK_MIN_SHARE * n))
-                and c.missing <= max(1, c.inliers // 2) and c.present <= c.inliers
+                and c.missing - c.unseen <= max(1, c.inliers // 2) and c.present <= c.inliers
                 and allows(prior, (c.x_m, c.y_m, c.yaw_rad, fit_cov(c, self.lights_w)))):
             if not self.options.twins:
                 return Chosen(c, None, "about_prior", (), False)

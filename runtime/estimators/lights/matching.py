@@ -114,6 +114,9 @@ class Candidate:
         present: map lights it should show that matched nothing but lie where the frame
             has a region the checks did not keep (not in ``missing``:
             :meth:`~.twins.TwinJudge.present`).
+        unseen: of ``missing``, how many the run's detector would have missed anyway
+            (each missing light's miss rate where the frame shows it:
+            :class:`~.twins.DetectionRates`); no evidence against the pose.
     """
 
     x_m: float
@@ -124,6 +127,7 @@ class Candidate:
     rms_m: float
     missing: int = 0
     present: int = 0
+    unseen: float = 0.0
 
     @property
     def inliers(self) -> int:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -111,6 +111,10 @@ FALLOFF_QUANTILE = 25.0  # ... each ring's ceiling grey: this percentile of its 
 FALLOFF_MIN_PX = 40  # ... of a ring that holds at least this many
 FALLOFF_MIN_RINGS = 6  # ... at least this many rings explained by the fit
 FALLOFF_MAX_RESIDUAL = 0.03  # ... the fit leaving no ring further off (of the centre's level)
+VIEW_PATCHES = (8, 6)
+"""The image's patches (across, down) a light's detection rate is learned in
+(:class:`~.twins.DetectionRates`): a tilted lens images the ceiling at one distance from
+its centre near on one side and far on the other, so the rate goes by place, not radius."""
 WINDOW_LIGHTS = 1.6  # the Niblack window spans at least this many of a light's typical image
 
 
@@ -157,6 +161,9 @@ class Observation:
     # the frame's blooms for the run's pool (BloomPool.added): (u, s) of every spot
     # tried as a bloomed lamp whose dilation lies within bounds, kept or not
     blooms_seen: tuple[np.ndarray, np.ndarray] | None = None
+    # the run's detection rates across the view (twins.DetectionRates): how likely a map
+    # light the frame should show is found; None until the run has missed one
+    detect: Any = None
 
     def weights(self) -> np.ndarray:
         """``(N,)`` each spot's weight as evidence: 1, :data:`WEAK_WEIGHT` for a weak
@@ -1120,6 +1127,16 @@ class VisibilityTable:
                 ok[idx[valid_mask[uv[:, 1], uv[:, 0]] == 0]] = False
         d = np.hypot(px[:, 0] - nadir_px[0], px[:, 1] - nadir_px[1])
         self.table = np.where(ok, d, np.inf).astype(np.float32).reshape(n[0], n[1])
+        # each cell's patch of the image (VIEW_PATCHES across, rows alike; -1 where not
+        # seen): what a light's detection rate goes by (twins.DetectionRates: its image's
+        # size and the lens's fall-off there)
+        pu, pv = VIEW_PATCHES
+        uv = np.nan_to_num(px, nan=0.0)
+        patch = (np.clip((uv[:, 0] * pu / cam.width).astype(int), 0, pu - 1) + pu
+                 * np.clip((uv[:, 1] * pv / cam.height).astype(int), 0, pv - 1))
+        self.view_patch = np.pad(np.where(ok, patch, -1).astype(np.int16).reshape(n[0], n[1]),
+                                 1, constant_values=-1).ravel()
+        self.view_patch.setflags(write=False)
         # the same, with a border of inf cells: a clipped index off the table lands there
         self.padded = np.pad(self.table, 1, constant_values=np.inf).ravel()
         self.padded.setflags(write=False)
@@ -1141,6 +1158,14 @@ class VisibilityTable:
         ok, cell, zr, zi = locate_core(float(x_m), float(y_m), float(yaw_rad),
                                        *self.arrays)
         return ok, cell, zr + 1j * zi
+
+    def patches(self, z: np.ndarray) -> np.ndarray:
+        """``(K,)`` the image patch (:attr:`view_patch`) of the ceiling points ``z`` (V,
+        ``x + iy``), -1 off the seen ceiling: :func:`locate_core`'s cells, looked up."""
+        ni, nj = self.table.shape
+        i = np.clip(np.rint((z.real - self.origin_m[0]) / self.cell_m), -1, ni) + 1
+        j = np.clip(np.rint((z.imag - self.origin_m[1]) / self.cell_m), -1, nj) + 1
+        return self.view_patch[(i * (nj + 2) + j).astype(np.int64)]
 
     def cell_centres(self) -> np.ndarray:
         """``((NI + 2) (NJ + 2), 2)`` the V coordinates (m) of the padded table's cell

@@ -38,7 +38,7 @@ from ceilkit.runtime.estimators.lights.matching import (
     symmetry_table,
     twin_poses,
 )
-from ceilkit.runtime.estimators.lights.observe import Observation
+from ceilkit.runtime.estimators.lights.observe import VIEW_PATCHES, Observation
 from ceilkit.runtime.geometry.fits import rigid_fit_rms
 from ceilkit.runtime.geometry.rotations import wrap_pi
 
@@ -56,10 +56,66 @@ than this from the axis a pose puts the lamp at refutes that pair (:meth:`TwinJu
 aligned`): halfway to a quarter turn. Measured over the held-out lamp drives of
 ``bench_heldout_lights.py`` (seeds 3, 7, 11, 13, 19; every 5th frame, 4,396 kept spots at
 the true pose) the axis is at most 37 deg off (95 % within 6.5 deg)."""
+DETECT_PRIOR = 3.0
+"""Lights each bin of :class:`DetectionRates` counts found before the run shows any:
+until then a light the frame should show is expected (after three fixes that each
+missed the patch's only light, a miss there counts a quarter)."""
+DETECT_MEMORY = 300.0  # lights per patch the rates remember (older ones fade)
 PAIR_NEIGHBOUR = 4
 """On a map not searched for symmetries, the pairs indexed for the per-frame twin search
 reach 1.5 times the median distance of a light to its this-th nearest other
 (:class:`PairVectors`)."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DetectionRates:
+    """How often the run's detector finds a map light its fixes show, patch by patch of
+    the image (:data:`~.observe.VIEW_PATCHES`).
+
+    A light far out in the view is imaged small and dim (the lens's fall-off): under a
+    fisheye thresholded at a high level such lights are never found. Counted missing at
+    every pose, they ranked poses by how few lights they show in view: the map's edge
+    won, and the truth, whose view is full of such lights, fell out of its own list
+    (held-out seed 31 ``grid1``, docs/methods/lights.md). Each fix the estimator
+    publishes adds the lights it shows, found (matched, or where the frame has a region
+    the checks did not keep) or missed, by their patch (:meth:`~.observe.
+    VisibilityTable.patches`); a light missing where the rate is ``p`` is evidence
+    ``p`` of a missing one (:meth:`TwinJudge.present`). Held by the estimator between
+    frames (``LightsEstimator.forget`` empties it).
+
+    Attributes:
+        found, shown: ``(patches,)`` lights found and shown per patch (faded past
+            :data:`DETECT_MEMORY`).
+    """
+
+    found: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(_PATCHES))
+    shown: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(_PATCHES))
+
+    @property
+    def missed(self) -> bool:
+        """Whether the run has missed a light (before that, every rate is 1)."""
+        return bool(self.found.sum() < self.shown.sum())
+
+    def added(self, found: np.ndarray, missed: np.ndarray) -> DetectionRates:
+        """The rates with one fix's lights added: their patches, found and missed (-1,
+        off the seen ceiling, left out)."""
+        hit = _counted(found)
+        shown = self.shown + hit + _counted(missed)
+        fade = np.minimum(1.0, DETECT_MEMORY / np.maximum(shown, 1e-9))
+        return DetectionRates((self.found + hit) * fade, shown * fade)
+
+    def rate(self, patch: np.ndarray) -> np.ndarray:
+        """``(K,)`` the rate a light in each ``patch`` is found (1 off the seen ceiling)."""
+        p = np.append((self.found + DETECT_PRIOR) / (self.shown + DETECT_PRIOR), 1.0)
+        return p[np.asarray(patch, np.int64)]      # -1: the appended 1
+
+
+_PATCHES = VIEW_PATCHES[0] * VIEW_PATCHES[1]
+
+
+def _counted(patch: np.ndarray) -> np.ndarray:
+    patch = np.asarray(patch, np.int64)
+    return np.bincount(patch[patch >= 0], minlength=_PATCHES).astype(float)
 
 
 class PairVectors:
@@ -236,18 +292,47 @@ class TwinJudge:
         measures explained (the estimator's ``misfit``). Pairs whose lamp is seen
         turned are dropped first (:meth:`aligned`)."""
         c = self.aligned(obs, c)
-        rv = obs.rejected_v
-        if rv is None or rv.size == 0 or c.missing == 0 or self.present_m <= 0:
+        if c.missing == 0:
             return c
-        z = self.matcher.unmatched_seen(c)
+        z, there = self._missing(obs, c)
         if z.size == 0:
             return c
-        there = int(np.count_nonzero(
-            np.abs(z[:, None] - rv[None, :]).min(axis=1) <= self.present_m))
-        if there == 0:
+        n = int(np.count_nonzero(there))
+        unseen = 0.0
+        if obs.detect is not None and self.matcher.visible is not None:
+            # of the lights missing, those the run's detector would miss anyway
+            unseen = float(np.sum(1.0 - obs.detect.rate(
+                self.matcher.visible.patches(z[~there]))))
+        if n == 0 and unseen == 0.0:
             return c
-        return dataclasses.replace(c, missing=c.missing - there, present=there,
-                                   score=c.score + MISSING_PENALTY * there)
+        return dataclasses.replace(c, missing=c.missing - n, present=n, unseen=unseen,
+                                   score=c.score + MISSING_PENALTY * (n + unseen))
+
+    def _missing(self, obs: Observation, c: Candidate) -> tuple[np.ndarray, np.ndarray]:
+        """The lights ``c`` shows that matched no spot (V, ``x + iy``) and which of them
+        lie where the frame has a region the checks did not keep (:meth:`present`)."""
+        rv = obs.rejected_v
+        if (rv is None or rv.size == 0 or self.present_m <= 0) and obs.detect is None:
+            return np.zeros(0, np.complex128), np.zeros(0, bool)
+        z = self.matcher.unmatched_seen(c)
+        if z.size == 0 or rv is None or rv.size == 0 or self.present_m <= 0:
+            return z, np.zeros(z.size, bool)
+        return z, np.abs(z[:, None] - rv[None, :]).min(axis=1) <= self.present_m
+
+    def detections(self, obs: Observation, c: Candidate) -> tuple[np.ndarray, np.ndarray]:
+        """The image patches (:meth:`~.observe.VisibilityTable.patches`) of the lights the
+        pose ``c`` shows, found (matched, or where the frame has a region the checks did
+        not keep) and missed: what a published fix teaches :class:`DetectionRates`."""
+        table = self.matcher.visible
+        found = table.patches(obs.q_v[c.pairs[:, 0], 0] + 1j * obs.q_v[c.pairs[:, 0], 1])
+        if c.missing + c.present == 0:
+            return found, np.zeros(0, np.int64)
+        z = self.matcher.unmatched_seen(dataclasses.replace(c, missing=c.missing + c.present))
+        rv = obs.rejected_v
+        there = (np.abs(z[:, None] - rv[None, :]).min(axis=1) <= self.present_m
+                 if z.size and rv is not None and rv.size and self.present_m > 0
+                 else np.zeros(z.size, bool))
+        return np.concatenate([found, table.patches(z[there])]), table.patches(z[~there])
 
     def aligned(self, obs: Observation, c: Candidate) -> Candidate:
         """``c`` without the pairs whose spot shows its rectangular lamp's long side
@@ -288,7 +373,7 @@ class TwinJudge:
         """A candidate's score with each spot at its weight (:meth:`Observation.weights`):
         the weighted spots it explains less :data:`~.matching.MISSING_PENALTY` per map
         light it should show that matched nothing."""
-        return float(weights[c.pairs[:, 0]].sum()) - MISSING_PENALTY * c.missing
+        return float(weights[c.pairs[:, 0]].sum()) - MISSING_PENALTY * (c.missing - c.unseen)
 
     def twins(self, obs: Observation, best: Candidate) -> tuple[list[Candidate], bool]:
         """The best pose moved by each motion of the map (on a regular grid the other
