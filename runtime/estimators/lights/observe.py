@@ -1159,6 +1159,13 @@ class VisibilityTable:
                                        *self.arrays)
         return ok, cell, zr + 1j * zi
 
+    def unseen(self, z: np.ndarray, rates: np.ndarray) -> float:
+        """The sum of ``1 - rates[patch]`` over the ceiling points ``z`` (V, ``x + iy``;
+        :meth:`patches`; none off the seen ceiling), in one compiled call: the share of
+        their lights a detector of those ``rates`` would miss anyway."""
+        return unseen_core(np.ascontiguousarray(z, np.complex128), self.view_patch,
+                           self.arrays[2], self.arrays[3], rates)
+
     def patches(self, z: np.ndarray) -> np.ndarray:
         """``(K,)`` the image patch (:attr:`view_patch`) of the ceiling points ``z`` (V,
         ``x + iy``), -1 off the seen ceiling: :func:`locate_core`'s cells, looked up."""
@@ -1210,6 +1217,24 @@ def locate_core(x, y, yaw, lights, padded, geo, ints):  # pragma: no cover - com
     return ok, cell, zr, zi
 
 
+@njit
+def unseen_core(z, patch, geo, ints, rates):  # pragma: no cover - compiled
+    """:meth:`VisibilityTable.unseen`: ``sum(1 - rates[patch of z])`` over the points
+    ``z`` (V, complex) that lie on the seen ceiling (``patch``: the padded table's
+    :attr:`~VisibilityTable.view_patch`; ``geo``, ``ints``: its ``arrays[2:]``), their
+    cells as :func:`locate_core` finds them."""
+    ni, nj = ints[0], ints[1]
+    ox, oy, cell_m = geo[0], geo[1], geo[2]
+    s = 0.0
+    for k in range(z.size):
+        i = min(max(np.int64(np.rint((z[k].real - ox) / cell_m)), -1), ni) + 1
+        j = min(max(np.int64(np.rint((z[k].imag - oy) / cell_m)), -1), nj) + 1
+        b = patch[i * (nj + 2) + j]
+        if b >= 0:
+            s += 1.0 - rates[b]
+    return s
+
+
 @warmer
 def _warm() -> None:
     from ceilkit.runtime.geometry.camera import CameraModel
@@ -1222,9 +1247,11 @@ def _warm() -> None:
                  SpotChecks(0.1, 16, 16, RIM_REACH, RIM_MARGIN_PX))
     locate_core(0.0, 0.0, 0.0, f, arr(np.zeros(9), np.float32), arr(np.ones(3), np.float64),
                 arr(np.ones(3), np.int64))
+    unseen_core(np.zeros(1, np.complex128), arr(np.zeros(9, np.int16), np.int16),
+                arr(np.ones(3), np.float64), arr(np.ones(3), np.int64), np.ones(1))
 
 
 __all__ = ["JAC_STEP_PX", "RIM_MARGIN_PX", "RIM_REACH", "VIEW_MARGIN_PX", "WEAK_WEIGHT",
            "GridArrays", "Observation", "SpotChecks", "kernel_rig", "polygon_moments",
            "rectangle_outline", "bloom_outline", "SpotObserver", "VisibilityTable", "examine_core",
-           "locate_core", "plausible_spot", "spot_table", "uncut_spot"]
+           "locate_core", "unseen_core", "plausible_spot", "spot_table", "uncut_spot"]

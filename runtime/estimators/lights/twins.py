@@ -21,6 +21,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any
 
@@ -104,10 +105,14 @@ class DetectionRates:
         fade = np.minimum(1.0, DETECT_MEMORY / np.maximum(shown, 1e-9))
         return DetectionRates((self.found + hit) * fade, shown * fade)
 
+    @functools.cached_property
+    def rates(self) -> np.ndarray:
+        """``(patches,)`` the rate a light in each patch is found."""
+        return (self.found + DETECT_PRIOR) / (self.shown + DETECT_PRIOR)
+
     def rate(self, patch: np.ndarray) -> np.ndarray:
         """``(K,)`` the rate a light in each ``patch`` is found (1 off the seen ceiling)."""
-        p = np.append((self.found + DETECT_PRIOR) / (self.shown + DETECT_PRIOR), 1.0)
-        return p[np.asarray(patch, np.int64)]      # -1: the appended 1
+        return np.append(self.rates, 1.0)[np.asarray(patch, np.int64)]   # -1: the 1
 
 
 _PATCHES = VIEW_PATCHES[0] * VIEW_PATCHES[1]
@@ -301,12 +306,12 @@ class TwinJudge:
         unseen = 0.0
         if obs.detect is not None and self.matcher.visible is not None:
             # of the lights missing, those the run's detector would miss anyway
-            unseen = float(np.sum(1.0 - obs.detect.rate(
-                self.matcher.visible.patches(z[~there]))))
+            unseen = self.matcher.visible.unseen(z[~there] if n else z, obs.detect.rates)
         if n == 0 and unseen == 0.0:
             return c
-        return dataclasses.replace(c, missing=c.missing - n, present=n, unseen=unseen,
-                                   score=c.score + MISSING_PENALTY * (n + unseen))
+        return Candidate(c.x_m, c.y_m, c.yaw_rad, c.pairs,
+                         c.score + MISSING_PENALTY * (n + unseen), c.rms_m, c.missing - n,
+                         n, unseen)
 
     def _missing(self, obs: Observation, c: Candidate) -> tuple[np.ndarray, np.ndarray]:
         """The lights ``c`` shows that matched no spot (V, ``x + iy``) and which of them
