@@ -395,9 +395,7 @@ class Fusion:
         self.start_poses = 0
         self.modes = ModeSet(self.options, self.gates)   # the poses an ambiguity leaves
         self.tr = TrackFlags()
-        # no prior past prior_sigma_rad of heading (False: its consumer, the auto
-        # estimator, withholds it from each method that cannot use it)
-        self.heading_cap = True
+        self.heading_cap = True  # prior_sigma_rad's cap here (False: AutoEstimator's, per method)
 
     @property
     def tracking(self) -> bool:

@@ -240,8 +240,7 @@ class LightsEstimator(Estimator):
         options: :class:`LightsOptions`, a mapping of them, or ``None``.
 
     Raises:
-        ConfigError: no lights in the site, an impossible option, or a ceiling below
-            the camera.
+        ConfigError: no lights in the site, an impossible option, a ceiling below the camera.
     """
 
     name = NAME
