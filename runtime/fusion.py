@@ -395,7 +395,6 @@ class Fusion:
         self.start_poses = 0
         self.modes = ModeSet(self.options, self.gates)   # the poses an ambiguity leaves
         self.tr = TrackFlags()
-        self.heading_cap = True  # prior_sigma_rad's cap here (False: AutoEstimator's, per method)
 
     @property
     def tracking(self) -> bool:
@@ -529,7 +528,7 @@ class Fusion:
         # between a frame's twins (a symmetric corridor's half turn)
         x, y = (v if v is not None and s <= self.options.prior_sigma_m else None
                 for v, s in ((pose.x_m, sd[0]), (pose.y_m, sd[1])))
-        if y is None or (self.heading_cap and sd[2] > self.options.prior_sigma_rad):
+        if y is None or sd[2] > self.options.prior_sigma_rad:
             return None
         return dataclasses.replace(pose, x_m=x, y_m=y, provenance=Provenance.TRACK)
 

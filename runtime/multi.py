@@ -64,9 +64,6 @@ class AutoEstimator:
             raise ConfigError(None, f"options.{unknown[0]}",
                               f"unknown option (expected one of {', '.join(sorted(known))})")
         self.rig, self.site = rig, site
-        # a prior whose heading 1σ exceeds this goes only to the methods that judge a
-        # prior by its region (Estimator.wide_heading_prior); None: to every method
-        self.heading_cap_rad: float | None = None
 
     def forget(self) -> None:
         """Every method's :meth:`~ceilkit.runtime.estimators.base.Estimator.forget`."""
@@ -81,11 +78,7 @@ class AutoEstimator:
                  prior: PoseEstimate | None = None) -> Estimate:
         """Each method's estimate; the one that observes most is returned, with all of
         them as its ``cues``."""
-        wide = (prior is not None and self.heading_cap_rad is not None
-                and prior.cov is not None
-                and float(np.asarray(prior.cov)[2, 2]) > self.heading_cap_rad ** 2)
-        cues = tuple(e.estimate(image, t_ns, None if wide and not e.wide_heading_prior
-                                else prior) for e in self.estimators)
+        cues = tuple(e.estimate(image, t_ns, prior) for e in self.estimators)
         best = max(cues, key=_observes)
         return dataclasses.replace(best, cues=cues)
 
@@ -146,11 +139,7 @@ def make_localizer(method: str | None, rig: Rig, site: Site,
             out = _single(auto.estimators[0], fusion)
         else:
             pose, sigma = split_start_pose(start_pose)
-            track = Fusion(fusion, start_pose=pose, start_sigma=sigma)
-            # the heading cap per method: a lights estimator still chooses by the
-            # prior's region where the parallels' branch could not
-            track.heading_cap, auto.heading_cap_rad = False, fusion.prior_sigma_rad
-            out = auto, track
+            out = auto, Fusion(fusion, start_pose=pose, start_sigma=sigma)
     chosen = out[0].estimators if isinstance(out[0], AutoEstimator) else [out[0]]
     warm_up(roots=[type(o) for o in (*chosen, out[1])])
     return out

@@ -419,11 +419,6 @@ class Estimator(ABC):
     name: ClassVar[str]
     Options: ClassVar[type[EstimatorOptions]] = EstimatorOptions
     site_sections: ClassVar[tuple[str, ...]] = ()
-    wide_heading_prior: ClassVar[bool] = False
-    """Whether a prior of any heading 1σ is of use: every choice the estimator makes
-    with it is judged by the prior's own region (:mod:`.prior`), none by the branch
-    nearest its heading. The fusion gives the others no prior past its
-    ``prior_sigma_rad`` (:class:`~ceilkit.runtime.multi.AutoEstimator`)."""
 
     def __init__(self, rig: Any, site: Any,
                  options: EstimatorOptions | Mapping[str, Any] | None = None) -> None:

@@ -147,35 +147,3 @@ def test_no_track_replay_of_random_poses_publishes_one_estimate_per_frame(
     folder = _record(tmp_path, "random", lights_rig, lights_site, traj)
     raw = _replayed(folder, track=False)
     assert [_pos_error(e, traj.pose(k)) < 0.01 for k, (e, _) in enumerate(raw)] == [True] * 8
-
-
-def test_a_wide_heading_prior_goes_only_to_the_methods_that_judge_it_by_its_region(
-        lights_rig, lights_site):
-    """Under ``auto`` the fusion's prior past ``prior_sigma_rad`` of heading 1σ (a track
-    coasting through frames of one light) goes to the lights method, whose every choice
-    is judged by the prior's region, and to no method that takes the branch nearest its
-    heading (the block's parallels). Held-out lights seed 31 ``grid0`` (a pinhole under
-    a 1.89 x 1.81 m grid, ten frames of one light): ``auto`` from its start pose 23/100
-    frames, the track dropped after them; now 89/100 as ``lights`` alone, 0 wrong."""
-    est, tracker = make_localizer("auto", lights_rig, lights_site, start_pose=(1.0, 2.0, 0.5))
-    assert isinstance(est, AutoEstimator) and isinstance(tracker, Fusion)
-    cap = tracker.options.prior_sigma_rad
-    assert est.heading_cap_rad == cap and not tracker.heading_cap
-
-    class Seen:
-        def __init__(self, wide: bool) -> None:
-            self.wide_heading_prior, self.priors = wide, []
-
-        def estimate(self, image, t_ns, prior=None):
-            self.priors.append(prior)
-            return PoseEstimate(t_ns, "seen", 1.0, 2.0, 0.5, 1.0)
-
-    lights, parallels = Seen(True), Seen(False)
-    est.estimators = [lights, parallels]
-    img = np.zeros((4, 4), np.uint8)
-    for sd in (0.5 * cap, 2.0 * cap):
-        prior = PoseEstimate(0, "fusion", 1.0, 2.0, 0.5, 0.5,
-                             cov=np.diag([0.01, 0.01, sd * sd]))
-        est.estimate(img, 0, prior)
-    assert lights.priors[0] is not None and lights.priors[1] is not None
-    assert parallels.priors[0] is not None and parallels.priors[1] is None

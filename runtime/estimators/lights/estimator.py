@@ -246,7 +246,6 @@ class LightsEstimator(Estimator):
     name = NAME
     Options: ClassVar[type[EstimatorOptions]] = LightsOptions
     site_sections = ("lights",)
-    wide_heading_prior = True     # its twins, window and association: prior regions
 
     def __init__(self, rig: Rig, site: Site,
                  options: LightsOptions | Mapping[str, Any] | None = None) -> None:
