@@ -450,7 +450,8 @@ class LightsEstimator(Estimator):
                 return self.fail(t_ns, "no_match",
                                  f"the best pose fits {cands[0].inliers} lights, only "
                                  f"{strong} of them well inside the view (a global fix "
-                                 f"needs {min_inliers})", **diag)
+                                 f"needs {min_inliers})", hypotheses=() if prior is None
+                                 else self._hypotheses(obs, cands, prior), **diag)
         best_e = self.judge.evidence(cands[0], weights)
         cand, mode = cands[0], "global"
         margin = self.options.ambiguity_margin

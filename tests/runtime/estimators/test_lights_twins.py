@@ -4,6 +4,7 @@ once (issue 36/39: a surveyed regular grid, a wrong valid pose near the map's ed
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 from pathlib import Path
 
@@ -154,3 +155,41 @@ def test_lights_the_run_never_finds_do_not_refute_the_truth():
         assert isinstance(out, PoseEstimate), (frame.t_ns, out)
         assert math.hypot(out.x_m - x, out.y_m - y) < 0.02
     assert est._detect.missed
+
+
+def test_a_frame_of_weak_lights_lists_its_poses_and_refutes_a_track_far_from_them(
+        monkeypatch, lights_rig, lights_site):
+    """A frame whose best pose rests on fewer than ``min_inliers`` lights well inside
+    the view is no fix (``no_match``); with a prior it lists the poses it supports, so a
+    track none of them is near counts it as a contradiction, and ``confirm`` of them in
+    a row drop it. Held-out seed 3 ``lamps1`` (carried 5 m at frame 50): such frames,
+    silent before, let the coasting track's region widen until the global search's
+    twins held one inside it, published 5.4 m off; now the track is dropped first."""
+    from ceilkit.runtime.estimators.lights import observe as observe_module
+    from ceilkit.runtime.tracking import Tracker
+
+    rec = Path(__file__).resolve().parents[2] / "fixtures" / "lights_rec"
+    truth = list(csv.DictReader(open(rec / "truth.csv")))
+    frame = Recording(rec).frame(0)
+    x, y = float(truth[0]["x"]), float(truth[0]["y"])
+    yaw = math.radians(float(truth[0]["yaw_deg"]))
+    real = observe_module.SpotObserver.observe
+
+    def weak(self, grey, blooms=None):    # all but two of the lights near the edge
+        obs = real(self, grey, blooms)
+        w = np.ones(len(obs.spots), bool)
+        w[obs.order[:2]] = False
+        return dataclasses.replace(obs, weak=w)
+
+    monkeypatch.setattr(observe_module.SpotObserver, "observe", weak)
+    est = LightsEstimator(lights_rig, lights_site)
+    assert est.estimate(frame.image, frame.t_ns).hypotheses == ()
+    far = (x + 5.0, y - 2.0, yaw)
+    tracker = Tracker(start_pose=far)
+    for k in range(3):
+        t = frame.t_ns + k * 33_000_000
+        out = est.estimate(frame.image, t, tracker.predict(t))
+        assert out.reason == "no_match" and out.hypotheses, out
+        assert min(math.hypot(h.x_m - x, h.y_m - y) for h in out.hypotheses) < 0.05
+        tracker.update(out)
+    assert tracker.predict(frame.t_ns + 99_000_000) is None
